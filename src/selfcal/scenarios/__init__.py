@@ -1,0 +1,1 @@
+"""selfcal.scenarios"""

@@ -1,0 +1,1 @@
+"""selfcal.slac"""

@@ -1,0 +1,156 @@
+"""Specification of the shared core: validation, alignment, metrics, I/O, sweep runner."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from hypothesis.extra.numpy import arrays
+
+from selfcal import DegenerateGeometryError, InputError
+from selfcal._checks import as_matrix, check_toa_counts
+from selfcal.experiments import run_sweep, write_rows
+from selfcal.geometry import (
+    align,
+    canonical_gauge,
+    rotation_from_rotvec,
+    rotvec_from_rotation,
+    sphere_exp,
+)
+from selfcal.io import read_matrix, write_json
+from selfcal.metrics import aligned_rmse, angle_error, rotation_angle_error
+
+
+def _random_rotation(rng: np.random.Generator, d: int, proper: bool = True) -> np.ndarray:
+    Q, _ = np.linalg.qr(rng.normal(size=(d, d)))
+    if proper and np.linalg.det(Q) < 0:
+        Q[:, 0] *= -1
+    return Q
+
+
+@pytest.mark.parametrize("d", [2, 3])
+@pytest.mark.parametrize("reflect", [False, True])
+def test_align_recovers_rigid_transform(rng: np.random.Generator, d: int, reflect: bool) -> None:
+    X = rng.normal(size=(12, d))
+    R = _random_rotation(rng, d)
+    if reflect:
+        R = R @ np.diag([1.0] * (d - 1) + [-1.0])
+    t = rng.normal(size=d)
+    Y = X @ R.T + t
+    al = align(X, Y, reflection=True)
+    np.testing.assert_allclose(al.apply(X), Y, atol=1e-10)
+    if reflect:
+        # a proper-only alignment cannot undo a mirror image
+        assert np.abs(align(X, Y, reflection=False).apply(X) - Y).max() > 1e-3
+
+
+def test_align_similarity_scale(rng: np.random.Generator) -> None:
+    X = rng.normal(size=(10, 3))
+    Y = 2.5 * X @ _random_rotation(rng, 3).T + 1.0
+    al = align(X, Y, scale=True)
+    assert al.scale == pytest.approx(2.5, rel=1e-10)
+    np.testing.assert_allclose(al.apply(X), Y, atol=1e-10)
+
+
+def test_aligned_rmse_matches_definition(rng: np.random.Generator) -> None:
+    R = rng.normal(size=(8, 2)) * 5
+    S = rng.normal(size=(10, 2)) * 7
+    noise = rng.normal(scale=0.1, size=R.shape)
+    Rot = _random_rotation(rng, 2)
+    est_R = (R + noise) @ Rot.T + 3.0
+    err = aligned_rmse(est_R, R, est_R[:2], R[:2])
+    al = align(est_R, R)
+    expected = np.sqrt(np.mean(np.sum((al.apply(est_R) - R) ** 2, axis=1)))
+    assert err.rmse_receivers == pytest.approx(expected)
+    assert err.rmse_receivers < 0.2
+
+
+def test_rotvec_roundtrip_and_sphere_exp(rng: np.random.Generator) -> None:
+    v = rng.normal(size=(5, 3))
+    R = rotation_from_rotvec(v)
+    np.testing.assert_allclose(R @ np.swapaxes(R, -1, -2), np.broadcast_to(np.eye(3), R.shape), atol=1e-12)
+    np.testing.assert_allclose(rotation_from_rotvec(rotvec_from_rotation(R)), R, atol=1e-10)
+    n = np.array([0.0, 0.0, 1.0])
+    out = sphere_exp(n, np.array([np.pi / 2, 0.0, 0.0]))
+    np.testing.assert_allclose(out, [1.0, 0.0, 0.0], atol=1e-12)
+    assert rotation_angle_error(R[0], R[0]) == pytest.approx(0.0, abs=1e-7)
+    assert angle_error(np.pi - 0.1, -np.pi + 0.1) == pytest.approx(-0.2)
+
+
+def test_canonical_gauge_is_invariant_to_rigid_motion(rng: np.random.Generator) -> None:
+    X = rng.normal(size=(9, 3)) * [5, 3, 1]
+    A, _, _ = canonical_gauge(X)
+    B, _, _ = canonical_gauge(X @ _random_rotation(rng, 3).T + 7.0)
+    np.testing.assert_allclose(A, B, atol=1e-9)
+
+
+@settings(max_examples=60, deadline=None)
+@given(arrays(np.float64, st.tuples(st.integers(1, 6), st.integers(1, 6)), elements=st.sampled_from([0.0, 1.5, -2.0, np.nan, np.inf])))
+def test_as_matrix_refuses_bad_values(a: np.ndarray) -> None:
+    bad = np.isinf(a).any() or np.isnan(a).all() or (a[np.isfinite(a)] < 0).any()
+    if bad:
+        with pytest.raises(InputError):
+            as_matrix(a, nonnegative=True)
+    else:
+        out = as_matrix(a, nonnegative=True)
+        np.testing.assert_array_equal(np.isnan(out), np.isnan(a))
+
+
+def test_as_matrix_refuses_wrong_ndim() -> None:
+    with pytest.raises(InputError, match="2-D"):
+        as_matrix(np.zeros(3))
+
+
+def test_too_few_nodes_named() -> None:
+    with pytest.raises(DegenerateGeometryError) as exc:
+        check_toa_counts((3, 10), 30, 3, "none")
+    assert exc.value.kind == "too-few-receivers"
+    with pytest.raises(DegenerateGeometryError) as exc:
+        check_toa_counts((10, 2), 20, 2, "none")
+    assert exc.value.kind == "too-few-sources"
+
+
+def test_read_matrix_csv_missing_and_errors(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    p = tmp_path / "m.csv"
+    p.write_text("1,2,\nnan,4,5\n")
+    m = read_matrix(p)
+    assert m.shape == (2, 3) and np.isnan(m[0, 2]) and np.isnan(m[1, 0])
+    p.write_text("1,x\n")
+    with pytest.raises(InputError, match="row 1, column 2"):
+        read_matrix(p)
+    p.write_text("1,2\n3\n")
+    with pytest.raises(InputError, match="different numbers"):
+        read_matrix(p)
+    q = tmp_path / "obj.npy"
+    np.save(q, np.array([{"a": 1}], dtype=object), allow_pickle=True)
+    with pytest.raises(InputError):
+        read_matrix(q)
+
+
+def test_write_json_is_strict_and_atomic(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    p = tmp_path / "r.json"
+    write_json(p, {"a": np.array([1.0, np.nan]), "b": np.float32(2.0)})
+    assert json.loads(p.read_text()) == {"a": [1.0, None], "b": 2.0}
+    with pytest.raises(TypeError):
+        write_json(p, {"a": object()})
+    assert json.loads(p.read_text())["b"] == 2.0  # the old file survives a failed write
+    assert [f.name for f in tmp_path.iterdir()] == ["r.json"]
+
+
+def _square_trial(params: dict, seed: int) -> dict:  # type: ignore[type-arg]
+    return {"value": params["x"] ** 2, "draw": float(np.random.default_rng(seed).normal())}
+
+
+@pytest.mark.parametrize("backend", ["serial", "processes", "dask"])
+def test_sweep_is_seeded_and_backend_independent(backend: str, tmp_path) -> None:  # type: ignore[no-untyped-def]
+    grid = [{"x": 1}, {"x": 2}]
+    a = run_sweep(_square_trial, grid, runs=3, seed=7, backend="serial", progress=False)
+    b = run_sweep(_square_trial, grid, runs=3, seed=7, backend=backend, workers=2, progress=False)
+    assert a == b
+    assert [r["value"] for r in a] == [1, 1, 1, 4, 4, 4]
+    assert len({r["seed"] for r in a}) == 6
+    write_rows(a, tmp_path / "rows.csv")
+    assert (tmp_path / "rows.csv").read_text().splitlines()[0].startswith("x,rep,seed,value")
