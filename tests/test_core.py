@@ -57,7 +57,6 @@ def test_align_similarity_scale(rng: np.random.Generator) -> None:
 
 def test_aligned_rmse_matches_definition(rng: np.random.Generator) -> None:
     R = rng.normal(size=(8, 2)) * 5
-    S = rng.normal(size=(10, 2)) * 7
     noise = rng.normal(scale=0.1, size=R.shape)
     Rot = _random_rotation(rng, 2)
     est_R = (R + noise) @ Rot.T + 3.0
