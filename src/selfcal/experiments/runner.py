@@ -94,10 +94,10 @@ def run_sweep(
             else:
                 client = Client(scheduler)
             try:
-                futs = [client.submit(_call, trial, p, r, s, pure=False) for (p, r, s) in tasks]
-                index = {f.key: k for k, f in enumerate(futs)}
-                for f in das_completed(futs):
-                    rows[index[f.key]] = f.result()
+                dfuts = [client.submit(_call, trial, p, r, s, pure=False) for (p, r, s) in tasks]
+                index = {f.key: k for k, f in enumerate(dfuts)}
+                for df in das_completed(dfuts):
+                    rows[index[df.key]] = df.result()
                     bar.update()
             finally:
                 client.close()
