@@ -1,0 +1,784 @@
+"""Onset times and internal delays from a full TOA matrix: the rank-3 method of paper 004.
+
+Model (004 eq. 3.1), rows = receivers (microphones) i = 1..I, columns = senders
+(loudspeakers / acoustic events) j = 1..J, everything in **metres** (multiply measured
+times by the speed c before calling; divide the offsets by c afterwards)::
+
+    t_ij = |r_i - s_j| + tau_j + delta_i        (noise-free)
+
+Only tau_j + delta_i is observable, so the gauge is tau_1 = 0 and the unknowns are
+(eq. 3.5) ``p = [delta_1, ..., delta_I, tau_2, ..., tau_J]`` (length K = I + J - 1).
+
+Squaring d_ij = t_ij - tau_j - delta_i = |r_i - s_j| and double-centring on receiver 1
+and sender 1 removes the norms (eqs. 3.2-3.4)::
+
+    -2 (r_i - r_1)^T (s_j - s_1) = T_ij + [A(p)]_ij + Gamma_ij,     i, j >= 2
+    T_ij    = t_ij^2 - t_1j^2 - t_i1^2 + t_11^2
+    A(p)    = C^{-1}(W p), W has 3 non-zeros per row: 2(t_1j - t_11) at delta_1,
+              -2(t_ij - t_i1) at delta_i, -2(t_ij - t_1j) at tau_j
+    Gamma_ij = 2 tau_j (delta_i - delta_1)
+
+The left side has rank d (3 in 3-D), so the correct p makes ``T + A(p) + Gamma`` rank d.
+The thesis assumes equal internal delays (Gamma = 0, sec. 3.5) and iterates (sec. 3.5.1):
+rank-d truncation by SVD (3.13), error (3.14), least-squares update of p (3.11/3.15),
+Frobenius norm (3.17); :func:`rank3_iteration` is that iteration (with the regularised
+update 3.19-3.23). It is an alternating projection for
+
+    minimise over p:  f(p) = sum_{k > d} sigma_k(T + A(p) + Gamma(p))^2          (*)
+
+and converges linearly, in thousands of iterations. :func:`rank3_lm` minimises the same
+(*) by Levenberg-Marquardt in p with variable projection (the rank-d factor is eliminated
+by the SVD): every column of the Jacobian of ``T + A + Gamma`` is a rank-one matrix
+u_k v_k^T, so the Gauss-Newton normal matrix is the Hadamard product
+``(U~^T U~) o (V~^T V~)`` of the projected factors, O((I+J) K^2) per iteration, and it
+converges quadratically on noise-free data (tens of iterations). With ``model="exact"``
+(the default of :func:`estimate_offsets`) it keeps Gamma, so distinct internal delays
+are recovered exactly too; ``model="linear"`` is the thesis's Gamma = 0 model, the same
+fixed point as the faithful iteration.
+
+Identifiability of the rank method (our derivation; the thesis's count 3.6/3.18 is for
+the full model): the (I-1) x (J-1) matrix must have rank <= d, a variety of codimension
+(I-1-d)(J-1-d), and it has to pin down K = I+J-1 offsets, so we need
+``I >= d+2, J >= d+2`` and ``(I-1-d)(J-1-d) >= I+J-1``. With U units (I = J = U) that
+is U >= 8 in 3-D and U >= 7 in 2-D. The thesis counts equations against all unknowns
+of (3.1) (4U per side in 3-D, minus 7 gauge): U^2 - 8U + 7 >= 0, U >= 7, which is the
+condition for the full nonlinear model (the NLS refinement), not for the rank method,
+which discards the norm information.
+
+Units of the thesis constants: the thesis works in seconds (c = 1 in the text, seconds
+in its simulation). Its thresholds are on quantities in s^2 and scale with c^2: the
+convergence threshold 1e-12 s^2, lambda threshold 1e-8 s^2 and acceptance 8e-7 s^2 become
+``THESIS_TOL``, ``THESIS_LAM_SWITCH`` and ``THESIS_ACCEPT`` in m^2 (c = 343 m/s).
+"""
+
+from __future__ import annotations
+
+import time
+import warnings
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from .._checks import as_matrix, as_rng, check_choice, check_dim
+from ..errors import ConvergenceWarning, DegenerateGeometryError, InputError
+
+__all__ = [
+    "THESIS_SPEED",
+    "THESIS_TOL",
+    "THESIS_LAM_SWITCH",
+    "THESIS_ACCEPT",
+    "DELAY_MAX",
+    "ONSET_MAX",
+    "Rank3Result",
+    "check_rank_identifiable",
+    "double_centre",
+    "thesis_T",
+    "thesis_W",
+    "apply_A",
+    "apply_Wt",
+    "gamma_term",
+    "offset_matrix",
+    "rank3_iteration",
+    "rank3_lm",
+    "estimate_offsets",
+    "positions_from_ranges",
+    "initialize_offsets",
+    "thesis_lambda",
+]
+
+Array = NDArray[np.float64]
+
+THESIS_SPEED = 343.0
+#: convergence threshold on the change of F (3.17): 1e-12 s^2 (sec. 4.1) in m^2
+THESIS_TOL = 1e-12 * THESIS_SPEED**2
+#: lambda is set to 0 when ||T_hat||_F changes by less than 1e-8 s^2 (listing A.1.3), in m^2
+THESIS_LAM_SWITCH = 1e-8 * THESIS_SPEED**2
+#: acceptance: final F (3.17) below 8e-7 s^2 (sec. 4.3), in m^2 (about 0.094 m^2)
+THESIS_ACCEPT = 8e-7 * THESIS_SPEED**2
+#: initialisation ranges of the thesis (delays 0-20 ms, onsets 0-30 ms) in metres
+DELAY_MAX = 0.020 * THESIS_SPEED
+ONSET_MAX = 0.030 * THESIS_SPEED
+
+
+def thesis_lambda(lam_seconds: float, n_receivers: int, n_senders: int, speed: float = THESIS_SPEED) -> float:
+    """Convert a lambda of the thesis listing (A.1.3, seconds, scaled by I+J-1) to our ``lam`` (m^2).
+
+    The listing solves ``(W^T W + lambda (I+J-1) I) p = W^T C(E)`` with times in seconds;
+    eq. (3.23) has no (I+J-1). Our ``lam`` is the one of (3.23) in metres, so the listing's
+    value maps to ``lam = lambda (I+J-1) c^2``.
+    """
+    return float(lam_seconds) * (n_receivers + n_senders - 1) * speed**2
+
+
+# ----------------------------------------------------------------------------- building blocks
+
+
+def double_centre(X: Array) -> Array:
+    """``X_ij - X_1j - X_i1 + X_11`` for i, j >= 2: (I, J) -> (I-1, J-1) (the step 3.2 -> 3.4)."""
+    return X[1:, 1:] - X[:1, 1:] - X[1:, :1] + X[0, 0]
+
+
+def thesis_T(ranges: Array) -> Array:
+    """T of (3.4)/(3.6): the double-centred squared times, (I-1, J-1), m^2."""
+    return double_centre(ranges * ranges)
+
+
+def thesis_W(ranges: Array) -> Array:
+    """W of sec. 3.4, dense ((I-1)(J-1), I+J-1), rows in the column-major order of the C-operation.
+
+    Row (i, j), i, j >= 2: ``2(t_1j - t_11)`` at delta_1, ``-2(t_ij - t_i1)`` at delta_i and
+    ``-2(t_ij - t_1j)`` at tau_j (so that ``A(p) = C^{-1}(W p)`` is the linear part of (3.4)).
+    """
+    I, J = ranges.shape
+    W = np.zeros(((I - 1) * (J - 1), I + J - 1))
+    ii, jj = np.meshgrid(np.arange(1, I), np.arange(1, J), indexing="ij")
+    rows = (ii - 1) + (I - 1) * (jj - 1)  # column-major, the C-operation of A.1.1
+    W[rows, 0] = 2 * (ranges[0, jj] - ranges[0, 0])
+    W[rows, ii] = -2 * (ranges[ii, jj] - ranges[ii, 0])
+    W[rows, I - 1 + jj] = -2 * (ranges[ii, jj] - ranges[0, jj])
+    return W
+
+
+def _split(p: Array, I: int) -> tuple[Array, Array]:
+    """p (3.5) -> (delta (I,), tau (J,) with tau_1 = 0)."""
+    return p[:I], np.concatenate([[0.0], p[I:]])
+
+
+def apply_A(ranges: Array, p: Array) -> Array:
+    """``A(p) = C^{-1}(W p)`` (3.6) without forming W: (I-1, J-1)."""
+    I = ranges.shape[0]
+    delta, tau = _split(p, I)
+    a = ranges[0, 1:] - ranges[0, 0]
+    B = ranges[1:, 1:] - ranges[1:, :1]
+    C = ranges[1:, 1:] - ranges[:1, 1:]
+    return 2 * delta[0] * a[None, :] - 2 * delta[1:, None] * B - 2 * tau[None, 1:] * C
+
+
+def apply_Wt(ranges: Array, E: Array) -> Array:
+    """``W^T C(E)`` for an (I-1, J-1) matrix E without forming W: (I+J-1,)."""
+    a = ranges[0, 1:] - ranges[0, 0]
+    B = ranges[1:, 1:] - ranges[1:, :1]
+    C = ranges[1:, 1:] - ranges[:1, 1:]
+    return np.concatenate([[2 * E.sum(axis=0) @ a], -2 * np.sum(E * B, axis=1), -2 * np.sum(E * C, axis=0)])
+
+
+def gamma_term(p: Array, I: int, J: int) -> Array:
+    """Gamma of (3.6): ``2 tau_j (delta_i - delta_1)``, (I-1, J-1); zero when all delays are equal."""
+    delta, tau = _split(p, I)
+    return 2 * (delta[1:, None] - delta[0]) * tau[None, 1:]
+
+
+def offset_matrix(ranges: Array, p: Array, *, model: str = "exact") -> Array:
+    """The corrected double-centred matrix ``T + A(p) (+ Gamma(p))``, (I-1, J-1), m^2.
+
+    With ``model="exact"`` this is ``double_centre((t - delta_i - tau_j)^2)``, which equals
+    ``-2 (r_i - r_1)^T (s_j - s_1)`` at the true p; ``"linear"`` drops Gamma (thesis).
+    """
+    I, J = ranges.shape
+    if model == "exact":
+        delta, tau = _split(p, I)
+        e = ranges - delta[:, None] - tau[None, :]
+        return double_centre(e * e)
+    return thesis_T(ranges) + apply_A(ranges, p)
+
+
+def check_rank_identifiable(n_receivers: int, n_senders: int, dim: int = 3) -> None:
+    """Raise ``DegenerateGeometryError(kind="too-few-units")`` when the rank-d method cannot determine p.
+
+    Condition (see the module docstring): ``I >= d+2``, ``J >= d+2`` and
+    ``(I-1-d)(J-1-d) >= I+J-1``; for U units with a microphone and a loudspeaker each,
+    U >= 8 in 3-D and U >= 7 in 2-D (thesis 3.18 gives U >= 7 for the full 3-D model).
+    """
+    I, J, d = int(n_receivers), int(n_senders), int(dim)
+    if I < d + 2 or J < d + 2 or (I - 1 - d) * (J - 1 - d) < I + J - 1:
+        units = 8 if d == 3 else 7
+        raise DegenerateGeometryError(
+            f"{I} receivers x {J} senders cannot determine the {I + J - 1} offsets with the rank-{d} "
+            f"method: it needs (I-1-{d})(J-1-{d}) >= I+J-1 (here {(I - 1 - d) * (J - 1 - d)} < {I + J - 1} "
+            f"or a side below {d + 2}); with one microphone and one loudspeaker per unit that is at least "
+            f"{units} units in {d}-D. Add units, or use solve_toa(..., method='nls') with an initial guess",
+            kind="too-few-units",
+        )
+
+
+def _validate(ranges: Any, dim: int) -> Array:
+    dim = check_dim(dim)
+    R = as_matrix(ranges, "ranges", allow_nan=True, nonnegative=False, min_shape=(2, 2))
+    if np.isnan(R).any():
+        i, j = np.argwhere(np.isnan(R))[0]
+        raise InputError(
+            f"ranges: entry ({i}, {j}) is missing (NaN); the rank-{dim} offset estimation needs a complete "
+            "matrix: use solve_toa(matrix, offsets='both', method='nls') (initialize_offsets imputes missing "
+            "entries), or drop the incomplete rows/columns"
+        )
+    check_rank_identifiable(R.shape[0], R.shape[1], dim)
+    return R
+
+
+# ----------------------------------------------------------------------------- result
+
+
+def _subsample(h: Array, n: int = 400) -> list[list[float]]:
+    if h.size <= n:
+        idx = np.arange(h.size)
+    else:
+        idx = np.unique(np.round(np.geomspace(1, h.size, n)).astype(int) - 1)
+    return [[int(i), float(h[i])] for i in idx]
+
+
+@dataclass(frozen=True)
+class Rank3Result:
+    """Offsets estimated by the rank-d method (004), in the units of the input (metres).
+
+    Attributes
+    ----------
+    p : (I+J-1,) the vector (3.5) ``[delta_1..delta_I, tau_2..tau_J]``.
+    receiver_offsets : (I,) internal delays delta_i.
+    source_offsets : (J,) onset times tau_j, ``source_offsets[0] == 0``.
+    frobenius : final Frobenius norm F (3.17), m^2: the distance of the corrected matrix to rank d.
+    history : (n,) F per iteration (3.17).
+    steps : (n,) ``||p^(n+1) - p^(n)||`` per iteration (the thesis's second history column).
+    iterations : iterations of the accepted (or best) run.
+    total_iterations : iterations over every restart.
+    converged : the convergence test was met (change of F below ``tol`` / step below ``xtol``).
+    accepted : F <= ``accept`` (None when no acceptance test was asked for).
+    restarts : number of restarts from a new random initialisation before the returned run.
+    method : ``"faithful"`` (thesis iteration) or ``"fast"`` (variable-projection LM).
+    model : ``"linear"`` (Gamma = 0, thesis) or ``"exact"`` (with Gamma).
+    residual_rms : ``F / sqrt((I-1)(J-1))``, m^2.
+    seconds : wall time of the whole call, s.
+    lam : the regularisation used first (0 for none).
+    """
+
+    p: Array
+    receiver_offsets: Array
+    source_offsets: Array
+    frobenius: float
+    history: Array
+    steps: Array
+    iterations: int
+    total_iterations: int
+    converged: bool
+    accepted: bool | None
+    restarts: int
+    method: str
+    model: str
+    residual_rms: float
+    seconds: float = 0.0
+    lam: float = 0.0
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-safe summary (the F history is log-subsampled to at most 400 points)."""
+        return {
+            "p": self.p.tolist(),
+            "receiver_offsets": self.receiver_offsets.tolist(),
+            "source_offsets": self.source_offsets.tolist(),
+            "frobenius": float(self.frobenius),
+            "history": _subsample(self.history),
+            "iterations": int(self.iterations),
+            "total_iterations": int(self.total_iterations),
+            "converged": bool(self.converged),
+            "accepted": self.accepted,
+            "restarts": int(self.restarts),
+            "method": self.method,
+            "model": self.model,
+            "residual_rms": float(self.residual_rms),
+            "seconds": float(self.seconds),
+            "lam": float(self.lam),
+        }
+
+
+def _result(R: Array, p: Array, F: float, hist: list[float] | Array, steps: list[float] | Array, it: int,
+            converged: bool, method: str, model: str, lam: float) -> Rank3Result:
+    I, J = R.shape
+    delta, tau = _split(p, I)
+    return Rank3Result(
+        p=p.copy(), receiver_offsets=delta.copy(), source_offsets=tau.copy(), frobenius=float(F),
+        history=np.asarray(hist, dtype=float), steps=np.asarray(steps, dtype=float), iterations=int(it),
+        total_iterations=int(it), converged=bool(converged), accepted=None, restarts=0, method=method,
+        model=model, residual_rms=float(F / np.sqrt((I - 1) * (J - 1))), lam=float(lam),
+    )
+
+
+def _random_p0(I: int, J: int, rng: np.random.Generator) -> Array:
+    """Thesis initialisation (sec. 4.1): delays U(0, 20 ms), onsets U(0, 30 ms), in metres."""
+    return np.concatenate([rng.uniform(0.0, DELAY_MAX, I), rng.uniform(0.0, ONSET_MAX, J - 1)])
+
+
+# ----------------------------------------------------------------------------- faithful iteration
+
+
+def rank3_iteration(
+    ranges: Any,
+    *,
+    dim: int = 3,
+    lam: float = 0.0,
+    lam_switch: float = THESIS_LAM_SWITCH,
+    tol: float = THESIS_TOL,
+    max_iter: int = 1_000_000,
+    p0: Any = None,
+    rng: np.random.Generator | int | None = None,
+) -> Rank3Result:
+    """The thesis iteration of 004 sec. 3.5.1 / 3.7 (Gamma = 0), one run from one initialisation.
+
+    Per iteration n: ``T_hat = T + A(p)`` (3.12); best rank-d approximation ``T~ = U S_d V^T``
+    by SVD (3.13); ``E = T~ - T`` (3.14); ``p <- (W^T W + lam I)^+ W^T C(E)`` (3.11/3.15, with
+    lam > 0 the regularised update 3.23); ``F = ||E - A(p)||_F`` (3.17). While lam > 0 the
+    monitored norm is ``||T + A(p)||_F`` (the listing) and lam is set to 0 once it changes by
+    less than ``lam_switch``; with lam = 0 the run stops when F changes by less than ``tol``.
+    The factorisation of W^T W is computed once (eigendecomposition, so the pseudo-inverse
+    of 3.11 and every (W^T W + lam I)^-1 come from the same factors); W is never formed
+    in the loop (``apply_A``, ``apply_Wt`` use its three non-zeros per row).
+
+    Parameters
+    ----------
+    ranges : (I, J) times times the speed, metres, complete. Rows = receivers.
+    dim : rank d of the geometry (3 as in the thesis, or 2).
+    lam : regularisation lambda of (3.23), m^2 (``thesis_lambda`` converts the listing's value).
+    lam_switch : threshold on the change of ``||T_hat||_F`` that sets lam to 0, m^2.
+    tol : convergence threshold on the change of F (3.17), m^2 (thesis 1e-12 s^2).
+    max_iter : maximum number of iterations (thesis 1e6).
+    p0 : (I+J-1,) initial p in metres; default: thesis random initialisation from ``rng``.
+    rng : seed or Generator for the initialisation.
+
+    Returns
+    -------
+    Rank3Result with ``method="faithful"``, ``model="linear"``.
+    """
+    t0 = time.perf_counter()
+    R = _validate(ranges, dim)
+    I, J = R.shape
+    K = I + J - 1
+    if p0 is None:
+        p = _random_p0(I, J, as_rng(rng))
+    else:
+        p = np.array(p0, dtype=float).reshape(-1)
+        if p.shape != (K,):
+            raise InputError(f"p0 must have I+J-1 = {K} entries, got {p.shape}")
+    if lam < 0 or not np.isfinite(lam):
+        raise InputError(f"lam must be finite and >= 0, got {lam}")
+    T = thesis_T(R)
+    W = thesis_W(R)
+    evals, evecs = np.linalg.eigh(W.T @ W)
+    cutoff = evals.max() * K * np.finfo(float).eps
+
+    def solver(reg: float) -> Array:
+        # (W^T W + reg I)^+ from the one eigendecomposition: the pseudo-inverse of (3.11) when reg = 0
+        d = evals + reg
+        inv = np.where(d > cutoff, 1.0 / np.where(d > cutoff, d, 1.0), 0.0)
+        return (evecs * inv) @ evecs.T
+
+    G = solver(lam)
+    A = apply_A(R, p)
+    hist: list[float] = []
+    steps: list[float] = []
+    F_prev = 0.0
+    converged = False
+    n = 0
+    for n in range(1, int(max_iter) + 1):  # noqa: B007 (n is the iteration count after the loop)
+        That = T + A
+        U, s, Vt = np.linalg.svd(That, full_matrices=False)
+        E = (U[:, :dim] * s[:dim]) @ Vt[:dim] - T
+        p_new = G @ apply_Wt(R, E)
+        A = apply_A(R, p_new)
+        F = float(np.linalg.norm(E - A))
+        steps.append(float(np.linalg.norm(p_new - p)))
+        p = p_new
+        hist.append(F)
+        if lam == 0.0:
+            if abs(F_prev - F) < tol:
+                converged = True
+                break
+            F_prev = F
+        else:
+            F_that = float(np.linalg.norm(T + A))
+            if abs(F_prev - F_that) < lam_switch:
+                lam = 0.0
+                G = solver(0.0)
+                F_prev = F  # from here on the monitored norm is F (3.17)
+            else:
+                F_prev = F_that
+    res = _result(R, p, hist[-1] if hist else np.nan, hist, steps, n, converged, "faithful", "linear", lam)
+    return _replace(res, seconds=time.perf_counter() - t0)
+
+
+def _replace(res: Rank3Result, **kw: Any) -> Rank3Result:
+    from dataclasses import replace
+
+    return replace(res, **kw)
+
+
+# ----------------------------------------------------------------------------- fast solver
+
+
+def _rank1_factors(R: Array, p: Array, model: str, missing: tuple[Any, ...]) -> tuple[Array, Array]:
+    """Columns of the Jacobian of the corrected matrix as rank-one pairs: dM/dx_k = U[:, k] V[:, k]^T.
+
+    x = [p, missing t_ij]. For the linear model the p-columns are the columns of W
+    (constant); for the exact model the times t are replaced by the corrected
+    e = t - delta_i - tau_j (so Gamma is included). A missing entry t_ij enters D_ij = e_ij^2
+    with derivative 2 e_ij, and D_ij reaches M at (i, j), the whole column j (i = 1),
+    the whole row i (j = 1) or everything (i = j = 1) through the double centring.
+    """
+    I, J = R.shape
+    K = I + J - 1
+    mi, mj = missing
+    if model == "exact":
+        delta, tau = _split(p, I)
+        e = R - delta[:, None] - tau[None, :]
+    else:
+        e = R
+    Uf = np.zeros((I - 1, K + mi.size))
+    Vf = np.zeros((J - 1, K + mi.size))
+    Uf[:, 0] = 1.0
+    Vf[:, 0] = 2 * (e[0, 1:] - e[0, 0])
+    Uf[np.arange(I - 1), np.arange(1, I)] = 1.0
+    Vf[:, 1:I] = (-2 * (e[1:, 1:] - e[1:, :1])).T
+    Uf[:, I:K] = -2 * (e[1:, 1:] - e[:1, 1:])
+    Vf[np.arange(J - 1), np.arange(I, K)] = 1.0
+    for k, (i, j) in enumerate(zip(mi, mj, strict=True)):
+        c = K + k
+        g = 2 * e[i, j]
+        sign = -1.0 if (i == 0) != (j == 0) else 1.0
+        if i > 0:
+            Uf[i - 1, c] = g * sign
+        else:
+            Uf[:, c] = g * sign
+        if j > 0:
+            Vf[j - 1, c] = 1.0
+        else:
+            Vf[:, c] = 1.0
+    return Uf, Vf
+
+
+def _tail(M: Array, dim: int) -> tuple[float, Array, Array, Array]:
+    """Cost sum_{k>d} sigma_k^2, the leading singular vectors and the residual M - M_d."""
+    U, s, Vt = np.linalg.svd(M, full_matrices=False)
+    Ud, Vd = U[:, :dim], Vt[:dim].T
+    resid = M - (Ud * s[:dim]) @ Vd.T
+    return float(np.sum(s[dim:] ** 2)), Ud, Vd, resid
+
+
+def _feasible(x: Array, bound: float) -> bool:
+    """Keep the search finite: |offsets| and the missing entries within twice the largest measured value.
+
+    Without a bound LM can follow the spurious solutions at infinity (sender 1 pushed to the
+    far field by ``delta_i + c, tau_j - c``, which changes only the reference column).
+    """
+    return bool(np.all(np.abs(x) <= bound))
+
+
+def _impute(R: Array) -> Array:
+    """Fill NaN with an additive row + column model of the observed entries (a starting guess only)."""
+    mask = np.isnan(R)
+    if not mask.any():
+        return R
+    row = np.nanmean(R, axis=1, keepdims=True)
+    row = np.where(np.isnan(row), np.nanmean(R), row)
+    col = np.nanmean(R - row, axis=0, keepdims=True)
+    col = np.where(np.isnan(col), 0.0, col)
+    return np.where(mask, row + col, R)
+
+
+def rank3_lm(
+    ranges: Any,
+    *,
+    dim: int = 3,
+    model: str = "exact",
+    p0: Any = None,
+    max_iter: int = 100,
+    xtol: float = 1e-12,
+    rng: np.random.Generator | int | None = None,
+) -> Rank3Result:
+    """Levenberg-Marquardt with variable projection on (*): the fast solver for the 004 fixed point.
+
+    Residual: ``N(M(p)) = M(p) - [M(p)]_d`` (the part of the corrected matrix outside its best
+    rank-d approximation), with ``M = T + A(p) (+ Gamma(p))``. Jacobian (Kaufman's variable
+    projection approximation, exact at zero residual): ``N(dM/dp_k) = (P u_k)(Q v_k)^T`` with
+    P, Q the projectors off the leading singular subspaces, so
+    ``J^T J = (U~^T U~) o (V~^T V~)`` (Hadamard) and ``J^T r = diag(U^T N(M) V)`` is the exact
+    gradient of (*)/2. Marquardt damping with the usual gain-ratio update; steps that leave
+    ``|x| <= 2 max t`` are refused (see :func:`_feasible`). Missing entries (NaN, exact model
+    only) become extra unknowns, each with its own rank-one Jacobian column (matrix
+    completion inside the same projection); their count adds to the I+J-1 unknowns of the
+    identifiability condition.
+
+    Parameters
+    ----------
+    ranges : (I, J) metres; NaN = missing (``model="exact"`` only).
+    dim : rank d (3 or 2).
+    model : ``"exact"`` (keeps Gamma: distinct internal delays) or ``"linear"`` (thesis, Gamma = 0).
+    p0 : initial p (metres); default the thesis random initialisation from ``rng``.
+    max_iter : maximum LM iterations.
+    xtol : stop when ``||dx|| <= xtol (||x|| + xtol)`` or F <= xtol ||M||_F.
+    rng : seed or Generator for the initialisation.
+
+    Returns
+    -------
+    Rank3Result with ``method="fast"``; ``frobenius`` is sqrt of (*), the quantity F (3.17)
+    converges to; with missing entries ``extra["completed"]`` is the completed (I, J) matrix.
+    """
+    t0 = time.perf_counter()
+    check_choice(model, "model", ("exact", "linear"))
+    dim = check_dim(dim)
+    R0 = as_matrix(ranges, "ranges", allow_nan=True, min_shape=(2, 2))
+    mask = np.isnan(R0)
+    if mask.any() and model != "exact":
+        R0 = _validate(R0, dim)  # raises the named "missing entry" error
+    I, J = R0.shape
+    K = I + J - 1
+    n_miss = int(mask.sum())
+    check_rank_identifiable(I, J, dim)
+    if n_miss and (I - 1 - dim) * (J - 1 - dim) < K + n_miss:
+        raise DegenerateGeometryError(
+            f"{n_miss} missing entries leave too few equations: the rank-{dim} method needs "
+            f"(I-1-{dim})(J-1-{dim}) = {(I - 1 - dim) * (J - 1 - dim)} >= I+J-1 + missing = {K + n_miss}",
+            kind="too-few-measurements",
+        )
+    missing = np.nonzero(mask)
+    R = _impute(R0)
+    bound = 2.0 * float(np.max(np.abs(R0[~mask])))
+    p = _random_p0(I, J, as_rng(rng)) if p0 is None else np.array(p0, dtype=float).reshape(-1)
+    if p.shape != (K,):
+        raise InputError(f"p0 must have I+J-1 = {K} entries, got {p.shape}")
+    x = np.concatenate([p, R[missing]])
+
+    def unpack(xv: Array) -> tuple[Array, Array]:
+        if not n_miss:
+            return R, xv
+        Rx = R.copy()
+        Rx[missing] = xv[K:]
+        return Rx, xv[:K]
+
+    Rx, p = unpack(x)
+    M = offset_matrix(Rx, p, model=model)
+    cost, Ud, Vd, resid = _tail(M, dim)
+    hist = [np.sqrt(cost)]
+    steps: list[float] = []
+    mu: float | None = None
+    nu = 2.0
+    converged = False
+    it = 0
+    scale = float(np.linalg.norm(M))
+    for it in range(1, int(max_iter) + 1):  # noqa: B007 (it is the iteration count after the loop)
+        Uf, Vf = _rank1_factors(Rx, p, model, missing)
+        Pu = Uf - Ud @ (Ud.T @ Uf)
+        Pv = Vf - Vd @ (Vd.T @ Vf)
+        H = (Pu.T @ Pu) * (Pv.T @ Pv)
+        g = np.einsum("ik,ik->k", Uf, resid @ Vf)
+        dg = np.diag(H).copy()
+        dg[dg <= 0] = 1.0
+        if mu is None:
+            mu = 1e-6 * float(dg.max())
+        accepted = False
+        dx = np.zeros_like(x)
+        while mu <= 1e30:
+            try:
+                dx = -np.linalg.solve(H + mu * np.diag(dg), g)
+            except np.linalg.LinAlgError:
+                mu *= 10.0
+                continue
+            x_try = x + dx
+            if not _feasible(x_try, bound):
+                mu *= nu
+                nu *= 2.0
+                continue
+            Rt, p_try = unpack(x_try)
+            cost_try, Ud_t, Vd_t, resid_t = _tail(offset_matrix(Rt, p_try, model=model), dim)
+            if cost_try < cost or cost_try == 0.0:
+                pred = -(g @ dx) - 0.5 * dx @ (H @ dx)
+                rho = (cost - cost_try) / (2 * pred) if pred > 0 else 0.0
+                x, Rx, p, cost, Ud, Vd, resid = x_try, Rt, p_try, cost_try, Ud_t, Vd_t, resid_t
+                mu *= max(1.0 / 3.0, 1.0 - (2 * rho - 1) ** 3) if rho > 0 else 1.0
+                nu = 2.0
+                accepted = True
+                break
+            mu *= nu
+            nu *= 2.0
+        step = float(np.linalg.norm(dx)) if accepted else 0.0
+        steps.append(step)
+        hist.append(np.sqrt(cost))
+        if not accepted or step <= xtol * (np.linalg.norm(x) + xtol) or np.sqrt(cost) <= xtol * scale:
+            # (no decrease even with huge damping: a stationary point of (*))
+            converged = True
+            break
+    res = _result(Rx, p, np.sqrt(cost), hist, steps, it, converged, "fast", model, 0.0)
+    extra = {"completed": Rx} if n_miss else {}
+    return _replace(res, seconds=time.perf_counter() - t0, extra=extra)
+
+
+# ----------------------------------------------------------------------------- with acceptance
+
+
+def estimate_offsets(
+    ranges: Any,
+    *,
+    dim: int = 3,
+    method: str = "fast",
+    model: str | None = None,
+    accept: float | None = THESIS_ACCEPT,
+    max_restarts: int = 10,
+    lam: float = 0.0,
+    max_iter: int | None = None,
+    tol: float = THESIS_TOL,
+    rng: np.random.Generator | int | None = None,
+) -> Rank3Result:
+    """Onset times and internal delays with the thesis's acceptance test and restarts (004 sec. 4.3, 6.2).
+
+    Runs :func:`rank3_lm` (``method="fast"``) or :func:`rank3_iteration` (``"faithful"``) from
+    the thesis random initialisation; a run whose final Frobenius norm F (3.17) exceeds
+    ``accept`` converged to a local minimum and is restarted from a new random
+    initialisation (the thesis's future-work proposal, sec. 6.2), at most ``max_restarts``
+    times. ``accept=None`` returns the first run. If no run is accepted, the one with the
+    smallest F is returned with ``accepted=False`` and a :class:`ConvergenceWarning`.
+
+    Parameters
+    ----------
+    ranges : (I, J) times times the speed c, metres, complete (rows = receivers).
+    dim : 3 (thesis) or 2.
+    method : ``"fast"`` or ``"faithful"``.
+    model : ``"exact"`` / ``"linear"``; default ``"exact"`` for fast, ``"linear"`` for faithful
+        (the faithful iteration implements only the thesis's Gamma = 0 model).
+    accept : acceptance threshold on F, m^2; default 8e-7 s^2 x (343 m/s)^2 = 0.094 m^2 (thesis,
+        noise-free; with timing noise F grows like the noise and the threshold must grow with it).
+    max_restarts : restarts after a rejected run.
+    lam, tol : passed to the faithful iteration.
+    max_iter : iteration cap per run (default 1e6 faithful, 100 fast).
+    rng : seed or Generator.
+
+    Returns
+    -------
+    Rank3Result; ``restarts`` says how many restarts were needed, ``total_iterations`` counts all runs.
+    """
+    t0 = time.perf_counter()
+    check_choice(method, "method", ("fast", "faithful"))
+    model = model or ("exact" if method == "fast" else "linear")
+    check_choice(model, "model", ("exact", "linear"))
+    if method == "faithful" and model != "linear":
+        raise InputError("the faithful thesis iteration implements only model='linear' (Gamma = 0)")
+    if max_restarts < 0:
+        raise InputError(f"max_restarts must be >= 0, got {max_restarts}")
+    gen = as_rng(rng)
+    best: Rank3Result | None = None
+    total = 0
+    for attempt in range(int(max_restarts) + 1):
+        if method == "fast":
+            # first attempt from p = 0 (a deterministic start that lands in the right basin more
+            # often than a random one), restarts from the thesis random initialisation
+            p0 = np.zeros(np.shape(ranges)[0] + np.shape(ranges)[1] - 1) if attempt == 0 else None
+            res = rank3_lm(ranges, dim=dim, model=model, max_iter=max_iter or 100, rng=gen, p0=p0)
+        else:
+            res = rank3_iteration(ranges, dim=dim, lam=lam, tol=tol, max_iter=max_iter or 1_000_000, rng=gen)
+        total += res.iterations
+        ok = None if accept is None else bool(np.isfinite(res.frobenius) and res.frobenius <= accept)
+        res = _replace(res, accepted=ok, restarts=attempt, total_iterations=total)
+        if best is None or res.frobenius < best.frobenius:
+            best = res
+        if ok is None or ok:
+            return _replace(res, seconds=time.perf_counter() - t0)
+    assert best is not None
+    warnings.warn(
+        f"no run of the rank-{dim} offset estimation reached F <= {accept:g} m^2 in {max_restarts + 1} runs "
+        f"(best F = {best.frobenius:.3g} m^2); noisy data need a larger 'accept'",
+        ConvergenceWarning,
+        stacklevel=2,
+    )
+    return _replace(best, total_iterations=total, seconds=time.perf_counter() - t0)
+
+
+# ----------------------------------------------------------------------------- positions
+
+
+def positions_from_ranges(ranges: Any, dim: int = 3) -> tuple[Array, Array]:
+    """Receiver and sender positions from an offset-free, complete (I, J) range matrix.
+
+    Rank-d factorisation of the double-centred squared ranges ``-M/2 = X Y^T`` fixes the
+    positions up to an invertible H: ``r_i = H^T x_i`` (r_1 = 0), ``s_j = s_1 + H^{-1} y_j``.
+    The first column gives ``|r_i|^2 - 2 r_i^T s_1 = D_i1^2 - D_11^2``, linear in ``L = H H^T``
+    and ``b = H s_1`` (the upgrade of Kuang et al. 2013); H = chol(L). Needs
+    I-1 >= d(d+3)/2 (9 in 3-D, 5 in 2-D); otherwise the roles of receivers and senders are
+    swapped. The result is a starting point for the NLS refinement, not a final estimate.
+    """
+    dim = check_dim(dim)
+    D = as_matrix(ranges, "ranges", allow_nan=False, min_shape=(2, 2))
+    need = dim * (dim + 3) // 2
+    I, J = D.shape
+    if I - 1 < need:
+        if J - 1 >= need:
+            s, r = positions_from_ranges(D.T, dim)
+            return r, s
+        raise DegenerateGeometryError(
+            f"{I} x {J} ranges: the linear position upgrade needs at least {need + 1} receivers or senders "
+            f"in {dim}-D; add units or give solve_toa an initial geometry",
+            kind="too-few-units",
+        )
+    M = double_centre(D * D)
+    U, s, Vt = np.linalg.svd(-0.5 * M, full_matrices=False)
+    X = U[:, :dim] * np.sqrt(s[:dim])
+    Y = Vt[:dim].T * np.sqrt(s[:dim])
+    rhs = D[1:, 0] ** 2 - D[0, 0] ** 2
+    iu = np.triu_indices(dim)
+    quad = np.stack([X[:, a] * X[:, b] * (1.0 if a == b else 2.0) for a, b in zip(*iu, strict=True)], axis=1)
+    sol, *_ = np.linalg.lstsq(np.hstack([quad, -2 * X]), rhs, rcond=None)
+    L = np.zeros((dim, dim))
+    L[iu] = sol[: len(iu[0])]
+    L = L + np.triu(L, 1).T
+    w, V = np.linalg.eigh(L)
+    w = np.maximum(w, 1e-9 * max(float(w.max()), 1e-12))  # noise can make L indefinite: nearest PD
+    L = (V * w) @ V.T
+    H = np.linalg.cholesky(L)
+    b = sol[len(iu[0]):]
+    s1 = np.linalg.solve(H, b)
+    receivers = np.vstack([np.zeros(dim), X @ H])
+    sources = s1[None, :] + np.linalg.solve(H, Y.T).T
+    sources = np.vstack([s1, sources])
+    return receivers, sources
+
+
+def initialize_offsets(
+    ranges: Any,
+    dim: int = 3,
+    *,
+    rng: np.random.Generator | int | None = None,
+    n_starts: int = 6,
+) -> tuple[Array, Array, Array, Array]:
+    """Starting geometry and offsets for ``solve_toa(offsets="both")`` (the NLS refinement).
+
+    Fast rank-d estimate of the offsets (:func:`rank3_lm`, exact model, from p = 0 and then
+    up to ``n_starts - 1`` thesis random initialisations, keeping the smallest F and stopping
+    early at a noise-free fit), then positions from the offset-free ranges
+    (:func:`positions_from_ranges`). Missing (NaN) entries are completed inside the rank-d
+    fit (extra unknowns of :func:`rank3_lm`).
+
+    Parameters
+    ----------
+    ranges : (I, J) metres (times times c), NaN = missing; rows = receivers.
+    dim : 2 or 3.
+    rng : seed or Generator for the random restarts.
+    n_starts : maximal number of starts.
+
+    Returns
+    -------
+    receivers (I, d), sources (J, d), receiver_offsets (I,), source_offsets (J,) with
+    ``source_offsets[0] == 0`` (the common shift lives in the receiver offsets), metres.
+    """
+    dim = check_dim(dim)
+    R = as_matrix(ranges, "ranges", allow_nan=True, min_shape=(2, 2))
+    check_rank_identifiable(R.shape[0], R.shape[1], dim)
+    gen = as_rng(rng)
+    K = R.shape[0] + R.shape[1] - 1
+    best = rank3_lm(R, dim=dim, model="exact", p0=np.zeros(K))
+    level = 1e-9 * float(np.nansum(R * R))
+    for _ in range(max(1, int(n_starts)) - 1):
+        if best.frobenius <= level:
+            break  # a noise-free fit: the global minimum
+        res = rank3_lm(R, dim=dim, model="exact", rng=gen)
+        if res.frobenius < best.frobenius:
+            best = res
+    full = best.extra.get("completed", R)
+    D = full - best.receiver_offsets[:, None] - best.source_offsets[None, :]
+    receivers, sources = positions_from_ranges(np.abs(D), dim)
+    return receivers, sources, best.receiver_offsets.copy(), best.source_offsets.copy()
