@@ -1,3 +1,232 @@
-"""Command-line commands for this area (attached to the groups in selfcal.commands._base)."""
+"""Acoustic commands: ``selfcal simulate conference`` and ``selfcal pipeline`` (issue 7, paper 004).
+
+Heavy imports (numpy work, pyroomacoustics, matplotlib) happen inside the commands.
+"""
 
 from __future__ import annotations
+
+import os
+import shutil
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import click
+
+from ._base import handle_errors, main, simulate
+
+
+def parse_room(text: str) -> tuple[float, float, float]:
+    """Parse ``LxWxH`` (metres) into three floats, or raise ``click.BadParameter``."""
+    parts = text.lower().replace("*", "x").split("x")
+    try:
+        vals = tuple(float(p) for p in parts)
+    except ValueError:
+        vals = ()
+    if len(vals) != 3 or min(vals) <= 0:
+        raise click.BadParameter(f"expected L x W x H in metres like 12x12x3, got {text!r}")
+    return vals[0], vals[1], vals[2]
+
+
+def write_simulation(out: Path, *, units: int, room: tuple[float, float, float], rt60: float, snr: float,
+                     seed: int, layout: str, sample_rate: int, max_order: int | None,
+                     progress: bool = True) -> dict[str, Any]:
+    """Simulate a conference recording directory at ``out`` atomically; return the truth.
+
+    The directory is built next to ``out`` and renamed into place, so ``out`` is either the
+    old content or the complete new recording. An existing ``out`` is replaced only when it
+    is empty or a recording directory (has ``setup.json``).
+    """
+    import numpy as np
+
+    from ..acoustics.recording import write_recording
+    from ..acoustics.room import simulate_conference
+    from ..errors import InputError
+    from ..scenarios.conference import conference_scene
+
+    if out.exists() and (not out.is_dir() or (any(out.iterdir()) and not (out / "setup.json").is_file())):
+        raise InputError(f"{out}: exists and is not a recording directory; choose another --out")
+    rng = np.random.default_rng(seed)
+    scene = conference_scene(units, room, layout=layout, rng=rng)
+    setup, signals, truth = simulate_conference(scene, rt60=rt60, snr_db=snr, sample_rate=sample_rate,
+                                                max_order=max_order, rng=rng, progress=progress)
+    truth["seed"] = seed
+    heights = {"receivers": scene.receivers[:, 2].tolist(), "senders": scene.senders[:, 2].tolist()}
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))
+    umask = os.umask(0)
+    os.umask(umask)
+    os.chmod(tmp, 0o777 & ~umask)  # mkdtemp makes it private; the result is an ordinary folder
+    try:
+        write_recording(tmp, setup, signals, truth=truth, extra={"heights.json": heights})
+        if out.exists():
+            old = out.with_name(f".{out.name}.old-{os.getpid()}")
+            os.replace(out, old)
+            os.replace(tmp, out)
+            shutil.rmtree(old, ignore_errors=True)
+        else:
+            os.replace(tmp, out)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return truth
+
+
+@simulate.command("conference")
+@click.option("--units", type=int, default=20, show_default=True, help="Units (microphone + loudspeaker).")
+@click.option("--room", "room_text", default="12x12x3", show_default=True, help="Room L x W x H in metres.")
+@click.option("--rt60", type=float, default=0.4, show_default=True, help="Reverberation time, s.")
+@click.option("--snr", type=float, default=30.0, show_default=True, help="Direct sound at 1 m over noise, dB.")
+@click.option("--seed", type=int, default=0, show_default=True, help="Random seed.")
+@click.option("--layout", type=click.Choice(["flat", "tiered", "stem"]), default="flat", show_default=True,
+              help="flat desks (near-planar), amphitheatre tiers, or stem microphones above desk loudspeakers.")
+@click.option("--sample-rate", type=int, default=48000, show_default=True, help="Hz.")
+@click.option("--max-order", type=int, default=3, show_default=True,
+              help="Image-source order cap (speed); 0 = anechoic.")
+@click.option("--out", "out", required=True, type=click.Path(file_okay=False, path_type=Path),
+              help="Recording directory to write (setup.json, rx_*.wav, truth.json, heights.json).")
+@handle_errors
+def simulate_conference_cmd(units: int, room_text: str, rt60: float, snr: float, seed: int, layout: str,
+                            sample_rate: int, max_order: int, out: Path) -> None:
+    """Simulate a conference network's calibration recordings (pyroomacoustics, paper 004)."""
+    room = parse_room(room_text)
+    truth = write_simulation(out, units=units, room=room, rt60=rt60, snr=snr, seed=seed, layout=layout,
+                             sample_rate=sample_rate, max_order=max_order)
+    click.echo(f"wrote {out} ({units} units, {layout}, room {room_text}, RT60 {rt60:g} s, SNR {snr:g} dB, "
+               f"image order {truth['max_order']})")
+
+
+def _rotate_cov(cov: Any, R: Any) -> Any:
+    import numpy as np
+
+    C = np.array(cov, dtype=float)
+    k = R.shape[0]
+    C[:, :k, :k] = np.einsum("ab,nbc,dc->nad", R, C[:, :k, :k], R)
+    return C
+
+
+def plot_map(result: Any, path: Path, errors: dict[str, Any] | None = None, title: str = "") -> None:
+    """True vs estimated receivers and senders with 95 % ellipses (in the truth frame if known)."""
+    import numpy as np
+
+    from ..geometry import align
+    from ..plotting import new_figure, plot_positions, save_figure
+
+    fig, ax = new_figure(size=(7.0, 6.5))
+    er, es = result.receivers, result.sources
+    rc, sc = result.receiver_cov, result.source_cov
+    tr = ts = None
+    if errors is not None:
+        er, es = errors["aligned_receivers"], errors["aligned_sources"]
+        tr, ts = np.asarray(errors["true_receivers"]), np.asarray(errors["true_senders"])
+        k = 2 if er.shape[1] == 2 or result.method.startswith("2d+heights") else 3
+        al = align(np.vstack([result.receivers, result.sources])[:, :k], np.vstack([tr, ts])[:, :k])
+        rc, sc = _rotate_cov(rc, al.rotation), _rotate_cov(sc, al.rotation)
+    plot_positions(ax, er, truth=tr, cov=rc, label="microphones", color="C0", marker="o")
+    plot_positions(ax, es, truth=ts, cov=sc, label="loudspeakers", color="C3", marker="s")
+    ax.legend(loc="best", fontsize=8)
+    ax.set_title(title or f"{result.method}: positions (95 % ellipses)")
+    save_figure(fig, path)
+
+
+def plot_timing(result: Any, path: Path, errors: dict[str, Any] | None = None) -> None:
+    """Delay / onset estimates (errors vs truth when known, in us) and run time per stage."""
+    import numpy as np
+
+    from ..acoustics.pipeline import TIMING_REQUIREMENT
+    from ..plotting import new_figure, save_figure
+
+    fig, (ax1, ax2) = new_figure(1, 2, size=(11.0, 4.2))
+    if errors is not None:
+        ax1.plot(np.asarray(errors["delay_errors"]) * 1e6, "o", label="internal delay error")
+        ax1.plot(np.asarray(errors["onset_errors"]) * 1e6, "s", label="onset time error")
+        for s in (-1, 1):
+            ax1.axhline(s * TIMING_REQUIREMENT * 1e6, color="r", ls="--", lw=0.8)
+        ax1.set_ylabel("error [us] (red: 004's 58 us)")
+    else:
+        ax1.plot(result.receiver_offsets * 1e3, "o", label="internal delay")
+        ax1.plot(result.source_offsets * 1e3, "s", label="onset time (first = 0)")
+        ax1.set_ylabel("estimate [ms]")
+    ax1.set_xlabel("unit")
+    ax1.legend(fontsize=8)
+    names = list(result.timings)
+    ax2.bar(names, [result.timings[n] for n in names], color="C2")
+    ax2.set_ylabel("run time [s]")
+    ax2.set_title("time per stage")
+    save_figure(fig, path)
+
+
+def summarise(result: Any, errors: dict[str, Any] | None) -> list[str]:
+    """Lines of the summary table printed by ``selfcal pipeline`` / ``selfcal demo``."""
+    lines = [f"method             {result.method}",
+             f"detections missed  {result.detections_missed} of {result.toa_matrix.size}",
+             f"residual rms       {result.residual_rms * 1e6:.2f} us"]
+    for note in result.notes:
+        lines.append(f"note               {note}")
+    if errors is not None:
+        tag = " (horizontal)" if errors["horizontal_only"] else ""
+        lines += [
+            f"position error{tag:13s} median {errors['position_median'] * 100:7.2f} cm   max {errors['position_max'] * 100:7.2f} cm",
+            f"timing error       median {errors['timing_median'] * 1e6:7.2f} us   max {errors['timing_max'] * 1e6:7.2f} us"
+            " (internal delays and onsets)",
+        ]
+    for name, sec in result.timings.items():
+        lines.append(f"time {name:13s} {sec:7.2f} s")
+    if errors is not None:
+        verdict = "PASS" if errors["passed"] else "FAIL"
+        lines.append(f"{verdict}: position max {errors['position_max'] * 100:.2f} cm (<= 10 cm: "
+                     f"{'yes' if errors['pass_position'] else 'no'}), timing max {errors['timing_max'] * 1e6:.2f} us "
+                     f"(<= 58 us: {'yes' if errors['pass_timing'] else 'no'})  [004 requirements]")
+    return lines
+
+
+def pipeline_errors(result: Any, directory: Path) -> dict[str, Any] | None:
+    """Errors against ``directory/truth.json`` when it exists (with the truth attached)."""
+    from ..acoustics.pipeline import truth_errors
+    from ..io import read_json
+
+    path = directory / "truth.json"
+    if not path.is_file():
+        return None
+    truth = read_json(path, "truth.json")
+    err = truth_errors(result, truth)
+    err["true_receivers"] = truth["receivers"]
+    err["true_senders"] = truth["senders"]
+    return err
+
+
+@main.command("pipeline")
+@click.argument("directory", type=click.Path(path_type=Path))
+@click.option("--out", "out", required=True, type=click.Path(dir_okay=False, path_type=Path), help="RESULT.json")
+@click.option("--plot", "plot", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="map.png: estimated (and true) positions with 95 % ellipses.")
+@click.option("--report", "report", type=click.Path(file_okay=False, path_type=Path), default=None,
+              help="Folder for map.png, timing.png, report.json (errors against truth.json when present).")
+@click.option("--heights", "heights", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help='Known heights JSON {"receivers": [...], "senders": [...]} (m): 2-D + heights.')
+@click.option("--dim", "dim", type=click.Choice(["auto", "2", "3"]), default="auto", show_default=True,
+              help="auto: 3-D unless the layout is near-planar (then 2-D).")
+@click.option("--seed", type=int, default=0, show_default=True, help="Seed of the solver's random starts.")
+@handle_errors
+def pipeline_cmd(directory: Path, out: Path, plot: Path | None, report: Path | None, heights: Path | None,
+                 dim: str, seed: int) -> None:
+    """Recordings -> arrival times -> delays -> positions (paper 004's three stages)."""
+    from ..acoustics.pipeline import run_pipeline
+    from ..io import write_json
+
+    result = run_pipeline(directory, dim=dim if dim == "auto" else int(dim), heights=heights, rng=seed)
+    errors = pipeline_errors(result, directory)
+    payload = result.to_dict()
+    if errors is not None:
+        payload["errors"] = {k: v for k, v in errors.items() if not k.startswith(("aligned_", "true_"))}
+    if report is not None:
+        report.mkdir(parents=True, exist_ok=True)
+        plot_map(result, report / "map.png", errors)
+        plot_timing(result, report / "timing.png", errors)
+        write_json(report / "report.json", {"summary": summarise(result, errors), **payload})
+    if plot is not None:
+        plot_map(result, plot, errors)
+    write_json(out, payload)
+    for line in summarise(result, errors):
+        click.echo(line)
+

@@ -1,0 +1,568 @@
+"""The whole system of paper 004: recordings -> arrival times -> delays -> positions.
+
+Stages (004 fig. 1.3): (1) distance estimation: detect the direct-path arrival of every
+event at every receiver (:mod:`selfcal.acoustics.detect`); (2) onset times and internal
+delays and (3) localization, jointly: the per-sender TOA matrix ``t_ij = |r_i - s_j| / c +
+tau_j + delta_i`` (004 eq. 3.1) goes to :func:`selfcal.toa.solve_toa` with
+``offsets="both"`` (the 004 rank-3 initialiser followed by sparse nonlinear least squares).
+
+Geometry (conference units sit at nearly one height). A near-planar network makes 3-D
+self-calibration ill-posed: each point may be mirrored through the plane without
+changing any distance to first order, so z is undetermined. :func:`planarity` detects it
+from the singular values of the centred positions against their covariance, and the
+pipeline then either calibrates in 2-D, or -- with known heights (``heights``) -- solves
+for the horizontal positions and the offsets with each point's z fixed
+(:func:`refine_known_heights`), so it never reports a z it cannot determine.
+"""
+
+from __future__ import annotations
+
+import time
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ..errors import DegenerateGeometryError, InputError
+
+__all__ = [
+    "PipelineResult",
+    "Planarity",
+    "planarity",
+    "sender_matrix",
+    "refine_known_heights",
+    "run_pipeline",
+    "read_heights",
+    "truth_errors",
+    "TIMING_REQUIREMENT",
+    "POSITION_REQUIREMENT",
+]
+
+Array = NDArray[np.float64]
+POSITION_REQUIREMENT = 0.10  # m, 004 sec. 2.1 requirement 1(a)
+TIMING_REQUIREMENT = 58e-6  # s, 004 sec. 2.2 (2 cm at 343 m/s)
+PLANAR_RATIO = 0.02  # thinnest / widest extent below which a layout counts as flat
+PLANAR_SIGMAS = 3.0  # thickness below this many standard deviations along the normal = flat
+
+
+@dataclass(frozen=True)
+class Planarity:
+    """How flat a network is.
+
+    Attributes
+    ----------
+    near_planar : bool
+    extents : (d,) array
+        Standard deviations of the centred positions along their principal axes, m
+        (singular values / sqrt(n)), largest first.
+    normal : (d,) array
+        Direction of least extent.
+    normal_std : float
+        RMS standard deviation of the positions along ``normal`` from their covariances, m
+        (NaN without covariances).
+    """
+
+    near_planar: bool
+    extents: Array
+    normal: Array
+    normal_std: float
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-safe dictionary."""
+        return {"near_planar": self.near_planar, "extents": self.extents, "normal": self.normal,
+                "normal_std": self.normal_std}
+
+
+def planarity(points: Array, cov: NDArray[np.float64] | None = None, *, ratio: float = PLANAR_RATIO,
+              sigmas: float = PLANAR_SIGMAS) -> Planarity:
+    """Decide whether (n, 3) ``points`` are too close to a plane for a 3-D calibration.
+
+    Near-planar when the thinnest extent ``e_3`` is below ``ratio * e_1`` or below
+    ``sigmas`` times the RMS standard deviation along the normal (``sqrt(mean n^T C_k n)``):
+    then the thickness of the layout is not resolved by the data.
+
+    Parameters
+    ----------
+    points : (n, d) array, m
+    cov : (n, d, d) array, optional
+        Per-point covariances, m^2 (non-finite ones are ignored).
+    """
+    P = np.asarray(points, dtype=float)
+    P = P[np.isfinite(P).all(axis=1)]
+    centred = P - P.mean(axis=0)
+    _, s, vt = np.linalg.svd(centred, full_matrices=False)
+    ext = s / np.sqrt(max(len(P), 1))
+    normal = vt[-1]
+    nstd = float("nan")
+    if cov is not None:
+        C = np.asarray(cov, dtype=float)
+        ok = np.isfinite(C).all(axis=(1, 2))
+        if ok.any():
+            nstd = float(np.sqrt(np.mean(np.einsum("i,kij,j->k", normal, C[ok], normal))))
+    flat = bool(ext[-1] < ratio * ext[0] or (np.isfinite(nstd) and ext[-1] < sigmas * nstd))
+    return Planarity(flat, ext, normal, nstd)
+
+
+def sender_matrix(toa: Array, event_senders: NDArray[np.int64], n_senders: int) -> Array:
+    """Average the (I, E) event TOA matrix into an (I, J) per-sender matrix (NaN-aware).
+
+    Events of one sender share its position and onset, so their TOAs (relative to their
+    nominal times) estimate the same ``t_ij``; the mean lowers the noise.
+    """
+    I = toa.shape[0]
+    out = np.full((I, n_senders), np.nan)
+    for j in range(n_senders):
+        cols = toa[:, event_senders == j]
+        if cols.shape[1]:
+            cnt = np.isfinite(cols).sum(axis=1)
+            total = np.nansum(cols, axis=1)
+            out[:, j] = np.where(cnt > 0, total / np.maximum(cnt, 1), np.nan)
+    return out
+
+
+def read_heights(path: str | Path, receivers: tuple[str, ...], senders: tuple[str, ...]) -> tuple[Array, Array]:
+    """Read known heights: JSON ``{"receivers": [...] | {name: z}, "senders": ...}`` in metres.
+
+    Raises
+    ------
+    InputError
+        Missing keys, wrong lengths, unknown names or non-finite values (file and field named).
+    """
+    from ..io import read_json
+
+    p = Path(path)
+    raw = read_json(p, p.name)
+    if not isinstance(raw, dict):
+        raise InputError(f"{p.name}: expected an object with fields 'receivers' and 'senders'")
+    out = []
+    for key, names in (("receivers", receivers), ("senders", senders)):
+        if key not in raw:
+            raise InputError(f"{p.name}: field '{key}' is missing")
+        val = raw[key]
+        if isinstance(val, dict):
+            unknown = set(val) - set(names)
+            if unknown:
+                raise InputError(f"{p.name}: field '{key}' names unknown {sorted(unknown)[0]!r}")
+            missing = [n for n in names if n not in val]
+            if missing:
+                raise InputError(f"{p.name}: field '{key}' lacks {missing[0]!r}")
+            val = [val[n] for n in names]
+        try:
+            z = np.asarray(val, dtype=float)
+        except (TypeError, ValueError):
+            raise InputError(f"{p.name}: field '{key}' must be numbers (metres)") from None
+        if z.shape != (len(names),) or not np.isfinite(z).all():
+            raise InputError(f"{p.name}: field '{key}' must hold {len(names)} finite heights, got shape {z.shape}")
+        out.append(z)
+    return out[0], out[1]
+
+
+def _heights_jacobian(xy_r: Array, xy_s: Array, dz: Array, rows: NDArray[np.intp], cols: NDArray[np.intp],
+                      I: int, J: int) -> Any:
+    import scipy.sparse as sp
+
+    diff = xy_r[rows] - xy_s[cols]
+    dist = np.sqrt((diff**2).sum(axis=1) + dz[rows, cols] ** 2)
+    g = diff / np.maximum(dist, 1e-9)[:, None]
+    m = len(rows)
+    n_xy = 2 * (I + J)
+    # Parameter order: receiver xy (2I), sender xy (2J), receiver offsets (I), sender offsets 2..J.
+    r_idx = np.repeat(np.arange(m), 6)
+    c_idx = np.column_stack([2 * rows, 2 * rows + 1, 2 * I + 2 * cols, 2 * I + 2 * cols + 1,
+                             n_xy + rows, n_xy + I + cols - 1])
+    vals = np.column_stack([-g[:, 0], -g[:, 1], g[:, 0], g[:, 1], -np.ones(m), -np.ones(m)])
+    keep = ~((c_idx == n_xy + I - 1) & (np.arange(6) == 5)[None, :])  # sender 0's offset is the gauge
+    Jm = sp.csr_matrix((vals[keep], (r_idx[keep.ravel()], c_idx[keep])), shape=(m, n_xy + I + J - 1))
+    return Jm, dist
+
+
+def refine_known_heights(
+    matrix: Array,
+    receiver_heights: Array,
+    sender_heights: Array,
+    receivers_xy: Array,
+    senders_xy: Array,
+    receiver_offsets: Array,
+    source_offsets: Array,
+    *,
+    speed: float,
+    max_iterations: int = 50,
+) -> dict[str, Any]:
+    """Least squares for horizontal positions and offsets with every height known.
+
+    Minimises ``sum_ij (c t_ij - sqrt(|x_i - y_j|^2 + (z_i - w_j)^2) - c delta_i - c tau_j)^2``
+    (004 eq. 3.1 with the heights z_i, w_j given) over the (I + J) x 2 horizontal
+    positions, the I internal delays and the onsets tau_2..tau_J (tau_1 = 0, 004 sec. 3.3).
+    The horizontal gauge (rotation, translation, reflection) stays free; the covariance is
+    ``sigma^2 (J^T J)^+`` (minimum-norm inner constraints).
+
+    Parameters
+    ----------
+    matrix : (I, J) array
+        TOA in seconds, NaN = missing.
+    receiver_heights, sender_heights : (I,), (J,) arrays, m
+    receivers_xy, senders_xy : (I, 2), (J, 2) arrays
+        Initial horizontal positions, m.
+    receiver_offsets, source_offsets : (I,), (J,) arrays
+        Initial delays / onsets, s (shifted so that the first onset is 0).
+    speed : float
+        m/s.
+
+    Returns
+    -------
+    dict
+        ``receivers`` (I, 3), ``sources`` (J, 3), ``receiver_offsets`` (I,) s,
+        ``source_offsets`` (J,) s (first 0), ``receiver_cov`` (I, 3, 3), ``source_cov``
+        (J, 3, 3) (zero z variance: heights are given), ``residual_rms`` (s),
+        ``converged``, ``iterations``.
+    """
+    from scipy.optimize import least_squares
+
+    T = np.asarray(matrix, dtype=float)
+    I, J = T.shape
+    rows, cols = np.nonzero(np.isfinite(T))
+    y = speed * T[rows, cols]
+    dz = np.asarray(receiver_heights, float)[:, None] - np.asarray(sender_heights, float)[None, :]
+    shift = float(source_offsets[0])
+    theta0 = np.concatenate([np.asarray(receivers_xy, float).ravel(), np.asarray(senders_xy, float).ravel(),
+                             speed * (np.asarray(receiver_offsets, float) + shift),
+                             speed * (np.asarray(source_offsets, float)[1:] - shift)])
+    n_xy = 2 * (I + J)
+
+    def unpack(th: Array) -> tuple[Array, Array, Array, Array]:
+        xr = th[: 2 * I].reshape(I, 2)
+        xs = th[2 * I: n_xy].reshape(J, 2)
+        dr = th[n_xy: n_xy + I]
+        ds = np.concatenate([[0.0], th[n_xy + I:]])
+        return xr, xs, dr, ds
+
+    def resid(th: Array) -> Array:
+        xr, xs, dr, ds = unpack(th)
+        dist = np.sqrt(((xr[rows] - xs[cols]) ** 2).sum(axis=1) + dz[rows, cols] ** 2)
+        return y - dist - dr[rows] - ds[cols]
+
+    def jac(th: Array) -> Any:
+        xr, xs, _, _ = unpack(th)
+        return _heights_jacobian(xr, xs, dz, rows, cols, I, J)[0]
+
+    sol = least_squares(resid, theta0, jac=jac, method="trf", x_scale="jac", xtol=1e-12, ftol=1e-12,
+                        gtol=1e-10, max_nfev=max_iterations, tr_solver="lsmr")
+    xr, xs, dr, ds = unpack(sol.x)
+    r = sol.fun
+    m, n = len(r), len(sol.x)
+    dof = max(m - n + 3, 1)  # 3 = horizontal rigid-motion gauge freedoms
+    sigma2 = float(r @ r) / dof
+    Jd = jac(sol.x).toarray()
+    cov = sigma2 * np.linalg.pinv(Jd.T @ Jd, rcond=1e-10, hermitian=True)
+    rcov = np.zeros((I, 3, 3))
+    scov = np.zeros((J, 3, 3))
+    for i in range(I):
+        rcov[i, :2, :2] = cov[2 * i: 2 * i + 2, 2 * i: 2 * i + 2]
+    for j in range(J):
+        k = 2 * I + 2 * j
+        scov[j, :2, :2] = cov[k: k + 2, k: k + 2]
+    return {
+        "receivers": np.column_stack([xr, receiver_heights]),
+        "sources": np.column_stack([xs, sender_heights]),
+        "receiver_offsets": dr / speed,
+        "source_offsets": ds / speed,
+        "receiver_cov": rcov,
+        "source_cov": scov,
+        "residual_rms": float(np.sqrt(np.mean(r**2))) / speed,
+        "converged": bool(sol.status > 0),
+        "iterations": int(sol.nfev),
+    }
+
+
+@dataclass(frozen=True)
+class PipelineResult:
+    """Positions, delays and onsets from a recording directory.
+
+    Attributes
+    ----------
+    receivers : (I, d) array
+        Microphone positions, m (d = 3, or 2 for a near-planar layout without heights).
+    sources : (J, d) array
+        Loudspeaker positions, m.
+    receiver_offsets : (I,) array
+        Internal delays, s.
+    source_offsets : (J,) array
+        Onset times, s, the first 0 (only differences are observable).
+    receiver_cov, source_cov : (I, d, d), (J, d, d) arrays
+        Position covariances, m^2.
+    residual_rms : float
+        RMS TOA residual, s.
+    converged : bool
+    iterations : int
+    method : str
+        ``"3d"``, ``"2d"`` or ``"2d+heights"`` plus the TOA solver's method.
+    toa_matrix : (I, E) array
+        Detected TOA per (receiver, event), s, NaN = missed.
+    detections_missed : int
+    quality_db : (I, E) array
+    planarity : Planarity or None
+    timings : dict
+        Seconds per stage: ``load``, ``detect``, ``calibrate``.
+    receiver_names, sender_names : tuple of str
+    speed_of_sound : float
+    notes : tuple of str
+        Warnings a reader must see (near-planar layout, ...).
+    """
+
+    receivers: Array
+    sources: Array
+    receiver_offsets: Array
+    source_offsets: Array
+    receiver_cov: NDArray[np.float64]
+    source_cov: NDArray[np.float64]
+    residual_rms: float
+    converged: bool
+    iterations: int
+    method: str
+    toa_matrix: Array
+    detections_missed: int
+    quality_db: Array
+    planarity: Planarity | None
+    timings: dict[str, float]
+    receiver_names: tuple[str, ...]
+    sender_names: tuple[str, ...]
+    speed_of_sound: float
+    notes: tuple[str, ...] = field(default=())
+
+    @property
+    def dim(self) -> int:
+        """Number of coordinates per position."""
+        return int(self.receivers.shape[1])
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-safe dictionary: DESIGN.md's toa keys plus the pipeline's."""
+        return {
+            "receivers": self.receivers, "sources": self.sources,
+            "receiver_offsets": self.receiver_offsets, "source_offsets": self.source_offsets,
+            "receiver_cov": self.receiver_cov, "source_cov": self.source_cov,
+            "residual_rms": self.residual_rms, "converged": self.converged, "iterations": self.iterations,
+            "method": self.method, "dim": self.dim,
+            "toa_matrix": self.toa_matrix, "detections_missed": self.detections_missed,
+            "quality_db": self.quality_db,
+            "planarity": None if self.planarity is None else self.planarity.to_dict(),
+            "timings": self.timings, "receiver_names": list(self.receiver_names),
+            "sender_names": list(self.sender_names), "speed_of_sound": self.speed_of_sound,
+            "notes": list(self.notes),
+        }
+
+
+def _solve(T: Array, dim: int, speed: float, rng: int) -> Any:
+    from ..toa import solve_toa
+
+    return solve_toa(T, dim=dim, offsets="both", speed=speed, rng=rng)
+
+
+def _normalise_offsets(dr: Array, ds: Array) -> tuple[Array, Array]:
+    """Shift the common offset so that the first onset is 0 (004 sec. 3.3, tau_1 = 0)."""
+    a = float(ds[0])
+    return dr + a, ds - a
+
+
+def calibrate_matrix(
+    T: Array,
+    *,
+    speed: float,
+    dim: int | str = "auto",
+    heights: tuple[Array, Array] | None = None,
+    rng: int = 0,
+) -> tuple[dict[str, Any], Planarity | None, list[str]]:
+    """Stages 2 + 3 of 004 on an (I, J) per-sender TOA matrix (seconds).
+
+    Parameters
+    ----------
+    T : (I, J) array
+        ``t_ij = |r_i - s_j| / c + tau_j + delta_i``, s, NaN = missing.
+    speed : float
+        m/s.
+    dim : 2, 3 or "auto"
+        "auto": 3-D, or 2-D if the layout is near-planar (:func:`planarity`).
+        An explicit 3 on a near-planar layout raises.
+    heights : (receiver heights (I,), sender heights (J,)), optional
+        Known heights, m: 2-D initialisation, then :func:`refine_known_heights`; the
+        result is 3-D with z = the given heights.
+
+    Returns
+    -------
+    solution : dict
+        Keys of :func:`refine_known_heights` plus ``method``.
+    planarity : Planarity or None
+    notes : list of str
+
+    Raises
+    ------
+    DegenerateGeometryError
+        ``kind="near-planar"`` when ``dim=3`` is asked of a near-planar layout.
+    """
+    notes: list[str] = []
+    if heights is not None:
+        init = _solve(T, 2, speed, rng)
+        dr, ds = _normalise_offsets(np.asarray(init.receiver_offsets), np.asarray(init.source_offsets))
+        sol = refine_known_heights(T, heights[0], heights[1], init.receivers, init.sources, dr, ds, speed=speed)
+        sol["method"] = f"2d+heights ({init.method} init)"
+        return sol, None, notes
+    if dim not in (2, 3, "auto"):
+        raise InputError(f"dim must be 2, 3 or 'auto', got {dim!r}")
+    plan = None
+    if dim in (3, "auto"):
+        res = _solve(T, 3, speed, rng)
+        pts = np.vstack([res.receivers, res.sources])
+        cov = np.concatenate([np.asarray(res.receiver_cov), np.asarray(res.source_cov)])
+        plan = planarity(pts, cov)
+        if not plan.near_planar:
+            return _as_solution(res, "3d"), plan, notes
+        msg = (f"near-planar layout (thickness {plan.extents[-1]:.3f} m vs extent {plan.extents[0]:.2f} m, "
+               f"normal std {plan.normal_std:.3f} m): z is not determined by the data; "
+               "give known heights (--heights) for 3-D positions")
+        if dim == 3:
+            raise DegenerateGeometryError(msg, kind="near-planar")
+        warnings.warn(msg + "; reporting 2-D positions", stacklevel=2)
+        notes.append(msg + "; reported 2-D positions")
+    res = _solve(T, 2, speed, rng)
+    return _as_solution(res, "2d"), plan, notes
+
+
+def _as_solution(res: Any, label: str) -> dict[str, Any]:
+    dr, ds = _normalise_offsets(np.asarray(res.receiver_offsets, float), np.asarray(res.source_offsets, float))
+    return {
+        "receivers": np.asarray(res.receivers, float), "sources": np.asarray(res.sources, float),
+        "receiver_offsets": dr, "source_offsets": ds,
+        "receiver_cov": np.asarray(res.receiver_cov, float), "source_cov": np.asarray(res.source_cov, float),
+        "residual_rms": float(res.residual_rms), "converged": bool(res.converged),
+        "iterations": int(getattr(res, "iterations", 0)), "method": f"{label} ({res.method})",
+    }
+
+
+def run_pipeline(
+    directory: str | Path,
+    *,
+    dim: int | str = "auto",
+    heights: str | Path | tuple[Array, Array] | None = None,
+    progress: bool = True,
+    rng: int = 0,
+    detect_options: dict[str, Any] | None = None,
+) -> PipelineResult:
+    """Recordings -> arrival times -> onsets, delays and positions (004, all three stages).
+
+    Parameters
+    ----------
+    directory : path
+        A recording directory (:mod:`selfcal.acoustics.recording`).
+    dim : 2, 3 or "auto"
+        See :func:`calibrate_matrix`.
+    heights : path or (receiver heights, sender heights), optional
+        Known heights (JSON file, :func:`read_heights`, or arrays), m.
+    progress : bool
+        Progress bars.
+    rng : int
+        Seed of the TOA solver's random initialisations.
+    detect_options : dict, optional
+        Passed to :func:`selfcal.acoustics.detect.detect_recording`.
+
+    Returns
+    -------
+    PipelineResult
+
+    Raises
+    ------
+    InputError
+        Invalid recording directory or heights file.
+    DegenerateGeometryError
+        Too few detections for the unknowns, or ``dim=3`` on a near-planar layout.
+    """
+    from .detect import detect_recording
+    from .recording import load_recording
+
+    timings: dict[str, float] = {}
+    t0 = time.perf_counter()
+    rec = load_recording(directory)
+    setup = rec.setup
+    timings["load"] = time.perf_counter() - t0
+    hz = None
+    if heights is not None:
+        hz = (read_heights(heights, setup.receivers, setup.senders) if isinstance(heights, (str, Path))
+              else (np.asarray(heights[0], float), np.asarray(heights[1], float)))
+        if hz[0].shape != (len(setup.receivers),) or hz[1].shape != (len(setup.senders),):
+            raise InputError("heights: need one height per receiver and per sender")
+    t0 = time.perf_counter()
+    det = detect_recording(rec, progress=progress, **(detect_options or {}))
+    timings["detect"] = time.perf_counter() - t0
+    T = sender_matrix(det.toa, setup.event_senders, len(setup.senders))
+    if np.isnan(T).all():
+        raise DegenerateGeometryError("no arrival was detected in any recording; check the probe and levels",
+                                      kind="no-detections")
+    t0 = time.perf_counter()
+    sol, plan, notes = calibrate_matrix(T, speed=setup.speed_of_sound, dim=dim, heights=hz, rng=rng)
+    timings["calibrate"] = time.perf_counter() - t0
+    return PipelineResult(
+        receivers=sol["receivers"], sources=sol["sources"], receiver_offsets=sol["receiver_offsets"],
+        source_offsets=sol["source_offsets"], receiver_cov=sol["receiver_cov"], source_cov=sol["source_cov"],
+        residual_rms=sol["residual_rms"], converged=sol["converged"], iterations=sol["iterations"],
+        method=sol["method"], toa_matrix=det.toa, detections_missed=det.missed, quality_db=det.quality_db,
+        planarity=plan, timings=timings, receiver_names=setup.receivers, sender_names=setup.senders,
+        speed_of_sound=setup.speed_of_sound, notes=tuple(notes),
+    )
+
+
+def truth_errors(result: PipelineResult, truth: dict[str, Any]) -> dict[str, Any]:
+    """Errors of a pipeline result against a simulation's ``truth.json``.
+
+    Positions are aligned to the truth by a rigid motion with reflection (the gauge of
+    self-calibration), fitted on receivers and senders together; in 2-D the horizontal
+    coordinates are compared; with known heights only the horizontal plane is aligned.
+    Offsets are compared in the result's gauge (first onset 0): the onset error is
+    ``(tau_j^ - tau_1^) - (tau_j - tau_1)`` and the delay error ``delta_i^ - (delta_i + tau_1)``
+    shifted the same way.
+
+    Returns
+    -------
+    dict
+        ``position_errors`` (I + J,) m (receivers then senders), ``receiver_errors``,
+        ``sender_errors``, ``delay_errors`` (I,) s, ``onset_errors`` (J,) s, summary
+        ``position_median``, ``position_max``, ``timing_median``, ``timing_max`` and
+        ``pass_position``, ``pass_timing``, ``passed`` against 10 cm / 58 us (004).
+    """
+    from ..geometry import align
+
+    tr = np.asarray(truth["receivers"], float)
+    ts = np.asarray(truth["senders"], float)
+    er, es = result.receivers, result.sources
+    d = er.shape[1]
+    true_all = np.vstack([tr, ts])
+    est_all = np.vstack([er, es])
+    if d == 2 or result.method.startswith("2d+heights"):
+        al = align(est_all[:, :2], true_all[:, :2], reflection=True)
+        aligned = al.apply(est_all[:, :2])
+        if d == 3:
+            aligned = np.column_stack([aligned, est_all[:, 2]])
+        ref = true_all[:, : aligned.shape[1]]
+    else:
+        al = align(est_all, true_all, reflection=True)
+        aligned, ref = al.apply(est_all), true_all
+    perr = np.linalg.norm(aligned - ref, axis=1)
+    onset = np.asarray(truth["sender_onsets"], float)
+    delay = np.asarray(truth["receiver_delays"], float)
+    a = float(result.source_offsets[0]) - float(onset[0])
+    e_on = result.source_offsets - onset - a
+    e_de = result.receiver_offsets - delay + a
+    timing = np.concatenate([e_de, e_on])
+    I = len(tr)
+    out = {
+        "position_errors": perr, "receiver_errors": perr[:I], "sender_errors": perr[I:],
+        "delay_errors": e_de, "onset_errors": e_on,
+        "aligned_receivers": aligned[:I], "aligned_sources": aligned[I:],
+        "position_median": float(np.nanmedian(perr)), "position_max": float(np.nanmax(perr)),
+        "timing_median": float(np.nanmedian(np.abs(timing))), "timing_max": float(np.nanmax(np.abs(timing))),
+        "horizontal_only": bool(d == 2),
+    }
+    out["pass_position"] = bool(out["position_max"] <= POSITION_REQUIREMENT)
+    out["pass_timing"] = bool(out["timing_max"] <= TIMING_REQUIREMENT)
+    out["passed"] = bool(out["pass_position"] and out["pass_timing"])
+    return out

@@ -1,0 +1,337 @@
+"""The recording format: a directory with ``setup.json`` and one WAV per receiver.
+
+Format (see ``docs/recording_format.md``)::
+
+    DIR/setup.json
+        sample_rate      Hz (positive integer)
+        speed_of_sound   m/s (optional, default 343)
+        receivers        list of names; receiver i is DIR/rx_<name>.wav
+        senders          list of names
+        probe            {"type": "chirp", "f0": Hz, "f1": Hz, "duration": s} or {"wav": "probe.wav"}
+        events           list of {"sender": name, "time": s}: nominal emission times
+    DIR/rx_<name>.wav    mono, 16/32-bit integer or float, all on one clock (t = 0 at sample 0)
+
+The true emission of an event happens at ``time + onset(sender)`` and receiver ``i``
+time-stamps the sound ``delay(i)`` late, so the direct path of event ``e`` from sender
+``j`` reaches receiver ``i`` at sample time ``time_e + onset_j + |r_i - s_j| / c + delay_i``
+(004 eq. 3.1). Every problem in a directory is refused with an :class:`InputError`
+whose message starts with the file name and names the field.
+"""
+
+from __future__ import annotations
+
+import io as _io
+import json
+import math
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ..errors import InputError
+from ..io import atomic_write_bytes, write_json
+from .probe import Probe, probe_from_spec
+
+__all__ = [
+    "Setup",
+    "Recording",
+    "read_setup",
+    "read_wav",
+    "write_wav",
+    "load_recording",
+    "write_recording",
+    "CLIP_RUN",
+]
+
+CLIP_RUN = 3  # this many consecutive full-scale samples mean the converter clipped
+_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]*$")
+
+
+@dataclass(frozen=True)
+class Setup:
+    """Parsed and validated ``setup.json``.
+
+    Attributes
+    ----------
+    sample_rate : float
+        Hz.
+    speed_of_sound : float
+        m/s.
+    receivers, senders : tuple of str
+        Names, in file order (rows / columns of every matrix).
+    probe : dict
+        The probe description as given.
+    event_senders : (E,) int array
+        Index into ``senders`` of each event.
+    event_times : (E,) float array
+        Nominal emission times, seconds.
+    """
+
+    sample_rate: float
+    speed_of_sound: float
+    receivers: tuple[str, ...]
+    senders: tuple[str, ...]
+    probe: dict[str, Any]
+    event_senders: NDArray[np.int64]
+    event_times: NDArray[np.float64]
+
+    def to_dict(self) -> dict[str, Any]:
+        """The ``setup.json`` content (JSON-safe)."""
+        return {
+            "sample_rate": int(self.sample_rate) if float(self.sample_rate).is_integer() else self.sample_rate,
+            "speed_of_sound": self.speed_of_sound,
+            "receivers": list(self.receivers),
+            "senders": list(self.senders),
+            "probe": self.probe,
+            "events": [
+                {"sender": self.senders[int(j)], "time": float(t)}
+                for j, t in zip(self.event_senders, self.event_times, strict=True)
+            ],
+        }
+
+
+@dataclass(frozen=True)
+class Recording:
+    """A loaded recording directory.
+
+    Attributes
+    ----------
+    setup : Setup
+    probe : Probe
+    signals : (I, N) float32 array
+        Receiver signals on one clock, zero-padded to the longest file (full scale = 1).
+    lengths : (I,) int array
+        Samples actually recorded per receiver (windows beyond are "missed").
+    directory : Path
+    """
+
+    setup: Setup
+    probe: Probe
+    signals: NDArray[np.float32]
+    lengths: NDArray[np.int64]
+    directory: Path = field(default_factory=Path)
+
+
+def _names(raw: dict[str, Any], key: str, where: str) -> tuple[str, ...]:
+    if key not in raw:
+        raise InputError(f"{where}: field '{key}' is missing (a list of names)")
+    val = raw[key]
+    if not isinstance(val, list) or not val:
+        raise InputError(f"{where}: field '{key}' must be a non-empty list of names")
+    out = []
+    for k, name in enumerate(val):
+        if not isinstance(name, str) or not _NAME.match(name):
+            raise InputError(f"{where}: field '{key}[{k}]' = {name!r} is not a valid name "
+                             "(letters, digits, '_', '.', '-')")
+        out.append(name)
+    if len(set(out)) != len(out):
+        dup = next(n for n in out if out.count(n) > 1)
+        raise InputError(f"{where}: field '{key}' lists {dup!r} twice")
+    return tuple(out)
+
+
+def _positive(raw: dict[str, Any], key: str, where: str, default: float | None = None) -> float:
+    if key not in raw:
+        if default is None:
+            raise InputError(f"{where}: field '{key}' is missing")
+        return default
+    val = raw[key]
+    if isinstance(val, bool) or not isinstance(val, (int, float)) or not math.isfinite(val) or val <= 0:
+        raise InputError(f"{where}: field '{key}' must be a positive number, got {val!r}")
+    return float(val)
+
+
+def parse_setup(raw: Any, where: str = "setup.json") -> Setup:
+    """Validate the decoded JSON of ``setup.json`` and return a :class:`Setup`.
+
+    Raises
+    ------
+    InputError
+        Naming ``where`` and the offending field.
+    """
+    if not isinstance(raw, dict):
+        raise InputError(f"{where}: top level must be an object with fields sample_rate, receivers, senders, probe, events")
+    fs = _positive(raw, "sample_rate", where)
+    if not float(fs).is_integer():
+        raise InputError(f"{where}: field 'sample_rate' must be a whole number of Hz, got {fs:g}")
+    c = _positive(raw, "speed_of_sound", where, default=343.0)
+    receivers = _names(raw, "receivers", where)
+    senders = _names(raw, "senders", where)
+    if "probe" not in raw:
+        raise InputError(f"{where}: field 'probe' is missing")
+    probe = raw["probe"]
+    if not isinstance(probe, dict):
+        raise InputError(f"{where}: field 'probe' must be an object")
+    events = raw.get("events")
+    if not isinstance(events, list) or not events:
+        raise InputError(f"{where}: field 'events' must be a non-empty list of {{'sender': name, 'time': s}}")
+    index = {n: j for j, n in enumerate(senders)}
+    ev_s, ev_t = [], []
+    for k, ev in enumerate(events):
+        if not isinstance(ev, dict) or "sender" not in ev or "time" not in ev:
+            raise InputError(f"{where}: field 'events[{k}]' must be an object with 'sender' and 'time'")
+        if ev["sender"] not in index:
+            raise InputError(f"{where}: field 'events[{k}].sender' = {ev['sender']!r} is not one of 'senders'")
+        t = ev["time"]
+        if isinstance(t, bool) or not isinstance(t, (int, float)) or not math.isfinite(t) or t < 0:
+            raise InputError(f"{where}: field 'events[{k}].time' must be a number >= 0 (seconds), got {t!r}")
+        ev_s.append(index[ev["sender"]])
+        ev_t.append(float(t))
+    return Setup(fs, c, receivers, senders, dict(probe), np.array(ev_s, dtype=np.int64), np.array(ev_t))
+
+
+def read_setup(directory: str | Path) -> Setup:
+    """Read and validate ``DIR/setup.json`` (see module docstring)."""
+    path = Path(directory) / "setup.json"
+    if not Path(directory).is_dir():
+        raise InputError(f"{directory}: not a directory (expected a recording directory with setup.json)")
+    if not path.is_file():
+        raise InputError(f"setup.json: missing in {directory}")
+    try:
+        raw = json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise InputError(f"setup.json: malformed JSON ({exc})") from None
+    return parse_setup(raw)
+
+
+def read_wav(path: str | Path) -> tuple[NDArray[np.float64], float]:
+    """Read a mono WAV as float (full scale = 1) and refuse clipped or malformed files.
+
+    Integer files are scaled by ``2**(bits-1)``; float files are taken as is. A run of
+    :data:`CLIP_RUN` or more consecutive samples at full scale means clipping.
+
+    Returns
+    -------
+    x : (N,) float64 array
+    sample_rate : float, Hz
+
+    Raises
+    ------
+    InputError
+        Missing, unreadable, multi-channel, empty or clipped file (the message starts
+        with the file name).
+    """
+    from scipy.io import wavfile
+
+    p = Path(path)
+    if not p.is_file():
+        raise InputError(f"{p.name}: missing (expected in {p.parent})")
+    try:
+        fs, data = wavfile.read(p, mmap=False)
+    except (ValueError, OSError, EOFError) as exc:
+        raise InputError(f"{p.name}: not a readable WAV file ({exc})") from None
+    if data.ndim != 1:
+        raise InputError(f"{p.name}: has {data.shape[1]} channels; each receiver needs a mono file")
+    if data.size == 0:
+        raise InputError(f"{p.name}: contains no samples")
+    if data.dtype.kind == "i":
+        full = float(2 ** (8 * data.dtype.itemsize - 1))
+        x = data.astype(np.float64) / full
+        at_full = (data >= full - 1) | (data <= -full)
+    elif data.dtype.kind == "f":
+        x = data.astype(np.float64)
+        if not np.isfinite(x).all():
+            raise InputError(f"{p.name}: contains NaN or inf samples")
+        at_full = np.abs(x) >= 1.0
+    else:
+        raise InputError(f"{p.name}: sample format {data.dtype} not supported (use 16/32-bit integer or float)")
+    run = _longest_run(at_full)
+    if run >= CLIP_RUN:
+        first = int(np.argmax(at_full))
+        raise InputError(f"{p.name}: clipped ({run} consecutive samples at full scale, first at "
+                         f"{first / fs:.3f} s); record at a lower level")
+    return x, float(fs)
+
+
+def _longest_run(mask: NDArray[np.bool_]) -> int:
+    if not mask.any():
+        return 0
+    padded = np.concatenate(([0], mask.astype(np.int8), [0]))
+    edges = np.flatnonzero(np.diff(padded))
+    return int((edges[1::2] - edges[::2]).max())
+
+
+def write_wav(path: str | Path, x: NDArray[np.floating[Any]], sample_rate: float, *, bits: int = 16) -> None:
+    """Write a mono WAV atomically: ``bits=16`` (integer PCM, full scale 1) or ``bits=32`` (float).
+
+    Samples beyond full scale are refused rather than silently clipped.
+    """
+    from scipy.io import wavfile
+
+    x = np.asarray(x, dtype=np.float64)
+    if np.abs(x).max(initial=0.0) >= 1.0:
+        raise InputError(f"{Path(path).name}: samples reach full scale; scale the signal below 1")
+    buf = _io.BytesIO()
+    if bits == 16:
+        wavfile.write(buf, int(sample_rate), np.round(x * 32767.0).astype(np.int16))
+    elif bits == 32:
+        wavfile.write(buf, int(sample_rate), x.astype(np.float32))
+    else:
+        raise InputError(f"bits must be 16 or 32, got {bits}")
+    atomic_write_bytes(path, buf.getvalue())
+
+
+def load_recording(directory: str | Path) -> Recording:
+    """Read ``setup.json``, the probe and every ``rx_<name>.wav`` of a recording directory.
+
+    Returns
+    -------
+    Recording
+        Signals (I, N) float32, zero-padded to the longest file.
+
+    Raises
+    ------
+    InputError
+        Malformed ``setup.json`` (field named), a missing / clipped / unreadable WAV, or a
+        WAV whose sample rate differs from ``sample_rate`` (file named).
+    """
+    d = Path(directory)
+    setup = read_setup(d)
+    probe = probe_from_spec(setup.probe, setup.sample_rate, base_dir=d)
+    sigs = []
+    for name in setup.receivers:
+        x, fs = read_wav(d / f"rx_{name}.wav")
+        if fs != setup.sample_rate:
+            raise InputError(f"rx_{name}.wav: sample rate {fs:g} Hz differs from setup.json "
+                             f"field 'sample_rate' = {setup.sample_rate:g} Hz")
+        sigs.append(x)
+    lengths = np.array([len(s) for s in sigs], dtype=np.int64)
+    signals = np.zeros((len(sigs), int(lengths.max())), dtype=np.float32)
+    for i, s in enumerate(sigs):
+        signals[i, : len(s)] = s
+    return Recording(setup, probe, signals, lengths, d)
+
+
+def write_recording(directory: str | Path, setup: Setup, signals: NDArray[np.floating[Any]], *,
+                    truth: dict[str, Any] | None = None, bits: int = 16,
+                    extra: dict[str, Any] | None = None) -> None:
+    """Write a recording directory: ``setup.json``, ``rx_<name>.wav`` and optional JSON files.
+
+    Parameters
+    ----------
+    directory : path
+    setup : Setup
+    signals : (I, N) array, full scale 1
+    truth : dict, optional
+        Written to ``truth.json``.
+    bits : 16 or 32
+    extra : dict, optional
+        ``{file name: JSON-able object}`` written alongside (e.g. ``heights.json``).
+    """
+    d = Path(directory)
+    d.mkdir(parents=True, exist_ok=True)
+    sig = np.asarray(signals)
+    if sig.shape[0] != len(setup.receivers):
+        raise InputError(f"signals has {sig.shape[0]} rows for {len(setup.receivers)} receivers")
+    for name, x in zip(setup.receivers, sig, strict=True):
+        write_wav(d / f"rx_{name}.wav", x, setup.sample_rate, bits=bits)
+    for fname, obj in (extra or {}).items():
+        write_json(d / fname, obj)
+    if truth is not None:
+        write_json(d / "truth.json", truth)
+    # setup.json last: a directory with a setup.json is complete.
+    write_json(d / "setup.json", setup.to_dict())
+
