@@ -1,0 +1,161 @@
+"""Every solution of the three-beacon problem (perspective-three-point), batched.
+
+Beyond paper 001: its equations (7) and (19) are the classical P3P system (Grunert 1841), which
+has up to four real solutions; Newton (Solutions 1 and 2) finds one of them, depending on the
+start. Here all of them are found in closed form: with ``r2 = u r1``, ``r3 = v r1`` the three
+cosine-rule equations (eq. 20) become two quadratics in ``u`` whose coefficients are
+polynomials in ``v``::
+
+    P(u) = u^2 - 2 c12 u + K(v),                 K(v) = 1 - (d12^2/d13^2)(1 + v^2 - 2 c13 v)
+    Q(u) = (d12^2 - d23^2) u^2 + 2 (d23^2 c12 - d12^2 c23 v) u + d12^2 v^2 - d23^2
+
+and their Sylvester resultant in ``u`` is a quartic in ``v``. Its real positive roots give ``u``
+(the root of P that also zeroes Q), ``r1 = d12 / sqrt(1 + u^2 - 2 c12 u)``, then a few Newton
+steps of Solution 2 polish the ranges to machine precision. The pose of each candidate is the
+rigid (Kabsch) fit of the back-projected points ``r_k ubar_k`` onto the beacons.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+
+from .orientation import kabsch
+from .solution2 import newton_ranges
+
+Array = NDArray[np.float64]
+
+__all__ = ["p3p_ranges", "p3p"]
+
+MAX_SOLUTIONS = 4
+
+
+def _pmul(a: Array, b: Array) -> Array:
+    """Product of batched polynomials (coefficients lowest degree first, last axis)."""
+    out = np.zeros(a.shape[:-1] + (a.shape[-1] + b.shape[-1] - 1,))
+    for k in range(b.shape[-1]):
+        out[..., k : k + a.shape[-1]] += a * b[..., k : k + 1]
+    return out
+
+
+def _padd(a: Array, b: Array) -> Array:
+    n = max(a.shape[-1], b.shape[-1])
+    pa = np.zeros(a.shape[:-1] + (n,))
+    pb = np.zeros(b.shape[:-1] + (n,))
+    pa[..., : a.shape[-1]] = a
+    pb[..., : b.shape[-1]] = b
+    return pa + pb
+
+
+def _quartic_roots(c: Array) -> Array:
+    """Complex roots of batched quartics ``c[..., 0] + ... + c[..., 4] v^4`` (companion matrix).
+
+    A vanishing leading coefficient (degree drop) is replaced by a tiny one, which sends the
+    spurious root to infinity where the positivity filter discards it.
+    """
+    c = np.array(c, float, copy=True)
+    lead = c[:, 4]
+    tiny = np.abs(lead) < 1e-14 * np.max(np.abs(c), axis=1)
+    c[tiny, 4] = 1e-14 * np.max(np.abs(c[tiny]), axis=1)
+    comp = np.zeros((c.shape[0], 4, 4))
+    comp[:, 1:, :3] = np.eye(3)
+    comp[:, :, 3] = -c[:, :4] / c[:, 4:5]
+    return np.linalg.eigvals(comp)
+
+
+def p3p_ranges(beacons: Array, cosines: Array) -> tuple[Array, Array]:
+    """All positive range triples consistent with three beacons and the bearing cosines.
+
+    Parameters
+    ----------
+    beacons : (3, 3) beacon positions (m).
+    cosines : (B, 3) ``[c12, c13, c23]`` with ``c_ij = ubar_i . ubar_j``.
+
+    Returns
+    -------
+    ranges : (B, 4, 3) candidate ``(r1, r2, r3)``; rows past the valid ones are NaN.
+    valid : (B, 4) bool.
+    """
+    b = np.asarray(beacons, float)
+    c12, c13, c23 = (np.asarray(cosines, float)[:, k] for k in range(3))
+    B = c12.shape[0]
+    d12s = float(np.sum((b[1] - b[0]) ** 2))
+    d13s = float(np.sum((b[2] - b[0]) ** 2))
+    d23s = float(np.sum((b[2] - b[1]) ** 2))
+    k = d12s / d13s
+    one = np.ones(B)
+    a1 = one[:, None]
+    b1 = (-2 * c12)[:, None]
+    c1 = np.stack([(1 - k) * one, 2 * k * c13, -k * one], axis=-1)
+    a2 = ((d12s - d23s) * one)[:, None]
+    b2 = np.stack([2 * d23s * c12, -2 * d12s * c23], axis=-1)
+    c2 = np.stack([-d23s * one, 0 * one, d12s * one], axis=-1)
+    t1 = _padd(_pmul(a1, c2), -_pmul(a2, c1))
+    t2 = _padd(_pmul(a1, b2), -_pmul(a2, b1))
+    t3 = _padd(_pmul(b1, c2), -_pmul(b2, c1))
+    res = _padd(_pmul(t1, t1), -_pmul(t2, t3))[:, :5]
+    roots = _quartic_roots(res)
+    v = roots.real
+    scale = 1.0 + np.abs(v)
+    real = np.abs(roots.imag) <= 1e-5 * scale
+    # u solves P(u) = 0; of its two roots keep the one that also solves Q(u) = 0
+    K = (1 - k) + 2 * k * c13[:, None] * v - k * v**2
+    disc = np.sqrt(np.maximum(c12[:, None] ** 2 - K, 0.0))
+    ucand = np.stack([c12[:, None] + disc, c12[:, None] - disc], axis=-1)
+    Qv = (
+        (d12s - d23s) * ucand**2
+        + 2 * (d23s * c12[:, None, None] - d12s * c23[:, None, None] * v[..., None]) * ucand
+        + (d12s * v**2 - d23s)[..., None]
+    )
+    pick = np.argmin(np.abs(Qv), axis=-1)
+    u = np.take_along_axis(ucand, pick[..., None], axis=-1)[..., 0]
+    with np.errstate(all="ignore"):
+        r1 = np.sqrt(d12s) / np.sqrt(1 + u**2 - 2 * u * c12[:, None])
+    r = np.stack([r1, u * r1, v * r1], axis=-1)  # (B, 4, 3)
+    valid = real & np.isfinite(r).all(axis=-1) & (r > 0).all(axis=-1)
+    # polish with Solution 2's Newton (eq. 19-20) on the same cosines
+    pairs = np.array([[0, 1], [1, 2], [2, 0]])
+    cos_p = np.stack([c12, c23, c13], axis=-1)
+    flat = np.where(valid[..., None], r, 1.0).reshape(-1, 3)
+    rr, _, resid = newton_ranges(
+        np.repeat(cos_p, MAX_SOLUTIONS, axis=0), np.array([d12s, d23s, d13s]), pairs, flat, max_iter=8
+    )
+    rr = rr.reshape(B, MAX_SOLUTIONS, 3)
+    valid &= (resid.reshape(B, MAX_SOLUTIONS) < 1e-6) & (rr > 0).all(axis=-1)
+    # a double root shows up twice: keep the first copy
+    for a in range(MAX_SOLUTIONS):
+        for c in range(a + 1, MAX_SOLUTIONS):
+            same = np.max(np.abs(rr[:, a] - rr[:, c]), axis=-1) <= 1e-7 * (1 + np.max(np.abs(rr[:, a]), axis=-1))
+            valid[:, c] &= ~(same & valid[:, a])
+    rr[~valid] = np.nan
+    return rr, valid
+
+
+def p3p(beacons: Array, bearings: Array) -> tuple[Array, Array, Array]:
+    """All poses of a receiver seeing three beacons, batched.
+
+    Parameters
+    ----------
+    beacons : (3, 3) beacon positions (m).
+    bearings : (B, 3, 3) unit bearings in the receiver frame.
+
+    Returns
+    -------
+    positions : (B, 4, 3), rotations : (B, 4, 3, 3) (``v_global = R v_receiver``),
+    valid : (B, 4) bool. Invalid slots are NaN.
+    """
+    b = np.asarray(beacons, float)
+    U = np.asarray(bearings, float)
+    B = U.shape[0]
+    cos = np.stack(
+        [np.sum(U[:, 0] * U[:, 1], -1), np.sum(U[:, 0] * U[:, 2], -1), np.sum(U[:, 1] * U[:, 2], -1)],
+        axis=-1,
+    )
+    r, valid = p3p_ranges(b, cos)
+    local = np.where(valid[..., None, None], r[..., None], 1.0) * U[:, None]  # (B, 4, 3, 3)
+    R, t = kabsch(local.reshape(-1, 3, 3), np.broadcast_to(b, (B * MAX_SOLUTIONS, 3, 3)))
+    R = R.reshape(B, MAX_SOLUTIONS, 3, 3)
+    t = t.reshape(B, MAX_SOLUTIONS, 3)
+    R[~valid] = np.nan
+    t[~valid] = np.nan
+    return t, R, valid

@@ -1,0 +1,118 @@
+"""TDOA -> AOA conversion for two orthogonal sensor pairs (paper 001, eq. 2-4).
+
+The receiver carries two orthogonal sensor pairs whose baselines define its local x and y
+axes (paper Fig. 1). Under the far-field assumption the TDOA of a pair gives the cosine of the
+angle between the line of sight and the pair's baseline (eq. 3); the third direction cosine
+follows from the unit norm (eq. 4) **taking the positive root**: the beacons are assumed to be
+in front of the sensor panel (local z >= 0, paper Fig. 2). Noise can push ``|cos| > 1`` or
+``cos^2 a + cos^2 b > 1``; those values are clipped and flagged rather than turned into NaN.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import ArrayLike, NDArray
+
+from .._checks import check_positive
+from ..errors import InputError
+
+Array = NDArray[np.float64]
+
+__all__ = ["Bearings", "tdoa_to_bearings", "angles_to_bearings", "bearings_to_angles"]
+
+
+@dataclass(frozen=True)
+class Bearings:
+    """Unit line-of-sight vectors in the receiver frame with the clipping flags of eq. 3-4.
+
+    Attributes
+    ----------
+    vectors : (..., 3) unit vectors ``[cos a, cos b, cos g]`` (eq. 2).
+    clipped : (...,) bool, True where ``|cos a| > 1``, ``|cos b| > 1`` or
+        ``cos^2 a + cos^2 b > 1`` had to be clipped (noise, or a beacon behind the panel).
+    """
+
+    vectors: Array
+    clipped: NDArray[np.bool_]
+
+    def to_dict(self) -> dict[str, object]:
+        """JSON-safe form."""
+        return {"vectors": self.vectors.tolist(), "clipped": self.clipped.tolist()}
+
+
+def _from_cosines(ca: Array, cb: Array) -> Bearings:
+    clipped = (np.abs(ca) > 1.0) | (np.abs(cb) > 1.0)
+    ca = np.clip(ca, -1.0, 1.0)
+    cb = np.clip(cb, -1.0, 1.0)
+    g2 = 1.0 - ca**2 - cb**2
+    clipped = clipped | (g2 < 0.0)
+    # eq. 4, positive root: the beacon is in front of the panel (gamma <= pi/2)
+    cg = np.sqrt(np.maximum(g2, 0.0))
+    v = np.stack([ca, cb, cg], axis=-1)
+    v /= np.linalg.norm(v, axis=-1, keepdims=True)  # re-normalise after clipping
+    return Bearings(vectors=v, clipped=np.asarray(clipped, bool))
+
+
+def tdoa_to_bearings(
+    tdoa_12: ArrayLike,
+    tdoa_34: ArrayLike,
+    *,
+    baseline_12: float,
+    baseline_34: float,
+    speed: float,
+) -> Bearings:
+    """Bearings from the TDOAs of two orthogonal sensor pairs (paper 001 eq. 2-4).
+
+    ``cos a_k = c d12_k / |s2 - s1|`` and ``cos b_k = c d34_k / |s4 - s3|`` (eq. 3),
+    ``cos g_k = +sqrt(1 - cos^2 a_k - cos^2 b_k)`` (eq. 4, front hemisphere).
+
+    Parameters
+    ----------
+    tdoa_12, tdoa_34 : (...,) seconds
+        TDOA of each beacon's signal across the x pair (sensors 1, 2) and the y pair (3, 4),
+        ``t_1 - t_2`` so that a beacon along +x has a positive TDOA.
+    baseline_12, baseline_34 : float, metres
+        Sensor separations ``|s2 - s1|`` and ``|s4 - s3|``.
+    speed : float, m/s
+        Propagation speed ``c``.
+
+    Returns
+    -------
+    Bearings
+        (..., 3) unit vectors in the receiver frame and the clipping flags.
+    """
+    b12 = check_positive(baseline_12, "baseline_12", allow_none=False)
+    b34 = check_positive(baseline_34, "baseline_34", allow_none=False)
+    c = check_positive(speed, "speed", allow_none=False)
+    t12 = np.asarray(tdoa_12, float)
+    t34 = np.asarray(tdoa_34, float)
+    if t12.shape != t34.shape:
+        raise InputError(f"tdoa_12 {t12.shape} and tdoa_34 {t34.shape} must have the same shape")
+    if not (np.isfinite(t12).all() and np.isfinite(t34).all()):
+        raise InputError("TDOAs must be finite (drop the beacons that were not received)")
+    assert b12 is not None and b34 is not None and c is not None
+    return _from_cosines(c * t12 / b12, c * t34 / b34)
+
+
+def angles_to_bearings(alpha: ArrayLike, beta: ArrayLike) -> Bearings:
+    """Bearings from the angles ``alpha``, ``beta`` (rad) with the local x and y axes (eq. 2, 4).
+
+    This is how the paper's simulation perturbs the measurements: noise on ``alpha`` and
+    ``beta``, then eq. 4 for the third cosine.
+    """
+    a = np.asarray(alpha, float)
+    b = np.asarray(beta, float)
+    if a.shape != b.shape:
+        raise InputError(f"alpha {a.shape} and beta {b.shape} must have the same shape")
+    if not (np.isfinite(a).all() and np.isfinite(b).all()):
+        raise InputError("alpha and beta must be finite")
+    return _from_cosines(np.cos(a), np.cos(b))
+
+
+def bearings_to_angles(vectors: ArrayLike) -> tuple[Array, Array]:
+    """Inverse of :func:`angles_to_bearings`: (..., 3) unit vectors -> (alpha, beta) in rad."""
+    v = np.asarray(vectors, float)
+    v = v / np.linalg.norm(v, axis=-1, keepdims=True)
+    return np.arccos(np.clip(v[..., 0], -1, 1)), np.arccos(np.clip(v[..., 1], -1, 1))
