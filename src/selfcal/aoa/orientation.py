@@ -10,10 +10,12 @@ a leading axis ``B``.
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 from numpy.typing import NDArray
 
-Array = NDArray[np.float64]
+Array = NDArray[Any]
 
 __all__ = [
     "PLANAR_TOL",

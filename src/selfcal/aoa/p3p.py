@@ -17,13 +17,15 @@ rigid (Kabsch) fit of the back-projected points ``r_k ubar_k`` onto the beacons.
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 from numpy.typing import NDArray
 
 from .orientation import kabsch
 from .solution2 import newton_ranges
 
-Array = NDArray[np.float64]
+Array = NDArray[Any]
 
 __all__ = ["p3p_ranges", "p3p"]
 

@@ -31,7 +31,7 @@ from .planar2d import DANGER_TOL, linear_pose_2d
 from .solution1 import solution1
 from .solution2 import solution2
 
-Array = NDArray[np.float64]
+Array = NDArray[Any]
 
 __all__ = ["AoaResult", "AoaCandidate", "solve_aoa", "METHODS_3D", "METHODS_2D"]
 
@@ -190,8 +190,8 @@ def _best_triple(b: Array) -> Array:
     if N == 3:
         return np.arange(3)
     idx = list(combinations(range(min(N, 12)), 3))
-    areas = [np.linalg.norm(np.cross(b[j] - b[i], b[k] - b[i])) if b.shape[1] == 3 else 0.0 for i, j, k in idx]
-    return np.array(idx[int(np.argmax(areas))])
+    areas = np.array([float(np.linalg.norm(np.cross(b[j] - b[i], b[k] - b[i]))) for i, j, k in idx])
+    return np.asarray(idx[int(np.argmax(areas))], dtype=int)
 
 
 def _rms(b: Array, U: Array, m: Array, R: Array) -> Array:
@@ -204,6 +204,11 @@ def _rms(b: Array, U: Array, m: Array, R: Array) -> Array:
 
 def _check_determined(b: Array, U: Array, m: Array, R: Array, kind: str) -> None:
     """Raise when the pose Jacobian is (numerically) rank deficient at the solution."""
+    fin = np.isfinite(m).all(axis=1) & np.isfinite(R).all(axis=(1, 2))
+    if not fin.all():
+        b, U, m, R = b, U[fin], m[fin], R[fin]
+        if not fin.any():
+            return
     if b.shape[1] == 3:
         _, J = residuals_3d(b, U, m, R, jacobian=True)
     else:
@@ -326,14 +331,14 @@ def solve_aoa(
             from ..errors import ConvergenceWarning
 
             warnings.warn(
-                f"{method}: Newton did not converge for {int((~conv).sum())} of {B} receivers",
+                f"{method}: Newton did not converge for {int(np.sum(~np.asarray(conv, bool)))} of {B} receivers",
                 ConvergenceWarning,
                 stacklevel=2,
             )
     else:
         tri = _best_triple(b)
         pos, rot, valid = p3p(b[tri], U[:, tri])  # (B, 4, 3), (B, 4, 3, 3)
-        if not valid.any(axis=1).all():
+        if not batched and not valid.any():
             k = int(np.argmin(valid.any(axis=1)))
             raise DegenerateGeometryError(
                 f"receiver {k}: the bearings admit no pose for beacons {tri.tolist()} (measurements "

@@ -81,7 +81,14 @@ def reproduce_aoa(
     import numpy as np
 
     from ..errors import InputError
-    from ..experiments.aoa import METHODS, PAPER_TABLE1, aoa_trial, grid_means, paper_grid, summarize
+    from ..experiments.aoa import (
+        METHODS,
+        PAPER_TABLE1,
+        aoa_trial,
+        grid_means,
+        paper_grid,
+        summarize,
+    )
     from ..experiments.runner import run_sweep, write_rows
     from ..io import write_json
     from ..plotting import new_figure, plot_heatmap, save_figure
@@ -93,7 +100,7 @@ def reproduce_aoa(
     outdir = Path(out)
     outdir.mkdir(parents=True, exist_ok=True)
     table = summarize(rows)
-    both = np.array([[r[f"{m}_ok"] for m in METHODS] for r in rows], bool).all(axis=1)
+    both = [all(bool(r[f"{m}_ok"]) for m in METHODS) for r in rows]
     common = summarize([r for r, ok in zip(rows, both, strict=True) if ok])
     write_rows(rows, outdir / "aoa_trials.csv")
     labels = {"sol1": "Solution 1", "sol2": "Solution 2", "ml": "ML (3 beacons)", "ml4": "ML (4 beacons)"}
@@ -116,13 +123,13 @@ def reproduce_aoa(
                   "grid_points": len(grid), "trials": len(rows)},
         "table1": table,
         "table1_common_trials": common,
-        "common_trial_fraction": float(both.mean()),
+        "common_trial_fraction": float(np.mean(both)),
         "paper_table1": PAPER_TABLE1,
         "clipped_bearings_fraction": float(np.mean([r["clipped"] for r in rows]) / 4.0),
     }
     write_json(outdir / "aoa_reproduction.json", report)
     click.echo(f"{'':14s}{'paper sol1':>11s}{'paper sol2':>11s}" + "".join(f"{m:>9s}" for m in METHODS))
-    for key, unit in (("location_m", "m"), ("x_deg", "deg"), ("y_deg", "deg"), ("z_deg", "deg")):
+    for key in ("location_m", "x_deg", "y_deg", "z_deg"):
         click.echo(
             f"{key:14s}{PAPER_TABLE1['sol1'][key]:11.2f}{PAPER_TABLE1['sol2'][key]:11.2f}"
             + "".join(f"{table[m][key]:9.2f}" for m in METHODS)
