@@ -1,0 +1,830 @@
+"""Sparse nonlinear least squares for the bipartite range model (paper 003 sec. IV).
+
+Model of entry (i, j) of an I x J range matrix (metres, NaN = missing)::
+
+    y_ij = |r_i - s_j| + d_i + o_j + e_ij,      e_ij ~ N(0, sigma^2)
+
+with optional per-receiver offsets ``d_i`` and per-source offsets ``o_j``
+(``offsets`` in {"none", "receivers", "sources", "both"}; 004 sec. 3 writes the
+same model in seconds). :func:`refine_toa` minimises 003 eq. 2 (or a robust
+version of it) from an initial geometry and returns the 003 eq. 17 covariance of
+every point with the gauge removed.
+
+Gauge. The cost is invariant under the d(d+1)/2 rigid motions of all points (and,
+with both kinds of offsets, under ``d_i + c, o_j - c``), so ``J^T J`` is singular.
+We fix the gauge during the solve by *pinning* g coordinates at their initial
+values; the pinned set is chosen by a column-pivoted QR of the gauge basis
+restricted to the smaller node set, so no gauge motion leaves every pinned
+coordinate fixed (the reduced normal matrix is non-singular). The minimum of the
+cost does not depend on that choice. The covariance is reported gauge-free: the
+Moore-Penrose inverse ``sigma^2 (J^T J)^+`` (003 eq. 17 with the null space of the
+gauge removed), obtained from the pinned inverse ``C`` as ``P C P`` with ``P`` the
+orthogonal projector onto the complement of the gauge directions (any gauge-fixed
+inverse differs from ``(J^T J)^+`` only along the gauge directions).
+
+Sparse structure. Every residual touches one receiver and one source, so ``J^T J``
+is an arrow matrix: block-diagonal on each node set plus a dense receiver-source
+coupling. Both the large-problem solver (Levenberg-Marquardt with the normal
+equations reduced by a Schur complement onto the smaller node set) and the
+covariance use it: per iteration one dense ``n_small d x n_small d`` Cholesky and
+one ``n_small d x n_large d`` product; only the d x d diagonal blocks of the
+covariance are formed. ``scipy.optimize.least_squares(method="trf")`` with the analytic sparse Jacobian is
+the alternative solver (``solver="trf"``).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import scipy.linalg
+import scipy.sparse
+from numpy.typing import NDArray
+from scipy.optimize import least_squares
+
+from .._checks import as_matrix, as_points, check_choice
+from ..errors import DegenerateGeometryError, InputError
+
+__all__ = [
+    "NlsSolution",
+    "refine_toa",
+    "toa_model",
+    "toa_residuals",
+    "toa_jacobian",
+    "gauge_basis",
+    "OFFSET_MODES",
+    "LOSSES",
+]
+
+Array = NDArray[np.float64]
+
+OFFSET_MODES = ("none", "receivers", "sources", "both")
+LOSSES = ("linear", "huber", "soft_l1", "cauchy")
+
+# solver="trf": above this many unknowns least_squares uses tr_solver="lsmr" (sparse)
+# instead of "exact" (a dense SVD per iteration)
+_DENSE_MAX_UNKNOWNS = 600
+
+
+@dataclass(frozen=True)
+class NlsSolution:
+    """Result of :func:`refine_toa` (all lengths in metres).
+
+    Attributes
+    ----------
+    receivers, sources: (I, d), (J, d) estimated positions in the canonical gauge
+        (:func:`selfcal.geometry.canonical_gauge`: receiver centroid at 0, principal axes).
+    receiver_offsets, source_offsets: (I,), (J,) or None. With both kinds the first
+        source offset is 0 (the common shift is moved into the receiver offsets).
+    receiver_cov, source_cov: (I, d, d), (J, d, d) gauge-free covariances
+        ``sigma^2 (J^T J)^+`` (003 eq. 17), in the output frame.
+    receiver_offset_std, source_offset_std: (I,), (J,) or None, standard deviations
+        of the offsets in the minimum-norm gauge.
+    residuals: (I, J) measured minus modelled range, NaN where missing.
+    residual_rms: root mean square of the observed residuals.
+    sigma: estimated range noise std ``sqrt(RSS / (m - n + g))`` (m residuals,
+        n unknowns, g gauge freedoms); a MAD-based estimate for robust losses.
+    converged, iterations, cost: solver status, iterations (Jacobian evaluations)
+        and the final cost ``0.5 sum rho(f^2)``.
+    solver: "trf" (scipy least_squares) or "schur-lm".
+    """
+
+    receivers: Array
+    sources: Array
+    receiver_offsets: Array | None
+    source_offsets: Array | None
+    receiver_cov: Array
+    source_cov: Array
+    receiver_offset_std: Array | None
+    source_offset_std: Array | None
+    residuals: Array
+    residual_rms: float
+    sigma: float
+    converged: bool
+    iterations: int
+    cost: float
+    solver: str = "trf"
+
+
+# ---------------------------------------------------------------------------
+# model, residuals, Jacobian (receiver-major parameter vector)
+# ---------------------------------------------------------------------------
+
+
+def _flags(offsets: str) -> tuple[bool, bool]:
+    return offsets in ("receivers", "both"), offsets in ("sources", "both")
+
+
+def _unpack(
+    theta: Array, I: int, J: int, d: int, offsets: str
+) -> tuple[Array, Array, Array | None, Array | None]:
+    """Split the parameter vector ``[r (I d), s (J d), d_i (I)?, o_j (J)?]``."""
+    has_r, has_s = _flags(offsets)
+    r = theta[: I * d].reshape(I, d)
+    s = theta[I * d : (I + J) * d].reshape(J, d)
+    k = (I + J) * d
+    dr = theta[k : k + I] if has_r else None
+    k += I if has_r else 0
+    os_ = theta[k : k + J] if has_s else None
+    return r, s, dr, os_
+
+
+def _pack(r: Array, s: Array, dr: Array | None, os_: Array | None) -> Array:
+    parts = [np.ravel(r), np.ravel(s)]
+    if dr is not None:
+        parts.append(np.ravel(dr))
+    if os_ is not None:
+        parts.append(np.ravel(os_))
+    return np.concatenate(parts).astype(float)
+
+
+def toa_model(
+    receivers: Array,
+    sources: Array,
+    receiver_offsets: Array | None = None,
+    source_offsets: Array | None = None,
+) -> Array:
+    """Modelled range matrix ``|r_i - s_j| + d_i + o_j`` (004 sec. 3 in metres), shape (I, J)."""
+    r = np.asarray(receivers, float)
+    s = np.asarray(sources, float)
+    D = np.sqrt(((r[:, None, :] - s[None, :, :]) ** 2).sum(-1))
+    if receiver_offsets is not None:
+        D = D + np.asarray(receiver_offsets, float)[:, None]
+    if source_offsets is not None:
+        D = D + np.asarray(source_offsets, float)[None, :]
+    return D
+
+
+def toa_residuals(theta: Array, ranges: Array, dim: int, offsets: str = "none") -> Array:
+    """Vector of ``model - measured`` over the observed entries (row-major order), shape (m,).
+
+    ``theta`` is the receiver-major parameter vector ``[r.ravel(), s.ravel(), d?, o?]``.
+    """
+    I, J = ranges.shape
+    r, s, dr, os_ = _unpack(np.asarray(theta, float), I, J, dim, offsets)
+    obs = np.isfinite(ranges)
+    return (toa_model(r, s, dr, os_) - ranges)[obs]
+
+
+def toa_jacobian(theta: Array, ranges: Array, dim: int, offsets: str = "none") -> scipy.sparse.csr_matrix:
+    """Analytic sparse Jacobian of :func:`toa_residuals` (003 eq. 16 with the sign of model - data).
+
+    Row of entry (i, j): ``u_ij`` at r_i, ``-u_ij`` at s_j, 1 at d_i and o_j, where
+    ``u_ij = (r_i - s_j) / |r_i - s_j|`` (zero when the points coincide, where the
+    range is not differentiable). Shape (m, n) CSR, 2d (+1, +2) non-zeros per row.
+    """
+    I, J = ranges.shape
+    theta = np.asarray(theta, float)
+    r, s, _, _ = _unpack(theta, I, J, dim, offsets)
+    ii, jj = np.nonzero(np.isfinite(ranges))
+    diff = r[ii] - s[jj]
+    nrm = np.linalg.norm(diff, axis=1)
+    u = np.divide(diff, nrm[:, None], out=np.zeros_like(diff), where=nrm[:, None] > 0)
+    has_r, has_s = _flags(offsets)
+    cols = [ii[:, None] * dim + np.arange(dim), I * dim + jj[:, None] * dim + np.arange(dim)]
+    vals = [u, -u]
+    k = (I + J) * dim
+    if has_r:
+        cols.append((k + ii)[:, None])
+        vals.append(np.ones((len(ii), 1)))
+        k += I
+    if has_s:
+        cols.append((k + jj)[:, None])
+        vals.append(np.ones((len(ii), 1)))
+    C = np.hstack(cols)
+    V = np.hstack(vals)
+    m, per = C.shape
+    return scipy.sparse.csr_matrix(
+        (V.ravel(), C.ravel(), np.arange(0, m * per + 1, per)), shape=(m, theta.size)
+    )
+
+
+def gauge_basis(
+    receivers: Array, sources: Array, offsets: str = "none"
+) -> Array:
+    """Orthonormal basis of the gauge null space of ``J^T J``, shape (n, g).
+
+    Columns span the infinitesimal translations (d), rotations (d(d-1)/2) of all
+    points and, with both kinds of offsets, the common shift ``d_i + c, o_j - c``.
+    Receiver-major parameter order as in :func:`toa_residuals`.
+    """
+    r = np.asarray(receivers, float)
+    s = np.asarray(sources, float)
+    I, d = r.shape
+    J = s.shape[0]
+    has_r, has_s = _flags(offsets)
+    P = np.vstack([r, s])
+    P = P - P.mean(axis=0)
+    cols = []
+    for a in range(d):
+        v = np.zeros_like(P)
+        v[:, a] = 1.0
+        cols.append(_pack(v[:I], v[I:], np.zeros(I) if has_r else None, np.zeros(J) if has_s else None))
+    gens = []
+    if d == 2:
+        gens.append(np.array([[0.0, -1.0], [1.0, 0.0]]))
+    else:
+        for a, b in ((0, 1), (0, 2), (1, 2)):
+            G = np.zeros((3, 3))
+            G[a, b], G[b, a] = -1.0, 1.0
+            gens.append(G)
+    for G in gens:
+        v = P @ G.T
+        cols.append(_pack(v[:I], v[I:], np.zeros(I) if has_r else None, np.zeros(J) if has_s else None))
+    if offsets == "both":
+        cols.append(_pack(np.zeros_like(r), np.zeros_like(s), np.ones(I), -np.ones(J)))
+    Q, _ = np.linalg.qr(np.column_stack(cols))
+    return Q
+
+
+# ---------------------------------------------------------------------------
+# internal "kept / eliminated" layout for the Schur complement
+# ---------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class _Layout:
+    """Index bookkeeping: K = node set kept in the reduced system, E = eliminated one."""
+
+    I: int
+    J: int
+    d: int
+    offsets: str
+    k_is_receivers: bool
+    k_idx: NDArray[np.intp]  # (nK, mK) parameter indices of each kept node
+    e_idx: NDArray[np.intp]  # (nE, mE)
+    pins: NDArray[np.intp]  # pinned parameter indices (all on the K side)
+    n: int
+
+    @property
+    def kept_free(self) -> NDArray[np.intp]:
+        flat = self.k_idx.ravel()
+        return flat[~np.isin(flat, self.pins)]
+
+
+def _node_indices(I: int, J: int, d: int, offsets: str) -> tuple[NDArray[np.intp], NDArray[np.intp], int]:
+    has_r, has_s = _flags(offsets)
+    r_idx = np.arange(I * d).reshape(I, d)
+    s_idx = I * d + np.arange(J * d).reshape(J, d)
+    k = (I + J) * d
+    if has_r:
+        r_idx = np.hstack([r_idx, (k + np.arange(I))[:, None]])
+        k += I
+    if has_s:
+        s_idx = np.hstack([s_idx, (k + np.arange(J))[:, None]])
+        k += J
+    return r_idx, s_idx, k
+
+
+def _make_layout(r: Array, s: Array, offsets: str) -> _Layout:
+    I, d = r.shape
+    J = s.shape[0]
+    r_idx, s_idx, n = _node_indices(I, J, d, offsets)
+    k_is_r = I <= J
+    k_idx, e_idx = (r_idx, s_idx) if k_is_r else (s_idx, r_idx)
+    Q = gauge_basis(r, s, offsets)
+    cand = k_idx.ravel()
+    g = Q.shape[1]
+    # the g rows of the gauge basis that are best conditioned: pinning them removes the gauge
+    _, R, piv = scipy.linalg.qr(Q[cand].T, pivoting=True, mode="economic")
+    diag = np.abs(np.diag(R))
+    if diag.size < g or diag[g - 1] < 1e-6 * max(diag[0], 1e-300):
+        raise DegenerateGeometryError(
+            "the points are (nearly) collinear or coincident: the rigid-motion gauge cannot be fixed; "
+            "receivers and sources together must span the space",
+            kind="degenerate-geometry",
+        )
+    pins = np.sort(cand[piv[:g]])
+    return _Layout(I, J, d, offsets, k_is_r, k_idx, e_idx, pins, n)
+
+
+def _unit_vectors(theta: Array, lay: _Layout) -> tuple[Array, Array]:
+    """Distances (I, J) and unit vectors u_ij = (r_i - s_j)/|.| (I, J, d)."""
+    r, s, _, _ = _unpack(theta, lay.I, lay.J, lay.d, lay.offsets)
+    diff = r[:, None, :] - s[None, :, :]
+    dist = np.sqrt((diff**2).sum(-1))
+    u = np.divide(diff, dist[..., None], out=np.zeros_like(diff), where=dist[..., None] > 0)
+    return dist, u
+
+
+def _row_blocks(u: Array, lay: _Layout) -> tuple[Array, Array]:
+    """Per-residual Jacobian rows on the K and E nodes: (nK, nE, mK), (nK, nE, mE)."""
+    has_r, has_s = _flags(lay.offsets)
+    ones = np.ones(u.shape[:2] + (1,))
+    a = np.concatenate([u, ones], axis=2) if has_r else u
+    b = np.concatenate([-u, ones], axis=2) if has_s else -u
+    if lay.k_is_receivers:
+        return a, b
+    return np.swapaxes(b, 0, 1), np.swapaxes(a, 0, 1)
+
+
+def _schur_system(
+    aK: Array, bE: Array, w: Array, lay: _Layout, damping: float = 0.0
+) -> tuple[Array, Array, Array]:
+    """Pieces of the (weighted, optionally Marquardt-damped) normal matrix in K/E form.
+
+    Returns A (nA, nA) on the free K coordinates, Dinv (nE, mE, mE) and
+    B (nA, nE*mE). ``w`` is (nK, nE), zero for missing entries.
+    """
+    nK, nE, mK = aK.shape
+    mE = bE.shape[2]
+    wa = aK * w[..., None]
+    Ablk = np.einsum("kep,keq->kpq", wa, aK)  # K nodes are only coupled through E nodes
+    Dblk = np.einsum("kep,keq->epq", bE * w[..., None], bE)
+    Bfull = np.einsum("kep,keq->kpeq", wa, bE).reshape(nK * mK, nE * mE)
+    if damping > 0:
+        Ablk = Ablk + damping * np.einsum("kpp->kp", Ablk)[:, :, None] * np.eye(mK)
+        Dblk = Dblk + damping * np.einsum("epp->ep", Dblk)[:, :, None] * np.eye(mE)
+    A = _block_diag(Ablk)
+    keep = _kept_positions(lay)
+    A = A[np.ix_(keep, keep)]
+    B = Bfull[keep]
+    Dinv = _inv_blocks(Dblk)
+    return A, Dinv, B
+
+
+def _block_diag(blocks: Array) -> Array:
+    n, m, _ = blocks.shape
+    out = np.zeros((n, m, n, m))
+    idx = np.arange(n)
+    out[idx, :, idx, :] = blocks
+    return out.reshape(n * m, n * m)
+
+
+def _pinned_positions(lay: _Layout) -> NDArray[np.intp]:
+    """Positions (in K-node-major order) of the pinned K coordinates."""
+    return np.nonzero(np.isin(lay.k_idx.ravel(), lay.pins))[0]
+
+
+def _kept_positions(lay: _Layout) -> NDArray[np.intp]:
+    """Positions (in K-node-major order) of the non-pinned K coordinates."""
+    flat = lay.k_idx.ravel()
+    return np.nonzero(~np.isin(flat, lay.pins))[0]
+
+
+def _column_block_gram(M: Array) -> Array:
+    """``out[e] = M[:, e, :]^T M[:, e, :]`` for M of shape (rows, n, m): (n, m, m)."""
+    _, n, m = M.shape
+    out = np.empty((n, m, m))
+    for p in range(m):
+        for q in range(p, m):
+            out[:, p, q] = out[:, q, p] = np.einsum("ae,ae->e", M[:, :, p], M[:, :, q])
+    return out
+
+
+def _inv_blocks(blocks: Array) -> Array:
+    """Inverse of each small symmetric block; an unobservable node raises DegenerateGeometryError."""
+    cond_ok = np.linalg.cond(blocks) < 1e12
+    if not cond_ok.all():
+        bad = int(np.nonzero(~cond_ok)[0][0])
+        raise DegenerateGeometryError(
+            f"node {bad} of the eliminated set is not determined by its observed ranges "
+            "(too few or collinear observations); it needs at least d+1 (+1 per offset) "
+            "ranges to non-collinear partners",
+            kind="unobservable-node",
+        )
+    return np.asarray(np.linalg.inv(blocks), dtype=np.float64)
+
+
+def _schur_solve(A: Array, Dinv: Array, B: Array, gK: Array, gE: Array) -> tuple[Array, Array]:
+    """Solve [[A, B], [B^T, D]] [x; y] = [gK; gE] by eliminating the block-diagonal D."""
+    nE, mE, _ = Dinv.shape
+    B3 = B.reshape(B.shape[0], nE, mE)
+    F = np.einsum("aeq,eqp->aep", B3, Dinv).reshape(B.shape)  # B D^-1
+    S = A - F @ B.T
+    DgE = np.einsum("epq,eq->ep", Dinv, gE.reshape(nE, mE)).ravel()
+    cf = scipy.linalg.cho_factor(S, check_finite=False)
+    x = scipy.linalg.cho_solve(cf, gK - B @ DgE, check_finite=False)
+    y = DgE - np.einsum("epq,eq->ep", Dinv, (B.T @ x).reshape(nE, mE)).ravel()
+    return x, y
+
+
+# ---------------------------------------------------------------------------
+# robust losses (rho(z), rho'(z) of z = (f / f_scale)^2, as in scipy.optimize.least_squares)
+# ---------------------------------------------------------------------------
+
+
+def _rho(z: Array, loss: str) -> tuple[Array, Array]:
+    if loss == "linear":
+        return z, np.ones_like(z)
+    if loss == "huber":
+        big = z > 1
+        sq = np.sqrt(np.where(big, z, 1.0))
+        return np.where(big, 2 * sq - 1, z), np.where(big, 1 / sq, 1.0)
+    if loss == "soft_l1":
+        t = np.sqrt(1 + z)
+        return 2 * (t - 1), 1 / t
+    if loss == "cauchy":
+        return np.log1p(z), 1 / (1 + z)
+    raise InputError(f"unknown loss {loss!r}")
+
+
+def _robust_sigma(f: Array) -> float:
+    """Normal-consistent MAD of residuals (robust noise std), metres."""
+    if f.size == 0:
+        return 0.0
+    return float(1.4826 * np.median(np.abs(f - np.median(f))))
+
+
+# ---------------------------------------------------------------------------
+# solvers
+# ---------------------------------------------------------------------------
+
+
+def _solve_trf(
+    theta0: Array, Y: Array, lay: _Layout, loss: str, f_scale: float, max_nfev: int | None, xtol: float
+) -> tuple[Array, bool, int]:
+    d, offsets = lay.d, lay.offsets
+    free = np.setdiff1d(np.arange(lay.n), lay.pins)
+    base = theta0.copy()
+
+    def full(x: Array) -> Array:
+        t = base.copy()
+        t[free] = x
+        return t
+
+    def fun(x: Array) -> Array:
+        return toa_residuals(full(x), Y, d, offsets)
+
+    dense = len(free) <= _DENSE_MAX_UNKNOWNS
+
+    def jac(x: Array) -> Any:
+        Jm = toa_jacobian(full(x), Y, d, offsets)[:, free]
+        return Jm.toarray() if dense else Jm
+
+    res = least_squares(
+        fun, theta0[free], jac=jac, method="trf", x_scale="jac", tr_solver="exact" if dense else "lsmr",
+        loss=loss,
+        f_scale=f_scale, xtol=xtol, ftol=1e-12, gtol=1e-12, max_nfev=max_nfev or 200 * max(1, len(free) // 50 + 1),
+    )
+    return full(res.x), bool(res.status > 0), int(res.njev or res.nfev)
+
+
+def _k_e_vectors(theta: Array, lay: _Layout) -> tuple[Array, Array]:
+    return theta[lay.k_idx].ravel(), theta[lay.e_idx].ravel()
+
+
+_Op = Callable[[Array], Array]
+
+
+def _reduced_operator(
+    aK: Array, bE: Array, w: Array, lay: _Layout, damping: float
+) -> tuple[_Op, _Op, _Op, _Op, _Op]:
+    """Matrix-free Schur complement ``S = A - B D^-1 B^T`` of the damped normal matrix.
+
+    Returns ``(S @ x, preconditioner @ x, B @ y, B^T @ x, D^-1 @ y)`` on full-length K / E
+    vectors; pinned K coordinates are masked out (S acts as the identity on them).
+    The preconditioner is the inverse of the exact d x d diagonal blocks of S
+    (Schur-Jacobi). Every product costs O(nK nE m) instead of the O(nK^2 nE m^2) of
+    forming S, and nothing of size nK x nE x m^2 is stored.
+    """
+    nK, nE, mK = aK.shape
+    mE = bE.shape[2]
+    Ablk = np.einsum("kep,keq->kpq", aK * w[..., None], aK)
+    Dblk = np.einsum("kep,keq->epq", bE * w[..., None], bE)
+    if damping > 0:
+        Ablk = Ablk + damping * np.einsum("kpp->kp", Ablk)[:, :, None] * np.eye(mK)
+        Dblk = Dblk + damping * np.einsum("epp->ep", Dblk)[:, :, None] * np.eye(mE)
+    Dinv = _inv_blocks(Dblk)
+    mask = np.ones(nK * mK, dtype=bool)
+    mask[_pinned_positions(lay)] = False
+    c = np.einsum("keq,eqr,ker->ke", bE, Dinv, bE, optimize=True) * w**2
+    Sblk = Ablk - np.einsum("ke,kep,keq->kpq", c, aK, aK, optimize=True)
+    m2 = mask.reshape(nK, mK)
+    Sblk = Sblk * (m2[:, :, None] & m2[:, None, :]) + np.einsum(
+        "kp,pq->kpq", (~m2).astype(float), np.eye(mK)
+    )
+    Pinv = _inv_blocks(Sblk)
+
+    def bt(x: Array) -> Array:
+        t = w * np.einsum("kep,kp->ke", aK, x.reshape(nK, mK))
+        return np.einsum("ke,keq->eq", t, bE).ravel()
+
+    def b(y: Array) -> Array:
+        t = w * np.einsum("keq,eq->ke", bE, y.reshape(nE, mE))
+        return np.einsum("ke,kep->kp", t, aK).ravel()
+
+    def dinv(y: Array) -> Array:
+        return np.einsum("epq,eq->ep", Dinv, y.reshape(nE, mE)).ravel()
+
+    def smul(x: Array) -> Array:
+        xm = np.where(mask, x, 0.0)
+        out = np.einsum("kpq,kq->kp", Ablk, xm.reshape(nK, mK)).ravel() - b(dinv(bt(xm)))
+        return np.where(mask, out, x)
+
+    def prec(x: Array) -> Array:
+        return np.einsum("kpq,kq->kp", Pinv, x.reshape(nK, mK)).ravel()
+
+    return smul, prec, b, bt, dinv
+
+
+def _solve_schur_lm(
+    theta0: Array, Y: Array, lay: _Layout, loss: str, f_scale: float, max_nfev: int | None, xtol: float
+) -> tuple[Array, bool, int]:
+    """Levenberg-Marquardt (Marquardt diagonal damping) on the Schur-reduced normal equations.
+
+    Each step solves the reduced system on the smaller node set by conjugate
+    gradients with a Schur-Jacobi preconditioner (inexact Newton; Agarwal et al.,
+    "Bundle adjustment in the large", 2010), then back-substitutes the eliminated
+    nodes. Robust losses use iteratively reweighted normal equations with weights
+    rho'(z), whose fixed points are the stationary points of the robust cost.
+    """
+    from scipy.sparse.linalg import LinearOperator, cg
+
+    obs = np.isfinite(Y)
+    Yz = np.where(obs, Y, 0.0)
+    pinned = _pinned_positions(lay)
+
+    def evaluate(theta: Array) -> tuple[float, Array, Array]:
+        r, s, dr, os_ = _unpack(theta, lay.I, lay.J, lay.d, lay.offsets)
+        f = np.where(obs, toa_model(r, s, dr, os_) - Yz, 0.0)
+        z = (f / f_scale) ** 2
+        rho, drho = _rho(z, loss)
+        cost = 0.5 * f_scale**2 * float(rho[obs].sum())
+        return cost, f, np.where(obs, drho, 0.0)
+
+    theta = theta0.copy()
+    cost, f, w = evaluate(theta)
+    lam = 1e-4
+    converged = False
+    max_it = max_nfev or 100
+    it = 0
+    nk = lay.k_idx.size
+    while it < max_it:
+        it += 1
+        _, u = _unit_vectors(theta, lay)
+        aK, bE = _row_blocks(u, lay)
+        fK = f if lay.k_is_receivers else f.T
+        wK = w if lay.k_is_receivers else w.T
+        gK = np.einsum("kep,ke->kp", aK, wK * fK).ravel()
+        gK[pinned] = 0.0
+        gE = np.einsum("kep,ke->ep", bE, wK * fK).ravel()
+        gnorm = float(np.sqrt(gK @ gK + gE @ gE))
+        improved = False
+        for _ in range(12):
+            try:
+                smul, prec, b, bt, dinv = _reduced_operator(aK, bE, wK, lay, lam)
+            except DegenerateGeometryError:
+                lam *= 10
+                continue
+            rhs = -gK + b(dinv(gE))
+            op = LinearOperator((nk, nk), matvec=smul, dtype=float)
+            pc = LinearOperator((nk, nk), matvec=prec, dtype=float)
+            x, _ = cg(op, rhs, rtol=1e-6, maxiter=500, M=pc)
+            x[pinned] = 0.0
+            y = dinv(-gE - bt(x))
+            step = np.zeros(lay.n)
+            step[lay.k_idx.ravel()] = x
+            step[lay.e_idx.ravel()] = y
+            trial = theta + step
+            c2, f2, w2 = evaluate(trial)
+            if c2 <= cost:
+                small = np.linalg.norm(step) <= xtol * (xtol + np.linalg.norm(theta))
+                rel = (cost - c2) <= 1e-10 * max(cost, 1e-300)
+                theta, cost, f, w = trial, c2, f2, w2
+                lam = max(lam / 10, 1e-10)
+                improved = True
+                converged = bool(small or rel)
+                break
+            lam *= 10
+        if not improved:
+            # no damped step descends: a minimum up to round-off if the gradient is tiny
+            converged = gnorm <= 1e-6 * max(1.0, np.sqrt(2 * cost))
+            break
+        if converged:
+            break
+    return theta, converged, it
+
+
+# ---------------------------------------------------------------------------
+# covariance: diagonal blocks of sigma^2 (J^T W J)^+ through the Schur complement
+# ---------------------------------------------------------------------------
+
+
+def _gauge_free_blocks(theta: Array, w: Array, lay: _Layout) -> tuple[Array, Array]:
+    """Diagonal node blocks of ``(J^T W J)^+`` (gauge removed): (I, m_r, m_r), (J, m_s, m_s).
+
+    ``w`` (I, J) are the row weights (0 = missing). The pinned inverse ``C`` is formed
+    only where needed: its node diagonal blocks and ``C Q`` (g columns); then
+    ``(P C P)_kk = C_kk - Q_k Y_k^T - Y_k Q_k^T + Q_k Z Q_k^T`` with ``Y = C Q``,
+    ``Z = Q^T C Q`` and ``P = I - Q Q^T``.
+    """
+    _, u = _unit_vectors(theta, lay)
+    aK, bE = _row_blocks(u, lay)
+    wK = w if lay.k_is_receivers else w.T
+    A, Dinv, B = _schur_system(aK, bE, wK, lay)
+    nE, mE, _ = Dinv.shape
+    nK, mK = lay.k_idx.shape
+    B3 = B.reshape(B.shape[0], nE, mE)
+    F = np.einsum("aeq,eqp->aep", B3, Dinv).reshape(B.shape)
+    S = A - F @ B.T
+    try:
+        L = np.linalg.cholesky(S)
+        dl = np.abs(np.diag(L))
+        if dl.min() <= 1e-7 * dl.max():  # condition number of S above ~1e14
+            raise np.linalg.LinAlgError
+    except np.linalg.LinAlgError:
+        raise DegenerateGeometryError(
+            "the normal equations are singular beyond the rigid-motion gauge: the geometry is "
+            "degenerate (e.g. all points coplanar in 3-D, or too few ranges per node)",
+            kind="degenerate-geometry",
+        ) from None
+    # diagonal blocks only: S^-1 = L^-T L^-1 and F^T S^-1 F = |L^-1 F|^2, column-block Grams
+    Linv, info = scipy.linalg.lapack.dtrtri(L, lower=1)
+    if info != 0:
+        raise DegenerateGeometryError("singular reduced normal matrix", kind="degenerate-geometry")
+    X = scipy.linalg.solve_triangular(L, F, lower=True, check_finite=False)
+    CE = Dinv + _column_block_gram(X.reshape(X.shape[0], nE, mE))
+    kept = _kept_positions(lay)
+    Lfull = np.zeros((Linv.shape[0], nK * mK))
+    Lfull[:, kept] = Linv
+    CK = _column_block_gram(Lfull.reshape(Linv.shape[0], nK, mK))
+    del Lfull, X, Linv
+    cf = (L, True)
+
+    r, s, _, _ = _unpack(theta, lay.I, lay.J, lay.d, lay.offsets)
+    Q = gauge_basis(r, s, lay.offsets)
+    QK = Q[lay.k_idx.ravel()]  # (nK mK, g)
+    QE = Q[lay.e_idx.ravel()]
+    # C Q with the pinned coordinates' rows/columns of C equal to zero
+    t = QK[kept] - F @ QE
+    YKf = scipy.linalg.cho_solve(cf, t, check_finite=False)
+    YK = np.zeros_like(QK)
+    YK[kept] = YKf
+    DQ = np.einsum("epq,eqg->epg", Dinv, QE.reshape(nE, mE, -1)).reshape(nE * mE, -1)
+    YE = DQ - F.T @ YKf
+    Z = QK.T @ YK + QE.T @ YE
+
+    def project(Cb: Array, Qn: Array, Yn: Array) -> Array:
+        n_, m_, _ = Cb.shape
+        Q3 = Qn.reshape(n_, m_, -1)
+        Y3 = Yn.reshape(n_, m_, -1)
+        QY = np.einsum("npg,nqg->npq", Q3, Y3)
+        return Cb - QY - np.swapaxes(QY, 1, 2) + np.einsum("npg,gh,nqh->npq", Q3, Z, Q3)
+
+    PK = project(CK, QK, YK)
+    PE = project(CE, QE, YE)
+    return (PK, PE) if lay.k_is_receivers else (PE, PK)
+
+
+# ---------------------------------------------------------------------------
+# public engine
+# ---------------------------------------------------------------------------
+
+
+def refine_toa(
+    ranges: Array,
+    receivers0: Array,
+    sources0: Array,
+    *,
+    offsets: str = "none",
+    receiver_offsets0: Array | None = None,
+    source_offsets0: Array | None = None,
+    loss: str = "linear",
+    f_scale: float | None = None,
+    max_nfev: int | None = None,
+    xtol: float = 1e-10,
+    solver: str = "auto",
+) -> NlsSolution:
+    """Refine receivers, sources (and offsets) by sparse nonlinear least squares (003 eq. 2, 16-17).
+
+    Minimises ``sum_ij rho((|r_i - s_j| + d_i + o_j - y_ij)^2 / f_scale^2)`` over the
+    observed entries (003 eq. 2b for ``loss="linear"``), with the analytic Jacobian
+    (003 eq. 16) and the gauge handled as described in the module docstring.
+
+    Parameters
+    ----------
+    ranges: (I, J) measured ranges in metres (rows = receivers, columns = sources),
+        NaN = missing. Negative entries are legal when offsets are estimated.
+    receivers0, sources0: (I, d), (J, d) initial positions, d in {2, 3}.
+    offsets: "none" | "receivers" | "sources" | "both" - which offsets are unknowns.
+    receiver_offsets0, source_offsets0: (I,), (J,) initial offsets (metres); zeros
+        when omitted.
+    loss: "linear" (Gaussian ML), "huber", "soft_l1" or "cauchy" (outlier-robust).
+    f_scale: residual scale (metres) of the robust loss; default 1.5 x a robust noise
+        estimate, re-estimated once after a first refinement.
+    max_nfev: cap on iterations / function evaluations.
+    xtol: relative step tolerance.
+    solver: "auto" / "schur" (Levenberg-Marquardt on the Schur-reduced normal equations,
+        conjugate gradients with a Schur-Jacobi preconditioner) or "trf"
+        (``scipy.optimize.least_squares(method="trf", x_scale="jac")`` with the sparse
+        analytic Jacobian; ``tr_solver="exact"`` up to 600 unknowns, ``"lsmr"`` above).
+
+    Returns
+    -------
+    NlsSolution, in the canonical gauge (:func:`selfcal.geometry.canonical_gauge`).
+    """
+    from ..geometry import canonical_gauge
+
+    check_choice(offsets, "offsets", OFFSET_MODES)
+    check_choice(loss, "loss", LOSSES)
+    check_choice(solver, "solver", ("auto", "trf", "schur"))
+    Y = as_matrix(ranges, "ranges")
+    I, J = Y.shape
+    r0 = as_points(receivers0, "receivers0")
+    d = r0.shape[1]
+    s0 = as_points(sources0, "sources0", dim=d)
+    if r0.shape[0] != I or s0.shape[0] != J:
+        raise InputError(
+            f"initial geometry has {r0.shape[0]} receivers and {s0.shape[0]} sources but the "
+            f"range matrix is {I} x {J}"
+        )
+    has_r, has_s = _flags(offsets)
+    dr0 = _offsets0(receiver_offsets0, I, "receiver_offsets0") if has_r else None
+    os0 = _offsets0(source_offsets0, J, "source_offsets0") if has_s else None
+    if f_scale is not None and not (np.isfinite(f_scale) and f_scale > 0):
+        raise InputError(f"f_scale must be a positive number (metres), got {f_scale!r}")
+
+    theta0 = _pack(r0, s0, dr0, os0)
+    lay = _make_layout(r0, s0, offsets)
+    obs = np.isfinite(Y)
+    m = int(obs.sum())
+    g = lay.pins.size
+    n_free = lay.n - g
+    if m < n_free:
+        raise DegenerateGeometryError(
+            f"{m} observed ranges for {n_free} unknowns; add receivers, sources or measurements",
+            kind="too-few-measurements",
+        )
+    # "auto" = Schur LM: measured faster than least_squares at every size we tried (8x10 to
+    # 1000x1000), see benchmarks/bench_toa.py; "trf" stays available as the reference
+    use_trf = solver == "trf"
+    run = _solve_trf if use_trf else _solve_schur_lm
+
+    if loss == "linear":
+        fs = 1.0
+        theta, conv, nit = run(theta0, Y, lay, loss, fs, max_nfev, xtol)
+    else:
+        f0 = toa_residuals(theta0, Y, d, offsets)
+        fs = f_scale if f_scale is not None else max(1.5 * _robust_sigma(f0), 1e-9)
+        theta, conv, nit = run(theta0, Y, lay, loss, fs, max_nfev, xtol)
+        if f_scale is None:
+            # the initial residuals mix geometry error with noise: re-scale on the refined ones
+            fs = max(1.5 * _robust_sigma(toa_residuals(theta, Y, d, offsets)), 1e-9)
+            theta, conv2, nit2 = run(theta, Y, lay, loss, fs, max_nfev, xtol)
+            conv, nit = conv2, nit + nit2
+
+    r, s, dr, os_ = _unpack(theta, I, J, d, offsets)
+    model = toa_model(r, s, dr, os_)
+    resid = np.where(obs, Y - model, np.nan)
+    f = resid[obs]
+    rms = float(np.sqrt(np.mean(f**2)))
+    z = (f / fs) ** 2
+    rho, drho = _rho(z, loss)
+    cost = 0.5 * fs**2 * float(rho.sum())
+    dof = m - n_free
+    if loss == "linear":
+        sigma = float(np.sqrt((f**2).sum() / dof)) if dof > 0 else float("nan")
+        wmat = obs.astype(float)
+    else:
+        sigma = _robust_sigma(f)
+        wmat = np.zeros((I, J))
+        wmat[obs] = drho  # inliers weigh 1, outliers down-weighted as in the final IRLS step
+
+    # a singular Fisher matrix beyond the gauge means the data do not determine the geometry
+    Cr, Cs = _gauge_free_blocks(theta, wmat, lay)
+    Cr = Cr * sigma**2
+    Cs = Cs * sigma**2
+    if not np.isfinite(sigma):
+        Cr = np.full_like(Cr, np.nan)
+        Cs = np.full_like(Cs, np.nan)
+
+    rc, sc, al = canonical_gauge(r, s)
+    assert sc is not None
+    R = al.rotation
+    rcov = np.einsum("ab,nbc,dc->nad", R, Cr[:, :d, :d], R)
+    scov = np.einsum("ab,nbc,dc->nad", R, Cs[:, :d, :d], R)
+    dstd = np.sqrt(np.maximum(Cr[:, d, d], 0.0)) if has_r else None
+    ostd = np.sqrt(np.maximum(Cs[:, d, d], 0.0)) if has_s else None
+    if offsets == "both":
+        assert dr is not None and os_ is not None
+        shift = os_[0]
+        dr, os_ = dr + shift, os_ - shift
+    return NlsSolution(
+        receivers=rc,
+        sources=sc,
+        receiver_offsets=None if dr is None else np.array(dr),
+        source_offsets=None if os_ is None else np.array(os_),
+        receiver_cov=rcov,
+        source_cov=scov,
+        receiver_offset_std=dstd,
+        source_offset_std=ostd,
+        residuals=resid,
+        residual_rms=rms,
+        sigma=sigma,
+        converged=conv,
+        iterations=nit,
+        cost=cost,
+        solver="trf" if use_trf else "schur-lm",
+    )
+
+
+def _offsets0(value: Array | None, n: int, name: str) -> Array:
+    if value is None:
+        return np.zeros(n)
+    v = np.asarray(value, dtype=float).ravel()
+    if v.shape != (n,) or not np.isfinite(v).all():
+        raise InputError(f"{name}: expected {n} finite offsets, got shape {np.shape(value)}")
+    return v

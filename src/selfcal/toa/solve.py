@@ -1,0 +1,385 @@
+"""``solve_toa``: anchor-free TOA / range self-calibration end to end (papers 003, 004).
+
+Validation -> unit conversion (seconds -> metres with ``speed``) -> initialisation
+(003 Alg. 1/2 family for plain TOA, the 004 rank-3 iteration with offsets) ->
+sparse NLS refinement with covariances (:func:`selfcal.toa.nls.refine_toa`) ->
+multi-start when the fit is implausible -> :class:`ToaResult` in the canonical gauge.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from .._checks import (
+    as_matrix,
+    as_points,
+    as_rng,
+    check_choice,
+    check_dim,
+    check_positive,
+    check_toa_counts,
+)
+from ..errors import DegenerateGeometryError, InputError
+from .nls import LOSSES, OFFSET_MODES, NlsSolution, refine_toa, toa_model
+
+__all__ = ["ToaResult", "solve_toa"]
+
+Array = NDArray[np.float64]
+
+METHODS = ("auto", "nls", "rank3")
+
+
+@dataclass(frozen=True)
+class ToaResult:
+    """Result of :func:`solve_toa`.
+
+    Attributes
+    ----------
+    receivers, sources: (I, d), (J, d) positions in metres, canonical gauge
+        (receiver centroid at 0, receiver principal axes along x, y(, z)).
+    receiver_offsets, source_offsets: (I,), (J,) or None; seconds when ``speed`` was
+        given, metres otherwise. With both kinds, ``source_offsets[0] == 0``.
+    receiver_cov, source_cov: (I, d, d), (J, d, d) gauge-free covariances (m^2,
+        003 eq. 17); NaN when not available (``method="rank3"``).
+    residual_rms, sigma: RMS of the observed residuals and the estimated noise std,
+        in the matrix's units (seconds with ``speed``).
+    converged, iterations: solver status (iterations summed over starts).
+    method: what ran, e.g. ``"mds+nls"``, ``"rank3+nls"``, ``"given+nls"``, ``"rank3"``;
+        ``"+multistart(k)"`` when k extra starts were tried.
+    n_missing: number of missing (NaN) entries.
+    n_starts: number of refinements run (1 unless the multi-start triggered).
+    receiver_offset_std, source_offset_std: offset standard deviations (minimum-norm gauge).
+    speed: propagation speed used (m/s) or None.
+    residuals: (I, J) measured minus modelled, matrix units, NaN where missing.
+    """
+
+    receivers: Array
+    sources: Array
+    receiver_offsets: Array | None
+    source_offsets: Array | None
+    receiver_cov: Array
+    source_cov: Array
+    residual_rms: float
+    sigma: float
+    converged: bool
+    iterations: int
+    method: str
+    n_missing: int
+    n_starts: int = 1
+    receiver_offset_std: Array | None = None
+    source_offset_std: Array | None = None
+    speed: float | None = None
+    residuals: Array | None = None
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-safe dict with exactly the DESIGN.md toa keys plus extras (units, sigma, ...)."""
+
+        def tl(a: Array | None) -> Any:
+            return None if a is None else np.asarray(a, dtype=float).tolist()
+
+        unit = "s" if self.speed is not None else "m"
+        return {
+            "receivers": tl(self.receivers),
+            "sources": tl(self.sources),
+            "receiver_offsets": tl(self.receiver_offsets),
+            "source_offsets": tl(self.source_offsets),
+            "receiver_cov": tl(self.receiver_cov),
+            "source_cov": tl(self.source_cov),
+            "residual_rms": float(self.residual_rms),
+            "converged": bool(self.converged),
+            "iterations": int(self.iterations),
+            "method": self.method,
+            # extras
+            "sigma": float(self.sigma),
+            "n_missing": int(self.n_missing),
+            "n_starts": int(self.n_starts),
+            "receiver_offset_std": tl(self.receiver_offset_std),
+            "source_offset_std": tl(self.source_offset_std),
+            "speed": self.speed,
+            "units": {"positions": "m", "covariances": "m^2", "offsets": unit, "residual_rms": unit},
+        }
+
+
+# ---------------------------------------------------------------------------
+# initialisation
+# ---------------------------------------------------------------------------
+
+_Init = tuple[Array, Array, Array | None, Array | None]
+
+
+def _init_plain(ranges: Array, dim: int, rng: np.random.Generator) -> list[tuple[str, _Init]]:
+    """Candidate starts for offsets="none": the 003 initialisers (``selfcal.toa.mds``)."""
+    from . import mds
+
+    r, s = mds.initialize_toa(ranges, dim, rng=rng)
+    return [("mds", (np.asarray(r, float), np.asarray(s, float), None, None))]
+
+
+def _init_offsets(ranges: Array, dim: int, offsets: str, rng: np.random.Generator) -> tuple[str, _Init]:
+    """Start for offsets in {receivers, sources, both}: the 004 rank-3 initialiser.
+
+    For a single kind of offset the rank-3 estimate of both kinds is collapsed: the
+    true other kind is zero, so its estimate is (up to noise) the common shift c,
+    which moves into the kept kind (``d_i + c`` or ``o_j + c``). When the rank-3
+    initialiser cannot run (too few nodes), fall back to MDS on the ranges with the
+    offsets started at zero after shifting the matrix to be non-negative.
+    """
+    from . import offsets as off
+
+    try:
+        r, s, d0, o0 = off.initialize_offsets(ranges, dim, rng=rng)
+        d0 = np.asarray(d0, float)
+        o0 = np.asarray(o0, float)
+        if offsets == "receivers":
+            return "rank3", (r, s, d0 + np.mean(o0), None)
+        if offsets == "sources":
+            return "rank3", (r, s, None, o0 + np.mean(d0))
+        return "rank3", (r, s, d0, o0)
+    except (DegenerateGeometryError, InputError):
+        if offsets == "both":
+            raise
+    from . import mds
+
+    shift = min(0.0, float(np.nanmin(ranges)))
+    r, s = mds.initialize_toa(ranges - shift, dim, rng=rng)
+    I, J = ranges.shape
+    return "mds", (r, s, np.zeros(I) if offsets == "receivers" else None, np.zeros(J) if offsets == "sources" else None)
+
+
+def _given_init(init: Any, I: int, J: int, dim: int, offsets: str, scale: float) -> _Init:
+    """Validate an explicit ``init=(receivers, sources[, receiver_offsets, source_offsets])``."""
+    if not isinstance(init, (tuple, list)) or len(init) not in (2, 4):
+        raise InputError("init must be 'auto' or a tuple (receivers, sources[, receiver_offsets, source_offsets])")
+    r = as_points(init[0], "init receivers", dim=dim)
+    s = as_points(init[1], "init sources", dim=dim)
+    if r.shape[0] != I or s.shape[0] != J:
+        raise InputError(f"init has {r.shape[0]} receivers and {s.shape[0]} sources; the matrix is {I} x {J}")
+    d0 = o0 = None
+    if len(init) == 4:
+        d0 = None if init[2] is None else np.asarray(init[2], float).ravel() * scale
+        o0 = None if init[3] is None else np.asarray(init[3], float).ravel() * scale
+    if offsets in ("receivers", "both") and d0 is None:
+        d0 = np.zeros(I)
+    if offsets in ("sources", "both") and o0 is None:
+        o0 = np.zeros(J)
+    return r, s, (d0 if offsets in ("receivers", "both") else None), (o0 if offsets in ("sources", "both") else None)
+
+
+def _implausible(sol: NlsSolution) -> bool:
+    """Heuristic test for a local minimum: a few nodes carry most of the misfit.
+
+    At the ML solution with i.i.d. noise every receiver's and source's residual RMS
+    is close to the global one; a wrong basin (e.g. a source mirrored across the
+    receivers) leaves a handful of nodes with residuals many times the median.
+    """
+    R = sol.residuals
+    if not np.isfinite(sol.residual_rms) or sol.residual_rms <= 1e-9 * (1 + np.nanmax(np.abs(R))):
+        return False
+    node = np.concatenate([np.sqrt(np.nanmean(R**2, axis=1)), np.sqrt(np.nanmean(R**2, axis=0))])
+    node = node[np.isfinite(node)]
+    return bool(node.max() > 4.0 * np.median(node) or not sol.converged)
+
+
+# ---------------------------------------------------------------------------
+# entry point
+# ---------------------------------------------------------------------------
+
+
+def solve_toa(
+    matrix: Any,
+    *,
+    dim: int = 3,
+    offsets: str = "none",
+    speed: float | None = None,
+    loss: str = "linear",
+    init: Any = "auto",
+    method: str = "auto",
+    rng: np.random.Generator | int | None = None,
+    f_scale: float | None = None,
+    max_nfev: int | None = None,
+) -> ToaResult:
+    """Anchor-free self-calibration of receivers and sources from TOA / range measurements.
+
+    Solves 003 eq. 2 (ML under Gaussian noise) for the model of entry (i, j)
+    ``|r_i - s_j| + d_i + o_j`` (offsets per ``offsets``; 004 sec. 3), initialised by
+    the 003 MDS family (``offsets="none"``) or the 004 rank-3 iteration (with
+    offsets), refined by the sparse NLS of :func:`selfcal.toa.nls.refine_toa`.
+
+    Parameters
+    ----------
+    matrix: (I, J) ranges in metres, or times in seconds when ``speed`` is given;
+        rows = receivers, columns = sources, NaN = missing. Must be >= 0 when
+        ``offsets="none"``.
+    dim: 2 or 3.
+    offsets: "none" | "receivers" | "sources" | "both".
+    speed: propagation speed (m/s) converting seconds to metres; offsets, residual
+        RMS and sigma are then reported in seconds.
+    loss: "linear" | "huber" | "soft_l1" | "cauchy" (robust losses for outliers).
+    init: "auto" or an explicit start ``(receivers, sources[, receiver_offsets,
+        source_offsets])`` (positions in metres, offsets in the matrix's units).
+    method: "auto" (initialise, refine, multi-start when the fit is implausible),
+        "nls" (initialise and refine once) or "rank3" (the 004 initialiser only,
+        offsets != "none").
+    rng: seed / Generator for the randomised parts (initialisers, restarts).
+    f_scale: robust-loss scale in the matrix's units (default: from a MAD estimate).
+    max_nfev: iteration cap for the refinement.
+
+    Returns
+    -------
+    ToaResult
+
+    Raises
+    ------
+    InputError: malformed matrix (shape, inf, negative ranges without offsets), bad options.
+    DegenerateGeometryError: too few receivers / sources / observations for ``dim``.
+    """
+    check_choice(offsets, "offsets", OFFSET_MODES)
+    check_choice(loss, "loss", LOSSES)
+    check_choice(method, "method", METHODS)
+    dim = check_dim(dim)
+    spd = check_positive(speed, "speed")
+    M = as_matrix(matrix, "matrix", nonnegative=(offsets == "none"))
+    I, J = M.shape
+    obs = np.isfinite(M)
+    check_toa_counts((I, J), int(obs.sum()), dim, offsets)
+    if method == "rank3" and offsets == "none":
+        raise InputError("method='rank3' estimates offsets: use offsets='both' (or 'receivers'/'sources'), or method='nls'")
+    gen = as_rng(rng)
+    scale = spd if spd is not None else 1.0
+    ranges = M * scale
+    fs = None if f_scale is None else float(check_positive(f_scale, "f_scale") or 1.0) * scale
+
+    if isinstance(init, str):
+        if init != "auto":
+            raise InputError(f"init must be 'auto' or a tuple of arrays, got {init!r}")
+        if offsets == "none":
+            cands = _init_plain(ranges, dim, gen)
+        else:
+            cands = [_init_offsets(ranges, dim, offsets, gen)]
+    else:
+        cands = [("given", _given_init(init, I, J, dim, offsets, scale))]
+
+    if method == "rank3":
+        name, (r0, s0, d0, o0) = cands[0]
+        return _unrefined(M, ranges, r0, s0, d0, o0, offsets, spd, name if name != "rank3" else "rank3")
+
+    def refine(start: _Init) -> NlsSolution:
+        r0, s0, d0, o0 = start
+        return refine_toa(ranges, r0, s0, offsets=offsets, receiver_offsets0=d0, source_offsets0=o0,
+                          loss=loss, f_scale=fs, max_nfev=max_nfev)
+
+    name, start = cands[0]
+    best = refine(start)
+    iters = best.iterations
+    starts = 1
+    if method == "auto" and _implausible(best):
+        for start2 in _restarts(ranges, dim, offsets, best, gen, start):
+            sol = refine(start2)
+            starts += 1
+            iters += sol.iterations
+            if sol.cost < best.cost:
+                best = sol
+            if not _implausible(best):
+                break
+    label = f"{name}+nls" + (f"+multistart({starts - 1})" if starts > 1 else "")
+    return _to_result(M, best, spd, label, iters, starts)
+
+
+def _restarts(ranges: Array, dim: int, offsets: str, sol: NlsSolution, rng: np.random.Generator,
+              first: _Init) -> list[_Init]:
+    """Further starts: the other 003 initialisers (plain TOA), then the worst nodes re-drawn.
+
+    The re-drawn start keeps the refined solution but moves the nodes with the
+    largest residuals to their mirror image across the centroid of the others (the
+    typical wrong basin of range-only calibration) or to a random spot in the scene.
+    """
+    out: list[_Init] = []
+    if offsets == "none":
+        from . import mds
+
+        for m in ("rank", "mds-multilat", "alg2"):
+            try:
+                r, s = mds.initialize_toa(ranges, dim, method=m, rng=rng)
+            except Exception:  # an initialiser that does not apply at this size is simply skipped
+                continue
+            out.append((np.asarray(r, float), np.asarray(s, float), None, None))
+    R = sol.residuals
+    r, s = sol.receivers.copy(), sol.sources.copy()
+    span = float(np.ptp(np.vstack([r, s]), axis=0).max()) or 1.0
+    node_r = np.sqrt(np.nanmean(R**2, axis=1))
+    node_s = np.sqrt(np.nanmean(R**2, axis=0))
+    for attempt in range(2):
+        r2, s2 = r.copy(), s.copy()
+        for pts, score in ((r2, node_r), (s2, node_s)):
+            bad = score > 3.0 * np.median(np.concatenate([node_r, node_s]))
+            c = pts[~bad].mean(axis=0) if (~bad).any() else pts.mean(axis=0)
+            if attempt == 0:
+                pts[bad] = 2 * c - pts[bad]
+            else:
+                pts[bad] = c + rng.uniform(-0.5, 0.5, (int(bad.sum()), dim)) * span
+        out.append((r2, s2, sol.receiver_offsets, sol.source_offsets))
+    return out
+
+
+def _to_result(M: Array, sol: NlsSolution, speed: float | None, method: str, iters: int, starts: int) -> ToaResult:
+    k = 1.0 / speed if speed is not None else 1.0
+
+    def sc(a: Array | None) -> Array | None:
+        return None if a is None else np.asarray(a) * k
+
+    return ToaResult(
+        receivers=sol.receivers,
+        sources=sol.sources,
+        receiver_offsets=sc(sol.receiver_offsets),
+        source_offsets=sc(sol.source_offsets),
+        receiver_cov=sol.receiver_cov,
+        source_cov=sol.source_cov,
+        residual_rms=sol.residual_rms * k,
+        sigma=sol.sigma * k,
+        converged=sol.converged,
+        iterations=iters,
+        method=method,
+        n_missing=int((~np.isfinite(M)).sum()),
+        n_starts=starts,
+        receiver_offset_std=sc(sol.receiver_offset_std),
+        source_offset_std=sc(sol.source_offset_std),
+        speed=speed,
+        residuals=sol.residuals * k,
+    )
+
+
+def _unrefined(M: Array, ranges: Array, r: Array, s: Array, d: Array | None, o: Array | None,
+               offsets: str, speed: float | None, method: str) -> ToaResult:
+    """Package an initialiser's estimate (no NLS): canonical gauge, residuals, NaN covariances."""
+    from ..geometry import canonical_gauge
+
+    r = np.asarray(r, float)
+    s = np.asarray(s, float)
+    res = np.where(np.isfinite(ranges), ranges - toa_model(r, s, d, o), np.nan)
+    f = res[np.isfinite(res)]
+    rc, scn, _ = canonical_gauge(r, s)
+    assert scn is not None
+    I, dim = r.shape
+    k = 1.0 / speed if speed is not None else 1.0
+    if offsets == "both" and d is not None and o is not None:
+        d, o = d + o[0], o - o[0]
+    return ToaResult(
+        receivers=rc,
+        sources=scn,
+        receiver_offsets=None if d is None else np.asarray(d) * k,
+        source_offsets=None if o is None else np.asarray(o) * k,
+        receiver_cov=np.full((I, dim, dim), np.nan),
+        source_cov=np.full((s.shape[0], dim, dim), np.nan),
+        residual_rms=float(np.sqrt(np.mean(f**2))) * k,
+        sigma=float("nan"),
+        converged=True,
+        iterations=0,
+        method=method,
+        n_missing=int((~np.isfinite(M)).sum()),
+        speed=speed,
+        residuals=res * k,
+    )
