@@ -22,9 +22,6 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from .orientation import kabsch
-from .solution2 import newton_ranges
-
 Array = NDArray[Any]
 
 __all__ = ["p3p_ranges", "p3p"]
@@ -63,6 +60,68 @@ def _quartic_roots(c: Array) -> Array:
     comp[:, 1:, :3] = np.eye(3)
     comp[:, :, 3] = -c[:, :4] / c[:, 4:5]
     return np.linalg.eigvals(comp)
+
+
+def _polish3(r: Array, cos_p: Array, d2: Array, iters: int = 4, extend: bool = True) -> tuple[Array, Array]:
+    """Newton steps on the three-beacon cosine-rule system (eq. 19-20), batched, closed-form.
+
+    ``r`` (n, 3), ``cos_p`` (n, 3) the cosines of the pairs (1,2), (2,3), (3,1), ``d2`` (3,).
+    The 3 x 3 Jacobian has two non-zeros per row; it is inverted by Cramer's rule (far faster
+    than a batched LAPACK solve on tiny systems). Returns the ranges and ``max|f| / max d^2``.
+    """
+    r = np.array(r, float, copy=True)
+    c12, c23, c31 = cos_p[:, 0], cos_p[:, 1], cos_p[:, 2]
+    for it in range(iters + 1):
+        if it == iters:
+            if not extend:
+                break
+            # near a double root (danger cylinder) Newton is only linear: keep going there
+            slow = _cosine_residual(r, cos_p, d2) > 1e-13
+            if not slow.any():
+                break
+            r[slow] = _polish3(r[slow], cos_p[slow], d2, iters=40, extend=False)[0]
+            break
+        r1, r2, r3 = r[:, 0], r[:, 1], r[:, 2]
+        f = np.stack(
+            [
+                r1**2 + r2**2 - 2 * r1 * r2 * c12 - d2[0],
+                r2**2 + r3**2 - 2 * r2 * r3 * c23 - d2[1],
+                r3**2 + r1**2 - 2 * r3 * r1 * c31 - d2[2],
+            ],
+            axis=-1,
+        )
+        # J = [[a, b, 0], [0, c, d], [e, 0, g]]
+        a, b = 2 * (r1 - r2 * c12), 2 * (r2 - r1 * c12)
+        c, d = 2 * (r2 - r3 * c23), 2 * (r3 - r2 * c23)
+        e, g = 2 * (r1 - r3 * c31), 2 * (r3 - r1 * c31)
+        det = a * c * g + b * d * e
+        with np.errstate(all="ignore"):
+            inv = np.stack(
+                [
+                    np.stack([c * g, -b * g, b * d], -1),
+                    np.stack([d * e, a * g, -a * d], -1),
+                    np.stack([-c * e, b * e, a * c], -1),
+                ],
+                -2,
+            ) / det[:, None, None]
+            step = np.einsum("nij,nj->ni", inv, f)
+        step = np.where(np.isfinite(step), step, 0.0)
+        r -= step
+    return r, _cosine_residual(r, cos_p, d2)
+
+
+def _cosine_residual(r: Array, cos_p: Array, d2: Array) -> Array:
+    """``max |f| / max d^2`` of the three-beacon cosine-rule system (eq. 20), (n,)."""
+    r1, r2, r3 = r[:, 0], r[:, 1], r[:, 2]
+    f = np.stack(
+        [
+            r1**2 + r2**2 - 2 * r1 * r2 * cos_p[:, 0] - d2[0],
+            r2**2 + r3**2 - 2 * r2 * r3 * cos_p[:, 1] - d2[1],
+            r3**2 + r1**2 - 2 * r3 * r1 * cos_p[:, 2] - d2[2],
+        ],
+        axis=-1,
+    )
+    return np.asarray(np.max(np.abs(f), axis=1) / float(np.max(d2)))
 
 
 def p3p_ranges(beacons: Array, cosines: Array) -> tuple[Array, Array]:
@@ -115,15 +174,13 @@ def p3p_ranges(beacons: Array, cosines: Array) -> tuple[Array, Array]:
         r1 = np.sqrt(d12s) / np.sqrt(1 + u**2 - 2 * u * c12[:, None])
     r = np.stack([r1, u * r1, v * r1], axis=-1)  # (B, 4, 3)
     valid = real & np.isfinite(r).all(axis=-1) & (r > 0).all(axis=-1)
-    # polish with Solution 2's Newton (eq. 19-20) on the same cosines
-    pairs = np.array([[0, 1], [1, 2], [2, 0]])
+    # polish with Solution 2's Newton (eq. 19-20) on the same cosines, valid slots only
     cos_p = np.stack([c12, c23, c13], axis=-1)
-    flat = np.where(valid[..., None], r, 1.0).reshape(-1, 3)
-    rr, _, resid = newton_ranges(
-        np.repeat(cos_p, MAX_SOLUTIONS, axis=0), np.array([d12s, d23s, d13s]), pairs, flat, max_iter=8
-    )
-    rr = rr.reshape(B, MAX_SOLUTIONS, 3)
-    valid &= (resid.reshape(B, MAX_SOLUTIONS) < 1e-6) & (rr > 0).all(axis=-1)
+    bi, si = np.nonzero(valid)
+    rv, resid = _polish3(r[bi, si], cos_p[bi], np.array([d12s, d23s, d13s]))
+    rr = np.full((B, MAX_SOLUTIONS, 3), np.nan)
+    rr[bi, si] = rv
+    valid[bi, si] = (resid < 1e-6) & (rv > 0).all(axis=-1)
     # a double root shows up twice: keep the first copy
     for a in range(MAX_SOLUTIONS):
         for c in range(a + 1, MAX_SOLUTIONS):
@@ -154,10 +211,22 @@ def p3p(beacons: Array, bearings: Array) -> tuple[Array, Array, Array]:
         axis=-1,
     )
     r, valid = p3p_ranges(b, cos)
-    local = np.where(valid[..., None, None], r[..., None], 1.0) * U[:, None]  # (B, 4, 3, 3)
-    R, t = kabsch(local.reshape(-1, 3, 3), np.broadcast_to(b, (B * MAX_SOLUTIONS, 3, 3)))
-    R = R.reshape(B, MAX_SOLUTIONS, 3, 3)
-    t = t.reshape(B, MAX_SOLUTIONS, 3)
-    R[~valid] = np.nan
-    t[~valid] = np.nan
+    bi, si = np.nonzero(valid)
+    local = r[bi, si][..., None] * U[bi]  # (n, 3, 3) back-projected beacons, receiver frame
+    Rv = _triad(b[None]) @ np.swapaxes(_triad(local), -1, -2)
+    t = np.full((B, MAX_SOLUTIONS, 3), np.nan)
+    R = np.full((B, MAX_SOLUTIONS, 3, 3), np.nan)
+    R[bi, si] = Rv
+    t[bi, si] = b[0] - np.einsum("nij,nj->ni", Rv, local[:, 0])
     return t, R, valid
+
+
+def _triad(P: Array) -> Array:
+    """Right-handed orthonormal frame (columns) of triangles (..., 3, 3): e1 along p2 - p1,
+    e3 normal to the triangle. With congruent triangles (polished P3P ranges) the rotation
+    between the two frames is exact and far cheaper than an SVD-based Kabsch fit."""
+    e1 = P[..., 1, :] - P[..., 0, :]
+    e1 = e1 / np.linalg.norm(e1, axis=-1, keepdims=True)
+    e3 = np.cross(e1, P[..., 2, :] - P[..., 0, :])
+    e3 = e3 / np.linalg.norm(e3, axis=-1, keepdims=True)
+    return np.stack([e1, np.cross(e3, e1), e3], axis=-1)

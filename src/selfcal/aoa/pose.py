@@ -40,7 +40,7 @@ METHODS_2D = ("auto", "linear", "ml")
 #: relative tolerance on a candidate's cost to call two candidates equally good (ambiguous)
 TIE_TOL = 1e-6
 #: inverse condition number of the pose Jacobian below which the pose is not determined
-JACOBIAN_TOL = 1e-9
+JACOBIAN_TOL = 1e-6
 
 
 @dataclass(frozen=True)
