@@ -169,19 +169,35 @@ def _given_init(init: Any, I: int, J: int, dim: int, offsets: str, scale: float)
     return r, s, (d0 if offsets in ("receivers", "both") else None), (o0 if offsets in ("sources", "both") else None)
 
 
-def _implausible(sol: NlsSolution) -> bool:
-    """Heuristic test for a local minimum: a few nodes carry most of the misfit.
+def _implausible(sol: NlsSolution, robust: bool = False) -> bool:
+    """Heuristic test for a local minimum from the residuals alone (the noise level is unknown).
 
-    At the ML solution with i.i.d. noise every receiver's and source's residual RMS
-    is close to the global one; a wrong basin (e.g. a source mirrored across the
-    receivers) leaves a handful of nodes with residuals many times the median.
+    At the ML solution with i.i.d. Gaussian noise (i) every receiver's and source's
+    residual RMS is close to the median one, (ii) the RMS is close to the MAD-based
+    std and (iii) the largest residual is a few MAD-stds. A wrong basin (e.g. sources
+    mirrored across the receivers) concentrates misfit on a few nodes and entries.
+    Criteria (ii)-(iii) are skipped for robust losses, where outliers are expected.
     """
     R = sol.residuals
-    if not np.isfinite(sol.residual_rms) or sol.residual_rms <= 1e-9 * (1 + np.nanmax(np.abs(R))):
+    if not sol.converged:
+        return True
+    f = R[np.isfinite(R)]
+    if not np.isfinite(sol.residual_rms) or sol.residual_rms <= 1e-9 * (1 + np.abs(f).max()):
         return False
-    node = np.concatenate([np.sqrt(np.nanmean(R**2, axis=1)), np.sqrt(np.nanmean(R**2, axis=0))])
+    if robust:  # outliers inflate node RMS: use each node's median absolute residual
+        node = np.concatenate([np.nanmedian(np.abs(R), axis=1), np.nanmedian(np.abs(R), axis=0)])
+    else:
+        node = np.concatenate([np.sqrt(np.nanmean(R**2, axis=1)), np.sqrt(np.nanmean(R**2, axis=0))])
     node = node[np.isfinite(node)]
-    return bool(node.max() > 4.0 * np.median(node) or not sol.converged)
+    if node.max() > 3.0 * np.median(node):
+        return True
+    if robust:
+        return False
+    mad_std = 1.4826 * float(np.median(np.abs(f)))
+    if mad_std <= 0:
+        return False
+    extreme = max(6.0, float(np.sqrt(2 * np.log(f.size))) + 2.0)
+    return bool(sol.residual_rms > 1.5 * mad_std or np.abs(f).max() > extreme * mad_std)
 
 
 # ---------------------------------------------------------------------------
@@ -276,14 +292,15 @@ def solve_toa(
     best = refine(start)
     iters = best.iterations
     starts = 1
-    if method == "auto" and _implausible(best):
+    robust = loss != "linear"
+    if method == "auto" and _implausible(best, robust):
         for start2 in _restarts(ranges, dim, offsets, best, gen, start):
             sol = refine(start2)
             starts += 1
             iters += sol.iterations
             if sol.cost < best.cost:
                 best = sol
-            if not _implausible(best):
+            if not _implausible(best, robust):
                 break
     label = f"{name}+nls" + (f"+multistart({starts - 1})" if starts > 1 else "")
     return _to_result(M, best, spd, label, iters, starts)
