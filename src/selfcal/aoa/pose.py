@@ -202,11 +202,14 @@ def _rms(b: Array, U: Array, m: Array, R: Array) -> Array:
     return np.asarray(np.sqrt(np.mean(e**2, axis=1)))
 
 
-def _check_determined(b: Array, U: Array, m: Array, R: Array, kind: str) -> None:
-    """Raise when the pose Jacobian is (numerically) rank deficient at the solution."""
+def _check_determined(b: Array, U: Array, m: Array, R: Array, kind: str, ids: Array | None = None) -> None:
+    """Raise when the pose Jacobian is (numerically) rank deficient at the solution.
+
+    ``ids`` maps the rows to receiver indices for the message (default: the row number)."""
+    ids = np.arange(len(m)) if ids is None else np.asarray(ids)
     fin = np.isfinite(m).all(axis=1) & np.isfinite(R).all(axis=(1, 2))
     if not fin.all():
-        b, U, m, R = b, U[fin], m[fin], R[fin]
+        U, m, R, ids = U[fin], m[fin], R[fin], ids[fin]
         if not fin.any():
             return
     if b.shape[1] == 3:
@@ -220,7 +223,7 @@ def _check_determined(b: Array, U: Array, m: Array, R: Array, kind: str) -> None
     s = np.linalg.svd(J, compute_uv=False)
     bad = s[:, -1] <= JACOBIAN_TOL * s[:, 0]
     if bad.any():
-        k = int(np.argmax(bad))
+        k = int(ids[int(np.argmax(bad))])
         where = "circle through the beacons" if kind == "danger-circle" else (
             "danger cylinder (the cylinder through the beacons' circumcircle, normal to their plane)"
         )
@@ -391,7 +394,10 @@ def solve_aoa(
                 if tie[0, s_] and all(np.linalg.norm(p_ - c.position) > 1e-6 * (1 + np.linalg.norm(p_)) for c in kept):
                     kept.append(AoaCandidate(p_.copy(), Rc[s_].copy(), float(cost[0, s_])))
             cand = tuple(kept)
-        _check_determined(b, U, m, R, "danger-cylinder")
+        # a degenerate candidate among the equally good ones (the double root of the danger
+        # cylinder comes with a regular twin) means the bearings do not determine the pose
+        tb, ts = np.nonzero(tie)
+        _check_determined(b, U[tb], mcs[tb, ts], Rc.reshape(B, S, 3, 3)[tb, ts], "danger-cylinder", tb)
     rms = _rms(b, U, m, R)
     if not batched:
         return AoaResult(
