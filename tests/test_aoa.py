@@ -385,6 +385,26 @@ def test_cli_locate_aoa_vectors_and_angles(tmp_path):
     np.testing.assert_allclose(json.loads((tmp_path / "r2.json").read_text())["position"], m[0], atol=1e-9)
 
 
+def test_cli_hint_selects_candidate_and_json_lists_all(tmp_path):
+    from selfcal.cli import main
+
+    rng = np.random.default_rng(5)
+    while True:  # find a pose with several exact candidates
+        m, R = random_poses(rng, 1)
+        U = local_bearings(PAPER_BEACONS, m, R)[0]
+        if solve_aoa(PAPER_BEACONS, U, method="p3p").ambiguous:
+            break
+    np.savetxt(tmp_path / "b.csv", PAPER_BEACONS, delimiter=",")
+    np.savetxt(tmp_path / "u.csv", U, delimiter=",")
+    hint = ",".join(f"{v:.6f}" for v in m[0] + 0.01)
+    r = CliRunner().invoke(main, ["locate", "aoa", str(tmp_path / "b.csv"), str(tmp_path / "u.csv"),
+                                  "--hint", hint, "--out", str(tmp_path / "r.json")])
+    assert r.exit_code == 0, r.output
+    d = json.loads((tmp_path / "r.json").read_text())
+    np.testing.assert_allclose(d["position"], m[0], atol=1e-7)
+    assert len(d["candidates"]) >= 2
+
+
 def test_cli_degenerate_input_exits_2_without_output(tmp_path):
     from selfcal.cli import main
 

@@ -22,9 +22,14 @@ from ._base import backend_option, handle_errors, locate, reproduce, scheduler_o
     help="BEARINGS holds angles: N x 2 (alpha, beta) with the receiver x/y axes in 3-D, N x 1 in 2-D.",
 )
 @click.option("--sigma-deg", type=float, default=None, help="Angular noise std for the ML covariance.")
+@click.option(
+    "--hint", default=None, metavar="X,Y[,Z]",
+    help="Rough receiver position: picks among equally good candidates (three beacons in 3-D).",
+)
 @handle_errors
 def locate_aoa(
-    beacons: str, bearings: str, out: str, method: str, angles: str | None, sigma_deg: float | None
+    beacons: str, bearings: str, out: str, method: str, angles: str | None, sigma_deg: float | None,
+    hint: str | None,
 ) -> None:
     """Receiver position and orientation from bearings to known BEACONS (N x d, d = 2 or 3).
 
@@ -57,7 +62,13 @@ def locate_aoa(
     if method in ("sol1", "sol2", "p3p") and b.shape[1] == 2:
         raise InputError(f"--method {method} is 3-D; in 2-D use linear, ml or auto")
     sigma = None if sigma_deg is None else float(np.radians(sigma_deg))
-    res = solve_aoa(b, u, method=method, sigma=sigma)
+    position_hint = None
+    if hint is not None:
+        try:
+            position_hint = [float(v) for v in hint.split(",")]
+        except ValueError:
+            raise InputError(f"--hint: expected comma-separated numbers, got {hint!r}") from None
+    res = solve_aoa(b, u, method=method, sigma=sigma, position_hint=position_hint)
     write_json(out, res)
     click.echo(
         f"position {np.array2string(res.position, precision=4)}  residual {np.degrees(res.residual_rms):.3g} deg"
