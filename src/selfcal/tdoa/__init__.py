@@ -1,1 +1,58 @@
-"""selfcal.tdoa"""
+"""Far-field TDOA self-calibration (paper 000).
+
+``solve_farfield(D)`` recovers receiver positions, unit transmitter directions and
+per-transmitter offsets from relative distances ``D_ij = z_i . n_j + C_j``; see
+:mod:`selfcal.tdoa.farfield`. The building blocks are public: the batched minimal solver
+(:func:`solve_minimal`, Algorithm 1), the failure-mode analysis (:func:`analyse_degeneracy`),
+the overdetermined initialisation (:func:`initialize_farfield`), alternating optimisation
+(:func:`refine_alternating`, Algorithm 2) and Levenberg-Marquardt on the spheres
+(:func:`refine_lm`, Algorithm 3).
+"""
+
+from .degeneracy import DEGENERACIES, DegeneracyReport, analyse_degeneracy, fit_quadric
+from .farfield import (
+    FarfieldInit,
+    FarfieldResult,
+    fit_A_nonlinear,
+    initialize_farfield,
+    lowrank_fit,
+    ransac_farfield,
+    reduce_matrix,
+    screen_gross_errors,
+    solve_farfield,
+)
+from .minimal import MinimalSolution, solve_minimal
+from .refine import (
+    RefineResult,
+    farfield_jacobian,
+    farfield_residuals,
+    refine_alternating,
+    refine_lm,
+    sphere_lstsq_global,
+    sphere_lstsq_local,
+)
+
+__all__ = [
+    "DEGENERACIES",
+    "DegeneracyReport",
+    "FarfieldInit",
+    "FarfieldResult",
+    "MinimalSolution",
+    "RefineResult",
+    "analyse_degeneracy",
+    "farfield_jacobian",
+    "farfield_residuals",
+    "fit_A_nonlinear",
+    "fit_quadric",
+    "initialize_farfield",
+    "lowrank_fit",
+    "ransac_farfield",
+    "reduce_matrix",
+    "refine_alternating",
+    "refine_lm",
+    "screen_gross_errors",
+    "solve_farfield",
+    "solve_minimal",
+    "sphere_lstsq_global",
+    "sphere_lstsq_local",
+]

@@ -1,0 +1,298 @@
+"""Failure modes of far-field TDOA self-calibration (paper 000, sections 2.1-2.2).
+
+Given a reduced matrix ``X = Z N`` (Lemma 1: D minus a per-column constant ``K_j``; we use
+the column means, so that the rows of Z are the positions relative to their centroid and
+the noise is not concentrated in a rank-1 term as it is with ``K_j = D_1j``):
+
+* rank 3 but the directions on a common quadratic cone ``n^T Omega n = 0`` (Theorem 2):
+  the linear system ``ntilde_j^T B ntilde_j = 1`` for B is rank deficient -> ``cone``;
+* rank 2: either the positions are coplanar (``planar-motion``) or the directions are
+  (``coplanar-directions``); the two are told apart by whether the 2-D analogue of the B
+  system, ``ntilde_j^T B2 ntilde_j = 1``, is consistent (it is exactly when the directions
+  lie in a plane, because then the 2-D directions have unit norm);
+* rank 1: parallel directions (``parallel-directions``: all ``|ntilde_j|`` equal) or
+  collinear positions (``collinear-motion``).
+
+Noise-aware thresholds (documented contract)
+--------------------------------------------
+``sigma`` is the noise level of an entry: the user's ``noise_std``, else estimated from the
+singular values beyond the tested rank, ``sigma_r^2 = sum_{i>r} s_i^2 / ((m-1-r)(k-r))``
+(m-1: centring removes one row's worth of freedom), floored at ``1e-14 s_1`` (rounding).
+A singular value ``s_r`` counts as signal when it exceeds
+``rank_factor * sigma_r * (sqrt(m-1) + sqrt(k))`` -- ``sigma (sqrt(m-1) + sqrt(k))`` is the
+largest singular value of an i.i.d. noise matrix (Marchenko-Pastur edge) -- and
+``rel_floor * s_1``. The cone test asks whether a quadric ``Omega`` (unit Frobenius norm)
+with ``ntilde_j^T Omega ntilde_j = 0`` for all j exists up to noise: the smallest singular
+value ``mu_6`` of the design matrix of ``ntilde_j^T B ntilde_j = 1`` is compared with the
+size that noise alone gives it along its singular vector ``Omega_6``,
+``nu = sqrt(sum_j (2 sigma |Omega_6 ntilde_j|)^2)`` (first-order propagation of
+``delta(n^T Omega n) = 2 n^T Omega delta n``); ``cone_snr = mu_6 / nu < cone_tol`` -> cone.
+The coplanar-directions test accepts the 2-D quadric fit when its chi-square per degree of
+freedom under the same propagation is below ``chi2_tol``; parallel directions when the
+spread of ``|ntilde_j|`` is within ``3 sigma``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from .minimal import quadric_design, sym_from_vec
+
+__all__ = [
+    "DEGENERACIES",
+    "DegeneracyReport",
+    "analyse_degeneracy",
+    "fit_quadric",
+    "partial_planar_motion",
+    "partial_coplanar_directions",
+    "partial_collinear_motion",
+    "partial_parallel_directions",
+    "min_volume_ellipse",
+]
+
+Array = NDArray[np.float64]
+DEGENERACIES = ("planar-motion", "coplanar-directions", "cone", "collinear-motion", "parallel-directions")
+_SQ2 = np.sqrt(2.0)
+
+
+@dataclass(frozen=True)
+class DegeneracyReport:
+    """Outcome of :func:`analyse_degeneracy`.
+
+    kind: None or one of :data:`DEGENERACIES`; rank: numerical rank of X (0-3);
+    singular_values: leading singular values of X (metres); noise_std: sigma used
+    (metres, per entry of X); rank_threshold: threshold for the third singular value;
+    cone_snr: ``mu_6 / nu`` of the cone test (NaN unless rank 3); quadric_residual: chi-square per dof of the 2-D quadric fit (NaN unless rank 2).
+    """
+
+    kind: str | None
+    rank: int
+    singular_values: Array
+    noise_std: float
+    rank_threshold: float
+    cone_snr: float
+    quadric_residual: float
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-safe dictionary."""
+        def num(x: float) -> float | None:
+            return float(x) if np.isfinite(x) else None
+
+        return {
+            "kind": self.kind,
+            "rank": int(self.rank),
+            "singular_values": [float(v) for v in self.singular_values[:8]],
+            "noise_std": num(self.noise_std),
+            "rank_threshold": num(self.rank_threshold),
+            "cone_snr": num(self.cone_snr),
+            "quadric_residual": num(self.quadric_residual),
+        }
+
+
+def fit_quadric(nt: Array) -> tuple[Array, Array, Array]:
+    """Least-squares ``B`` (symmetric, d x d) from ``ntilde_j^T B ntilde_j = 1`` (paper 000, sec. 2.3 (ii)).
+
+    Parameters
+    ----------
+    nt : (k, d) rows ``ntilde_j``, d in {2, 3}.
+
+    Returns
+    -------
+    B : (d, d) minimum-norm least-squares solution; mu : singular values of the design
+    matrix in the orthonormal (Frobenius) parametrisation, descending; res : (k,) residuals
+    ``ntilde_j^T B ntilde_j - 1``.
+    """
+    d = nt.shape[1]
+    if d == 3:
+        M = quadric_design(nt) * np.array([1, 1, 1, _SQ2 / 2, _SQ2 / 2, _SQ2 / 2])
+    else:
+        a, b = nt[:, 0], nt[:, 1]
+        M = np.stack([a * a, b * b, _SQ2 * a * b], axis=1)
+    x, *_ = np.linalg.lstsq(M, np.ones(len(nt)), rcond=None)
+    mu = np.linalg.svd(M, compute_uv=False)
+    if d == 3:
+        B = sym_from_vec(x * np.array([1, 1, 1, _SQ2 / 2, _SQ2 / 2, _SQ2 / 2]))
+    else:
+        B = np.array([[x[0], x[2] / _SQ2], [x[2] / _SQ2, x[1]]])
+    res = np.einsum("ja,ab,jb->j", nt, B, nt) - 1.0
+    return B, mu, res
+
+
+def _sigma(s: Array, r: int, rows: int, cols: int) -> float:
+    dof = (rows - r) * (cols - r)
+    if dof <= 0:
+        return 0.0
+    return float(np.sqrt(np.sum(s[r:] ** 2) / dof))
+
+
+def analyse_degeneracy(
+    X: Array,
+    *,
+    noise_std: float | None = None,
+    rank_factor: float = 1.5,
+    rel_floor: float = 1e-9,
+    cone_tol: float = 3.0,
+    chi2_tol: float = 25.0,
+) -> DegeneracyReport:
+    """Classify a complete, column-centred matrix ``X = D - mean_i D_ij`` (m x k) by failure mode.
+
+    Parameters
+    ----------
+    X : (m, k) complete column-centred relative distances (metres).
+    noise_std : noise standard deviation of the entries of D (metres) if known.
+    rank_factor, rel_floor, cone_tol, chi2_tol : thresholds (see the module docstring).
+
+    Returns
+    -------
+    DegeneracyReport
+    """
+    a, k = X.shape[0] - 1, X.shape[1]
+    U, s, Vt = np.linalg.svd(X, full_matrices=False)
+    s1 = float(s[0]) if s.size else 0.0
+    floor = 1e-14 * s1
+
+    def sig(r: int) -> float:
+        est = noise_std if noise_std is not None else _sigma(s, r, a, k)
+        return max(float(est), floor)
+
+    def thr(r: int) -> float:
+        return max(rank_factor * sig(r) * (np.sqrt(a) + np.sqrt(k)), rel_floor * s1)
+
+    rank = 0
+    for r in (3, 2, 1):
+        if len(s) >= r and s[r - 1] > thr(r):
+            rank = r
+            break
+    sigma = sig(max(rank, 1))
+    cone_snr = float("nan")
+    quad = float("nan")
+    kind: str | None = None
+    if rank == 3:
+        nt = (s[:3, None] * Vt[:3]).T
+        if k >= 6:
+            mu, omega = _weakest_quadric(nt)
+            nu = 2.0 * sigma * float(np.linalg.norm(nt @ omega))
+            cone_snr = float(mu / max(nu, 1e-300))
+            if cone_snr < cone_tol:
+                kind = "cone"
+    elif rank == 2:
+        nt = (s[:2, None] * Vt[:2]).T
+        B2, _, res = fit_quadric(nt)
+        pd = bool(np.all(np.linalg.eigvalsh(B2) > 0))
+        if k > 3:
+            seq = 2.0 * sigma * np.linalg.norm(nt @ B2, axis=1) + 1e-300
+            quad = float(np.sum((res / seq) ** 2) / (k - 3))
+            kind = "coplanar-directions" if (pd and quad < chi2_tol) else "planar-motion"
+        else:
+            kind = "coplanar-directions" if pd else "planar-motion"
+    elif rank == 1:
+        mag = np.abs(s[0] * Vt[0])
+        spread = float(np.max(mag) - np.min(mag))
+        kind = "parallel-directions" if spread <= 3.0 * sigma + 1e-9 * np.max(mag) else "collinear-motion"
+    else:
+        kind = "collinear-motion"
+    return DegeneracyReport(kind, rank, s, sigma, thr(3), cone_snr, quad)
+
+
+def _weakest_quadric(nt: Array) -> tuple[float, Array]:
+    """Smallest singular value of the quadric design (Frobenius-orthonormal) and its Omega."""
+    M = quadric_design(nt) * np.array([1, 1, 1, _SQ2 / 2, _SQ2 / 2, _SQ2 / 2])
+    _, mu, Vt = np.linalg.svd(M, full_matrices=False)
+    w = Vt[-1] * np.array([1, 1, 1, _SQ2 / 2, _SQ2 / 2, _SQ2 / 2])
+    return float(mu[-1]), sym_from_vec(w)
+
+
+# ----------------------------------------------------------------------------- partial reconstructions
+def min_volume_ellipse(points: Array, *, tol: float = 1e-7, max_iter: int = 2000) -> Array:
+    """Smallest origin-centred ellipse ``{x : x^T P x <= 1}`` containing (k, d) points.
+
+    Khachiyan / Kumar-Yildirim first-order algorithm on the symmetric point set.
+    Returns the (d, d) matrix P.
+    """
+    X = np.asarray(points, dtype=float)
+    k, d = X.shape
+    u = np.full(k, 1.0 / k)
+    for _ in range(max_iter):
+        S = (X * u[:, None]).T @ X
+        kappa = np.einsum("ja,ab,jb->j", X, np.linalg.pinv(S), X)
+        j = int(np.argmax(kappa))
+        if kappa[j] <= d * (1.0 + tol):
+            break
+        step = (kappa[j] - d) / (d * (kappa[j] - 1.0))
+        u *= 1.0 - step
+        u[j] += step
+    S = (X * u[:, None]).T @ X
+    P = np.linalg.pinv(S) / d
+    kappa = np.einsum("ja,ab,jb->j", X, P, X)
+    return P / max(float(kappa.max()), 1e-300)  # exact containment after the tolerance
+
+
+def _sqrt_psd(P: Array) -> tuple[Array, Array]:
+    w, Q = np.linalg.eigh(P)
+    w = np.maximum(w, 1e-12 * max(float(w.max()), 1e-300))
+    return (np.sqrt(w)[:, None] * Q.T), (Q / np.sqrt(w)[None, :])
+
+
+def partial_planar_motion(X: Array) -> tuple[Array, Array]:
+    """Planar positions: one member of the family of section 2.2 (rank 2, coplanar z_i).
+
+    ``Z = U_2 A^-1``, ``(n_x, n_y) = A S_2 V_2^T`` with ``|A ntilde_j| <= 1``; we pick the A
+    whose ellipse ``|A x| <= 1`` is the smallest containing all ``ntilde_j`` (directions as
+    close to the plane of motion as the data allow, hence the smallest motion) and complete
+    ``n_z = +sqrt(1 - n_x^2 - n_y^2)`` (the sign of each n_z is not determined).
+
+    Returns positions (one per row of ``X``, third coordinate 0) and directions (k, 3).
+    """
+    U, s, Vt = np.linalg.svd(X, full_matrices=False)
+    nt = (s[:2, None] * Vt[:2]).T
+    A, A_inv = _sqrt_psd(min_volume_ellipse(nt))
+    n2 = nt @ A.T
+    nz = np.sqrt(np.clip(1.0 - np.sum(n2**2, axis=1), 0.0, None))
+    Z2 = U[:, :2] @ A_inv
+    return np.column_stack([Z2, np.zeros(len(Z2))]), np.column_stack([n2, nz])
+
+
+def partial_coplanar_directions(X: Array) -> tuple[Array, Array]:
+    """Coplanar directions (section 2.2): 2-D quadric ``ntilde^T B2 ntilde = 1`` fixes A.
+
+    Gives the in-plane coordinates of positions and directions up to a Euclidean motion;
+    the out-of-plane coordinate of the positions is unobservable and set to 0.
+    """
+    U, s, Vt = np.linalg.svd(X, full_matrices=False)
+    nt = (s[:2, None] * Vt[:2]).T
+    B2, _, _ = fit_quadric(nt)
+    A, A_inv = _sqrt_psd(B2)
+    n2 = nt @ A.T
+    n2 /= np.linalg.norm(n2, axis=1, keepdims=True)
+    Z2 = U[:, :2] @ A_inv
+    return np.column_stack([Z2, np.zeros(len(Z2))]), np.column_stack([n2, np.zeros(len(n2))])
+
+
+def partial_collinear_motion(X: Array) -> tuple[Array, Array]:
+    """Collinear positions (section 2.2): ``Z = U_1 / a``, ``n_x = a S_1 V_1``, ``a <= 1/l``.
+
+    We take the boundary member ``a = 1/l``, ``l = max_j |S_1 V_1j|`` (smallest motion), and
+    complete each direction in the x-y plane.
+    """
+    U, s, Vt = np.linalg.svd(X, full_matrices=False)
+    v = s[0] * Vt[0]
+    a = 1.0 / max(float(np.max(np.abs(v))), 1e-300)
+    nx = np.clip(a * v, -1.0, 1.0)
+    pos = np.zeros((X.shape[0], 3))
+    pos[:, 0] = U[:, 0] / a
+    return pos, np.column_stack([nx, np.sqrt(1.0 - nx**2), np.zeros_like(nx)])
+
+
+def partial_parallel_directions(X: Array) -> tuple[Array, Array]:
+    """Parallel directions (section 2.2): only the coordinate along the common direction."""
+    U, s, Vt = np.linalg.svd(X, full_matrices=False)
+    sign = np.where(Vt[0] >= 0, 1.0, -1.0)
+    pos = np.zeros((X.shape[0], 3))
+    pos[:, 0] = X @ sign / len(sign)
+    dirs = np.zeros((len(sign), 3))
+    dirs[:, 0] = sign
+    return pos, dirs

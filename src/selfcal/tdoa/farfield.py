@@ -1,0 +1,588 @@
+"""Far-field TDOA self-calibration (paper 000): the solver entry point.
+
+``D_ij = z_i . n_j + C_j`` (rows = receiver positions, columns = far transmitters,
+``|n_j| = 1``, C_j unknown per column). :func:`solve_farfield` recovers the positions (first
+at the origin), the unit directions and the offsets:
+
+1. gross-error screen (optional) and, when entries are missing or a robust loss is asked
+   for, a weighted / robust rank-4 fit of D (``[Z 1][N; C^T]`` has rank <= 4) that fills the
+   matrix for the factorisation steps;
+2. failure-mode analysis of ``Dbar`` (:mod:`selfcal.tdoa.degeneracy`);
+3. overdetermined initialisation (section 2.3 (i)-(iii), :func:`initialize_farfield`),
+   with the nonlinear fit of A when the least-squares B is not positive definite;
+4. refinement: Levenberg-Marquardt on the spheres (Algorithm 3) or alternating
+   optimisation (Algorithm 2), with an optional robust loss.
+
+Robustness (beyond the paper, its future work): with ``loss != "linear"`` the rank-4 fit
+and the refinement are iteratively re-weighted; entries whose final residual exceeds
+``reject_k`` robust standard deviations are reported in ``rejected``. :func:`ransac_farfield`
+additionally offers RANSAC over the minimal solver.
+"""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.optimize import least_squares
+
+from .._checks import as_matrix, as_rng, check_choice, check_positive
+from ..errors import ConvergenceWarning, DegenerateGeometryError, InputError
+from ..geometry import canonical_gauge
+from .degeneracy import (
+    DegeneracyReport,
+    analyse_degeneracy,
+    fit_quadric,
+    partial_collinear_motion,
+    partial_coplanar_directions,
+    partial_parallel_directions,
+    partial_planar_motion,
+)
+from .minimal import solve_minimal
+from .refine import LOSSES, farfield_residuals, loss_weight, refine_alternating, refine_lm
+
+__all__ = [
+    "FarfieldResult",
+    "FarfieldInit",
+    "solve_farfield",
+    "initialize_farfield",
+    "fit_A_nonlinear",
+    "reduce_matrix",
+    "screen_gross_errors",
+    "lowrank_fit",
+    "ransac_farfield",
+    "METHODS",
+]
+
+Array = NDArray[np.float64]
+METHODS = ("auto", "lm", "alternating", "init", "minimal")
+_MAD = 1.4826
+
+
+# ----------------------------------------------------------------------------- result
+@dataclass(frozen=True)
+class FarfieldResult:
+    """Result of :func:`solve_farfield`.
+
+    Attributes
+    ----------
+    positions : (m, 3) receiver positions, first row 0 (metres; D's unit). Canonical gauge:
+        first position at the origin, principal axes of the positions along x, y, z (a
+        proper rotation); the reconstruction is defined up to a rotation and reflection.
+    directions : (k, 3) unit directions n_j (from the transmitter towards the receivers).
+    offsets : (k,) C_j such that ``D_ij ~ z_i . n_j + C_j``.
+    degeneracy : None or the failure mode (see :mod:`selfcal.tdoa.degeneracy`).
+    residual_rms : rms of ``D_ij - z_i . n_j - C_j`` over used entries (metres).
+    converged, iterations, method, loss : refinement status.
+    rejected : (m, k) bool, entries treated as outliers (gross screen or robust fit).
+    b_positive_definite : whether the least-squares B of the initialisation was positive
+        definite (the paper's success criterion; False -> A came from the nonlinear fit).
+    diagnostics : the degeneracy report (singular values, noise level, cone ratio...).
+    cost_history : refinement cost after every iteration (first = initial cost).
+    """
+
+    positions: Array
+    directions: Array
+    offsets: Array
+    degeneracy: str | None
+    residual_rms: float
+    converged: bool
+    iterations: int
+    method: str
+    loss: str
+    rejected: NDArray[np.bool_]
+    b_positive_definite: bool
+    diagnostics: DegeneracyReport | None = None
+    cost_history: list[float] = field(default_factory=list)
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-safe dictionary with the DESIGN.md keys (``rejected`` as [i, j] pairs)."""
+        return {
+            "positions": self.positions.tolist(),
+            "directions": self.directions.tolist(),
+            "offsets": self.offsets.tolist(),
+            "residual_rms": float(self.residual_rms),
+            "degeneracy": self.degeneracy,
+            "converged": bool(self.converged),
+            "iterations": int(self.iterations),
+            "method": self.method,
+            "loss": self.loss,
+            "rejected": np.argwhere(self.rejected).tolist(),
+            "b_positive_definite": bool(self.b_positive_definite),
+            "diagnostics": None if self.diagnostics is None else self.diagnostics.to_dict(),
+        }
+
+
+@dataclass(frozen=True)
+class FarfieldInit:
+    """Output of :func:`initialize_farfield`: positions (m, 3) (row 0 = 0), directions (k, 3),
+    B (3, 3) least-squares quadric, A (3, 3) with ``N = A Ntilde``, and whether B was
+    positive definite."""
+
+    positions: Array
+    directions: Array
+    B: Array
+    A: Array
+    b_positive_definite: bool
+
+
+# ----------------------------------------------------------------------------- building blocks
+def reduce_matrix(D: Array) -> Array:
+    """``Dbar_ij = D_ij - D_1j`` without the first row (paper 000, Lemma 1): (m-1, k)."""
+    D = np.asarray(D, dtype=float)
+    return D[1:] - D[:1]
+
+
+def screen_gross_errors(D: Array, *, factor: float = 20.0) -> NDArray[np.bool_]:
+    """Flag gross errors: (m, k) bool mask.
+
+    Column medians remove the offsets C_j. In row i of the centred matrix an entry is gross
+    when it lies more than ``factor`` robust spreads from the row median, the spread being
+    ``max(1.4826 MAD_i, q90_i / 3, 0.05 q90)`` (q90_i: 90th percentile of the row's absolute
+    deviations, q90 the same over the whole matrix). The quantile terms keep rows with
+    two-valued or nearly constant data (parallel directions, a position near the median)
+    from being flagged; the global term means a gross error must exceed the spread of the
+    whole data set. Such entries cannot come from a far-field model with Gaussian noise;
+    they are treated as missing.
+    """
+    X = D - np.nanmedian(D, axis=0, keepdims=True)
+    med = np.nanmedian(X, axis=1, keepdims=True)
+    dev = np.abs(X - med)
+    mad = _MAD * np.nanmedian(dev, axis=1, keepdims=True)
+    q_row = np.nanpercentile(dev, 90, axis=1, keepdims=True) / 3.0
+    q_all = 0.05 * float(np.nanpercentile(dev, 90))
+    scale = np.maximum(np.maximum(mad, q_row), max(q_all, 1e-300))
+    with np.errstate(invalid="ignore"):
+        return np.asarray(np.isfinite(D) & (dev > factor * scale))
+
+
+def lowrank_fit(
+    D: Array,
+    W: Array,
+    *,
+    rank: int = 4,
+    loss: str = "linear",
+    iterations: int = 50,
+) -> tuple[Array, float]:
+    """Weighted (robust) rank-``rank`` fit of D by alternating least squares.
+
+    Parameters
+    ----------
+    D : (m, k), W : (m, k) weights (0 = missing / rejected).
+    loss : IRLS loss on the residuals, scaled by 1.5 x their robust standard deviation.
+
+    Returns
+    -------
+    L : (m, k) complete low-rank matrix; sigma : robust noise estimate (1.4826 MAD of the
+    residuals over used entries, inflated by the residual degrees of freedom).
+    """
+    m, k = D.shape
+    obs = W > 0
+    D0 = np.where(obs, D, 0.0)
+    # start: fill missing entries with the column means, then truncated SVD
+    colmean = np.sum(D0 * obs, 0) / np.maximum(obs.sum(0), 1)
+    F = np.where(obs, D0, colmean[None, :])
+    U, s, Vt = np.linalg.svd(F, full_matrices=False)
+    P = U[:, :rank] * s[:rank]
+    Q = Vt[:rank].T
+    Wr = W.astype(float)
+    eye = 1e-10 * np.eye(rank)
+    sigma = 0.0
+    for it in range(iterations):
+        R = np.where(obs, D0 - P @ Q.T, 0.0)
+        used = R[obs]
+        sigma = _MAD * float(np.median(np.abs(used))) if used.size else 0.0
+        if loss != "linear" and sigma > 0:
+            Wr = W * loss_weight((R / (1.5 * sigma)) ** 2, loss)
+        Hq = np.einsum("ij,ia,ib->jab", Wr, P, P) + eye * (1.0 + np.trace(P.T @ P))
+        Q = np.linalg.solve(Hq, np.einsum("ij,ij,ia->ja", Wr, D0, P)[..., None])[..., 0]
+        Hp = np.einsum("ij,ja,jb->iab", Wr, Q, Q) + eye * (1.0 + np.trace(Q.T @ Q))
+        P = np.linalg.solve(Hp, np.einsum("ij,ij,ja->ia", Wr, D0, Q)[..., None])[..., 0]
+        if loss == "linear" and np.all(obs) and it >= 1:
+            break
+    R = np.where(obs, D0 - P @ Q.T, 0.0)
+    n_obs = int(obs.sum())
+    dof = n_obs - rank * (m + k - rank)
+    sigma = _MAD * float(np.median(np.abs(R[obs]))) * np.sqrt(n_obs / max(dof, 1))
+    return P @ Q.T, sigma
+
+
+def fit_A_nonlinear(nt: Array, A0: Array | None = None) -> Array:
+    """Minimise ``sum_j (ntilde_j^T A^T A ntilde_j - 1)^2`` over 3x3 A (paper 000, sec. 2.3).
+
+    Used when the least-squares B is not positive definite. Starts from ``A0`` (the paper:
+    identity), Levenberg-Marquardt (scipy ``least_squares``; trust-region for k < 9).
+
+    Parameters
+    ----------
+    nt : (k, 3) rows ``ntilde_j``; A0 : (3, 3) start.
+    """
+    A0 = np.eye(3) if A0 is None else np.asarray(A0, dtype=float)
+
+    def fun(a: Array) -> Array:
+        v = nt @ a.reshape(3, 3).T
+        return np.sum(v * v, axis=1) - 1.0
+
+    def jac(a: Array) -> Array:
+        A = a.reshape(3, 3)
+        v = nt @ A.T  # (k, 3)
+        return (2.0 * v[:, :, None] * nt[:, None, :]).reshape(len(nt), 9)
+
+    # "lm" needs at least as many residuals as the 9 unknowns
+    meth = "lm" if len(nt) >= 9 else "trf"
+    sol = least_squares(fun, A0.ravel(), jac=jac, method=meth, xtol=1e-14, ftol=1e-14, gtol=1e-14)
+    return np.asarray(sol.x.reshape(3, 3))
+
+
+def initialize_farfield(X: Array) -> FarfieldInit:
+    """Overdetermined initialisation (paper 000, section 2.3, modifications (i)-(iii)).
+
+    (i) best rank-3 approximation ``Dbar ~ U_3 (S_3 V_3^T)``; (ii) B from the k equations
+    ``ntilde_j^T B ntilde_j = 1`` in the least-squares sense, ``A^T A = B`` by Cholesky; when
+    B is not positive definite, A from :func:`fit_A_nonlinear` (started at the identity, as
+    in the paper, and at the square root of B's positive part; the better fit is kept);
+    (iii) ``N = A Ntilde`` with re-normalised columns, and positions ``Z = U_3 A^-1`` re-fitted
+    by least squares to the normalised directions.
+
+    Parameters
+    ----------
+    X : (r, k) complete reduced matrix (metres): ``D`` minus a per-column constant (Lemma 1),
+        e.g. :func:`reduce_matrix` (r = m-1) or the column-centred D (r = m).
+
+    Returns
+    -------
+    FarfieldInit with positions (r, 3), one per row of X, and directions (k, 3).
+    """
+    U, s, Vt = np.linalg.svd(X, full_matrices=False)
+    scale = float(s[0]) / np.sqrt(X.shape[1]) if s[0] > 0 else 1.0
+    nt = (s[:3, None] * Vt[:3]).T / scale  # scaled for a well-conditioned quadric fit
+    B, _, _ = fit_quadric(nt)
+    w, Qe = np.linalg.eigh(B)
+    pd = bool(w[0] > 0)
+    if pd:
+        A = np.linalg.cholesky(B).T  # B = L L^T = A^T A
+    else:
+        starts = [np.eye(3), np.sqrt(np.maximum(w, 1e-6 * max(w[-1], 1e-12)))[:, None] * Qe.T]
+        best, best_cost = np.eye(3), np.inf
+        for A0 in starts:
+            A_try = fit_A_nonlinear(nt, A0)
+            c = float(np.sum((np.sum((nt @ A_try.T) ** 2, axis=1) - 1.0) ** 2))
+            if np.linalg.matrix_rank(A_try) == 3 and c < best_cost:
+                best, best_cost = A_try, c
+        A = best
+    N = nt @ A.T
+    N /= np.linalg.norm(N, axis=1, keepdims=True)
+    # positions by least squares given the normalised directions (equal to U_3 A^-1 when
+    # the normalisation is a no-op, better otherwise)
+    Z, *_ = np.linalg.lstsq(N, X.T, rcond=None)
+    return FarfieldInit(Z.T, N, B / scale**2, A / scale, pd)
+
+
+def _canonical(pos: Array, dirs: Array) -> tuple[Array, Array]:
+    """Rotate so that the positions' principal axes are the coordinate axes (row 0 stays 0)."""
+    if np.linalg.matrix_rank(pos, tol=1e-12 * (np.abs(pos).max() + 1e-300)) < 3:
+        return pos, dirs
+    _, _, al = canonical_gauge(pos)
+    R = al.rotation
+    return pos @ R.T, dirs @ R.T
+
+
+def ransac_farfield(
+    D: Array,
+    *,
+    iterations: int = 200,
+    threshold: float | None = None,
+    rng: np.random.Generator | int | None = None,
+) -> NDArray[np.bool_]:
+    """RANSAC over the minimal solver (paper 000's future work): (m, k) inlier mask.
+
+    Each hypothesis solves a random 4 x 6 sub-problem (Algorithm 1, batched over all
+    hypotheses at once), extends it to every column by solving ``Dbar_j = Z n_j`` on the 3
+    sampled position differences and to every row by least squares over the sampled
+    columns, and counts the entries whose residual is below ``threshold`` (default: 3
+    robust standard deviations of the best hypothesis's residuals, i.e. LMedS scoring
+    followed by a threshold). Needs complete rows/columns in the samples; missing entries
+    are never inliers.
+    """
+    gen = as_rng(rng)
+    D = np.asarray(D, dtype=float)
+    m, k = D.shape
+    finite = np.isfinite(D)
+    rows = np.array([gen.choice(m, 4, replace=False) for _ in range(iterations)])
+    cols = np.array([gen.choice(k, 6, replace=False) for _ in range(iterations)])
+    sub = D[rows[:, :, None], cols[:, None, :]]
+    ok = np.all(np.isfinite(sub), axis=(1, 2))
+    sol = solve_minimal(np.where(np.isfinite(sub), sub, 0.0))
+    good = np.flatnonzero(ok & sol.valid)
+    if good.size == 0:
+        return finite
+    best_med, best_R = np.inf, None
+    Df = np.where(finite, D, np.nan)
+    for h in good:
+        r, c = rows[h], cols[h]
+        Zs = sol.positions[h]  # (4, 3), relative to row r[0]
+        Ns = sol.directions[h]  # (6, 3)
+        # every row: z_i - z_r0 from the sampled columns
+        Y = Df[:, c] - Df[r[0], c][None, :]  # (m, 6)
+        Zall = np.linalg.lstsq(Ns, np.nan_to_num(Y.T), rcond=None)[0].T
+        # every column: n_j from the three sampled position differences, normalised
+        Yc = Df[r[1:], :] - Df[r[0], :][None, :]  # (3, k)
+        Nall = np.linalg.solve(Zs[1:], np.nan_to_num(Yc)).T
+        Nall /= np.maximum(np.linalg.norm(Nall, axis=1, keepdims=True), 1e-300)
+        Cj = Df[r[0], :]
+        R = Df - Zall @ Nall.T - Cj[None, :]
+        med = float(np.nanmedian(np.abs(R)))
+        if med < best_med:
+            best_med, best_R = med, R
+    assert best_R is not None
+    thr = 3.0 * _MAD * best_med if threshold is None else float(threshold)
+    with np.errstate(invalid="ignore"):
+        return np.asarray(finite & (np.abs(best_R) <= thr))
+
+
+# ----------------------------------------------------------------------------- entry point
+def _raise_or_return(
+    kind: str, message: str, result: FarfieldResult, allow_degenerate: bool
+) -> FarfieldResult:
+    if allow_degenerate:
+        return result
+    raise DegenerateGeometryError(
+        message + " Pass allow_degenerate=True (CLI: --allow-degenerate) for the partial reconstruction.",
+        kind=kind,
+        partial=result,
+    )
+
+
+_DEGENERATE_MESSAGES = {
+    "planar-motion": "the receiver positions lie in a plane (rank 2): only a family of planar "
+    "reconstructions exists; add a position off the plane.",
+    "coplanar-directions": "the transmitter directions lie in a plane (rank 2): the out-of-plane "
+    "coordinate of the positions is unobservable; add a transmitter off that plane.",
+    "collinear-motion": "the receiver positions lie on a line (rank <= 1): only a one-parameter "
+    "family of reconstructions exists.",
+    "parallel-directions": "all transmitter directions are parallel (rank <= 1): only the "
+    "coordinate along that direction is observable.",
+    "cone": "the transmitter directions lie on a common quadratic cone (e.g. all at one elevation): the "
+    "constraints n^T B n = 1 do not determine B, so the geometry is ambiguous; add transmitters "
+    "off the cone.",
+}
+
+
+def solve_farfield(
+    matrix: Any,
+    *,
+    method: str = "auto",
+    loss: str = "linear",
+    f_scale: float | None = None,
+    noise_std: float | None = None,
+    offsets: str = "auto",
+    direction_solver: str = "global",
+    allow_degenerate: bool = False,
+    screen: bool = True,
+    reject_k: float = 4.0,
+    max_iter: int | None = None,
+    tol: float | None = None,
+    cone_tol: float = 3.0,
+    init_reference: str = "mean",
+    check_degeneracy: bool = True,
+    rng: np.random.Generator | int | None = None,
+) -> FarfieldResult:
+    """Far-field TDOA self-calibration: positions, directions and offsets from D (paper 000).
+
+    Parameters
+    ----------
+    matrix : (m, k) relative distances ``D_ij = z_i . n_j + C_j`` in metres (or any length
+        unit; results come in the same unit). Rows = receiver positions (an antenna moved
+        to m places, or m microphones), columns = k far transmitters. NaN = missing.
+        Needs m >= 4 and k >= 6 for a full 3-D solution (Theorem 1).
+    method : "lm" (Algorithm 3), "alternating" (Algorithm 2), "init" (section 2.3 only),
+        "minimal" (Algorithm 1, 4 x 6 only) or "auto" ("minimal" for a complete 4 x 6
+        matrix with the linear loss, else "lm").
+    loss : "linear" (the paper's least squares) or a robust loss "huber", "soft_l1",
+        "cauchy" (IRLS; then outliers are reported in ``rejected``).
+    f_scale : robust loss scale (metres); default 1.5 x the robust noise estimate.
+    noise_std : known noise standard deviation of the entries (metres); used by the
+        degeneracy thresholds (else estimated from the data).
+    offsets : "reference" (C_j = D_1j, the paper's reduced cost), "free" (C_j estimated)
+        or "auto" ("reference" for complete data with the linear loss, else "free").
+    direction_solver : for "alternating": "global" or "local" (see :mod:`.refine`).
+    allow_degenerate : return the partial reconstruction of a degenerate configuration
+        (with ``degeneracy`` set) instead of raising.
+    screen : treat gross errors (:func:`screen_gross_errors`) as missing.
+    reject_k : with a robust loss, entries with |residual| > reject_k robust std are rejected.
+    max_iter, tol : refinement limits (defaults 200 / 1e-12 for LM, 2000 / 1e-10 for
+        alternating).
+    cone_tol : threshold of the cone test (see :mod:`.degeneracy`).
+    init_reference : per-column constant removed before the factorisation (Lemma 1):
+        "mean" (column means; noise spread evenly, our default) or "first" (``D_1j``, the
+        paper's Algorithm 1 step 1).
+    check_degeneracy : run the failure-mode analysis and act on it (raise / partial result).
+        With False the full 3-D pipeline runs regardless, as in the paper's experiments; the
+        analysis is still reported in ``diagnostics`` but ``degeneracy`` stays None.
+    rng : unused by the deterministic pipeline; kept for API uniformity.
+
+    Returns
+    -------
+    FarfieldResult
+
+    Raises
+    ------
+    InputError
+        Malformed matrix or options.
+    DegenerateGeometryError
+        ``kind`` = "too-few-receivers" / "too-few-sources", or one of the failure modes
+        (with ``partial`` = the partial FarfieldResult) unless ``allow_degenerate``.
+    """
+    check_choice(method, "method", METHODS)
+    check_choice(loss, "loss", LOSSES)
+    check_choice(offsets, "offsets", ("auto", "reference", "free"))
+    check_choice(direction_solver, "direction_solver", ("global", "local"))
+    check_choice(init_reference, "init_reference", ("mean", "first"))
+    check_positive(f_scale, "f_scale")
+    if noise_std is not None and not (np.isfinite(noise_std) and noise_std >= 0):
+        raise InputError(f"noise_std must be a finite non-negative number, got {noise_std!r}")
+    as_rng(rng)
+    D = as_matrix(matrix, "matrix", allow_nan=True, min_shape=(1, 1))
+    m, k = D.shape
+    if m < 3:
+        raise DegenerateGeometryError(
+            f"{m} receiver positions: at least 4 are needed for 3-D far-field calibration (3 for a "
+            "planar partial solution)", kind="too-few-receivers")
+    if k < 3:
+        raise DegenerateGeometryError(
+            f"{k} transmitters: at least 6 are needed for 3-D far-field calibration (3 for a partial "
+            "solution)", kind="too-few-sources")
+    finite = np.isfinite(D)
+    if (finite.sum(axis=0) < 2).any():
+        j = int(np.flatnonzero(finite.sum(axis=0) < 2)[0])
+        raise InputError(f"matrix: column {j} has fewer than 2 observed entries; it carries no information")
+    if (finite.sum(axis=1) < 3).any():
+        i = int(np.flatnonzero(finite.sum(axis=1) < 3)[0])
+        raise InputError(f"matrix: row {i} has fewer than 3 observed entries; its position is undetermined")
+
+    if method == "minimal" and ((m, k) != (4, 6) or not finite.all()):
+        raise InputError(f"method='minimal' needs a complete 4 x 6 matrix, got {m} x {k}")
+    gross = screen_gross_errors(D) if screen else np.zeros_like(finite)
+    used = finite & ~gross
+    complete = bool(used.all())
+    if offsets == "auto":
+        offsets = "reference" if (complete and loss == "linear") else "free"
+    if offsets == "reference" and not np.all(used[0]):
+        raise InputError("offsets='reference' needs a complete first row; use offsets='free'")
+
+    # ---- a complete, clean reduced matrix for analysis and initialisation
+    sigma_entries = noise_std
+    if complete and loss == "linear":
+        Dfill = D
+    else:
+        Dfill, sig = lowrank_fit(D, used.astype(float), rank=4, loss="cauchy" if loss != "linear" else "linear")
+        if sigma_entries is None:
+            sigma_entries = sig
+    Dfill = np.where(used, D, Dfill)
+    if init_reference == "first":
+        X = np.vstack([np.zeros((1, k)), reduce_matrix(Dfill)])  # the paper's K_j = D_1j
+    else:
+        X = Dfill - Dfill.mean(axis=0, keepdims=True)  # K_j = column mean (Lemma 1)
+    C0 = D[0].copy() if offsets == "reference" else Dfill[0].copy()
+    report = analyse_degeneracy(X, noise_std=sigma_entries, cone_tol=cone_tol)
+
+    def _offsets(pos: Array, dirs: Array) -> Array:
+        if offsets == "reference":
+            return D[0].copy()
+        return np.asarray(np.nanmean(np.where(used, D - pos @ dirs.T, np.nan), axis=0))
+
+    def _result(pos: Array, dirs: Array, C: Array, *, kind: str | None, conv: bool, its: int,
+                meth: str, rej: NDArray[np.bool_], pd: bool, hist: list[float]) -> FarfieldResult:
+        pos, dirs = _canonical(pos, dirs)
+        r = farfield_residuals(np.where(used & ~rej, D, np.nan), pos, dirs, C)
+        rms = float(np.sqrt(np.nanmean(r**2))) if np.isfinite(r).any() else float("nan")
+        return FarfieldResult(pos, dirs, C, kind, rms, conv, its, meth, loss, rej | gross, pd, report, hist)
+
+    no_rej = np.zeros_like(finite)
+    kind_found = report.kind if check_degeneracy else None
+    if check_degeneracy and report.rank < 3:
+        kind = report.kind or "collinear-motion"
+        partial_fn = {
+            "planar-motion": partial_planar_motion,
+            "coplanar-directions": partial_coplanar_directions,
+            "collinear-motion": partial_collinear_motion,
+            "parallel-directions": partial_parallel_directions,
+        }[kind]
+        pos, dirs = partial_fn(X)
+        pos = pos - pos[0]
+        part = _result(pos, dirs, _offsets(pos, dirs), kind=kind, conv=False, its=0, meth=f"partial-{kind}",
+                       rej=no_rej, pd=False, hist=[])
+        sv = ", ".join(f"{v:.3g}" for v in report.singular_values[:4])
+        detail = (f" (numerical rank {report.rank}: singular values {sv} against the noise-aware "
+                  f"threshold {report.rank_threshold:.3g})")
+        return _raise_or_return(kind, _DEGENERATE_MESSAGES[kind] + detail, part, allow_degenerate)
+    if m < 4:
+        raise DegenerateGeometryError(
+            f"{m} receiver positions span 3-D but at least 4 are needed (Theorem 1)", kind="too-few-receivers")
+    if k < 6:
+        raise DegenerateGeometryError(
+            f"{k} transmitters: at least 6 are needed to determine B (Theorem 1)", kind="too-few-sources")
+
+    if method == "auto":
+        method = "minimal" if (m, k) == (4, 6) and complete and loss == "linear" else "lm"
+    if method == "minimal":
+        if (m, k) != (4, 6) or not complete:
+            raise InputError(f"method='minimal' needs a complete 4 x 6 matrix, got {m} x {k}")
+        sol = solve_minimal(D)
+        if kind_found == "cone":
+            part = _result(np.nan_to_num(sol.positions), np.nan_to_num(sol.directions), C0, kind="cone",
+                           conv=False, its=0, meth="minimal", rej=no_rej, pd=bool(sol.valid), hist=[])
+            return _raise_or_return("cone", _DEGENERATE_MESSAGES["cone"], part, allow_degenerate)
+        if sol.valid:
+            return _result(sol.positions, sol.directions, C0, kind=None, conv=True, its=0,
+                           meth="minimal", rej=no_rej, pd=True, hist=[])
+        method = "init"  # B not positive definite: the nonlinear fit of A (section 2.3)
+
+    init = initialize_farfield(X)
+    Z, N = init.positions - init.positions[0], init.directions
+    C = _offsets(Z, N)
+    if kind_found == "cone":
+        # B is not determined: refining one arbitrary member of the family is wasted work
+        part = _result(Z, N, C, kind="cone", conv=False, its=0, meth="init", rej=no_rej,
+                       pd=init.b_positive_definite, hist=[])
+        return _raise_or_return("cone", _DEGENERATE_MESSAGES["cone"] + f" (cone SNR {report.cone_snr:.3g} < "
+                                f"{cone_tol:g})", part, allow_degenerate)
+    hist: list[float] = []
+    its, conv = 0, True
+    rej = no_rej
+    if method in ("lm", "alternating"):
+        rounds = 1 if loss == "linear" else 2
+        for _ in range(rounds):
+            delta = 1.0
+            if loss != "linear":
+                r = farfield_residuals(np.where(used, D, np.nan), Z, N, C)
+                rob = _MAD * float(np.nanmedian(np.abs(r)))
+                delta = f_scale if f_scale is not None else 1.5 * max(rob, 1e-12 * (np.nanmax(np.abs(X)) + 1e-300))
+            if method == "lm":
+                out = refine_lm(D, Z, N, C, mask=used, free_offsets=offsets == "free", loss=loss, delta=delta,
+                                max_iter=max_iter or 200, tol=tol or 1e-12)
+            else:
+                out = refine_alternating(D, Z, N, C, mask=used, free_offsets=offsets == "free", loss=loss,
+                                         delta=delta, direction_solver=direction_solver,
+                                         max_iter=max_iter or 2000, tol=tol or 1e-10)
+            Z, N, C = out.positions, out.directions, out.offsets
+            hist += out.history
+            its += out.iterations
+            conv = out.converged
+        if not conv and kind_found is None:
+            warnings.warn(f"far-field {method} stopped after {its} iterations without converging",
+                          ConvergenceWarning, stacklevel=2)
+        if loss != "linear":
+            r = farfield_residuals(np.where(used, D, np.nan), Z, N, C)
+            rob = _MAD * float(np.nanmedian(np.abs(r)))
+            with np.errstate(invalid="ignore"):
+                rej = np.asarray(used & (np.abs(r) > reject_k * max(rob, 1e-300)))
+    res = _result(Z, N, C, kind=kind_found, conv=conv, its=its, meth=method, rej=rej,
+                  pd=init.b_positive_definite, hist=hist)
+    if kind_found == "cone":
+        return _raise_or_return("cone", _DEGENERATE_MESSAGES["cone"] + f" (cone SNR {report.cone_snr:.3g} < {cone_tol:g})",
+                                res, allow_degenerate)
+    return res

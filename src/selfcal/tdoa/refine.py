@@ -1,0 +1,449 @@
+"""Refinement of a far-field TDOA reconstruction (paper 000, section 2.3).
+
+Cost (paper 000, eq. 1, Problem 3), generalised with weights, missing entries and a robust
+loss::
+
+    F(Z, N, C) = sum_ij  delta^2 rho( (D_ij - z_i . n_j - C_j)^2 / delta^2 ),  |n_j| = 1,
+
+over the observed entries, with ``z_1 = 0`` fixed (the gauge of Lemma 1). With
+``free_offsets=False`` the offsets are pinned to ``C_j = D_1j`` and the cost is exactly the
+paper's ``||Dbar - Z N||_F^2`` on the reduced matrix; with ``free_offsets=True`` the ``C_j``
+are estimated too (the maximum-likelihood cost under i.i.d. noise on D, and the one that
+keeps a corrupted first row from spoiling whole columns).
+
+* :func:`refine_alternating` -- Algorithm 2: exact least squares for Z given N, then each
+  ``n_j`` on the unit sphere, either globally (:func:`sphere_lstsq_global`, the secular
+  equation) or locally (:func:`sphere_lstsq_local`, Gauss-Newton on the sphere).
+* :func:`refine_lm` -- Algorithm 3: Levenberg-Marquardt with the exponential-map
+  re-parametrisation ``n_j <- exp_{n_j}(T_j v_j)`` (T_j a tangent basis), Marquardt scaling
+  ``J^T J + lambda diag(J^T J)``. The block structure (z_i couple to every column, each
+  column's unknowns only to themselves) is used through a Schur complement, so one step
+  costs O(m k + m^3) rather than a dense solve in 3m + 3k unknowns.
+
+Robust losses are handled by iteratively re-weighted least squares (weights ``rho'``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from numpy.typing import NDArray
+
+from .._checks import check_choice
+from ..geometry import sphere_exp, sphere_tangent_basis
+
+__all__ = [
+    "LOSSES",
+    "RefineResult",
+    "loss_rho",
+    "loss_weight",
+    "farfield_residuals",
+    "farfield_jacobian",
+    "sphere_lstsq_global",
+    "sphere_lstsq_local",
+    "refine_alternating",
+    "refine_lm",
+]
+
+Array = NDArray[np.float64]
+LOSSES = ("linear", "huber", "soft_l1", "cauchy")
+
+
+@dataclass(frozen=True)
+class RefineResult:
+    """Output of :func:`refine_lm` / :func:`refine_alternating`.
+
+    positions (m, 3) with row 0 = 0, directions (k, 3) unit, offsets (k,), cost (final
+    value of F), iterations, converged, and ``history``: the cost after every iteration
+    (``history[0]`` is the initial cost) and, if requested, the positions after every
+    iteration (``position_history``).
+    """
+
+    positions: Array
+    directions: Array
+    offsets: Array
+    cost: float
+    iterations: int
+    converged: bool
+    history: list[float] = field(default_factory=list)
+    position_history: list[Array] = field(default_factory=list)
+
+
+# ----------------------------------------------------------------------------- losses
+def loss_rho(s: Array, loss: str) -> Array:
+    """Loss ``rho(s)`` of squared, scaled residuals ``s = r^2 / delta^2`` (scipy convention)."""
+    if loss == "linear":
+        return s
+    if loss == "huber":
+        return np.where(s <= 1.0, s, 2.0 * np.sqrt(s) - 1.0)
+    if loss == "soft_l1":
+        return 2.0 * (np.sqrt(1.0 + s) - 1.0)
+    if loss == "cauchy":
+        return np.log1p(s)
+    raise ValueError(loss)
+
+
+def loss_weight(s: Array, loss: str) -> Array:
+    """IRLS weight ``rho'(s)`` for squared, scaled residuals ``s`` (1 for the linear loss)."""
+    if loss == "linear":
+        return np.ones_like(s)
+    if loss == "huber":
+        return np.where(s <= 1.0, 1.0, 1.0 / np.sqrt(np.maximum(s, 1.0)))
+    if loss == "soft_l1":
+        return 1.0 / np.sqrt(1.0 + s)
+    if loss == "cauchy":
+        return 1.0 / (1.0 + s)
+    raise ValueError(loss)
+
+
+def _cost(r: Array, mask: NDArray[np.bool_], loss: str, delta: float) -> float:
+    s = np.where(mask, r, 0.0) ** 2 / delta**2
+    return float(delta**2 * np.sum(np.where(mask, loss_rho(s, loss), 0.0)))
+
+
+# ----------------------------------------------------------------------------- model
+def farfield_residuals(D: Array, Z: Array, N: Array, C: Array) -> Array:
+    """Residuals ``r_ij = D_ij - z_i . n_j - C_j`` (paper 000, Problem 1): (m, k).
+
+    Z is (m, 3) with rows z_i, N is (k, 3) with rows n_j, C is (k,). NaN stays NaN.
+    """
+    return D - Z @ N.T - C[None, :]
+
+
+def farfield_jacobian(Z: Array, N: Array, *, free_offsets: bool = True) -> Array:
+    """Dense Jacobian of the model ``z_i . exp_{n_j}(T_j v_j) + C_j`` at ``v = 0``.
+
+    Parameter order: ``z_2..z_m`` (3 each), then per column ``v_j`` (2, tangent coordinates
+    in :func:`selfcal.geometry.sphere_tangent_basis`) and, with ``free_offsets``, ``C_j``.
+    Rows: entries (i, j) in row-major order. This is the J of paper 000, Algorithm 3 step 1
+    (of the model, i.e. minus the Jacobian of the residuals); it is meant for tests and
+    small problems: :func:`refine_lm` never forms it.
+
+    Returns
+    -------
+    (m*k, 3(m-1) + (3 or 2) k) array.
+    """
+    m, k = Z.shape[0], N.shape[0]
+    T = sphere_tangent_basis(N)  # (k, 3, 2)
+    p = 3 if free_offsets else 2
+    J = np.zeros((m, k, 3 * (m - 1) + p * k))
+    for i in range(1, m):
+        J[i, :, 3 * (i - 1) : 3 * i] = N
+    zt = np.einsum("ia,jab->ijb", Z, T)  # d(z_i . n_j)/dv_j
+    base = 3 * (m - 1)
+    for j in range(k):
+        J[:, j, base + p * j : base + p * j + 2] = zt[:, j]
+        if free_offsets:
+            J[:, j, base + p * j + 2] = 1.0
+    return J.reshape(m * k, -1)
+
+
+# ----------------------------------------------------------------------------- directions
+def sphere_lstsq_global(H: Array, g: Array, *, iterations: int = 200) -> Array:
+    """Global minimiser of ``n^T H n - 2 g^T n`` on the unit sphere, batched.
+
+    This is the per-direction problem of Algorithm 2, step 3 (``H = sum_i w_i z_i z_i^T``,
+    ``g = sum_i w_i (D_ij - C_j) z_i``). Stationary points satisfy ``(H + mu I) n = g``,
+    ``|n| = 1`` -- the tangency of an ellipsoidal level set with the sphere that paper 000
+    solves as polynomial equations (multiplying out gives a degree-6 polynomial in mu).
+    The global minimum is the stationary point with the largest multiplier
+    ``mu >= -lambda_min(H)`` (Gander 1981), found here as the root of the monotone secular
+    equation ``sum_a c_a^2 / (lambda_a + mu)^2 = 1`` by bisection on
+    ``(-lambda_min, -lambda_min + |g|]`` (safeguarded Newton); the "hard case" (``c_min = 0``) is completed
+    along the eigenvector of ``lambda_min``.
+
+    Parameters
+    ----------
+    H : (..., 3, 3) symmetric positive semi-definite.
+    g : (..., 3).
+
+    Returns
+    -------
+    (..., 3) unit vectors.
+    """
+    lam, Q = np.linalg.eigh(H)
+    c = np.einsum("...ab,...a->...b", Q, g)
+    gn = np.linalg.norm(g, axis=-1)
+    lo = -lam[..., 0]
+    hi = lo + np.maximum(gn, 1e-300)
+    mu = hi.copy()
+    # safeguarded Newton on psi(mu) = 1/|y(mu)| - 1 (increasing, nearly linear in mu:
+    # Moré-Sorensen), falling back to bisection whenever Newton leaves the bracket
+    for _ in range(iterations):
+        den = np.maximum(lam + mu[..., None], 1e-300)
+        s2 = np.sum(c**2 / den**2, axis=-1)
+        s3 = np.sum(c**2 / den**3, axis=-1)
+        ny = np.sqrt(s2)
+        psi = 1.0 / np.maximum(ny, 1e-300) - 1.0
+        lo = np.where(psi < 0, mu, lo)
+        hi = np.where(psi >= 0, mu, hi)
+        dpsi = s3 / np.maximum(ny, 1e-300) ** 3
+        new = mu - psi / np.maximum(dpsi, 1e-300)
+        bad = ~((new > lo) & (new < hi)) | ~np.isfinite(new)
+        new = np.where(bad, 0.5 * (lo + hi), new)
+        done = np.abs(new - mu) <= 1e-15 * (np.abs(mu) + np.abs(lam[..., -1]) + 1e-300)
+        mu = new
+        if np.all(done):
+            break
+    den = lam + mu[..., None]
+    y = c / np.maximum(den, 1e-300)
+    ny = np.linalg.norm(y, axis=-1)
+    # hard case: the multiplier sits at -lambda_min and |y| < 1; fill up along q_min
+    hard = ny < 1.0 - 1e-9
+    y0 = np.where(hard, 0.0, y[..., 0])
+    rest = np.sqrt(np.maximum(1.0 - y[..., 1] ** 2 - y[..., 2] ** 2, 0.0))
+    y0 = np.where(hard, np.where(c[..., 0] < 0, -rest, rest), y0)
+    y = np.concatenate([y0[..., None], y[..., 1:]], axis=-1)
+    n = np.einsum("...ab,...b->...a", Q, y)
+    return n / np.linalg.norm(n, axis=-1, keepdims=True)
+
+
+def sphere_lstsq_local(H: Array, g: Array, n0: Array, *, iterations: int = 20) -> Array:
+    """Local minimiser of ``n^T H n - 2 g^T n`` on the unit sphere from ``n0``, batched.
+
+    Riemannian Newton with the exponential map and a Levenberg safeguard: the local
+    constrained solver of Algorithm 2 (the paper used an interior-point method; any
+    descent method that stays on the sphere converges to the same local minimum).
+
+    Parameters
+    ----------
+    H : (..., 3, 3), g : (..., 3), n0 : (..., 3) unit start.
+    """
+    n = n0 / np.linalg.norm(n0, axis=-1, keepdims=True)
+    for _ in range(iterations):
+        T = sphere_tangent_basis(n)  # (..., 3, 2)
+        Hn = np.einsum("...ab,...b->...a", H, n)
+        grad_e = Hn - g  # half Euclidean gradient
+        mu = np.einsum("...a,...a->...", n, grad_e)  # Lagrange multiplier estimate
+        gt = np.einsum("...ab,...a->...b", T, grad_e)
+        Ht = np.einsum("...ab,...bc,...cd->...ad", np.swapaxes(T, -1, -2), H, T)
+        Ht = Ht - mu[..., None, None] * np.eye(2)  # Riemannian Hessian on the sphere
+        # keep the step a descent step where the Hessian is indefinite
+        shift = np.maximum(0.0, 1e-9 - np.linalg.eigvalsh(Ht)[..., 0])
+        Ht = Ht + (shift[..., None, None] + 1e-12) * np.eye(2)
+        v = -np.linalg.solve(Ht, gt[..., None])[..., 0]
+        step = np.einsum("...ab,...b->...a", T, v)
+        nrm = np.linalg.norm(step, axis=-1, keepdims=True)
+        step = np.where(nrm > 0.5, step * 0.5 / np.maximum(nrm, 1e-300), step)
+        n = sphere_exp(n, step)
+    return n
+
+
+# ----------------------------------------------------------------------------- helpers
+def _weights(
+    D: Array, Z: Array, N: Array, C: Array, mask: NDArray[np.bool_], loss: str, delta: float
+) -> Array:
+    r = np.where(mask, farfield_residuals(D, Z, N, C), 0.0)
+    return np.where(mask, loss_weight(r**2 / delta**2, loss), 0.0)
+
+
+def _positions_given_directions(D: Array, N: Array, C: Array, W: Array) -> Array:
+    """Weighted least squares for z_2..z_m given the directions (Algorithm 2, step 2)."""
+    Y = np.where(W > 0, D - C[None, :], 0.0)
+    H = np.einsum("ij,ja,jb->iab", W, N, N)
+    g = np.einsum("ij,ij,ja->ia", W, Y, N)
+    H = H + 1e-12 * np.trace(H, axis1=1, axis2=2)[:, None, None] * np.eye(3)
+    Z = np.linalg.solve(H, g[..., None])[..., 0]
+    Z[0] = 0.0
+    return Z
+
+
+def _prepare(D: Array, mask: NDArray[np.bool_] | None) -> tuple[Array, NDArray[np.bool_]]:
+    D = np.asarray(D, dtype=float)
+    obs = np.isfinite(D) if mask is None else (np.asarray(mask, bool) & np.isfinite(D))
+    return np.where(obs, D, 0.0), obs
+
+
+# ----------------------------------------------------------------------------- Algorithm 2
+def refine_alternating(
+    D: Array,
+    positions: Array,
+    directions: Array,
+    offsets: Array,
+    *,
+    mask: NDArray[np.bool_] | None = None,
+    free_offsets: bool = False,
+    direction_solver: str = "global",
+    loss: str = "linear",
+    delta: float = 1.0,
+    max_iter: int = 500,
+    tol: float = 1e-10,
+    record_positions: bool = False,
+) -> RefineResult:
+    """Alternating (block coordinate descent) optimisation, paper 000 Algorithm 2.
+
+    Parameters
+    ----------
+    D : (m, k) relative distances (NaN = missing), metres.
+    positions : (m, 3) initial z_i (row 0 is forced to 0), directions (k, 3) unit,
+        offsets (k,) initial C_j (with ``free_offsets=False`` they stay fixed: use
+        ``C_j = D_1j`` for the paper's reduced cost).
+    mask : optional (m, k) bool of entries to use (False = rejected / missing).
+    direction_solver : "global" (secular equation) or "local" (Newton on the sphere).
+    loss, delta : robust loss (see :data:`LOSSES`) and its scale in metres (IRLS).
+    max_iter, tol : stop after ``max_iter`` sweeps, when the relative decrease of the cost
+        in one sweep is below ``tol``, when the cost reaches the rounding floor, or when no
+        position moves by more than 1e-13 of the array size.
+    record_positions : keep the positions after every sweep (for convergence plots).
+    """
+    check_choice(direction_solver, "direction_solver", ("global", "local"))
+    check_choice(loss, "loss", LOSSES)
+    D0, obs = _prepare(D, mask)
+    Z = np.array(positions, dtype=float)
+    Z[0] = 0.0
+    N = np.array(directions, dtype=float)
+    N /= np.linalg.norm(N, axis=1, keepdims=True)
+    C = np.array(offsets, dtype=float)
+    cost = _cost(farfield_residuals(D0, Z, N, C), obs, loss, delta)
+    hist, phist = [cost], ([Z.copy()] if record_positions else [])
+    # rounding floor: below this the data are fitted to machine precision
+    atol = obs.sum() * (1e-14 * (np.sqrt(np.mean(D0[obs] ** 2)) + 1e-300)) ** 2
+    zscale = float(np.max(np.abs(Z))) + 1e-300
+    Z_prev = Z.copy()
+    converged = False
+    it = 0
+    for it in range(1, max_iter + 1):
+        W = _weights(D0, Z, N, C, obs, loss, delta)
+        Z = _positions_given_directions(D0, N, C, W)
+        if free_offsets:
+            W = _weights(D0, Z, N, C, obs, loss, delta)
+            num = np.sum(W * (D0 - Z @ N.T), axis=0)
+            C = np.where(W.sum(0) > 0, num / np.maximum(W.sum(0), 1e-300), C)
+        W = _weights(D0, Z, N, C, obs, loss, delta)
+        H = np.einsum("ij,ia,ib->jab", W, Z, Z)
+        g = np.einsum("ij,ij,ia->ja", W, D0 - C[None, :], Z)
+        N = sphere_lstsq_global(H, g) if direction_solver == "global" else sphere_lstsq_local(H, g, N)
+        new = _cost(farfield_residuals(D0, Z, N, C), obs, loss, delta)
+        hist.append(new)
+        if record_positions:
+            phist.append(Z.copy())
+        moved = float(np.max(np.abs(Z - Z_prev))) if it > 1 else np.inf
+        Z_prev = Z.copy()
+        if abs(cost - new) <= tol * max(cost, 1e-300) or new <= atol or moved <= 1e-13 * zscale:
+            converged = True
+            cost = new
+            break
+        cost = new
+    return RefineResult(Z, N, C, cost, it, converged, hist, phist)
+
+
+# ----------------------------------------------------------------------------- Algorithm 3
+def _normal_equations(
+    D0: Array, Z: Array, N: Array, C: Array, W: Array, free_offsets: bool
+) -> tuple[Array, Array, Array, Array, Array, Array, Array]:
+    """Blocks of J^T W J and J^T W r for the parametrisation of :func:`farfield_jacobian`."""
+    T = sphere_tangent_basis(N)  # (k, 3, 2)
+    r = np.where(W > 0, farfield_residuals(D0, Z, N, C), 0.0)
+    zt = np.einsum("ia,jab->ijb", Z, T)  # (m, k, 2)
+    if free_offsets:
+        bcol = np.concatenate([zt, np.ones(zt.shape[:2] + (1,))], axis=-1)  # (m, k, 3)
+    else:
+        bcol = zt
+    Hzz = np.einsum("ij,ja,jb->iab", W, N, N)[1:]
+    Hzn = np.einsum("ij,ja,ijb->ijab", W, N, bcol)[1:]
+    Hnn = np.einsum("ij,ija,ijb->jab", W, bcol, bcol)
+    gz = np.einsum("ij,ij,ja->ia", W, r, N)[1:]
+    gn = np.einsum("ij,ij,ija->ja", W, r, bcol)
+    return Hzz, Hzn, Hnn, gz, gn, T, r
+
+
+def _lm_step(
+    Hzz: Array, Hzn: Array, Hnn: Array, gz: Array, gn: Array, lam: float
+) -> tuple[Array, Array]:
+    """Solve (H + lam diag H) dx = g by eliminating the per-column blocks (Schur complement)."""
+    mz, k, p = Hzn.shape[0], Hnn.shape[0], Hnn.shape[1]
+    eye_p = np.eye(p)
+    Hnn_d = Hnn + lam * np.einsum("jaa->ja", Hnn)[:, :, None] * eye_p + 1e-12 * eye_p
+    Hzz_d = Hzz + lam * np.einsum("iaa->ia", Hzz)[:, :, None] * np.eye(3) + 1e-12 * np.eye(3)
+    Hnn_inv = np.linalg.inv(Hnn_d)  # (k, p, p)
+    X = np.einsum("ijab,jbc->ijac", Hzn, Hnn_inv)  # Hzn Hnn^-1
+    # sum_j Hzn[i,j] Hnn[j]^-1 Hzn[l,j]^T as one matrix product (BLAS), not an einsum loop
+    Xr = X.transpose(0, 2, 1, 3).reshape(mz * 3, k * p)
+    Hr = Hzn.transpose(0, 2, 1, 3).reshape(mz * 3, k * p)
+    S = -(Xr @ Hr.T)
+    S4 = S.reshape(mz, 3, mz, 3)
+    idx = np.arange(mz)
+    S4[idx, :, idx, :] += Hzz_d
+    rhs = gz - np.einsum("ijab,jb->ia", X, gn)
+    dz = np.linalg.solve(S, rhs.reshape(-1)).reshape(mz, 3)
+    dn = np.einsum("jab,jb->ja", Hnn_inv, gn - np.einsum("ijab,ia->jb", Hzn, dz))
+    return dz, dn
+
+
+def refine_lm(
+    D: Array,
+    positions: Array,
+    directions: Array,
+    offsets: Array,
+    *,
+    mask: NDArray[np.bool_] | None = None,
+    free_offsets: bool = False,
+    loss: str = "linear",
+    delta: float = 1.0,
+    lam: float = 1.0,
+    adaptive: bool = True,
+    max_iter: int = 200,
+    tol: float = 1e-12,
+    record_positions: bool = False,
+) -> RefineResult:
+    """Levenberg-Marquardt on the product of spheres, paper 000 Algorithm 3.
+
+    Each iteration linearises ``z_i . exp_{n_j}(T_j v_j) + C_j`` at ``v = 0`` (the exponential
+    map keeps every ``n_j`` unit without constraints), solves
+    ``(J^T W J + lambda diag(J^T W J)) dy = J^T W r`` (step 2; W = IRLS weights of the loss)
+    and retracts ``n_j <- exp_{n_j}(T_j dv_j)``.
+
+    Lambda schedule: starts at ``lam`` (the paper uses a constant 1). With ``adaptive`` a step
+    that lowers the cost is accepted and lambda divided by 10; one that does not is rejected
+    and lambda multiplied by 10 (so the cost never increases). Without it, lambda stays
+    constant and every step is taken, as in the paper.
+
+    Convergence: the relative cost decrease of an accepted step is below ``tol``, or the
+    step is below ``tol`` relative to the parameters, or lambda exceeds 1e12.
+
+    Parameters are as in :func:`refine_alternating`; ``lam`` > 0.
+    """
+    check_choice(loss, "loss", LOSSES)
+    D0, obs = _prepare(D, mask)
+    Z = np.array(positions, dtype=float)
+    Z[0] = 0.0
+    N = np.array(directions, dtype=float)
+    N /= np.linalg.norm(N, axis=1, keepdims=True)
+    C = np.array(offsets, dtype=float)
+    cost = _cost(farfield_residuals(D0, Z, N, C), obs, loss, delta)
+    hist, phist = [cost], ([Z.copy()] if record_positions else [])
+    converged = False
+    it = 0
+    for it in range(1, max_iter + 1):  # noqa: B007 (it is reported after the loop)
+        W = _weights(D0, Z, N, C, obs, loss, delta)
+        Hzz, Hzn, Hnn, gz, gn, T, _ = _normal_equations(D0, Z, N, C, W, free_offsets)
+        while True:
+            dz, dn = _lm_step(Hzz, Hzn, Hnn, gz, gn, lam)
+            Zc = Z.copy()
+            Zc[1:] += dz
+            Nc = sphere_exp(N, np.einsum("jab,jb->ja", T, dn[:, :2]))
+            Cc = C + dn[:, 2] if free_offsets else C
+            new = _cost(farfield_residuals(D0, Zc, Nc, Cc), obs, loss, delta)
+            if not adaptive or new <= cost:
+                break
+            lam *= 10.0
+            if lam > 1e12:
+                break
+        if adaptive and new > cost:
+            converged = True  # no descent direction left at machine precision
+            break
+        small_step = np.sqrt(np.sum(dz**2) + np.sum(dn**2)) <= tol * (1.0 + np.sqrt(np.sum(Z**2)))
+        rel = (cost - new) / max(cost, 1e-300)
+        Z, N, C = Zc, Nc, Cc
+        if adaptive:
+            lam = max(lam / 10.0, 1e-12)
+        hist.append(new)
+        if record_positions:
+            phist.append(Z.copy())
+        done = abs(rel) <= tol or small_step or new == 0.0
+        cost = new
+        if done:
+            converged = True
+            break
+    return RefineResult(Z, N, C, cost, it, converged, hist, phist)
