@@ -1,0 +1,268 @@
+"""Onset times and internal delays (paper 004): the rank-3 iteration, the fast solver, the initialiser."""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import pytest
+
+from selfcal.errors import ConvergenceWarning, DegenerateGeometryError, InputError
+from selfcal.geometry import align
+from selfcal.scenarios.units import ROOMS, make_units, true_offset_vector
+from selfcal.toa import offsets as off
+
+C = 343.0
+US = 1e-6 * C  # one microsecond, in metres
+
+
+def _setup(n: int, room: str, seed: int, **kw: object) -> tuple[np.ndarray, np.ndarray, object]:
+    sc = make_units(n, room=room, rng=seed, **kw)  # type: ignore[arg-type]
+    return sc.ranges, true_offset_vector(sc.delays, sc.onsets) * C, sc
+
+
+# ----------------------------------------------------------------------------- the model (3.2-3.6)
+
+
+def test_W_and_A_match_the_expanded_model(rng: np.random.Generator) -> None:
+    R, p, _ = _setup(10, "small", 3, equal_delays=False)
+    I, J = R.shape
+    W = off.thesis_W(R)
+    # independent: the linear part of (3.4) written out entry by entry
+    delta, tau = p[:I], np.r_[0.0, p[I:]]
+    A_ref = np.array([[2 * delta[0] * (R[0, j] - R[0, 0]) - 2 * delta[i] * (R[i, j] - R[i, 0])
+                       - 2 * tau[j] * (R[i, j] - R[0, j]) for j in range(1, J)] for i in range(1, I)])
+    np.testing.assert_allclose((W @ p).reshape(I - 1, J - 1, order="F"), A_ref, atol=1e-9)
+    np.testing.assert_allclose(off.apply_A(R, p), A_ref, atol=1e-9)
+    E = rng.normal(size=(I - 1, J - 1))
+    np.testing.assert_allclose(off.apply_Wt(R, E), W.T @ E.ravel(order="F"), atol=1e-9)
+
+
+def test_corrected_matrix_is_minus_twice_the_centred_gram_at_the_true_offsets() -> None:
+    # distinct delays: T + A(p) + Gamma(p) = -2 (r_i - r_1)^T (s_j - s_1) exactly (3.6)
+    R, p, sc = _setup(12, "large", 1, equal_delays=False)
+    I, J = R.shape
+    r = sc.microphones - sc.microphones[0]
+    s = sc.speakers - sc.speakers[0]
+    gram = -2 * r[1:] @ s[1:].T
+    exact = off.offset_matrix(R, p, model="exact")
+    np.testing.assert_allclose(exact, gram, atol=1e-8)
+    np.testing.assert_allclose(off.thesis_T(R) + off.apply_A(R, p) + off.gamma_term(p, I, J), gram, atol=1e-8)
+    # the thesis's Gamma = 0 model is exact only when the delays are equal
+    assert np.linalg.norm(off.offset_matrix(R, p, model="linear") - gram) > 1.0
+    R2, p2, sc2 = _setup(12, "large", 1, equal_delays=True)
+    r2 = sc2.microphones - sc2.microphones[0]
+    s2 = sc2.speakers - sc2.speakers[0]
+    np.testing.assert_allclose(off.offset_matrix(R2, p2, model="linear"), -2 * r2[1:] @ s2[1:].T, atol=1e-8)
+
+
+def test_lm_gradient_matches_finite_differences(rng: np.random.Generator) -> None:
+    # J^T r of the variable projection must be the exact gradient of (*)/2
+    R, p, _ = _setup(10, "small", 2, equal_delays=False)
+    x = p + rng.normal(0.0, 0.5, p.size)
+
+    def half_cost(v: np.ndarray) -> float:
+        sv = np.linalg.svd(off.offset_matrix(R, v), compute_uv=False)
+        return 0.5 * float(np.sum(sv[3:] ** 2))
+
+    M = off.offset_matrix(R, x)
+    _, Ud, Vd, resid = off._tail(M, 3)
+    Uf, Vf = off._rank1_factors(R, x, "exact", (np.array([], int), np.array([], int)))
+    g = np.einsum("ik,ik->k", Uf, resid @ Vf)
+    h = 1e-5
+    fd = np.array([(half_cost(x + h * e) - half_cost(x - h * e)) / (2 * h) for e in np.eye(x.size)])
+    np.testing.assert_allclose(g, fd, rtol=1e-4, atol=1e-6 * np.abs(fd).max())
+
+
+# ----------------------------------------------------------------------------- identifiability
+
+
+@pytest.mark.parametrize(("units", "dim"), [(7, 3), (5, 3), (6, 2), (3, 2)])
+def test_too_few_units_raise_by_name(units: int, dim: int) -> None:
+    R = np.random.default_rng(0).uniform(1, 10, (units, units))
+    for call in (off.estimate_offsets, off.rank3_iteration, off.rank3_lm):
+        with pytest.raises(DegenerateGeometryError) as exc:
+            call(R, dim=dim)
+        assert exc.value.kind == "too-few-units"
+    with pytest.raises(DegenerateGeometryError, match="too-few-units"):
+        off.initialize_offsets(R, dim)
+
+
+def test_identifiability_condition_for_unequal_sides() -> None:
+    # (I-1-d)(J-1-d) >= I+J-1
+    off.check_rank_identifiable(8, 8, 3)
+    off.check_rank_identifiable(7, 7, 2)
+    off.check_rank_identifiable(6, 19, 3)  # 2 * 15 = 30 >= 24
+    with pytest.raises(DegenerateGeometryError):
+        off.check_rank_identifiable(6, 12, 3)  # 2 * 8 = 16 < 17
+    with pytest.raises(DegenerateGeometryError):
+        off.check_rank_identifiable(5, 100, 3)  # a side below d + 2
+
+
+def test_bad_input_is_refused() -> None:
+    R, _, _ = _setup(12, "small", 0)
+    with pytest.raises(InputError, match="method"):
+        off.estimate_offsets(R, method="magic")
+    with pytest.raises(InputError, match="p0"):
+        off.rank3_iteration(R, p0=np.zeros(3))
+    with pytest.raises(InputError):
+        off.rank3_iteration(R, lam=-1.0)
+    with pytest.raises(InputError, match="linear"):
+        off.estimate_offsets(R, method="faithful", model="exact")
+
+
+# ----------------------------------------------------------------------------- recovery, noise-free
+
+
+@pytest.mark.parametrize("room", sorted(ROOMS))
+@pytest.mark.parametrize("units", [12, 20, 32])
+def test_fast_solver_recovers_the_offsets_of_thesis_setups(room: str, units: int) -> None:
+    # every seed tried: the returned (accepted) estimate is within 1 us of the truth
+    for seed in range(6):
+        R, p, _ = _setup(units, room, seed)
+        res = off.estimate_offsets(R, rng=seed)
+        assert res.accepted, (seed, res.frobenius)
+        assert np.max(np.abs(res.p - p)) < US, (seed, res.restarts)
+        assert res.source_offsets[0] == 0.0
+        assert res.iterations < 100  # tens, not thousands
+
+
+def test_fast_solver_recovers_distinct_internal_delays() -> None:
+    # beyond the thesis: one delay per microphone (Gamma != 0) with the exact model
+    for seed in range(4):
+        R, p, _ = _setup(16, "small", seed, equal_delays=False)
+        res = off.estimate_offsets(R, rng=seed)
+        assert np.max(np.abs(res.p - p)) < 1e-3 * US
+
+
+def test_linear_model_is_biased_when_delays_differ() -> None:
+    # the thesis's Gamma = 0 model cannot fit distinct delays: the rank-3 fit stays far from 0
+    R, p, _ = _setup(16, "small", 0, equal_delays=False)
+    lin = off.rank3_lm(R, model="linear", p0=p)
+    assert lin.frobenius > 1e3 * off.rank3_lm(R, model="exact", p0=p).frobenius
+
+
+def test_two_dimensional_rank_two_variant() -> None:
+    for seed in range(3):
+        R, p, _ = _setup(12, (20.0, 15.0), seed, equal_delays=False)
+        res = off.estimate_offsets(R, dim=2, rng=seed)
+        assert np.max(np.abs(res.p - p)) < US
+
+
+def test_faithful_iteration_recovers_p_and_converges_slowly() -> None:
+    R, p, _ = _setup(12, "large", 0)
+    res = off.rank3_iteration(R, rng=0)
+    assert res.converged and res.method == "faithful"
+    assert res.frobenius < off.THESIS_ACCEPT
+    assert np.max(np.abs(res.p - p)) < US  # thesis: errors below 1 us
+    assert res.iterations > 1000  # the linear convergence the issue wants to beat
+    # F (3.17) decreases overall along the run
+    assert res.history[-1] < 1e-3 * res.history[0]
+
+
+def test_acceptance_test_restarts_the_fast_solver_from_a_new_start() -> None:
+    # seed 17 of this setup: the start from p = 0 and two random starts end in local minima
+    R, p, _ = _setup(12, "small", 17)
+    first = off.fast_offsets(R, p0=np.zeros(23))
+    assert first.frobenius > off.THESIS_ACCEPT
+    res = off.estimate_offsets(R, rng=17)
+    assert res.accepted and res.restarts >= 1
+    assert res.total_iterations > res.iterations
+    assert np.max(np.abs(res.p - p)) < US
+
+
+@pytest.mark.slow
+def test_acceptance_test_restarts_the_faithful_iteration() -> None:
+    # the thesis iteration on 12 units in the 12 x 12 x 2 m room: two aborted runs, then accepted
+    R, p, _ = _setup(12, "small", 0)
+    res = off.estimate_offsets(R, method="faithful", rng=np.random.default_rng(0), max_restarts=4)
+    assert res.accepted and res.restarts >= 1
+    assert np.max(np.abs(res.p - p)) < US
+
+
+def test_early_abort_stops_a_faithful_run_heading_for_a_local_minimum() -> None:
+    R, _, _ = _setup(12, "small", 2)
+    run = off.rank3_iteration(R, rng=np.random.default_rng(2), abort_above=off.THESIS_ACCEPT)
+    assert run.extra["aborted"] and not run.converged
+    assert run.frobenius > off.THESIS_ACCEPT
+
+
+def test_without_acceptance_the_best_run_is_returned_with_a_warning() -> None:
+    R, _, _ = _setup(12, "small", 0, noise_std=50e-6)
+    with pytest.warns(ConvergenceWarning):
+        res = off.estimate_offsets(R, accept=1e-12, max_restarts=1, rng=0)
+    assert res.accepted is False
+
+
+def test_regularised_variant_switches_lambda_off_and_reaches_the_same_p() -> None:
+    R, p, _ = _setup(12, "large", 0)
+    plain = off.rank3_iteration(R, rng=0)
+    reg = off.rank3_iteration(R, rng=0, lam=off.thesis_lambda(1e-3, 12, 12))
+    assert reg.lam > 0 and reg.extra["lam_switch_iteration"] is not None
+    assert np.max(np.abs(reg.p - p)) < US
+    assert np.max(np.abs(reg.p - plain.p)) < US
+
+
+def test_faithful_and_fast_agree_on_noisy_data() -> None:
+    # same objective (*), same basin: the fixed points coincide, far below the noise error
+    R, p, _ = _setup(14, "large", 0, noise_std=10e-6)
+    p0 = p + np.random.default_rng(0).normal(0.0, 0.3, p.size)
+    faithful = off.rank3_iteration(R, p0=p0, tol=1e-13)
+    fast = off.rank3_lm(R, p0=p0, model="linear", centring="reference")
+    assert fast.iterations < 50
+    assert np.max(np.abs(faithful.p - fast.p)) < 0.05 * US
+    assert np.max(np.abs(fast.p - p)) > 1.0 * US  # the noise effect both share
+    assert fast.frobenius <= faithful.frobenius * (1 + 1e-9)
+
+
+# ----------------------------------------------------------------------------- missing entries, initialiser
+
+
+def test_missing_entries_are_completed_by_the_fast_solver() -> None:
+    # (in the flat 12 x 12 x 2 m room an entry can be only weakly fixed by the rank: large room)
+    R, p, _ = _setup(20, "large", 5, equal_delays=False)
+    full = R.copy()
+    R = R.copy()
+    R[np.random.default_rng(0).random(R.shape) < 0.1] = np.nan
+    R[0, 3] = R[4, 0] = np.nan  # also in the reference row and column
+    res = off.estimate_offsets(R, rng=0)
+    assert np.max(np.abs(res.p - p)) < US
+    np.testing.assert_allclose(res.extra["completed"], full, atol=1e-6)
+    with pytest.raises(InputError, match="nls"):
+        off.estimate_offsets(R, method="faithful")
+
+
+def test_initializer_gives_positions_and_offsets_in_the_solve_toa_convention() -> None:
+    for seed in range(3):
+        R, p, sc = _setup(14, "small", seed, equal_delays=False)
+        r, s, d, tau = off.initialize_offsets(R, 3, rng=seed)
+        assert r.shape == (14, 3) and s.shape == (14, 3) and tau[0] == 0.0
+        np.testing.assert_allclose(np.r_[d, tau[1:]], p, atol=1e-3 * US)
+        truth = np.vstack([sc.microphones, sc.speakers])
+        est = np.vstack([r, s])
+        np.testing.assert_allclose(align(est, truth).apply(est), truth, atol=1e-6)
+
+
+def test_initializer_with_missing_entries_and_noise() -> None:
+    R, p, sc = _setup(20, "small", 2, noise_std=10e-6, equal_delays=False)
+    R = R.copy()
+    R[np.random.default_rng(1).random(R.shape) < 0.05] = np.nan
+    r, s, d, tau = off.initialize_offsets(R, 3, rng=0)
+    truth = np.vstack([sc.microphones, sc.speakers])
+    est = np.vstack([r, s])
+    # a starting point for NLS: decimetre level at 10 us (3.4 mm) timing noise
+    assert np.sqrt(np.mean((align(est, truth).apply(est) - truth) ** 2)) < 0.3
+
+
+def test_nls_path_handles_missing_entries_and_distinct_delays() -> None:
+    toa = pytest.importorskip("selfcal.toa")
+    if not hasattr(toa, "solve_toa"):
+        pytest.skip("solve_toa (issue 1) not merged yet")
+    sc = make_units(16, room="small", rng=3, equal_delays=False)
+    times = sc.times.copy()
+    times[np.random.default_rng(2).random(times.shape) < 0.1] = np.nan
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ConvergenceWarning)
+        res = toa.solve_toa(times, dim=3, offsets="both", speed=C, rng=0)
+    np.testing.assert_allclose(res.receiver_offsets, sc.delays + sc.onsets[0], atol=1e-6)
+    np.testing.assert_allclose(res.source_offsets, sc.onsets - sc.onsets[0], atol=1e-6)
