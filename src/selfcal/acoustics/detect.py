@@ -106,17 +106,28 @@ def matched_filter(segments: NDArray[np.floating[Any]], probe: Probe, n_fft: int
     return np.fft.ifft(full, axis=-1), G
 
 
-def _newton_refine(G: NDArray[np.complex128], n_fft: int, tau0: NDArray[np.float64], iterations: int = 4) -> NDArray[np.float64]:
-    """Maximise the band-limited correlation ``Re z(tau)`` near ``tau0`` (K,) by Newton steps."""
+def _newton_refine(G: NDArray[np.complex128], n_fft: int, tau0: NDArray[np.float64], iterations: int = 3) -> NDArray[np.float64]:
+    """Maximise the band-limited correlation ``Re z(tau)`` near ``tau0`` (K,) by Newton steps.
+
+    ``z(tau) = sum_k G_k exp(i w_k tau) / n`` over the band's bins; the phase factors of
+    contiguous bins are a geometric sequence, built by a cumulative product (one complex
+    exponential per event instead of one per bin).
+    """
     active = np.flatnonzero(np.abs(G).max(axis=0) > 0)
-    k = active.astype(np.float64)
-    Gk = G[:, active]
-    w = 2.0 * np.pi * k / n_fft
+    k0, k1 = int(active[0]), int(active[-1]) + 1
+    Gk = G[:, k0:k1]
+    w = 2.0 * np.pi * np.arange(k0, k1) / n_fft
+    Gw = Gk * w
+    Gw2 = Gw * w
     tau = tau0.astype(np.float64).copy()
     for _ in range(iterations):
-        e = Gk * np.exp(1j * np.outer(tau, w))
-        d1 = -np.sum((e * w).imag, axis=1)
-        d2 = -np.sum((e * w**2).real, axis=1)
+        ratio = np.exp(1j * (2.0 * np.pi / n_fft) * tau)
+        steps = np.empty((len(tau), k1 - k0), dtype=np.complex128)
+        steps[:, 0] = np.exp(1j * w[0] * tau)
+        steps[:, 1:] = ratio[:, None]
+        e = np.cumprod(steps, axis=1)
+        d1 = -np.einsum("ek,ek->e", Gw, e).imag
+        d2 = -np.einsum("ek,ek->e", Gw2, e).real
         step = np.where(d2 < 0, -d1 / np.where(d2 < 0, d2, -1.0), 0.0)
         tau = tau + np.clip(step, -0.5, 0.5)
     return np.clip(tau, tau0 - 1.0, tau0 + 1.0)

@@ -32,6 +32,7 @@ __all__ = [
     "PipelineResult",
     "Planarity",
     "planarity",
+    "one_side_of_plane",
     "sender_matrix",
     "refine_known_heights",
     "run_pipeline",
@@ -44,7 +45,7 @@ __all__ = [
 Array = NDArray[np.float64]
 POSITION_REQUIREMENT = 0.10  # m, 004 sec. 2.1 requirement 1(a)
 TIMING_REQUIREMENT = 58e-6  # s, 004 sec. 2.2 (2 cm at 343 m/s)
-PLANAR_RATIO = 0.02  # thinnest / widest extent below which a layout counts as flat
+PLANAR_RATIO = 0.01  # thinnest / widest extent below which a layout counts as flat
 PLANAR_SIGMAS = 3.0  # thickness below this many standard deviations along the normal = flat
 
 
@@ -179,6 +180,80 @@ def _heights_jacobian(xy_r: Array, xy_s: Array, dz: Array, rows: NDArray[np.intp
     return Jm, dist
 
 
+def _levenberg_marquardt(resid: Any, jac: Any, theta0: Array, max_iterations: int,
+                         tol: float = 1e-12) -> tuple[Array, Array, Any, int, bool]:
+    """Minimise ``|resid(theta)|^2`` by Levenberg-Marquardt on the sparse normal equations.
+
+    Marquardt's scaling ``A + mu diag(A)`` keeps the gauge null space (rigid motions) from
+    making the step singular; the problems here have a few hundred unknowns, so the
+    normal matrix is solved densely.
+    """
+    theta = theta0.copy()
+    r = resid(theta)
+    cost = float(r @ r)
+    mu = 1e-3
+    converged = False
+    it = 0
+    Jm = jac(theta)
+    while it < max_iterations:
+        it += 1
+        A = (Jm.T @ Jm).toarray()
+        g = Jm.T @ r
+        diag = np.diag(A).copy()
+        diag[diag <= 0] = 1.0
+        improved = False
+        for _ in range(30):
+            try:
+                step = -np.linalg.solve(A + mu * np.diag(diag), g)
+            except np.linalg.LinAlgError:
+                mu *= 10.0
+                continue
+            trial = theta + step
+            r_new = resid(trial)
+            c_new = float(r_new @ r_new)
+            if c_new < cost:
+                improved = True
+                break
+            mu *= 10.0
+        if not improved:
+            converged = True  # no descent direction left: a stationary point
+            break
+        done = cost - c_new <= tol * max(cost, 1e-300) or np.linalg.norm(step) <= tol * (1 + np.linalg.norm(theta))
+        theta, r, cost = trial, r_new, c_new
+        mu = max(mu / 10.0, 1e-12)
+        Jm = jac(theta)
+        if done:
+            converged = True
+            break
+    return theta, r, Jm, it, converged
+
+
+def _gauge_pinv(N: Array, xr: Array, xs: Array) -> Array:
+    """Pseudo-inverse of the normal matrix whose null space is the horizontal rigid motions.
+
+    With ``G`` an orthonormal basis of that null space (x and y translations and the
+    rotation about z of every horizontal coordinate; offsets are untouched),
+    ``N^+ = (N + G G^T)^-1 - G G^T`` -- one Cholesky instead of an eigendecomposition.
+    """
+    from scipy.linalg import cho_factor, cho_solve
+
+    n = N.shape[0]
+    pts = np.vstack([xr, xs])
+    k = 2 * len(pts)
+    G = np.zeros((n, 3))
+    G[0:k:2, 0] = 1.0
+    G[1:k:2, 1] = 1.0
+    centred = pts - pts.mean(axis=0)
+    G[0:k:2, 2] = -centred[:, 1]
+    G[1:k:2, 2] = centred[:, 0]
+    G, _ = np.linalg.qr(G)
+    GG = G @ G.T
+    scale = float(np.mean(np.diag(N))) or 1.0
+    # Scaling G G^T like N keeps the sum well conditioned; N^+ = (N + a G G^T)^-1 - G G^T / a.
+    factor = cho_factor(N + scale * GG)
+    return cho_solve(factor, np.eye(n)) - GG / scale
+
+
 def refine_known_heights(
     matrix: Array,
     receiver_heights: Array,
@@ -219,8 +294,6 @@ def refine_known_heights(
         (J, 3, 3) (zero z variance: heights are given), ``residual_rms`` (s),
         ``converged``, ``iterations``.
     """
-    from scipy.optimize import least_squares
-
     T = np.asarray(matrix, dtype=float)
     I, J = T.shape
     rows, cols = np.nonzero(np.isfinite(T))
@@ -248,15 +321,12 @@ def refine_known_heights(
         xr, xs, _, _ = unpack(th)
         return _heights_jacobian(xr, xs, dz, rows, cols, I, J)[0]
 
-    sol = least_squares(resid, theta0, jac=jac, method="trf", x_scale="jac", xtol=1e-12, ftol=1e-12,
-                        gtol=1e-10, max_nfev=max_iterations, tr_solver="lsmr")
-    xr, xs, dr, ds = unpack(sol.x)
-    r = sol.fun
-    m, n = len(r), len(sol.x)
+    theta, r, Jm, iterations, converged = _levenberg_marquardt(resid, jac, theta0, max_iterations)
+    xr, xs, dr, ds = unpack(theta)
+    m, n = len(r), len(theta)
     dof = max(m - n + 3, 1)  # 3 = horizontal rigid-motion gauge freedoms
     sigma2 = float(r @ r) / dof
-    Jd = jac(sol.x).toarray()
-    cov = sigma2 * np.linalg.pinv(Jd.T @ Jd, rcond=1e-10, hermitian=True)
+    cov = sigma2 * _gauge_pinv((Jm.T @ Jm).toarray(), xr, xs)
     rcov = np.zeros((I, 3, 3))
     scov = np.zeros((J, 3, 3))
     for i in range(I):
@@ -272,8 +342,8 @@ def refine_known_heights(
         "receiver_cov": rcov,
         "source_cov": scov,
         "residual_rms": float(np.sqrt(np.mean(r**2))) / speed,
-        "converged": bool(sol.status > 0),
-        "iterations": int(sol.nfev),
+        "converged": converged,
+        "iterations": iterations,
     }
 
 
@@ -354,10 +424,83 @@ class PipelineResult:
         }
 
 
-def _solve(T: Array, dim: int, speed: float, rng: int) -> Any:
-    from ..toa import solve_toa
+def _solve(T: Array, dim: int, speed: float, rng: int, init: Any = "auto") -> Any:
+    try:
+        from ..toa import solve_toa
+    except ImportError:  # the package re-export may lag behind the module
+        from ..toa.solve import solve_toa
 
-    return solve_toa(T, dim=dim, offsets="both", speed=speed, rng=rng)
+    if isinstance(init, str):
+        return solve_toa(T, dim=dim, offsets="both", speed=speed, rng=rng)
+    return solve_toa(T, dim=dim, offsets="both", speed=speed, rng=rng, init=init, method="nls")
+
+
+def _solve_retrying(T: Array, speed: float, rng: int, attempts: int = 3) -> Any:
+    """3-D solve; a node that turns unobservable on the way (e.g. a microphone crossing the
+    plane of coplanar loudspeakers during the iterations) gets new random starts."""
+    for k in range(attempts):
+        try:
+            return _solve(T, 3, speed, rng + 1000 * k)
+        except DegenerateGeometryError as exc:
+            if exc.kind != "unobservable-node" or k == attempts - 1:
+                raise
+    raise AssertionError("unreachable")  # pragma: no cover
+
+
+def one_side_of_plane(points: Array, cov: NDArray[np.float64], plane_points: Array) -> tuple[Array, NDArray[np.float64], int]:
+    """Reflect ``points`` onto the majority side of the plane fitted to ``plane_points``.
+
+    When every sender lies in one plane (loudspeakers in desk units on a flat floor),
+    each receiver's distances to all senders are unchanged by reflecting that receiver
+    alone through the plane: 2^I solutions fit equally well, and a solver may return a
+    mix (some microphones under the desk). Self-calibration cannot tell them apart; the
+    physical convention that all microphones are on one side (above their desk
+    loudspeakers) picks one, and the global reflection gauge does the rest. The same
+    holds with the roles swapped.
+
+    Parameters
+    ----------
+    points : (n, 3) array
+    cov : (n, 3, 3) array
+    plane_points : (m, 3) array
+
+    Returns
+    -------
+    points, cov : reflected where needed (covariance ``H C H``, ``H = I - 2 n n^T``)
+    flipped : int
+        How many points were reflected.
+    """
+    centre = plane_points.mean(axis=0)
+    normal = np.linalg.svd(plane_points - centre, full_matrices=False)[2][-1]
+    h = (points - centre) @ normal
+    side = 1.0 if np.sum(h) >= 0 else -1.0
+    flip = np.sign(h) == -side
+    H = np.eye(3) - 2.0 * np.outer(normal, normal)
+    out = points.copy()
+    out[flip] = points[flip] - 2.0 * h[flip, None] * normal[None, :]
+    C = np.array(cov, dtype=float)
+    C[flip] = np.einsum("ab,nbc,cd->nad", H, C[flip], H)
+    return out, C, int(flip.sum())
+
+
+def _resolve_mirrors(T: Array, res: Any, speed: float, rng: int, notes: list[str]) -> Any:
+    """Apply :func:`one_side_of_plane` when receivers or senders alone are (near-)coplanar."""
+    r, s = np.asarray(res.receivers, float), np.asarray(res.sources, float)
+    rc, sc = np.asarray(res.receiver_cov, float), np.asarray(res.source_cov, float)
+    flipped = 0
+    if planarity(s, sc).near_planar and not planarity(r, rc).near_planar:
+        r, rc, flipped = one_side_of_plane(r, rc, s)
+        what = "microphones", "loudspeakers"
+    elif planarity(r, rc).near_planar and not planarity(s, sc).near_planar:
+        s, sc, flipped = one_side_of_plane(s, sc, r)
+        what = "loudspeakers", "microphones"
+    else:
+        return res
+    notes.append(f"the {what[1]} are coplanar, so each {what[0][:-1]}'s side of their plane is not observable; "
+                 f"all {what[0]} were put on one side ({flipped} reflected)")
+    if flipped == 0:
+        return res
+    return _solve(T, 3, speed, rng, init=(r, s, np.asarray(res.receiver_offsets), np.asarray(res.source_offsets)))
 
 
 def _normalise_offsets(dr: Array, ds: Array) -> tuple[Array, Array]:
@@ -412,15 +555,33 @@ def calibrate_matrix(
         raise InputError(f"dim must be 2, 3 or 'auto', got {dim!r}")
     plan = None
     if dim in (3, "auto"):
-        res = _solve(T, 3, speed, rng)
-        pts = np.vstack([res.receivers, res.sources])
-        cov = np.concatenate([np.asarray(res.receiver_cov), np.asarray(res.source_cov)])
+        try:
+            res3 = _solve_retrying(T, speed, rng)
+        except DegenerateGeometryError as exc:
+            # A 3-D solve that breaks down on data a 2-D solve fits (within half the 004
+            # timing tolerance) means the layout is (numerically) planar.
+            res2 = _solve(T, 2, speed, rng)
+            if not res2.residual_rms < 0.5 * TIMING_REQUIREMENT:
+                raise
+            pts2 = np.vstack([res2.receivers, res2.sources])
+            plan = Planarity(True, np.append(planarity(pts2).extents, 0.0), np.array([0.0, 0.0, 1.0]), float("nan"))
+            msg = (f"near-planar layout: the 3-D calibration is undetermined ({exc}) while a 2-D one fits "
+                   f"(residual {res2.residual_rms * 1e6:.2f} us); z is not determined by the data, "
+                   "give known heights (--heights) for 3-D positions or use --dim 2")
+            if dim == 3:
+                raise DegenerateGeometryError(msg, kind="near-planar") from None
+            warnings.warn(msg + "; reporting 2-D positions", stacklevel=2)
+            notes.append(msg + "; reported 2-D positions")
+            return _as_solution(res2, "2d"), plan, notes
+        res3 = _resolve_mirrors(T, res3, speed, rng, notes)
+        pts = np.vstack([res3.receivers, res3.sources])
+        cov = np.concatenate([np.asarray(res3.receiver_cov), np.asarray(res3.source_cov)])
         plan = planarity(pts, cov)
         if not plan.near_planar:
-            return _as_solution(res, "3d"), plan, notes
+            return _as_solution(res3, "3d"), plan, notes
         msg = (f"near-planar layout (thickness {plan.extents[-1]:.3f} m vs extent {plan.extents[0]:.2f} m, "
                f"normal std {plan.normal_std:.3f} m): z is not determined by the data; "
-               "give known heights (--heights) for 3-D positions")
+               "give known heights (--heights) for 3-D positions or use --dim 2")
         if dim == 3:
             raise DegenerateGeometryError(msg, kind="near-planar")
         warnings.warn(msg + "; reporting 2-D positions", stacklevel=2)
@@ -517,16 +678,19 @@ def truth_errors(result: PipelineResult, truth: dict[str, Any]) -> dict[str, Any
     Positions are aligned to the truth by a rigid motion with reflection (the gauge of
     self-calibration), fitted on receivers and senders together; in 2-D the horizontal
     coordinates are compared; with known heights only the horizontal plane is aligned.
-    Offsets are compared in the result's gauge (first onset 0): the onset error is
-    ``(tau_j^ - tau_1^) - (tau_j - tau_1)`` and the delay error ``delta_i^ - (delta_i + tau_1)``
-    shifted the same way.
+    Only the sums ``delta_i + tau_j`` of internal delays and onsets are observable (a common
+    shift between the two is not), and a sum is what biases a range (004 sec. 2.2: 58 us
+    = 2 cm). The timing error is therefore the error of the total offset of every
+    (receiver, sender) pair, ``|(delta_i^ + tau_j^) - (delta_i + tau_j)|``; the per-unit
+    ``delay_errors`` / ``onset_errors`` are shown after removing the best common shift.
 
     Returns
     -------
     dict
         ``position_errors`` (I + J,) m (receivers then senders), ``receiver_errors``,
         ``sender_errors``, ``delay_errors`` (I,) s, ``onset_errors`` (J,) s, summary
-        ``position_median``, ``position_max``, ``timing_median``, ``timing_max`` and
+        ``position_median``, ``position_max``, ``timing_median``, ``timing_max`` (pair
+        offsets), ``delay_onset_max`` (per unit, common shift removed) and
         ``pass_position``, ``pass_timing``, ``passed`` against 10 cm / 58 us (004).
     """
     from ..geometry import align
@@ -549,17 +713,20 @@ def truth_errors(result: PipelineResult, truth: dict[str, Any]) -> dict[str, Any
     perr = np.linalg.norm(aligned - ref, axis=1)
     onset = np.asarray(truth["sender_onsets"], float)
     delay = np.asarray(truth["receiver_delays"], float)
-    a = float(result.source_offsets[0]) - float(onset[0])
-    e_on = result.source_offsets - onset - a
-    e_de = result.receiver_offsets - delay + a
-    timing = np.concatenate([e_de, e_on])
+    raw_de = result.receiver_offsets - delay
+    raw_on = result.source_offsets - onset
+    # Only delta_i + tau_j is observable: remove the common shift that fits best.
+    a = 0.5 * (float(np.nanmean(raw_de)) - float(np.nanmean(raw_on)))
+    e_de, e_on = raw_de - a, raw_on + a
+    pair = np.abs(raw_de[:, None] + raw_on[None, :])
     I = len(tr)
     out = {
         "position_errors": perr, "receiver_errors": perr[:I], "sender_errors": perr[I:],
         "delay_errors": e_de, "onset_errors": e_on,
         "aligned_receivers": aligned[:I], "aligned_sources": aligned[I:],
         "position_median": float(np.nanmedian(perr)), "position_max": float(np.nanmax(perr)),
-        "timing_median": float(np.nanmedian(np.abs(timing))), "timing_max": float(np.nanmax(np.abs(timing))),
+        "timing_median": float(np.nanmedian(pair)), "timing_max": float(np.nanmax(pair)),
+        "delay_onset_max": float(np.nanmax(np.abs(np.concatenate([e_de, e_on])))),
         "horizontal_only": bool(d == 2),
     }
     out["pass_position"] = bool(out["position_max"] <= POSITION_REQUIREMENT)

@@ -297,7 +297,7 @@ def load_recording(directory: str | Path) -> Recording:
         if fs != setup.sample_rate:
             raise InputError(f"rx_{name}.wav: sample rate {fs:g} Hz differs from setup.json "
                              f"field 'sample_rate' = {setup.sample_rate:g} Hz")
-        sigs.append(x)
+        sigs.append(x.astype(np.float32))
     lengths = np.array([len(s) for s in sigs], dtype=np.int64)
     signals = np.zeros((len(sigs), int(lengths.max())), dtype=np.float32)
     for i, s in enumerate(sigs):

@@ -70,6 +70,7 @@ def simulate_conference(
     probe: dict[str, Any] | None = None,
     speed: float = 343.0,
     max_order: int | None = 3,
+    jitter: float = 0.0,
     rng: np.random.Generator | int | None = None,
     progress: bool = False,
 ) -> tuple[Setup, NDArray[np.float32], dict[str, Any]]:
@@ -92,6 +93,11 @@ def simulate_conference(
         Speed of sound, m/s.
     max_order : int or None
         Cap of the image-source order (None: the order Sabine's formula asks for).
+    jitter : float
+        Standard deviation (s) of a random timing error per (receiver, event): the
+        residual synchronisation error of wireless units' clocks (004 sec. 2.2: clocks
+        agree within 100 us). A constant clock offset is indistinguishable from an internal
+        delay; only the part that changes from event to event hurts.
     rng : Generator, int or None
         Noise generator.
     progress : bool
@@ -105,7 +111,8 @@ def simulate_conference(
         Receiver signals scaled so that the loudest sample is 0.5 (common gain).
     truth : dict
         ``scene.to_dict()`` plus ``speed_of_sound``, ``rt60``, ``snr_db``, ``absorption``,
-        ``max_order``, ``sample_rate`` and ``arrival_times`` (U x U, s, direct path).
+        ``max_order``, ``sample_rate``, ``clock_jitter`` and ``arrival_times`` (U x U, s, direct
+        path, jitter included).
     """
     import pyroomacoustics as pra
     from tqdm import tqdm
@@ -139,6 +146,9 @@ def simulate_conference(
     delay0 = pra_group_delay()
 
     U = len(scene.senders)
+    if not np.isfinite(jitter) or jitter < 0:
+        raise InputError(f"jitter must be a finite standard deviation >= 0 s, got {jitter!r}")
+    shake = jitter * gen.standard_normal((U, U))
     spacing = event_spacing(room_dim, prb.duration, speed)
     times: NDArray[np.float64] = 0.1 + spacing * np.arange(U, dtype=np.float64)
     n_total = int(np.ceil((times[-1] + spacing) * fs))
@@ -153,7 +163,7 @@ def simulate_conference(
         n_conv = lh + len(x) - 1
         n_fft = int(2 ** np.ceil(np.log2(n_conv + 2)))
         wet = np.fft.irfft(np.fft.rfft(h, n_fft) * np.fft.rfft(x, n_fft)[None, :], n_fft)
-        start = (times[j] + scene.sender_onsets[j] + scene.receiver_delays) * fs - delay0
+        start = (times[j] + scene.sender_onsets[j] + scene.receiver_delays + shake[:, j]) * fs - delay0
         n0 = np.floor(start).astype(np.int64)
         wet = _fractional_shift(wet, start - n0, n_fft)[:, : n_conv + 1]
         for i in range(U):
@@ -161,15 +171,16 @@ def simulate_conference(
             signals[i, a:b] += wet[i, a - n0[i] : b - n0[i]].astype(np.float32)
     p_1m = float(np.mean(x**2)) / (4.0 * np.pi) ** 2
     sigma = np.sqrt(p_1m / 10.0 ** (snr_db / 10.0))
-    signals += (sigma * gen.standard_normal(signals.shape)).astype(np.float32)
+    for row in signals:  # row by row: a float64 noise matrix would double the peak memory
+        row += np.float32(sigma) * gen.standard_normal(n_total, dtype=np.float32)
     signals *= np.float32(0.5 / np.abs(signals).max())
 
     dist = np.linalg.norm(scene.receivers[:, None, :] - scene.senders[None, :, :], axis=-1)
-    arrivals = times[None, :] + scene.sender_onsets[None, :] + scene.receiver_delays[:, None] + dist / speed
+    arrivals = times[None, :] + scene.sender_onsets[None, :] + scene.receiver_delays[:, None] + dist / speed + shake
     names_r = tuple(f"u{k:03d}" for k in range(U))
     setup = Setup(float(fs), float(speed), names_r, names_r, prb.spec, np.arange(U, dtype=np.int64), times)
     truth = scene.to_dict() | {
         "speed_of_sound": speed, "rt60": rt60, "snr_db": snr_db, "absorption": float(absorption),
-        "max_order": order, "sample_rate": fs, "arrival_times": arrivals.tolist(),
+        "max_order": order, "sample_rate": fs, "arrival_times": arrivals.tolist(), "clock_jitter": jitter,
     }
     return setup, signals, truth

@@ -1,6 +1,6 @@
 """``selfcal demo``: the conference system of paper 004 end to end (what ``make demo`` runs).
 
-Simulate 20 units in a 12 x 12 x 3 m room (RT60 0.4 s, 30 dB SNR), detect the arrivals,
+Simulate 20 units in a 12 x 12 x 3 m room (RT60 0.4 s, 30 dB SNR, 5 us clock jitter), detect the arrivals,
 estimate onsets, internal delays and positions, print a summary table with the PASS/FAIL
 line for 004's requirements (position error <= 10 cm, timing error <= 58 us) and write
 ``result.json``, ``map.png`` and ``timing.png``.
@@ -22,12 +22,15 @@ from ._base import handle_errors, main
 @click.option("--seed", type=int, default=0, show_default=True, help="Random seed of the simulated room.")
 @click.option("--units", type=int, default=20, show_default=True, help="Units (microphone + loudspeaker).")
 @click.option("--room", "room_text", default="12x12x3", show_default=True, help="Room L x W x H, m.")
-@click.option("--layout", type=click.Choice(["flat", "tiered", "stem"]), default="flat", show_default=True,
-              help="flat desks use their known heights (near-planar); tiered / stem are solved in 3-D.")
+@click.option("--layout", type=click.Choice(["flat", "boundary", "tiered", "stem"]), default="flat", show_default=True,
+              help="flat / boundary desks use their known heights (near-planar); tiered / stem are solved in 3-D.")
 @click.option("--rt60", type=float, default=0.4, show_default=True, help="Reverberation time, s.")
 @click.option("--snr", type=float, default=30.0, show_default=True, help="Direct sound at 1 m over noise, dB.")
+@click.option("--jitter", type=float, default=5.0, show_default=True,
+              help="Clock jitter per (receiver, event), std in us (004: units synchronised within 100 us).")
 @handle_errors
-def demo_cmd(out: Path, seed: int, units: int, room_text: str, layout: str, rt60: float, snr: float) -> None:
+def demo_cmd(out: Path, seed: int, units: int, room_text: str, layout: str, rt60: float, snr: float,
+             jitter: float) -> None:
     """Simulate, detect, calibrate and check paper 004's requirements (``make demo``)."""
     from ..acoustics.pipeline import run_pipeline
     from ..io import write_json
@@ -43,15 +46,15 @@ def demo_cmd(out: Path, seed: int, units: int, room_text: str, layout: str, rt60
     room = parse_room(room_text)
     rec_dir = out / "recording"
     click.echo(f"selfcal demo: {units} units ({layout}), room {room_text} m, RT60 {rt60:g} s, SNR {snr:g} dB, "
-               f"seed {seed}")
+               f"clock jitter {jitter:g} us, seed {seed}")
     t0 = time.perf_counter()
     truth = write_simulation(rec_dir, units=units, room=room, rt60=rt60, snr=snr, seed=seed, layout=layout,
-                             sample_rate=48000, max_order=3)
+                             sample_rate=48000, max_order=3, jitter=jitter * 1e-6)
     t_sim = time.perf_counter() - t0
-    heights = rec_dir / "heights.json" if layout == "flat" else None
+    heights = rec_dir / "heights.json" if layout in ("flat", "boundary") else None
     if heights is not None:
-        click.echo("flat desks: a near-planar layout leaves z undetermined, so the known desk heights "
-                   "(recording/heights.json) are used: 2-D positions + heights")
+        click.echo("desks at one height: a near-planar layout leaves z (nearly) undetermined, so the known "
+                   "heights (recording/heights.json) are used: horizontal positions solved, z given")
     result = run_pipeline(rec_dir, dim="auto" if heights is not None else 3, heights=heights, rng=seed)
     stages = {"simulate": t_sim, **result.timings}
     result.timings.clear()
@@ -61,7 +64,7 @@ def demo_cmd(out: Path, seed: int, units: int, room_text: str, layout: str, rt60
     if errors is not None:
         payload["errors"] = {k: v for k, v in errors.items() if not k.startswith(("aligned_", "true_"))}
     payload["demo"] = {"units": units, "room": list(room), "layout": layout, "rt60": rt60, "snr_db": snr,
-                       "seed": seed, "image_order": truth["max_order"]}
+                       "clock_jitter_us": jitter, "seed": seed, "image_order": truth["max_order"]}
     plot_map(result, out / "map.png", errors, title=f"demo: {units} units, {layout}, seed {seed}")
     plot_timing(result, out / "timing.png", errors)
     write_json(out / "result.json", payload)

@@ -6,8 +6,13 @@ necessarily at the same physical location"). Internal delays are drawn in 0-20 m
 onset times in 0-30 ms (004 sec. 2.2, assumption 4). Three layouts:
 
 ``flat``
-    every desk at one height: a near-planar network, for which a 3-D self-calibration
-    is ill-posed (mirror ambiguity, poorly determined z); use 2-D with known heights.
+    every desk at one height, microphones on short goosenecks (5-15 cm, 20-60 degrees
+    up): a thin network (a few cm thick) whose z is only weakly determined.
+``boundary``
+    every desk at one height, boundary microphones lying on the desk 5-15 cm beside the
+    loudspeaker (within 1 cm of its height): a planar network, for which 3-D
+    self-calibration is ill-posed (mirror ambiguity, undetermined z); use 2-D with
+    known heights.
 ``tiered``
     table rows rising towards the back, quadratically (an amphitheatre: the back row
     at 40 % of the room height), which makes the network genuinely 3-D.
@@ -33,7 +38,7 @@ from ..errors import InputError
 
 __all__ = ["ConferenceScene", "conference_scene", "LAYOUTS", "DESK_HEIGHT"]
 
-LAYOUTS = ("flat", "tiered", "stem")
+LAYOUTS = ("flat", "boundary", "tiered", "stem")
 DESK_HEIGHT = 0.75  # m, table top
 SPEAKER_ABOVE_DESK = 0.05  # m, loudspeaker grille in the desk unit
 TABLE = (2.4, 1.2)
@@ -124,7 +129,7 @@ def conference_scene(
         Number of units U (>= 5).
     room : (3,) floats
         Room size L x W x H in metres.
-    layout : {"flat", "tiered", "stem"}
+    layout : {"flat", "boundary", "tiered", "stem"}
         See the module docstring.
     rng : Generator, int or None
 
@@ -154,6 +159,10 @@ def conference_scene(
     spk = desk + np.array([0.0, 0.0, SPEAKER_ABOVE_DESK])
     if layout == "stem":
         offset = np.column_stack([gen.uniform(-0.05, 0.05, (units, 2)), gen.uniform(0.30, 0.50, units)])
+    elif layout == "boundary":
+        length = gen.uniform(0.05, 0.15, units)
+        az = gen.uniform(0.0, 2.0 * np.pi, units)
+        offset = np.column_stack([length * np.cos(az), length * np.sin(az), gen.uniform(-0.01, 0.01, units)])
     else:
         # A gooseneck microphone 5-15 cm from the loudspeaker, leaning towards the seat.
         length = gen.uniform(0.05, 0.15, units)

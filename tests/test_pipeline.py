@@ -1,0 +1,175 @@
+"""Pipeline: per-sender matrix, planarity, known-height refinement, end to end (issue 7, paper 004)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from selfcal.acoustics.pipeline import (
+    planarity,
+    read_heights,
+    refine_known_heights,
+    sender_matrix,
+)
+from selfcal.cli import main
+from selfcal.errors import InputError
+from selfcal.scenarios.conference import conference_scene
+
+C = 343.0
+
+
+def _toa(scene, noise=0.0, rng=None):
+    d = np.linalg.norm(scene.receivers[:, None] - scene.senders[None], axis=-1)
+    T = d / C + scene.sender_onsets[None] + scene.receiver_delays[:, None]
+    if noise:
+        T = T + np.random.default_rng(rng).normal(0, noise, T.shape)
+    return T
+
+
+def test_sender_matrix_averages_repeated_events_and_keeps_nan():
+    toa = np.array([[1.0, 3.0, 5.0], [np.nan, 2.0, np.nan], [np.nan, np.nan, np.nan]])
+    T = sender_matrix(toa, np.array([0, 0, 1]), 2)
+    np.testing.assert_array_equal(T[:, 0], [2.0, 2.0, np.nan])
+    np.testing.assert_array_equal(T[:, 1], [5.0, np.nan, np.nan])
+
+
+def test_planarity_separates_flat_desks_from_3d_layouts():
+    flat = conference_scene(20, (12.0, 12.0, 3.0), layout="boundary", rng=1)
+    assert planarity(np.vstack([flat.receivers, flat.senders])).near_planar
+    for layout in ("tiered", "stem"):
+        sc = conference_scene(20, (12.0, 12.0, 3.0), layout=layout, rng=1)
+        assert not planarity(np.vstack([sc.receivers, sc.senders])).near_planar
+    # A thick layout whose z is poorly determined (large normal variance) is also flagged.
+    sc = conference_scene(20, (12.0, 12.0, 3.0), layout="stem", rng=1)
+    pts = np.vstack([sc.receivers, sc.senders])
+    cov = np.tile(np.diag([1e-4, 1e-4, 0.5]), (40, 1, 1))
+    p = planarity(pts, cov)
+    assert p.near_planar and abs(abs(p.normal[2]) - 1) < 1e-3 and p.normal_std == pytest.approx(np.sqrt(0.5), rel=1e-3)
+
+
+def test_known_heights_refinement_recovers_geometry_and_offsets():
+    sc = conference_scene(12, (10.0, 8.0, 3.0), layout="flat", rng=5)
+    T = _toa(sc)
+    g = np.random.default_rng(0)
+    sol = refine_known_heights(
+        T, sc.receivers[:, 2], sc.senders[:, 2],
+        sc.receivers[:, :2] + g.normal(0, 0.2, (12, 2)), sc.senders[:, :2] + g.normal(0, 0.2, (12, 2)),
+        sc.receiver_delays + 0.002, sc.sender_onsets + g.normal(0, 0.002, 12), speed=C,
+    )
+    assert sol["converged"] and sol["residual_rms"] < 1e-9
+    from selfcal.geometry import align
+
+    est = np.vstack([sol["receivers"], sol["sources"]])
+    true = np.vstack([sc.receivers, sc.senders])
+    al = align(est[:, :2], true[:, :2])
+    assert np.abs(al.apply(est[:, :2]) - true[:, :2]).max() < 1e-6
+    np.testing.assert_allclose(est[:, 2], true[:, 2])  # heights are given, never re-estimated
+    assert sol["source_offsets"][0] == 0.0
+    np.testing.assert_allclose(sol["source_offsets"], sc.sender_onsets - sc.sender_onsets[0], atol=1e-9)
+    np.testing.assert_allclose(sol["receiver_offsets"], sc.receiver_delays + sc.sender_onsets[0], atol=1e-9)
+    assert np.all(sol["receiver_cov"][:, 2, :] == 0)
+
+
+def test_known_heights_covariance_matches_monte_carlo_spread():
+    """The reported horizontal covariance predicts the scatter of repeated noisy solves."""
+    sc = conference_scene(10, (9.0, 8.0, 3.0), layout="flat", rng=8)
+    sigma = 5e-6
+    from selfcal.geometry import align
+
+    errs, covs = [], []
+    for k in range(30):
+        T = _toa(sc, sigma, rng=k)
+        sol = refine_known_heights(T, sc.receivers[:, 2], sc.senders[:, 2], sc.receivers[:, :2], sc.senders[:, :2],
+                                   sc.receiver_delays, sc.sender_onsets, speed=C)
+        est = np.vstack([sol["receivers"], sol["sources"]])[:, :2]
+        true = np.vstack([sc.receivers, sc.senders])[:, :2]
+        errs.append(align(est, true, reflection=False).apply(est) - true)
+        covs.append(np.trace(sol["receiver_cov"][:, :2, :2], axis1=1, axis2=2).mean())
+    mc = np.mean(np.sum(np.array(errs)[:, :10] ** 2, axis=2))
+    assert 0.4 < mc / np.mean(covs) < 2.5
+
+
+def test_read_heights_validates_names_and_lengths(tmp_path):
+    p = tmp_path / "h.json"
+    p.write_text(json.dumps({"receivers": {"a": 1.0, "b": 1.1}, "senders": [0.8, 0.8]}))
+    zr, zs = read_heights(p, ("a", "b"), ("a", "b"))
+    np.testing.assert_allclose(zr, [1.0, 1.1])
+    p.write_text(json.dumps({"receivers": {"a": 1.0, "c": 1.1}, "senders": [0.8, 0.8]}))
+    with pytest.raises(InputError, match="h.json.*'c'"):
+        read_heights(p, ("a", "b"), ("a", "b"))
+    p.write_text(json.dumps({"receivers": [1.0], "senders": [0.8, 0.8]}))
+    with pytest.raises(InputError, match="field 'receivers'"):
+        read_heights(p, ("a", "b"), ("a", "b"))
+
+
+# ----------------------------------------------------------------------------- end to end (needs solve_toa)
+
+
+def _simulate(out: Path, layout: str, units: int = 10, seed: int = 2) -> None:
+    res = CliRunner().invoke(main, ["simulate", "conference", "--units", str(units), "--room", "8x7x3",
+                                    "--rt60", "0.4", "--snr", "30", "--seed", str(seed), "--layout", layout,
+                                    "--sample-rate", "16000", "--max-order", "2", "--out", str(out)])
+    assert res.exit_code == 0, res.output
+
+
+def test_pipeline_cli_flat_room_with_heights_meets_004(tmp_path):
+    rec = tmp_path / "rec"
+    _simulate(rec, "flat")
+    out = tmp_path / "result.json"
+    res = CliRunner().invoke(main, ["pipeline", str(rec), "--out", str(out), "--heights", str(rec / "heights.json"),
+                                    "--report", str(tmp_path / "report"), "--plot", str(tmp_path / "map.png")])
+    assert res.exit_code == 0, res.output
+    data = json.loads(out.read_text())
+    for key in ("receivers", "sources", "receiver_offsets", "source_offsets", "receiver_cov", "source_cov",
+                "residual_rms", "converged", "iterations", "method", "toa_matrix", "detections_missed"):
+        assert key in data
+    assert np.array(data["toa_matrix"], dtype=float).shape == (10, 10)
+    assert data["errors"]["position_max"] < 0.10 and data["errors"]["timing_max"] < 58e-6
+    assert (tmp_path / "report" / "map.png").stat().st_size > 1000
+    assert (tmp_path / "report" / "timing.png").is_file() and (tmp_path / "map.png").is_file()
+
+
+def test_pipeline_refuses_confident_z_on_flat_desks(tmp_path):
+    rec = tmp_path / "rec"
+    _simulate(rec, "boundary")
+    out = tmp_path / "result.json"
+    res = CliRunner().invoke(main, ["pipeline", str(rec), "--out", str(out), "--dim", "3"])
+    assert res.exit_code == 2 and "near-planar" in res.output and not out.exists()
+    res = CliRunner().invoke(main, ["pipeline", str(rec), "--out", str(out)])  # auto: falls back to 2-D
+    assert res.exit_code == 0, res.output
+    data = json.loads(out.read_text())
+    assert data["dim"] == 2 and data["notes"] and data["errors"]["horizontal_only"]
+    assert data["errors"]["position_max"] < 0.10
+
+
+def test_pipeline_tiered_room_in_3d(tmp_path):
+    rec = tmp_path / "rec"
+    _simulate(rec, "tiered", units=12)
+    out = tmp_path / "result.json"
+    res = CliRunner().invoke(main, ["pipeline", str(rec), "--out", str(out), "--dim", "3"])
+    assert res.exit_code == 0, res.output
+    data = json.loads(out.read_text())
+    assert data["dim"] == 3 and not data["planarity"]["near_planar"]
+    assert data["errors"]["position_max"] < 0.10 and data["errors"]["timing_max"] < 58e-6
+
+
+def test_gauge_pseudo_inverse_equals_numpy_pinv():
+    """N^+ = (N + a G G^T)^-1 - G G^T / a for a normal matrix whose null space is the horizontal gauge."""
+    from selfcal.acoustics.pipeline import _gauge_pinv
+
+    g = np.random.default_rng(1)
+    xr, xs = g.uniform(0, 8, (10, 2)), g.uniform(0, 8, (10, 2))
+    n = 2 * 20 + 10 + 9
+    G = np.zeros((n, 3))
+    c = np.vstack([xr, xs]) - np.vstack([xr, xs]).mean(axis=0)
+    G[0:40:2, 0], G[1:40:2, 1] = 1.0, 1.0
+    G[0:40:2, 2], G[1:40:2, 2] = -c[:, 1], c[:, 0]
+    Q, _ = np.linalg.qr(G)
+    Jm = g.normal(size=(300, n))
+    Jm -= Jm @ Q @ Q.T
+    N = Jm.T @ Jm
+    np.testing.assert_allclose(_gauge_pinv(N, xr, xs), np.linalg.pinv(N, hermitian=True), atol=1e-12)
