@@ -119,35 +119,50 @@ def _init_plain(ranges: Array, dim: int, rng: np.random.Generator) -> list[tuple
     return [("mds", (np.asarray(r, float), np.asarray(s, float), None, None))]
 
 
-def _init_offsets(ranges: Array, dim: int, offsets: str, rng: np.random.Generator) -> tuple[str, _Init]:
-    """Start for offsets in {receivers, sources, both}: the 004 rank-3 initialiser.
+def _sane(start: _Init, ranges: Array) -> bool:
+    """A start is usable when it is finite and within 100x the scale of the data."""
+    lim = 100.0 * (float(np.nanmax(np.abs(ranges))) + 1.0)
+    for part in start:
+        if part is not None and not (np.isfinite(part).all() and np.abs(part).max() <= lim):
+            return False
+    return True
+
+
+def _init_offsets(ranges: Array, dim: int, offsets: str, rng: np.random.Generator) -> list[tuple[str, _Init]]:
+    """Starts for offsets in {receivers, sources, both}: the 004 rank-3 initialiser, then MDS.
 
     For a single kind of offset the rank-3 estimate of both kinds is collapsed: the
     true other kind is zero, so its estimate is (up to noise) the common shift c,
-    which moves into the kept kind (``d_i + c`` or ``o_j + c``). When the rank-3
-    initialiser cannot run (too few nodes), fall back to MDS on the ranges with the
-    offsets started at zero after shifting the matrix to be non-negative.
+    which moves into the kept kind (``d_i + c`` or ``o_j + c``). The fallback (used
+    when the rank-3 initialiser cannot run or returns a non-finite / absurd start) is
+    MDS on the ranges shifted to be non-negative, with the offsets started at zero:
+    good when the offsets are small compared with the ranges.
     """
+    from . import mds
     from . import offsets as off
 
+    I, J = ranges.shape
+    out: list[tuple[str, _Init]] = []
     try:
         r, s, d0, o0 = off.initialize_offsets(ranges, dim, rng=rng)
-        d0 = np.asarray(d0, float)
-        o0 = np.asarray(o0, float)
+        r, s = np.asarray(r, float), np.asarray(s, float)
+        d0, o0 = np.asarray(d0, float), np.asarray(o0, float)
         if offsets == "receivers":
-            return "rank3", (r, s, d0 + np.mean(o0), None)
-        if offsets == "sources":
-            return "rank3", (r, s, None, o0 + np.mean(d0))
-        return "rank3", (r, s, d0, o0)
+            cand: _Init = (r, s, d0 + np.mean(o0), None)
+        elif offsets == "sources":
+            cand = (r, s, None, o0 + np.mean(d0))
+        else:
+            cand = (r, s, d0, o0)
+        if _sane(cand, ranges):
+            out.append(("rank3", cand))
     except (DegenerateGeometryError, InputError):
-        if offsets == "both":
-            raise
-    from . import mds
-
+        pass
     shift = min(0.0, float(np.nanmin(ranges)))
     r, s = mds.initialize_toa(ranges - shift, dim, rng=rng)
-    I, J = ranges.shape
-    return "mds", (r, s, np.zeros(I) if offsets == "receivers" else None, np.zeros(J) if offsets == "sources" else None)
+    has_r, has_s = offsets in ("receivers", "both"), offsets in ("sources", "both")
+    out.append(("mds", (np.asarray(r, float), np.asarray(s, float),
+                        np.zeros(I) if has_r else None, np.zeros(J) if has_s else None)))
+    return out
 
 
 def _given_init(init: Any, I: int, J: int, dim: int, offsets: str, scale: float) -> _Init:
@@ -217,6 +232,7 @@ def solve_toa(
     rng: np.random.Generator | int | None = None,
     f_scale: float | None = None,
     max_nfev: int | None = None,
+    covariance: bool = True,
 ) -> ToaResult:
     """Anchor-free self-calibration of receivers and sources from TOA / range measurements.
 
@@ -243,6 +259,8 @@ def solve_toa(
     rng: seed / Generator for the randomised parts (initialisers, restarts).
     f_scale: robust-loss scale in the matrix's units (default: from a MAD estimate).
     max_nfev: iteration cap for the refinement.
+    covariance: compute the per-point covariances (NaN-filled when False; skipping them
+        saves most of the time on networks of a thousand nodes per side).
 
     Returns
     -------
@@ -275,7 +293,7 @@ def solve_toa(
         if offsets == "none":
             cands = _init_plain(ranges, dim, gen)
         else:
-            cands = [_init_offsets(ranges, dim, offsets, gen)]
+            cands = _init_offsets(ranges, dim, offsets, gen)
     else:
         cands = [("given", _given_init(init, I, J, dim, offsets, scale))]
 
@@ -286,17 +304,34 @@ def solve_toa(
     def refine(start: _Init) -> NlsSolution:
         r0, s0, d0, o0 = start
         return refine_toa(ranges, r0, s0, offsets=offsets, receiver_offsets0=d0, source_offsets0=o0,
-                          loss=loss, f_scale=fs, max_nfev=max_nfev)
+                          loss=loss, f_scale=fs, max_nfev=max_nfev, covariance=covariance)
 
-    name, start = cands[0]
-    best = refine(start)
+    # first candidate that refines to a non-degenerate solution; the others are restarts
+    best: NlsSolution | None = None
+    err: DegenerateGeometryError | None = None
+    rest = list(cands)
+    name, start = rest[0]
+    iters = starts = 0
+    while rest and best is None:
+        name, start = rest.pop(0)
+        starts += 1
+        try:
+            best = refine(start)
+        except DegenerateGeometryError as exc:  # diverged to a degenerate configuration
+            err = exc
+    if best is None:
+        assert err is not None
+        raise err
     iters = best.iterations
-    starts = 1
     robust = loss != "linear"
     if method == "auto" and _implausible(best, robust):
-        for start2 in _restarts(ranges, dim, offsets, best, gen, start):
-            sol = refine(start2)
+        more = [c for _, c in rest] + _restarts(ranges, dim, offsets, best, gen, start)
+        for start2 in more:
             starts += 1
+            try:
+                sol = refine(start2)
+            except DegenerateGeometryError:
+                continue
             iters += sol.iterations
             if sol.cost < best.cost:
                 best = sol
