@@ -243,7 +243,8 @@ def initialize_farfield(X: Array) -> FarfieldInit:
     (i) best rank-3 approximation ``Dbar ~ U_3 (S_3 V_3^T)``; (ii) B from the k equations
     ``ntilde_j^T B ntilde_j = 1`` in the least-squares sense, ``A^T A = B`` by Cholesky; when
     B is not positive definite, A from :func:`fit_A_nonlinear` (started at the identity, as
-    in the paper, and at the square root of B's positive part; the better fit is kept);
+    in the paper, and at the square root of B's positive part; the better fit among those
+    with cond(A) < 1e4 is kept, else that square root itself);
     (iii) ``N = A Ntilde`` with re-normalised columns, and positions ``Z = U_3 A^-1`` re-fitted
     by least squares to the normalised directions.
 
@@ -265,12 +266,14 @@ def initialize_farfield(X: Array) -> FarfieldInit:
     if pd:
         A = np.linalg.cholesky(B).T  # B = L L^T = A^T A
     else:
-        starts = [np.eye(3), np.sqrt(np.maximum(w, 1e-6 * max(w[-1], 1e-12)))[:, None] * Qe.T]
-        best, best_cost = np.eye(3), np.inf
-        for A0 in starts:
-            A_try = fit_A_nonlinear(nt, A0)
+        A_psd = np.sqrt(np.maximum(w, 1e-6 * max(w[-1], 1e-12)))[:, None] * Qe.T
+        candidates = [fit_A_nonlinear(nt, np.eye(3)), fit_A_nonlinear(nt, A_psd), A_psd]
+        best, best_cost = A_psd, np.inf
+        for A_try in candidates:
             c = float(np.sum((np.sum((nt @ A_try.T) ** 2, axis=1) - 1.0) ** 2))
-            if np.linalg.matrix_rank(A_try) == 3 and c < best_cost:
+            # with noise the fit can collapse A to rank 2 (all directions on one great
+            # circle fit the norms better); such an A destroys the positions, so skip it
+            if np.linalg.cond(A_try) < 1e4 and c < best_cost:
                 best, best_cost = A_try, c
         A = best
     N = nt @ A.T

@@ -1,0 +1,121 @@
+"""Command line and reproductions for far-field TDOA (paper 000)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from selfcal.cli import main
+from selfcal.experiments.farfield import fig1_trial, fig2_trial, fig3_trial, fig4_trial
+
+
+def unit(v):
+    return v / np.linalg.norm(v, axis=-1, keepdims=True)
+
+
+@pytest.fixture
+def farfield_csv(tmp_path, rng):
+    Z = rng.uniform(-0.5, 0.5, (10, 3))
+    Z[0] = 0
+    N = unit(rng.normal(size=(15, 3)))
+    D = Z @ N.T + rng.normal(size=15)
+    path = tmp_path / "D.csv"
+    np.savetxt(path, D, delimiter=",")
+    return path, Z, N, D
+
+
+def test_cli_calibrates_and_writes_design_keys(tmp_path, farfield_csv):
+    path, Z, _, D = farfield_csv
+    out = tmp_path / "res.json"
+    fig = tmp_path / "fig.png"
+    r = CliRunner().invoke(main, ["calibrate", "tdoa-farfield", str(path), "--out", str(out), "--plot", str(fig)])
+    assert r.exit_code == 0, r.output
+    res = json.loads(out.read_text())
+    for key in ("positions", "directions", "offsets", "residual_rms", "degeneracy", "converged", "method"):
+        assert key in res
+    P = np.array(res["positions"])
+    assert np.allclose(P[0], 0) and res["degeneracy"] is None
+    fit = P @ np.array(res["directions"]).T + np.array(res["offsets"])
+    assert np.abs(fit - D).max() < 1e-9
+    assert fig.stat().st_size > 0
+
+
+def test_cli_speed_converts_seconds(tmp_path, farfield_csv):
+    path, _, _, D = farfield_csv
+    sec = tmp_path / "t.csv"
+    np.savetxt(sec, D / 343.0, delimiter=",")
+    out = tmp_path / "res.json"
+    r = CliRunner().invoke(main, ["calibrate", "tdoa-farfield", str(sec), "--speed", "343", "--out", str(out)])
+    assert r.exit_code == 0, r.output
+    res = json.loads(out.read_text())
+    # lengths come back in metres: the model reproduces the metre matrix
+    fit = np.array(res["positions"]) @ np.array(res["directions"]).T + np.array(res["offsets"])
+    assert np.abs(fit - D).max() < 1e-9
+
+
+def test_cli_degenerate_exits_2_naming_it_unless_allowed(tmp_path, rng):
+    Z = rng.uniform(-0.5, 0.5, (8, 3))
+    Z[:, 2] = 0  # planar motion
+    N = unit(rng.normal(size=(12, 3)))
+    path = tmp_path / "planar.csv"
+    np.savetxt(path, Z @ N.T, delimiter=",")
+    out = tmp_path / "res.json"
+    r = CliRunner().invoke(main, ["calibrate", "tdoa-farfield", str(path), "--out", str(out)])
+    assert r.exit_code == 2
+    assert "planar-motion" in r.output and not out.exists()
+    r = CliRunner().invoke(main, ["calibrate", "tdoa-farfield", str(path), "--out", str(out), "--allow-degenerate"])
+    assert r.exit_code == 0, r.output
+    assert json.loads(out.read_text())["degeneracy"] == "planar-motion"
+
+
+def test_cli_pyramic_is_a_cone(tmp_path, shared_data):
+    from selfcal.datasets import load_pyramic
+
+    data = load_pyramic(shared_data / "pyramic")
+    path = tmp_path / "pyr.npy"
+    np.save(path, data.D)
+    r = CliRunner().invoke(main, ["calibrate", "tdoa-farfield", str(path), "--out", str(tmp_path / "r.json")])
+    assert r.exit_code == 2 and "cone" in r.output
+
+
+def test_cli_bad_matrix_exits_2(tmp_path):
+    path = tmp_path / "bad.csv"
+    path.write_text("1,2,x\n")
+    r = CliRunner().invoke(main, ["calibrate", "tdoa-farfield", str(path), "--out", str(tmp_path / "r.json")])
+    assert r.exit_code == 2
+
+
+def test_fig1_exact_far_field_minimal_error_is_at_machine_precision():
+    row = fig1_trial({"model": "far-field", "distance": 0.0, "batch": 200}, seed=1)
+    ok = row["n"] - row["failures"]
+    assert row["failures"] == 0
+    assert row["error_sum"] / ok < 1e-12  # paper: 6.8e-15 on average
+
+
+def test_fig1_far_field_approximation_improves_with_distance():
+    near = fig1_trial({"model": "3d", "distance": 5.0, "batch": 200}, seed=2)
+    far = fig1_trial({"model": "3d", "distance": 1e5, "batch": 200}, seed=2)
+    e_near = near["error_sum"] / (near["n"] - near["failures"])
+    e_far = far["error_sum"] / (far["n"] - far["failures"])
+    assert e_far < 1e-3 * e_near
+    assert far["failures"] <= near["failures"]
+
+
+def test_fig2_more_data_lowers_error():
+    small = fig2_trial({"m": 4, "k": 6, "distance": 100.0, "batch": 40}, seed=3)
+    big = fig2_trial({"m": 10, "k": 20, "distance": 100.0, "batch": 40}, seed=3)
+    assert big["error_sum"] / big["n_ok"] < small["error_sum"] / small["n_ok"]
+    assert big["failures"] <= small["failures"]
+
+
+def test_fig3_lm_converges_in_fewer_iterations_than_alternating():
+    rows = [fig3_trial({"m": 10, "k": 10, "sigma": 0.01, "length": 200}, seed=s) for s in range(3)]
+    assert np.median([r["lm_adaptive_iters"] for r in rows]) < np.median([r["alt_iters"] for r in rows])
+
+
+def test_fig4_good_far_field_with_small_noise_is_accurate():
+    row = fig4_trial({"distance": 1e7, "sigma": 1e-4, "batch": 5}, seed=4)
+    assert row["lm_error_sum"] / row["n"] < 0.01
