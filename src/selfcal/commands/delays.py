@@ -16,7 +16,7 @@ from ._base import backend_option, handle_errors, reproduce, scheduler_option, s
               help="Tests per point for the (slow) thesis iteration; --full uses --runs.")
 @click.option("--max-iter", type=int, default=20_000, show_default=True,
               help="Iteration cap of the thesis iteration in Fig. 4.1-4.3 (thesis: 1e6, --full).")
-@click.option("--cap-120", type=int, default=300, show_default=True,
+@click.option("--cap-120", type=int, default=5000, show_default=True,
               help="Iteration cap of the thesis iteration at 120 units (Fig. 4.4); the rest is extrapolated.")
 @click.option("--noise-runs", type=int, default=10, show_default=True,
               help="Runs per noise level (10 and 50 us) of the NLS / CRLB experiment (0 skips it).")
@@ -43,7 +43,7 @@ def reproduce_delays(runs: int, faithful_runs: int, max_iter: int, cap_120: int,
     if quick:
         kwargs = {"units": (12, 16), "timing_runs": (2, 1), "faithful_timing_runs": (1, 1),
                   "lambda_max_iter": 3000}
-        runs, faithful_runs, max_iter, cap_120, noise_runs = 2, min(faithful_runs, 1), 3000, 30, min(noise_runs, 2)
+        runs, faithful_runs, max_iter, cap_120, noise_runs = 2, min(faithful_runs, 1), 3000, 300, min(noise_runs, 2)
     summary = reproduce_all(out, runs=runs, faithful_runs=faithful_runs, max_iter=max_iter, cap_120=cap_120,
                             noise_runs=noise_runs, full=full, backend=backend, scheduler=scheduler, seed=seed,
                             units=kwargs.pop("units", UNITS), **kwargs)  # type: ignore[arg-type]
