@@ -323,29 +323,31 @@ def _row_blocks(u: Array, lay: _Layout) -> tuple[Array, Array]:
     return np.swapaxes(b, 0, 1), np.swapaxes(a, 0, 1)
 
 
-def _schur_system(
-    aK: Array, bE: Array, w: Array, lay: _Layout, damping: float = 0.0
-) -> tuple[Array, Array, Array]:
-    """Pieces of the (weighted, optionally Marquardt-damped) normal matrix in K/E form.
+def _schur_system(aK: Array, bE: Array, w: Array, lay: _Layout) -> tuple[Array, Array, Array, Array]:
+    """Pieces of the weighted normal matrix ``[[A, B], [B^T, D]]`` in K/E form, for the covariance.
 
-    Returns A (nA, nA) on the free K coordinates, Dinv (nE, mE, mE) and
-    B (nA, nE*mE). ``w`` is (nK, nE), zero for missing entries.
+    Returns A (nA, nA) on the free K coordinates, Dinv (nE, mE, mE), R (nE, mE, mE)
+    with ``Dinv_e = R_e R_e^T`` and ``H = B R`` (nA, nE*mE), so that
+    ``B D^-1 B^T = H H^T`` (a symmetric rank-k update) and ``B D^-1 = H R^T``.
+    ``w`` is (nK, nE), zero for missing entries.
     """
     nK, nE, mK = aK.shape
     mE = bE.shape[2]
-    wa = aK * w[..., None]
-    Ablk = np.einsum("kep,keq->kpq", wa, aK)  # K nodes are only coupled through E nodes
-    Dblk = np.einsum("kep,keq->epq", bE * w[..., None], bE)
-    Bfull = np.einsum("kep,keq->kpeq", wa, bE).reshape(nK * mK, nE * mE)
-    if damping > 0:
-        Ablk = Ablk + damping * np.einsum("kpp->kp", Ablk)[:, :, None] * np.eye(mK)
-        Dblk = Dblk + damping * np.einsum("epp->ep", Dblk)[:, :, None] * np.eye(mE)
-    A = _block_diag(Ablk)
     keep = _kept_positions(lay)
-    A = A[np.ix_(keep, keep)]
-    B = Bfull[keep]
+    Ablk = np.einsum("kep,keq->kpq", aK * w[..., None], aK)
+    Dblk = np.einsum("kep,keq->epq", bE * w[..., None], bE)
     Dinv = _inv_blocks(Dblk)
-    return A, Dinv, B
+    Rc: Array = np.asarray(np.linalg.cholesky(Dinv), dtype=np.float64)
+    A = _block_diag(Ablk)[np.ix_(keep, keep)]
+    # H[k p, e r] = w_ke a_ke,p (b_ke^T R_e)_r, built plane by plane (cheaper than einsum)
+    waT = np.moveaxis(aK, 2, 0) * w
+    cT = np.moveaxis(np.einsum("keq,eqr->ker", bE, Rc), 2, 0)
+    H = np.empty((nK, mK, nE, mE))
+    for p in range(mK):
+        for r_ in range(mE):
+            H[:, p, :, r_] = waT[p] * cT[r_]
+    H = H.reshape(nK * mK, nE * mE)[keep]
+    return A, Dinv, Rc, H
 
 
 def _block_diag(blocks: Array) -> Array:
@@ -389,19 +391,6 @@ def _inv_blocks(blocks: Array) -> Array:
             kind="unobservable-node",
         )
     return np.asarray(np.linalg.inv(blocks), dtype=np.float64)
-
-
-def _schur_solve(A: Array, Dinv: Array, B: Array, gK: Array, gE: Array) -> tuple[Array, Array]:
-    """Solve [[A, B], [B^T, D]] [x; y] = [gK; gE] by eliminating the block-diagonal D."""
-    nE, mE, _ = Dinv.shape
-    B3 = B.reshape(B.shape[0], nE, mE)
-    F = np.einsum("aeq,eqp->aep", B3, Dinv).reshape(B.shape)  # B D^-1
-    S = A - F @ B.T
-    DgE = np.einsum("epq,eq->ep", Dinv, gE.reshape(nE, mE)).ravel()
-    cf = scipy.linalg.cho_factor(S, check_finite=False)
-    x = scipy.linalg.cho_solve(cf, gK - B @ DgE, check_finite=False)
-    y = DgE - np.einsum("epq,eq->ep", Dinv, (B.T @ x).reshape(nE, mE)).ravel()
-    return x, y
 
 
 # ---------------------------------------------------------------------------
@@ -561,9 +550,10 @@ def _solve_schur_lm(
         cost = 0.5 * f_scale**2 * float(rho[obs].sum())
         return cost, f, np.where(obs, drho, 0.0)
 
-    ftol = 1e-9  # relative cost decrease that stops the iteration (scipy's default is 1e-8)
+    ftol = 1e-8  # relative cost decrease that stops the iteration (scipy's default)
     theta = theta0.copy()
     cost, f, w = evaluate(theta)
+    g0 = 1.0
     lam = 1e-4
     converged = False
     max_it = max_nfev or 100
@@ -579,6 +569,10 @@ def _solve_schur_lm(
         gK[pinned] = 0.0
         gE = np.einsum("kep,ke->ep", bE, wK * fK).ravel()
         gnorm = float(np.sqrt(gK @ gK + gE @ gE))
+        g0 = gnorm if it == 1 else g0
+        # inexact Newton forcing term (Eisenstat-Walker style): loose CG solves far from
+        # the minimum, tight ones once the gradient has dropped (keeps the fast local rate)
+        cg_rtol = float(np.clip(gnorm / max(g0, 1e-300), 1e-8, 1e-3))
         improved = False
         for _ in range(12):
             try:
@@ -589,7 +583,7 @@ def _solve_schur_lm(
             rhs = -gK + b(dinv(gE))
             op = LinearOperator((nk, nk), matvec=smul, dtype=float)
             pc = LinearOperator((nk, nk), matvec=prec, dtype=float)
-            x, _ = cg(op, rhs, rtol=1e-6, maxiter=500, M=pc)
+            x, _ = cg(op, rhs, rtol=cg_rtol, maxiter=500, M=pc)
             x[pinned] = 0.0
             y = dinv(-gE - bt(x))
             step = np.zeros(lay.n)
@@ -631,47 +625,52 @@ def _gauge_free_blocks(theta: Array, w: Array, lay: _Layout) -> tuple[Array, Arr
     _, u = _unit_vectors(theta, lay)
     aK, bE = _row_blocks(u, lay)
     wK = w if lay.k_is_receivers else w.T
-    A, Dinv, B = _schur_system(aK, bE, wK, lay)
+    A, Dinv, Rc, H = _schur_system(aK, bE, wK, lay)
     nE, mE, _ = Dinv.shape
     nK, mK = lay.k_idx.shape
-    B3 = B.reshape(B.shape[0], nE, mE)
-    F = np.einsum("aeq,eqp->aep", B3, Dinv).reshape(B.shape)
-    S = A - F @ B.T
-    try:
-        L = np.linalg.cholesky(S)
-        dl = np.abs(np.diag(L))
-        if dl.min() <= 1e-7 * dl.max():  # condition number of S above ~1e14
-            raise np.linalg.LinAlgError
-    except np.linalg.LinAlgError:
+    # S = A - H H^T by a symmetric rank-k update (half the flops of a general product);
+    # H.T is F-ordered, so BLAS reads it without a copy
+    S = scipy.linalg.blas.dsyrk(-1.0, H.T, beta=1.0, c=np.asfortranarray(A), trans=1, lower=1,
+                                overwrite_c=1)
+    # LAPACK reads only the lower triangle of S (F-ordered, no copy)
+    L, info = scipy.linalg.lapack.dpotrf(S, lower=1, clean=1, overwrite_a=1)
+    dl = np.abs(np.diag(L))
+    if info != 0 or dl.min() <= 1e-7 * dl.max():  # not positive definite / cond(S) > ~1e14
         raise DegenerateGeometryError(
             "the normal equations are singular beyond the rigid-motion gauge: the geometry is "
             "degenerate (e.g. all points coplanar in 3-D, or too few ranges per node)",
             kind="degenerate-geometry",
-        ) from None
-    # diagonal blocks only: S^-1 = L^-T L^-1 and F^T S^-1 F = |L^-1 F|^2, column-block Grams
+        )
+    del S
+    # diagonal blocks only: S^-1 = L^-T L^-1, and with F = B D^-1 = H R^T,
+    # F_e^T S^-1 F_e = R_e (X_e^T X_e) R_e^T where X = L^-1 H (column-block Grams)
     Linv, info = scipy.linalg.lapack.dtrtri(L, lower=1)
     if info != 0:
         raise DegenerateGeometryError("singular reduced normal matrix", kind="degenerate-geometry")
-    X = scipy.linalg.solve_triangular(L, F, lower=True, check_finite=False)
-    CE = Dinv + _column_block_gram(X.reshape(X.shape[0], nE, mE))
+    X = scipy.linalg.solve_triangular(L, H, lower=True, check_finite=False)
+    G = _column_block_gram(X.reshape(X.shape[0], nE, mE))
+    CE = Dinv + np.einsum("epq,eqr,esr->eps", Rc, G, Rc)
+    del X
     kept = _kept_positions(lay)
     Lfull = np.zeros((Linv.shape[0], nK * mK))
     Lfull[:, kept] = Linv
     CK = _column_block_gram(Lfull.reshape(Linv.shape[0], nK, mK))
-    del Lfull, X, Linv
-    cf = (L, True)
+    del Lfull, Linv
 
     r, s, _, _ = _unpack(theta, lay.I, lay.J, lay.d, lay.offsets)
     Q = gauge_basis(r, s, lay.offsets)
     QK = Q[lay.k_idx.ravel()]  # (nK mK, g)
     QE = Q[lay.e_idx.ravel()]
+    g = Q.shape[1]
     # C Q with the pinned coordinates' rows/columns of C equal to zero
-    t = QK[kept] - F @ QE
-    YKf = scipy.linalg.cho_solve(cf, t, check_finite=False)
+    RtQE = np.einsum("eqp,eqg->epg", Rc, QE.reshape(nE, mE, g)).reshape(nE * mE, g)
+    t = QK[kept] - H @ RtQE  # Q_K - F Q_E
+    YKf = scipy.linalg.cho_solve((L, True), t, check_finite=False)
     YK = np.zeros_like(QK)
     YK[kept] = YKf
-    DQ = np.einsum("epq,eqg->epg", Dinv, QE.reshape(nE, mE, -1)).reshape(nE * mE, -1)
-    YE = DQ - F.T @ YKf
+    DQ = np.einsum("epq,eqg->epg", Dinv, QE.reshape(nE, mE, g)).reshape(nE * mE, g)
+    FtY = np.einsum("epq,eqg->epg", Rc, (H.T @ YKf).reshape(nE, mE, g)).reshape(nE * mE, g)
+    YE = DQ - FtY
     Z = QK.T @ YK + QE.T @ YE
 
     def project(Cb: Array, Qn: Array, Yn: Array) -> Array:
