@@ -309,3 +309,18 @@ def test_result_to_dict_is_strict_json(rng):
     for key in ("positions", "directions", "offsets", "residual_rms", "degeneracy", "converged", "method"):
         assert key in back
     assert np.array(back["positions"]).shape == (6, 3) and np.array(back["directions"]).shape == (9, 3)
+
+
+def test_ransac_over_the_minimal_solver_finds_the_outliers(rng):
+    from selfcal.tdoa import ransac_farfield
+
+    sigma = 0.005
+    D, Z, _ = farfield_problem(rng, 20, 40, sigma=sigma)
+    clean = position_error(solve_farfield(D).positions, Z)
+    idx = rng.choice(D.size, int(0.02 * D.size), replace=False)
+    D.flat[idx] += 100 * sigma * np.sign(rng.normal(size=idx.size))
+    out = np.flatnonzero(~ransac_farfield(D, rng=1))
+    assert len(set(out) & set(idx)) >= 0.9 * idx.size
+    assert len(set(out) - set(idx)) <= 0.02 * D.size
+    res = solve_farfield(D, ransac=True, loss="huber", rng=1)
+    assert position_error(res.positions, Z) <= 2 * clean

@@ -16,8 +16,10 @@ the noise is not concentrated in a rank-1 term as it is with ``K_j = D_1j``):
 Noise-aware thresholds (documented contract)
 --------------------------------------------
 ``sigma`` is the noise level of an entry: the user's ``noise_std``, else estimated from the
-singular values beyond the tested rank, ``sigma_r^2 = sum_{i>r} s_i^2 / ((m-1-r)(k-r))``
-(m-1: centring removes one row's worth of freedom), floored at ``1e-14 s_1`` (rounding).
+residual ``R`` of the best rank-r approximation (r = the tested rank) as
+``1.4826 median|R_ij| sqrt(m k / ((m-1-r)(k-r)))`` (a robust version of
+``sum_{i>r} s_i^2 / ((m-1-r)(k-r))``; m-1 because centring removes one row's freedom),
+floored at ``1e-14 s_1`` (rounding).
 A singular value ``s_r`` counts as signal when it exceeds
 ``rank_factor * sigma_r * (sqrt(m-1) + sqrt(k))`` -- ``sigma (sqrt(m-1) + sqrt(k))`` is the
 largest singular value of an i.i.d. noise matrix (Marchenko-Pastur edge) -- and
@@ -122,11 +124,17 @@ def fit_quadric(nt: Array) -> tuple[Array, Array, Array]:
     return B, mu, res
 
 
-def _sigma(s: Array, r: int, rows: int, cols: int) -> float:
+def _sigma(X: Array, U: Array, s: Array, Vt: Array, r: int, rows: int, cols: int) -> float:
+    """Noise level from the residual of the rank-r approximation.
+
+    The median absolute residual (x 1.4826, corrected by sqrt(entries / dof)) rather than the
+    residual energy, so that a few gross errors do not inflate it.
+    """
     dof = (rows - r) * (cols - r)
     if dof <= 0:
         return 0.0
-    return float(np.sqrt(np.sum(s[r:] ** 2) / dof))
+    R = X - (U[:, :r] * s[:r]) @ Vt[:r]
+    return float(1.4826 * np.median(np.abs(R)) * np.sqrt(R.size / dof))
 
 
 def analyse_degeneracy(
@@ -156,7 +164,7 @@ def analyse_degeneracy(
     floor = 1e-14 * s1
 
     def sig(r: int) -> float:
-        est = noise_std if noise_std is not None else _sigma(s, r, a, k)
+        est = noise_std if noise_std is not None else _sigma(X, U, s, Vt, r, a, k)
         return max(float(est), floor)
 
     def thr(r: int) -> float:

@@ -166,6 +166,7 @@ def lowrank_fit(
     rank: int = 4,
     loss: str = "linear",
     iterations: int = 50,
+    start: Array | None = None,
 ) -> tuple[Array, float]:
     """Weighted (robust) rank-``rank`` fit of D by alternating least squares.
 
@@ -173,6 +174,8 @@ def lowrank_fit(
     ----------
     D : (m, k), W : (m, k) weights (0 = missing / rejected).
     loss : IRLS loss on the residuals, scaled by 1.5 x their robust standard deviation.
+    start : optional complete (m, k) matrix whose rank-``rank`` SVD starts the iteration
+        (default: D with missing entries filled by column means).
 
     Returns
     -------
@@ -184,7 +187,7 @@ def lowrank_fit(
     D0 = np.where(obs, D, 0.0)
     # start: fill missing entries with the column means, then truncated SVD
     colmean = np.sum(D0 * obs, 0) / np.maximum(obs.sum(0), 1)
-    F = np.where(obs, D0, colmean[None, :])
+    F = np.where(obs, D0, colmean[None, :]) if start is None else np.asarray(start, dtype=float)
     U, s, Vt = np.linalg.svd(F, full_matrices=False)
     P = U[:, :rank] * s[:rank]
     Q = Vt[:rank].T
@@ -305,10 +308,10 @@ def ransac_farfield(
     Each hypothesis solves a random 4 x 6 sub-problem (Algorithm 1, batched over all
     hypotheses at once), extends it to every column by solving ``Dbar_j = Z n_j`` on the 3
     sampled position differences and to every row by least squares over the sampled
-    columns, and counts the entries whose residual is below ``threshold`` (default: 3
-    robust standard deviations of the best hypothesis's residuals, i.e. LMedS scoring
-    followed by a threshold). Needs complete rows/columns in the samples; missing entries
-    are never inliers.
+    columns, and scores it by the median absolute residual (LMedS). The best hypothesis's
+    prediction starts a robust (Cauchy IRLS) rank-4 fit of all entries (local optimisation);
+    inliers are the entries within ``threshold`` of that fit (default 4 robust standard
+    deviations). Missing entries are never inliers.
     """
     gen = as_rng(rng)
     D = np.asarray(D, dtype=float)
@@ -322,7 +325,7 @@ def ransac_farfield(
     good = np.flatnonzero(ok & sol.valid)
     if good.size == 0:
         return finite
-    best_med, best_R = np.inf, None
+    best_med, best_R, best_P = np.inf, None, None
     Df = np.where(finite, D, np.nan)
     for h in good:
         r, c = rows[h], cols[h]
@@ -339,11 +342,17 @@ def ransac_farfield(
         R = Df - Zall @ Nall.T - Cj[None, :]
         med = float(np.nanmedian(np.abs(R)))
         if med < best_med:
-            best_med, best_R = med, R
-    assert best_R is not None
-    thr = 3.0 * _MAD * best_med if threshold is None else float(threshold)
+            best_med, best_R, best_P = med, R, Zall @ Nall.T + Cj[None, :]
+    assert best_R is not None and best_P is not None
+    # local optimisation: one minimal sample extrapolates poorly to the other rows and
+    # columns, so refine the consensus model by a robust (Cauchy) rank-4 fit of all entries
+    # started from it, and threshold against that fit
+    pred = np.where(np.isfinite(best_P), best_P, 0.0)
+    L, sig = lowrank_fit(np.where(finite, D, 0.0), finite.astype(float), rank=4, loss="cauchy", start=pred)
+    lim = 4.0 * sig if threshold is None else float(threshold)
     with np.errstate(invalid="ignore"):
-        return np.asarray(finite & (np.abs(best_R) <= thr))
+        inl = np.asarray(finite & (np.abs(D - L) <= lim))
+    return inl
 
 
 # ----------------------------------------------------------------------------- entry point
@@ -391,6 +400,7 @@ def solve_farfield(
     cone_tol: float = 3.0,
     init_reference: str = "mean",
     check_degeneracy: bool = True,
+    ransac: bool = False,
     rng: np.random.Generator | int | None = None,
 ) -> FarfieldResult:
     """Far-field TDOA self-calibration: positions, directions and offsets from D (paper 000).
@@ -425,7 +435,10 @@ def solve_farfield(
     check_degeneracy : run the failure-mode analysis and act on it (raise / partial result).
         With False the full 3-D pipeline runs regardless, as in the paper's experiments; the
         analysis is still reported in ``diagnostics`` but ``degeneracy`` stays None.
-    rng : unused by the deterministic pipeline; kept for API uniformity.
+    ransac : screen outliers first with :func:`ransac_farfield` (RANSAC over the minimal
+        solver); entries outside its inlier set are treated as missing and reported in
+        ``rejected``. Combine with a robust loss for the best results.
+    rng : random generator / seed (used by ``ransac``).
 
     Returns
     -------
@@ -447,7 +460,7 @@ def solve_farfield(
     check_positive(f_scale, "f_scale")
     if noise_std is not None and not (np.isfinite(noise_std) and noise_std >= 0):
         raise InputError(f"noise_std must be a finite non-negative number, got {noise_std!r}")
-    as_rng(rng)
+    gen = as_rng(rng)
     D = as_matrix(matrix, "matrix", allow_nan=True, min_shape=(1, 1))
     m, k = D.shape
     if m < 3:
@@ -469,6 +482,8 @@ def solve_farfield(
     if method == "minimal" and ((m, k) != (4, 6) or not finite.all()):
         raise InputError(f"method='minimal' needs a complete 4 x 6 matrix, got {m} x {k}")
     gross = screen_gross_errors(D) if screen else np.zeros_like(finite)
+    if ransac:
+        gross = gross | (finite & ~ransac_farfield(np.where(gross, np.nan, D), rng=gen))
     used = finite & ~gross
     complete = bool(used.all())
     if offsets == "auto":
