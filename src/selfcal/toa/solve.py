@@ -301,10 +301,10 @@ def solve_toa(
         name, (r0, s0, d0, o0) = cands[0]
         return _unrefined(M, ranges, r0, s0, d0, o0, offsets, spd, name if name != "rank3" else "rank3")
 
-    def refine(start: _Init) -> NlsSolution:
+    def refine(start: _Init, cov: bool = covariance) -> NlsSolution:
         r0, s0, d0, o0 = start
         return refine_toa(ranges, r0, s0, offsets=offsets, receiver_offsets0=d0, source_offsets0=o0,
-                          loss=loss, f_scale=fs, max_nfev=max_nfev, covariance=covariance)
+                          loss=loss, f_scale=fs, max_nfev=max_nfev, covariance=cov)
 
     # first candidate that refines to a non-degenerate solution; the others are restarts
     best: NlsSolution | None = None
@@ -326,17 +326,18 @@ def solve_toa(
     robust = loss != "linear"
     if method == "auto" and _implausible(best, robust):
         more = [c for _, c in rest] + _restarts(ranges, dim, offsets, best, gen, start)
+        first = best
         for start2 in more:
             starts += 1
-            try:
-                sol = refine(start2)
-            except DegenerateGeometryError:
-                continue
+            sol = refine(start2, cov=False)  # covariances only for the winner, below
             iters += sol.iterations
             if sol.cost < best.cost:
                 best = sol
             if not _implausible(best, robust):
                 break
+        if best is not first and covariance:
+            best = refine((best.receivers, best.sources, best.receiver_offsets, best.source_offsets))
+            iters += best.iterations
     label = f"{name}+nls" + (f"+multistart({starts - 1})" if starts > 1 else "")
     return _to_result(M, best, spd, label, iters, starts)
 
