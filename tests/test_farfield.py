@@ -210,7 +210,7 @@ def _degenerate(kind, rng, m=8, k=12, sigma=0.0):
 KINDS = ["planar-motion", "coplanar-directions", "collinear-motion", "parallel-directions", "cone"]
 
 
-@pytest.mark.parametrize("sigma", [0.0, 1e-4])
+@pytest.mark.parametrize("sigma", [0.0, 1e-3])
 @pytest.mark.parametrize("kind", KINDS)
 def test_each_failure_mode_is_detected_by_name(rng, kind, sigma):
     D, _, _ = _degenerate(kind, rng, sigma=sigma)
@@ -324,3 +324,33 @@ def test_ransac_over_the_minimal_solver_finds_the_outliers(rng):
     assert len(set(out) - set(idx)) <= 0.02 * D.size
     res = solve_farfield(D, ransac=True, loss="huber", rng=1)
     assert position_error(res.positions, Z) <= 2 * clean
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("kind", [*KINDS, None])
+def test_failure_mode_detection_rate_under_noise(kind):
+    """Monte Carlo: at 1 % noise (array size ~1) each mode is named in >= 90 % of draws, and
+    general geometry is never called degenerate."""
+    gen = np.random.default_rng(7)
+    hits = 0
+    for _ in range(40):
+        if kind is None:
+            D, _, _ = farfield_problem(gen, 8, 12, sigma=0.01)
+        else:
+            D, _, _ = _degenerate(kind, gen, sigma=0.01)
+        hits += solve_farfield(D, allow_degenerate=True).degeneracy == kind
+    assert hits >= (40 if kind is None else 36)
+
+
+@pytest.mark.slow
+def test_outlier_robustness_monte_carlo():
+    """20 draws of the acceptance scenario: 2 % outliers of 100 sigma, Huber and Cauchy."""
+    gen = np.random.default_rng(11)
+    for _ in range(20):
+        sigma = 0.005
+        D, Z, _ = farfield_problem(gen, 20, 40, sigma=sigma)
+        clean = position_error(solve_farfield(D).positions, Z)
+        idx = gen.choice(D.size, int(0.02 * D.size), replace=False)
+        D.flat[idx] += 100 * sigma * np.sign(gen.normal(size=idx.size))
+        for loss in ("huber", "cauchy"):
+            assert position_error(solve_farfield(D, loss=loss).positions, Z) <= 2 * clean

@@ -31,7 +31,7 @@ size that noise alone gives it along its singular vector ``Omega_6``,
 ``delta(n^T Omega n) = 2 n^T Omega delta n``); ``cone_snr = mu_6 / nu < cone_tol`` -> cone.
 The coplanar-directions test accepts the 2-D quadric fit when its chi-square per degree of
 freedom under the same propagation is below ``chi2_tol``; parallel directions when the
-spread of ``|ntilde_j|`` is within ``3 sigma``.
+rms spread of ``|ntilde_j|`` is within ``2 sigma``.
 """
 
 from __future__ import annotations
@@ -198,9 +198,10 @@ def analyse_degeneracy(
         else:
             kind = "coplanar-directions" if pd else "planar-motion"
     elif rank == 1:
+        # parallel: every |ntilde_j| equals the same |z-extent|, up to noise sigma each
         mag = np.abs(s[0] * Vt[0])
-        spread = float(np.max(mag) - np.min(mag))
-        kind = "parallel-directions" if spread <= 3.0 * sigma + 1e-9 * np.max(mag) else "collinear-motion"
+        spread = float(np.sqrt(np.mean((mag - mag.mean()) ** 2)))
+        kind = "parallel-directions" if spread <= 2.0 * sigma + 1e-9 * np.max(mag) else "collinear-motion"
     else:
         kind = "collinear-motion"
     return DegeneracyReport(kind, rank, s, sigma, thr(3), cone_snr, quad)
