@@ -255,3 +255,15 @@ def test_simulate_cli_writes_a_loadable_directory(tmp_path):
     heights = json.loads((out / "heights.json").read_text())
     np.testing.assert_allclose(heights["receivers"], np.asarray(truth["receivers"])[:, 2])
     assert np.abs(rec.signals).max() <= 0.5 + 1e-4
+
+
+def test_clock_jitter_moves_the_arrivals_and_truth_records_it():
+    scene = conference_scene(5, (6.0, 5.0, 3.0), layout="flat", rng=9)
+    kw = dict(rt60=0.3, snr_db=30.0, sample_rate=FS, probe=CHIRP, max_order=1)
+    setup, signals, truth = simulate_conference(scene, jitter=50e-6, rng=1, **kw)
+    _, _, calm = simulate_conference(scene, jitter=0.0, rng=1, **kw)
+    shift = np.asarray(truth["arrival_times"]) - np.asarray(calm["arrival_times"])
+    assert 20e-6 < shift.std() < 100e-6
+    det = detect_arrivals(signals, probe_from_spec(setup.probe, FS), setup.event_times, max_lag=0.1,
+                          progress=False)
+    assert np.max(np.abs(det.arrival_times - np.asarray(truth["arrival_times"]))) * FS < 0.2

@@ -173,3 +173,20 @@ def test_gauge_pseudo_inverse_equals_numpy_pinv():
     Jm -= Jm @ Q @ Q.T
     N = Jm.T @ Jm
     np.testing.assert_allclose(_gauge_pinv(N, xr, xs), np.linalg.pinv(N, hermitian=True), atol=1e-12)
+
+
+def test_microphones_mirrored_under_coplanar_loudspeakers_are_put_back_on_one_side():
+    """Coplanar senders: reflecting one receiver through their plane changes no distance."""
+    from selfcal.acoustics.pipeline import one_side_of_plane
+
+    sc = conference_scene(12, (10.0, 8.0, 3.0), layout="stem", rng=4)
+    d_true = np.linalg.norm(sc.receivers[:, None] - sc.senders[None], axis=-1)
+    mixed = sc.receivers.copy()
+    z0 = sc.senders[0, 2]
+    mixed[[1, 4, 7], 2] = 2 * z0 - mixed[[1, 4, 7], 2]  # three microphones under the desk
+    np.testing.assert_allclose(np.linalg.norm(mixed[:, None] - sc.senders[None], axis=-1), d_true)
+    cov = np.tile(np.diag([1e-4, 2e-4, 3e-4]), (12, 1, 1))
+    fixed, cov2, n = one_side_of_plane(mixed, cov, sc.senders)
+    assert n == 3
+    np.testing.assert_allclose(fixed, sc.receivers, atol=1e-9)
+    np.testing.assert_allclose(cov2, cov, atol=1e-12)  # a reflection in z keeps a diagonal covariance
