@@ -354,3 +354,20 @@ def test_outlier_robustness_monte_carlo():
         D.flat[idx] += 100 * sigma * np.sign(gen.normal(size=idx.size))
         for loss in ("huber", "cauchy"):
             assert position_error(solve_farfield(D, loss=loss).positions, Z) <= 2 * clean
+
+
+def test_lm_position_covariance_predicts_the_error_spread(rng):
+    """Monte Carlo on a fixed geometry: mean squared error (after the best rotation about the
+    first position, the covariance's gauge) matches the trace of the predicted covariance."""
+    m, k, sigma = 10, 20, 0.01
+    Z = rng.uniform(-0.5, 0.5, (m, 3))
+    Z[0] = 0
+    N = unit(rng.normal(size=(k, 3)))
+    C = rng.normal(size=k)
+    err, pred = 0.0, 0.0
+    for _ in range(60):
+        res = solve_farfield(Z @ N.T + C + sigma * rng.normal(size=(m, k)), offsets="free")
+        U, _, Vt = np.linalg.svd(Z.T @ res.positions)
+        err += np.sum((res.positions @ (U @ Vt).T - Z) ** 2)
+        pred += np.trace(res.position_cov, axis1=1, axis2=2).sum()
+    assert 0.75 < err / pred < 1.33

@@ -82,6 +82,8 @@ class FarfieldResult:
         definite (the paper's success criterion; False -> A came from the nonlinear fit).
     diagnostics : the degeneracy report (singular values, noise level, cone ratio...).
     cost_history : refinement cost after every iteration (first = initial cost).
+    position_cov : (m, 3, 3) Gauss-Newton covariance of each position (m^2) after LM, in
+        the gauge "best rotation about the first position" (None for other methods).
     """
 
     positions: Array
@@ -97,6 +99,7 @@ class FarfieldResult:
     b_positive_definite: bool
     diagnostics: DegeneracyReport | None = None
     cost_history: list[float] = field(default_factory=list)
+    position_cov: Array | None = None
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-safe dictionary with the DESIGN.md keys (``rejected`` as [i, j] pairs)."""
@@ -113,6 +116,7 @@ class FarfieldResult:
             "rejected": np.argwhere(self.rejected).tolist(),
             "b_positive_definite": bool(self.b_positive_definite),
             "diagnostics": None if self.diagnostics is None else self.diagnostics.to_dict(),
+            "position_cov": None if self.position_cov is None else self.position_cov.tolist(),
         }
 
 
@@ -287,13 +291,13 @@ def initialize_farfield(X: Array) -> FarfieldInit:
     return FarfieldInit(Z.T, N, B / scale**2, A / scale, pd)
 
 
-def _canonical(pos: Array, dirs: Array) -> tuple[Array, Array]:
+def _canonical(pos: Array, dirs: Array) -> tuple[Array, Array, Array]:
     """Rotate so that the positions' principal axes are the coordinate axes (row 0 stays 0)."""
     if np.linalg.matrix_rank(pos, tol=1e-12 * (np.abs(pos).max() + 1e-300)) < 3:
-        return pos, dirs
+        return pos, dirs, np.eye(3)
     _, _, al = canonical_gauge(pos)
     R = al.rotation
-    return pos @ R.T, dirs @ R.T
+    return pos @ R.T, dirs @ R.T, R
 
 
 def ransac_farfield(
@@ -513,11 +517,15 @@ def solve_farfield(
         return np.asarray(np.nanmean(np.where(used, D - pos @ dirs.T, np.nan), axis=0))
 
     def _result(pos: Array, dirs: Array, C: Array, *, kind: str | None, conv: bool, its: int,
-                meth: str, rej: NDArray[np.bool_], pd: bool, hist: list[float]) -> FarfieldResult:
-        pos, dirs = _canonical(pos, dirs)
+                meth: str, rej: NDArray[np.bool_], pd: bool, hist: list[float],
+                cov: Array | None = None) -> FarfieldResult:
+        pos, dirs, R = _canonical(pos, dirs)
+        if cov is not None:
+            cov = np.einsum("ab,ibc,dc->iad", R, cov, R)
         r = farfield_residuals(np.where(used & ~rej, D, np.nan), pos, dirs, C)
         rms = float(np.sqrt(np.nanmean(r**2))) if np.isfinite(r).any() else float("nan")
-        return FarfieldResult(pos, dirs, C, kind, rms, conv, its, meth, loss, rej | gross, pd, report, hist)
+        return FarfieldResult(pos, dirs, C, kind, rms, conv, its, meth, loss, rej | gross, pd, report, hist,
+                              cov)
 
     no_rej = np.zeros_like(finite)
     kind_found = report.kind if check_degeneracy else None
@@ -569,6 +577,7 @@ def solve_farfield(
         return _raise_or_return("cone", _DEGENERATE_MESSAGES["cone"] + f" (cone SNR {report.cone_snr:.3g} < "
                                 f"{cone_tol:g})", part, allow_degenerate)
     hist: list[float] = []
+    cov: Array | None = None
     its, conv = 0, True
     rej = no_rej
     if method in ("lm", "alternating"):
@@ -587,6 +596,7 @@ def solve_farfield(
                                          delta=delta, direction_solver=direction_solver,
                                          max_iter=max_iter or 2000, tol=tol or 1e-10)
             Z, N, C = out.positions, out.directions, out.offsets
+            cov = out.position_cov
             hist += out.history
             its += out.iterations
             conv = out.converged
@@ -599,7 +609,7 @@ def solve_farfield(
             with np.errstate(invalid="ignore"):
                 rej = np.asarray(used & (np.abs(r) > reject_k * max(rob, 1e-300)))
     res = _result(Z, N, C, kind=kind_found, conv=conv, its=its, meth=method, rej=rej,
-                  pd=init.b_positive_definite, hist=hist)
+                  pd=init.b_positive_definite, hist=hist, cov=cov)
     if kind_found == "cone":
         return _raise_or_return("cone", _DEGENERATE_MESSAGES["cone"] + f" (cone SNR {report.cone_snr:.3g} < {cone_tol:g})",
                                 res, allow_degenerate)

@@ -44,6 +44,7 @@ __all__ = [
     "sphere_lstsq_local",
     "refine_alternating",
     "refine_lm",
+    "position_covariance",
 ]
 
 Array = NDArray[np.float64]
@@ -57,7 +58,8 @@ class RefineResult:
     positions (m, 3) with row 0 = 0, directions (k, 3) unit, offsets (k,), cost (final
     value of F), iterations, converged, and ``history``: the cost after every iteration
     (``history[0]`` is the initial cost) and, if requested, the positions after every
-    iteration (``position_history``).
+    iteration (``position_history``). :func:`refine_lm` also gives ``position_cov``
+    (m, 3, 3), the Gauss-Newton covariance of each position (see :func:`position_covariance`).
     """
 
     positions: Array
@@ -68,6 +70,7 @@ class RefineResult:
     converged: bool
     history: list[float] = field(default_factory=list)
     position_history: list[Array] = field(default_factory=list)
+    position_cov: Array | None = None
 
 
 # ----------------------------------------------------------------------------- losses
@@ -371,6 +374,34 @@ def _lm_step(
     return dz, dn
 
 
+def position_covariance(
+    D: Array, Z: Array, N: Array, C: Array, W: Array, *, free_offsets: bool, dof_extra: int = 0
+) -> Array:
+    """Gauss-Newton covariance of the positions at a least-squares solution: (m, 3, 3).
+
+    ``sigma^2 [S^+]_ii`` with S the Schur complement of the direction/offset blocks in
+    ``J^T W J`` (the positions' information with the directions and offsets profiled out)
+    and ``sigma^2 = cost / (observations - parameters + 3)``. The pseudo-inverse puts the
+    three unobservable rotations in the minimum-norm gauge (z_1 = 0 fixes translation), so
+    the covariances describe errors after the best rotation about the first position.
+    """
+    D0 = np.where(W > 0, D, 0.0)
+    Hzz, Hzn, Hnn, _, _, _, r = _normal_equations(D0, Z, N, C, W, free_offsets)
+    mz, k, p = Hzn.shape[0], Hnn.shape[0], Hnn.shape[1]
+    Hnn_inv = np.linalg.pinv(Hnn)
+    X = np.einsum("ijab,jbc->ijac", Hzn, Hnn_inv)
+    S = -(X.transpose(0, 2, 1, 3).reshape(mz * 3, k * p) @ Hzn.transpose(0, 2, 1, 3).reshape(mz * 3, k * p).T)
+    S4 = S.reshape(mz, 3, mz, 3)
+    idx = np.arange(mz)
+    S4[idx, :, idx, :] += Hzz
+    n_obs = int((W > 0).sum())
+    n_par = 3 * mz + p * k - 3 - dof_extra
+    sigma2 = float(np.sum(W * r**2)) / max(n_obs - n_par, 1)
+    cov = sigma2 * np.linalg.pinv(S, rcond=1e-10, hermitian=True)
+    blocks = cov.reshape(mz, 3, mz, 3)[idx, :, idx, :]
+    return np.concatenate([np.zeros((1, 3, 3)), blocks], axis=0)
+
+
 def refine_lm(
     D: Array,
     positions: Array,
@@ -446,4 +477,6 @@ def refine_lm(
         if done:
             converged = True
             break
-    return RefineResult(Z, N, C, cost, it, converged, hist, phist)
+    W = _weights(D0, Z, N, C, obs, loss, delta)
+    cov = position_covariance(D0, Z, N, C, W, free_offsets=free_offsets)
+    return RefineResult(Z, N, C, cost, it, converged, hist, phist, cov)
