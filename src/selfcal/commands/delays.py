@@ -14,9 +14,9 @@ from ._base import backend_option, handle_errors, reproduce, scheduler_option, s
               help="Tests per point of Fig. 4.1-4.3 for the fast solver (thesis: 20).")
 @click.option("--faithful-runs", type=int, default=2, show_default=True,
               help="Tests per point for the (slow) thesis iteration; --full uses --runs.")
-@click.option("--max-iter", type=int, default=20_000, show_default=True,
+@click.option("--max-iter", type=int, default=50_000, show_default=True,
               help="Iteration cap of the thesis iteration in Fig. 4.1-4.3 (thesis: 1e6, --full).")
-@click.option("--cap-120", type=int, default=5000, show_default=True,
+@click.option("--cap-120", type=int, default=20_000, show_default=True,
               help="Iteration cap of the thesis iteration at 120 units (Fig. 4.4); the rest is extrapolated.")
 @click.option("--noise-runs", type=int, default=10, show_default=True,
               help="Runs per noise level (10 and 50 us) of the NLS / CRLB experiment (0 skips it).")

@@ -24,26 +24,30 @@ rank-d truncation by SVD (3.13), error (3.14), least-squares update of p (3.11/3
 Frobenius norm (3.17); :func:`rank3_iteration` is that iteration (with the regularised
 update 3.19-3.23). It is an alternating projection for
 
-    minimise over p:  f(p) = sum_{k > d} sigma_k(T + A(p) + Gamma(p))^2          (*)
+    minimise over p:  f(p) = sum_{k > d} sigma_k(T + A(p))^2                     (*)
 
-and converges linearly, in thousands of iterations. :func:`rank3_lm` minimises the same
-(*) by Levenberg-Marquardt in p with variable projection (the rank-d factor is eliminated
-by the SVD): every column of the Jacobian of ``T + A + Gamma`` is a rank-one matrix
+and converges linearly, in thousands of iterations. :func:`rank3_lm` minimises (*) by
+Levenberg-Marquardt in p with variable projection (the rank-d factor is eliminated by
+the SVD): every column of the Jacobian of the corrected matrix is a rank-one matrix
 u_k v_k^T, so the Gauss-Newton normal matrix is the Hadamard product
 ``(U~^T U~) o (V~^T V~)`` of the projected factors, O((I+J) K^2) per iteration, and it
-converges quadratically on noise-free data (tens of iterations). With ``model="exact"``
-(the default of :func:`estimate_offsets`) it keeps Gamma, so distinct internal delays
-are recovered exactly too; ``model="linear"`` is the thesis's Gamma = 0 model, the same
-fixed point as the faithful iteration.
+converges quadratically on noise-free data (tens of iterations). Beyond the thesis it
+offers ``model="exact"`` (keeps Gamma: distinct internal delays are recovered exactly),
+``centring="mean"`` (``P D P`` instead of differences to receiver 1 / sender 1: the same
+zero set, no special node), missing entries as extra unknowns, and a bound on |p| that
+keeps it away from the spurious solutions at infinity. :func:`fast_offsets` (the default
+method) runs it on the linear model and then on the exact model, which lands in the
+right basin more often; :func:`estimate_offsets` adds the thesis's acceptance test on the
+final F and restarts from new random initialisations.
 
-Identifiability of the rank method (our derivation; the thesis's count 3.6/3.18 is for
-the full model): the (I-1) x (J-1) matrix must have rank <= d, a variety of codimension
-(I-1-d)(J-1-d), and it has to pin down K = I+J-1 offsets, so we need
-``I >= d+2, J >= d+2`` and ``(I-1-d)(J-1-d) >= I+J-1``. With U units (I = J = U) that
-is U >= 8 in 3-D and U >= 7 in 2-D. The thesis counts equations against all unknowns
-of (3.1) (4U per side in 3-D, minus 7 gauge): U^2 - 8U + 7 >= 0, U >= 7, which is the
-condition for the full nonlinear model (the NLS refinement), not for the rank method,
-which discards the norm information.
+Identifiability (our derivation). The rank method: the (I-1) x (J-1) matrix must have
+rank <= d, a variety of codimension (I-1-d)(J-1-d), and it has to pin down K = I+J-1
+offsets, so we need ``I >= d+2, J >= d+2`` and ``(I-1-d)(J-1-d) >= I+J-1``; with U units
+(I = J = U, one microphone and one loudspeaker each) that is U >= 8 in 3-D and U >= 7 in
+2-D. The full model (3.1) (NLS refinement) counts I*J equations against
+``d(I+J) - d(d+1)/2 + I+J-1`` unknowns: ``IJ >= 4(I+J) - 7`` in 3-D (the thesis's 3.18,
+U^2 - 8U + 7 >= 0, U >= 7) and ``IJ >= 3(I+J) - 4`` in 2-D (U >= 6). The rank method needs
+one unit more because double centring discards the norm information.
 
 Units of the thesis constants: the thesis works in seconds (c = 1 in the text, seconds
 in its simulation). Its thresholds are on quantities in s^2 and scale with c^2: the
@@ -226,8 +230,8 @@ def _validate(ranges: Any, dim: int) -> Array:
         i, j = np.argwhere(np.isnan(R))[0]
         raise InputError(
             f"ranges: entry ({i}, {j}) is missing (NaN); the rank-{dim} offset estimation needs a complete "
-            "matrix: use solve_toa(matrix, offsets='both', method='nls') (initialize_offsets imputes missing "
-            "entries), or drop the incomplete rows/columns"
+            "matrix: use solve_toa(matrix, offsets='both', method='nls') (or the fast method here, which "
+            "completes missing entries), or drop the incomplete rows/columns"
         )
     check_rank_identifiable(R.shape[0], R.shape[1], dim)
     return R
