@@ -108,7 +108,7 @@ def test_rank3_method_returns_the_unrefined_initialiser(rng):
 def test_multistart_escapes_a_mirrored_start():
     """Two sources started at their mirror image: one refinement stays in the wrong
     basin; method='auto' detects the implausible fit and restarts."""
-    rng = np.random.default_rng(0)
+    rng = np.random.default_rng(4)
     I, J, d = 8, 10, 2
     r, s, _, _ = network(rng, I, J, d)
     Y = toa_model(r, s) + rng.normal(0, 0.01, (I, J))

@@ -22,9 +22,9 @@ gauge removed), obtained from the pinned inverse ``C`` as ``P C P`` with ``P`` t
 orthogonal projector onto the complement of the gauge directions (any gauge-fixed
 inverse differs from ``(J^T J)^+`` only along the gauge directions).
 
-Sparse structure. Every residual touches one receiver and one source, so ``J^T J``
-is an arrow matrix: block-diagonal on each node set plus a dense receiver-source
-coupling. The default solver (``solver="schur"``) is Levenberg-Marquardt whose
+Sparse structure. Every residual touches one receiver and one source, so the
+Jacobian has 2d (+1, +2) non-zeros per row and ``J^T J`` is d x d block-diagonal
+within each node set, coupled only through the receiver-source blocks. The default solver (``solver="schur"``) is Levenberg-Marquardt whose
 normal equations are reduced by a Schur complement onto the smaller node set and
 solved matrix-free by preconditioned conjugate gradients (Schur-Jacobi blocks):
 O(I J d) per product, nothing of size (I d)^2 stored. The covariance needs the
@@ -261,11 +261,6 @@ class _Layout:
     pins: NDArray[np.intp]  # pinned parameter indices (all on the K side)
     n: int
 
-    @property
-    def kept_free(self) -> NDArray[np.intp]:
-        flat = self.k_idx.ravel()
-        return flat[~np.isin(flat, self.pins)]
-
 
 def _node_indices(I: int, J: int, d: int, offsets: str) -> tuple[NDArray[np.intp], NDArray[np.intp], int]:
     has_r, has_s = _flags(offsets)
@@ -454,21 +449,18 @@ def _solve_trf(
     return full(res.x), bool(res.status > 0), int(res.njev or res.nfev)
 
 
-def _k_e_vectors(theta: Array, lay: _Layout) -> tuple[Array, Array]:
-    return theta[lay.k_idx].ravel(), theta[lay.e_idx].ravel()
-
-
 _Op = Callable[[Array], Array]
 
 
 def _reduced_operator(
-    aK: Array, bE: Array, w: Array, lay: _Layout, damping: float
+    aK: Array, bE: Array, w: Array, damping: float
 ) -> tuple[_Op, _Op, _Op, _Op, _Op]:
     """Matrix-free Schur complement ``S = A - B D^-1 B^T`` of the damped normal matrix.
 
-    Returns ``(S @ x, preconditioner @ x, B @ y, B^T @ x, D^-1 @ y)`` on full-length K / E
-    vectors; pinned K coordinates are masked out (S acts as the identity on them).
-    The preconditioner is the inverse of the exact d x d diagonal blocks of S
+    Returns ``(S @ x, preconditioner @ x, B @ y, B^T @ x, D^-1 @ y)`` on K / E vectors.
+    No coordinate is pinned here: the Marquardt damping makes S positive definite and
+    the caller projects the gauge out of the step (pinning would create soft modes of
+    relative stiffness ~1/n that slow conjugate gradients down ~3x). The preconditioner is the inverse of the exact d x d diagonal blocks of S
     (Schur-Jacobi). Every product costs O(nK nE m) instead of the O(nK^2 nE m^2) of
     forming S, and nothing of size nK x nE x m^2 is stored.
     """
@@ -480,14 +472,8 @@ def _reduced_operator(
         Ablk = Ablk + damping * np.einsum("kpp->kp", Ablk)[:, :, None] * np.eye(mK)
         Dblk = Dblk + damping * np.einsum("epp->ep", Dblk)[:, :, None] * np.eye(mE)
     Dinv = _inv_blocks(Dblk)
-    mask = np.ones(nK * mK, dtype=bool)
-    mask[_pinned_positions(lay)] = False
     c = np.einsum("keq,eqr,ker->ke", bE, Dinv, bE, optimize=True) * w**2
     Sblk = Ablk - np.einsum("ke,kep,keq->kpq", c, aK, aK, optimize=True)
-    m2 = mask.reshape(nK, mK)
-    Sblk = Sblk * (m2[:, :, None] & m2[:, None, :]) + np.einsum(
-        "kp,pq->kpq", (~m2).astype(float), np.eye(mK)
-    )
     Pinv = _inv_blocks(Sblk)
 
     # component-major copies: the products below are then plain contiguous array
@@ -515,9 +501,7 @@ def _reduced_operator(
         return np.einsum("epq,eq->ep", Dinv, y.reshape(nE, mE)).ravel()
 
     def smul(x: Array) -> Array:
-        xm = np.where(mask, x, 0.0)
-        out = np.einsum("kpq,kq->kp", Ablk, xm.reshape(nK, mK)).ravel() - b(dinv(bt(xm)))
-        return np.where(mask, out, x)
+        return np.einsum("kpq,kq->kp", Ablk, x.reshape(nK, mK)).ravel() - b(dinv(bt(x)))
 
     def prec(x: Array) -> Array:
         return np.einsum("kpq,kq->kp", Pinv, x.reshape(nK, mK)).ravel()
@@ -540,7 +524,6 @@ def _solve_schur_lm(
 
     obs = np.isfinite(Y)
     Yz = np.where(obs, Y, 0.0)
-    pinned = _pinned_positions(lay)
 
     def evaluate(theta: Array) -> tuple[float, Array, Array]:
         r, s, dr, os_ = _unpack(theta, lay.I, lay.J, lay.d, lay.offsets)
@@ -563,10 +546,10 @@ def _solve_schur_lm(
         it += 1
         _, u = _unit_vectors(theta, lay)
         aK, bE = _row_blocks(u, lay)
+        Qg = gauge_basis(*_unpack(theta, lay.I, lay.J, lay.d, lay.offsets)[:2], lay.offsets)
         fK = f if lay.k_is_receivers else f.T
         wK = w if lay.k_is_receivers else w.T
         gK = np.einsum("kep,ke->kp", aK, wK * fK).ravel()
-        gK[pinned] = 0.0
         gE = np.einsum("kep,ke->ep", bE, wK * fK).ravel()
         gnorm = float(np.sqrt(gK @ gK + gE @ gE))
         g0 = gnorm if it == 1 else g0
@@ -576,7 +559,7 @@ def _solve_schur_lm(
         improved = False
         for _ in range(12):
             try:
-                smul, prec, b, bt, dinv = _reduced_operator(aK, bE, wK, lay, lam)
+                smul, prec, b, bt, dinv = _reduced_operator(aK, bE, wK, lam)
             except DegenerateGeometryError:
                 lam *= 10
                 continue
@@ -584,18 +567,18 @@ def _solve_schur_lm(
             op = LinearOperator((nk, nk), matvec=smul, dtype=float)
             pc = LinearOperator((nk, nk), matvec=prec, dtype=float)
             x, _ = cg(op, rhs, rtol=cg_rtol, maxiter=500, M=pc)
-            x[pinned] = 0.0
             y = dinv(-gE - bt(x))
             step = np.zeros(lay.n)
             step[lay.k_idx.ravel()] = x
             step[lay.e_idx.ravel()] = y
+            step -= Qg @ (Qg.T @ step)  # no rigid drift (and no common offset shift)
             trial = theta + step
             c2, f2, w2 = evaluate(trial)
             if c2 <= cost:
                 small = np.linalg.norm(step) <= xtol * (xtol + np.linalg.norm(theta))
                 rel = (cost - c2) <= ftol * max(cost, 1e-300)
                 theta, cost, f, w = trial, c2, f2, w2
-                lam = max(lam / 10, 1e-10)
+                lam = max(lam / 10, 1e-8)
                 improved = True
                 converged = bool(small or rel)
                 break
