@@ -12,15 +12,19 @@ every point with the gauge removed.
 
 Gauge. The cost is invariant under the d(d+1)/2 rigid motions of all points (and,
 with both kinds of offsets, under ``d_i + c, o_j - c``), so ``J^T J`` is singular.
-We fix the gauge during the solve by *pinning* g coordinates at their initial
-values; the pinned set is chosen by a column-pivoted QR of the gauge basis
-restricted to the smaller node set, so no gauge motion leaves every pinned
-coordinate fixed (the reduced normal matrix is non-singular). The minimum of the
-cost does not depend on that choice. The covariance is reported gauge-free: the
-Moore-Penrose inverse ``sigma^2 (J^T J)^+`` (003 eq. 17 with the null space of the
-gauge removed), obtained from the pinned inverse ``C`` as ``P C P`` with ``P`` the
-orthogonal projector onto the complement of the gauge directions (any gauge-fixed
-inverse differs from ``(J^T J)^+`` only along the gauge directions).
+The default solver keeps every coordinate free: the Marquardt damping makes each
+step's system positive definite and the step is projected onto the orthogonal
+complement of the gauge directions (:func:`gauge_basis`), so the network never
+drifts. ``solver="trf"`` and the covariance instead *pin* g coordinates, chosen by
+a column-pivoted QR of the gauge basis restricted to the smaller node set so that
+no gauge motion leaves every pinned coordinate fixed (the reduced normal matrix is
+then non-singular). The minimum of the cost does not depend on either choice. The
+covariance is reported gauge-free: the Moore-Penrose inverse ``sigma^2 (J^T J)^+``
+(003 eq. 17 with the null space of the gauge removed), obtained from the pinned
+inverse ``C`` as ``P C P`` with ``P`` the orthogonal projector onto the complement
+of the gauge directions (any gauge-fixed inverse differs from ``(J^T J)^+`` only
+along the gauge directions). Results are returned in the canonical gauge of
+:func:`selfcal.geometry.canonical_gauge` (covariance blocks rotated with it).
 
 Sparse structure. Every residual touches one receiver and one source, so the
 Jacobian has 2d (+1, +2) non-zeros per row and ``J^T J`` is d x d block-diagonal
