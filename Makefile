@@ -20,10 +20,10 @@ demo: $(STAMP)
 	$(VENV)/bin/selfcal demo --out demo-output
 
 test: $(STAMP)
-	$(PY) -m pytest -n 2 -q
+	OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1 MKL_NUM_THREADS=1 $(PY) -m pytest -n 2 -q
 
 test-slow: $(STAMP)
-	$(PY) -m pytest -n 2 -q -m ''
+	OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1 MKL_NUM_THREADS=1 $(PY) -m pytest -n 2 -q -m "slow or not slow"
 
 bench: $(STAMP)
 	$(PY) benchmarks/run_all.py --out benchmarks/results
