@@ -1,1 +1,31 @@
-"""selfcal.slac"""
+"""selfcal.slac: simultaneous localization and calibration of antenna responses and ranging biases (paper 002).
+
+Modules: :mod:`~selfcal.slac.antenna` (manifold separation, eqs. 7-9), :mod:`~selfcal.slac.signals`
+(OFDM snapshots, eqs. 3-4), :mod:`~selfcal.slac.likelihood` (concentrated likelihoods, eqs. 18-19),
+:mod:`~selfcal.slac.motion` (eq. 14), :mod:`~selfcal.slac.filter` (IEKF-like MAP filter, eqs. 20-26),
+:mod:`~selfcal.slac.doa` (coherent ML DoA), :mod:`~selfcal.slac.measurement` (range/bearing level),
+:mod:`~selfcal.slac.run` (logs and :func:`solve_slac`).
+"""
+
+from __future__ import annotations
+
+import importlib
+from typing import Any
+
+_LAZY = {
+    "AntennaResponse": "antenna", "fourier_basis": "antenna", "sampling_matrix": "antenna",
+    "dipole_response": "antenna", "multimode_antenna": "antenna",
+    "ofdm_probe": "signals", "snapshot": "signals", "delayed_spectrum": "signals",
+    "concentrated_loglik": "likelihood", "link_loglik": "likelihood", "link_fisher": "likelihood",
+    "motion_step": "motion", "motion_jacobian": "motion", "process_noise": "motion",
+    "SlacConfig": "filter", "SlacFilter": "filter", "map_update": "filter",
+    "estimate_doa": "doa", "RangeFilter": "measurement", "RangeConfig": "measurement",
+    "SlacLog": "run", "SlacResult": "run", "solve_slac": "run",
+}
+__all__ = sorted(_LAZY)
+
+
+def __getattr__(name: str) -> Any:
+    if name in _LAZY:
+        return getattr(importlib.import_module(f"selfcal.slac.{_LAZY[name]}"), name)
+    raise AttributeError(name)

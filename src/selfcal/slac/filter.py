@@ -1,0 +1,457 @@
+"""Cooperative SLAC filter on raw received signals (paper 002, sections III-IV).
+
+State (eqs. 10-16), in this order::
+
+    [x_1, y_1, psi_1, ..., x_n, y_n, psi_n]          location states of the n agents (eq. 12)
+    [delta_1 .. delta_n, (delta_anchor_1 ..)]         ranging biases (SLAC mode; eq. 15)
+    [g_i for every multi-port agent i]                 [Re vec G_i; Im vec G_i] (eq. 16)
+
+* Prediction (eqs. 20-21): the turn-rate/velocity model (eq. 14) for the location states,
+  identity for the calibration states (constant, zero process noise).
+* Update (eq. 22-26): ``x_hat = argmin NLL(x) + 1/2 (x - x_bar)^T P_bar^-1 (x - x_bar)`` with
+  NLL the negative sum of the concentrated log-likelihoods (eqs. 18/19, 24-25) of every
+  received snapshot, solved by BFGS with the analytic gradient (eq. 26). BFGS runs in
+  coordinates whitened by the posterior information at the prediction, so that its identity
+  start is already a good inverse Hessian (few iterations). Covariance: Laplace
+  approximation, the inverse Hessian of the objective at the solution, with the likelihood
+  Hessian replaced by its Fisher information (``covariance="fisher"``, default, cheap) or
+  taken by central differences of the analytic gradient (``covariance="fd"``, the paper's
+  numerical Hessian).
+* Range model (eq. 1): the snapshot that agent i receives back from node j has round-trip
+  range ``rho = |p_j - p_i| - delta_i - delta_j``; DoA in i's body frame (eq. 2):
+  ``phi = atan2(y_j - y_i, x_j - x_i) - psi_i``.
+* ``mode="localization"`` removes the calibration states (biases fixed to 0, G to its prior).
+
+Beyond the paper: the anchors' ranging biases can be states too (``anchor_biases=True``),
+since eq. 1 adds both ends' biases and real anchors have them as well.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.linalg as sla
+from numpy.typing import NDArray
+from scipy.optimize import minimize
+
+from .._checks import as_points, check_choice
+from ..errors import InputError
+from .likelihood import link_fisher, link_loglik, pack_g, unpack_g
+from .motion import motion_jacobian, motion_step, process_noise
+from .signals import range_wavenumber
+
+__all__ = ["SlacConfig", "UpdateInfo", "map_update", "predict_locations", "SlacFilter"]
+
+FArray = NDArray[np.float64]
+CArray = NDArray[np.complex128]
+
+
+@dataclass(frozen=True)
+class SlacConfig:
+    """Filter settings (defaults: the paper's experiment, section V).
+
+    Attributes
+    ----------
+    T : update interval in seconds (0.1).
+    sigma_v : control-noise density of the linear velocity, m/s^1.5 (0.015).
+    sigma_omega : control-noise density of the turn rate, rad/s^1.5 (0.3 deg).
+    bandwidth : signal bandwidth / sample rate B in Hz (28.2 MHz).
+    bias_std : prior standard deviation of every ranging bias, metres (the paper
+        initialises the biases at 0).
+    g_rel_std : prior standard deviation of each sampling-matrix entry (real and imaginary
+        part), relative to the RMS magnitude of the prior's entries.
+    anchor_biases : estimate anchors' biases too (beyond the paper).
+    gtol : BFGS stop on the whitened gradient norm (units: prior standard deviations).
+    max_iter : BFGS iteration cap per update.
+    covariance : "fisher" or "fd" (see module doc).
+    first_estimates : evaluate the sampling-matrix part of the Fisher information at the prior
+        G (first-estimates Jacobian, Huang et al. 2008; beyond the paper). The likelihood is
+        exactly invariant to ``(psi, G) -> (psi + t, G diag(e^{j u t}))`` and to
+        ``G -> kappa G``; information linearised at a moving G estimate breaks these null
+        directions and makes the filter overconfident in heading (NEES far above its band).
+    """
+
+    T: float = 0.1
+    sigma_v: float = 0.015
+    sigma_omega: float = float(np.deg2rad(0.3))
+    bandwidth: float = 28.2e6
+    bias_std: float = 0.5
+    g_rel_std: float = 0.25
+    anchor_biases: bool = True
+    gtol: float = 1e-3
+    max_iter: int = 60
+    covariance: str = "fisher"
+    first_estimates: bool = True
+
+
+@dataclass(frozen=True)
+class UpdateInfo:
+    """Outcome of one MAP update."""
+
+    iterations: int
+    converged: bool
+    evaluations: int
+    objective: float
+
+
+def _chol_inv(P: FArray) -> FArray:
+    c = sla.cho_factor(P, lower=True)
+    return sla.cho_solve(c, np.eye(P.shape[0]))
+
+
+def map_update(
+    x_bar: FArray,
+    P_bar: FArray,
+    fun_grad: Callable[[FArray], tuple[float, FArray]],
+    information: Callable[[FArray], FArray],
+    *,
+    gtol: float = 1e-3,
+    max_iter: int = 60,
+    covariance: str = "fisher",
+    preconditioner: Callable[[FArray], FArray] | None = None,
+) -> tuple[FArray, FArray, UpdateInfo]:
+    """MAP update of eq. 22 by BFGS with the analytic gradient, Laplace covariance.
+
+    Parameters
+    ----------
+    x_bar, P_bar : (D,), (D, D) predicted mean and covariance (eq. 20-21).
+    fun_grad : x -> (NLL, dNLL/dx), the negative log-likelihood of eq. 24 and its gradient.
+    information : x -> (D, D) Fisher information of the likelihood at x.
+    covariance : "fisher" or "fd" (Hessian of the NLL by central differences of fun_grad).
+    preconditioner : x -> (D, D) information used only to whiten the BFGS coordinates
+        (default: ``information``).
+
+    Returns
+    -------
+    x_hat (D,), P_hat (D, D), UpdateInfo.
+    """
+    Pinv = _chol_inv(P_bar)
+    H0 = Pinv + (preconditioner or information)(x_bar)
+    C = np.linalg.cholesky(0.5 * (H0 + H0.T))
+
+    def to_x(u: FArray) -> FArray:
+        return x_bar + sla.solve_triangular(C.T, u, lower=False)
+
+    def obj(u: FArray) -> tuple[float, FArray]:
+        x = to_x(u)
+        r = x - x_bar
+        nll, g = fun_grad(x)
+        Pr = Pinv @ r
+        return float(nll + 0.5 * r @ Pr), sla.solve_triangular(C, g + Pr, lower=True)
+
+    res = minimize(obj, np.zeros(x_bar.size), jac=True, method="BFGS",
+                   options={"gtol": gtol, "maxiter": max_iter})
+    x_hat = to_x(res.x)
+    if covariance == "fd":
+        D = x_hat.size
+        Hl = np.empty((D, D))
+        scale = np.sqrt(np.clip(np.diag(P_bar), 1e-18, None))
+        for d in range(D):
+            h = 1e-4 * scale[d]
+            e = np.zeros(D)
+            e[d] = h
+            Hl[:, d] = (fun_grad(x_hat + e)[1] - fun_grad(x_hat - e)[1]) / (2 * h)
+        H = Pinv + 0.5 * (Hl + Hl.T)
+    else:
+        H = Pinv + information(x_hat)
+    H = 0.5 * (H + H.T)
+    try:
+        P = _chol_inv(H)
+    except np.linalg.LinAlgError:
+        # an indefinite numerical Hessian: fall back on the Fisher information (always PSD)
+        P = _chol_inv(Pinv + information(x_hat))
+    info = UpdateInfo(int(res.nit), bool(res.success), int(res.nfev), float(res.fun))
+    return x_hat, 0.5 * (P + P.T), info
+
+
+def predict_locations(
+    x: FArray, P: FArray, controls: FArray, T: float, sigma_v: float, sigma_omega: float
+) -> tuple[FArray, FArray]:
+    """Prediction of eqs. 20-21 for a state whose first ``3 n`` entries are agent poses.
+
+    Parameters
+    ----------
+    x, P : (D,), (D, D) state and covariance; calibration states follow the poses.
+    controls : (n, 2) ``[v, omega]`` per agent.
+
+    Returns
+    -------
+    x_bar, P_bar.
+    """
+    u = np.asarray(controls, dtype=float)
+    n = u.shape[0]
+    poses = x[: 3 * n].reshape(n, 3)
+    Fl = motion_jacobian(poses, u, T)
+    Ql = process_noise(poses, u, T, sigma_v, sigma_omega)
+    x_new = x.copy()
+    x_new[: 3 * n] = motion_step(poses, u, T).ravel()
+    F = np.eye(x.size)
+    Q = np.zeros_like(P)
+    for i in range(n):
+        sl = slice(3 * i, 3 * i + 3)
+        F[sl, sl] = Fl[i]
+        Q[sl, sl] = Ql[i] + 1e-12 * np.eye(3)  # keeps P_bar positive definite for a static rover
+    P_new = F @ P @ F.T + Q
+    return x_new, 0.5 * (P_new + P_new.T)
+
+
+class SlacFilter:
+    """Stateful cooperative SLAC / localization filter on raw OFDM snapshots.
+
+    Parameters
+    ----------
+    anchors : (A, 2) known anchor positions, metres.
+    ports : (n,) number of antenna ports M_i of each agent.
+    G_prior : sequence of n sampling matrices (M_i, U) or None for single-port agents;
+        the EM-simulation or chamber prior (section IV).
+    x0 : (n, 3) initial poses ``[x, y, psi]``; P0 : (n, 3, 3) their covariances.
+    probe : (N,) the known OFDM spectrum s(n).
+    mode : "slac" or "localization".
+    config : SlacConfig.
+
+    Nodes are numbered agents 0..n-1 then anchors n..n+A-1 (for ``rx`` / ``tx`` indices).
+    """
+
+    def __init__(
+        self,
+        anchors: FArray,
+        ports: Sequence[int],
+        G_prior: Sequence[CArray | None],
+        x0: FArray,
+        P0: FArray,
+        probe: CArray,
+        *,
+        mode: str = "slac",
+        config: SlacConfig | None = None,
+    ) -> None:
+        self.mode = check_choice(mode, "mode", ("slac", "localization"))
+        self.config = config or SlacConfig()
+        check_choice(self.config.covariance, "covariance", ("fisher", "fd"))
+        self.anchors = as_points(anchors, "anchors", dim=2)
+        self.ports = np.asarray(ports, dtype=int)
+        n = self.n = self.ports.size
+        if len(G_prior) != n:
+            raise InputError(f"G_prior needs one entry per agent ({n}), got {len(G_prior)}")
+        x0 = np.asarray(x0, dtype=float)
+        P0 = np.asarray(P0, dtype=float)
+        if x0.shape != (n, 3) or P0.shape != (n, 3, 3):
+            raise InputError(f"x0 must be ({n}, 3) and P0 ({n}, 3, 3); got {x0.shape}, {P0.shape}")
+        self.probe = np.asarray(probe, dtype=complex)
+        self.N = self.probe.size
+        self.k = range_wavenumber(self.config.bandwidth, self.N)
+        self.S = float(np.sum(np.abs(self.probe) ** 2))
+        self.G_prior = [None if g is None else np.asarray(g, dtype=complex) for g in G_prior]
+        for i, g in enumerate(self.G_prior):
+            if self.ports[i] > 1 and (g is None or g.shape[0] != self.ports[i]):
+                raise InputError(f"agent {i} has {self.ports[i]} ports and needs a ({self.ports[i]}, U) G_prior")
+        n_nodes = n + len(self.anchors)
+        blocks: list[FArray] = [x0.ravel()]
+        cov_blocks: list[FArray] = list(P0)
+        self.bias_index = np.full(n_nodes, -1)
+        self.g_index: dict[int, NDArray[np.int64]] = {}
+        D = 3 * n
+        if self.mode == "slac":
+            nb = n_nodes if self.config.anchor_biases else n
+            self.bias_index[:nb] = D + np.arange(nb)
+            blocks.append(np.zeros(nb))
+            cov_blocks.append(np.eye(nb) * self.config.bias_std**2)
+            D += nb
+            for i in range(n):
+                if self.ports[i] > 1:
+                    G = self.G_prior[i]
+                    assert G is not None
+                    g = pack_g(G)
+                    self.g_index[i] = D + np.arange(g.size)
+                    blocks.append(g)
+                    rms = float(np.sqrt(np.mean(np.abs(G) ** 2)))
+                    cov_blocks.append(np.eye(g.size) * (self.config.g_rel_std * rms) ** 2)
+                    D += g.size
+        self.x = np.concatenate(blocks)
+        self.P = sla.block_diag(*cov_blocks)
+        self.D = D
+        self.steps = 0
+
+    # ------------------------------------------------------------------ accessors
+    @property
+    def poses(self) -> FArray:
+        """(n, 3) current pose estimates."""
+        return self.x[: 3 * self.n].reshape(self.n, 3).copy()
+
+    @property
+    def pose_covariances(self) -> FArray:
+        """(n, 3, 3) current pose covariances."""
+        return np.stack([self.P[3 * i : 3 * i + 3, 3 * i : 3 * i + 3] for i in range(self.n)])
+
+    @property
+    def biases(self) -> FArray:
+        """(n + A,) bias estimates (0 where not estimated)."""
+        b = np.zeros(self.bias_index.size)
+        m = self.bias_index >= 0
+        b[m] = self.x[self.bias_index[m]]
+        return b
+
+    @property
+    def bias_std(self) -> FArray:
+        """(n + A,) bias standard deviations (0 where not estimated)."""
+        s = np.zeros(self.bias_index.size)
+        m = self.bias_index >= 0
+        s[m] = np.sqrt(np.diag(self.P)[self.bias_index[m]])
+        return s
+
+    def sampling_matrix(self, i: int) -> CArray | None:
+        """Current sampling matrix of agent i (its prior in localization mode)."""
+        if i in self.g_index:
+            return unpack_g(self.x[self.g_index[i]], int(self.ports[i]), self.G_prior[i].shape[1])  # type: ignore[union-attr]
+        return self.G_prior[i]
+
+    # ------------------------------------------------------------------ prediction
+    def predict(self, controls: FArray) -> None:
+        """Eqs. 20-21 with controls (n, 2) ``[v, omega]`` (commanded velocity, gyroscope)."""
+        u = np.asarray(controls, dtype=float)
+        if u.shape != (self.n, 2) or not np.all(np.isfinite(u)):
+            raise InputError(f"controls must be a finite ({self.n}, 2) array [v, omega]")
+        c = self.config
+        self.x, self.P = predict_locations(self.x, self.P, u, c.T, c.sigma_v, c.sigma_omega)
+
+    # ------------------------------------------------------------------ update
+    def _groups(self, rx: NDArray[np.int64], tx: NDArray[np.int64], snaps: Sequence[CArray],
+                noise_var: FArray) -> list[dict[str, object]]:
+        D = self.D
+        groups = []
+        for M in np.unique(self.ports[rx]):
+            sel = np.flatnonzero(self.ports[rx] == M)
+            X = np.stack([np.atleast_2d(snaps[l]) for l in sel]) * self.probe.conj()
+            r, t = rx[sel], tx[sel]
+            # index arrays into x extended by one dummy slot (index D) for constants
+            prx = np.stack([3 * r, 3 * r + 1], axis=1)
+            ptx = np.where((t < self.n)[:, None], np.stack([3 * t, 3 * t + 1], axis=1), D)
+            brx = np.where(self.bias_index[r] >= 0, self.bias_index[r], D)
+            btx = np.where(self.bias_index[t] >= 0, self.bias_index[t], D)
+            gidx = None
+            if M > 1 and self.mode == "slac":
+                gidx = np.stack([self.g_index[int(i)] for i in r])
+            groups.append(dict(M=int(M), X=X, rx=r, tx=t, prx=prx, ptx=ptx, psi=3 * r + 2, brx=brx,
+                               btx=btx, gidx=gidx, var=noise_var[sel]))
+        return groups
+
+    def _geometry(self, xe: FArray, grp: dict[str, object]) -> tuple[FArray, ...]:
+        r = grp["rx"]
+        t = grp["tx"]
+        assert isinstance(r, np.ndarray) and isinstance(t, np.ndarray)
+        pr = xe[grp["prx"]]  # type: ignore[index]
+        pt = np.where((t < self.n)[:, None], xe[grp["ptx"]],  # type: ignore[index]
+                      self.anchors[np.clip(t - self.n, 0, None)])
+        diff = pt - pr
+        d = np.hypot(diff[:, 0], diff[:, 1])
+        rho = d - xe[grp["brx"]] - xe[grp["btx"]]  # type: ignore[index]
+        phi = np.arctan2(diff[:, 1], diff[:, 0]) - xe[grp["psi"]]  # type: ignore[index]
+        return diff, d, rho, phi
+
+    def _G_of(self, xe: FArray, grp: dict[str, object]) -> CArray:
+        r = grp["rx"]
+        assert isinstance(r, np.ndarray)
+        M = int(grp["M"])  # type: ignore[call-overload]
+        if grp["gidx"] is not None and self.mode == "slac":
+            U = self.G_prior[int(r[0])].shape[1]  # type: ignore[union-attr]
+            return unpack_g(xe[grp["gidx"]], M, U)  # type: ignore[index]
+        return np.stack([self.G_prior[int(i)] for i in r])  # type: ignore[misc]
+
+    def _fun_grad(self, x: FArray, groups: list[dict[str, object]]) -> tuple[float, FArray]:
+        xe = np.append(x, 0.0)
+        ge = np.zeros(x.size + 1)
+        total = 0.0
+        for grp in groups:
+            diff, d, rho, phi = self._geometry(xe, grp)
+            M = int(grp["M"])  # type: ignore[call-overload]
+            G = self._G_of(xe, grp) if M > 1 else None
+            terms = link_loglik(grp["X"], rho, grp["var"], self.k, self.S,  # type: ignore[arg-type]
+                                phi=phi if M > 1 else None, G=G)
+            total -= float(terms.value.sum())
+            u = diff / d[:, None]
+            gr = -terms.d_rho  # gradient of the NLL
+            np.add.at(ge, grp["prx"], -gr[:, None] * u)  # type: ignore[arg-type]
+            np.add.at(ge, grp["ptx"], gr[:, None] * u)  # type: ignore[arg-type]
+            np.add.at(ge, grp["brx"], -gr)  # type: ignore[arg-type]
+            np.add.at(ge, grp["btx"], -gr)  # type: ignore[arg-type]
+            if M > 1:
+                gp = -terms.d_phi
+                dphi = np.stack([-diff[:, 1], diff[:, 0]], axis=1) / (d**2)[:, None]
+                np.add.at(ge, grp["prx"], -gp[:, None] * dphi)  # type: ignore[arg-type]
+                np.add.at(ge, grp["ptx"], gp[:, None] * dphi)  # type: ignore[arg-type]
+                np.add.at(ge, grp["psi"], -gp)  # type: ignore[arg-type]
+                if grp["gidx"] is not None and self.mode == "slac" and terms.d_G is not None:
+                    dG = -terms.d_G
+                    v = np.swapaxes(dG, 1, 2).reshape(dG.shape[0], -1)
+                    np.add.at(ge, grp["gidx"], np.concatenate([v.real, v.imag], axis=1))  # type: ignore[arg-type]
+        return total, ge[:-1]
+
+    def _information(self, x: FArray, groups: list[dict[str, object]], fej: bool = True) -> FArray:
+        D = x.size
+        xe = np.append(x, 0.0)
+        if fej and self.config.first_estimates and self.mode == "slac":
+            for i, gi in self.g_index.items():
+                xe[gi] = pack_g(self.G_prior[i])  # type: ignore[arg-type]
+        H = np.zeros((D + 1, D + 1))
+        pp = np.abs(self.probe) ** 2
+        for grp in groups:
+            diff, d, rho, phi = self._geometry(xe, grp)
+            M = int(grp["M"])  # type: ignore[call-overload]
+            G = self._G_of(xe, grp) if M > 1 else None
+            terms = link_loglik(grp["X"], rho, grp["var"], self.k, self.S,  # type: ignore[arg-type]
+                                phi=phi if M > 1 else None, G=G, want_grad=False)
+            F = link_fisher(terms, grp["var"], self.k, pp, phi=phi if M > 1 else None, G=G)  # type: ignore[arg-type]
+            u = diff / d[:, None]
+            prx, ptx = grp["prx"], grp["ptx"]
+            idx = np.column_stack([prx, ptx, grp["brx"], grp["btx"]])  # type: ignore[list-item]
+            jr = np.column_stack([-u, u, -np.ones(d.size), -np.ones(d.size)])
+            if M == 1:
+                blk = F[:, 0, 0, None, None] * jr[:, :, None] * jr[:, None, :]
+                np.add.at(H, (idx[:, :, None], idx[:, None, :]), blk)
+                continue
+            dphi = np.stack([-diff[:, 1], diff[:, 0]], axis=1) / (d**2)[:, None]
+            idx = np.column_stack([idx, grp["psi"]])  # type: ignore[list-item]
+            jr = np.column_stack([jr, np.zeros(d.size)])
+            jp = np.column_stack([-dphi, dphi, np.zeros((d.size, 2)), -np.ones(d.size)])
+            Jl = np.stack([jr, jp], axis=1)  # (L, 2, 7)
+            # (rho, phi) -> (pose, bias) block and its coupling with the identity-mapped g block
+            Hll = np.einsum("lai,lab,lbj->lij", Jl, F[:, :2, :2], Jl)
+            np.add.at(H, (idx[:, :, None], idx[:, None, :]), Hll)
+            if grp["gidx"] is not None and self.mode == "slac":
+                gi = grp["gidx"]
+                Hlg = np.einsum("lai,lag->lig", Jl, F[:, :2, 2:])
+                np.add.at(H, (idx[:, :, None], gi[:, None, :]), Hlg)  # type: ignore[index]
+                np.add.at(H, (gi[:, :, None], idx[:, None, :]), np.swapaxes(Hlg, 1, 2))  # type: ignore[index]
+                np.add.at(H, (gi[:, :, None], gi[:, None, :]), F[:, 2:, 2:])  # type: ignore[index]
+        return H[:-1, :-1]
+
+    def update(
+        self, rx: Sequence[int], tx: Sequence[int], snapshots: Sequence[CArray], noise_var: Sequence[float]
+    ) -> UpdateInfo:
+        """MAP update (eq. 22) with the snapshots agent ``rx[l]`` received from node ``tx[l]``.
+
+        Parameters
+        ----------
+        rx, tx : (L,) node indices (rx must be an agent).
+        snapshots : L arrays (M_rx, N).
+        noise_var : (L,) noise variances per bin and port (estimated from the known signal,
+            :func:`~selfcal.slac.signals.estimate_noise_variance`).
+        """
+        rx_a = np.asarray(rx, dtype=int)
+        tx_a = np.asarray(tx, dtype=int)
+        if rx_a.size == 0:
+            return UpdateInfo(0, True, 0, 0.0)
+        if np.any(rx_a >= self.n) or np.any(rx_a < 0) or np.any(tx_a < 0) or np.any(tx_a >= self.bias_index.size):
+            raise InputError("rx must index agents and tx agents or anchors")
+        groups = self._groups(rx_a, tx_a, snapshots, np.asarray(noise_var, dtype=float))
+        c = self.config
+        self.x, self.P, info = map_update(
+            self.x, self.P,
+            lambda x: self._fun_grad(x, groups),
+            lambda x: self._information(x, groups),
+            gtol=c.gtol, max_iter=c.max_iter, covariance=c.covariance,
+            preconditioner=lambda x: self._information(x, groups, fej=False),
+        )
+        self.steps += 1
+        return info

@@ -1,0 +1,249 @@
+"""Concentrated log-likelihoods of received OFDM snapshots (paper 002, eqs. 18-19).
+
+With ``e = vec(a(phi) s(tau)^T)`` the amplitude and phase of eq. 3 are eliminated in closed
+form, leaving (up to a constant)
+
+    multi-port  (eq. 18):  L = |e^H r|^2 / (sigma^2 e^H e) = |a^H y|^2 / (sigma^2 |a|^2 |s|^2)
+    single-port (eq. 19):  L = |s(tau)^H r|^2 / (sigma^2 |s|^2)
+
+with ``y(tau) = R s^*(tau)`` (M,). Eq. 19 is eq. 18 with a scalar ``a`` (which cancels). Delays
+enter as round-trip ranges ``rho = c tau / 2`` so that ``y(rho) = sum_n X[:, n] e^{j k rho n}``,
+``X = R * conj(s)`` and ``k`` from :func:`~selfcal.slac.signals.range_wavenumber`.
+
+The batched core :func:`link_loglik` evaluates L and its analytic gradient with respect to
+``rho``, ``phi`` and the sampling matrix ``G`` for L links at once (vectorised over links,
+ports and subcarriers); :func:`link_fisher` gives the Fisher information of the same
+parameters (used for the Laplace covariance and as the BFGS preconditioner).
+
+Sampling-matrix parameters are packed as in eq. 16: ``g = [Re vec(G); Im vec(G)]`` with
+``vec`` stacking columns, i.e. index ``u * M + m``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+
+from .antenna import basis_orders, fourier_basis
+from .signals import SPEED_OF_LIGHT, delayed_spectrum, range_wavenumber
+
+__all__ = [
+    "concentrated_loglik",
+    "LinkTerms",
+    "link_loglik",
+    "link_fisher",
+    "pack_g",
+    "unpack_g",
+]
+
+CArray = NDArray[np.complex128]
+FArray = NDArray[np.float64]
+
+
+def pack_g(G: CArray) -> FArray:
+    """``g = [Re vec(G); Im vec(G)]`` (eq. 16), shape (2 M U,)."""
+    v = np.asarray(G).T.ravel()
+    return np.concatenate([v.real, v.imag])
+
+
+def unpack_g(g: FArray, M: int, U: int) -> CArray:
+    """Inverse of :func:`pack_g`: (2 M U,) -> (M, U) complex; also works on (..., 2MU)."""
+    g = np.asarray(g, dtype=float)
+    n = M * U
+    v = g[..., :n] + 1j * g[..., n:]
+    return np.swapaxes(v.reshape(*g.shape[:-1], U, M), -1, -2)
+
+
+def concentrated_loglik(
+    R: CArray,
+    probe: CArray,
+    bandwidth: float,
+    noise_var: float,
+    *,
+    tau: float,
+    phi: float | None = None,
+    G: CArray | None = None,
+) -> float:
+    """Concentrated log-likelihood of one snapshot, eq. 18 (``G`` given) or eq. 19.
+
+    Straight from the definition with ``e = vec(a s^T)``; reference implementation
+    (the filter uses the batched :func:`link_loglik`).
+
+    Parameters
+    ----------
+    R : (M, N) complex snapshot, probe : (N,) complex, bandwidth : Hz, noise_var : per bin/port.
+    tau : delay in seconds; phi : DoA in the body frame (radians), needed with ``G``.
+    G : (M, U) sampling matrix, or None for a single-port receiver (eq. 19).
+    """
+    R2 = np.atleast_2d(np.asarray(R, dtype=complex))
+    s_tau = delayed_spectrum(probe, tau, bandwidth)
+    if G is None:
+        r = R2.ravel()
+        return float(np.abs(np.vdot(s_tau, r)) ** 2 / (noise_var * np.vdot(s_tau, s_tau).real))
+    a = np.asarray(G) @ fourier_basis(float(phi if phi is not None else 0.0), np.asarray(G).shape[1])
+    e = np.outer(a, s_tau).ravel(order="F")
+    r = R2.ravel(order="F")
+    return float(np.abs(np.vdot(e, r)) ** 2 / (noise_var * np.vdot(e, e).real))
+
+
+@dataclass(frozen=True)
+class LinkTerms:
+    """Per-link values of the concentrated log-likelihood and its gradient.
+
+    Attributes
+    ----------
+    value : (L,) log-likelihoods.
+    d_rho : (L,) dL/drho (per metre of round-trip range).
+    d_phi : (L,) dL/dphi (zero for single-port links).
+    d_G : (L, M, U) complex ``dL/dRe G + j dL/dIm G`` (None for single-port links).
+    c, y, a : (L,), (L, M), (L, M) intermediate ``a^H y``, ``y`` and ``a`` (for the Fisher).
+    """
+
+    value: FArray
+    d_rho: FArray
+    d_phi: FArray
+    d_G: CArray | None
+    c: CArray
+    y: CArray
+    a: CArray
+
+
+def link_loglik(
+    X: CArray,
+    rho: FArray,
+    noise_var: FArray,
+    k: float,
+    S: float,
+    *,
+    phi: FArray | None = None,
+    G: CArray | None = None,
+    want_grad: bool = True,
+) -> LinkTerms:
+    """Batched eq. 18 / 19 and analytic gradients for L links with M ports each.
+
+    Parameters
+    ----------
+    X : (L, M, N) complex, ``R * conj(s)`` per link (precomputed once per snapshot).
+    rho : (L,) round-trip ranges ``c tau / 2`` in metres.
+    noise_var : (L,) noise variances.
+    k : wavenumber from :func:`range_wavenumber`; S : ``|s|^2``.
+    phi : (L,) DoAs in the body frame and G : (L, M, U) sampling matrices (multi-port), or
+        both None (single-port, eq. 19).
+
+    Returns
+    -------
+    LinkTerms
+    """
+    L_, M, N = X.shape
+    n = np.arange(N)
+    E = np.exp(1j * k * np.asarray(rho, dtype=float)[:, None] * n)  # (L, N)
+    y = np.einsum("lmn,ln->lm", X, E)
+    sig = np.asarray(noise_var, dtype=float)
+    if G is None:
+        c = y[:, 0]
+        A = np.ones(L_)
+        a = np.ones((L_, 1), dtype=complex)
+    else:
+        U = G.shape[2]
+        b = fourier_basis(np.asarray(phi, dtype=float), U)  # (L, U)
+        a = np.einsum("lmu,lu->lm", G, b)
+        c = np.einsum("lm,lm->l", a.conj(), y)
+        A = np.sum(np.abs(a) ** 2, axis=1)
+    c2 = np.abs(c) ** 2
+    den = sig * A * S
+    value = c2 / den
+    d_phi = np.zeros(L_)
+    d_G = None
+    if want_grad:
+        yd = np.einsum("lmn,ln->lm", X, E * (1j * k * n))
+        cd = np.einsum("lm,lm->l", a.conj(), yd)
+        d_rho = 2.0 * np.real(c.conj() * cd) / den
+        if G is not None:
+            bd = 1j * basis_orders(G.shape[2]) * b
+            ad = np.einsum("lmu,lu->lm", G, bd)
+            dc_phi = np.einsum("lm,lm->l", ad.conj(), y)
+            dA_phi = 2.0 * np.real(np.einsum("lm,lm->l", a.conj(), ad))
+            d_phi = (2.0 * np.real(c.conj() * dc_phi) * A - c2 * dA_phi) / (sig * A**2 * S)
+            # complex gradient (Re + j Im) of |c|^2 is 2 c^* y b^H, of |a|^2 is 2 a b^H
+            num = 2.0 * (c.conj()[:, None, None] * y[:, :, None]) * A[:, None, None]
+            num = num - 2.0 * c2[:, None, None] * a[:, :, None]
+            d_G = num * b.conj()[:, None, :] / (sig * A**2 * S)[:, None, None]
+    else:
+        d_rho = np.zeros(L_)
+    return LinkTerms(value=value, d_rho=d_rho, d_phi=d_phi, d_G=d_G, c=c, y=y, a=a)
+
+
+def link_fisher(
+    terms: LinkTerms,
+    noise_var: FArray,
+    k: float,
+    probe_power: FArray,
+    *,
+    phi: FArray | None = None,
+    G: CArray | None = None,
+) -> FArray:
+    """Fisher information of (rho, phi, g) per link for the concentrated model.
+
+    ``F = (2 |alpha|^2 / sigma^2) Re(D^H P_e^perp D)`` with ``D = d e / d theta`` and the
+    amplitude eliminated (the standard nuisance-parameter result); ``|alpha|^2`` is its ML
+    estimate ``|c|^2 / (|a|^2 |s|^2)^2``. Inner products factor as
+    ``<u (x) s1, v (x) s2> = (u^H v)(s1^H s2)`` so the cost is independent of N.
+
+    Parameters
+    ----------
+    terms : output of :func:`link_loglik` at the point of interest.
+    probe_power : (N,) ``|s(n)|^2``.
+
+    Returns
+    -------
+    (L, 1, 1) for single-port links (rho only) or (L, P, P) with ``P = 2 + 2 M U`` in the order
+    ``[rho, phi, g]`` for multi-port links.
+    """
+    sig = np.asarray(noise_var, dtype=float)
+    p = np.asarray(probe_power, dtype=float)
+    n = np.arange(p.size)
+    S = float(p.sum())
+    Sd = -1j * k * float(np.sum(p * n))
+    Sdd = k * k * float(np.sum(p * n * n))
+    a = terms.a
+    A = np.sum(np.abs(a) ** 2, axis=1)
+    alpha2 = np.abs(terms.c) ** 2 / (A * S) ** 2
+    scale = 2.0 * alpha2 / sig
+    if G is None:
+        f = A * (Sdd - abs(Sd) ** 2 / S)
+        return (scale * f)[:, None, None]
+    L_, M, U = G.shape
+    b = fourier_basis(np.asarray(phi, dtype=float), U)  # (L, U)
+    ad = np.einsum("lmu,lu->lm", G, 1j * basis_orders(U) * b)
+    # V: (L, M, 1 + 2MU) derivatives of a wrt [phi, Re vec G, Im vec G]
+    P = 1 + 2 * M * U
+    V = np.zeros((L_, M, P), dtype=complex)
+    V[:, :, 0] = ad
+    eye = np.eye(M)
+    blk = b[:, :, None, None] * eye[None, None, :, :]  # (L, U, M(row), M(col)) -> column u*M+m
+    blk = np.transpose(blk, (0, 2, 1, 3)).reshape(L_, M, U * M)
+    V[:, :, 1 : 1 + M * U] = blk
+    V[:, :, 1 + M * U :] = 1j * blk
+    VhV = np.einsum("lmp,lmq->lpq", V.conj(), V)
+    Vha = np.einsum("lmp,lm->lp", V.conj(), a)
+    Q = P + 1
+    DD = np.zeros((L_, Q, Q), dtype=complex)
+    DD[:, 0, 0] = A * Sdd
+    DD[:, 1:, 1:] = VhV * S
+    DD[:, 1:, 0] = Vha * Sd
+    DD[:, 0, 1:] = np.conj(Vha * Sd)
+    De = np.zeros((L_, Q), dtype=complex)
+    De[:, 0] = A * np.conj(Sd)
+    De[:, 1:] = Vha * S
+    F = DD - De[:, :, None] * De.conj()[:, None, :] / (A * S)[:, None, None]
+    return scale[:, None, None] * F.real
+
+
+def rho_from_tau(tau: float | FArray) -> float | FArray:
+    """Round-trip range ``c tau / 2`` in metres for delays in seconds."""
+    return SPEED_OF_LIGHT * np.asarray(tau) / 2.0
+
+
+_ = range_wavenumber  # re-exported for callers building X and k together

@@ -1,0 +1,191 @@
+"""OFDM probe, delayed spectrum and received snapshots (paper 002, eqs. 3-4).
+
+Conventions: a received snapshot is an (M, N) complex array ``R`` (ports x DFT bins),
+``R[:, n] = a(phi) s(n, tau) alpha e^{j varphi} + w(n)`` (eq. 3) with
+``s(n, tau) = s(n) exp(-j 2 pi tau B n / N)`` for the zero-based bin index ``n`` (eq. 4 with
+``n - 1``). Delays are handled as *ranges* ``rho = c tau / 2`` (metres, round trip) by the
+filter so that every state is in metres or radians.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+
+from .._checks import as_rng, check_positive
+from ..errors import InputError
+
+__all__ = [
+    "SPEED_OF_LIGHT",
+    "ofdm_probe",
+    "delayed_spectrum",
+    "range_wavenumber",
+    "snapshot",
+    "delay_grid_search",
+    "estimate_noise_variance",
+    "batch_delay_search",
+]
+
+SPEED_OF_LIGHT = 299_792_458.0
+CArray = NDArray[np.complex128]
+
+
+def ofdm_probe(n_subcarriers: int, rng: np.random.Generator | int | None = 0) -> CArray:
+    """Unit-modulus QPSK OFDM probe spectrum ``s(n)``, shape (N,).
+
+    Parameters
+    ----------
+    n_subcarriers : int
+        N, the FFT length (1024 in the paper).
+    rng : Generator | int | None
+        Seed of the pseudo-random QPSK symbols (known to every receiver).
+    """
+    N = int(n_subcarriers)
+    if N < 2:
+        raise InputError(f"n_subcarriers must be >= 2, got {n_subcarriers}")
+    g = as_rng(rng)
+    return np.exp(1j * (np.pi / 4 + np.pi / 2 * g.integers(0, 4, N)))
+
+
+def range_wavenumber(bandwidth: float, n_subcarriers: int) -> float:
+    """``k`` such that ``s(n, tau) = s(n) exp(-j k rho n)`` with the round-trip range ``rho = c tau / 2``.
+
+    ``k = 2 pi (2 / c) B / N`` in rad per metre per bin (from eq. 4 with ``tau = 2 rho / c``).
+    """
+    return 2.0 * np.pi * 2.0 / SPEED_OF_LIGHT * float(bandwidth) / int(n_subcarriers)
+
+
+def delayed_spectrum(probe: CArray, tau: float | NDArray[np.float64], bandwidth: float) -> CArray:
+    """Delayed probe spectrum of eq. 4, ``s(n) exp(-j 2 pi tau B n / N)``.
+
+    Parameters
+    ----------
+    probe : (N,) complex
+    tau : float or (L,) array, seconds
+    bandwidth : float, Hz (the sample rate B)
+
+    Returns
+    -------
+    (N,) or (L, N) complex.
+    """
+    s = np.asarray(probe, dtype=complex)
+    N = s.size
+    n = np.arange(N)
+    t = np.asarray(tau, dtype=float)
+    return s * np.exp(-2j * np.pi * t[..., None] * float(bandwidth) * n / N)
+
+
+def snapshot(
+    response: CArray,
+    probe: CArray,
+    tau: float,
+    bandwidth: float,
+    *,
+    amplitude: float,
+    phase: float,
+    noise_var: float,
+    rng: np.random.Generator | int | None = None,
+) -> CArray:
+    """One received snapshot ``R`` (M, N) of eq. 3.
+
+    ``response`` is ``a(phi)`` (M,), the amplitude ``alpha`` and phase ``varphi`` are the
+    complex path gain, ``noise_var`` the per-bin, per-port variance of the circular Gaussian
+    noise. The per-bin SNR is ``alpha^2 |a_m|^2 / noise_var``.
+    """
+    a = np.atleast_1d(np.asarray(response, dtype=complex))
+    g = as_rng(rng)
+    s_tau = delayed_spectrum(probe, tau, bandwidth)
+    M, N = a.size, s_tau.size
+    sd = np.sqrt(float(noise_var) / 2.0)
+    w = sd * (g.standard_normal((M, N)) + 1j * g.standard_normal((M, N)))
+    return np.outer(a, s_tau) * (amplitude * np.exp(1j * phase)) + w
+
+
+def delay_grid_search(
+    R: CArray, probe: CArray, bandwidth: float, *, oversample: int = 8
+) -> tuple[float, CArray]:
+    """Antenna-agnostic ML delay on a zero-padded FFT grid, refined by parabolic interpolation.
+
+    Maximises ``sum_m |y_m(tau)|^2`` with ``y(tau) = R s^*(tau)`` (the unstructured-response
+    likelihood), evaluated for every grid delay with one inverse FFT per port.
+
+    Returns
+    -------
+    tau : float, seconds, in ``[0, N / B)``
+    y : (M,) complex, ``R s^*(tau)`` at the refined delay.
+    """
+    R2 = np.atleast_2d(np.asarray(R, dtype=complex))
+    s = np.asarray(probe, dtype=complex)
+    N = s.size
+    P = int(oversample) * N
+    X = R2 * s.conj()
+    # y(tau_k) = sum_n X_n exp(+j 2 pi k n / P) with tau_k = k N / (B P)
+    Y = np.fft.ifft(X, n=P, axis=1) * P
+    power = np.sum(np.abs(Y) ** 2, axis=0)
+    k = int(np.argmax(power))
+    pm, p0, pp = power[(k - 1) % P], power[k], power[(k + 1) % P]
+    den = pm - 2 * p0 + pp
+    frac = 0.5 * (pm - pp) / den if den < 0 else 0.0
+    tau = ((k + frac) % P) * N / (float(bandwidth) * P)
+    n = np.arange(N)
+    y = X @ np.exp(2j * np.pi * tau * float(bandwidth) * n / N)
+    return float(tau), y
+
+
+def estimate_noise_variance(R: CArray, probe: CArray, bandwidth: float) -> float:
+    """Noise variance per bin and port estimated from the known transmitted signal.
+
+    Fits ``R ~ c s(tau)^T`` with a free complex vector ``c`` (M,) and the ML delay
+    (:func:`delay_grid_search`), and divides the residual power by its ``M (N - 1)`` degrees of
+    freedom. Independent of any antenna model, so it is the same for every filter mode.
+    """
+    R2 = np.atleast_2d(np.asarray(R, dtype=complex))
+    check_positive(bandwidth, "bandwidth", allow_none=False)
+    M, N = R2.shape
+    _, y = delay_grid_search(R2, probe, bandwidth)
+    S = float(np.sum(np.abs(probe) ** 2))
+    resid = float(np.sum(np.abs(R2) ** 2) - np.sum(np.abs(y) ** 2) / S)
+    return max(resid, 1e-300) / (M * (N - 1))
+
+
+def batch_delay_search(
+    snapshots: list[CArray], probe: CArray, bandwidth: float, *, oversample: int = 4
+) -> tuple[NDArray[np.float64], list[CArray], NDArray[np.float64]]:
+    """:func:`delay_grid_search` and :func:`estimate_noise_variance` for many links at once.
+
+    All ports of all links share one batched zero-padded FFT.
+
+    Parameters
+    ----------
+    snapshots : L arrays (M_l, N).
+
+    Returns
+    -------
+    tau : (L,) antenna-agnostic ML delays (s); y : L arrays ``R s^*(tau)`` (M_l,);
+    noise_var : (L,) residual noise variance per bin and port.
+    """
+    s = np.asarray(probe, dtype=complex)
+    N = s.size
+    P = int(oversample) * N
+    rows = [np.atleast_2d(r) for r in snapshots]
+    sizes = np.array([r.shape[0] for r in rows])
+    starts = np.concatenate([[0], np.cumsum(sizes)[:-1]])
+    Rall = np.vstack(rows)
+    X = Rall * s.conj()
+    Y = np.fft.ifft(X, n=P, axis=1) * P
+    power = np.add.reduceat(np.abs(Y) ** 2, starts, axis=0)  # (L, P)
+    k = np.argmax(power, axis=1)
+    Lr = np.arange(power.shape[0])
+    pm, p0, pp = power[Lr, (k - 1) % P], power[Lr, k], power[Lr, (k + 1) % P]
+    den = pm - 2 * p0 + pp
+    frac = np.where(den < 0, 0.5 * (pm - pp) / np.where(den < 0, den, -1.0), 0.0)
+    tau = ((k + frac) % P) * N / (float(bandwidth) * P)
+    n = np.arange(N)
+    ph = np.exp(2j * np.pi * np.repeat(tau, sizes)[:, None] * float(bandwidth) * n / N)
+    yrows = np.sum(X * ph, axis=1)
+    Sp = float(np.sum(np.abs(s) ** 2))
+    tot = np.add.reduceat(np.sum(np.abs(Rall) ** 2, axis=1), starts)
+    fit = np.add.reduceat(np.abs(yrows) ** 2, starts) / Sp
+    var = np.maximum(tot - fit, 1e-300) / (sizes * (N - 1))
+    ys = [yrows[a : a + m] for a, m in zip(starts, sizes, strict=True)]
+    return tau, ys, var
