@@ -255,3 +255,24 @@ def test_bad_arguments_raise_input_error(rng):
         refine_toa(Y, r, np.c_[s, s[:, :1]])
     with pytest.raises(InputError):
         refine_toa(Y, r, s, offsets="receivers", receiver_offsets0=np.ones(3))
+
+
+def test_offset_covariance_matches_monte_carlo_scatter(rng):
+    """offsets='both' (004 model): position and offset scatter in the minimum-norm gauge
+    (rigid alignment on all points, common offset shift projected out) vs eq. 17."""
+    I, J, d, sig = 12, 20, 3, 0.01
+    r, s, dr, o = network(rng, I, J, d, "both")
+    pos, off, pred_pos, pred_off = [], [], [], []
+    for _ in range(30):
+        Y = toa_model(r, s, dr, o) + rng.normal(0, sig, (I, J))
+        sol = refine_toa(Y, r, s, offsets="both", receiver_offsets0=dr, source_offsets0=o)
+        a, b = _min_norm_errors(sol.receivers, sol.sources, r, s)
+        pos.append((a**2).sum() + (b**2).sum())
+        ed, eo = sol.receiver_offsets - dr, sol.source_offsets - o
+        c = (ed.sum() - eo.sum()) / (I + J)  # the common shift d + c, o - c is gauge
+        off.append(((ed - c) ** 2).sum() + ((eo + c) ** 2).sum())
+        pred_pos.append(np.trace(sol.receiver_cov, axis1=1, axis2=2).sum()
+                        + np.trace(sol.source_cov, axis1=1, axis2=2).sum())
+        pred_off.append((sol.receiver_offset_std**2).sum() + (sol.source_offset_std**2).sum())
+    assert abs(np.mean(pred_pos) / np.mean(pos) - 1) < 0.2
+    assert abs(np.mean(pred_off) / np.mean(off) - 1) < 0.2
