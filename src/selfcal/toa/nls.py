@@ -92,7 +92,8 @@ class NlsSolution:
     residuals: (I, J) measured minus modelled range, NaN where missing.
     residual_rms: root mean square of the observed residuals.
     sigma: estimated range noise std ``sqrt(RSS / (m - n + g))`` (m residuals,
-        n unknowns, g gauge freedoms); a MAD-based estimate for robust losses.
+        n unknowns, g gauge freedoms); for robust losses the normal-consistent MAD of the
+        residuals times sqrt(m / (m - n + g)).
     converged, iterations, cost: solver status, iterations (Jacobian evaluations)
         and the final cost ``0.5 sum rho(f^2)``.
     solver: "trf" (scipy least_squares) or "schur-lm".
@@ -412,6 +413,11 @@ def _rho(z: Array, loss: str) -> tuple[Array, Array]:
     raise InputError(f"unknown loss {loss!r}")
 
 
+# residual scale in units of sigma giving 95% efficiency under Gaussian noise (Huber 1964,
+# Holland & Welsch 1977); soft_l1 (pseudo-Huber) borrows Huber's constant
+_TUNING = {"huber": 1.345, "soft_l1": 1.345, "cauchy": 2.385}
+
+
 def _robust_sigma(f: Array) -> float:
     """Normal-consistent MAD of residuals (robust noise std), metres."""
     if f.size == 0:
@@ -707,8 +713,9 @@ def refine_toa(
     receiver_offsets0, source_offsets0: (I,), (J,) initial offsets (metres); zeros
         when omitted.
     loss: "linear" (Gaussian ML), "huber", "soft_l1" or "cauchy" (outlier-robust).
-    f_scale: residual scale (metres) of the robust loss; default 1.5 x a robust noise
-        estimate, re-estimated once after a first refinement.
+    f_scale: residual scale (metres) of the robust loss; default the 95%-efficiency
+        tuning constant (Huber 1.345, Cauchy 2.385) times a robust (MAD) noise estimate,
+        re-estimated once after a first refinement.
     max_nfev: cap on iterations / function evaluations.
     xtol: relative step tolerance.
     solver: "auto" / "schur" (Levenberg-Marquardt on the Schur-reduced normal equations,
@@ -764,11 +771,13 @@ def refine_toa(
         theta, conv, nit = run(theta0, Y, lay, loss, fs, max_nfev, xtol)
     else:
         f0 = toa_residuals(theta0, Y, d, offsets)
-        fs = f_scale if f_scale is not None else max(1.5 * _robust_sigma(f0), 1e-9)
+        k95 = _TUNING[loss]
+        fs = f_scale if f_scale is not None else max(k95 * _robust_sigma(f0), 1e-9)
         theta, conv, nit = run(theta0, Y, lay, loss, fs, max_nfev, xtol)
         if f_scale is None:
             # the initial residuals mix geometry error with noise: re-scale on the refined ones
-            fs = max(1.5 * _robust_sigma(toa_residuals(theta, Y, d, offsets)), 1e-9)
+            shrink = float(np.sqrt(m / max(m - n_free, 1)))  # fitted residuals underestimate sigma
+            fs = max(k95 * shrink * _robust_sigma(toa_residuals(theta, Y, d, offsets)), 1e-9)
             theta, conv2, nit2 = run(theta, Y, lay, loss, fs, max_nfev, xtol)
             conv, nit = conv2, nit + nit2
 
@@ -785,7 +794,8 @@ def refine_toa(
         sigma = float(np.sqrt((f**2).sum() / dof)) if dof > 0 else float("nan")
         wmat = obs.astype(float)
     else:
-        sigma = _robust_sigma(f)
+        # residuals of a fit with n_free unknowns shrink by sqrt(dof / m) on average
+        sigma = _robust_sigma(f) * float(np.sqrt(m / dof)) if dof > 0 else float("nan")
         wmat = np.zeros((I, J))
         wmat[obs] = drho  # inliers weigh 1, outliers down-weighted as in the final IRLS step
 
