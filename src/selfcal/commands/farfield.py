@@ -32,13 +32,16 @@ if TYPE_CHECKING:
               show_default=True, help="Robust loss for outliers (rejected entries are listed in the JSON).")
 @click.option("--noise-std", type=float, default=None,
               help="Known noise standard deviation (matrix units) for the degeneracy thresholds.")
+@click.option("--ransac", is_flag=True, help="Screen outliers with RANSAC over the minimal solver first.")
+@click.option("--seed", type=int, default=0, show_default=True, help="Random seed (RANSAC).")
 @click.option("--allow-degenerate", is_flag=True,
               help="On a degenerate geometry write the partial reconstruction instead of failing.")
 @click.option("--plot", "plot", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="PNG of the positions and directions.")
 @handle_errors
 def farfield_command(matrix: Path, out: Path, speed: float | None, method: str, loss: str,
-                     noise_std: float | None, allow_degenerate: bool, plot: Path | None) -> None:
+                     noise_std: float | None, ransac: bool, seed: int, allow_degenerate: bool,
+                     plot: Path | None) -> None:
     """Self-calibrate from an m x k far-field TDOA MATRIX (CSV or .npy, NaN = missing).
 
     Rows are receiver positions (microphones, antenna positions), columns far transmitters;
@@ -58,7 +61,7 @@ def farfield_command(matrix: Path, out: Path, speed: float | None, method: str, 
         scale = speed
     res = solve_farfield(M * scale, method=method, loss=loss,
                          noise_std=None if noise_std is None else noise_std * scale,
-                         allow_degenerate=allow_degenerate)
+                         allow_degenerate=allow_degenerate, ransac=ransac, rng=seed)
     if plot is not None:
         _plot(res, plot)
     write_json(out, res.to_dict())

@@ -5,15 +5,16 @@
 at the origin), the unit directions and the offsets:
 
 1. gross-error screen (optional) and, when entries are missing or a robust loss is asked
-   for, a weighted / robust rank-4 fit of D (``[Z 1][N; C^T]`` has rank <= 4) that fills the
-   matrix for the factorisation steps;
+   for, a weighted / robust fit of the structure ``D = P Q^T + 1 c^T`` (rank 3 plus
+   offsets, :func:`lowrank_fit`) that fills (and, robustly, cleans) the matrix for the
+   factorisation steps;
 2. failure-mode analysis of ``Dbar`` (:mod:`selfcal.tdoa.degeneracy`);
 3. overdetermined initialisation (section 2.3 (i)-(iii), :func:`initialize_farfield`),
    with the nonlinear fit of A when the least-squares B is not positive definite;
 4. refinement: Levenberg-Marquardt on the spheres (Algorithm 3) or alternating
    optimisation (Algorithm 2), with an optional robust loss.
 
-Robustness (beyond the paper, its future work): with ``loss != "linear"`` the rank-4 fit
+Robustness (beyond the paper, its future work): with ``loss != "linear"`` the structured fit
 and the refinement are iteratively re-weighted; entries whose final residual exceeds
 ``reject_k`` robust standard deviations are reported in ``rejected``. :func:`ransac_farfield`
 additionally offers RANSAC over the minimal solver.
@@ -167,54 +168,81 @@ def lowrank_fit(
     D: Array,
     W: Array,
     *,
-    rank: int = 4,
+    rank: int = 3,
     loss: str = "linear",
     iterations: int = 50,
     start: Array | None = None,
 ) -> tuple[Array, float]:
-    """Weighted (robust) rank-``rank`` fit of D by alternating least squares.
+    """Weighted (robust) fit of the far-field structure ``L = P Q^T + 1 c^T`` to D.
+
+    ``P`` (m, rank), ``Q`` (k, rank), ``c`` (k,): the rank-3 factorisation plus one offset
+    per column of the model ``D_ij = z_i . n_j + C_j`` without the unit-norm constraints,
+    fitted by alternating least squares. Keeping the offsets structured (instead of a
+    generic rank-4 fit) leaves no spare component in which a gross entry could hide.
 
     Parameters
     ----------
     D : (m, k), W : (m, k) weights (0 = missing / rejected).
-    loss : IRLS loss on the residuals, scaled by 1.5 x their robust standard deviation.
-    start : optional complete (m, k) matrix whose rank-``rank`` SVD starts the iteration
+    rank : rank of ``P Q^T`` (3 for far-field data).
+    loss : IRLS loss on the residuals, scaled by 1.345 x their robust standard deviation
+        (1.4826 MAD x sqrt(entries / residual dof)); robust losses also start from a
+        winsorised D (each row of the column-centred matrix clipped to 3 robust spreads).
+    start : optional complete (m, k) matrix whose structure starts the iteration
         (default: D with missing entries filled by column means).
 
     Returns
     -------
-    L : (m, k) complete low-rank matrix; sigma : robust noise estimate (1.4826 MAD of the
+    L : (m, k) complete fitted matrix; sigma : robust noise estimate (1.4826 MAD of the
     residuals over used entries, inflated by the residual degrees of freedom).
     """
     m, k = D.shape
     obs = W > 0
     D0 = np.where(obs, D, 0.0)
-    # start: fill missing entries with the column means, then truncated SVD
+    n_obs = int(obs.sum())
+    dof_fac = np.sqrt(n_obs / max(n_obs - rank * (m + k - rank) - k, 1))
+    # start: fill missing entries with the column means; with a robust loss, winsorise
+    # first so that a gross entry cannot dominate the starting factorisation
     colmean = np.sum(D0 * obs, 0) / np.maximum(obs.sum(0), 1)
-    F = np.where(obs, D0, colmean[None, :]) if start is None else np.asarray(start, dtype=float)
-    U, s, Vt = np.linalg.svd(F, full_matrices=False)
+    if start is not None:
+        F = np.asarray(start, dtype=float)
+    elif loss == "linear":
+        F = np.where(obs, D0, colmean[None, :])
+    else:
+        Dn = np.where(obs, D0, np.nan)
+        cmed = np.nanmedian(Dn, axis=0, keepdims=True)
+        Xc = Dn - cmed
+        rmed = np.nanmedian(Xc, axis=1, keepdims=True)
+        dev = np.abs(Xc - rmed)
+        sc = np.maximum(_MAD * np.nanmedian(dev, axis=1, keepdims=True),
+                        np.nanpercentile(dev, 90, axis=1, keepdims=True) / 3.0)
+        Xc = np.clip(Xc, rmed - 3.0 * sc, rmed + 3.0 * sc)
+        F = np.where(obs, Xc + cmed, cmed)
+    c = F.mean(axis=0)
+    U, s, Vt = np.linalg.svd(F - c, full_matrices=False)
     P = U[:, :rank] * s[:rank]
     Q = Vt[:rank].T
     Wr = W.astype(float)
-    eye = 1e-10 * np.eye(rank)
-    sigma = 0.0
+    eye_q = 1e-10 * np.eye(rank + 1)
+    eye_p = 1e-10 * np.eye(rank)
+    ones = np.ones((m, 1))
     for it in range(iterations):
-        R = np.where(obs, D0 - P @ Q.T, 0.0)
-        used = R[obs]
-        sigma = _MAD * float(np.median(np.abs(used))) if used.size else 0.0
+        R = np.where(obs, D0 - P @ Q.T - c, 0.0)
+        # robust scale corrected for the fit's degrees of freedom: without the correction
+        # the scale shrinks from one iteration to the next and the weights collapse
+        sigma = _MAD * float(np.median(np.abs(R[obs]))) * dof_fac
         if loss != "linear" and sigma > 0:
-            Wr = W * loss_weight((R / (1.5 * sigma)) ** 2, loss)
-        Hq = np.einsum("ij,ia,ib->jab", Wr, P, P) + eye * (1.0 + np.trace(P.T @ P))
-        Q = np.linalg.solve(Hq, np.einsum("ij,ij,ia->ja", Wr, D0, P)[..., None])[..., 0]
-        Hp = np.einsum("ij,ja,jb->iab", Wr, Q, Q) + eye * (1.0 + np.trace(Q.T @ Q))
-        P = np.linalg.solve(Hp, np.einsum("ij,ij,ja->ia", Wr, D0, Q)[..., None])[..., 0]
+            Wr = W * loss_weight((R / (1.345 * sigma)) ** 2, loss)
+        Pa = np.hstack([P, ones])
+        Hq = np.einsum("ij,ia,ib->jab", Wr, Pa, Pa) + eye_q * (1.0 + np.trace(Pa.T @ Pa))
+        Qa = np.linalg.solve(Hq, np.einsum("ij,ij,ia->ja", Wr, D0, Pa)[..., None])[..., 0]
+        Q, c = Qa[:, :rank], Qa[:, rank]
+        Hp = np.einsum("ij,ja,jb->iab", Wr, Q, Q) + eye_p * (1.0 + np.trace(Q.T @ Q))
+        P = np.linalg.solve(Hp, np.einsum("ij,ij,ja->ia", Wr, D0 - c, Q)[..., None])[..., 0]
         if loss == "linear" and np.all(obs) and it >= 1:
             break
-    R = np.where(obs, D0 - P @ Q.T, 0.0)
-    n_obs = int(obs.sum())
-    dof = n_obs - rank * (m + k - rank)
-    sigma = _MAD * float(np.median(np.abs(R[obs]))) * np.sqrt(n_obs / max(dof, 1))
-    return P @ Q.T, sigma
+    L = P @ Q.T + c
+    R = np.where(obs, D0 - L, 0.0)
+    return L, _MAD * float(np.median(np.abs(R[obs]))) * dof_fac
 
 
 def fit_A_nonlinear(nt: Array, A0: Array | None = None) -> Array:
@@ -313,7 +341,7 @@ def ransac_farfield(
     hypotheses at once), extends it to every column by solving ``Dbar_j = Z n_j`` on the 3
     sampled position differences and to every row by least squares over the sampled
     columns, and scores it by the median absolute residual (LMedS). The best hypothesis's
-    prediction starts a robust (Cauchy IRLS) rank-4 fit of all entries (local optimisation);
+    prediction starts a robust (Huber IRLS) structured fit (:func:`lowrank_fit`) of all entries (local optimisation);
     inliers are the entries within ``threshold`` of that fit (default 4 robust standard
     deviations). Missing entries are never inliers.
     """
@@ -349,10 +377,10 @@ def ransac_farfield(
             best_med, best_R, best_P = med, R, Zall @ Nall.T + Cj[None, :]
     assert best_R is not None and best_P is not None
     # local optimisation: one minimal sample extrapolates poorly to the other rows and
-    # columns, so refine the consensus model by a robust (Cauchy) rank-4 fit of all entries
+    # columns, so refine the consensus model by a robust (Huber) structured fit of all entries
     # started from it, and threshold against that fit
     pred = np.where(np.isfinite(best_P), best_P, 0.0)
-    L, sig = lowrank_fit(np.where(finite, D, 0.0), finite.astype(float), rank=4, loss="cauchy", start=pred)
+    L, sig = lowrank_fit(np.where(finite, D, 0.0), finite.astype(float), rank=3, loss="huber", start=pred)
     lim = 4.0 * sig if threshold is None else float(threshold)
     with np.errstate(invalid="ignore"):
         inl = np.asarray(finite & (np.abs(D - L) <= lim))
@@ -360,6 +388,18 @@ def ransac_farfield(
 
 
 # ----------------------------------------------------------------------------- entry point
+#: robust-loss scale in units of the noise standard deviation (95 % Gaussian efficiency)
+_TUNING = {"huber": 1.345, "soft_l1": 1.345, "cauchy": 2.385}
+
+
+def _robust_sigma(D: Array, Z: Array, N: Array, C: Array, used: NDArray[np.bool_]) -> float:
+    """1.4826 MAD of the model residuals, corrected for the model's degrees of freedom."""
+    r = farfield_residuals(np.where(used, D, np.nan), Z, N, C)
+    n_obs = int(used.sum())
+    m, k = D.shape
+    dof = max(n_obs - (3 * (m - 1) + 3 * k - 3), 1)
+    return _MAD * float(np.nanmedian(np.abs(r[used]))) * float(np.sqrt(n_obs / dof))
+
 def _raise_or_return(
     kind: str, message: str, result: FarfieldResult, allow_degenerate: bool
 ) -> FarfieldResult:
@@ -420,7 +460,8 @@ def solve_farfield(
         matrix with the linear loss, else "lm").
     loss : "linear" (the paper's least squares) or a robust loss "huber", "soft_l1",
         "cauchy" (IRLS; then outliers are reported in ``rejected``).
-    f_scale : robust loss scale (metres); default 1.5 x the robust noise estimate.
+    f_scale : robust loss scale (metres); default 1.345 (Huber, soft_l1) or 2.385 (Cauchy)
+        x the robust noise estimate (1.4826 MAD of the residuals, dof-corrected).
     noise_std : known noise standard deviation of the entries (metres); used by the
         degeneracy thresholds (else estimated from the data).
     offsets : "reference" (C_j = D_1j, the paper's reduced cost), "free" (C_j estimated)
@@ -500,10 +541,11 @@ def solve_farfield(
     if complete and loss == "linear":
         Dfill = D
     else:
-        Dfill, sig = lowrank_fit(D, used.astype(float), rank=4, loss="cauchy" if loss != "linear" else "linear")
+        Dfill, sig = lowrank_fit(D, used.astype(float), rank=3, loss="huber" if loss != "linear" else "linear")
         if sigma_entries is None:
             sigma_entries = sig
-    Dfill = np.where(used, D, Dfill)
+    if loss == "linear":
+        Dfill = np.where(used, D, Dfill)  # only the gaps are filled
     if init_reference == "first":
         X = np.vstack([np.zeros((1, k)), reduce_matrix(Dfill)])  # the paper's K_j = D_1j
     else:
@@ -585,9 +627,9 @@ def solve_farfield(
         for _ in range(rounds):
             delta = 1.0
             if loss != "linear":
-                r = farfield_residuals(np.where(used, D, np.nan), Z, N, C)
-                rob = _MAD * float(np.nanmedian(np.abs(r)))
-                delta = f_scale if f_scale is not None else 1.5 * max(rob, 1e-12 * (np.nanmax(np.abs(X)) + 1e-300))
+                rob = _robust_sigma(D, Z, N, C, used)
+                delta = f_scale if f_scale is not None else _TUNING[loss] * max(
+                    rob, 1e-12 * (np.nanmax(np.abs(X)) + 1e-300))
             if method == "lm":
                 out = refine_lm(D, Z, N, C, mask=used, free_offsets=offsets == "free", loss=loss, delta=delta,
                                 max_iter=max_iter or 200, tol=tol or 1e-12)
@@ -605,12 +647,9 @@ def solve_farfield(
                           ConvergenceWarning, stacklevel=2)
         if loss != "linear":
             r = farfield_residuals(np.where(used, D, np.nan), Z, N, C)
-            rob = _MAD * float(np.nanmedian(np.abs(r)))
+            rob = _robust_sigma(D, Z, N, C, used)
             with np.errstate(invalid="ignore"):
                 rej = np.asarray(used & (np.abs(r) > reject_k * max(rob, 1e-300)))
     res = _result(Z, N, C, kind=kind_found, conv=conv, its=its, meth=method, rej=rej,
                   pd=init.b_positive_definite, hist=hist, cov=cov)
-    if kind_found == "cone":
-        return _raise_or_return("cone", _DEGENERATE_MESSAGES["cone"] + f" (cone SNR {report.cone_snr:.3g} < {cone_tol:g})",
-                                res, allow_degenerate)
     return res
