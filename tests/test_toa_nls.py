@@ -276,3 +276,15 @@ def test_offset_covariance_matches_monte_carlo_scatter(rng):
         pred_off.append((sol.receiver_offset_std**2).sum() + (sol.source_offset_std**2).sum())
     assert abs(np.mean(pred_pos) / np.mean(pos) - 1) < 0.2
     assert abs(np.mean(pred_off) / np.mean(off) - 1) < 0.2
+
+
+@pytest.mark.parametrize("axis", [0, 1])
+def test_node_with_too_few_ranges_is_named(rng, axis):
+    r, s, _, _ = network(rng, 8, 10, 3)
+    Y = toa_model(r, s)
+    if axis == 0:
+        Y[2, 1:] = np.nan  # receiver 2 keeps a single range
+    else:
+        Y[1:, 4] = np.nan  # source 4 keeps a single range
+    with pytest.raises(DegenerateGeometryError, match="receiver 2" if axis == 0 else "source 4"):
+        refine_toa(Y, r, s)

@@ -751,8 +751,9 @@ def refine_toa(
         raise InputError(f"f_scale must be a positive number (metres), got {f_scale!r}")
 
     theta0 = _pack(r0, s0, dr0, os0)
-    lay = _make_layout(r0, s0, offsets)
     obs = np.isfinite(Y)
+    _check_node_counts(obs, d, has_r, has_s)
+    lay = _make_layout(r0, s0, offsets)
     m = int(obs.sum())
     g = lay.pins.size
     n_free = lay.n - g
@@ -839,6 +840,21 @@ def refine_toa(
         cost=cost,
         solver="trf" if use_trf else "schur-lm",
     )
+
+
+def _check_node_counts(obs: NDArray[np.bool_], d: int, has_r: bool, has_s: bool) -> None:
+    """Each node needs at least d (+1 for its own offset) ranges to be locally determined."""
+    for axis, kind, has in ((1, "receiver", has_r), (0, "source", has_s)):
+        counts = obs.sum(axis=axis)
+        need = d + int(has)
+        bad = np.nonzero(counts < need)[0]
+        if bad.size:
+            k = int(bad[0])
+            raise DegenerateGeometryError(
+                f"{kind} {k} has {int(counts[k])} observed ranges but needs at least {need} "
+                f"({d}-D position{' + offset' if has else ''}); drop it or add measurements",
+                kind="unobservable-node",
+            )
 
 
 def _offsets0(value: Array | None, n: int, name: str) -> Array:
