@@ -143,8 +143,14 @@ def _init_offsets(ranges: Array, dim: int, offsets: str, rng: np.random.Generato
 
     I, J = ranges.shape
     out: list[tuple[str, _Init]] = []
-    try:
-        r, s, d0, o0 = off.initialize_offsets(ranges, dim, rng=rng)
+    inputs = [ranges]
+    if np.isnan(ranges).any():
+        inputs.append(_fill_additive(ranges))
+    for Z in inputs:
+        try:
+            r, s, d0, o0 = off.initialize_offsets(Z, dim, rng=rng)
+        except (DegenerateGeometryError, InputError):
+            continue
         r, s = np.asarray(r, float), np.asarray(s, float)
         d0, o0 = np.asarray(d0, float), np.asarray(o0, float)
         if offsets == "receivers":
@@ -155,14 +161,33 @@ def _init_offsets(ranges: Array, dim: int, offsets: str, rng: np.random.Generato
             cand = (r, s, d0, o0)
         if _sane(cand, ranges):
             out.append(("rank3", cand))
-    except (DegenerateGeometryError, InputError):
-        pass
+            break
     shift = min(0.0, float(np.nanmin(ranges)))
     r, s = mds.initialize_toa(ranges - shift, dim, rng=rng)
     has_r, has_s = offsets in ("receivers", "both"), offsets in ("sources", "both")
     out.append(("mds", (np.asarray(r, float), np.asarray(s, float),
                         np.zeros(I) if has_r else None, np.zeros(J) if has_s else None)))
     return out
+
+
+def _fill_additive(ranges: Array, iterations: int = 50) -> Array:
+    """Fill missing entries from a two-way additive fit ``y_ij ~ a_i + b_j`` (start only).
+
+    With offsets the matrix is dominated by ``d_i + o_j`` plus ranges that vary
+    less; the additive fit (alternating row / column means over the observed
+    entries) gives the rank-3 initialiser a complete matrix. The NLS afterwards
+    uses only the observed entries.
+    """
+    obs = np.isfinite(ranges)
+    Y = np.where(obs, ranges, 0.0)
+    n_r = np.maximum(obs.sum(axis=1), 1)
+    n_c = np.maximum(obs.sum(axis=0), 1)
+    a = np.zeros(ranges.shape[0])
+    b = np.zeros(ranges.shape[1])
+    for _ in range(iterations):
+        a = ((Y - b[None, :]) * obs).sum(axis=1) / n_r
+        b = ((Y - a[:, None]) * obs).sum(axis=0) / n_c
+    return np.where(obs, ranges, a[:, None] + b[None, :])
 
 
 def _given_init(init: Any, I: int, J: int, dim: int, offsets: str, scale: float) -> _Init:
@@ -321,7 +346,12 @@ def solve_toa(
             err = exc
     if best is None:
         assert err is not None
-        raise err
+        tried = ", ".join(n for n, _ in cands)
+        raise DegenerateGeometryError(
+            f"{err.args[0]} (reached from every start tried: {tried}; if the geometry is fine, "
+            "the initialisation failed: pass init=(receivers, sources[, offsets]) or add measurements)",
+            kind=err.kind,
+        )
     iters = best.iterations
     robust = loss != "linear"
     if method == "auto" and _implausible(best, robust):
