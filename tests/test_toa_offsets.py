@@ -266,3 +266,14 @@ def test_nls_path_handles_missing_entries_and_distinct_delays() -> None:
         res = toa.solve_toa(times, dim=3, offsets="both", speed=C, rng=0)
     np.testing.assert_allclose(res.receiver_offsets, sc.delays + sc.onsets[0], atol=1e-6)
     np.testing.assert_allclose(res.source_offsets, sc.onsets - sc.onsets[0], atol=1e-6)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("room", sorted(ROOMS))
+def test_fast_solver_on_the_full_thesis_protocol(room: str) -> None:
+    # 004 Fig. 4.1-4.3: 12-32 units, 20 tests each; with restarts every test is within 1 us
+    for units in range(12, 33, 4):
+        for seed in range(20):
+            R, p, _ = _setup(units, room, 1000 + seed)
+            res = off.estimate_offsets(R, rng=seed)
+            assert res.accepted and np.max(np.abs(res.p - p)) < US, (units, seed)
