@@ -365,7 +365,7 @@ def test_lm_position_covariance_predicts_the_error_spread(rng):
     N = unit(rng.normal(size=(k, 3)))
     C = rng.normal(size=k)
     err, pred = 0.0, 0.0
-    for _ in range(60):
+    for _ in range(30):
         res = solve_farfield(Z @ N.T + C + sigma * rng.normal(size=(m, k)), offsets="free")
         U, _, Vt = np.linalg.svd(Z.T @ res.positions)
         err += np.sum((res.positions @ (U @ Vt).T - Z) ** 2)

@@ -112,7 +112,7 @@ def test_fig2_more_data_lowers_error():
 
 
 def test_fig3_lm_converges_in_fewer_iterations_than_alternating():
-    rows = [fig3_trial({"m": 10, "k": 10, "sigma": 0.01, "length": 200}, seed=s) for s in range(3)]
+    rows = [fig3_trial({"m": 10, "k": 10, "sigma": 0.01, "length": 60}, seed=s) for s in range(3)]
     assert np.median([r["lm_adaptive_iters"] for r in rows]) < np.median([r["alt_iters"] for r in rows])
 
 
