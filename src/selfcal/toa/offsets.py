@@ -152,22 +152,24 @@ def _split(p: Array, I: int) -> tuple[Array, Array]:
     return p[:I], np.concatenate([[0.0], p[I:]])
 
 
-def apply_A(ranges: Array, p: Array) -> Array:
-    """``A(p) = C^{-1}(W p)`` (3.6) without forming W: (I-1, J-1)."""
+def _w_parts(ranges: Array) -> tuple[Array, Array, Array]:
+    """The three non-zero patterns of W: a_j = t_1j - t_11, B_ij = t_ij - t_i1, C_ij = t_ij - t_1j."""
+    return (ranges[0, 1:] - ranges[0, 0], ranges[1:, 1:] - ranges[1:, :1], ranges[1:, 1:] - ranges[:1, 1:])
+
+
+def apply_A(ranges: Array, p: Array, parts: tuple[Array, Array, Array] | None = None) -> Array:
+    """``A(p) = C^{-1}(W p)`` (3.6) without forming W: (I-1, J-1). ``parts``: precomputed ``_w_parts``."""
     I = ranges.shape[0]
     delta, tau = _split(p, I)
-    a = ranges[0, 1:] - ranges[0, 0]
-    B = ranges[1:, 1:] - ranges[1:, :1]
-    C = ranges[1:, 1:] - ranges[:1, 1:]
+    a, B, C = parts if parts is not None else _w_parts(ranges)
     return 2 * delta[0] * a[None, :] - 2 * delta[1:, None] * B - 2 * tau[None, 1:] * C
 
 
-def apply_Wt(ranges: Array, E: Array) -> Array:
+def apply_Wt(ranges: Array, E: Array, parts: tuple[Array, Array, Array] | None = None) -> Array:
     """``W^T C(E)`` for an (I-1, J-1) matrix E without forming W: (I+J-1,)."""
-    a = ranges[0, 1:] - ranges[0, 0]
-    B = ranges[1:, 1:] - ranges[1:, :1]
-    C = ranges[1:, 1:] - ranges[:1, 1:]
-    return np.concatenate([[2 * E.sum(axis=0) @ a], -2 * np.sum(E * B, axis=1), -2 * np.sum(E * C, axis=0)])
+    a, B, C = parts if parts is not None else _w_parts(ranges)
+    return np.concatenate([[2 * E.sum(axis=0) @ a], -2 * np.einsum("ij,ij->i", E, B),
+                           -2 * np.einsum("ij,ij->j", E, C)])
 
 
 def gamma_term(p: Array, I: int, J: int) -> Array:
@@ -401,11 +403,12 @@ def rank3_iteration(
         inv = np.where(d > cutoff, 1.0 / np.where(d > cutoff, d, 1.0), 0.0)
         return (evecs * inv) @ evecs.T
 
+    parts = _w_parts(R)  # W's entries do not change between iterations
     G = solver(lam)
     lam0 = float(lam)
     switched: int | None = None
     aborted = False
-    A = apply_A(R, p)
+    A = apply_A(R, p, parts)
     hist: list[float] = []
     steps: list[float] = []
     F_prev = 0.0
@@ -415,8 +418,8 @@ def rank3_iteration(
         That = T + A
         U, s, Vt = np.linalg.svd(That, full_matrices=False)
         E = (U[:, :dim] * s[:dim]) @ Vt[:dim] - T
-        p_new = G @ apply_Wt(R, E)
-        A = apply_A(R, p_new)
+        p_new = G @ apply_Wt(R, E, parts)
+        A = apply_A(R, p_new, parts)
         F = float(np.linalg.norm(E - A))
         steps.append(float(np.linalg.norm(p_new - p)))
         p = p_new
