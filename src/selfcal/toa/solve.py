@@ -324,7 +324,7 @@ def solve_toa(
 
     if method == "rank3":
         name, (r0, s0, d0, o0) = cands[0]
-        return _unrefined(M, ranges, r0, s0, d0, o0, offsets, spd, name if name != "rank3" else "rank3")
+        return _unrefined(M, ranges, r0, s0, d0, o0, offsets, spd, name)
 
     def refine(start: _Init, cov: bool = covariance) -> NlsSolution:
         r0, s0, d0, o0 = start
@@ -359,7 +359,10 @@ def solve_toa(
         first = best
         for start2 in more:
             starts += 1
-            sol = refine(start2, cov=False)  # covariances only for the winner, below
+            try:
+                sol = refine(start2, cov=False)  # covariances only for the winner, below
+            except DegenerateGeometryError:  # e.g. a degenerate random start
+                continue
             iters += sol.iterations
             if sol.cost < best.cost:
                 best = sol
