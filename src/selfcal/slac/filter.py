@@ -38,7 +38,8 @@ from scipy.optimize import minimize
 
 from .._checks import as_points, check_choice
 from ..errors import InputError
-from .likelihood import link_fisher, link_loglik, pack_g, unpack_g
+from .antenna import basis_orders
+from .likelihood import delay_expansion, link_fisher, link_loglik, pack_g, unpack_g
 from .motion import motion_jacobian, motion_step, process_noise
 from .signals import range_wavenumber
 
@@ -62,10 +63,14 @@ class SlacConfig:
         initialises the biases at 0).
     g_rel_std : prior standard deviation of each sampling-matrix entry (real and imaginary
         part), relative to the RMS magnitude of the prior's entries.
+    g_order_decay : prior std of the order-u coefficients scaled by ``1 / (1 + decay |u|)``
+        (platform scattering adds mostly low orders; 0 = the same std for every order).
     anchor_biases : estimate anchors' biases too (beyond the paper).
     gtol : BFGS stop on the whitened gradient norm (units: prior standard deviations).
     max_iter : BFGS iteration cap per update.
     covariance : "fisher" or "fd" (see module doc).
+    delay_series : evaluate the likelihood through the per-snapshot delay series
+        (:class:`~selfcal.slac.likelihood.DelayExpansion`; same values, O(Q) not O(N) per call).
     first_estimates : evaluate the sampling-matrix part of the Fisher information at the prior
         G (first-estimates Jacobian, Huang et al. 2008; beyond the paper). The likelihood is
         exactly invariant to ``(psi, G) -> (psi + t, G diag(e^{j u t}))`` and to
@@ -79,11 +84,13 @@ class SlacConfig:
     bandwidth: float = 28.2e6
     bias_std: float = 0.5
     g_rel_std: float = 0.25
+    g_order_decay: float = 0.0
     anchor_biases: bool = True
     gtol: float = 1e-3
     max_iter: int = 60
     covariance: str = "fisher"
     first_estimates: bool = True
+    delay_series: bool = True
 
 
 @dataclass(frozen=True)
@@ -266,7 +273,10 @@ class SlacFilter:
                     self.g_index[i] = D + np.arange(g.size)
                     blocks.append(g)
                     rms = float(np.sqrt(np.mean(np.abs(G) ** 2)))
-                    cov_blocks.append(np.eye(g.size) * (self.config.g_rel_std * rms) ** 2)
+                    orders = np.abs(basis_orders(G.shape[1]))
+                    per = self.config.g_rel_std * rms / (1.0 + self.config.g_order_decay * orders)
+                    sd = np.tile(np.repeat(per, G.shape[0]), 2)  # matches pack_g's u * M + m layout
+                    cov_blocks.append(np.diag(sd**2))
                     D += g.size
         self.x = np.concatenate(blocks)
         self.P = sla.block_diag(*cov_blocks)
@@ -332,8 +342,12 @@ class SlacFilter:
             gidx = None
             if M > 1 and self.mode == "slac":
                 gidx = np.stack([self.g_index[int(i)] for i in r])
-            groups.append(dict(M=int(M), X=X, rx=r, tx=t, prx=prx, ptx=ptx, psi=3 * r + 2, brx=brx,
-                               btx=btx, gidx=gidx, var=noise_var[sel]))
+            grp = dict(M=int(M), X=X, rx=r, tx=t, prx=prx, ptx=ptx, psi=3 * r + 2, brx=brx,
+                       btx=btx, gidx=gidx, var=noise_var[sel], exp=None)
+            if self.config.delay_series:
+                rho0 = self._geometry(np.append(self.x, 0.0), grp)[2]
+                grp["exp"] = delay_expansion(X, rho0, self.k)
+            groups.append(grp)
         return groups
 
     def _geometry(self, xe: FArray, grp: dict[str, object]) -> tuple[FArray, ...]:
@@ -360,31 +374,45 @@ class SlacFilter:
 
     def _fun_grad(self, x: FArray, groups: list[dict[str, object]]) -> tuple[float, FArray]:
         xe = np.append(x, 0.0)
+        idx_parts: list[NDArray[np.int64]] = []
+        val_parts: list[FArray] = []
+
+        class _Acc:
+            # np.add.at is slow for many tiny scatters; collect and bincount once instead
+            @staticmethod
+            def at(_: FArray, idx: object, val: FArray) -> None:
+                ii = np.asarray(idx)
+                idx_parts.append(ii.ravel())
+                val_parts.append(np.broadcast_to(val, ii.shape).ravel())
+
         ge = np.zeros(x.size + 1)
+        add = _Acc()
         total = 0.0
         for grp in groups:
             diff, d, rho, phi = self._geometry(xe, grp)
             M = int(grp["M"])  # type: ignore[call-overload]
             G = self._G_of(xe, grp) if M > 1 else None
             terms = link_loglik(grp["X"], rho, grp["var"], self.k, self.S,  # type: ignore[arg-type]
-                                phi=phi if M > 1 else None, G=G)
+                                phi=phi if M > 1 else None, G=G, expansion=grp["exp"])  # type: ignore[arg-type]
             total -= float(terms.value.sum())
             u = diff / d[:, None]
             gr = -terms.d_rho  # gradient of the NLL
-            np.add.at(ge, grp["prx"], -gr[:, None] * u)  # type: ignore[arg-type]
-            np.add.at(ge, grp["ptx"], gr[:, None] * u)  # type: ignore[arg-type]
-            np.add.at(ge, grp["brx"], -gr)  # type: ignore[arg-type]
-            np.add.at(ge, grp["btx"], -gr)  # type: ignore[arg-type]
+            add.at(ge, grp["prx"], -gr[:, None] * u)  # type: ignore[arg-type]
+            add.at(ge, grp["ptx"], gr[:, None] * u)  # type: ignore[arg-type]
+            add.at(ge, grp["brx"], -gr)  # type: ignore[arg-type]
+            add.at(ge, grp["btx"], -gr)  # type: ignore[arg-type]
             if M > 1:
                 gp = -terms.d_phi
                 dphi = np.stack([-diff[:, 1], diff[:, 0]], axis=1) / (d**2)[:, None]
-                np.add.at(ge, grp["prx"], -gp[:, None] * dphi)  # type: ignore[arg-type]
-                np.add.at(ge, grp["ptx"], gp[:, None] * dphi)  # type: ignore[arg-type]
-                np.add.at(ge, grp["psi"], -gp)  # type: ignore[arg-type]
+                add.at(ge, grp["prx"], -gp[:, None] * dphi)  # type: ignore[arg-type]
+                add.at(ge, grp["ptx"], gp[:, None] * dphi)  # type: ignore[arg-type]
+                add.at(ge, grp["psi"], -gp)  # type: ignore[arg-type]
                 if grp["gidx"] is not None and self.mode == "slac" and terms.d_G is not None:
                     dG = -terms.d_G
                     v = np.swapaxes(dG, 1, 2).reshape(dG.shape[0], -1)
-                    np.add.at(ge, grp["gidx"], np.concatenate([v.real, v.imag], axis=1))  # type: ignore[arg-type]
+                    add.at(ge, grp["gidx"], np.concatenate([v.real, v.imag], axis=1))  # type: ignore[arg-type]
+        if idx_parts:
+            ge += np.bincount(np.concatenate(idx_parts), weights=np.concatenate(val_parts), minlength=x.size + 1)
         return total, ge[:-1]
 
     def _information(self, x: FArray, groups: list[dict[str, object]], fej: bool = True) -> FArray:
@@ -400,7 +428,8 @@ class SlacFilter:
             M = int(grp["M"])  # type: ignore[call-overload]
             G = self._G_of(xe, grp) if M > 1 else None
             terms = link_loglik(grp["X"], rho, grp["var"], self.k, self.S,  # type: ignore[arg-type]
-                                phi=phi if M > 1 else None, G=G, want_grad=False)
+                                phi=phi if M > 1 else None, G=G, want_grad=False,
+                                expansion=grp["exp"])  # type: ignore[arg-type]
             F = link_fisher(terms, grp["var"], self.k, pp, phi=phi if M > 1 else None, G=G)  # type: ignore[arg-type]
             u = diff / d[:, None]
             prx, ptx = grp["prx"], grp["ptx"]

@@ -149,11 +149,12 @@ def estimate_noise_variance(R: CArray, probe: CArray, bandwidth: float) -> float
 
 
 def batch_delay_search(
-    snapshots: list[CArray], probe: CArray, bandwidth: float, *, oversample: int = 4
+    snapshots: list[CArray], probe: CArray, bandwidth: float, *, oversample: int = 2, newton: int = 1
 ) -> tuple[NDArray[np.float64], list[CArray], NDArray[np.float64]]:
     """:func:`delay_grid_search` and :func:`estimate_noise_variance` for many links at once.
 
-    All ports of all links share one batched zero-padded FFT.
+    All ports of all links share one batched zero-padded FFT (``oversample`` x N points); the
+    grid maximum is refined by parabolic interpolation and ``newton`` exact Newton steps.
 
     Parameters
     ----------
@@ -173,7 +174,7 @@ def batch_delay_search(
     Rall = np.vstack(rows)
     X = Rall * s.conj()
     Y = np.fft.ifft(X, n=P, axis=1) * P
-    power = np.add.reduceat(np.abs(Y) ** 2, starts, axis=0)  # (L, P)
+    power = np.add.reduceat(Y.real**2 + Y.imag**2, starts, axis=0)  # (L, P)
     k = np.argmax(power, axis=1)
     Lr = np.arange(power.shape[0])
     pm, p0, pp = power[Lr, (k - 1) % P], power[Lr, k], power[Lr, (k + 1) % P]
@@ -181,7 +182,17 @@ def batch_delay_search(
     frac = np.where(den < 0, 0.5 * (pm - pp) / np.where(den < 0, den, -1.0), 0.0)
     tau = ((k + frac) % P) * N / (float(bandwidth) * P)
     n = np.arange(N)
-    ph = np.exp(2j * np.pi * np.repeat(tau, sizes)[:, None] * float(bandwidth) * n / N)
+    w = 2j * np.pi * float(bandwidth) * n / N  # d/dtau of the exponent per bin
+    for _ in range(newton):
+        # Newton on P(tau) = sum_m |y_m|^2 with exact first and second derivatives
+        ph = np.exp(np.repeat(tau, sizes)[:, None] * w)
+        Xp = X * ph
+        y0, y1, y2 = Xp.sum(axis=1), Xp @ w, Xp @ (w * w)
+        d1 = np.add.reduceat(2 * np.real(y0.conj() * y1), starts)
+        d2 = np.add.reduceat(2 * (np.abs(y1) ** 2 + np.real(y0.conj() * y2)), starts)
+        step = np.where(d2 < 0, -d1 / np.where(d2 < 0, d2, -1.0), 0.0)
+        tau = tau + np.clip(step, -N / (float(bandwidth) * P), N / (float(bandwidth) * P))
+    ph = np.exp(np.repeat(tau, sizes)[:, None] * w)
     yrows = np.sum(X * ph, axis=1)
     Sp = float(np.sum(np.abs(s) ** 2))
     tot = np.add.reduceat(np.sum(np.abs(Rall) ** 2, axis=1), starts)
