@@ -153,3 +153,13 @@ def test_sweep_is_seeded_and_backend_independent(backend: str, tmp_path) -> None
     assert len({r["seed"] for r in a}) == 6
     write_rows(a, tmp_path / "rows.csv")
     assert (tmp_path / "rows.csv").read_text().splitlines()[0].startswith("x,rep,seed,value")
+
+
+def test_written_files_respect_the_umask(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    import os
+
+    p = tmp_path / "r.json"
+    write_json(p, {"a": 1})
+    umask = os.umask(0)
+    os.umask(umask)
+    assert (p.stat().st_mode & 0o777) == (0o666 & ~umask)

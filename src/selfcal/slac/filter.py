@@ -30,6 +30,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import scipy.linalg as sla
@@ -224,7 +225,7 @@ class SlacFilter:
     def __init__(
         self,
         anchors: FArray,
-        ports: Sequence[int],
+        ports: Sequence[int] | NDArray[Any],
         G_prior: Sequence[CArray | None],
         x0: FArray,
         P0: FArray,
@@ -313,7 +314,7 @@ class SlacFilter:
     def sampling_matrix(self, i: int) -> CArray | None:
         """Current sampling matrix of agent i (its prior in localization mode)."""
         if i in self.g_index:
-            return unpack_g(self.x[self.g_index[i]], int(self.ports[i]), self.G_prior[i].shape[1])  # type: ignore[union-attr]
+            return unpack_g(self.x[self.g_index[i]], int(self.ports[i]), self.G_prior[i].shape[1])  # type: ignore[union-attr,call-overload,misc,arg-type]
         return self.G_prior[i]
 
     # ------------------------------------------------------------------ prediction
@@ -327,12 +328,12 @@ class SlacFilter:
 
     # ------------------------------------------------------------------ update
     def _groups(self, rx: NDArray[np.int64], tx: NDArray[np.int64], snaps: Sequence[CArray],
-                noise_var: FArray) -> list[dict[str, object]]:
+                noise_var: FArray) -> list[dict[str, Any]]:
         D = self.D
         groups = []
         for M in np.unique(self.ports[rx]):
             sel = np.flatnonzero(self.ports[rx] == M)
-            X = np.stack([np.atleast_2d(snaps[l]) for l in sel]) * self.probe.conj()
+            X = np.stack([np.atleast_2d(snaps[l]) for l in sel]) * self.probe.conj()  # type: ignore[union-attr,call-overload,misc,arg-type]
             r, t = rx[sel], tx[sel]
             # index arrays into x extended by one dummy slot (index D) for constants
             prx = np.stack([3 * r, 3 * r + 1], axis=1)
@@ -350,29 +351,29 @@ class SlacFilter:
             groups.append(grp)
         return groups
 
-    def _geometry(self, xe: FArray, grp: dict[str, object]) -> tuple[FArray, ...]:
+    def _geometry(self, xe: FArray, grp: dict[str, Any]) -> tuple[FArray, ...]:
         r = grp["rx"]
         t = grp["tx"]
         assert isinstance(r, np.ndarray) and isinstance(t, np.ndarray)
-        pr = xe[grp["prx"]]  # type: ignore[index]
-        pt = np.where((t < self.n)[:, None], xe[grp["ptx"]],  # type: ignore[index]
+        pr = xe[grp["prx"]]
+        pt = np.where((t < self.n)[:, None], xe[grp["ptx"]],
                       self.anchors[np.clip(t - self.n, 0, None)])
         diff = pt - pr
         d = np.hypot(diff[:, 0], diff[:, 1])
-        rho = d - xe[grp["brx"]] - xe[grp["btx"]]  # type: ignore[index]
-        phi = np.arctan2(diff[:, 1], diff[:, 0]) - xe[grp["psi"]]  # type: ignore[index]
+        rho = d - xe[grp["brx"]] - xe[grp["btx"]]
+        phi = np.arctan2(diff[:, 1], diff[:, 0]) - xe[grp["psi"]]
         return diff, d, rho, phi
 
-    def _G_of(self, xe: FArray, grp: dict[str, object]) -> CArray:
+    def _G_of(self, xe: FArray, grp: dict[str, Any]) -> CArray:
         r = grp["rx"]
         assert isinstance(r, np.ndarray)
-        M = int(grp["M"])  # type: ignore[call-overload]
+        M = int(grp["M"])
         if grp["gidx"] is not None and self.mode == "slac":
-            U = self.G_prior[int(r[0])].shape[1]  # type: ignore[union-attr]
-            return unpack_g(xe[grp["gidx"]], M, U)  # type: ignore[index]
-        return np.stack([self.G_prior[int(i)] for i in r])  # type: ignore[misc]
+            U = self.G_prior[int(r[0])].shape[1]  # type: ignore[union-attr,call-overload,misc,arg-type]
+            return unpack_g(xe[grp["gidx"]], M, U)
+        return np.stack([self.G_prior[int(i)] for i in r])  # type: ignore[union-attr,call-overload,misc,arg-type]
 
-    def _fun_grad(self, x: FArray, groups: list[dict[str, object]]) -> tuple[float, FArray]:
+    def _fun_grad(self, x: FArray, groups: list[dict[str, Any]]) -> tuple[float, FArray]:
         xe = np.append(x, 0.0)
         idx_parts: list[NDArray[np.int64]] = []
         val_parts: list[FArray] = []
@@ -390,57 +391,57 @@ class SlacFilter:
         total = 0.0
         for grp in groups:
             diff, d, rho, phi = self._geometry(xe, grp)
-            M = int(grp["M"])  # type: ignore[call-overload]
+            M = int(grp["M"])
             G = self._G_of(xe, grp) if M > 1 else None
-            terms = link_loglik(grp["X"], rho, grp["var"], self.k, self.S,  # type: ignore[arg-type]
-                                phi=phi if M > 1 else None, G=G, expansion=grp["exp"])  # type: ignore[arg-type]
+            terms = link_loglik(grp["X"], rho, grp["var"], self.k, self.S,
+                                phi=phi if M > 1 else None, G=G, expansion=grp["exp"])
             total -= float(terms.value.sum())
             u = diff / d[:, None]
             gr = -terms.d_rho  # gradient of the NLL
-            add.at(ge, grp["prx"], -gr[:, None] * u)  # type: ignore[arg-type]
-            add.at(ge, grp["ptx"], gr[:, None] * u)  # type: ignore[arg-type]
-            add.at(ge, grp["brx"], -gr)  # type: ignore[arg-type]
-            add.at(ge, grp["btx"], -gr)  # type: ignore[arg-type]
+            add.at(ge, grp["prx"], -gr[:, None] * u)
+            add.at(ge, grp["ptx"], gr[:, None] * u)
+            add.at(ge, grp["brx"], -gr)
+            add.at(ge, grp["btx"], -gr)
             if M > 1:
                 gp = -terms.d_phi
                 dphi = np.stack([-diff[:, 1], diff[:, 0]], axis=1) / (d**2)[:, None]
-                add.at(ge, grp["prx"], -gp[:, None] * dphi)  # type: ignore[arg-type]
-                add.at(ge, grp["ptx"], gp[:, None] * dphi)  # type: ignore[arg-type]
-                add.at(ge, grp["psi"], -gp)  # type: ignore[arg-type]
+                add.at(ge, grp["prx"], -gp[:, None] * dphi)
+                add.at(ge, grp["ptx"], gp[:, None] * dphi)
+                add.at(ge, grp["psi"], -gp)
                 if grp["gidx"] is not None and self.mode == "slac" and terms.d_G is not None:
                     dG = -terms.d_G
                     v = np.swapaxes(dG, 1, 2).reshape(dG.shape[0], -1)
-                    add.at(ge, grp["gidx"], np.concatenate([v.real, v.imag], axis=1))  # type: ignore[arg-type]
+                    add.at(ge, grp["gidx"], np.concatenate([v.real, v.imag], axis=1))
         if idx_parts:
             ge += np.bincount(np.concatenate(idx_parts), weights=np.concatenate(val_parts), minlength=x.size + 1)
         return total, ge[:-1]
 
-    def _information(self, x: FArray, groups: list[dict[str, object]], fej: bool = True) -> FArray:
+    def _information(self, x: FArray, groups: list[dict[str, Any]], fej: bool = True) -> FArray:
         D = x.size
         xe = np.append(x, 0.0)
         if fej and self.config.first_estimates and self.mode == "slac":
             for i, gi in self.g_index.items():
-                xe[gi] = pack_g(self.G_prior[i])  # type: ignore[arg-type]
+                xe[gi] = pack_g(self.G_prior[i])  # type: ignore[union-attr,call-overload,misc,arg-type]
         H = np.zeros((D + 1, D + 1))
         pp = np.abs(self.probe) ** 2
         for grp in groups:
             diff, d, rho, phi = self._geometry(xe, grp)
-            M = int(grp["M"])  # type: ignore[call-overload]
+            M = int(grp["M"])
             G = self._G_of(xe, grp) if M > 1 else None
-            terms = link_loglik(grp["X"], rho, grp["var"], self.k, self.S,  # type: ignore[arg-type]
+            terms = link_loglik(grp["X"], rho, grp["var"], self.k, self.S,
                                 phi=phi if M > 1 else None, G=G, want_grad=False,
-                                expansion=grp["exp"])  # type: ignore[arg-type]
-            F = link_fisher(terms, grp["var"], self.k, pp, phi=phi if M > 1 else None, G=G)  # type: ignore[arg-type]
+                                expansion=grp["exp"])
+            F = link_fisher(terms, grp["var"], self.k, pp, phi=phi if M > 1 else None, G=G)
             u = diff / d[:, None]
             prx, ptx = grp["prx"], grp["ptx"]
-            idx = np.column_stack([prx, ptx, grp["brx"], grp["btx"]])  # type: ignore[list-item]
+            idx = np.column_stack([prx, ptx, grp["brx"], grp["btx"]])
             jr = np.column_stack([-u, u, -np.ones(d.size), -np.ones(d.size)])
             if M == 1:
                 blk = F[:, 0, 0, None, None] * jr[:, :, None] * jr[:, None, :]
                 np.add.at(H, (idx[:, :, None], idx[:, None, :]), blk)
                 continue
             dphi = np.stack([-diff[:, 1], diff[:, 0]], axis=1) / (d**2)[:, None]
-            idx = np.column_stack([idx, grp["psi"]])  # type: ignore[list-item]
+            idx = np.column_stack([idx, grp["psi"]])
             jr = np.column_stack([jr, np.zeros(d.size)])
             jp = np.column_stack([-dphi, dphi, np.zeros((d.size, 2)), -np.ones(d.size)])
             Jl = np.stack([jr, jp], axis=1)  # (L, 2, 7)
@@ -450,13 +451,14 @@ class SlacFilter:
             if grp["gidx"] is not None and self.mode == "slac":
                 gi = grp["gidx"]
                 Hlg = np.einsum("lai,lag->lig", Jl, F[:, :2, 2:])
-                np.add.at(H, (idx[:, :, None], gi[:, None, :]), Hlg)  # type: ignore[index]
-                np.add.at(H, (gi[:, :, None], idx[:, None, :]), np.swapaxes(Hlg, 1, 2))  # type: ignore[index]
-                np.add.at(H, (gi[:, :, None], gi[:, None, :]), F[:, 2:, 2:])  # type: ignore[index]
+                np.add.at(H, (idx[:, :, None], gi[:, None, :]), Hlg)
+                np.add.at(H, (gi[:, :, None], idx[:, None, :]), np.swapaxes(Hlg, 1, 2))
+                np.add.at(H, (gi[:, :, None], gi[:, None, :]), F[:, 2:, 2:])
         return H[:-1, :-1]
 
     def update(
-        self, rx: Sequence[int], tx: Sequence[int], snapshots: Sequence[CArray], noise_var: Sequence[float]
+        self, rx: Sequence[int] | NDArray[Any], tx: Sequence[int] | NDArray[Any], snapshots: Sequence[CArray],
+        noise_var: Sequence[float] | NDArray[Any],
     ) -> UpdateInfo:
         """MAP update (eq. 22) with the snapshots agent ``rx[l]`` received from node ``tx[l]``.
 

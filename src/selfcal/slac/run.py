@@ -101,10 +101,8 @@ class SlacLog:
                 out[i, : G.shape[0]] = G
             return out
 
-        seeds = np.random.SeedSequence(seed).spawn(1)[0]
-
         def snap(step: int) -> list[CArray]:
-            return scen.snapshots(step, np.random.default_rng([int(seeds.entropy or 0) % 2**32, step]))
+            return scen.snapshots(step, np.random.default_rng([int(seed) % 2**32, step]))
 
         return cls(
             anchors=scen.anchors, ports=scen.ports, G_em=pad(scen.G_em), G_chamber=pad(scen.G_chamber),
