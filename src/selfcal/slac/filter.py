@@ -104,9 +104,30 @@ class UpdateInfo:
     objective: float
 
 
+def _safe_cholesky(M: FArray) -> FArray:
+    """Lower Cholesky factor of a symmetric matrix that should be positive definite.
+
+    Long static phases drive some variances to ~1e-10 m^2 while others stay ~1: rounding can
+    then make the matrix indefinite by a hair, so a growing relative jitter is added.
+    """
+    S = 0.5 * (M + M.T)
+    try:
+        return np.linalg.cholesky(S)
+    except np.linalg.LinAlgError:
+        d = np.sqrt(np.clip(np.diag(S), 1e-300, None))
+        C = S / np.outer(d, d)  # scale to unit diagonal, then regularise the correlation
+        for eps in (1e-12, 1e-10, 1e-8, 1e-6, 1e-4):
+            try:
+                return np.linalg.cholesky(C + eps * np.eye(S.shape[0])) * d[:, None]
+            except np.linalg.LinAlgError:
+                continue
+        raise
+
+
 def _chol_inv(P: FArray) -> FArray:
-    c = sla.cho_factor(P, lower=True)
-    return sla.cho_solve(c, np.eye(P.shape[0]))
+    Lc = _safe_cholesky(P)
+    Li = sla.solve_triangular(Lc, np.eye(P.shape[0]), lower=True)
+    return Li.T @ Li
 
 
 def map_update(
@@ -137,7 +158,7 @@ def map_update(
     """
     Pinv = _chol_inv(P_bar)
     H0 = Pinv + (preconditioner or information)(x_bar)
-    C = np.linalg.cholesky(0.5 * (H0 + H0.T))
+    C = _safe_cholesky(H0)
 
     def to_x(u: FArray) -> FArray:
         return x_bar + sla.solve_triangular(C.T, u, lower=False)
