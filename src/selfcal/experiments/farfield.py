@@ -198,7 +198,7 @@ def fig4_trial(params: dict[str, Any], seed: int) -> dict[str, Any]:
         out = refine_lm(D, init.positions, init.directions, D[0].copy(), max_iter=200)
         e_lm.append(_pos_error(out.positions, rec))
     return {"n": batch, "failures": fails, "init_error_sum": float(np.sum(e_init)),
-            "lm_error_sum": float(np.sum(e_lm))}
+            "lm_error_sum": float(np.sum(e_lm)), "init_errors": e_init, "lm_errors": e_lm}
 
 
 # ----------------------------------------------------------------------------- driver
@@ -265,7 +265,7 @@ def reproduce_all(
     xs = np.arange(len(d3))
     ax.bar(xs, [x["failure_rate"] for x in d3], color="0.7", label="failure rate (B not PD)")
     ax.set_ylabel("failure rate")
-    ax.set_xticks(xs, [f"{x['distance']:g}" for x in d3])
+    ax.set_xticks(xs, [f"{x['distance']:g}" for x in d3], rotation=45)
     ax.set_xlabel("relative distance R")
     ax2 = ax.twinx()
     ax2.semilogy(xs, [x["mean_error"] for x in d3], "o-", color="C0", label="mean position error")
@@ -306,9 +306,11 @@ def reproduce_all(
     length = 300
     grid3 = [{"m": 10, "k": 10, "sigma": 0.1, "length": length}]
     rows3 = run_sweep(fig3_trial, grid3, runs=max(r * 5, 10), desc="fig3 convergence", **sweep)
-    lm_curve = np.nanmean([x["lm_curve"] for x in rows3], axis=0)
-    lma_curve = np.nanmean([x["lm_adaptive_curve"] for x in rows3], axis=0)
-    alt_curve = np.nanmean([x["alt_curve"] for x in rows3], axis=0)
+    # medians: a few draws whose B is not positive definite start far away and would
+    # dominate a mean
+    lm_curve = np.nanmedian([x["lm_curve"] for x in rows3], axis=0)
+    lma_curve = np.nanmedian([x["lm_adaptive_curve"] for x in rows3], axis=0)
+    alt_curve = np.nanmedian([x["alt_curve"] for x in rows3], axis=0)
     fig3 = {
         "trials": len(rows3),
         "lm_iterations_median": float(np.median([x["lm_iters"] for x in rows3])),
@@ -320,8 +322,8 @@ def reproduce_all(
         "lm_adaptive_iterations_median": float(np.median([x["lm_adaptive_iters"] for x in rows3])),
         "alternating_iterations_median": float(np.median([x["alt_iters"] for x in rows3])),
         "init_error_mean": float(np.nanmean([x["init_error"] for x in rows3])),
-        "lm_final_error_mean": float(lm_curve[-1]),
-        "alternating_final_error_mean": float(alt_curve[-1]),
+        "lm_final_error_mean": float(np.nanmean([x["lm_curve"][-1] for x in rows3])),
+        "alternating_final_error_mean": float(np.nanmean([x["alt_curve"][-1] for x in rows3])),
         "lm_curve": lm_curve[:60].tolist(),
         "alternating_curve": alt_curve[:300].tolist(),
     }
@@ -340,7 +342,7 @@ def reproduce_all(
     ax.plot(it, lma_curve, "--", label="LM, adaptive lambda")
     ax.set_xscale("symlog")
     ax.set_xlabel("iteration")
-    ax.set_ylabel("mean position error")
+    ax.set_ylabel("median (over draws) of the mean position error")
     ax.set_title("Fig. 3: convergence, m = k = 10, sigma = 0.1")
     ax.legend()
     save_figure(fig, out / "fig3.png")
@@ -356,14 +358,18 @@ def reproduce_all(
         fig4.append({"distance": d, "sigma": s, "tests": n,
                      "failure_rate": sum(x["failures"] for x in rs) / n,
                      "init_error": sum(x["init_error_sum"] for x in rs) / n,
-                     "lm_error": sum(x["lm_error_sum"] for x in rs) / n})
+                     "lm_error": sum(x["lm_error_sum"] for x in rs) / n,
+                     "init_error_median": float(np.median([e for x in rs for e in x["init_errors"]])),
+                     "lm_error_median": float(np.median([e for x in rs for e in x["lm_errors"]]))})
     summary["fig4"] = fig4
     fig, axes = new_figure(1, 2, size=(11, 4.5))
     for ax, d in zip(axes, (1e7, 1e2), strict=True):
         sel = [x for x in fig4 if x["distance"] == d]
         sx = [max(x["sigma"], 1e-5) for x in sel]
-        ax.loglog(sx, [x["init_error"] for x in sel], "o-", label="initialisation")
-        ax.loglog(sx, [x["lm_error"] for x in sel], "s-", label="LM")
+        ax.loglog(sx, [x["init_error"] for x in sel], "o-", label="initialisation (mean)")
+        ax.loglog(sx, [x["lm_error"] for x in sel], "s-", label="LM (mean)")
+        ax.loglog(sx, [x["init_error_median"] for x in sel], "o:", label="initialisation (median)")
+        ax.loglog(sx, [x["lm_error_median"] for x in sel], "s:", label="LM (median)")
         ax.set_xlabel("noise std (0 plotted at 1e-5)")
         ax.set_ylabel("mean position error")
         ax.set_title(f"Fig. 4: m=5, k=10, R={d:g}; failure rate " +
@@ -372,7 +378,8 @@ def reproduce_all(
     save_figure(fig, out / "fig4.png")
     for d in (1e7, 1e2):
         x = next(v for v in fig4 if v["distance"] == d and v["sigma"] == 1e-2)
-        report.append(f"Fig.4 R={d:g}, sigma=0.01: init error {x['init_error']:.3g}, LM error {x['lm_error']:.3g}, "
+        report.append(f"Fig.4 R={d:g}, sigma=0.01: mean (median) error init {x['init_error']:.3g} "
+                      f"({x['init_error_median']:.3g}), LM {x['lm_error']:.3g} ({x['lm_error_median']:.3g}), "
                       f"init failure rate {x['failure_rate']:.2f}")
 
     summary["report"] = report
