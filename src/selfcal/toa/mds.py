@@ -302,8 +302,9 @@ def multilaterate(anchors: Array, ranges: Array, *, ridge: float = 1e-9) -> Arra
     A = np.hstack([-2.0 * Pc, np.ones((n, 1))])  # (n, d+1)
     b = np.where(M, Yr, 0.0) ** 2 - (Pc**2).sum(axis=1)[None, :]  # (m, n)
     Mf = M.astype(float)
-    N = np.einsum("mi,ik,il->mkl", Mf, A, A)
-    rhs = np.einsum("mi,ik,mi->mk", Mf, A, b)
+    # batched normal equations as two BLAS products (einsum over m x n x (d+1)^2 is slow)
+    N = (Mf @ (A[:, :, None] * A[:, None, :]).reshape(n, -1)).reshape(-1, d + 1, d + 1)
+    rhs = (Mf * b) @ A
     scale = np.trace(N, axis1=1, axis2=2)[:, None, None] / (d + 1)
     N = N + ridge * np.maximum(scale, 1e-12) * np.eye(d + 1)
     z = np.linalg.solve(N, rhs[..., None])[..., 0]
@@ -358,6 +359,12 @@ def _truncated_svd(X: Array, k: int, rng: np.random.Generator, basis: Array | No
     return (Q @ Ub)[:, :k], s[:k], Vt[:k]
 
 
+def _masked_grams(Mf: Array, F: Array) -> Array:
+    """``G_i = sum_j Mf_ij f_j f_j^T`` for every row i, as one matrix product: (m, k, k)."""
+    k = F.shape[1]
+    return (Mf @ (F[:, :, None] * F[:, None, :]).reshape(F.shape[0], k * k)).reshape(-1, k, k)
+
+
 def _complete_low_rank(S: Array, mask: NDArray[np.bool_], rank: int, rng: np.random.Generator,
                        iters: int = 200, tol: float = 1e-12) -> Array:
     """Fill the unobserved entries of ``S`` with a rank-``rank`` fit to the observed ones.
@@ -379,7 +386,7 @@ def _complete_low_rank(S: Array, mask: NDArray[np.bool_], rank: int, rng: np.ran
     row = X.sum(axis=1, keepdims=True) / cnt_r - grand
     col = X.sum(axis=0, keepdims=True) / cnt_c - grand
     X0 = np.where(mask, S, grand + row + col)
-    U, s, Vt = _truncated_svd(X0, rank, rng, power=2)
+    U, s, Vt = _truncated_svd(X0, rank, rng, power=1)
     P = U * np.sqrt(s)
     Q = Vt.T * np.sqrt(s)
     scale = float(np.mean(X[mask] ** 2)) or 1.0
@@ -388,10 +395,10 @@ def _complete_low_rank(S: Array, mask: NDArray[np.bool_], rank: int, rng: np.ran
     for _ in range(iters):
         # rows: min_p sum_j m_ij (S_ij - p^T q_j)^2; a tiny ridge keeps rows with < rank
         # observations solvable (they get the least-norm factor)
-        N = np.einsum("ij,jk,jl->ikl", Mf, Q, Q) + 1e-10 * np.trace(Q.T @ Q) * eye
-        P = np.linalg.solve(N, np.einsum("ij,jk->ik", X, Q)[..., None])[..., 0]
-        N = np.einsum("ij,ik,il->jkl", Mf, P, P) + 1e-10 * np.trace(P.T @ P) * eye
-        Q = np.linalg.solve(N, np.einsum("ij,ik->jk", X, P)[..., None])[..., 0]
+        N = _masked_grams(Mf, Q) + 1e-10 * np.trace(Q.T @ Q) * eye
+        P = np.linalg.solve(N, (X @ Q)[..., None])[..., 0]
+        N = _masked_grams(Mf.T, P) + 1e-10 * np.trace(P.T @ P) * eye
+        Q = np.linalg.solve(N, (X.T @ P)[..., None])[..., 0]
         err = float(np.sum(Mf * (X - P @ Q.T) ** 2)) / (mask.sum() * scale)
         if prev - err <= tol * max(err, 1e-300) or err < 1e-28:
             break
@@ -413,7 +420,7 @@ def _upgrade_candidates(Sq: Array, dim: int, rng: np.random.Generator) -> list[t
     """
     I, J = Sq.shape
     C = -0.5 * (Sq - Sq.mean(axis=1, keepdims=True) - Sq.mean(axis=0, keepdims=True) + Sq.mean())
-    U, s, Vt = _truncated_svd(C, dim, rng, power=3)
+    U, s, Vt = _truncated_svd(C, dim, rng, power=1)
     if s[-1] <= 1e-9 * s[0]:
         raise DegenerateGeometryError(
             f"the double-centred squared ranges have rank < {dim}: receivers or transmitters do not "
