@@ -148,3 +148,15 @@ def test_bad_input():
         mds.initialize_toa(np.ones((3, 3)), 2, method="nope")
     with pytest.raises(InputError):
         mds.initialize_toa(np.ones((2, 9)), 2)
+
+
+def test_3d_paper_variant_blind_start_converges():
+    from selfcal.toa import solve_toa
+
+    errs = []
+    for seed in range(6):
+        sc = paper003_network(n_sources=20, dim=3, sigma=0.0, rng=seed)
+        r0, s0 = mds.initialize_toa(sc.ranges, 3, rng=seed)
+        res = solve_toa(sc.ranges, dim=3, init=(r0, s0), covariance=False)
+        errs.append(aligned_rmse(res.receivers, sc.receivers).rmse_receivers)
+    assert np.median(errs) < 1e-6
