@@ -57,7 +57,7 @@ INIT_METHODS = ("auto", "alg2", "rank", "mds-multilat")
 
 # Above these sizes the per-source eigendecompositions of Algorithm 2 (cost ~ J (I+1)^3)
 # and the O(I^2 J) reverse-triangle estimate stop being cheap next to the rank method.
-_ALG2_MAX_FLOPS = 3e8
+_ALG2_MAX_FLOPS = 3e7
 _EQ11_MAX_FLOPS = 5e7
 
 
