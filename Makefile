@@ -26,7 +26,7 @@ test-slow: $(STAMP)
 	OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1 MKL_NUM_THREADS=1 $(PY) -m pytest -n 2 -q -m "slow or not slow"
 
 bench: $(STAMP)
-	$(PY) benchmarks/run_all.py --out benchmarks/results
+	OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1 $(PY) benchmarks/run_all.py --out benchmarks/results
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check src tests benchmarks
