@@ -258,6 +258,7 @@ def solve_toa(
     f_scale: float | None = None,
     max_nfev: int | None = None,
     covariance: bool = True,
+    sweep: bool = True,
 ) -> ToaResult:
     """Anchor-free self-calibration of receivers and sources from TOA / range measurements.
 
@@ -284,6 +285,10 @@ def solve_toa(
     rng: seed / Generator for the randomised parts (initialisers, restarts).
     f_scale: robust-loss scale in the matrix's units (default: from a MAD estimate).
     max_nfev: iteration cap for the refinement.
+    sweep: with ``method="auto"``, the linear loss and at most ``SWEEP_MAX_NODES`` nodes,
+        re-place each node with the others fixed (its reflection through the plane of the
+        others, its closed-form position) and refine again while that lowers the cost
+        (:func:`_node_sweep`); escapes local minima the residual tests cannot detect.
     covariance: compute the per-point covariances (NaN-filled when False; skipping them
         saves most of the time on networks of a thousand nodes per side).
 
@@ -371,6 +376,30 @@ def solve_toa(
         if best is not first and covariance:
             best = refine((best.receivers, best.sources, best.receiver_offsets, best.source_offsets))
             iters += best.iterations
+    exact = best.residual_rms <= 1e-9 * (1.0 + float(np.nanmax(np.abs(ranges))))
+    if method == "auto" and not robust and sweep and not exact and I + J <= SWEEP_MAX_NODES:
+        # cheap escapes from the local minima the residual tests above cannot see at the noise
+        # level (nodes, or microphone-loudspeaker pairs, on the wrong side of a near-plane)
+        first = best
+        for _ in range(SWEEP_ROUNDS):
+            moves = [m for m in (_node_sweep(ranges, best), _pair_flip(best, 1.0), _pair_flip(best, 0.5))
+                     if m is not None]
+            round_best = best
+            for start3 in moves:
+                starts += 1
+                try:
+                    sol = refine(start3, cov=False)
+                except DegenerateGeometryError:
+                    continue
+                iters += sol.iterations
+                if sol.cost < round_best.cost:
+                    round_best = sol
+            if not round_best.cost < best.cost * (1 - 1e-6):
+                break
+            best = round_best
+        if best is not first and covariance:
+            best = refine((best.receivers, best.sources, best.receiver_offsets, best.source_offsets))
+            iters += best.iterations
     label = f"{name}+nls" + (f"+multistart({starts - 1})" if starts > 1 else "")
     return _to_result(M, best, spd, label, iters, starts)
 
@@ -409,6 +438,200 @@ def _restarts(ranges: Array, dim: int, offsets: str, sol: NlsSolution, rng: np.r
                 pts[bad] = c + rng.uniform(-0.5, 0.5, (int(bad.sum()), dim)) * span
         out.append((r2, s2, sol.receiver_offsets, sol.source_offsets))
     return out
+
+
+#: node sweeps (see :func:`_node_sweep`) run by default up to this many receivers + sources
+SWEEP_MAX_NODES = 300
+#: rounds of node sweeps + collective pair flips (each round refines up to 3 starts)
+SWEEP_ROUNDS = 1
+
+
+def _fit_node(anchors: Array, y: Array, x: Array, b: float | None, iterations: int = 15) -> tuple[Array, float | None, float]:
+    """One node against fixed others: Gauss-Newton on ``y_k = |x - a_k| (+ b)``, returns (x, b, SSR).
+
+    ``anchors`` (n, d) the other kind's positions, ``y`` (n,) the ranges with the anchors'
+    offsets removed, ``b`` the node's own offset (None: the node has none). A handful of
+    undamped steps with step halving: the problem has d(+1) unknowns.
+    """
+    def ssr(xv: Array, bv: float | None) -> float:
+        e = y - np.linalg.norm(xv - anchors, axis=1) - (bv or 0.0)
+        return float(e @ e)
+
+    cost = ssr(x, b)
+    for _ in range(iterations):
+        diff = x - anchors
+        dist = np.maximum(np.linalg.norm(diff, axis=1), 1e-12)
+        e = y - dist - (b or 0.0)
+        Jm = diff / dist[:, None]
+        if b is not None:
+            Jm = np.column_stack([Jm, np.ones(len(y))])
+        step, *_ = np.linalg.lstsq(Jm, e, rcond=None)
+        t = 1.0
+        while t > 1e-4:
+            x2 = x + t * step[: x.size]
+            b2 = None if b is None else b + t * float(step[-1])
+            c2 = ssr(x2, b2)
+            if c2 < cost:
+                break
+            t *= 0.5
+        else:
+            break
+        done = cost - c2 <= 1e-12 * (cost + 1e-30)
+        x, b, cost = x2, b2, c2
+        if done:
+            break
+    return x, b, cost
+
+
+def _node_sweep(ranges: Array, sol: NlsSolution) -> _Init | None:
+    """Re-place every node with the others fixed; the start for a refinement when a node moved.
+
+    A local minimum of range-only calibration typically has a node (or a microphone and
+    its nearby loudspeaker) on the wrong side of the plane the other nodes nearly span:
+    the reflection changes most ranges little, so the full NLS does not cross back.
+    With the others fixed, a single node has only d(+1) unknowns; we try its reflection
+    through the least-squares plane of all the other nodes, and (with an offset) the
+    closed-form position of :func:`selfcal.toa.offsets._locate_with_offset`, polish each by
+    Gauss-Newton (:func:`_fit_node`) and move the node when its own residual sum of
+    squares drops by more than 1 %. Returns the moved start or None if nothing moved.
+    """
+    from .offsets import _locate_with_offset
+
+    obs = np.isfinite(ranges)
+    r, s = sol.receivers.copy(), sol.sources.copy()
+    d = None if sol.receiver_offsets is None else sol.receiver_offsets.copy()
+    o = None if sol.source_offsets is None else sol.source_offsets.copy()
+    moved = False
+    for side in (0, 1):
+        pts, other = (r, s) if side == 0 else (s, r)
+        own, oth = (d, o) if side == 0 else (o, d)
+        Y = ranges if side == 0 else ranges.T
+        ob = obs if side == 0 else obs.T
+        allpts = np.vstack([r, s])
+        for k in range(pts.shape[0]):
+            use = ob[k]
+            if use.sum() < pts.shape[1] + 2:
+                continue
+            anchors = other[use]
+            y = Y[k, use] - (0.0 if oth is None else oth[use])
+            b0 = None if own is None else float(own[k])
+            _, _, c0 = _fit_node(anchors, y, pts[k], b0, iterations=0)
+            rest = np.delete(allpts, k + (0 if side == 0 else r.shape[0]), axis=0)
+            c = rest.mean(axis=0)
+            normal = np.linalg.svd(rest - c, full_matrices=False)[2][-1]
+            cands = [pts[k] - 2 * ((pts[k] - c) @ normal) * normal]
+            if b0 is not None:
+                got = _locate_with_offset(anchors, y)
+                if got is not None:
+                    cands.append(got[0])
+            best = (c0, pts[k], b0)
+            for x0 in cands:
+                bx = None if b0 is None else float(np.mean(y - np.linalg.norm(x0 - anchors, axis=1)))
+                x1, b1, c1 = _fit_node(anchors, y, x0, bx)
+                if c1 < best[0]:
+                    best = (c1, x1, b1)
+            if best[0] < 0.99 * c0:
+                pts[k] = best[1]
+                if own is not None and best[2] is not None:
+                    own[k] = best[2]
+                moved = True
+    moved = _pair_sweep(ranges, r, s, d, o) or moved
+    return (r, s, d, o) if moved else None
+
+
+def _pair_sweep(ranges: Array, r: Array, s: Array, d: Array | None, o: Array | None) -> bool:
+    """Flip close receiver-source pairs through their local plane (in place); True if any moved.
+
+    The local minimum of 004-type units on tiered rows: a microphone and its loudspeaker a
+    few cm apart swap sides of the row plane together (the microphone below, the
+    loudspeaker above), which no single-node move undoes. For each receiver and its nearest
+    source we reflect both through the plane through their midpoint whose normal is that of
+    the nearest other nodes, polish the two alternately with the others fixed and keep the
+    move when the pair's residual sum of squares drops by more than 1 %.
+    """
+    obs = np.isfinite(ranges)
+    dim = r.shape[1]
+    I, J = ranges.shape
+    moved = False
+
+    def pair_cost(i: int, j: int, ri: Array, sj: Array, di: float | None, oj: float | None) -> float:
+        rr, ss = r.copy(), s.copy()
+        rr[i], ss[j] = ri, sj
+        dd = None if d is None else d.copy()
+        oo = None if o is None else o.copy()
+        if dd is not None and di is not None:
+            dd[i] = di
+        if oo is not None and oj is not None:
+            oo[j] = oj
+        row = ranges[i] - np.linalg.norm(ss - ri, axis=1) - (0.0 if dd is None else dd[i]) - (0.0 if oo is None else oo)
+        col = ranges[:, j] - np.linalg.norm(rr - sj, axis=1) - (0.0 if dd is None else dd) - (0.0 if oo is None else oo[j])
+        row, col = row[obs[i]], col[obs[:, j]]
+        return float(row @ row + col @ col)
+
+    for i in range(I):
+        j = int(np.argmin(np.linalg.norm(s - r[i], axis=1)))
+        if obs[i].sum() < dim + 2 or obs[:, j].sum() < dim + 2:
+            continue
+        di = None if d is None else float(d[i])
+        oj = None if o is None else float(o[j])
+        c0 = pair_cost(i, j, r[i], s[j], di, oj)
+        allpts = np.vstack([np.delete(r, i, axis=0), np.delete(s, j, axis=0)])
+        mid = 0.5 * (r[i] + s[j])
+        near = allpts[np.argsort(np.linalg.norm(allpts - mid, axis=1))[: 2 * dim + 2]]
+        normal = np.linalg.svd(near - near.mean(axis=0), full_matrices=False)[2][-1]
+        ri = r[i] - 2 * ((r[i] - mid) @ normal) * normal
+        sj = s[j] - 2 * ((s[j] - mid) @ normal) * normal
+        for _ in range(3):
+            u = obs[i]
+            y = ranges[i, u] - (0.0 if o is None else o[u])
+            ss = s.copy()
+            ss[j] = sj
+            if o is not None and oj is not None:
+                y = ranges[i, u] - np.where(np.arange(J)[u] == j, oj, o[u])
+            ri, di, _ = _fit_node(ss[u], y, ri, di)
+            u = obs[:, j]
+            rr = r.copy()
+            rr[i] = ri
+            dd = None if d is None else d.copy()
+            if dd is not None and di is not None:
+                dd[i] = di
+            y = ranges[u, j] - (0.0 if dd is None else dd[u])
+            sj, oj, _ = _fit_node(rr[u], y, sj, oj)
+        c1 = pair_cost(i, j, ri, sj, di, oj)
+        if c1 < 0.99 * c0:
+            r[i], s[j] = ri, sj
+            if d is not None and di is not None:
+                d[i] = di
+            if o is not None and oj is not None:
+                o[j] = oj
+            moved = True
+    return moved
+
+
+def _pair_flip(sol: NlsSolution, fraction: float) -> _Init | None:
+    """Every receiver and its nearest source reflected together through their local plane.
+
+    The collective version of :func:`_pair_sweep`: on tiered conference rows many units'
+    microphone-loudspeaker vectors end up mirrored at once (microphones low, loudspeakers
+    high, a few cm each). ``fraction`` 1 reflects, 0.5 moves both onto the plane (a neutral
+    start between the two basins). The local plane's normal is that of the 2d+2 nearest
+    other nodes. None when there are fewer receivers than 2 d + 4 (no local plane).
+    """
+    r, s = sol.receivers.copy(), sol.sources.copy()
+    dim = r.shape[1]
+    if r.shape[0] + s.shape[0] < 2 * dim + 4:
+        return None
+    allpts = np.vstack([r, s])
+    I = r.shape[0]
+    for i in range(I):
+        j = int(np.argmin(np.linalg.norm(sol.sources - sol.receivers[i], axis=1)))
+        mid = 0.5 * (sol.receivers[i] + sol.sources[j])
+        others = np.delete(allpts, [i, I + j], axis=0)
+        near = others[np.argsort(np.linalg.norm(others - mid, axis=1))[: 2 * dim + 2]]
+        n = np.linalg.svd(near - near.mean(axis=0), full_matrices=False)[2][-1]
+        r[i] = sol.receivers[i] - 2 * fraction * ((sol.receivers[i] - mid) @ n) * n
+        s[j] = sol.sources[j] - 2 * fraction * ((sol.sources[j] - mid) @ n) * n
+    return r, s, sol.receiver_offsets, sol.source_offsets
 
 
 def _to_result(M: Array, sol: NlsSolution, speed: float | None, method: str, iters: int, starts: int) -> ToaResult:
