@@ -102,3 +102,84 @@ def test_tiered_conference_with_jitter_reaches_the_basin_of_the_truth(seed):
                     init=(sc.receivers, sc.senders, sc.receiver_delays, sc.sender_onsets))
     assert res.residual_rms <= ref.residual_rms * (1 + 1e-6)
     assert _aligned_max_error(res, sc.receivers, sc.senders) < 0.05
+
+
+# ----------------------------------------------------------------------------- [unobservable-node]
+
+
+def _coplanar_speakers(seed=0, I=14, J=10):
+    """J loudspeakers exactly in the plane z = 0.8 m, I microphones 0.3-0.5 m above it (I > J:
+    the microphones are the nodes the Schur step eliminates)."""
+    g = np.random.default_rng(seed)
+    s = np.column_stack([g.uniform(0, 10, (J, 2)), np.full(J, 0.8)])
+    r = np.column_stack([g.uniform(0, 10, (I, 2)), 0.8 + g.uniform(0.3, 0.5, I)])
+    return r, s, g.uniform(0, 7, I), g.uniform(0, 10, J)
+
+
+def _dense_jacobian(r, s):
+    """d|r_i - s_j| + d_i + o_j / d(all positions, all offsets), written out entry by entry."""
+    I, J = len(r), len(s)
+    n = 4 * (I + J)
+    Jm = np.zeros((I * J, n))
+    for i in range(I):
+        for j in range(J):
+            u = (r[i] - s[j]) / np.linalg.norm(r[i] - s[j])
+            row = i * J + j
+            Jm[row, 3 * i:3 * i + 3] = u
+            Jm[row, 3 * I + 3 * j:3 * I + 3 * j + 3] = -u
+            Jm[row, 3 * (I + J) + i] = 1.0
+            Jm[row, 3 * (I + J) + I + j] = 1.0
+    return Jm
+
+
+@pytest.mark.parametrize("scale", [1e-3, 1.0, 1e3])
+def test_unobservable_verdict_is_the_geometry_not_the_units(scale):
+    """A microphone in the plane of coplanar loudspeakers has a first-order free height.
+
+    Independent check: the dense Jacobian then has one more null direction than the 7 of the
+    gauge (rotations, translations, common offset shift). The covariance step must say so
+    at every unit scale, and must not say so once the microphone is 1 cm off the plane.
+    """
+    from selfcal.errors import DegenerateGeometryError
+    from selfcal.toa.nls import refine_toa
+
+    r, s, d, o = _coplanar_speakers()
+    for h, singular in ((0.0, True), (0.01, False)):
+        rr = r.copy()
+        rr[0, 2] = 0.8 + h
+        sv = np.linalg.svd(_dense_jacobian(rr, s), compute_uv=False)
+        assert (sv[-8] / sv[0] < 1e-12) == singular  # 8th smallest: the first non-gauge direction
+        R = (np.linalg.norm(rr[:, None] - s[None], axis=-1) + d[:, None] + o[None]) * scale
+        args = (R, rr * scale, s * scale)
+        kw = dict(offsets="both", receiver_offsets0=d * scale, source_offsets0=o * scale)
+        if singular:
+            with pytest.raises(DegenerateGeometryError) as exc:
+                refine_toa(*args, **kw)
+            assert exc.value.kind == "unobservable-node"
+        else:
+            sol = refine_toa(*args, **kw)
+            assert np.isfinite(sol.receiver_cov).all()
+
+
+def test_solve_leaves_the_saddle_of_a_microphone_started_in_the_loudspeaker_plane():
+    """The in-plane point is a saddle (zero out-of-plane gradient), not the solution.
+
+    Started there, the refinement used to stop on the plane and the covariance step raised
+    [unobservable-node]; solve_toa now moves the node off the plane and fits exactly. Each
+    microphone's side of the plane is the mirror ambiguity of coplanar loudspeakers, so we
+    compare heights above the plane.
+    """
+    r, s, d, o = _coplanar_speakers()
+    R = np.linalg.norm(r[:, None] - s[None], axis=-1) + d[:, None] + o[None]
+    r0 = r.copy()
+    r0[0, 2] = 0.8
+    r0[0, :2] += 0.2
+    res = solve_toa(R, dim=3, offsets="both", init=(r0, s, d, o))
+    assert res.residual_rms < 1e-9
+
+    def heights(rr, ss):
+        c = ss.mean(axis=0)
+        n = np.linalg.svd(ss - c)[2][-1]
+        return np.abs((rr - c) @ n)
+
+    np.testing.assert_allclose(heights(res.receivers, res.sources), heights(r, s), atol=1e-6)

@@ -349,6 +349,8 @@ def solve_toa(
             best = refine(start)
         except DegenerateGeometryError as exc:  # diverged to a degenerate configuration
             err = exc
+            if exc.kind == "unobservable-node" and method == "auto":
+                best = _off_saddle(refine, ranges, start)
     if best is None:
         assert err is not None
         tried = ", ".join(n for n, _ in cands)
@@ -520,6 +522,14 @@ def _node_sweep(ranges: Array, sol: NlsSolution) -> _Init | None:
             c = rest.mean(axis=0)
             normal = np.linalg.svd(rest - c, full_matrices=False)[2][-1]
             cands = [pts[k] - 2 * ((pts[k] - c) @ normal) * normal]
+            # a node in the plane of coplanar partners sits on a saddle (its out-of-plane
+            # gradient vanishes by symmetry, its Fisher block is singular): push it off the
+            # plane by a tenth of its typical range; the side is the mirror ambiguity
+            ca = anchors.mean(axis=0)
+            sv, vt = np.linalg.svd(anchors - ca, full_matrices=False)[1:]
+            if sv[-1] <= 1e-6 * sv[0] and abs((pts[k] - ca) @ vt[-1]) <= 1e-6 * sv[0]:
+                push = 0.1 * float(np.median(np.linalg.norm(anchors - pts[k], axis=1)))
+                cands += [pts[k] + push * vt[-1], pts[k] - push * vt[-1]]
             if b0 is not None:
                 got = _locate_with_offset(anchors, y)
                 if got is not None:
@@ -606,6 +616,28 @@ def _pair_sweep(ranges: Array, r: Array, s: Array, d: Array | None, o: Array | N
                 o[j] = oj
             moved = True
     return moved
+
+
+def _off_saddle(refine: Any, ranges: Array, start: _Init) -> NlsSolution | None:
+    """Second chance after an ``unobservable-node`` verdict of the covariance step.
+
+    The verdict is correct for the point reached (scale-free: the node's Fisher block has
+    a relative condition number above 1e12, i.e. a direction 1e6 times less determined than
+    the best one), but that point can be a saddle rather than the solution: a microphone
+    that ends exactly in the plane of coplanar loudspeakers has a zero out-of-plane
+    gradient, so the iteration cannot leave the plane. Refine without covariances, move
+    such nodes off their partners' plane (:func:`_node_sweep`) and refine again; None
+    when that does not help (the caller then reports the original verdict).
+    """
+    try:
+        sol = refine(start, cov=False)
+        moved = _node_sweep(ranges, sol)
+        if moved is None:
+            return None
+        out: NlsSolution = refine(moved)
+        return out
+    except DegenerateGeometryError:
+        return None
 
 
 def _pair_flip(sol: NlsSolution, fraction: float) -> _Init | None:
