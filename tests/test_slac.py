@@ -196,3 +196,11 @@ def test_process_noise_matches_sampled_controls() -> None:
     samples = np.array([motion_step(x, u + g.standard_normal(2) * np.array([sv, sw]) * np.sqrt(T), T)
                         for _ in range(20000)])
     assert np.allclose(np.cov(samples.T), Q, rtol=0.08, atol=1e-9)
+
+
+def test_round_trip_shorter_than_biases_gives_small_negative_range() -> None:
+    """Delays are N/B-periodic; a negative round trip must not wrap to ~c N / (2B)."""
+    s = ofdm_probe(256, 0)
+    R = snapshot(np.array([1.0]), s, 2 * (-0.3) / SPEED_OF_LIGHT, B, amplitude=1.0, phase=0.0, noise_var=0.01, rng=0)
+    tau, _, _ = batch_delay_search([R], s, B)
+    assert SPEED_OF_LIGHT * tau[0] / 2 == pytest.approx(-0.3, abs=0.05)

@@ -380,7 +380,7 @@ class SlacFilter:
         pt = np.where((t < self.n)[:, None], xe[grp["ptx"]],
                       self.anchors[np.clip(t - self.n, 0, None)])
         diff = pt - pr
-        d = np.hypot(diff[:, 0], diff[:, 1])
+        d = np.maximum(np.hypot(diff[:, 0], diff[:, 1]), 1e-6)  # nodes may pass each other
         rho = d - xe[grp["brx"]] - xe[grp["btx"]]
         phi = np.arctan2(diff[:, 1], diff[:, 0]) - xe[grp["psi"]]
         return diff, d, rho, phi

@@ -111,7 +111,7 @@ def delay_grid_search(
 
     Returns
     -------
-    tau : float, seconds, in ``[0, N / B)``
+    tau : float, seconds, in ``[-N / (2B), N / (2B))``
     y : (M,) complex, ``R s^*(tau)`` at the refined delay.
     """
     R2 = np.atleast_2d(np.asarray(R, dtype=complex))
@@ -127,6 +127,8 @@ def delay_grid_search(
     den = pm - 2 * p0 + pp
     frac = 0.5 * (pm - pp) / den if den < 0 else 0.0
     tau = ((k + frac) % P) * N / (float(bandwidth) * P)
+    period = N / float(bandwidth)
+    tau = (tau + period / 2) % period - period / 2  # symmetric: small negative delays stay small
     n = np.arange(N)
     y = X @ np.exp(2j * np.pi * tau * float(bandwidth) * n / N)
     return float(tau), y
@@ -192,6 +194,10 @@ def batch_delay_search(
         d2 = np.add.reduceat(2 * (np.abs(y1) ** 2 + np.real(y0.conj() * y2)), starts)
         step = np.where(d2 < 0, -d1 / np.where(d2 < 0, d2, -1.0), 0.0)
         tau = tau + np.clip(step, -N / (float(bandwidth) * P), N / (float(bandwidth) * P))
+    # delays are N/B-periodic: report them in [-N/(2B), N/(2B)) so that a round trip shorter
+    # than the biases (nodes passing each other) gives a small negative range, not ~c N / (2B)
+    period = N / float(bandwidth)
+    tau = (tau + period / 2) % period - period / 2
     ph = np.exp(np.repeat(tau, sizes)[:, None] * w)
     yrows = np.sum(X * ph, axis=1)
     Sp = float(np.sum(np.abs(s) ** 2))
