@@ -112,7 +112,7 @@ def _safe_cholesky(M: FArray) -> FArray:
     """
     S = 0.5 * (M + M.T)
     try:
-        return np.linalg.cholesky(S)
+        return np.asarray(np.linalg.cholesky(S), dtype=float)
     except np.linalg.LinAlgError:
         d = np.sqrt(np.clip(np.diag(S), 1e-300, None))
         C = S / np.outer(d, d)  # scale to unit diagonal, then regularise the correlation
