@@ -202,7 +202,9 @@ def _rms(b: Array, U: Array, m: Array, R: Array) -> Array:
     return np.asarray(np.sqrt(np.mean(e**2, axis=1)))
 
 
-def _check_determined(b: Array, U: Array, m: Array, R: Array, kind: str, ids: Array | None = None) -> None:
+def _check_determined(
+    b: Array, U: Array, m: Array, R: Array, kind: str, ids: Array | None = None, *, raise_: bool = True
+) -> Array:
     """Raise when the pose Jacobian is (numerically) rank deficient at the solution.
 
     ``ids`` maps the rows to receiver indices for the message (default: the row number)."""
@@ -211,7 +213,7 @@ def _check_determined(b: Array, U: Array, m: Array, R: Array, kind: str, ids: Ar
     if not fin.all():
         U, m, R, ids = U[fin], m[fin], R[fin], ids[fin]
         if not fin.any():
-            return
+            return np.zeros(0, int)
     if b.shape[1] == 3:
         _, J = residuals_3d(b, U, m, R, jacobian=True)
     else:
@@ -222,6 +224,8 @@ def _check_determined(b: Array, U: Array, m: Array, R: Array, kind: str, ids: Ar
     J[..., : b.shape[1]] *= scale  # metres vs radians: compare in beacon-spread units
     s = np.linalg.svd(J, compute_uv=False)
     bad = s[:, -1] <= JACOBIAN_TOL * s[:, 0]
+    if not raise_:
+        return np.unique(ids[bad])
     if bad.any():
         k = int(ids[int(np.argmax(bad))])
         where = "circle through the beacons" if kind == "danger-circle" else (
@@ -232,6 +236,7 @@ def _check_determined(b: Array, U: Array, m: Array, R: Array, kind: str, ids: Ar
             "add a beacon off that circle",
             kind=kind,
         )
+    return np.zeros(0, int)
 
 
 # ----------------------------------------------------------------------------- solver
@@ -314,7 +319,9 @@ def solve_aoa(
             out = refine_ml(b, U, m, R, sigma=sigma, max_iter=max_iter)
             m, R, cov = out["position"], out["rotation"], out["covariance"]
             iters, conv = out["iterations"], out["converged"]
-        _check_determined(b, U, m, R, "danger-circle")
+        bad = _check_determined(b, U, m, R, "danger-circle", raise_=not batched)
+        conv = np.array(conv, bool, copy=True)
+        conv[bad] = False
     elif method in ("sol1", "sol2"):
         if method == "sol1":
             out = solution1(b, U, orthonormalize=orthonormalize, max_iter=max(max_iter, 60))
@@ -397,7 +404,11 @@ def solve_aoa(
         # a degenerate candidate among the equally good ones (the double root of the danger
         # cylinder comes with a regular twin) means the bearings do not determine the pose
         tb, ts = np.nonzero(tie)
-        _check_determined(b, U[tb], mcs[tb, ts], Rc.reshape(B, S, 3, 3)[tb, ts], "danger-cylinder", tb)
+        bad = _check_determined(
+            b, U[tb], mcs[tb, ts], Rc.reshape(B, S, 3, 3)[tb, ts], "danger-cylinder", tb, raise_=not batched
+        )
+        conv = np.array(conv, bool, copy=True)
+        conv[bad] = False  # batched: an undetermined receiver is flagged, not fatal
     rms = _rms(b, U, m, R)
     if not batched:
         return AoaResult(
