@@ -86,6 +86,11 @@ def toa_mds_nls(runs: int, backend: str, scheduler: str | None, seed: int, out_d
                f"{at['nls_rmse']:.3f} m, sqrt(CRLB) {at['crlb_rmse']:.3f} m  -> {out}")
 
 
+# blind variant plotted and recommended (see calibrate_lps): spike rejection in time, then
+# per-anchor offsets with the common offset at the minimum of the robust residual profile
+RECOMMENDED = "clean-profile"
+
+
 @reproduce.command("lps")
 @click.option("--data", "data_path", required=True, type=click.Path(exists=True),
               help="The LPS folder (data4.mat, data5.mat) or one .mat file.")
@@ -112,6 +117,8 @@ def lps(data_path: str, out_dir: str, seed: int) -> None:
         entry: dict[str, Any] = {
             **data.to_dict(),
             "authors_anchor_rmse": aligned_rmse(data.authors_anchors, data.anchors_true).rmse_receivers,
+            "authors_tag_rmse": aligned_rmse(data.authors_anchors, data.anchors_true,
+                                             data.authors_tag, data.tag_true).rmse_sources,
             "anchor_planarity": float(sv[-1] / sv[0]),
             "variants": {},
         }
@@ -123,20 +130,31 @@ def lps(data_path: str, out_dir: str, seed: int) -> None:
                 "anchor_rmse": err.rmse_receivers, "tag_rmse": err.rmse_sources,
                 "residual_rms": res["residual_rms"], "method": res["method"],
                 "receiver_offsets": res["receiver_offsets"], "converged": res["converged"],
+                **{k: res[k] for k in ("n_rejected", "common_offset", "profile") if k in res},
             }
-            click.echo(f"{data.name} {v:16s} anchor RMSE {err.rmse_receivers:.3f} m  tag RMSE "
+            click.echo(f"{data.name} {v:17s} anchor RMSE {err.rmse_receivers:.3f} m  tag RMSE "
                        f"{err.rmse_sources:.3f} m  (authors {entry['authors_anchor_rmse']:.3f} m)")
-            if v == "none":
+            if v == RECOMMENDED:
                 best = (err, res)
         assert best is not None
+        entry["recommended"] = RECOMMENDED
         err, res = best
+        prof = res["profile"]
+        fig, ax = new_figure(size=(5.5, 4.0))
+        ax.plot(prof["grid"], prof["scale"], "o-", label="cleaned ranges")
+        ax.axvline(res["common_offset"], color="C3", ls="--", label="selected common offset")
+        ax.set_xlabel("common anchor offset c (m)")
+        ax.set_ylabel(f"robust residual scale ({prof['kind']}, m)")
+        ax.set_title(f"LPS {data.name}: profile of the common ranging offset")
+        ax.legend(fontsize=8)
+        save_figure(fig, out / f"lps_{data.name}_profile.png")
         fig, ax = new_figure(size=(6.0, 5.5))
         tag = err.alignment.apply(res["sources"])
         ax.plot(tag[:, 0], tag[:, 1], ".", ms=2, color="C1", alpha=0.4, label="tag (blind)")
         plot_positions(ax, err.alignment.apply(res["receivers"]), truth=data.anchors_true,
                        label="anchors (blind)", color="C0", marker="^")
         ax.set_aspect("equal")
-        ax.set_title(f"LPS {data.name}: blind anchors, anchor RMSE {err.rmse_receivers:.3f} m")
+        ax.set_title(f"LPS {data.name} ({RECOMMENDED}): blind anchors, RMSE {err.rmse_receivers:.3f} m")
         ax.legend(fontsize=8)
         save_figure(fig, out / f"lps_{data.name}.png")
         report[data.name] = entry

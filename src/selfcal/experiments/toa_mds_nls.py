@@ -134,7 +134,8 @@ def example_network(seed: int = 0, sigma: float = 0.30) -> dict[str, Any]:
 
 def lps_variants() -> tuple[str, ...]:
     """Names of the calibration variants compared on LPS (see :func:`calibrate_lps`)."""
-    return ("none", "none-huber", "receivers-huber")
+    return ("none", "none-huber", "receivers-huber", "clean", "clean-profile", "clean-profile-mad",
+            "profile")
 
 
 def calibrate_lps(ranges: Array, variant: str = "none", *, rng: int = 0) -> dict[str, Any]:
@@ -147,29 +148,58 @@ def calibrate_lps(ranges: Array, variant: str = "none", *, rng: int = 0) -> dict
     ``none-huber``       the same with a Huber loss (the UWB ranges have outliers).
     ``receivers-huber``  per-anchor offsets (ranging bias) + Huber loss, started from ``none``
                          with zero offsets.
+    ``clean``            multipath spikes removed first by
+                         :func:`selfcal.toa.preprocess.reject_range_outliers` (robust local
+                         quadratic in time, 3.5 robust sigmas), then ``none``.
+    ``clean-profile``    ``clean``, then per-anchor offsets whose common component is chosen
+                         by :func:`selfcal.toa.preprocess.fit_offsets_profile_common` (minimum
+                         over the common offset of the trimmed RMS of the 70 % smallest
+                         residuals).
+    ``clean-profile-mad`` the same, profiling the MAD instead (ablation).
+    ``profile``          the trimmed profile on the raw ranges (ablation: without the cleaning
+                         the profile is flat and its minimum is not the right bias).
 
-    Returns receivers (6, 3), sources (N, 3), receiver_offsets or None, residual_rms, method.
+    Returns receivers (6, 3), sources (N, 3; NaN rows for tag positions left with fewer
+    than 4 ranges by the cleaning), receiver_offsets or None, residual_rms, method,
+    converged, and for the cleaning variants ``n_rejected`` / ``common_offset``.
     """
     from .._checks import check_choice
     from ..toa import solve_toa
     from ..toa.mds import initialize_toa_info
+    from ..toa.preprocess import fit_offsets_profile_common, observed_columns, reject_range_outliers
 
     check_choice(variant, "variant", lps_variants())
     Y = np.asarray(ranges, float)
+    extra: dict[str, Any] = {}
+    keep = np.ones(Y.shape[1], bool)
+    if variant.startswith("clean"):
+        rej = reject_range_outliers(Y)
+        extra["n_rejected"] = rej.n_rejected
+        keep = observed_columns(rej.ranges, 3)
+        Y = rej.ranges[:, keep]
     Yc = np.where(np.isnan(Y), np.nan, np.maximum(Y, 0.0))
     info = initialize_toa_info(Yc, 3, rng=rng)
     base = solve_toa(Yc, dim=3, init=(info.receivers, info.sources), method="nls", covariance=False)
-    if variant == "none":
+    res: Any
+    if variant in ("none", "clean"):
         res = base
     elif variant == "none-huber":
         res = solve_toa(Yc, dim=3, loss="huber", init=(base.receivers, base.sources), method="nls",
                         covariance=False)
-    else:  # receivers-huber
+    elif variant == "receivers-huber":
         res = solve_toa(Y, dim=3, offsets="receivers", loss="huber",
                         init=(base.receivers, base.sources, np.zeros(Y.shape[0]), None),
                         method="nls", covariance=False)
+    else:  # clean-profile, clean-profile-mad, profile
+        scale = "mad" if variant.endswith("-mad") else "trimmed"
+        res = fit_offsets_profile_common(Y, base.receivers, base.sources, scale=scale)
+        extra["common_offset"] = res.common
+        extra["profile"] = {"grid": res.grid.tolist(), "scale": res.profile.tolist(),
+                            "kind": scale}
+    sources = np.full((keep.size, 3), np.nan)
+    sources[keep] = res.sources
     return {
-        "receivers": res.receivers, "sources": res.sources,
+        "receivers": res.receivers, "sources": sources,
         "receiver_offsets": res.receiver_offsets, "residual_rms": float(res.residual_rms),
-        "method": f"{info.method}+{res.method}", "converged": bool(res.converged),
+        "method": f"{info.method}+{res.method}", "converged": bool(res.converged), **extra,
     }
