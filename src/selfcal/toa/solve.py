@@ -331,10 +331,10 @@ def solve_toa(
         name, (r0, s0, d0, o0) = cands[0]
         return _unrefined(M, ranges, r0, s0, d0, o0, offsets, spd, name)
 
-    def refine(start: _Init, cov: bool = covariance) -> NlsSolution:
+    def refine(start: _Init, cov: bool = covariance, nfev: int | None = None) -> NlsSolution:
         r0, s0, d0, o0 = start
         return refine_toa(ranges, r0, s0, offsets=offsets, receiver_offsets0=d0, source_offsets0=o0,
-                          loss=loss, f_scale=fs, max_nfev=max_nfev, covariance=cov)
+                          loss=loss, f_scale=fs, max_nfev=nfev or max_nfev, covariance=cov)
 
     # first candidate that refines to a non-degenerate solution; the others are restarts
     best: NlsSolution | None = None
@@ -389,8 +389,8 @@ def solve_toa(
             round_best = best
             for start3 in moves:
                 starts += 1
-                try:
-                    sol = refine(start3, cov=False)
+                try:  # a short refinement ranks the moves; only the winner is finished below
+                    sol = refine(start3, cov=False, nfev=SWEEP_NFEV)
                 except DegenerateGeometryError:
                     continue
                 iters += sol.iterations
@@ -399,9 +399,17 @@ def solve_toa(
             if not round_best.cost < best.cost * (1 - 1e-6):
                 break
             best = round_best
+            if not best.converged:
+                try:
+                    best = refine((best.receivers, best.sources, best.receiver_offsets, best.source_offsets),
+                                  cov=False)
+                    iters += best.iterations
+                except DegenerateGeometryError:
+                    best = first
+                    break
         if best is not first and dim == 3:
             # the landscape had a wrong basin; a (near-)planar network is the case where a 3-D
-            # fit can keep improving in wrong basins while the truth is the plane
+            # fit keeps finding better wrong basins while the truth is the plane
             planar = _planar_check(ranges, offsets, best, refine, gen)
             if planar is not None:
                 best = planar
@@ -452,9 +460,11 @@ def _restarts(ranges: Array, dim: int, offsets: str, sol: NlsSolution, rng: np.r
 SWEEP_MAX_NODES = 300
 #: rounds of node sweeps + collective pair flips (each round refines up to 3 starts)
 SWEEP_ROUNDS = 1
+#: iteration cap of the short refinements that rank the sweep moves
+SWEEP_NFEV = 25
 
 
-def _fit_node(anchors: Array, y: Array, x: Array, b: float | None, iterations: int = 15) -> tuple[Array, float | None, float]:
+def _fit_node(anchors: Array, y: Array, x: Array, b: float | None, iterations: int = 8) -> tuple[Array, float | None, float]:
     """One node against fixed others: Gauss-Newton on ``y_k = |x - a_k| (+ b)``, returns (x, b, SSR).
 
     ``anchors`` (n, d) the other kind's positions, ``y`` (n,) the ranges with the anchors'
@@ -473,7 +483,11 @@ def _fit_node(anchors: Array, y: Array, x: Array, b: float | None, iterations: i
         Jm = diff / dist[:, None]
         if b is not None:
             Jm = np.column_stack([Jm, np.ones(len(y))])
-        step, *_ = np.linalg.lstsq(Jm, e, rcond=None)
+        JtJ = Jm.T @ Jm
+        try:  # normal equations of a 3-4 unknown problem, a tiny ridge against a flat direction
+            step = np.linalg.solve(JtJ + 1e-12 * np.trace(JtJ) * np.eye(JtJ.shape[0]), Jm.T @ e)
+        except np.linalg.LinAlgError:
+            break
         t = 1.0
         while t > 1e-4:
             x2 = x + t * step[: x.size]
@@ -597,7 +611,7 @@ def _pair_sweep(ranges: Array, r: Array, s: Array, d: Array | None, o: Array | N
         normal = np.linalg.svd(near - near.mean(axis=0), full_matrices=False)[2][-1]
         ri = r[i] - 2 * ((r[i] - mid) @ normal) * normal
         sj = s[j] - 2 * ((s[j] - mid) @ normal) * normal
-        for _ in range(3):
+        for _ in range(2):
             u = obs[i]
             y = ranges[i, u] - (0.0 if o is None else o[u])
             ss = s.copy()
@@ -657,7 +671,7 @@ def _planar_check(ranges: Array, offsets: str, sol: NlsSolution, refine: Any,
     layout, and the honest answer is that verdict, not a confident wrong z (issue 7).
     """
     try:
-        flat = solve_toa(ranges, dim=2, offsets=offsets, rng=rng, covariance=False, sweep=False)
+        flat = solve_toa(ranges, dim=2, offsets=offsets, rng=rng, covariance=False, method="nls")
     except DegenerateGeometryError:
         return None
     if not flat.residual_rms < sol.residual_rms:
