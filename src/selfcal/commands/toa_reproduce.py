@@ -126,12 +126,13 @@ def lps(data_path: str, out_dir: str, seed: int) -> None:
         for v in lps_variants():
             res = calibrate_lps(data.ranges, v, rng=seed)
             err = aligned_rmse(res["receivers"], data.anchors_true, res["sources"], data.tag_true)
-            entry["variants"][v] = {
+            row: dict[str, Any] = {
                 "anchor_rmse": err.rmse_receivers, "tag_rmse": err.rmse_sources,
                 "residual_rms": res["residual_rms"], "method": res["method"],
                 "receiver_offsets": res["receiver_offsets"], "converged": res["converged"],
-                **{k: res[k] for k in ("n_rejected", "common_offset", "profile") if k in res},
             }
+            row.update({k: res[k] for k in ("n_rejected", "common_offset", "profile") if k in res})
+            entry["variants"][v] = row
             click.echo(f"{data.name} {v:17s} anchor RMSE {err.rmse_receivers:.3f} m  tag RMSE "
                        f"{err.rmse_sources:.3f} m  (authors {entry['authors_anchor_rmse']:.3f} m)")
             if v == RECOMMENDED:
