@@ -119,6 +119,34 @@ def test_likelihood_gradients_match_finite_differences(rng: np.random.Generator)
         assert t.d_G[0, m, u].imag == pytest.approx((f(rho, phi, G + 1j * E) - f(rho, phi, G - 1j * E)) / (2 * h), rel=1e-5, abs=1e-6)
 
 
+def test_multiport_fisher_matches_projected_jacobian_definition(rng: np.random.Generator) -> None:
+    """link_fisher (closed-form blocks) equals (2|alpha|^2/sigma^2) Re(D^H P_e^perp D), with D the
+    finite-difference Jacobian of e = vec(a(phi) s(tau)^T) wrt [rho, phi, Re vec G, Im vec G]."""
+    ant, s, R = _link(rng)
+    N, (M, U) = s.size, ant.G.shape
+    k = range_wavenumber(B, N)
+    rho, phi, var = 25.1, 0.62, 0.4
+    G = multimode_antenna("chamber").G
+
+    def e_of(th: np.ndarray) -> np.ndarray:
+        GG = (th[2 : 2 + M * U] + 1j * th[2 + M * U :]).reshape(U, M).T  # vec stacks columns
+        a = GG @ fourier_basis(th[1], U)
+        return np.outer(a, s * np.exp(-1j * k * th[0] * np.arange(N))).ravel(order="F")
+
+    th0 = np.concatenate([[rho, phi], G.T.ravel().real, G.T.ravel().imag])
+    h = 1e-6
+    Dj = np.stack([(e_of(th0 + h * ei) - e_of(th0 - h * ei)) / (2 * h) for ei in np.eye(th0.size)], axis=1)
+    e = e_of(th0)
+    Dp = Dj - np.outer(e, e.conj() @ Dj) / np.vdot(e, e).real
+    terms = link_loglik((R * s.conj())[None], np.array([rho]), np.array([var]), k, float(N),
+                        phi=np.array([phi]), G=G[None])
+    alpha2 = abs(terms.c[0]) ** 2 / np.vdot(e, e).real ** 2
+    ref = 2 * alpha2 / var * np.real(Dj.conj().T @ Dp)
+    F = link_fisher(terms, np.array([var]), k, np.abs(s) ** 2, phi=np.array([phi]), G=G[None])[0]
+    assert F.shape == (2 + 2 * M * U,) * 2
+    assert np.allclose(F, ref, rtol=1e-5, atol=1e-6 * np.abs(ref).max())
+
+
 def test_range_fisher_matches_monte_carlo_error() -> None:
     """The Fisher information of the delay predicts the ML ranging error (CRLB at high SNR)."""
     g = np.random.default_rng(7)

@@ -21,13 +21,14 @@ Sampling-matrix parameters are packed as in eq. 16: ``g = [Re vec(G); Im vec(G)]
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
 
 from .antenna import basis_orders, fourier_basis
-from .signals import SPEED_OF_LIGHT, delayed_spectrum, range_wavenumber
+from .signals import SPEED_OF_LIGHT, delayed_spectrum, phasors, range_wavenumber
 
 __all__ = [
     "concentrated_loglik",
@@ -225,28 +226,41 @@ def link_fisher(
     L_, M, U = G.shape
     b = fourier_basis(np.asarray(phi, dtype=float), U)  # (L, U)
     ad = np.einsum("lmu,lu->lm", G, 1j * basis_orders(U) * b)
-    # V: (L, M, 1 + 2MU) derivatives of a wrt [phi, Re vec G, Im vec G]
-    P = 1 + 2 * M * U
-    V = np.zeros((L_, M, P), dtype=complex)
-    V[:, :, 0] = ad
-    eye = np.eye(M)
-    blk = b[:, :, None, None] * eye[None, None, :, :]  # (L, U, M(row), M(col)) -> column u*M+m
-    blk = np.transpose(blk, (0, 2, 1, 3)).reshape(L_, M, U * M)
-    V[:, :, 1 : 1 + M * U] = blk
-    V[:, :, 1 + M * U :] = 1j * blk
-    VhV = np.einsum("lmp,lmq->lpq", V.conj(), V)
-    Vha = np.einsum("lmp,lm->lp", V.conj(), a)
-    Q = P + 1
-    DD = np.zeros((L_, Q, Q), dtype=complex)
-    DD[:, 0, 0] = A * Sdd
-    DD[:, 1:, 1:] = VhV * S
-    DD[:, 1:, 0] = Vha * Sd
-    DD[:, 0, 1:] = np.conj(Vha * Sd)
-    De = np.zeros((L_, Q), dtype=complex)
-    De[:, 0] = A * np.conj(Sd)
-    De[:, 1:] = Vha * S
-    F = DD - De[:, :, None] * De.conj()[:, None, :] / (A * S)[:, None, None]
-    return scale[:, None, None] * F.real
+    # V = [d a/d phi, d a/d Re vec G, d a/d Im vec G] = [a', B, jB] with B[m, u M + m'] = b_u
+    # delta_mm'. The Gram blocks are written out in real arithmetic instead of forming the
+    # (L, M, P) Jacobian (the dominant cost of the update). Since Sd is imaginary, the rho row
+    # of F = Re(DD - De De^H / (A S)) vanishes off the diagonal, leaving
+    #   F_rr = A (Sdd - |Sd|^2 / S),   F_vv = S (Re V^H V - Re(h h^H) / A),  h = V^H a.
+    MU = M * U
+    bb = b.conj()[:, :, None] * b[:, None, :]  # (L, U, U): B^H B = bb kron I_M
+    Kr5 = np.zeros((L_, U, M, U, M))
+    Ki5 = np.zeros((L_, U, M, U, M))
+    for m in range(M):
+        Kr5[:, :, m, :, m] = bb.real
+        Ki5[:, :, m, :, m] = bb.imag
+    Kr = Kr5.reshape(L_, MU, MU)
+    Ki = Ki5.reshape(L_, MU, MU)
+    e0 = (b[:, :, None] * ad.conj()[:, None, :]).reshape(L_, MU)  # a'^H B
+    ha = (b.conj()[:, :, None] * a[:, None, :]).reshape(L_, MU)  # B^H a
+    h0 = np.einsum("lm,lm->l", ad.conj(), a)
+    P = 1 + 2 * MU
+    G_ = np.empty((L_, P, P))  # Re V^H V
+    G_[:, 0, 0] = np.sum(np.abs(ad) ** 2, axis=1)
+    G_[:, 0, 1 : 1 + MU] = G_[:, 1 : 1 + MU, 0] = e0.real
+    G_[:, 0, 1 + MU :] = G_[:, 1 + MU :, 0] = -e0.imag
+    G_[:, 1 : 1 + MU, 1 : 1 + MU] = Kr
+    G_[:, 1 + MU :, 1 + MU :] = Kr
+    G_[:, 1 : 1 + MU, 1 + MU :] = -Ki
+    G_[:, 1 + MU :, 1 : 1 + MU] = Ki
+    hr = np.concatenate([h0.real[:, None], ha.real, ha.imag], axis=1)
+    hi = np.concatenate([h0.imag[:, None], ha.imag, -ha.real], axis=1)
+    W = np.stack([hr, hi], axis=2) / np.sqrt(A)[:, None, None]  # (L, P, 2)
+    G_ -= W @ np.swapaxes(W, 1, 2)
+    G_ *= (scale * S)[:, None, None]
+    F = np.zeros((L_, P + 1, P + 1))
+    F[:, 0, 0] = scale * A * (Sdd - abs(Sd) ** 2 / S)
+    F[:, 1:, 1:] = G_
+    return F
 
 
 def rho_from_tau(tau: float | FArray) -> float | FArray:
@@ -296,12 +310,19 @@ class DelayExpansion:
 _FACT = np.array([float(np.prod(np.arange(1, i + 1))) for i in range(40)])
 
 
+@functools.lru_cache(maxsize=8)
+def _powers(N: int, Q: int) -> FArray:
+    """(N, Q) matrix ``t_n^q`` of :class:`DelayExpansion` (same for every snapshot)."""
+    t = (np.arange(N) - (N - 1) / 2.0) / (N / 2.0)
+    P = np.asarray(t[:, None] ** np.arange(Q)[None, :], dtype=float)
+    P.flags.writeable = False
+    return P
+
+
 def delay_expansion(X: CArray, rho0: FArray, k: float, *, order: int = 24) -> DelayExpansion:
     """Moments of :class:`DelayExpansion` for X (L, M, N) around ``rho0`` (L,)."""
     L_, M, N = X.shape
-    n = np.arange(N)
-    t = (n - (N - 1) / 2.0) / (N / 2.0)
-    P = t[None, :] ** np.arange(order + 2)[:, None]  # (Q+2, N)
-    Xr = X * np.exp(1j * k * np.asarray(rho0, dtype=float)[:, None, None] * n)
-    mom = (Xr.reshape(L_ * M, N) @ P.T).reshape(L_, M, order + 2)
+    PT = _powers(N, order + 2)  # (N, Q+2)
+    Xr = X * phasors(k * np.asarray(rho0, dtype=float), N)[:, None, :]
+    mom = (Xr.reshape(L_ * M, N) @ PT).reshape(L_, M, order + 2)
     return DelayExpansion(np.asarray(rho0, dtype=float).copy(), mom, float(k), int(N))
