@@ -311,10 +311,11 @@ _FACT = np.array([float(np.prod(np.arange(1, i + 1))) for i in range(40)])
 
 
 @functools.lru_cache(maxsize=8)
-def _powers(N: int, Q: int) -> FArray:
+def _powers(N: int, Q: int) -> CArray:
     """(N, Q) matrix ``t_n^q`` of :class:`DelayExpansion` (same for every snapshot)."""
     t = (np.arange(N) - (N - 1) / 2.0) / (N / 2.0)
-    P = np.asarray(t[:, None] ** np.arange(Q)[None, :], dtype=float)
+    # complex so that the moment product is one zgemm without casting a copy per snapshot
+    P = np.asarray(t[:, None] ** np.arange(Q)[None, :], dtype=complex)
     P.flags.writeable = False
     return P
 

@@ -10,6 +10,7 @@ filter so that every state is in metres or radians.
 from __future__ import annotations
 
 import numpy as np
+import scipy.fft
 from numpy.typing import NDArray
 
 from .._checks import as_rng, check_positive
@@ -191,7 +192,7 @@ def batch_delay_search(
     starts = np.concatenate([[0], np.cumsum(sizes)[:-1]])
     Rall = np.vstack(rows)
     X = Rall * s.conj()
-    Y = np.fft.ifft(X, n=P, axis=1) * P
+    Y = scipy.fft.ifft(X, n=P, axis=1, norm="forward")  # unscaled inverse: no extra pass
     power = np.add.reduceat(Y.real**2 + Y.imag**2, starts, axis=0)  # (L, P)
     k = np.argmax(power, axis=1)
     Lr = np.arange(power.shape[0])
@@ -202,11 +203,11 @@ def batch_delay_search(
     n = np.arange(N)
     w = 2j * np.pi * float(bandwidth) * n / N  # d/dtau of the exponent per bin
     wb = 2 * np.pi * float(bandwidth) / N
+    W3 = np.stack([np.ones(N), w, w * w], axis=1)  # y, dy/dtau, d2y/dtau2 in one product
     for _ in range(newton):
         # Newton on P(tau) = sum_m |y_m|^2 with exact first and second derivatives
-        ph = np.repeat(phasors(tau * wb, N), sizes, axis=0)
-        Xp = X * ph
-        y0, y1, y2 = Xp.sum(axis=1), Xp @ w, Xp @ (w * w)
+        Y3 = (X * phasors(np.repeat(tau * wb, sizes), N)) @ W3
+        y0, y1, y2 = Y3[:, 0], Y3[:, 1], Y3[:, 2]
         d1 = np.add.reduceat(2 * np.real(y0.conj() * y1), starts)
         d2 = np.add.reduceat(2 * (np.abs(y1) ** 2 + np.real(y0.conj() * y2)), starts)
         step = np.where(d2 < 0, -d1 / np.where(d2 < 0, d2, -1.0), 0.0)
@@ -215,7 +216,7 @@ def batch_delay_search(
     # than the biases (nodes passing each other) gives a small negative range, not ~c N / (2B)
     period = N / float(bandwidth)
     tau = (tau + period / 2) % period - period / 2
-    yrows = np.einsum("rn,rn->r", X, np.repeat(phasors(tau * wb, N), sizes, axis=0))
+    yrows = np.einsum("rn,rn->r", X, phasors(np.repeat(tau * wb, sizes), N))
     Sp = float(np.sum(np.abs(s) ** 2))
     tot = np.add.reduceat(np.sum(np.abs(Rall) ** 2, axis=1), starts)
     fit = np.add.reduceat(np.abs(yrows) ** 2, starts) / Sp
