@@ -24,6 +24,7 @@ from .farfield import (
 from .minimal import MinimalSolution, solve_minimal
 from .refine import (
     RefineResult,
+    farfield_crlb,
     farfield_jacobian,
     farfield_residuals,
     refine_alternating,
@@ -40,6 +41,7 @@ __all__ = [
     "MinimalSolution",
     "RefineResult",
     "analyse_degeneracy",
+    "farfield_crlb",
     "farfield_jacobian",
     "farfield_residuals",
     "fit_A_nonlinear",

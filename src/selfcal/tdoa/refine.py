@@ -45,6 +45,7 @@ __all__ = [
     "refine_alternating",
     "refine_lm",
     "position_covariance",
+    "farfield_crlb",
 ]
 
 Array = NDArray[np.float64]
@@ -480,3 +481,52 @@ def refine_lm(
     W = _weights(D0, Z, N, C, obs, loss, delta)
     cov = position_covariance(D0, Z, N, C, W, free_offsets=free_offsets)
     return RefineResult(Z, N, C, cost, it, converged, hist, phist, cov)
+
+
+def farfield_crlb(positions: Array, directions: Array, sigma: float, *, free_offsets: bool = True) -> Array:
+    """Cramer-Rao bound of the far-field model for the positions, rigid gauge removed: (m, 3, 3).
+
+    Fisher information ``J^T J / sigma^2`` of ``D_ij = z_i . n_j + C_j + e_ij`` with i.i.d.
+    ``e_ij ~ N(0, sigma^2)`` (paper 000, section 3.3 noise model) in all unknowns: every
+    ``z_i`` (3 each, z_1 included), each ``n_j`` in 2 tangent coordinates and, with
+    ``free_offsets``, each ``C_j``. The information is singular along the rigid motions
+    (translations trade against ``C_j``, rotations of Z against those of N); its
+    pseudo-inverse is projected onto the complement of the rigid motions of the positions,
+    which is the error that remains after aligning an estimate to the truth by a rigid
+    motion (the metric of the reproductions). ``trace(sum_i cov_i) / m`` bounds the
+    expected aligned mean squared position error (to first order; at large noise the
+    estimators leave the asymptotic regime).
+
+    Parameters
+    ----------
+    positions : (m, 3) true z_i, metres; directions : (k, 3) true unit n_j;
+    sigma : noise standard deviation of D (metres); free_offsets : C_j unknown (True).
+
+    Returns
+    -------
+    (m, 3, 3) covariance blocks of the aligned positions, metres^2.
+    """
+    Z = np.asarray(positions, dtype=float)
+    N = np.asarray(directions, dtype=float)
+    N = N / np.linalg.norm(N, axis=1, keepdims=True)
+    m, k = Z.shape[0], N.shape[0]
+    T = sphere_tangent_basis(N)
+    n_par = 3 * m + 2 * k + (k if free_offsets else 0)
+    J = np.zeros((m, k, n_par))
+    for i in range(m):
+        J[i, :, 3 * i : 3 * i + 3] = N
+    zt = np.einsum("ia,jab->ijb", Z, T)
+    for j in range(k):
+        J[:, j, 3 * m + 2 * j : 3 * m + 2 * j + 2] = zt[:, j]
+        if free_offsets:
+            J[:, j, 3 * m + 2 * k + j] = 1.0
+    J = J.reshape(m * k, n_par)
+    cov = np.linalg.pinv(J.T @ J, rcond=1e-10, hermitian=True)[: 3 * m, : 3 * m] * sigma**2
+    # rigid-motion generators of the positions: 3 translations, 3 infinitesimal rotations
+    gens = [np.tile(np.eye(3)[a], (m, 1)).ravel() for a in range(3)]
+    gens += [np.cross(np.eye(3)[a], Z).ravel() for a in range(3)]
+    G = np.array(gens).T
+    proj = np.eye(3 * m) - G @ np.linalg.pinv(G)
+    full = proj @ cov @ proj
+    idx = np.arange(m)
+    return np.asarray(full.reshape(m, 3, m, 3)[idx, :, idx, :])
