@@ -279,6 +279,7 @@ def solve_slac(
         sampling_matrices={k: v for k, v in Gs.items() if v is not None}, ml_ranges=ml, port_vectors=pv,
         iterations=iters, converged_steps=conv, residual_rms=float(np.sqrt(np.mean(res**2))) if res.size else 0.0,
         metrics=metrics,
+        method="slac-iekf-bfgs" if filt.config.optimizer == "bfgs" else "slac-iekf-quasi-newton",
     )
 
 
