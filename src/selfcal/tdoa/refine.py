@@ -21,6 +21,15 @@ keeps a corrupted first row from spoiling whole columns).
   costs O(m k + m^3) rather than a dense solve in 3m + 3k unknowns.
 
 Robust losses are handled by iteratively re-weighted least squares (weights ``rho'``).
+
+:func:`farfield_crlb` gives the Cramer-Rao bound of the positions (rigid gauge removed).
+Audit (issue 4): with ``free_offsets=True`` LM reaches the same minimum as an independent
+``scipy.optimize.least_squares`` and meets the bound at low noise; that it barely lowers
+the error of the initialisation there is because the initialisation is already within
+1.0-1.4x of the bound in MSE. At high noise relative to the array (sigma = 0.1, unit cube,
+m = k = 10) the ML estimate is biased outwards (each column's direction and offset are fitted
+from only m entries, so a larger array absorbs more noise) and can be worse than the
+initialisation; see ``selfcal.experiments.farfield.FINDING``.
 """
 
 from __future__ import annotations
