@@ -29,7 +29,9 @@ the error of the initialisation there is because the initialisation is already w
 1.0-1.4x of the bound in MSE. At high noise relative to the array (sigma = 0.1, unit cube,
 m = k = 10) the ML estimate is biased outwards (each column's direction and offset are fitted
 from only m entries, so a larger array absorbs more noise) and can be worse than the
-initialisation; see ``selfcal.experiments.farfield.FINDING``.
+initialisation; in about a quarter of such draws the ML minimum itself (reached by LM
+even when started at the true geometry) has nearly coplanar directions and a stretched
+array. See ``selfcal.experiments.farfield.FINDING``.
 """
 
 from __future__ import annotations
