@@ -190,3 +190,86 @@ def test_microphones_mirrored_under_coplanar_loudspeakers_are_put_back_on_one_si
     assert n == 3
     np.testing.assert_allclose(fixed, sc.receivers, atol=1e-9)
     np.testing.assert_allclose(cov2, cov, atol=1e-12)  # a reflection in z keeps a diagonal covariance
+
+
+# ----------------------------------------------------------------------------- 2-D vs 3-D verdict (seeds)
+
+
+def test_f_test_keeps_z_only_when_3d_fits_significantly_better():
+    """compare_fits: F = ((RSS2 - RSS3) / k) / (RSS3 / dof) against F(k, dof) (nested models)."""
+    from scipy.stats import f as f_dist
+
+    from selfcal.acoustics.pipeline import compare_fits
+
+    m, n = 400, 40  # 20 units: k = n - 3 = 37 extra unknowns, dof = m - (4 n - 7) = 247
+    thick = compare_fits(20e-6, 1e-6, m, n)  # a 2-D fit 20x worse than the noise: z is real
+    assert thick.significant and thick.extra_parameters == 37 and thick.dof_3d == 247
+    rss2, rss3 = m * 20e-6**2, m * 1e-6**2
+    assert thick.f_statistic == pytest.approx((rss2 - rss3) / 37 / (rss3 / 247))
+    # Under a planar truth the 3-D fit only absorbs noise: RSS3 ~ sigma^2 dof, RSS2 ~ sigma^2 (dof + k).
+    planar = compare_fits(1e-6 * np.sqrt((247 + 37) / m), 1e-6 * np.sqrt(247 / m), m, n)
+    assert not planar.significant and planar.f_statistic == pytest.approx(1.0)
+    assert planar.p_value == pytest.approx(f_dist.sf(1.0, 37, 247))
+    # A 3-D fit worse than the planar one (a local minimum) never proves z.
+    assert not compare_fits(1e-6, 5e-6, m, n).significant
+    # Exact planar data: both fits at rounding level, the noise floor keeps F finite and small.
+    assert not compare_fits(3e-14, 1e-14, m, n).significant
+    # Too few observations for a residual degree of freedom: z only if 2-D is off by more than the floor.
+    assert not compare_fits(1e-11, 0.0, 30, n).significant and compare_fits(1e-6, 0.0, 30, n).significant
+
+
+def _scene_toa(layout: str, seed: int, noise: float = 1e-6):
+    sc = conference_scene(8, (8.0, 7.0, 3.0), layout=layout, rng=seed)
+    if layout == "boundary":  # boundary microphones exactly at their loudspeakers' height
+        sc = type(sc)(np.column_stack([sc.receivers[:, :2], sc.senders[:, 2]]), sc.senders,
+                      sc.receiver_delays, sc.sender_onsets, sc.room, sc.layout)
+    return sc, _toa(sc, noise, rng=seed)
+
+
+@pytest.mark.parametrize("solver_seed", [0, 1000, 2000])
+def test_planar_desks_give_2d_whatever_the_solver_seed(solver_seed):
+    """Issue 7: never a confident z on flat desks, for any random start of the 3-D solver.
+
+    Seeds 1000 and 2000 once returned a 3-D answer in a wrong basin (residual tens of us
+    while a 2-D fit reached 0.1 us); the verdict now compares both fits statistically.
+    """
+    from selfcal.acoustics.pipeline import calibrate_matrix
+    from selfcal.errors import DegenerateGeometryError
+    from selfcal.geometry import align
+
+    sc, T = _scene_toa("boundary", 1)
+    with pytest.warns(UserWarning, match="near-planar"):
+        sol, plan, notes = calibrate_matrix(T, speed=C, rng=solver_seed)
+    assert sol["method"].startswith("2d") and sol["receivers"].shape == (8, 2)
+    assert plan.near_planar and notes and "near-planar" in notes[0]
+    cmp = plan.comparison
+    assert cmp is not None and not cmp.significant and cmp.residual_3d <= cmp.residual_2d
+    est = np.vstack([sol["receivers"], sol["sources"]])
+    true = np.vstack([sc.receivers, sc.senders])[:, :2]
+    assert np.abs(align(est, true).apply(est) - true).max() < 0.02  # 1 us = 0.34 mm of range noise
+    if solver_seed == 1000:
+        with pytest.raises(DegenerateGeometryError, match="near-planar"):
+            calibrate_matrix(T, speed=C, dim=3, rng=solver_seed)
+
+
+@pytest.mark.parametrize(("layout", "solver_seed"), [("tiered", 1000), ("tiered", 2000), ("stem", 2000)])
+def test_3d_layouts_keep_z_with_its_uncertainty(layout, solver_seed):
+    """Tiered rows and stem microphones: 3-D fits significantly better, z is kept, with its std.
+
+    (Stem with solver seed 1000 ends in a wrong 3-D basin of ``solve_toa`` -- residual 10 us
+    at 1 us noise -- which still fits far better than 2-D: a solver issue, not the verdict's.)
+    """
+    from selfcal.acoustics.pipeline import calibrate_matrix
+    from selfcal.geometry import align
+
+    sc, T = _scene_toa(layout, 1)
+    sol, plan, notes = calibrate_matrix(T, speed=C, rng=solver_seed)
+    assert sol["method"].startswith("3d") and not plan.near_planar
+    assert plan.comparison is not None and plan.comparison.significant
+    assert any("z standard deviation" in n for n in notes)
+    est = np.vstack([sol["receivers"], sol["sources"]])
+    true = np.vstack([sc.receivers, sc.senders])
+    err = align(est, true).apply(est) - true
+    assert np.abs(err).max() < 0.05
+    zstd = np.sqrt(np.concatenate([sol["receiver_cov"][:, 2, 2], sol["source_cov"][:, 2, 2]]))
+    assert np.all(zstd > 0) and np.sqrt(np.mean(err[:, 2] ** 2)) < 5 * np.sqrt(np.mean(zstd**2))

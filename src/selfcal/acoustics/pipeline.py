@@ -31,7 +31,9 @@ from ..errors import DegenerateGeometryError, InputError
 __all__ = [
     "PipelineResult",
     "Planarity",
+    "ModelComparison",
     "planarity",
+    "compare_fits",
     "one_side_of_plane",
     "sender_matrix",
     "refine_known_heights",
@@ -47,6 +49,93 @@ POSITION_REQUIREMENT = 0.10  # m, 004 sec. 2.1 requirement 1(a)
 TIMING_REQUIREMENT = 58e-6  # s, 004 sec. 2.2 (2 cm at 343 m/s)
 PLANAR_RATIO = 0.01  # thinnest / widest extent below which a layout counts as flat
 PLANAR_SIGMAS = 3.0  # thickness below this many standard deviations along the normal = flat
+PLANAR_ALPHA = 1e-3  # F-test level: a 3-D improvement less likely than this under a planar truth keeps z
+NOISE_FLOOR = 1e-10  # s, below any real detection error; keeps the F test finite on exact data
+
+
+@dataclass(frozen=True)
+class ModelComparison:
+    """Nested-model F test of a 3-D fit against a 2-D fit of the same TOA matrix.
+
+    Attributes
+    ----------
+    residual_2d, residual_3d : float
+        RMS TOA residuals, s.
+    observations : int
+        Observed entries m.
+    extra_parameters : int
+        k = n - 3 unknowns the 3-D model adds (one coordinate per node, less the three
+        extra rigid-motion gauge freedoms of 3-D).
+    dof_3d : int
+        m minus the 3-D model's free parameters, ``4 n - 7`` (n = I + J nodes).
+    f_statistic : float
+        ``((RSS_2 - RSS_3) / k) / (RSS_3 / dof_3d)``.
+    p_value : float
+        Probability of an F at least this large under a planar truth (F(k, dof_3d)).
+    significant : bool
+        ``p_value < alpha``: z is determined by the data.
+    """
+
+    residual_2d: float
+    residual_3d: float
+    observations: int
+    extra_parameters: int
+    dof_3d: int
+    f_statistic: float
+    p_value: float
+    significant: bool
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-safe dictionary."""
+        return {"residual_2d": self.residual_2d, "residual_3d": self.residual_3d,
+                "observations": self.observations, "extra_parameters": self.extra_parameters,
+                "dof_3d": self.dof_3d, "f_statistic": self.f_statistic, "p_value": self.p_value,
+                "significant": self.significant}
+
+
+def compare_fits(residual_2d: float, residual_3d: float, observations: int, nodes: int, *,
+                 alpha: float = PLANAR_ALPHA, noise_floor: float = NOISE_FLOOR) -> ModelComparison:
+    """F test: does the 3-D model fit the TOAs significantly better than the planar one?
+
+    With Gaussian noise, the planar model nested in the 3-D one and ``RSS = m rms^2``,
+    ``F = ((RSS_2 - RSS_3) / k) / (RSS_3 / (m - p_3))`` follows F(k, m - p_3) when the
+    network is planar (k = n - 3 extra unknowns, p_3 = 4 n - 7: 3 n coordinates plus
+    n - 1 offset differences less 6 gauge freedoms; offsets ``"both"``). The noise
+    variance ``RSS_3 / (m - p_3)`` is floored at ``noise_floor^2`` so exact data give a
+    finite answer. Without residual degrees of freedom the test cannot reject, and z is
+    kept only if the 2-D fit is off by more than the floor.
+
+    Parameters
+    ----------
+    residual_2d, residual_3d : float
+        RMS residuals of the two fits over the ``observations`` entries, s.
+    observations : int
+    nodes : int
+        I + J.
+    alpha : float
+        Significance level.
+    noise_floor : float
+        s.
+
+    Returns
+    -------
+    ModelComparison
+    """
+    from scipy.stats import f as f_dist
+
+    k = max(nodes - 3, 1)
+    dof = observations - (4 * nodes - 7)
+    rss2 = observations * residual_2d**2
+    rss3 = observations * residual_3d**2
+    if dof < 1:
+        stat = float("inf") if residual_2d > residual_3d + noise_floor else 0.0
+        p = 0.0 if stat > 0 else 1.0
+    else:
+        var = max(rss3 / dof, noise_floor**2)
+        stat = float((rss2 - rss3) / k / var)
+        p = float(f_dist.sf(stat, k, dof)) if stat > 0 else 1.0
+    return ModelComparison(float(residual_2d), float(residual_3d), int(observations), int(k), int(dof),
+                           stat, p, bool(p < alpha))
 
 
 @dataclass(frozen=True)
@@ -64,17 +153,21 @@ class Planarity:
     normal_std : float
         RMS standard deviation of the positions along ``normal`` from their covariances, m
         (NaN without covariances).
+    comparison : ModelComparison or None
+        The 2-D / 3-D F test behind the verdict (:func:`compare_fits`), when one was made.
     """
 
     near_planar: bool
     extents: Array
     normal: Array
     normal_std: float
+    comparison: ModelComparison | None = None
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-safe dictionary."""
         return {"near_planar": self.near_planar, "extents": self.extents, "normal": self.normal,
-                "normal_std": self.normal_std}
+                "normal_std": self.normal_std,
+                "comparison": None if self.comparison is None else self.comparison.to_dict()}
 
 
 def planarity(points: Array, cov: NDArray[np.float64] | None = None, *, ratio: float = PLANAR_RATIO,
@@ -516,8 +609,17 @@ def calibrate_matrix(
     dim: int | str = "auto",
     heights: tuple[Array, Array] | None = None,
     rng: int = 0,
+    alpha: float = PLANAR_ALPHA,
 ) -> tuple[dict[str, Any], Planarity | None, list[str]]:
     """Stages 2 + 3 of 004 on an (I, J) per-sender TOA matrix (seconds).
+
+    The 3-D model contains every planar network, so z is determined only when a 3-D fit
+    explains the data significantly better than a 2-D one. Both are always fitted and
+    compared by the nested-model F test of :func:`compare_fits` (Gaussian TOA noise, the
+    noise level estimated from the 3-D residual); a 3-D answer in a worse basin than the
+    planar one is first refined from the lifted 2-D solution, so the verdict does not
+    depend on the solver's random starts. A 3-D answer that passes the test must also
+    resolve its own thickness (:func:`planarity` with the covariances).
 
     Parameters
     ----------
@@ -526,18 +628,25 @@ def calibrate_matrix(
     speed : float
         m/s.
     dim : 2, 3 or "auto"
-        "auto": 3-D, or 2-D if the layout is near-planar (:func:`planarity`).
+        "auto": 3-D, or 2-D if the layout is near-planar (F test or :func:`planarity`).
         An explicit 3 on a near-planar layout raises.
     heights : (receiver heights (I,), sender heights (J,)), optional
         Known heights, m: 2-D initialisation, then :func:`refine_known_heights`; the
         result is 3-D with z = the given heights.
+    rng : int
+        Seed of the solver's random initialisations.
+    alpha : float
+        Significance level of the F test: 3-D is kept only when a 3-D improvement as large
+        as the observed one has probability below ``alpha`` under a planar truth.
 
     Returns
     -------
     solution : dict
         Keys of :func:`refine_known_heights` plus ``method``.
     planarity : Planarity or None
+        With the 2-D / 3-D comparison in ``comparison``.
     notes : list of str
+        Verdicts a reader must see (near-planar fallback, z uncertainty of a 3-D answer).
 
     Raises
     ------
@@ -553,41 +662,106 @@ def calibrate_matrix(
         return sol, None, notes
     if dim not in (2, 3, "auto"):
         raise InputError(f"dim must be 2, 3 or 'auto', got {dim!r}")
-    plan = None
-    if dim in (3, "auto"):
-        try:
-            res3 = _solve_retrying(T, speed, rng)
-        except DegenerateGeometryError as exc:
+    if dim == 2:
+        return _as_solution(_solve(T, 2, speed, rng), "2d"), None, notes
+    advice = "give known heights (--heights) for 3-D positions or use --dim 2"
+    res2 = _try_solve(T, 2, speed, rng)
+    try:
+        res3 = _solve_retrying(T, speed, rng)
+    except DegenerateGeometryError as exc:
+        res3 = _refit_from_planar(T, res2, speed, rng) if res2 is not None else None
+        if res3 is None:
             # A 3-D solve that breaks down on data a 2-D solve fits (within half the 004
             # timing tolerance) means the layout is (numerically) planar.
-            res2 = _solve(T, 2, speed, rng)
-            if not res2.residual_rms < 0.5 * TIMING_REQUIREMENT:
+            if res2 is None or not res2.residual_rms < 0.5 * TIMING_REQUIREMENT:
                 raise
             pts2 = np.vstack([res2.receivers, res2.sources])
-            plan = Planarity(True, np.append(planarity(pts2).extents, 0.0), np.array([0.0, 0.0, 1.0]), float("nan"))
+            plan = Planarity(True, np.append(planarity(pts2).extents, 0.0), np.array([0.0, 0.0, 1.0]),
+                             float("nan"))
             msg = (f"near-planar layout: the 3-D calibration is undetermined ({exc}) while a 2-D one fits "
-                   f"(residual {res2.residual_rms * 1e6:.2f} us); z is not determined by the data, "
-                   "give known heights (--heights) for 3-D positions or use --dim 2")
-            if dim == 3:
-                raise DegenerateGeometryError(msg, kind="near-planar") from None
-            warnings.warn(msg + "; reporting 2-D positions", stacklevel=2)
-            notes.append(msg + "; reported 2-D positions")
-            return _as_solution(res2, "2d"), plan, notes
-        res3 = _resolve_mirrors(T, res3, speed, rng, notes)
-        pts = np.vstack([res3.receivers, res3.sources])
-        cov = np.concatenate([np.asarray(res3.receiver_cov), np.asarray(res3.source_cov)])
-        plan = planarity(pts, cov)
-        if not plan.near_planar:
-            return _as_solution(res3, "3d"), plan, notes
-        msg = (f"near-planar layout (thickness {plan.extents[-1]:.3f} m vs extent {plan.extents[0]:.2f} m, "
-               f"normal std {plan.normal_std:.3f} m): z is not determined by the data; "
-               "give known heights (--heights) for 3-D positions or use --dim 2")
+                   f"(residual {res2.residual_rms * 1e6:.2f} us); z is not determined by the data, {advice}")
+            return _planar_verdict(res2, plan, msg, dim, notes)
+    if res2 is not None and res3.residual_rms > res2.residual_rms:
+        # Worse than the nested planar model: a local minimum of the 3-D cost. Restart from
+        # the planar solution so that the comparison is between the two models, not basins.
+        alt = _refit_from_planar(T, res2, speed, rng)
+        if alt is not None and alt.residual_rms < res3.residual_rms:
+            res3 = alt
+    cmp = None
+    if res2 is not None:
+        I, J = T.shape
+        m = int(np.isfinite(T).sum())
+        cmp = compare_fits(res2.residual_rms, res3.residual_rms, m, I + J, alpha=alpha)
+        if not cmp.significant:
+            pts2 = np.vstack([res2.receivers, res2.sources])
+            plan = Planarity(True, np.append(planarity(pts2).extents, 0.0), np.array([0.0, 0.0, 1.0]),
+                             float("nan"), cmp)
+            msg = (f"near-planar layout: a 3-D fit is no significantly better than a 2-D one "
+                   f"(residual {res3.residual_rms * 1e6:.3g} vs {res2.residual_rms * 1e6:.3g} us, "
+                   f"F = {cmp.f_statistic:.3g}, p = {cmp.p_value:.3g} >= {alpha:g}); "
+                   f"z is not determined by the data, {advice}")
+            return _planar_verdict(res2, plan, msg, dim, notes)
+    res3 = _resolve_mirrors(T, res3, speed, rng, notes)
+    pts = np.vstack([res3.receivers, res3.sources])
+    cov = np.concatenate([np.asarray(res3.receiver_cov), np.asarray(res3.source_cov)])
+    plan = planarity(pts, cov)
+    plan = Planarity(plan.near_planar, plan.extents, plan.normal, plan.normal_std, cmp)
+    if not plan.near_planar:
+        notes.append(_z_note(cov, cmp))
+        return _as_solution(res3, "3d"), plan, notes
+    msg = (f"near-planar layout (thickness {plan.extents[-1]:.3f} m vs extent {plan.extents[0]:.2f} m, "
+           f"normal std {plan.normal_std:.3f} m): z is not determined by the data; {advice}")
+    if res2 is None:
         if dim == 3:
             raise DegenerateGeometryError(msg, kind="near-planar")
-        warnings.warn(msg + "; reporting 2-D positions", stacklevel=2)
-        notes.append(msg + "; reported 2-D positions")
-    res = _solve(T, 2, speed, rng)
-    return _as_solution(res, "2d"), plan, notes
+        res2 = _solve(T, 2, speed, rng)
+    return _planar_verdict(res2, plan, msg, dim, notes)
+
+
+def _planar_verdict(res2: Any, plan: Planarity, msg: str, dim: int | str,
+                    notes: list[str]) -> tuple[dict[str, Any], Planarity, list[str]]:
+    """Raise for an explicit ``dim=3``; otherwise warn and report the 2-D solution."""
+    if dim == 3:
+        raise DegenerateGeometryError(msg, kind="near-planar")
+    warnings.warn(msg + "; reporting 2-D positions", stacklevel=3)
+    notes.append(msg + "; reported 2-D positions")
+    return _as_solution(res2, "2d"), plan, notes
+
+
+def _z_note(cov: NDArray[np.float64], cmp: ModelComparison | None) -> str:
+    """The z uncertainty of a kept 3-D answer, from its covariances (1 sigma)."""
+    zvar = cov[:, 2, 2]
+    zstd = np.sqrt(zvar[np.isfinite(zvar) & (zvar >= 0)])
+    why = ("" if cmp is None else
+           f"3-D fits significantly better than 2-D (F = {cmp.f_statistic:.3g}, p = {cmp.p_value:.2g}); ")
+    if not zstd.size:
+        return why + "z standard deviations are not available"
+    return why + f"z standard deviation median {np.median(zstd) * 1e3:.2g} mm, max {zstd.max() * 1e3:.2g} mm"
+
+
+def _try_solve(T: Array, dim: int, speed: float, rng: int) -> Any:
+    try:
+        return _solve(T, dim, speed, rng)
+    except DegenerateGeometryError:
+        return None
+
+
+def _refit_from_planar(T: Array, res2: Any, speed: float, rng: int) -> Any:
+    """3-D refinement started from the 2-D solution lifted to z = small random heights.
+
+    Exactly in the plane the out-of-plane gradient is zero, so the start is lifted by a
+    random z of 1 % of the layout's extent; a thick network then leaves the plane, a flat
+    one stays or turns unobservable (None).
+    """
+    pts = np.vstack([res2.receivers, res2.sources])
+    scale = 0.01 * float(np.ptp(pts, axis=0).max() or 1.0)
+    g = np.random.default_rng(rng)
+    lift = [np.column_stack([a, g.normal(0.0, scale, len(a))]) for a in (res2.receivers, res2.sources)]
+    try:
+        return _solve(T, 3, speed, rng, init=(lift[0], lift[1], np.asarray(res2.receiver_offsets),
+                                                np.asarray(res2.source_offsets)))
+    except DegenerateGeometryError:
+        return None
 
 
 def _as_solution(res: Any, label: str) -> dict[str, Any]:
