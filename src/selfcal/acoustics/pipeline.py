@@ -8,9 +8,10 @@ tau_j + delta_i`` (004 eq. 3.1) goes to :func:`selfcal.toa.solve_toa` with
 
 Geometry (conference units sit at nearly one height). A near-planar network makes 3-D
 self-calibration ill-posed: each point may be mirrored through the plane without
-changing any distance to first order, so z is undetermined. :func:`planarity` detects it
-from the singular values of the centred positions against their covariance, and the
-pipeline then either calibrates in 2-D, or -- with known heights (``heights``) -- solves
+changing any distance to first order, so z is undetermined. The pipeline fits both a
+2-D and a 3-D model and keeps z only when the 3-D fit is significantly better (nested-model
+F test, :func:`compare_fits`) and its thickness is resolved by its own covariances
+(:func:`planarity`); otherwise it calibrates in 2-D, or -- with known heights (``heights``) -- solves
 for the horizontal positions and the offsets with each point's z fixed
 (:func:`refine_known_heights`), so it never reports a z it cannot determine.
 """
