@@ -271,6 +271,19 @@ def _prepare(D: Array, mask: NDArray[np.bool_] | None) -> tuple[Array, NDArray[n
 
 
 # ----------------------------------------------------------------------------- Algorithm 2
+def _start(
+    D: Array, mask: NDArray[np.bool_] | None, positions: Array, directions: Array, offsets: Array
+) -> tuple[Array, NDArray[np.bool_], Array, Array, Array]:
+    """Working copies of the data and of the initial estimate in the paper's gauge
+    (first position at the origin, unit directions), shared by both refinements."""
+    D0, obs = _prepare(D, mask)
+    Z = np.array(positions, dtype=float)
+    Z[0] = 0.0
+    N = np.array(directions, dtype=float)
+    N /= np.linalg.norm(N, axis=1, keepdims=True)
+    return D0, obs, Z, N, np.array(offsets, dtype=float)
+
+
 def refine_alternating(
     D: Array,
     positions: Array,
@@ -304,12 +317,7 @@ def refine_alternating(
     """
     check_choice(direction_solver, "direction_solver", ("global", "local"))
     check_choice(loss, "loss", LOSSES)
-    D0, obs = _prepare(D, mask)
-    Z = np.array(positions, dtype=float)
-    Z[0] = 0.0
-    N = np.array(directions, dtype=float)
-    N /= np.linalg.norm(N, axis=1, keepdims=True)
-    C = np.array(offsets, dtype=float)
+    D0, obs, Z, N, C = _start(D, mask, positions, directions, offsets)
     cost = _cost(farfield_residuals(D0, Z, N, C), obs, loss, delta)
     hist, phist = [cost], ([Z.copy()] if record_positions else [])
     # rounding floor: below this the data are fitted to machine precision
@@ -448,12 +456,7 @@ def refine_lm(
     Parameters are as in :func:`refine_alternating`; ``lam`` > 0.
     """
     check_choice(loss, "loss", LOSSES)
-    D0, obs = _prepare(D, mask)
-    Z = np.array(positions, dtype=float)
-    Z[0] = 0.0
-    N = np.array(directions, dtype=float)
-    N /= np.linalg.norm(N, axis=1, keepdims=True)
-    C = np.array(offsets, dtype=float)
+    D0, obs, Z, N, C = _start(D, mask, positions, directions, offsets)
     cost = _cost(farfield_residuals(D0, Z, N, C), obs, loss, delta)
     hist, phist = [cost], ([Z.copy()] if record_positions else [])
     converged = False
