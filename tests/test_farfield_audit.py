@@ -158,3 +158,34 @@ def test_ml_at_sigma_0p1_can_collapse_towards_coplanar_directions():
         truth_not_better += int(ml.cost <= tr.cost * (1 + 1e-6))
     assert far >= 3
     assert truth_not_better >= far / 2
+
+
+def test_solver_flags_every_collapsed_high_noise_solution_and_no_low_noise_one():
+    """solve_farfield warns (``directions-collapsed``) instead of silently returning the
+    stretched arrays of the test above: at sigma = 0.1 every estimate off by more than the
+    array size (1 m) carries the warning; at sigma = 0.01 none does."""
+    import warnings
+
+    from selfcal.errors import ConvergenceWarning
+    from selfcal.tdoa import solve_farfield
+
+    rng = np.random.default_rng(0)
+    wrong, flagged_wrong = 0, 0
+    for _ in range(40):
+        Z = rng.uniform(0, 1, (10, 3))
+        Z -= Z[0]
+        N = unit(rng.normal(size=(10, 3)))
+        D = Z @ N.T + 0.1 * rng.normal(size=(10, 10))
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", ConvergenceWarning)
+            r = solve_farfield(D, method="lm", check_degeneracy=False)
+        if np.sqrt(aligned_mse(r.positions, Z)) > 1.0:
+            wrong += 1
+            flagged_wrong += any(w.startswith("directions-collapsed") for w in r.warnings)
+    assert wrong >= 3
+    assert flagged_wrong == wrong
+    for _ in range(20):
+        Z = rng.uniform(0, 1, (10, 3))
+        N = unit(rng.normal(size=(10, 3)))
+        r = solve_farfield(Z @ N.T + 0.01 * rng.normal(size=(10, 10)), method="lm")
+        assert r.warnings == ()

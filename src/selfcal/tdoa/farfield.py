@@ -23,7 +23,7 @@ additionally offers RANSAC over the minimal solver.
 from __future__ import annotations
 
 import warnings
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -60,6 +60,11 @@ __all__ = [
 
 Array = NDArray[np.float64]
 METHODS = ("auto", "lm", "alternating", "init", "minimal")
+#: Flag a refined solution whose directions are nearly coplanar (smallest / largest singular
+#: value of the (k, 3) direction matrix below this). At high noise (sigma about a third of the array size) the
+#: ML cost itself has such minima: the out-of-plane scale of the positions is then barely
+#: determined and the array comes out stretched (see the audit note in :mod:`.refine`).
+COLLAPSE_RATIO = 0.2
 _MAD = 1.4826
 
 
@@ -85,6 +90,9 @@ class FarfieldResult:
     cost_history : refinement cost after every iteration (first = initial cost).
     position_cov : (m, 3, 3) Gauss-Newton covariance of each position (m^2) after LM, in
         the gauge "best rotation about the first position" (None for other methods).
+    warnings : human-readable cautions about this estimate (e.g. ``directions-collapsed``:
+        the refinement drove the directions towards a common plane, see
+        :data:`COLLAPSE_RATIO`); empty when there are none.
     """
 
     positions: Array
@@ -101,6 +109,7 @@ class FarfieldResult:
     diagnostics: DegeneracyReport | None = None
     cost_history: list[float] = field(default_factory=list)
     position_cov: Array | None = None
+    warnings: tuple[str, ...] = ()
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-safe dictionary with the DESIGN.md keys (``rejected`` as [i, j] pairs)."""
@@ -118,6 +127,7 @@ class FarfieldResult:
             "b_positive_definite": bool(self.b_positive_definite),
             "diagnostics": None if self.diagnostics is None else self.diagnostics.to_dict(),
             "position_cov": None if self.position_cov is None else self.position_cov.tolist(),
+            "warnings": list(self.warnings),
         }
 
 
@@ -652,4 +662,25 @@ def solve_farfield(
                 rej = np.asarray(used & (np.abs(r) > reject_k * max(rob, 1e-300)))
     res = _result(Z, N, C, kind=kind_found, conv=conv, its=its, meth=method, rej=rej,
                   pd=init.b_positive_definite, hist=hist, cov=cov)
+    cautions = _collapse_warning(init.directions, res.directions)
+    if cautions:
+        warnings.warn(cautions[0], ConvergenceWarning, stacklevel=2)
+        res = replace(res, warnings=cautions)
     return res
+
+
+def _direction_spread(N: Array) -> float:
+    sv = np.linalg.svd(np.asarray(N, dtype=float), compute_uv=False)
+    return float(sv[-1] / max(sv[0], 1e-300))
+
+
+def _collapse_warning(N_init: Array, N_final: Array) -> tuple[str, ...]:
+    """``("directions-collapsed: ...",)`` when the refined directions are nearly coplanar
+    (:data:`COLLAPSE_RATIO`), else ``()``; the initial ratio is quoted for context."""
+    before, after = _direction_spread(N_init), _direction_spread(N_final)
+    if after < COLLAPSE_RATIO:
+        return (f"directions-collapsed: the refined directions are nearly coplanar (singular-value "
+                f"ratio {after:.3g}, initialisation {before:.3g}); the out-of-plane scale of the "
+                "positions is then poorly determined — typical of noise that is large against the "
+                "array; treat the positions with caution or add transmitters",)
+    return ()

@@ -31,7 +31,9 @@ m = k = 10) the ML estimate is biased outwards (each column's direction and offs
 from only m entries, so a larger array absorbs more noise) and can be worse than the
 initialisation; in about a quarter of such draws the ML minimum itself (reached by LM
 even when started at the true geometry) has nearly coplanar directions and a stretched
-array. See ``selfcal.experiments.farfield.FINDING``.
+array. See ``selfcal.experiments.farfield.FINDING``. :func:`selfcal.tdoa.solve_farfield`
+flags such solutions (``warnings``: ``directions-collapsed``, threshold
+``selfcal.tdoa.farfield.COLLAPSE_RATIO``).
 """
 
 from __future__ import annotations
