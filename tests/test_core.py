@@ -21,7 +21,12 @@ from selfcal.geometry import (
     sphere_exp,
 )
 from selfcal.io import read_matrix, write_json
-from selfcal.metrics import aligned_rmse, angle_error, rotation_angle_error
+from selfcal.metrics import (
+    aligned_direction_errors,
+    aligned_rmse,
+    angle_error,
+    rotation_angle_error,
+)
 
 
 def _random_rotation(rng: np.random.Generator, d: int, proper: bool = True) -> np.ndarray:
@@ -65,6 +70,20 @@ def test_aligned_rmse_matches_definition(rng: np.random.Generator) -> None:
     expected = np.sqrt(np.mean(np.sum((al.apply(est_R) - R) ** 2, axis=1)))
     assert err.rmse_receivers == pytest.approx(expected)
     assert err.rmse_receivers < 0.2
+
+
+def test_aligned_direction_errors_undo_the_rotation_and_mirror(rng: np.random.Generator) -> None:
+    Z = rng.normal(size=(6, 3))
+    N = rng.normal(size=(9, 3))
+    N /= np.linalg.norm(N, axis=1, keepdims=True)
+    Q = _random_rotation(rng, 3) @ np.diag([1.0, 1.0, -1.0])  # rotation + mirror, as self-calibration allows
+    tilt = np.deg2rad(2.0)
+    Rz = np.array([[np.cos(tilt), -np.sin(tilt), 0], [np.sin(tilt), np.cos(tilt), 0], [0, 0, 1]])
+    est_N = N @ Rz.T  # every direction off by at most 2 deg (about z)
+    err = aligned_direction_errors(Z @ Q.T + 4.0, est_N @ Q.T, Z, N)
+    expected = np.arccos(np.clip(np.sum(est_N * N, axis=1), -1, 1))
+    assert np.allclose(err, expected, atol=1e-9)
+    assert np.all(err <= tilt + 1e-12)
 
 
 def test_rotvec_roundtrip_and_sphere_exp(rng: np.random.Generator) -> None:

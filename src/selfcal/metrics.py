@@ -9,7 +9,8 @@ from numpy.typing import NDArray
 
 from .geometry import Alignment, align
 
-__all__ = ["AlignedError", "aligned_rmse", "per_point_errors", "percentiles", "angle_error", "rotation_angle_error", "efficiency"]
+__all__ = ["AlignedError", "aligned_rmse", "per_point_errors", "percentiles", "angle_error", "rotation_angle_error",
+           "aligned_direction_errors", "efficiency"]
 
 Array = NDArray[np.float64]
 
@@ -96,6 +97,24 @@ def rotation_angle_error(R_est: Array, R_true: Array) -> Array:
         return np.abs(np.arctan2(M[..., 1, 0], M[..., 0, 0]))
     tr = np.trace(M, axis1=-2, axis2=-1)
     return np.arccos(np.clip((tr - 1.0) / 2.0, -1.0, 1.0))
+
+
+def aligned_direction_errors(
+    positions: Array, directions: Array, true_positions: Array, true_directions: Array
+) -> Array:
+    """Angle (rad) between each estimated unit direction and the true one, after the rigid
+    alignment (reflection allowed) fitted on the positions.
+
+    For far-field self-calibration (paper 000): positions (m, 3) are fitted up to a rotation /
+    reflection and a translation, and the directions (k, 3) share the rotation, not the
+    translation. Returns (k,) angles in [0, pi].
+    """
+    al = align(np.asarray(positions, float), np.asarray(true_positions, float))
+    N = np.asarray(directions, float) @ al.rotation.T
+    N /= np.linalg.norm(N, axis=1, keepdims=True)
+    T = np.asarray(true_directions, float)
+    T = T / np.linalg.norm(T, axis=1, keepdims=True)
+    return np.arccos(np.clip(np.sum(N * T, axis=1), -1.0, 1.0))
 
 
 def efficiency(rmse: float, crlb_trace: float) -> float:
