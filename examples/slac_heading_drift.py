@@ -7,8 +7,10 @@ moves the mean, and the next step builds on the moved mean. Here the filter star
 poses (with the usual 0.3 m / 3 deg initial uncertainty) and the sampling-matrix prior centred on the true installed response,
 so every heading error printed below is produced by the recursion itself.
 
-Run: .venv/bin/python examples/slac_heading_drift.py
+Run: .venv/bin/python examples/slac_heading_drift.py [SNR_DB]   (default 30)
 """
+
+import sys
 
 import numpy as np
 
@@ -17,7 +19,8 @@ from selfcal.slac.filter import SlacConfig
 from selfcal.slac.run import SlacLog, solve_slac
 
 seed = 12
-scene = make_rover_scenario(0.5, n_subcarriers=32, rng=seed, bias_std=0.3)
+scene = make_rover_scenario(0.5, n_subcarriers=32, rng=seed, bias_std=0.3,
+                            snr_db=float(sys.argv[1]) if len(sys.argv) > 1 else 30.0)
 log = SlacLog.from_scenario(scene, seed=seed)  # prior std 0.3 m / 3 deg on the initial poses
 assert log.states is not None
 log.init_poses = log.states[0].copy()  # ... but the initial mean is the truth
