@@ -38,8 +38,10 @@ def simulate_cmd(minutes: float, subcarriers: int, snr_db: float, seed: int, out
 @click.option("--out", "out", type=click.Path(dir_okay=False, path_type=Path), required=True, help="RESULT.json")
 @click.option("--plot", "plot", type=click.Path(file_okay=False, path_type=Path), default=None,
               help="Folder for trajectory / ranging PNGs.")
+@click.option("--init", type=click.Choice(["snapshot", "log"]), default="snapshot", show_default=True,
+              help="Initial poses: snapshot-based estimate (paper 002 section IV) or the log's init_poses.")
 @handle_errors
-def run_cmd(log_path: Path, mode: str, prior: str, out: Path, plot: Path | None) -> None:
+def run_cmd(log_path: Path, mode: str, prior: str, out: Path, plot: Path | None, init: str) -> None:
     """Run the SLAC or localization-only filter over an NPZ log."""
     import numpy as np
 
@@ -47,7 +49,7 @@ def run_cmd(log_path: Path, mode: str, prior: str, out: Path, plot: Path | None)
     from ..slac.run import SlacLog, solve_slac
 
     log = SlacLog.from_npz(log_path)
-    res = solve_slac(log, mode=mode, prior=prior, progress=True)
+    res = solve_slac(log, mode=mode, prior=prior, progress=True, init=init)
     d = res.to_dict()
     m = d["metrics"]
     if m:
@@ -115,9 +117,11 @@ def plaza_cmd(path: Path, out: Path, plot: Path | None) -> None:
 @backend_option
 @scheduler_option
 @seed_option
+@click.option("--init", type=click.Choice(["snapshot", "log"]), default="snapshot", show_default=True,
+              help="Initial poses: snapshot-based estimate (paper 002 section IV) or the log's init_poses.")
 @handle_errors
 def reproduce_slac_cmd(minutes: float, subcarriers: int, runs: int, out: Path, backend: str,
-                       scheduler: str | None, seed: int) -> None:
+                       scheduler: str | None, seed: int, init: str) -> None:
     """Paper 002 replica: Table I, Fig. 3 (DoA CDF), Fig. 4 (ranging RMSE) -> PNG + JSON in --out."""
     import json
 
@@ -127,5 +131,5 @@ def reproduce_slac_cmd(minutes: float, subcarriers: int, runs: int, out: Path, b
     if minutes <= 0 or runs < 1 or subcarriers < 8:
         raise InputError("--minutes must be > 0, --runs >= 1 and --subcarriers >= 8")
     s = reproduce_slac(out, minutes=minutes, subcarriers=subcarriers, runs=runs, seed=seed, backend=backend,
-                       scheduler=scheduler)
+                       scheduler=scheduler, init=init)
     click.echo(json.dumps({"table_I": s["table_I"], "fig3_doa": s["fig3_doa"], "fig4": s["fig4"]}, indent=1))

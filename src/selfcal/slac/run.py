@@ -220,6 +220,7 @@ def solve_slac(
     config: SlacConfig | None = None,
     steps: int | None = None,
     progress: bool = False,
+    init: str = "log",
 ) -> SlacResult:
     """Run the SLAC (or localization-only) filter over a log (paper 002, section IV).
 
@@ -230,6 +231,10 @@ def solve_slac(
     prior : sampling-matrix prior of multi-port agents, "em" or "chamber" (or "true").
     config : SlacConfig; T, sigma_v, sigma_omega and bandwidth are taken from the log.
     steps : run only the first ``steps`` steps.
+    init : "log" (the log's ``init_poses`` / ``init_cov``) or "snapshot": the snapshot-based
+        initialiser of section IV (:func:`~selfcal.slac.initialization.snapshot_initial_poses`)
+        on the first snapshot, moved back to state 0 through the motion model; single-port
+        agents keep the log's heading and heading variance (one snapshot cannot give them).
 
     Returns
     -------
@@ -241,8 +246,8 @@ def solve_slac(
     base = config or SlacConfig()
     cfg = SlacConfig(**{**base.__dict__, "T": log.T, "sigma_v": log.sigma_v, "sigma_omega": log.sigma_omega,
                         "bandwidth": log.bandwidth})
-    filt = SlacFilter(log.anchors, log.ports, log.prior(prior), log.init_poses, log.init_cov, log.probe,
-                      mode=mode, config=cfg)
+    x0, P0 = _initial_state(log, init, prior, cfg.bias_std)
+    filt = SlacFilter(log.anchors, log.ports, log.prior(prior), x0, P0, log.probe, mode=mode, config=cfg)
     S = log.n_steps if steps is None else min(int(steps), log.n_steps)
     n, L = log.n_agents, log.rx.size
     poses = np.empty((S + 1, n, 3))
@@ -281,6 +286,19 @@ def solve_slac(
         metrics=metrics,
         method="slac-iekf-bfgs" if filt.config.optimizer == "bfgs" else "slac-iekf-quasi-newton",
     )
+
+
+def _initial_state(log: SlacLog, init: str, prior: str, bias_std: float) -> tuple[FArray, FArray]:
+    """(n, 3) poses and (n, 3, 3) covariances at state 0 (see :func:`solve_slac`, ``init``)."""
+    check_choice(init, "init", ("log", "snapshot"))
+    if init == "log":
+        return log.init_poses, log.init_cov
+    from .initialization import back_propagate, snapshot_initial_poses
+
+    ini = snapshot_initial_poses(log.anchors, log.ports, log.prior(prior), log.rx, log.tx, log.snapshot_fn(1),
+                                 log.probe, log.bandwidth, headings=log.init_poses[:, 2],
+                                 heading_std=np.sqrt(log.init_cov[:, 2, 2]), bias_std=bias_std)
+    return back_propagate(ini.poses, ini.cov, log.controls[0], log.T, log.sigma_v, log.sigma_omega)
 
 
 def _metrics(log: SlacLog, poses: FArray, covs: FArray, biases: FArray, bias_std: FArray, ml: FArray,
