@@ -50,7 +50,7 @@ def test_antenna_priors_are_consistent_with_the_installed_response(log: SlacLog)
 
 @pytest.mark.xfail(strict=True, reason="full-G SLAC is overconfident in heading; docs/slac_consistency.md")
 def test_full_slac_with_chamber_prior_is_consistent(log: SlacLog) -> None:
-    r = solve_slac(log, mode="slac", prior="chamber")
-    n = log.n_agents
-    lo, hi = chi2.ppf([0.025, 0.975], 3 * n) / n
-    assert lo <= np.mean(r.metrics["nees_mean"]) <= hi
+    r = solve_slac(log, mode="slac", prior="chamber", init="snapshot")
+    # per rover: the multi-port rover's time-averaged NEES is the one far above its band
+    lo, hi = chi2.ppf([0.025, 0.975], 3)
+    assert np.all((lo <= r.metrics["nees_mean"]) & (r.metrics["nees_mean"] <= hi)), r.metrics["nees_mean"]
