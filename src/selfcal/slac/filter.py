@@ -106,6 +106,18 @@ class UpdateInfo:
     objective: float
 
 
+_LAPACK = sla.get_lapack_funcs(("potrf", "potri", "trtrs"), (np.empty((1, 1)),))
+_POTRF, _POTRI, _TRTRS = _LAPACK
+
+
+def _cholesky_lower(S: FArray) -> FArray:
+    """Lower Cholesky factor by LAPACK ``dpotrf`` (no wrapper checks); LinAlgError if not PD."""
+    c, info = _POTRF(S, lower=1, clean=1, overwrite_a=0)
+    if info != 0:
+        raise np.linalg.LinAlgError("matrix is not positive definite")
+    return np.asarray(c, dtype=float)
+
+
 def _safe_cholesky(M: FArray) -> FArray:
     """Lower Cholesky factor of a symmetric matrix that should be positive definite.
 
@@ -114,22 +126,44 @@ def _safe_cholesky(M: FArray) -> FArray:
     """
     S = 0.5 * (M + M.T)
     try:
-        return np.asarray(np.linalg.cholesky(S), dtype=float)
+        return _cholesky_lower(S)
     except np.linalg.LinAlgError:
         d = np.sqrt(np.clip(np.diag(S), 1e-300, None))
         C = S / np.outer(d, d)  # scale to unit diagonal, then regularise the correlation
         for eps in (1e-12, 1e-10, 1e-8, 1e-6, 1e-4):
             try:
-                return np.linalg.cholesky(C + eps * np.eye(S.shape[0])) * d[:, None]
+                return _cholesky_lower(C + eps * np.eye(S.shape[0])) * d[:, None]
             except np.linalg.LinAlgError:
                 continue
         raise
 
 
+def tri_solve(C: FArray, b: FArray, *, trans: bool = False) -> FArray:
+    """Solve ``C z = b`` (or ``C^T z = b``) for a lower-triangular factor C (D, D), b (D,) or (D, K).
+
+    Direct LAPACK ``dtrtrs`` (the scipy wrapper's argument checks cost more than a 123 x 123
+    solve). Used for the whitening of the MAP update (eq. 22): ``x = x_bar + C^-T u``.
+    """
+    z, info = _TRTRS(C, b, lower=1, trans=1 if trans else 0)
+    if info != 0:
+        raise np.linalg.LinAlgError("singular triangular factor")
+    return np.asarray(z, dtype=float)
+
+
+def inverse_from_cholesky(C: FArray) -> FArray:
+    """Symmetric ``(C C^T)^-1`` (D, D) from its lower Cholesky factor C by LAPACK ``dpotri``.
+
+    The Laplace covariance of eq. 22 (inverse Hessian) and the prior information ``P_bar^-1``.
+    """
+    Pi, info = _POTRI(C, lower=1)
+    if info != 0:
+        raise np.linalg.LinAlgError("singular Cholesky factor")
+    Pi = np.tril(Pi)
+    return Pi + np.tril(Pi, -1).T
+
+
 def _chol_inv(P: FArray) -> FArray:
-    Lc = _safe_cholesky(P)
-    Li = sla.solve_triangular(Lc, np.eye(P.shape[0]), lower=True, check_finite=False)
-    return Li.T @ Li
+    return inverse_from_cholesky(_safe_cholesky(P))
 
 
 def _quasi_newton(
@@ -223,15 +257,14 @@ def map_update(
     C = _safe_cholesky(H0)
 
     def to_x(u: FArray) -> FArray:
-        # check_finite=False: the wrapper's checks cost more than the 123 x 123 solve itself
-        return x_bar + sla.solve_triangular(C, u, lower=True, trans="T", check_finite=False)
+        return x_bar + tri_solve(C, u, trans=True)
 
     def obj(u: FArray) -> tuple[float, FArray]:
         x = to_x(u)
         r = x - x_bar
         nll, g = fun_grad(x)
         Pr = Pinv @ r
-        return float(nll + 0.5 * r @ Pr), sla.solve_triangular(C, g + Pr, lower=True, check_finite=False)
+        return float(nll + 0.5 * r @ Pr), tri_solve(C, g + Pr)
 
     if optimizer == "bfgs":
         res = minimize(obj, np.zeros(x_bar.size), jac=True, method="BFGS",
