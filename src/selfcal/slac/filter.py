@@ -40,7 +40,7 @@ from scipy.optimize import minimize
 from .._checks import as_points, check_choice
 from ..errors import InputError
 from .antenna import basis_orders
-from .likelihood import delay_expansion, link_fisher, link_loglik, pack_g, unpack_g
+from .likelihood import delay_expansion, fisher_blocks, link_loglik, pack_g, unpack_g
 from .motion import motion_jacobian, motion_step, process_noise
 from .signals import range_wavenumber
 
@@ -404,6 +404,8 @@ class SlacFilter:
                     D += g.size
         self.x = np.concatenate(blocks)
         self.P = sla.block_diag(*cov_blocks)
+        self._g_prior_packed = {i: pack_g(self.G_prior[i]) for i in self.g_index}  # type: ignore[arg-type]
+        self._layout_cache: dict[tuple[bytes, bytes], list[dict[str, Any]]] = {}
         self.D = D
         self.steps = 0
 
@@ -450,15 +452,23 @@ class SlacFilter:
         self.x, self.P = predict_locations(self.x, self.P, u, c.T, c.sigma_v, c.sigma_omega)
 
     # ------------------------------------------------------------------ update
-    def _groups(self, rx: NDArray[np.int64], tx: NDArray[np.int64], snaps: Sequence[CArray],
-                noise_var: FArray) -> list[dict[str, Any]]:
+    def _layout(self, rx: NDArray[np.int64], tx: NDArray[np.int64]) -> list[dict[str, Any]]:
+        """Static per-group index arrays for this link pattern, cached while it is unchanged.
+
+        One group per port count M; index arrays point into x extended by one dummy slot
+        (index D) for constants. Also holds the scatter indices of the gradient and of the
+        information matrix, and the work buffer of the group's ``X = R * conj(s)``.
+        """
+        key = (rx.tobytes(), tx.tobytes())
+        cached = self._layout_cache.get(key)
+        if cached is not None:
+            return cached
         D = self.D
-        groups = []
+        W = D + 1
+        layout = []
         for M in np.unique(self.ports[rx]):
             sel = np.flatnonzero(self.ports[rx] == M)
-            X = np.stack([np.atleast_2d(snaps[l]) for l in sel]) * self.probe.conj()  # type: ignore[union-attr,call-overload,misc,arg-type]
             r, t = rx[sel], tx[sel]
-            # index arrays into x extended by one dummy slot (index D) for constants
             prx = np.stack([3 * r, 3 * r + 1], axis=1)
             ptx = np.where((t < self.n)[:, None], np.stack([3 * t, 3 * t + 1], axis=1), D)
             brx = np.where(self.bias_index[r] >= 0, self.bias_index[r], D)
@@ -466,8 +476,40 @@ class SlacFilter:
             gidx = None
             if M > 1 and self.mode == "slac":
                 gidx = np.stack([self.g_index[int(i)] for i in r])
-            grp = dict(M=int(M), X=X, rx=r, tx=t, prx=prx, ptx=ptx, psi=3 * r + 2, brx=brx,
-                       btx=btx, gidx=gidx, var=noise_var[sel], exp=None)
+            tx_agent = (t < self.n)[:, None]
+            lay: dict[str, Any] = dict(
+                M=int(M), sel=sel, rx=r, tx=t, prx=prx, ptx=ptx, psi=3 * r + 2, brx=brx, btx=btx, gidx=gidx,
+                tx_agent=tx_agent, anchor_pos=self.anchors[np.clip(t - self.n, 0, None)],
+                Xbuf=np.empty((sel.size, int(M), self.N), dtype=complex),
+            )
+            idx = np.column_stack([prx, ptx, brx, btx])
+            if M > 1:
+                idx = np.column_stack([idx, 3 * r + 2])
+            parts = [(idx[:, :, None] * W + idx[:, None, :]).ravel()]
+            receivers: list[tuple[int, NDArray[np.int64]]] = []
+            if gidx is not None:
+                lg = idx[:, :, None] * W + gidx[:, None, :]
+                gl = gidx[:, :, None] * W + idx[:, None, :]
+                parts += [lg.ravel(), gl.ravel()]
+                for i in np.unique(r):
+                    receivers.append((int(self.g_index[int(i)][0]), np.flatnonzero(r == i)))
+            lay["info_index"] = np.concatenate(parts).astype(np.int64)
+            lay["receivers"] = receivers
+            layout.append(lay)
+        if len(self._layout_cache) >= 8:
+            self._layout_cache.pop(next(iter(self._layout_cache)))
+        self._layout_cache[key] = layout
+        return layout
+
+    def _groups(self, rx: NDArray[np.int64], tx: NDArray[np.int64], snaps: Sequence[CArray],
+                noise_var: FArray) -> list[dict[str, Any]]:
+        groups = []
+        pc = self.probe.conj()
+        for lay in self._layout(rx, tx):
+            X = lay["Xbuf"]
+            for j, l in enumerate(lay["sel"]):
+                np.multiply(np.atleast_2d(snaps[l]), pc, out=X[j])
+            grp = dict(lay, X=X, var=noise_var[lay["sel"]], exp=None, layout=lay)
             if self.config.delay_series:
                 rho0 = self._geometry(np.append(self.x, 0.0), grp)[2]
                 grp["exp"] = delay_expansion(X, rho0, self.k)
@@ -475,12 +517,8 @@ class SlacFilter:
         return groups
 
     def _geometry(self, xe: FArray, grp: dict[str, Any]) -> tuple[FArray, ...]:
-        r = grp["rx"]
-        t = grp["tx"]
-        assert isinstance(r, np.ndarray) and isinstance(t, np.ndarray)
         pr = xe[grp["prx"]]
-        pt = np.where((t < self.n)[:, None], xe[grp["ptx"]],
-                      self.anchors[np.clip(t - self.n, 0, None)])
+        pt = np.where(grp["tx_agent"], xe[grp["ptx"]], grp["anchor_pos"])
         diff = pt - pr
         d = np.maximum(np.hypot(diff[:, 0], diff[:, 1]), 1e-6)  # nodes may pass each other
         rho = d - xe[grp["brx"]] - xe[grp["btx"]]
@@ -531,31 +569,32 @@ class SlacFilter:
                     v = np.swapaxes(terms.d_G, 1, 2).reshape(d.size, -1)
                     vals.append(-np.concatenate([v.real, v.imag], axis=1).ravel())
             key = "gscatter" if with_g else "scatter"
-            if key not in grp:  # one index vector per group and update, reused by every call
-                grp[key] = self._grad_index(grp, with_g)
-            idx_parts.append(grp[key])
+            lay = grp["layout"]
+            if key not in lay:  # one index vector per group and link pattern, reused by every call
+                lay[key] = self._grad_index(grp, with_g)
+            idx_parts.append(lay[key])
             val_parts.append(np.concatenate(vals))
         ge = np.asarray(np.bincount(np.concatenate(idx_parts), weights=np.concatenate(val_parts),
                                     minlength=x.size + 1), dtype=float)
         return total, ge[:-1]
 
     def _information(self, x: FArray, groups: list[dict[str, Any]], fej: bool = True) -> FArray:
+        """Fisher information (D, D) of all links at x (eqs. 18-19 mapped by the range model, eq. 1-2).
+
+        Per link, ``J^T F J`` with the (rho, phi) Jacobian J in the pose / bias coordinates and
+        the identity for g, from :func:`~selfcal.slac.likelihood.fisher_blocks`; scattered with
+        the cached index arrays of :meth:`_layout`. With ``fej`` (and ``first_estimates``) the
+        g part is evaluated at the prior G (first-estimates Jacobian).
+        """
         D = x.size
         xe = np.append(x, 0.0)
         if fej and self.config.first_estimates and self.mode == "slac":
             for i, gi in self.g_index.items():
-                xe[gi] = pack_g(self.G_prior[i])  # type: ignore[union-attr,call-overload,misc,arg-type]
+                xe[gi] = self._g_prior_packed[i]
         W = D + 1
-        flat_idx: list[NDArray[np.int64]] = []
-        flat_val: list[FArray] = []
+        idx_parts: list[NDArray[np.int64]] = []
+        val_parts: list[FArray] = []
         gg_blocks: list[tuple[int, FArray]] = []
-
-        def add(rows: NDArray[np.int64], cols: NDArray[np.int64], val: FArray) -> None:
-            # np.add.at is slow for many small scatters: collect, then one bincount
-            ii = (rows * W + cols)
-            flat_idx.append(ii.ravel())
-            flat_val.append(np.broadcast_to(val, ii.shape).ravel())
-
         pp = self._probe_power
         for grp in groups:
             diff, d, rho, phi = self._geometry(xe, grp)
@@ -564,37 +603,36 @@ class SlacFilter:
             terms = link_loglik(grp["X"], rho, grp["var"], self.k, self.S,
                                 phi=phi if M > 1 else None, G=G, want_grad=False,
                                 expansion=grp["exp"])
-            F = link_fisher(terms, grp["var"], self.k, pp, phi=phi if M > 1 else None, G=G)
+            fb = fisher_blocks(terms, grp["var"], self.k, pp, phi=phi if M > 1 else None, G=G)
+            L_ = d.size
             u = diff / d[:, None]
-            prx, ptx = grp["prx"], grp["ptx"]
-            idx = np.column_stack([prx, ptx, grp["brx"], grp["btx"]])
-            jr = np.column_stack([-u, u, -np.ones(d.size), -np.ones(d.size)])
+            J = 6 if M == 1 else 7
+            jr = np.zeros((L_, J))
+            jr[:, 0:2] = -u
+            jr[:, 2:4] = u
+            jr[:, 4:6] = -1.0
+            Hll = fb.rho_rho[:, None, None] * jr[:, :, None] * jr[:, None, :]
+            idx_parts.append(grp["layout"]["info_index"])
             if M == 1:
-                blk = F[:, 0, 0, None, None] * jr[:, :, None] * jr[:, None, :]
-                add(idx[:, :, None], idx[:, None, :], blk)
+                val_parts.append(Hll.ravel())
                 continue
             dphi = np.stack([-diff[:, 1], diff[:, 0]], axis=1) / (d**2)[:, None]
-            idx = np.column_stack([idx, grp["psi"]])
-            jr = np.column_stack([jr, np.zeros(d.size)])
-            jp = np.column_stack([-dphi, dphi, np.zeros((d.size, 2)), -np.ones(d.size)])
-            Jl = np.stack([jr, jp], axis=1)  # (L, 2, 7)
-            # (rho, phi) -> (pose, bias) block and its coupling with the identity-mapped g block
-            Hll = np.einsum("lai,lab,lbj->lij", Jl, F[:, :2, :2], Jl)
-            add(idx[:, :, None], idx[:, None, :], Hll)
+            jp = np.zeros((L_, J))
+            jp[:, 0:2] = -dphi
+            jp[:, 2:4] = dphi
+            jp[:, 6] = -1.0
+            Hll += fb.phi_phi[:, None, None] * jp[:, :, None] * jp[:, None, :]
+            val_parts.append(Hll.ravel())
             if grp["gidx"] is not None and self.mode == "slac":
-                gi = grp["gidx"]
-                Hlg = np.einsum("lai,lag->lig", Jl, F[:, :2, 2:])
-                add(idx[:, :, None], gi[:, None, :], Hlg)
-                add(gi[:, :, None], idx[:, None, :], np.swapaxes(Hlg, 1, 2))
+                assert fb.phi_g is not None
+                # (rho, phi) -> (pose, bias) block and its coupling with the identity-mapped g block
+                Hlg = jp[:, :, None] * fb.phi_g[:, None, :]
+                val_parts += [Hlg.ravel(), np.swapaxes(Hlg, 1, 2).ravel()]
                 # every link of one receiver adds to the same contiguous g block: sum first
-                r = grp["rx"]
-                for i in np.unique(r):
-                    g0 = int(self.g_index[int(i)][0])
-                    gg_blocks.append((g0, F[r == i, 2:, 2:].sum(axis=0)))
-        H = np.zeros((W, W))
-        if flat_idx:
-            H += np.bincount(np.concatenate(flat_idx), weights=np.concatenate(flat_val),
-                             minlength=W * W).reshape(W, W)
+                for g0, links in grp["receivers"]:
+                    gg_blocks.append((g0, fb.gg_sum(links)))
+        H = np.asarray(np.bincount(np.concatenate(idx_parts), weights=np.concatenate(val_parts),
+                                   minlength=W * W), dtype=float).reshape(W, W)
         for g0, blk_g in gg_blocks:
             H[g0 : g0 + blk_g.shape[0], g0 : g0 + blk_g.shape[0]] += blk_g
         return H[:-1, :-1]
