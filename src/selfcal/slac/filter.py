@@ -44,7 +44,7 @@ from .likelihood import delay_expansion, fisher_blocks, link_loglik, pack_g, unp
 from .motion import motion_jacobian, motion_step, process_noise
 from .signals import range_wavenumber
 
-__all__ = ["SlacConfig", "UpdateInfo", "map_update", "predict_locations", "SlacFilter"]
+__all__ = ["SlacConfig", "UpdateInfo", "map_update", "predict_locations", "SlacFilter", "tri_solve", "inverse_from_cholesky"]
 
 FArray = NDArray[np.float64]
 CArray = NDArray[np.complex128]
