@@ -108,6 +108,7 @@ class UpdateInfo:
 
 _LAPACK = sla.get_lapack_funcs(("potrf", "potri", "trtrs"), (np.empty((1, 1)),))
 _POTRF, _POTRI, _TRTRS = _LAPACK
+(_GER,) = sla.get_blas_funcs(("ger",), (np.empty((1, 1)),))
 
 
 def _cholesky_lower(S: FArray) -> FArray:
@@ -213,7 +214,11 @@ def _quasi_newton(
             # BFGS inverse update: (I - r s y^T) Hi (I - r y s^T) + r s s^T
             r = 1.0 / sy
             Hy = Hi @ y
-            Hi += (r * r * float(y @ Hy) + r) * np.outer(s_, s_) - r * (np.outer(Hy, s_) + np.outer(s_, Hy))
+            # in place by BLAS dger on the Fortran view of the C-ordered Hi (rank-1 updates)
+            HiF = Hi.T
+            HiF = _GER(r * r * float(y @ Hy) + r, s_, s_, a=HiF, overwrite_a=1)
+            HiF = _GER(-r, s_, Hy, a=HiF, overwrite_a=1)
+            Hi = _GER(-r, Hy, s_, a=HiF, overwrite_a=1).T
         u = u + s_
         f, g = f_new, g_new
     return u, max_iter, float(np.max(np.abs(g))) < gtol, nfev, f
@@ -494,6 +499,8 @@ class SlacFilter:
                 M=int(M), sel=sel, rx=r, tx=t, prx=prx, ptx=ptx, psi=3 * r + 2, brx=brx, btx=btx, gidx=gidx,
                 tx_agent=tx_agent, anchor_pos=self.anchors[np.clip(t - self.n, 0, None)],
                 Xbuf=np.empty((sel.size, int(M), self.N), dtype=complex),
+                exp_work=(np.empty((sel.size, self.N), dtype=complex),
+                          np.empty((sel.size, int(M), self.N), dtype=complex)),
             )
             idx = np.column_stack([prx, ptx, brx, btx])
             if M > 1:
@@ -525,7 +532,7 @@ class SlacFilter:
             grp = dict(lay, X=X, var=noise_var[lay["sel"]], exp=None, layout=lay)
             if self.config.delay_series:
                 rho0 = self._geometry(np.append(self.x, 0.0), grp)[2]
-                grp["exp"] = delay_expansion(X, rho0, self.k)
+                grp["exp"] = delay_expansion(X, rho0, self.k, work=lay["exp_work"])
             groups.append(grp)
         return groups
 

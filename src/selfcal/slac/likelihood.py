@@ -449,10 +449,25 @@ def _powers(N: int, Q: int) -> CArray:
     return P
 
 
-def delay_expansion(X: CArray, rho0: FArray, k: float, *, order: int = 24) -> DelayExpansion:
-    """Moments of :class:`DelayExpansion` for X (L, M, N) around ``rho0`` (L,)."""
+def delay_expansion(
+    X: CArray, rho0: FArray, k: float, *, order: int = 24, work: tuple[CArray, CArray] | None = None
+) -> DelayExpansion:
+    """Moments of :class:`DelayExpansion` for X (L, M, N) around ``rho0`` (L,).
+
+    Parameters
+    ----------
+    X : (L, M, N) complex ``R * conj(s)``; rho0 : (L,) expansion points, metres (round trip);
+    k : rad / m / bin (eq. 4 as a range); order : series order Q.
+    work : optional C-contiguous work arrays ``(phasors (L, N), rotated X (L, M, N))``, complex,
+        reused across calls (same values).
+    """
     L_, M, N = X.shape
     PT = _powers(N, order + 2)  # (N, Q+2)
-    Xr = X * phasors(k * np.asarray(rho0, dtype=float), N)[:, None, :]
+    th = k * np.asarray(rho0, dtype=float)
+    if work is not None and work[0].shape == (L_, N) and work[1].shape == X.shape:
+        ph = phasors(th, N, out=work[0])
+        Xr = np.multiply(X, ph[:, None, :], out=work[1])
+    else:
+        Xr = X * phasors(th, N)[:, None, :]
     mom = (Xr.reshape(L_ * M, N) @ PT).reshape(L_, M, order + 2)
     return DelayExpansion(np.asarray(rho0, dtype=float).copy(), mom, float(k), int(N))
