@@ -17,6 +17,7 @@ _LAZY = {
     "dipole_response": "antenna", "multimode_antenna": "antenna",
     "ofdm_probe": "signals", "snapshot": "signals", "delayed_spectrum": "signals",
     "concentrated_loglik": "likelihood", "link_loglik": "likelihood", "link_fisher": "likelihood",
+    "fisher_blocks": "likelihood", "FisherBlocks": "likelihood",
     "motion_step": "motion", "motion_jacobian": "motion", "process_noise": "motion",
     "SlacConfig": "filter", "SlacFilter": "filter", "map_update": "filter",
     "estimate_doa": "doa", "RangeFilter": "measurement", "RangeConfig": "measurement",

@@ -40,11 +40,11 @@ from scipy.optimize import minimize
 from .._checks import as_points, check_choice
 from ..errors import InputError
 from .antenna import basis_orders
-from .likelihood import delay_expansion, link_fisher, link_loglik, pack_g, unpack_g
+from .likelihood import delay_expansion, fisher_blocks, link_loglik, pack_g, unpack_g
 from .motion import motion_jacobian, motion_step, process_noise
 from .signals import range_wavenumber
 
-__all__ = ["SlacConfig", "UpdateInfo", "map_update", "predict_locations", "SlacFilter"]
+__all__ = ["SlacConfig", "UpdateInfo", "map_update", "predict_locations", "SlacFilter", "tri_solve", "inverse_from_cholesky"]
 
 FArray = NDArray[np.float64]
 CArray = NDArray[np.complex128]
@@ -106,6 +106,19 @@ class UpdateInfo:
     objective: float
 
 
+_LAPACK = sla.get_lapack_funcs(("potrf", "potri", "trtrs"), (np.empty((1, 1)),))
+_POTRF, _POTRI, _TRTRS = _LAPACK
+(_GER,) = sla.get_blas_funcs(("ger",), (np.empty((1, 1)),))
+
+
+def _cholesky_lower(S: FArray) -> FArray:
+    """Lower Cholesky factor by LAPACK ``dpotrf`` (no wrapper checks); LinAlgError if not PD."""
+    c, info = _POTRF(S, lower=1, clean=1, overwrite_a=0)
+    if info != 0:
+        raise np.linalg.LinAlgError("matrix is not positive definite")
+    return np.asarray(c, dtype=float)
+
+
 def _safe_cholesky(M: FArray) -> FArray:
     """Lower Cholesky factor of a symmetric matrix that should be positive definite.
 
@@ -114,22 +127,44 @@ def _safe_cholesky(M: FArray) -> FArray:
     """
     S = 0.5 * (M + M.T)
     try:
-        return np.asarray(np.linalg.cholesky(S), dtype=float)
+        return _cholesky_lower(S)
     except np.linalg.LinAlgError:
         d = np.sqrt(np.clip(np.diag(S), 1e-300, None))
         C = S / np.outer(d, d)  # scale to unit diagonal, then regularise the correlation
         for eps in (1e-12, 1e-10, 1e-8, 1e-6, 1e-4):
             try:
-                return np.linalg.cholesky(C + eps * np.eye(S.shape[0])) * d[:, None]
+                return _cholesky_lower(C + eps * np.eye(S.shape[0])) * d[:, None]
             except np.linalg.LinAlgError:
                 continue
         raise
 
 
+def tri_solve(C: FArray, b: FArray, *, trans: bool = False) -> FArray:
+    """Solve ``C z = b`` (or ``C^T z = b``) for a lower-triangular factor C (D, D), b (D,) or (D, K).
+
+    Direct LAPACK ``dtrtrs`` (the scipy wrapper's argument checks cost more than a 123 x 123
+    solve). Used for the whitening of the MAP update (eq. 22): ``x = x_bar + C^-T u``.
+    """
+    z, info = _TRTRS(C, b, lower=1, trans=1 if trans else 0)
+    if info != 0:
+        raise np.linalg.LinAlgError("singular triangular factor")
+    return np.asarray(z, dtype=float)
+
+
+def inverse_from_cholesky(C: FArray) -> FArray:
+    """Symmetric ``(C C^T)^-1`` (D, D) from its lower Cholesky factor C by LAPACK ``dpotri``.
+
+    The Laplace covariance of eq. 22 (inverse Hessian) and the prior information ``P_bar^-1``.
+    """
+    Pi, info = _POTRI(C, lower=1)
+    if info != 0:
+        raise np.linalg.LinAlgError("singular Cholesky factor")
+    Pi = np.tril(Pi)
+    return Pi + np.tril(Pi, -1).T
+
+
 def _chol_inv(P: FArray) -> FArray:
-    Lc = _safe_cholesky(P)
-    Li = sla.solve_triangular(Lc, np.eye(P.shape[0]), lower=True, check_finite=False)
-    return Li.T @ Li
+    return inverse_from_cholesky(_safe_cholesky(P))
 
 
 def _quasi_newton(
@@ -179,7 +214,11 @@ def _quasi_newton(
             # BFGS inverse update: (I - r s y^T) Hi (I - r y s^T) + r s s^T
             r = 1.0 / sy
             Hy = Hi @ y
-            Hi += (r * r * float(y @ Hy) + r) * np.outer(s_, s_) - r * (np.outer(Hy, s_) + np.outer(s_, Hy))
+            # in place by BLAS dger on the Fortran view of the C-ordered Hi (rank-1 updates)
+            HiF = Hi.T
+            HiF = _GER(r * r * float(y @ Hy) + r, s_, s_, a=HiF, overwrite_a=1)
+            HiF = _GER(-r, s_, Hy, a=HiF, overwrite_a=1)
+            Hi = _GER(-r, Hy, s_, a=HiF, overwrite_a=1).T
         u = u + s_
         f, g = f_new, g_new
     return u, max_iter, float(np.max(np.abs(g))) < gtol, nfev, f
@@ -223,15 +262,14 @@ def map_update(
     C = _safe_cholesky(H0)
 
     def to_x(u: FArray) -> FArray:
-        # check_finite=False: the wrapper's checks cost more than the 123 x 123 solve itself
-        return x_bar + sla.solve_triangular(C, u, lower=True, trans="T", check_finite=False)
+        return x_bar + tri_solve(C, u, trans=True)
 
     def obj(u: FArray) -> tuple[float, FArray]:
         x = to_x(u)
         r = x - x_bar
         nll, g = fun_grad(x)
         Pr = Pinv @ r
-        return float(nll + 0.5 * r @ Pr), sla.solve_triangular(C, g + Pr, lower=True, check_finite=False)
+        return float(nll + 0.5 * r @ Pr), tri_solve(C, g + Pr)
 
     if optimizer == "bfgs":
         res = minimize(obj, np.zeros(x_bar.size), jac=True, method="BFGS",
@@ -267,30 +305,43 @@ def predict_locations(
 ) -> tuple[FArray, FArray]:
     """Prediction of eqs. 20-21 for a state whose first ``3 n`` entries are agent poses.
 
+    The calibration states (biases, g) have identity motion and zero process noise, so only
+    the pose rows and columns of the covariance change: with the block-diagonal pose Jacobian
+    F_p (eq. 14) and process noise Q_p, ``P_pp <- F_p P_pp F_p^T + Q_p``,
+    ``P_pc <- F_p P_pc`` and ``P_cc`` is untouched (the same as ``F P F^T + Q`` with the full
+    F = diag(F_p, I), at O(n D) instead of O(D^3) cost).
+
     Parameters
     ----------
-    x, P : (D,), (D, D) state and covariance; calibration states follow the poses.
-    controls : (n, 2) ``[v, omega]`` per agent.
+    x, P : (D,), (D, D) state (m, rad) and covariance; calibration states follow the poses.
+    controls : (n, 2) ``[v, omega]`` per agent (m/s, rad/s); T : s; sigma_v : m/s^1.5;
+        sigma_omega : rad/s^1.5.
 
     Returns
     -------
-    x_bar, P_bar.
+    x_bar (D,), P_bar (D, D) (symmetric).
     """
     u = np.asarray(controls, dtype=float)
     n = u.shape[0]
-    poses = x[: 3 * n].reshape(n, 3)
+    p = 3 * n
+    poses = x[:p].reshape(n, 3)
     Fl = motion_jacobian(poses, u, T)
     Ql = process_noise(poses, u, T, sigma_v, sigma_omega)
     x_new = x.copy()
-    x_new[: 3 * n] = motion_step(poses, u, T).ravel()
-    F = np.eye(x.size)
-    Q = np.zeros_like(P)
+    x_new[:p] = motion_step(poses, u, T).ravel()
+    Fp = np.zeros((p, p))
+    Qp = np.zeros((p, p))
     for i in range(n):
         sl = slice(3 * i, 3 * i + 3)
-        F[sl, sl] = Fl[i]
-        Q[sl, sl] = Ql[i] + 1e-12 * np.eye(3)  # keeps P_bar positive definite for a static rover
-    P_new = F @ P @ F.T + Q
-    return x_new, 0.5 * (P_new + P_new.T)
+        Fp[sl, sl] = Fl[i]
+        Qp[sl, sl] = Ql[i] + 1e-12 * np.eye(3)  # keeps P_bar positive definite for a static rover
+    P_new = P.copy()
+    rows = Fp @ P[:p]  # (p, D): [F_p P_pp, F_p P_pc]
+    Ppp = rows[:, :p] @ Fp.T + Qp
+    P_new[:p, :p] = 0.5 * (Ppp + Ppp.T)
+    P_new[:p, p:] = rows[:, p:]
+    P_new[p:, :p] = rows[:, p:].T
+    return x_new, P_new
 
 
 class SlacFilter:
@@ -371,6 +422,8 @@ class SlacFilter:
                     D += g.size
         self.x = np.concatenate(blocks)
         self.P = sla.block_diag(*cov_blocks)
+        self._g_prior_packed = {i: pack_g(self.G_prior[i]) for i in self.g_index}  # type: ignore[arg-type]
+        self._layout_cache: dict[tuple[bytes, bytes], list[dict[str, Any]]] = {}
         self.D = D
         self.steps = 0
 
@@ -417,15 +470,23 @@ class SlacFilter:
         self.x, self.P = predict_locations(self.x, self.P, u, c.T, c.sigma_v, c.sigma_omega)
 
     # ------------------------------------------------------------------ update
-    def _groups(self, rx: NDArray[np.int64], tx: NDArray[np.int64], snaps: Sequence[CArray],
-                noise_var: FArray) -> list[dict[str, Any]]:
+    def _layout(self, rx: NDArray[np.int64], tx: NDArray[np.int64]) -> list[dict[str, Any]]:
+        """Static per-group index arrays for this link pattern, cached while it is unchanged.
+
+        One group per port count M; index arrays point into x extended by one dummy slot
+        (index D) for constants. Also holds the scatter indices of the gradient and of the
+        information matrix, and the work buffer of the group's ``X = R * conj(s)``.
+        """
+        key = (rx.tobytes(), tx.tobytes())
+        cached = self._layout_cache.get(key)
+        if cached is not None:
+            return cached
         D = self.D
-        groups = []
+        W = D + 1
+        layout = []
         for M in np.unique(self.ports[rx]):
             sel = np.flatnonzero(self.ports[rx] == M)
-            X = np.stack([np.atleast_2d(snaps[l]) for l in sel]) * self.probe.conj()  # type: ignore[union-attr,call-overload,misc,arg-type]
             r, t = rx[sel], tx[sel]
-            # index arrays into x extended by one dummy slot (index D) for constants
             prx = np.stack([3 * r, 3 * r + 1], axis=1)
             ptx = np.where((t < self.n)[:, None], np.stack([3 * t, 3 * t + 1], axis=1), D)
             brx = np.where(self.bias_index[r] >= 0, self.bias_index[r], D)
@@ -433,21 +494,51 @@ class SlacFilter:
             gidx = None
             if M > 1 and self.mode == "slac":
                 gidx = np.stack([self.g_index[int(i)] for i in r])
-            grp = dict(M=int(M), X=X, rx=r, tx=t, prx=prx, ptx=ptx, psi=3 * r + 2, brx=brx,
-                       btx=btx, gidx=gidx, var=noise_var[sel], exp=None)
+            tx_agent = (t < self.n)[:, None]
+            lay: dict[str, Any] = dict(
+                M=int(M), sel=sel, rx=r, tx=t, prx=prx, ptx=ptx, psi=3 * r + 2, brx=brx, btx=btx, gidx=gidx,
+                tx_agent=tx_agent, anchor_pos=self.anchors[np.clip(t - self.n, 0, None)],
+                Xbuf=np.empty((sel.size, int(M), self.N), dtype=complex),
+                exp_work=(np.empty((sel.size, self.N), dtype=complex),
+                          np.empty((sel.size, int(M), self.N), dtype=complex)),
+            )
+            idx = np.column_stack([prx, ptx, brx, btx])
+            if M > 1:
+                idx = np.column_stack([idx, 3 * r + 2])
+            parts = [(idx[:, :, None] * W + idx[:, None, :]).ravel()]
+            receivers: list[tuple[int, NDArray[np.int64]]] = []
+            if gidx is not None:
+                lg = idx[:, :, None] * W + gidx[:, None, :]
+                gl = gidx[:, :, None] * W + idx[:, None, :]
+                parts += [lg.ravel(), gl.ravel()]
+                for i in np.unique(r):
+                    receivers.append((int(self.g_index[int(i)][0]), np.flatnonzero(r == i)))
+            lay["info_index"] = np.concatenate(parts).astype(np.int64)
+            lay["receivers"] = receivers
+            layout.append(lay)
+        if len(self._layout_cache) >= 8:
+            self._layout_cache.pop(next(iter(self._layout_cache)))
+        self._layout_cache[key] = layout
+        return layout
+
+    def _groups(self, rx: NDArray[np.int64], tx: NDArray[np.int64], snaps: Sequence[CArray],
+                noise_var: FArray) -> list[dict[str, Any]]:
+        groups = []
+        pc = self.probe.conj()
+        for lay in self._layout(rx, tx):
+            X = lay["Xbuf"]
+            for j, l in enumerate(lay["sel"]):
+                np.multiply(np.atleast_2d(snaps[l]), pc, out=X[j])
+            grp = dict(lay, X=X, var=noise_var[lay["sel"]], exp=None, layout=lay)
             if self.config.delay_series:
                 rho0 = self._geometry(np.append(self.x, 0.0), grp)[2]
-                grp["exp"] = delay_expansion(X, rho0, self.k)
+                grp["exp"] = delay_expansion(X, rho0, self.k, work=lay["exp_work"])
             groups.append(grp)
         return groups
 
     def _geometry(self, xe: FArray, grp: dict[str, Any]) -> tuple[FArray, ...]:
-        r = grp["rx"]
-        t = grp["tx"]
-        assert isinstance(r, np.ndarray) and isinstance(t, np.ndarray)
         pr = xe[grp["prx"]]
-        pt = np.where((t < self.n)[:, None], xe[grp["ptx"]],
-                      self.anchors[np.clip(t - self.n, 0, None)])
+        pt = np.where(grp["tx_agent"], xe[grp["ptx"]], grp["anchor_pos"])
         diff = pt - pr
         d = np.maximum(np.hypot(diff[:, 0], diff[:, 1]), 1e-6)  # nodes may pass each other
         rho = d - xe[grp["brx"]] - xe[grp["btx"]]
@@ -498,31 +589,32 @@ class SlacFilter:
                     v = np.swapaxes(terms.d_G, 1, 2).reshape(d.size, -1)
                     vals.append(-np.concatenate([v.real, v.imag], axis=1).ravel())
             key = "gscatter" if with_g else "scatter"
-            if key not in grp:  # one index vector per group and update, reused by every call
-                grp[key] = self._grad_index(grp, with_g)
-            idx_parts.append(grp[key])
+            lay = grp["layout"]
+            if key not in lay:  # one index vector per group and link pattern, reused by every call
+                lay[key] = self._grad_index(grp, with_g)
+            idx_parts.append(lay[key])
             val_parts.append(np.concatenate(vals))
         ge = np.asarray(np.bincount(np.concatenate(idx_parts), weights=np.concatenate(val_parts),
                                     minlength=x.size + 1), dtype=float)
         return total, ge[:-1]
 
     def _information(self, x: FArray, groups: list[dict[str, Any]], fej: bool = True) -> FArray:
+        """Fisher information (D, D) of all links at x (eqs. 18-19 mapped by the range model, eq. 1-2).
+
+        Per link, ``J^T F J`` with the (rho, phi) Jacobian J in the pose / bias coordinates and
+        the identity for g, from :func:`~selfcal.slac.likelihood.fisher_blocks`; scattered with
+        the cached index arrays of :meth:`_layout`. With ``fej`` (and ``first_estimates``) the
+        g part is evaluated at the prior G (first-estimates Jacobian).
+        """
         D = x.size
         xe = np.append(x, 0.0)
         if fej and self.config.first_estimates and self.mode == "slac":
             for i, gi in self.g_index.items():
-                xe[gi] = pack_g(self.G_prior[i])  # type: ignore[union-attr,call-overload,misc,arg-type]
+                xe[gi] = self._g_prior_packed[i]
         W = D + 1
-        flat_idx: list[NDArray[np.int64]] = []
-        flat_val: list[FArray] = []
+        idx_parts: list[NDArray[np.int64]] = []
+        val_parts: list[FArray] = []
         gg_blocks: list[tuple[int, FArray]] = []
-
-        def add(rows: NDArray[np.int64], cols: NDArray[np.int64], val: FArray) -> None:
-            # np.add.at is slow for many small scatters: collect, then one bincount
-            ii = (rows * W + cols)
-            flat_idx.append(ii.ravel())
-            flat_val.append(np.broadcast_to(val, ii.shape).ravel())
-
         pp = self._probe_power
         for grp in groups:
             diff, d, rho, phi = self._geometry(xe, grp)
@@ -531,37 +623,36 @@ class SlacFilter:
             terms = link_loglik(grp["X"], rho, grp["var"], self.k, self.S,
                                 phi=phi if M > 1 else None, G=G, want_grad=False,
                                 expansion=grp["exp"])
-            F = link_fisher(terms, grp["var"], self.k, pp, phi=phi if M > 1 else None, G=G)
+            fb = fisher_blocks(terms, grp["var"], self.k, pp, phi=phi if M > 1 else None, G=G)
+            L_ = d.size
             u = diff / d[:, None]
-            prx, ptx = grp["prx"], grp["ptx"]
-            idx = np.column_stack([prx, ptx, grp["brx"], grp["btx"]])
-            jr = np.column_stack([-u, u, -np.ones(d.size), -np.ones(d.size)])
+            J = 6 if M == 1 else 7
+            jr = np.zeros((L_, J))
+            jr[:, 0:2] = -u
+            jr[:, 2:4] = u
+            jr[:, 4:6] = -1.0
+            Hll = fb.rho_rho[:, None, None] * jr[:, :, None] * jr[:, None, :]
+            idx_parts.append(grp["layout"]["info_index"])
             if M == 1:
-                blk = F[:, 0, 0, None, None] * jr[:, :, None] * jr[:, None, :]
-                add(idx[:, :, None], idx[:, None, :], blk)
+                val_parts.append(Hll.ravel())
                 continue
             dphi = np.stack([-diff[:, 1], diff[:, 0]], axis=1) / (d**2)[:, None]
-            idx = np.column_stack([idx, grp["psi"]])
-            jr = np.column_stack([jr, np.zeros(d.size)])
-            jp = np.column_stack([-dphi, dphi, np.zeros((d.size, 2)), -np.ones(d.size)])
-            Jl = np.stack([jr, jp], axis=1)  # (L, 2, 7)
-            # (rho, phi) -> (pose, bias) block and its coupling with the identity-mapped g block
-            Hll = np.einsum("lai,lab,lbj->lij", Jl, F[:, :2, :2], Jl)
-            add(idx[:, :, None], idx[:, None, :], Hll)
+            jp = np.zeros((L_, J))
+            jp[:, 0:2] = -dphi
+            jp[:, 2:4] = dphi
+            jp[:, 6] = -1.0
+            Hll += fb.phi_phi[:, None, None] * jp[:, :, None] * jp[:, None, :]
+            val_parts.append(Hll.ravel())
             if grp["gidx"] is not None and self.mode == "slac":
-                gi = grp["gidx"]
-                Hlg = np.einsum("lai,lag->lig", Jl, F[:, :2, 2:])
-                add(idx[:, :, None], gi[:, None, :], Hlg)
-                add(gi[:, :, None], idx[:, None, :], np.swapaxes(Hlg, 1, 2))
+                assert fb.phi_g is not None
+                # (rho, phi) -> (pose, bias) block and its coupling with the identity-mapped g block
+                Hlg = jp[:, :, None] * fb.phi_g[:, None, :]
+                val_parts += [Hlg.ravel(), np.swapaxes(Hlg, 1, 2).ravel()]
                 # every link of one receiver adds to the same contiguous g block: sum first
-                r = grp["rx"]
-                for i in np.unique(r):
-                    g0 = int(self.g_index[int(i)][0])
-                    gg_blocks.append((g0, F[r == i, 2:, 2:].sum(axis=0)))
-        H = np.zeros((W, W))
-        if flat_idx:
-            H += np.bincount(np.concatenate(flat_idx), weights=np.concatenate(flat_val),
-                             minlength=W * W).reshape(W, W)
+                for g0, links in grp["receivers"]:
+                    gg_blocks.append((g0, fb.gg_sum(links)))
+        H = np.asarray(np.bincount(np.concatenate(idx_parts), weights=np.concatenate(val_parts),
+                                   minlength=W * W), dtype=float).reshape(W, W)
         for g0, blk_g in gg_blocks:
             H[g0 : g0 + blk_g.shape[0], g0 : g0 + blk_g.shape[0]] += blk_g
         return H[:-1, :-1]

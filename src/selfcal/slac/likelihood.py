@@ -35,6 +35,8 @@ __all__ = [
     "LinkTerms",
     "link_loglik",
     "link_fisher",
+    "FisherBlocks",
+    "fisher_blocks",
     "pack_g",
     "DelayExpansion",
     "delay_expansion",
@@ -263,6 +265,133 @@ def link_fisher(
     return F
 
 
+@dataclass(frozen=True)
+class FisherBlocks:
+    """Per-link Fisher information of ``(rho, phi, g)`` in factored blocks (see :func:`fisher_blocks`).
+
+    The dense per-link matrix of :func:`link_fisher` (order ``[rho, phi, g]``, ``g`` packed as in
+    eq. 16 with P_g = 2 M U entries) has the structure
+
+        F_rr = rho_rho,   F_rp = F_rg = 0,   F_pp = phi_phi,   F_pg = phi_g,
+        F_gg = g_weight (Kron(bb) - h h^T),  Kron(bb) = [[Re bb (x) I_M, -Im bb (x) I_M],
+                                                         [Im bb (x) I_M,  Re bb (x) I_M]]
+
+    so that sums over the links of one receiver cost O(L (U^2 + P_g)) plus one (P_g, 2L) x
+    (2L, P_g) product instead of L dense (P_g, P_g) blocks.
+
+    Attributes
+    ----------
+    rho_rho : (L,) information of the round-trip range, 1/m^2.
+    phi_phi : (L,) information of the DoA, 1/rad^2 (zeros for single-port links).
+    phi_g : (L, P_g) DoA / sampling-matrix cross information, or None (single-port).
+    g_weight : (L,) ``2 |alpha|^2 |s|^2 / sigma^2``, or None.
+    g_bb : (L, U, U) complex ``conj(b) b^T`` with ``b = b(phi)`` the Fourier basis, or None.
+    g_h : (L, P_g, 2) real low-rank factor ``[Re, Im]`` of ``B^H a / |a|`` in packed order, or None.
+    M : ports per link (1 for single-port links).
+    """
+
+    rho_rho: FArray
+    phi_phi: FArray
+    phi_g: FArray | None
+    g_weight: FArray | None
+    g_bb: CArray | None
+    g_h: FArray | None
+    M: int
+
+    def gg_sum(self, links: NDArray[np.int64] | slice | None = None) -> FArray:
+        """Sum of the (P_g, P_g) sampling-matrix blocks ``F_gg`` over ``links`` (default: all)."""
+        assert self.g_weight is not None and self.g_bb is not None and self.g_h is not None
+        sel = slice(None) if links is None else links
+        w = self.g_weight[sel]
+        bb = np.einsum("l,luv->uv", w, self.g_bb[sel])
+        eye = np.eye(self.M)
+        Kr = np.kron(bb.real, eye)
+        Ki = np.kron(bb.imag, eye)
+        out = np.block([[Kr, -Ki], [Ki, Kr]])
+        h = self.g_h[sel] * np.sqrt(w)[:, None, None]  # (L, P_g, 2)
+        hf = np.swapaxes(h, 0, 1).reshape(h.shape[1], -1)
+        out -= hf @ hf.T
+        return out
+
+    def dense(self) -> FArray:
+        """The dense per-link matrices of :func:`link_fisher`: (L, 1, 1) or (L, P_g + 2, P_g + 2)."""
+        L_ = self.rho_rho.size
+        if self.phi_g is None:
+            return self.rho_rho[:, None, None].copy()
+        Pg = self.phi_g.shape[1]
+        F = np.zeros((L_, Pg + 2, Pg + 2))
+        F[:, 0, 0] = self.rho_rho
+        F[:, 1, 1] = self.phi_phi
+        F[:, 1, 2:] = F[:, 2:, 1] = self.phi_g
+        for l in range(L_):
+            F[l, 2:, 2:] = self.gg_sum(np.array([l]))
+        return F
+
+
+def fisher_blocks(
+    terms: LinkTerms,
+    noise_var: FArray,
+    k: float,
+    probe_power: FArray,
+    *,
+    phi: FArray | None = None,
+    G: CArray | None = None,
+) -> FisherBlocks:
+    """Factored per-link Fisher information of ``(rho, phi, g)`` (same values as :func:`link_fisher`).
+
+    Fisher information of the concentrated model of eqs. 18-19 (the Laplace covariance of
+    eq. 22 and the whitening of the MAP update), ``F = (2 |alpha|^2 / sigma^2) Re(D^H P^perp D)``
+    with ``D = d e / d theta``, returned as the blocks of :class:`FisherBlocks` instead of
+    L dense (P, P) matrices.
+
+    Parameters
+    ----------
+    terms : :func:`link_loglik` output at the point (L links).
+    noise_var : (L,) noise variance per bin and port; k : rad / m / bin
+        (:func:`range_wavenumber`); probe_power : (N,) ``|s(n)|^2``.
+    phi : (L,) DoAs (rad) and G : (L, M, U) sampling matrices for multi-port links, or None.
+
+    Returns
+    -------
+    FisherBlocks (units: 1/m^2 for rho, 1/rad^2 for phi, 1/(entry of G)^2 for g).
+    """
+    sig = np.asarray(noise_var, dtype=float)
+    p = np.asarray(probe_power, dtype=float)
+    n = np.arange(p.size)
+    S = float(p.sum())
+    Sd = -1j * k * float(np.sum(p * n))
+    Sdd = k * k * float(np.sum(p * n * n))
+    a = terms.a
+    A = np.sum(np.abs(a) ** 2, axis=1)
+    alpha2 = np.abs(terms.c) ** 2 / (A * S) ** 2
+    scale = 2.0 * alpha2 / sig
+    rr = scale * A * (Sdd - abs(Sd) ** 2 / S)
+    if G is None:
+        return FisherBlocks(rr, np.zeros(rr.size), None, None, None, None, 1)
+    L_, M, U = G.shape
+    MU = M * U
+    b = fourier_basis(np.asarray(phi, dtype=float), U)  # (L, U)
+    ad = np.einsum("lmu,lu->lm", G, 1j * basis_orders(U) * b)
+    e0 = (b[:, :, None] * ad.conj()[:, None, :]).reshape(L_, MU)  # a'^H B
+    ha = (b.conj()[:, :, None] * a[:, None, :]).reshape(L_, MU)  # B^H a
+    h0 = np.einsum("lm,lm->l", ad.conj(), a)
+    w = scale * S
+    sA = np.sqrt(A)
+    hg = np.empty((L_, 2 * MU, 2))
+    hg[:, :MU, 0] = ha.real
+    hg[:, MU:, 0] = ha.imag
+    hg[:, :MU, 1] = ha.imag
+    hg[:, MU:, 1] = -ha.real
+    hg /= sA[:, None, None]
+    h0r = h0.real / sA
+    h0i = h0.imag / sA
+    pp = w * (np.sum(np.abs(ad) ** 2, axis=1) - (h0r * h0r + h0i * h0i))
+    pg = np.concatenate([e0.real, -e0.imag], axis=1) - (h0r[:, None] * hg[:, :, 0] + h0i[:, None] * hg[:, :, 1])
+    pg *= w[:, None]
+    bb = b.conj()[:, :, None] * b[:, None, :]
+    return FisherBlocks(rr, pp, pg, w, bb, hg, int(M))
+
+
 def rho_from_tau(tau: float | FArray) -> float | FArray:
     """Round-trip range ``c tau / 2`` in metres for delays in seconds."""
     return SPEED_OF_LIGHT * np.asarray(tau) / 2.0
@@ -320,10 +449,25 @@ def _powers(N: int, Q: int) -> CArray:
     return P
 
 
-def delay_expansion(X: CArray, rho0: FArray, k: float, *, order: int = 24) -> DelayExpansion:
-    """Moments of :class:`DelayExpansion` for X (L, M, N) around ``rho0`` (L,)."""
+def delay_expansion(
+    X: CArray, rho0: FArray, k: float, *, order: int = 24, work: tuple[CArray, CArray] | None = None
+) -> DelayExpansion:
+    """Moments of :class:`DelayExpansion` for X (L, M, N) around ``rho0`` (L,).
+
+    Parameters
+    ----------
+    X : (L, M, N) complex ``R * conj(s)``; rho0 : (L,) expansion points, metres (round trip);
+    k : rad / m / bin (eq. 4 as a range); order : series order Q.
+    work : optional C-contiguous work arrays ``(phasors (L, N), rotated X (L, M, N))``, complex,
+        reused across calls (same values).
+    """
     L_, M, N = X.shape
     PT = _powers(N, order + 2)  # (N, Q+2)
-    Xr = X * phasors(k * np.asarray(rho0, dtype=float), N)[:, None, :]
+    th = k * np.asarray(rho0, dtype=float)
+    if work is not None and work[0].shape == (L_, N) and work[1].shape == X.shape:
+        ph = phasors(th, N, out=work[0])
+        Xr = np.multiply(X, ph[:, None, :], out=work[1])
+    else:
+        Xr = X * phasors(th, N)[:, None, :]
     mom = (Xr.reshape(L_ * M, N) @ PT).reshape(L_, M, order + 2)
     return DelayExpansion(np.asarray(rho0, dtype=float).copy(), mom, float(k), int(N))
