@@ -530,9 +530,9 @@ def solve_toa(
     label = f"{name}+nls" + (f"+multistart({starts - 1})" if starts > 1 else "")
     fit = test(best)
     if fit is not None and not fit.passed and method == "auto":
-        found, tried = _deep_search(ranges, dim, offsets, best, refine, gen, test)
-        starts += tried
-        label += f"+deep({tried})"
+        found, n_deep = _deep_search(ranges, dim, offsets, best, refine, gen, test)
+        starts += n_deep
+        label += f"+deep({n_deep})"
         if found is not None:
             best = found
             if covariance:
