@@ -574,11 +574,16 @@ class PipelineResult:
     notes: tuple[str, ...] = field(default=())
     fit: Any = None
     timing_noise: float = float("nan")
+    fit_binding: bool = True
 
     @property
     def failed(self) -> bool:
-        """True when the residual test rejected the calibration (positions not reliable)."""
-        return bool(self.fit is not None and not self.fit.passed)
+        """True when the residual test rejected the calibration (positions not reliable).
+
+        Not for the automatic near-planar 2-D fallback (``fit_binding`` False): its model
+        ignores the small heights the F test found insignificant, so its chi2 is informative only.
+        """
+        return bool(self.fit_binding and self.fit is not None and not self.fit.passed)
 
     @property
     def dim(self) -> int:
@@ -936,7 +941,12 @@ def run_pipeline(
                                         noise=noise if np.isfinite(noise) else None)
     timings["calibrate"] = time.perf_counter() - t0
     fit = fit_test(T, sol, setup.speed_of_sound, noise) if np.isfinite(noise) else None
-    if fit is not None and not fit.passed:
+    binding = not (plan is not None and plan.near_planar and str(sol["method"]).startswith("2d (")
+                   and hz is None and dim == "auto")
+    if fit is not None and not fit.passed and not binding:
+        notes.append(f"the 2-D fallback's residual test is informative only (chi2 {fit.chi2:.4g} on {fit.dof} dof): "
+                     "its model ignores the heights")
+    elif fit is not None and not fit.passed:
         msg = (f"{FAIL_MESSAGE} (chi2 {fit.chi2:.4g} on {fit.dof} dof, p = {fit.p_value:.2g} < {fit.alpha:g}, "
                f"timing noise {noise * 1e6:.3g} us): a wrong basin, bad detections or a larger noise than assumed")
         warnings.warn(msg, stacklevel=2)
@@ -948,6 +958,7 @@ def run_pipeline(
         method=sol["method"], toa_matrix=det.toa, detections_missed=det.missed, quality_db=det.quality_db,
         planarity=plan, timings=timings, receiver_names=setup.receivers, sender_names=setup.senders,
         speed_of_sound=setup.speed_of_sound, notes=tuple(notes), fit=fit, timing_noise=noise,
+        fit_binding=binding,
     )
 
 
