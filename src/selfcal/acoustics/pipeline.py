@@ -41,6 +41,8 @@ __all__ = [
     "run_pipeline",
     "read_heights",
     "truth_errors",
+    "timing_noise",
+    "fit_test",
     "TIMING_REQUIREMENT",
     "POSITION_REQUIREMENT",
 ]
@@ -52,6 +54,76 @@ PLANAR_RATIO = 0.01  # thinnest / widest extent below which a layout counts as f
 PLANAR_SIGMAS = 3.0  # thickness below this many standard deviations along the normal = flat
 PLANAR_ALPHA = 1e-3  # F-test level: a 3-D improvement less likely than this under a planar truth keeps z
 NOISE_FLOOR = 1e-10  # s, below any real detection error; keeps the F test finite on exact data
+TIMING_FLOOR = 20e-9  # s, floor of the per-detection timing std in the residual test (resampling, model)
+MF_FACTOR = 3.0  # the residual test's detection std: this many theoretical matched-filter stds
+FAIL_MESSAGE = "calibration failed the residual test: positions NOT reliable"
+
+
+def timing_noise(quality_db: Array, band: tuple[float, float], event_senders: NDArray[np.int64],
+                 n_senders: int, *, jitter: float = 0.0) -> float:
+    """Timing-noise std of the per-sender TOA matrix, s (the ``noise`` of the residual test).
+
+    Per detection (receiver i, event e) the matched-filter timing std is
+    ``sigma_ie = 1 / (2 pi f_rms 10^(q_ie / 20))`` (the Cramer-Rao bound of a time delay,
+    ``f_rms`` the RMS frequency of the Hann-weighted probe band, ``q_ie`` the detection's
+    peak-to-noise ratio in dB, :mod:`selfcal.acoustics.detect`). The test uses
+    ``max(MF_FACTOR sigma_ie, TIMING_FLOOR)`` (3x: reverberation and sub-sample effects the
+    bound ignores; 20 ns floor) plus the clock ``jitter`` in quadrature; the events of one
+    sender are averaged (:func:`sender_matrix`), so an entry's variance is the sum of its
+    events' variances over the squared count. Returns the RMS of the entries' stds.
+
+    Parameters
+    ----------
+    quality_db : (I, E) array
+        Detection quality, dB; NaN = missed.
+    band : (f0, f1)
+        Probe band, Hz.
+    event_senders : (E,) int array
+        Sender of every event.
+    n_senders : int
+    jitter : float
+        Clock jitter std per (receiver, event), s (simulated or declared).
+
+    Returns
+    -------
+    float
+        Noise std, s (NaN when nothing was detected).
+    """
+    f0, f1 = float(band[0]), float(band[1])
+    f = np.linspace(f0, f1, 1025)
+    w = np.sin(np.pi * (f - f0) / max(f1 - f0, 1e-12)) ** 2
+    f_rms = float(np.sqrt(np.sum(f * f * w) / np.sum(w)))
+    q = np.asarray(quality_db, dtype=float)
+    mf = 1.0 / (2.0 * np.pi * f_rms * 10.0 ** (q / 20.0))
+    var_e = np.maximum(MF_FACTOR * mf, TIMING_FLOOR) ** 2 + float(jitter) ** 2
+    var_e = np.where(np.isfinite(q), var_e, np.nan)
+    entries: list[Array] = []
+    for j in range(int(n_senders)):
+        cols = var_e[:, np.asarray(event_senders) == j]
+        if cols.shape[1]:
+            cnt = np.isfinite(cols).sum(axis=1)
+            ok = cnt > 0
+            entries.append(np.nansum(cols, axis=1)[ok] / cnt[ok] ** 2)
+    allv = np.concatenate(entries) if entries else np.array([])
+    return float(np.sqrt(np.mean(allv))) if allv.size else float("nan")
+
+
+def fit_test(T: Array, solution: dict[str, Any], speed: float, noise: float) -> Any:
+    """Chi-square residual test (:func:`selfcal.toa.residual_test`) of a calibrated solution.
+
+    Residuals ``t_ij - |r_i - s_j| / c - delta_i - tau_j`` (004 eq. 3.1) over the observed
+    entries of the (I, J) matrix ``T`` (s); parameters: the coordinates of the solution's
+    dimension up to a rigid motion (2-D for ``"2d"`` and ``"2d+heights"``, whose z is given)
+    plus I + J - 1 offsets. Returns a :class:`selfcal.toa.ResidualTest`.
+    """
+    from ..toa.solve import n_parameters, residual_test
+
+    r, s = np.asarray(solution["receivers"], float), np.asarray(solution["sources"], float)
+    pred = (np.linalg.norm(r[:, None, :] - s[None, :, :], axis=-1) / speed
+            + np.asarray(solution["receiver_offsets"], float)[:, None]
+            + np.asarray(solution["source_offsets"], float)[None, :])
+    dim = 2 if str(solution["method"]).startswith("2d") else r.shape[1]
+    return residual_test(np.asarray(T, float) - pred, noise, n_parameters(r.shape[0], s.shape[0], dim, "both"))
 
 
 @dataclass(frozen=True)
@@ -473,7 +545,12 @@ class PipelineResult:
     receiver_names, sender_names : tuple of str
     speed_of_sound : float
     notes : tuple of str
-        Warnings a reader must see (near-planar layout, ...).
+        Warnings a reader must see (near-planar layout, a failed residual test, ...).
+    fit : ResidualTest or None
+        Chi-square test of the final residuals against ``timing_noise`` (:func:`fit_test`):
+        chi2, dof, p-value; ``failed`` when it rejects (p < 1e-3).
+    timing_noise : float
+        Noise std used by the test, s (:func:`timing_noise`).
     """
 
     receivers: Array
@@ -495,6 +572,18 @@ class PipelineResult:
     sender_names: tuple[str, ...]
     speed_of_sound: float
     notes: tuple[str, ...] = field(default=())
+    fit: Any = None
+    timing_noise: float = float("nan")
+    fit_binding: bool = True
+
+    @property
+    def failed(self) -> bool:
+        """True when the residual test rejected the calibration (positions not reliable).
+
+        Not for the automatic near-planar 2-D fallback (``fit_binding`` False): its model
+        ignores the small heights the F test found insignificant, so its chi2 is informative only.
+        """
+        return bool(self.fit_binding and self.fit is not None and not self.fit.passed)
 
     @property
     def dim(self) -> int:
@@ -515,26 +604,28 @@ class PipelineResult:
             "timings": self.timings, "receiver_names": list(self.receiver_names),
             "sender_names": list(self.sender_names), "speed_of_sound": self.speed_of_sound,
             "notes": list(self.notes),
+            "fit": None if self.fit is None else self.fit.to_dict(), "failed": self.failed,
+            "timing_noise": self.timing_noise,
         }
 
 
-def _solve(T: Array, dim: int, speed: float, rng: int, init: Any = "auto") -> Any:
+def _solve(T: Array, dim: int, speed: float, rng: int, init: Any = "auto", noise: float | None = None) -> Any:
     try:
         from ..toa import solve_toa
     except ImportError:  # the package re-export may lag behind the module
         from ..toa.solve import solve_toa
 
     if isinstance(init, str):
-        return solve_toa(T, dim=dim, offsets="both", speed=speed, rng=rng)
+        return solve_toa(T, dim=dim, offsets="both", speed=speed, rng=rng, noise=noise)
     return solve_toa(T, dim=dim, offsets="both", speed=speed, rng=rng, init=init, method="nls")
 
 
-def _solve_retrying(T: Array, speed: float, rng: int, attempts: int = 3) -> Any:
+def _solve_retrying(T: Array, speed: float, rng: int, attempts: int = 3, noise: float | None = None) -> Any:
     """3-D solve; a node that turns unobservable on the way (e.g. a microphone crossing the
     plane of coplanar loudspeakers during the iterations) gets new random starts."""
     for k in range(attempts):
         try:
-            return _solve(T, 3, speed, rng + 1000 * k)
+            return _solve(T, 3, speed, rng + 1000 * k, noise=noise)
         except DegenerateGeometryError as exc:
             if exc.kind != "unobservable-node" or k == attempts - 1:
                 raise
@@ -611,6 +702,7 @@ def calibrate_matrix(
     heights: tuple[Array, Array] | None = None,
     rng: int = 0,
     alpha: float = PLANAR_ALPHA,
+    noise: float | None = None,
 ) -> tuple[dict[str, Any], Planarity | None, list[str]]:
     """Stages 2 + 3 of 004 on an (I, J) per-sender TOA matrix (seconds).
 
@@ -639,6 +731,9 @@ def calibrate_matrix(
     alpha : float
         Significance level of the F test: 3-D is kept only when a 3-D improvement as large
         as the observed one has probability below ``alpha`` under a planar truth.
+    noise : float, optional
+        Timing-noise std, s (:func:`timing_noise`): passed to :func:`selfcal.toa.solve_toa`,
+        whose deep search then runs when a fit fails the residual test.
 
     Returns
     -------
@@ -666,9 +761,9 @@ def calibrate_matrix(
     if dim == 2:
         return _as_solution(_solve(T, 2, speed, rng), "2d"), None, notes
     advice = "give known heights (--heights) for 3-D positions or use --dim 2"
-    res2 = _try_solve(T, 2, speed, rng)
+    res2 = _try_solve(T, 2, speed, rng, noise=noise)
     try:
-        res3 = _solve_retrying(T, speed, rng)
+        res3 = _solve_retrying(T, speed, rng, noise=noise)
     except DegenerateGeometryError as exc:
         res3 = _refit_from_planar(T, res2, speed, rng) if res2 is not None else None
         if res3 is None:
@@ -740,9 +835,9 @@ def _z_note(cov: NDArray[np.float64], cmp: ModelComparison | None) -> str:
     return why + f"z standard deviation median {np.median(zstd) * 1e3:.2g} mm, max {zstd.max() * 1e3:.2g} mm"
 
 
-def _try_solve(T: Array, dim: int, speed: float, rng: int) -> Any:
+def _try_solve(T: Array, dim: int, speed: float, rng: int, noise: float | None = None) -> Any:
     try:
-        return _solve(T, dim, speed, rng)
+        return _solve(T, dim, speed, rng, noise=noise)
     except DegenerateGeometryError:
         return None
 
@@ -784,6 +879,7 @@ def run_pipeline(
     progress: bool = True,
     rng: int = 0,
     detect_options: dict[str, Any] | None = None,
+    jitter: float = 0.0,
 ) -> PipelineResult:
     """Recordings -> arrival times -> onsets, delays and positions (004, all three stages).
 
@@ -801,6 +897,9 @@ def run_pipeline(
         Seed of the TOA solver's random initialisations.
     detect_options : dict, optional
         Passed to :func:`selfcal.acoustics.detect.detect_recording`.
+    jitter : float
+        Clock jitter std per (receiver, event), s (simulated or declared), part of the
+        timing noise of the residual test (:func:`timing_noise`).
 
     Returns
     -------
@@ -834,16 +933,32 @@ def run_pipeline(
     if np.isnan(T).all():
         raise DegenerateGeometryError("no arrival was detected in any recording; check the probe and levels",
                                       kind="no-detections")
+    if not np.isfinite(jitter) or jitter < 0:
+        raise InputError(f"jitter must be a finite standard deviation >= 0 s, got {jitter!r}")
+    noise = timing_noise(det.quality_db, rec.probe.band, setup.event_senders, len(setup.senders), jitter=jitter)
     t0 = time.perf_counter()
-    sol, plan, notes = calibrate_matrix(T, speed=setup.speed_of_sound, dim=dim, heights=hz, rng=rng)
+    sol, plan, notes = calibrate_matrix(T, speed=setup.speed_of_sound, dim=dim, heights=hz, rng=rng,
+                                        noise=noise if np.isfinite(noise) else None)
     timings["calibrate"] = time.perf_counter() - t0
+    fit = fit_test(T, sol, setup.speed_of_sound, noise) if np.isfinite(noise) else None
+    binding = not (plan is not None and plan.near_planar and str(sol["method"]).startswith("2d (")
+                   and hz is None and dim == "auto")
+    if fit is not None and not fit.passed and not binding:
+        notes.append(f"the 2-D fallback's residual test is informative only (chi2 {fit.chi2:.4g} on {fit.dof} dof): "
+                     "its model ignores the heights")
+    elif fit is not None and not fit.passed:
+        msg = (f"{FAIL_MESSAGE} (chi2 {fit.chi2:.4g} on {fit.dof} dof, p = {fit.p_value:.2g} < {fit.alpha:g}, "
+               f"timing noise {noise * 1e6:.3g} us): a wrong basin, bad detections or a larger noise than assumed")
+        warnings.warn(msg, stacklevel=2)
+        notes.append(msg)
     return PipelineResult(
         receivers=sol["receivers"], sources=sol["sources"], receiver_offsets=sol["receiver_offsets"],
         source_offsets=sol["source_offsets"], receiver_cov=sol["receiver_cov"], source_cov=sol["source_cov"],
         residual_rms=sol["residual_rms"], converged=sol["converged"], iterations=sol["iterations"],
         method=sol["method"], toa_matrix=det.toa, detections_missed=det.missed, quality_db=det.quality_db,
         planarity=plan, timings=timings, receiver_names=setup.receivers, sender_names=setup.senders,
-        speed_of_sound=setup.speed_of_sound, notes=tuple(notes),
+        speed_of_sound=setup.speed_of_sound, notes=tuple(notes), fit=fit, timing_noise=noise,
+        fit_binding=binding,
     )
 
 

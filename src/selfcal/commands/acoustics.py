@@ -164,6 +164,10 @@ def summarise(result: Any, errors: dict[str, Any] | None) -> list[str]:
     lines = [f"method             {result.method}",
              f"detections missed  {result.detections_missed} of {result.toa_matrix.size}",
              f"residual rms       {result.residual_rms * 1e6:.2f} us"]
+    fit = getattr(result, "fit", None)
+    if fit is not None:
+        lines.append(f"residual test      chi2 {fit.chi2:.4g} on {fit.dof} dof, p = {fit.p_value:.3g} "
+                     f"(timing noise {fit.noise * 1e6:.3g} us): {'ok' if fit.passed else 'REJECTED'}")
     for note in result.notes:
         lines.append(f"note               {note}")
     if errors is not None:
@@ -211,14 +215,25 @@ def pipeline_errors(result: Any, directory: Path) -> dict[str, Any] | None:
 @click.option("--dim", "dim", type=click.Choice(["auto", "2", "3"]), default="auto", show_default=True,
               help="auto: 3-D unless the layout is near-planar (then 2-D).")
 @click.option("--seed", type=int, default=0, show_default=True, help="Seed of the solver's random starts.")
+@click.option("--jitter", type=float, default=None,
+              help="Clock jitter std per (receiver, event), SECONDS, in the residual test's timing noise "
+                   "(default: truth.json's simulated clock_jitter when present, else 0).")
 @handle_errors
 def pipeline_cmd(directory: Path, out: Path, plot: Path | None, report: Path | None, heights: Path | None,
-                 dim: str, seed: int) -> None:
-    """Recordings -> arrival times -> delays -> positions (paper 004's three stages)."""
-    from ..acoustics.pipeline import run_pipeline
-    from ..io import write_json
+                 dim: str, seed: int, jitter: float | None) -> None:
+    """Recordings -> arrival times -> delays -> positions (paper 004's three stages).
 
-    result = run_pipeline(directory, dim=dim if dim == "auto" else int(dim), heights=heights, rng=seed)
+    Exits with status 1 and a line "FAIL: calibration not trustworthy" when the final fit
+    fails the chi-square residual test (``PipelineResult.failed``).
+    """
+    from ..acoustics.pipeline import run_pipeline
+    from ..io import read_json, write_json
+
+    if jitter is None:
+        truth_path = directory / "truth.json"
+        jitter = float(read_json(truth_path, "truth.json").get("clock_jitter", 0.0)) if truth_path.is_file() else 0.0
+    result = run_pipeline(directory, dim=dim if dim == "auto" else int(dim), heights=heights, rng=seed,
+                          jitter=jitter)
     errors = pipeline_errors(result, directory)
     payload = result.to_dict()
     if errors is not None:
@@ -233,4 +248,7 @@ def pipeline_cmd(directory: Path, out: Path, plot: Path | None, report: Path | N
     write_json(out, payload)
     for line in summarise(result, errors):
         click.echo(line)
+    if result.failed:
+        click.echo("FAIL: calibration not trustworthy (the residual test rejected the fit; see the notes)")
+        raise SystemExit(1)
 

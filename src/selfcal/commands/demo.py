@@ -55,7 +55,8 @@ def demo_cmd(out: Path, seed: int, units: int, room_text: str, layout: str, rt60
     if heights is not None:
         click.echo("desks at one height: a near-planar layout leaves z (nearly) undetermined, so the known "
                    "heights (recording/heights.json) are used: horizontal positions solved, z given")
-    result = run_pipeline(rec_dir, dim="auto" if heights is not None else 3, heights=heights, rng=seed)
+    result = run_pipeline(rec_dir, dim="auto" if heights is not None else 3, heights=heights, rng=seed,
+                          jitter=jitter * 1e-6)
     stages = {"simulate": t_sim, **result.timings}
     result.timings.clear()
     result.timings.update(stages)
@@ -73,5 +74,7 @@ def demo_cmd(out: Path, seed: int, units: int, room_text: str, layout: str, rt60
         click.echo(line)
     click.echo("-" * 78)
     click.echo(f"wrote {out / 'result.json'}, {out / 'map.png'}, {out / 'timing.png'}")
-    if errors is not None and not errors["passed"]:
+    if result.failed:
+        click.echo("FAIL: calibration not trustworthy (the residual test rejected the fit)")
+    if result.failed or (errors is not None and not errors["passed"]):
         raise SystemExit(1)

@@ -12,13 +12,16 @@ from __future__ import annotations
 
 from .crlb import CrlbResult, toa_crlb
 from .nls import NlsSolution, refine_toa, toa_jacobian, toa_model, toa_residuals
-from .solve import ToaResult, solve_toa
+from .solve import ResidualTest, ToaResult, n_parameters, residual_test, solve_toa
 
 __all__ = [
     "CrlbResult",
     "NlsSolution",
+    "ResidualTest",
     "ToaResult",
+    "n_parameters",
     "refine_toa",
+    "residual_test",
     "solve_toa",
     "toa_crlb",
     "toa_jacobian",

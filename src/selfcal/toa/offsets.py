@@ -90,6 +90,7 @@ __all__ = [
     "fast_offsets",
     "estimate_offsets",
     "positions_from_ranges",
+    "initialize_offsets_candidates",
     "initialize_offsets",
     "offset_free_positions",
     "complete_core",
@@ -893,6 +894,97 @@ def initialize_offsets(
         if grown is not None and _model_rms(R, *grown) < _model_rms(R, *start):
             start = grown
     return start
+
+
+def _early_stop_ok(I: int, J: int, dim: int) -> bool:
+    """Whether a noise-free rank-d fit (F ~ 0) identifies the offsets, so the starts may stop.
+
+    Double-centred, the corrected matrix is (I-1) x (J-1) and must have rank d: that is
+    (I-1-d)(J-1-d) equations for the I+J-1 unknowns of p (3.5). With few units they barely
+    outnumber the unknowns (8 units in 3-D: 16 vs 15) and F = 0 has spurious solutions besides
+    the true offsets; we trust a zero F only with at least twice as many equations as unknowns
+    (12 units and more in 3-D).
+    """
+    return (I - 1 - dim) * (J - 1 - dim) >= 2 * (I + J - 1)
+
+
+def initialize_offsets_candidates(
+    ranges: Any,
+    dim: int = 3,
+    *,
+    rng: np.random.Generator | int | None = None,
+    n_starts: int = 8,
+    max_candidates: int = 4,
+) -> list[tuple[Array, Array, Array, Array]]:
+    """Several distinct starting geometries + offsets for ``solve_toa`` (the 004 rank-d initialiser).
+
+    Runs :func:`fast_offsets` (exact model) from p = 0 and from up to ``n_starts - 1`` thesis
+    random initialisations (004 sec. 3.5.1, 6.2) and keeps the *distinct* offset estimates
+    (relative difference of p above 1e-6), ordered by the Frobenius norm F (3.17); each
+    becomes a start through :func:`offset_free_positions`. F is the distance of the
+    offset-corrected matrix to rank d, not the fit of the model ``|r_i - s_j| + delta_i +
+    tau_j``: with few units (8 in 3-D) a wrong basin can have the smallest F, even F = 0 on
+    exact data. The caller ranks the candidates by the fit of the full model (``solve_toa``
+    after a short NLS refinement). The starts stop early at a noise-free F only when the
+    rank-d equations clearly outnumber the unknowns (:func:`_early_stop_ok`).
+
+    Parameters
+    ----------
+    ranges : (I, J) metres (times times c), NaN = missing; rows = receivers.
+    dim : 2 or 3.
+    rng : seed or Generator for the random restarts.
+    n_starts : maximal number of rank-d starts (>= 1).
+    max_candidates : at most this many candidates are returned (>= 1), the smallest F first.
+
+    Returns
+    -------
+    list of (receivers (I, d), sources (J, d), receiver_offsets (I,), source_offsets (J,)),
+    metres, ``source_offsets[0] == 0``; at least one entry. With missing entries the
+    complete-core start (:func:`_core_and_grow`) is added when it fits better than the first.
+    """
+    dim = check_dim(dim)
+    R = as_matrix(ranges, "ranges", allow_nan=True, min_shape=(2, 2))
+    check_rank_identifiable(R.shape[0], R.shape[1], dim)
+    gen = as_rng(rng)
+    I, J = R.shape
+    K = I + J - 1
+    level = 1e-9 * float(np.nansum(R * R))
+    stop_ok = _early_stop_ok(I, J, dim)
+    runs: list[Rank3Result] = []
+    for k in range(max(1, int(n_starts))):
+        res = fast_offsets(R, dim=dim, p0=np.zeros(K) if k == 0 else None, rng=None if k == 0 else gen)
+        if np.isfinite(res.frobenius):
+            runs.append(res)
+        if stop_ok and runs and min(r.frobenius for r in runs) <= level:
+            break  # a noise-free fit that identifies p: the global minimum
+    if not runs:
+        raise DegenerateGeometryError("the rank-d offset estimation diverged from every start", kind="init-failed")
+    runs.sort(key=lambda r: r.frobenius)
+    scale = float(np.sqrt(np.nanmean(R * R))) or 1.0
+    distinct: list[Rank3Result] = []
+    for res in runs:
+        if all(np.linalg.norm(res.p - q.p) > 1e-6 * scale * np.sqrt(K) for q in distinct):
+            distinct.append(res)
+        if len(distinct) >= max(1, int(max_candidates)):
+            break
+    out: list[tuple[Array, Array, Array, Array]] = []
+    for res in distinct:
+        full = res.extra.get("completed", R)
+        D = full - res.receiver_offsets[:, None] - res.source_offsets[None, :]
+        try:
+            receivers, sources = offset_free_positions(D, np.isnan(R), dim, rng=gen)
+        except DegenerateGeometryError:
+            continue
+        out.append((receivers, sources, res.receiver_offsets.copy(), res.source_offsets.copy()))
+    if not out:
+        raise DegenerateGeometryError("no position initialiser produced a finite geometry from the "
+                                      "offset-corrected ranges", kind="init-failed")
+    if np.isnan(R).any():
+        # see initialize_offsets: the complete core + growth start has no completion unknowns
+        grown = _core_and_grow(R, dim, gen, n_starts)
+        if grown is not None and _model_rms(R, *grown) < _model_rms(R, *out[0]):
+            out.insert(0, grown)
+    return out
 
 
 def _model_rms(R: Array, receivers: Array, sources: Array, d: Array, o: Array) -> float:

@@ -26,11 +26,95 @@ from .._checks import (
 from ..errors import DegenerateGeometryError, InputError
 from .nls import LOSSES, OFFSET_MODES, NlsSolution, refine_toa, toa_model
 
-__all__ = ["ToaResult", "solve_toa"]
+__all__ = ["ResidualTest", "ToaResult", "n_parameters", "residual_test", "solve_toa"]
 
 Array = NDArray[np.float64]
 
 METHODS = ("auto", "nls", "rank3")
+#: significance level of the residual test: a fit whose chi-square has p below this is rejected
+RESIDUAL_ALPHA = 1e-3
+#: rank-3 candidate starts compared by the full model's fit (I + J <= SWEEP_MAX_NODES)
+RANK_CANDIDATES = 4
+#: iteration cap of the short refinements that rank the initial candidates
+RANK_NFEV = 30
+#: rank-3 starts and kept candidates of the deep search (:func:`_deep_search`)
+DEEP_STARTS = 40
+DEEP_CANDIDATES = 12
+
+
+@dataclass(frozen=True)
+class ResidualTest:
+    """Chi-square test of a fit's residuals against a known timing-noise level.
+
+    Attributes
+    ----------
+    chi2: weighted residual sum of squares ``sum_ij (e_ij / noise)^2`` over the observed
+        entries (dimensionless; ``e_ij`` measured minus modelled, matrix units).
+    dof: degrees of freedom ``m - n`` (m observations, n free parameters, gauge removed,
+        :func:`n_parameters`).
+    p_value: ``P(chi2_dof >= chi2)``; NaN when ``dof <= 0`` (nothing to test).
+    noise: the timing / range noise std the residuals were weighted with (matrix units).
+    alpha: significance level; ``passed`` is ``not p_value < alpha``.
+    passed: False when the residuals are too large for the noise: a wrong basin, wrong
+        geometry or model, or a noise level set too low.
+    """
+
+    chi2: float
+    dof: int
+    p_value: float
+    noise: float
+    alpha: float
+    passed: bool
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-safe dict (chi2, dof, p_value, noise, alpha, passed)."""
+        return {"chi2": float(self.chi2), "dof": int(self.dof), "p_value": float(self.p_value),
+                "noise": float(self.noise), "alpha": float(self.alpha), "passed": bool(self.passed)}
+
+
+def n_parameters(n_receivers: int, n_sources: int, dim: int, offsets: str) -> int:
+    """Free parameters of the TOA model up to the gauge (003 eq. 2, 004 eq. 3.1).
+
+    ``dim (I + J)`` coordinates minus the ``dim (dim + 1) / 2`` of a rigid motion, plus
+    ``I + J - 1`` offsets for ``offsets="both"`` (a common shift between delays and onsets
+    is not observable), ``I`` for "receivers", ``J`` for "sources", 0 for "none".
+    """
+    check_choice(offsets, "offsets", OFFSET_MODES)
+    I, J = int(n_receivers), int(n_sources)
+    n_off = {"none": 0, "receivers": I, "sources": J, "both": I + J - 1}[offsets]
+    return dim * (I + J) - dim * (dim + 1) // 2 + n_off
+
+
+def residual_test(residuals: Any, noise: float, n_params: int, *, alpha: float = RESIDUAL_ALPHA) -> ResidualTest:
+    """Chi-square goodness-of-fit test of TOA residuals (ML fit under Gaussian noise, 003 eq. 2).
+
+    At the global minimum with i.i.d. Gaussian timing noise of std ``noise`` the weighted
+    residual sum of squares ``chi2 = sum_ij (e_ij / noise)^2`` follows (to first order) a
+    chi-square law with ``dof = m - n_params`` degrees of freedom (m observed entries). A
+    wrong basin leaves systematic misfit and a much larger chi2; the fit is rejected when
+    ``P(chi2_dof >= chi2) < alpha``.
+
+    Parameters
+    ----------
+    residuals: (I, J) measured minus modelled, in the units of ``noise`` (e.g. seconds); NaN = missing.
+    noise: timing-noise standard deviation (> 0), same units.
+    n_params: free parameters of the model (:func:`n_parameters`).
+    alpha: significance level (default 1e-3).
+
+    Returns
+    -------
+    ResidualTest
+    """
+    from scipy.stats import chi2 as chi2_dist
+
+    sd = check_positive(noise, "noise")
+    assert sd is not None
+    e = np.asarray(residuals, dtype=float)
+    e = e[np.isfinite(e)]
+    chi2 = float(np.sum((e / sd) ** 2))
+    dof = int(e.size - int(n_params))
+    p = float(chi2_dist.sf(chi2, dof)) if dof > 0 else float("nan")
+    return ResidualTest(chi2, dof, p, float(sd), float(alpha), passed=not p < alpha)
 
 
 @dataclass(frozen=True)
@@ -55,6 +139,7 @@ class ToaResult:
     receiver_offset_std, source_offset_std: offset standard deviations (minimum-norm gauge).
     speed: propagation speed used (m/s) or None.
     residuals: (I, J) measured minus modelled, matrix units, NaN where missing.
+    fit: chi-square residual test (:func:`residual_test`) when ``noise`` was given, else None.
     """
 
     receivers: Array
@@ -74,6 +159,7 @@ class ToaResult:
     source_offset_std: Array | None = None
     speed: float | None = None
     residuals: Array | None = None
+    fit: ResidualTest | None = None
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-safe dict with exactly the DESIGN.md toa keys plus extras (units, sigma, ...)."""
@@ -100,6 +186,7 @@ class ToaResult:
             "receiver_offset_std": tl(self.receiver_offset_std),
             "source_offset_std": tl(self.source_offset_std),
             "speed": self.speed,
+            "fit": None if self.fit is None else self.fit.to_dict(),
             "units": {"positions": "m", "covariances": "m^2", "offsets": unit, "residual_rms": unit},
         }
 
@@ -128,8 +215,13 @@ def _sane(start: _Init, ranges: Array) -> bool:
     return True
 
 
-def _init_offsets(ranges: Array, dim: int, offsets: str, rng: np.random.Generator) -> list[tuple[str, _Init]]:
+def _init_offsets(ranges: Array, dim: int, offsets: str, rng: np.random.Generator, *,
+                  n_starts: int = 8, max_candidates: int = 4) -> list[tuple[str, _Init]]:
     """Starts for offsets in {receivers, sources, both}: the 004 rank-3 initialiser, then MDS.
+
+    The rank-3 initialiser contributes up to ``max_candidates`` distinct starts
+    (:func:`selfcal.toa.offsets.initialize_offsets_candidates`, smallest Frobenius norm
+    first); :func:`solve_toa` ranks them by the fit of the full model (:func:`_rank_starts`).
 
     For a single kind of offset the rank-3 estimate of both kinds is collapsed: the
     true other kind is zero, so its estimate is (up to noise) the common shift c,
@@ -148,19 +240,22 @@ def _init_offsets(ranges: Array, dim: int, offsets: str, rng: np.random.Generato
         inputs.append(_fill_additive(ranges))
     for Z in inputs:
         try:
-            r, s, d0, o0 = off.initialize_offsets(Z, dim, rng=rng)
+            found = off.initialize_offsets_candidates(Z, dim, rng=rng, n_starts=n_starts,
+                                                      max_candidates=max_candidates)
         except (DegenerateGeometryError, InputError):
             continue
-        r, s = np.asarray(r, float), np.asarray(s, float)
-        d0, o0 = np.asarray(d0, float), np.asarray(o0, float)
-        if offsets == "receivers":
-            cand: _Init = (r, s, d0 + np.mean(o0), None)
-        elif offsets == "sources":
-            cand = (r, s, None, o0 + np.mean(d0))
-        else:
-            cand = (r, s, d0, o0)
-        if _sane(cand, ranges):
-            out.append(("rank3", cand))
+        for r, s, d0, o0 in found:
+            r, s = np.asarray(r, float), np.asarray(s, float)
+            d0, o0 = np.asarray(d0, float), np.asarray(o0, float)
+            if offsets == "receivers":
+                cand: _Init = (r, s, d0 + np.mean(o0), None)
+            elif offsets == "sources":
+                cand = (r, s, None, o0 + np.mean(d0))
+            else:
+                cand = (r, s, d0, o0)
+            if _sane(cand, ranges):
+                out.append(("rank3", cand))
+        if out:
             break
     shift = min(0.0, float(np.nanmin(ranges)))
     r, s = mds.initialize_toa(ranges - shift, dim, rng=rng)
@@ -259,6 +354,7 @@ def solve_toa(
     max_nfev: int | None = None,
     covariance: bool = True,
     sweep: bool = True,
+    noise: float | None = None,
 ) -> ToaResult:
     """Anchor-free self-calibration of receivers and sources from TOA / range measurements.
 
@@ -291,6 +387,12 @@ def solve_toa(
         (:func:`_node_sweep`); escapes local minima the residual tests cannot detect.
     covariance: compute the per-point covariances (NaN-filled when False; skipping them
         saves most of the time on networks of a thousand nodes per side).
+    noise: optional std of the measurement noise in the matrix's units (seconds with
+        ``speed``). The result then carries ``fit``, the chi-square test of its weighted
+        residual sum of squares against its degrees of freedom (:func:`residual_test`,
+        rejected at p < 1e-3); with ``method="auto"`` a fit that fails the test starts a
+        deep search over more rank-3 / MDS starts (:func:`_deep_search`), so fits that
+        pass cost nothing extra.
 
     Returns
     -------
@@ -316,6 +418,11 @@ def solve_toa(
     scale = spd if spd is not None else 1.0
     ranges = M * scale
     fs = None if f_scale is None else float(check_positive(f_scale, "f_scale") or 1.0) * scale
+    sd = check_positive(noise, "noise")
+    n_par = n_parameters(I, J, dim, offsets)
+
+    def test(sol: NlsSolution) -> ResidualTest | None:
+        return None if sd is None else residual_test(sol.residuals / scale, sd, n_par)
 
     if isinstance(init, str):
         if init != "auto":
@@ -323,7 +430,8 @@ def solve_toa(
         if offsets == "none":
             cands = _init_plain(ranges, dim, gen)
         else:
-            cands = _init_offsets(ranges, dim, offsets, gen)
+            k = RANK_CANDIDATES if method != "rank3" and I + J <= SWEEP_MAX_NODES else 1
+            cands = _init_offsets(ranges, dim, offsets, gen, max_candidates=k)
     else:
         cands = [("given", _given_init(init, I, J, dim, offsets, scale))]
 
@@ -336,6 +444,9 @@ def solve_toa(
         return refine_toa(ranges, r0, s0, offsets=offsets, receiver_offsets0=d0, source_offsets0=o0,
                           loss=loss, f_scale=fs, max_nfev=nfev or max_nfev, covariance=cov)
 
+    extra = 0
+    if sum(n == "rank3" for n, _ in cands) > 1:
+        cands, extra = _rank_starts(cands, refine)
     # first candidate that refines to a non-degenerate solution; the others are restarts
     best: NlsSolution | None = None
     err: DegenerateGeometryError | None = None
@@ -417,7 +528,104 @@ def solve_toa(
             best = refine((best.receivers, best.sources, best.receiver_offsets, best.source_offsets))
             iters += best.iterations
     label = f"{name}+nls" + (f"+multistart({starts - 1})" if starts > 1 else "")
-    return _to_result(M, best, spd, label, iters, starts)
+    fit = test(best)
+    if fit is not None and not fit.passed and method == "auto":
+        found, n_deep = _deep_search(ranges, dim, offsets, best, refine, gen, test)
+        starts += n_deep
+        label += f"+deep({n_deep})"
+        if found is not None:
+            best = found
+            if covariance:
+                best = refine((best.receivers, best.sources, best.receiver_offsets, best.source_offsets))
+            iters += best.iterations
+            fit = test(best)
+    return _to_result(M, best, spd, label, iters, starts + extra, fit)
+
+
+def _rank_starts(cands: list[tuple[str, _Init]], refine: Any) -> tuple[list[tuple[str, _Init]], int]:
+    """Order the rank-3 candidate starts by the fit of the full model after a short refinement.
+
+    The rank-3 initialiser's own criterion, the Frobenius norm F (004 eq. 3.17), measures how
+    close the offset-corrected matrix is to rank 3, not how well ``|r_i - s_j| + delta_i +
+    tau_j`` fits; with few units a wrong basin can have the smallest F. Each candidate is
+    refined for at most ``RANK_NFEV`` iterations without covariances and the candidates are
+    sorted by the resulting cost (their refined states become the starts); candidates whose
+    refinement fails keep their place after the others. Returns (ordered, refinements run).
+    """
+    scored: list[tuple[float, int, tuple[str, _Init]]] = []
+    runs = 0
+    for k, (name, start) in enumerate(cands):
+        if name != "rank3":
+            scored.append((float("inf"), k, (name, start)))
+            continue
+        runs += 1
+        try:
+            sol = refine(start, cov=False, nfev=RANK_NFEV)
+        except DegenerateGeometryError:
+            scored.append((float("inf"), k, (name, start)))
+            continue
+        cost = float(sol.cost) if np.isfinite(sol.cost) else float("inf")
+        scored.append((cost, k, (name, (sol.receivers, sol.sources, sol.receiver_offsets, sol.source_offsets))))
+    scored.sort(key=lambda c: (c[0], c[1]))
+    return [c[2] for c in scored], max(runs - 1, 0)
+
+
+def _deep_search(ranges: Array, dim: int, offsets: str, best: NlsSolution, refine: Any,
+                 rng: np.random.Generator, test: Any) -> tuple[NlsSolution | None, int]:
+    """More starts after a fit that failed the residual test; the best better fit or None.
+
+    Starts: up to ``DEEP_CANDIDATES`` distinct rank-3 candidates from ``DEEP_STARTS`` random
+    initialisations (offsets) or the 003 initialisers (no offsets), plus MDS on the shifted
+    ranges with fresh random draws. Each is refined without covariances and then given the
+    node sweeps (:func:`_node_sweep`); the search stops at the first fit that passes the
+    residual test. Returns (solution with a lower cost than ``best`` or None, starts tried).
+    """
+    from . import mds
+    from . import offsets as off
+
+    I, J = ranges.shape
+    starts: list[_Init] = []
+    if offsets != "none":
+        try:
+            for r, s, d0, o0 in off.initialize_offsets_candidates(ranges, dim, rng=rng, n_starts=DEEP_STARTS,
+                                                                  max_candidates=DEEP_CANDIDATES):
+                if offsets == "receivers":
+                    starts.append((r, s, d0 + np.mean(o0), None))
+                elif offsets == "sources":
+                    starts.append((r, s, None, o0 + np.mean(d0)))
+                else:
+                    starts.append((r, s, d0, o0))
+        except (DegenerateGeometryError, InputError):
+            pass
+    shift = min(0.0, float(np.nanmin(ranges)))
+    has_r, has_s = offsets in ("receivers", "both"), offsets in ("sources", "both")
+    for m in ("auto", "rank", "mds-multilat", "alg2"):
+        try:
+            r, s = mds.initialize_toa(ranges - shift, dim, method=m, rng=rng)
+        except Exception:  # an initialiser that does not apply at this size is simply skipped
+            continue
+        starts.append((np.asarray(r, float), np.asarray(s, float),
+                       np.zeros(I) if has_r else None, np.zeros(J) if has_s else None))
+    found: NlsSolution | None = None
+    tried = 0
+    for start in starts:
+        if not _sane(start, ranges):
+            continue
+        tried += 1
+        try:
+            sol = refine(start, cov=False)
+            moved = _node_sweep(ranges, sol) if I + J <= SWEEP_MAX_NODES else None
+            if moved is not None:
+                sol2 = refine(moved, cov=False)
+                sol = sol2 if sol2.cost < sol.cost else sol
+        except DegenerateGeometryError:
+            continue
+        if sol.cost < (best if found is None else found).cost * (1 - 1e-9):
+            found = sol
+            fit = test(found)
+            if fit is not None and fit.passed:
+                break
+    return found, tried
 
 
 def _restarts(ranges: Array, dim: int, offsets: str, sol: NlsSolution, rng: np.random.Generator,
@@ -720,7 +928,8 @@ def _pair_flip(sol: NlsSolution, fraction: float) -> _Init | None:
     return r, s, sol.receiver_offsets, sol.source_offsets
 
 
-def _to_result(M: Array, sol: NlsSolution, speed: float | None, method: str, iters: int, starts: int) -> ToaResult:
+def _to_result(M: Array, sol: NlsSolution, speed: float | None, method: str, iters: int, starts: int,
+               fit: ResidualTest | None = None) -> ToaResult:
     k = 1.0 / speed if speed is not None else 1.0
 
     def sc(a: Array | None) -> Array | None:
@@ -744,6 +953,7 @@ def _to_result(M: Array, sol: NlsSolution, speed: float | None, method: str, ite
         source_offset_std=sc(sol.source_offset_std),
         speed=speed,
         residuals=sol.residuals * k,
+        fit=fit,
     )
 
 
