@@ -127,9 +127,10 @@ def _simulate(out: Path, jitter_us: float) -> None:
 def test_pipeline_cli_exits_1_when_the_fit_fails_the_residual_test(tmp_path):
     rec = tmp_path / "rec"
     _simulate(rec, 30.0)  # 30 us clock jitter in the recording
+    assert json.loads((rec / "setup.json").read_text())["clock_jitter"] == pytest.approx(30e-6)
     out = tmp_path / "result.json"
     args = ["pipeline", str(rec), "--out", str(out), "--heights", str(rec / "heights.json")]
-    res = CliRunner().invoke(main, args)  # the simulated jitter (truth.json) is in the noise: trusted
+    res = CliRunner().invoke(main, args)  # the jitter declared in setup.json is in the noise: trusted
     assert res.exit_code == 0, res.output
     data = json.loads(out.read_text())
     assert data["failed"] is False and data["fit"]["passed"] and data["fit"]["dof"] > 0
@@ -139,3 +140,17 @@ def test_pipeline_cli_exits_1_when_the_fit_fails_the_residual_test(tmp_path):
     data = json.loads(out.read_text())
     assert data["failed"] is True and data["fit"]["p_value"] < 1e-3
     assert any("positions NOT reliable" in n for n in data["notes"])
+
+
+@pytest.mark.parametrize("bad", [-1e-6, "5us", float("inf")])
+def test_setup_clock_jitter_must_be_a_nonnegative_number(bad):
+    from selfcal.acoustics.recording import parse_setup
+    from selfcal.errors import InputError
+
+    raw = {"sample_rate": 48000, "receivers": ["a"], "senders": ["a"],
+           "probe": {"type": "chirp", "f0": 500, "f1": 8000, "duration": 0.05},
+           "events": [{"sender": "a", "time": 0.1}], "clock_jitter": bad}
+    with pytest.raises(InputError, match="clock_jitter"):
+        parse_setup(raw)
+    raw["clock_jitter"] = 2e-6
+    assert parse_setup(raw).clock_jitter == 2e-6

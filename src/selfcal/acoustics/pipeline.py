@@ -879,7 +879,7 @@ def run_pipeline(
     progress: bool = True,
     rng: int = 0,
     detect_options: dict[str, Any] | None = None,
-    jitter: float = 0.0,
+    jitter: float | None = None,
 ) -> PipelineResult:
     """Recordings -> arrival times -> onsets, delays and positions (004, all three stages).
 
@@ -897,9 +897,10 @@ def run_pipeline(
         Seed of the TOA solver's random initialisations.
     detect_options : dict, optional
         Passed to :func:`selfcal.acoustics.detect.detect_recording`.
-    jitter : float
-        Clock jitter std per (receiver, event), s (simulated or declared), part of the
-        timing noise of the residual test (:func:`timing_noise`).
+    jitter : float, optional
+        Clock jitter std per (receiver, event), s, part of the timing noise of the residual
+        test (:func:`timing_noise`); default: the ``clock_jitter`` declared in setup.json (0
+        when absent). Never taken from ``truth.json``.
 
     Returns
     -------
@@ -933,6 +934,8 @@ def run_pipeline(
     if np.isnan(T).all():
         raise DegenerateGeometryError("no arrival was detected in any recording; check the probe and levels",
                                       kind="no-detections")
+    if jitter is None:
+        jitter = setup.clock_jitter
     if not np.isfinite(jitter) or jitter < 0:
         raise InputError(f"jitter must be a finite standard deviation >= 0 s, got {jitter!r}")
     noise = timing_noise(det.quality_db, rec.probe.band, setup.event_senders, len(setup.senders), jitter=jitter)

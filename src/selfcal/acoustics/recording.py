@@ -68,6 +68,10 @@ class Setup:
         Index into ``senders`` of each event.
     event_times : (E,) float array
         Nominal emission times, seconds.
+    clock_jitter : float
+        Declared synchronisation jitter of the units' clocks, std per (receiver, event) in
+        seconds (a specification of the equipment, optional field; 0 = not declared). It
+        enters the residual test's timing noise.
     """
 
     sample_rate: float
@@ -77,6 +81,7 @@ class Setup:
     probe: dict[str, Any]
     event_senders: NDArray[np.int64]
     event_times: NDArray[np.float64]
+    clock_jitter: float = 0.0
 
     def to_dict(self) -> dict[str, Any]:
         """The ``setup.json`` content (JSON-safe)."""
@@ -90,6 +95,7 @@ class Setup:
                 {"sender": self.senders[int(j)], "time": float(t)}
                 for j, t in zip(self.event_senders, self.event_times, strict=True)
             ],
+            **({"clock_jitter": self.clock_jitter} if self.clock_jitter > 0 else {}),
         }
 
 
@@ -180,7 +186,11 @@ def parse_setup(raw: Any, where: str = "setup.json") -> Setup:
             raise InputError(f"{where}: field 'events[{k}].time' must be a number >= 0 (seconds), got {t!r}")
         ev_s.append(index[ev["sender"]])
         ev_t.append(float(t))
-    return Setup(fs, c, receivers, senders, dict(probe), np.array(ev_s, dtype=np.int64), np.array(ev_t))
+    jit = raw.get("clock_jitter", 0.0)
+    if isinstance(jit, bool) or not isinstance(jit, (int, float)) or not math.isfinite(jit) or jit < 0:
+        raise InputError(f"{where}: field 'clock_jitter' must be a number >= 0 (seconds), got {jit!r}")
+    return Setup(fs, c, receivers, senders, dict(probe), np.array(ev_s, dtype=np.int64), np.array(ev_t),
+                 clock_jitter=float(jit))
 
 
 def read_setup(directory: str | Path) -> Setup:

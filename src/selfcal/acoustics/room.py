@@ -178,7 +178,9 @@ def simulate_conference(
     dist = np.linalg.norm(scene.receivers[:, None, :] - scene.senders[None, :, :], axis=-1)
     arrivals = times[None, :] + scene.sender_onsets[None, :] + scene.receiver_delays[:, None] + dist / speed + shake
     names_r = tuple(f"u{k:03d}" for k in range(U))
-    setup = Setup(float(fs), float(speed), names_r, names_r, prb.spec, np.arange(U, dtype=np.int64), times)
+    # the simulated clocks' jitter is declared in setup.json as the equipment's specification
+    setup = Setup(float(fs), float(speed), names_r, names_r, prb.spec, np.arange(U, dtype=np.int64), times,
+                  clock_jitter=float(jitter))
     truth = scene.to_dict() | {
         "speed_of_sound": speed, "rt60": rt60, "snr_db": snr_db, "absorption": float(absorption),
         "max_order": order, "sample_rate": fs, "arrival_times": arrivals.tolist(), "clock_jitter": jitter,

@@ -217,7 +217,7 @@ def pipeline_errors(result: Any, directory: Path) -> dict[str, Any] | None:
 @click.option("--seed", type=int, default=0, show_default=True, help="Seed of the solver's random starts.")
 @click.option("--jitter", type=float, default=None,
               help="Clock jitter std per (receiver, event), SECONDS, in the residual test's timing noise "
-                   "(default: truth.json's simulated clock_jitter when present, else 0).")
+                   "(default: setup.json's declared clock_jitter, else 0).")
 @handle_errors
 def pipeline_cmd(directory: Path, out: Path, plot: Path | None, report: Path | None, heights: Path | None,
                  dim: str, seed: int, jitter: float | None) -> None:
@@ -227,11 +227,8 @@ def pipeline_cmd(directory: Path, out: Path, plot: Path | None, report: Path | N
     fails the chi-square residual test (``PipelineResult.failed``).
     """
     from ..acoustics.pipeline import run_pipeline
-    from ..io import read_json, write_json
+    from ..io import write_json
 
-    if jitter is None:
-        truth_path = directory / "truth.json"
-        jitter = float(read_json(truth_path, "truth.json").get("clock_jitter", 0.0)) if truth_path.is_file() else 0.0
     result = run_pipeline(directory, dim=dim if dim == "auto" else int(dim), heights=heights, rng=seed,
                           jitter=jitter)
     errors = pipeline_errors(result, directory)
