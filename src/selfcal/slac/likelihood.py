@@ -186,6 +186,20 @@ def link_loglik(
     return LinkTerms(value=value, d_rho=d_rho, d_phi=d_phi, d_G=d_G, c=c, y=y, a=a)
 
 
+def _fisher_common(terms: LinkTerms, noise_var: FArray, k: float,
+                   probe_power: FArray) -> tuple[float, complex, float, FArray, FArray]:
+    """Probe moments ``S, S', S''``, ``A = |a|^2`` (L,) and ``2 |alpha|^2 / sigma^2`` (L,)."""
+    sig = np.asarray(noise_var, dtype=float)
+    p = np.asarray(probe_power, dtype=float)
+    n = np.arange(p.size)
+    S = float(p.sum())
+    Sd = -1j * k * float(np.sum(p * n))
+    Sdd = k * k * float(np.sum(p * n * n))
+    A = np.sum(np.abs(terms.a) ** 2, axis=1)
+    alpha2 = np.abs(terms.c) ** 2 / (A * S) ** 2
+    return S, Sd, Sdd, A, 2.0 * alpha2 / sig
+
+
 def link_fisher(
     terms: LinkTerms,
     noise_var: FArray,
@@ -212,16 +226,8 @@ def link_fisher(
     (L, 1, 1) for single-port links (rho only) or (L, P, P) with ``P = 2 + 2 M U`` in the order
     ``[rho, phi, g]`` for multi-port links.
     """
-    sig = np.asarray(noise_var, dtype=float)
-    p = np.asarray(probe_power, dtype=float)
-    n = np.arange(p.size)
-    S = float(p.sum())
-    Sd = -1j * k * float(np.sum(p * n))
-    Sdd = k * k * float(np.sum(p * n * n))
+    S, Sd, Sdd, A, scale = _fisher_common(terms, noise_var, k, probe_power)
     a = terms.a
-    A = np.sum(np.abs(a) ** 2, axis=1)
-    alpha2 = np.abs(terms.c) ** 2 / (A * S) ** 2
-    scale = 2.0 * alpha2 / sig
     if G is None:
         f = A * (Sdd - abs(Sd) ** 2 / S)
         return (scale * f)[:, None, None]
@@ -355,16 +361,8 @@ def fisher_blocks(
     -------
     FisherBlocks (units: 1/m^2 for rho, 1/rad^2 for phi, 1/(entry of G)^2 for g).
     """
-    sig = np.asarray(noise_var, dtype=float)
-    p = np.asarray(probe_power, dtype=float)
-    n = np.arange(p.size)
-    S = float(p.sum())
-    Sd = -1j * k * float(np.sum(p * n))
-    Sdd = k * k * float(np.sum(p * n * n))
+    S, Sd, Sdd, A, scale = _fisher_common(terms, noise_var, k, probe_power)
     a = terms.a
-    A = np.sum(np.abs(a) ** 2, axis=1)
-    alpha2 = np.abs(terms.c) ** 2 / (A * S) ** 2
-    scale = 2.0 * alpha2 / sig
     rr = scale * A * (Sdd - abs(Sd) ** 2 / S)
     if G is None:
         return FisherBlocks(rr, np.zeros(rr.size), None, None, None, None, 1)
