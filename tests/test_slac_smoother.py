@@ -120,3 +120,17 @@ def test_smoother_rejects_bad_input(log: SlacLog) -> None:
     sm = SlacSmoother(f, 2)
     with pytest.raises(InputError):
         sm.step(np.zeros((1, 2)), log.rx, log.tx, log.snapshot_fn(1), np.ones(log.rx.size))
+
+
+def test_window_rollout_is_the_motion_model(log: SlacLog) -> None:
+    from selfcal.slac.motion import motion_step
+
+    sm = _smoother(log, lag=4, steps=6)
+    X, F, B = sm._rollout(sm.z)
+    x0, w, _ = sm._split(sm.z)
+    x = x0.copy()
+    for k in range(sm.window):
+        x = motion_step(x, sm.controls[k] + w[k], log.T)
+        assert np.allclose(X[k + 1], x, rtol=0, atol=1e-12)
+    # the reported pose is the window's newest pose
+    assert np.allclose(sm.filt.poses, X[-1])

@@ -42,7 +42,7 @@ from numpy.typing import NDArray
 
 from ..errors import InputError
 from .filter import SlacFilter, UpdateInfo, _chol_inv, _safe_cholesky, map_update
-from .motion import control_jacobian, motion_jacobian, motion_step
+from .motion import control_jacobian, motion_jacobian
 
 __all__ = ["SlacSmoother"]
 
@@ -96,15 +96,20 @@ class SlacSmoother:
         x0, w, _ = self._split(z)
         T = self.filt.config.T
         K = self.window
+        U = np.asarray(self.controls).reshape(K, self.n, 2) + w  # (K, n, 2) noisy controls
+        # eq. 14 as x' = x + v T cos(psi + h) sinc(h) (motion_step), unrolled: sinc(h) per step
+        # and agent does not depend on the state, so it is computed once for the window
+        h = U[..., 1] * T / 2.0
+        vs = U[..., 0] * T * np.sinc(h / np.pi)
         X = np.empty((K + 1, self.n, 3))
-        F = np.empty((K, self.n, 3, 3))
-        B = np.empty((K, self.n, 3, 2))
         X[0] = x0
         for k in range(K):
-            uk = self.controls[k] + w[k]
-            F[k] = motion_jacobian(X[k], uk, T)
-            B[k] = control_jacobian(X[k], uk, T)
-            X[k + 1] = motion_step(X[k], uk, T)
+            th = X[k, :, 2] + h[k]
+            X[k + 1, :, 0] = X[k, :, 0] + vs[k] * np.cos(th)
+            X[k + 1, :, 1] = X[k, :, 1] + vs[k] * np.sin(th)
+            X[k + 1, :, 2] = X[k, :, 2] + U[k, :, 1] * T
+        F = motion_jacobian(X[:-1], U, T)
+        B = control_jacobian(X[:-1], U, T)
         return X, F, B
 
     def _pose_jacobians(self, F: FArray, B: FArray) -> list[FArray]:
