@@ -117,6 +117,9 @@ def test_smoother_rejects_bad_input(log: SlacLog) -> None:
     f = SlacFilter(log.anchors, log.ports, log.prior("chamber"), log.init_poses, log.init_cov, log.probe)
     with pytest.raises(InputError):
         SlacSmoother(f, 0)
+    with pytest.raises(InputError):
+        SlacFilter(log.anchors, log.ports, log.prior("chamber"), log.init_poses, log.init_cov, log.probe,
+                   config=SlacConfig(smoother_lag=-1))
     sm = SlacSmoother(f, 2)
     with pytest.raises(InputError):
         sm.step(np.zeros((1, 2)), log.rx, log.tx, log.snapshot_fn(1), np.ones(log.rx.size))

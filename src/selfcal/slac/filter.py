@@ -391,6 +391,8 @@ class SlacFilter:
         self.config = config or SlacConfig()
         check_choice(self.config.covariance, "covariance", ("fisher", "fd"))
         check_choice(self.config.optimizer, "optimizer", ("quasi-newton", "bfgs"))
+        if int(self.config.smoother_lag) < 0:
+            raise InputError(f"smoother_lag must be >= 0, got {self.config.smoother_lag}")
         self.anchors = as_points(anchors, "anchors", dim=2)
         self.ports = np.asarray(ports, dtype=int)
         n = self.n = self.ports.size
