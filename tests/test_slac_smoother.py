@@ -137,3 +137,22 @@ def test_window_rollout_is_the_motion_model(log: SlacLog) -> None:
         assert np.allclose(X[k + 1], x, rtol=0, atol=1e-12)
     # the reported pose is the window's newest pose
     assert np.allclose(sm.filt.poses, X[-1])
+
+
+def test_cli_slac_run_with_smoother_lag(tmp_path) -> None:  # type: ignore[no-untyped-def]
+    import json
+
+    from click.testing import CliRunner
+
+    from selfcal.cli import main
+
+    logp, outp = tmp_path / "log.npz", tmp_path / "res.json"
+    r = CliRunner().invoke(main, ["slac", "simulate", "--minutes", "0.02", "--subcarriers", "16", "--seed", "3",
+                                  "--out", str(logp)])
+    assert r.exit_code == 0, r.output
+    r = CliRunner().invoke(main, ["slac", "run", str(logp), "--smoother-lag", "3", "--out", str(outp)])
+    assert r.exit_code == 0, r.output
+    d = json.loads(outp.read_text())
+    assert d["method"].endswith("fixed-lag-3") and len(d["poses"]) == 13
+    r = CliRunner().invoke(main, ["slac", "run", str(logp), "--smoother-lag", "-1", "--out", str(outp)])
+    assert r.exit_code != 0
