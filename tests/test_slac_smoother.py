@@ -156,3 +156,11 @@ def test_cli_slac_run_with_smoother_lag(tmp_path) -> None:  # type: ignore[no-un
     assert d["method"].endswith("fixed-lag-3") and len(d["poses"]) == 13
     r = CliRunner().invoke(main, ["slac", "run", str(logp), "--smoother-lag", "-1", "--out", str(outp)])
     assert r.exit_code != 0
+
+
+def test_localization_mode_smoother_matches_the_filter(log: SlacLog) -> None:
+    # no calibration states: the window holds poses and control noises only
+    a = solve_slac(log, mode="localization", steps=15)
+    b = solve_slac(log, mode="localization", steps=15, config=SlacConfig(smoother_lag=4))
+    assert np.max(np.abs(a.poses[:, :, :2] - b.poses[:, :, :2])) < 0.05
+    assert np.allclose(np.sqrt(a.pose_cov[-1, :, 0, 0]), np.sqrt(b.pose_cov[-1, :, 0, 0]), rtol=0.2)
