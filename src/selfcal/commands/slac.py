@@ -40,16 +40,22 @@ def simulate_cmd(minutes: float, subcarriers: int, snr_db: float, seed: int, out
               help="Folder for trajectory / ranging PNGs.")
 @click.option("--init", type=click.Choice(["snapshot", "log"]), default="snapshot", show_default=True,
               help="Initial poses: snapshot-based estimate (paper 002 section IV) or the log's init_poses.")
+@click.option("--smoother-lag", type=click.IntRange(min=0), default=0, show_default=True,
+              help="0: the paper's filter; K > 0: fixed-lag smoother over the last K steps (consistent "
+                   "error bars with antenna calibration, ~5x slower at K = 20; docs/slac_consistency.md).")
 @handle_errors
-def run_cmd(log_path: Path, mode: str, prior: str, out: Path, plot: Path | None, init: str) -> None:
-    """Run the SLAC or localization-only filter over an NPZ log."""
+def run_cmd(log_path: Path, mode: str, prior: str, out: Path, plot: Path | None, init: str,
+            smoother_lag: int) -> None:
+    """Run the SLAC or localization-only filter (or fixed-lag smoother) over an NPZ log."""
     import numpy as np
 
     from ..io import write_json
+    from ..slac.filter import SlacConfig
     from ..slac.run import SlacLog, solve_slac
 
     log = SlacLog.from_npz(log_path)
-    res = solve_slac(log, mode=mode, prior=prior, progress=True, init=init)
+    res = solve_slac(log, mode=mode, prior=prior, progress=True, init=init,
+                     config=SlacConfig(smoother_lag=smoother_lag))
     d = res.to_dict()
     m = d["metrics"]
     if m:

@@ -4,7 +4,8 @@ Modules: :mod:`~selfcal.slac.antenna` (manifold separation, eqs. 7-9), :mod:`~se
 (OFDM snapshots, eqs. 3-4), :mod:`~selfcal.slac.likelihood` (concentrated likelihoods, eqs. 18-19),
 :mod:`~selfcal.slac.motion` (eq. 14), :mod:`~selfcal.slac.filter` (IEKF-like MAP filter, eqs. 20-26),
 :mod:`~selfcal.slac.doa` (coherent ML DoA), :mod:`~selfcal.slac.measurement` (range/bearing level),
-:mod:`~selfcal.slac.run` (logs and :func:`solve_slac`).
+:mod:`~selfcal.slac.run` (logs and :func:`solve_slac`), :mod:`~selfcal.slac.smoother` (optional fixed-lag
+smoother, beyond the paper).
 """
 
 from __future__ import annotations
@@ -21,7 +22,7 @@ _LAZY = {
     "motion_step": "motion", "motion_jacobian": "motion", "process_noise": "motion",
     "SlacConfig": "filter", "SlacFilter": "filter", "map_update": "filter",
     "estimate_doa": "doa", "RangeFilter": "measurement", "RangeConfig": "measurement",
-    "SlacLog": "run", "SlacResult": "run", "solve_slac": "run",
+    "SlacLog": "run", "SlacResult": "run", "solve_slac": "run", "SlacSmoother": "smoother",
 }
 __all__ = sorted(_LAZY)
 

@@ -78,6 +78,12 @@ class SlacConfig:
         exactly invariant to ``(psi, G) -> (psi + t, G diag(e^{j u t}))`` and to
         ``G -> kappa G``; information linearised at a moving G estimate breaks these null
         directions and makes the filter overconfident in heading (NEES far above its band).
+    delay_series : evaluate the likelihood through the delay series of
+        :func:`~selfcal.slac.likelihood.delay_expansion` (same values, faster).
+    smoother_lag : 0 (default) = the paper's filter. K > 0 = fixed-lag smoother (beyond the
+        paper, :class:`~selfcal.slac.smoother.SlacSmoother`): every step re-solves the MAP of
+        the last K steps jointly (poses rolled out from the window's first pose through the
+        control noises) and marginalises the oldest step into the prior.
     """
 
     T: float = 0.1
@@ -94,6 +100,7 @@ class SlacConfig:
     optimizer: str = "quasi-newton"
     first_estimates: bool = True
     delay_series: bool = True
+    smoother_lag: int = 0
 
 
 @dataclass(frozen=True)
@@ -172,6 +179,7 @@ def _quasi_newton(
     D: int,
     gtol: float,
     max_iter: int,
+    u0: FArray | None = None,
 ) -> tuple[FArray, int, bool, int, float]:
     """BFGS from the identity in coordinates whitened by the expected Hessian at the start.
 
@@ -181,11 +189,13 @@ def _quasi_newton(
     while the Armijo condition fails. Typically one objective evaluation per iteration and no
     Python-level line-search machinery (the cost of ``scipy.optimize.minimize`` here).
 
+    ``u0`` (D,) is the start (default: the origin of the whitened coordinates).
+
     Returns
     -------
     u (D,), iterations, converged, evaluations, objective value.
     """
-    u = np.zeros(D)
+    u = np.zeros(D) if u0 is None else np.array(u0, dtype=float)
     f, g = obj(u)
     nfev = 1
     Hi = np.eye(D)
@@ -235,6 +245,7 @@ def map_update(
     covariance: str = "fisher",
     preconditioner: Callable[[FArray], FArray] | None = None,
     optimizer: str = "bfgs",
+    x_start: FArray | None = None,
 ) -> tuple[FArray, FArray, UpdateInfo]:
     """MAP update of eq. 22 (BFGS with the analytic gradient), Laplace covariance.
 
@@ -250,6 +261,8 @@ def map_update(
         paper's solver) or "quasi-newton" (:func:`_quasi_newton`: the same BFGS iteration with
         unit-step-first Armijo backtracking; same stop rule, same optimum, several times less
         overhead per update).
+    x_start : (D,) optional start of the iteration (warm start; default ``x_bar``). The
+        whitening then uses the preconditioner information at ``x_start``.
 
     Returns
     -------
@@ -258,8 +271,9 @@ def map_update(
     check_choice(optimizer, "optimizer", ("bfgs", "quasi-newton"))
     Pinv = _chol_inv(P_bar)
     information_at = preconditioner or information
-    H0 = Pinv + information_at(x_bar)
+    H0 = Pinv + information_at(x_bar if x_start is None else x_start)
     C = _safe_cholesky(H0)
+    u0 = None if x_start is None else C.T @ (np.asarray(x_start, dtype=float) - x_bar)
 
     def to_x(u: FArray) -> FArray:
         return x_bar + tri_solve(C, u, trans=True)
@@ -272,11 +286,11 @@ def map_update(
         return float(nll + 0.5 * r @ Pr), tri_solve(C, g + Pr)
 
     if optimizer == "bfgs":
-        res = minimize(obj, np.zeros(x_bar.size), jac=True, method="BFGS",
+        res = minimize(obj, np.zeros(x_bar.size) if u0 is None else u0, jac=True, method="BFGS",
                        options={"gtol": gtol, "maxiter": max_iter})
         u_hat, nit, ok, nfev, fval = res.x, int(res.nit), bool(res.success), int(res.nfev), float(res.fun)
     else:
-        u_hat, nit, ok, nfev, fval = _quasi_newton(obj, x_bar.size, gtol, max_iter)
+        u_hat, nit, ok, nfev, fval = _quasi_newton(obj, x_bar.size, gtol, max_iter, u0)
     x_hat = to_x(u_hat)
     if covariance == "fd":
         D = x_hat.size
@@ -377,6 +391,8 @@ class SlacFilter:
         self.config = config or SlacConfig()
         check_choice(self.config.covariance, "covariance", ("fisher", "fd"))
         check_choice(self.config.optimizer, "optimizer", ("quasi-newton", "bfgs"))
+        if int(self.config.smoother_lag) < 0:
+            raise InputError(f"smoother_lag must be >= 0, got {self.config.smoother_lag}")
         self.anchors = as_points(anchors, "anchors", dim=2)
         self.ports = np.asarray(ports, dtype=int)
         n = self.n = self.ports.size

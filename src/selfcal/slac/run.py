@@ -230,6 +230,9 @@ def solve_slac(
     mode : "slac" or "localization".
     prior : sampling-matrix prior of multi-port agents, "em" or "chamber" (or "true").
     config : SlacConfig; T, sigma_v, sigma_omega and bandwidth are taken from the log.
+        ``config.smoother_lag > 0`` runs the fixed-lag smoother
+        (:class:`~selfcal.slac.smoother.SlacSmoother`) instead of the filter; the reported
+        pose at step s is then the window's newest pose (a filtered estimate).
     steps : run only the first ``steps`` steps.
     init : "log" (the log's ``init_poses`` / ``init_cov``) or "snapshot": the snapshot-based
         initialiser of section IV (:func:`~selfcal.slac.initialization.snapshot_initial_poses`)
@@ -248,6 +251,11 @@ def solve_slac(
                         "bandwidth": log.bandwidth})
     x0, P0 = _initial_state(log, init, prior, cfg.bias_std)
     filt = SlacFilter(log.anchors, log.ports, log.prior(prior), x0, P0, log.probe, mode=mode, config=cfg)
+    smoother = None
+    if cfg.smoother_lag > 0:
+        from .smoother import SlacSmoother
+
+        smoother = SlacSmoother(filt, cfg.smoother_lag)
     S = log.n_steps if steps is None else min(int(steps), log.n_steps)
     n, L = log.n_agents, log.rx.size
     poses = np.empty((S + 1, n, 3))
@@ -263,13 +271,17 @@ def solve_slac(
     from tqdm.auto import tqdm
 
     for s in tqdm(range(1, S + 1), disable=not progress, desc=f"slac {mode}", leave=False):
-        filt.predict(log.controls[s - 1])
+        if smoother is None:
+            filt.predict(log.controls[s - 1])
         snaps = log.snapshot_fn(s)
         tau, ys, var = batch_delay_search(snaps, log.probe, log.bandwidth)
         ml[s - 1] = SPEED_OF_LIGHT * tau / 2
         for i in mp_agents:
             pv[i][s - 1] = np.stack([ys[l] for l in np.flatnonzero(log.rx == i)])
-        info = filt.update(log.rx, log.tx, snaps, var)
+        if smoother is None:
+            info = filt.update(log.rx, log.tx, snaps, var)
+        else:
+            info = smoother.step(log.controls[s - 1], log.rx, log.tx, snaps, var)
         iters[s - 1], conv[s - 1] = info.iterations, info.converged
         p = np.vstack([filt.poses[:, :2], log.anchors])
         b = filt.biases
@@ -284,7 +296,8 @@ def solve_slac(
         sampling_matrices={k: v for k, v in Gs.items() if v is not None}, ml_ranges=ml, port_vectors=pv,
         iterations=iters, converged_steps=conv, residual_rms=float(np.sqrt(np.mean(res**2))) if res.size else 0.0,
         metrics=metrics,
-        method="slac-iekf-bfgs" if filt.config.optimizer == "bfgs" else "slac-iekf-quasi-newton",
+        method=("slac-iekf-bfgs" if filt.config.optimizer == "bfgs" else "slac-iekf-quasi-newton")
+        + (f"-fixed-lag-{cfg.smoother_lag}" if smoother is not None else ""),
     )
 
 
