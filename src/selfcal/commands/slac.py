@@ -125,9 +125,11 @@ def plaza_cmd(path: Path, out: Path, plot: Path | None) -> None:
 @seed_option
 @click.option("--init", type=click.Choice(["snapshot", "log"]), default="snapshot", show_default=True,
               help="Initial poses: snapshot-based estimate (paper 002 section IV) or the log's init_poses.")
+@click.option("--smoother-lag", type=click.IntRange(min=0), default=0, show_default=True,
+              help="0: the paper's filter; K > 0: fixed-lag smoother over the last K steps.")
 @handle_errors
 def reproduce_slac_cmd(minutes: float, subcarriers: int, runs: int, out: Path, backend: str,
-                       scheduler: str | None, seed: int, init: str) -> None:
+                       scheduler: str | None, seed: int, init: str, smoother_lag: int) -> None:
     """Paper 002 replica: Table I, Fig. 3 (DoA CDF), Fig. 4 (ranging RMSE) -> PNG + JSON in --out."""
     import json
 
@@ -137,5 +139,5 @@ def reproduce_slac_cmd(minutes: float, subcarriers: int, runs: int, out: Path, b
     if minutes <= 0 or runs < 1 or subcarriers < 8:
         raise InputError("--minutes must be > 0, --runs >= 1 and --subcarriers >= 8")
     s = reproduce_slac(out, minutes=minutes, subcarriers=subcarriers, runs=runs, seed=seed, backend=backend,
-                       scheduler=scheduler, init=init)
+                       scheduler=scheduler, init=init, smoother_lag=smoother_lag)
     click.echo(json.dumps({"table_I": s["table_I"], "fig3_doa": s["fig3_doa"], "fig4": s["fig4"]}, indent=1))

@@ -110,6 +110,7 @@ def plaza_summary(data: PlazaData, config: RangeConfig | None = None) -> dict[st
 def replica_trial(params: dict[str, Any], seed: int) -> dict[str, Any]:
     """One replica run (both modes) -> Table I / Fig. 3 / Fig. 4 numbers (module-level, picklable)."""
     from ..scenarios.rovers import make_rover_scenario
+    from ..slac.filter import SlacConfig
     from ..slac.run import SlacLog, solve_slac
 
     sc = make_rover_scenario(float(params["minutes"]), n_subcarriers=int(params["subcarriers"]), rng=seed)
@@ -117,7 +118,8 @@ def replica_trial(params: dict[str, Any], seed: int) -> dict[str, Any]:
     out: dict[str, Any] = {"agents": list(sc.names)}
     for mode in ("localization", "slac"):
         r = solve_slac(log, mode=mode, prior=str(params.get("prior", "chamber")), progress=bool(params.get("progress", False)),
-                       init=str(params.get("init", "snapshot")))
+                       init=str(params.get("init", "snapshot")),
+                       config=SlacConfig(smoother_lag=int(params.get("smoother_lag", 0))))
         m = r.metrics
         out[mode] = {
             "position_rmse": m["position_rmse"], "heading_rmse_deg": m["heading_rmse_deg"], "nees_mean": m["nees_mean"],
@@ -130,11 +132,13 @@ def replica_trial(params: dict[str, Any], seed: int) -> dict[str, Any]:
 
 def reproduce_slac(out_dir: str | Path, *, minutes: float = 12.5, subcarriers: int = 1024, runs: int = 1,
                    seed: int = 0, backend: str = "serial", scheduler: str | None = None,
-                   progress: bool = True, init: str = "snapshot") -> dict[str, Any]:
+                   progress: bool = True, init: str = "snapshot", smoother_lag: int = 0) -> dict[str, Any]:
     """Replica of section V: Table I, Fig. 3 (DoA CDFs) and Fig. 4 (ranging RMSE), PNG + JSON.
 
     ``init``: "snapshot" (section IV's snapshot-based initial poses, the default) or "log"
     (truth plus 0.3 m / 3 deg noise), see :func:`~selfcal.slac.run.solve_slac`.
+    ``smoother_lag``: 0 = the paper's filter; K > 0 = the fixed-lag smoother (beyond the paper,
+    consistent error bars, about 5x slower; ``docs/slac_consistency.md``).
     """
     from ..io import write_json
     from ..plotting import new_figure, plot_cdf, save_figure
@@ -142,7 +146,7 @@ def reproduce_slac(out_dir: str | Path, *, minutes: float = 12.5, subcarriers: i
 
     out = Path(out_dir)
     rows = run_sweep(replica_trial, [{"minutes": minutes, "subcarriers": subcarriers, "progress": progress and runs == 1,
-                                     "init": init}],
+                                     "init": init, "smoother_lag": smoother_lag}],
                      runs=runs, seed=seed, backend=backend, scheduler=scheduler, progress=progress, desc="slac replica")
     agents = rows[0]["agents"]
     table = {}
@@ -193,7 +197,7 @@ def reproduce_slac(out_dir: str | Path, *, minutes: float = 12.5, subcarriers: i
     ax.legend()
     save_figure(fig, out / "table1_position_rmse.png")
     summary = {
-        "minutes": minutes, "subcarriers": subcarriers, "runs": runs, "seed": seed, "init": init,
+        "minutes": minutes, "subcarriers": subcarriers, "runs": runs, "seed": seed, "init": init, "smoother_lag": smoother_lag,
         "table_I": table, "fig3_doa": doa,
         "fig4": {
             "ranging_rmse_uncorrected_mean": float(np.median([np.mean(r["slac"]["ranging_rmse_uncorrected"]) for r in rows])),
