@@ -841,6 +841,19 @@ def positions_from_ranges(ranges: Any, dim: int = 3) -> tuple[Array, Array]:
     return receivers, sources
 
 
+def _start_from_offsets(R: Array, res: Rank3Result, dim: int,
+                        gen: np.random.Generator) -> tuple[Array, Array, Array, Array]:
+    """(receivers, sources, receiver_offsets, source_offsets) from one rank-d offset estimate.
+
+    Positions come from the offset-free ranges (completed by the rank-d fit where ``R`` is
+    missing) through :func:`offset_free_positions`.
+    """
+    full = res.extra.get("completed", R)
+    D = full - res.receiver_offsets[:, None] - res.source_offsets[None, :]
+    receivers, sources = offset_free_positions(D, np.isnan(R), dim, rng=gen)
+    return receivers, sources, res.receiver_offsets.copy(), res.source_offsets.copy()
+
+
 def initialize_offsets(
     ranges: Any,
     dim: int = 3,
@@ -881,10 +894,7 @@ def initialize_offsets(
         res = fast_offsets(R, dim=dim, rng=gen)
         if res.frobenius < best.frobenius:
             best = res
-    full = best.extra.get("completed", R)
-    D = full - best.receiver_offsets[:, None] - best.source_offsets[None, :]
-    receivers, sources = offset_free_positions(D, np.isnan(R), dim, rng=gen)
-    start = (receivers, sources, best.receiver_offsets.copy(), best.source_offsets.copy())
+    start = _start_from_offsets(R, best, dim, gen)
     if np.isnan(R).any():
         # Missing entries as free unknowns of the rank-d fit widen its non-convex landscape:
         # from p = 0 or thesis random starts it lands in a wrong basin in most runs once
@@ -969,13 +979,10 @@ def initialize_offsets_candidates(
             break
     out: list[tuple[Array, Array, Array, Array]] = []
     for res in distinct:
-        full = res.extra.get("completed", R)
-        D = full - res.receiver_offsets[:, None] - res.source_offsets[None, :]
         try:
-            receivers, sources = offset_free_positions(D, np.isnan(R), dim, rng=gen)
+            out.append(_start_from_offsets(R, res, dim, gen))
         except DegenerateGeometryError:
             continue
-        out.append((receivers, sources, res.receiver_offsets.copy(), res.source_offsets.copy()))
     if not out:
         raise DegenerateGeometryError("no position initialiser produced a finite geometry from the "
                                       "offset-corrected ranges", kind="init-failed")

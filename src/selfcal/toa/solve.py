@@ -215,6 +215,21 @@ def _sane(start: _Init, ranges: Array) -> bool:
     return True
 
 
+def _kept_offsets(r: Array, s: Array, d0: Array, o0: Array, offsets: str) -> _Init:
+    """A rank-3 start (both kinds of offsets) collapsed to the kinds ``offsets`` keeps.
+
+    The true other kind is zero, so its estimate is (up to noise) the common shift c, which
+    moves into the kept kind (``d_i + c`` or ``o_j + c``).
+    """
+    r, s = np.asarray(r, float), np.asarray(s, float)
+    d0, o0 = np.asarray(d0, float), np.asarray(o0, float)
+    if offsets == "receivers":
+        return r, s, d0 + np.mean(o0), None
+    if offsets == "sources":
+        return r, s, None, o0 + np.mean(d0)
+    return r, s, d0, o0
+
+
 def _init_offsets(ranges: Array, dim: int, offsets: str, rng: np.random.Generator, *,
                   n_starts: int = 8, max_candidates: int = 4) -> list[tuple[str, _Init]]:
     """Starts for offsets in {receivers, sources, both}: the 004 rank-3 initialiser, then MDS.
@@ -245,14 +260,7 @@ def _init_offsets(ranges: Array, dim: int, offsets: str, rng: np.random.Generato
         except (DegenerateGeometryError, InputError):
             continue
         for r, s, d0, o0 in found:
-            r, s = np.asarray(r, float), np.asarray(s, float)
-            d0, o0 = np.asarray(d0, float), np.asarray(o0, float)
-            if offsets == "receivers":
-                cand: _Init = (r, s, d0 + np.mean(o0), None)
-            elif offsets == "sources":
-                cand = (r, s, None, o0 + np.mean(d0))
-            else:
-                cand = (r, s, d0, o0)
+            cand = _kept_offsets(r, s, d0, o0, offsets)
             if _sane(cand, ranges):
                 out.append(("rank3", cand))
         if out:
@@ -589,12 +597,7 @@ def _deep_search(ranges: Array, dim: int, offsets: str, best: NlsSolution, refin
         try:
             for r, s, d0, o0 in off.initialize_offsets_candidates(ranges, dim, rng=rng, n_starts=DEEP_STARTS,
                                                                   max_candidates=DEEP_CANDIDATES):
-                if offsets == "receivers":
-                    starts.append((r, s, d0 + np.mean(o0), None))
-                elif offsets == "sources":
-                    starts.append((r, s, None, o0 + np.mean(d0)))
-                else:
-                    starts.append((r, s, d0, o0))
+                starts.append(_kept_offsets(r, s, d0, o0, offsets))
         except (DegenerateGeometryError, InputError):
             pass
     shift = min(0.0, float(np.nanmin(ranges)))
