@@ -921,6 +921,11 @@ def run_pipeline(
     rec = load_recording(directory)
     setup = rec.setup
     timings["load"] = time.perf_counter() - t0
+    # validated before the (slow) detection: bad input fails fast
+    if jitter is None:
+        jitter = setup.clock_jitter
+    if not np.isfinite(jitter) or jitter < 0:
+        raise InputError(f"jitter must be a finite standard deviation >= 0 s, got {jitter!r}")
     hz = None
     if heights is not None:
         hz = (read_heights(heights, setup.receivers, setup.senders) if isinstance(heights, (str, Path))
@@ -934,10 +939,6 @@ def run_pipeline(
     if np.isnan(T).all():
         raise DegenerateGeometryError("no arrival was detected in any recording; check the probe and levels",
                                       kind="no-detections")
-    if jitter is None:
-        jitter = setup.clock_jitter
-    if not np.isfinite(jitter) or jitter < 0:
-        raise InputError(f"jitter must be a finite standard deviation >= 0 s, got {jitter!r}")
     noise = timing_noise(det.quality_db, rec.probe.band, setup.event_senders, len(setup.senders), jitter=jitter)
     t0 = time.perf_counter()
     sol, plan, notes = calibrate_matrix(T, speed=setup.speed_of_sound, dim=dim, heights=hz, rng=rng,
