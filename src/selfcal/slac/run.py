@@ -271,14 +271,13 @@ def solve_slac(
     from tqdm.auto import tqdm
 
     for s in tqdm(range(1, S + 1), disable=not progress, desc=f"slac {mode}", leave=False):
-        if smoother is None:
-            filt.predict(log.controls[s - 1])
         snaps = log.snapshot_fn(s)
         tau, ys, var = batch_delay_search(snaps, log.probe, log.bandwidth)
         ml[s - 1] = SPEED_OF_LIGHT * tau / 2
         for i in mp_agents:
             pv[i][s - 1] = np.stack([ys[l] for l in np.flatnonzero(log.rx == i)])
         if smoother is None:
+            filt.predict(log.controls[s - 1])
             info = filt.update(log.rx, log.tx, snaps, var)
         else:
             info = smoother.step(log.controls[s - 1], log.rx, log.tx, snaps, var)
