@@ -44,7 +44,8 @@ from .likelihood import delay_expansion, fisher_blocks, link_loglik, pack_g, unp
 from .motion import motion_jacobian, motion_step, process_noise
 from .signals import range_wavenumber
 
-__all__ = ["SlacConfig", "UpdateInfo", "map_update", "predict_locations", "SlacFilter", "tri_solve", "inverse_from_cholesky"]
+__all__ = ["SlacConfig", "UpdateInfo", "map_update", "predict_locations", "SlacFilter", "tri_solve", "inverse_from_cholesky",
+           "propagate_pose_block"]
 
 FArray = NDArray[np.float64]
 CArray = NDArray[np.complex128]
@@ -346,19 +347,26 @@ def predict_locations(
     Ql = process_noise(poses, u, T, sigma_v, sigma_omega)
     x_new = x.copy()
     x_new[:p] = motion_step(poses, u, T).ravel()
-    Fp = np.zeros((p, p))
-    Qp = np.zeros((p, p))
-    for i in range(n):
-        sl = slice(3 * i, 3 * i + 3)
-        Fp[sl, sl] = Fl[i]
-        Qp[sl, sl] = Ql[i] + 1e-12 * np.eye(3)  # keeps P_bar positive definite for a static rover
+    Fp = sla.block_diag(*Fl)
+    Qp = sla.block_diag(*Ql) + 1e-12 * np.eye(p)  # keeps P_bar positive definite for a static rover
+    return x_new, propagate_pose_block(P, Fp, Qp)
+
+
+def propagate_pose_block(P: FArray, Fp: FArray, Qp: FArray) -> FArray:
+    """Covariance prediction (eq. 21) when only the first ``p`` states (the poses) move.
+
+    ``P`` (D, D), pose Jacobian ``Fp`` (p, p), pose process noise ``Qp`` (p, p):
+    ``P_pp <- Fp P_pp Fp^T + Qp`` (symmetrised), ``P_pc <- Fp P_pc``, ``P_cc`` unchanged.
+    Returns a new (D, D) array.
+    """
+    p = Fp.shape[0]
     P_new = P.copy()
     rows = Fp @ P[:p]  # (p, D): [F_p P_pp, F_p P_pc]
     Ppp = rows[:, :p] @ Fp.T + Qp
     P_new[:p, :p] = 0.5 * (Ppp + Ppp.T)
     P_new[:p, p:] = rows[:, p:]
     P_new[p:, :p] = rows[:, p:].T
-    return x_new, P_new
+    return P_new
 
 
 class SlacFilter:

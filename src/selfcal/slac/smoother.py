@@ -38,10 +38,18 @@ from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
+import scipy.linalg as sla
 from numpy.typing import NDArray
 
 from ..errors import InputError
-from .filter import SlacFilter, UpdateInfo, _chol_inv, _safe_cholesky, map_update
+from .filter import (
+    SlacFilter,
+    UpdateInfo,
+    _chol_inv,
+    _safe_cholesky,
+    map_update,
+    propagate_pose_block,
+)
 from .motion import control_jacobian, motion_jacobian
 
 __all__ = ["SlacSmoother"]
@@ -120,13 +128,8 @@ class SlacSmoother:
         J[:, :p] = np.eye(p)
         out = [J]
         for k in range(K):
-            Fk = np.zeros((p, p))
-            Bk = np.zeros((p, 2 * n))
-            for i in range(n):
-                Fk[3 * i : 3 * i + 3, 3 * i : 3 * i + 3] = F[k, i]
-                Bk[3 * i : 3 * i + 3, 2 * i : 2 * i + 2] = B[k, i]
-            J = Fk @ J
-            J[:, p + 2 * n * k : p + 2 * n * (k + 1)] += Bk
+            J = sla.block_diag(*F[k]) @ J
+            J[:, p + 2 * n * k : p + 2 * n * (k + 1)] += sla.block_diag(*B[k])
             out.append(J)
         return out
 
@@ -211,20 +214,12 @@ class SlacSmoother:
         n, p = self.n, self.p
         X, F, B = self._rollout(self.z)
         x0, w, c = self._split(self.z)
-        Fp = np.zeros((p, p))
-        Bp = np.zeros((p, 2 * n))
-        for i in range(n):
-            Fp[3 * i : 3 * i + 3, 3 * i : 3 * i + 3] = F[0, i]
-            Bp[3 * i : 3 * i + 3, 2 * i : 2 * i + 2] = B[0, i]
+        Fp = sla.block_diag(*F[0])
+        Bp = sla.block_diag(*B[0])
         ystar = np.concatenate([X[1].ravel(), c])
         ybar = self.m.copy()
         ybar[:p] = X[1].ravel() + Fp @ (self.m[:p] - x0.ravel()) - Bp @ w[0].ravel()
-        Pb = self.Pm.copy()
-        rows = Fp @ self.Pm[:p]
-        Ppp = rows[:, :p] @ Fp.T + Bp @ np.diag(self._qw) @ Bp.T + 1e-12 * np.eye(p)
-        Pb[:p, :p] = 0.5 * (Ppp + Ppp.T)
-        Pb[:p, p:] = rows[:, p:]
-        Pb[p:, :p] = rows[:, p:].T
+        Pb = propagate_pose_block(self.Pm, Fp, Bp @ np.diag(self._qw) @ Bp.T + 1e-12 * np.eye(p))
         Pinv = _chol_inv(Pb)
         grp = self.groups[0]
         if grp:
