@@ -45,7 +45,8 @@ def test_noise_free_network_recovered_blind(d, offsets):
     err = aligned_rmse(res.receivers, r, res.sources, s)
     assert err.rmse_receivers < 1e-6 and err.rmse_sources < 1e-6
     assert res.converged
-    assert res.method.endswith("+nls") or "multistart" in res.method
+    assert "+nls" in res.method
+    assert res.success and not res.outliers.any()
     if offsets == "both":
         np.testing.assert_allclose(res.source_offsets, o - o[0], atol=1e-6)
         np.testing.assert_allclose(res.receiver_offsets, dr + o[0], atol=1e-6)
@@ -107,7 +108,7 @@ def test_rank3_method_returns_the_unrefined_initialiser(rng):
 
 def test_multistart_escapes_a_mirrored_start():
     """Two sources started at their mirror image: one refinement stays in the wrong
-    basin; method='auto' detects the implausible fit and restarts."""
+    basin; method='auto' (the search: registry starts + plane moves) leaves it."""
     rng = np.random.default_rng(4)
     I, J, d = 8, 10, 2
     r, s, _, _ = network(rng, I, J, d)
@@ -118,7 +119,7 @@ def test_multistart_escapes_a_mirrored_start():
     auto = solve_toa(Y, dim=2, init=(r, s0), method="auto", rng=0)
     assert aligned_rmse(one.receivers, r, one.sources, s).rmse_sources > 0.5
     assert aligned_rmse(auto.receivers, r, auto.sources, s).rmse_sources < 0.03
-    assert auto.n_starts > 1 and "multistart" in auto.method
+    assert auto.n_starts > 1 and "search" in auto.method
 
 
 def test_robust_loss_through_solve_toa(rng):
@@ -137,13 +138,23 @@ FAST = settings(max_examples=25, deadline=None, suppress_health_check=[HealthChe
 good = st.integers(min_value=4, max_value=7)
 
 
-@FAST
-@given(I=good, J=good, i=st.integers(0, 3), j=st.integers(0, 3), v=st.floats(-1e6, -1e-9))
-def test_negative_range_without_offsets_is_an_input_error(I, J, i, j, v):
-    Y = np.ones((I, J))
-    Y[i, j] = v
-    with pytest.raises(InputError, match="negative"):
-        solve_toa(Y, dim=2)
+@pytest.mark.parametrize("seed", range(3))
+def test_negative_and_zero_ranges_are_measurements(seed):
+    """Ranges near zero with bias + noise come out negative: kept (a warning with their count).
+
+    A receiver next to a source, 5 mm range noise: the clipped-at-zero truth would be biased;
+    the fit must keep the entries and reach the noise level.
+    """
+    g = np.random.default_rng(seed)
+    r, s, _, _ = network(g, 8, 10, 3)
+    s[0] = r[0] + 1e-3  # a source on top of a receiver: its range is ~0
+    Y = toa_model(r, s) + g.normal(0, 0.005, (8, 10))
+    Y[0, 0] = -0.004
+    n_neg = int((Y <= 0).sum())
+    with pytest.warns(UserWarning, match=f"{n_neg} of the entries are zero or negative"):
+        res = solve_toa(Y, dim=3, rng=0)
+    assert res.n_negative == n_neg and np.isfinite(res.residuals[0, 0])
+    assert aligned_rmse(res.receivers, r, res.sources, s).rmse_receivers < 0.05
 
 
 @FAST
