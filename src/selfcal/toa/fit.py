@@ -115,15 +115,18 @@ def finish(M: Array, dim: int, offsets: str, *, init: Any, speed: float | None, 
         Ys = sub(used, keep_r, keep_s)
         first = given if best is None else ("previous", _restrict(_embed_start(best, prev_keep, keep_r, keep_s),
                                                                    keep_r, keep_s))
+        # later rounds (a changed set of inliers) refine the previous winner only
+        again = rnd > 0
         out = search(Ys, dim, offsets, rng=rng, loss="linear" if loss == "auto" else loss, f_scale=fs,
-                     starts=[first] if one and first is not None else None, first=None if one else first,
-                     stop=stop_rule(keep_r, keep_s), budget=1 if one else budget, max_nfev=max_nfev,
-                     use_moves=sweep and not one, solver=_solver(Ys, dim, offsets))
+                     starts=[first] if (one or again) and first is not None else None,
+                     first=None if one or again else first,
+                     stop=stop_rule(keep_r, keep_s), budget=1 if one or again else budget, max_nfev=max_nfev,
+                     use_moves=sweep and not one and not again, solver=_solver(Ys, dim, offsets))
         best, prev_keep = out.solution, (keep_r.copy(), keep_s.copy())
         iters += out.iterations
         n_runs += out.refinements
         if not label:
-            label = f"{out.start}+nls"
+            label = f"{out.start}+nls" + (f"+{'+'.join(out.moves)}" if out.moves else "")
         if not robust:
             break
         sub_obs = obs[np.ix_(keep_r, keep_s)]
@@ -150,13 +153,24 @@ def finish(M: Array, dim: int, offsets: str, *, init: Any, speed: float | None, 
                         pass
         fitted = used[np.ix_(keep_r, keep_s)]
         flags = _flag(Yc, best, keep_r, keep_s, offsets, sd, fitted)
+        if flags.sum() > 0.5 * sub_obs.sum():
+            # beyond the MAD's breakdown point the "outliers" are the model (a wrong basin, a wrong
+            # noise level, data of no geometry): remove nothing and let the trust test say so
+            outliers = gross.copy()
+            used = obs & ~gross
+            break
         new_out = np.zeros((I, J), bool)
         new_out[np.ix_(keep_r, keep_s)] = flags
         new_used = obs & ~new_out
         kr2, ks2 = drop_unidentifiable(new_used, dim, offsets)
         kr2 &= keep_r
         ks2 &= keep_s
-        _check_kept(new_used, kr2, ks2, dim, offsets)
+        try:
+            _check_kept(new_used, kr2, ks2, dim, offsets)
+        except DegenerateGeometryError:
+            outliers = gross.copy()  # removing the flagged entries would leave too little: keep them
+            used = obs & ~gross
+            break
         changed = not (np.array_equal(new_used, used) and kr2.sum() == keep_r.sum() and ks2.sum() == keep_s.sum())
         outliers, used, keep_r, keep_s = new_out, new_used, kr2, ks2
         if not changed:
@@ -188,14 +202,14 @@ def finish(M: Array, dim: int, offsets: str, *, init: Any, speed: float | None, 
         fit = residual_test(R_fit / scale, sd / scale, n_par)
         passed: bool | None = fit.passed
     else:
-        geo = geometry_test(Yf, R_fit, dim, offsets)
+        geo = geometry_test(Yf, R_fit, leverages(Yf, *_start(final), offsets), dim, offsets)
         passed = geo.passed
     status = _status(passed, dof, final.converged, sd is not None)
     message = STATUS[status]
     if status == -1 and fit is not None:
         message += f" (chi2 = {fit.chi2:.4g} for {fit.dof} dof, p = {fit.p_value:.3g})"
     if status == -2 and geo is not None:
-        message += f" (F = {geo.f_statistic:.3g}, p = {geo.p_value:.3g})"
+        message += f" (PRESS {geo.press:.3g} vs {geo.press_null:.3g} without geometry)"
 
     # 7. back to the caller's numbering
     return _package(M, Yc, final, keep_r, keep_s, pr, pc, outliers, speed, label, iters, n_runs, fit, geo,

@@ -72,6 +72,11 @@ def _pairs(r: Array, s: Array) -> list[tuple[int, int, Array, Array]]:
     return out
 
 
+#: node-wise moves (1. and 2.) only up to this many nodes: above it their number (one or two per
+#: node, each a refinement) costs more than the search's budget; the collective ones always run
+NODEWISE_MAX_NODES = 60
+
+
 def moves(start: Start, observed: NDArray[np.bool_]) -> Iterator[tuple[str, Start]]:
     """Candidate starts from a refined solution, in the fixed order of the module docstring.
 
@@ -94,8 +99,9 @@ def moves(start: Start, observed: NDArray[np.bool_]) -> Iterator[tuple[str, Star
     def pack(r: Array, s: Array) -> Start:
         return r, s, None if d0 is None else d0.copy(), None if o0 is None else o0.copy()
 
+    nodewise = n_all <= NODEWISE_MAX_NODES
     # 1. single nodes
-    for k in range(n_all):
+    for k in range(n_all if nodewise else 0):
         rest = np.delete(allpts, k, axis=0)
         c, n, thick = fit_plane(rest)
         p = allpts[k]
@@ -121,7 +127,7 @@ def moves(start: Start, observed: NDArray[np.bool_]) -> Iterator[tuple[str, Star
                     yield f"lift{tag}-{name}", pack(r2, s2)
     # 2. receiver + nearest source
     pairs = _pairs(r0, s0)
-    for i, j, mid, n in pairs:
+    for i, j, mid, n in pairs if nodewise else []:
         r, s = r0.copy(), s0.copy()
         r[i] = reflect(r0[i], mid, n)
         s[j] = reflect(s0[j], mid, n)

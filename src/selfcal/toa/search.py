@@ -39,7 +39,7 @@ Array = NDArray[np.float64]
 #: a refinement costs seconds and the initialisers alone reach the basin (003 sec. V)
 MOVES_MAX_NODES = 300
 #: iteration cap of the short refinements that rank the moves (the accepted one is finished)
-MOVE_NFEV = 30
+MOVE_NFEV = 10
 #: relative cost decrease a candidate must bring to be accepted (round-off guard)
 ACCEPT_REL = 1e-9
 # residual scale in units of sigma giving 95% efficiency under Gaussian noise (Huber 1964)
@@ -160,9 +160,9 @@ def _sane(start: Start, Y: Array) -> bool:
 
 
 def default_budget(n_receivers: int, n_sources: int) -> int:
-    """Refinements the search may run: two per node (about two rounds of moves), at least 24."""
+    """Refinements the search may run: about two rounds of moves (two per node up to 60 nodes), >= 24."""
     n = int(n_receivers) + int(n_sources)
-    return 1 if n > MOVES_MAX_NODES else max(24, 2 * n)
+    return 1 if n > MOVES_MAX_NODES else max(24, 2 * min(n, 60))
 
 
 # ------------------------------------------------------------------ the search
