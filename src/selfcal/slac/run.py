@@ -18,6 +18,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .._checks import as_rng, check_choice
+from .._result import Result
 from ..errors import InputError
 from ..io import atomic_write_bytes, load_npz
 from .doa import estimate_doa_from_y
@@ -172,8 +173,8 @@ class SlacLog:
         )
 
 
-@dataclass(frozen=True)
-class SlacResult:
+@dataclass(frozen=True, repr=False)
+class SlacResult(Result):
     """Outcome of :func:`solve_slac` (histories indexed by state 0..S).
 
     Attributes: mode, method, poses (S+1, n, 3), pose_cov (S+1, n, 3, 3), biases (S+1, n+A),

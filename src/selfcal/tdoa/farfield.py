@@ -31,6 +31,7 @@ from numpy.typing import NDArray
 from scipy.optimize import least_squares
 
 from .._checks import as_matrix, as_rng, check_choice, check_positive
+from .._result import Result
 from ..errors import ConvergenceWarning, DegenerateGeometryError, InputError
 from ..geometry import canonical_gauge
 from .degeneracy import (
@@ -69,8 +70,8 @@ _MAD = 1.4826
 
 
 # ----------------------------------------------------------------------------- result
-@dataclass(frozen=True)
-class FarfieldResult:
+@dataclass(frozen=True, repr=False)
+class FarfieldResult(Result):
     """Result of :func:`solve_farfield`.
 
     Attributes
@@ -480,7 +481,7 @@ def solve_farfield(
     allow_degenerate : return the partial reconstruction of a degenerate configuration
         (with ``degeneracy`` set) instead of raising.
     screen : treat gross errors (:func:`screen_gross_errors`) as missing.
-    reject_k : with a robust loss, entries with |residual| > reject_k robust std are rejected.
+    reject_k : with a robust loss, entries with ``|residual| > reject_k`` robust std are rejected.
     max_iter, tol : refinement limits (defaults 200 / 1e-12 for LM, 2000 / 1e-10 for
         alternating).
     cone_tol : threshold of the cone test (see :mod:`.degeneracy`).
