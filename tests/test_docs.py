@@ -16,6 +16,10 @@ import pytest
 DOCTESTED = [
     "selfcal._result.jsonable",
     "selfcal.errors.DegenerateGeometryError",
+    "selfcal.robust.mad_std",
+    "selfcal.geometry.align",
+    "selfcal.geometry.wrap_angle",
+    "selfcal.geometry.fit_plane",
 ]
 
 #: the public solvers: each must show how it is called (an Examples section)
