@@ -17,6 +17,7 @@ DOCTESTED = [
     "selfcal._result.jsonable",
     "selfcal.errors.DegenerateGeometryError",
     "selfcal.robust.mad_std",
+    "selfcal.robust.loss_rho",
     "selfcal.geometry.align",
     "selfcal.geometry.wrap_angle",
     "selfcal.geometry.fit_plane",

@@ -117,3 +117,19 @@ def test_mad_std_is_consistent_for_gaussian_noise() -> None:
     # sd of the MAD estimator ~ 1.1 sigma / sqrt(n) (asymptotic efficiency 37 %): 5 sd at n = 1e5
     x = np.random.default_rng(1).normal(0.0, 2.0, 100_000)
     assert abs(mad_std(x) - 2.0) < 5 * 1.17 * 2.0 / np.sqrt(x.size)
+
+
+@pytest.mark.parametrize("loss", ["linear", "huber", "soft_l1", "cauchy"])
+def test_loss_table_is_a_consistent_robust_loss(loss: str) -> None:
+    # rho' is the derivative of rho (central differences), every loss is the linear one at
+    # z -> 0 (rho(0) = 0, rho'(0) = 1), and the robust ones grow sub-linearly (rho' <= 1, falling)
+    from selfcal.robust import loss_rho
+
+    z = np.linspace(0.01, 25.0, 400)
+    h = 1e-6
+    rho, drho = loss_rho(z, loss)
+    fd = (loss_rho(z + h, loss)[0] - loss_rho(z - h, loss)[0]) / (2 * h)
+    np.testing.assert_allclose(drho, fd, rtol=1e-6, atol=1e-8)
+    r0, d0 = loss_rho(np.zeros(1), loss)
+    assert r0[0] == 0.0 and d0[0] == 1.0
+    assert np.all(drho <= 1.0 + 1e-12) and np.all(np.diff(drho) <= 1e-12)
