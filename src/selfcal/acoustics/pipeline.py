@@ -27,8 +27,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from .._result import Result
-from ..errors import DegenerateGeometryError, InputError, Status
+from ..errors import DegenerateGeometryError, InputError
 
 __all__ = [
     "PipelineResult",
@@ -212,8 +211,8 @@ def compare_fits(residual_2d: float, residual_3d: float, observations: int, node
                            stat, p, bool(p < alpha))
 
 
-@dataclass(frozen=True, repr=False)
-class Planarity(Result):
+@dataclass(frozen=True)
+class Planarity:
     """How flat a network is.
 
     Attributes
@@ -514,8 +513,8 @@ def refine_known_heights(
     }
 
 
-@dataclass(frozen=True, repr=False)
-class PipelineResult(Result):
+@dataclass(frozen=True)
+class PipelineResult:
     """Positions, delays and onsets from a recording directory.
 
     Attributes
@@ -585,18 +584,6 @@ class PipelineResult(Result):
         ignores the small heights the F test found insignificant, so its chi2 is informative only.
         """
         return bool(self.fit_binding and self.fit is not None and not self.fit.passed)
-
-    @property
-    def noise(self) -> float:
-        """The timing-noise std the residual test used (alias of ``timing_noise``), s."""
-        return self.timing_noise
-
-    def _diagnose(self) -> tuple[Status, str]:
-        if self.failed:
-            return super()._diagnose()
-        if not self.converged:
-            return Status.NOT_CONVERGED, "the TOA solver stopped before convergence"
-        return Status.SUCCESS, "converged" + ("" if self.fit_binding else " (2-D fallback: residual test informative only)")
 
     @property
     def dim(self) -> int:

@@ -16,7 +16,6 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..errors import InputError
-from ..geometry import wrap_angle
 
 __all__ = ["PlazaData", "load_plaza"]
 
@@ -51,7 +50,7 @@ class PlazaData:
         psi = np.unwrap(self.gt[:, 2])
         out = np.column_stack([np.interp(t, self.gt_times, self.gt[:, 0]), np.interp(t, self.gt_times, self.gt[:, 1]),
                                np.interp(t, self.gt_times, psi)])
-        out[:, 2] = wrap_angle(out[:, 2])
+        out[:, 2] = (out[:, 2] + np.pi) % (2 * np.pi) - np.pi
         return out
 
 
