@@ -72,6 +72,8 @@ def test_jsonable_nested_dataclass_and_enum() -> None:
 
     out = jsonable({"inner": Inner(np.array([[1.0, np.inf]]), Degeneracy.CONE), Status.SUCCESS: 1})
     assert out == {"inner": {"x": [[1.0, None]], "kind": "cone"}, "0": 1}
+    masked = np.ma.masked_array([1, 2, 3], mask=[False, True, False])
+    assert jsonable({"m": masked}) == {"m": [1.0, None, 3.0]}
 
 
 # ----------------------------------------------------------------------------- Result base

@@ -60,7 +60,8 @@ def jsonable(obj: Any) -> Any:
     Any
         ``None``, ``bool``, ``int``, ``float`` (finite), ``str``, ``list`` or ``dict`` with
         ``str`` keys, nested. Non-finite floats become ``None``; complex numbers become
-        ``{"real": x, "imag": y}``; enums their value; other objects their ``str``.
+        ``{"real": x, "imag": y}``; masked array entries ``None``; enums their value; other
+        objects their ``str``.
 
     Examples
     --------
@@ -80,6 +81,8 @@ def jsonable(obj: Any) -> Any:
         return jsonable(obj.item())
     if isinstance(obj, complex):
         return {"real": jsonable(obj.real), "imag": jsonable(obj.imag)}
+    if isinstance(obj, np.ma.MaskedArray):  # masked entries are missing: None
+        return jsonable(np.ma.filled(obj.astype(complex if np.iscomplexobj(obj) else float), np.nan))
     if isinstance(obj, np.ndarray):
         if np.iscomplexobj(obj):
             return {"real": jsonable(obj.real.tolist()), "imag": jsonable(obj.imag.tolist())}
