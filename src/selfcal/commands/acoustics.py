@@ -14,6 +14,7 @@ from typing import Any
 import click
 
 from ._base import handle_errors, main, simulate
+from ._common import all_or_nothing
 
 
 def parse_room(text: str) -> tuple[float, float, float]:
@@ -219,6 +220,7 @@ def pipeline_errors(result: Any, directory: Path) -> dict[str, Any] | None:
               help="Clock jitter std per (receiver, event), SECONDS, in the residual test's timing noise "
                    "(default: setup.json's declared clock_jitter, else 0).")
 @handle_errors
+@all_or_nothing
 def pipeline_cmd(directory: Path, out: Path, plot: Path | None, report: Path | None, heights: Path | None,
                  dim: str, seed: int, jitter: float | None) -> None:
     """Recordings -> arrival times -> delays -> positions (paper 004's three stages).
@@ -236,7 +238,6 @@ def pipeline_cmd(directory: Path, out: Path, plot: Path | None, report: Path | N
     if errors is not None:
         payload["errors"] = {k: v for k, v in errors.items() if not k.startswith(("aligned_", "true_"))}
     if report is not None:
-        report.mkdir(parents=True, exist_ok=True)
         plot_map(result, report / "map.png", errors)
         plot_timing(result, report / "timing.png", errors)
         write_json(report / "report.json", {"summary": summarise(result, errors), **payload})

@@ -33,7 +33,7 @@ def demo_cmd(out: Path, seed: int, units: int, room_text: str, layout: str, rt60
              jitter: float) -> None:
     """Simulate, detect, calibrate and check paper 004's requirements (``make demo``)."""
     from ..acoustics.pipeline import run_pipeline
-    from ..io import write_json
+    from ..io import staged_outputs, write_json
     from .acoustics import (
         parse_room,
         pipeline_errors,
@@ -66,9 +66,10 @@ def demo_cmd(out: Path, seed: int, units: int, room_text: str, layout: str, rt60
         payload["errors"] = {k: v for k, v in errors.items() if not k.startswith(("aligned_", "true_"))}
     payload["demo"] = {"units": units, "room": list(room), "layout": layout, "rt60": rt60, "snr_db": snr,
                        "clock_jitter_us": jitter, "seed": seed, "image_order": truth["max_order"]}
-    plot_map(result, out / "map.png", errors, title=f"demo: {units} units, {layout}, seed {seed}")
-    plot_timing(result, out / "timing.png", errors)
-    write_json(out / "result.json", payload)
+    with staged_outputs():
+        plot_map(result, out / "map.png", errors, title=f"demo: {units} units, {layout}, seed {seed}")
+        plot_timing(result, out / "timing.png", errors)
+        write_json(out / "result.json", payload)
     click.echo("-" * 78)
     for line in summarise(result, errors):
         click.echo(line)

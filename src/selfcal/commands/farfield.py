@@ -15,6 +15,7 @@ from ._base import (
     scheduler_option,
     seed_option,
 )
+from ._common import all_or_nothing
 
 if TYPE_CHECKING:
     from ..tdoa import FarfieldResult
@@ -39,6 +40,7 @@ if TYPE_CHECKING:
 @click.option("--plot", "plot", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="PNG of the positions and directions.")
 @handle_errors
+@all_or_nothing
 def farfield_command(matrix: Path, out: Path, speed: float | None, method: str, loss: str,
                      noise_std: float | None, ransac: bool, seed: int, allow_degenerate: bool,
                      plot: Path | None) -> None:

@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 
 import click
 
 from ._base import backend_option, handle_errors, reproduce, scheduler_option, seed_option, slac
+from ._common import all_or_nothing
 
 
 @slac.command("simulate")
@@ -44,6 +46,7 @@ def simulate_cmd(minutes: float, subcarriers: int, snr_db: float, seed: int, out
               help="0: the paper's filter; K > 0: fixed-lag smoother over the last K steps (consistent "
                    "error bars with antenna calibration, ~5x slower at K = 20; docs/slac_consistency.md).")
 @handle_errors
+@all_or_nothing
 def run_cmd(log_path: Path, mode: str, prior: str, out: Path, plot: Path | None, init: str,
             smoother_lag: int) -> None:
     """Run the SLAC or localization-only filter (or fixed-lag smoother) over an NPZ log."""
@@ -54,7 +57,7 @@ def run_cmd(log_path: Path, mode: str, prior: str, out: Path, plot: Path | None,
     from ..slac.run import SlacLog, solve_slac
 
     log = SlacLog.from_npz(log_path)
-    res = solve_slac(log, mode=mode, prior=prior, progress=True, init=init,
+    res = solve_slac(log, mode=mode, prior=prior, progress=sys.stderr.isatty(), init=init,
                      config=SlacConfig(smoother_lag=smoother_lag))
     d = res.to_dict()
     m = d["metrics"]
@@ -88,6 +91,7 @@ def run_cmd(log_path: Path, mode: str, prior: str, out: Path, plot: Path | None,
 @click.option("--out", "out", type=click.Path(dir_okay=False, path_type=Path), required=True, help="RESULT.json")
 @click.option("--plot", "plot", type=click.Path(dir_okay=False, path_type=Path), default=None, help="PNG of the tracks.")
 @handle_errors
+@all_or_nothing
 def plaza_cmd(path: Path, out: Path, plot: Path | None) -> None:
     """Localization-only and SLAC (bias + scale states) on the CMU Plaza log (Plaza1.mat)."""
     from ..datasets.plaza import load_plaza

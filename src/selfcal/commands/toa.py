@@ -8,6 +8,7 @@ from typing import TYPE_CHECKING
 import click
 
 from ._base import calibrate, handle_errors
+from ._common import all_or_nothing
 
 if TYPE_CHECKING:
     from ..toa.solve import ToaResult
@@ -30,6 +31,7 @@ if TYPE_CHECKING:
 @click.option("--plot", "plot", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="PNG of receivers and sources with 95% confidence ellipses.")
 @handle_errors
+@all_or_nothing
 def toa_command(matrix: Path, speed: float | None, offsets: str, dim: str, loss: str, method: str,
                 seed: int, out: Path, plot: Path | None) -> None:
     """Calibrate receivers and sources from an I x J TOA/range MATRIX (CSV or .npy, NaN = missing).
