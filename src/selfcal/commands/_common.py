@@ -322,3 +322,166 @@ def all_or_nothing(func: Callable[..., Any]) -> Callable[..., Any]:
             return func(*args, **kwargs)
 
     return wrapper
+
+
+# --------------------------------------------------------------------------------------
+# result payloads: per-point std, 95 % ellipse semi-axes, names, units, CSV
+# --------------------------------------------------------------------------------------
+
+def ellipse95(cov: Any) -> Any:
+    """Semi-axes (largest first) of the 95 % confidence ellipse / ellipsoid of each covariance.
+
+    For a d-dimensional Gaussian point estimate with covariance C the 95 % region is
+    ``x' C^-1 x <= q`` with ``q`` the 0.95 quantile of chi-square with d degrees of
+    freedom; its semi-axes are ``sqrt(q * lambda_i)`` over the eigenvalues of C.
+
+    Parameters
+    ----------
+    cov:
+        (n, d, d) covariances (NaN allowed: gives NaN axes).
+
+    Returns
+    -------
+    numpy.ndarray
+        (n, d) semi-axes in the unit of the coordinates.
+    """
+    import numpy as np
+    from scipy.stats import chi2
+
+    C = np.asarray(cov, dtype=float)
+    n, d = C.shape[0], C.shape[-1]
+    out = np.full((n, d), np.nan)
+    ok = np.isfinite(C).all(axis=(1, 2))
+    if ok.any():
+        w = np.linalg.eigvalsh(0.5 * (C[ok] + np.swapaxes(C[ok], 1, 2)))
+        out[ok] = np.sqrt(chi2.ppf(0.95, d) * np.clip(w, 0.0, None))[:, ::-1]
+    return out
+
+
+def enrich_payload(payload: dict[str, Any], *, names: Mapping[str, Any] | None = None,
+                   units: Mapping[str, str] | None = None) -> dict[str, Any]:
+    """Add ``<base>_std`` and ``<base>_ellipse95`` next to every ``<base>_cov``, names and units.
+
+    ``names`` maps a key (``"receiver_names"``) to a sequence of names (skipped when None);
+    ``units`` is set as ``payload["units"]`` unless the result already carries one.
+    """
+    import numpy as np
+
+    for key in list(payload):
+        if not key.endswith("_cov") or payload[key] is None:
+            continue
+        try:
+            C = np.asarray(payload[key], dtype=float)
+        except (TypeError, ValueError):
+            continue
+        if C.ndim != 3 or C.shape[1] != C.shape[2] or C.shape[0] == 0:
+            continue
+        base = key[: -len("_cov")]
+        diag = np.diagonal(C, axis1=1, axis2=2)
+        payload.setdefault(f"{base}_std", np.sqrt(np.where(diag >= 0, diag, np.nan)).tolist())
+        payload.setdefault(f"{base}_ellipse95", ellipse95(C).tolist())
+    for key, value in (names or {}).items():
+        if value is not None:
+            payload[key] = list(value)
+    if units is not None:
+        payload.setdefault("units", dict(units))
+    return payload
+
+
+def write_nodes_csv(path: Any, payload: Mapping[str, Any],
+                    groups: list[tuple[str, str, str | None]]) -> None:
+    """Write ``--csv``: one row per node (kind, name, coordinates, std per axis).
+
+    ``groups`` lists (kind, positions key, names key) of the payload; the std comes from
+    ``<base>_std`` when :func:`enrich_payload` added it (base = positions key without "s").
+    """
+    import numpy as np
+
+    from ..io import write_csv_rows
+
+    rows: list[list[Any]] = []
+    d = 0
+    for _kind, key, _names in groups:
+        P = payload.get(key)
+        if P is None:
+            continue
+        P = np.atleast_2d(np.asarray(P, dtype=float))
+        d = max(d, P.shape[1])
+    axes = "xyz"[:d] if d <= 3 else [f"c{i}" for i in range(d)]
+    for kind, key, names_key in groups:
+        P = payload.get(key)
+        if P is None:
+            continue
+        P = np.atleast_2d(np.asarray(P, dtype=float))
+        base = key[:-1] if key.endswith("s") else key
+        S = payload.get(f"{base}_std")
+        S = np.full(P.shape, np.nan) if S is None else np.atleast_2d(np.asarray(S, dtype=float))
+        names = payload.get(names_key) if names_key else None
+        for i in range(P.shape[0]):
+            name = names[i] if names is not None and i < len(names) else f"{kind}{i + 1}"
+            coords = list(P[i]) + [np.nan] * (d - P.shape[1])
+            stds = list(S[i]) if S.shape == P.shape else [np.nan] * P.shape[1]
+            rows.append([kind, name, *coords, *(stds + [np.nan] * (d - len(stds)))])
+    header = ["kind", "name", *axes, *[f"{a}_std" for a in axes]]
+    write_csv_rows(path, header, rows)
+
+
+csv_option = click.option(
+    "--csv", "csv_out", type=click.Path(dir_okay=False, path_type=Path), default=None, metavar="FILE",
+    help="Also write the nodes as CSV: kind, name, coordinates, std per axis (m).")
+
+
+# --------------------------------------------------------------------------------------
+# clock jitter: one unit (seconds) on every command, --jitter-us spelled out
+# --------------------------------------------------------------------------------------
+
+def jitter_options(default: float | None, what: str = "") -> Callable[[Callable[..., Any]], Callable[..., Any]]:
+    """``--jitter SECONDS`` and ``--jitter-us MICROSECONDS`` (the same quantity, one of the two)."""
+
+    def deco(func: Callable[..., Any]) -> Callable[..., Any]:
+        func = click.option(
+            "--jitter-us", "jitter_us", type=float, default=None, metavar="US",
+            help="The clock jitter in microseconds instead of --jitter seconds.")(func)
+        func = click.option(
+            "--jitter", "jitter", type=float, default=default, show_default=default is not None, metavar="S",
+            help=f"Clock jitter per (receiver, event), standard deviation in SECONDS {what}".strip() + ".")(func)
+        return func
+
+    return deco
+
+
+def resolve_jitter(jitter: float | None, jitter_us: float | None) -> Any:
+    """The jitter in seconds from ``--jitter`` (s) or ``--jitter-us`` (us), plausibility-checked."""
+    from .._checks import check_float, plausible_jitter
+
+    if jitter_us is not None:
+        us = check_float(jitter_us, "--jitter-us", nonnegative=True)
+        assert us is not None
+        return plausible_jitter(us * 1e-6, "--jitter-us value (as seconds)")
+    return plausible_jitter(jitter, "--jitter")
+
+
+# --------------------------------------------------------------------------------------
+# resource guards of the simulators (refused before anything is allocated)
+# --------------------------------------------------------------------------------------
+
+def check_simulation_size(*, units: int, sample_rate: float, room: tuple[float, float, float],
+                          rt60: float) -> None:
+    """Refuse conference simulations whose signals would not fit in memory (named up front).
+
+    Memory: the recordings are ``units x n_total`` float32 samples with ``n_total =
+    (0.1 s + units * event_spacing) * sample_rate`` (:func:`selfcal.acoustics.room.event_spacing`),
+    plus ``units^2`` impulse responses of about ``rt60 * sample_rate`` float64 taps.
+    """
+    import numpy as np
+
+    from .._checks import check_float, check_int, guard_size
+    from ..acoustics.room import DEFAULT_PROBE, event_spacing
+
+    check_int(units, "--units", minimum=2)
+    check_float(sample_rate, "--sample-rate", positive=True)
+    check_float(rt60, "--rt60", nonnegative=True)
+    spacing = event_spacing(np.asarray(room, dtype=float), float(DEFAULT_PROBE["duration"]), 343.0)
+    n_total = (0.1 + spacing * (units + 1)) * sample_rate
+    need = units * n_total * 4.0 + units**2 * (float(rt60) + spacing) * sample_rate * 8.0
+    guard_size(need, f"a {units}-unit recording at {sample_rate:g} Hz ({n_total / sample_rate:.3g} s per receiver)")

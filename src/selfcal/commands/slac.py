@@ -47,6 +47,7 @@ def simulate_cmd(minutes: float, subcarriers: int, snr_db: float, seed: int, out
                    "error bars with antenna calibration, ~5x slower at K = 20; docs/slac_consistency.md).")
 @handle_errors
 @all_or_nothing
+@all_or_nothing
 def run_cmd(log_path: Path, mode: str, prior: str, out: Path, plot: Path | None, init: str,
             smoother_lag: int) -> None:
     """Run the SLAC or localization-only filter (or fixed-lag smoother) over an NPZ log."""
@@ -91,6 +92,7 @@ def run_cmd(log_path: Path, mode: str, prior: str, out: Path, plot: Path | None,
 @click.option("--out", "out", type=click.Path(dir_okay=False, path_type=Path), required=True, help="RESULT.json")
 @click.option("--plot", "plot", type=click.Path(dir_okay=False, path_type=Path), default=None, help="PNG of the tracks.")
 @handle_errors
+@all_or_nothing
 @all_or_nothing
 def plaza_cmd(path: Path, out: Path, plot: Path | None) -> None:
     """Localization-only and SLAC (bias + scale states) on the CMU Plaza log (Plaza1.mat)."""

@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from .._checks import as_rng, check_choice
+from .._checks import as_rng, check_choice, entry
 from ..errors import InputError
 from ..io import atomic_write_bytes, load_npz
 from .doa import estimate_doa_from_y
@@ -212,6 +212,7 @@ class SlacResult:
         }
 
 
+@entry(steps="count?")
 def solve_slac(
     log: SlacLog,
     *,
@@ -270,7 +271,7 @@ def solve_slac(
     pred_res = []
     from tqdm.auto import tqdm
 
-    for s in tqdm(range(1, S + 1), disable=not progress, desc=f"slac {mode}", leave=False):
+    for s in tqdm(range(1, S + 1), disable=None if progress else True, desc=f"slac {mode}", leave=False):
         snaps = log.snapshot_fn(s)
         tau, ys, var = batch_delay_search(snaps, log.probe, log.bandwidth)
         ml[s - 1] = SPEED_OF_LIGHT * tau / 2
