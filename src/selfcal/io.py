@@ -66,9 +66,9 @@ __all__ = [
 MISSING_TOKENS = frozenset({"", "na", "nan", "n/a", "null", "none", "-nan", "+nan"})
 
 # strict decimal number: no underscores, no hex, no "infinity" spelled out
-_NUMBER = re.compile(r"[+-]?(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?\Z")
-_INF = re.compile(r"[+-]?inf\Z", re.IGNORECASE)
-_DECIMAL_COMMA = re.compile(r"[+-]?\d+,\d+(?:[eE][+-]?\d+)?\Z")
+_NUMBER = re.compile(r"[+-]?(?:\d+(?:\.\d*)?|\.\d+)(?:[eE][+-]?\d+)?\Z", re.ASCII)  # linear time
+_INF = re.compile(r"[+-]?inf\Z", re.IGNORECASE | re.ASCII)
+_DECIMAL_COMMA = re.compile(r"[+-]?\d+,\d+(?:[eE][+-]?\d+)?\Z", re.ASCII)
 _TMP_PREFIX = ".selfcal-"  # constant-length temporary names: a long target name still fits
 
 

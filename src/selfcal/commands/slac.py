@@ -24,9 +24,11 @@ def simulate_cmd(minutes: float, subcarriers: int, snr_db: float, seed: int, out
     from ..errors import InputError
     from ..scenarios.rovers import make_rover_scenario
     from ..slac.run import SlacLog
+    from ..slac.validate import check_simulation_request
 
     if subcarriers < 8:
         raise InputError("--subcarriers must be >= 8")
+    check_simulation_request(minutes, subcarriers, snr_db)  # before anything is allocated
     sc = make_rover_scenario(minutes, n_subcarriers=subcarriers, snr_db=snr_db, rng=seed)
     SlacLog.from_scenario(sc, seed=seed).to_npz(out)
     click.echo(f"wrote {out}: {sc.n_steps} steps, {sc.rx.size} links, N = {subcarriers}")

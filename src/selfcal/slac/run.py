@@ -24,6 +24,7 @@ from .doa import estimate_doa_from_y
 from .filter import SlacConfig, SlacFilter
 from .motion import wrap_angle
 from .signals import SPEED_OF_LIGHT, batch_delay_search
+from .validate import validate_log_arrays
 
 __all__ = ["SlacLog", "SlacResult", "solve_slac", "LOG_VERSION"]
 
@@ -143,6 +144,7 @@ class SlacLog:
         req = ("version", "anchors", "ports", "G_em", "G_chamber", "controls", "rx", "tx", "probe", "T",
                "bandwidth", "sigma_v", "sigma_omega", "init_poses", "init_cov", "signals")
         z = load_npz(path, req)
+        validate_log_arrays(z, str(path))  # one named field per error (selfcal.slac.validate)
         if int(z["version"]) != LOG_VERSION:
             raise InputError(f"{path}: log version {int(z['version'])} is not supported (expected {LOG_VERSION})")
         ports = z["ports"].astype(int)
