@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from .._checks import as_points, check_choice
+from .._checks import as_points, check_choice, entry
 from .._result import Result
 from ..errors import DegenerateGeometryError, InputError, Status
 from .ml import refine_ml, residuals_2d, residuals_3d
@@ -257,6 +257,7 @@ def _check_determined(
 # ----------------------------------------------------------------------------- solver
 
 
+@entry(beacons="array", bearings="array", sigma="positive?", max_iter="count", position_hint="array")
 def solve_aoa(
     beacons: ArrayLike,
     bearings: ArrayLike,

@@ -39,13 +39,17 @@ def locate_aoa(
     """
     import numpy as np
 
+    from .._checks import plausible_angles
     from ..aoa import angles_to_bearings, solve_aoa
     from ..errors import InputError
-    from ..io import read_matrix, write_json
+    from ..io import read_table, write_json
+    from ._common import enrich_payload
 
-    b = read_matrix(beacons, "beacons")
-    u = read_matrix(bearings, "bearings")
+    btab = read_table(beacons, "beacons")
+    b = btab.values
+    u = read_table(bearings, "bearings").values
     if angles is not None:
+        plausible_angles(u, angles)
         a = np.radians(u) if angles == "deg" else u
         if b.shape[1] == 3 and a.shape[1] == 2:
             u = angles_to_bearings(a[:, 0], a[:, 1]).vectors
@@ -69,7 +73,9 @@ def locate_aoa(
         except ValueError:
             raise InputError(f"--hint: expected comma-separated numbers, got {hint!r}") from None
     res = solve_aoa(b, u, method=method, sigma=sigma, position_hint=position_hint)
-    write_json(out, res)
+    write_json(out, enrich_payload(res.to_dict(), names={"beacon_names": btab.row_names},
+                                   units={"position": "m", "rotation": "columns = receiver axes in the global frame",
+                                          "residual_rms": "rad", "covariance": "m^2 and rad^2"}))
     click.echo(
         f"position {np.array2string(res.position, precision=4)}  residual {np.degrees(res.residual_rms):.3g} deg"
         f"  method {res.method}" + (f"  ({len(res.candidates)} candidates)" if res.ambiguous else "")

@@ -15,6 +15,7 @@ from ._base import (
     scheduler_option,
     seed_option,
 )
+from ._common import all_or_nothing, csv_option, unit_options
 
 if TYPE_CHECKING:
     from ..tdoa import FarfieldResult
@@ -37,11 +38,15 @@ if TYPE_CHECKING:
 @click.option("--allow-degenerate", is_flag=True,
               help="On a degenerate geometry write the partial reconstruction instead of failing.")
 @click.option("--plot", "plot", type=click.Path(dir_okay=False, path_type=Path), default=None,
-              help="PNG of the positions and directions.")
+              help="Figure of the positions and directions (format from the suffix: .png, .pdf, .svg).")
+@csv_option
+@unit_options
 @handle_errors
+@all_or_nothing
 def farfield_command(matrix: Path, out: Path, speed: float | None, method: str, loss: str,
                      noise_std: float | None, ransac: bool, seed: int, allow_degenerate: bool,
-                     plot: Path | None) -> None:
+                     plot: Path | None, csv_out: Path | None = None, unit: str | None = None,
+                     sample_rate: float | None = None) -> None:
     """Self-calibrate from an m x k far-field TDOA MATRIX (CSV or .npy, NaN = missing).
 
     Rows are receiver positions (microphones, antenna positions), columns far transmitters;
@@ -49,22 +54,33 @@ def farfield_command(matrix: Path, out: Path, speed: float | None, method: str, 
     geometry (planar-motion, coplanar-directions, cone, collinear-motion,
     parallel-directions) exits with status 2 naming it, unless --allow-degenerate.
     """
+    from .._checks import FARFIELD_TIMES_AS_METRES_MAX, plausible_matrix_scale
     from ..errors import InputError
-    from ..io import read_matrix, write_json
+    from ..io import read_table, write_json
     from ..tdoa import solve_farfield
+    from ._common import enrich_payload, to_metres, write_nodes_csv
 
-    M = read_matrix(matrix, name=str(matrix))
+    table = read_table(matrix, name=str(matrix))
+    M, speed, _ = to_metres(table.values, unit, speed, sample_rate, name=str(matrix))
     scale = 1.0
     if speed is not None:
         if not (speed > 0 and speed < float("inf")):
             raise InputError(f"--speed must be a positive number, got {speed}")
         scale = speed
+    plausible_matrix_scale(M, speed=speed, explicit_unit=unit is not None, name=str(matrix),
+                           min_span=FARFIELD_TIMES_AS_METRES_MAX)
     res = solve_farfield(M * scale, method=method, loss=loss,
                          noise_std=None if noise_std is None else noise_std * scale,
                          allow_degenerate=allow_degenerate, ransac=ransac, rng=seed)
     if plot is not None:
         _plot(res, plot)
-    write_json(out, res.to_dict())
+    payload = enrich_payload(
+        res.to_dict(), names={"position_names": table.row_names, "transmitter_names": table.col_names},
+        units={"positions": "m", "directions": "unit vectors", "offsets": "m", "residual_rms": "m",
+               "position_cov": "m^2"})
+    write_json(out, payload)
+    if csv_out is not None:
+        write_nodes_csv(csv_out, payload, [("position", "positions", "position_names")])
     m, k = M.shape
     click.echo(f"selfcal calibrate tdoa-farfield: {m} positions x {k} transmitters, method {res.method}, "
                f"loss {res.loss}")

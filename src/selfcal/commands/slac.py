@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 
 import click
 
 from ._base import backend_option, handle_errors, reproduce, scheduler_option, seed_option, slac
+from ._common import all_or_nothing
 
 
 @slac.command("simulate")
@@ -22,9 +24,11 @@ def simulate_cmd(minutes: float, subcarriers: int, snr_db: float, seed: int, out
     from ..errors import InputError
     from ..scenarios.rovers import make_rover_scenario
     from ..slac.run import SlacLog
+    from ..slac.validate import check_simulation_request
 
     if subcarriers < 8:
         raise InputError("--subcarriers must be >= 8")
+    check_simulation_request(minutes, subcarriers, snr_db)  # before anything is allocated
     sc = make_rover_scenario(minutes, n_subcarriers=subcarriers, snr_db=snr_db, rng=seed)
     SlacLog.from_scenario(sc, seed=seed).to_npz(out)
     click.echo(f"wrote {out}: {sc.n_steps} steps, {sc.rx.size} links, N = {subcarriers}")
@@ -44,6 +48,8 @@ def simulate_cmd(minutes: float, subcarriers: int, snr_db: float, seed: int, out
               help="0: the paper's filter; K > 0: fixed-lag smoother over the last K steps (consistent "
                    "error bars with antenna calibration, ~5x slower at K = 20; docs/slac_consistency.md).")
 @handle_errors
+@all_or_nothing
+@all_or_nothing
 def run_cmd(log_path: Path, mode: str, prior: str, out: Path, plot: Path | None, init: str,
             smoother_lag: int) -> None:
     """Run the SLAC or localization-only filter (or fixed-lag smoother) over an NPZ log."""
@@ -54,7 +60,7 @@ def run_cmd(log_path: Path, mode: str, prior: str, out: Path, plot: Path | None,
     from ..slac.run import SlacLog, solve_slac
 
     log = SlacLog.from_npz(log_path)
-    res = solve_slac(log, mode=mode, prior=prior, progress=True, init=init,
+    res = solve_slac(log, mode=mode, prior=prior, progress=sys.stderr.isatty(), init=init,
                      config=SlacConfig(smoother_lag=smoother_lag))
     d = res.to_dict()
     m = d["metrics"]
@@ -88,6 +94,8 @@ def run_cmd(log_path: Path, mode: str, prior: str, out: Path, plot: Path | None,
 @click.option("--out", "out", type=click.Path(dir_okay=False, path_type=Path), required=True, help="RESULT.json")
 @click.option("--plot", "plot", type=click.Path(dir_okay=False, path_type=Path), default=None, help="PNG of the tracks.")
 @handle_errors
+@all_or_nothing
+@all_or_nothing
 def plaza_cmd(path: Path, out: Path, plot: Path | None) -> None:
     """Localization-only and SLAC (bias + scale states) on the CMU Plaza log (Plaza1.mat)."""
     from ..datasets.plaza import load_plaza

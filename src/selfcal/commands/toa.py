@@ -8,6 +8,7 @@ from typing import TYPE_CHECKING
 import click
 
 from ._base import calibrate, handle_errors
+from ._common import all_or_nothing, csv_option, unit_options
 
 if TYPE_CHECKING:
     from ..toa.solve import ToaResult
@@ -28,24 +29,38 @@ if TYPE_CHECKING:
 @click.option("--out", "out", type=click.Path(dir_okay=False, path_type=Path), required=True,
               help="Result JSON (keys per DESIGN.md).")
 @click.option("--plot", "plot", type=click.Path(dir_okay=False, path_type=Path), default=None,
-              help="PNG of receivers and sources with 95% confidence ellipses.")
+              help="Figure of receivers and sources with 95% confidence ellipses (format from the suffix: .png, .pdf, .svg).")
+@csv_option
+@unit_options
 @handle_errors
+@all_or_nothing
 def toa_command(matrix: Path, speed: float | None, offsets: str, dim: str, loss: str, method: str,
-                seed: int, out: Path, plot: Path | None) -> None:
+                seed: int, out: Path, plot: Path | None, csv_out: Path | None = None, unit: str | None = None,
+                sample_rate: float | None = None) -> None:
     """Calibrate receivers and sources from an I x J TOA/range MATRIX (CSV or .npy, NaN = missing).
 
-    Rows are receivers, columns are sources. Metres unless --speed is given.
+    Rows are receivers, columns are sources (a header row and a first column of names are
+    kept). Metres unless --speed is given (then seconds); --unit names another unit.
     """
     import numpy as np
 
-    from ..io import read_matrix, write_json
+    from .._checks import plausible_matrix_scale
+    from ..io import read_table, write_json
     from ..toa import solve_toa
+    from ._common import enrich_payload, to_metres, write_nodes_csv
 
-    M = read_matrix(matrix, name=str(matrix))
+    table = read_table(matrix, name=str(matrix))
+    M, speed, _ = to_metres(table.values, unit, speed, sample_rate, name=str(matrix))
+    plausible_matrix_scale(M, speed=speed, explicit_unit=unit is not None, name=str(matrix))
     res = solve_toa(M, dim=int(dim), offsets=offsets, speed=speed, loss=loss, method=method, rng=seed)
     if plot is not None:
         _plot(res, plot)
-    write_json(out, res.to_dict())
+    payload = enrich_payload(res.to_dict(), names={"receiver_names": table.row_names,
+                                                   "source_names": table.col_names})
+    write_json(out, payload)
+    if csv_out is not None:
+        write_nodes_csv(csv_out, payload, [("receiver", "receivers", "receiver_names"),
+                                           ("source", "sources", "source_names")])
     unit = "s" if speed is not None else "m"
     I, J = M.shape
     tr = np.trace(res.receiver_cov, axis1=1, axis2=2)

@@ -70,7 +70,7 @@ def run_sweep(
     check_choice(backend, "backend", BACKENDS)
     tasks = _tasks(list(grid), int(runs), int(seed))
     rows: list[dict[str, Any] | None] = [None] * len(tasks)
-    bar = tqdm(total=len(tasks), desc=desc, disable=not progress, leave=False)
+    bar = tqdm(total=len(tasks), desc=desc, disable=None if progress else True, leave=False)
     try:
         if backend == "serial":
             for k, (p, r, s) in enumerate(tasks):

@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from .._checks import as_rng, check_choice
+from .._checks import as_rng, check_choice, entry
 from .._result import Result
 from ..errors import InputError
 from ..io import atomic_write_bytes, load_npz
@@ -25,6 +25,7 @@ from .doa import estimate_doa_from_y
 from .filter import SlacConfig, SlacFilter
 from .motion import wrap_angle
 from .signals import SPEED_OF_LIGHT, batch_delay_search
+from .validate import validate_log_arrays
 
 __all__ = ["SlacLog", "SlacResult", "solve_slac", "LOG_VERSION"]
 
@@ -144,6 +145,7 @@ class SlacLog:
         req = ("version", "anchors", "ports", "G_em", "G_chamber", "controls", "rx", "tx", "probe", "T",
                "bandwidth", "sigma_v", "sigma_omega", "init_poses", "init_cov", "signals")
         z = load_npz(path, req)
+        validate_log_arrays(z, str(path))  # one named field per error (selfcal.slac.validate)
         if int(z["version"]) != LOG_VERSION:
             raise InputError(f"{path}: log version {int(z['version'])} is not supported (expected {LOG_VERSION})")
         ports = z["ports"].astype(int)
@@ -213,6 +215,7 @@ class SlacResult(Result):
         }
 
 
+@entry(steps="count?")
 def solve_slac(
     log: SlacLog,
     *,
@@ -282,7 +285,7 @@ def _solve_slac(log: SlacLog, mode: str, prior: str, config: SlacConfig | None, 
     pred_res = []
     from tqdm.auto import tqdm
 
-    for s in tqdm(range(1, S + 1), disable=not progress, desc=f"slac {mode}", leave=False):
+    for s in tqdm(range(1, S + 1), disable=None if progress else True, desc=f"slac {mode}", leave=False):
         snaps = log.snapshot_fn(s)
         tau, ys, var = batch_delay_search(snaps, log.probe, log.bandwidth)
         ml[s - 1] = SPEED_OF_LIGHT * tau / 2

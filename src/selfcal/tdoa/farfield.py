@@ -30,7 +30,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.optimize import least_squares
 
-from .._checks import as_matrix, as_rng, check_choice, check_positive
+from .._checks import as_matrix, as_rng, check_choice, check_positive, entry
 from .._result import Result
 from ..errors import ConvergenceWarning, DegenerateGeometryError, InputError
 from ..geometry import canonical_gauge
@@ -438,6 +438,8 @@ _DEGENERATE_MESSAGES = {
 }
 
 
+@entry(matrix="array", f_scale="positive?", noise_std="positive?", max_iter="count?", tol="positive?",
+       rng="rng", reject_k="positive", cone_tol="positive")
 def solve_farfield(
     matrix: Any,
     *,

@@ -22,6 +22,7 @@ from .._checks import (
     check_dim,
     check_positive,
     check_toa_counts,
+    entry,
 )
 from .._result import Result
 from ..errors import DegenerateGeometryError, InputError
@@ -359,6 +360,8 @@ def _implausible(sol: NlsSolution, robust: bool = False) -> bool:
 # ---------------------------------------------------------------------------
 
 
+@entry(matrix="array", dim="count", speed="positive?", rng="rng", f_scale="positive?", max_nfev="count?",
+       noise="positive?")
 def solve_toa(
     matrix: Any,
     *,
