@@ -349,7 +349,7 @@ def refine_constrained(
 
         return least_squares(
             fun, xf0, jac=jac, method="trf", x_scale="jac", tr_solver="exact" if dense else "lsmr",
-            loss=loss, f_scale=fs, xtol=xtol, ftol=1e-10, gtol=1e-12,
+            loss=loss, f_scale=fs, xtol=xtol, ftol=1e-12 if dense else 1e-10, gtol=1e-12,
             max_nfev=max_nfev or max(1000, 2 * F.size))
 
     def sigma_of(f_meas: Array, f_prior: Array) -> float:
