@@ -225,6 +225,9 @@ def read_known_csv(path: str | os.PathLike[str], dim: int = 3) -> dict[str, tupl
         vals = [c.strip() for c in row]
         if len(vals) not in (dim + 1, dim + 2) or len(vals) > len(cols):
             raise InputError(f"{p}: line {ln}: expected name,{','.join(axes)}[,std], got {len(vals)} fields")
+        if not header and dim == 2 and len(vals) == 4:
+            raise InputError(f"{p}: line {ln}: 4 fields in a 2-D calibration are ambiguous (x,y,std or "
+                             "x,y,z?); add a header line name,x,y,std")
         rec = dict(zip(cols, vals, strict=False))
         name = rec["name"]
         if not name:
