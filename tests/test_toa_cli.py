@@ -195,3 +195,21 @@ def test_moving_tag_recipe_rejects_spikes_and_drops_positions(tmp_path):
     err = aligned_rmse(np.array(data["receivers"]), anchors)
     assert err.rmse_receivers < 0.05
     assert "spikes rejected" in res.output
+
+
+def test_time_order_test_false_alarm_rate_and_power():
+    """Independent sources: p-values are uniform, so detection at 1e-3 is rare (0 of 30
+    here; P(any) = 3%); a sampled trajectory is detected every time."""
+    from selfcal.toa.recipes import detect_time_order
+
+    hits = 0
+    for seed in range(30):
+        _, r, s, Y = _scene3d(seed, I=6, J=40)
+        hits += detect_time_order(Y, rng=seed).detected
+    assert hits == 0
+    rng = np.random.default_rng(1)
+    anchors = rng.uniform(0, 5, (6, 3))
+    t = np.linspace(0, 10, 60)
+    tag = np.c_[2 + np.cos(t / 2), 2 + np.sin(t / 3), 1 + 0.3 * t / 10]
+    test = detect_time_order(toa_model(anchors, tag) + 0.03 * rng.standard_normal((6, 60)))
+    assert test.detected and test.ratio < 0.5

@@ -38,9 +38,10 @@ def _auto_available() -> bool:
               help="auto: initialise + NLS + search; nls: one refinement; rank3: 004 initialiser only.")
 @click.option("--noise", type=float, default=None, metavar="SIGMA",
               help="Measurement noise std in the matrix's units: enables the chi-square residual test.")
-@click.option("--recipe", type=click.Choice(["none", "moving-tag"]), default="none", show_default=True,
+@click.option("--recipe", type=click.Choice(["auto", "none", "moving-tag"]), default="auto", show_default=True,
               help="Preprocessing recipe: moving-tag = columns are one moving device in time order "
-                   "(multipath spikes rejected in time, under-observed positions dropped).")
+                   "(multipath spikes rejected in time, under-observed positions dropped); auto = "
+                   "moving-tag when a permutation test finds the columns in time order (p < 1e-3).")
 @click.option("--known", "known", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="CSV name,x,y,z[,std] of nodes with known positions (r<i>, s<j> or a receiver "
                    "index); they constrain the fit and set the frame.")
@@ -99,6 +100,7 @@ def toa_command(matrix: Path, speed: float | None, offsets: str | None, dim: str
     if plot is not None:
         _plot(res, plot, framed is not None)
     payload = dict(res.to_dict())
+    used = rec.recipe
     if recipe != "none":
         payload["recipe"] = rec.to_dict()["recipe"]
     if framed is not None:
@@ -111,12 +113,14 @@ def toa_command(matrix: Path, speed: float | None, offsets: str | None, dim: str
     ts = np.trace(res.source_cov, axis1=1, axis2=2)
     lines = [
         f"selfcal calibrate toa: {I} receivers x {J} sources, {d_out}-D, offsets={off_used}, "
-        f"{int((~np.isfinite(M)).sum())} missing" + (f", recipe {recipe}" if recipe != "none" else ""),
+        f"{int((~np.isfinite(M)).sum())} missing" + (f", recipe {used}" if used != "none" else ""),
         f"  method {res.method}, converged={res.converged}, iterations={res.iterations}",
         f"  residual RMS {res.residual_rms:.4g} {unit}, noise sigma {res.sigma:.4g} {unit}",
     ]
-    if recipe != "none":
-        lines.append(f"  recipe: {rec.n_rejected} spikes rejected, {len(rec.dropped_sources)} "
+    if used != "none":
+        auto = rec.details.get("auto")
+        reason = f" (auto: columns in time order, permutation p = {auto['p_value']:.2g})" if auto else ""
+        lines.append(f"  recipe {used}{reason}: {rec.n_rejected} spikes rejected, {len(rec.dropped_sources)} "
                      "tag positions dropped (too few ranges left)")
     counts = _counts(res)
     if counts:

@@ -7,6 +7,15 @@ does not use, and exploits it before the fit. Each is an option of ``calibrate t
 ``"none"``
     The matrix as given (the solver's own robust fit and checks).
 
+``"auto"`` (the ``calibrate toa`` default)
+    ``"moving-tag"`` when the columns are detectably a time series, else ``"none"``.
+    The test (:func:`detect_time_order`) is a permutation test of the column order: the
+    total variation of the rows along the given order against that of random orders.
+    Independent sources are exchangeable (any order is as rough as a random one); samples
+    of a moving device are far smoother in their recording order. Applied when the
+    p-value is below 1e-3 (999 permutations), so a matrix of independent sources
+    triggers the recipe with probability 1e-3.
+
 ``"moving-tag"``
     The sources (columns) are successive positions of *one* moving device, in time order
     (a UWB tag on a drone, a loudspeaker carried around). Each row is then a smooth
@@ -41,11 +50,89 @@ from numpy.typing import NDArray
 from .._checks import as_matrix, check_choice
 from ..errors import InputError
 
-__all__ = ["RECIPES", "RecipeResult", "apply_recipe", "moving_tag"]
+__all__ = ["RECIPES", "RecipeResult", "TimeOrderTest", "apply_recipe", "detect_time_order", "moving_tag"]
 
 Array = NDArray[np.float64]
 
-RECIPES = ("none", "moving-tag")
+RECIPES = ("auto", "none", "moving-tag")
+
+# the time-order test: significance level and permutations (the smallest attainable
+# p-value is 1 / (n + 1), so n = 999 resolves the 1e-3 level)
+TIME_ORDER_ALPHA = 1e-3
+TIME_ORDER_PERMUTATIONS = 999
+# the spike detector's local quadratic needs a window of samples on each side
+_MIN_SAMPLES = 20
+
+
+@dataclass(frozen=True)
+class TimeOrderTest:
+    """Result of :func:`detect_time_order`.
+
+    Attributes
+    ----------
+    detected: the columns are a time series at level ``alpha``.
+    p_value: permutation p-value of the observed total variation.
+    ratio: observed total variation over the median of the permuted ones (about 1 for
+        exchangeable columns, << 1 for a densely sampled trajectory).
+    alpha, permutations: the test's level and number of random orders.
+    """
+
+    detected: bool
+    p_value: float
+    ratio: float
+    alpha: float
+    permutations: int
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-safe dictionary."""
+        return dataclasses.asdict(self)
+
+
+def _total_variation(Y: Array, order: NDArray[np.intp]) -> float:
+    Z = Y[:, order]
+    dz = np.abs(np.diff(Z, axis=1))
+    return float(np.nansum(dz))
+
+
+def detect_time_order(matrix: Any, *, alpha: float = TIME_ORDER_ALPHA,
+                      permutations: int = TIME_ORDER_PERMUTATIONS, rng: Any = 0) -> TimeOrderTest:
+    """Permutation test: are the columns of ``matrix`` samples of one device in time order?
+
+    Statistic: the total variation ``sum_i sum_j |y_i,j+1 - y_i,j|`` over consecutive
+    observed pairs. Under the null hypothesis (exchangeable columns: independent sources)
+    every column order has the same distribution, so the p-value is the rank of the
+    observed statistic among ``permutations`` random orders, ``(1 + #{TV_perm <= TV}) /
+    (permutations + 1)``. Rows are standardised by their robust scale first so that no
+    receiver dominates.
+
+    Parameters
+    ----------
+    matrix: (I, J) ranges or times, NaN = missing.
+    alpha: significance level.
+    permutations: number of random column orders.
+    rng: seed / Generator of the permutations.
+
+    Returns
+    -------
+    :class:`TimeOrderTest` (never detected with fewer than 20 columns).
+    """
+    from .._checks import as_rng
+
+    Y = as_matrix(matrix, "matrix")
+    I, J = Y.shape
+    if J < _MIN_SAMPLES:
+        return TimeOrderTest(False, 1.0, 1.0, float(alpha), 0)
+    with np.errstate(all="ignore"):
+        med = np.nanmedian(Y, axis=1, keepdims=True)
+        sc = 1.4826 * np.nanmedian(np.abs(Y - med), axis=1, keepdims=True)
+    sc = np.where(np.isfinite(sc) & (sc > 0), sc, 1.0)
+    Z = (Y - med) / sc
+    gen = as_rng(rng)
+    tv = _total_variation(Z, np.arange(J))
+    perm = np.array([_total_variation(Z, gen.permutation(J)) for _ in range(int(permutations))])
+    p = float((1 + np.sum(perm <= tv)) / (permutations + 1))
+    ratio = float(tv / np.median(perm)) if np.median(perm) > 0 else 1.0
+    return TimeOrderTest(bool(p <= alpha), p, ratio, float(alpha), int(permutations))
 
 
 @dataclass(frozen=True)
@@ -238,11 +325,21 @@ def _profile_result(base: Any, prof: Any, sub: Array, scale: float) -> Any:
 def apply_recipe(name: str, matrix: Any, **kw: Any) -> Any:
     """Run recipe ``name`` (one of :data:`RECIPES`) on ``matrix``; ``"none"`` is solve_toa.
 
+    ``"auto"`` runs ``"moving-tag"`` when :func:`detect_time_order` detects that the
+    columns are a time series, else ``"none"``; the test is in ``details["auto"]``.
     Returns a :class:`RecipeResult` for every recipe (``rejected`` all False for "none").
     """
     from .solve import solve_toa
 
     check_choice(name, "recipe", RECIPES)
+    if name == "auto":
+        M = as_matrix(matrix, "matrix")
+        test = detect_time_order(M)
+        if test.detected:
+            out = moving_tag(M, **kw)
+            return dataclasses.replace(out, details={**out.details, "auto": test.to_dict()})
+        res = solve_toa(M, **kw)
+        return RecipeResult(res, "none", np.zeros(M.shape, bool), details={"auto": test.to_dict()})
     if name == "none":
         M = as_matrix(matrix, "matrix")
         res = solve_toa(M, **kw)
