@@ -112,7 +112,8 @@ def _write_flight(path, n=40, ok_cols=None, gt_cols=None, data_is_struct=True):
 def test_loader_short_validity_flags_warn_not_indexerror(tmp_path):
     """GTs_resamp_ok with fewer columns than d: the ranges are kept, the positions without
     a flag get NaN ground truth, and a LpsFormatWarning says so (never IndexError)."""
-    from selfcal.datasets.lps import LpsFormatWarning, load_lps as load
+    from selfcal.datasets.lps import LpsFormatWarning
+    from selfcal.datasets.lps import load_lps as load
 
     f = tmp_path / "data9.mat"
     d, _, _ = _write_flight(f, n=40, ok_cols=30)
@@ -139,3 +140,20 @@ def test_position_with_two_ranges_is_dropped_not_fatal(shared_data):
     res = calibrate_lps(Y, "none")
     assert res["n_dropped"] >= 1 and np.isnan(res["sources"][100]).all()
     assert aligned_rmse(res["receivers"], flight.anchors_true).rmse_receivers < 0.3
+
+
+def _cli_default_anchor_rmse(tmp_path, flight, *extra):
+    """``selfcal calibrate toa`` with its defaults on the raw ``d`` matrix written as CSV."""
+    import json
+
+    from click.testing import CliRunner
+
+    from selfcal.cli import main
+
+    csv = tmp_path / f"{flight.name}.csv"
+    np.savetxt(csv, flight.ranges, delimiter=",")  # 6 x N, NaN missing, no preprocessing
+    out = tmp_path / f"{flight.name}.json"
+    res = CliRunner().invoke(main, ["calibrate", "toa", str(csv), "--out", str(out), *extra])
+    assert res.exit_code in (0, 1), res.output
+    data = json.loads(out.read_text())
+    return aligned_rmse(np.array(data["receivers"], float), flight.anchors_true).rmse_receivers, data, res

@@ -104,7 +104,7 @@ def test_known_file_puts_the_result_in_that_frame(tmp_path):
     path = tmp_path / "m.csv"
     np.savetxt(path, Y, delimiter=",")
     known = tmp_path / "known.csv"
-    known.write_text("".join("r%d,%r,%r,%r\n" % (i, *map(float, r[i])) for i in range(4)))
+    known.write_text("".join(",".join([f"r{i}", *(repr(float(v)) for v in r[i])]) + "\n" for i in range(4)))
     out = tmp_path / "res.json"
     res = run(path, "--known", known, "--out", out)
     assert res.exit_code == 0, res.output

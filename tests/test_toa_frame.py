@@ -31,6 +31,10 @@ def _net(seed: int, I: int = 7, J: int = 10, d: int = 3):
     return rng, r, s, Y
 
 
+def _row(name: str, p: np.ndarray) -> str:
+    return ",".join([name, *(repr(float(v)) for v in p)])  # repr: exact round trip
+
+
 def _mahalanobis2(err: np.ndarray, cov: np.ndarray) -> float:
     return float(sum(e @ np.linalg.solve(c, e) for e, c in zip(err, cov, strict=True)))
 
@@ -75,8 +79,8 @@ def test_known_with_std_are_priors():
 def test_mixed_exact_and_std_known_nodes_from_csv(tmp_path):
     _, r, s, Y = _net(7)
     f = tmp_path / "known.csv"
-    lines = ["name,x,y,z,std"] + ["r%d,%r,%r,%r," % (i, *map(float, r[i])) for i in range(3)]
-    lines.append("s2,%r,%r,%r,0.01" % tuple(map(float, s[2])))
+    lines = ["name,x,y,z,std"] + [_row(f"r{i}", r[i]) + "," for i in range(3)]
+    lines.append(_row("s2", s[2]) + ",0.01")
     f.write_text("\n".join(lines) + "\n")
     res = calibrate_in_frame(Y, known=str(f), rng=0)
     np.testing.assert_array_equal(res.receivers[:3], r[:3])

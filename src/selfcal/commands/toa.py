@@ -89,7 +89,7 @@ def toa_command(matrix: Path, speed: float | None, offsets: str | None, dim: str
     d_out = np.asarray(res.receivers).shape[1]
     off_used = _offsets_of(res)
     loss_used = loss or getattr(res, "loss", None) or "linear"
-    if known_table is not None:
+    if known_table is not None and known is not None:
         I, J = M.shape
         nodes = parse_known(_redim(known_table, known, d_out), I, J, d_out)
         framed = fit_known(M, res, nodes, offsets=off_used, loss=loss_used, noise=noise)

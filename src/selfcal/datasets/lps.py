@@ -109,9 +109,9 @@ def _validity(rec: Any, n: int, path: Path) -> NDArray[np.bool_] | None:
     except (TypeError, ValueError):
         raise InputError(f"{path}: 'GTs_resamp_ok' is not a logical array") from None
     if ok.ndim == 2 and ok.shape[0] in (1, 3) and not (ok.shape[1] in (1, 3) and ok.shape[0] == n):
-        ok = ok.all(axis=0)
+        ok = np.asarray(ok.all(axis=0))
     elif ok.ndim == 2 and ok.shape[1] in (1, 3):
-        ok = ok.all(axis=1)
+        ok = np.asarray(ok.all(axis=1))
     ok = ok.ravel()
     k = ok.size
     if k != n:

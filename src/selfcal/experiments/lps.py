@@ -170,11 +170,11 @@ def leave_one_flight_out(scores: Mapping[str, Mapping[str, float]],
     median held-out score of the selection rule.
     """
     flights = list(scores)
-    rows = {}
+    rows: dict[str, dict[str, Any]] = {}
     for f in flights:
         others = [g for g in flights if g != f]
         med = {v: float(np.median([scores[g][v] for g in others])) for v in candidates}
         pick = min(candidates, key=lambda v: med[v])
         rows[f] = {"selected": pick, "held_out_rmse": float(scores[f][pick])}
-    held = [r["held_out_rmse"] for r in rows.values()]
+    held = [float(r["held_out_rmse"]) for r in rows.values()]
     return {"per_flight": rows, "median_held_out_rmse": float(np.median(held)) if held else None}

@@ -634,12 +634,13 @@ def _known_info(usable: Sequence[KnownNode], rank: int, d: int, before: float, a
                      mirror_resolved=mirror, message=msg, known_rms=before, known_rms_fit=after)
 
 
-def _embed(result: Any, sol: Any, ok_r: Array, ok_s: Array, c: float, method: str) -> Any:
+def _embed(result: Any, sol: Any, ok_r: NDArray[np.bool_], ok_s: NDArray[np.bool_], c: float,
+           method: str) -> Any:
     """A copy of ``result`` with the (sub-network) NlsSolution ``sol`` written in."""
     I, d = np.asarray(result.receivers).shape
     J = np.asarray(result.sources).shape[0]
 
-    def put(n: int, ok: Array, val: Array | None, shape: tuple[int, ...], k: float = 1.0) -> Array | None:
+    def put(n: int, ok: NDArray[np.bool_], val: Array | None, shape: tuple[int, ...], k: float = 1.0) -> Array | None:
         if val is None:
             return None
         out = np.full((n,) + shape, np.nan)

@@ -307,7 +307,9 @@ def _profile_result(base: Any, prof: Any, sub: Array, scale: float) -> Any:
     from .nls import toa_model
 
     names = {f.name for f in dataclasses.fields(base)}
-    r, s, _ = canonical_gauge(prof.receivers, prof.sources)
+    r, s_, _ = canonical_gauge(prof.receivers, prof.sources)
+    assert s_ is not None
+    s = s_
     model = toa_model(prof.receivers, prof.sources, prof.receiver_offsets)
     res = np.where(np.isfinite(sub), sub - model / scale, np.nan)
     I, d = r.shape
