@@ -203,3 +203,19 @@ def test_read_known_csv(tmp_path):
         read_known_csv(tmp_path / "missing.csv")
     with pytest.raises(InputError):
         parse_known({"q7": (0, 0, 0)}, 3, 5, 3)
+
+
+def test_known_nodes_with_offsets_and_seconds():
+    """Known anchors with both offsets on a TOA matrix in seconds: offsets come back in
+    seconds, positions in metres in the known frame."""
+    rng = np.random.default_rng(900)
+    c = 343.0
+    r, s = rng.uniform(0, 6, (8, 3)), rng.uniform(0, 6, (12, 3))
+    dr, o = rng.normal(0, 0.3, 8), rng.normal(0, 0.3, 12)
+    T = (toa_model(r, s, dr, o) + NOISE * rng.standard_normal((8, 12))) / c
+    res = calibrate_in_frame(T, known={f"r{i}": r[i] for i in range(4)}, offsets="both", speed=c, rng=0)
+    np.testing.assert_array_equal(res.receivers[:4], r[:4])
+    assert np.abs(res.sources - s).max() < 0.15
+    # offsets are determined up to the common shift d + k, o - k (first source offset 0)
+    np.testing.assert_allclose(res.source_offsets * c, o - o[0], atol=0.15)
+    assert res.to_dict()["frame"]["kind"] == "known"
