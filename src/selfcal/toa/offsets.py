@@ -612,6 +612,7 @@ def rank3_lm(
     xtol: float = 1e-12,
     centring: str = "mean",
     rng: np.random.Generator | int | None = None,
+    abort_above: float | None = None,
 ) -> Rank3Result:
     """Levenberg-Marquardt with variable projection on (*): the fast solver for the 004 fixed point.
 
@@ -649,6 +650,10 @@ def rank3_lm(
     xtol : stop when ``||dp|| <= xtol (||p|| + xtol)`` or F <= xtol ||M||_F.
     centring : ``"mean"`` (default, no special node) or ``"reference"`` (thesis (3.4)).
     rng : seed or Generator for the initialisation.
+    abort_above : the early abort the thesis proposes (sec. 6.2), for restarts: once an
+        iteration lowers (*) by less than 1 % while its square root (``extra["objective"]``)
+        is still above this value (the best run so far), the run heads for a worse local
+        minimum and stops (``converged=False``, ``extra["aborted"]=True``). None: never.
 
     Returns
     -------
@@ -773,6 +778,7 @@ def rank3_lm(
     it = 0
     scale = float(np.linalg.norm(M))
     diag = np.diag_indices(K)
+    aborted = False
     for it in range(1, int(max_iter) + 1):  # noqa: B007 (it is the iteration count after the loop)
         H, g, coupled = gauss_newton(x, Ud, Vd, resid)
         dg = np.diag(H).copy()
@@ -804,7 +810,7 @@ def rank3_lm(
             cost_try = trial[0]
             if cost_try < cost or cost_try == 0.0:
                 Hdx = H @ dx[:K] if coupled is None else coupled[0](dx)
-                pred = -(g @ dx) - 0.5 * dx @ Hdx
+                pred = float(-(g @ dx) - 0.5 * dx @ Hdx)
                 rho = (cost - cost_try) / (2 * pred) if pred > 0 else 0.0
                 cost, Ud, Vd, resid, Q, M = trial
                 x = x_try
@@ -816,7 +822,11 @@ def rank3_lm(
             nu *= 2.0
         step = float(np.linalg.norm(dx)) if accepted else 0.0
         steps.append(step)
+        slow = hist[-1] ** 2 - cost < 0.01 * cost
         hist.append(np.sqrt(cost))
+        if abort_above is not None and it >= 3 and slow and np.sqrt(cost) > abort_above:
+            aborted = True
+            break
         if not accepted or step <= xtol * (np.linalg.norm(x) + xtol) or np.sqrt(cost) <= xtol * scale:
             # (no decrease even with huge damping: a stationary point of (*))
             converged = True
@@ -831,6 +841,7 @@ def rank3_lm(
     res = _result(Rx, p, F_ref, hist, steps, it, converged, "fast", model, 0.0)
     extra: dict[str, Any] = {"completed": Rx} if n_miss else {}
     extra["objective"] = float(np.sqrt(cost))
+    extra["aborted"] = aborted
     return _replace(res, seconds=time.perf_counter() - t0, extra=extra)
 
 
@@ -978,6 +989,7 @@ def fast_offsets(
     p0: Any = None,
     max_iter: int = 100,
     rng: np.random.Generator | int | None = None,
+    abort_above: float | None = None,
 ) -> Rank3Result:
     """One start of the default fast method: LM on the linear (Gamma = 0) model, then on ``model``.
 
@@ -987,15 +999,18 @@ def fast_offsets(
     starts with equal delays, 64/72 vs 39/72 with distinct delays. The second stage removes
     the Gamma bias (distinct delays) and polishes to machine precision. Both stages use mean
     centring. ``iterations`` counts both stages. With missing entries only the second stage runs.
+    ``abort_above`` (the early abort of :func:`rank3_lm`) applies to the last stage only (the
+    linear stage's objective is biased by Gamma and not comparable).
     """
     if np.isnan(np.asarray(ranges, dtype=float)).any():
         # with missing entries the biased linear stage lets the free entries absorb Gamma and
         # leaves the exact stage in a wrong basin: exact model only
-        return rank3_lm(ranges, dim=dim, model=model, p0=p0, max_iter=max_iter, rng=rng)
-    first = rank3_lm(ranges, dim=dim, model="linear", p0=p0, max_iter=max_iter, rng=rng)
+        return rank3_lm(ranges, dim=dim, model=model, p0=p0, max_iter=max_iter, rng=rng, abort_above=abort_above)
+    first = rank3_lm(ranges, dim=dim, model="linear", p0=p0, max_iter=max_iter, rng=rng,
+                     abort_above=abort_above if model == "linear" else None)
     if model == "linear":
         return first
-    second = rank3_lm(ranges, dim=dim, model=model, p0=first.p, max_iter=max_iter)
+    second = rank3_lm(ranges, dim=dim, model=model, p0=first.p, max_iter=max_iter, abort_above=abort_above)
     return _replace(
         second,
         iterations=first.iterations + second.iterations,
@@ -1202,7 +1217,7 @@ def initialize_offsets(
             break  # a noise-free fit: the global minimum
         if stop_ok and _two_agree(runs, R):
             break  # the best basin was reached from two starts
-        res = fast_offsets(R, dim=dim, rng=gen)
+        res = fast_offsets(R, dim=dim, rng=gen, abort_above=_abort_level(runs) if stop_ok else None)
         runs.append(res)
         if res.frobenius < best.frobenius:
             best = res
@@ -1227,6 +1242,12 @@ def _same_p(a: Rank3Result, b: Rank3Result, R: Array) -> bool:
     """
     scale = float(np.sqrt(np.nanmean(R * R))) or 1.0
     return bool(np.linalg.norm(a.p - b.p) <= 1e-6 * scale * np.sqrt(a.p.size))
+
+
+def _abort_level(runs: list[Rank3Result]) -> float | None:
+    """Objective of the best converged run so far: later starts abort above it (thesis sec. 6.2)."""
+    ok = [float(r.extra.get("objective", np.inf)) for r in runs if r.converged and np.isfinite(r.frobenius)]
+    return min(ok) if ok else None
 
 
 def _two_agree(runs: list[Rank3Result], R: Array) -> bool:
@@ -1301,7 +1322,8 @@ def initialize_offsets_candidates(
     stop_ok = _early_stop_ok(I, J, dim)
     runs: list[Rank3Result] = []
     for k in range(max(1, int(n_starts))):
-        res = fast_offsets(R, dim=dim, p0=np.zeros(K) if k == 0 else None, rng=None if k == 0 else gen)
+        res = fast_offsets(R, dim=dim, p0=np.zeros(K) if k == 0 else None, rng=None if k == 0 else gen,
+                           abort_above=_abort_level(runs) if stop_ok else None)
         if np.isfinite(res.frobenius):
             runs.append(res)
         if stop_ok and runs and min(r.frobenius for r in runs) <= level:
