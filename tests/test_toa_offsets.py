@@ -283,7 +283,7 @@ def test_fast_solver_on_the_full_thesis_protocol(room: str) -> None:
 
 
 @pytest.mark.parametrize("seed", range(10))
-def test_scalable_lm_reaches_the_minimum_of_the_joint_reference(seed: int) -> None:
+def test_scalable_lm_reaches_the_minimum_of_the_joint_reference(seed: int, monkeypatch: pytest.MonkeyPatch) -> None:
     """rank3_lm (block Hessian, subspace iteration, CG for the missing times) == the old joint LM.
 
     Same data, same start near the truth (inside the basin): both must stop at the same
@@ -298,6 +298,7 @@ def test_scalable_lm_reaches_the_minimum_of_the_joint_reference(seed: int) -> No
     frac = (0.0, 0.05, 0.10)[seed % 3]
     R[rng.random(R.shape) < frac] = np.nan
     p0 = p + rng.normal(0.0, 2 * US, p.size)
+    monkeypatch.setattr(off, "_DENSE_JOINT_MAX", 0)  # the scalable path even at this size
     new = off.rank3_lm(R, p0=p0)
     ref = off._rank3_lm_joint(R, p0=p0)
     # never a worse stationary point than the reference (with missing entries the two take

@@ -532,6 +532,10 @@ def _impute(R: Array) -> Array:
     return np.where(mask, row + col, R)
 
 
+#: rank3_lm: up to this many unknowns (offsets + missing entries) the dense joint step is used
+_DENSE_JOINT_MAX = 256
+
+
 def _centre_adj(Y: Array, axis: int, centring: str) -> Array:
     """Adjoint of :func:`_centre` along ``axis`` (mean centring is its own adjoint)."""
     if centring == "mean":
@@ -629,16 +633,15 @@ def rank3_lm(
     instead of ``O(I J K)`` per factor. The rank-d subspace comes from warm-started subspace
     iteration (:func:`_tail_sub`, ``O(I J d)`` per sweep), not from a full eigendecomposition.
 
-    Missing entries (NaN). The squared corrected ranges ``D_ij`` of the missing entries are
-    free: they are eliminated from the LM step and completed by alternating projection
-    (hard impute) inside every cost evaluation, warm-started from the previous completion:
-    move the missing entries of D along the negative gradient of (*) with an exact line
-    search for the current subspace, then recompute the subspace; stop when (*) decreases
-    by less than 1e-3 of itself. Every accepted step therefore lowers (*) jointly in p and
-    the completion, the gradient in p is exact at the completed optimum, and no unknown per
-    missing entry enters a dense matrix: ``O(I J d)`` time and ``O(I J)`` memory per sweep,
-    ``O(K^2)`` for the Gauss-Newton matrix. Their count still adds to the I+J-1 unknowns of
-    the identifiability condition.
+    Missing entries (NaN) are extra unknowns (their times), each with its own rank-one
+    Jacobian column (matrix completion inside the same projection), but no dense matrix has
+    a row per missing entry: the damped Gauss-Newton system in (p, missing times) is solved by
+    conjugate gradients, preconditioned by the exact (Cholesky-factored) p-block and the
+    diagonal of the missing-time block; its products cost ``O(I J d)`` from the low-rank form
+    of the projectors (``C^T (I - U U^T) C = I + F S F^T``). Memory ``O(I J + K^2)``. Their
+    count adds to the I+J-1 unknowns of the identifiability condition. Up to
+    ``_DENSE_JOINT_MAX`` unknowns in all, the dense joint step of :func:`_rank3_lm_joint`
+    runs instead (cheaper there; the same iteration).
 
     Parameters
     ----------
@@ -647,7 +650,7 @@ def rank3_lm(
     model : ``"exact"`` (keeps Gamma: distinct internal delays) or ``"linear"`` (thesis, Gamma = 0).
     p0 : initial p (metres); default the thesis random initialisation from ``rng``.
     max_iter : maximum LM iterations.
-    xtol : stop when ``||dp|| <= xtol (||p|| + xtol)`` or F <= xtol ||M||_F.
+    xtol : stop when ``||dx|| <= xtol (||x|| + xtol)`` or F <= xtol ||M||_F.
     centring : ``"mean"`` (default, no special node) or ``"reference"`` (thesis (3.4)).
     rng : seed or Generator for the initialisation.
     abort_above : the early abort the thesis proposes (sec. 6.2), for restarts: once an
@@ -677,6 +680,11 @@ def rank3_lm(
             f"(I-1-{dim})(J-1-{dim}) = {(I - 1 - dim) * (J - 1 - dim)} >= I+J-1 + missing = {K + n_miss}",
             kind="too-few-measurements",
         )
+    if K + n_miss <= _DENSE_JOINT_MAX:
+        # small: one dense joint Gauss-Newton matrix and a full eigendecomposition are cheaper
+        # than the iterative pieces below (measured crossover ~300 unknowns)
+        return _rank3_lm_joint(R0, dim=dim, model=model, p0=p0, max_iter=max_iter, xtol=xtol,
+                               centring=centring, rng=rng, abort_above=abort_above)
     missing = np.nonzero(mask)
     R = _impute(R0)
     bound = 2.0 * float(np.max(np.abs(R0[~mask])))
@@ -855,6 +863,7 @@ def _rank3_lm_joint(
     xtol: float = 1e-12,
     centring: str = "mean",
     rng: np.random.Generator | int | None = None,
+    abort_above: float | None = None,
 ) -> Rank3Result:
     """Reference: the joint LM of :func:`rank3_lm` before 2026-12 (missing entries as dense unknowns).
 
@@ -928,6 +937,7 @@ def _rank3_lm_joint(
     mu: float | None = None
     nu = 2.0
     converged = False
+    aborted = False
     it = 0
     scale = float(np.linalg.norm(M))
     for it in range(1, int(max_iter) + 1):  # noqa: B007 (it is the iteration count after the loop)
@@ -967,7 +977,11 @@ def _rank3_lm_joint(
             nu *= 2.0
         step = float(np.linalg.norm(dx)) if accepted else 0.0
         steps.append(step)
+        slow = hist[-1] ** 2 - cost < 0.01 * cost
         hist.append(np.sqrt(cost))
+        if abort_above is not None and it >= 3 and slow and np.sqrt(cost) > abort_above:
+            aborted = True
+            break
         if not accepted or step <= xtol * (np.linalg.norm(x) + xtol) or np.sqrt(cost) <= xtol * scale:
             # (no decrease even with huge damping: a stationary point of (*))
             converged = True
@@ -978,6 +992,7 @@ def _rank3_lm_joint(
     res = _result(Rx, p, F_ref, hist, steps, it, converged, "fast", model, 0.0)
     extra: dict[str, Any] = {"completed": Rx} if n_miss else {}
     extra["objective"] = float(np.sqrt(cost))
+    extra["aborted"] = aborted
     return _replace(res, seconds=time.perf_counter() - t0, extra=extra)
 
 
