@@ -50,10 +50,10 @@ DIM = 3
 
 def _sizes() -> list[tuple[int, int, int]]:
     env = os.environ.get("SELFCAL_BENCH_TOA_SIZES")
-    if not env:
+    if env is None:
         return SIZES
     out = []
-    for tok in env.split(","):
+    for tok in filter(str.strip, env.split(",")):
         i, j = (int(v) for v in tok.lower().split("x"))
         out.append((i, j, 3 if i * j <= 1e5 else 1))
     return out
@@ -61,7 +61,7 @@ def _sizes() -> list[tuple[int, int, int]]:
 
 def _units() -> list[int]:
     env = os.environ.get("SELFCAL_BENCH_TOA_UNITS")
-    return [int(v) for v in env.split(",")] if env else UNITS
+    return UNITS if env is None else [int(v) for v in env.split(",") if v.strip()]
 
 
 def _timed(fn: Any, repeats: int = 1) -> tuple[dict[str, Any], Any]:

@@ -581,13 +581,13 @@ def _tail_sub(M: Array, dim: int, Q: Array | None = None) -> tuple[float, Array,
     return float(np.sum(resid * resid)), Ud, Vd, resid, Q
 
 
-def _damped_pcg(jtj: Any, chol: Any, hz: Array, damp: Array, g: Array, K: int) -> Array:
+def _damped_pcg(jtj: Any, chol: Any, hz: Array, damp: Array, g: Array, K: int, rtol: float = 1e-10) -> Array:
     """Solve ``(J^T J + diag(damp)) dx = -g`` by conjugate gradients (offsets + missing times).
 
     Preconditioner: the exact damped offset block (its Cholesky factor ``chol``) and the
-    damped diagonal ``hz`` of the missing-time block. Relative tolerance 1e-10 (an inexact
-    Gauss-Newton step that keeps the local rate), at most 500 iterations; the LM gain test
-    guards the rest.
+    damped diagonal ``hz`` of the missing-time block. Relative tolerance ``rtol``, at most 500
+    iterations; the LM gain test guards the rest. (A loose, gradient-scaled tolerance far from
+    the minimum was measured to cost iterations: 83 instead of 12 at 300 units.)
     """
     from scipy.sparse.linalg import LinearOperator, cg
 
@@ -602,7 +602,7 @@ def _damped_pcg(jtj: Any, chol: Any, hz: Array, damp: Array, g: Array, K: int) -
     op = LinearOperator((n, n), matvec=mat, dtype=float)
     pc = LinearOperator((n, n), matvec=prec, dtype=float)
     x0 = prec(-g)
-    dx, _ = cg(op, -g, x0=x0, rtol=1e-10, maxiter=500, M=pc)
+    dx, _ = cg(op, -g, x0=x0, rtol=rtol, maxiter=500, M=pc)
     return np.asarray(dx)
 
 
@@ -655,7 +655,7 @@ def rank3_lm(
     rng : seed or Generator for the initialisation.
     abort_above : the early abort the thesis proposes (sec. 6.2), for restarts: once an
         iteration lowers (*) by less than 1 % while its square root (``extra["objective"]``)
-        is still above this value (the best run so far), the run heads for a worse local
+        is still more than 0.1 % above this value (the best run so far), the run heads for a worse local
         minimum and stops (``converged=False``, ``extra["aborted"]=True``). None: never.
 
     Returns
@@ -832,7 +832,7 @@ def rank3_lm(
         steps.append(step)
         slow = hist[-1] ** 2 - cost < 0.01 * cost
         hist.append(np.sqrt(cost))
-        if abort_above is not None and it >= 3 and slow and np.sqrt(cost) > abort_above:
+        if abort_above is not None and it >= 3 and slow and np.sqrt(cost) > abort_above * (1 + 1e-3):
             aborted = True
             break
         if not accepted or step <= xtol * (np.linalg.norm(x) + xtol) or np.sqrt(cost) <= xtol * scale:
@@ -979,7 +979,7 @@ def _rank3_lm_joint(
         steps.append(step)
         slow = hist[-1] ** 2 - cost < 0.01 * cost
         hist.append(np.sqrt(cost))
-        if abort_above is not None and it >= 3 and slow and np.sqrt(cost) > abort_above:
+        if abort_above is not None and it >= 3 and slow and np.sqrt(cost) > abort_above * (1 + 1e-3):
             aborted = True
             break
         if not accepted or step <= xtol * (np.linalg.norm(x) + xtol) or np.sqrt(cost) <= xtol * scale:
