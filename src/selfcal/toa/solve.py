@@ -26,6 +26,7 @@ from .._checks import (
 )
 from .._result import Result
 from ..errors import DegenerateGeometryError, InputError
+from .covariance import normalize_covariance
 from .nls import LOSSES, OFFSET_MODES, NlsSolution, refine_toa, toa_model
 
 __all__ = ["ResidualTest", "ToaResult", "n_parameters", "residual_test", "solve_toa"]
@@ -374,7 +375,7 @@ def solve_toa(
     rng: np.random.Generator | int | None = None,
     f_scale: float | None = None,
     max_nfev: int | None = None,
-    covariance: bool = True,
+    covariance: Any = True,
     sweep: bool = True,
     noise: float | None = None,
 ) -> ToaResult:
@@ -407,8 +408,10 @@ def solve_toa(
         re-place each node with the others fixed (its reflection through the plane of the
         others, its closed-form position) and refine again while that lowers the cost
         (:func:`_node_sweep`); escapes local minima the residual tests cannot detect.
-    covariance: compute the per-point covariances (NaN-filled when False; skipping them
-        saves most of the time on networks of a thousand nodes per side).
+    covariance: which per-point covariance blocks to compute: True / "all", "receivers",
+        "sources", False / "none", or indices ``{"receivers": idx, "sources": idx}``
+        (:func:`selfcal.toa.covariance.normalize_covariance`); the others are NaN-filled
+        (skipping them saves most of the time on networks of a thousand nodes per side).
     noise: optional std of the measurement noise in the matrix's units (seconds with
         ``speed``). The result then carries ``fit``, the chi-square test of its weighted
         residual sum of squares against its degrees of freedom (:func:`residual_test`,
@@ -428,6 +431,7 @@ def solve_toa(
     check_choice(offsets, "offsets", OFFSET_MODES)
     check_choice(loss, "loss", LOSSES)
     check_choice(method, "method", METHODS)
+    covariance = normalize_covariance(covariance)  # False when no block is asked for
     dim = check_dim(dim)
     spd = check_positive(speed, "speed")
     M = as_matrix(matrix, "matrix", nonnegative=(offsets == "none"))
