@@ -294,6 +294,26 @@ def test_bad_input_is_refused():
         solve_farfield(np.zeros((5, 8)), loss="l7")
 
 
+@pytest.mark.parametrize("seed", range(8))
+@pytest.mark.parametrize("shape", [(10, 30), (20, 8), (8, 100)])
+def test_transposed_matrix_is_named(seed, shape):
+    # rows = directions: the per-row offsets survive column centring (rank 4 > noise edge)
+    rng = np.random.default_rng(seed)
+    m, k = shape
+    D, Z, N = farfield_problem(rng, m, k, sigma=1e-3)
+    solve_farfield(D)  # the right orientation passes
+    with pytest.raises(InputError, match=r"transposed\?"):
+        solve_farfield(D.T)
+
+
+def test_reference_row_layout_with_transposition_is_named(shared_data):
+    from selfcal.datasets import load_pyramic
+
+    D = load_pyramic(shared_data / "pyramic").D
+    with pytest.raises(InputError, match=r"transposed\?"):
+        solve_farfield(D.T)
+
+
 def test_too_few_sources_for_3d(rng):
     D, _, _ = farfield_problem(rng, 8, 5)
     with pytest.raises(DegenerateGeometryError) as info:

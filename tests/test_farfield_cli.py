@@ -51,8 +51,9 @@ def test_cli_speed_converts_seconds(tmp_path, farfield_csv):
     r = CliRunner().invoke(main, ["calibrate", "tdoa-farfield", str(sec), "--speed", "343", "--out", str(out)])
     assert r.exit_code == 0, r.output
     res = json.loads(out.read_text())
-    # lengths come back in metres: the model reproduces the metre matrix
-    fit = np.array(res["positions"]) @ np.array(res["directions"]).T + np.array(res["offsets"])
+    # positions come back in metres, offsets in seconds (as in `calibrate toa --speed`)
+    assert res["units"]["positions"] == "m" and res["units"]["offsets"] == "s"
+    fit = np.array(res["positions"]) @ np.array(res["directions"]).T + 343.0 * np.array(res["offsets"])
     assert np.abs(fit - D).max() < 1e-9
 
 
@@ -79,6 +80,36 @@ def test_cli_pyramic_is_a_cone(tmp_path, shared_data):
     np.save(path, data.D)
     r = CliRunner().invoke(main, ["calibrate", "tdoa-farfield", str(path), "--out", str(tmp_path / "r.json")])
     assert r.exit_code == 2 and "cone" in r.output
+
+
+def test_cli_reads_the_pyramic_json_layout(tmp_path, shared_data):
+    src = shared_data / "pyramic" / "pyramic_tdoa_speaker0.json"
+    out = tmp_path / "r.json"
+    r = CliRunner().invoke(main, ["calibrate", "tdoa-farfield", str(src), "--out", str(out)])
+    # the shared speaker's directions lie on a cone: named, exit 2, no traceback, no file
+    assert r.exit_code == 2 and "[cone]" in r.output and "Traceback" not in r.output
+    assert not out.exists()
+    r = CliRunner().invoke(main, ["calibrate", "tdoa-farfield", str(src), "--out", str(out), "--allow-degenerate"])
+    assert r.exit_code == 0, r.output
+    res = json.loads(out.read_text())
+    assert len(res["positions"]) == 48 and len(res["directions"]) == 180
+    assert res["units"]["offsets"] == "s" and res["speed"] > 300
+
+
+def test_cli_json_in_another_layout_is_one_line(tmp_path):
+    path = tmp_path / "x.json"
+    path.write_text(json.dumps({"delays": [[1.0]]}))
+    r = CliRunner().invoke(main, ["calibrate", "tdoa-farfield", str(path), "--out", str(tmp_path / "r.json")])
+    assert r.exit_code == 2 and "missing keys" in r.output and "Traceback" not in r.output
+
+
+def test_cli_transposed_matrix_is_named(tmp_path, farfield_csv):
+    path, _, _, D = farfield_csv
+    tr = tmp_path / "t.csv"
+    np.savetxt(tr, D.T, delimiter=",")
+    r = CliRunner().invoke(main, ["calibrate", "tdoa-farfield", str(tr), "--out", str(tmp_path / "r.json")])
+    assert r.exit_code == 2 and "transposed?" in r.output, r.output
+    assert "DLASCL" not in r.output and "Traceback" not in r.output
 
 
 def test_cli_bad_matrix_exits_2(tmp_path):

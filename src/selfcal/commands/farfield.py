@@ -25,7 +25,9 @@ if TYPE_CHECKING:
 @click.option("--out", "out", type=click.Path(dir_okay=False, path_type=Path), required=True,
               help="Result JSON (positions, directions, offsets, residual_rms, degeneracy, ...).")
 @click.option("--speed", type=float, default=None, metavar="C",
-              help="Propagation speed in m/s: the matrix holds seconds (TDOA); lengths are reported in metres.")
+              help="Propagation speed in m/s: the matrix holds seconds (TDOA); positions are reported in "
+                   "metres, offsets and the residual in seconds. A Pyramic JSON holds seconds and its own "
+                   "sound_speed_mps, which --speed overrides.")
 @click.option("--method", type=click.Choice(["auto", "lm", "alternating", "init", "minimal"]), default="auto",
               show_default=True, help="Refinement: LM on the spheres (Alg. 3), alternating (Alg. 2), or none.")
 @click.option("--loss", type=click.Choice(["linear", "huber", "soft_l1", "cauchy"]), default="linear",
@@ -42,38 +44,78 @@ if TYPE_CHECKING:
 def farfield_command(matrix: Path, out: Path, speed: float | None, method: str, loss: str,
                      noise_std: float | None, ransac: bool, seed: int, allow_degenerate: bool,
                      plot: Path | None) -> None:
-    """Self-calibrate from an m x k far-field TDOA MATRIX (CSV or .npy, NaN = missing).
+    """Self-calibrate from an m x k far-field TDOA MATRIX (CSV, .npy or Pyramic JSON; NaN = missing).
 
     Rows are receiver positions (microphones, antenna positions), columns far transmitters;
-    entry = relative distance z_i . n_j + C_j (metres, or seconds with --speed). A degenerate
-    geometry (planar-motion, coplanar-directions, cone, collinear-motion,
+    entry = relative distance z_i . n_j + C_j (metres, or seconds with --speed). A .json
+    file in the Pyramic calibration layout (keys delays [m-1][k] in seconds against
+    microphone mic_ref, sources, microphones, sound_speed_mps) is read directly; its
+    hand-measured microphones are not used by the estimate, only compared with it. A
+    degenerate geometry (planar-motion, coplanar-directions, cone, collinear-motion,
     parallel-directions) exits with status 2 naming it, unless --allow-degenerate.
     """
+    import numpy as np
+
     from ..errors import InputError
     from ..io import read_matrix, write_json
     from ..tdoa import solve_farfield
 
-    M = read_matrix(matrix, name=str(matrix))
-    scale = 1.0
-    if speed is not None:
-        if not (speed > 0 and speed < float("inf")):
-            raise InputError(f"--speed must be a positive number, got {speed}")
-        scale = speed
-    res = solve_farfield(M * scale, method=method, loss=loss,
+    if speed is not None and not (speed > 0 and speed < float("inf")):
+        raise InputError(f"--speed must be a positive number, got {speed}")
+    reference = None
+    if matrix.suffix.lower() == ".json":
+        from ..datasets.pyramic import pyramic_from_dict
+        from ..io import read_json
+
+        data = pyramic_from_dict(read_json(matrix), label=str(matrix), speed=speed)
+        D, scale, seconds = data.D, data.speed, True
+        reference = data.positions
+    else:
+        M = read_matrix(matrix, name=str(matrix))
+        seconds = speed is not None
+        scale = speed if speed is not None else 1.0
+        D = M * scale
+    res = solve_farfield(D, method=method, loss=loss,
                          noise_std=None if noise_std is None else noise_std * scale,
                          allow_degenerate=allow_degenerate, ransac=ransac, rng=seed)
     if plot is not None:
         _plot(res, plot)
-    write_json(out, res.to_dict())
-    m, k = M.shape
+    out_dict = res.to_dict()
+    tunit = "s" if seconds else "m"
+    if seconds:
+        out_dict["offsets"] = (np.asarray(res.offsets) / scale).tolist()
+        out_dict["residual_rms"] = float(res.residual_rms / scale)
+        out_dict["speed"] = float(scale)
+    out_dict["units"] = {"positions": "m", "directions": "unit", "offsets": tunit, "residual_rms": tunit,
+                         "position_cov": "m^2"}
+    ref_rmse = None
+    if reference is not None and res.positions.shape[1] == 3:
+        ref_rmse = _aligned_rmse(res.positions, reference)
+        out_dict["reference_rmse"] = ref_rmse
+    write_json(out, out_dict)
+    m, k = D.shape
     click.echo(f"selfcal calibrate tdoa-farfield: {m} positions x {k} transmitters, method {res.method}, "
                f"loss {res.loss}")
-    click.echo(f"  residual RMS {res.residual_rms:.4g} m, converged={res.converged}, iterations={res.iterations}, "
-               f"rejected entries {int(res.rejected.sum())}")
+    click.echo(f"  residual RMS {out_dict['residual_rms']:.4g} {tunit}, converged={res.converged}, "
+               f"iterations={res.iterations}, rejected entries {int(res.rejected.sum())}")
+    if ref_rmse is not None:
+        click.echo(f"  RMS distance to the file's hand-measured microphones after rigid alignment "
+                   f"{1e3 * ref_rmse:.3g} mm (not used by the estimate)")
     if res.degeneracy is not None:
         click.echo(f"selfcal: warning: degenerate geometry [{res.degeneracy}]: wrote a partial reconstruction",
                    err=True)
     click.echo(f"  wrote {out}")
+
+
+def _aligned_rmse(est: object, ref: object) -> float:
+    """RMS distance (metres) between two point sets after the best rotation / reflection and translation."""
+    import numpy as np
+
+    from ..geometry import align
+
+    A, B = np.asarray(est, dtype=float), np.asarray(ref, dtype=float)
+    al = align(A, B, reflection=True)
+    return float(np.sqrt(np.mean(np.sum((al.apply(A) - B) ** 2, axis=1))))
 
 
 def _plot(res: FarfieldResult, path: Path) -> None:
