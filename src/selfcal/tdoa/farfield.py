@@ -264,26 +264,27 @@ def fit_A_nonlinear(nt: Array, A0: Array | None = None) -> Array:
 
     Parameters
     ----------
-    nt : (k, 3) rows ``ntilde_j``; A0 : (3, 3) start.
+    nt : (k, d) rows ``ntilde_j`` (d = 3 in space, 2 in a plane); A0 : (d, d) start.
     """
-    A0 = np.eye(3) if A0 is None else np.asarray(A0, dtype=float)
+    d = nt.shape[1]
+    A0 = np.eye(d) if A0 is None else np.asarray(A0, dtype=float)
 
     def fun(a: Array) -> Array:
-        v = nt @ a.reshape(3, 3).T
+        v = nt @ a.reshape(d, d).T
         return np.sum(v * v, axis=1) - 1.0
 
     def jac(a: Array) -> Array:
-        A = a.reshape(3, 3)
-        v = nt @ A.T  # (k, 3)
-        return (2.0 * v[:, :, None] * nt[:, None, :]).reshape(len(nt), 9)
+        A = a.reshape(d, d)
+        v = nt @ A.T  # (k, d)
+        return (2.0 * v[:, :, None] * nt[:, None, :]).reshape(len(nt), d * d)
 
-    # "lm" needs at least as many residuals as the 9 unknowns
-    meth = "lm" if len(nt) >= 9 else "trf"
+    # "lm" needs at least as many residuals as the d^2 unknowns
+    meth = "lm" if len(nt) >= d * d else "trf"
     sol = least_squares(fun, A0.ravel(), jac=jac, method=meth, xtol=1e-14, ftol=1e-14, gtol=1e-14)
-    return np.asarray(sol.x.reshape(3, 3))
+    return np.asarray(sol.x.reshape(d, d))
 
 
-def initialize_farfield(X: Array) -> FarfieldInit:
+def initialize_farfield(X: Array, *, dim: int = 3) -> FarfieldInit:
     """Overdetermined initialisation (paper 000, section 2.3, modifications (i)-(iii)).
 
     (i) best rank-3 approximation ``Dbar ~ U_3 (S_3 V_3^T)``; (ii) B from the k equations
@@ -298,14 +299,16 @@ def initialize_farfield(X: Array) -> FarfieldInit:
     ----------
     X : (r, k) complete reduced matrix (metres): ``D`` minus a per-column constant (Lemma 1),
         e.g. :func:`reduce_matrix` (r = m-1) or the column-centred D (r = m).
+    dim : 3 (space, the paper) or 2 (the planar analogue: positions and directions in one
+        plane, rank-2 factorisation and the 2 x 2 quadric ``ntilde^T B2 ntilde = 1``).
 
     Returns
     -------
-    FarfieldInit with positions (r, 3), one per row of X, and directions (k, 3).
+    FarfieldInit with positions (r, dim), one per row of X, and directions (k, dim).
     """
     U, s, Vt = np.linalg.svd(X, full_matrices=False)
     scale = float(s[0]) / np.sqrt(X.shape[1]) if s[0] > 0 else 1.0
-    nt = (s[:3, None] * Vt[:3]).T / scale  # scaled for a well-conditioned quadric fit
+    nt = (s[:dim, None] * Vt[:dim]).T / scale  # scaled for a well-conditioned quadric fit
     B, _, _ = fit_quadric(nt)
     w, Qe = np.linalg.eigh(B)
     pd = bool(w[0] > 0)
@@ -313,7 +316,7 @@ def initialize_farfield(X: Array) -> FarfieldInit:
         A = np.linalg.cholesky(B).T  # B = L L^T = A^T A
     else:
         A_psd = np.sqrt(np.maximum(w, 1e-6 * max(w[-1], 1e-12)))[:, None] * Qe.T
-        candidates = [fit_A_nonlinear(nt, np.eye(3)), fit_A_nonlinear(nt, A_psd), A_psd]
+        candidates = [fit_A_nonlinear(nt, np.eye(dim)), fit_A_nonlinear(nt, A_psd), A_psd]
         best, best_cost = A_psd, np.inf
         for A_try in candidates:
             c = float(np.sum((np.sum((nt @ A_try.T) ** 2, axis=1) - 1.0) ** 2))
