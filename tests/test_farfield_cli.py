@@ -150,3 +150,24 @@ def test_fig3_lm_converges_in_fewer_iterations_than_alternating():
 def test_fig4_good_far_field_with_small_noise_is_accurate():
     row = fig4_trial({"distance": 1e7, "sigma": 1e-4, "batch": 5}, seed=4)
     assert row["lm_error_sum"] / row["n"] < 0.01
+
+
+@pytest.mark.parametrize("dim,case", [("auto", "planar"), ("2", "planar")])
+def test_cli_planar_array_with_dim(tmp_path, dim, case):
+    rng = np.random.default_rng(5)
+    th = 2 * np.pi * np.arange(16) / 16
+    Z = 0.05 * np.column_stack([np.cos(th), np.sin(th)])
+    az = rng.uniform(0, 2 * np.pi, 24)
+    D = Z @ np.column_stack([np.cos(az), np.sin(az)]).T + 1e-5 * rng.normal(size=(16, 24))
+    path = tmp_path / "ring.csv"
+    np.savetxt(path, D, delimiter=",")
+    out, fig = tmp_path / "r.json", tmp_path / "r.png"
+    r = CliRunner().invoke(main, ["calibrate", "tdoa-farfield", str(path), "--dim", dim, "--out", str(out),
+                                  "--plot", str(fig)])
+    assert r.exit_code == 0, r.output
+    res = json.loads(out.read_text())
+    assert res["case"] == case and res["dim"] == 2 and np.array(res["positions"]).shape == (16, 2)
+    assert fig.stat().st_size > 0
+    # the default (3-D) names the degeneracy and points at --dim 2
+    r = CliRunner().invoke(main, ["calibrate", "tdoa-farfield", str(path), "--out", str(out)])
+    assert r.exit_code == 2 and "coplanar-directions" in r.output and "--dim 2" in r.output

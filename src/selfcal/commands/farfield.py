@@ -28,6 +28,10 @@ if TYPE_CHECKING:
               help="Propagation speed in m/s: the matrix holds seconds (TDOA); positions are reported in "
                    "metres, offsets and the residual in seconds. A Pyramic JSON holds seconds and its own "
                    "sound_speed_mps, which --speed overrides.")
+@click.option("--dim", type=click.Choice(["1", "2", "3", "auto"]), default="3", show_default=True,
+              help="3: spatial array; 2: planar array with sources in its plane (in-plane geometry); 1: linear "
+                   "array (positions along the line, up to scale); auto: decided by a rank test of the data "
+                   "against the noise. The JSON's 'case' and 'determined' say what the data fix.")
 @click.option("--method", type=click.Choice(["auto", "lm", "alternating", "init", "minimal"]), default="auto",
               show_default=True, help="Refinement: LM on the spheres (Alg. 3), alternating (Alg. 2), or none.")
 @click.option("--loss", type=click.Choice(["linear", "huber", "soft_l1", "cauchy"]), default="linear",
@@ -41,7 +45,7 @@ if TYPE_CHECKING:
 @click.option("--plot", "plot", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="PNG of the positions and directions.")
 @handle_errors
-def farfield_command(matrix: Path, out: Path, speed: float | None, method: str, loss: str,
+def farfield_command(matrix: Path, out: Path, speed: float | None, dim: str, method: str, loss: str,
                      noise_std: float | None, ransac: bool, seed: int, allow_degenerate: bool,
                      plot: Path | None) -> None:
     """Self-calibrate from an m x k far-field TDOA MATRIX (CSV, .npy or Pyramic JSON; NaN = missing).
@@ -77,7 +81,8 @@ def farfield_command(matrix: Path, out: Path, speed: float | None, method: str, 
         D = M * scale
     res = solve_farfield(D, method=method, loss=loss,
                          noise_std=None if noise_std is None else noise_std * scale,
-                         allow_degenerate=allow_degenerate, ransac=ransac, rng=seed)
+                         allow_degenerate=allow_degenerate, ransac=ransac, rng=seed,
+                         dim="auto" if dim == "auto" else int(dim))
     if plot is not None:
         _plot(res, plot)
     out_dict = res.to_dict()
@@ -94,8 +99,9 @@ def farfield_command(matrix: Path, out: Path, speed: float | None, method: str, 
         out_dict["reference_rmse"] = ref_rmse
     write_json(out, out_dict)
     m, k = D.shape
-    click.echo(f"selfcal calibrate tdoa-farfield: {m} positions x {k} transmitters, method {res.method}, "
-               f"loss {res.loss}")
+    click.echo(f"selfcal calibrate tdoa-farfield: {m} positions x {k} transmitters, {res.dim}-D ({res.case}), "
+               f"method {res.method}, loss {res.loss}")
+    click.echo(f"  determined: {res.determined}")
     click.echo(f"  residual RMS {out_dict['residual_rms']:.4g} {tunit}, converged={res.converged}, "
                f"iterations={res.iterations}, rejected entries {int(res.rejected.sum())}")
     if ref_rmse is not None:
@@ -119,26 +125,50 @@ def _aligned_rmse(est: object, ref: object) -> float:
 
 
 def _plot(res: FarfieldResult, path: Path) -> None:
+    """Positions (with 95 % ellipses in 2-D) and the directions on the unit sphere (3-D),
+    circle (2-D) or segment (1-D), coloured by each transmitter's offset C_j (metres)."""
     import numpy as np
+    from matplotlib.figure import Figure
 
-    from ..plotting import new_figure, save_figure
+    from ..plotting import plot_positions, save_figure
 
-    fig, axes = new_figure(1, 2, size=(11.0, 5.0))
-    P = res.positions
-    axes[0].scatter(P[:, 0], P[:, 1], c=P[:, 2], cmap="viridis", s=25)
-    axes[0].scatter([0], [0], marker="x", c="r", s=60, label="position 1 (origin)")
-    axes[0].set_aspect("equal")
-    axes[0].set_xlabel("x [m]")
-    axes[0].set_ylabel("y [m] (colour: z)")
-    axes[0].set_title("receiver positions")
-    axes[0].legend(loc="best")
-    n = res.directions
-    az = np.degrees(np.arctan2(n[:, 1], n[:, 0]))
-    el = np.degrees(np.arcsin(np.clip(n[:, 2], -1, 1)))
-    axes[1].scatter(az, el, s=12)
-    axes[1].set_xlabel("azimuth [deg]")
-    axes[1].set_ylabel("elevation [deg]")
-    axes[1].set_title("directions" + (f" [{res.degeneracy}]" if res.degeneracy else ""))
+    fig = Figure(figsize=(12.0, 5.2))
+    P, n, d = res.positions, res.directions, res.dim
+    ax0 = fig.add_subplot(1, 2, 1)
+    if d == 1:
+        ax0.scatter(P[:, 0], np.zeros(len(P)), s=25)
+        ax0.set_xlabel("position along the line [m] (up to scale)")
+        ax0.set_ylabel("(none) [m]")
+        ax0.set_yticks([])
+    else:
+        plot_positions(ax0, P, cov=res.position_cov if d == 2 else None, label="positions")
+        if d == 3:
+            sc = ax0.scatter(P[:, 0], P[:, 1], c=P[:, 2], cmap="viridis", s=25, zorder=4)
+            fig.colorbar(sc, ax=ax0, label="z [m]")
+        ax0.legend(loc="best", fontsize=8)
+    ax0.set_title(f"receiver positions ({res.case}, first at the origin)")
+    ax1 = fig.add_subplot(1, 2, 2, projection="3d" if d == 3 else None)
+    if d == 3:
+        u, v = np.mgrid[0 : 2 * np.pi : 37j, 0 : np.pi : 19j]
+        ax1.plot_wireframe(np.cos(u) * np.sin(v), np.sin(u) * np.sin(v), np.cos(v), color="0.85", lw=0.4)
+        sc = ax1.scatter(n[:, 0], n[:, 1], n[:, 2], c=res.offsets, cmap="plasma", s=14, depthshade=False)
+        ax1.set_xlabel("n_x [unit]")
+        ax1.set_ylabel("n_y [unit]")
+        ax1.set_zlabel("n_z [unit]")
+        ax1.set_box_aspect((1, 1, 1))
+    elif d == 2:
+        t = np.linspace(0, 2 * np.pi, 200)
+        ax1.plot(np.cos(t), np.sin(t), color="0.8", lw=0.8)
+        sc = ax1.scatter(n[:, 0], n[:, 1], c=res.offsets, cmap="plasma", s=18)
+        ax1.set_aspect("equal")
+        ax1.set_xlabel("n_x [unit]")
+        ax1.set_ylabel("n_y [unit]")
+    else:
+        sc = ax1.scatter(n[:, 0], np.arange(len(n)), c=res.offsets, cmap="plasma", s=14)
+        ax1.set_xlabel("projection of the direction on the line [unit] (cos of the angle)")
+        ax1.set_ylabel("transmitter index [-]")
+    fig.colorbar(sc, ax=ax1, label="offset C_j [m]", shrink=0.8)
+    ax1.set_title("transmitter directions" + (f" [{res.degeneracy}]" if res.degeneracy else ""))
     save_figure(fig, path)
 
 

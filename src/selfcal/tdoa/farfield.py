@@ -94,6 +94,13 @@ class FarfieldResult:
     warnings : human-readable cautions about this estimate (e.g. ``directions-collapsed``:
         the refinement drove the directions towards a common plane, see
         :data:`COLLAPSE_RATIO`); empty when there are none.
+    dim : dimension of ``positions`` / ``directions`` (3 in space, 2 planar, 1 linear).
+    case : ``"spatial"`` (3-D, Theorem 1), ``"planar"`` (positions and directions in one
+        plane: the in-plane geometry; positions off that plane are projected onto it, the
+        out-of-plane coordinate is not observable) or ``"linear"`` (positions on a line, or
+        directions all parallel: one coordinate per position), or the degeneracy's name
+        for a partial reconstruction.
+    determined : what the data determine in this case (paper 000, section 2.2), in words.
     """
 
     positions: Array
@@ -111,6 +118,9 @@ class FarfieldResult:
     cost_history: list[float] = field(default_factory=list)
     position_cov: Array | None = None
     warnings: tuple[str, ...] = ()
+    dim: int = 3
+    case: str = "spatial"
+    determined: str = ""
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-safe dictionary with the DESIGN.md keys (``rejected`` as [i, j] pairs)."""
@@ -129,6 +139,9 @@ class FarfieldResult:
             "diagnostics": None if self.diagnostics is None else self.diagnostics.to_dict(),
             "position_cov": None if self.position_cov is None else self.position_cov.tolist(),
             "warnings": list(self.warnings),
+            "dim": int(self.dim),
+            "case": self.case,
+            "determined": self.determined,
         }
 
 
@@ -335,8 +348,9 @@ def initialize_farfield(X: Array, *, dim: int = 3) -> FarfieldInit:
 
 def _canonical(pos: Array, dirs: Array) -> tuple[Array, Array, Array]:
     """Rotate so that the positions' principal axes are the coordinate axes (row 0 stays 0)."""
-    if np.linalg.matrix_rank(pos, tol=1e-12 * (np.abs(pos).max() + 1e-300)) < 3:
-        return pos, dirs, np.eye(3)
+    d = pos.shape[1]
+    if d == 1 or np.linalg.matrix_rank(pos, tol=1e-12 * (np.abs(pos).max() + 1e-300)) < d:
+        return pos, dirs, np.eye(d)
     _, _, al = canonical_gauge(pos)
     R = al.rotation
     return pos @ R.T, dirs @ R.T, R
@@ -406,12 +420,13 @@ def ransac_farfield(
 _TUNING = {"huber": 1.345, "soft_l1": 1.345, "cauchy": 2.385}
 
 
-def _robust_sigma(D: Array, Z: Array, N: Array, C: Array, used: NDArray[np.bool_]) -> float:
+def _robust_sigma(D: Array, Z: Array, N: Array, C: Array, used: NDArray[np.bool_], *, dim: int = 3) -> float:
     """1.4826 MAD of the model residuals, corrected for the model's degrees of freedom."""
     r = farfield_residuals(np.where(used, D, np.nan), Z, N, C)
     n_obs = int(used.sum())
     m, k = D.shape
-    dof = max(n_obs - (3 * (m - 1) + 3 * k - 3), 1)
+    g = dim * (dim - 1) // 2
+    dof = max(n_obs - (dim * (m - 1) + dim * k - g), 1)
     return _MAD * float(np.nanmedian(np.abs(r[used]))) * float(np.sqrt(n_obs / dof))
 
 def _noise_from_double_centred(D: Array, rank: int) -> float:
@@ -514,8 +529,9 @@ def _raise_or_return(
 
 
 _DEGENERATE_MESSAGES = {
-    "planar-motion": "the receiver positions lie in a plane (rank 2): only a family of planar "
-    "reconstructions exists; add a position off the plane.",
+    "planar-motion": "the receiver positions lie in a plane (rank 2) and the directions leave it: far-field "
+    "TDOA then fixes the in-plane geometry only up to a 2 x 2 linear map (each direction's in-plane length is "
+    "unknown), with dim=2 too; add a position off the plane, or use sources in the array's plane (dim=2).",
     "coplanar-directions": "the transmitter directions lie in a plane (rank 2): the out-of-plane "
     "coordinate of the positions is unobservable; add a transmitter off that plane.",
     "collinear-motion": "the receiver positions lie on a line (rank <= 1): only a one-parameter "
@@ -526,6 +542,119 @@ _DEGENERATE_MESSAGES = {
     "constraints n^T B n = 1 do not determine B, so the geometry is ambiguous; add transmitters "
     "off the cone.",
 }
+
+
+_DETERMINED = {
+    "spatial": "positions and directions up to a rotation / reflection (first position at the origin)",
+    "planar": "in-plane positions and directions up to a rotation / reflection of the plane; positions off "
+    "the plane of the directions are seen projected onto it (their out-of-plane coordinate is unobservable)",
+    "linear": "positions along the line up to one scale factor >= 1 (reported for the smallest array "
+    "consistent with the data: the largest |projection| of a direction onto the line is 1, exact when a "
+    "source is at endfire); directions' angles to the line only through that projection",
+    "parallel": "the coordinate of each position along the common direction (scale included); nothing across it",
+    "planar-motion": "not determined: with the directions off the positions' plane the in-plane geometry is "
+    "known only up to a 2 x 2 linear map (each direction's in-plane length is unknown); one member shown",
+    "coplanar-directions": "the in-plane geometry (use dim=2); the out-of-plane coordinate is not observable",
+    "collinear-motion": "positions along the line up to scale (use dim=1)",
+    "parallel-directions": "the coordinate along the common direction (use dim=1)",
+    "cone": "not determined: a one-parameter family of geometries fits the data equally well",
+}
+
+
+def _effective_dim(dim: int | str, report: DegeneracyReport) -> int:
+    """The dimension to solve in: ``dim`` itself, or at "auto" the rank test's verdict.
+
+    A rank-2 matrix whose 2-D quadric is inconsistent (``planar-motion``: directions off the
+    positions' plane) has no determined planar solution; 3 is returned so that the caller
+    reports it as a degeneracy. Asking for a dimension the data contradict raises.
+    """
+    rank = int(report.rank)
+    sv = ", ".join(f"{v:.3g}" for v in report.singular_values[:4])
+    detail = f"numerical rank {rank} (singular values {sv}; noise threshold {report.rank_threshold:.3g})"
+    if dim == "auto":
+        if rank == 2 and report.kind == "coplanar-directions":
+            return 2
+        if rank == 1:
+            return 1
+        return 3
+    if dim == 2 and rank == 3:
+        raise DegenerateGeometryError(
+            f"dim=2 but the data are 3-D: {detail}; use dim=3 (or 'auto')", kind="dimension-mismatch")
+    if dim == 2 and rank == 2 and report.kind == "planar-motion":
+        return 3  # reported as planar-motion (not determined) by the caller
+    if dim == 2 and rank < 2:
+        raise DegenerateGeometryError(
+            f"dim=2 but the data have {detail}: positions on a line or parallel directions; use dim=1 "
+            "(or 'auto')", kind="dimension-mismatch")
+    if dim == 1 and rank > 1:
+        raise DegenerateGeometryError(
+            f"dim=1 but the data have {detail}; use dim={min(rank, 3)} (or 'auto')", kind="dimension-mismatch")
+    return int(dim)
+
+
+def _solve_low_dim(D: Array, X: Array, used: NDArray[np.bool_], d: int, report: DegeneracyReport, *,
+                   offsets: str, loss: str, f_scale: float | None, method: str, max_iter: int | None,
+                   tol: float | None, cone_tol: float) -> dict[str, Any]:
+    """Planar (d = 2) or linear (d = 1) far-field calibration from the complete centred X."""
+    m, k = D.shape
+    free = offsets == "free"
+    if d == 1:
+        # rank-1 model D_ij = x_i u_j + C_j: the SVD of the centred (filled) matrix is its least
+        # squares fit; |u_j| <= 1 bounds the scale, fixed here at max |u_j| = 1
+        U, s, Vt = np.linalg.svd(X, full_matrices=False)
+        u = s[0] * Vt[0]
+        a = float(np.max(np.abs(u)))
+        if a <= 0:
+            raise DegenerateGeometryError("every column is constant: no position is observable", kind="no-signal")
+        x = U[:, 0] * a
+        x = x - x[0]
+        q = u / a
+        parallel = report.kind == "parallel-directions"
+        pos, dirs = x[:, None], q[:, None]
+        C = np.asarray(np.nanmean(np.where(used, D - pos @ dirs.T, np.nan), axis=0))
+        if offsets == "reference":
+            C = D[0].copy()
+        case = "parallel" if parallel else "linear"
+        return {"positions": pos, "directions": dirs, "offsets": C, "cov": None, "converged": True,
+                "iterations": 0, "method": "svd-rank1", "pd": True, "history": [], "case": case,
+                "determined": _DETERMINED[case]}
+    if k < 3 or m < 3:
+        raise DegenerateGeometryError(f"{m} x {k}: planar far-field calibration needs at least 3 positions and "
+                                      "3 directions", kind="too-few-sources" if k < 3 else "too-few-receivers")
+    # the 2-D analogue of the cone (Theorem 2): the quadric system for B2 is rank deficient when
+    # the directions lie on two lines through the origin
+    Us, s, Vt = np.linalg.svd(X, full_matrices=False)
+    nt = (s[:2, None] * Vt[:2]).T
+    a_, b_ = nt[:, 0], nt[:, 1]
+    M = np.stack([a_ * a_, b_ * b_, np.sqrt(2.0) * a_ * b_], axis=1)
+    _, mu, Wt = np.linalg.svd(M, full_matrices=False)
+    om = Wt[-1]
+    Om = np.array([[om[0], om[2] / np.sqrt(2.0)], [om[2] / np.sqrt(2.0), om[1]]])
+    nu = 2.0 * report.noise_std * float(np.linalg.norm(nt @ Om))
+    if k < 4 or mu[-1] / max(nu, 1e-300) < cone_tol:
+        raise DegenerateGeometryError(
+            f"planar calibration: the {k} directions lie on (at most) two lines through the origin "
+            f"(quadric SNR {mu[-1] / max(nu, 1e-300):.3g} < {cone_tol:g}), so B2 in ntilde^T B2 ntilde = 1 is not "
+            "determined; add directions from other angles", kind="cone")
+    init = initialize_farfield(X, dim=2)
+    Z, N = init.positions - init.positions[0], init.directions
+    C = np.asarray(np.nanmean(np.where(used, D - Z @ N.T, np.nan), axis=0)) if free else D[0].copy()
+    hist: list[float] = []
+    cov = None
+    its, conv, meth = 0, True, "init"
+    if method in ("auto", "lm", "alternating"):
+        meth = "lm"
+        delta = 1.0
+        if loss != "linear":
+            rob = _robust_sigma(D, Z, N, C, used, dim=2)
+            delta = f_scale if f_scale is not None else _TUNING[loss] * max(rob, 1e-12 * (np.nanmax(np.abs(X)) + 1e-300))
+        out = refine_lm(D, Z, N, C, mask=used, free_offsets=free, loss=loss, delta=delta,
+                        max_iter=max_iter or 200, tol=tol or 1e-12)
+        Z, N, C, cov, hist, its, conv = (out.positions, out.directions, out.offsets, out.position_cov,
+                                         out.history, out.iterations, out.converged)
+    return {"positions": Z, "directions": N, "offsets": C, "cov": cov, "converged": conv, "iterations": its,
+            "method": meth, "pd": init.b_positive_definite, "history": hist, "case": "planar",
+            "determined": _DETERMINED["planar"]}
 
 
 def solve_farfield(
@@ -547,6 +676,7 @@ def solve_farfield(
     check_degeneracy: bool = True,
     ransac: bool = False,
     rng: np.random.Generator | int | None = None,
+    dim: int | str = 3,
 ) -> FarfieldResult:
     """Far-field TDOA self-calibration: positions, directions and offsets from D (paper 000).
 
@@ -585,10 +715,21 @@ def solve_farfield(
         solver); entries outside its inlier set are treated as missing and reported in
         ``rejected``. Combine with a robust loss for the best results.
     rng : random generator / seed (used by ``ransac``).
-
-    Returns
-    -------
-    FarfieldResult
+    dim : 3 (space, the paper), 2 (planar: positions and directions in one plane, e.g. a
+        circular / rectangular board with sources around it in its plane; or any array with
+        coplanar directions, whose positions are then seen projected onto that plane),
+        1 (linear: positions on a line, or all directions parallel), or ``"auto"``: the
+        numerical rank of the column-centred matrix against the noise (the Marchenko-Pastur
+        edge test of :func:`~selfcal.tdoa.analyse_degeneracy`) and, at rank 2, the
+        consistency of the 2-D quadric (chi-square per dof of ``ntilde^T B2 ntilde = 1``)
+        decide. What is determined (paper 000, section 2.2) is in ``result.determined``:
+        planar -- the in-plane geometry up to a rotation / reflection of the plane (needs
+        k >= 3 directions not all on two lines); linear -- the positions along the line up
+        to one scale factor (reported with the largest |projection| of a direction = 1:
+        the smallest array consistent with the data, exact when a source is at endfire);
+        parallel directions -- the coordinate along the direction, scale included.
+        Positions with the directions off their plane (``planar-motion``) are not determined
+        (a 2 x 2 family) and raise in every mode.
 
     Raises
     ------
@@ -599,6 +740,10 @@ def solve_farfield(
         (with ``partial`` = the partial FarfieldResult) unless ``allow_degenerate``.
     """
     check_choice(method, "method", METHODS)
+    if dim not in (1, 2, 3, "auto"):
+        raise InputError(f"dim must be 1, 2, 3 or 'auto', got {dim!r}")
+    if method == "minimal" and dim != 3:
+        raise InputError("method='minimal' (Algorithm 1) is the 3-D 4 x 6 solver; use dim=3")
     check_choice(loss, "loss", LOSSES)
     check_choice(offsets, "offsets", ("auto", "reference", "free"))
     check_choice(direction_solver, "direction_solver", ("global", "local"))
@@ -643,7 +788,8 @@ def solve_farfield(
     if complete and loss == "linear":
         Dfill = D
     else:
-        Dfill, sig = lowrank_fit(D, used.astype(float), rank=3, loss="huber" if loss != "linear" else "linear")
+        Dfill, sig = lowrank_fit(D, used.astype(float), rank=dim if isinstance(dim, int) else 3,
+                                 loss="huber" if loss != "linear" else "linear")
         if sigma_entries is None:
             sigma_entries = sig
     if loss == "linear":
@@ -673,6 +819,16 @@ def solve_farfield(
 
     no_rej = np.zeros_like(finite)
     kind_found = report.kind if check_degeneracy else None
+    dim_eff = _effective_dim(dim, report) if check_degeneracy or dim != 3 else 3
+    if dim_eff in (1, 2):
+        if dim_eff == 2 and (dim == 2 or report.kind == "coplanar-directions"):
+            check_orientation(D, noise_std=noise_std, rank=2)
+        sol = _solve_low_dim(D, X, used, dim_eff, report, offsets=offsets, loss=loss, f_scale=f_scale,
+                             method=method, max_iter=max_iter, tol=tol, cone_tol=cone_tol)
+        pos, dirs, C, cov = sol["positions"], sol["directions"], sol["offsets"], sol["cov"]
+        res = _result(pos, dirs, C, kind=None, conv=sol["converged"], its=sol["iterations"], meth=sol["method"],
+                      rej=no_rej, pd=sol["pd"], hist=sol["history"], cov=cov)
+        return replace(res, dim=dim_eff, case=sol["case"], determined=sol["determined"])
     if check_degeneracy and report.rank < 3:
         kind = report.kind or "collinear-motion"
         partial_fn = {
@@ -683,12 +839,16 @@ def solve_farfield(
         }[kind]
         pos, dirs = partial_fn(X)
         pos = pos - pos[0]
+        hint = {"planar-motion": "", "coplanar-directions": " (dim=2 / --dim 2 gives the in-plane geometry)",
+                "collinear-motion": " (dim=1 / --dim 1 gives the positions along the line, up to scale)",
+                "parallel-directions": " (dim=1 / --dim 1 gives the coordinate along the direction)"}[kind]
         part = _result(pos, dirs, _offsets(pos, dirs), kind=kind, conv=False, its=0, meth=f"partial-{kind}",
                        rej=no_rej, pd=False, hist=[])
         sv = ", ".join(f"{v:.3g}" for v in report.singular_values[:4])
         detail = (f" (numerical rank {report.rank}: singular values {sv} against the noise-aware "
                   f"threshold {report.rank_threshold:.3g})")
-        return _raise_or_return(kind, _DEGENERATE_MESSAGES[kind] + detail, part, allow_degenerate)
+        part = replace(part, case=kind, dim=3, determined=_DETERMINED[kind])
+        return _raise_or_return(kind, _DEGENERATE_MESSAGES[kind] + detail + hint, part, allow_degenerate)
     if m < 4:
         raise DegenerateGeometryError(
             f"{m} receiver positions span 3-D but at least 4 are needed (Theorem 1)", kind="too-few-receivers")
@@ -760,6 +920,8 @@ def solve_farfield(
                 rej = np.asarray(used & (np.abs(r) > reject_k * max(rob, 1e-300)))
     res = _result(Z, N, C, kind=kind_found, conv=conv, its=its, meth=method, rej=rej,
                   pd=init.b_positive_definite, hist=hist, cov=cov)
+    res = replace(res, case="cone" if kind_found == "cone" else "spatial",
+                  determined=_DETERMINED["cone" if kind_found == "cone" else "spatial"])
     cautions = _collapse_warning(init.directions, res.directions)
     if cautions:
         warnings.warn(cautions[0], ConvergenceWarning, stacklevel=2)
