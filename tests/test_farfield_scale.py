@@ -43,3 +43,24 @@ def test_lm_step_is_the_same_from_either_side(m, k, d):
     b = _lm_step(Hzz, Hzn, Hnn, gz, gn, 0.1, side="positions")
     for x, y in zip(a, b):
         assert np.allclose(x, y, rtol=1e-8, atol=1e-12 * np.abs(x).max())
+
+
+def test_cg_step_matches_the_direct_step():
+    # the conjugate-gradient step used when both sides are large solves the same damped system
+    D, Z, N, C = _problem(3, 30, 40, 3, sigma=1e-2)
+    Hzz, Hzn, Hnn, gz, gn, _, _ = _normal_equations(D, Z, N, C + 0.01, np.ones((30, 40)), True)
+    a = _lm_step(Hzz, Hzn, Hnn, gz, gn, 0.1, side="directions")
+    b = _lm_step(Hzz, Hzn, Hnn, gz, gn, 0.1, side="cg")
+    for x, y in zip(a, b):
+        assert np.abs(x - y).max() <= 1e-8 * np.abs(x).max()
+
+
+def test_truncated_svd_equals_full_svd():
+    from selfcal.tdoa.degeneracy import top_svd
+
+    rng = np.random.default_rng(0)
+    X = rng.normal(size=(400, 350)) + 10 * rng.normal(size=(400, 3)) @ rng.normal(size=(3, 350))
+    U, s, Vt = top_svd(X, 4)
+    s_full = np.linalg.svd(X, compute_uv=False)
+    assert np.allclose(s, s_full[:4], rtol=1e-10)
+    assert np.allclose(np.abs(np.sum(U * (X @ Vt.T), axis=0)), s, rtol=1e-10)

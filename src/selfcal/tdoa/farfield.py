@@ -35,6 +35,7 @@ from ..errors import ConvergenceWarning, DegenerateGeometryError, InputError
 from ..geometry import canonical_gauge
 from .degeneracy import (
     DegeneracyReport,
+    top_svd,
     analyse_degeneracy,
     fit_quadric,
     partial_collinear_motion,
@@ -319,7 +320,7 @@ def initialize_farfield(X: Array, *, dim: int = 3) -> FarfieldInit:
     -------
     FarfieldInit with positions (r, dim), one per row of X, and directions (k, dim).
     """
-    U, s, Vt = np.linalg.svd(X, full_matrices=False)
+    U, s, Vt = top_svd(X, dim)
     scale = float(s[0]) / np.sqrt(X.shape[1]) if s[0] > 0 else 1.0
     nt = (s[:dim, None] * Vt[:dim]).T / scale  # scaled for a well-conditioned quadric fit
     B, _, _ = fit_quadric(nt)
@@ -438,7 +439,7 @@ def _noise_from_double_centred(D: Array, rank: int) -> float:
     """
     X = D - D.mean(axis=0, keepdims=True)
     X = X - X.mean(axis=1, keepdims=True)
-    U, s, Vt = np.linalg.svd(X, full_matrices=False)
+    U, s, Vt = top_svd(X, rank)
     R = X - (U[:, :rank] * s[:rank]) @ Vt[:rank]
     dof = (D.shape[0] - 1 - rank) * (D.shape[1] - 1 - rank)
     return float(_MAD * np.median(np.abs(R)) * np.sqrt(R.size / max(dof, 1)))
@@ -504,8 +505,8 @@ def check_orientation(D: Array, *, noise_std: float | None = None, rank: int = 3
         return
     sigma = noise_std if noise_std is not None else _noise_from_double_centred(D, rank)
     sigma = max(float(sigma), 1e-14 * scale)
-    sc = np.linalg.svd(D - D.mean(axis=0, keepdims=True), compute_uv=False)
-    sr = np.linalg.svd(D - D.mean(axis=1, keepdims=True), compute_uv=False)
+    sc = top_svd(D - D.mean(axis=0, keepdims=True), rank + 1)[1]
+    sr = top_svd(D - D.mean(axis=1, keepdims=True), rank + 1)[1]
     thr_c = rank_factor * sigma * (np.sqrt(m - 1) + np.sqrt(k))
     thr_r = rank_factor * sigma * (np.sqrt(m) + np.sqrt(k - 1))
     if sc[rank] > thr_c and sr[rank] <= thr_r:
@@ -601,7 +602,7 @@ def _solve_low_dim(D: Array, X: Array, used: NDArray[np.bool_], d: int, report: 
     if d == 1:
         # rank-1 model D_ij = x_i u_j + C_j: the SVD of the centred (filled) matrix is its least
         # squares fit; |u_j| <= 1 bounds the scale, fixed here at max |u_j| = 1
-        U, s, Vt = np.linalg.svd(X, full_matrices=False)
+        U, s, Vt = top_svd(X, 1)
         u = s[0] * Vt[0]
         a = float(np.max(np.abs(u)))
         if a <= 0:
@@ -623,7 +624,7 @@ def _solve_low_dim(D: Array, X: Array, used: NDArray[np.bool_], d: int, report: 
                                       "3 directions", kind="too-few-sources" if k < 3 else "too-few-receivers")
     # the 2-D analogue of the cone (Theorem 2): the quadric system for B2 is rank deficient when
     # the directions lie on two lines through the origin
-    Us, s, Vt = np.linalg.svd(X, full_matrices=False)
+    Us, s, Vt = top_svd(X, 2)
     nt = (s[:2, None] * Vt[:2]).T
     a_, b_ = nt[:, 0], nt[:, 1]
     M = np.stack([a_ * a_, b_ * b_, np.sqrt(2.0) * a_ * b_], axis=1)
@@ -923,8 +924,13 @@ def solve_farfield(
     res = replace(res, case="cone" if kind_found == "cone" else "spatial",
                   determined=_DETERMINED["cone" if kind_found == "cone" else "spatial"])
     cautions = _collapse_warning(init.directions, res.directions)
+    if method == "lm" and res.position_cov is None:
+        cautions = cautions + ("position_cov not computed: both sides of the problem are large (the reduced "
+                               "system exceeds selfcal.tdoa.refine.COV_DIRECT_MAX unknowns); call "
+                               "refine.position_covariance for it",)
     if cautions:
-        warnings.warn(cautions[0], ConvergenceWarning, stacklevel=2)
+        if cautions[0].startswith("directions-collapsed"):
+            warnings.warn(cautions[0], ConvergenceWarning, stacklevel=2)
         res = replace(res, warnings=cautions)
     return res
 

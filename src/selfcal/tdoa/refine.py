@@ -415,6 +415,10 @@ def _lm_step(
     Hzz_d = Hzz + lam * np.einsum("iaa->ia", Hzz)[:, :, None] * eye_d + 1e-12 * eye_d
     if side == "auto":
         side = "positions" if _eliminate_positions(mz, d, k, p) else "directions"
+        if min(d * mz, p * k) > DIRECT_MAX:
+            side = "cg"
+    if side == "cg":
+        return _lm_step_cg(Hzz_d, Hzn, Hnn_d, gz, gn)
     Hr = _flat(Hzn)
     if side == "directions":
         Hnn_inv = np.linalg.inv(Hnn_d)  # (k, p, p)
@@ -436,6 +440,54 @@ def _lm_step(
     rhs = gn.reshape(-1) - Yr.T @ gz.reshape(-1)
     dn = np.linalg.solve(S, rhs)
     dz = np.einsum("iab,ib->ia", Hzz_inv, gz) - (Yr @ dn).reshape(mz, d)
+    return dz, dn.reshape(k, p)
+
+
+#: largest reduced (Schur) system solved directly; above it (both sides large, e.g. 2000 x 2000)
+#: the reduced system would cost O(m k n) to form and O(n^3) to factor, and the LM step
+#: uses preconditioned conjugate gradients with O(m k) matrix-vector products instead
+DIRECT_MAX = 1500
+#: largest reduced system for which :func:`refine_lm` computes the covariance by default
+#: (n = 4000: 128 MB and about a minute of one core for the O(n^3) inverse)
+COV_DIRECT_MAX = 4000
+
+
+def _lm_step_cg(Hzz_d: Array, Hzn: Array, Hnn_d: Array, gz: Array, gn: Array, *,
+                rtol: float = 1e-10, max_iter: int = 500) -> tuple[Array, Array]:
+    """The damped Gauss-Newton step by block-Jacobi preconditioned CG on the directions' Schur
+    complement ``S_n = Hnn - H_nz Hzz^-1 H_zn``, never formed: each product costs O(m k d p)."""
+    from scipy.sparse.linalg import LinearOperator, cg
+
+    mz, k, d, p = Hzn.shape
+    Hzz_inv = np.linalg.inv(Hzz_d)
+    Hf = Hzn.transpose(0, 2, 1, 3).reshape(mz * d, k * p)  # one copy, reused by every product
+    HzzB = Hzz_inv
+
+    def zsolve(v: Array) -> Array:
+        return np.einsum("iab,ib->ia", HzzB, v.reshape(mz, d)).reshape(-1)
+
+    def matvec(x: Array) -> Array:
+        x = np.asarray(x).reshape(-1)
+        y = np.einsum("jab,jb->ja", Hnn_d, x.reshape(k, p)).reshape(-1)
+        return y - Hf.T @ zsolve(Hf @ x)
+
+    # block-Jacobi preconditioner: the exact diagonal blocks of S_n
+    Y = np.matmul(Hzz_inv[:, None], Hzn)  # (mz, k, d, p)
+    At = Hzn.transpose(1, 0, 2, 3).reshape(k, mz * d, p)
+    diag = Hnn_d - np.matmul(At.transpose(0, 2, 1), Y.transpose(1, 0, 2, 3).reshape(k, mz * d, p))
+    del At
+    del Y
+    Pinv = np.linalg.inv(diag)
+
+    def precond(x: Array) -> Array:
+        return np.einsum("jab,jb->ja", Pinv, np.asarray(x).reshape(k, p)).reshape(-1)
+
+    n = k * p
+    A = LinearOperator((n, n), matvec=matvec, dtype=float)
+    M = LinearOperator((n, n), matvec=precond, dtype=float)
+    rhs = gn.reshape(-1) - Hf.T @ zsolve(gz.reshape(-1))
+    dn, _ = cg(A, rhs, rtol=rtol, atol=0.0, maxiter=max_iter, M=M)
+    dz = (zsolve(gz.reshape(-1)) - zsolve(Hf @ dn)).reshape(mz, d)
     return dz, dn.reshape(k, p)
 
 
@@ -578,7 +630,7 @@ def refine_lm(
     max_iter: int = 200,
     tol: float = 1e-12,
     record_positions: bool = False,
-    covariance: bool = True,
+    covariance: bool | None = None,
 ) -> RefineResult:
     """Levenberg-Marquardt on the product of spheres, paper 000 Algorithm 3.
 
@@ -597,7 +649,9 @@ def refine_lm(
 
     Parameters are as in :func:`refine_alternating`; ``lam`` > 0. Positions (m, d) and
     directions (k, d) may be 3-D (spheres) or 2-D (circles, the planar far-field problem).
-    ``covariance``: also compute ``position_cov`` (:func:`position_covariance`).
+    ``covariance``: also compute ``position_cov`` (:func:`position_covariance`); None =
+    when its reduced system has at most :data:`COV_DIRECT_MAX` unknowns (above, it costs
+    O(n^3) time and O(n^2) memory with n = min(d(m-1), p k)).
     Each step eliminates the smaller block-diagonal side (Schur complement, see
     :func:`_lm_step`): O(m k min(dm, pk)) time and O(m k) memory.
     """
@@ -640,6 +694,9 @@ def refine_lm(
             converged = True
             break
     W = _weights(D0, Z, N, C, obs, loss, delta)
+    if covariance is None:
+        d_, p_ = Z.shape[1], Z.shape[1] - 1 + int(free_offsets)
+        covariance = min(d_ * (Z.shape[0] - 1), p_ * N.shape[0]) <= COV_DIRECT_MAX
     cov = position_covariance(D0, Z, N, C, W, free_offsets=free_offsets) if covariance else None
     return RefineResult(Z, N, C, cost, it, converged, hist, phist, cov)
 
