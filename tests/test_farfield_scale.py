@@ -64,3 +64,14 @@ def test_truncated_svd_equals_full_svd():
     s_full = np.linalg.svd(X, compute_uv=False)
     assert np.allclose(s, s_full[:4], rtol=1e-10)
     assert np.allclose(np.abs(np.sum(U * (X @ Vt.T), axis=0)), s, rtol=1e-10)
+
+
+def test_matrix_free_cg_step_matches_the_direct_step():
+    D, Z, N, C = _problem(4, 25, 35, 3, sigma=1e-2)
+    W = np.ones((25, 35))
+    full = _normal_equations(D, Z, N, C + 0.01, W, True)
+    fac = _normal_equations(D, Z, N, C + 0.01, W, True, coupling=False)
+    a = _lm_step(*full[:5], 0.1, side="directions")
+    b = _lm_step(*fac[:5], 0.1, side="cg")
+    for x, y in zip(a, b):
+        assert np.abs(x - y).max() <= 1e-8 * np.abs(x).max()

@@ -39,6 +39,7 @@ flags such solutions (``warnings``: ``directions-collapsed``, threshold
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -362,12 +363,15 @@ def _tangent(N: Array) -> Array:
 
 
 def _normal_equations(
-    D0: Array, Z: Array, N: Array, C: Array, W: Array, free_offsets: bool
-) -> tuple[Array, Array, Array, Array, Array, Array, Array]:
+    D0: Array, Z: Array, N: Array, C: Array, W: Array, free_offsets: bool, *, coupling: bool = True
+) -> tuple[Any, ...]:
     """Blocks of J^T W J and J^T W r for the parametrisation of :func:`farfield_jacobian`.
 
     Works in d = 2 or 3 dimensions (Z (m, d), N (k, d)): Hzz (m-1, d, d), Hzn
     (m-1, k, d, p), Hnn (k, p, p) with p = d - 1 tangent coordinates (+1 offset).
+    Each coupling block is the outer product ``W_ij n_j b_ij^T``; with ``coupling=False``
+    Hzn is returned in that factored form ``(W[1:], N, b[1:])`` (O(m k p) memory instead
+    of O(m k d p)) for the matrix-free CG step.
     """
     T = _tangent(N)  # (k, d, d-1)
     r = np.where(W > 0, farfield_residuals(D0, Z, N, C), 0.0)
@@ -380,7 +384,7 @@ def _normal_equations(
     NN = (N[:, :, None] * N[:, None, :]).reshape(k, d * d)
     Hzz = (W[1:] @ NN).reshape(m - 1, d, d)  # BLAS products and broadcasting, not einsum loops
     Wb = W[:, :, None] * bcol  # (m, k, p)
-    Hzn = Wb[1:, :, None, :] * N[None, :, :, None]
+    Hzn = Wb[1:, :, None, :] * N[None, :, :, None] if coupling else (W[1:], N, bcol[1:])
     Hnn = np.matmul(Wb.transpose(1, 2, 0), bcol.transpose(1, 0, 2))
     Wr = W * r
     gz = (Wr @ N)[1:]
@@ -409,7 +413,10 @@ def _lm_step(
     system of size d(m-1)), ``"positions"`` eliminates the positions (size p k); ``"auto"``
     takes the smaller, so one step costs O(m k min(dm, pk)) and memory O(m k).
     """
-    mz, k, d, p = Hzn.shape
+    if isinstance(Hzn, tuple):
+        mz, k, d, p = Hzn[0].shape[0], Hzn[1].shape[0], Hzn[1].shape[1], Hnn.shape[1]
+    else:
+        mz, k, d, p = Hzn.shape
     eye_p, eye_d = np.eye(p), np.eye(d)
     Hnn_d = Hnn + lam * np.einsum("jaa->ja", Hnn)[:, :, None] * eye_p + 1e-12 * eye_p
     Hzz_d = Hzz + lam * np.einsum("iaa->ia", Hzz)[:, :, None] * eye_d + 1e-12 * eye_d
@@ -417,19 +424,21 @@ def _lm_step(
         side = "positions" if _eliminate_positions(mz, d, k, p) else "directions"
         if min(d * mz, p * k) > DIRECT_MAX:
             side = "cg"
+    if isinstance(Hzn, tuple):
+        return _lm_step_cg_factored(Hzz_d, Hzn, Hnn_d, gz, gn)
     if side == "cg":
         return _lm_step_cg(Hzz_d, Hzn, Hnn_d, gz, gn)
     Hr = _flat(Hzn)
     if side == "directions":
         Hnn_inv = np.linalg.inv(Hnn_d)  # (k, p, p)
-        X = np.einsum("ijab,jbc->ijac", Hzn, Hnn_inv)  # Hzn Hnn^-1
-        S = -(_flat(X) @ Hr.T)
+        Xf = _flat(np.matmul(Hzn, Hnn_inv[None]))  # Hzn Hnn^-1
+        S = -(Xf @ Hr.T)
         S4 = S.reshape(mz, d, mz, d)
         idx = np.arange(mz)
         S4[idx, :, idx, :] += Hzz_d
-        rhs = gz - np.einsum("ijab,jb->ia", X, gn)
+        rhs = gz - (Xf @ gn.reshape(-1)).reshape(mz, d)
         dz = np.linalg.solve(S, rhs.reshape(-1)).reshape(mz, d)
-        dn = np.einsum("jab,jb->ja", Hnn_inv, gn - np.einsum("ijab,ia->jb", Hzn, dz))
+        dn = np.einsum("jab,jb->ja", Hnn_inv, gn - (dz.reshape(-1) @ Hr).reshape(k, p))
         return dz, dn
     Hzz_inv = np.linalg.inv(Hzz_d)  # (mz, d, d)
     Yr = _flat(np.matmul(Hzz_inv[:, None], Hzn))  # Hzz^-1 Hzn as (mz d, k p)
@@ -448,8 +457,8 @@ def _lm_step(
 #: uses preconditioned conjugate gradients with O(m k) matrix-vector products instead
 DIRECT_MAX = 1500
 #: largest reduced system for which :func:`refine_lm` computes the covariance by default
-#: (n = 4000: 128 MB and about a minute of one core for the O(n^3) inverse)
-COV_DIRECT_MAX = 4000
+#: (n = 2000: 32 MB and a few seconds of one core for the O(n^3) inverse)
+COV_DIRECT_MAX = 2000
 
 
 def _lm_step_cg(Hzz_d: Array, Hzn: Array, Hnn_d: Array, gz: Array, gn: Array, *,
@@ -489,6 +498,53 @@ def _lm_step_cg(Hzz_d: Array, Hzn: Array, Hnn_d: Array, gz: Array, gn: Array, *,
     dn, _ = cg(A, rhs, rtol=rtol, atol=0.0, maxiter=max_iter, M=M)
     dz = (zsolve(gz.reshape(-1)) - zsolve(Hf @ dn)).reshape(mz, d)
     return dz, dn.reshape(k, p)
+
+
+def _lm_step_cg_factored(Hzz_d: Array, factors: tuple[Array, Array, Array], Hnn_d: Array, gz: Array,
+                         gn: Array, *, rtol: float = 1e-10, max_iter: int = 500) -> tuple[Array, Array]:
+    """:func:`_lm_step_cg` with the coupling blocks ``W_ij n_j b_ij^T`` kept factored.
+
+    Products with H_zn / H_nz cost O(m k (d + p)) and need no (m, k, d, p) array: the
+    memory stays a few copies of the data.
+    """
+    from scipy.sparse.linalg import LinearOperator, cg
+
+    W, N, bc = factors  # (mz, k), (k, d), (mz, k, p)
+    mz, k, p = bc.shape
+    Hzz_inv = np.linalg.inv(Hzz_d)
+
+    def hzn(x: Array) -> Array:  # (k, p) -> (mz, d): sum_j W_ij n_j (b_ij . x_j)
+        t = np.einsum("ijp,jp->ij", bc, x)
+        return (W * t) @ N
+
+    def hnz(v: Array) -> Array:  # (mz, d) -> (k, p): sum_i W_ij b_ij (n_j . v_i)
+        s_ = W * (v @ N.T)
+        return np.einsum("ij,ijp->jp", s_, bc)
+
+    def zsolve(v: Array) -> Array:
+        return np.einsum("iab,ib->ia", Hzz_inv, v)
+
+    def matvec(x: Array) -> Array:
+        x = np.asarray(x).reshape(k, p)
+        return (np.einsum("jab,jb->ja", Hnn_d, x) - hnz(zsolve(hzn(x)))).reshape(-1)
+
+    qn = np.einsum("ja,iab,jb->ij", N, Hzz_inv, N)  # n_j^T Hzz_i^-1 n_j
+    wq = (W**2 * qn)[:, :, None] * bc
+    diag = Hnn_d - np.matmul(wq.transpose(1, 2, 0), bc.transpose(1, 0, 2))
+    del wq
+    Pinv = np.linalg.inv(diag)
+
+    def precond(x: Array) -> Array:
+        return np.einsum("jab,jb->ja", Pinv, np.asarray(x).reshape(k, p)).reshape(-1)
+
+    n = k * p
+    A = LinearOperator((n, n), matvec=matvec, dtype=float)
+    M = LinearOperator((n, n), matvec=precond, dtype=float)
+    rhs = (gn - hnz(zsolve(gz))).reshape(-1)
+    dn, _ = cg(A, rhs, rtol=rtol, atol=0.0, maxiter=max_iter, M=M)
+    dn = dn.reshape(k, p)
+    dz = zsolve(gz - hzn(dn))
+    return dz, dn
 
 
 def _rotation_generators(Z: Array) -> Array:
@@ -555,7 +611,7 @@ def position_covariance(
     Hr = _flat(Hzn)
     if method == "dense" or (method in ("auto", "schur") and not _eliminate_positions(mz, d, k, p)):
         Hnn_inv = np.linalg.pinv(Hnn)  # (k, p, p) blocks: cheap either way
-        X = np.einsum("ijab,jbc->ijac", Hzn, Hnn_inv)
+        X = np.matmul(Hzn, Hnn_inv[None])
         S = -(_flat(X) @ Hr.T)
         S4 = S.reshape(mz, d, mz, d)
         S4[idx, :, idx, :] += Hzz
@@ -631,6 +687,8 @@ def refine_lm(
     tol: float = 1e-12,
     record_positions: bool = False,
     covariance: bool | None = None,
+    linear_solver: str = "auto",
+    covariance_method: str = "auto",
 ) -> RefineResult:
     """Levenberg-Marquardt on the product of spheres, paper 000 Algorithm 3.
 
@@ -652,21 +710,34 @@ def refine_lm(
     ``covariance``: also compute ``position_cov`` (:func:`position_covariance`); None =
     when its reduced system has at most :data:`COV_DIRECT_MAX` unknowns (above, it costs
     O(n^3) time and O(n^2) memory with n = min(d(m-1), p k)).
+    ``linear_solver``: how each step's normal equations are solved -- ``"auto"`` (the
+    smaller Schur side, CG above :data:`DIRECT_MAX`), ``"directions"`` (eliminate the
+    directions: a d(m-1) system, the pre-0.2 behaviour and the benchmarks' dense
+    baseline), ``"positions"`` or ``"cg"``. ``covariance_method``: see
+    :func:`position_covariance`.
     Each step eliminates the smaller block-diagonal side (Schur complement, see
     :func:`_lm_step`): O(m k min(dm, pk)) time and O(m k) memory.
     """
     check_choice(loss, "loss", LOSSES)
+    check_choice(linear_solver, "linear_solver", ("auto", "directions", "positions", "cg"))
+    check_choice(covariance_method, "covariance_method", ("auto", "dense", "schur"))
     D0, obs, Z, N, C = _start(D, mask, positions, directions, offsets)
     cost = _cost(farfield_residuals(D0, Z, N, C), obs, loss, delta)
     hist, phist = [cost], ([Z.copy()] if record_positions else [])
     converged = False
     it = 0
+    side = linear_solver
+    if side == "auto":
+        d_, p_ = Z.shape[1], Z.shape[1] - 1 + int(free_offsets)
+        if min(d_ * (Z.shape[0] - 1), p_ * N.shape[0]) > DIRECT_MAX:
+            side = "cg-factored"
     for it in range(1, max_iter + 1):  # noqa: B007 (it is reported after the loop)
         W = _weights(D0, Z, N, C, obs, loss, delta)
-        Hzz, Hzn, Hnn, gz, gn, T, _ = _normal_equations(D0, Z, N, C, W, free_offsets)
+        Hzz, Hzn, Hnn, gz, gn, T, _ = _normal_equations(D0, Z, N, C, W, free_offsets,
+                                                        coupling=side != "cg-factored")
         q = T.shape[2]
         while True:
-            dz, dn = _lm_step(Hzz, Hzn, Hnn, gz, gn, lam)
+            dz, dn = _lm_step(Hzz, Hzn, Hnn, gz, gn, lam, side="cg" if side == "cg-factored" else side)
             Zc = Z.copy()
             Zc[1:] += dz
             Nc = sphere_exp(N, np.einsum("jab,jb->ja", T, dn[:, :q]))
@@ -697,7 +768,8 @@ def refine_lm(
     if covariance is None:
         d_, p_ = Z.shape[1], Z.shape[1] - 1 + int(free_offsets)
         covariance = min(d_ * (Z.shape[0] - 1), p_ * N.shape[0]) <= COV_DIRECT_MAX
-    cov = position_covariance(D0, Z, N, C, W, free_offsets=free_offsets) if covariance else None
+    cov = (position_covariance(D0, Z, N, C, W, free_offsets=free_offsets, method=covariance_method)
+           if covariance else None)
     return RefineResult(Z, N, C, cost, it, converged, hist, phist, cov)
 
 
