@@ -391,3 +391,22 @@ def test_lm_position_covariance_predicts_the_error_spread(rng):
         err += np.sum((res.positions @ (U @ Vt).T - Z) ** 2)
         pred += np.trace(res.position_cov, axis1=1, axis2=2).sum()
     assert 0.75 < err / pred < 1.33
+
+
+def test_known_directions_give_the_least_squares_positions(rng):
+    # semi-blind: with the directions given the model is linear; noise-free data are fitted exactly,
+    # missing entries included, in the directions' own frame (no rotation applied)
+    D, Z, N = farfield_problem(rng, 12, 30)
+    D[3, 4] = np.nan
+    res = solve_farfield(D, directions=N)
+    assert res.case == "known-directions" and res.dim == 3
+    assert np.allclose(res.positions, Z, atol=1e-9)
+    assert res.residual_rms < 1e-9
+
+
+def test_known_directions_are_validated(rng):
+    D, Z, N = farfield_problem(rng, 12, 30)
+    with pytest.raises(InputError, match="unit vectors"):
+        solve_farfield(D, directions=2 * N)
+    with pytest.raises(InputError, match="one per column"):
+        solve_farfield(D, directions=N[:10])

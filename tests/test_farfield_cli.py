@@ -171,3 +171,15 @@ def test_cli_planar_array_with_dim(tmp_path, dim, case):
     # the default (3-D) names the degeneracy and points at --dim 2
     r = CliRunner().invoke(main, ["calibrate", "tdoa-farfield", str(path), "--out", str(out)])
     assert r.exit_code == 2 and "coplanar-directions" in r.output and "--dim 2" in r.output
+
+
+def test_cli_pyramic_with_its_own_directions(tmp_path, shared_data):
+    # the cone leaves a one-parameter family of blind solutions; with the file's source
+    # directions the problem is linear. Residual at the GCC-PHAT noise level (about 1 mm)
+    src = shared_data / "pyramic" / "pyramic_tdoa_speaker0.json"
+    out = tmp_path / "r.json"
+    r = CliRunner().invoke(main, ["calibrate", "tdoa-farfield", str(src), "--directions", "sources", "--out", str(out)])
+    assert r.exit_code == 0, r.output
+    res = json.loads(out.read_text())
+    assert res["case"] == "known-directions" and "reference_rmse" in res
+    assert res["residual_rms"] * res["speed"] < 1.5e-3

@@ -32,6 +32,10 @@ if TYPE_CHECKING:
               help="3: spatial array; 2: planar array with sources in its plane (in-plane geometry); 1: linear "
                    "array (positions along the line, up to scale); auto: decided by a rank test of the data "
                    "against the noise. The JSON's 'case' and 'determined' say what the data fix.")
+@click.option("--directions", "directions", default=None, metavar="FILE|sources",
+              help="Known unit directions (k x 3 or k x 2 CSV / .npy, one row per column of MATRIX), or 'sources' "
+                   "for a Pyramic JSON's own (n_j = -source_j): semi-blind least squares for the positions, the "
+                   "way to calibrate a degenerate (cone) set if the directions are right.")
 @click.option("--method", type=click.Choice(["auto", "lm", "alternating", "init", "minimal"]), default="auto",
               show_default=True, help="Refinement: LM on the spheres (Alg. 3), alternating (Alg. 2), or none.")
 @click.option("--loss", type=click.Choice(["linear", "huber", "soft_l1", "cauchy"]), default="linear",
@@ -45,7 +49,8 @@ if TYPE_CHECKING:
 @click.option("--plot", "plot", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="PNG of the positions and directions.")
 @handle_errors
-def farfield_command(matrix: Path, out: Path, speed: float | None, dim: str, method: str, loss: str,
+def farfield_command(matrix: Path, out: Path, speed: float | None, dim: str, directions: str | None,
+                     method: str, loss: str,
                      noise_std: float | None, ransac: bool, seed: int, allow_degenerate: bool,
                      plot: Path | None) -> None:
     """Self-calibrate from an m x k far-field TDOA MATRIX (CSV, .npy or Pyramic JSON; NaN = missing).
@@ -67,6 +72,7 @@ def farfield_command(matrix: Path, out: Path, speed: float | None, dim: str, met
     if speed is not None and not (speed > 0 and speed < float("inf")):
         raise InputError(f"--speed must be a positive number, got {speed}")
     reference = None
+    known = None
     if matrix.suffix.lower() == ".json":
         from ..datasets.pyramic import pyramic_from_dict
         from ..io import read_json
@@ -74,12 +80,18 @@ def farfield_command(matrix: Path, out: Path, speed: float | None, dim: str, met
         data = pyramic_from_dict(read_json(matrix), label=str(matrix), speed=speed)
         D, scale, seconds = data.D, data.speed, True
         reference = data.positions
+        if directions == "sources":
+            known = data.directions
     else:
         M = read_matrix(matrix, name=str(matrix))
         seconds = speed is not None
         scale = speed if speed is not None else 1.0
         D = M * scale
-    res = solve_farfield(D, method=method, loss=loss,
+    if directions is not None and known is None:
+        if directions == "sources":
+            raise InputError("--directions sources needs a Pyramic JSON matrix (with 'sources'); give a file")
+        known = read_matrix(Path(directions), name=str(directions))
+    res = solve_farfield(D, method=method, loss=loss, directions=known,
                          noise_std=None if noise_std is None else noise_std * scale,
                          allow_degenerate=allow_degenerate, ransac=ransac, rng=seed,
                          dim="auto" if dim == "auto" else int(dim))

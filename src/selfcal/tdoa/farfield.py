@@ -658,6 +658,52 @@ def _solve_low_dim(D: Array, X: Array, used: NDArray[np.bool_], d: int, report: 
             "determined": _DETERMINED["planar"]}
 
 
+def _solve_known_directions(D: Array, used: NDArray[np.bool_], gross: NDArray[np.bool_], directions: Any, *,
+                            loss: str) -> FarfieldResult:
+    """Positions and offsets by least squares given the unit directions (see ``directions``)."""
+    m, k = D.shape
+    N = np.asarray(as_matrix(directions, "directions", allow_nan=False), dtype=float)
+    if N.shape[0] != k or N.shape[1] not in (2, 3):
+        raise InputError(f"directions: expected ({k}, 2 or 3) unit vectors (one per column of the matrix), got "
+                         f"{N.shape}" + (" (transposed?)" if N.shape[::-1] == (k, 3) else ""))
+    nrm = np.linalg.norm(N, axis=1)
+    if np.any(np.abs(nrm - 1.0) > 1e-3):
+        raise InputError(f"directions: row {int(np.argmax(np.abs(nrm - 1)))} has length "
+                         f"{nrm[np.argmax(np.abs(nrm - 1))]:.4g}; directions must be unit vectors")
+    d = N.shape[1]
+    sv = np.linalg.svd(N, compute_uv=False)
+    if sv[-1] <= 1e-9 * sv[0]:
+        raise DegenerateGeometryError(f"the given directions span fewer than {d} dimensions: the positions' "
+                                      "component across them is unobservable", kind="coplanar-directions")
+    W = used.astype(float)
+    D0 = np.where(used, D, 0.0)
+    # least squares in (z_i, C_j) with z_1 = 0: alternate the exact per-column offsets and the
+    # exact per-row positions (block coordinate descent on a convex quadratic: converges to the
+    # unique minimum); complete data need one round from C = column means
+    Z = np.zeros((m, d))
+    C = np.sum(W * D0, axis=0) / np.maximum(W.sum(0), 1)
+    H = np.einsum("ij,ja,jb->iab", W, N, N)
+    prev = np.inf
+    its = 0
+    for its in range(1, 2001):  # noqa: B007
+        g = np.einsum("ij,ij,ja->ia", W, D0 - C, N)
+        Z = np.linalg.solve(H + 1e-12 * np.eye(d), g[..., None])[..., 0]
+        C = np.sum(W * (D0 - Z @ N.T), axis=0) / np.maximum(W.sum(0), 1)
+        cost = float(np.sum(W * (D0 - Z @ N.T - C) ** 2))
+        if its > 1 and prev - cost <= 1e-14 * max(prev, 1e-300):
+            break
+        prev = cost
+    C = C + Z[0] @ N.T
+    Z = Z - Z[0]
+    r = np.where(used, D - Z @ N.T - C, np.nan)
+    rms = float(np.sqrt(np.nanmean(r**2)))
+    res = FarfieldResult(Z, N.copy(), C, None, rms, True, its, "known-directions", loss, gross.copy(), True,
+                         None, [], None, (), d, "known-directions",
+                         "positions in the frame of the given directions (semi-blind: nothing left free but the "
+                         "first position at the origin); as good as the directions are")
+    return res
+
+
 def solve_farfield(
     matrix: Any,
     *,
@@ -678,6 +724,7 @@ def solve_farfield(
     ransac: bool = False,
     rng: np.random.Generator | int | None = None,
     dim: int | str = 3,
+    directions: Any = None,
 ) -> FarfieldResult:
     """Far-field TDOA self-calibration: positions, directions and offsets from D (paper 000).
 
@@ -731,6 +778,12 @@ def solve_farfield(
         parallel directions -- the coordinate along the direction, scale included.
         Positions with the directions off their plane (``planar-motion``) are not determined
         (a 2 x 2 family) and raise in every mode.
+    directions : optional (k, d) known unit directions n_j (d = 3 or 2; e.g. from a
+        turntable's angles). Then the problem is linear (semi-blind calibration): positions
+        and offsets by least squares, ``case = "known-directions"``, in the frame of the given
+        directions (no rotation is left free). The only way to calibrate data whose blind
+        problem is degenerate (a ``cone``: all sources at one elevation), provided the
+        directions are right.
 
     Raises
     ------
@@ -779,6 +832,8 @@ def solve_farfield(
         gross = gross | (finite & ~ransac_farfield(np.where(gross, np.nan, D), rng=gen))
     used = finite & ~gross
     complete = bool(used.all())
+    if directions is not None:
+        return _solve_known_directions(D, used, gross, directions, loss=loss)
     if offsets == "auto":
         offsets = "reference" if (complete and loss == "linear") else "free"
     if offsets == "reference" and not np.all(used[0]):
