@@ -85,6 +85,16 @@ def scaling_table(sizes: tuple[tuple[int, int], ...] = SCALING_SIZES, *, seed: i
                         "cost_rel_diff": abs(sparse.cost - dense.cost) / dense.cost})
         else:
             row["dense_skipped"] = f"3(m-1) = {3 * (m - 1)} > {DENSE_MAX}: the dense pseudo-inverse would take minutes"
+            if min(3 * (m - 1), 3 * k) <= DENSE_MAX:
+                # one LM step each way on the same normal equations: the dense baseline's step
+                # (a 3(m-1) system) against the Schur step over the small side
+                from selfcal.tdoa.refine import _lm_step, _normal_equations
+
+                H = _normal_equations(D, Z0, init.directions, C0, np.ones((m, k)), True)
+                t_step_de = _median_time(lambda: _lm_step(*H[:5], 1e-3, side="directions"), 1)
+                t_step_sp = _median_time(lambda: _lm_step(*H[:5], 1e-3), 3)
+                row.update({"dense_step_seconds": t_step_de, "sparse_step_seconds": t_step_sp,
+                            "step_speedup_vs_dense": t_step_de / t_step_sp})
         rows.append(row)
     return rows
 

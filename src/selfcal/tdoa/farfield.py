@@ -580,7 +580,8 @@ def _effective_dim(dim: int | str, report: DegeneracyReport) -> int:
         return 3
     if dim == 2 and rank == 3:
         raise DegenerateGeometryError(
-            f"dim=2 but the data are 3-D: {detail}; use dim=3 (or 'auto')", kind="dimension-mismatch")
+            f"dim=2 but the data are 3-D: {detail}; use dim=3 (or 'auto'; gross errors also raise the rank: "
+            "try loss='huber')", kind="dimension-mismatch")
     if dim == 2 and rank == 2 and report.kind == "planar-motion":
         return 3  # reported as planar-motion (not determined) by the caller
     if dim == 2 and rank < 2:
@@ -844,10 +845,21 @@ def solve_farfield(
     if complete and loss == "linear":
         Dfill = D
     else:
-        Dfill, sig = lowrank_fit(D, used.astype(float), rank=dim if isinstance(dim, int) else 3,
-                                 loss="huber" if loss != "linear" else "linear")
+        fit_loss = "huber" if loss != "linear" else "linear"
+        Dfill, sig = lowrank_fit(D, used.astype(float), rank=dim if isinstance(dim, int) else 3, loss=fit_loss)
         if sigma_entries is None:
             sigma_entries = sig
+        if dim == "auto" or dim == 2:
+            # a rank-r completion puts spurious components into the missing entries;
+            # complete at rank 1, then 2, and keep the first whose next singular value is noise
+            # (a real higher component stays visible in the observed entries); sigma from the
+            # largest (rank-3) fit, unbiased whatever the true rank
+            for r in range(1, 3 if dim == "auto" else 2):
+                Lr, _ = lowrank_fit(D, used.astype(float), rank=r, loss=fit_loss)
+                Fr = np.where(used, D, Lr) if loss == "linear" else Lr
+                if analyse_degeneracy(Fr - Fr.mean(axis=0), noise_std=sigma_entries, cone_tol=cone_tol).rank <= r:
+                    Dfill = Lr
+                    break
     if loss == "linear":
         Dfill = np.where(used, D, Dfill)  # only the gaps are filled
     if init_reference == "first":
