@@ -60,43 +60,45 @@ DENSE_MAX = 1500
 
 def scaling_table(sizes: tuple[tuple[int, int], ...] = SCALING_SIZES, *, seed: int = 0) -> list[dict[str, Any]]:
     """LM + covariance from the same initialisation: sparse (Schur / CG) vs the dense baseline."""
-    rows = []
-    for m, k in sizes:
-        rng = np.random.default_rng(seed)
-        Zt = rng.uniform(-0.5, 0.5, (m, 3))
-        Zt[0] = 0
-        Nt = _unit(rng.normal(size=(k, 3)))
-        D = Zt @ Nt.T + rng.normal(size=k) + 1e-3 * rng.normal(size=(m, k))
-        init = initialize_farfield(D - D.mean(axis=0))
-        Z0 = init.positions - init.positions[0]
-        C0 = np.mean(D - Z0 @ init.directions.T, axis=0)
-        # the covariance as refine_lm decides by default (skipped above COV_DIRECT_MAX unknowns)
-        sparse, t_sp, mem_sp = _timed_peak(lambda: refine_lm(D, Z0, init.directions, C0, free_offsets=True))
-        row: dict[str, Any] = {"m": m, "k": k, "entries": m * k, "sparse_seconds": t_sp, "sparse_peak_mib": mem_sp,
-                               "sparse_iterations": sparse.iterations, "data_mib": D.nbytes / 2**20,
-                               "covariance_computed": sparse.position_cov is not None}
-        if 3 * (m - 1) <= DENSE_MAX:
-            dense, t_de, mem_de = _timed_peak(lambda: refine_lm(
-                D, Z0, init.directions, C0, free_offsets=True, covariance=True, linear_solver="directions",
-                covariance_method="dense"))
-            row.update({"dense_seconds": t_de, "dense_peak_mib": mem_de, "speedup_vs_dense": t_de / t_sp,
-                        "cov_max_rel_diff": float(np.abs(sparse.position_cov - dense.position_cov).max()
-                                                  / np.abs(dense.position_cov).max()),
-                        "cost_rel_diff": abs(sparse.cost - dense.cost) / dense.cost})
-        else:
-            row["dense_skipped"] = f"3(m-1) = {3 * (m - 1)} > {DENSE_MAX}: the dense pseudo-inverse would take minutes"
-            if min(3 * (m - 1), 3 * k) <= DENSE_MAX:
-                # one LM step each way on the same normal equations: the dense baseline's step
-                # (a 3(m-1) system) against the Schur step over the small side
-                from selfcal.tdoa.refine import _lm_step, _normal_equations
+    return [_scaling_row(m, k, seed) for m, k in sizes]
 
-                H = _normal_equations(D, Z0, init.directions, C0, np.ones((m, k)), True)
-                t_step_de = _median_time(lambda: _lm_step(*H[:5], 1e-3, side="directions"), 1)
-                t_step_sp = _median_time(lambda: _lm_step(*H[:5], 1e-3), 3)
-                row.update({"dense_step_seconds": t_step_de, "sparse_step_seconds": t_step_sp,
-                            "step_speedup_vs_dense": t_step_de / t_step_sp})
-        rows.append(row)
-    return rows
+
+def _scaling_row(m: int, k: int, seed: int) -> dict[str, Any]:
+    """One row of :func:`scaling_table`."""
+    rng = np.random.default_rng(seed)
+    Zt = rng.uniform(-0.5, 0.5, (m, 3))
+    Zt[0] = 0
+    Nt = _unit(rng.normal(size=(k, 3)))
+    D = Zt @ Nt.T + rng.normal(size=k) + 1e-3 * rng.normal(size=(m, k))
+    init = initialize_farfield(D - D.mean(axis=0))
+    Z0 = init.positions - init.positions[0]
+    C0 = np.mean(D - Z0 @ init.directions.T, axis=0)
+    # the covariance as refine_lm decides by default (skipped above COV_DIRECT_MAX unknowns)
+    sparse, t_sp, mem_sp = _timed_peak(lambda: refine_lm(D, Z0, init.directions, C0, free_offsets=True))
+    row: dict[str, Any] = {"m": m, "k": k, "entries": m * k, "sparse_seconds": t_sp, "sparse_peak_mib": mem_sp,
+                           "sparse_iterations": sparse.iterations, "data_mib": D.nbytes / 2**20,
+                           "covariance_computed": sparse.position_cov is not None}
+    if 3 * (m - 1) <= DENSE_MAX:
+        dense, t_de, mem_de = _timed_peak(lambda: refine_lm(
+            D, Z0, init.directions, C0, free_offsets=True, covariance=True, linear_solver="directions",
+            covariance_method="dense"))
+        row.update({"dense_seconds": t_de, "dense_peak_mib": mem_de, "speedup_vs_dense": t_de / t_sp,
+                    "cov_max_rel_diff": float(np.abs(sparse.position_cov - dense.position_cov).max()
+                                              / np.abs(dense.position_cov).max()),
+                    "cost_rel_diff": abs(sparse.cost - dense.cost) / dense.cost})
+    else:
+        row["dense_skipped"] = f"3(m-1) = {3 * (m - 1)} > {DENSE_MAX}: the dense pseudo-inverse would take minutes"
+        if min(3 * (m - 1), 3 * k) <= DENSE_MAX:
+            # one LM step each way on the same normal equations: the dense baseline's step
+            # (a 3(m-1) system) against the Schur step over the small side
+            from selfcal.tdoa.refine import _lm_step, _normal_equations
+
+            H = _normal_equations(D, Z0, init.directions, C0, np.ones((m, k)), True)
+            t_step_de = _median_time(lambda: _lm_step(*H[:5], 1e-3, side="directions"), 1)
+            t_step_sp = _median_time(lambda: _lm_step(*H[:5], 1e-3), 3)
+            row.update({"dense_step_seconds": t_step_de, "sparse_step_seconds": t_step_sp,
+                        "step_speedup_vs_dense": t_step_de / t_step_sp})
+    return row
 
 
 def _unit(v: np.ndarray) -> np.ndarray:

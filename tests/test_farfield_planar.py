@@ -150,3 +150,14 @@ def test_planar_result_is_json_and_says_its_case():
     d = solve_farfield(D, dim=2).to_dict()
     json.dumps(d, allow_nan=False)
     assert d["dim"] == 2 and d["case"] == "planar" and "in-plane" in d["determined"]
+
+
+def test_auto_with_missing_entries_keeps_the_planar_rank():
+    # completing the gaps at rank 3 would invent a third component; the rank is chosen on
+    # completions of increasing rank instead
+    for seed in range(5):
+        D, Z, _ = planar_problem(seed, 1e-4)
+        D[np.random.default_rng(seed).random(D.shape) < 0.1] = np.nan
+        res = solve_farfield(D, dim="auto")
+        assert res.case == "planar"
+        assert aligned_sq_error(res.positions, Z) / 16 < (5e-4) ** 2

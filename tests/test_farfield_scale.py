@@ -41,7 +41,7 @@ def test_lm_step_is_the_same_from_either_side(m, k, d):
     Hzz, Hzn, Hnn, gz, gn, _, _ = _normal_equations(D, Z, N, C + 0.01, np.ones((m, k)), True)
     a = _lm_step(Hzz, Hzn, Hnn, gz, gn, 0.1, side="directions")
     b = _lm_step(Hzz, Hzn, Hnn, gz, gn, 0.1, side="positions")
-    for x, y in zip(a, b):
+    for x, y in zip(a, b, strict=True):
         assert np.allclose(x, y, rtol=1e-8, atol=1e-12 * np.abs(x).max())
 
 
@@ -51,7 +51,7 @@ def test_cg_step_matches_the_direct_step():
     Hzz, Hzn, Hnn, gz, gn, _, _ = _normal_equations(D, Z, N, C + 0.01, np.ones((30, 40)), True)
     a = _lm_step(Hzz, Hzn, Hnn, gz, gn, 0.1, side="directions")
     b = _lm_step(Hzz, Hzn, Hnn, gz, gn, 0.1, side="cg")
-    for x, y in zip(a, b):
+    for x, y in zip(a, b, strict=True):
         assert np.abs(x - y).max() <= 1e-8 * np.abs(x).max()
 
 
@@ -73,5 +73,5 @@ def test_matrix_free_cg_step_matches_the_direct_step():
     fac = _normal_equations(D, Z, N, C + 0.01, W, True, coupling=False)
     a = _lm_step(*full[:5], 0.1, side="directions")
     b = _lm_step(*fac[:5], 0.1, side="cg")
-    for x, y in zip(a, b):
+    for x, y in zip(a, b, strict=True):
         assert np.abs(x - y).max() <= 1e-8 * np.abs(x).max()

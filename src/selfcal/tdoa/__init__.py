@@ -14,8 +14,8 @@ layout is refused by :func:`check_orientation`.
 from .degeneracy import DEGENERACIES, DegeneracyReport, analyse_degeneracy, fit_quadric
 from .farfield import (
     FarfieldInit,
-    check_orientation,
     FarfieldResult,
+    check_orientation,
     fit_A_nonlinear,
     initialize_farfield,
     lowrank_fit,

@@ -35,13 +35,13 @@ from ..errors import ConvergenceWarning, DegenerateGeometryError, InputError
 from ..geometry import canonical_gauge
 from .degeneracy import (
     DegeneracyReport,
-    top_svd,
     analyse_degeneracy,
     fit_quadric,
     partial_collinear_motion,
     partial_coplanar_directions,
     partial_parallel_directions,
     partial_planar_motion,
+    top_svd,
 )
 from .minimal import solve_minimal
 from .refine import LOSSES, farfield_residuals, loss_weight, refine_alternating, refine_lm
