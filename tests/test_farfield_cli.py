@@ -183,3 +183,19 @@ def test_cli_pyramic_with_its_own_directions(tmp_path, shared_data):
     res = json.loads(out.read_text())
     assert res["case"] == "known-directions" and "reference_rmse" in res
     assert res["residual_rms"] * res["speed"] < 1.5e-3
+
+
+def test_cli_residual_test_against_a_given_noise(tmp_path):
+    # the noise given (1e-3) is ten times smaller than the data's (1e-2): the chi-square test of
+    # the residuals fails (exit 1, FAIL line); with the right noise it passes
+    rng = np.random.default_rng(9)
+    Z = rng.uniform(-0.5, 0.5, (10, 3))
+    N = unit(rng.normal(size=(30, 3)))
+    D = Z @ N.T + rng.normal(size=30) + 1e-2 * rng.normal(size=(10, 30))
+    path = tmp_path / "D.csv"
+    np.savetxt(path, D, delimiter=",")
+    out = tmp_path / "r.json"
+    r = CliRunner().invoke(main, ["calibrate", "tdoa-farfield", str(path), "--noise-std", "1e-3", "--out", str(out)])
+    assert r.exit_code == 1 and "FAIL:" in r.output
+    r = CliRunner().invoke(main, ["calibrate", "tdoa-farfield", str(path), "--noise-std", "1e-2", "--out", str(out)])
+    assert r.exit_code == 0, r.output

@@ -123,6 +123,51 @@ def farfield_command(matrix: Path, out: Path, speed: float | None, dim: str, dir
         click.echo(f"selfcal: warning: degenerate geometry [{res.degeneracy}]: wrote a partial reconstruction",
                    err=True)
     click.echo(f"  wrote {out}")
+    failure = None
+    if res.degeneracy is None and not res.converged:
+        failure = f"the refinement did not converge in {res.iterations} iterations"
+    elif noise_std is not None and res.degeneracy is None:
+        failure = _residual_failure(res, D, noise_std * scale)
+    if failure is not None:
+        click.echo(f"FAIL: calibration not trustworthy ({failure})")
+        raise SystemExit(1)
+
+
+def _residual_failure(res: FarfieldResult, D: object, sigma: float) -> str | None:
+    """Chi-square test of the residuals against a given noise std: a message when it fails.
+
+    ``sum r^2 / sigma^2 ~ chi2(n_obs - n_par)`` at the least-squares solution, n_par =
+    d(m-1) + (d-1)k + k - d(d-1)/2 (positions, directions, offsets, minus the rotations);
+    fails above the 0.999 quantile.
+    """
+    import numpy as np
+    from scipy.stats import chi2
+
+    Dm = np.asarray(D, dtype=float)
+    used = np.isfinite(Dm) & ~res.rejected
+    # the statistic is chi-square at the least-squares (ML) solution with free offsets; the
+    # paper's reference offsets (C_j = D_1j) are not that solution, so refine to it first
+    Z, N = res.positions, res.directions
+    fit = np.where(used, Dm - Z @ N.T, np.nan)
+    C = np.nanmean(fit, axis=0)
+    if res.case in ("spatial", "planar") and res.loss == "linear":
+        from ..tdoa import refine_lm
+
+        out = refine_lm(Dm, Z - Z[0], N, C + Z[0] @ N.T, mask=used, free_offsets=True, covariance=False)
+        Z, N, C = out.positions, out.directions, out.offsets
+    r = np.where(used, Dm - Z @ N.T - C[None, :], 0.0)
+    m, k = Dm.shape
+    d = res.dim
+    n_par = d * (m - 1) + (d - 1) * k + k - d * (d - 1) // 2 if res.case != "known-directions" else d * (m - 1) + k
+    dof = int(used.sum()) - n_par
+    if dof <= 0 or sigma <= 0:
+        return None
+    stat = float(np.sum(r**2)) / sigma**2
+    q = float(chi2.ppf(0.999, dof))
+    if stat > q:
+        return (f"residual RMS {float(np.sqrt(np.sum(r**2) / used.sum())):.3g} m against the given noise "
+                f"{sigma:.3g} m: chi-square {stat:.4g} > its 0.999 quantile {q:.4g} with {dof} dof")
+    return None
 
 
 def _aligned_rmse(est: object, ref: object) -> float:
