@@ -15,8 +15,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..datasets.plaza import PlazaData
-from ..slac.ranging import RangeModelConfig, RangeSlacResult, solve_range_slac
 from ..slac.motion import wrap_angle
+from ..slac.ranging import RangeModelConfig, RangeSlacResult, solve_range_slac
 
 __all__ = ["score_plaza", "plaza_summary", "plot_plaza", "replica_trial", "reproduce_slac", "PAPER_TABLE_I", "PAPER_FIG3_P90"]
 

@@ -324,7 +324,7 @@ class _Pass:
     innov_var0: FArray  # (K,) H P H^T (prediction part of the innovation variance)
     used: NDArray[np.bool_]
     noise_final: float = float("nan")
-    loglik: FArray | None = None  # (N,) robust predictive log-likelihood of the ranges up to node n
+    loglik: FArray = field(default_factory=lambda: np.zeros(0))  # (N,) robust predictive log-likelihood of the ranges up to node n
 
 
 def _forward(ch: _Chain, log: RangeLog, cfg: RangeModelConfig, noise: float, *, ref: FArray | None,
@@ -532,7 +532,7 @@ def solve_range_slac(log: RangeLog | Any, *, method: str = "smoother", config: R
         var = np.column_stack([cfg.odo_distance**2 * z_d, g**2 * (cfg.odo_turn**2 * z_t + cfg.odo_drift**2 * z_d)])
         passes.append(_forward(ch, log, cfg, cfg.range_noise, ref=None, weights=None, store=False,
                                progress=progress, var=var, adapt=cfg.estimate_noise))
-    LL = np.stack([p.loglik for p in passes])  # (G, N)
+    LL = np.stack([np.asarray(p.loglik) for p in passes])  # (G, N)
     best = int(np.argmax(LL[:, -1]))
     fw = passes[best]
     g_best = grid[best]
