@@ -169,3 +169,12 @@ def test_other_bad_content(tmp_path: Path) -> None:
     (tmp_path / "junk.mat").write_bytes(b"junk")
     with pytest.raises(InputError, match="not a readable"):
         load_plaza(tmp_path / "junk.mat")
+
+
+def test_beacon_to_beacon_rows_dropped(tmp_path: Path) -> None:
+    m, _ = _log()
+    td = m["TD"]
+    extra = np.array([[td[0, 0], 7, 3, 40.0], [td[5, 0], 12, 7, 40.0]])  # sender is a beacon
+    m["TD"] = np.vstack([td, extra])
+    d = load_plaza(_save(tmp_path, m))
+    assert d.ranges_dropped == 2 and d.ranges.size == td.shape[0]

@@ -3,7 +3,8 @@
 The format (MATLAB v5) holds
 
 * ``TL`` (B, 3) beacons ``[id, x, y]`` (metres);
-* ``TD`` (K, 4) ranges ``[time s, -, beacon id, range m]`` (column 2 is unused);
+* ``TD`` (K, 4) ranges ``[time s, sender id, beacon id, range m]`` (column 2 is the robot's
+  radio, 2 on Plaza 1);
 * ``GT`` (G, 4) ground truth ``[time s, x m, y m, heading rad]``;
 * ``DR`` (M, 3) odometry increments ``[time s, delta distance m, delta heading rad]``;
 * ``DRp`` a dead-reckoned path (not used, see below);
@@ -99,6 +100,8 @@ class PlazaData:
         End time and ``[dd, dpsi]`` of each odometry increment after the first GT time.
     init_heading_offset : float
         Radians, as read from the file.
+    ranges_dropped : int
+        Beacon-to-beacon rows of ``TD`` left out.
     """
 
     beacon_ids: NDArray[np.int64]
@@ -111,6 +114,7 @@ class PlazaData:
     odo_times: FArray
     odo: FArray
     init_heading_offset: float = 0.0
+    ranges_dropped: int = 0
 
     @property
     def start_time(self) -> float:
@@ -221,6 +225,11 @@ def load_plaza(path: str | os.PathLike[str], *, init_heading_offset: float | Non
     if np.unique(ids).size != ids.size:
         raise InputError(f"{p}: TL lists a beacon id twice")
     lookup = {int(b): k for k, b in enumerate(ids)}
+    sender_is_beacon = np.isin(TD[:, 1], ids)
+    dropped = 0
+    if sender_is_beacon.any() and not sender_is_beacon.all():
+        dropped = int(sender_is_beacon.sum())
+        TD = TD[~sender_is_beacon]
     unknown = sorted({float(b) for b in TD[:, 2]} - {float(b) for b in ids})
     if unknown:
         raise InputError(f"{p}: TD refers to beacons {unknown[:5]} that TL does not list")
@@ -239,5 +248,5 @@ def load_plaza(path: str | os.PathLike[str], *, init_heading_offset: float | Non
         beacon_ids=ids, beacons=TL[:, 1:3].copy(), range_times=TD[:, 0].copy(),
         range_beacon=np.array([lookup[int(b)] for b in TD[:, 2]], dtype=np.int64), ranges=TD[:, 3].copy(),
         gt_times=GT[:, 0].copy(), gt=gt, odo_times=DR[:, 0].copy(), odo=DR[:, 1:3].copy(),
-        init_heading_offset=offset,
+        init_heading_offset=offset, ranges_dropped=dropped,
     )
