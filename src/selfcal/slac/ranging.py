@@ -207,8 +207,8 @@ class RangeSlacResult:
     poses : (P, 3) ``[x, y, psi]``; pose_std : (P, 3) their standard deviations.
     beacon_ids : (B,); scale, scale_std, offset, offset_std : (B,) range calibration (R1)
         (filter: at the end of the log).
-    noise : float the range noise used by the filter (m); noise_estimate : float the robust
-        estimate from the filter innovations (m).
+    noise : float the prior range noise (m); noise_estimate : float the robust estimate from
+        the innovations (m; NaN with fewer than 10 ranges, None in ``to_dict``).
     ranges_used, ranges_rejected, ranges_outside : int (used in the final pass, gated, outside
         the odometry span).
     iterations : int (smoother Gauss-Newton iterations; 1 for the filter).
@@ -250,7 +250,8 @@ class RangeSlacResult:
             "beacon_ids": [int(b) for b in self.beacon_ids],
             "scale": self.scale.tolist(), "scale_std": self.scale_std.tolist(),
             "offset": self.offset.tolist(), "offset_std": self.offset_std.tolist(),
-            "noise": float(self.noise), "noise_estimate": float(self.noise_estimate),
+            "noise": float(self.noise),
+            "noise_estimate": float(self.noise_estimate) if np.isfinite(self.noise_estimate) else None,
             "ranges_used": int(self.ranges_used), "ranges_rejected": int(self.ranges_rejected),
             "ranges_outside": int(self.ranges_outside), "iterations": int(self.iterations),
             "units": {"position": "m", "heading": "rad", "offset": "m", "time": "s"},
@@ -569,7 +570,6 @@ def solve_range_slac(log: RangeLog | Any, *, method: str = "smoother", config: R
             if step < cfg.tol:
                 status, message = 0, f"Gauss-Newton converged in {iterations} iterations"
                 break
-        sigma_hat = sigma
         x_nodes, P_nodes = ms, Ps
         cal_x, cal_P = ms[0], Ps[0]
         used = int((weights > 0).sum())
