@@ -95,3 +95,21 @@ def test_bad_input() -> None:
     with pytest.raises(InputError, match="range_beacon"):
         RangeLog(BEACONS, np.arange(4), 0.0, log.start_pose, log.odo_times, log.odo, log.range_times,
                  log.range_beacon + 9, log.ranges)
+
+
+@pytest.mark.parametrize("method", ["filter", "smoother"])
+def test_degenerate_logs_give_finite_results(method: str) -> None:
+    import json
+
+    B = BEACONS[:3]
+    no_ranges = RangeLog(B, np.arange(3), 0.0, np.zeros(3), np.array([1.0, 2.0]), np.array([[0.1, 0.0], [0.1, 0.0]]),
+                         np.zeros(0), np.zeros(0, dtype=int), np.zeros(0))
+    r = solve_range_slac(no_ranges, method=method)
+    # without ranges the estimate is dead reckoning and the calibration keeps its prior
+    assert np.allclose(r.poses, compose_odometry(np.zeros(3), no_ranges.odo))
+    assert np.allclose(r.scale, 1.0) and np.allclose(r.scale_std, RangeModelConfig().scale_std)
+    json.dumps(r.to_dict())
+    dup = RangeLog(B, np.arange(3), 0.0, np.zeros(3), np.array([1.0, 1.0, 2.0]), np.full((3, 2), [0.1, 0.0]),
+                   np.array([1.5]), np.array([0]), np.array([0.2]))
+    r = solve_range_slac(dup, method=method)  # rows at one time are one increment
+    assert np.allclose(r.poses[-1, :2], [0.3, 0.0], atol=0.05) and np.all(np.isfinite(r.pose_std))
