@@ -13,7 +13,7 @@ import warnings
 import numpy as np
 import pytest
 
-from selfcal.errors import ConvergenceWarning, DegenerateGeometryError
+from selfcal.errors import ConvergenceWarning, DegenerateGeometryError, Status
 from selfcal.geometry import align
 from selfcal.scenarios.conference import conference_scene
 from selfcal.toa import solve_toa
@@ -271,7 +271,7 @@ def test_a_uniform_random_matrix_fails_its_own_test(seed, offsets, dim):
     Y = np.random.default_rng(seed).uniform(0, 10, (8, 10))
     with pytest.warns(ConvergenceWarning):
         res = solve_toa(Y, dim=dim, offsets=offsets, rng=0)
-    assert not res.success and res.status < 0 and res.geometry is not None
+    assert not res.success and res.status == Status.FAILED_TEST and res.geometry is not None
     assert res.to_dict()["success"] is False
 
 
@@ -279,4 +279,4 @@ def test_a_wrong_noise_level_fails_the_chi_square_test():
     _, _, Y, _ = _net(5, 8, 10, 2, sig=0.05)
     with pytest.warns(ConvergenceWarning, match="chi-square"):
         res = solve_toa(Y, dim=2, rng=0, noise=0.005)
-    assert res.status == -1 and not res.success and res.noise == 0.005
+    assert res.status == Status.FAILED_TEST and not res.success and res.noise == 0.005

@@ -24,7 +24,8 @@ from numpy.typing import NDArray
 from .._checks import check_toa_counts
 from ..errors import DegenerateGeometryError, InputError
 from .nls import NlsSolution, refine_toa, toa_model
-from .result import STATUS, ToaResult, geometry_test, n_parameters, residual_test
+from ..errors import Status
+from .result import MESSAGES, ToaResult, geometry_test, n_parameters, residual_test
 from .robust import drop_unidentifiable, gross_entries, leverages, noise_scale, outlier_mask, studentized
 from .search import canonical_order, search
 
@@ -54,18 +55,19 @@ def given_start(init: Any, I: int, J: int, dim: int, offsets: str, scale: float,
     return r, s, (d0 if has_r else None), (o0 if has_s else None)
 
 
-def _status(test_passed: bool | None, dof: int, converged: bool, noise_given: bool) -> int:
+def _verdict(test_passed: bool | None, dof: int, converged: bool, noise_given: bool) -> tuple[Status, str]:
+    """Status and message key of the trust test (failed test first, then convergence)."""
     if dof <= 0:
-        return 3
+        return Status.SUCCESS, "untestable"
     if test_passed is False:
-        return -1 if noise_given else -2
+        return Status.FAILED_TEST, "chi2-failed" if noise_given else "cv-failed"
     if not converged:
-        return 0
-    return 1 if noise_given else 2
+        return Status.NOT_CONVERGED, "not-converged"
+    return Status.SUCCESS, "chi2-passed" if noise_given else "cv-passed"
 
 
 def finish(M: Array, dim: int, offsets: str, *, init: Any, speed: float | None, loss: str, method: str,
-           rng: np.random.Generator, f_scale: float | None, max_nfev: int | None, covariance: bool,
+           rng: np.random.Generator, f_scale: float | None, max_nfev: int | None, covariance: Any,
            sweep: bool, noise: float | None, budget: int | None, n_negative: int) -> ToaResult:
     """Fit one model robustly (module docstring) and package the :class:`ToaResult`."""
     scale = speed if speed is not None else 1.0
@@ -180,7 +182,7 @@ def finish(M: Array, dim: int, offsets: str, *, init: Any, speed: float | None, 
     Yf = sub(used, keep_r, keep_s)
     st = _restrict(_embed_start(best, prev_keep, keep_r, keep_s), keep_r, keep_s)
     try:
-        final = _refine(Yf, st, dim, offsets, final_loss, fs, max_nfev, covariance)
+        final = _refine(Yf, st, dim, offsets, final_loss, fs, max_nfev, _cov_spec(covariance, pr, pc, keep_r, keep_s))
     except DegenerateGeometryError:
         if not covariance:
             raise
@@ -204,11 +206,11 @@ def finish(M: Array, dim: int, offsets: str, *, init: Any, speed: float | None, 
     else:
         geo = geometry_test(Yf, R_fit, leverages(Yf, *_start(final), offsets), dim, offsets)
         passed = geo.passed
-    status = _status(passed, dof, final.converged, sd is not None)
-    message = STATUS[status]
-    if status == -1 and fit is not None:
+    status, key = _verdict(passed, dof, final.converged, sd is not None)
+    message = MESSAGES[key]
+    if key == "chi2-failed" and fit is not None:
         message += f" (chi2 = {fit.chi2:.4g} for {fit.dof} dof, p = {fit.p_value:.3g})"
-    if status == -2 and geo is not None:
+    if key == "cv-failed" and geo is not None:
         message += f" (PRESS {geo.press:.3g} vs {geo.press_null:.3g} without geometry)"
 
     # 7. back to the caller's numbering
@@ -229,11 +231,28 @@ def _solver(Y: Array, dim: int, offsets: str) -> str:
 
 
 def _refine(Y: Array, start: Start, dim: int, offsets: str, loss: str, fs: float | None, max_nfev: int | None,
-            covariance: bool) -> NlsSolution:
+            covariance: Any) -> NlsSolution:
     r0, s0, d0, o0 = start
     return refine_toa(Y, r0, s0, offsets=offsets, receiver_offsets0=d0, source_offsets0=o0, loss=loss,
                       f_scale=fs if loss != "linear" else None, max_nfev=max_nfev, covariance=covariance,
                       solver=_solver(Y, dim, offsets))
+
+
+def _cov_spec(cov: Any, pr: NDArray[np.intp], pc: NDArray[np.intp], kr: NDArray[np.bool_],
+              ks: NDArray[np.bool_]) -> Any:
+    """A covariance request in the caller's numbering, in the kept canonical order (modes unchanged)."""
+    if not isinstance(cov, tuple):
+        return cov
+
+    def remap(idx: Any, perm: NDArray[np.intp], keep: NDArray[np.bool_]) -> Any:
+        if idx is None:
+            return None
+        inv = np.argsort(perm)  # caller index -> canonical position
+        pos = np.cumsum(keep) - 1  # canonical position -> kept position
+        c = inv[np.asarray(idx, dtype=np.intp)]
+        return np.sort(pos[c[keep[c]]])
+
+    return remap(cov[0], pr, kr), remap(cov[1], pc, ks)
 
 
 def _start(sol: NlsSolution) -> Start:
@@ -316,7 +335,7 @@ def _check_kept(used: NDArray[np.bool_], kr: NDArray[np.bool_], ks: NDArray[np.b
 
 def _package(M: Array, Yc: Array, sol: NlsSolution, kr: NDArray[np.bool_], ks: NDArray[np.bool_],
              pr: NDArray[np.intp], pc: NDArray[np.intp], outliers: NDArray[np.bool_], speed: float | None,
-             label: str, iters: int, n_runs: int, fit: Any, geo: Any, status: int, message: str,
+             label: str, iters: int, n_runs: int, fit: Any, geo: Any, status: Status, message: str,
              noise: float | None, noise_est: float, dim: int, offsets: str, n_negative: int) -> ToaResult:
     I, J = M.shape
     k = 1.0 / speed if speed is not None else 1.0
@@ -360,8 +379,8 @@ def _package(M: Array, Yc: Array, sol: NlsSolution, kr: NDArray[np.bool_], ks: N
         speed=speed,
         residuals=R * k,
         fit=fit,
-        status=status,
-        message=message,
+        verdict=int(status),
+        verdict_message=message,
         outliers=mask,
         dropped_receivers=tuple(int(i) for i in np.sort(pr[~kr])),
         dropped_sources=tuple(int(j) for j in np.sort(pc[~ks])),
@@ -402,6 +421,6 @@ def unrefined(M: Array, dim: int, offsets: str, speed: float | None, rng: np.ran
         receiver_cov=np.full((I, dim, dim), np.nan), source_cov=np.full((J, dim, dim), np.nan),
         residual_rms=float(np.sqrt(np.mean(f**2))) * k, sigma=float("nan"), converged=True, iterations=0,
         method="rank3", n_missing=int((~np.isfinite(M)).sum()), speed=speed, residuals=res * k,
-        status=3, message="the 004 initialiser alone (method='rank3'): not refined, not tested",
+        verdict=int(Status.SUCCESS), verdict_message="the 004 initialiser alone (method='rank3'): not refined, not tested",
         outliers=np.zeros((I, J), bool), dim=dim, offsets=offsets, n_negative=n_negative)
 

@@ -6,8 +6,9 @@
 - :func:`geometry_test` / :class:`GeometryTest`: with the noise *unknown*, leave-one-out
   cross-validation (PRESS) of the geometric model against the model without geometry
   (offsets only, or a constant): data that fit no geometry (a uniform random matrix) fail it.
-- :class:`ToaResult`: frozen, ``to_dict()`` JSON-safe, ``status`` / ``message`` / ``success``
-  in the style of :class:`scipy.optimize.OptimizeResult`.
+- :class:`ToaResult`: frozen, a :class:`selfcal._result.Result` (``status`` / ``message`` /
+  ``success`` in the style of :class:`scipy.optimize.OptimizeResult`, short repr, summary,
+  ``to_dict()`` JSON-safe).
 """
 
 from __future__ import annotations
@@ -20,11 +21,13 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .._checks import check_choice, check_positive
+from .._result import Result
+from ..errors import Status
 from .nls import OFFSET_MODES
 
 __all__ = [
+    "MESSAGES",
     "RESIDUAL_ALPHA",
-    "STATUS",
     "GeometryTest",
     "ResidualTest",
     "ToaResult",
@@ -39,14 +42,14 @@ Array = NDArray[np.float64]
 #: significance level of both trust tests: a fit whose p-value is below this fails
 RESIDUAL_ALPHA = 1e-3
 
-#: ``ToaResult.status`` codes (``success = status > 0``, as in SciPy's ``least_squares``)
-STATUS = {
-    1: "the residuals are consistent with the given noise (chi-square test passed)",
-    2: "the geometry predicts the data better than offsets alone (cross-validated test passed)",
-    3: "no redundant measurement: the fit is exact and cannot be tested",
-    0: "the search stopped at its budget without a converged refinement",
-    -1: "the residuals are too large for the given noise (chi-square test failed)",
-    -2: "the data are not predicted by a geometry better than by offsets alone (cross-validated test failed)",
+#: messages of the trust verdicts (``ToaResult.status`` is a :class:`selfcal.errors.Status`)
+MESSAGES = {
+    "chi2-passed": "the residuals are consistent with the given noise (chi-square test passed)",
+    "cv-passed": "the geometry predicts the data better than offsets alone (cross-validated test passed)",
+    "untestable": "no redundant measurement: the fit is exact and cannot be tested",
+    "not-converged": "the final refinement stopped before convergence",
+    "chi2-failed": "the residuals are too large for the given noise (chi-square test failed)",
+    "cv-failed": "the data are not predicted by a geometry better than by offsets alone (cross-validated test failed)",
 }
 
 
@@ -307,8 +310,8 @@ def _jsonable(a: Any) -> Any:
     return obj.tolist()
 
 
-@dataclass(frozen=True)
-class ToaResult:
+@dataclass(frozen=True, repr=False)
+class ToaResult(Result):
     """Result of :func:`selfcal.toa.solve_toa`.
 
     Attributes
@@ -331,7 +334,9 @@ class ToaResult:
     residuals: (I, J) measured minus modelled, matrix units, NaN where missing or dropped
         (outliers keep their residual).
     fit: chi-square residual test when ``noise`` was given, else None.
-    status, message, success: trust verdict (codes in :data:`STATUS`; ``success = status > 0``).
+    status, message, success: the trust verdict (properties; ``status`` a
+        :class:`selfcal.errors.Status`: SUCCESS, NOT_CONVERGED or FAILED_TEST), stored in the
+        fields ``verdict`` (the Status value) and ``verdict_message``.
     outliers: (I, J) bool, entries the outlier rule rejected (excluded from the final fit).
     dropped_receivers, dropped_sources: indices of nodes with too few measurements to be
         identified, left out of the fit (their rows are NaN).
@@ -361,8 +366,8 @@ class ToaResult:
     speed: float | None = None
     residuals: Array | None = None
     fit: ResidualTest | None = None
-    status: int = 3
-    message: str = STATUS[3]
+    verdict: int = 0
+    verdict_message: str = MESSAGES["untestable"]
     outliers: NDArray[np.bool_] | None = None
     dropped_receivers: tuple[int, ...] = ()
     dropped_sources: tuple[int, ...] = ()
@@ -374,17 +379,10 @@ class ToaResult:
     selection: dict[str, Any] = field(default_factory=dict)
     n_negative: int = 0
 
-    @property
-    def success(self) -> bool:
-        """True when the result passed its own test (``status > 0``)."""
-        return self.status > 0
+    _repr_fields = ("method", "dim", "offsets", "residual_rms", "noise_estimate")
 
-    def __repr__(self) -> str:
-        I, J = self.receivers.shape[0], self.sources.shape[0]
-        return (f"ToaResult({I} receivers x {J} sources, dim={self.dim}, offsets={self.offsets!r}, "
-                f"success={self.success}, status={self.status}, residual_rms={self.residual_rms:.4g}, "
-                f"outliers={0 if self.outliers is None else int(self.outliers.sum())}, "
-                f"dropped={len(self.dropped_receivers)}+{len(self.dropped_sources)}, method={self.method!r})")
+    def _diagnose(self) -> tuple[Status, str]:
+        return Status(self.verdict), self.verdict_message
 
     def to_dict(self) -> dict[str, Any]:
         """Strict-JSON dict: the DESIGN.md toa keys plus diagnostics (NaN -> null)."""

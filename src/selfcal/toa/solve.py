@@ -15,8 +15,9 @@ from typing import Any
 
 import numpy as np
 
-from .._checks import as_matrix, as_points, as_rng, check_choice, check_dim, check_positive, check_toa_counts
+from .._checks import as_matrix, as_points, as_rng, check_choice, check_dim, check_positive, check_toa_counts, entry
 from ..errors import ConvergenceWarning, InputError
+from .covariance import normalize_covariance
 from .fit import finish, given_start, unrefined
 from .nls import LOSSES, OFFSET_MODES
 from .result import ResidualTest, ToaResult, n_parameters, residual_test
@@ -26,6 +27,8 @@ __all__ = ["ResidualTest", "ToaResult", "n_parameters", "residual_test", "solve_
 METHODS = ("auto", "nls", "rank3")
 
 
+@entry(matrix="array", speed="positive?", rng="rng", f_scale="positive?", max_nfev="count?", noise="positive?",
+       budget="count?")
 def solve_toa(
     matrix: Any,
     *,
@@ -38,7 +41,7 @@ def solve_toa(
     rng: np.random.Generator | int | None = None,
     f_scale: float | None = None,
     max_nfev: int | None = None,
-    covariance: bool = True,
+    covariance: Any = True,
     sweep: bool = True,
     noise: float | None = None,
     budget: int | None = None,
@@ -73,7 +76,10 @@ def solve_toa(
     rng: seed / Generator for the randomised initialisers.
     f_scale: robust-loss scale in the matrix's units (default: estimated from the data).
     max_nfev: iteration cap of each full refinement.
-    covariance: compute the per-point covariances of the final fit (NaN when False).
+    covariance: which per-point covariance blocks of the final fit to compute: True / "all",
+        "receivers", "sources", False / "none", or indices ``{"receivers": idx, "sources": idx}``
+        in the caller's numbering (:func:`selfcal.toa.covariance.normalize_covariance`); the
+        others are NaN.
     sweep: run the plane moves of the search (:mod:`selfcal.toa.moves`).
     noise: optional std of the measurement noise in the matrix's units. The result then
         carries ``fit``, the chi-square test of its residuals (rejected at p < 1e-3), which
@@ -111,6 +117,7 @@ def solve_toa(
     check_choice(offsets, "offsets", OFFSET_MODES + ("auto",))
     check_choice(loss, "loss", LOSSES + ("auto",))
     check_choice(method, "method", METHODS)
+    covariance = normalize_covariance(covariance)  # False when no block is asked for
     if dim != "auto":
         dim = check_dim(dim)  # type: ignore[arg-type]
     spd = check_positive(speed, "speed")
@@ -121,8 +128,6 @@ def solve_toa(
     if method == "rank3" and offsets == "none":
         raise InputError("method='rank3' estimates offsets: use offsets='both' (or 'receivers'/'sources'), "
                          "or method='nls'")
-    if budget is not None and (not isinstance(budget, (int, np.integer)) or budget < 1):
-        raise InputError(f"budget must be a positive integer, got {budget!r}")
     n_neg = int(np.sum(M[np.isfinite(M)] <= 0))
     if n_neg:
         warnings.warn(f"{n_neg} of the entries are zero or negative; they are kept as measurements "
@@ -149,7 +154,7 @@ def solve_toa(
 
 def _solve_fixed(M: np.ndarray, dim: int, offsets: str, *, init: Any = "auto", speed: float | None,
                  loss: str, method: str, rng: np.random.Generator, f_scale: float | None,
-                 max_nfev: int | None, covariance: bool, sweep: bool, noise: float | None,
+                 max_nfev: int | None, covariance: Any, sweep: bool, noise: float | None,
                  budget: int | None, n_negative: int) -> ToaResult:
     """One model (dim, offsets): counts, the rank-3 shortcut, else the robust search (:mod:`.fit`)."""
     I, J = M.shape
