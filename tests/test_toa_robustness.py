@@ -280,3 +280,31 @@ def test_a_wrong_noise_level_fails_the_chi_square_test():
     with pytest.warns(ConvergenceWarning, match="chi-square"):
         res = solve_toa(Y, dim=2, rng=0, noise=0.005)
     assert res.status == Status.FAILED_TEST and not res.success and res.noise == 0.005
+
+
+# ----------------------------------------------------------------------------- minimal 12 x 6 (issue 12)
+
+
+def _minimal_draw(seed):
+    import importlib.util
+    from pathlib import Path
+
+    spec = importlib.util.spec_from_file_location(
+        "bench_toa_minimal", Path(__file__).resolve().parents[1] / "benchmarks" / "bench_toa_minimal.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod.one(seed)
+
+
+@pytest.mark.slow
+@pytest.mark.xfail(strict=False, reason="measured 2 of 4 draws in the basin (benchmarks/bench_toa_minimal.py); "
+                   "the issue's 95 % is not reached by the current search")
+def test_minimal_12x6_blind_solves_land_in_the_basin_of_the_truth():
+    """12 mics x 6 sources, both offsets, 20 us: >= 95 % of 200 seeded draws in the truth's basin.
+
+    Binomial: with a true rate of 97 %, 190 / 200 is passed with probability 0.9; a rate of
+    90 % passes it with probability < 0.01. No reduced default version: one blind solve of this
+    ill-conditioned problem takes ~10-60 s here (far sources make range and onset nearly collinear).
+    """
+    hits = sum(_minimal_draw(seed)["in_basin"] for seed in range(200))
+    assert hits >= 190

@@ -22,11 +22,17 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .._checks import check_toa_counts
-from ..errors import DegenerateGeometryError, InputError
+from ..errors import DegenerateGeometryError, InputError, Status
 from .nls import NlsSolution, refine_toa, toa_model
-from ..errors import Status
 from .result import MESSAGES, ToaResult, geometry_test, n_parameters, residual_test
-from .robust import drop_unidentifiable, gross_entries, leverages, noise_scale, outlier_mask, studentized
+from .robust import (
+    drop_unidentifiable,
+    gross_entries,
+    leverages,
+    noise_scale,
+    outlier_mask,
+    studentized,
+)
 from .search import canonical_order, search
 
 __all__ = ["finish", "given_start", "unrefined"]
@@ -255,6 +261,10 @@ def _cov_spec(cov: Any, pr: NDArray[np.intp], pc: NDArray[np.intp], kr: NDArray[
     return remap(cov[0], pr, kr), remap(cov[1], pc, ks)
 
 
+def _scaled(a: Array | None, k: float) -> Array | None:
+    return None if a is None else a * k
+
+
 def _start(sol: NlsSolution) -> Start:
     return sol.receivers, sol.sources, sol.receiver_offsets, sol.source_offsets
 
@@ -374,8 +384,8 @@ def _package(M: Array, Yc: Array, sol: NlsSolution, kr: NDArray[np.bool_], ks: N
         method=label,
         n_missing=int((~np.isfinite(M)).sum()),
         n_starts=n_runs,
-        receiver_offset_std=None if sol.receiver_offset_std is None else embed(sol.receiver_offset_std, kr, inv_r) * k,  # type: ignore[operator]
-        source_offset_std=None if sol.source_offset_std is None else embed(sol.source_offset_std, ks, inv_c) * k,  # type: ignore[operator]
+        receiver_offset_std=_scaled(embed(sol.receiver_offset_std, kr, inv_r), k),
+        source_offset_std=_scaled(embed(sol.source_offset_std, ks, inv_c), k),
         speed=speed,
         residuals=R * k,
         fit=fit,

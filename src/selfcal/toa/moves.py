@@ -59,7 +59,7 @@ def _pairs(r: Array, s: Array) -> list[tuple[int, int, Array, Array]]:
     dim = r.shape[1]
     allpts = np.vstack([r, s])
     I = r.shape[0]
-    out = []
+    out: list[tuple[int, int, Array, Array]] = []
     if I + s.shape[0] < 2 * dim + 4:
         return out
     for i in range(I):
@@ -74,7 +74,7 @@ def _pairs(r: Array, s: Array) -> list[tuple[int, int, Array, Array]]:
 
 #: node-wise moves (1. and 2.) only up to this many nodes: above it their number (one or two per
 #: node, each a refinement) costs more than the search's budget; the collective ones always run
-NODEWISE_MAX_NODES = 60
+NODEWISE_MAX_NODES = 24
 
 
 def moves(start: Start, observed: NDArray[np.bool_]) -> Iterator[tuple[str, Start]]:

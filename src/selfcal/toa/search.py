@@ -22,6 +22,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass, field
+
 import numpy as np
 from numpy.typing import NDArray
 
@@ -160,9 +161,9 @@ def _sane(start: Start, Y: Array) -> bool:
 
 
 def default_budget(n_receivers: int, n_sources: int) -> int:
-    """Refinements the search may run: about two rounds of moves (two per node up to 60 nodes), >= 24."""
+    """Refinements the search may run: about one round of node-wise moves (24 nodes), at least 16."""
     n = int(n_receivers) + int(n_sources)
-    return 1 if n > MOVES_MAX_NODES else max(24, 2 * min(n, 60))
+    return 1 if n > MOVES_MAX_NODES else max(16, min(n, 24) + 8)
 
 
 # ------------------------------------------------------------------ the search
