@@ -91,7 +91,8 @@ class AoaResult(Result):
         bearings fit it at the noise level (``sigma``, else :data:`PLAUSIBLE_SIGMA`); False
         when they do not (not a pose: wrong convention, wrong beacon order, gross errors) or
         when the solver did not converge.
-    status : int or (B,): 0 = ok, 1 = residual test failed, 2 = not converged.
+    status : :class:`~selfcal.errors.Status` or (B,) int: 0 = ok, 1 = not converged,
+        2 = residual test failed (the shared codes of :class:`~selfcal.errors.Status`).
     message : one line explaining ``success``.
     """
 
@@ -119,15 +120,6 @@ class AoaResult(Result):
     def pose_cov(self) -> Array | None:
         """Covariance of the pose ``(m, w)`` / ``(m, theta)`` (alias of ``covariance``)."""
         return self.covariance
-
-    def _diagnose(self) -> tuple[Status, str]:
-        status, message = super()._diagnose()
-        if status == Status.SUCCESS and bool(np.any(self.ambiguous)):
-            n = len(self.candidates) if self.position.ndim == 1 else int(np.count_nonzero(self.ambiguous))
-            what = f"{n} poses explain the bearings equally well" if self.position.ndim == 1 else (
-                f"{n} receivers have several equally good poses")
-            return Status.AMBIGUOUS, f"ambiguous: {what}"
-        return status, message
 
     @property
     def position_cov(self) -> Array | None:
@@ -513,14 +505,14 @@ def solve_aoa(
     rms = _rms(b, U, m, R)
     passed, ratio = residual_test(rms, N, d, sigma)
     conv_b = np.asarray(conv, bool)
-    status = np.where(~conv_b, 2, np.where(passed, 0, 1))
+    status = np.where(~conv_b, int(Status.NOT_CONVERGED), np.where(passed, int(Status.SUCCESS), int(Status.FAILED_TEST)))
     success = status == 0
     if not batched:
         return AoaResult(
             position=m[0], rotation=R[0], residual_rms=float(rms[0]), method=method,
             converged=bool(conv[0]), iterations=int(iters[0]),
             covariance=None if cov is None else cov[0], candidates=cand, n_candidates=int(ncand[0]),
-            success=bool(success[0]), status=int(status[0]),
+            success=bool(success[0]), status=Status(int(status[0])),
             message=_message(int(status[0]), float(rms[0]), float(ratio[0]), sigma, N, d),
         )
     nfail = int(np.sum(~success))
@@ -535,12 +527,12 @@ def solve_aoa(
 def _message(status: int, rms: float, ratio: float, sigma: float | None, n: int, d: int) -> str:
     sig = np.degrees(PLAUSIBLE_SIGMA if sigma is None else sigma)
     src = "given" if sigma is not None else "assumed bound"
-    if status == 2:
+    if status == Status.NOT_CONVERGED:
         return "the solver did not converge (or the pose is undetermined)"
     dof = (2 if d == 3 else 1) * n - (6 if d == 3 else 3)
     if dof <= 0:
         return f"exactly determined ({n} beacons): no residual test possible"
-    if status == 1:
+    if status == Status.FAILED_TEST:
         return (f"the bearings fit this pose only to {np.degrees(rms):.3g} deg RMS, {ratio:.3g} x the chi-square "
                 f"{RESIDUAL_TEST_LEVEL:g} quantile for noise {sig:.3g} deg ({src}): not a pose (wrong angle "
                 "convention, beacon order or gross errors?)")
