@@ -365,6 +365,21 @@ def solve_aoa(
     Notes
     -----
     ``success`` comes from :func:`residual_test` (chi-square on the angular residuals).
+
+    Examples
+    --------
+    Noise-free bearings from a receiver at ``m`` (axes aligned with the global frame) to
+    six beacons:
+
+    >>> import numpy as np
+    >>> import selfcal
+    >>> rng = np.random.default_rng(5)
+    >>> beacons = rng.uniform(-5, 5, (6, 3))
+    >>> m = np.array([0.3, -0.2, 0.1])
+    >>> bearings = (beacons - m) / np.linalg.norm(beacons - m, axis=1, keepdims=True)
+    >>> res = selfcal.solve_aoa(beacons, bearings)
+    >>> res.success, np.allclose(res.position, m), np.allclose(res.rotation, np.eye(3))
+    (True, True, True)
     """
     if sign_z_unknown:
         return _solve_sign_ambiguous(beacons, bearings, method=method, sigma=sigma,
