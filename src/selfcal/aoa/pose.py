@@ -91,8 +91,8 @@ class AoaResult(Result):
         bearings fit it at the noise level (``sigma``, else :data:`PLAUSIBLE_SIGMA`); False
         when they do not (not a pose: wrong convention, wrong beacon order, gross errors) or
         when the solver did not converge.
-    status : :class:`selfcal.errors.Status` or (B,) ints of it: SUCCESS (0), NOT_CONVERGED (1),
-        FAILED_TEST (2, the residual test rejected the pose).
+    status : :class:`~selfcal.errors.Status` or (B,) int: 0 = ok, 1 = not converged,
+        2 = residual test failed (the shared codes of :class:`~selfcal.errors.Status`).
     message : one line explaining ``success``.
     """
 
@@ -120,15 +120,6 @@ class AoaResult(Result):
     def pose_cov(self) -> Array | None:
         """Covariance of the pose ``(m, w)`` / ``(m, theta)`` (alias of ``covariance``)."""
         return self.covariance
-
-    def _diagnose(self) -> tuple[Status, str]:
-        status, message = super()._diagnose()
-        if status == Status.SUCCESS and bool(np.any(self.ambiguous)):
-            n = len(self.candidates) if self.position.ndim == 1 else int(np.count_nonzero(self.ambiguous))
-            what = f"{n} poses explain the bearings equally well" if self.position.ndim == 1 else (
-                f"{n} receivers have several equally good poses")
-            return Status.AMBIGUOUS, f"ambiguous: {what}"
-        return status, message
 
     @property
     def position_cov(self) -> Array | None:
@@ -374,6 +365,21 @@ def solve_aoa(
     Notes
     -----
     ``success`` comes from :func:`residual_test` (chi-square on the angular residuals).
+
+    Examples
+    --------
+    Noise-free bearings from a receiver at ``m`` (axes aligned with the global frame) to
+    six beacons:
+
+    >>> import numpy as np
+    >>> import selfcal
+    >>> rng = np.random.default_rng(5)
+    >>> beacons = rng.uniform(-5, 5, (6, 3))
+    >>> m = np.array([0.3, -0.2, 0.1])
+    >>> bearings = (beacons - m) / np.linalg.norm(beacons - m, axis=1, keepdims=True)
+    >>> res = selfcal.solve_aoa(beacons, bearings)
+    >>> res.success, np.allclose(res.position, m), np.allclose(res.rotation, np.eye(3))
+    (True, True, True)
     """
     if sign_z_unknown:
         return _solve_sign_ambiguous(beacons, bearings, method=method, sigma=sigma,
@@ -514,8 +520,7 @@ def solve_aoa(
     rms = _rms(b, U, m, R)
     passed, ratio = residual_test(rms, N, d, sigma)
     conv_b = np.asarray(conv, bool)
-    status = np.where(~conv_b, int(Status.NOT_CONVERGED),
-                      np.where(passed, int(Status.SUCCESS), int(Status.FAILED_TEST)))
+    status = np.where(~conv_b, int(Status.NOT_CONVERGED), np.where(passed, int(Status.SUCCESS), int(Status.FAILED_TEST)))
     success = status == 0
     if not batched:
         return AoaResult(

@@ -44,6 +44,8 @@ from scipy import stats
 from scipy.optimize import brentq
 
 from ..errors import InputError
+from ..geometry import wrap_angle
+from ..robust import loss_rho
 
 __all__ = ["RangeLog", "RangeModelConfig", "RangeSlacResult", "solve_range_slac", "huber_weight"]
 
@@ -53,8 +55,7 @@ IArray = NDArray[np.int64]
 
 def huber_weight(e: FArray, k: float) -> FArray:
     """IRLS weight of the Huber loss for standardised residuals ``e``: ``min(1, k / |e|)``."""
-    a = np.abs(np.asarray(e, dtype=float))
-    return np.where(a <= k, 1.0, k / np.maximum(a, 1e-300))
+    return loss_rho((np.asarray(e, dtype=float) / k) ** 2, "huber")[1]  # the one loss table
 
 
 @dataclass(frozen=True)
@@ -577,7 +578,7 @@ def solve_range_slac(log: RangeLog | Any, *, method: str = "smoother", config: R
     sd_nodes = np.sqrt(np.maximum(np.diagonal(P_nodes, axis1=1, axis2=2), 0.0))
     pn = ch.pose_nodes
     poses = x_nodes[pn, :3].copy()
-    poses[:, 2] = (poses[:, 2] + np.pi) % (2 * np.pi) - np.pi
+    poses[:, 2] = wrap_angle(poses[:, 2])
     cal_sd = np.sqrt(np.maximum(np.diag(cal_P), 0.0))
     return RangeSlacResult(
         method=method, times=ch.times[pn].copy(), poses=poses, pose_std=sd_nodes[pn, :3].copy(),
