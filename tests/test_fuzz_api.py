@@ -32,7 +32,7 @@ hypothesis = pytest.importorskip("hypothesis")
 from hypothesis import HealthCheck, given, settings  # noqa: E402
 from hypothesis import strategies as st  # noqa: E402
 
-FAST = settings(max_examples=25, deadline=None, suppress_health_check=list(HealthCheck), derandomize=True)
+FAST = settings(max_examples=int(os.environ.get("SELFCAL_FUZZ_EXAMPLES", "25")), deadline=None, suppress_health_check=list(HealthCheck), derandomize=True)
 SLOW = settings(max_examples=500, deadline=None, suppress_health_check=list(HealthCheck))
 LEAKS = (ValueError, TypeError, IndexError, KeyError, ZeroDivisionError, OverflowError, MemoryError,
          np.linalg.LinAlgError, AttributeError, UnicodeError)
