@@ -373,7 +373,7 @@ def test_solve_aoa_fuzz(b, u, method: str) -> None:  # type: ignore[no-untyped-d
 # ----------------------------------------------------------------------------- SLAC logs, guards
 
 def _tiny_log() -> dict[str, np.ndarray]:
-    n, A, S, N = 2, 2, 3, 8
+    n, S, N = 2, 3, 8
     rx, tx = np.array([0, 1, 0]), np.array([2, 3, 1])
     ports = np.array([1, 2])
     rows = int(ports[rx].sum())
