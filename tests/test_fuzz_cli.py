@@ -473,3 +473,18 @@ def test_fuzz_calibrate_toa_slow(tmp_path_factory, rows) -> None:  # type: ignor
     p = d / "m.csv"
     p.write_text("\n".join(",".join(r) for r in rows) + "\n")
     check_contract(invoke(["calibrate", "toa", p, "-o", d / "r.json"]))
+
+
+def test_transposed_inputs_are_named(tmp_path: Path) -> None:
+    rng = np.random.default_rng(0)
+    Z, n = rng.normal(size=(10, 3)), rng.normal(size=(5, 3))
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    np.savetxt(tmp_path / "ff.csv", Z @ n.T, delimiter=",")  # 10 positions x 5 transmitters (needs 6)
+    res = invoke(["calibrate", "tdoa-farfield", tmp_path / "ff.csv", "-o", tmp_path / "r.json"])
+    code, _, err = check_contract(res)
+    assert code == 2 and "transposed" in err
+    np.savetxt(tmp_path / "b.csv", rng.uniform(0, 4, (5, 3)).T, delimiter=",")  # beacons as columns
+    np.savetxt(tmp_path / "u.csv", rng.normal(size=(5, 3)), delimiter=",")
+    res = invoke(["locate", "aoa", tmp_path / "b.csv", tmp_path / "u.csv", "-o", tmp_path / "p.json"])
+    code, _, err = check_contract(res)
+    assert code == 2 and "transposed" in err

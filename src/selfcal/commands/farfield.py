@@ -55,10 +55,10 @@ def farfield_command(matrix: Path, out: Path, speed: float | None, method: str, 
     parallel-directions) exits with status 2 naming it, unless --allow-degenerate.
     """
     from .._checks import FARFIELD_TIMES_AS_METRES_MAX, plausible_matrix_scale
-    from ..errors import InputError
+    from ..errors import DegenerateGeometryError, InputError
     from ..io import read_table, write_json
     from ..tdoa import solve_farfield
-    from ._common import enrich_payload, to_metres, write_nodes_csv
+    from ._common import enrich_payload, to_metres, transposed_hint, write_nodes_csv
 
     table = read_table(matrix, name=str(matrix))
     M, speed, _ = to_metres(table.values, unit, speed, sample_rate, name=str(matrix))
@@ -69,9 +69,13 @@ def farfield_command(matrix: Path, out: Path, speed: float | None, method: str, 
         scale = speed
     plausible_matrix_scale(M, speed=speed, explicit_unit=unit is not None, name=str(matrix),
                            min_span=FARFIELD_TIMES_AS_METRES_MAX)
-    res = solve_farfield(M * scale, method=method, loss=loss,
-                         noise_std=None if noise_std is None else noise_std * scale,
-                         allow_degenerate=allow_degenerate, ransac=ransac, rng=seed)
+    try:
+        res = solve_farfield(M * scale, method=method, loss=loss,
+                             noise_std=None if noise_std is None else noise_std * scale,
+                             allow_degenerate=allow_degenerate, ransac=ransac, rng=seed)
+    except DegenerateGeometryError as exc:
+        transposed_hint(exc, M.shape, min_rows=4, min_cols=6)
+        raise
     if plot is not None:
         _plot(res, plot)
     payload = enrich_payload(
