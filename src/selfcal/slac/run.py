@@ -18,6 +18,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .._checks import as_rng, check_choice, entry
+from .._result import Result
 from ..errors import InputError
 from ..io import atomic_write_bytes, load_npz
 from .doa import estimate_doa_from_y
@@ -174,8 +175,8 @@ class SlacLog:
         )
 
 
-@dataclass(frozen=True)
-class SlacResult:
+@dataclass(frozen=True, repr=False)
+class SlacResult(Result):
     """Outcome of :func:`solve_slac` (histories indexed by state 0..S).
 
     Attributes: mode, method, poses (S+1, n, 3), pose_cov (S+1, n, 3, 3), biases (S+1, n+A),
@@ -245,10 +246,21 @@ def solve_slac(
     Returns
     -------
     SlacResult (with metrics against the truth when the log carries it).
-    """
-    from ._threads import limit_blas_threads
 
-    limit_blas_threads(1)  # small dense algebra: BLAS threads only add contention
+    Notes
+    -----
+    The filter does many small (~100 x 100) dense operations per step, where BLAS threads
+    only add synchronisation cost: the run holds the BLAS pools at one thread
+    (``threadpoolctl``, restored on return).
+    """
+    from threadpoolctl import threadpool_limits
+
+    with threadpool_limits(limits=1, user_api="blas"):
+        return _solve_slac(log, mode, prior, config, steps, progress, init)
+
+
+def _solve_slac(log: SlacLog, mode: str, prior: str, config: SlacConfig | None, steps: int | None,
+                progress: bool, init: str) -> SlacResult:
     base = config or SlacConfig()
     cfg = SlacConfig(**{**base.__dict__, "T": log.T, "sigma_v": log.sigma_v, "sigma_omega": log.sigma_omega,
                         "bandwidth": log.bandwidth})
