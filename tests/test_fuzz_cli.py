@@ -234,12 +234,12 @@ def test_version_and_help() -> None:
 
 
 def test_internal_error_is_one_line(monkeypatch, matrix_file: Path, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
-    import selfcal.toa as toa
+    import selfcal.io as sio
 
     def boom(*a, **k):  # type: ignore[no-untyped-def]
         raise ZeroDivisionError("boom")
 
-    monkeypatch.setattr(toa, "solve_toa", boom)
+    monkeypatch.setattr(sio, "read_table", boom)  # any unexpected exception inside a command
     res = invoke(["calibrate", "toa", matrix_file, "-o", tmp_path / "r.json"])
     assert res.exit_code == 2 and res.stderr.strip() == "selfcal: error: internal error: ZeroDivisionError: boom"
     assert not (tmp_path / "r.json").exists()
