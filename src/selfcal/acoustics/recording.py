@@ -31,6 +31,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from .._checks import guard_recording_setup
 from ..errors import InputError
 from ..io import atomic_write_bytes, write_json
 from .probe import Probe, probe_from_spec
@@ -186,6 +187,7 @@ def parse_setup(raw: Any, where: str = "setup.json") -> Setup:
             raise InputError(f"{where}: field 'events[{k}].time' must be a number >= 0 (seconds), got {t!r}")
         ev_s.append(index[ev["sender"]])
         ev_t.append(float(t))
+    guard_recording_setup(fs, ev_t, probe, len(receivers), where)  # sizes refused before allocation
     jit = raw.get("clock_jitter", 0.0)
     if isinstance(jit, bool) or not isinstance(jit, (int, float)) or not math.isfinite(jit) or jit < 0:
         raise InputError(f"{where}: field 'clock_jitter' must be a number >= 0 (seconds), got {jit!r}")

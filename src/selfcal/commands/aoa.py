@@ -52,7 +52,7 @@ def locate_aoa(
     """
     import numpy as np
 
-    from .._checks import plausible_angles
+    from .._checks import as_points, plausible_angles
     from ..aoa import angles_to_bearings, solve_aoa
     from ..errors import InputError
     from ..io import read_table, staged_outputs, write_json
@@ -63,6 +63,7 @@ def locate_aoa(
     u = read_table(bearings, "bearings").values
     d = b.shape[1]
     if d not in (2, 3):
+        as_points(b, "beacons")  # names a list given one coordinate per row (transposed)
         raise InputError(f"beacons: expected N x 2 or N x 3 coordinates, got {b.shape}")
     if u.shape[0] != b.shape[0]:
         raise InputError(f"bearings: {u.shape[0]} rows for {b.shape[0]} beacons (one row per beacon)")
