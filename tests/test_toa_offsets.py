@@ -255,9 +255,7 @@ def test_initializer_with_missing_entries_and_noise() -> None:
 
 
 def test_nls_path_handles_missing_entries_and_distinct_delays() -> None:
-    toa = pytest.importorskip("selfcal.toa")
-    if not hasattr(toa, "solve_toa"):
-        pytest.skip("solve_toa (issue 1) not merged yet")
+    from selfcal import toa  # a broken import of selfcal must fail here, never skip
     sc = make_units(16, room="small", rng=3, equal_delays=False)
     times = sc.times.copy()
     times[np.random.default_rng(2).random(times.shape) < 0.1] = np.nan

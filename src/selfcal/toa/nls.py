@@ -51,8 +51,9 @@ import scipy.sparse
 from numpy.typing import NDArray
 from scipy.optimize import least_squares
 
-from .._checks import as_matrix, as_points, check_choice
+from .._checks import as_matrix, as_points, check_choice, check_positive
 from ..errors import DegenerateGeometryError, InputError
+from . import constrained as _constrained
 
 __all__ = [
     "NlsSolution",
@@ -585,6 +586,16 @@ def refine_toa(
     xtol: float = 1e-10,
     solver: str = "auto",
     covariance: Any = True,
+    fixed_receivers: Any = None,
+    fixed_sources: Any = None,
+    receiver_prior: Any = None,
+    source_prior: Any = None,
+    fixed_receiver_offsets: Any = None,
+    fixed_source_offsets: Any = None,
+    common_offsets: str = "none",
+    receiver_offset_basis: Any = None,
+    source_offset_basis: Any = None,
+    noise: float | None = None,
 ) -> NlsSolution:
     """Refine receivers, sources (and offsets) by sparse nonlinear least squares (003 eq. 2, 16-17).
 
@@ -616,10 +627,43 @@ def refine_toa(
         blocks not asked for are NaN. Selected inversion from one factorization of the
         reduced system (:mod:`selfcal.toa.covariance`: O(min(I,J)^2 max(I,J) d^3) time for
         all blocks, the dominant cost for very large networks).
+    fixed_receivers, fixed_sources: (I, d) / (J, d) bool masks (or (I,) / (J,) row
+        masks) of coordinates held at their starting values: known heights are a fixed
+        z column, known anchors fixed rows.
+    receiver_prior, source_prior: Gaussian priors ``(mean, std)`` on positions ("known
+        with a std"): mean (I, d) / (J, d) in metres with NaN where there is no prior,
+        std (I,) / (I, d) metres. Each adds a residual row ``(sigma / std)(x - mean)``.
+    fixed_receiver_offsets, fixed_source_offsets: (I,) / (J,) bool masks of offsets
+        held at their starting values.
+    common_offsets: "none" | "receivers" | "sources" | "both": the offsets of that kind
+        are one common unknown (started at the mean of the starting offsets).
+    receiver_offset_basis, source_offset_basis: general linear constraint
+        ``d = receiver_offsets0 + B x`` with B (I, k) (likewise ``o``), e.g. a fixed
+        mean with free zero-sum deviations.
+    noise: range noise std (metres) weighting the priors; estimated from the fit
+        (re-weighted until it settles) when omitted.
 
     Returns
     -------
-    NlsSolution, in the canonical gauge (:func:`selfcal.geometry.canonical_gauge`).
+    NlsSolution, in the canonical gauge (:func:`selfcal.geometry.canonical_gauge`),
+    except with fixed or prior positions: then in the frame of those positions (the
+    gauge they leave free, e.g. horizontal motions when only heights are known, is held
+    at the start's), with ``solver="trf-constrained"``.
+
+    Notes
+    -----
+    Any constraint keyword selects the constrained path of :mod:`selfcal.toa.constrained`:
+    fixed columns removed from the sparse analytic Jacobian, prior rows appended,
+    ``scipy.optimize.least_squares(method="trf")``, covariance free of the gauge the
+    constraints leave.
+
+    Examples
+    --------
+    Known heights (the z column of every node fixed) with both offsets::
+
+        fz = np.zeros((I, 3), bool); fz[:, 2] = True
+        gz = np.zeros((J, 3), bool); gz[:, 2] = True
+        sol = refine_toa(c * T, r0, s0, offsets="both", fixed_receivers=fz, fixed_sources=gz)
     """
     from ..geometry import canonical_gauge
     from .covariance import gauge_free_blocks, resolve_covariance
@@ -642,6 +686,18 @@ def refine_toa(
     os0 = _offsets0(source_offsets0, J, "source_offsets0") if has_s else None
     if f_scale is not None and not (np.isfinite(f_scale) and f_scale > 0):
         raise InputError(f"f_scale must be a positive number (metres), got {f_scale!r}")
+
+    cons = dict(fixed_receivers=fixed_receivers, fixed_sources=fixed_sources,
+                receiver_prior=receiver_prior, source_prior=source_prior,
+                fixed_receiver_offsets=fixed_receiver_offsets,
+                fixed_source_offsets=fixed_source_offsets, common_offsets=common_offsets,
+                receiver_offset_basis=receiver_offset_basis, source_offset_basis=source_offset_basis)
+    if _constrained.is_active(**cons):
+        con = _constrained.make_constraints(I, J, d, offsets, receiver_offsets0=dr0,
+                                            source_offsets0=os0, **cons)
+        return _constrained.refine_constrained(  # type: ignore[no-any-return]
+            Y, r0, s0, offsets, con, loss=loss, f_scale=f_scale, max_nfev=max_nfev, xtol=xtol,
+            covariance=not (covariance is False or (isinstance(covariance, str) and covariance == "none")), noise=check_positive(noise, "noise"))
 
     cov_r, cov_s = resolve_covariance(covariance, I, J)
     theta0 = _pack(r0, s0, dr0, os0)

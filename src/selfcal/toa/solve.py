@@ -22,7 +22,9 @@ from .._checks import (
     check_dim,
     check_positive,
     check_toa_counts,
+    entry,
 )
+from .._result import Result
 from ..errors import DegenerateGeometryError, InputError
 from .covariance import normalize_covariance
 from .nls import LOSSES, OFFSET_MODES, NlsSolution, refine_toa, toa_model
@@ -118,8 +120,8 @@ def residual_test(residuals: Any, noise: float, n_params: int, *, alpha: float =
     return ResidualTest(chi2, dof, p, float(sd), float(alpha), passed=not p < alpha)
 
 
-@dataclass(frozen=True)
-class ToaResult:
+@dataclass(frozen=True, repr=False)
+class ToaResult(Result):
     """Result of :func:`solve_toa`.
 
     Attributes
@@ -161,6 +163,16 @@ class ToaResult:
     speed: float | None = None
     residuals: Array | None = None
     fit: ResidualTest | None = None
+
+    @property
+    def noise_estimate(self) -> float:
+        """The estimated noise std (alias of ``sigma``), matrix units."""
+        return self.sigma
+
+    @property
+    def noise(self) -> float | None:
+        """The given noise std the residual test used (``fit.noise``), or None."""
+        return None if self.fit is None else self.fit.noise
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-safe dict with exactly the DESIGN.md toa keys plus extras (units, sigma, ...)."""
@@ -349,6 +361,8 @@ def _implausible(sol: NlsSolution, robust: bool = False) -> bool:
 # ---------------------------------------------------------------------------
 
 
+@entry(matrix="array", dim="count", speed="positive?", rng="rng", f_scale="positive?", max_nfev="count?",
+       noise="positive?")
 def solve_toa(
     matrix: Any,
     *,
