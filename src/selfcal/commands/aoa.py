@@ -52,7 +52,7 @@ def locate_aoa(
     """
     import numpy as np
 
-    from ..aoa import angles_to_bearings, solve_aoa
+    from ..aoa import angles_to_bearings, azel_to_bearings, solve_aoa
     from ..errors import InputError
     from ..io import read_matrix, write_json
 
@@ -80,11 +80,11 @@ def locate_aoa(
         a = np.radians(u) if units == "deg" else u
         miss = np.isnan(a).any(axis=1)
         if angles == "azel":
+            a0 = np.where(np.isnan(a), 0.0, a)
             if d == 3 and a.shape[1] == 2:
-                az, el = a[:, 0], a[:, 1]
-                u = np.column_stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
+                u = azel_to_bearings(a0[:, 0], a0[:, 1])
             elif d == 2 and a.shape[1] == 1:
-                u = np.column_stack([np.cos(a[:, 0]), np.sin(a[:, 0])])
+                u = azel_to_bearings(a0[:, 0])
             else:
                 raise InputError(f"--angles azel: expected N x 2 (azimuth, elevation) for 3-D beacons or N x 1 "
                                  f"(azimuth) for 2-D, got {a.shape} with beacons {b.shape}")
