@@ -22,8 +22,9 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from .._checks import as_points, check_choice
-from ..errors import DegenerateGeometryError, InputError
+from .._checks import as_points, check_choice, entry
+from .._result import Result
+from ..errors import DegenerateGeometryError, InputError, Status
 from .ml import refine_ml, residuals_2d, residuals_3d
 from .orientation import nearest_rotation
 from .p3p import p3p
@@ -67,8 +68,8 @@ class AoaCandidate:
         }
 
 
-@dataclass(frozen=True)
-class AoaResult:
+@dataclass(frozen=True, repr=False)
+class AoaResult(Result):
     """Pose of a receiver (or a batch of receivers) from bearings.
 
     Attributes
@@ -113,6 +114,20 @@ class AoaResult:
         if self.position.ndim == 1:
             return len(self.candidates) > 1
         return np.asarray(self.n_candidates) > 1
+
+    @property
+    def pose_cov(self) -> Array | None:
+        """Covariance of the pose ``(m, w)`` / ``(m, theta)`` (alias of ``covariance``)."""
+        return self.covariance
+
+    def _diagnose(self) -> tuple[Status, str]:
+        status, message = super()._diagnose()
+        if status == Status.SUCCESS and bool(np.any(self.ambiguous)):
+            n = len(self.candidates) if self.position.ndim == 1 else int(np.count_nonzero(self.ambiguous))
+            what = f"{n} poses explain the bearings equally well" if self.position.ndim == 1 else (
+                f"{n} receivers have several equally good poses")
+            return Status.AMBIGUOUS, f"ambiguous: {what}"
+        return status, message
 
     @property
     def position_cov(self) -> Array | None:
@@ -299,6 +314,7 @@ def residual_test(residual_rms: Any, n_beacons: int, dim: int, sigma: float | No
 # ----------------------------------------------------------------------------- solver
 
 
+@entry(beacons="array", bearings="array", sigma="positive?", max_iter="count", position_hint="array")
 def solve_aoa(
     beacons: ArrayLike,
     bearings: ArrayLike,

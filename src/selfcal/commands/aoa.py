@@ -52,12 +52,15 @@ def locate_aoa(
     """
     import numpy as np
 
+    from .._checks import plausible_angles
     from ..aoa import angles_to_bearings, azel_to_bearings, solve_aoa
     from ..errors import InputError
-    from ..io import read_matrix, write_json
+    from ..io import read_table, staged_outputs, write_json
+    from ._common import enrich_payload
 
-    b = read_matrix(beacons, "beacons")
-    u = read_matrix(bearings, "bearings")
+    btab = read_table(beacons, "beacons")
+    b = btab.values
+    u = read_table(bearings, "bearings").values
     d = b.shape[1]
     if d not in (2, 3):
         raise InputError(f"beacons: expected N x 2 or N x 3 coordinates, got {b.shape}")
@@ -77,6 +80,7 @@ def locate_aoa(
             raise InputError(f"bearings: row {i + 1} has length {norms[i]:.4g}, not a unit vector (1 within 1 %): "
                              "angles in degrees or radians? use --angles azel (or axes) with --units deg / rad")
     else:
+        plausible_angles(u, units)
         a = np.radians(u) if units == "deg" else u
         miss = np.isnan(a).any(axis=1)
         if angles == "azel":
@@ -117,9 +121,13 @@ def locate_aoa(
                         sign_z_unknown=True)
     else:
         res = solve_aoa(b, u, method=method, sigma=sigma, position_hint=position_hint)
-    if plot is not None:
-        _plot_pose(b, u, res, plot)
-    write_json(out, res)
+    with staged_outputs():  # the figure and the result together, or neither
+        if plot is not None:
+            _plot_pose(b, u, res, plot)
+        write_json(out, enrich_payload(res.to_dict(), names={"beacon_names": btab.row_names},
+                                       units={"position": "m",
+                                              "rotation": "columns = receiver axes in the global frame",
+                                              "residual_rms": "rad", "covariance": "m^2 and rad^2"}))
     click.echo(
         f"position {np.array2string(res.position, precision=4)}  residual {np.degrees(res.residual_rms):.3g} deg"
         f"  method {res.method}" + (f"  ({len(res.candidates)} candidates)" if res.ambiguous else "")

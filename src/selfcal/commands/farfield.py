@@ -15,6 +15,7 @@ from ._base import (
     scheduler_option,
     seed_option,
 )
+from ._common import csv_option, unit_options
 
 if TYPE_CHECKING:
     from ..tdoa import FarfieldResult
@@ -47,12 +48,15 @@ if TYPE_CHECKING:
 @click.option("--allow-degenerate", is_flag=True,
               help="On a degenerate geometry write the partial reconstruction instead of failing.")
 @click.option("--plot", "plot", type=click.Path(dir_okay=False, path_type=Path), default=None,
-              help="PNG of the positions and directions.")
+              help="Figure of the positions and directions (format from the suffix: .png, .pdf, .svg).")
+@csv_option
+@unit_options
 @handle_errors
 def farfield_command(matrix: Path, out: Path, speed: float | None, dim: str, directions: str | None,
                      method: str, loss: str,
                      noise_std: float | None, ransac: bool, seed: int, allow_degenerate: bool,
-                     plot: Path | None) -> None:
+                     plot: Path | None, csv_out: Path | None = None, unit: str | None = None,
+                     sample_rate: float | None = None) -> None:
     """Self-calibrate from an m x k far-field TDOA MATRIX (CSV, .npy or Pyramic JSON; NaN = missing).
 
     Rows are receiver positions (microphones, antenna positions), columns far transmitters;
@@ -65,14 +69,17 @@ def farfield_command(matrix: Path, out: Path, speed: float | None, dim: str, dir
     """
     import numpy as np
 
+    from .._checks import FARFIELD_TIMES_AS_METRES_MAX, plausible_matrix_scale
     from ..errors import InputError
-    from ..io import read_matrix, write_json
+    from ..io import read_table, staged_outputs, write_json
     from ..tdoa import solve_farfield
+    from ._common import enrich_payload, to_metres, write_nodes_csv
 
     if speed is not None and not (speed > 0 and speed < float("inf")):
         raise InputError(f"--speed must be a positive number, got {speed}")
     reference = None
     known = None
+    row_names = col_names = None
     if matrix.suffix.lower() == ".json":
         from ..datasets.pyramic import pyramic_from_dict
         from ..io import read_json
@@ -83,33 +90,42 @@ def farfield_command(matrix: Path, out: Path, speed: float | None, dim: str, dir
         if directions == "sources":
             known = data.directions
     else:
-        M = read_matrix(matrix, name=str(matrix))
+        table = read_table(matrix, name=str(matrix))
+        row_names, col_names = table.row_names, table.col_names
+        M, speed, _ = to_metres(table.values, unit, speed, sample_rate, name=str(matrix))
+        plausible_matrix_scale(M, speed=speed, explicit_unit=unit is not None, name=str(matrix),
+                               min_span=FARFIELD_TIMES_AS_METRES_MAX)
         seconds = speed is not None
         scale = speed if speed is not None else 1.0
         D = M * scale
     if directions is not None and known is None:
         if directions == "sources":
             raise InputError("--directions sources needs a Pyramic JSON matrix (with 'sources'); give a file")
-        known = read_matrix(Path(directions), name=str(directions))
+        known = read_table(Path(directions), name=str(directions)).values
     res = solve_farfield(D, method=method, loss=loss, directions=known,
                          noise_std=None if noise_std is None else noise_std * scale,
                          allow_degenerate=allow_degenerate, ransac=ransac, rng=seed,
                          dim="auto" if dim == "auto" else int(dim))
-    if plot is not None:
-        _plot(res, plot)
     out_dict = res.to_dict()
     tunit = "s" if seconds else "m"
     if seconds:
         out_dict["offsets"] = (np.asarray(res.offsets) / scale).tolist()
         out_dict["residual_rms"] = float(res.residual_rms / scale)
         out_dict["speed"] = float(scale)
-    out_dict["units"] = {"positions": "m", "directions": "unit", "offsets": tunit, "residual_rms": tunit,
-                         "position_cov": "m^2"}
     ref_rmse = None
     if reference is not None and res.positions.shape[1] == 3:
         ref_rmse = _aligned_rmse(res.positions, reference)
         out_dict["reference_rmse"] = ref_rmse
-    write_json(out, out_dict)
+    payload = enrich_payload(
+        out_dict, names={"position_names": row_names, "transmitter_names": col_names},
+        units={"positions": "m", "directions": "unit vectors", "offsets": tunit, "residual_rms": tunit,
+               "position_cov": "m^2"})
+    with staged_outputs():  # the figure, the JSON and the CSV together, or none
+        if plot is not None:
+            _plot(res, plot)
+        write_json(out, payload)
+        if csv_out is not None:
+            write_nodes_csv(csv_out, payload, [("position", "positions", "position_names")])
     m, k = D.shape
     click.echo(f"selfcal calibrate tdoa-farfield: {m} positions x {k} transmitters, {res.dim}-D ({res.case}), "
                f"method {res.method}, loss {res.loss}")

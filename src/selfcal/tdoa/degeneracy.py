@@ -42,6 +42,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from ..robust import mad_std
 from .minimal import quadric_design, sym_from_vec
 
 __all__ = [
@@ -158,7 +159,7 @@ def _sigma(X: Array, U: Array, s: Array, Vt: Array, r: int, rows: int, cols: int
     if dof <= 0:
         return 0.0
     R = X - (U[:, :r] * s[:r]) @ Vt[:r]
-    return float(1.4826 * np.median(np.abs(R)) * np.sqrt(R.size / dof))
+    return float(mad_std(R, centre=False) * np.sqrt(R.size / dof))
 
 
 def analyse_degeneracy(

@@ -30,7 +30,8 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.optimize import least_squares
 
-from .._checks import as_matrix, as_rng, check_choice, check_positive
+from .._checks import as_matrix, as_rng, check_choice, check_positive, entry
+from .._result import Result
 from ..errors import ConvergenceWarning, DegenerateGeometryError, InputError
 from ..geometry import canonical_gauge
 from .degeneracy import (
@@ -71,8 +72,8 @@ _MAD = 1.4826
 
 
 # ----------------------------------------------------------------------------- result
-@dataclass(frozen=True)
-class FarfieldResult:
+@dataclass(frozen=True, repr=False)
+class FarfieldResult(Result):
     """Result of :func:`solve_farfield`.
 
     Attributes
@@ -705,6 +706,8 @@ def _solve_known_directions(D: Array, used: NDArray[np.bool_], gross: NDArray[np
     return res
 
 
+@entry(matrix="array", f_scale="positive?", noise_std="positive?", max_iter="count?", tol="positive?",
+       rng="rng", reject_k="positive", cone_tol="positive")
 def solve_farfield(
     matrix: Any,
     *,
@@ -750,7 +753,7 @@ def solve_farfield(
     allow_degenerate : return the partial reconstruction of a degenerate configuration
         (with ``degeneracy`` set) instead of raising.
     screen : treat gross errors (:func:`screen_gross_errors`) as missing.
-    reject_k : with a robust loss, entries with |residual| > reject_k robust std are rejected.
+    reject_k : with a robust loss, entries with ``|residual| > reject_k`` robust std are rejected.
     max_iter, tol : refinement limits (defaults 200 / 1e-12 for LM, 2000 / 1e-10 for
         alternating).
     cone_tol : threshold of the cone test (see :mod:`.degeneracy`).
