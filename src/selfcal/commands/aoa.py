@@ -54,7 +54,7 @@ def locate_aoa(
 
     from .._checks import plausible_angles
     from ..aoa import angles_to_bearings, azel_to_bearings, solve_aoa
-    from ..errors import InputError
+    from ..errors import InputError, Status
     from ..io import read_table, staged_outputs, write_json
     from ._common import enrich_payload
 
@@ -133,7 +133,8 @@ def locate_aoa(
         f"  method {res.method}" + (f"  ({len(res.candidates)} candidates)" if res.ambiguous else "")
     )
     click.echo(f"  {res.message}")
-    if not res.success:
+    # an ambiguous pose (several exact candidates, all in the JSON) is an answer, not a failure
+    if res.status in (Status.NOT_CONVERGED, Status.FAILED_TEST):
         click.echo(f"FAIL: pose not trustworthy ({res.message})")
         raise SystemExit(1)
 
@@ -178,7 +179,7 @@ def _plot_pose(b: object, u: object, res: object, path: str) -> None:
         ax.set_zlabel("z [m]")
     else:
         ax.set_aspect("equal")
-    ok = "ok" if res.success else "FAIL"  # type: ignore[attr-defined]
+    ok = res.status.name.lower()  # type: ignore[attr-defined]
     ax.set_title(f"AOA pose ({res.method}, residual {np.degrees(res.residual_rms):.2g} deg, {ok}); "  # type: ignore[attr-defined]
                  "dashed: measured bearings", fontsize=9)
     ax.legend(loc="best", fontsize=7)
