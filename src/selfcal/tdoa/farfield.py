@@ -580,18 +580,17 @@ def _effective_dim(dim: int | str, report: DegeneracyReport) -> int:
             return 1
         return 3
     if dim == 2 and rank == 3:
-        raise DegenerateGeometryError(
+        raise InputError(
             f"dim=2 but the data are 3-D: {detail}; use dim=3 (or 'auto'; gross errors also raise the rank: "
-            "try loss='huber')", kind="dimension-mismatch")
+            "try loss='huber')")
     if dim == 2 and rank == 2 and report.kind == "planar-motion":
         return 3  # reported as planar-motion (not determined) by the caller
     if dim == 2 and rank < 2:
-        raise DegenerateGeometryError(
+        raise InputError(
             f"dim=2 but the data have {detail}: positions on a line or parallel directions; use dim=1 "
-            "(or 'auto')", kind="dimension-mismatch")
+            "(or 'auto')")
     if dim == 1 and rank > 1:
-        raise DegenerateGeometryError(
-            f"dim=1 but the data have {detail}; use dim={min(rank, 3)} (or 'auto')", kind="dimension-mismatch")
+        raise InputError(f"dim=1 but the data have {detail}; use dim={min(rank, 3)} (or 'auto')")
     return int(dim)
 
 
@@ -608,7 +607,7 @@ def _solve_low_dim(D: Array, X: Array, used: NDArray[np.bool_], d: int, report: 
         u = s[0] * Vt[0]
         a = float(np.max(np.abs(u)))
         if a <= 0:
-            raise DegenerateGeometryError("every column is constant: no position is observable", kind="no-signal")
+            raise InputError("matrix: every column is constant: no position is observable")
         x = U[:, 0] * a
         x = x - x[0]
         q = u / a
