@@ -49,6 +49,7 @@ from selfcal.slac.ranging import RangeModelConfig, solve_range_slac
 
 
 BIAS_RW = 1.0
+VERBOSE = False
 
 
 class _Track:
@@ -179,6 +180,8 @@ def gtsam_batch(data: PlazaData, cfg: RangeModelConfig, factor: float, sigma_r: 
             graph.add(gtsam.CustomFactor(robust, [X(k), C(b)], make_error(data.beacons[b], float(data.ranges[q]))))
     params = gtsam.LevenbergMarquardtParams()
     params.setMaxIterations(100)
+    if VERBOSE:
+        params.setVerbosityLM("SUMMARY")
     res = gtsam.LevenbergMarquardtOptimizer(graph, init, params).optimize()
     out = np.empty((data.pose_times.size, 3))
     for k in range(out.shape[0]):
