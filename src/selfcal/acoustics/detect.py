@@ -194,7 +194,7 @@ def detect_arrivals(
     quality = np.full((I, E), np.nan)
     noise = np.zeros(I)
     rows = np.arange(E)
-    for i in tqdm(range(I), desc="detect", unit="rx", disable=not progress, leave=False):
+    for i in tqdm(range(I), desc="detect", unit="rx", disable=None if progress else True, leave=False):
         valid = idx < lens[i]
         seg = np.where(valid, sig[i, np.minimum(idx, N - 1)], 0.0).astype(np.float64)
         z, G = matched_filter(seg, probe, n_fft)

@@ -27,6 +27,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from .._checks import entry
 from ..errors import DegenerateGeometryError, InputError
 
 __all__ = [
@@ -871,6 +872,7 @@ def _as_solution(res: Any, label: str) -> dict[str, Any]:
     }
 
 
+@entry(rng="rng", jitter="nonnegative?")
 def run_pipeline(
     directory: str | Path,
     *,

@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 
 import click
 
 from ._base import backend_option, handle_errors, reproduce, scheduler_option, seed_option, slac
+from ._common import all_or_nothing
 
 
 @slac.command("simulate")
@@ -22,9 +24,11 @@ def simulate_cmd(minutes: float, subcarriers: int, snr_db: float, seed: int, out
     from ..errors import InputError
     from ..scenarios.rovers import make_rover_scenario
     from ..slac.run import SlacLog
+    from ..slac.validate import check_simulation_request
 
     if subcarriers < 8:
         raise InputError("--subcarriers must be >= 8")
+    check_simulation_request(minutes, subcarriers, snr_db)  # before anything is allocated
     sc = make_rover_scenario(minutes, n_subcarriers=subcarriers, snr_db=snr_db, rng=seed)
     SlacLog.from_scenario(sc, seed=seed).to_npz(out)
     click.echo(f"wrote {out}: {sc.n_steps} steps, {sc.rx.size} links, N = {subcarriers}")
@@ -44,6 +48,7 @@ def simulate_cmd(minutes: float, subcarriers: int, snr_db: float, seed: int, out
               help="0: the paper's filter; K > 0: fixed-lag smoother over the last K steps (consistent "
                    "error bars with antenna calibration, ~5x slower at K = 20; docs/slac_consistency.md).")
 @handle_errors
+@all_or_nothing
 def run_cmd(log_path: Path, mode: str, prior: str, out: Path, plot: Path | None, init: str,
             smoother_lag: int) -> None:
     """Run the SLAC or localization-only filter (or fixed-lag smoother) over an NPZ log."""
@@ -54,7 +59,7 @@ def run_cmd(log_path: Path, mode: str, prior: str, out: Path, plot: Path | None,
     from ..slac.run import SlacLog, solve_slac
 
     log = SlacLog.from_npz(log_path)
-    res = solve_slac(log, mode=mode, prior=prior, progress=True, init=init,
+    res = solve_slac(log, mode=mode, prior=prior, progress=sys.stderr.isatty(), init=init,
                      config=SlacConfig(smoother_lag=smoother_lag))
     d = res.to_dict()
     m = d["metrics"]
@@ -109,7 +114,7 @@ def plaza_cmd(path: Path, out: Path, method: str, csv_path: Path | None, tum_pat
 
     from ..datasets.plaza import load_plaza
     from ..experiments.slac import plaza_summary, plot_plaza
-    from ..io import write_json
+    from ..io import staged_outputs, write_json
     from ..slac.export import write_trajectory_csv, write_trajectory_tum
 
     data = load_plaza(path, init_heading_offset=init_heading_offset)
@@ -117,13 +122,14 @@ def plaza_cmd(path: Path, out: Path, method: str, csv_path: Path | None, tum_pat
     s = plaza_summary(data, methods=methods, progress=True)
     results = s.pop("_results")
     main = results["smoother" if "smoother" in results else methods[0]]
-    if csv_path is not None:
-        write_trajectory_csv(csv_path, main)
-    if tum_path is not None:
-        write_trajectory_tum(tum_path, main)
-    if plot is not None:
-        plot_plaza(plot, data, results)
-    write_json(out, s)
+    with staged_outputs():  # every artefact of the run together, or none
+        if csv_path is not None:
+            write_trajectory_csv(csv_path, main)
+        if tum_path is not None:
+            write_trajectory_tum(tum_path, main)
+        if plot is not None:
+            plot_plaza(plot, data, results)
+        write_json(out, s)
     for m, d in s["methods"].items():
         click.echo(f"{m}: position RMSE {d['position_rmse']:.3f} m, heading RMSE {d['heading_rmse_deg']:.2f} deg, "
                    f"scale {', '.join(f'{v:.3f}' for v in d['scale'])}, {d['seconds']:.1f} s")
