@@ -217,7 +217,7 @@ def main() -> None:
         r = solve_range_slac(data, method=m, config=cfg)
         row(f"selfcal {m}", r.poses, since(t0), r.times)
         if m == "smoother":
-            factor, sigma = float(r.extra["heading_noise_factor"]), float(r.noise_estimate)
+            factor, sigma = r.heading_noise_factor, float(r.noise_estimate)
     print(f"noise used by the baselines (selfcal's ML on this log): heading factor {factor}, range {sigma:.3f} m")
     for name, fn in (("FilterPy EKF + per-beacon bias states", filterpy_ekf),
                      ("GTSAM LM, Pose2 + robust range CustomFactor (scale + offset)", gtsam_batch)):
