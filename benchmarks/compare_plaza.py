@@ -47,7 +47,6 @@ from selfcal.datasets.plaza import PlazaData, load_plaza
 from selfcal.experiments.slac import score_plaza
 from selfcal.slac.ranging import RangeModelConfig, solve_range_slac
 
-
 BIAS_RW = 1.0
 VERBOSE = False
 

@@ -530,7 +530,7 @@ def solve_range_slac(log: RangeLog | Any, *, method: str = "smoother", config: R
     fw = passes[best]
     g_best = grid[best]
     sigma_hat = _noise_from_innovations(fw.innov, fw.innov_var0)
-    iterations, status, message = 1, 0, "causal filter pass finished"
+    iterations, status = 1, 0
     if method == "filter":
         # multiple-model mixture with the causal weights p(model | ranges up to node n)
         W = np.exp(LL - LL.max(axis=0))
@@ -548,7 +548,7 @@ def solve_range_slac(log: RangeLog | Any, *, method: str = "smoother", config: R
         var = np.column_stack([cfg.odo_distance**2 * z_d, g_best**2 * (cfg.odo_turn**2 * z_t + cfg.odo_drift**2 * z_d)])
         ref = fw.mf
         weights = np.ones(K)
-        status, message = 1, f"iteration limit {cfg.max_iter} reached"
+        status = 1
         iterations = 0
         ms, Ps = ref, fw.Pf
         for it in range(cfg.max_iter):
@@ -560,7 +560,7 @@ def solve_range_slac(log: RangeLog | Any, *, method: str = "smoother", config: R
             step = np.max(np.abs(ms[:, :3] - ref[:, :3]))
             ref = ms
             if step < cfg.tol:
-                status, message = 0, f"Gauss-Newton converged in {iterations} iterations"
+                status = 0
                 break
         x_nodes, P_nodes = ms, Ps
         cal_x, cal_P = ms[0], Ps[0]
