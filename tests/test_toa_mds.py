@@ -160,3 +160,18 @@ def test_3d_paper_variant_blind_start_converges():
         res = solve_toa(sc.ranges, dim=3, init=(r0, s0), covariance=False)
         errs.append(aligned_rmse(res.receivers, sc.receivers).rmse_receivers)
     assert np.median(errs) < 1e-6
+
+
+def test_an_absurd_entry_is_a_clear_error_not_a_linalg_crash():
+    """One 1e300 entry used to escape as LinAlgError ("SVD did not converge")."""
+    from selfcal.errors import SelfcalError
+    from selfcal.toa.mds import initialize_toa
+
+    g = np.random.default_rng(0)
+    r, s = g.uniform(-5, 5, (8, 3)), g.uniform(-5, 5, (10, 3))
+    Y = np.linalg.norm(r[:, None] - s[None], axis=-1)
+    Y[2, 3] = 1e300
+    try:
+        initialize_toa(Y, 3, rng=0)  # a start (however bad) or one of our errors, never a LinAlgError
+    except SelfcalError:
+        pass

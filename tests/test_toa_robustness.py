@@ -7,12 +7,13 @@ covariance step.
 
 from __future__ import annotations
 
+import json
 import warnings
 
 import numpy as np
 import pytest
 
-from selfcal.errors import ConvergenceWarning
+from selfcal.errors import ConvergenceWarning, DegenerateGeometryError, Status
 from selfcal.geometry import align
 from selfcal.scenarios.conference import conference_scene
 from selfcal.toa import solve_toa
@@ -183,3 +184,99 @@ def test_solve_leaves_the_saddle_of_a_microphone_started_in_the_loudspeaker_plan
         return np.abs((rr - c) @ n)
 
     np.testing.assert_allclose(heights(res.receivers, res.sources), heights(r, s), atol=1e-6)
+
+
+# ----------------------------------------------------------------------------- issue 12: robust and honest
+
+
+def _net(seed, I=10, J=14, d=3, sig=0.01):
+    g = np.random.default_rng(seed)
+    r, s = g.uniform(-5, 5, (I, d)), g.uniform(-7, 7, (J, d))
+    D = np.linalg.norm(r[:, None] - s[None], axis=-1)
+    return r, s, D + g.normal(0, sig, D.shape), g
+
+
+def _err(res, r, s):
+    from selfcal.metrics import aligned_rmse
+
+    ok_r, ok_s = np.isfinite(res.receivers).all(1), np.isfinite(res.sources).all(1)
+    return aligned_rmse(res.receivers[ok_r], r[ok_r], res.sources[ok_s], s[ok_s]).rmse_receivers
+
+
+@pytest.mark.parametrize("value", [1e300, 1e12, -1e9])
+def test_a_single_absurd_entry_never_crashes_and_is_flagged(value):
+    """Before issue 12 a 1e300 entry crashed MDS (LinAlgError: SVD did not converge)."""
+    r, s, Y, _ = _net(0)
+    Y[3, 5] = value
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)
+        res = solve_toa(Y, dim=3, rng=0, noise=0.01)
+    assert res.outliers[3, 5] and res.outliers.sum() <= 2
+    assert _err(res, r, s) < 0.03  # ~3 sigma: the other 139 entries are clean
+    json.dumps(res.to_dict(), allow_nan=False)
+
+
+@pytest.mark.parametrize("seed", range(2))
+def test_gross_outliers_are_flagged_and_do_not_pull_the_fit(seed):
+    """5 % gross outliers (0.5-2 m on 1 cm noise): every one in the mask, positions within 2x
+    the outlier-free error (the issue's acceptance criterion)."""
+    r, s, Y, g = _net(seed, 10, 20)
+    clean = solve_toa(Y, dim=3, rng=0, noise=0.01)
+    bad = g.random(Y.shape) < 0.05
+    Yb = Y + np.where(bad, g.uniform(0.5, 2.0, Y.shape), 0.0)
+    res = solve_toa(Yb, dim=3, rng=0, noise=0.01)
+    assert res.outliers[bad].all()
+    assert _err(res, r, s) <= 2 * _err(clean, r, s)
+    assert res.success
+
+
+def test_clean_data_flag_no_outlier_beyond_the_bonferroni_rate():
+    """With Gaussian noise the rule flags any inlier with probability <= alpha = 0.01 per matrix
+    (Bonferroni over the m entries). Over 6 matrices P(two or more with a flag) < 0.002."""
+    flagged = 0
+    for seed in range(6):
+        _, _, Y, _ = _net(10 + seed, 8, 10, 2)
+        res = solve_toa(Y, dim=2, rng=0)
+        flagged += bool(res.outliers.any())
+    assert flagged <= 1
+
+
+def test_nodes_with_too_few_ranges_are_dropped_and_reported():
+    """A receiver with 2 ranges in 3-D (it needs d + 1 = 4) and a source with 3: dropped, reported,
+    NaN rows; the rest is calibrated."""
+    r, s, Y, _ = _net(3)
+    Y[0, 2:] = np.nan
+    Y[3:, 7] = np.nan
+    res = solve_toa(Y, dim=3, rng=0, noise=0.01)
+    assert res.dropped_receivers == (0,) and res.dropped_sources == (7,)
+    assert np.isnan(res.receivers[0]).all() and np.isnan(res.sources[7]).all()
+    assert np.isfinite(np.delete(res.receivers, 0, axis=0)).all()
+    out = res.to_dict()
+    assert out["dropped_receivers"] == [0] and out["dropped_sources"] == [7]
+    json.dumps(out, allow_nan=False)
+    assert _err(res, r, s) < 0.03
+
+
+def test_dropping_everything_is_a_degenerate_geometry_error():
+    _, _, Y, _ = _net(4, 6, 6)
+    Y[:, 2:] = np.nan
+    with pytest.raises(DegenerateGeometryError):
+        solve_toa(Y, dim=3)
+
+
+@pytest.mark.parametrize(("seed", "offsets", "dim"), [(0, "none", 3), (1, "none", 2), (2, "both", 2), (3, "sources", 2)])
+def test_a_uniform_random_matrix_fails_its_own_test(seed, offsets, dim):
+    """No geometry: the cross-validated test (PRESS of the geometry vs offsets alone) rejects it,
+    success is False and a ConvergenceWarning is raised."""
+    Y = np.random.default_rng(seed).uniform(0, 10, (8, 10))
+    with pytest.warns(ConvergenceWarning):
+        res = solve_toa(Y, dim=dim, offsets=offsets, rng=0)
+    assert not res.success and res.status == Status.FAILED_TEST and res.geometry is not None
+    assert res.to_dict()["success"] is False
+
+
+def test_a_wrong_noise_level_fails_the_chi_square_test():
+    _, _, Y, _ = _net(5, 8, 10, 2, sig=0.05)
+    with pytest.warns(ConvergenceWarning, match="chi-square"):
+        res = solve_toa(Y, dim=2, rng=0, noise=0.005)
+    assert res.status == Status.FAILED_TEST and not res.success and res.noise == 0.005

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
+import warnings
 
 import numpy as np
 import pytest
@@ -45,7 +47,8 @@ def test_noise_free_network_recovered_blind(d, offsets):
     err = aligned_rmse(res.receivers, r, res.sources, s)
     assert err.rmse_receivers < 1e-6 and err.rmse_sources < 1e-6
     assert res.converged
-    assert res.method.endswith("+nls") or "multistart" in res.method
+    assert "+nls" in res.method
+    assert res.success and not res.outliers.any()
     if offsets == "both":
         np.testing.assert_allclose(res.source_offsets, o - o[0], atol=1e-6)
         np.testing.assert_allclose(res.receiver_offsets, dr + o[0], atol=1e-6)
@@ -107,7 +110,7 @@ def test_rank3_method_returns_the_unrefined_initialiser(rng):
 
 def test_multistart_escapes_a_mirrored_start():
     """Two sources started at their mirror image: one refinement stays in the wrong
-    basin; method='auto' detects the implausible fit and restarts."""
+    basin; method='auto' (the search: registry starts + plane moves) leaves it."""
     rng = np.random.default_rng(4)
     I, J, d = 8, 10, 2
     r, s, _, _ = network(rng, I, J, d)
@@ -118,7 +121,7 @@ def test_multistart_escapes_a_mirrored_start():
     auto = solve_toa(Y, dim=2, init=(r, s0), method="auto", rng=0)
     assert aligned_rmse(one.receivers, r, one.sources, s).rmse_sources > 0.5
     assert aligned_rmse(auto.receivers, r, auto.sources, s).rmse_sources < 0.03
-    assert auto.n_starts > 1 and "multistart" in auto.method
+    assert auto.n_starts > 1 and "search" in auto.method
 
 
 def test_robust_loss_through_solve_toa(rng):
@@ -137,13 +140,23 @@ FAST = settings(max_examples=25, deadline=None, suppress_health_check=[HealthChe
 good = st.integers(min_value=4, max_value=7)
 
 
-@FAST
-@given(I=good, J=good, i=st.integers(0, 3), j=st.integers(0, 3), v=st.floats(-1e6, -1e-9))
-def test_negative_range_without_offsets_is_an_input_error(I, J, i, j, v):
-    Y = np.ones((I, J))
-    Y[i, j] = v
-    with pytest.raises(InputError, match="negative"):
-        solve_toa(Y, dim=2)
+@pytest.mark.parametrize("seed", range(3))
+def test_negative_and_zero_ranges_are_measurements(seed):
+    """Ranges near zero with bias + noise come out negative: kept (a warning with their count).
+
+    A receiver next to a source, 5 mm range noise: the clipped-at-zero truth would be biased;
+    the fit must keep the entries and reach the noise level.
+    """
+    g = np.random.default_rng(seed)
+    r, s, _, _ = network(g, 8, 10, 3)
+    s[0] = r[0] + 1e-3  # a source on top of a receiver: its range is ~0
+    Y = toa_model(r, s) + g.normal(0, 0.005, (8, 10))
+    Y[0, 0] = -0.004
+    n_neg = int((Y <= 0).sum())
+    with pytest.warns(UserWarning, match=f"{n_neg} of the entries are zero or negative"):
+        res = solve_toa(Y, dim=3, rng=0)
+    assert res.n_negative == n_neg and np.isfinite(res.residuals[0, 0])
+    assert aligned_rmse(res.receivers, r, res.sources, s).rmse_receivers < 0.05
 
 
 @FAST
@@ -207,3 +220,88 @@ def test_bad_options_are_input_errors(opt):
 def test_all_missing_is_an_input_error():
     with pytest.raises(InputError, match="missing"):
         solve_toa(np.full((5, 6), np.nan), dim=2)
+
+
+# --- issue 12: equivariance (permutations, rigid motions, units) and the "auto" model choices -----
+
+
+def _same_up_to_gauge(a, b, tol):
+    """Both results' points agree after a rigid alignment (reflection allowed), relative to the spread."""
+    from selfcal.geometry import align
+
+    A = np.vstack([a.receivers, a.sources])
+    B = np.vstack([b.receivers, b.sources])
+    ok = np.isfinite(A).all(1) & np.isfinite(B).all(1)
+    T = align(A[ok], B[ok])
+    scale = float(np.ptp(B[ok], axis=0).max())
+    return float(np.abs(T.apply(A[ok]) - B[ok]).max()) <= tol * scale
+
+
+@settings(max_examples=6, deadline=None)
+@given(seed=st.integers(0, 10_000), I=st.integers(5, 8), J=st.integers(5, 9),
+       offsets=st.sampled_from(["none", "sources"]))
+def test_permuting_rows_and_columns_permutes_the_answer(seed, I, J, offsets):
+    """solve_toa works on the canonically sorted matrix, so relabelling receivers and sources
+    relabels the answer: same geometry to 1e-8 relative after gauge alignment, same offsets."""
+    g = np.random.default_rng(seed)
+    r, s, dr, o = network(g, I, J, 2, offsets)
+    Y = toa_model(r, s, dr, o) + g.normal(0, 0.01, (I, J))
+    pi, pj = g.permutation(I), g.permutation(J)
+    a = solve_toa(Y, dim=2, offsets=offsets, rng=1)
+    b = solve_toa(Y[np.ix_(pi, pj)], dim=2, offsets=offsets, rng=1)
+    pa = dataclasses.replace(a, receivers=a.receivers[pi], sources=a.sources[pj])
+    assert _same_up_to_gauge(pa, b, 1e-8)
+    np.testing.assert_array_equal(a.outliers[np.ix_(pi, pj)], b.outliers)
+    np.testing.assert_allclose(a.residuals[np.ix_(pi, pj)], b.residuals, rtol=1e-8, atol=1e-12)
+    if offsets == "sources":
+        np.testing.assert_allclose(a.source_offsets[pj], b.source_offsets, rtol=1e-8, atol=1e-10)
+
+
+def test_a_rigid_motion_of_the_network_does_not_change_the_answer(rng):
+    """The ranges of a moved network are the same numbers (to round-off): same geometry."""
+    from scipy.spatial.transform import Rotation
+
+    r, s, _, _ = network(rng, 7, 9, 3)
+    noise = rng.normal(0, 0.01, (7, 9))
+    R = Rotation.from_rotvec([0.3, -1.1, 2.0]).as_matrix()
+    a = solve_toa(toa_model(r, s) + noise, rng=0)
+    b = solve_toa(toa_model(r @ R.T + 5.0, s @ R.T + 5.0) + noise, rng=0)
+    assert _same_up_to_gauge(a, b, 1e-8)
+
+
+def test_seconds_with_speed_give_the_metres_answer(rng):
+    c = 343.0
+    r, s, dr, o = network(rng, 8, 10, 3, "both")
+    Y = toa_model(r, s, dr, o) + rng.normal(0, 0.01, (8, 10))
+    a = solve_toa(Y, offsets="both", rng=0)
+    b = solve_toa(Y / c, offsets="both", speed=c, rng=0)
+    assert _same_up_to_gauge(a, b, 1e-8)
+    # the two runs stop at the engine's tolerance from paths that differ by round-off
+    np.testing.assert_allclose(b.receiver_offsets * c, a.receiver_offsets, rtol=1e-6, atol=1e-7)
+    assert b.noise_estimate * c == pytest.approx(a.noise_estimate, rel=1e-6)
+
+
+@pytest.mark.parametrize("truth", ["none", "receivers", "sources", "both"])
+def test_offsets_auto_chooses_the_true_model(truth):
+    """BIC on 12 x 14 networks, offsets of 1 m against 1 cm noise: the true model wins (the
+    missing kind costs m ln(RSS) >> the extra kind's n ln m)."""
+    g = np.random.default_rng(3)
+    r, s, dr, o = network(g, 12, 14, 3, truth)
+    Y = toa_model(r, s, dr, o) + g.normal(0, 0.01, (12, 14))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        res = solve_toa(Y, offsets="auto", rng=0, noise=0.01)
+    assert res.offsets == truth
+    assert res.selection["offsets"]["chosen"] == truth and res.to_dict()["selection"]["offsets"]["criterion"] == "BIC"
+
+
+def test_dim_auto_reports_2d_for_a_flat_layout_and_3d_otherwise():
+    g = np.random.default_rng(5)
+    r, s = g.uniform(-5, 5, (8, 3)), g.uniform(-5, 5, (10, 3))
+    thick = toa_model(r, s) + g.normal(0, 0.01, (8, 10))
+    r[:, 2] = 0.0
+    s[:, 2] = 0.0
+    flat = toa_model(r, s) + g.normal(0, 0.01, (8, 10))
+    assert solve_toa(thick, dim="auto", rng=0).dim == 3
+    res = solve_toa(flat, dim="auto", rng=0)
+    assert res.dim == 2 and res.receivers.shape == (8, 2) and res.selection["dim"]["chosen"] == 2

@@ -1,9 +1,12 @@
 """Anchor-free TOA / range self-calibration (papers 003 and 004).
 
-- :func:`solve_toa` / :class:`ToaResult`: the end-to-end solver (validation,
-  initialisation, sparse NLS refinement, covariances).
+- :func:`solve_toa` / :class:`ToaResult` (:mod:`.solve`, :mod:`.result`): the entry point.
+- :mod:`.fit`: one model fitted robustly (screen, drop, search, outliers, refit, trust test).
+- :mod:`.search` / :mod:`.moves`: the one search (initialiser registry, plane moves).
+- :mod:`.robust`: gross entries, the outlier rule, node dropping.
+- :mod:`.select`: ``offsets="auto"`` (BIC) and ``dim="auto"`` (F test, planarity).
 - :func:`refine_toa` / :class:`NlsSolution` (:mod:`.nls`): the sparse nonlinear least
-  squares engine for ``|r_i - s_j| + d_i + o_j`` shared by every initialiser.
+  squares engine for ``|r_i - s_j| + d_i + o_j``, the only fit of the model.
 - :func:`toa_crlb` / :class:`CrlbResult` (:mod:`.crlb`): the gauge-free Cramér-Rao bound.
 - :mod:`.mds` (003 Algorithms 1/2, scalable initialiser), :mod:`.offsets` (004 rank-3).
 """
@@ -12,13 +15,16 @@ from __future__ import annotations
 
 from .crlb import CrlbResult, toa_crlb
 from .nls import NlsSolution, refine_toa, toa_jacobian, toa_model, toa_residuals
-from .solve import ResidualTest, ToaResult, n_parameters, residual_test, solve_toa
+from .result import GeometryTest, ResidualTest, ToaResult, geometry_test, n_parameters, residual_test
+from .solve import solve_toa
 
 __all__ = [
     "CrlbResult",
+    "GeometryTest",
     "NlsSolution",
     "ResidualTest",
     "ToaResult",
+    "geometry_test",
     "n_parameters",
     "refine_toa",
     "residual_test",

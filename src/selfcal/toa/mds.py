@@ -601,7 +601,17 @@ def initialize_toa_info(ranges: Array, dim: int = 3, *, method: str = "auto",
         if name in fallback and best is not None:
             break
         try:
-            r, s = funcs[name]()
+            with np.errstate(all="ignore"):
+                r, s = funcs[name]()
+        except (np.linalg.LinAlgError, FloatingPointError, ValueError) as exc:
+            # a matrix no eigen/SVD routine can digest (e.g. one 1e300 entry): not a geometry
+            exc = DegenerateGeometryError(f"initialiser {name!r} failed on this matrix ({exc}); check for "
+                                          "absurd entries (solve_toa screens them)", kind="init-failed")
+            if method != "auto":
+                raise exc from None
+            last_error = exc
+            scores[name] = float("inf")
+            continue
         except DegenerateGeometryError as exc:
             if method != "auto":
                 raise

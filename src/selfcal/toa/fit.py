@@ -1,0 +1,426 @@
+"""One TOA model fitted robustly and honestly: what :func:`selfcal.toa.solve_toa` runs per model.
+
+Steps (every rule stated in :mod:`selfcal.toa.robust`):
+
+1. sort rows and columns canonically (:func:`selfcal.toa.search.canonical_order`);
+2. screen gross entries (:func:`~selfcal.toa.robust.gross_entries`) out of the search;
+3. drop nodes with too few ranges (:func:`~selfcal.toa.robust.drop_unidentifiable`) and
+   check that what is left is identifiable (:func:`selfcal._checks.check_toa_counts`);
+4. the search (:func:`selfcal.toa.search.search`);
+5. the outlier rule on every entry against the fitted model, with the noise given or its
+   robust estimate, and the final refit without the outliers (and with covariances);
+6. the trust test (:func:`~selfcal.toa.result.residual_test` with a given noise,
+   :func:`~selfcal.toa.result.geometry_test` without) -> ``status`` / ``message``;
+7. the result in the caller's numbering, dropped nodes as NaN rows.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from .._checks import check_toa_counts
+from ..errors import DegenerateGeometryError, InputError
+from .nls import NlsSolution, refine_toa, toa_model
+from ..errors import Status
+from .result import MESSAGES, ToaResult, geometry_test, n_parameters, residual_test
+from .robust import drop_unidentifiable, gross_entries, leverages, noise_scale, outlier_mask, studentized
+from .search import canonical_order, search
+
+__all__ = ["finish", "given_start", "unrefined"]
+
+Array = NDArray[np.float64]
+Start = tuple[Array, Array, "Array | None", "Array | None"]
+
+
+def given_start(init: Any, I: int, J: int, dim: int, offsets: str, scale: float, as_points: Any) -> Start:
+    """Validate an explicit ``init=(receivers, sources[, receiver_offsets, source_offsets])`` (metres)."""
+    if not isinstance(init, (tuple, list)) or len(init) not in (2, 4):
+        raise InputError("init must be 'auto' or a tuple (receivers, sources[, receiver_offsets, source_offsets])")
+    r = as_points(init[0], "init receivers", dim=dim)
+    s = as_points(init[1], "init sources", dim=dim)
+    if r.shape[0] != I or s.shape[0] != J:
+        raise InputError(f"init has {r.shape[0]} receivers and {s.shape[0]} sources; the matrix is {I} x {J}")
+    d0 = o0 = None
+    if len(init) == 4:
+        d0 = None if init[2] is None else np.asarray(init[2], float).ravel() * scale
+        o0 = None if init[3] is None else np.asarray(init[3], float).ravel() * scale
+    has_r, has_s = offsets in ("receivers", "both"), offsets in ("sources", "both")
+    if has_r and d0 is None:
+        d0 = np.zeros(I)
+    if has_s and o0 is None:
+        o0 = np.zeros(J)
+    return r, s, (d0 if has_r else None), (o0 if has_s else None)
+
+
+def _verdict(test_passed: bool | None, dof: int, converged: bool, noise_given: bool) -> tuple[Status, str]:
+    """Status and message key of the trust test (failed test first, then convergence)."""
+    if dof <= 0:
+        return Status.SUCCESS, "untestable"
+    if test_passed is False:
+        return Status.FAILED_TEST, "chi2-failed" if noise_given else "cv-failed"
+    if not converged:
+        return Status.NOT_CONVERGED, "not-converged"
+    return Status.SUCCESS, "chi2-passed" if noise_given else "cv-passed"
+
+
+def finish(M: Array, dim: int, offsets: str, *, init: Any, speed: float | None, loss: str, method: str,
+           rng: np.random.Generator, f_scale: float | None, max_nfev: int | None, covariance: Any,
+           sweep: bool, noise: float | None, budget: int | None, n_negative: int) -> ToaResult:
+    """Fit one model robustly (module docstring) and package the :class:`ToaResult`."""
+    scale = speed if speed is not None else 1.0
+    I, J = M.shape
+    Y = M * scale
+    sd = None if noise is None else noise * scale
+    # method="nls" is one start and one refinement: no outlier rounds (outliers are flagged)
+    robust = loss != "linear" and method != "nls"
+    robust_loss = "soft_l1" if loss == "auto" else loss
+    final_loss = "linear" if loss == "auto" else loss
+    fs = None if f_scale is None else f_scale * scale
+
+    # 1. canonical order
+    pr, pc = canonical_order(Y)
+    Yc = Y[np.ix_(pr, pc)]
+    start0 = None
+    if not isinstance(init, str):
+        r0, s0, d0, o0 = init
+        start0 = (r0[pr], s0[pc], None if d0 is None else d0[pr], None if o0 is None else o0[pc])
+    obs = np.isfinite(Yc)
+    # 2. gross entries (numerically absurd for any initialiser), 3. identifiable nodes
+    gross = gross_entries(Yc)
+    used = obs & ~gross
+    keep_r, keep_s = drop_unidentifiable(used, dim, offsets)
+    _check_kept(used, keep_r, keep_s, dim, offsets)
+    n_par_of = lambda kr, ks: n_parameters(int(kr.sum()), int(ks.sum()), dim, offsets)  # noqa: E731
+
+    def sub(mask: NDArray[np.bool_], kr: NDArray[np.bool_], ks: NDArray[np.bool_]) -> Array:
+        return np.where(mask, Yc, np.nan)[np.ix_(kr, ks)]
+
+    def stop_rule(kr: NDArray[np.bool_], ks: NDArray[np.bool_]) -> Any:
+        if sd is None:
+            return None
+        n_par = n_par_of(kr, ks)
+        return lambda sol: residual_test(sol.residuals, sd, n_par).passed
+
+    one = method == "nls"
+    given = None if start0 is None else ("given", _restrict(start0, keep_r, keep_s))
+    iters = n_runs = 0
+    label = ""
+    outliers = np.zeros((I, J), bool)
+    best: NlsSolution | None = None
+    prev_keep = (keep_r.copy(), keep_s.copy())
+    # 4. the search (ML cost on the entries in use), 5. the outlier rule; a changed set of
+    # inliers runs the search again from the winner (at most twice: the rule converges fast)
+    for rnd in range(3):
+        Ys = sub(used, keep_r, keep_s)
+        first = given if best is None else ("previous", _restrict(_embed_start(best, prev_keep, keep_r, keep_s),
+                                                                   keep_r, keep_s))
+        # later rounds (a changed set of inliers) refine the previous winner only
+        again = rnd > 0
+        out = search(Ys, dim, offsets, rng=rng, loss="linear" if loss == "auto" else loss, f_scale=fs,
+                     starts=[first] if (one or again) and first is not None else None,
+                     first=None if one or again else first,
+                     stop=stop_rule(keep_r, keep_s), budget=1 if one or again else budget, max_nfev=max_nfev,
+                     use_moves=sweep and not one and not again, solver=_solver(Ys, dim, offsets))
+        best, prev_keep = out.solution, (keep_r.copy(), keep_s.copy())
+        iters += out.iterations
+        n_runs += out.refinements
+        if not label:
+            label = f"{out.start}+nls" + (f"+{'+'.join(out.moves)}" if out.moves else "")
+        if not robust:
+            break
+        sub_obs = obs[np.ix_(keep_r, keep_s)]
+        if rnd == 0:
+            # candidates: the rule on a robust refit over every entry that is not absurd; the
+            # linear fit without them is what the rule then judges every entry against
+            Yr = sub(obs & ~gross, keep_r, keep_s)
+            rob = _refine(Yr, _start(best), dim, offsets, robust_loss, fs, max_nfev, False)
+            iters += rob.iterations
+            n_runs += 1
+            cand = _flag(Yc, rob, keep_r, keep_s, offsets, sd, np.isfinite(Yr)) | gross[np.ix_(keep_r, keep_s)]
+            if not np.array_equal(cand, sub_obs & ~used[np.ix_(keep_r, keep_s)]):
+                trial = np.where(cand, np.nan, Yc[np.ix_(keep_r, keep_s)])
+                kr_t, ks_t = drop_unidentifiable(np.isfinite(trial), dim, offsets)
+                if kr_t.all() and ks_t.all():
+                    try:
+                        lin = _refine(trial, _start(rob), dim, offsets, "linear", None, max_nfev, False)
+                        iters += lin.iterations
+                        n_runs += 1
+                        best = lin
+                        used = obs.copy()
+                        used[np.ix_(keep_r, keep_s)] &= ~cand
+                    except DegenerateGeometryError:
+                        pass
+        fitted = used[np.ix_(keep_r, keep_s)]
+        flags = _flag(Yc, best, keep_r, keep_s, offsets, sd, fitted)
+        if flags.sum() > 0.5 * sub_obs.sum():
+            # beyond the MAD's breakdown point the "outliers" are the model (a wrong basin, a wrong
+            # noise level, data of no geometry): remove nothing and let the trust test say so
+            outliers = gross.copy()
+            used = obs & ~gross
+            break
+        new_out = np.zeros((I, J), bool)
+        new_out[np.ix_(keep_r, keep_s)] = flags
+        new_used = obs & ~new_out
+        kr2, ks2 = drop_unidentifiable(new_used, dim, offsets)
+        kr2 &= keep_r
+        ks2 &= keep_s
+        try:
+            _check_kept(new_used, kr2, ks2, dim, offsets)
+        except DegenerateGeometryError:
+            outliers = gross.copy()  # removing the flagged entries would leave too little: keep them
+            used = obs & ~gross
+            break
+        changed = not (np.array_equal(new_used, used) and kr2.sum() == keep_r.sum() and ks2.sum() == keep_s.sum())
+        outliers, used, keep_r, keep_s = new_out, new_used, kr2, ks2
+        if not changed:
+            break
+    assert best is not None
+    label += f"+search({n_runs})" if n_runs > 1 else ""
+    Yf = sub(used, keep_r, keep_s)
+    st = _restrict(_embed_start(best, prev_keep, keep_r, keep_s), keep_r, keep_s)
+    try:
+        final = _refine(Yf, st, dim, offsets, final_loss, fs, max_nfev, _cov_spec(covariance, pr, pc, keep_r, keep_s))
+    except DegenerateGeometryError:
+        if not covariance:
+            raise
+        final = _refine(Yf, st, dim, offsets, final_loss, fs, max_nfev, False)
+    iters += final.iterations
+    n_runs += 1
+    if not robust:  # flagged for the reader, not removed
+        outliers = np.zeros((I, J), bool)
+        outliers[np.ix_(keep_r, keep_s)] = _flag(Yc, final, keep_r, keep_s, offsets, sd, np.isfinite(Yf))
+
+    # 6. trust
+    n_par = n_par_of(keep_r, keep_s)
+    R_fit = final.residuals
+    m = int(np.isfinite(R_fit).sum())
+    dof = m - n_par
+    noise_est = _noise_estimate(R_fit, dof)
+    fit = geo = None
+    if sd is not None:
+        fit = residual_test(R_fit / scale, sd / scale, n_par)
+        passed: bool | None = fit.passed
+    else:
+        geo = geometry_test(Yf, R_fit, leverages(Yf, *_start(final), offsets), dim, offsets)
+        passed = geo.passed
+    status, key = _verdict(passed, dof, final.converged, sd is not None)
+    message = MESSAGES[key]
+    if key == "chi2-failed" and fit is not None:
+        message += f" (chi2 = {fit.chi2:.4g} for {fit.dof} dof, p = {fit.p_value:.3g})"
+    if key == "cv-failed" and geo is not None:
+        message += f" (PRESS {geo.press:.3g} vs {geo.press_null:.3g} without geometry)"
+
+    # 7. back to the caller's numbering
+    return _package(M, Yc, final, keep_r, keep_s, pr, pc, outliers, speed, label, iters, n_runs, fit, geo,
+                    status, message, noise, noise_est, dim, offsets, n_negative)
+
+
+def _solver(Y: Array, dim: int, offsets: str) -> str:
+    """The engine's dense trust-region solver for small problems, its Schur LM above.
+
+    Small, ill-conditioned problems (few sources far from the receivers, both offsets)
+    take the LM hundreds of damped steps; the dense ``trf`` of ``least_squares`` is then
+    several times faster. Above ``MOVES_MAX_NODES`` nodes the Schur LM is the faster one
+    (benchmarks/bench_toa.py).
+    """
+    I, J = Y.shape
+    return "trf" if I + J <= 60 else "auto"
+
+
+def _refine(Y: Array, start: Start, dim: int, offsets: str, loss: str, fs: float | None, max_nfev: int | None,
+            covariance: Any) -> NlsSolution:
+    r0, s0, d0, o0 = start
+    return refine_toa(Y, r0, s0, offsets=offsets, receiver_offsets0=d0, source_offsets0=o0, loss=loss,
+                      f_scale=fs if loss != "linear" else None, max_nfev=max_nfev, covariance=covariance,
+                      solver=_solver(Y, dim, offsets))
+
+
+def _cov_spec(cov: Any, pr: NDArray[np.intp], pc: NDArray[np.intp], kr: NDArray[np.bool_],
+              ks: NDArray[np.bool_]) -> Any:
+    """A covariance request in the caller's numbering, in the kept canonical order (modes unchanged)."""
+    if not isinstance(cov, tuple):
+        return cov
+
+    def remap(idx: Any, perm: NDArray[np.intp], keep: NDArray[np.bool_]) -> Any:
+        if idx is None:
+            return None
+        inv = np.argsort(perm)  # caller index -> canonical position
+        pos = np.cumsum(keep) - 1  # canonical position -> kept position
+        c = inv[np.asarray(idx, dtype=np.intp)]
+        return np.sort(pos[c[keep[c]]])
+
+    return remap(cov[0], pr, kr), remap(cov[1], pc, ks)
+
+
+def _start(sol: NlsSolution) -> Start:
+    return sol.receivers, sol.sources, sol.receiver_offsets, sol.source_offsets
+
+
+def _embed_start(sol: NlsSolution, keep: tuple[NDArray[np.bool_], NDArray[np.bool_]],
+                 kr: NDArray[np.bool_], ks: NDArray[np.bool_]) -> Start:
+    """A solution on the nodes ``keep`` as a full-size start (nodes outside ``keep`` at their centroid)."""
+    pkr, pks = keep
+
+    def grow(a: Array | None, k: NDArray[np.bool_], tail: tuple[int, ...]) -> Array | None:
+        if a is None:
+            return None
+        out = np.empty((k.size,) + tail)
+        out[:] = np.mean(a, axis=0)
+        out[k] = a
+        return out
+
+    d = sol.receivers.shape[1]
+    return (grow(sol.receivers, pkr, (d,)), grow(sol.sources, pks, (d,)),  # type: ignore[return-value]
+            grow(sol.receiver_offsets, pkr, ()), grow(sol.source_offsets, pks, ()))
+
+
+def _restrict(start: Start, kr: NDArray[np.bool_], ks: NDArray[np.bool_]) -> Start:
+    r, s, d, o = start
+    return r[kr], s[ks], None if d is None else d[kr], None if o is None else o[ks]
+
+
+def _residuals(Yc: Array, sol: NlsSolution, kr: NDArray[np.bool_], ks: NDArray[np.bool_]) -> Array:
+    """Measured minus modelled on every observed entry of the kept nodes (outliers included)."""
+    Ysub = Yc[np.ix_(kr, ks)]
+    with np.errstate(all="ignore"):
+        return np.where(np.isfinite(Ysub), Ysub - toa_model(*_start(sol)), np.nan)
+
+
+def _flag(Yc: Array, sol: NlsSolution, kr: NDArray[np.bool_], ks: NDArray[np.bool_], offsets: str,
+          sd: float | None, fitted: NDArray[np.bool_]) -> NDArray[np.bool_]:
+    """The outlier rule (:mod:`selfcal.toa.robust`) on every observed entry of the kept nodes.
+
+    ``fitted`` (kept I x kept J) marks the entries the fit ``sol`` used; their residuals are
+    studentized by ``sqrt(1 - h)``, the others' (held out: suspected outliers, gross
+    entries) by ``sqrt(1 + h)`` (prediction error). The scale is the given noise, else the
+    MAD of the fitted entries' studentized residuals, floored at sqrt(machine eps) times the
+    median range (the solver's precision).
+    """
+    Ysub = Yc[np.ix_(kr, ks)]
+    obs = np.isfinite(Ysub)
+    held = obs & ~fitted
+    R_all = _residuals(Yc, sol, kr, ks)
+    Yfit = np.where(fitted, Ysub, np.nan)
+    H = leverages(Yfit, *_start(sol), offsets, held_out=held)
+    T = studentized(R_all, H, held)
+    if sd is not None:
+        s_noise = sd
+    else:
+        floor = np.sqrt(np.finfo(float).eps) * float(np.nanmedian(np.abs(Ysub)))
+        s_noise = noise_scale(T[fitted], floor)
+    return outlier_mask(T, s_noise) & obs
+
+
+def _noise_estimate(R: Array, dof: int) -> float:
+    """Robust noise std of the final residuals: MAD times sqrt(m / dof) (fitted residuals shrink)."""
+    f = R[np.isfinite(R)]
+    if dof <= 0 or f.size == 0:
+        return float("nan")
+    return noise_scale(f) * float(np.sqrt(f.size / dof))
+
+
+def _check_kept(used: NDArray[np.bool_], kr: NDArray[np.bool_], ks: NDArray[np.bool_], dim: int, offsets: str) -> None:
+    """Raise when the nodes left after dropping cannot determine the geometry."""
+    sub = used[np.ix_(kr, ks)]
+    dropped = f" after dropping {int((~kr).sum())} receivers and {int((~ks).sum())} sources with too few ranges" \
+        if (~kr).any() or (~ks).any() else ""
+    try:
+        check_toa_counts(sub.shape, int(sub.sum()), dim, offsets)
+    except DegenerateGeometryError as exc:
+        raise DegenerateGeometryError(f"{exc.args[0]}{dropped}", kind=exc.kind) from None
+
+
+def _package(M: Array, Yc: Array, sol: NlsSolution, kr: NDArray[np.bool_], ks: NDArray[np.bool_],
+             pr: NDArray[np.intp], pc: NDArray[np.intp], outliers: NDArray[np.bool_], speed: float | None,
+             label: str, iters: int, n_runs: int, fit: Any, geo: Any, status: Status, message: str,
+             noise: float | None, noise_est: float, dim: int, offsets: str, n_negative: int) -> ToaResult:
+    I, J = M.shape
+    k = 1.0 / speed if speed is not None else 1.0
+    inv_r, inv_c = np.argsort(pr), np.argsort(pc)
+
+    def embed(a: Array | None, keep: NDArray[np.bool_], inv: NDArray[np.intp], tail: tuple[int, ...] = ()) -> Array | None:
+        if a is None:
+            return None
+        out = np.full((keep.size,) + tail, np.nan)
+        out[keep] = a
+        return out[inv]
+
+    R = np.full((I, J), np.nan)
+    R[np.ix_(kr, ks)] = np.where(np.isfinite(Yc[np.ix_(kr, ks)]), Yc[np.ix_(kr, ks)] - toa_model(*_start(sol)), np.nan)
+    R = R[np.ix_(inv_r, inv_c)]
+    d = embed(sol.receiver_offsets, kr, inv_r)
+    o = embed(sol.source_offsets, ks, inv_c)
+    if offsets == "both" and d is not None and o is not None:
+        j0 = int(np.nonzero(np.isfinite(o))[0][0])  # the first kept source in the caller's numbering
+        shift = o[j0]
+        d, o = d + shift, o - shift
+    mask = outliers[np.ix_(inv_r, inv_c)]
+    resid_used = R[~mask & np.isfinite(R)]
+    rms = float(np.sqrt(np.mean(resid_used**2))) if resid_used.size else float("nan")
+    return ToaResult(
+        receivers=embed(sol.receivers, kr, inv_r, (dim,)),  # type: ignore[arg-type]
+        sources=embed(sol.sources, ks, inv_c, (dim,)),  # type: ignore[arg-type]
+        receiver_offsets=None if d is None else d * k,
+        source_offsets=None if o is None else o * k,
+        receiver_cov=embed(sol.receiver_cov, kr, inv_r, (dim, dim)),  # type: ignore[arg-type]
+        source_cov=embed(sol.source_cov, ks, inv_c, (dim, dim)),  # type: ignore[arg-type]
+        residual_rms=rms * k,
+        sigma=noise_est * k,
+        converged=sol.converged,
+        iterations=iters,
+        method=label,
+        n_missing=int((~np.isfinite(M)).sum()),
+        n_starts=n_runs,
+        receiver_offset_std=None if sol.receiver_offset_std is None else embed(sol.receiver_offset_std, kr, inv_r) * k,  # type: ignore[operator]
+        source_offset_std=None if sol.source_offset_std is None else embed(sol.source_offset_std, ks, inv_c) * k,  # type: ignore[operator]
+        speed=speed,
+        residuals=R * k,
+        fit=fit,
+        verdict=int(status),
+        verdict_message=message,
+        outliers=mask,
+        dropped_receivers=tuple(int(i) for i in np.sort(pr[~kr])),
+        dropped_sources=tuple(int(j) for j in np.sort(pc[~ks])),
+        noise=noise,
+        noise_estimate=noise_est * k,
+        geometry=geo,
+        dim=dim,
+        offsets=offsets,
+        n_negative=n_negative,
+    )
+
+
+def unrefined(M: Array, dim: int, offsets: str, speed: float | None, rng: np.random.Generator,
+              n_negative: int) -> ToaResult:
+    """``method="rank3"``: the 004 initialiser's estimate without refinement (NaN covariances)."""
+    from ..geometry import canonical_gauge
+    from .search import INITIALISERS
+
+    scale = speed if speed is not None else 1.0
+    Y = M * scale
+    starts = INITIALISERS["rank3"](Y, dim, offsets, rng)
+    if not starts:
+        raise DegenerateGeometryError("the rank-3 initialiser does not apply to this matrix "
+                                      "(too few units for the rank-d conditions, 004 sec. 3)", kind="too-few-units")
+    r, s, d, o = starts[0]
+    res = np.where(np.isfinite(Y), Y - toa_model(r, s, d, o), np.nan)
+    f = res[np.isfinite(res)]
+    rc, scn, _ = canonical_gauge(r, s)
+    assert scn is not None
+    I, J = Y.shape
+    k = 1.0 / scale
+    if offsets == "both" and d is not None and o is not None:
+        d, o = d + o[0], o - o[0]
+    return ToaResult(
+        receivers=rc, sources=scn,
+        receiver_offsets=None if d is None else np.asarray(d) * k,
+        source_offsets=None if o is None else np.asarray(o) * k,
+        receiver_cov=np.full((I, dim, dim), np.nan), source_cov=np.full((J, dim, dim), np.nan),
+        residual_rms=float(np.sqrt(np.mean(f**2))) * k, sigma=float("nan"), converged=True, iterations=0,
+        method="rank3", n_missing=int((~np.isfinite(M)).sum()), speed=speed, residuals=res * k,
+        verdict=int(Status.SUCCESS), verdict_message="the 004 initialiser alone (method='rank3'): not refined, not tested",
+        outliers=np.zeros((I, J), bool), dim=dim, offsets=offsets, n_negative=n_negative)
+

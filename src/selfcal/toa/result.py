@@ -1,0 +1,439 @@
+"""The result of :func:`selfcal.toa.solve_toa` and the tests that say whether it can be trusted.
+
+- :func:`n_parameters`: free parameters of the range model up to the gauge (003 eq. 2, 004 eq. 3.1).
+- :func:`residual_test` / :class:`ResidualTest`: chi-square test of the residuals against a
+  *given* noise level.
+- :func:`geometry_test` / :class:`GeometryTest`: with the noise *unknown*, leave-one-out
+  cross-validation (PRESS) of the geometric model against the model without geometry
+  (offsets only, or a constant): data that fit no geometry (a uniform random matrix) fail it.
+- :class:`ToaResult`: frozen, a :class:`selfcal._result.Result` (``status`` / ``message`` /
+  ``success`` in the style of :class:`scipy.optimize.OptimizeResult`, short repr, summary,
+  ``to_dict()`` JSON-safe).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from .._checks import check_choice, check_positive
+from .._result import Result
+from ..errors import Status
+from .nls import OFFSET_MODES
+
+__all__ = [
+    "MESSAGES",
+    "RESIDUAL_ALPHA",
+    "GeometryTest",
+    "ResidualTest",
+    "ToaResult",
+    "geometry_test",
+    "n_parameters",
+    "null_parameters",
+    "residual_test",
+]
+
+Array = NDArray[np.float64]
+
+#: significance level of both trust tests: a fit whose p-value is below this fails
+RESIDUAL_ALPHA = 1e-3
+
+#: messages of the trust verdicts (``ToaResult.status`` is a :class:`selfcal.errors.Status`)
+MESSAGES = {
+    "chi2-passed": "the residuals are consistent with the given noise (chi-square test passed)",
+    "cv-passed": "the geometry predicts the data better than offsets alone (cross-validated test passed)",
+    "untestable": "no redundant measurement: the fit is exact and cannot be tested",
+    "not-converged": "the final refinement stopped before convergence",
+    "chi2-failed": "the residuals are too large for the given noise (chi-square test failed)",
+    "cv-failed": "the data are not predicted by a geometry better than by offsets alone (cross-validated test failed)",
+}
+
+
+def n_parameters(n_receivers: int, n_sources: int, dim: int, offsets: str) -> int:
+    """Free parameters of the TOA model up to the gauge (003 eq. 2, 004 eq. 3.1).
+
+    ``dim (I + J)`` coordinates minus the ``dim (dim + 1) / 2`` of a rigid motion, plus
+    ``I + J - 1`` offsets for ``offsets="both"`` (a common shift between delays and onsets
+    is not observable), ``I`` for "receivers", ``J`` for "sources", 0 for "none".
+
+    Examples
+    --------
+    >>> n_parameters(12, 6, 3, "both")   # 3 * 18 - 6 + 12 + 6 - 1
+    65
+    """
+    check_choice(offsets, "offsets", OFFSET_MODES)
+    I, J = int(n_receivers), int(n_sources)
+    n_off = {"none": 0, "receivers": I, "sources": J, "both": I + J - 1}[offsets]
+    return dim * (I + J) - dim * (dim + 1) // 2 + n_off
+
+
+def null_parameters(n_receivers: int, n_sources: int, offsets: str) -> int:
+    """Parameters of the model *without geometry* nested in ``offsets`` (see :func:`geometry_test`).
+
+    All points at one place leave ``d_i + o_j`` (two-way additive, ``I + J - 1``) for "both",
+    ``d_i`` (``I``) for "receivers", ``o_j`` (``J``) for "sources" and one constant for "none"
+    (the limit of every source far away at the same distance).
+    """
+    check_choice(offsets, "offsets", OFFSET_MODES)
+    I, J = int(n_receivers), int(n_sources)
+    return {"none": 1, "receivers": I, "sources": J, "both": I + J - 1}[offsets]
+
+
+@dataclass(frozen=True)
+class ResidualTest:
+    """Chi-square test of a fit's residuals against a known timing-noise level.
+
+    Attributes
+    ----------
+    chi2: weighted residual sum of squares ``sum_ij (e_ij / noise)^2`` over the observed
+        entries (dimensionless; ``e_ij`` measured minus modelled, matrix units).
+    dof: degrees of freedom ``m - n`` (m observations, n free parameters, gauge removed,
+        :func:`n_parameters`).
+    p_value: ``P(chi2_dof >= chi2)``; NaN when ``dof <= 0`` (nothing to test).
+    noise: the timing / range noise std the residuals were weighted with (matrix units).
+    alpha: significance level; ``passed`` is ``not p_value < alpha``.
+    passed: False when the residuals are too large for the noise: a wrong basin, wrong
+        geometry or model, or a noise level set too low.
+    """
+
+    chi2: float
+    dof: int
+    p_value: float
+    noise: float
+    alpha: float
+    passed: bool
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-safe dict (chi2, dof, p_value, noise, alpha, passed)."""
+        return {"test": "chi2", "chi2": _num(self.chi2), "dof": int(self.dof), "p_value": _num(self.p_value),
+                "noise": _num(self.noise), "alpha": float(self.alpha), "passed": bool(self.passed)}
+
+
+def residual_test(residuals: Any, noise: float, n_params: int, *, alpha: float = RESIDUAL_ALPHA) -> ResidualTest:
+    """Chi-square goodness-of-fit test of TOA residuals (ML fit under Gaussian noise, 003 eq. 2).
+
+    At the global minimum with i.i.d. Gaussian timing noise of std ``noise`` the weighted
+    residual sum of squares ``chi2 = sum_ij (e_ij / noise)^2`` follows (to first order) a
+    chi-square law with ``dof = m - n_params`` degrees of freedom (m observed entries). A
+    wrong basin leaves systematic misfit and a much larger chi2; the fit is rejected when
+    ``P(chi2_dof >= chi2) < alpha``.
+
+    Parameters
+    ----------
+    residuals: (I, J) measured minus modelled, in the units of ``noise`` (e.g. seconds); NaN = missing.
+    noise: timing-noise standard deviation (> 0), same units.
+    n_params: free parameters of the model (:func:`n_parameters`).
+    alpha: significance level (default 1e-3).
+
+    Returns
+    -------
+    ResidualTest
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> e = np.random.default_rng(0).normal(0, 1e-3, (10, 10))
+    >>> residual_test(e, 1e-3, 0).passed
+    True
+    """
+    from scipy.stats import chi2 as chi2_dist
+
+    sd = check_positive(noise, "noise")
+    assert sd is not None
+    e = np.asarray(residuals, dtype=float)
+    e = e[np.isfinite(e)]
+    chi2 = float(np.sum((e / sd) ** 2))
+    dof = int(e.size - int(n_params))
+    p = float(chi2_dist.sf(chi2, dof)) if dof > 0 else float("nan")
+    return ResidualTest(chi2, dof, p, float(sd), float(alpha), passed=not p < alpha)
+
+
+@dataclass(frozen=True)
+class GeometryTest:
+    """Does the geometry predict held-out entries better than offsets alone? (noise unknown)
+
+    Leave-one-out cross-validation in closed form (Allen's PRESS): the linearised
+    prediction error of entry k from a fit without it is ``r_k / (1 - h_k)`` (``h_k`` its
+    leverage), so ``PRESS = sum_k (r_k / (1 - h_k))^2`` needs one fit. The geometric model
+    passes when its PRESS is below that of the model without geometry (all points at one
+    place: ``d_i + o_j``, ``d_i``, ``o_j`` or a constant, :func:`null_parameters`). A
+    matrix that fits no geometry (uniform random entries) is fitted closely by the many
+    parameters of the geometry but predicted badly (``h ~ n / m`` near 1) and fails;
+    measured ranges of a real network pass by orders of magnitude.
+
+    Attributes
+    ----------
+    press, press_null: PRESS of the fit and of the model without geometry (squared matrix units),
+        over the entries ``observations`` where both leverages are below 1 - 1e-8.
+    rss, rss_null: residual sums of squares over the same entries.
+    n_params, n_null: free parameters of the two models.
+    f_statistic, p_value: the nested-model F test of the two RSS (for information: its F
+        reference law assumes a linear model and is optimistic for the nonlinear fit).
+    passed: ``press < press_null``.
+    """
+
+    press: float
+    press_null: float
+    rss: float
+    rss_null: float
+    n_params: int
+    n_null: int
+    observations: int
+    f_statistic: float
+    p_value: float
+    passed: bool
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-safe dict."""
+        return {"test": "loo-cv", "press": _num(self.press), "press_null": _num(self.press_null),
+                "rss": _num(self.rss), "rss_null": _num(self.rss_null),
+                "n_params": int(self.n_params), "n_null": int(self.n_null),
+                "observations": int(self.observations), "f_statistic": _num(self.f_statistic),
+                "p_value": _num(self.p_value), "passed": bool(self.passed)}
+
+
+def _additive_fit(Y: Array, rows: bool, cols: bool, iterations: int = 100) -> Array:
+    """Least-squares fit of ``a_i + b_j`` (or ``a_i``, ``b_j``, a constant) to the observed entries."""
+    obs = np.isfinite(Y)
+    Z = np.where(obs, Y, 0.0)
+    n_r = np.maximum(obs.sum(axis=1), 1)
+    n_c = np.maximum(obs.sum(axis=0), 1)
+    if not rows and not cols:
+        return np.full(Y.shape, Z.sum() / max(obs.sum(), 1))
+    a = np.zeros(Y.shape[0])
+    b = np.zeros(Y.shape[1])
+    for _ in range(iterations if rows and cols else 1):
+        if rows:
+            a = ((Z - b[None, :]) * obs).sum(axis=1) / n_r
+        if cols:
+            b = ((Z - a[:, None]) * obs).sum(axis=0) / n_c
+    return a[:, None] + b[None, :]
+
+
+def _additive_leverages(obs: NDArray[np.bool_], rows: bool, cols: bool, max_unknowns: int = 2000) -> Array:
+    """Leverages of the additive model's design at the observed entries (mean n / m when large)."""
+    I, J = obs.shape
+    ii, jj = np.nonzero(obs)
+    cols_ = [np.ones((ii.size, 1))]
+    if rows:
+        cols_.append(np.eye(I)[ii][:, 1:])
+    if cols:
+        cols_.append(np.eye(J)[jj][:, 1:])
+    n = sum(c.shape[1] for c in cols_)
+    H = np.full(obs.shape, np.nan)
+    if n > max_unknowns or ii.size * n > 5e7:
+        H[obs] = min(n / max(ii.size, 1), 1.0)
+        return H
+    X = np.hstack(cols_)
+    U, sv, _ = np.linalg.svd(X, full_matrices=False)
+    rank = int(np.sum(sv > sv[0] * 1e-10))
+    H[obs] = np.sum(U[:, :rank] ** 2, axis=1)
+    return H
+
+
+def geometry_test(ranges: Any, residuals: Any, leverages: Any, dim: int, offsets: str, *,
+                  alpha: float = RESIDUAL_ALPHA) -> GeometryTest:
+    """Cross-validated test of the geometric model against the model without geometry (noise unknown).
+
+    Parameters
+    ----------
+    ranges: (I, J) the entries the fit used (NaN elsewhere), any units.
+    residuals: (I, J) measured minus modelled of the fit, same units, NaN where not used.
+    leverages: (I, J) the fit's leverages (:func:`selfcal.toa.robust.leverages`).
+    dim, offsets: the fitted model.
+    alpha: level of the informational F test.
+
+    Returns
+    -------
+    GeometryTest (see its docstring for the rule).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from selfcal.toa import solve_toa
+    >>> import warnings
+    >>> with warnings.catch_warnings():
+    ...     warnings.simplefilter("ignore")
+    ...     res = solve_toa(np.random.default_rng(0).uniform(0, 10, (8, 10)), rng=0)
+    >>> res.geometry.passed
+    False
+    """
+    from scipy.stats import f as f_dist
+
+    Y = np.asarray(ranges, dtype=float)
+    E = np.asarray(residuals, dtype=float)
+    H = np.asarray(leverages, dtype=float)
+    has_r, has_s = offsets in ("receivers", "both"), offsets in ("sources", "both")
+    use = np.isfinite(Y) & np.isfinite(E)
+    Yu = np.where(use, Y, np.nan)
+    E0 = Yu - _additive_fit(Yu, has_r, has_s)
+    H0 = _additive_leverages(use, has_r, has_s)
+    ok = use & np.isfinite(H) & (1 - H > 1e-8) & (1 - H0 > 1e-8)
+    I, J = Y.shape
+    press = float(np.sum((E[ok] / (1 - H[ok])) ** 2))
+    press0 = float(np.sum((E0[ok] / (1 - H0[ok])) ** 2))
+    rss = float(np.sum(E[use] ** 2))
+    rss0 = float(np.sum(E0[use] ** 2))
+    n1 = n_parameters(I, J, dim, offsets)
+    n0 = null_parameters(I, J, offsets)
+    m = int(use.sum())
+    dof, k = m - n1, max(n1 - n0, 1)
+    if dof > 0 and rss > 0:
+        stat = ((rss0 - rss) / k) / (rss / dof)
+        p = float(f_dist.sf(stat, k, dof))
+    else:
+        stat, p = float("nan"), float("nan")
+    return GeometryTest(press, press0, rss, rss0, n1, n0, int(ok.sum()), float(stat), p,
+                        bool(press < press0 or (press == 0.0 and press0 > 0.0)))
+
+
+def _num(x: float) -> float | None:
+    """A float for JSON (None for NaN / inf)."""
+    x = float(x)
+    return x if math.isfinite(x) else None
+
+
+def _jsonable(a: Any) -> Any:
+    """Arrays -> nested lists with NaN / inf -> None (strict JSON)."""
+    if a is None:
+        return None
+    arr = np.asarray(a)
+    if arr.dtype == bool:
+        return arr.tolist()
+    arr = arr.astype(float)
+    obj = arr.astype(object)
+    obj[~np.isfinite(arr)] = None
+    return obj.tolist()
+
+
+@dataclass(frozen=True, repr=False)
+class ToaResult(Result):
+    """Result of :func:`selfcal.toa.solve_toa`.
+
+    Attributes
+    ----------
+    receivers, sources: (I, d), (J, d) positions in metres, canonical gauge
+        (receiver centroid at 0, receiver principal axes along x, y(, z)); rows of dropped
+        nodes are NaN.
+    receiver_offsets, source_offsets: (I,), (J,) or None; seconds when ``speed`` was
+        given, metres otherwise. With both kinds, ``source_offsets[0] == 0`` (first kept source).
+    receiver_cov, source_cov: (I, d, d), (J, d, d) gauge-free covariances (m^2,
+        003 eq. 17); NaN when not available.
+    residual_rms: RMS of the residuals of the entries the final fit used (matrix units).
+    sigma: the estimated noise std (matrix units); the same number as ``noise_estimate``.
+    converged, iterations: status of the final refinement; iterations summed over the search.
+    method: what ran, e.g. ``"rank3+nls+search(14)"``.
+    n_missing: number of missing (NaN) entries.
+    n_starts: refinements run by the search.
+    receiver_offset_std, source_offset_std: offset standard deviations (minimum-norm gauge).
+    speed: propagation speed used (m/s) or None.
+    residuals: (I, J) measured minus modelled, matrix units, NaN where missing or dropped
+        (outliers keep their residual).
+    fit: chi-square residual test when ``noise`` was given, else None.
+    status, message, success: the trust verdict (properties; ``status`` a
+        :class:`selfcal.errors.Status`: SUCCESS, NOT_CONVERGED or FAILED_TEST), stored in the
+        fields ``verdict`` (the Status value) and ``verdict_message``.
+    outliers: (I, J) bool, entries the outlier rule rejected (excluded from the final fit).
+    dropped_receivers, dropped_sources: indices of nodes with too few measurements to be
+        identified, left out of the fit (their rows are NaN).
+    noise: the noise std given by the caller (matrix units) or None.
+    noise_estimate: robust estimate of the noise std from the final residuals (matrix units).
+    geometry: the F test against the model without geometry (noise unknown), else None.
+    dim, offsets: the model reported (after ``"auto"`` choices).
+    selection: what the ``"auto"`` choices compared (statistics), empty when none was made.
+    n_negative: number of negative entries in the input (measurements, kept).
+    """
+
+    receivers: Array
+    sources: Array
+    receiver_offsets: Array | None
+    source_offsets: Array | None
+    receiver_cov: Array
+    source_cov: Array
+    residual_rms: float
+    sigma: float
+    converged: bool
+    iterations: int
+    method: str
+    n_missing: int
+    n_starts: int = 1
+    receiver_offset_std: Array | None = None
+    source_offset_std: Array | None = None
+    speed: float | None = None
+    residuals: Array | None = None
+    fit: ResidualTest | None = None
+    verdict: int = 0
+    verdict_message: str = MESSAGES["untestable"]
+    outliers: NDArray[np.bool_] | None = None
+    dropped_receivers: tuple[int, ...] = ()
+    dropped_sources: tuple[int, ...] = ()
+    noise: float | None = None
+    noise_estimate: float = float("nan")
+    geometry: GeometryTest | None = None
+    dim: int = 3
+    offsets: str = "none"
+    selection: dict[str, Any] = field(default_factory=dict)
+    n_negative: int = 0
+
+    _repr_fields = ("method", "dim", "offsets", "residual_rms", "noise_estimate")
+
+    def _diagnose(self) -> tuple[Status, str]:
+        return Status(self.verdict), self.verdict_message
+
+    def to_dict(self) -> dict[str, Any]:
+        """Strict-JSON dict: the DESIGN.md toa keys plus diagnostics (NaN -> null)."""
+        unit = "s" if self.speed is not None else "m"
+        return {
+            "receivers": _jsonable(self.receivers),
+            "sources": _jsonable(self.sources),
+            "receiver_offsets": _jsonable(self.receiver_offsets),
+            "source_offsets": _jsonable(self.source_offsets),
+            "receiver_cov": _jsonable(self.receiver_cov),
+            "source_cov": _jsonable(self.source_cov),
+            "residual_rms": _num(self.residual_rms),
+            "converged": bool(self.converged),
+            "iterations": int(self.iterations),
+            "method": self.method,
+            "status": int(self.status),
+            "message": self.message,
+            "success": bool(self.success),
+            "dim": int(self.dim),
+            "offsets": self.offsets,
+            "noise": None if self.noise is None else _num(self.noise),
+            "noise_estimate": _num(self.noise_estimate),
+            "sigma": _num(self.sigma),
+            "n_missing": int(self.n_missing),
+            "n_negative": int(self.n_negative),
+            "n_starts": int(self.n_starts),
+            "outliers": None if self.outliers is None else np.asarray(self.outliers, bool).tolist(),
+            "n_outliers": 0 if self.outliers is None else int(np.sum(self.outliers)),
+            "dropped_receivers": [int(i) for i in self.dropped_receivers],
+            "dropped_sources": [int(j) for j in self.dropped_sources],
+            "residuals": _jsonable(self.residuals),
+            "receiver_offset_std": _jsonable(self.receiver_offset_std),
+            "source_offset_std": _jsonable(self.source_offset_std),
+            "speed": self.speed,
+            "fit": None if self.fit is None else self.fit.to_dict(),
+            "geometry": None if self.geometry is None else self.geometry.to_dict(),
+            "selection": _select_json(self.selection),
+            "units": {"positions": "m", "covariances": "m^2", "offsets": unit, "residual_rms": unit,
+                      "noise": unit},
+        }
+
+
+def _select_json(sel: dict[str, Any]) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for k, v in sel.items():
+        if isinstance(v, dict):
+            out[k] = _select_json(v)
+        elif isinstance(v, (float, np.floating)):
+            out[k] = _num(float(v))
+        elif isinstance(v, (np.integer,)):
+            out[k] = int(v)
+        else:
+            out[k] = v
+    return out

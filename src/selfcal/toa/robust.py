@@ -1,0 +1,182 @@
+"""Measured data that are not clean: gross entries, outliers, nodes with too few ranges.
+
+The rules here are statistical or counting arguments, never tuned on a data set:
+
+- :func:`gross_entries`: entries so far from a robust two-way (median-polish) fit of the
+  matrix that no initialiser should see them (Tukey's "far out" fence, 3 IQR beyond the
+  quartiles). A 1e300 typo is one; they are excluded from the search and re-judged by
+  :func:`outlier_mask` against the fitted model at the end.
+- :func:`noise_scale`: normal-consistent MAD of residuals
+  (:func:`scipy.stats.median_abs_deviation`).
+- :func:`outlier_mask`: ``|t_ij| > k s`` for the studentized residuals
+  ``t = r / sqrt(1 - h)`` (:func:`leverages`, :func:`studentized`), ``s`` the given noise
+  or the MAD of t, ``k = Phi^-1(1 - alpha / (2 m))`` (Bonferroni over the m measurements:
+  under Gaussian noise the probability that any inlier is flagged is at most ``alpha``).
+- :func:`drop_unidentifiable`: nodes with fewer ranges than their unknowns + 1, removed
+  iteratively (removing a source lowers its receivers' counts).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+
+__all__ = ["OUTLIER_ALPHA", "TUKEY_FAR", "drop_unidentifiable", "gross_entries", "leverages", "noise_scale",
+           "outlier_mask", "outlier_threshold", "required_ranges", "studentized"]
+
+Array = NDArray[np.float64]
+Mask = NDArray[np.bool_]
+
+#: family-wise probability of flagging any inlier as an outlier (Gaussian noise)
+OUTLIER_ALPHA = 0.01
+#: Tukey's "far out" fence in interquartile ranges beyond the quartiles
+TUKEY_FAR = 3.0
+
+
+def _median_polish(Y: Array, iterations: int = 10) -> Array:
+    """Residuals of Tukey's median polish ``y_ij ~ m + a_i + b_j`` over the observed entries."""
+    R = np.array(Y, dtype=float)
+    with np.errstate(all="ignore"):
+        for _ in range(iterations):
+            a = np.nanmedian(R, axis=1)
+            R = R - np.where(np.isfinite(a), a, 0.0)[:, None]
+            b = np.nanmedian(R, axis=0)
+            R = R - np.where(np.isfinite(b), b, 0.0)[None, :]
+    return R
+
+
+def gross_entries(Y: Array) -> Mask:
+    """Entries beyond Tukey's far-out fence of the median-polish residuals (I, J) bool.
+
+    The additive part ``a_i + b_j`` absorbs offsets and the typical range of each node;
+    what is left has the geometric spread of the network. An entry more than 3 IQR beyond
+    the quartiles of those residuals (a typo, 1e300, a reflection many times longer than
+    the room) is excluded before any initialiser runs. The rule is deliberately loose: the
+    final :func:`outlier_mask` re-judges every entry against the fitted model.
+    """
+    obs = np.isfinite(Y)
+    if obs.sum() < 4:
+        return np.zeros(Y.shape, bool)
+    # scale down first so that 1e300 entries cannot overflow in the medians' arithmetic
+    big = float(np.nanmax(np.abs(Y)))
+    Z = Y / big if big > 0 else Y
+    R = _median_polish(Z)
+    v = R[obs]
+    q1, q3 = np.percentile(v, [25, 75])
+    iqr = q3 - q1
+    if not iqr > 0:
+        return np.zeros(Y.shape, bool)
+    lo, hi = q1 - TUKEY_FAR * iqr, q3 + TUKEY_FAR * iqr
+    return obs & ((R < lo) | (R > hi))
+
+
+def noise_scale(residuals: Array, floor: float = 0.0) -> float:
+    """Normal-consistent MAD of the finite residuals (``scipy.stats.median_abs_deviation``)."""
+    from scipy.stats import median_abs_deviation
+
+    f = np.asarray(residuals, float)
+    f = f[np.isfinite(f)]
+    if f.size == 0:
+        return float("nan")
+    return max(float(median_abs_deviation(f, scale="normal")), float(floor))
+
+
+def outlier_threshold(m: int, alpha: float = OUTLIER_ALPHA) -> float:
+    """``k = Phi^-1(1 - alpha / (2 m))``: Bonferroni two-sided normal quantile for m measurements."""
+    from scipy.stats import norm
+
+    return float(norm.isf(alpha / (2.0 * max(int(m), 1))))
+
+
+def outlier_mask(residuals: Array, scale: float, alpha: float = OUTLIER_ALPHA) -> Mask:
+    """Entries with ``|r_ij| > k scale``, ``k`` from :func:`outlier_threshold` (NaN -> False)."""
+    R = np.asarray(residuals, float)
+    fin = np.isfinite(R)
+    k = outlier_threshold(int(fin.sum()), alpha)
+    with np.errstate(invalid="ignore"):
+        return fin & (np.abs(np.where(fin, R, 0.0)) > k * scale)
+
+
+def required_ranges(dim: int, own_offset: bool) -> int:
+    """Ranges a node needs: its ``dim (+1)`` unknowns plus one redundant range.
+
+    With exactly ``dim`` ranges (``dim + 1`` with an offset) a node sits at one of the
+    (generically two) intersections of its spheres: locally determined but with a mirror
+    ambiguity and no redundancy to test it; one more range resolves both.
+    """
+    return int(dim) + int(own_offset) + 1
+
+
+def drop_unidentifiable(observed: Mask, dim: int, offsets: str) -> tuple[Mask, Mask]:
+    """Receivers and sources kept after iteratively removing nodes with too few ranges.
+
+    Returns boolean keep-masks (I,), (J,). A node is removed while its count of observed
+    ranges to kept partners is below :func:`required_ranges`.
+    """
+    has_r, has_s = offsets in ("receivers", "both"), offsets in ("sources", "both")
+    need_r, need_s = required_ranges(dim, has_r), required_ranges(dim, has_s)
+    keep_r = np.ones(observed.shape[0], bool)
+    keep_s = np.ones(observed.shape[1], bool)
+    while True:
+        sub = observed & keep_r[:, None] & keep_s[None, :]
+        bad_r = keep_r & (sub.sum(axis=1) < need_r)
+        bad_s = keep_s & (sub.sum(axis=0) < need_s)
+        if not bad_r.any() and not bad_s.any():
+            return keep_r, keep_s
+        keep_r &= ~bad_r
+        keep_s &= ~bad_s
+
+
+#: above this many unknowns the leverages are approximated by their mean n / m
+LEVERAGE_MAX_UNKNOWNS = 2000
+
+
+def leverages(ranges: Array, receivers: Array, sources: Array, receiver_offsets: Array | None,
+              source_offsets: Array | None, offsets: str, held_out: NDArray[np.bool_] | None = None) -> Array:
+    """Leverages of the observed entries at a fitted geometry, (I, J), NaN elsewhere.
+
+    For an entry the fit used, ``h = j (J^T J)^+ j^T`` with J the Jacobian of the range
+    model over the fitted entries (003 eq. 16, :func:`selfcal.toa.nls.toa_jacobian`) and j
+    its row: its residual has variance ``sigma^2 (1 - h)``. For an entry ``held_out`` of the
+    fit (a suspected outlier) the same formula gives the prediction variance
+    ``sigma^2 (1 + h)``. With few redundant ranges the leverages vary widely, so the outlier
+    rule studentizes the residuals by them (:func:`studentized`). Problems with more than
+    :data:`LEVERAGE_MAX_UNKNOWNS` unknowns use the mean leverage ``n / m`` everywhere.
+    """
+    from .nls import _pack, toa_jacobian
+
+    Y = np.asarray(ranges, float)
+    obs = np.isfinite(Y)
+    out_mask = np.zeros(Y.shape, bool) if held_out is None else (np.asarray(held_out, bool) & ~obs)
+    dim = receivers.shape[1]
+    theta = _pack(receivers, sources, receiver_offsets, source_offsets)
+    H = np.full(Y.shape, np.nan)
+    m = int(obs.sum())
+    gauge = dim * (dim + 1) // 2 + (1 if offsets == "both" else 0)
+    n_free = theta.size - gauge
+    if theta.size > LEVERAGE_MAX_UNKNOWNS:
+        H[obs | out_mask] = min(n_free / max(m, 1), 1.0)
+        return H
+    Jm = toa_jacobian(theta, Y, dim, offsets).toarray()
+    U, sv, Vt = np.linalg.svd(Jm, full_matrices=False)
+    rank = int(np.sum(sv > sv[0] * 1e-10)) if sv.size else 0
+    H[obs] = np.sum(U[:, :rank] ** 2, axis=1)
+    if out_mask.any():
+        Z = np.where(out_mask, 1.0, np.nan)
+        Jo = toa_jacobian(theta, Z, dim, offsets).toarray()
+        P = (Jo @ Vt[:rank].T) / sv[:rank]
+        H[out_mask] = np.sum(P**2, axis=1)
+    return H
+
+
+def studentized(residuals: Array, lev: Array, held_out: NDArray[np.bool_] | None = None) -> Array:
+    """``r / sqrt(1 - h)`` for fitted entries, ``r / sqrt(1 + h)`` for ``held_out`` ones.
+
+    NaN where ``1 - h`` is below 1e-8 (an entry the fit interpolates: its residual is 0
+    whatever it measured, so it cannot be judged).
+    """
+    h = np.asarray(lev, float)
+    ho = np.zeros(h.shape, bool) if held_out is None else np.asarray(held_out, bool)
+    one = np.where(ho, 1.0 + h, 1.0 - h)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(one > 1e-8, np.asarray(residuals, float) / np.sqrt(np.maximum(one, 1e-300)), np.nan)

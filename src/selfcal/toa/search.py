@@ -1,0 +1,358 @@
+"""The one search of the TOA solver: initialisers, moves, one engine, one acceptance rule, one budget.
+
+1. **Canonical order** (:func:`canonical_order`): rows and columns are sorted by a key that
+   does not depend on their numbering (the median of the row / column, ties broken by its
+   sorted entries). :func:`selfcal.toa.solve_toa` solves the sorted matrix and undoes the
+   sort, so its answer is equivariant under permutations of receivers and of sources
+   (exactly: the sorted matrix, and so every later step, is the same bit for bit).
+2. **Starts** from a registry of initialisers (:data:`INITIALISERS`, in that order): the
+   004 rank-3 iteration (:mod:`selfcal.toa.offsets`, with offsets and when it identifies
+   them) and the 003 family (:mod:`selfcal.toa.mds`: rank factorisation, MDS +
+   multilateration, Algorithm 2). Starting offsets are the least-squares offsets of the
+   start geometry.
+3. **Moves** (:mod:`selfcal.toa.moves`): reflect or lift subsets of nodes through fitted planes.
+4. **One engine**: every candidate is refined by :func:`selfcal.toa.nls.refine_toa`.
+5. **One acceptance rule**: a candidate replaces the best one when its ML cost (the
+   robust cost with one fixed scale for the whole search) is lower. With a known noise,
+   the chi-square test of :func:`selfcal.toa.result.residual_test` is the stopping rule.
+6. **One budget**: at most ``budget`` refinements (default :func:`default_budget`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+import numpy as np
+from numpy.typing import NDArray
+
+from ..errors import DegenerateGeometryError, InputError
+from .moves import Start, moves
+from .nls import NlsSolution, _rho, refine_toa, toa_model
+from .result import _additive_fit
+
+__all__ = ["INITIALISERS", "MOVES_MAX_NODES", "SearchOutcome", "canonical_order", "default_budget",
+           "least_squares_offsets", "search"]
+
+Array = NDArray[np.float64]
+
+#: moves (and more than one initialiser) only up to this many receivers + sources: above it
+#: a refinement costs seconds and the initialisers alone reach the basin (003 sec. V)
+MOVES_MAX_NODES = 300
+#: iteration cap of the short refinements that rank the moves (the accepted one is finished)
+MOVE_NFEV = 10
+#: relative cost decrease a candidate must bring to be accepted (round-off guard)
+ACCEPT_REL = 1e-9
+# residual scale in units of sigma giving 95% efficiency under Gaussian noise (Huber 1964)
+_TUNING = {"linear": 1.0, "huber": 1.345, "soft_l1": 1.345, "cauchy": 2.385}
+
+
+def canonical_order(Y: Array) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
+    """Permutations (rows, columns) that sort a matrix into an order independent of numbering.
+
+    Key of a row: its median over the observed entries, then its sorted entries (NaN last),
+    lexicographically; columns alike. Rows that tie on the whole key are identical up to
+    the order of their entries; the stable sort keeps their given order.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> Y = np.array([[3.0, 1.0], [1.0, 2.0], [2.0, 2.0]])
+    >>> [int(i) for i in canonical_order(Y)[0]]
+    [1, 2, 0]
+    """
+    def order(M: Array) -> NDArray[np.intp]:
+        with np.errstate(all="ignore"):
+            med = np.nanmedian(M, axis=1)
+        srt = np.sort(M, axis=1)  # NaN sort last
+        keys = [np.where(np.isfinite(srt[:, k]), srt[:, k], np.inf) for k in range(srt.shape[1] - 1, -1, -1)]
+        return np.lexsort(keys + [np.where(np.isfinite(med), med, np.inf)]).astype(np.intp)
+
+    return order(Y), order(Y.T)
+
+
+def least_squares_offsets(Y: Array, r: Array, s: Array, offsets: str) -> tuple[Array | None, Array | None]:
+    """Offsets that best fit ``Y - |r_i - s_j|`` for a given geometry (two-way means)."""
+    has_r, has_s = offsets in ("receivers", "both"), offsets in ("sources", "both")
+    if not (has_r or has_s):
+        return None, None
+    E = np.where(np.isfinite(Y), Y - toa_model(r, s), np.nan)
+    obs = np.isfinite(E)
+    Z = np.where(obs, E, 0.0)
+    n_r = np.maximum(obs.sum(axis=1), 1)
+    n_c = np.maximum(obs.sum(axis=0), 1)
+    a = np.zeros(Y.shape[0])
+    b = np.zeros(Y.shape[1])
+    for _ in range(100 if has_r and has_s else 1):
+        if has_r:
+            a = ((Z - b[None, :]) * obs).sum(axis=1) / n_r
+        if has_s:
+            b = ((Z - a[:, None]) * obs).sum(axis=0) / n_c
+    return (a if has_r else None), (b if has_s else None)
+
+
+# ------------------------------------------------------------------ initialisers (registry)
+
+_Init = Callable[[Array, int, str, np.random.Generator], list[Start]]
+
+
+def _rank3(Y: Array, dim: int, offsets: str, rng: np.random.Generator) -> list[Start]:
+    """004 rank-3 iteration (selfcal.toa.offsets): up to 4 distinct starts, offsets collapsed."""
+    from . import offsets as off
+
+    if offsets == "none":
+        return []
+    I, J = Y.shape
+    try:
+        off.check_rank_identifiable(I, J, dim)
+    except DegenerateGeometryError:
+        return []
+    k = 4 if I + J <= MOVES_MAX_NODES else 1
+    try:
+        found = off.initialize_offsets_candidates(Y, dim, rng=rng, max_candidates=k)
+    except (DegenerateGeometryError, InputError):
+        if not np.isnan(Y).any():
+            raise
+        # missing entries: complete them by the two-way additive fit for the initialiser only
+        Z = np.where(np.isfinite(Y), Y, _additive_fit(Y, True, True))
+        found = off.initialize_offsets_candidates(Z, dim, rng=rng, max_candidates=k)
+    out: list[Start] = []
+    for r, s, d0, o0 in found:
+        r, s = np.asarray(r, float), np.asarray(s, float)
+        if offsets == "receivers":  # the other kind's estimate is the common shift c
+            out.append((r, s, np.asarray(d0) + np.mean(o0), None))
+        elif offsets == "sources":
+            out.append((r, s, None, np.asarray(o0) + np.mean(d0)))
+        else:
+            out.append((r, s, np.asarray(d0, float), np.asarray(o0, float)))
+    return out
+
+
+def _mds(method: str) -> _Init:
+    def init(Y: Array, dim: int, offsets: str, rng: np.random.Generator) -> list[Start]:
+        from . import mds
+
+        shift = min(0.0, float(np.nanmin(Y)))  # negative ranges: shift for the initialiser only
+        r, s = mds.initialize_toa(Y - shift, dim, method=method, rng=rng)
+        r, s = np.asarray(r, float), np.asarray(s, float)
+        d0, o0 = least_squares_offsets(Y, r, s, offsets)
+        return [(r, s, d0, o0)]
+
+    init.__doc__ = f"003 initialiser {method!r} (selfcal.toa.mds.initialize_toa), LS offsets."
+    return init
+
+
+#: the initialisers, in the order the search runs them (small networks run all of them)
+INITIALISERS: dict[str, _Init] = {
+    "rank3": _rank3,
+    "mds-rank": _mds("rank"),
+    "mds-multilat": _mds("mds-multilat"),
+    "mds-alg2": _mds("alg2"),
+}
+#: the one initialiser of large networks (I + J > MOVES_MAX_NODES): the affordable 003 choice
+LARGE_INITIALISERS = ("rank3", "mds-auto")
+_LARGE = {"rank3": _rank3, "mds-auto": _mds("auto")}
+
+
+def _sane(start: Start, Y: Array) -> bool:
+    """Finite and within 100x the scale of the data."""
+    lim = 100.0 * (float(np.nanmax(np.abs(Y))) + 1.0)
+    return all(p is None or (np.isfinite(p).all() and np.abs(p).max() <= lim) for p in start)
+
+
+def default_budget(n_receivers: int, n_sources: int) -> int:
+    """Refinements the search may run: about two rounds of moves (two per node up to 60 nodes), >= 24."""
+    n = int(n_receivers) + int(n_sources)
+    return 1 if n > MOVES_MAX_NODES else max(24, 2 * min(n, 60))
+
+
+# ------------------------------------------------------------------ the search
+
+
+@dataclass(frozen=True)
+class SearchOutcome:
+    """What :func:`search` found.
+
+    Attributes
+    ----------
+    solution: the best refinement (no covariances).
+    start: name of the initialiser whose start led to it.
+    moves: names of the accepted moves, in order.
+    refinements: refinements run; iterations: summed over them.
+    f_scale: the fixed robust-loss scale of the search (metres; 1 for the linear loss).
+    stopped: why the search ended: "test" (the chi-square test passed), "exact" (residuals at
+        the solver's precision: no candidate can do better), "budget", "exhausted".
+    """
+
+    solution: NlsSolution
+    start: str
+    moves: tuple[str, ...]
+    refinements: int
+    iterations: int
+    f_scale: float
+    stopped: str
+    history: list[tuple[str, float]] = field(default_factory=list)
+
+
+def _cost(sol: NlsSolution, loss: str, fs: float) -> float:
+    f = sol.residuals[np.isfinite(sol.residuals)]
+    if loss == "linear":
+        return 0.5 * float(f @ f)
+    rho, _ = _rho((f / fs) ** 2, loss)
+    return 0.5 * fs**2 * float(rho.sum())
+
+
+def _as_start(sol: NlsSolution) -> Start:
+    return sol.receivers, sol.sources, sol.receiver_offsets, sol.source_offsets
+
+
+def search(
+    Y: Array,
+    dim: int,
+    offsets: str,
+    *,
+    rng: np.random.Generator,
+    loss: str = "linear",
+    f_scale: float | None = None,
+    starts: list[tuple[str, Start]] | None = None,
+    first: tuple[str, Start] | None = None,
+    stop: Callable[[NlsSolution], bool] | None = None,
+    budget: int | None = None,
+    max_nfev: int | None = None,
+    use_moves: bool = True,
+    solver: str = "auto",
+) -> SearchOutcome:
+    """Best refinement of the range model over the registry's starts and the plane moves.
+
+    Parameters
+    ----------
+    Y: (I, J) ranges in metres (canonical order, see :func:`canonical_order`), NaN = missing
+        or excluded.
+    dim, offsets: the model.
+    rng: Generator for the randomised initialisers.
+    loss: loss of every refinement; the robust ones use one scale ``f_scale`` for the whole
+        search (default: the tuning constant times the noise estimate of the first refinement)
+        so that costs are comparable.
+    starts: explicit starts (name, start) instead of the registry.
+    first: a start tried before the registry's (an explicit ``init``).
+    stop: called on every new best; True ends the search (the chi-square test with a known noise).
+    budget: maximal refinements (default :func:`default_budget`).
+    max_nfev: iteration cap of the full refinements.
+    use_moves: run the moves after the starts (only up to :data:`MOVES_MAX_NODES` nodes).
+    solver: passed to :func:`selfcal.toa.nls.refine_toa`.
+
+    Returns
+    -------
+    SearchOutcome
+
+    Raises
+    ------
+    DegenerateGeometryError: no start refined to a non-degenerate solution.
+    """
+    I, J = Y.shape
+    large = I + J > MOVES_MAX_NODES
+    nb = default_budget(I, J) if budget is None else max(1, int(budget))
+    fs: float | None = f_scale if loss != "linear" else 1.0
+    count = 0
+    iters = 0
+    history: list[tuple[str, float]] = []
+    last_err: Exception | None = None
+    # residuals at this level are the solver's precision (sqrt of machine eps, relative)
+    exact_level = np.sqrt(np.finfo(float).eps) * float(np.nanmedian(np.abs(Y)))
+
+    def done(sol: NlsSolution) -> str | None:
+        f = sol.residuals[np.isfinite(sol.residuals)]
+        if f.size and float(np.max(np.abs(f))) <= exact_level:
+            return "exact"
+        if stop is not None and stop(sol):
+            return "test"
+        return None
+
+    def refine(start: Start, nfev: int | None) -> NlsSolution | None:
+        nonlocal count, iters, fs, last_err
+        count += 1
+        r0, s0, d0, o0 = start
+        try:
+            sol = refine_toa(Y, r0, s0, offsets=offsets, receiver_offsets0=d0, source_offsets0=o0, loss=loss,
+                             f_scale=fs if loss != "linear" else None, max_nfev=nfev, covariance=False,
+                             solver=solver)
+        except DegenerateGeometryError as exc:
+            last_err = exc
+            return None
+        iters += sol.iterations
+        if fs is None:  # the first robust refinement sets the search's scale
+            fs = max(_TUNING[loss] * float(sol.sigma), 1e-12 * (1.0 + float(np.nanmax(np.abs(Y)))))
+            return refine(_as_start(sol), nfev)
+        return sol
+
+    # ---- starts
+    if starts is None:
+        reg = _LARGE if large else INITIALISERS
+        starts = []
+        for name, init in reg.items():
+            try:
+                got = init(Y, dim, offsets, rng)
+            except (DegenerateGeometryError, InputError, np.linalg.LinAlgError, ValueError, FloatingPointError):
+                continue  # an initialiser that does not apply here is skipped
+            starts += [(name, st) for st in got if _sane(st, Y)]
+            if large and starts:
+                break
+        if first is not None:
+            starts.insert(0, first)
+    best: NlsSolution | None = None
+    best_cost = np.inf
+    best_name = ""
+    stopped = "exhausted"
+    for name, st in starts:
+        if count >= nb and best is not None:
+            stopped = "budget"
+            break
+        sol = refine(st, max_nfev)
+        if sol is None:
+            continue
+        c = _cost(sol, loss, fs or 1.0)
+        history.append((name, c))
+        if c < best_cost * (1 - ACCEPT_REL):
+            best, best_cost, best_name = sol, c, name
+            why = done(best)
+            if why is not None:
+                stopped = why
+                break
+    if best is None:
+        msg = str(last_err.args[0]) if last_err is not None else "no initialiser applies"
+        kind = getattr(last_err, "kind", "init-failed")
+        raise DegenerateGeometryError(
+            f"{msg} (reached from every start tried: {', '.join(n for n, _ in starts) or 'none'}; if the geometry "
+            "is fine, the initialisation failed: pass init=(receivers, sources[, offsets]) or add measurements)",
+            kind=kind)
+    accepted: list[str] = []
+    if use_moves and not large and stopped == "exhausted":
+        obs = np.isfinite(Y)
+        improved = True
+        while improved and stopped == "exhausted":
+            improved = False
+            round_best: tuple[float, str, NlsSolution] | None = None
+            for mname, st in moves(_as_start(best), obs):
+                if count >= nb:
+                    stopped = "budget"
+                    break
+                sol = refine(st, MOVE_NFEV)
+                if sol is None:
+                    continue
+                c = _cost(sol, loss, fs or 1.0)
+                if c < best_cost * (1 - ACCEPT_REL) and (round_best is None or c < round_best[0]):
+                    round_best = (c, mname, sol)
+            if round_best is not None:
+                c, mname, sol = round_best
+                if not sol.converged:
+                    full = refine(_as_start(sol), max_nfev)
+                    if full is not None:
+                        c, sol = _cost(full, loss, fs or 1.0), full
+                if c < best_cost * (1 - ACCEPT_REL):
+                    best, best_cost = sol, c
+                    accepted.append(mname)
+                    history.append((mname, c))
+                    improved = True
+                    why = done(best)
+                    if why is not None:
+                        stopped = why
+    return SearchOutcome(best, best_name, tuple(accepted), count, iters, float(fs or 1.0), stopped, history)

@@ -1,0 +1,322 @@
+"""Model selection for TOA calibration: which offsets (``offsets="auto"``) and which dimension (``dim="auto"``).
+
+- :func:`choose_offsets`: none / receivers / sources / both by the Bayesian information
+  criterion on the robust fits (``BIC = m ln(RSS / m) + n ln m`` with the noise unknown,
+  ``RSS / sigma^2 + n ln m`` with it given), over the entries every candidate kept.
+  BIC compares the non-nested pair receivers / sources too and is consistent (picks the
+  true model with probability -> 1 as m grows).
+- :func:`compare_fits` / :class:`ModelComparison`: the nested-model F test of a 3-D fit
+  against a 2-D one (the 3-D model contains every planar network).
+- :func:`planarity` / :class:`Planarity`: whether a layout's thickness is resolved by its
+  own covariances.
+- :func:`choose_dim`: 3-D unless the F test finds z insignificant or the 3-D layout is
+  near-planar; then 2-D, so a flat layout does not report a confident spurious z.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import warnings
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ..errors import ConvergenceWarning, DegenerateGeometryError
+from .result import ToaResult, n_parameters
+
+__all__ = [
+    "NOISE_FLOOR",
+    "PLANAR_ALPHA",
+    "PLANAR_RATIO",
+    "PLANAR_SIGMAS",
+    "ModelComparison",
+    "Planarity",
+    "choose",
+    "choose_dim",
+    "choose_offsets",
+    "compare_fits",
+    "planarity",
+]
+
+Array = NDArray[np.float64]
+
+PLANAR_RATIO = 0.01  # thinnest / widest extent below which a layout counts as flat
+PLANAR_SIGMAS = 3.0  # thickness below this many standard deviations along the normal = flat
+PLANAR_ALPHA = 1e-3  # F-test level: a 3-D improvement less likely than this under a planar truth keeps z
+NOISE_FLOOR = 1e-10  # s, below any real detection error; keeps the F test finite on exact data
+OFFSET_CANDIDATES = ("none", "receivers", "sources", "both")
+
+
+@dataclass(frozen=True)
+class ModelComparison:
+    """Nested-model F test of a 3-D fit against a 2-D fit of the same TOA matrix.
+
+    Attributes
+    ----------
+    residual_2d, residual_3d : float
+        RMS residuals (matrix units).
+    observations : int
+        Observed entries m.
+    extra_parameters : int
+        k = n - 3 unknowns the 3-D model adds (one coordinate per node, less the three
+        extra rigid-motion gauge freedoms of 3-D).
+    dof_3d : int
+        m minus the 3-D model's free parameters (``4 n - 7`` with both offsets, n = I + J).
+    f_statistic : float
+        ``((RSS_2 - RSS_3) / k) / (RSS_3 / dof_3d)``.
+    p_value : float
+        Probability of an F at least this large under a planar truth (F(k, dof_3d)).
+    significant : bool
+        ``p_value < alpha``: z is determined by the data.
+    """
+
+    residual_2d: float
+    residual_3d: float
+    observations: int
+    extra_parameters: int
+    dof_3d: int
+    f_statistic: float
+    p_value: float
+    significant: bool
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-safe dictionary."""
+        return {"residual_2d": self.residual_2d, "residual_3d": self.residual_3d,
+                "observations": self.observations, "extra_parameters": self.extra_parameters,
+                "dof_3d": self.dof_3d, "f_statistic": self.f_statistic, "p_value": self.p_value,
+                "significant": self.significant}
+
+
+def compare_fits(residual_2d: float, residual_3d: float, observations: int, nodes: int, *,
+                 alpha: float = PLANAR_ALPHA, noise_floor: float = NOISE_FLOOR,
+                 n_offsets: int | None = None) -> ModelComparison:
+    """F test: does the 3-D model fit the TOAs significantly better than the planar one?
+
+    With Gaussian noise, the planar model nested in the 3-D one and ``RSS = m rms^2``,
+    ``F = ((RSS_2 - RSS_3) / k) / (RSS_3 / (m - p_3))`` follows F(k, m - p_3) when the
+    network is planar (k = n - 3 extra unknowns, p_3 = 3 n - 6 + offsets: ``4 n - 7`` with
+    both kinds, the default). The noise variance ``RSS_3 / (m - p_3)`` is floored at
+    ``noise_floor^2`` so exact data give a finite answer. Without residual degrees of
+    freedom the test cannot reject, and z is kept only if the 2-D fit is off by more than
+    the floor.
+
+    Parameters
+    ----------
+    residual_2d, residual_3d : float
+        RMS residuals of the two fits over the ``observations`` entries.
+    observations : int
+    nodes : int
+        I + J.
+    alpha : float
+        Significance level.
+    noise_floor : float
+        Same units as the residuals.
+    n_offsets : int, optional
+        Free offsets of the model (default ``nodes - 1``, both kinds).
+
+    Returns
+    -------
+    ModelComparison
+
+    Examples
+    --------
+    >>> compare_fits(1e-3, 1e-5, 400, 40).significant
+    True
+    """
+    from scipy.stats import f as f_dist
+
+    k = max(nodes - 3, 1)
+    n_off = nodes - 1 if n_offsets is None else int(n_offsets)
+    dof = observations - (3 * nodes - 6 + n_off)
+    rss2 = observations * residual_2d**2
+    rss3 = observations * residual_3d**2
+    if dof < 1:
+        stat = float("inf") if residual_2d > residual_3d + noise_floor else 0.0
+        p = 0.0 if stat > 0 else 1.0
+    else:
+        var = max(rss3 / dof, noise_floor**2)
+        stat = float((rss2 - rss3) / k / var)
+        p = float(f_dist.sf(stat, k, dof)) if stat > 0 else 1.0
+    return ModelComparison(float(residual_2d), float(residual_3d), int(observations), int(k), int(dof),
+                           stat, p, bool(p < alpha))
+
+
+@dataclass(frozen=True)
+class Planarity:
+    """How flat a network is.
+
+    Attributes
+    ----------
+    near_planar : bool
+    extents : (d,) array
+        Standard deviations of the centred positions along their principal axes, m
+        (singular values / sqrt(n)), largest first.
+    normal : (d,) array
+        Direction of least extent.
+    normal_std : float
+        RMS standard deviation of the positions along ``normal`` from their covariances, m
+        (NaN without covariances).
+    comparison : ModelComparison or None
+        The 2-D / 3-D F test behind the verdict (:func:`compare_fits`), when one was made.
+    """
+
+    near_planar: bool
+    extents: Array
+    normal: Array
+    normal_std: float
+    comparison: ModelComparison | None = None
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-safe dictionary."""
+        return {"near_planar": bool(self.near_planar), "extents": np.asarray(self.extents, float).tolist(),
+                "normal": np.asarray(self.normal, float).tolist(),
+                "normal_std": None if not math.isfinite(self.normal_std) else float(self.normal_std),
+                "comparison": None if self.comparison is None else self.comparison.to_dict()}
+
+
+def planarity(points: Array, cov: NDArray[np.float64] | None = None, *, ratio: float = PLANAR_RATIO,
+              sigmas: float = PLANAR_SIGMAS) -> Planarity:
+    """Decide whether (n, 3) ``points`` are too close to a plane for a 3-D calibration.
+
+    Near-planar when the thinnest extent ``e_3`` is below ``ratio * e_1`` or below
+    ``sigmas`` times the RMS standard deviation along the normal (``sqrt(mean n^T C_k n)``):
+    then the thickness of the layout is not resolved by the data.
+
+    Parameters
+    ----------
+    points : (n, d) array, m
+    cov : (n, d, d) array, optional
+        Per-point covariances, m^2 (non-finite ones are ignored).
+
+    Returns
+    -------
+    Planarity
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> P = np.random.default_rng(0).uniform(0, 10, (20, 3)) * [1, 1, 0.001]
+    >>> planarity(P).near_planar
+    True
+    """
+    P = np.asarray(points, dtype=float)
+    P = P[np.isfinite(P).all(axis=1)]
+    centred = P - P.mean(axis=0)
+    _, s, vt = np.linalg.svd(centred, full_matrices=False)
+    ext = s / np.sqrt(max(len(P), 1))
+    normal = vt[-1]
+    nstd = float("nan")
+    if cov is not None:
+        C = np.asarray(cov, dtype=float)
+        ok = np.isfinite(C).all(axis=(1, 2))
+        if ok.any():
+            nstd = float(np.sqrt(np.mean(np.einsum("i,kij,j->k", normal, C[ok], normal))))
+    flat = bool(ext[-1] < ratio * ext[0] or (np.isfinite(nstd) and ext[-1] < sigmas * nstd))
+    return Planarity(flat, ext, normal, nstd)
+
+
+# ------------------------------------------------------------------ choices on solve_toa results
+
+Solver = Callable[..., ToaResult]
+
+
+def _quiet(solve: Solver, *args: Any, **kw: Any) -> ToaResult | None:
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ConvergenceWarning)
+        try:
+            return solve(*args, **kw)
+        except DegenerateGeometryError:
+            return None
+
+
+def _n_off(mode: str, I: int, J: int) -> int:
+    return {"none": 0, "receivers": I, "sources": J, "both": I + J - 1}[mode]
+
+
+def choose_offsets(M: Array, dim: int, solve: Solver, **kw: Any) -> tuple[ToaResult, dict[str, Any]]:
+    """Fit every offsets mode and keep the smallest BIC (module docstring); (result, statistics).
+
+    The RSS of every candidate is taken over the entries all candidates fitted (observed,
+    not an outlier, node not dropped in any), in the matrix's units; with a given noise
+    ``kw["noise"]`` the criterion is ``RSS / noise^2 + n ln m``.
+    """
+    fits: dict[str, ToaResult] = {}
+    for mode in OFFSET_CANDIDATES:
+        res = _quiet(solve, M, dim, mode, **kw)
+        if res is not None:
+            fits[mode] = res
+    if not fits:
+        raise DegenerateGeometryError("no offsets model could be fitted to this matrix", kind="too-few-measurements")
+    common = np.isfinite(M)
+    for res in fits.values():
+        assert res.residuals is not None and res.outliers is not None
+        common &= np.isfinite(res.residuals) & ~res.outliers
+    m = int(common.sum())
+    I, J = M.shape
+    noise = kw.get("noise")
+    bic: dict[str, float] = {}
+    rss: dict[str, float] = {}
+    for mode, res in fits.items():
+        assert res.residuals is not None
+        e = res.residuals[common]
+        rss[mode] = float(e @ e)
+        n = n_parameters(I, J, dim, mode)
+        if noise is not None:
+            bic[mode] = rss[mode] / noise**2 + n * math.log(max(m, 1))
+        else:
+            bic[mode] = m * math.log(max(rss[mode], 1e-300) / max(m, 1)) + n * math.log(max(m, 1))
+    chosen = min(bic, key=lambda k: (bic[k], OFFSET_CANDIDATES.index(k)))
+    stats = {"criterion": "BIC", "chosen": chosen, "observations": m,
+             "bic": bic, "rss": rss}
+    return fits[chosen], stats
+
+
+def choose_dim(M: Array, offsets: str, solve: Solver, **kw: Any) -> tuple[ToaResult, dict[str, Any]]:
+    """3-D unless z is not determined by the data (F test, :func:`compare_fits`, or :func:`planarity`).
+
+    Both dimensions are fitted; the F test compares their RSS over the entries both fitted,
+    and a 3-D answer must resolve its own thickness. Returns (result, statistics).
+    """
+    r3 = _quiet(solve, M, 3, offsets, **kw)
+    r2 = _quiet(solve, M, 2, offsets, **kw)
+    if r3 is None and r2 is None:
+        raise DegenerateGeometryError("neither a 2-D nor a 3-D geometry could be fitted to this matrix",
+                                      kind="degenerate-geometry")
+    if r3 is None or r2 is None:
+        got = r3 if r3 is not None else r2
+        assert got is not None
+        return got, {"criterion": "F", "chosen": got.dim, "reason": f"only the {got.dim}-D fit exists"}
+    assert r2.residuals is not None and r3.residuals is not None and r2.outliers is not None
+    assert r3.outliers is not None
+    common = np.isfinite(r2.residuals) & np.isfinite(r3.residuals) & ~r2.outliers & ~r3.outliers
+    m = int(common.sum())
+    I, J = M.shape
+    rms2 = float(np.sqrt(np.mean(r2.residuals[common] ** 2))) if m else float("nan")
+    rms3 = float(np.sqrt(np.mean(r3.residuals[common] ** 2))) if m else float("nan")
+    floor = float(np.sqrt(np.finfo(float).eps) * np.nanmedian(np.abs(M)))  # the solver's precision
+    cmp = compare_fits(rms2, rms3, m, I + J, noise_floor=floor, n_offsets=_n_off(offsets, I, J))
+    pts = np.vstack([r3.receivers, r3.sources])
+    cov = np.concatenate([r3.receiver_cov, r3.source_cov])
+    plan = planarity(pts, cov)
+    keep3 = cmp.significant and not plan.near_planar
+    stats = {"criterion": "F", "chosen": 3 if keep3 else 2, "f_statistic": cmp.f_statistic,
+             "p_value": cmp.p_value, "residual_2d": rms2, "residual_3d": rms3, "dof_3d": cmp.dof_3d,
+             "near_planar": plan.near_planar, "thickness": float(plan.extents[-1]),
+             "normal_std": plan.normal_std}
+    return (r3 if keep3 else r2), stats
+
+
+def choose(M: Array, dim: int | str, offsets: str, *, solve: Solver, **kw: Any) -> ToaResult:
+    """``solve_toa`` with ``dim`` and / or ``offsets`` set to "auto": the chosen fit with its statistics."""
+    sel: dict[str, Any] = {}
+    if offsets == "auto":
+        d0 = 3 if dim == "auto" else int(dim)
+        res, sel["offsets"] = choose_offsets(M, d0, solve, **kw)
+        offsets = res.offsets
+    if dim == "auto":
+        res, sel["dim"] = choose_dim(M, offsets, solve, **kw)
+    return dataclasses.replace(res, selection=sel)
