@@ -41,7 +41,8 @@ OUTLIER_ALPHA = 0.01  # family-wise false-alarm probability of the outlier test 
 MAX_OUTLIER_ROUNDS = 12
 
 
-def _solve(T: Array, dim: int, speed: float, rng: int, init: Any = "auto", noise: float | None = None) -> Any:
+def _solve(T: Array, dim: int, speed: float, rng: int, init: Any = "auto", noise: float | None = None,
+           f_scale: float | None = None) -> Any:
     try:
         from ..toa import solve_toa
     except ImportError:  # the package re-export may lag behind the module
@@ -49,6 +50,9 @@ def _solve(T: Array, dim: int, speed: float, rng: int, init: Any = "auto", noise
 
     if isinstance(init, str):
         return solve_toa(T, dim=dim, offsets="both", speed=speed, rng=rng, noise=noise)
+    if f_scale is not None:
+        return solve_toa(T, dim=dim, offsets="both", speed=speed, rng=rng, init=init, method="nls",
+                         loss="cauchy", f_scale=f_scale, covariance=False)
     return solve_toa(T, dim=dim, offsets="both", speed=speed, rng=rng, init=init, method="nls")
 
 
@@ -239,7 +243,8 @@ def _as_solution(res: Any, label: str) -> dict[str, Any]:
     }
 
 
-def refit(T: Array, sol: dict[str, Any], speed: float, heights: tuple[Array, Array] | None = None) -> dict[str, Any]:
+def refit(T: Array, sol: dict[str, Any], speed: float, heights: tuple[Array, Array] | None = None, *,
+          f_scale: float | None = None) -> dict[str, Any]:
     """Refine a solution on a changed TOA matrix from where it stands (same model, no search).
 
     Parameters
@@ -252,6 +257,9 @@ def refit(T: Array, sol: dict[str, Any], speed: float, heights: tuple[Array, Arr
         m/s.
     heights : optional
         Known heights when ``sol`` is a ``2d+heights`` solution.
+    f_scale : float, optional
+        s: a Cauchy loss of this scale (robust start for the outlier test; covariances of
+        such a refit are not computed for 2-D / 3-D).
 
     Returns
     -------
@@ -263,11 +271,12 @@ def refit(T: Array, sol: dict[str, Any], speed: float, heights: tuple[Array, Arr
     dr, ds = np.asarray(sol["receiver_offsets"], float), np.asarray(sol["source_offsets"], float)
     if method.startswith("2d+heights"):
         assert heights is not None
-        out = refine_known_heights(T, heights[0], heights[1], r[:, :2], s[:, :2], dr, ds, speed=speed)
+        out = refine_known_heights(T, heights[0], heights[1], r[:, :2], s[:, :2], dr, ds, speed=speed,
+                                   f_scale=f_scale)
         out["method"] = method
         return out
     d = 2 if method.startswith("2d") else 3
-    res = _solve(T, d, speed, 0, init=(r[:, :d], s[:, :d], dr, ds))
+    res = _solve(T, d, speed, 0, init=(r[:, :d], s[:, :d], dr, ds), f_scale=f_scale)
     out = _as_solution(res, "")
     out["method"] = method
     return out
@@ -476,6 +485,8 @@ def robust_calibrate(
     m = int(np.isfinite(t_ev).sum())
     zc = float(norm.isf(alpha / (2.0 * max(m, 1))))
     searched = False
+    robust_start = False
+    needs_ls = False
     for _ in range(MAX_OUTLIER_ROUNDS + 1):
         pred = _predict(sol, speed)
         res = t_ev - pred[:, es_k]
@@ -492,6 +503,18 @@ def robust_calibrate(
             if cols.any():
                 sender_max[:, j] = az[:, cols].max(axis=1)
         worst_in_sender = sender_max.max(axis=0)
+        if not robust_start and (az > zc).any():
+            # a wrong entry pulls a least-squares fit towards itself and spreads its error over
+            # its receiver's and sender's other entries (masking): restart from a Cauchy fit
+            # (scale 2.385 stds: 95 % efficiency under Gaussian noise), then rank the residuals
+            robust_start = True
+            try:
+                f_sc = 2.385 * float(np.nanmedian(s_ev)) * scale
+                sol = refit(Tk, sol, speed, hz, f_scale=f_sc)
+                needs_ls = True
+                continue
+            except DegenerateGeometryError:
+                pass
         flag = (az > zc) & (az >= az.max(axis=1, keepdims=True)) & (az >= worst_in_sender[es_k][None, :])
         # never below the identifiability bound
         cnt_r = np.isfinite(Tk).sum(axis=1)
@@ -545,8 +568,11 @@ def robust_calibrate(
         Tk = _sender_mean(t_ev, es_k, Jk)
         try:
             sol = refit(Tk, sol, speed, hz)
+            needs_ls = False
         except DegenerateGeometryError:
             break
+    if needs_ls:  # the robust start found nothing to exclude: finish with least squares (covariances)
+        sol = refit(_sender_mean(t_ev, es_k, Jk), sol, speed, hz)
     if outliers:
         redo = sum(o.redetected for o in outliers)
         worst = max(outliers, key=lambda o: abs(o.z))

@@ -12,18 +12,19 @@ time`` (004 sec. 2.2: onsets <= 30 ms, delays <= 20 ms). Per window:
    windows (Rayleigh statistics: the 20th percentile is 0.668 sigma), robust to the
    windows' signal content.
 3. The *first* significant peak, not the strongest: the earliest lag whose envelope
-   exceeds ``max(rel_threshold * window maximum, k_noise * sigma)``, followed to its
-   local maximum. Reflections arrive later and can superpose to a larger peak; the
-   direct path is the first.
+   exceeds ``max(rel_threshold * window maximum, k * level(lag))``, followed to its local
+   maximum. Reflections arrive later and can superpose to a larger peak; the direct path
+   is the first. ``level(lag)`` is a cell-averaging CFAR level: the Rayleigh parameter of
+   the ``REF_TIME`` (2.5 ms) of lags before it (``mean |z|^2 = 2 sigma^2``, a guard of one
+   main lobe between), never below the receiver's level ``sigma``; lags with less history
+   use ``sigma``. A noise burst (a cough) raises the level of the lags it covers, so it
+   does not pass for an arrival, and an arrival inside it must stand out of it.
 4. Sub-sample time: the correlation peak (the real part) nearest the envelope peak,
    refined by Newton steps on the band-limited correlation evaluated exactly from its
    spectrum (``c(tau) = Re sum_k Z_k exp(2 pi i k tau / n) / n``), which has no
    parabolic-interpolation bias.
-5. Quality = ``20 log10(peak envelope / sigma_local)`` dB with ``sigma_local`` the larger of
-   the receiver's noise level and the window's own level before the arrival (Rayleigh:
-   ``mean |z|^2 = 2 sigma^2`` over the lags before the peak): a noise burst (a cough)
-   raises the window's level and lowers the quality of whatever it produced.
-   Detections below the floor, without a significant peak, or at a window edge become NaN.
+5. Quality = ``20 log10(peak envelope / level(crossing))`` dB. Detections below the floor,
+   without a significant peak, or at a window edge become NaN.
 
 Quality floor by a false-alarm probability (CFAR). Under noise alone the envelope is
 Rayleigh, ``P(|z| > k sigma) = exp(-k^2 / 2)`` per independent lag; a window of ``n``
@@ -51,7 +52,7 @@ __all__ = ["Detections", "detect_arrivals", "detect_recording", "matched_filter"
 
 RAYLEIGH_P20 = float(np.sqrt(-2.0 * np.log(0.8)))  # 20th percentile of a unit Rayleigh variable
 FALSE_ALARM = 1e-6  # probability of a false detection in a search window holding only noise
-MIN_LOCAL_LAGS = 32  # lags before a peak needed to estimate the window's own noise level
+REF_TIME = 2.5e-3  # s, leading reference window of the CFAR noise level (~20 independent cells at 8 kHz)
 
 
 def cfar_factor(n_lags: int, fs: float, band: tuple[float, float], p_fa: float = FALSE_ALARM) -> float:
@@ -249,6 +250,7 @@ def detect_arrivals(
     start = np.round(times * fs).astype(np.int64)
     idx = start[:, None] + np.arange(W)[None, :]
     mainlobe = int(np.ceil(2.0 * fs / (probe.band[1] - probe.band[0]))) + 2
+    n_ref = max(int(round(REF_TIME * fs)), 8)
 
     if k_noise is None:
         k_noise = cfar_factor(n_lag, fs, probe.band, p_fa)
@@ -270,8 +272,18 @@ def detect_arrivals(
         noise[i] = sigma
         if sigma <= 0:
             continue
-        thr = np.maximum(rel_threshold * env.max(axis=1), k_noise * sigma)
-        above = env >= thr[:, None]
+        # cell-averaging CFAR: the noise level of every lag from the n_ref lags before it (a guard
+        # of one main lobe between); lags without that much history use the receiver's level
+        csum = np.concatenate([np.zeros((E, 1)), np.cumsum(env * env, axis=1)], axis=1)
+        lag = np.arange(n_lag)
+        hi = lag - mainlobe
+        lo = hi - n_ref
+        has = lo >= 0
+        lead = np.full((E, n_lag), sigma)
+        lead[:, has] = np.sqrt((csum[:, hi[has]] - csum[:, lo[has]]) / (2.0 * n_ref))
+        level_lag = np.maximum(lead, sigma)
+        thr = np.maximum(rel_threshold * env.max(axis=1)[:, None], k_noise * level_lag)
+        above = env >= thr
         found = above.any(axis=1)
         first = np.argmax(above, axis=1)
         # Follow the envelope up to its first local maximum after the threshold crossing.
@@ -279,11 +291,7 @@ def detect_arrivals(
         rise = env[rows[:, None], look]
         falling = np.diff(rise, axis=1) < 0
         peak = first + np.where(falling.any(axis=1), np.argmax(falling, axis=1), np.argmax(rise, axis=1))
-        # the window's own noise level before the arrival (a burst raises it)
-        csum = np.concatenate([np.zeros((E, 1)), np.cumsum(env * env, axis=1)], axis=1)
-        n_pre = np.maximum(first - mainlobe, 0)
-        local = np.sqrt(csum[rows, n_pre] / np.maximum(2.0 * n_pre, 1.0))
-        level = np.where(n_pre >= MIN_LOCAL_LAGS, np.maximum(local, sigma), sigma)
+        level = level_lag[rows, first]
         q = 20.0 * np.log10(env[rows, peak] / level)
         quality[i] = np.where(found, q, np.nan)
         ok = found & (q >= min_quality_db) & (peak > 0) & (peak < n_lag - 1) & (start + peak + L <= lens[i])

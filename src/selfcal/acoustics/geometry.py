@@ -344,7 +344,10 @@ def _gauge_pinv(N: Array, xr: Array, xs: Array) -> Array:
     GG = G @ G.T
     scale = float(np.mean(np.diag(N))) or 1.0
     # Scaling G G^T like N keeps the sum well conditioned; N^+ = (N + a G G^T)^-1 - G G^T / a.
-    factor = cho_factor(N + scale * GG)
+    try:
+        factor = cho_factor(N + scale * GG)
+    except np.linalg.LinAlgError:  # a further null direction (a node with too few entries): SVD
+        return np.linalg.pinv(N, hermitian=True)
     return cho_solve(factor, np.eye(n)) - GG / scale
 
 
@@ -359,6 +362,7 @@ def refine_known_heights(
     *,
     speed: float,
     max_iterations: int = 50,
+    f_scale: float | None = None,
 ) -> dict[str, Any]:
     """Least squares for horizontal positions and offsets with every height known.
 
@@ -379,6 +383,9 @@ def refine_known_heights(
         Initial delays / onsets, s (shifted so that the first onset is 0).
     speed : float
         m/s.
+    f_scale : float, optional
+        s: a Cauchy loss of this scale instead of least squares (iteratively reweighted:
+        weights ``1 / (1 + (e / f_scale)^2)``), robust to a minority of wrong entries.
 
     Returns
     -------
@@ -415,7 +422,25 @@ def refine_known_heights(
         xr, xs, _, _ = unpack(th)
         return _heights_jacobian(xr, xs, dz, rows, cols, I, J)[0]
 
-    theta, r, Jm, iterations, converged = _levenberg_marquardt(resid, jac, theta0, max_iterations)
+    if f_scale is None:
+        theta, r, Jm, iterations, converged = _levenberg_marquardt(resid, jac, theta0, max_iterations)
+    else:
+        import scipy.sparse as sp
+
+        theta, iterations, converged = theta0, 0, False
+        fs_m = float(f_scale) * speed
+        for _ in range(8):  # IRLS: weights from the current residuals, then weighted LM
+            w = np.sqrt(1.0 / (1.0 + (resid(theta) / fs_m) ** 2))
+            W = sp.diags(w)
+            theta_new, r, Jm, it, converged = _levenberg_marquardt(lambda th: w * resid(th),
+                                                                   lambda th: W @ jac(th), theta, max_iterations)
+            iterations += it
+            step = float(np.abs(theta_new - theta).max())
+            theta = theta_new
+            if step < 1e-9:
+                break
+        r = resid(theta)
+        Jm = jac(theta)
     xr, xs, dr, ds = unpack(theta)
     m, n = len(r), len(theta)
     dof = max(m - n + 3, 1)  # 3 = horizontal rigid-motion gauge freedoms

@@ -72,6 +72,8 @@ def simulate_conference(
     max_order: int | None = 3,
     jitter: float = 0.0,
     rounds: int = 1,
+    occlusions: dict[tuple[int, int], float] | None = None,
+    missing_events: tuple[int, ...] = (),
     rng: np.random.Generator | int | None = None,
     progress: bool = False,
 ) -> tuple[Setup, NDArray[np.float32], dict[str, Any]]:
@@ -103,6 +105,11 @@ def simulate_conference(
         Events per sender: every sender plays the probe once per round, rounds one after
         the other (the recording format allows several events per sender; their TOAs are
         averaged, so the jitter's share of the timing std falls as 1 / sqrt(rounds)).
+    occlusions : dict, optional
+        ``{(receiver, sender): dB}``: the direct path of that pair attenuated by ``dB``
+        (an obstacle between them; the reflections are kept), for fault tests.
+    missing_events : tuple of int
+        Events listed in setup.json but never played (a loudspeaker that stayed silent).
     rng : Generator, int or None
         Noise generator.
     progress : bool
@@ -149,6 +156,17 @@ def simulate_conference(
     shoebox.add_microphone_array(scene.receivers.T)
     shoebox.compute_rir()
     delay0 = pra_group_delay()
+    direct: dict[tuple[int, int], NDArray[np.float64]] = {}
+    if occlusions:
+        free = pra.ShoeBox(room_dim.tolist(), fs=fs, materials=pra.Material(absorption), max_order=0,
+                           air_absorption=False)
+        free.set_sound_speed(speed)
+        for s_pos in scene.senders:
+            free.add_source(s_pos)
+        free.add_microphone_array(scene.receivers.T)
+        free.compute_rir()
+        for (i, j), db in occlusions.items():
+            direct[(int(i), int(j))] = (1.0 - 10.0 ** (-float(db) / 20.0)) * np.asarray(free.rir[int(i)][int(j)])
 
     U = len(scene.senders)
     if not np.isfinite(jitter) or jitter < 0:
@@ -170,11 +188,16 @@ def simulate_conference(
         h = np.zeros((U, lh))
         for i, r in enumerate(rirs):
             h[i, : len(r)] = r
+            if (i, j) in direct:
+                g = direct[(i, j)]
+                h[i, : min(len(g), lh)] -= g[:lh]
         n_conv = lh + len(x) - 1
         n_fft = int(2 ** np.ceil(np.log2(n_conv + 2)))
         spec = np.fft.rfft(h, n_fft) * np.fft.rfft(x, n_fft)[None, :]
         k_bins = np.arange(spec.shape[-1])
         for e in np.flatnonzero(ev_sender == j):
+            if int(e) in missing_events:
+                continue
             start = (times[e] + scene.sender_onsets[j] + scene.receiver_delays + shake[:, e]) * fs - delay0
             n0 = np.floor(start).astype(np.int64)
             frac = start - n0
@@ -199,6 +222,7 @@ def simulate_conference(
     truth = scene.to_dict() | {
         "speed_of_sound": speed, "rt60": rt60, "snr_db": snr_db, "absorption": float(absorption),
         "max_order": order, "sample_rate": fs, "arrival_times": arrivals.tolist(), "clock_jitter": jitter,
-        "rounds": K,
+        "rounds": K, "occlusions": [[int(i), int(j), float(db)] for (i, j), db in (occlusions or {}).items()],
+        "missing_events": [int(e) for e in missing_events],
     }
     return setup, signals, truth
