@@ -163,3 +163,55 @@ def test_faults_in_3d_tiered_rooms_are_honest(tmp_path, fault):
     truth = _make(tmp_path / "rec", fault, units=12, layout="tiered")
     res = _run(tmp_path / "rec", heights=False)
     _honest(res, truth)
+
+
+def _speed_scene(tmp_path: Path) -> tuple[Path, dict, dict, object]:
+    """12 tiered units recorded at 346.4 m/s (25 C dry air)."""
+    rng = np.random.default_rng(3)
+    sc = conference_scene(12, (10.0, 9.0, 4.0), layout="tiered", rng=rng)
+    setup, sig, truth = simulate_conference(sc, rt60=0.4, snr_db=30, sample_rate=16000, max_order=2, speed=346.4,
+                                            rng=rng)
+    out = tmp_path / "rec"
+    write_recording(out, setup, sig, truth=truth)
+    return out, json.loads((out / "setup.json").read_text()), truth, sc
+
+
+def test_temperature_and_unit_offsets_fix_the_scale(tmp_path):
+    """Issue 15: with unknown offsets the scale comes from c. A declared temperature gives c by
+    the standard formula (25 C -> 346.4 m/s); known microphone-loudspeaker distances recover it
+    from a wrong declared c (343 m/s, 1 % off: 4 cm over the room without them)."""
+    from selfcal.acoustics.recording import speed_from_air
+
+    assert speed_from_air(25.0) == pytest.approx(346.4)
+    out, raw, truth, sc = _speed_scene(tmp_path)
+    wrong = dict(raw, speed_of_sound=343.0)
+    (out / "setup.json").write_text(json.dumps(wrong))
+    res = run_pipeline(out, dim=3, progress=False)
+    err_wrong = truth_errors(res, truth)["position_max"]
+    assert any("1 % error in c scales every distance by 1 %" in n for n in res.notes)
+    raw_t = {k: v for k, v in raw.items() if k != "speed_of_sound"} | {"temperature": 25.0}
+    (out / "setup.json").write_text(json.dumps(raw_t))
+    res_t = run_pipeline(out, dim=3, progress=False)
+    assert res_t.speed_of_sound == pytest.approx(346.4)
+    # the remaining error is the detection noise (sub-mm), far below the 1 % scale error
+    assert truth_errors(res_t, truth)["position_max"] < 0.1 * err_wrong
+    offs = {n: float(np.linalg.norm(sc.receivers[k] - sc.senders[k])) for k, n in enumerate(raw["receivers"])}
+    (out / "setup.json").write_text(json.dumps(wrong | {"unit_offsets": offs}))
+    res_o = run_pipeline(out, dim=3, progress=False)
+    # 12 distances of 5-15 cm, each known to its covariance: c within a few of its own stds of the truth
+    assert res_o.speed_of_sound == pytest.approx(346.4, abs=0.5)
+    assert truth_errors(res_o, truth)["position_max"] < 0.1 * err_wrong
+    assert any("unit_offsets" in n and "effective speed of sound" in n for n in res_o.notes)
+
+
+@pytest.mark.parametrize(("field", "value"), [("temperature", "warm"), ("temperature", 99), ("humidity", 120),
+                                              ("unit_offsets", {"nobody": 0.1}), ("unit_offsets", {"u000": -1})])
+def test_air_and_unit_offset_fields_are_validated(field, value):
+    from selfcal.acoustics.recording import parse_setup
+    from selfcal.errors import InputError
+
+    raw = {"sample_rate": 48000, "receivers": ["u000"], "senders": ["u000"],
+           "probe": {"type": "chirp", "f0": 500, "f1": 8000, "duration": 0.05},
+           "events": [{"sender": "u000", "time": 0.1}], "temperature": 20.0, field: value}
+    with pytest.raises(InputError, match=field):
+        parse_setup(raw)

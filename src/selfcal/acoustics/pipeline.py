@@ -24,7 +24,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..errors import DegenerateGeometryError, InputError
-from .calibrate import Outlier, _predict, calibrate_matrix, robust_calibrate
+from .calibrate import Outlier, _predict, apply_scale, calibrate_matrix, robust_calibrate, scale_from_distances
 from .geometry import (
     ModelComparison,
     Planarity,
@@ -316,6 +316,19 @@ def run_pipeline(
     sol, plan, notes = robust.solution, robust.planarity, list(robust.notes)
     timings["calibrate"] = time.perf_counter() - t0
     T, S = robust.matrix, robust.matrix_std
+    if setup.unit_offsets:
+        idx = [(setup.receivers.index(n), setup.senders.index(n), d) for n, d in setup.unit_offsets.items()]
+        ri = np.array([a for a, _, _ in idx])
+        sj = np.array([b for _, b, _ in idx])
+        Dk = np.array([c for _, _, c in idx])
+        good = np.isfinite(np.asarray(sol["receivers"])[ri]).all(axis=1) & np.isfinite(np.asarray(sol["sources"])[sj]).all(axis=1)
+        if good.any():
+            lam, lam_std = scale_from_distances(sol, ri[good], sj[good], Dk[good])
+            sol = apply_scale(sol, lam)
+            notes.append(f"scale from {int(good.sum())} known microphone-loudspeaker distances (unit_offsets): "
+                         f"effective speed of sound {speed * lam:.2f} +- {speed * lam_std:.2f} m/s "
+                         f"(assumed {speed:.2f} m/s, distances x {lam:.5f})")
+            speed = speed * lam
     fit = None
     kr = np.isfinite(np.asarray(sol["receivers"])).all(axis=1)
     ks = np.isfinite(np.asarray(sol["sources"])).all(axis=1)
@@ -351,7 +364,9 @@ def run_pipeline(
     labels = tuple(f"microphone {n}" for n in setup.receivers) + tuple(f"loudspeaker {n}" for n in setup.senders)
     verdict = judge(bars, rounds=rounds, fit_failed=fit is not None and not fit.passed, fit_reason=fit_reason,
                     names=labels)
-    notes.append(SPEED_NOTE.format(c=speed))
+    if not setup.unit_offsets:
+        notes.append(SPEED_NOTE.format(c=speed))
+    notes.append(BIAS_NOTE)
     dr = tuple(setup.receivers[i] for i in robust.dropped_receivers)
     dsn = tuple(setup.senders[j] for j in robust.dropped_senders)
     return PipelineResult(

@@ -259,19 +259,34 @@ def pipeline_errors(result: Any, directory: Path) -> dict[str, Any] | None:
 @click.option("--jitter", type=float, default=None,
               help="Clock jitter std per (receiver, event), SECONDS, in the residual test's timing noise "
                    "(default: setup.json's declared clock_jitter, else 0).")
+@click.option("--temperature", type=float, default=None,
+              help="Air temperature, degrees C: speed of sound c = 331.4 + 0.6 T + 0.0124 RH (overrides setup.json).")
+@click.option("--humidity", type=float, default=None, help="Relative humidity, % (with --temperature; default 0).")
+@click.option("--speed-of-sound", "speed", type=float, default=None, help="m/s (overrides setup.json).")
 @handle_errors
 def pipeline_cmd(directory: Path, out: Path, plot: Path | None, report: Path | None, heights: Path | None,
-                 dim: str, seed: int, jitter: float | None) -> None:
+                 dim: str, seed: int, jitter: float | None, temperature: float | None, humidity: float | None,
+                 speed: float | None) -> None:
     """Recordings -> arrival times -> delays -> positions (paper 004's three stages).
 
     Exits with status 1 and ``FAIL:`` lines when the calibration fails its residual test or
     its error bars miss paper 004's requirements (``PipelineResult.failed``).
     """
     from ..acoustics.pipeline import run_pipeline
+    from ..acoustics.recording import speed_from_air
+    from ..errors import InputError
     from ..io import write_json
 
+    if temperature is not None:
+        if speed is not None:
+            raise InputError("give either --temperature or --speed-of-sound, not both")
+        if not -40 <= temperature <= 60 or (humidity is not None and not 0 <= humidity <= 100):
+            raise InputError("--temperature must be in [-40, 60] C and --humidity in [0, 100] %")
+        speed = speed_from_air(temperature, humidity or 0.0)
+    elif humidity is not None:
+        raise InputError("--humidity needs --temperature")
     result = run_pipeline(directory, dim=dim if dim == "auto" else int(dim), heights=heights, rng=seed,
-                          jitter=jitter)
+                          jitter=jitter, speed_of_sound=speed)
     errors = pipeline_errors(result, directory)
     payload = result.to_dict()
     if errors is not None:
