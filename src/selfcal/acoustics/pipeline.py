@@ -133,6 +133,10 @@ class PipelineResult:
         004 requirements judged from the error bars (:func:`selfcal.acoustics.verdict.judge`).
     rounds : int
         Events per sender (the smallest count).
+    event_senders : (E,) int array or None
+        Sender of every event (columns of ``toa_matrix``).
+    matrix_std : (I, J) array or None
+        Noise-model std of the per-sender TOA matrix, s.
     """
 
     receivers: Array
@@ -163,6 +167,8 @@ class PipelineResult:
     error_bars: ErrorBars | None = None
     verdict: Verdict | None = None
     rounds: int = 1
+    event_senders: NDArray[np.int64] | None = None
+    matrix_std: Array | None = None
 
     @property
     def failed(self) -> bool:
@@ -219,6 +225,7 @@ class PipelineResult:
             "error_bars": None if self.error_bars is None else self.error_bars.to_dict(),
             "verdict": None if self.verdict is None else self.verdict.to_dict(),
             "rounds": self.rounds,
+            "event_senders": None if self.event_senders is None else [int(j) for j in self.event_senders],
         }
 
 
@@ -377,5 +384,6 @@ def run_pipeline(
         quality_db=det.quality_db, planarity=plan, timings=timings, receiver_names=setup.receivers,
         sender_names=setup.senders, speed_of_sound=speed, notes=tuple(notes), fit=fit, timing_noise=noise,
         fit_binding=True, outliers=tuple(robust.outliers), dropped_receivers=dr, dropped_senders=dsn,
-        error_bars=bars, verdict=verdict, rounds=rounds,
+        error_bars=bars, verdict=verdict, rounds=rounds, event_senders=np.asarray(es, dtype=np.int64),
+        matrix_std=S,
     )

@@ -249,8 +249,9 @@ def pipeline_errors(result: Any, directory: Path) -> dict[str, Any] | None:
 @click.option("--out", "out", required=True, type=click.Path(dir_okay=False, path_type=Path), help="RESULT.json")
 @click.option("--plot", "plot", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="map.png: estimated (and true) positions with 95 % ellipses.")
-@click.option("--report", "report", type=click.Path(file_okay=False, path_type=Path), default=None,
-              help="Folder for map.png, timing.png, report.json (errors against truth.json when present).")
+@click.option("--report", "report", type=click.Path(path_type=Path), default=None,
+              help="report.html: one self-contained HTML report (map, per-unit table, residuals, outliers, verdict); "
+                   "a path not ending in .html is a folder for report.html, map.png, timing.png, report.json.")
 @click.option("--heights", "heights", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help='Known heights JSON {"receivers": [...], "senders": [...]} (m): 2-D + heights.')
 @click.option("--dim", "dim", type=click.Choice(["auto", "2", "3"]), default="auto", show_default=True,
@@ -292,10 +293,19 @@ def pipeline_cmd(directory: Path, out: Path, plot: Path | None, report: Path | N
     if errors is not None:
         payload["errors"] = {k: v for k, v in errors.items() if not k.startswith(("aligned_", "true_"))}
     if report is not None:
-        report.mkdir(parents=True, exist_ok=True)
-        plot_map(result, report / "map.png", errors)
-        plot_timing(result, report / "timing.png", errors)
-        write_json(report / "report.json", {"summary": summarise(result, errors), **payload})
+        from ..acoustics.report import write_html_report
+
+        lines = summarise(result, errors)
+        if report.suffix.lower() in (".html", ".htm"):
+            if report.exists() and not report.is_file():
+                raise InputError(f"{report}: exists and is not a regular file; choose another --report")
+            write_html_report(result, report, errors, summary=lines)
+        else:
+            report.mkdir(parents=True, exist_ok=True)
+            plot_map(result, report / "map.png", errors)
+            plot_timing(result, report / "timing.png", errors)
+            write_json(report / "report.json", {"summary": lines, **payload})
+            write_html_report(result, report / "report.html", errors, summary=lines)
     if plot is not None:
         plot_map(result, plot, errors)
     write_json(out, payload)
