@@ -30,7 +30,14 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..errors import DegenerateGeometryError, InputError
-from .geometry import PLANAR_ALPHA, ModelComparison, Planarity, one_side_of_plane, planarity, refine_known_heights
+from .geometry import (
+    PLANAR_ALPHA,
+    ModelComparison,
+    Planarity,
+    one_side_of_plane,
+    planarity,
+    refine_known_heights,
+)
 from .verdict import TIMING_REQUIREMENT
 
 __all__ = ["calibrate_matrix", "refit", "robust_calibrate", "Outlier", "RobustFit", "OUTLIER_ALPHA",

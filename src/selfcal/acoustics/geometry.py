@@ -432,8 +432,14 @@ def refine_known_heights(
         for _ in range(8):  # IRLS: weights from the current residuals, then weighted LM
             w = np.sqrt(1.0 / (1.0 + (resid(theta) / fs_m) ** 2))
             W = sp.diags(w)
-            theta_new, r, Jm, it, converged = _levenberg_marquardt(lambda th: w * resid(th),
-                                                                   lambda th: W @ jac(th), theta, max_iterations)
+
+            def wres(th: Array, w: Array = w) -> Array:
+                return w * resid(th)
+
+            def wjac(th: Array, W: Any = W) -> Any:
+                return W @ jac(th)
+
+            theta_new, r, Jm, it, converged = _levenberg_marquardt(wres, wjac, theta, max_iterations)
             iterations += it
             step = float(np.abs(theta_new - theta).max())
             theta = theta_new

@@ -24,7 +24,14 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..errors import DegenerateGeometryError, InputError
-from .calibrate import Outlier, _predict, apply_scale, calibrate_matrix, robust_calibrate, scale_from_distances
+from .calibrate import (
+    Outlier,
+    _predict,
+    apply_scale,
+    calibrate_matrix,
+    robust_calibrate,
+    scale_from_distances,
+)
 from .geometry import (
     ModelComparison,
     Planarity,

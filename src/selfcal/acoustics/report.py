@@ -15,6 +15,7 @@ from __future__ import annotations
 import base64
 import html
 import io
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -156,9 +157,9 @@ def render_html(result: Any, errors: dict[str, Any] | None = None, *, summary: l
     for j in range(J):
         cols = T[:, np.asarray(senders) == j]
         if cols.shape[1]:
-            with np.errstate(invalid="ignore"):
-                R[:, j] = np.nanmean(cols, axis=1) - pred[:, j] if np.isfinite(cols).any() else np.nan
-    std = bars.pair_std if bars is not None else None
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", RuntimeWarning)  # rows without a detection stay NaN
+                R[:, j] = np.nanmean(cols, axis=1) - pred[:, j]
     noise = np.asarray(getattr(result, "matrix_std", None) if getattr(result, "matrix_std", None) is not None
                        else np.full((I, J), result.timing_noise), float)
     z = R / noise
@@ -175,11 +176,11 @@ def render_html(result: Any, errors: dict[str, Any] | None = None, *, summary: l
     out_s = {o.sender for o in result.outliers}
     for k in range(max(I, J)):
         cells = []
-        for P, C, names, offs, ostd, dropped, outl, kind in (
+        for P, C, names, offs, ostd, dropped, outl in (
                 (result.receivers, result.receiver_cov, result.receiver_names, result.receiver_offsets,
-                 None if bars is None else bars.delay_std, result.dropped_receivers, out_r, "mic"),
+                 None if bars is None else bars.delay_std, result.dropped_receivers, out_r),
                 (result.sources, result.source_cov, result.sender_names, result.source_offsets,
-                 None if bars is None else bars.onset_std, result.dropped_senders, out_s, "spk")):
+                 None if bars is None else bars.onset_std, result.dropped_senders, out_s)):
             if k >= len(names):
                 cells.append("<td></td>" * (d + 3))
                 continue
