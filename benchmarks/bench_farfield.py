@@ -1,8 +1,14 @@
-"""Far-field TDOA (paper 000) speed: batched minimal solver and LM for m = 48, k = 540.
+"""Far-field TDOA (paper 000) speed: batched minimal solver, LM for m = 48, k = 540, and the
+scaling table (48 x 540, 500 x 1000, 2000 x 200, 2000 x 2000).
 
 Writes ``<out_dir>/farfield.json``. Medians over repetitions; ratios are against baselines
 run in the same process (the minimal solver called one problem at a time; alternating
-optimisation on the same LM problem), so machine load cancels to first order.
+optimisation on the same LM problem; for the scaling table the dense path this module had
+before issue 16 -- every LM step eliminating the directions into a dense 3(m-1) system and
+the covariance by a dense pseudo-inverse of it -- on the same problem from the same start),
+so machine load cancels to first order. The dense baseline is skipped where 3(m-1) > 1500
+(its O(m^3) pseudo-inverse alone would take minutes; the issue measured 6.5 min and 1.6 GB at
+2000 x 200), and the row says so. Peak memory is numpy's allocations seen by tracemalloc.
 """
 
 from __future__ import annotations
@@ -32,6 +38,67 @@ def _median_time(fn: Callable[[], Any], reps: int) -> float:
         fn()
         times.append(time.perf_counter() - t0)
     return float(np.median(times))
+
+
+def _timed_peak(fn: Callable[[], Any]) -> tuple[Any, float, float]:
+    """(result, seconds, peak MiB of traced allocations) of one call."""
+    import tracemalloc
+
+    tracemalloc.start()
+    t0 = time.perf_counter()
+    out = fn()
+    dt = time.perf_counter() - t0
+    _, peak = tracemalloc.get_traced_memory()
+    tracemalloc.stop()
+    return out, dt, peak / 2**20
+
+
+#: (m, k) of the scaling table; dense baseline only where 3(m-1) <= DENSE_MAX
+SCALING_SIZES = ((48, 540), (500, 1000), (2000, 200), (2000, 2000))
+DENSE_MAX = 1500
+
+
+def scaling_table(sizes: tuple[tuple[int, int], ...] = SCALING_SIZES, *, seed: int = 0) -> list[dict[str, Any]]:
+    """LM + covariance from the same initialisation: sparse (Schur / CG) vs the dense baseline."""
+    return [_scaling_row(m, k, seed) for m, k in sizes]
+
+
+def _scaling_row(m: int, k: int, seed: int) -> dict[str, Any]:
+    """One row of :func:`scaling_table`."""
+    rng = np.random.default_rng(seed)
+    Zt = rng.uniform(-0.5, 0.5, (m, 3))
+    Zt[0] = 0
+    Nt = _unit(rng.normal(size=(k, 3)))
+    D = Zt @ Nt.T + rng.normal(size=k) + 1e-3 * rng.normal(size=(m, k))
+    init = initialize_farfield(D - D.mean(axis=0))
+    Z0 = init.positions - init.positions[0]
+    C0 = np.mean(D - Z0 @ init.directions.T, axis=0)
+    # the covariance as refine_lm decides by default (skipped above COV_DIRECT_MAX unknowns)
+    sparse, t_sp, mem_sp = _timed_peak(lambda: refine_lm(D, Z0, init.directions, C0, free_offsets=True))
+    row: dict[str, Any] = {"m": m, "k": k, "entries": m * k, "sparse_seconds": t_sp, "sparse_peak_mib": mem_sp,
+                           "sparse_iterations": sparse.iterations, "data_mib": D.nbytes / 2**20,
+                           "covariance_computed": sparse.position_cov is not None}
+    if 3 * (m - 1) <= DENSE_MAX:
+        dense, t_de, mem_de = _timed_peak(lambda: refine_lm(
+            D, Z0, init.directions, C0, free_offsets=True, covariance=True, linear_solver="directions",
+            covariance_method="dense"))
+        row.update({"dense_seconds": t_de, "dense_peak_mib": mem_de, "speedup_vs_dense": t_de / t_sp,
+                    "cov_max_rel_diff": float(np.abs(sparse.position_cov - dense.position_cov).max()
+                                              / np.abs(dense.position_cov).max()),
+                    "cost_rel_diff": abs(sparse.cost - dense.cost) / dense.cost})
+    else:
+        row["dense_skipped"] = f"3(m-1) = {3 * (m - 1)} > {DENSE_MAX}: the dense pseudo-inverse would take minutes"
+        if min(3 * (m - 1), 3 * k) <= DENSE_MAX:
+            # one LM step each way on the same normal equations: the dense baseline's step
+            # (a 3(m-1) system) against the Schur step over the small side
+            from selfcal.tdoa.refine import _lm_step, _normal_equations
+
+            H = _normal_equations(D, Z0, init.directions, C0, np.ones((m, k)), True)
+            t_step_de = _median_time(lambda: _lm_step(*H[:5], 1e-3, side="directions"), 1)
+            t_step_sp = _median_time(lambda: _lm_step(*H[:5], 1e-3), 3)
+            row.update({"dense_step_seconds": t_step_de, "sparse_step_seconds": t_step_sp,
+                        "step_speedup_vs_dense": t_step_de / t_step_sp})
+    return row
 
 
 def _unit(v: np.ndarray) -> np.ndarray:
@@ -70,6 +137,8 @@ def main(out_dir: Path) -> dict[str, Any]:
     t_alt = _median_time(lambda: refine_alternating(Dm, Z0, init.directions, C0, free_offsets=True,
                                                    max_iter=5000), 1)
     t_solve = _median_time(lambda: solve_farfield(Dm), 3)
+    sizes = SCALING_SIZES if not os.environ.get("SELFCAL_BENCH_QUICK") else SCALING_SIZES[:2]
+    table = scaling_table(sizes)
 
     result = {
         "name": "farfield",
@@ -90,6 +159,7 @@ def main(out_dir: Path) -> dict[str, Any]:
         "alternating_cost": alt_out.cost,
         "lm_speedup_vs_alternating": t_alt / t_lm,
         "solve_farfield_seconds_median": t_solve,
+        "scaling": table,
         "cpu_count": os.cpu_count(),
         "blas_threads_env": os.environ.get("OPENBLAS_NUM_THREADS") or os.environ.get("OMP_NUM_THREADS"),
     }

@@ -1,21 +1,31 @@
-"""Benchmark "toa": speed and accuracy of ``solve_toa`` against a dense SciPy baseline.
+"""Benchmark "toa": speed, memory and accuracy of the TOA engine against SciPy, same run, same start.
 
-3-D networks of I receivers x J sources (8x10, 100x100, 1000x1000) in a 10 x 10 x 5 m
-volume, range noise sigma = 1 cm, every entry observed. For each size:
+Part 1, no offsets: 3-D networks of I receivers x J sources uniform in a 10 x 10 x 5 m volume,
+range noise sigma = 1 cm, 5 % of the entries missing at random. For each size:
 
-- ``init``: the fast initialiser ``selfcal.toa.mds.initialize_toa(method="rank")`` (rank
-  factorisation of the squared ranges), timed once; every solver below starts from it.
-- ``ours_nls``: ``solve_toa(..., init=<init>, method="nls", covariance=False)`` (the Schur
-  LM engine), median of several runs; ``ours_nls_cov``: the same with the 003 eq. 17
-  covariances; ``ours_blind``: ``solve_toa(Y, dim=3)`` end to end (init + NLS + covariance).
-- ``trf_sparse``: ``least_squares(method="trf")`` with our analytic sparse Jacobian
-  (``refine_toa(solver="trf")``), 8x10 only.
-- ``dense_fd``: ``scipy.optimize.least_squares(method="trf")`` on all coordinates with
-  the default finite-difference (2-point) dense Jacobian. Skipped when its predicted
-  time (10 Jacobian evaluations + 10 dense SVDs, measured) exceeds 60 s.
+- ``init``: ``selfcal.toa.mds.initialize_toa(method="rank")``, timed once; every solver below
+  starts from it (same start).
+- ``ours_solve``: ``refine_toa(Y, r0, s0, covariance="none")`` (the Schur LM engine);
+  ``ours_cov``: the covariance alone at the solution (:func:`selfcal.toa.covariance.covariance_blocks`,
+  selected inversion, all blocks) and ``cov_over_solve``; ``ours_solve_cov``: the two in one call.
+- ``ours_blind_cov``: ``solve_toa(Y, dim=3)`` end to end (initialisation + NLS + covariances).
+- ``scipy_trf``: ``scipy.optimize.least_squares(method="trf", x_scale="jac", tr_solver="lsmr")``
+  with the analytic sparse Jacobian (:func:`selfcal.toa.toa_jacobian`), all coordinates free,
+  no covariance: what a competent user would write. ``blind_cov_over_scipy`` is the ratio of
+  our whole pipeline to that solve alone.
 
-RMSE is 003 eq. 18 (rigid alignment on the receivers), next to the CRLB.
-Run: ``.venv/bin/python benchmarks/run_all.py --only toa --out /tmp/bench_toa``.
+Part 2, ``offsets="both"`` (paper 004): U units (a microphone and a loudspeaker 5 cm apart each)
+in a 10 x 10 x 3 m room, internal delays U(0, 20 ms) and onsets U(0, 30 ms) times 343 m/s, range
+noise 1 mm, 5 % missing; ``solve_toa(Y, offsets="both", covariance="none")`` blind.
+
+Every row carries the wall time (median over ``repeats``), the peak resident memory during its
+first call (sampled every 5 ms from /proc, no tracing overhead; absolute and above the RSS at the
+call's start) and its efficiency: aligned RMSE (003 eq. 18) over the
+CRLB of the same network and mask (``toa_crlb``, gauge-free). The machine's load average is
+recorded: on a shared machine times are only comparable within one run (ratios).
+
+Run: ``python benchmarks/run_all.py --only toa --out /tmp/bench_toa``; smaller sizes with
+``SELFCAL_BENCH_TOA_SIZES=100x100,300x300`` and ``SELFCAL_BENCH_TOA_UNITS=60,120`` (comma lists).
 """
 
 from __future__ import annotations
@@ -24,16 +34,85 @@ import json
 import os
 import platform
 import statistics
+import threading
 import time
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-SIZES = [(8, 10, 7), (100, 100, 3), (1000, 1000, 2)]  # (I, J, repeats)
+SIZES = [(100, 100, 3), (1000, 1000, 1)]  # (I, J, repeats)
+UNITS = [120, 500, 1000]
 SIGMA = 0.01
+SIGMA_UNITS = 0.001
+MISSING = 0.05
 DIM = 3
-BASELINE_LIMIT_S = 60.0
+
+
+def _sizes() -> list[tuple[int, int, int]]:
+    env = os.environ.get("SELFCAL_BENCH_TOA_SIZES")
+    if env is None:
+        return SIZES
+    out = []
+    for tok in filter(str.strip, env.split(",")):
+        i, j = (int(v) for v in tok.lower().split("x"))
+        out.append((i, j, 3 if i * j <= 1e5 else 1))
+    return out
+
+
+def _units() -> list[int]:
+    env = os.environ.get("SELFCAL_BENCH_TOA_UNITS")
+    return UNITS if env is None else [int(v) for v in env.split(",") if v.strip()]
+
+
+def _rss_mb() -> float:
+    """Resident set size of this process, MiB (Linux /proc; ru_maxrss elsewhere)."""
+    try:
+        with open("/proc/self/statm") as f:
+            return int(f.read().split()[1]) * os.sysconf("SC_PAGE_SIZE") / 2**20
+    except OSError:
+        import resource
+
+        return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**10
+
+
+class _PeakRss:
+    """Peak resident memory during a block, sampled every 5 ms by a thread (no tracing overhead)."""
+
+    def __enter__(self) -> _PeakRss:
+        self.base = self.peak = _rss_mb()
+        self._stop = threading.Event()
+        self._t = threading.Thread(target=self._run, daemon=True)
+        self._t.start()
+        return self
+
+    def _run(self) -> None:
+        while not self._stop.wait(0.005):
+            self.peak = max(self.peak, _rss_mb())
+
+    def __exit__(self, *exc: object) -> None:
+        self._stop.set()
+        self._t.join()
+        self.peak = max(self.peak, _rss_mb())
+
+
+def _timed(fn: Any, repeats: int = 1) -> tuple[dict[str, Any], Any]:
+    """Median wall time over ``repeats`` and the peak resident memory of the first call.
+
+    ``peak_rss_mb`` is the process's peak RSS during the call (data and interpreter included),
+    ``peak_rss_increase_mb`` the part above the RSS at its start.
+    """
+    times, out = [], None
+    with _PeakRss() as mem:
+        t = time.perf_counter()
+        out = fn()
+        times.append(time.perf_counter() - t)
+    for _ in range(repeats - 1):
+        t = time.perf_counter()
+        out = fn()
+        times.append(time.perf_counter() - t)
+    return {"time_s": statistics.median(times), "times_s": times, "peak_rss_mb": mem.peak,
+            "peak_rss_increase_mb": mem.peak - mem.base}, out
 
 
 def _scene(I: int, J: int, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -43,124 +122,110 @@ def _scene(I: int, J: int, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarra
     box = np.array([10.0, 10.0, 5.0])
     r = rng.uniform(0, 1, (I, DIM)) * box
     s = rng.uniform(0, 1, (J, DIM)) * box
-    return r, s, toa_model(r, s) + rng.normal(0, SIGMA, (I, J))
+    Y = toa_model(r, s) + rng.normal(0, SIGMA, (I, J))
+    Y[rng.random((I, J)) < MISSING] = np.nan
+    return r, s, Y
 
 
-def _timed(fn: Any, repeats: int) -> tuple[float, list[float], Any]:
-    times, out = [], None
-    for _ in range(repeats):
-        t = time.perf_counter()
-        out = fn()
-        times.append(time.perf_counter() - t)
-    return statistics.median(times), times, out
-
-
-def _rmse(r_est: np.ndarray, s_est: np.ndarray, r: np.ndarray, s: np.ndarray) -> dict[str, float]:
+def _accuracy(re: np.ndarray, se: np.ndarray, r: np.ndarray, s: np.ndarray, crlb: Any) -> dict[str, float]:
     from selfcal.metrics import aligned_rmse
 
-    e = aligned_rmse(r_est, r, s_est, s)
-    return {"rmse_receivers": e.rmse_receivers, "rmse_sources": float(e.rmse_sources or np.nan)}
+    e = aligned_rmse(re, r, se, s)
+    out = {"rmse_receivers": e.rmse_receivers, "rmse_sources": float(e.rmse_sources or np.nan)}
+    out["efficiency_receivers"] = out["rmse_receivers"] / crlb.rmse_receivers
+    out["efficiency_sources"] = out["rmse_sources"] / crlb.rmse_sources
+    return out
 
 
-def _dense_baseline(Y: np.ndarray, r0: np.ndarray, s0: np.ndarray, repeats: int) -> dict[str, Any]:
+def _scipy_trf(Y: np.ndarray, r0: np.ndarray, s0: np.ndarray) -> tuple[np.ndarray, np.ndarray, Any]:
     from scipy.optimize import least_squares
 
+    from selfcal.toa import toa_jacobian, toa_residuals
+
     I, J = Y.shape
-    y = Y.ravel()
-
-    def fun(x: np.ndarray) -> np.ndarray:
-        rr = x[: I * DIM].reshape(I, DIM)
-        ss = x[I * DIM :].reshape(J, DIM)
-        return np.sqrt(((rr[:, None, :] - ss[None, :, :]) ** 2).sum(-1)).ravel() - y
-
     x0 = np.concatenate([r0.ravel(), s0.ravel()])
-    n, m = x0.size, y.size
-    # predicted cost: 10 iterations of (n residual evaluations + one dense m x n SVD)
-    t = time.perf_counter()
-    fun(x0)
-    t_fun = time.perf_counter() - t
-    if m * n > 2e8:
-        t_svd = float("inf")
-    else:
-        A = np.random.default_rng(0).normal(size=(m, n))
-        t = time.perf_counter()
-        np.linalg.svd(A, full_matrices=False)
-        t_svd = time.perf_counter() - t
-    predicted = 10 * (n * t_fun + t_svd)
-    if predicted > BASELINE_LIMIT_S:
-        return {"skipped": True, "reason": f"predicted {predicted:.3g} s > {BASELINE_LIMIT_S:g} s "
-                f"({n} unknowns x {m} residuals, {t_fun * 1e3:.3g} ms per residual evaluation)"}
-    med, times, res = _timed(lambda: least_squares(fun, x0, method="trf", x_scale="jac"), repeats)
-    x = res.x
-    return {
-        "skipped": False,
-        "time_s": med,
-        "times_s": times,
-        "nfev": int(res.nfev),
-        "status": int(res.status),
-        "estimate": (x[: I * DIM].reshape(I, DIM), x[I * DIM :].reshape(J, DIM)),
-    }
+    res = least_squares(lambda x: toa_residuals(x, Y, DIM), x0, jac=lambda x: toa_jacobian(x, Y, DIM),
+                        method="trf", x_scale="jac", tr_solver="lsmr")
+    return res.x[: I * DIM].reshape(I, DIM), res.x[I * DIM:].reshape(J, DIM), res
+
+
+def _dense_case(I: int, J: int, reps: int) -> dict[str, Any]:
+    from selfcal.toa import refine_toa, solve_toa, toa_crlb
+    from selfcal.toa.covariance import covariance_blocks
+    from selfcal.toa.mds import initialize_toa
+
+    r, s, Y = _scene(I, J, seed=I + J)
+    obs = np.isfinite(Y)
+    crlb = toa_crlb(r, s, SIGMA, mask=obs)
+    case: dict[str, Any] = {"shape": [I, J], "missing": MISSING, "repeats": reps,
+                            "crlb": {"rmse_receivers": crlb.rmse_receivers, "rmse_sources": crlb.rmse_sources}}
+    row, (r0, s0) = _timed(lambda: initialize_toa(Y, DIM, method="rank", rng=0))
+    case["init"] = row
+    row, sol = _timed(lambda: refine_toa(Y, r0, s0, covariance="none"), reps)
+    case["ours_solve"] = {**row, "iterations": sol.iterations, "converged": sol.converged,
+                          **_accuracy(sol.receivers, sol.sources, r, s, crlb)}
+    w = np.where(obs, 1.0, 0.0)
+    row, _ = _timed(lambda: covariance_blocks(sol.receivers, sol.sources, w), reps)
+    case["ours_cov"] = row
+    case["cov_over_solve"] = row["time_s"] / case["ours_solve"]["time_s"]
+    row, solc = _timed(lambda: refine_toa(Y, r0, s0), 1)
+    pred = float(np.sqrt(np.trace(solc.receiver_cov, axis1=1, axis2=2).mean()))
+    case["ours_solve_cov"] = {**row, "predicted_rmse_receivers": pred}
+    row, blind = _timed(lambda: solve_toa(Y, dim=DIM, rng=0), 1)
+    case["ours_blind_cov"] = {**row, "method": blind.method, **_accuracy(blind.receivers, blind.sources, r, s, crlb)}
+    row, (rt, st, res) = _timed(lambda: _scipy_trf(Y, r0, s0), 1)
+    case["scipy_trf"] = {**row, "nfev": int(res.nfev), "status": int(res.status),
+                         **_accuracy(rt, st, r, s, crlb)}
+    case["solve_over_scipy"] = case["ours_solve"]["time_s"] / row["time_s"]
+    case["blind_cov_over_scipy"] = case["ours_blind_cov"]["time_s"] / row["time_s"]
+    return case
+
+
+def _units_case(U: int, seed: int = 0) -> dict[str, Any]:
+    from selfcal.toa import solve_toa, toa_crlb, toa_model
+
+    rng = np.random.default_rng(seed)
+    box = np.array([10.0, 10.0, 3.0])
+    mic = rng.uniform(0, 1, (U, DIM)) * box
+    spk = mic + rng.normal(0, 0.05, (U, DIM))
+    d = rng.uniform(0, 0.020 * 343, U)
+    o = rng.uniform(0, 0.030 * 343, U)
+    Y = toa_model(mic, spk, d, o) + rng.normal(0, SIGMA_UNITS, (U, U))
+    miss = rng.random((U, U)) < MISSING
+    Y[miss] = np.nan
+    crlb = toa_crlb(mic, spk, SIGMA_UNITS, offsets="both", mask=~miss)
+    row, res = _timed(lambda: solve_toa(Y, dim=DIM, offsets="both", rng=0, covariance="none"), 1)
+    return {"units": U, "missing": MISSING, **row, "method": res.method,
+            "crlb": {"rmse_receivers": crlb.rmse_receivers, "rmse_sources": crlb.rmse_sources},
+            **_accuracy(res.receivers, res.sources, mic, spk, crlb)}
 
 
 def main(out_dir: Path) -> dict[str, Any]:
-    from selfcal.toa import refine_toa, solve_toa, toa_crlb
-    from selfcal.toa.mds import initialize_toa
-
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     report: dict[str, Any] = {
         "name": "toa",
-        "setup": f"3-D, uniform in 10x10x5 m, sigma = {SIGMA} m, all entries observed; times are medians",
-        "init": "selfcal.toa.mds.initialize_toa(method='rank') (fast initialiser); all solvers start from it; "
-                "ours_blind = solve_toa defaults (initialiser method 'auto')",
-        "machine": {
-            "cpus": os.cpu_count(),
-            "load_average_at_start": list(os.getloadavg()),
-            "python": platform.python_version(),
-            "numpy": np.__version__,
-        },
+        "setup": (f"part 1: 3-D, uniform in 10x10x5 m, sigma = {SIGMA} m, {MISSING:.0%} missing, all solvers from "
+                  "the rank initialiser; part 2: offsets='both', units in 10x10x3 m, sigma = "
+                  f"{SIGMA_UNITS} m, {MISSING:.0%} missing, blind"),
+        "machine": {"cpus": os.cpu_count(), "load_average_at_start": list(os.getloadavg()),
+                    "python": platform.python_version(), "numpy": np.__version__,
+                    "OPENBLAS_NUM_THREADS": os.environ.get("OPENBLAS_NUM_THREADS")},
         "cases": [],
+        "offsets_both": [],
     }
-    for I, J, reps in SIZES:
-        r, s, Y = _scene(I, J, seed=I + J)
-        case: dict[str, Any] = {"shape": [I, J], "repeats": reps}
-        t_init, _, (r0, s0) = _timed(lambda Y=Y: initialize_toa(Y, DIM, method="rank", rng=0), 1)
-        case["init"] = {"time_s": t_init, **_rmse(r0, s0, r, s)}
-
-        med, times, res = _timed(
-            lambda Y=Y, r0=r0, s0=s0: solve_toa(Y, dim=DIM, init=(r0, s0), method="nls", covariance=False), reps)
-        case["ours_nls"] = {"time_s": med, "times_s": times, "iterations": res.iterations,
-                            "converged": res.converged, **_rmse(res.receivers, res.sources, r, s)}
-        med_c, times_c, res_c = _timed(
-            lambda Y=Y, r0=r0, s0=s0: solve_toa(Y, dim=DIM, init=(r0, s0), method="nls"), 1)
-        case["ours_nls_cov"] = {
-            "time_s": med_c, "predicted_rmse_receivers": float(np.sqrt(np.trace(res_c.receiver_cov, axis1=1, axis2=2).mean())),
-            "predicted_rmse_sources": float(np.sqrt(np.trace(res_c.source_cov, axis1=1, axis2=2).mean())),
-        }
-        med_b, _, res_b = _timed(lambda Y=Y: solve_toa(Y, dim=DIM, rng=0), 1)
-        case["ours_blind"] = {"time_s": med_b, "method": res_b.method, **_rmse(res_b.receivers, res_b.sources, r, s)}
-
-        if I * J <= 1_000:
-            med_t, times_t, sol_t = _timed(
-                lambda Y=Y, r0=r0, s0=s0: refine_toa(Y, r0, s0, solver="trf", covariance=False), reps)
-            case["trf_sparse"] = {"time_s": med_t, "times_s": times_t, "iterations": sol_t.iterations,
-                                  **_rmse(sol_t.receivers, sol_t.sources, r, s)}
-        else:
-            case["trf_sparse"] = {"skipped": True, "reason": "not run above 1000 entries (measured 118 s at "
-                                  "100x100 with tr_solver='exact' on this machine)"}
-
-        base = _dense_baseline(Y, r0, s0, min(reps, 3))
-        if not base["skipped"]:
-            rb, sb = base.pop("estimate")
-            base.update(_rmse(rb, sb, r, s))
-            base["ratio_time_dense_over_ours"] = base["time_s"] / med
-        case["dense_fd"] = base
-        crlb = toa_crlb(r, s, SIGMA)
-        case["crlb"] = {"rmse_receivers": crlb.rmse_receivers, "rmse_sources": crlb.rmse_sources}
-        case["efficiency_receivers"] = case["ours_nls"]["rmse_receivers"] / crlb.rmse_receivers
+    for I, J, reps in _sizes():
+        case = _dense_case(I, J, reps)
         report["cases"].append(case)
-        dense = "skipped" if base["skipped"] else f"{base['time_s']:.3g} s"
-        print(f"[toa] {I}x{J}: ours {med:.3g} s (+cov {med_c:.3g} s), dense {dense}")
+        print(f"[toa] {I}x{J}: solve {case['ours_solve']['time_s']:.3g} s, cov {case['ours_cov']['time_s']:.3g} s "
+              f"(x{case['cov_over_solve']:.2f}), blind+cov {case['ours_blind_cov']['time_s']:.3g} s, "
+              f"scipy trf {case['scipy_trf']['time_s']:.3g} s, cov peak RSS +{case['ours_cov']['peak_rss_increase_mb']:.0f} MB")
+    for U in _units():
+        row = _units_case(U)
+        report["offsets_both"].append(row)
+        print(f"[toa] offsets=both {U} units: {row['time_s']:.3g} s, peak RSS {row['peak_rss_mb']:.0f} MB, "
+              f"efficiency {row['efficiency_receivers']:.3f}")
+    report["machine"]["load_average_at_end"] = list(os.getloadavg())
     path = out_dir / "toa.json"
     tmp = path.with_suffix(".json.tmp")
     tmp.write_text(json.dumps(report, indent=2, default=float))

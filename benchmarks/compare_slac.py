@@ -30,12 +30,12 @@ _WORKER = r"""
 import json, sys, time
 import numpy as np
 from selfcal.scenarios.rovers import make_rover_scenario
-from selfcal.slac._threads import limit_blas_threads
+from threadpoolctl import threadpool_limits
 from selfcal.slac.filter import SlacConfig, SlacFilter
 from selfcal.slac.run import SlacLog
 from selfcal.slac.signals import batch_delay_search
 
-limit_blas_threads(1)
+threadpool_limits(limits=1, user_api="blas")
 steps = int(sys.argv[1])
 sc = make_rover_scenario(steps * 0.1 / 60 + 0.01, n_subcarriers=1024, rng=0)
 log = SlacLog.from_scenario(sc, seed=0)

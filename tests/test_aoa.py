@@ -436,3 +436,118 @@ def test_reproduction_full_grid_in_paper_range():
     t = summarize(rows)
     for meth in ("sol1", "sol2"):
         assert t["ml4"]["location_m"] < t[meth]["location_m"] < 1.0
+
+
+# ----------------------------------------------------------------------------- conventions (issue 16)
+
+
+def _azel_deg(U):
+    return np.degrees(np.column_stack([np.arctan2(U[:, 1], U[:, 0]), np.arcsin(np.clip(U[:, 2], -1, 1))]))
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_cli_azimuth_elevation_gives_the_same_pose_as_unit_vectors(tmp_path, seed):
+    from selfcal.cli import main
+
+    rng = np.random.default_rng(seed)
+    b = rng.uniform(-5, 5, (5, 3))
+    m, R = random_poses(rng, 1)
+    U = local_bearings(b, m, R)[0] + 1e-3 * rng.normal(size=(5, 3))
+    U /= np.linalg.norm(U, axis=1, keepdims=True)
+    np.savetxt(tmp_path / "b.csv", b, delimiter=",")
+    np.savetxt(tmp_path / "u.csv", U, delimiter=",")
+    np.savetxt(tmp_path / "azel.csv", _azel_deg(U), delimiter=",")
+    np.savetxt(tmp_path / "azel_rad.csv", np.radians(_azel_deg(U)), delimiter=",")
+    runner = CliRunner()
+    outs = []
+    for args in (["u.csv"], ["azel.csv", "--angles", "azel"], ["azel_rad.csv", "--angles", "azel", "--units", "rad"]):
+        r = runner.invoke(main, ["locate", "aoa", str(tmp_path / "b.csv"), str(tmp_path / args[0]), *args[1:],
+                                 "--out", str(tmp_path / "r.json")])
+        assert r.exit_code == 0, r.output
+        outs.append(json.loads((tmp_path / "r.json").read_text()))
+    for o in outs[1:]:
+        np.testing.assert_allclose(o["position"], outs[0]["position"], atol=1e-8)
+        np.testing.assert_allclose(o["rotation"], outs[0]["rotation"], atol=1e-8)
+
+
+@pytest.mark.parametrize("method", ["auto", "sol1", "sol2", "p3p"])
+def test_axis_angles_with_a_beacon_below_the_receiver_plane(method):
+    # angles to the x / y axes lose the side of the receiver's xy plane; the ML refinement
+    # over both sides recovers the exact pose for every method
+    b = np.array([[0.0, 0, 0], [5, 0, 0], [0, 5, 0], [5, 5, 1], [2, 3, -6.0]])
+    m = np.array([[2.0, 1.0, -3.0]])
+    R = np.eye(3)[None]
+    U = local_bearings(b, m, R)[0]
+    assert U[4, 2] < 0  # the fifth beacon is below the receiver's xy plane
+    a, be = bearings_to_angles(U)
+    Uax = angles_to_bearings(a, be).vectors  # what --angles axes produces (z >= 0)
+    res = solve_aoa(b, Uax, method=method, sign_z_unknown=True)
+    np.testing.assert_allclose(res.position, m[0], atol=1e-6)
+    np.testing.assert_allclose(res.rotation, R[0], atol=1e-6)
+    assert res.success and res.method.endswith("+ml")
+
+
+def test_bearings_that_fit_no_pose_fail_the_residual_test(tmp_path):
+    from selfcal.cli import main
+
+    rng = np.random.default_rng(2)
+    b = rng.uniform(-5, 5, (8, 3))
+    m, R = random_poses(rng, 1)
+    U = local_bearings(b, m, R)[0]
+    Uwrong = U[np.roll(np.arange(8), 1)]  # bearings listed against the wrong beacons: fit to ~21 deg
+    res = solve_aoa(b, Uwrong)
+    assert not res.success and res.status == 1 and "not a pose" in res.message
+    np.savetxt(tmp_path / "b.csv", b, delimiter=",")
+    np.savetxt(tmp_path / "u.csv", Uwrong, delimiter=",")
+    r = CliRunner().invoke(main, ["locate", "aoa", str(tmp_path / "b.csv"), str(tmp_path / "u.csv"),
+                                  "--out", str(tmp_path / "r.json")])
+    assert r.exit_code == 1 and "FAIL:" in r.output
+
+
+def test_residual_test_passes_correct_noisy_poses():
+    # 1 degree noise, sigma not given: the test assumes <= 5 degrees, so a correct pose fails only
+    # if its chi-square exceeds 25x its 0.999 quantile -- never in 40 draws
+    rng = np.random.default_rng(11)
+    b = rng.uniform(-5, 5, (6, 3))
+    for _ in range(40):
+        m, R = random_poses(rng, 1)
+        U = local_bearings(b, m, R)[0] + np.radians(1.0) * rng.normal(size=(6, 3))
+        assert solve_aoa(b, U).success
+
+
+def test_sol1_on_the_danger_cylinder_raises_like_the_default():
+    ang = np.array([0.0, 2.0, 4.0])
+    beacons = np.column_stack([np.cos(ang), np.sin(ang), np.zeros(3)])
+    m = np.array([[np.cos(1.0), np.sin(1.0), -2.0]])
+    U = local_bearings(beacons, m, np.eye(3)[None])[0]
+    for method in ("auto", "sol1", "sol2"):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            with pytest.raises(DegenerateGeometryError, match="danger cylinder") as exc:
+                solve_aoa(beacons, U, method=method)
+        assert exc.value.kind == "danger-cylinder"
+
+
+def test_cli_degrees_given_as_2d_unit_vectors_are_refused(tmp_path):
+    from selfcal.cli import main
+
+    b = np.array([[0.0, 0], [5, 0], [0, 5], [5, 5]])
+    np.savetxt(tmp_path / "b.csv", b, delimiter=",")
+    np.savetxt(tmp_path / "u.csv", np.array([[45.0, 0], [120, 0], [200, 0], [300, 0]]), delimiter=",")
+    out = tmp_path / "r.json"
+    r = CliRunner().invoke(main, ["locate", "aoa", str(tmp_path / "b.csv"), str(tmp_path / "u.csv"), "--out", str(out)])
+    assert r.exit_code == 2 and "not a unit vector" in r.output and "--angles azel" in r.output
+    assert not out.exists()
+
+
+def test_cli_pose_plot(tmp_path):
+    from selfcal.cli import main
+
+    b = np.array([[0.0, 0, 0], [5, 0, 0], [0, 5, 0], [5, 5, 1]])
+    U = local_bearings(b, np.array([[2.0, 1.0, -3.0]]), np.eye(3)[None])[0]
+    np.savetxt(tmp_path / "b.csv", b, delimiter=",")
+    np.savetxt(tmp_path / "u.csv", U, delimiter=",")
+    r = CliRunner().invoke(main, ["locate", "aoa", str(tmp_path / "b.csv"), str(tmp_path / "u.csv"),
+                                  "--out", str(tmp_path / "r.json"), "--plot", str(tmp_path / "p.png")])
+    assert r.exit_code == 0, r.output
+    assert (tmp_path / "p.png").stat().st_size > 0

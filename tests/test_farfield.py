@@ -294,6 +294,26 @@ def test_bad_input_is_refused():
         solve_farfield(np.zeros((5, 8)), loss="l7")
 
 
+@pytest.mark.parametrize("seed", range(8))
+@pytest.mark.parametrize("shape", [(10, 30), (20, 8), (8, 100)])
+def test_transposed_matrix_is_named(seed, shape):
+    # rows = directions: the per-row offsets survive column centring (rank 4 > noise edge)
+    rng = np.random.default_rng(seed)
+    m, k = shape
+    D, Z, N = farfield_problem(rng, m, k, sigma=1e-3)
+    solve_farfield(D)  # the right orientation passes
+    with pytest.raises(InputError, match=r"transposed\?"):
+        solve_farfield(D.T)
+
+
+def test_reference_row_layout_with_transposition_is_named(shared_data):
+    from selfcal.datasets import load_pyramic
+
+    D = load_pyramic(shared_data / "pyramic").D
+    with pytest.raises(InputError, match=r"transposed\?"):
+        solve_farfield(D.T)
+
+
 def test_too_few_sources_for_3d(rng):
     D, _, _ = farfield_problem(rng, 8, 5)
     with pytest.raises(DegenerateGeometryError) as info:
@@ -371,3 +391,22 @@ def test_lm_position_covariance_predicts_the_error_spread(rng):
         err += np.sum((res.positions @ (U @ Vt).T - Z) ** 2)
         pred += np.trace(res.position_cov, axis1=1, axis2=2).sum()
     assert 0.75 < err / pred < 1.33
+
+
+def test_known_directions_give_the_least_squares_positions(rng):
+    # semi-blind: with the directions given the model is linear; noise-free data are fitted exactly,
+    # missing entries included, in the directions' own frame (no rotation applied)
+    D, Z, N = farfield_problem(rng, 12, 30)
+    D[3, 4] = np.nan
+    res = solve_farfield(D, directions=N)
+    assert res.case == "known-directions" and res.dim == 3
+    assert np.allclose(res.positions, Z, atol=1e-9)
+    assert res.residual_rms < 1e-9
+
+
+def test_known_directions_are_validated(rng):
+    D, Z, N = farfield_problem(rng, 12, 30)
+    with pytest.raises(InputError, match="unit vectors"):
+        solve_farfield(D, directions=2 * N)
+    with pytest.raises(InputError, match="one per column"):
+        solve_farfield(D, directions=N[:10])

@@ -51,8 +51,9 @@ def test_cli_speed_converts_seconds(tmp_path, farfield_csv):
     r = CliRunner().invoke(main, ["calibrate", "tdoa-farfield", str(sec), "--speed", "343", "--out", str(out)])
     assert r.exit_code == 0, r.output
     res = json.loads(out.read_text())
-    # lengths come back in metres: the model reproduces the metre matrix
-    fit = np.array(res["positions"]) @ np.array(res["directions"]).T + np.array(res["offsets"])
+    # positions come back in metres, offsets in seconds (as in `calibrate toa --speed`)
+    assert res["units"]["positions"] == "m" and res["units"]["offsets"] == "s"
+    fit = np.array(res["positions"]) @ np.array(res["directions"]).T + 343.0 * np.array(res["offsets"])
     assert np.abs(fit - D).max() < 1e-9
 
 
@@ -79,6 +80,36 @@ def test_cli_pyramic_is_a_cone(tmp_path, shared_data):
     np.save(path, data.D)
     r = CliRunner().invoke(main, ["calibrate", "tdoa-farfield", str(path), "--out", str(tmp_path / "r.json")])
     assert r.exit_code == 2 and "cone" in r.output
+
+
+def test_cli_reads_the_pyramic_json_layout(tmp_path, shared_data):
+    src = shared_data / "pyramic" / "pyramic_tdoa_speaker0.json"
+    out = tmp_path / "r.json"
+    r = CliRunner().invoke(main, ["calibrate", "tdoa-farfield", str(src), "--out", str(out)])
+    # the shared speaker's directions lie on a cone: named, exit 2, no traceback, no file
+    assert r.exit_code == 2 and "[cone]" in r.output and "Traceback" not in r.output
+    assert not out.exists()
+    r = CliRunner().invoke(main, ["calibrate", "tdoa-farfield", str(src), "--out", str(out), "--allow-degenerate"])
+    assert r.exit_code == 0, r.output
+    res = json.loads(out.read_text())
+    assert len(res["positions"]) == 48 and len(res["directions"]) == 180
+    assert res["units"]["offsets"] == "s" and res["speed"] > 300
+
+
+def test_cli_json_in_another_layout_is_one_line(tmp_path):
+    path = tmp_path / "x.json"
+    path.write_text(json.dumps({"delays": [[1.0]]}))
+    r = CliRunner().invoke(main, ["calibrate", "tdoa-farfield", str(path), "--out", str(tmp_path / "r.json")])
+    assert r.exit_code == 2 and "missing keys" in r.output and "Traceback" not in r.output
+
+
+def test_cli_transposed_matrix_is_named(tmp_path, farfield_csv):
+    path, _, _, D = farfield_csv
+    tr = tmp_path / "t.csv"
+    np.savetxt(tr, D.T, delimiter=",")
+    r = CliRunner().invoke(main, ["calibrate", "tdoa-farfield", str(tr), "--out", str(tmp_path / "r.json")])
+    assert r.exit_code == 2 and "transposed?" in r.output, r.output
+    assert "DLASCL" not in r.output and "Traceback" not in r.output
 
 
 def test_cli_bad_matrix_exits_2(tmp_path):
@@ -119,3 +150,52 @@ def test_fig3_lm_converges_in_fewer_iterations_than_alternating():
 def test_fig4_good_far_field_with_small_noise_is_accurate():
     row = fig4_trial({"distance": 1e7, "sigma": 1e-4, "batch": 5}, seed=4)
     assert row["lm_error_sum"] / row["n"] < 0.01
+
+
+@pytest.mark.parametrize("dim,case", [("auto", "planar"), ("2", "planar")])
+def test_cli_planar_array_with_dim(tmp_path, dim, case):
+    rng = np.random.default_rng(5)
+    th = 2 * np.pi * np.arange(16) / 16
+    Z = 0.05 * np.column_stack([np.cos(th), np.sin(th)])
+    az = rng.uniform(0, 2 * np.pi, 24)
+    D = Z @ np.column_stack([np.cos(az), np.sin(az)]).T + 1e-5 * rng.normal(size=(16, 24))
+    path = tmp_path / "ring.csv"
+    np.savetxt(path, D, delimiter=",")
+    out, fig = tmp_path / "r.json", tmp_path / "r.png"
+    r = CliRunner().invoke(main, ["calibrate", "tdoa-farfield", str(path), "--dim", dim, "--out", str(out),
+                                  "--plot", str(fig)])
+    assert r.exit_code == 0, r.output
+    res = json.loads(out.read_text())
+    assert res["case"] == case and res["dim"] == 2 and np.array(res["positions"]).shape == (16, 2)
+    assert fig.stat().st_size > 0
+    # the default (3-D) names the degeneracy and points at --dim 2
+    r = CliRunner().invoke(main, ["calibrate", "tdoa-farfield", str(path), "--out", str(out)])
+    assert r.exit_code == 2 and "coplanar-directions" in r.output and "--dim 2" in r.output
+
+
+def test_cli_pyramic_with_its_own_directions(tmp_path, shared_data):
+    # the cone leaves a one-parameter family of blind solutions; with the file's source
+    # directions the problem is linear. Residual at the GCC-PHAT noise level (about 1 mm)
+    src = shared_data / "pyramic" / "pyramic_tdoa_speaker0.json"
+    out = tmp_path / "r.json"
+    r = CliRunner().invoke(main, ["calibrate", "tdoa-farfield", str(src), "--directions", "sources", "--out", str(out)])
+    assert r.exit_code == 0, r.output
+    res = json.loads(out.read_text())
+    assert res["case"] == "known-directions" and "reference_rmse" in res
+    assert res["residual_rms"] * res["speed"] < 1.5e-3
+
+
+def test_cli_residual_test_against_a_given_noise(tmp_path):
+    # the noise given (1e-3) is ten times smaller than the data's (1e-2): the chi-square test of
+    # the residuals fails (exit 1, FAIL line); with the right noise it passes
+    rng = np.random.default_rng(9)
+    Z = rng.uniform(-0.5, 0.5, (10, 3))
+    N = unit(rng.normal(size=(30, 3)))
+    D = Z @ N.T + rng.normal(size=30) + 1e-2 * rng.normal(size=(10, 30))
+    path = tmp_path / "D.csv"
+    np.savetxt(path, D, delimiter=",")
+    out = tmp_path / "r.json"
+    r = CliRunner().invoke(main, ["calibrate", "tdoa-farfield", str(path), "--noise-std", "1e-3", "--out", str(out)])
+    assert r.exit_code == 1 and "FAIL:" in r.output
+    r = CliRunner().invoke(main, ["calibrate", "tdoa-farfield", str(path), "--noise-std", "1e-2", "--out", str(out)])
+    assert r.exit_code == 0, r.output

@@ -7,7 +7,7 @@ import pytest
 
 from selfcal.datasets import load_lps
 from selfcal.errors import InputError
-from selfcal.experiments.toa_mds_nls import calibrate_lps
+from selfcal.experiments.lps import calibrate_lps
 from selfcal.metrics import aligned_rmse
 
 # the data set README's numbers for the authors' own estimate (ropt)
@@ -93,3 +93,67 @@ def test_spike_rejection_alone_helps_on_data4(shared_data):
     rmse = aligned_rmse(clean["receivers"], flight.anchors_true).rmse_receivers
     assert rmse < AUTHORS["data4"]
     assert np.isnan(clean["sources"]).any(axis=1).sum() < 0.05 * flight.n_positions
+
+
+def _write_flight(path, n=40, ok_cols=None, gt_cols=None, data_is_struct=True):
+    import scipy.io
+
+    rng = np.random.default_rng(0)
+    G = rng.uniform(0, 5, (3, 6))
+    T = rng.uniform(1, 4, (3, n))
+    d = np.linalg.norm(G.T[:, None] - T.T[None], axis=2)
+    ok = np.ones((1, n if ok_cols is None else ok_cols), bool)
+    data = {"d": d, "Gtr": G, "GTs_resamp": T[:, : (n if gt_cols is None else gt_cols)],
+            "GTs_resamp_ok": ok, "ropt": G, "sopt": T, "description": "synthetic"}
+    scipy.io.savemat(path, {"data": data if data_is_struct else np.zeros(3)})
+    return d, G, T
+
+
+def test_loader_short_validity_flags_warn_not_indexerror(tmp_path):
+    """GTs_resamp_ok with fewer columns than d: the ranges are kept, the positions without
+    a flag get NaN ground truth, and a LpsFormatWarning says so (never IndexError)."""
+    from selfcal.datasets.lps import LpsFormatWarning
+    from selfcal.datasets.lps import load_lps as load
+
+    f = tmp_path / "data9.mat"
+    d, _, _ = _write_flight(f, n=40, ok_cols=30)
+    with pytest.warns(LpsFormatWarning, match="GTs_resamp_ok"):
+        fl = load(f)
+    np.testing.assert_array_equal(fl.ranges, d)
+    assert np.isnan(fl.tag_true[30:]).all() and np.isfinite(fl.tag_true[:30]).all()
+    f2 = tmp_path / "data8.mat"
+    _write_flight(f2, n=40, gt_cols=35)
+    with pytest.warns(LpsFormatWarning, match="GTs_resamp"):
+        fl2 = load(f2)
+    assert np.isnan(fl2.tag_true[35:]).all()
+    f3 = tmp_path / "data7.mat"
+    _write_flight(f3, data_is_struct=False)
+    with pytest.raises(InputError):
+        load(f3)
+
+
+def test_position_with_two_ranges_is_dropped_not_fatal(shared_data):
+    """reproduce lps aborted on a flight where one tag position has only 2 ranges."""
+    flight = load_lps(shared_data / "lps" / "data5.mat")
+    Y = flight.ranges.copy()
+    Y[2:, 100] = np.nan
+    res = calibrate_lps(Y, "none")
+    assert res["n_dropped"] >= 1 and np.isnan(res["sources"][100]).all()
+    assert aligned_rmse(res["receivers"], flight.anchors_true).rmse_receivers < 0.3
+
+
+def _cli_default_anchor_rmse(tmp_path, flight, *extra):
+    """``selfcal calibrate toa`` with its defaults on the raw ``d`` matrix written as CSV."""
+    import json
+
+    from click.testing import CliRunner
+
+    from selfcal.cli import main
+
+    csv = tmp_path / f"{flight.name}.csv"
+    np.savetxt(csv, flight.ranges, delimiter=",")  # 6 x N, NaN missing, no preprocessing
+    out = tmp_path / f"{flight.name}.json"
+    res = CliRunner().invoke(main, ["calibrate", "toa", str(csv), "--out", str(out), *extra])
+    assert res.exit_code in (0, 1), res.output
+    data = json.loads(out.read_text())
+    return aligned_rmse(np.array(data["receivers"], float), flight.anchors_true).rmse_receivers, data, res

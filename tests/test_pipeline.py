@@ -246,9 +246,9 @@ def test_planar_desks_give_2d_whatever_the_solver_seed(solver_seed):
     est = np.vstack([sol["receivers"], sol["sources"]])
     true = np.vstack([sc.receivers, sc.senders])[:, :2]
     assert np.abs(align(est, true).apply(est) - true).max() < 0.02  # 1 us = 0.34 mm of range noise
-    if solver_seed == 1000:
-        with pytest.raises(DegenerateGeometryError, match="near-planar"):
-            calibrate_matrix(T, speed=C, dim=3, rng=solver_seed)
+    # asking for 3-D anyway is refused for every start, not a confident z from one basin
+    with pytest.raises(DegenerateGeometryError, match="near-planar"):
+        calibrate_matrix(T, speed=C, dim=3, rng=solver_seed)
 
 
 @pytest.mark.parametrize(("layout", "solver_seed"), [("tiered", 1000), ("tiered", 2000), ("stem", 2000)])

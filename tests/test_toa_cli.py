@@ -91,3 +91,125 @@ def test_missing_file_is_exit_2(tmp_path):
     res = run(tmp_path / "nope.csv", "--out", out)
     assert res.exit_code == 2
     assert not out.exists()
+
+
+def _scene3d(seed=11, I=7, J=10, noise=0.01):
+    rng = np.random.default_rng(seed)
+    r, s = rng.uniform(0, 6, (I, 3)), rng.uniform(0, 6, (J, 3))
+    return rng, r, s, toa_model(r, s) + noise * rng.standard_normal((I, J))
+
+
+def test_known_file_puts_the_result_in_that_frame(tmp_path):
+    _, r, s, Y = _scene3d()
+    path = tmp_path / "m.csv"
+    np.savetxt(path, Y, delimiter=",")
+    known = tmp_path / "known.csv"
+    known.write_text("".join(",".join([f"r{i}", *(repr(float(v)) for v in r[i])]) + "\n" for i in range(4)))
+    out = tmp_path / "res.json"
+    res = run(path, "--known", known, "--out", out)
+    assert res.exit_code == 0, res.output
+    data = json.loads(out.read_text())
+    np.testing.assert_array_equal(np.array(data["receivers"])[:4], r[:4])
+    assert data["frame"]["determined"] is True
+    # no alignment: the other nodes are in the room's frame (1 cm noise, 6 m room)
+    assert np.abs(np.array(data["sources"]) - s).max() < 0.1
+    assert "frame fully determined" in res.output
+
+
+def test_frame_option_and_its_report(tmp_path):
+    _, r, s, Y = _scene3d(12)
+    path = tmp_path / "m.csv"
+    np.savetxt(path, Y, delimiter=",")
+    out = tmp_path / "res.json"
+    res = run(path, "--frame", "origin=r0,x=r1,xy=r2", "--out", out)
+    assert res.exit_code == 0, res.output
+    R = np.array(json.loads(out.read_text())["receivers"])
+    assert np.all(R[0] == 0) and np.all(R[1, 1:] == 0) and R[2, 2] == 0 and R[2, 1] > 0
+    assert "z sign" in res.output  # 3-D without z=D: the choice taken is reported
+
+
+@pytest.mark.parametrize("args, message", [
+    (("--frame", "origin=r0,x=r0,xy=r2"), "distinct"),
+    (("--frame", "origin=r0,x=r1,xy=r2", "--known", "K"), "exclusive"),
+    (("--known", "K"), "r99"),
+])
+def test_bad_frame_or_known_is_exit_2(tmp_path, args, message):
+    _, r, s, Y = _scene3d(13)
+    path = tmp_path / "m.csv"
+    np.savetxt(path, Y, delimiter=",")
+    (tmp_path / "K").write_text("r99,0,0,0\n")
+    out = tmp_path / "res.json"
+    res = run(path, *[tmp_path / a if a == "K" else a for a in args], "--out", out)
+    assert res.exit_code == 2, res.output
+    err = res.stderr if hasattr(res, "stderr") else res.output
+    assert message in err and len(err.strip().splitlines()) == 1
+    assert not out.exists()
+
+
+def test_data_that_fit_no_geometry_exit_1_with_fail(tmp_path):
+    """A uniform random matrix with the noise given: the chi-square test rejects the fit."""
+    rng = np.random.default_rng(0)
+    path = tmp_path / "m.csv"
+    np.savetxt(path, rng.uniform(1, 10, (8, 8)), delimiter=",")
+    out = tmp_path / "res.json"
+    res = run(path, "--dim", 2, "--noise", 0.01, "--method", "nls", "--out", out)
+    assert res.exit_code == 1, res.output
+    assert "FAIL:" in res.output
+    assert out.exists()  # the result is still written, marked untrustworthy
+
+
+def test_auto_modes_pass_through_or_refuse_clearly(tmp_path):
+    from selfcal.commands.toa import _auto_available
+
+    _, r, s, Y = _scene3d(14)
+    path = tmp_path / "m.csv"
+    np.savetxt(path, Y, delimiter=",")
+    out = tmp_path / "res.json"
+    res = run(path, "--offsets", "auto", "--out", out)
+    if _auto_available():
+        assert res.exit_code in (0, 1), res.output
+    else:
+        assert res.exit_code == 2 and "selfcal.toa.select" in res.output
+
+
+def test_moving_tag_recipe_rejects_spikes_and_drops_positions(tmp_path):
+    rng = np.random.default_rng(2)
+    anchors = rng.uniform(0, 5, (6, 3))
+    t = np.linspace(0, 30, 240)
+    tag = np.c_[2.5 + 2 * np.cos(t / 3), 2.5 + 2 * np.sin(t / 2), 1.5 + np.sin(t / 5)]
+    Y = toa_model(anchors, tag) + 0.02 * rng.standard_normal((6, 240))
+    spikes = [(1, 40), (3, 100), (4, 170)]
+    for i, j in spikes:
+        Y[i, j] += 1.2
+    Y[2:, 60] = np.nan  # a position with only 2 ranges
+    path = tmp_path / "m.csv"
+    np.savetxt(path, Y, delimiter=",")
+    out = tmp_path / "res.json"
+    res = run(path, "--recipe", "moving-tag", "--out", out)
+    assert res.exit_code == 0, res.output
+    data = json.loads(out.read_text())
+    assert 60 in data["recipe"]["dropped_sources"]
+    assert data["recipe"]["n_rejected"] >= len(spikes)
+    S = np.array(data["sources"], dtype=float)
+    assert np.isnan(S[60]).all()
+    err = aligned_rmse(np.array(data["receivers"]), anchors)
+    assert err.rmse_receivers < 0.05
+    assert "spikes rejected" in res.output
+
+
+def test_time_order_test_false_alarm_rate_and_power():
+    """Independent sources: p-values are uniform, so detection at 1e-3 is rare (0 of 30
+    here; P(any) = 3%); a sampled trajectory is detected every time."""
+    from selfcal.toa.recipes import detect_time_order
+
+    hits = 0
+    for seed in range(30):
+        _, r, s, Y = _scene3d(seed, I=6, J=40)
+        hits += detect_time_order(Y, rng=seed).detected
+    assert hits == 0
+    rng = np.random.default_rng(1)
+    anchors = rng.uniform(0, 5, (6, 3))
+    t = np.linspace(0, 10, 60)
+    tag = np.c_[2 + np.cos(t / 2), 2 + np.sin(t / 3), 1 + 0.3 * t / 10]
+    test = detect_time_order(toa_model(anchors, tag) + 0.03 * rng.standard_normal((6, 60)))
+    assert test.detected and test.ratio < 0.5

@@ -173,13 +173,24 @@ def test_too_few_nodes_is_degenerate(d, small, big, rows):
 
 
 @FAST
-@given(frac=st.floats(0.75, 0.95), seed=st.integers(0, 1000))
-def test_too_few_observed_entries_is_degenerate(frac, seed):
-    Y = np.ones((5, 6))
-    Y[np.random.default_rng(seed).random((5, 6)) < frac] = np.nan
-    Y[0, 0] = 1.0
-    with pytest.raises(DegenerateGeometryError):
+@given(missing=st.integers(27, 90), seed=st.integers(0, 1000))
+def test_too_few_observed_entries_is_degenerate(missing, seed):
+    # 10 x 10 in 3-D with both offsets: 100 entries for n_parameters = 3*20 - 6 + 19 = 73
+    # unknowns. The complete matrix (and one with 26 entries missing) passes the count, so
+    # only the missing entries can make it fail: 27 or more leave <= 73 equations.
+    from selfcal._checks import check_toa_counts
+    from selfcal.toa import n_parameters
+
+    assert n_parameters(10, 10, 3, "both") == 73
+    check_toa_counts((10, 10), 100, 3, "both")
+    check_toa_counts((10, 10), 100 - 26, 3, "both")
+    rng = np.random.default_rng(seed)
+    R, S = rng.uniform(0, 5, (10, 3)), rng.uniform(0, 5, (10, 3))
+    Y = np.linalg.norm(R[:, None] - S[None], axis=-1)
+    Y.flat[rng.choice(100, missing, replace=False)] = np.nan
+    with pytest.raises(DegenerateGeometryError) as exc:
         solve_toa(Y, dim=3, offsets="both")
+    assert exc.value.kind == "too-few-measurements"
 
 
 @FAST

@@ -15,6 +15,14 @@ from numpy.typing import NDArray
 from .errors import DegenerateGeometryError, InputError
 
 __all__ = [
+    "as_array",
+    "check_int",
+    "check_float",
+    "entry",
+    "plausible_matrix_scale",
+    "plausible_jitter",
+    "plausible_angles",
+    "guard_size",
     "as_matrix",
     "as_points",
     "check_dim",
@@ -39,10 +47,7 @@ def as_matrix(
     NaN is allowed only as "missing" (``allow_nan``); +-inf is always refused.
     With ``nonnegative`` every finite entry must be >= 0 (ranges, times of flight).
     """
-    try:
-        arr = np.array(value, dtype=np.float64)
-    except (TypeError, ValueError) as exc:
-        raise InputError(f"{name}: cannot be read as a numeric matrix ({exc})") from None
+    arr = as_array(value, name)
     if arr.ndim != 2:
         raise InputError(f"{name}: expected a 2-D matrix (rows = receivers, columns = transmitters), got shape {arr.shape}")
     if arr.shape[0] < min_shape[0] or arr.shape[1] < min_shape[1]:
@@ -64,13 +69,13 @@ def as_matrix(
 
 def as_points(value: Any, name: str = "points", *, dim: int | None = None, allow_nan: bool = False) -> NDArray[np.float64]:
     """Convert ``value`` to an (n, d) float array of points, d in {2, 3} (or ``dim``)."""
-    try:
-        arr = np.array(value, dtype=np.float64)
-    except (TypeError, ValueError) as exc:
-        raise InputError(f"{name}: cannot be read as points ({exc})") from None
+    arr = as_array(value, name)
     if arr.ndim != 2:
-        raise InputError(f"{name}: expected an (n, d) array of points, got shape {arr.shape}")
+        raise InputError(f"{name}: expected an (n, d) array of points (one point per row), got shape {arr.shape}")
     d = arr.shape[1]
+    if d not in (2, 3) and arr.shape[0] in (2, 3) and (dim is None or arr.shape[0] == dim):
+        raise InputError(f"{name}: shape {arr.shape} looks transposed; give one point per row "
+                         f"({arr.shape[1]} x {arr.shape[0]}), not one coordinate per row")
     if dim is not None and d != dim:
         raise InputError(f"{name}: points have {d} coordinates, expected {dim}")
     if d not in (2, 3):
@@ -107,12 +112,16 @@ def check_positive(value: float | None, name: str, *, allow_none: bool = True) -
 
 
 def as_rng(rng: np.random.Generator | int | None) -> np.random.Generator:
-    """Normalise an ``rng`` argument (Generator, seed or None) to a Generator."""
+    """Normalise an ``rng`` argument (Generator, seed >= 0 or None) to a Generator."""
     if isinstance(rng, np.random.Generator):
         return rng
-    if rng is None or isinstance(rng, (int, np.integer)):
-        return np.random.default_rng(rng)
-    raise InputError(f"rng must be a numpy Generator, an int seed or None, got {type(rng).__name__}")
+    if rng is None:
+        return np.random.default_rng()
+    if isinstance(rng, (int, np.integer)) and not isinstance(rng, (bool, np.bool_)):
+        if rng < 0:
+            raise InputError(f"rng: a seed must be >= 0, got {int(rng)}")
+        return np.random.default_rng(int(rng))
+    raise InputError(f"rng must be a numpy Generator, an int seed >= 0 or None, got {type(rng).__name__}")
 
 
 def min_counts_toa(dim: int, offsets: str) -> tuple[int, int]:
@@ -178,3 +187,285 @@ def check_toa_counts(shape: tuple[int, int], n_observed: int, dim: int, offsets:
             f"{dim}-D, offsets={offsets!r}); add receivers, transmitters or measurements",
             kind="too-few-measurements",
         )
+
+
+
+# --------------------------------------------------------------------------------------
+# scalar and array validators shared by the entry points
+# --------------------------------------------------------------------------------------
+
+def as_array(value: Any, name: str = "array") -> NDArray[np.float64]:
+    """Convert ``value`` to a float array: masked entries -> NaN; complex, text, objects refused.
+
+    Raises
+    ------
+    InputError
+        Complex, strings / bytes, booleans-as-objects, ragged nesting, or non-numbers.
+    """
+    if isinstance(value, (str, bytes)):
+        raise InputError(f"{name}: expected numbers, got a {type(value).__name__}")
+    if np.ma.isMaskedArray(value):
+        m = np.ma.getmaskarray(value)
+        data = np.ma.getdata(value)
+        if data.dtype.kind == "c":
+            raise InputError(f"{name}: complex values; give real numbers")
+        try:
+            arr = np.array(data, dtype=np.float64)
+        except (TypeError, ValueError) as exc:
+            raise InputError(f"{name}: cannot be read as numbers ({exc})") from None
+        arr[m] = np.nan  # the mask means missing
+        return arr
+    try:
+        raw = np.asarray(value)
+    except (TypeError, ValueError) as exc:
+        raise InputError(f"{name}: cannot be read as a numeric array ({str(exc).splitlines()[0]})") from None
+    kind = raw.dtype.kind
+    if kind == "c":
+        raise InputError(f"{name}: complex values; give real numbers")
+    if kind in "USaV":
+        raise InputError(f"{name}: holds text ({raw.dtype}); give numbers (read files with selfcal.io.read_matrix)")
+    if kind in "mM":
+        raise InputError(f"{name}: holds dates / durations; give numbers")
+    if kind == "O":
+        flat = raw.ravel()
+        for v in flat[: 10_000]:
+            if v is None or isinstance(v, (str, bytes, complex, np.complexfloating)) or not np.isscalar(v):
+                raise InputError(f"{name}: holds {type(v).__name__} values; give a rectangular array of numbers")
+    try:
+        return np.array(raw, dtype=np.float64)
+    except (TypeError, ValueError, OverflowError) as exc:
+        raise InputError(f"{name}: cannot be read as numbers ({exc})") from None
+
+
+def check_int(value: Any, name: str, *, minimum: int | None = None, allow_none: bool = False) -> int | None:
+    """Return ``value`` as int; refuse bools, non-integral numbers, text and values < ``minimum``."""
+    if value is None:
+        if allow_none:
+            return None
+        raise InputError(f"{name} is required")
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer, float, np.floating)):
+        raise InputError(f"{name} must be an integer, got {type(value).__name__} {value!r}")
+    if isinstance(value, (float, np.floating)):
+        if not np.isfinite(value) or float(value) != int(value):
+            raise InputError(f"{name} must be an integer, got {value!r}")
+    v = int(value)
+    if minimum is not None and v < minimum:
+        raise InputError(f"{name} must be >= {minimum}, got {v}")
+    return v
+
+
+def check_float(value: Any, name: str, *, positive: bool = False, nonnegative: bool = False,
+                allow_none: bool = True, finite: bool = True, maximum: float | None = None) -> float | None:
+    """Return ``value`` as a finite float; refuse text, complex, bools, NaN/inf, sign violations."""
+    if value is None:
+        if allow_none:
+            return None
+        raise InputError(f"{name} is required")
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, float, np.integer, np.floating)):
+        raise InputError(f"{name} must be a real number, got {type(value).__name__} {value!r}")
+    v = float(value)
+    if np.isnan(v) or (finite and not np.isfinite(v)):
+        raise InputError(f"{name} must be a finite number, got {value!r}")
+    if positive and not v > 0:
+        raise InputError(f"{name} must be > 0, got {v:g}")
+    if nonnegative and not v >= 0:
+        raise InputError(f"{name} must be >= 0, got {v:g}")
+    if maximum is not None and v > maximum:
+        raise InputError(f"{name} must be <= {maximum:g}, got {v:g}")
+    return v
+
+
+_SPECS: dict[str, Any] = {
+    "positive": lambda v, n: check_float(v, n, positive=True, allow_none=False),
+    "positive?": lambda v, n: check_float(v, n, positive=True),
+    "nonnegative?": lambda v, n: check_float(v, n, nonnegative=True),
+    "count": lambda v, n: check_int(v, n, minimum=1),
+    "count?": lambda v, n: check_int(v, n, minimum=1, allow_none=True),
+    "count0": lambda v, n: check_int(v, n, minimum=0),
+    "count0?": lambda v, n: check_int(v, n, minimum=0, allow_none=True),
+    "rng": lambda v, n: as_rng(v) and None,
+    "bool": lambda v, n: _check_bool(v, n),
+    "str": lambda v, n: _check_str(v, n),
+    "array": lambda v, n: None,
+}
+
+
+def _check_bool(v: Any, n: str) -> None:
+    if not isinstance(v, (bool, np.bool_)):
+        raise InputError(f"{n} must be True or False, got {type(v).__name__} {v!r}")
+
+
+def _check_str(v: Any, n: str) -> None:
+    if not isinstance(v, str):
+        raise InputError(f"{n} must be a string, got {type(v).__name__} {v!r}")
+
+
+_LEAKS = (ValueError, TypeError, IndexError, KeyError, ZeroDivisionError, OverflowError, FloatingPointError,
+          np.linalg.LinAlgError, AttributeError)
+
+
+def entry(**specs: str) -> Any:
+    """Decorator for a public entry point: validate named arguments, name any leftover failure.
+
+    Parameters
+    ----------
+    **specs:
+        ``argument="spec"`` with spec one of ``positive``, ``positive?`` (None allowed),
+        ``nonnegative?``, ``count`` (int >= 1), ``count?``, ``count0`` (int >= 0), ``count0?``,
+        ``rng`` (Generator / seed >= 0 / None), ``bool``, ``str``, ``array`` (masked entries ->
+        NaN, complex / text refused).
+
+    Notes
+    -----
+    Arguments are checked before the function runs. A ``ValueError``, ``TypeError``,
+    ``IndexError``, ``KeyError``, ``ZeroDivisionError``, ``OverflowError``, ``LinAlgError``
+    that still escapes the function becomes an :class:`~selfcal.errors.InputError` naming the
+    function (a ``MemoryError`` too, saying that the input is too large), so that a caller
+    only ever sees :class:`~selfcal.errors.SelfcalError` subclasses.
+
+    Examples
+    --------
+    >>> @entry(speed="positive?")
+    ... def f(x, speed=None):
+    ...     return speed
+    >>> f(1, speed="fast")
+    Traceback (most recent call last):
+    ...
+    selfcal.errors.InputError: speed must be a real number, got str 'fast'
+    """
+    import functools
+    import inspect
+
+    from .errors import SelfcalError
+
+    def deco(func: Any) -> Any:
+        sig = inspect.signature(func)
+        for k, spec in specs.items():
+            if k not in sig.parameters or spec not in _SPECS:
+                raise TypeError(f"entry(): {func.__name__} has no argument {k!r} or spec {spec!r} is unknown")
+
+        @functools.wraps(func)
+        def wrapper(*args: Any, **kwargs: Any) -> Any:
+            try:
+                bound = sig.bind(*args, **kwargs)
+            except TypeError as exc:
+                raise InputError(f"{func.__name__}: {exc}") from None
+            for k, spec in specs.items():
+                if k not in bound.arguments:
+                    continue
+                v = bound.arguments[k]
+                if spec == "array":
+                    if v is not None and not isinstance(v, (str, bytes)) and (
+                            np.ma.isMaskedArray(v) or isinstance(v, (list, tuple, np.ndarray))):
+                        bound.arguments[k] = as_array(v, k)
+                    continue
+                _SPECS[spec](v, k)
+            try:
+                return func(*bound.args, **bound.kwargs)
+            except SelfcalError:
+                raise
+            except MemoryError:
+                raise InputError(f"{func.__name__}: the input needs more memory than this machine has") from None
+            except RecursionError:
+                raise InputError(f"{func.__name__}: the input is nested too deeply") from None
+            except _LEAKS as exc:
+                msg = " ".join(str(exc).split())[:200]
+                raise InputError(f"{func.__name__}: could not use the input ({type(exc).__name__}: {msg})") from None
+
+        return wrapper
+
+    return deco
+
+
+# --------------------------------------------------------------------------------------
+# plausibility: the mistakes people make, named
+# --------------------------------------------------------------------------------------
+
+#: Largest finite entry (m) below which a "range" matrix looks like seconds given without --speed.
+#: The networks selfcal calibrates (rooms, halls, UWB, radio) span more than 10 cm; acoustic times
+#: of flight across a 30 m hall are < 0.1 s, so sub-0.1 values in metres are far likelier seconds.
+TIMES_AS_METRES_MAX = 0.1
+#: The same for far-field TDOA (relative distances across a microphone array): arrays are
+#: larger than 5 mm (a 1 m array gives times of flight of ~3 ms = 0.003 "m").
+FARFIELD_TIMES_AS_METRES_MAX = 0.005
+#: Largest distance (m) a TOA / TDOA self-calibration is expected to span; beyond it the likely
+#: mistake is milliseconds (or samples) read as seconds with --speed.
+MAX_PLAUSIBLE_SPAN_M = 1000.0
+#: Largest clock jitter (s) that is not a unit mistake: detection windows are milliseconds, 004's
+#: units are synchronised within 100 us; a jitter >= 10 ms is microseconds given as seconds.
+MAX_PLAUSIBLE_JITTER_S = 0.01
+
+
+def plausible_matrix_scale(matrix: NDArray[np.float64], *, speed: float | None, explicit_unit: bool,
+                           name: str = "matrix", option: str = "--speed",
+                           min_span: float = TIMES_AS_METRES_MAX) -> None:
+    """Refuse a range / time matrix whose scale points at a unit mistake (unless the unit was explicit).
+
+    Raises
+    ------
+    InputError
+        Ranges whose largest entry is below :data:`TIMES_AS_METRES_MAX` without ``--speed``
+        (times in seconds), or distances ``speed * t`` beyond :data:`MAX_PLAUSIBLE_SPAN_M`
+        (milliseconds or samples read as seconds).
+    """
+    if explicit_unit:
+        return
+    M = np.asarray(matrix, dtype=float)
+    finite = np.abs(M[np.isfinite(M)])
+    if finite.size == 0:
+        return
+    top = float(finite.max())
+    if speed is None:
+        if 0 < top < min_span:
+            raise InputError(
+                f"{name}: the largest entry is {top:.3g}, a network under {min_span * 100:g} cm "
+                f"if these are metres; if they are times in seconds give {option} (343 for sound in air), "
+                f"or confirm metres with --unit m")
+        return
+    span = top * speed
+    if span > MAX_PLAUSIBLE_SPAN_M:
+        raise InputError(
+            f"{name}: with {option} {speed:g} the largest entry {top:.3g} s is {span / 1000:.3g} km; "
+            f"are the times milliseconds (--unit ms), microseconds (--unit us) or samples "
+            f"(--unit samples --sample-rate HZ)? Confirm seconds with --unit s")
+
+
+def plausible_jitter(jitter: float | None, option: str = "--jitter") -> float | None:
+    """Refuse a negative / non-finite jitter or one of 10 ms or more (microseconds given as seconds)."""
+    if jitter is None:
+        return None
+    j = check_float(jitter, option, nonnegative=True)
+    assert j is not None
+    if j >= MAX_PLAUSIBLE_JITTER_S:
+        raise InputError(f"{option} {j:g} s is not a clock jitter; {option} is in seconds "
+                         f"(did you mean {option}-us {j:g}, i.e. {j * 1e-6:g} s?)")
+    return j
+
+
+def plausible_angles(values: NDArray[np.float64], unit: str, option: str = "--angles") -> None:
+    """Refuse radians beyond 2 pi (likely degrees) with the fix named."""
+    a = np.asarray(values, dtype=float)
+    finite = np.abs(a[np.isfinite(a)])
+    if unit == "rad" and finite.size and finite.max() > 2 * np.pi + 1e-9:
+        raise InputError(f"{option} rad: values up to {finite.max():.4g} exceed 2 pi; are they degrees "
+                         f"({option} deg)?")
+
+
+def guard_size(n_bytes: float, what: str, *, limit: float | None = None) -> None:
+    """Refuse up front an allocation of ``n_bytes`` beyond ``limit`` (default: half the RAM).
+
+    Raises
+    ------
+    InputError
+        Naming ``what`` and the memory it would need.
+    """
+    if limit is None:
+        try:
+            import os
+
+            limit = 0.5 * os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+        except (ValueError, OSError, AttributeError):
+            limit = 8e9
+    if not np.isfinite(n_bytes) or n_bytes > limit:
+        need = "an unbounded amount of" if not np.isfinite(n_bytes) else f"{n_bytes / 1e9:.3g} GB of"
+        raise InputError(f"{what} would need {need} memory (limit {limit / 1e9:.3g} GB); choose smaller sizes")

@@ -8,6 +8,7 @@ everything that compares an estimate with ground truth aligns first with
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
@@ -22,6 +23,9 @@ __all__ = [
     "rotation_from_rotvec",
     "rotvec_from_rotation",
     "skew",
+    "PlaneFit",
+    "fit_plane",
+    "wrap_angle",
     "sphere_exp",
     "sphere_tangent_basis",
     "canonical_gauge",
@@ -35,16 +39,21 @@ Array = NDArray[np.float64]
 class Alignment:
     """A transform ``y = scale * R @ x + t`` mapping estimate coordinates to reference ones.
 
-    ``rotation`` is (d, d) orthogonal (det -1 when a reflection was allowed and chosen).
+    ``rotation`` is (d, d) orthogonal (det -1 when a reflection was allowed and chosen);
+    for a batch (from (B, n, d) inputs) ``rotation`` is (B, d, d), ``translation`` (B, d)
+    and ``scale`` a (B,) array.
     """
 
     rotation: Array
     translation: Array
-    scale: float = 1.0
+    scale: float | Array = 1.0
 
     def apply(self, points: Array) -> Array:
-        """Map (n, d) points with this transform."""
-        return self.scale * np.asarray(points) @ self.rotation.T + self.translation
+        """Map (n, d) points (or (B, n, d) for a batched alignment) with this transform."""
+        P = np.asarray(points, dtype=float)
+        s = np.asarray(self.scale, dtype=float)[..., None, None]
+        out = s * (P @ np.swapaxes(self.rotation, -1, -2)) + self.translation[..., None, :]
+        return out[0] if P.ndim == 2 and self.rotation.ndim == 3 else out
 
 
 def align(
@@ -59,43 +68,69 @@ def align(
 
     Minimises ``sum_i w_i |reference_i - (s R estimate_i + t)|^2`` over rotations R
     (orthogonal matrices, det = -1 allowed if ``reflection``), translations t and,
-    if ``scale``, a scale s > 0 (Umeyama 1991, eq. 40-42).
+    if ``scale``, a scale s > 0 (Umeyama 1991, eq. 40-42). The one home of orthogonal
+    Procrustes in selfcal: the batched initialisers (003 Algorithm 2, eq. 14; the Kabsch
+    step of the AOA solutions) call it with a leading batch axis.
 
     Parameters
     ----------
-    estimate, reference: (n, d) arrays of corresponding points; rows with NaN are ignored.
-    reflection: allow an improper orthogonal transform (the mirror ambiguity of
-        self-calibration).
-    scale: also fit a similarity scale.
-    weights: optional (n,) non-negative weights.
+    estimate, reference : (n, d) or (B, n, d) arrays
+        Corresponding points; rows with NaN are ignored.
+    reflection : bool
+        Allow an improper orthogonal transform (the mirror ambiguity of self-calibration).
+    scale : bool
+        Also fit a similarity scale.
+    weights : (n,) or (B, n) array, optional
+        Non-negative weights.
+
+    Returns
+    -------
+    Alignment
+        ``rotation`` (d, d), ``translation`` (d,), ``scale``; batched: (B, d, d), (B, d), (B,).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from selfcal.geometry import align, rotation_2d
+    >>> X = np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 2.0]])
+    >>> Y = X @ rotation_2d(0.3).T + [5.0, -1.0]
+    >>> a = align(X, Y, reflection=False)
+    >>> bool(np.allclose(a.apply(X), Y)), bool(np.allclose(a.rotation, rotation_2d(0.3)))
+    (True, True)
     """
     X = np.asarray(estimate, dtype=float)
     Y = np.asarray(reference, dtype=float)
-    if X.shape != Y.shape or X.ndim != 2:
+    if X.shape != Y.shape or X.ndim not in (2, 3):
         raise InputError(f"align: estimate {X.shape} and reference {Y.shape} must be equal (n, d) arrays")
-    ok = np.isfinite(X).all(axis=1) & np.isfinite(Y).all(axis=1)
-    w = np.ones(len(X)) if weights is None else np.asarray(weights, dtype=float)
+    batched = X.ndim == 3
+    if not batched:
+        X, Y = X[None], Y[None]
+    ok = np.isfinite(X).all(axis=-1) & np.isfinite(Y).all(axis=-1)
+    w = np.ones(ok.shape) if weights is None else np.broadcast_to(np.asarray(weights, dtype=float), ok.shape)
     w = np.where(ok, w, 0.0)
-    if w.sum() <= 0:
+    total = w.sum(axis=-1, keepdims=True)
+    if np.any(total <= 0):
         raise InputError("align: no finite corresponding points")
-    w = w / w.sum()
-    mx = w @ np.where(ok[:, None], X, 0.0)
-    my = w @ np.where(ok[:, None], Y, 0.0)
-    Xc = np.where(ok[:, None], X - mx, 0.0)
-    Yc = np.where(ok[:, None], Y - my, 0.0)
-    C = (Yc * w[:, None]).T @ Xc
+    w = w / total
+    X0, Y0 = np.where(ok[..., None], X, 0.0), np.where(ok[..., None], Y, 0.0)
+    mx = np.einsum("bn,bnd->bd", w, X0)
+    my = np.einsum("bn,bnd->bd", w, Y0)
+    Xc = np.where(ok[..., None], X - mx[:, None], 0.0)
+    Yc = np.where(ok[..., None], Y - my[:, None], 0.0)
+    C = np.einsum("bn,bni,bnj->bij", w, Yc, Xc)
     U, S, Vt = np.linalg.svd(C)
-    d = X.shape[1]
-    D = np.ones(d)
-    if not reflection and np.linalg.det(U @ Vt) < 0:
-        D[-1] = -1.0
-    R = (U * D) @ Vt
-    s = 1.0
+    D = np.ones(S.shape)
+    if not reflection:
+        D[:, -1] = np.where(np.linalg.det(U @ Vt) < 0, -1.0, 1.0)
+    R = (U * D[:, None, :]) @ Vt
+    s = np.ones(len(X))
     if scale:
-        var_x = float((w * (Xc**2).sum(axis=1)).sum())
-        s = float((S * D).sum() / var_x) if var_x > 0 else 1.0
-    t = my - s * R @ mx
-    return Alignment(rotation=R, translation=t, scale=s)
+        var_x = np.einsum("bn,bn->b", w, (Xc**2).sum(axis=-1))
+        s = np.where(var_x > 0, (S * D).sum(axis=-1) / np.where(var_x > 0, var_x, 1.0), 1.0)
+    t = my - s[:, None] * np.einsum("bij,bj->bi", R, mx)
+    if batched:
+        return Alignment(rotation=R, translation=t, scale=s)
+    return Alignment(rotation=R[0], translation=t[0], scale=float(s[0]))
 
 
 def apply_alignment(points: Array, alignment: Alignment) -> Array:
@@ -108,6 +143,50 @@ def rotation_2d(theta: float | Array) -> Array:
     th = np.asarray(theta, dtype=float)
     c, s = np.cos(th), np.sin(th)
     return np.stack([np.stack([c, -s], -1), np.stack([s, c], -1)], -2)
+
+
+def wrap_angle(angle: float | Array) -> Array:
+    """Wrap angles (rad) to ``[-pi, pi)``: the one angle wrap of selfcal.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from selfcal.geometry import wrap_angle
+    >>> wrap_angle(np.array([np.pi, 3 * np.pi / 2, -0.5])).round(4).tolist()
+    [-3.1416, -1.5708, -0.5]
+    """
+    return (np.asarray(angle, dtype=float) + np.pi) % (2 * np.pi) - np.pi
+
+
+class PlaneFit(NamedTuple):
+    """Total-least-squares plane (hyperplane) through points: see :func:`fit_plane`."""
+
+    centroid: Array
+    normal: Array
+    singular_values: Array
+
+
+def fit_plane(points: Array) -> PlaneFit:
+    """Total-least-squares plane through (n, d) ``points``: the one plane fit of selfcal.
+
+    The plane passes through the centroid; its unit ``normal`` is the right singular vector
+    of the centred points with the smallest singular value (the direction of least extent).
+    ``singular_values`` (largest first) say how flat the points are: the RMS distance to
+    the plane is ``singular_values[-1] / sqrt(n)``.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from selfcal.geometry import fit_plane
+    >>> pts = np.array([[0.0, 0, 1], [1, 0, 1], [0, 1, 1], [1, 1, 1]])
+    >>> fit = fit_plane(pts)
+    >>> fit.centroid.tolist(), abs(fit.normal).round(12).tolist()
+    ([0.5, 0.5, 1.0], [0.0, 0.0, 1.0])
+    """
+    P = np.asarray(points, dtype=float)
+    c = P.mean(axis=0)
+    _, s, vt = np.linalg.svd(P - c, full_matrices=P.shape[0] < P.shape[1])  # vt[-1]: least extent
+    return PlaneFit(c, vt[-1], s)
 
 
 def skew(v: Array) -> Array:
@@ -125,16 +204,15 @@ def skew(v: Array) -> Array:
 
 
 def rotation_from_rotvec(rotvec: Array) -> Array:
-    """Rodrigues' formula: (..., 3) rotation vectors (axis * angle, rad) -> (..., 3, 3) matrices."""
+    """Rodrigues' formula: (..., 3) rotation vectors (axis * angle, rad) -> (..., 3, 3) matrices.
+
+    The SO(3) exponential map, through :class:`scipy.spatial.transform.Rotation`.
+    """
+    from scipy.spatial.transform import Rotation
+
     v = np.asarray(rotvec, dtype=float)
-    th = np.linalg.norm(v, axis=-1)[..., None, None]
-    K = skew(v)
-    small = th < 1e-8
-    th_safe = np.where(small, 1.0, th)
-    a = np.where(small, 1.0 - th**2 / 6.0, np.sin(th_safe) / th_safe)
-    b = np.where(small, 0.5 - th**2 / 24.0, (1.0 - np.cos(th_safe)) / th_safe**2)
-    eye = np.broadcast_to(np.eye(3), K.shape)
-    return eye + a * K + b * (K @ K)
+    out = Rotation.from_rotvec(v.reshape(-1, 3)).as_matrix()
+    return out.reshape(v.shape[:-1] + (3, 3))
 
 
 def rotvec_from_rotation(R: Array) -> Array:

@@ -1,99 +1,352 @@
-"""Readers and writers: CSV / NPY matrices, JSON results (atomic), NPZ logs (no pickle).
+"""Readers and writers: CSV / NPY matrices, JSON results, NPZ logs (never pickle).
 
-Matrices follow the project convention: rows = receivers, columns = transmitters,
-``nan`` or an empty CSV field = missing.
+Matrices follow the project convention: rows = receivers, columns = transmitters
+(points as rows), ``nan`` / ``NA`` / an empty CSV field = missing.
+
+The I/O contract (DESIGN.md, "Inputs and outputs"):
+
+* **Outputs never destroy anything.** :func:`atomic_write_bytes` writes a temporary file
+  beside the target and ``os.replace``-s it, but only over a regular file or a new path.
+  A symlink is written through (its target is replaced, the link stays); a directory,
+  device, FIFO or socket at the path is refused with :class:`OutputError`. ``"-"`` means
+  standard output. Any failure (parent is a file, disk full, read-only, name too long) is an
+  :class:`OutputError` and leaves no new file behind.
+* **All or nothing.** Inside :func:`staged_outputs` every write is buffered and the whole set
+  is committed when the block ends without an exception (temporary files first, then the
+  renames), or nothing is written.
+* **Readers take real files.** :func:`read_table` sniffs the delimiter (comma, semicolon,
+  tab, whitespace), a header row and a first column of names, a UTF-8 BOM, CRLF line ends,
+  ``#`` comments (``np.savetxt`` output loads), and refuses what Python's ``float`` would
+  misread (``1_0``); errors name the row and the column.
 """
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import csv
+import errno
+import io as _io
 import json
 import math
 import os
+import re
+import stat
+import sys
 import tempfile
-from collections.abc import Mapping
-from dataclasses import fields, is_dataclass
+from collections.abc import Iterator, Mapping, Sequence
+from dataclasses import dataclass, fields, is_dataclass
 from pathlib import Path
-from typing import Any
+from typing import IO, Any
 
 import numpy as np
 from numpy.typing import NDArray
 
-from .errors import InputError
+from .errors import InputError, SelfcalError
 
-__all__ = ["read_matrix", "write_matrix", "to_jsonable", "write_json", "read_json", "atomic_write_bytes", "load_npz"]
+__all__ = [
+    "OutputError",
+    "SerializationError",
+    "Table",
+    "read_table",
+    "read_matrix",
+    "write_matrix",
+    "to_jsonable",
+    "write_json",
+    "read_json",
+    "atomic_write_bytes",
+    "check_output_path",
+    "staged_outputs",
+    "stdout_target",
+    "load_npz",
+    "MISSING_TOKENS",
+]
+
+#: Cell texts read as a missing value (case-insensitive), besides the empty field.
+MISSING_TOKENS = frozenset({"", "na", "nan", "n/a", "null", "none", "-nan", "+nan"})
+
+# strict decimal number: no underscores, no hex, no "infinity" spelled out
+_NUMBER = re.compile(r"[+-]?(?:\d+(?:\.\d*)?|\.\d+)(?:[eE][+-]?\d+)?\Z", re.ASCII)  # linear time
+_INF = re.compile(r"[+-]?inf\Z", re.IGNORECASE | re.ASCII)
+_DECIMAL_COMMA = re.compile(r"[+-]?\d+,\d+(?:[eE][+-]?\d+)?\Z", re.ASCII)
+_TMP_PREFIX = ".selfcal-"  # constant-length temporary names: a long target name still fits
 
 
-def read_matrix(path: str | os.PathLike[str], name: str | None = None) -> NDArray[np.float64]:
-    """Read a numeric matrix from ``.csv`` (comma separated, no header) or ``.npy``.
+class OutputError(InputError):
+    """An output path cannot be written (a directory, device, FIFO, read-only, disk full, ...)."""
 
-    Empty fields and ``nan`` (any case) are missing values -> NaN. Anything else that is
-    not a number is refused with the row/column named. A 1-D file becomes a column.
+
+class SerializationError(SelfcalError, TypeError):
+    """An object handed to a writer has no JSON form (a programming error, not bad input)."""
+
+
+# --------------------------------------------------------------------------------------
+# outputs
+# --------------------------------------------------------------------------------------
+
+_STAGE: contextvars.ContextVar[_Stage | None] = contextvars.ContextVar("selfcal_stage", default=None)
+_STDOUT: contextvars.ContextVar[IO[Any] | None] = contextvars.ContextVar("selfcal_stdout", default=None)
+
+
+def _is_dash(path: str | os.PathLike[str]) -> bool:
+    return os.fspath(path) == "-"
+
+
+def _kind_name(mode: int) -> str:
+    if stat.S_ISDIR(mode):
+        return "a directory"
+    if stat.S_ISCHR(mode):
+        return "a character device"
+    if stat.S_ISBLK(mode):
+        return "a block device"
+    if stat.S_ISFIFO(mode):
+        return "a FIFO"
+    if stat.S_ISSOCK(mode):
+        return "a socket"
+    return "not a regular file"
+
+
+def _oserror_text(exc: OSError) -> str:
+    return exc.strerror or type(exc).__name__
+
+
+def check_output_path(path: str | os.PathLike[str], *, kind: str = "file",
+                      label: str | None = None) -> Path:
+    """Validate an output path before anything is computed; return the real target.
+
+    Parameters
+    ----------
+    path:
+        The path given by the user. ``"-"`` (standard output) is returned unchanged for
+        ``kind="file"`` and refused for ``kind="dir"``.
+    kind:
+        ``"file"``: the target must be a regular file or not exist (a symlink is followed
+        to its target). ``"dir"``: the target must be a directory or not exist.
+    label:
+        Name used in the message (default: the path).
+
+    Returns
+    -------
+    pathlib.Path
+        The resolved target (symlinks followed).
+
+    Raises
+    ------
+    OutputError
+        The target is a directory / device / FIFO / socket (or a file for ``kind="dir"``), an
+        ancestor is not a directory, the location is not writable, or a name is too long.
+
+    Examples
+    --------
+    >>> check_output_path("-")
+    PosixPath('-')
     """
-    p = Path(path)
-    label = name or str(p)
-    if not p.is_file():
-        raise InputError(f"{label}: file not found")
-    if p.suffix.lower() == ".npy":
+    raw = os.fspath(path)
+    name = label or raw
+    if raw == "-":
+        if kind == "dir":
+            raise OutputError(f"{name}: '-' (standard output) cannot hold a folder of files")
+        return Path("-")
+    if raw == "" or "\x00" in raw:
+        raise OutputError(f"{name!r}: not a usable path")
+    real = Path(os.path.realpath(raw))
+    try:
+        st = os.stat(real)
+    except FileNotFoundError:
+        st = None
+    except OSError as exc:  # ENOTDIR (an ancestor is a file), ENAMETOOLONG, ELOOP, EACCES
+        raise OutputError(f"{name}: cannot write here ({_oserror_text(exc)})") from None
+    if st is not None:
+        if kind == "file" and not stat.S_ISREG(st.st_mode):
+            what = _kind_name(st.st_mode)
+            hint = "; give a file name" if stat.S_ISDIR(st.st_mode) else "; refusing to replace it"
+            raise OutputError(f"{name}: is {what}{hint}")
+        if kind == "dir" and not stat.S_ISDIR(st.st_mode):
+            raise OutputError(f"{name}: exists and is not a directory")
+        if kind == "file" and not os.access(real, os.W_OK):
+            raise OutputError(f"{name}: the existing file is read-only")
+        if kind == "dir" and not os.access(real, os.W_OK | os.X_OK):
+            raise OutputError(f"{name}: the directory is not writable")
+        return real
+    # walk up to the first existing ancestor: it must be a writable directory
+    missing = [real.name]
+    anc = real.parent
+    while True:
         try:
-            arr = np.load(p, allow_pickle=False)
-        except (ValueError, OSError) as exc:
-            raise InputError(f"{label}: not a readable .npy array without pickle ({exc})") from None
-        if arr.dtype.kind not in "fiub":
-            raise InputError(f"{label}: .npy dtype {arr.dtype} is not numeric")
-        arr = np.asarray(arr, dtype=float)
-    else:
-        rows: list[list[float]] = []
-        try:
-            with p.open(newline="") as fh:
-                for r, row in enumerate(csv.reader(fh)):
-                    if not row or all(not c.strip() for c in row) and len(row) <= 1:
-                        continue
-                    vals = []
-                    for c, cell in enumerate(row):
-                        cell = cell.strip()
-                        if cell == "" or cell.lower() == "nan":
-                            vals.append(math.nan)
-                            continue
-                        try:
-                            vals.append(float(cell))
-                        except ValueError:
-                            raise InputError(f"{label}: row {r + 1}, column {c + 1}: {cell!r} is not a number") from None
-                    rows.append(vals)
-        except UnicodeDecodeError:
-            raise InputError(f"{label}: not a text CSV file") from None
-        if not rows:
-            raise InputError(f"{label}: the file is empty")
-        widths = {len(r) for r in rows}
-        if len(widths) != 1:
-            raise InputError(f"{label}: rows have different numbers of fields {sorted(widths)}")
-        arr = np.array(rows, dtype=float)
-    if arr.ndim == 1:
-        arr = arr[:, None]
-    if arr.ndim != 2:
-        raise InputError(f"{label}: expected a 2-D matrix, got shape {arr.shape}")
-    return arr
+            ast = os.stat(anc)
+            break
+        except FileNotFoundError:
+            missing.append(anc.name)
+            anc = anc.parent
+        except OSError as exc:
+            raise OutputError(f"{name}: cannot write here ({_oserror_text(exc)})") from None
+    if not stat.S_ISDIR(ast.st_mode):
+        raise OutputError(f"{name}: {anc} is not a directory")
+    if not os.access(anc, os.W_OK | os.X_OK):
+        raise OutputError(f"{name}: {anc} is not writable")
+    try:
+        name_max = os.pathconf(anc, "PC_NAME_MAX")
+    except (OSError, ValueError):
+        name_max = 255
+    for part in missing:
+        if len(os.fsencode(part)) > name_max:
+            raise OutputError(f"{name}: a file name is longer than {name_max} bytes")
+    return real
 
 
-def write_matrix(path: str | os.PathLike[str], matrix: NDArray[Any]) -> None:
-    """Write a 2-D matrix as CSV (``nan`` for missing) or ``.npy``, atomically."""
-    p = Path(path)
-    arr = np.asarray(matrix, dtype=float)
-    if p.suffix.lower() == ".npy":
-        import io as _io
+@dataclass
+class _Stage:
+    items: list[tuple[str, bytes]]
 
-        buf = _io.BytesIO()
-        np.save(buf, arr, allow_pickle=False)
-        atomic_write_bytes(p, buf.getvalue())
-    else:
-        lines = [",".join("nan" if not np.isfinite(v) else repr(float(v)) for v in row) for row in np.atleast_2d(arr)]
-        atomic_write_bytes(p, ("\n".join(lines) + "\n").encode())
+
+@contextlib.contextmanager
+def stdout_target(stream: IO[Any] | None) -> Iterator[None]:
+    """Make ``"-"`` write to ``stream`` (binary or text) within the block (CLI plumbing)."""
+    tok = _STDOUT.set(stream)
+    try:
+        yield
+    finally:
+        _STDOUT.reset(tok)
+
+
+def _write_stdout(data: bytes) -> None:
+    stream = _STDOUT.get() or sys.stdout
+    buf = getattr(stream, "buffer", None)
+    try:
+        if buf is not None:
+            buf.write(data)
+            buf.flush()
+        else:
+            stream.write(data.decode("utf-8", errors="replace"))
+            stream.flush()
+    except BrokenPipeError:
+        pass
+    except OSError as exc:
+        raise OutputError(f"-: cannot write to standard output ({_oserror_text(exc)})") from None
+
+
+def _commit(items: Sequence[tuple[str, bytes]]) -> None:
+    """Write every (path, data) or none: all temporaries first, then the renames."""
+    files: dict[Path, tuple[str, bytes]] = {}
+    to_stdout: list[bytes] = []
+    for raw, data in items:
+        if _is_dash(raw):
+            to_stdout.append(data)
+        else:
+            files[check_output_path(raw)] = (raw, data)  # the last write of a path wins
+    created: list[Path] = []
+    temps: list[tuple[str, Path]] = []
+    current = ""
+    umask = os.umask(0)
+    os.umask(umask)
+    try:
+        for real, (raw, data) in files.items():
+            current = raw
+            parents = []
+            d = real.parent
+            while not d.exists():
+                parents.append(d)
+                d = d.parent
+            for d in reversed(parents):
+                os.mkdir(d)
+                created.append(d)
+            fd, tmp = tempfile.mkstemp(prefix=_TMP_PREFIX, suffix=".tmp", dir=real.parent)
+            temps.append((tmp, real))
+            with os.fdopen(fd, "wb") as fh:
+                fh.write(data)
+                fh.flush()
+                os.fsync(fh.fileno())
+            try:
+                mode = stat.S_IMODE(os.stat(real).st_mode)  # keep an existing file's permissions
+            except FileNotFoundError:
+                mode = 0o666 & ~umask  # what a plain open() would give
+            os.chmod(tmp, mode)
+        for tmp, real in temps:
+            current = str(real)
+            os.replace(tmp, real)
+    except OSError as exc:
+        _cleanup(temps, created)
+        if exc.errno == errno.ENOSPC:
+            why = "no space left on the device"
+        else:
+            why = _oserror_text(exc)
+        raise OutputError(f"{current}: cannot write ({why}); nothing was written") from None
+    except BaseException:
+        _cleanup(temps, created)
+        raise
+    for data in to_stdout:
+        _write_stdout(data)
+
+
+def _cleanup(temps: list[tuple[str, Path]], created: list[Path]) -> None:
+    for tmp, _ in temps:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+    for d in reversed(created):
+        with contextlib.suppress(OSError):
+            os.rmdir(d)
+
+
+def atomic_write_bytes(path: str | os.PathLike[str], data: bytes) -> None:
+    """Write ``data`` to ``path`` atomically, never replacing anything but a regular file.
+
+    Parameters
+    ----------
+    path:
+        Target file; ``"-"`` = standard output. A symlink is written through to its target.
+    data:
+        The bytes.
+
+    Raises
+    ------
+    OutputError
+        The path is a directory / device / FIFO, or writing failed; no new file is left.
+
+    Notes
+    -----
+    Inside :func:`staged_outputs` the write is buffered until the block ends.
+    """
+    stage = _STAGE.get()
+    if stage is not None:
+        check_output_path(path)  # fail early, before more work is done
+        stage.items.append((os.fspath(path), bytes(data)))
+        return
+    _commit([(os.fspath(path), bytes(data))])
+
+
+@contextlib.contextmanager
+def staged_outputs() -> Iterator[None]:
+    """Buffer every :func:`atomic_write_bytes` in the block and commit them all at its end.
+
+    When the block raises, nothing is written. Nested blocks join the outermost one.
+
+    Examples
+    --------
+    >>> import tempfile, pathlib
+    >>> d = pathlib.Path(tempfile.mkdtemp())
+    >>> with staged_outputs():
+    ...     write_json(d / "a.json", {"x": 1})
+    ...     (d / "a.json").exists()
+    False
+    >>> (d / "a.json").exists()
+    True
+    """
+    if _STAGE.get() is not None:
+        yield
+        return
+    stage = _Stage(items=[])
+    tok = _STAGE.set(stage)
+    try:
+        yield
+    finally:
+        _STAGE.reset(tok)
+    _commit(stage.items)
 
 
 def to_jsonable(obj: Any) -> Any:
     """Convert results (dataclasses, arrays, numpy scalars) to JSON-safe Python objects.
 
-    Non-finite floats become ``null`` (strict JSON has no NaN).
+    Non-finite floats become ``null`` (strict JSON has no NaN); masked entries too.
     """
     if hasattr(obj, "to_dict") and callable(obj.to_dict):
         return to_jsonable(obj.to_dict())
@@ -101,6 +354,8 @@ def to_jsonable(obj: Any) -> Any:
         return {f.name: to_jsonable(getattr(obj, f.name)) for f in fields(obj)}
     if isinstance(obj, Mapping):
         return {str(k): to_jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, np.ma.MaskedArray):
+        return to_jsonable(np.ma.filled(obj.astype(float), np.nan))
     if isinstance(obj, np.ndarray):
         return to_jsonable(obj.tolist())
     if isinstance(obj, (list, tuple)):
@@ -114,64 +369,336 @@ def to_jsonable(obj: Any) -> Any:
         return f if math.isfinite(f) else None
     if isinstance(obj, Path):
         return str(obj)
-    return obj
-
-
-def atomic_write_bytes(path: str | os.PathLike[str], data: bytes) -> None:
-    """Write ``data`` to ``path`` via a temporary file in the same folder + rename.
-
-    A crash or an error never leaves a half-written file at ``path``.
-    """
-    p = Path(path)
-    p.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{p.name}.", suffix=".tmp", dir=p.parent)
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            fh.write(data)
-            fh.flush()
-            os.fsync(fh.fileno())
-        # mkstemp creates 0600; give the file the permissions a plain open() would have
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)
-        os.replace(tmp, p)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except OSError:
-            pass
-        raise
+    if obj is None or isinstance(obj, (str, int)):
+        return obj
+    if isinstance(obj, complex):
+        raise SerializationError("complex numbers have no JSON form")
+    raise SerializationError(f"an object of type {type(obj).__name__} has no JSON form")
 
 
 def write_json(path: str | os.PathLike[str], obj: Any, *, indent: int = 2) -> None:
-    """Serialise ``obj`` with :func:`to_jsonable` and write it atomically as strict JSON."""
-    text = json.dumps(to_jsonable(obj), indent=indent, allow_nan=False)
+    """Serialise ``obj`` with :func:`to_jsonable` and write it atomically as strict JSON.
+
+    Raises
+    ------
+    SerializationError
+        ``obj`` holds something without a JSON form (nothing is written).
+    OutputError
+        The path cannot be written (see :func:`atomic_write_bytes`).
+    """
+    try:
+        text = json.dumps(to_jsonable(obj), indent=indent, allow_nan=False)
+    except (TypeError, ValueError) as exc:
+        raise SerializationError(f"result has no strict-JSON form ({exc})") from None
     atomic_write_bytes(path, (text + "\n").encode())
 
 
-def read_json(path: str | os.PathLike[str], name: str | None = None) -> Any:
-    """Read a JSON file, raising :class:`InputError` naming the file on failure."""
+def write_matrix(path: str | os.PathLike[str], matrix: NDArray[Any]) -> None:
+    """Write a 2-D matrix as CSV (``nan`` for missing) or ``.npy``, atomically."""
     p = Path(path)
-    label = name or str(p)
-    if not p.is_file():
-        raise InputError(f"{label}: file not found")
+    arr = np.asarray(np.ma.filled(np.ma.asarray(matrix, dtype=float), np.nan), dtype=float)
+    if p.suffix.lower() == ".npy":
+        buf = _io.BytesIO()
+        np.save(buf, arr, allow_pickle=False)
+        atomic_write_bytes(p, buf.getvalue())
+    else:
+        lines = [",".join("nan" if not np.isfinite(v) else repr(float(v)) for v in row) for row in np.atleast_2d(arr)]
+        atomic_write_bytes(p, ("\n".join(lines) + "\n").encode())
+
+
+def write_csv_rows(path: str | os.PathLike[str], header: Sequence[str], rows: Sequence[Sequence[Any]]) -> None:
+    """Write a header and rows as comma-separated text (empty field = missing), atomically."""
+    buf = _io.StringIO()
+    w = csv.writer(buf, lineterminator="\n")
+    w.writerow(list(header))
+    for row in rows:
+        out = []
+        for v in row:
+            if isinstance(v, (float, np.floating)):
+                out.append(repr(float(v)) if math.isfinite(float(v)) else "")
+            else:
+                out.append("" if v is None else str(v))
+        w.writerow(out)
+    atomic_write_bytes(path, buf.getvalue().encode())
+
+
+# --------------------------------------------------------------------------------------
+# inputs
+# --------------------------------------------------------------------------------------
+
+def _read_input_bytes(path: str | os.PathLike[str], label: str) -> bytes:
+    if _is_dash(path):
+        stream = sys.stdin
+        buf = getattr(stream, "buffer", None)
+        data = buf.read() if buf is not None else stream.read()
+        return data if isinstance(data, bytes) else data.encode()
+    p = Path(path)
     try:
-        return json.loads(p.read_text())
+        st = os.stat(p)
+    except FileNotFoundError:
+        raise InputError(f"{label}: file not found") from None
+    except OSError as exc:
+        raise InputError(f"{label}: cannot read ({_oserror_text(exc)})") from None
+    if stat.S_ISDIR(st.st_mode):
+        raise InputError(f"{label}: is a directory, not a file")
+    if not stat.S_ISREG(st.st_mode):
+        raise InputError(f"{label}: is {_kind_name(st.st_mode)}; give a regular file (or '-' for standard input)")
+    try:
+        return p.read_bytes()
+    except OSError as exc:
+        raise InputError(f"{label}: cannot read ({_oserror_text(exc)})") from None
+    except MemoryError:
+        raise InputError(f"{label}: too large to read into memory ({st.st_size} bytes)") from None
+
+
+@dataclass(frozen=True)
+class Table:
+    """A numeric matrix read from a file, with the names it carried.
+
+    Attributes
+    ----------
+    values:
+        (rows, cols) float array, NaN = missing.
+    row_names:
+        Names from a first column of labels (one per row), or None.
+    col_names:
+        Names from a header row (one per value column), or None.
+    """
+
+    values: NDArray[np.float64]
+    row_names: tuple[str, ...] | None = None
+    col_names: tuple[str, ...] | None = None
+
+
+def _cell_kind(cell: str) -> str:
+    c = cell.strip().strip('"').strip("'").strip()
+    if c.lower() in MISSING_TOKENS:
+        return "missing"
+    if _NUMBER.match(c) or _INF.match(c):
+        return "number"
+    return "text"
+
+
+def _short(cell: str) -> str:
+    c = cell.strip()
+    return repr(c if len(c) <= 24 else c[:20] + "...")
+
+
+def _sniff_delimiter(lines: list[str]) -> str | None:
+    """Pick ',', ';' or tab when every line has the same positive count; None = whitespace."""
+    best = None
+    for d in (",", ";", "\t", "|"):
+        counts = {ln.count(d) for ln in lines}
+        if min(counts) > 0 and (best is None or len(counts) == 1):
+            if best is None or len(counts) == 1 and best[1] > 1:
+                best = (d, len(counts))
+    if best is not None:
+        return best[0]
+    # a delimiter missing from some lines (e.g. a one-column file) -> the most frequent one
+    total = {d: sum(ln.count(d) for ln in lines) for d in (",", ";", "\t")}
+    d, n = max(total.items(), key=lambda kv: kv[1])
+    return d if n > 0 else None
+
+
+def _split(lines: list[str], delim: str | None) -> list[list[str]]:
+    if delim is None:
+        return [ln.split() for ln in lines]
+    old = csv.field_size_limit()
+    csv.field_size_limit(min(sys.maxsize, 2**31 - 1))  # cells of any size, no _csv.Error
+    try:
+        return [next(csv.reader([ln], delimiter=delim, skipinitialspace=True), []) for ln in lines]
+    except csv.Error as exc:
+        raise InputError(f"unreadable CSV ({exc})") from None
+    finally:
+        csv.field_size_limit(old)
+
+
+def read_table(path: str | os.PathLike[str], name: str | None = None) -> Table:
+    """Read a numeric matrix from ``.npy`` or delimited text, keeping row/column names.
+
+    Parameters
+    ----------
+    path:
+        ``.npy`` (no pickle) or text; ``"-"`` reads text from standard input.
+    name:
+        Label used in error messages (default: the path).
+
+    Returns
+    -------
+    Table
+        The values (NaN = missing) and any names.
+
+    Notes
+    -----
+    Text dialects: comma, semicolon (with decimal commas), tab, ``|`` or whitespace separated
+    (sniffed; ``np.savetxt`` output loads), UTF-8 with or without BOM, LF or CRLF, blank and
+    ``#`` comment lines skipped. Missing: empty, ``NA``, ``NaN``, ``nan``, ``N/A``, ``null``.
+    A first row with a non-numeric value column is a header; a first column whose cells are
+    not numbers is a column of row names. Numbers are strict decimals: ``1_0``, ``0x10`` and
+    the like are refused with the row and column named. A 1-D input becomes one column.
+
+    Raises
+    ------
+    InputError
+        Not found, unreadable, not text, ragged rows, a non-number (row and column named).
+
+    Examples
+    --------
+    >>> import tempfile, pathlib
+    >>> p = pathlib.Path(tempfile.mkdtemp()) / "m.csv"
+    >>> _ = p.write_text("name;s1;s2\\nrx1;1,5;NA\\n")
+    >>> t = read_table(p)
+    >>> t.row_names, t.col_names, t.values.tolist()
+    (('rx1',), ('s1', 's2'), [[1.5, nan]])
+    """
+    label = name or os.fspath(path)
+    if not _is_dash(path) and Path(path).suffix.lower() in (".npy", ".npz"):
+        return Table(_read_npy(path, label))
+    data = _read_input_bytes(path, label)
+    if data[:6] == b"\x93NUMPY":
+        return Table(_read_npy(_io.BytesIO(data), label))
+    if data[:2] == b"PK":
+        raise InputError(f"{label}: looks like an .npz archive; give a .csv or .npy matrix")
+    if b"\x00" in data[:65536]:
+        raise InputError(f"{label}: not a text file (binary data)")
+    try:
+        text = data.decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        raise InputError(f"{label}: not UTF-8 text (byte {exc.start})") from None
+    numbered = [(i + 1, ln) for i, ln in enumerate(text.splitlines())]
+    numbered = [(i, ln) for i, ln in numbered if ln.strip() and not ln.lstrip().startswith("#")]
+    if not numbered:
+        raise InputError(f"{label}: the file is empty")
+    lines = [ln for _, ln in numbered]
+    delim = _sniff_delimiter(lines)
+    try:
+        rows = _split(lines, delim)
+    except InputError as exc:
+        raise InputError(f"{label}: {exc}") from None
+    decimal_comma = delim == ";" and any(_DECIMAL_COMMA.match(c.strip()) for r in rows for c in r)
+    if decimal_comma:
+        rows = [[c.replace(",", ".") if _DECIMAL_COMMA.match(c.strip()) else c for c in r] for r in rows]
+    widths = {len(r) for r in rows}
+    if len(widths) != 1:
+        w0 = len(rows[0])
+        k = next(k for k, r in enumerate(rows) if len(r) != w0)
+        raise InputError(
+            f"{label}: rows have different numbers of fields {sorted(widths)[:6]}: line {numbered[k][0]} has "
+            f"{len(rows[k])}, line {numbered[0][0]} has {w0}"
+        )
+    ncol = widths.pop()
+    kinds = [[_cell_kind(c) for c in r] for r in rows]
+    # header: the first row has a text value cell and a later row has none there
+    header = False
+    if len(rows) > 1:
+        first_cols = range(1, ncol) if ncol > 1 else range(0, 1)
+        if any(kinds[0][c] == "text" for c in first_cols) and any(
+            all(kinds[r][c] != "text" for c in first_cols) for r in range(1, len(rows))
+        ):
+            header = True
+    body = range(1 if header else 0, len(rows))
+    names_col = ncol > 1 and any(kinds[r][0] == "text" for r in body) and any(
+        all(k != "text" for k in kinds[r][1:]) for r in body
+    )
+    c0 = 1 if names_col else 0
+    values = np.empty((len(body), ncol - c0), dtype=float)
+    for out_r, r in enumerate(body):
+        for c in range(c0, ncol):
+            cell = rows[r][c].strip().strip('"').strip("'").strip()
+            kind = kinds[r][c]
+            if kind == "missing":
+                values[out_r, c - c0] = math.nan
+            elif kind == "number":
+                values[out_r, c - c0] = float(cell)
+            else:
+                raise InputError(f"{label}: row {numbered[r][0]}, column {c + 1}: {_short(cell)} is not a number")
+    if values.size == 0:
+        raise InputError(f"{label}: no numeric values (only a header or names)")
+    row_names = tuple(rows[r][0].strip().strip('"') for r in body) if names_col else None
+    col_names = tuple(c.strip().strip('"') for c in rows[0][c0:]) if header else None
+    return Table(values, row_names, col_names)
+
+
+def _read_npy(src: Any, label: str) -> NDArray[np.float64]:
+    if isinstance(src, (str, os.PathLike)):
+        p = Path(src)
+        if p.suffix.lower() == ".npz":
+            raise InputError(f"{label}: an .npz archive is not a matrix; give a .csv or .npy file")
+        if not p.is_file():
+            _read_input_bytes(p, label)  # raises the not-found / not-a-file message
+    try:
+        arr = np.load(src, allow_pickle=False)
+    except (ValueError, OSError, EOFError) as exc:
+        raise InputError(f"{label}: not a readable .npy array without pickle ({exc})") from None
+    if not isinstance(arr, np.ndarray):
+        raise InputError(f"{label}: not a single .npy array")
+    if arr.dtype.kind == "c":
+        raise InputError(f"{label}: complex values; give real numbers")
+    if arr.dtype.kind not in "fiub":
+        raise InputError(f"{label}: .npy dtype {arr.dtype} is not numeric")
+    arr = np.asarray(arr, dtype=float)
+    if arr.ndim == 0:
+        arr = arr.reshape(1, 1)
+    if arr.ndim == 1:
+        arr = arr[:, None]
+    if arr.ndim != 2:
+        raise InputError(f"{label}: expected a 2-D matrix, got shape {arr.shape}")
+    return arr
+
+
+def read_matrix(path: str | os.PathLike[str], name: str | None = None) -> NDArray[np.float64]:
+    """Read a numeric matrix from delimited text or ``.npy`` (see :func:`read_table`).
+
+    Returns
+    -------
+    numpy.ndarray
+        (rows, cols) float array, NaN = missing; a 1-D file becomes a column.
+
+    Raises
+    ------
+    InputError
+        The file is missing, unreadable or not a numeric matrix (row and column named).
+    """
+    return read_table(path, name).values
+
+
+def read_json(path: str | os.PathLike[str], name: str | None = None) -> Any:
+    """Read a JSON file (``"-"`` = standard input), raising :class:`InputError` naming the file."""
+    label = name or os.fspath(path)
+    data = _read_input_bytes(path, label)
+    try:
+        return json.loads(data.decode("utf-8-sig"))
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise InputError(f"{label}: malformed JSON ({exc})") from None
+    except RecursionError:
+        raise InputError(f"{label}: JSON nested too deeply") from None
 
 
 def load_npz(path: str | os.PathLike[str], required: tuple[str, ...] = ()) -> dict[str, NDArray[Any]]:
-    """Load an ``.npz`` archive without pickle; check that ``required`` keys exist."""
+    """Load an ``.npz`` archive without pickle; check that ``required`` keys exist.
+
+    Raises
+    ------
+    InputError
+        Missing, empty, truncated, a ``.npy`` instead, object arrays, or required keys missing.
+    """
     p = Path(path)
-    if not p.is_file():
-        raise InputError(f"{p}: file not found")
+    label = str(p)
+    data = _read_input_bytes(p, label)
+    if not data:
+        raise InputError(f"{label}: the file is empty")
+    if data[:6] == b"\x93NUMPY":
+        raise InputError(f"{label}: is a single .npy array; an .npz archive is expected")
+    if data[:2] != b"PK":
+        raise InputError(f"{label}: not an .npz archive")
+    import zipfile
+
     try:
-        with np.load(p, allow_pickle=False) as z:
+        with np.load(_io.BytesIO(data), allow_pickle=False) as z:
             out = {k: z[k] for k in z.files}
-    except (ValueError, OSError) as exc:
-        raise InputError(f"{p}: not a readable .npz archive without pickle ({exc})") from None
+    except (ValueError, OSError, EOFError, zipfile.BadZipFile, KeyError) as exc:
+        raise InputError(f"{label}: not a readable .npz archive without pickle ({exc})") from None
     missing = [k for k in required if k not in out]
     if missing:
-        raise InputError(f"{p}: missing arrays {missing}")
+        raise InputError(f"{label}: missing arrays {missing}")
     return out

@@ -7,7 +7,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from .geometry import Alignment, align
+from .geometry import Alignment, align, wrap_angle
 
 __all__ = ["AlignedError", "aligned_rmse", "per_point_errors", "percentiles", "angle_error", "rotation_angle_error",
            "aligned_direction_errors", "efficiency"]
@@ -84,7 +84,7 @@ def percentiles(values: Array, qs: tuple[float, ...] = (50, 90, 95, 99)) -> dict
 def angle_error(a: Array, b: Array) -> Array:
     """Wrapped difference ``a - b`` of angles in radians, in (-pi, pi]."""
     d = np.asarray(a, float) - np.asarray(b, float)
-    return -((-d + np.pi) % (2 * np.pi) - np.pi)
+    return -wrap_angle(-d)  # (-pi, pi]: the mirror of the [-pi, pi) wrap
 
 
 def rotation_angle_error(R_est: Array, R_true: Array) -> Array:

@@ -101,9 +101,11 @@ def plot_heatmap(
 
 
 def save_figure(fig: Figure, path: str | os.PathLike[str], *, dpi: int = 120) -> None:
-    """Save ``fig`` as PNG atomically and close it."""
+    """Save ``fig`` atomically (format from the suffix: .pdf, .svg, ...; none = PNG) and close it."""
     buf = io.BytesIO()
     fig.tight_layout()
-    fig.savefig(buf, format="png", dpi=dpi)
+    suffix = os.path.splitext(os.fspath(path))[1].lower().lstrip(".")
+    fmt = suffix if suffix in fig.canvas.get_supported_filetypes() else "png"
+    fig.savefig(buf, format=fmt, dpi=dpi)
     plt.close(fig)
     atomic_write_bytes(path, buf.getvalue())

@@ -275,7 +275,7 @@ def detect_arrivals(
     noise = np.zeros(I)
     rows = np.arange(E)
     P = np.conj(np.fft.rfft(probe.samples, n=n_fft)) * _band_weight(n_fft, fs, probe.band)
-    for i in tqdm(range(I), desc="detect", unit="rx", disable=not progress, leave=False):
+    for i in tqdm(range(I), desc="detect", unit="rx", disable=None if progress else True, leave=False):
         if lens[i] <= 0 or not np.any(sig[i, : lens[i]]):
             continue  # a dead input: nothing to detect
         valid = idx < lens[i]

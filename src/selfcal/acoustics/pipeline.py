@@ -23,6 +23,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from .._checks import entry
 from ..errors import DegenerateGeometryError, InputError
 from .calibrate import (
     Outlier,
@@ -236,6 +237,7 @@ class PipelineResult:
         }
 
 
+@entry(rng="rng", jitter="nonnegative?", speed_of_sound="positive?")
 def run_pipeline(
     directory: str | Path,
     *,

@@ -182,7 +182,7 @@ def simulate_conference(
     n_total = int(np.ceil((times[-1] + spacing) * fs))
     signals = np.zeros((U, n_total), dtype=np.float32)
     x = prb.samples
-    for j in tqdm(range(U), desc="simulate", unit="sender", disable=not progress, leave=False):
+    for j in tqdm(range(U), desc="simulate", unit="sender", disable=None if progress else True, leave=False):
         rirs = [shoebox.rir[i][j] for i in range(U)]
         lh = max(len(h) for h in rirs)
         h = np.zeros((U, lh))

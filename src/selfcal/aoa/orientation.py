@@ -15,6 +15,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from ..geometry import align, rotation_from_rotvec
+
 Array = NDArray[Any]
 
 __all__ = [
@@ -106,29 +108,13 @@ def kabsch(local_pts: Array, global_pts: Array) -> tuple[Array, Array]:
     -------
     R : (B, 3, 3) rotation (det +1), t : (B, 3) translation.
     """
-    P = np.asarray(local_pts, float)
-    Q = np.asarray(global_pts, float)
-    pc = P.mean(axis=-2, keepdims=True)
-    qc = Q.mean(axis=-2, keepdims=True)
-    H = np.swapaxes(Q - qc, -1, -2) @ (P - pc)
-    R = nearest_rotation(H)
-    t = qc[..., 0, :] - np.einsum("...ij,...j->...i", R, pc[..., 0, :])
-    return R, t
+    a = align(np.asarray(local_pts, float), np.asarray(global_pts, float), reflection=False)
+    return a.rotation, a.translation
 
 
 def rotvec_to_matrix(w: Array) -> Array:
     """Rodrigues' formula for (..., 3) rotation vectors (the SO(3) exponential map)."""
-    w = np.asarray(w, float)
-    th = np.linalg.norm(w, axis=-1)[..., None, None]
-    K = np.zeros(w.shape[:-1] + (3, 3))
-    K[..., 0, 1], K[..., 0, 2] = -w[..., 2], w[..., 1]
-    K[..., 1, 0], K[..., 1, 2] = w[..., 2], -w[..., 0]
-    K[..., 2, 0], K[..., 2, 1] = -w[..., 1], w[..., 0]
-    small = th < 1e-8
-    ts = np.where(small, 1.0, th)
-    a = np.where(small, 1.0 - th**2 / 6.0, np.sin(ts) / ts)
-    b = np.where(small, 0.5 - th**2 / 24.0, (1.0 - np.cos(ts)) / ts**2)
-    return np.eye(3) + a * K + b * (K @ K)
+    return rotation_from_rotvec(w)
 
 
 def tangent_basis(n: Array) -> Array:

@@ -15,15 +15,16 @@ Methods (3-D unless stated):
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from itertools import combinations
 from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from .._checks import as_points, check_choice
-from ..errors import DegenerateGeometryError, InputError
+from .._checks import as_points, check_choice, entry
+from .._result import Result
+from ..errors import DegenerateGeometryError, InputError, Status
 from .ml import refine_ml, residuals_2d, residuals_3d
 from .orientation import nearest_rotation
 from .p3p import p3p
@@ -33,7 +34,8 @@ from .solution2 import solution2
 
 Array = NDArray[Any]
 
-__all__ = ["AoaResult", "AoaCandidate", "solve_aoa", "METHODS_3D", "METHODS_2D"]
+__all__ = ["AoaResult", "AoaCandidate", "solve_aoa", "residual_test", "METHODS_3D", "METHODS_2D",
+           "PLAUSIBLE_SIGMA"]
 
 METHODS_3D = ("auto", "sol1", "sol2", "p3p", "ml")
 METHODS_2D = ("auto", "linear", "ml")
@@ -41,6 +43,12 @@ METHODS_2D = ("auto", "linear", "ml")
 TIE_TOL = 1e-6
 #: inverse condition number of the pose Jacobian below which the pose is not determined
 JACOBIAN_TOL = 1e-6
+#: angular noise std (rad) assumed by the residual test when ``sigma`` is not given: 5 degrees,
+#: a generous bound for DoA estimators (GCC-PHAT / MUSIC / SRP on small arrays give a few
+#: degrees); a pose whose bearings do not fit at this level is not a pose
+PLAUSIBLE_SIGMA = float(np.radians(5.0))
+#: level of the chi-square residual test (false alarm probability 1e-3 for a correct pose)
+RESIDUAL_TEST_LEVEL = 0.999
 
 
 @dataclass(frozen=True)
@@ -60,8 +68,8 @@ class AoaCandidate:
         }
 
 
-@dataclass(frozen=True)
-class AoaResult:
+@dataclass(frozen=True, repr=False)
+class AoaResult(Result):
     """Pose of a receiver (or a batch of receivers) from bearings.
 
     Attributes
@@ -79,6 +87,12 @@ class AoaResult:
     candidates : tuple of :class:`AoaCandidate` (unbatched only): every pose that explains
         the bearings (about) equally well. More than one means the data are ambiguous.
     n_candidates : int or (B,): number of distinct proper candidates found.
+    success : bool or (B,): the pose passed its residual test (:func:`residual_test`): the
+        bearings fit it at the noise level (``sigma``, else :data:`PLAUSIBLE_SIGMA`); False
+        when they do not (not a pose: wrong convention, wrong beacon order, gross errors) or
+        when the solver did not converge.
+    status : int or (B,): 0 = ok, 1 = residual test failed, 2 = not converged.
+    message : one line explaining ``success``.
     """
 
     position: Array
@@ -90,6 +104,9 @@ class AoaResult:
     covariance: Array | None = None
     candidates: tuple[AoaCandidate, ...] = field(default_factory=tuple)
     n_candidates: Any = 1
+    success: Any = True
+    status: Any = 0
+    message: str = ""
 
     @property
     def ambiguous(self) -> Any:
@@ -97,6 +114,20 @@ class AoaResult:
         if self.position.ndim == 1:
             return len(self.candidates) > 1
         return np.asarray(self.n_candidates) > 1
+
+    @property
+    def pose_cov(self) -> Array | None:
+        """Covariance of the pose ``(m, w)`` / ``(m, theta)`` (alias of ``covariance``)."""
+        return self.covariance
+
+    def _diagnose(self) -> tuple[Status, str]:
+        status, message = super()._diagnose()
+        if status == Status.SUCCESS and bool(np.any(self.ambiguous)):
+            n = len(self.candidates) if self.position.ndim == 1 else int(np.count_nonzero(self.ambiguous))
+            what = f"{n} poses explain the bearings equally well" if self.position.ndim == 1 else (
+                f"{n} receivers have several equally good poses")
+            return Status.AMBIGUOUS, f"ambiguous: {what}"
+        return status, message
 
     @property
     def position_cov(self) -> Array | None:
@@ -123,6 +154,9 @@ class AoaResult:
             "covariance": j(self.covariance),
             "candidates": [c.to_dict() for c in self.candidates] if len(self.candidates) > 1 else None,
             "n_candidates": j(self.n_candidates),
+            "success": j(self.success),
+            "status": j(self.status),
+            "message": self.message,
         }
 
 
@@ -184,6 +218,11 @@ def _validate(beacons: ArrayLike, bearings: ArrayLike) -> tuple[Array, Array, bo
     return b, U, batched
 
 
+def _area(b: Array, t: tuple[int, ...]) -> float:
+    i, j, k = t
+    return float(np.linalg.norm(np.cross(b[j] - b[i], b[k] - b[i])))
+
+
 def _best_triple(b: Array) -> Array:
     """Indices of the beacon triple with the largest triangle area (best-conditioned P3P)."""
     N = len(b)
@@ -239,9 +278,43 @@ def _check_determined(
     return np.zeros(0, int)
 
 
+# ----------------------------------------------------------------------------- residual test
+def residual_test(residual_rms: Any, n_beacons: int, dim: int, sigma: float | None = None) -> tuple[Array, Array]:
+    """Chi-square test of a pose's angular residuals: (passed, statistic / quantile) arrays.
+
+    Under the model (independent angular noise of std ``sigma`` per tangent component) the
+    residual sum of squares at the least-squares pose is ``sigma^2 chi2(dof)`` with
+    ``dof = 2N - 6`` in 3-D (two angles per beacon, six pose unknowns) and ``N - 3`` in
+    2-D. The pose passes when ``n_res rms^2 / sigma^2 <= chi2.ppf(RESIDUAL_TEST_LEVEL, dof)``
+    (``n_res`` = 2N or N residuals). Without ``sigma`` the bound :data:`PLAUSIBLE_SIGMA`
+    (5 degrees) is used. With ``dof = 0`` (three beacons) the fit is exact and the test
+    passes trivially.
+
+    Parameters
+    ----------
+    residual_rms : float or (B,) rad; n_beacons : beacons used; dim : 2 or 3;
+    sigma : angular noise std (rad) or None.
+
+    Returns
+    -------
+    passed (bool array), ratio (statistic over the quantile; > 1 fails).
+    """
+    from scipy.stats import chi2
+
+    n_res = (2 if dim == 3 else 1) * n_beacons
+    dof = n_res - (6 if dim == 3 else 3)
+    sig = PLAUSIBLE_SIGMA if sigma is None else float(sigma)
+    rms = np.asarray(residual_rms, float)
+    if dof <= 0:
+        return np.ones(rms.shape, bool), np.zeros(rms.shape)
+    ratio = n_res * rms**2 / sig**2 / chi2.ppf(RESIDUAL_TEST_LEVEL, dof)
+    return np.asarray(np.isfinite(rms) & (ratio <= 1.0)), np.asarray(ratio)
+
+
 # ----------------------------------------------------------------------------- solver
 
 
+@entry(beacons="array", bearings="array", sigma="positive?", max_iter="count", position_hint="array")
 def solve_aoa(
     beacons: ArrayLike,
     bearings: ArrayLike,
@@ -252,6 +325,7 @@ def solve_aoa(
     orthonormalize: bool = True,
     max_iter: int = 50,
     position_hint: ArrayLike | None = None,
+    sign_z_unknown: bool = False,
 ) -> AoaResult:
     """Receiver position and orientation from bearings to known beacons (paper 001).
 
@@ -273,6 +347,15 @@ def solve_aoa(
         Side information for ambiguous problems (three beacons in 3-D): among the candidates
         that explain the bearings equally well, return the one nearest to this point. It never
         enters the cost; without it ties go to the first candidate (all are in ``candidates``).
+    sign_z_unknown : bool
+        The bearings came from the angles with the receiver's x and y axes (paper eq. 2-4,
+        ``--angles axes``), which do not tell on which side of the receiver's xy plane a
+        beacon is (eq. 4 takes the front hemisphere). Then every method is followed by the
+        maximum-likelihood refinement under the ``"angles"`` noise model (which depends only
+        on those two angles), started from the method's solutions for every sign pattern of
+        the beacons' z components (all 2^N for N <= 8, else those of the best-conditioned
+        triple), and the least-cost pose is returned (``method`` = ``"<method>+ml"``); the
+        reported bearings' z signs are the ones this pose predicts. 3-D, one receiver.
 
     Returns
     -------
@@ -284,9 +367,17 @@ def solve_aoa(
         Wrong shapes, inf, zero-length bearings, unknown method.
     DegenerateGeometryError
         ``too-few-beacons``, ``collinear-beacons``, ``receiver-on-beacon-plane`` (3-D, all
-        bearings coplanar), ``danger-cylinder`` (3-D) / ``danger-circle`` (2-D): the pose
-        Jacobian is singular at the solution.
+        bearings coplanar), ``danger-cylinder`` (3-D, every method) / ``danger-circle``
+        (2-D): the pose Jacobian is singular at the solution.
+
+    Notes
+    -----
+    ``success`` comes from :func:`residual_test` (chi-square on the angular residuals).
     """
+    if sign_z_unknown:
+        return _solve_sign_ambiguous(beacons, bearings, method=method, sigma=sigma,
+                                     orthonormalize=orthonormalize, max_iter=max_iter,
+                                     position_hint=position_hint)
     b, U, batched = _validate(beacons, bearings)
     N, d = b.shape
     check_choice(method, "method", METHODS_3D if d == 3 else METHODS_2D)
@@ -335,6 +426,10 @@ def solve_aoa(
             ncand = _count_distinct(out["roots"], out["root_ok"])
             if not batched:
                 cand = _sol1_candidates(b, U, out, orthonormalize)
+        # the paper's solutions are as undetermined on the danger cylinder as P3P is
+        bad = _check_determined(b, U, m, R, "danger-cylinder", raise_=not batched)
+        conv = np.array(conv, bool, copy=True)
+        conv[bad] = False
         if not conv.all():
             import warnings
 
@@ -348,6 +443,12 @@ def solve_aoa(
     else:
         tri = _best_triple(b)
         pos, rot, valid = p3p(b[tri], U[:, tri])  # (B, 4, 3), (B, 4, 3, 3)
+        if not batched and not valid.any() and N > 3:
+            # noise can make one triple's cosines inconsistent; the others still start the ML
+            for alt in sorted(combinations(range(min(N, 12)), 3), key=lambda t: -_area(b, t)):
+                pos, rot, valid = p3p(b[list(alt)], U[:, list(alt)])
+                if valid.any():
+                    break
         if not batched and not valid.any():
             k = int(np.argmin(valid.any(axis=1)))
             raise DegenerateGeometryError(
@@ -410,16 +511,98 @@ def solve_aoa(
         conv = np.array(conv, bool, copy=True)
         conv[bad] = False  # batched: an undetermined receiver is flagged, not fatal
     rms = _rms(b, U, m, R)
+    passed, ratio = residual_test(rms, N, d, sigma)
+    conv_b = np.asarray(conv, bool)
+    status = np.where(~conv_b, 2, np.where(passed, 0, 1))
+    success = status == 0
     if not batched:
         return AoaResult(
             position=m[0], rotation=R[0], residual_rms=float(rms[0]), method=method,
             converged=bool(conv[0]), iterations=int(iters[0]),
             covariance=None if cov is None else cov[0], candidates=cand, n_candidates=int(ncand[0]),
+            success=bool(success[0]), status=int(status[0]),
+            message=_message(int(status[0]), float(rms[0]), float(ratio[0]), sigma, N, d),
         )
+    nfail = int(np.sum(~success))
     return AoaResult(
         position=m, rotation=R, residual_rms=rms, method=method, converged=conv,
-        iterations=iters, covariance=cov, candidates=(), n_candidates=ncand,
+        iterations=iters, covariance=cov, candidates=(), n_candidates=ncand, success=success, status=status,
+        message="all poses passed the residual test" if nfail == 0 else
+        f"{nfail} of {B} poses failed the residual test or did not converge",
     )
+
+
+def _message(status: int, rms: float, ratio: float, sigma: float | None, n: int, d: int) -> str:
+    sig = np.degrees(PLAUSIBLE_SIGMA if sigma is None else sigma)
+    src = "given" if sigma is not None else "assumed bound"
+    if status == 2:
+        return "the solver did not converge (or the pose is undetermined)"
+    dof = (2 if d == 3 else 1) * n - (6 if d == 3 else 3)
+    if dof <= 0:
+        return f"exactly determined ({n} beacons): no residual test possible"
+    if status == 1:
+        return (f"the bearings fit this pose only to {np.degrees(rms):.3g} deg RMS, {ratio:.3g} x the chi-square "
+                f"{RESIDUAL_TEST_LEVEL:g} quantile for noise {sig:.3g} deg ({src}): not a pose (wrong angle "
+                "convention, beacon order or gross errors?)")
+    return f"residual {np.degrees(rms):.3g} deg RMS consistent with noise {sig:.3g} deg ({src})"
+
+
+def _solve_sign_ambiguous(beacons: ArrayLike, bearings: ArrayLike, *, method: str, sigma: float | None,
+                          orthonormalize: bool, max_iter: int, position_hint: ArrayLike | None) -> AoaResult:
+    """:func:`solve_aoa` for bearings whose z-signs are unknown (see ``sign_z_unknown``)."""
+    b_all = as_points(beacons, "beacons")
+    if b_all.shape[1] != 3:
+        raise InputError("sign_z_unknown applies to 3-D bearings (angles with the receiver's x and y axes)")
+    U0 = np.array(bearings, dtype=float)
+    if U0.ndim != 2:
+        raise InputError("sign_z_unknown: one receiver at a time (bearings (N, 3))")
+    b, U1, _ = _validate(b_all, U0)
+    U = U1[0]
+    N = len(b)
+    check_choice(method, "method", METHODS_3D)
+    idx = np.arange(N) if N <= 8 else _best_triple(b)
+    pats = np.array(np.meshgrid(*[[1.0, -1.0]] * len(idx), indexing="ij")).reshape(len(idx), -1).T
+    Ub = np.repeat(U[None], len(pats), axis=0)
+    Ub[:, idx, 2] *= pats
+    ms, Rs = [], []
+    base = "ml" if method == "auto" else method
+    if base in ("sol1", "sol2"):
+        import warnings
+
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            out = (solution1(b, Ub, orthonormalize=True, max_iter=max(max_iter, 60)) if base == "sol1"
+                   else solution2(b, Ub, orthonormalize=True, max_iter=max_iter))
+        ms.append(out["position"])
+        Rs.append(np.swapaxes(out["A"], -1, -2))
+    else:
+        tri = _best_triple(b)
+        pos, rot, valid = p3p(b[tri], Ub[:, tri])
+        ms.append(np.where(valid[..., None], pos, np.nan).reshape(-1, 3))
+        Rs.append(rot.reshape(-1, 3, 3))
+    mc, Rc = np.concatenate(ms), np.concatenate(Rs)
+    ok = np.isfinite(mc).all(axis=1) & np.isfinite(Rc).all(axis=(1, 2))
+    if not ok.any():
+        raise DegenerateGeometryError("the bearings admit no pose for any side of the receiver plane",
+                                      kind="no-solution")
+    mc, Rc = mc[ok], nearest_rotation(Rc[ok])
+    Uc = np.repeat(U[None], len(mc), axis=0)
+    out = refine_ml(b, Uc, mc, Rc, noise="angles", sigma=sigma, max_iter=max(max_iter, 100))
+    cost = np.where(np.asarray(out["converged"], bool), out["residual_rms"], np.inf)
+    cost = np.where(np.isfinite(cost), cost, np.inf)
+    best = int(np.argmin(cost))
+    if position_hint is not None:
+        hint = np.asarray(position_hint, float).reshape(-1)
+        tie = cost <= cost[best] * (1 + TIE_TOL) + 1e-9
+        best = int(np.argmin(np.where(tie, np.linalg.norm(out["position"] - hint, axis=1), np.inf)))
+    m, R = out["position"][best], out["rotation"][best]
+    # the bearings as this pose sees them: the measured x, y angles with the predicted z side
+    g = b - m
+    pz = (g @ R)[:, 2]
+    Ufix = U.copy()
+    Ufix[:, 2] = np.abs(U[:, 2]) * np.where(pz < 0, -1.0, 1.0)
+    res = solve_aoa(b, Ufix, method="ml", sigma=sigma, max_iter=max_iter, position_hint=m)
+    return replace(res, method=f"{base}+ml")
 
 
 def _count_distinct(roots: Array, ok: Array) -> Array:

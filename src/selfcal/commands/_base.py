@@ -15,14 +15,22 @@ from typing import Any, TypeVar
 import click
 
 from ..errors import SelfcalError
+from ._common import SelfcalGroup, command_context
 
 F = TypeVar("F", bound=Callable[..., Any])
 
 
-@click.group(context_settings={"help_option_names": ["-h", "--help"]})
-@click.version_option(package_name="selfcal")
-def main() -> None:
-    """selfcal: self-calibration and localization of sensor networks."""
+@click.group(cls=SelfcalGroup, context_settings={"help_option_names": ["-h", "--help"]})
+@click.version_option(None, "-V", "--version", package_name="selfcal")
+@click.option("-q", "--quiet", is_flag=True, help="Print only errors and FAIL lines (anywhere on the line).")
+@click.option("-v", "--verbose", is_flag=True, help="Print warnings and the traceback of an internal error.")
+def main(quiet: bool = False, verbose: bool = False) -> None:
+    """selfcal: self-calibration and localization of sensor networks.
+
+    Exit status: 0 = trustworthy result, 1 = the result failed its own test (a FAIL: line),
+    2 = bad input or an unwritable output (one line on stderr). Matrices: rows = receivers,
+    columns = transmitters; point lists: one point per row.
+    """
 
 
 @main.group()
@@ -62,7 +70,8 @@ def handle_errors(func: F) -> F:
     @functools.wraps(func)
     def wrapper(*args: Any, **kwargs: Any) -> Any:
         try:
-            return func(*args, **kwargs)
+            with command_context(kwargs):
+                return func(*args, **kwargs)
         except SelfcalError as exc:
             fail(str(exc))
         except (FileNotFoundError, IsADirectoryError, PermissionError) as exc:

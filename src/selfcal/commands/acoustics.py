@@ -14,6 +14,13 @@ from typing import Any
 import click
 
 from ._base import handle_errors, main, simulate
+from ._common import (
+    all_or_nothing,
+    check_simulation_size,
+    csv_option,
+    jitter_options,
+    resolve_jitter,
+)
 
 
 def parse_room(text: str) -> tuple[float, float, float]:
@@ -86,20 +93,23 @@ def write_simulation(out: Path, *, units: int, room: tuple[float, float, float],
 @click.option("--sample-rate", type=int, default=48000, show_default=True, help="Hz.")
 @click.option("--max-order", type=int, default=3, show_default=True,
               help="Image-source order cap (speed); 0 = anechoic.")
-@click.option("--jitter", type=float, default=0.0, show_default=True,
-              help="Clock jitter per (receiver, event), standard deviation in microseconds.")
+@jitter_options(0.0)
 @click.option("--rounds", type=click.IntRange(min=1), default=1, show_default=True,
               help="Events per loudspeaker (probe repetitions; their arrival times are averaged).")
 @click.option("--out", "out", required=True, type=click.Path(file_okay=False, path_type=Path),
               help="Recording directory to write (setup.json, rx_*.wav, truth.json, heights.json).")
 @handle_errors
 def simulate_conference_cmd(units: int, room_text: str, rt60: float, snr: float, seed: int, layout: str,
-                            sample_rate: int, max_order: int, jitter: float, rounds: int, out: Path) -> None:
+                            sample_rate: int, max_order: int, jitter: float, rounds: int, out: Path,
+                            jitter_us: float | None = None) -> None:
     """Simulate a conference network's calibration recordings (pyroomacoustics, paper 004)."""
     room = parse_room(room_text)
+    jitter = resolve_jitter(jitter, jitter_us)
+    check_simulation_size(units=units, sample_rate=sample_rate, room=room, rt60=rt60)
     truth = write_simulation(out, units=units, room=room, rt60=rt60, snr=snr, seed=seed, layout=layout,
-                             sample_rate=sample_rate, max_order=max_order, jitter=jitter * 1e-6, rounds=rounds)
-    click.echo(f"wrote {out} ({units} units, {rounds} round(s), {layout}, room {room_text}, RT60 {rt60:g} s, SNR {snr:g} dB, "
+                             sample_rate=sample_rate, max_order=max_order, jitter=jitter, rounds=rounds)
+    click.echo(f"wrote {out} ({units} units, {rounds} round(s), {layout}, room {room_text}, RT60 {rt60:g} s, "
+               f"SNR {snr:g} dB, "
                f"image order {truth['max_order']})")
 
 
@@ -257,17 +267,19 @@ def pipeline_errors(result: Any, directory: Path) -> dict[str, Any] | None:
 @click.option("--dim", "dim", type=click.Choice(["auto", "2", "3"]), default="auto", show_default=True,
               help="auto: 3-D unless the layout is near-planar (then 2-D).")
 @click.option("--seed", type=int, default=0, show_default=True, help="Seed of the solver's random starts.")
-@click.option("--jitter", type=float, default=None,
-              help="Clock jitter std per (receiver, event), SECONDS, in the residual test's timing noise "
-                   "(default: setup.json's declared clock_jitter, else 0).")
+@jitter_options(None, what="in the residual test's timing noise (default: setup.json's declared "
+                           "clock_jitter, else 0)")
 @click.option("--temperature", type=float, default=None,
               help="Air temperature, degrees C: speed of sound c = 331.4 + 0.6 T + 0.0124 RH (overrides setup.json).")
 @click.option("--humidity", type=float, default=None, help="Relative humidity, % (with --temperature; default 0).")
 @click.option("--speed-of-sound", "speed", type=float, default=None, help="m/s (overrides setup.json).")
+@csv_option
 @handle_errors
+@all_or_nothing
 def pipeline_cmd(directory: Path, out: Path, plot: Path | None, report: Path | None, heights: Path | None,
-                 dim: str, seed: int, jitter: float | None, temperature: float | None, humidity: float | None,
-                 speed: float | None) -> None:
+                 dim: str, seed: int, jitter: float | None, temperature: float | None = None,
+                 humidity: float | None = None, speed: float | None = None, jitter_us: float | None = None,
+                 csv_out: Path | None = None) -> None:
     """Recordings -> arrival times -> delays -> positions (paper 004's three stages).
 
     Exits with status 1 and ``FAIL:`` lines when the calibration fails its residual test or
@@ -277,7 +289,9 @@ def pipeline_cmd(directory: Path, out: Path, plot: Path | None, report: Path | N
     from ..acoustics.recording import speed_from_air
     from ..errors import InputError
     from ..io import write_json
+    from ._common import enrich_payload, write_nodes_csv
 
+    jitter = resolve_jitter(jitter, jitter_us)
     if temperature is not None:
         if speed is not None:
             raise InputError("give either --temperature or --speed-of-sound, not both")
@@ -289,9 +303,13 @@ def pipeline_cmd(directory: Path, out: Path, plot: Path | None, report: Path | N
     result = run_pipeline(directory, dim=dim if dim == "auto" else int(dim), heights=heights, rng=seed,
                           jitter=jitter, speed_of_sound=speed)
     errors = pipeline_errors(result, directory)
-    payload = result.to_dict()
+    payload = enrich_payload(result.to_dict(), units={"positions": "m", "offsets": "s", "residual_rms": "s",
+                                                      "toa_matrix": "s", "covariances": "m^2"})
     if errors is not None:
         payload["errors"] = {k: v for k, v in errors.items() if not k.startswith(("aligned_", "true_"))}
+    if csv_out is not None:
+        write_nodes_csv(csv_out, payload, [("receiver", "receivers", "receiver_names"),
+                                           ("source", "sources", "sender_names")])
     if report is not None:
         from ..acoustics.report import write_html_report
 
@@ -301,7 +319,6 @@ def pipeline_cmd(directory: Path, out: Path, plot: Path | None, report: Path | N
                 raise InputError(f"{report}: exists and is not a regular file; choose another --report")
             write_html_report(result, report, errors, summary=lines)
         else:
-            report.mkdir(parents=True, exist_ok=True)
             plot_map(result, report / "map.png", errors)
             plot_timing(result, report / "timing.png", errors)
             write_json(report / "report.json", {"summary": lines, **payload})

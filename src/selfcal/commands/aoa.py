@@ -18,49 +18,96 @@ from ._base import backend_option, handle_errors, locate, reproduce, scheduler_o
     show_default=True, help="sol1/sol2: paper 001 solutions; p3p: all closed-form candidates; ml: refined.",
 )
 @click.option(
-    "--angles", type=click.Choice(["deg", "rad"]), default=None,
-    help="BEARINGS holds angles: N x 2 (alpha, beta) with the receiver x/y axes in 3-D, N x 1 in 2-D.",
+    "--angles", type=click.Choice(["vectors", "azel", "axes", "deg", "rad"]), default="vectors", show_default=True,
+    help="What BEARINGS holds. vectors: N x d unit vectors in the receiver frame. azel: N x 2 (azimuth, "
+         "elevation) per beacon in the receiver frame -- azimuth in the xy plane from +x towards +y, elevation "
+         "from the xy plane towards +z (what DoA estimators such as pyroomacoustics.doa give); N x 1 azimuth "
+         "in 2-D. axes: N x 2 (alpha, beta), the angles to the receiver's x and y axes (paper 001 eq. 2); "
+         "they do not say on which side of the xy plane a beacon is, so every method is followed by the "
+         "ML refinement over both sides. deg / rad: old spelling of 'axes' in that unit.",
 )
-@click.option("--sigma-deg", type=float, default=None, help="Angular noise std for the ML covariance.")
+@click.option("--units", "units", type=click.Choice(["deg", "rad"]), default="deg", show_default=True,
+              help="Unit of the angles with --angles azel / axes.")
+@click.option("--sigma-deg", type=float, default=None,
+              help="Angular noise std (degrees) for the ML covariance and the residual test (default: the "
+                   "test assumes at most 5 degrees).")
 @click.option(
     "--hint", default=None, metavar="X,Y[,Z]",
     help="Rough receiver position: picks among equally good candidates (three beacons in 3-D).",
 )
+@click.option("--plot", "plot", type=click.Path(dir_okay=False), default=None,
+              help="PNG of the beacons, the receiver with its x/y/z axes and the measured bearing rays.")
 @handle_errors
 def locate_aoa(
-    beacons: str, bearings: str, out: str, method: str, angles: str | None, sigma_deg: float | None,
-    hint: str | None,
+    beacons: str, bearings: str, out: str, method: str, angles: str, units: str, sigma_deg: float | None,
+    hint: str | None, plot: str | None,
 ) -> None:
     """Receiver position and orientation from bearings to known BEACONS (N x d, d = 2 or 3).
 
     BEARINGS: N x d unit vectors in the receiver frame (a NaN row = beacon not received), or
-    angles with --angles. Writes position, rotation (columns = receiver axes in the global
-    frame), residual_rms (rad), method, covariance and candidates (when ambiguous).
+    angles with --angles azel / axes (--units deg or rad). Writes position, rotation (columns
+    = receiver axes in the global frame), residual_rms (rad), method, covariance, candidates
+    (when ambiguous) and success. Exit 1 with a FAIL line when the bearings do not fit the
+    pose at the noise level (chi-square test; not a pose).
     """
     import numpy as np
 
+    from .._checks import plausible_angles
     from ..aoa import angles_to_bearings, solve_aoa
     from ..errors import InputError
-    from ..io import read_matrix, write_json
+    from ..io import read_table, staged_outputs, write_json
+    from ._common import enrich_payload
 
-    b = read_matrix(beacons, "beacons")
-    u = read_matrix(bearings, "bearings")
-    if angles is not None:
-        a = np.radians(u) if angles == "deg" else u
-        if b.shape[1] == 3 and a.shape[1] == 2:
-            u = angles_to_bearings(a[:, 0], a[:, 1]).vectors
-            u[np.isnan(a).any(axis=1)] = np.nan
-        elif b.shape[1] == 2 and a.shape[1] == 1:
-            u = np.column_stack([np.cos(a[:, 0]), np.sin(a[:, 0])])
+    btab = read_table(beacons, "beacons")
+    b = btab.values
+    u = read_table(bearings, "bearings").values
+    d = b.shape[1]
+    if d not in (2, 3):
+        raise InputError(f"beacons: expected N x 2 or N x 3 coordinates, got {b.shape}")
+    if u.shape[0] != b.shape[0]:
+        raise InputError(f"bearings: {u.shape[0]} rows for {b.shape[0]} beacons (one row per beacon)")
+    sign_unknown = False
+    if angles in ("deg", "rad"):
+        angles, units = "axes", angles
+    if angles == "vectors":
+        if u.shape[1] != d:
+            raise InputError(f"bearings: {u.shape[1]} columns for {d}-D beacons: unit vectors need {d} "
+                             f"(angles? use --angles azel or axes with --units deg / rad)")
+        norms = np.linalg.norm(u, axis=1)
+        fin = np.isfinite(norms)
+        if fin.any() and np.max(np.abs(norms[fin] - 1.0)) > 1e-2:
+            i = int(np.flatnonzero(fin)[np.argmax(np.abs(norms[fin] - 1.0))])
+            raise InputError(f"bearings: row {i + 1} has length {norms[i]:.4g}, not a unit vector (1 within 1 %): "
+                             "angles in degrees or radians? use --angles azel (or axes) with --units deg / rad")
+    else:
+        plausible_angles(u, units)
+        a = np.radians(u) if units == "deg" else u
+        miss = np.isnan(a).any(axis=1)
+        if angles == "azel":
+            if d == 3 and a.shape[1] == 2:
+                az, el = a[:, 0], a[:, 1]
+                u = np.column_stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
+            elif d == 2 and a.shape[1] == 1:
+                u = np.column_stack([np.cos(a[:, 0]), np.sin(a[:, 0])])
+            else:
+                raise InputError(f"--angles azel: expected N x 2 (azimuth, elevation) for 3-D beacons or N x 1 "
+                                 f"(azimuth) for 2-D, got {a.shape} with beacons {b.shape}")
         else:
-            raise InputError(
-                f"--angles: expected N x 2 (alpha, beta) for 3-D beacons or N x 1 for 2-D, got "
-                f"{a.shape} with beacons {b.shape}"
-            )
-    if method == "linear" and b.shape[1] == 3:
+            if d == 3 and a.shape[1] == 2:
+                u = angles_to_bearings(np.where(miss, 0.0, a[:, 0]), np.where(miss, 0.0, a[:, 1])).vectors
+                sign_unknown = True
+            elif d == 2 and a.shape[1] == 1:
+                u = np.column_stack([np.cos(a[:, 0]), np.sin(a[:, 0])])
+            else:
+                raise InputError(f"--angles axes: expected N x 2 (alpha, beta) for 3-D beacons or N x 1 for 2-D, "
+                                 f"got {a.shape} with beacons {b.shape}")
+        u[miss] = np.nan
+    if method == "linear" and d == 3:
         raise InputError("--method linear is the 2-D closed form; use p3p/sol1/sol2/ml in 3-D")
-    if method in ("sol1", "sol2", "p3p") and b.shape[1] == 2:
+    if method in ("sol1", "sol2", "p3p") and d == 2:
         raise InputError(f"--method {method} is 3-D; in 2-D use linear, ml or auto")
+    if sigma_deg is not None and not (np.isfinite(sigma_deg) and sigma_deg > 0):
+        raise InputError(f"--sigma-deg must be a positive number, got {sigma_deg}")
     sigma = None if sigma_deg is None else float(np.radians(sigma_deg))
     position_hint = None
     if hint is not None:
@@ -68,12 +115,74 @@ def locate_aoa(
             position_hint = [float(v) for v in hint.split(",")]
         except ValueError:
             raise InputError(f"--hint: expected comma-separated numbers, got {hint!r}") from None
-    res = solve_aoa(b, u, method=method, sigma=sigma, position_hint=position_hint)
-    write_json(out, res)
+    if sign_unknown:
+        keep = ~np.isnan(u).any(axis=1)
+        res = solve_aoa(b[keep], u[keep], method=method, sigma=sigma, position_hint=position_hint,
+                        sign_z_unknown=True)
+    else:
+        res = solve_aoa(b, u, method=method, sigma=sigma, position_hint=position_hint)
+    with staged_outputs():  # the figure and the result together, or neither
+        if plot is not None:
+            _plot_pose(b, u, res, plot)
+        write_json(out, enrich_payload(res.to_dict(), names={"beacon_names": btab.row_names},
+                                       units={"position": "m",
+                                              "rotation": "columns = receiver axes in the global frame",
+                                              "residual_rms": "rad", "covariance": "m^2 and rad^2"}))
     click.echo(
         f"position {np.array2string(res.position, precision=4)}  residual {np.degrees(res.residual_rms):.3g} deg"
         f"  method {res.method}" + (f"  ({len(res.candidates)} candidates)" if res.ambiguous else "")
     )
+    click.echo(f"  {res.message}")
+    if not res.success:
+        click.echo(f"FAIL: pose not trustworthy ({res.message})")
+        raise SystemExit(1)
+
+
+def _plot_pose(b: object, u: object, res: object, path: str) -> None:
+    """Beacons, receiver position, its axes (columns of R) and the measured bearing rays."""
+    import numpy as np
+    from matplotlib.figure import Figure
+
+    from ..plotting import save_figure
+
+    B = np.asarray(b, float)
+    U = np.asarray(u, float)
+    m = np.asarray(res.position, float)  # type: ignore[attr-defined]
+    R = np.asarray(res.rotation, float)  # type: ignore[attr-defined]
+    d = B.shape[1]
+    span = float(np.max(np.ptp(np.vstack([B, m[None]]), axis=0))) or 1.0
+    L = 0.15 * span
+    fig = Figure(figsize=(7.0, 6.0))
+    ax = fig.add_subplot(1, 1, 1, projection="3d" if d == 3 else None)
+    P = B if d == 3 else np.column_stack([B, np.zeros(len(B))])
+    mm = m if d == 3 else np.append(m, 0.0)
+    RR = R if d == 3 else np.block([[R, np.zeros((2, 1))], [np.zeros((1, 2)), np.ones((1, 1))]])
+    UU = U if d == 3 else np.column_stack([U, np.zeros(len(U))])
+    coords = (lambda v: (v[..., 0], v[..., 1], v[..., 2])) if d == 3 else (lambda v: (v[..., 0], v[..., 1]))
+    ax.scatter(*coords(P), c="C3", marker="s", s=40, label="beacons")
+    ax.scatter(*coords(mm[None]), c="k", s=50, label="receiver")
+    for a, (col, name) in enumerate(zip(("r", "g", "b"), "xyz", strict=True)):
+        if d == 2 and a == 2:
+            break
+        tip = mm + L * RR[:, a]
+        ax.plot(*coords(np.vstack([mm, tip])), color=col, lw=2.5, label=f"receiver {name} axis")
+    for k in range(len(P)):
+        if not np.isfinite(UU[k]).all():
+            continue
+        ray = RR @ (UU[k] / np.linalg.norm(UU[k]))
+        dist = float(np.linalg.norm(P[k] - mm))
+        ax.plot(*coords(np.vstack([mm, mm + dist * ray])), color="0.5", lw=0.8, ls="--")
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
+    if d == 3:
+        ax.set_zlabel("z [m]")
+    else:
+        ax.set_aspect("equal")
+    ok = "ok" if res.success else "FAIL"  # type: ignore[attr-defined]
+    ax.set_title(f"AOA pose ({res.method}, residual {np.degrees(res.residual_rms):.2g} deg, {ok}); "  # type: ignore[attr-defined]
+                 "dashed: measured bearings", fontsize=9)
+    ax.legend(loc="best", fontsize=7)
+    save_figure(fig, path)
 
 
 @reproduce.command("aoa")

@@ -8,12 +8,14 @@ line for 004's requirements (position error <= 10 cm, timing error <= 58 us) and
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from pathlib import Path
 
 import click
 
 from ._base import handle_errors, main
+from ._common import jitter_options, resolve_jitter
 
 
 @main.command("demo")
@@ -27,14 +29,13 @@ from ._base import handle_errors, main
               help="flat / boundary desks use their known heights (near-planar); tiered / stem are solved in 3-D.")
 @click.option("--rt60", type=float, default=0.4, show_default=True, help="Reverberation time, s.")
 @click.option("--snr", type=float, default=30.0, show_default=True, help="Direct sound at 1 m over noise, dB.")
-@click.option("--jitter", type=float, default=5.0, show_default=True,
-              help="Clock jitter per (receiver, event), std in us (004: units synchronised within 100 us).")
+@jitter_options(5e-6, what="(004: units synchronised within 100 us)")
 @handle_errors
 def demo_cmd(out: Path, seed: int, units: int, room_text: str, layout: str, rt60: float, snr: float,
-             jitter: float) -> None:
+             jitter: float, jitter_us: float | None = None) -> None:
     """Simulate, detect, calibrate and check paper 004's requirements (``make demo``)."""
     from ..acoustics.pipeline import run_pipeline
-    from ..io import write_json
+    from ..io import staged_outputs, write_json
     from .acoustics import (
         parse_room,
         pipeline_errors,
@@ -45,6 +46,7 @@ def demo_cmd(out: Path, seed: int, units: int, room_text: str, layout: str, rt60
     )
 
     room = parse_room(room_text)
+    jitter = resolve_jitter(jitter, jitter_us) * 1e6  # microseconds below (messages, payload)
     rec_dir = out / "recording"
     click.echo(f"selfcal demo: {units} units ({layout}), room {room_text} m, RT60 {rt60:g} s, SNR {snr:g} dB, "
                f"clock jitter {jitter:g} us, seed {seed}")
@@ -58,18 +60,18 @@ def demo_cmd(out: Path, seed: int, units: int, room_text: str, layout: str, rt60
                    "heights (recording/heights.json) are used: horizontal positions solved, z given")
     # the simulated clocks' jitter is declared in setup.json, as a real installation would
     result = run_pipeline(rec_dir, dim="auto" if heights is not None else 3, heights=heights, rng=seed)
-    stages = {"simulate": t_sim, **result.timings}
-    result.timings.clear()
-    result.timings.update(stages)
+    # a new result with the simulation stage timed too (results are frozen: never edited in place)
+    result = dataclasses.replace(result, timings={"simulate": t_sim, **result.timings})
     errors = pipeline_errors(result, rec_dir)
     payload = result.to_dict()
     if errors is not None:
         payload["errors"] = {k: v for k, v in errors.items() if not k.startswith(("aligned_", "true_"))}
     payload["demo"] = {"units": units, "room": list(room), "layout": layout, "rt60": rt60, "snr_db": snr,
                        "clock_jitter_us": jitter, "seed": seed, "image_order": truth["max_order"]}
-    plot_map(result, out / "map.png", errors, title=f"demo: {units} units, {layout}, seed {seed}")
-    plot_timing(result, out / "timing.png", errors)
-    write_json(out / "result.json", payload)
+    with staged_outputs():
+        plot_map(result, out / "map.png", errors, title=f"demo: {units} units, {layout}, seed {seed}")
+        plot_timing(result, out / "timing.png", errors)
+        write_json(out / "result.json", payload)
     click.echo("-" * 78)
     for line in summarise(result, errors):
         click.echo(line)

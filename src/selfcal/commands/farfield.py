@@ -15,6 +15,7 @@ from ._base import (
     scheduler_option,
     seed_option,
 )
+from ._common import csv_option, unit_options
 
 if TYPE_CHECKING:
     from ..tdoa import FarfieldResult
@@ -25,7 +26,17 @@ if TYPE_CHECKING:
 @click.option("--out", "out", type=click.Path(dir_okay=False, path_type=Path), required=True,
               help="Result JSON (positions, directions, offsets, residual_rms, degeneracy, ...).")
 @click.option("--speed", type=float, default=None, metavar="C",
-              help="Propagation speed in m/s: the matrix holds seconds (TDOA); lengths are reported in metres.")
+              help="Propagation speed in m/s: the matrix holds seconds (TDOA); positions are reported in "
+                   "metres, offsets and the residual in seconds. A Pyramic JSON holds seconds and its own "
+                   "sound_speed_mps, which --speed overrides.")
+@click.option("--dim", type=click.Choice(["1", "2", "3", "auto"]), default="3", show_default=True,
+              help="3: spatial array; 2: planar array with sources in its plane (in-plane geometry); 1: linear "
+                   "array (positions along the line, up to scale); auto: decided by a rank test of the data "
+                   "against the noise. The JSON's 'case' and 'determined' say what the data fix.")
+@click.option("--directions", "directions", default=None, metavar="FILE|sources",
+              help="Known unit directions (k x 3 or k x 2 CSV / .npy, one row per column of MATRIX), or 'sources' "
+                   "for a Pyramic JSON's own (n_j = -source_j): semi-blind least squares for the positions, the "
+                   "way to calibrate a degenerate (cone) set if the directions are right.")
 @click.option("--method", type=click.Choice(["auto", "lm", "alternating", "init", "minimal"]), default="auto",
               show_default=True, help="Refinement: LM on the spheres (Alg. 3), alternating (Alg. 2), or none.")
 @click.option("--loss", type=click.Choice(["linear", "huber", "soft_l1", "cauchy"]), default="linear",
@@ -37,66 +48,200 @@ if TYPE_CHECKING:
 @click.option("--allow-degenerate", is_flag=True,
               help="On a degenerate geometry write the partial reconstruction instead of failing.")
 @click.option("--plot", "plot", type=click.Path(dir_okay=False, path_type=Path), default=None,
-              help="PNG of the positions and directions.")
+              help="Figure of the positions and directions (format from the suffix: .png, .pdf, .svg).")
+@csv_option
+@unit_options
 @handle_errors
-def farfield_command(matrix: Path, out: Path, speed: float | None, method: str, loss: str,
+def farfield_command(matrix: Path, out: Path, speed: float | None, dim: str, directions: str | None,
+                     method: str, loss: str,
                      noise_std: float | None, ransac: bool, seed: int, allow_degenerate: bool,
-                     plot: Path | None) -> None:
-    """Self-calibrate from an m x k far-field TDOA MATRIX (CSV or .npy, NaN = missing).
+                     plot: Path | None, csv_out: Path | None = None, unit: str | None = None,
+                     sample_rate: float | None = None) -> None:
+    """Self-calibrate from an m x k far-field TDOA MATRIX (CSV, .npy or Pyramic JSON; NaN = missing).
 
     Rows are receiver positions (microphones, antenna positions), columns far transmitters;
-    entry = relative distance z_i . n_j + C_j (metres, or seconds with --speed). A degenerate
-    geometry (planar-motion, coplanar-directions, cone, collinear-motion,
+    entry = relative distance z_i . n_j + C_j (metres, or seconds with --speed). A .json
+    file in the Pyramic calibration layout (keys delays [m-1][k] in seconds against
+    microphone mic_ref, sources, microphones, sound_speed_mps) is read directly; its
+    hand-measured microphones are not used by the estimate, only compared with it. A
+    degenerate geometry (planar-motion, coplanar-directions, cone, collinear-motion,
     parallel-directions) exits with status 2 naming it, unless --allow-degenerate.
     """
-    from ..errors import InputError
-    from ..io import read_matrix, write_json
-    from ..tdoa import solve_farfield
+    import numpy as np
 
-    M = read_matrix(matrix, name=str(matrix))
-    scale = 1.0
-    if speed is not None:
-        if not (speed > 0 and speed < float("inf")):
-            raise InputError(f"--speed must be a positive number, got {speed}")
-        scale = speed
-    res = solve_farfield(M * scale, method=method, loss=loss,
+    from .._checks import FARFIELD_TIMES_AS_METRES_MAX, plausible_matrix_scale
+    from ..errors import InputError
+    from ..io import read_table, staged_outputs, write_json
+    from ..tdoa import solve_farfield
+    from ._common import enrich_payload, to_metres, write_nodes_csv
+
+    if speed is not None and not (speed > 0 and speed < float("inf")):
+        raise InputError(f"--speed must be a positive number, got {speed}")
+    reference = None
+    known = None
+    row_names = col_names = None
+    if matrix.suffix.lower() == ".json":
+        from ..datasets.pyramic import pyramic_from_dict
+        from ..io import read_json
+
+        data = pyramic_from_dict(read_json(matrix), label=str(matrix), speed=speed)
+        D, scale, seconds = data.D, data.speed, True
+        reference = data.positions
+        if directions == "sources":
+            known = data.directions
+    else:
+        table = read_table(matrix, name=str(matrix))
+        row_names, col_names = table.row_names, table.col_names
+        M, speed, _ = to_metres(table.values, unit, speed, sample_rate, name=str(matrix))
+        plausible_matrix_scale(M, speed=speed, explicit_unit=unit is not None, name=str(matrix),
+                               min_span=FARFIELD_TIMES_AS_METRES_MAX)
+        seconds = speed is not None
+        scale = speed if speed is not None else 1.0
+        D = M * scale
+    if directions is not None and known is None:
+        if directions == "sources":
+            raise InputError("--directions sources needs a Pyramic JSON matrix (with 'sources'); give a file")
+        known = read_table(Path(directions), name=str(directions)).values
+    res = solve_farfield(D, method=method, loss=loss, directions=known,
                          noise_std=None if noise_std is None else noise_std * scale,
-                         allow_degenerate=allow_degenerate, ransac=ransac, rng=seed)
-    if plot is not None:
-        _plot(res, plot)
-    write_json(out, res.to_dict())
-    m, k = M.shape
-    click.echo(f"selfcal calibrate tdoa-farfield: {m} positions x {k} transmitters, method {res.method}, "
-               f"loss {res.loss}")
-    click.echo(f"  residual RMS {res.residual_rms:.4g} m, converged={res.converged}, iterations={res.iterations}, "
-               f"rejected entries {int(res.rejected.sum())}")
+                         allow_degenerate=allow_degenerate, ransac=ransac, rng=seed,
+                         dim="auto" if dim == "auto" else int(dim))
+    out_dict = res.to_dict()
+    tunit = "s" if seconds else "m"
+    if seconds:
+        out_dict["offsets"] = (np.asarray(res.offsets) / scale).tolist()
+        out_dict["residual_rms"] = float(res.residual_rms / scale)
+        out_dict["speed"] = float(scale)
+    ref_rmse = None
+    if reference is not None and res.positions.shape[1] == 3:
+        ref_rmse = _aligned_rmse(res.positions, reference)
+        out_dict["reference_rmse"] = ref_rmse
+    payload = enrich_payload(
+        out_dict, names={"position_names": row_names, "transmitter_names": col_names},
+        units={"positions": "m", "directions": "unit vectors", "offsets": tunit, "residual_rms": tunit,
+               "position_cov": "m^2"})
+    with staged_outputs():  # the figure, the JSON and the CSV together, or none
+        if plot is not None:
+            _plot(res, plot)
+        write_json(out, payload)
+        if csv_out is not None:
+            write_nodes_csv(csv_out, payload, [("position", "positions", "position_names")])
+    m, k = D.shape
+    click.echo(f"selfcal calibrate tdoa-farfield: {m} positions x {k} transmitters, {res.dim}-D ({res.case}), "
+               f"method {res.method}, loss {res.loss}")
+    click.echo(f"  determined: {res.determined}")
+    click.echo(f"  residual RMS {out_dict['residual_rms']:.4g} {tunit}, converged={res.converged}, "
+               f"iterations={res.iterations}, rejected entries {int(res.rejected.sum())}")
+    if ref_rmse is not None:
+        click.echo(f"  RMS distance to the file's hand-measured microphones after rigid alignment "
+                   f"{1e3 * ref_rmse:.3g} mm (not used by the estimate)")
     if res.degeneracy is not None:
         click.echo(f"selfcal: warning: degenerate geometry [{res.degeneracy}]: wrote a partial reconstruction",
                    err=True)
     click.echo(f"  wrote {out}")
+    failure = None
+    if res.degeneracy is None and not res.converged:
+        failure = f"the refinement did not converge in {res.iterations} iterations"
+    elif noise_std is not None and res.degeneracy is None:
+        failure = _residual_failure(res, D, noise_std * scale)
+    if failure is not None:
+        click.echo(f"FAIL: calibration not trustworthy ({failure})")
+        raise SystemExit(1)
+
+
+def _residual_failure(res: FarfieldResult, D: object, sigma: float) -> str | None:
+    """Chi-square test of the residuals against a given noise std: a message when it fails.
+
+    ``sum r^2 / sigma^2 ~ chi2(n_obs - n_par)`` at the least-squares solution, n_par =
+    d(m-1) + (d-1)k + k - d(d-1)/2 (positions, directions, offsets, minus the rotations);
+    fails above the 0.999 quantile.
+    """
+    import numpy as np
+    from scipy.stats import chi2
+
+    Dm = np.asarray(D, dtype=float)
+    used = np.isfinite(Dm) & ~res.rejected
+    # the statistic is chi-square at the least-squares (ML) solution with free offsets; the
+    # paper's reference offsets (C_j = D_1j) are not that solution, so refine to it first
+    Z, N = res.positions, res.directions
+    fit = np.where(used, Dm - Z @ N.T, np.nan)
+    C = np.nanmean(fit, axis=0)
+    if res.case in ("spatial", "planar") and res.loss == "linear":
+        from ..tdoa import refine_lm
+
+        out = refine_lm(Dm, Z - Z[0], N, C + Z[0] @ N.T, mask=used, free_offsets=True, covariance=False)
+        Z, N, C = out.positions, out.directions, out.offsets
+    r = np.where(used, Dm - Z @ N.T - C[None, :], 0.0)
+    m, k = Dm.shape
+    d = res.dim
+    n_par = d * (m - 1) + (d - 1) * k + k - d * (d - 1) // 2 if res.case != "known-directions" else d * (m - 1) + k
+    dof = int(used.sum()) - n_par
+    if dof <= 0 or sigma <= 0:
+        return None
+    stat = float(np.sum(r**2)) / sigma**2
+    q = float(chi2.ppf(0.999, dof))
+    if stat > q:
+        return (f"residual RMS {float(np.sqrt(np.sum(r**2) / used.sum())):.3g} m against the given noise "
+                f"{sigma:.3g} m: chi-square {stat:.4g} > its 0.999 quantile {q:.4g} with {dof} dof")
+    return None
+
+
+def _aligned_rmse(est: object, ref: object) -> float:
+    """RMS distance (metres) between two point sets after the best rotation / reflection and translation."""
+    import numpy as np
+
+    from ..geometry import align
+
+    A, B = np.asarray(est, dtype=float), np.asarray(ref, dtype=float)
+    al = align(A, B, reflection=True)
+    return float(np.sqrt(np.mean(np.sum((al.apply(A) - B) ** 2, axis=1))))
 
 
 def _plot(res: FarfieldResult, path: Path) -> None:
+    """Positions (with 95 % ellipses in 2-D) and the directions on the unit sphere (3-D),
+    circle (2-D) or segment (1-D), coloured by each transmitter's offset C_j (metres)."""
     import numpy as np
+    from matplotlib.figure import Figure
 
-    from ..plotting import new_figure, save_figure
+    from ..plotting import plot_positions, save_figure
 
-    fig, axes = new_figure(1, 2, size=(11.0, 5.0))
-    P = res.positions
-    axes[0].scatter(P[:, 0], P[:, 1], c=P[:, 2], cmap="viridis", s=25)
-    axes[0].scatter([0], [0], marker="x", c="r", s=60, label="position 1 (origin)")
-    axes[0].set_aspect("equal")
-    axes[0].set_xlabel("x [m]")
-    axes[0].set_ylabel("y [m] (colour: z)")
-    axes[0].set_title("receiver positions")
-    axes[0].legend(loc="best")
-    n = res.directions
-    az = np.degrees(np.arctan2(n[:, 1], n[:, 0]))
-    el = np.degrees(np.arcsin(np.clip(n[:, 2], -1, 1)))
-    axes[1].scatter(az, el, s=12)
-    axes[1].set_xlabel("azimuth [deg]")
-    axes[1].set_ylabel("elevation [deg]")
-    axes[1].set_title("directions" + (f" [{res.degeneracy}]" if res.degeneracy else ""))
+    fig = Figure(figsize=(12.0, 5.2))
+    P, n, d = res.positions, res.directions, res.dim
+    ax0 = fig.add_subplot(1, 2, 1)
+    if d == 1:
+        ax0.scatter(P[:, 0], np.zeros(len(P)), s=25)
+        ax0.set_xlabel("position along the line [m] (up to scale)")
+        ax0.set_ylabel("(none) [m]")
+        ax0.set_yticks([])
+    else:
+        plot_positions(ax0, P, cov=res.position_cov if d == 2 else None, label="positions")
+        if d == 3:
+            sc = ax0.scatter(P[:, 0], P[:, 1], c=P[:, 2], cmap="viridis", s=25, zorder=4)
+            fig.colorbar(sc, ax=ax0, label="z [m]")
+        ax0.legend(loc="best", fontsize=8)
+    ax0.set_title(f"receiver positions ({res.case}, first at the origin)")
+    ax1 = fig.add_subplot(1, 2, 2, projection="3d" if d == 3 else None)
+    if d == 3:
+        u, v = np.mgrid[0 : 2 * np.pi : 37j, 0 : np.pi : 19j]
+        ax1.plot_wireframe(np.cos(u) * np.sin(v), np.sin(u) * np.sin(v), np.cos(v), color="0.85", lw=0.4)
+        sc = ax1.scatter(n[:, 0], n[:, 1], n[:, 2], c=res.offsets, cmap="plasma", s=14, depthshade=False)
+        ax1.set_xlabel("n_x [unit]")
+        ax1.set_ylabel("n_y [unit]")
+        ax1.set_zlabel("n_z [unit]")
+        ax1.set_box_aspect((1, 1, 1))
+    elif d == 2:
+        t = np.linspace(0, 2 * np.pi, 200)
+        ax1.plot(np.cos(t), np.sin(t), color="0.8", lw=0.8)
+        sc = ax1.scatter(n[:, 0], n[:, 1], c=res.offsets, cmap="plasma", s=18)
+        ax1.set_aspect("equal")
+        ax1.set_xlabel("n_x [unit]")
+        ax1.set_ylabel("n_y [unit]")
+    else:
+        sc = ax1.scatter(n[:, 0], np.arange(len(n)), c=res.offsets, cmap="plasma", s=14)
+        ax1.set_xlabel("projection of the direction on the line [unit] (cos of the angle)")
+        ax1.set_ylabel("transmitter index [-]")
+    fig.colorbar(sc, ax=ax1, label="offset C_j [m]", shrink=0.8)
+    ax1.set_title("transmitter directions" + (f" [{res.degeneracy}]" if res.degeneracy else ""))
     save_figure(fig, path)
 
 

@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 
 import click
 
 from ._base import backend_option, handle_errors, reproduce, scheduler_option, seed_option, slac
+from ._common import all_or_nothing
 
 
 @slac.command("simulate")
@@ -22,9 +24,11 @@ def simulate_cmd(minutes: float, subcarriers: int, snr_db: float, seed: int, out
     from ..errors import InputError
     from ..scenarios.rovers import make_rover_scenario
     from ..slac.run import SlacLog
+    from ..slac.validate import check_simulation_request
 
     if subcarriers < 8:
         raise InputError("--subcarriers must be >= 8")
+    check_simulation_request(minutes, subcarriers, snr_db)  # before anything is allocated
     sc = make_rover_scenario(minutes, n_subcarriers=subcarriers, snr_db=snr_db, rng=seed)
     SlacLog.from_scenario(sc, seed=seed).to_npz(out)
     click.echo(f"wrote {out}: {sc.n_steps} steps, {sc.rx.size} links, N = {subcarriers}")
@@ -44,6 +48,7 @@ def simulate_cmd(minutes: float, subcarriers: int, snr_db: float, seed: int, out
               help="0: the paper's filter; K > 0: fixed-lag smoother over the last K steps (consistent "
                    "error bars with antenna calibration, ~5x slower at K = 20; docs/slac_consistency.md).")
 @handle_errors
+@all_or_nothing
 def run_cmd(log_path: Path, mode: str, prior: str, out: Path, plot: Path | None, init: str,
             smoother_lag: int) -> None:
     """Run the SLAC or localization-only filter (or fixed-lag smoother) over an NPZ log."""
@@ -54,7 +59,7 @@ def run_cmd(log_path: Path, mode: str, prior: str, out: Path, plot: Path | None,
     from ..slac.run import SlacLog, solve_slac
 
     log = SlacLog.from_npz(log_path)
-    res = solve_slac(log, mode=mode, prior=prior, progress=True, init=init,
+    res = solve_slac(log, mode=mode, prior=prior, progress=sys.stderr.isatty(), init=init,
                      config=SlacConfig(smoother_lag=smoother_lag))
     d = res.to_dict()
     m = d["metrics"]
@@ -86,33 +91,52 @@ def run_cmd(log_path: Path, mode: str, prior: str, out: Path, plot: Path | None,
 @slac.command("plaza")
 @click.argument("path", type=click.Path(path_type=Path))
 @click.option("--out", "out", type=click.Path(dir_okay=False, path_type=Path), required=True, help="RESULT.json")
-@click.option("--plot", "plot", type=click.Path(dir_okay=False, path_type=Path), default=None, help="PNG of the tracks.")
+@click.option("--method", type=click.Choice(["filter", "smoother", "both"]), default="both", show_default=True,
+              help="filter: causal robust EKF (online use); smoother: batch MAP over the whole log (offline, "
+                   "more accurate); both: run the two.")
+@click.option("--csv", "csv_path", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="Trajectory CSV (time, x, y, heading, stds) of the smoother (or the one method run).")
+@click.option("--tum", "tum_path", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="Same trajectory in the TUM format (timestamp tx ty tz qx qy qz qw).")
+@click.option("--plot", "plot", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="PNG: tracks, ground truth, beacons with the estimated scale / offset.")
+@click.option("--init-heading-offset", type=float, default=None,
+              help="Radians, only for a log without the init_heading_offset variable.")
 @handle_errors
-def plaza_cmd(path: Path, out: Path, plot: Path | None) -> None:
-    """Localization-only and SLAC (bias + scale states) on the CMU Plaza log (Plaza1.mat)."""
+def plaza_cmd(path: Path, out: Path, method: str, csv_path: Path | None, tum_path: Path | None,
+              plot: Path | None, init_heading_offset: float | None) -> None:
+    """Range-only SLAC (per-beacon range scale + offset) on a CMU range log (e.g. Plaza1.mat).
+
+    Ground truth is used for the first pose and for the scores only. Exit 1 with a FAIL line
+    if the smoother stops at its iteration limit.
+    """
+    import sys
+
     from ..datasets.plaza import load_plaza
-    from ..experiments.slac import plaza_summary
-    from ..io import write_json
+    from ..experiments.slac import plaza_summary, plot_plaza
+    from ..io import staged_outputs, write_json
+    from ..slac.export import write_trajectory_csv, write_trajectory_tum
 
-    data = load_plaza(path)
-    s = plaza_summary(data)
-    tracks = s.pop("_tracks")
-    if plot is not None:
-        from ..plotting import new_figure, save_figure
-
-        fig, ax = new_figure(size=(6, 6))
-        ax.plot(data.gt[:, 0], data.gt[:, 1], "k-", lw=0.8, label="ground truth")
-        ax.plot(tracks["localization"][:, 0], tracks["localization"][:, 1], lw=0.8, label="localization")
-        ax.plot(tracks["slac"][:, 0], tracks["slac"][:, 1], lw=0.8, label="SLAC")
-        ax.plot(data.beacons[:, 0], data.beacons[:, 1], "r^", label="beacons")
-        ax.set_aspect("equal")
-        ax.legend()
-        save_figure(fig, plot)
-    write_json(out, s)
-    click.echo(
-        f"position RMSE {s['position_rmse_localization']:.2f} m (localization) / {s['position_rmse_slac']:.2f} m (SLAC); "
-        f"heading RMSE {s['heading_rmse_localization']:.1f} / {s['heading_rmse_slac']:.1f} deg"
-    )
+    data = load_plaza(path, init_heading_offset=init_heading_offset)
+    methods = ("filter", "smoother") if method == "both" else (method,)
+    s = plaza_summary(data, methods=methods, progress=True)
+    results = s.pop("_results")
+    main = results["smoother" if "smoother" in results else methods[0]]
+    with staged_outputs():  # every artefact of the run together, or none
+        if csv_path is not None:
+            write_trajectory_csv(csv_path, main)
+        if tum_path is not None:
+            write_trajectory_tum(tum_path, main)
+        if plot is not None:
+            plot_plaza(plot, data, results)
+        write_json(out, s)
+    for m, d in s["methods"].items():
+        click.echo(f"{m}: position RMSE {d['position_rmse']:.3f} m, heading RMSE {d['heading_rmse_deg']:.2f} deg, "
+                   f"scale {', '.join(f'{v:.3f}' for v in d['scale'])}, {d['seconds']:.1f} s")
+    click.echo(f"wrote {out}")
+    if not main.success:
+        click.echo(f"FAIL: {main.method}: {main.message}", err=True)
+        sys.exit(1)
 
 
 @reproduce.command("slac")

@@ -1,76 +1,212 @@
-"""``selfcal calibrate toa``: anchor-free TOA / range self-calibration from a matrix file."""
+"""``selfcal calibrate toa``: TOA / range self-calibration from a matrix file.
+
+Exit status: 0 = a trustworthy result, 1 = the fit failed its own test (a ``FAIL: ...``
+line; the result is still written), 2 = bad input (one line on stderr, no output file).
+"""
 
 from __future__ import annotations
 
+import importlib.util
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import click
 
 from ._base import calibrate, handle_errors
+from ._common import csv_option, unit_options
 
 if TYPE_CHECKING:
     from ..toa.solve import ToaResult
+
+
+def _auto_available() -> bool:
+    """The model selection of ``offsets`` / ``dim`` (``selfcal.toa.select``) is installed."""
+    return importlib.util.find_spec("selfcal.toa.select") is not None
 
 
 @calibrate.command("toa")
 @click.argument("matrix", type=click.Path(dir_okay=False, path_type=Path))
 @click.option("--speed", type=float, default=None, metavar="C",
               help="Propagation speed in m/s: the matrix holds seconds; offsets are reported in seconds.")
-@click.option("--offsets", type=click.Choice(["none", "receivers", "sources", "both"]), default="none",
-              show_default=True, help="Unknown per-receiver (d_i) and/or per-source (o_j) offsets.")
-@click.option("--dim", type=click.Choice(["2", "3"]), default="3", show_default=True, help="Dimension.")
-@click.option("--loss", type=click.Choice(["linear", "huber", "soft_l1", "cauchy"]), default="linear",
-              show_default=True, help="Robust loss for outliers.")
+@click.option("--offsets", type=click.Choice(["none", "receivers", "sources", "both", "auto"]), default=None,
+              help="Unknown per-receiver (d_i) and/or per-source (o_j) offsets; auto = chosen by a "
+                   "statistical test. Default: the solver's default.")
+@click.option("--dim", type=click.Choice(["2", "3", "auto"]), default=None,
+              help="Dimension (auto = near-planar test). Default: the solver's default (3).")
+@click.option("--loss", type=click.Choice(["linear", "huber", "soft_l1", "cauchy"]), default=None,
+              help="Loss of the fit (default: the solver's default).")
 @click.option("--method", type=click.Choice(["auto", "nls", "rank3"]), default="auto", show_default=True,
-              help="auto: initialise + NLS + multi-start; nls: one refinement; rank3: 004 initialiser only.")
+              help="auto: initialise + NLS + search; nls: one refinement; rank3: 004 initialiser only.")
+@click.option("--noise", type=float, default=None, metavar="SIGMA",
+              help="Measurement noise std in the matrix's units: enables the chi-square residual test.")
+@click.option("--recipe", type=click.Choice(["auto", "none", "moving-tag"]), default="auto", show_default=True,
+              help="Preprocessing recipe: moving-tag = columns are one moving device in time order "
+                   "(multipath spikes rejected in time, under-observed positions dropped); auto = "
+                   "moving-tag when a permutation test finds the columns in time order (p < 1e-3).")
+@click.option("--known", "known", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="CSV name,x,y,z[,std] of nodes with known positions (r<i>, s<j> or a receiver "
+                   "index); they constrain the fit and set the frame.")
+@click.option("--frame", "frame", default=None, metavar="origin=A,x=B,xy=C[,z=D]",
+              help="Frame by reference nodes: A at the origin, B on +x, C in the xy half-plane (y>0), "
+                   "D above (z>0).")
 @click.option("--seed", type=int, default=0, show_default=True, help="Random seed (initialisers, restarts).")
 @click.option("--out", "out", type=click.Path(dir_okay=False, path_type=Path), required=True,
               help="Result JSON (keys per DESIGN.md).")
 @click.option("--plot", "plot", type=click.Path(dir_okay=False, path_type=Path), default=None,
-              help="PNG of receivers and sources with 95% confidence ellipses.")
+              help="Figure of receivers and sources with 95% confidence ellipses (format from the suffix: .png, .pdf, .svg).")
+@csv_option
+@unit_options
 @handle_errors
-def toa_command(matrix: Path, speed: float | None, offsets: str, dim: str, loss: str, method: str,
-                seed: int, out: Path, plot: Path | None) -> None:
+def toa_command(matrix: Path, speed: float | None, offsets: str | None, dim: str | None,
+                loss: str | None, method: str, noise: float | None, recipe: str, known: Path | None,
+                frame: str | None, seed: int, out: Path, plot: Path | None, csv_out: Path | None = None,
+                unit: str | None = None, sample_rate: float | None = None) -> None:
     """Calibrate receivers and sources from an I x J TOA/range MATRIX (CSV or .npy, NaN = missing).
 
-    Rows are receivers, columns are sources. Metres unless --speed is given.
+    Rows are receivers, columns are sources (a header row and a first column of names are
+    kept). Metres unless --speed is given (then seconds); --unit names another unit.
     """
     import numpy as np
 
-    from ..io import read_matrix, write_json
-    from ..toa import solve_toa
+    from .._checks import plausible_matrix_scale
+    from ..errors import InputError
+    from ..io import read_table, staged_outputs, write_json
+    from ..toa.frame import FramedToaResult, apply_frame, fit_known, parse_known, read_known_csv
+    from ..toa.recipes import apply_recipe
+    from ._common import enrich_payload, to_metres, write_nodes_csv
 
-    M = read_matrix(matrix, name=str(matrix))
-    res = solve_toa(M, dim=int(dim), offsets=offsets, speed=speed, loss=loss, method=method, rng=seed)
-    if plot is not None:
-        _plot(res, plot)
-    write_json(out, res.to_dict())
+    if known is not None and frame is not None:
+        raise InputError("--known and --frame are exclusive (known positions already define the frame)")
+    if ("auto" in (offsets, dim)) and not _auto_available():
+        raise InputError("--offsets auto / --dim auto need the model selection (selfcal.toa.select), "
+                         "which this build does not have yet; give the value explicitly")
+    table = read_table(matrix, name=str(matrix))
+    M, speed, _ = to_metres(table.values, unit, speed, sample_rate, name=str(matrix))
+    plausible_matrix_scale(M, speed=speed, explicit_unit=unit is not None, name=str(matrix))
+    kw: dict[str, Any] = {"method": method, "rng": seed, "speed": speed}
+    for key, val in (("offsets", offsets), ("loss", loss), ("noise", noise)):
+        if val is not None:
+            kw[key] = val
+    if dim is not None:
+        kw["dim"] = dim if dim == "auto" else int(dim)
+    known_table = None
+    if known is not None:
+        known_table = read_known_csv(known, 2 if dim == "2" else 3)  # validated before the solve
+    rec = apply_recipe(recipe, M, **kw)
+    res: Any = rec.result
+    framed: FramedToaResult | None = None
+    d_out = np.asarray(res.receivers).shape[1]
+    off_used = _offsets_of(res)
+    loss_used = loss or getattr(res, "loss", None) or "linear"
+    if known_table is not None and known is not None:
+        I, J = M.shape
+        nodes = parse_known(_redim(known_table, known, d_out), I, J, d_out)
+        framed = fit_known(M, res, nodes, offsets=off_used, loss=loss_used, noise=noise)
+    elif frame is not None:
+        framed = apply_frame(res, frame, matrix=M, offsets=off_used, loss=loss_used)
+    if framed is not None:
+        res = framed.result
+    payload = enrich_payload(dict(res.to_dict()), names={"receiver_names": table.row_names,
+                                                         "source_names": table.col_names})
+    used = rec.recipe
+    if recipe != "none":
+        payload["recipe"] = rec.to_dict()["recipe"]
+    if framed is not None:
+        payload["frame"] = framed.frame.to_dict()
+    ok, why = _trustworthy(res)
+    # all artefacts staged and committed together; a FAIL (exit 1) still writes its result
+    with staged_outputs():
+        if plot is not None:
+            _plot(res, plot, framed is not None)
+        write_json(out, payload)
+        if csv_out is not None:
+            write_nodes_csv(csv_out, payload, [("receiver", "receivers", "receiver_names"),
+                                               ("source", "sources", "source_names")])
     unit = "s" if speed is not None else "m"
     I, J = M.shape
     tr = np.trace(res.receiver_cov, axis1=1, axis2=2)
     ts = np.trace(res.source_cov, axis1=1, axis2=2)
     lines = [
-        f"selfcal calibrate toa: {I} receivers x {J} sources, {dim}-D, offsets={offsets}, "
-        f"{res.n_missing} missing",
+        f"selfcal calibrate toa: {I} receivers x {J} sources, {d_out}-D, offsets={off_used}, "
+        f"{int((~np.isfinite(M)).sum())} missing" + (f", recipe {used}" if used != "none" else ""),
         f"  method {res.method}, converged={res.converged}, iterations={res.iterations}",
         f"  residual RMS {res.residual_rms:.4g} {unit}, noise sigma {res.sigma:.4g} {unit}",
     ]
-    if np.isfinite(tr).all():
+    if used != "none":
+        auto = rec.details.get("auto")
+        reason = f" (auto: columns in time order, permutation p = {auto['p_value']:.2g})" if auto else ""
+        lines.append(f"  recipe {used}{reason}: {rec.n_rejected} spikes rejected, {len(rec.dropped_sources)} "
+                     "tag positions dropped (too few ranges left)")
+    counts = _counts(res)
+    if counts:
+        lines.append("  " + ", ".join(counts))
+    if framed is not None:
+        lines.append(f"  frame: {framed.frame.message}")
+        if framed.frame.known_rms is not None:
+            lines.append(f"  known nodes: RMS {framed.frame.known_rms:.4g} m after alignment, "
+                         f"{framed.frame.known_rms_fit:.4g} m after the constrained fit")
+    ok_tr, ok_ts = np.isfinite(tr), np.isfinite(ts)
+    if ok_tr.any() and ok_ts.any():
         lines.append(
-            f"  predicted position std (RMS over points): receivers {np.sqrt(tr.mean()):.4g} m, "
-            f"sources {np.sqrt(ts.mean()):.4g} m"
+            f"  predicted position std (RMS over points): receivers {np.sqrt(tr[ok_tr].mean()):.4g} m, "
+            f"sources {np.sqrt(ts[ok_ts].mean()):.4g} m"
         )
     lines.append(f"  wrote {out}" + (f" and {plot}" if plot is not None else ""))
     click.echo("\n".join(lines))
+    if not ok:
+        click.echo(f"FAIL: calibration not trustworthy ({why})")
+        raise SystemExit(1)
 
 
-def _plot(res: ToaResult, path: Path) -> None:
+def _redim(table: dict[str, tuple[float, ...]], path: Path, d: int) -> dict[str, tuple[float, ...]]:
+    """Re-read the known table for the dimension actually fitted (``--dim auto`` may give 2)."""
+    from ..toa.frame import read_known_csv
+
+    return table if d == 3 else read_known_csv(path, d)
+
+
+def _offsets_of(res: Any) -> str:
+    has_r = res.receiver_offsets is not None
+    has_s = res.source_offsets is not None
+    return {(False, False): "none", (True, False): "receivers", (False, True): "sources",
+            (True, True): "both"}[(has_r, has_s)]
+
+
+def _counts(res: Any) -> list[str]:
+    """Dropped nodes / outlier counts, for results that carry them."""
+    import numpy as np
+
+    out = []
+    for key, label in (("dropped_receivers", "receivers dropped"), ("dropped_sources", "sources dropped")):
+        v = getattr(res, key, None)
+        if v is not None and len(v):
+            out.append(f"{len(v)} {label}")
+    mask = getattr(res, "outliers", None)
+    if mask is not None:
+        out.append(f"{int(np.asarray(mask).sum())} outliers flagged")
+    return out
+
+
+def _trustworthy(res: Any) -> tuple[bool, str]:
+    """The result's own verdict: ``success`` when it has one, else its residual test."""
+    succ = getattr(res, "success", None)
+    if succ is not None:
+        return bool(succ), str(getattr(res, "message", "") or "the fit failed its residual test")
+    fit = getattr(res, "fit", None)
+    if fit is not None and not bool(getattr(fit, "passed", True)):
+        return False, "the residual test against the given noise rejected the fit"
+    if not bool(res.converged):
+        return False, "the solver did not converge"
+    return True, ""
+
+
+def _plot(res: ToaResult, path: Path, user_frame: bool) -> None:
     from ..plotting import new_figure, plot_positions, save_figure
 
     fig, ax = new_figure()
     plot_positions(ax, res.receivers, cov=res.receiver_cov, label="receivers", color="C0", marker="x")
     plot_positions(ax, res.sources, cov=res.source_cov, label="sources", color="C3", marker="s")
-    ax.set_title("TOA self-calibration (95% ellipses, canonical gauge)")
+    gauge = "user frame" if user_frame else "canonical gauge"
+    ax.set_title(f"TOA self-calibration (95% ellipses, {gauge})")
     ax.legend(loc="best", fontsize=8)
     save_figure(fig, path)

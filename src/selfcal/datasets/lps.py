@@ -9,6 +9,7 @@ set authors' own self-calibration. This module only reads and validates; calibra
 from __future__ import annotations
 
 import os
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -18,7 +19,7 @@ from numpy.typing import NDArray
 
 from ..errors import InputError
 
-__all__ = ["LpsData", "load_lps", "lps_files"]
+__all__ = ["LpsData", "LpsFormatWarning", "load_lps", "lps_files"]
 
 Array = NDArray[np.float64]
 
@@ -65,11 +66,63 @@ class LpsData:
         }
 
 
+class LpsFormatWarning(UserWarning):
+    """An LPS file deviates from the documented layout in a way the loader can repair."""
+
+
 def _field(rec: Any, key: str, path: Path) -> Array:
     try:
         return np.asarray(rec[key], dtype=float)
-    except (KeyError, ValueError, IndexError):
+    except (KeyError, ValueError, IndexError, TypeError):
         raise InputError(f"{path}: field {key!r} missing from the 'data' struct; is this an LPS file?") from None
+
+
+def _fit_columns(a: Array, n: int, key: str, path: Path) -> Array:
+    """A 3 x k per-position field matched to the n columns of ``d`` (NaN-padded or cut)."""
+    if a.ndim != 2 or a.shape[0] != 3:
+        raise InputError(f"{path}: field {key!r} must be 3 x N (one column per tag position), got {a.shape}")
+    k = a.shape[1]
+    if k == n:
+        return a
+    warnings.warn(
+        f"{path}: {key!r} has {k} columns but 'd' has {n}; "
+        + (f"the last {n - k} positions have no {key} (NaN)" if k < n else f"the extra {k - n} are ignored"),
+        LpsFormatWarning, stacklevel=3)
+    out = np.full((3, n), np.nan)
+    out[:, : min(k, n)] = a[:, : min(k, n)]
+    return out
+
+
+def _validity(rec: Any, n: int, path: Path) -> NDArray[np.bool_] | None:
+    """(n,) validity of the resampled ground truth from ``GTs_resamp_ok`` (None if absent).
+
+    The flag may be 1 x N, 3 x N (per coordinate: valid when all three are) or a vector.
+    Positions beyond its length are taken as invalid (their ground truth is NaN), with a
+    :class:`LpsFormatWarning`; extra flags are ignored.
+    """
+    try:
+        raw = np.asarray(rec["GTs_resamp_ok"])
+    except (KeyError, ValueError, IndexError):
+        return None
+    try:
+        ok = raw.astype(bool)
+    except (TypeError, ValueError):
+        raise InputError(f"{path}: 'GTs_resamp_ok' is not a logical array") from None
+    if ok.ndim == 2 and ok.shape[0] in (1, 3) and not (ok.shape[1] in (1, 3) and ok.shape[0] == n):
+        ok = np.asarray(ok.all(axis=0))
+    elif ok.ndim == 2 and ok.shape[1] in (1, 3):
+        ok = np.asarray(ok.all(axis=1))
+    ok = ok.ravel()
+    k = ok.size
+    if k != n:
+        warnings.warn(
+            f"{path}: 'GTs_resamp_ok' has {k} entries but 'd' has {n} positions; "
+            + (f"the last {n - k} are treated as invalid ground truth" if k < n else f"the extra {k - n} are ignored"),
+            LpsFormatWarning, stacklevel=3)
+        full = np.zeros(n, bool)
+        full[: min(k, n)] = ok[: min(k, n)]
+        ok = full
+    return ok
 
 
 def lps_files(path: str | os.PathLike[str]) -> list[Path]:
@@ -99,7 +152,17 @@ def load_lps(path: str | os.PathLike[str]) -> LpsData:
 
     Raises
     ------
-    InputError: not a MATLAB file of this layout, inconsistent shapes, infinite ranges.
+    InputError: not a MATLAB file of this layout, anchor fields (``Gtr``, ``ropt``) that do
+        not match the rows of ``d``, infinite ranges. Never a bare ``IndexError``.
+
+    Warns
+    -----
+    LpsFormatWarning: a per-position field (``GTs_resamp``, ``GTs_resamp_ok``, ``sopt``)
+        whose length differs from the columns of ``d``. Only ground truth and the
+        authors' estimate are affected, never the ranges: the loader keeps every range,
+        marks positions without a validity flag (or ground truth) as NaN ground truth and
+        ignores extra entries (decision: a shorter flag array is common in exported
+        flights and is not a reason to refuse the measurements).
     """
     import scipy.io
 
@@ -112,28 +175,35 @@ def load_lps(path: str | os.PathLike[str]) -> LpsData:
         raise InputError(f"{p}: cannot be read as a MATLAB v5 file ({exc})") from None
     if "data" not in mat:
         raise InputError(f"{p}: no 'data' struct; is this an LPS file?")
-    rec = mat["data"][0, 0]
+    try:
+        rec = mat["data"][0, 0]
+        rec.dtype.names[0]  # a MATLAB struct (record array)
+    except (IndexError, TypeError, AttributeError):
+        raise InputError(f"{p}: 'data' is not a 1 x 1 MATLAB struct; is this an LPS file?") from None
     d = _field(rec, "d", p)
     G = _field(rec, "Gtr", p)
     T = _field(rec, "GTs_resamp", p)
     ropt = _field(rec, "ropt", p)
     sopt = _field(rec, "sopt", p)
+    if d.ndim != 2 or d.shape[0] < 1 or d.shape[1] < 1:
+        raise InputError(f"{p}: field 'd' must be a (anchors x positions) matrix, got shape {d.shape}")
     m, n = d.shape
-    if G.shape != (3, m) or T.shape != (3, n) or ropt.shape != (3, m) or sopt.shape != (3, n):
+    if G.shape != (3, m) or ropt.shape != (3, m):
         raise InputError(
-            f"{p}: inconsistent shapes d {d.shape}, Gtr {G.shape}, GTs_resamp {T.shape}, "
-            f"ropt {ropt.shape}, sopt {sopt.shape}"
+            f"{p}: inconsistent shapes d {d.shape}, Gtr {G.shape}, ropt {ropt.shape} "
+            f"(expected Gtr and ropt 3 x {m}, one column per anchor)"
         )
+    # per-position comparison fields shorter / longer than d: pad with NaN / cut, and say so
+    T = _fit_columns(T, n, "GTs_resamp", p)
+    sopt = _fit_columns(sopt, n, "sopt", p)
     # a few raw ranges are slightly negative (biased UWB ranges with the tag next to an
     # anchor); they are kept as measured, only inf is refused
     if np.isinf(d).any():
         raise InputError(f"{p}: ranges contain inf")
     tag = T.T.copy()
-    try:
-        ok = np.asarray(rec["GTs_resamp_ok"]).astype(bool)
-        tag[~ok.all(axis=0)] = np.nan
-    except (KeyError, ValueError):
-        pass
+    ok = _validity(rec, n, p)
+    if ok is not None:
+        tag[~ok] = np.nan
     desc = ""
     try:
         desc = str(np.asarray(rec["description"]).ravel()[0])

@@ -1,9 +1,37 @@
-"""CMU Plaza range-only robot log (Djugash et al.; via gpslam): ``load_plaza(path)``.
+"""CMU range-only robot logs (Djugash et al., "Plaza" / gpslam ``.mat`` format): ``load_plaza(path)``.
 
-``Plaza1.mat`` (MATLAB v5) holds ``TL`` beacons ``[id, x, y]``, ``TD`` ranges
-``[time, -, beacon id, range m]``, ``GT`` ground truth ``[time, x, y, heading rad]`` and ``DR``
-odometry ``[time, delta distance m, delta heading rad]``, where ``DR[k]`` is the increment
-from ``GT[k]`` to ``GT[k+1]`` (so ``DR[k, 0] == GT[k+1, 0]``).
+The format (MATLAB v5) holds
+
+* ``TL`` (B, 3) beacons ``[id, x, y]`` (metres);
+* ``TD`` (K, 4) ranges ``[time s, sender id, beacon id, range m]`` (column 2 is the robot's
+  radio, 2 on Plaza 1);
+* ``GT`` (G, 4) ground truth ``[time s, x m, y m, heading rad]``;
+* ``DR`` (M, 3) odometry increments ``[time s, delta distance m, delta heading rad]``;
+* ``DRp`` a dead-reckoned path (not used, see below);
+* ``init_heading_offset`` (1, 1) radians, possibly stored as an integer type.
+
+Conventions honoured by :func:`load_plaza` (found in the data and the dataset's own MATLAB
+examples; each has a test on a small synthetic file that breaks it):
+
+1. **Heading.** The robot heading in which the odometry drives is
+   ``GT(:, 4) + init_heading_offset`` (0 on Plaza 1, pi on other logs of the collection);
+   :attr:`PlazaData.gt` holds the corrected heading, wrapped to ``[-pi, pi)``. The offset is
+   read as a float whatever its stored type (Plaza 1 stores ``uint8``).
+2. **Beacon ids.** A range's beacon is the row of ``TL`` whose ``TL(:, 1)`` equals the id in
+   ``TD(:, 3)``; ids are arbitrary integers (Plaza 1: 0, 1, 6, 5) in any row order.
+3. **Range order.** ``TD`` is not sorted by time (Plaza 1 has two backward jumps): rows are
+   sorted by time with a stable sort (equal times keep their file order). ``DR`` and ``GT``
+   are stably sorted the same way if they are not already.
+4. **Odometry.** Each ``DR`` row composes as "drive ``dd`` along the current heading, then
+   turn by ``dpsi``" (:func:`compose_odometry`); row ``k`` is the increment over
+   ``(t_{k-1}, t_k]`` with ``t_{-1}`` the first ground-truth time (rows at or before it are
+   dropped). ``DRp`` is not always the integral of ``DR`` (on Plaza 1 they part by 37 m), so
+   the dead-reckoned path is integrated from ``DR`` (:meth:`PlazaData.dead_reckoning`).
+5. **Ranges are raw.** The loader does not correct them: they are several percent long
+   (Plaza 1: about 7 %, a per-beacon scale plus an offset), which the range model of
+   :mod:`selfcal.slac.ranging` estimates.
+
+Ground truth is used by the estimators only for the first pose; the rest is for scoring.
 """
 
 from __future__ import annotations
@@ -11,27 +39,69 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 from ..errors import InputError
 
-__all__ = ["PlazaData", "load_plaza"]
+__all__ = ["PlazaData", "load_plaza", "compose_odometry"]
 
 FArray = NDArray[np.float64]
 
 
+def _wrap(a: FArray) -> FArray:
+    return (np.asarray(a, dtype=float) + np.pi) % (2 * np.pi) - np.pi
+
+
+def compose_odometry(start: FArray, odo: FArray) -> FArray:
+    """Integrate odometry rows "drive along the heading, then turn" (convention 4).
+
+    Parameters
+    ----------
+    start : (3,) initial pose ``[x, y, psi]`` (m, m, rad).
+    odo : (M, 2) increments ``[dd, dpsi]`` (m, rad).
+
+    Returns
+    -------
+    (M + 1, 3) poses; row 0 is ``start``, row ``k + 1`` is
+    ``[x_k + dd_k cos psi_k, y_k + dd_k sin psi_k, psi_k + dpsi_k]`` (heading not wrapped).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> compose_odometry(np.zeros(3), np.array([[1.0, np.pi / 2], [1.0, 0.0]])).round(6).tolist()
+    [[0.0, 0.0, 0.0], [1.0, 0.0, 1.570796], [1.0, 1.0, 1.570796]]
+    """
+    start = np.asarray(start, dtype=float).reshape(3)
+    odo = np.asarray(odo, dtype=float).reshape(-1, 2)
+    psi = start[2] + np.concatenate([[0.0], np.cumsum(odo[:, 1])])
+    step = odo[:, :1] * np.column_stack([np.cos(psi[:-1]), np.sin(psi[:-1])])
+    xy = start[:2] + np.vstack([np.zeros((1, 2)), np.cumsum(step, axis=0)])
+    return np.column_stack([xy, psi])
+
+
 @dataclass(frozen=True)
 class PlazaData:
-    """The Plaza log as arrays (times in seconds, metres, radians).
+    """A CMU range-only log as arrays (seconds, metres, radians), conventions applied.
 
     Attributes
     ----------
-    beacon_ids : (B,) int ids; beacons : (B, 2) positions.
-    range_times : (K,); range_beacon : (K,) index into ``beacons``; ranges : (K,) metres.
-    gt_times : (G,); gt : (G, 3) ``[x, y, heading]``.
-    odo_times : (G-1,) end times of the odometry increments; odo : (G-1, 2) ``[dd, dpsi]``.
+    beacon_ids : (B,) int
+        ``TL(:, 1)`` in file order.
+    beacons : (B, 2)
+        Beacon positions.
+    range_times, range_beacon, ranges : (K,)
+        Range times (sorted, stable), index into ``beacons``, raw range (m).
+    gt_times : (G,); gt : (G, 3)
+        Ground truth ``[x, y, heading]`` with heading ``GT(:, 4) + init_heading_offset``.
+    odo_times : (M,); odo : (M, 2)
+        End time and ``[dd, dpsi]`` of each odometry increment after the first GT time.
+    init_heading_offset : float
+        Radians, as read from the file.
+    ranges_dropped : int
+        Beacon-to-beacon rows of ``TD`` left out.
     """
 
     beacon_ids: NDArray[np.int64]
@@ -43,27 +113,83 @@ class PlazaData:
     gt: FArray
     odo_times: FArray
     odo: FArray
+    init_heading_offset: float = 0.0
+    ranges_dropped: int = 0
+
+    @property
+    def start_time(self) -> float:
+        """Time of the first pose (the first ground-truth row)."""
+        return float(self.gt_times[0])
+
+    @property
+    def start_pose(self) -> FArray:
+        """(3,) first ground-truth pose with the corrected heading."""
+        return self.gt[0].copy()
+
+    @property
+    def pose_times(self) -> FArray:
+        """(M + 1,) times of the estimated poses: the start, then each odometry row's end."""
+        return np.concatenate([[self.start_time], self.odo_times])
+
+    def dead_reckoning(self) -> FArray:
+        """(M + 1, 3) path integrated from ``DR`` alone, starting at :attr:`start_pose`."""
+        return compose_odometry(self.start_pose, self.odo)
 
     def gt_at(self, times: FArray) -> FArray:
-        """Ground truth interpolated at ``times`` (K,) -> (K, 3); heading unwrapped then wrapped."""
+        """Ground truth interpolated at ``times`` (K,) -> (K, 3); heading unwrapped, then wrapped."""
         t = np.asarray(times, dtype=float)
         psi = np.unwrap(self.gt[:, 2])
         out = np.column_stack([np.interp(t, self.gt_times, self.gt[:, 0]), np.interp(t, self.gt_times, self.gt[:, 1]),
                                np.interp(t, self.gt_times, psi)])
-        out[:, 2] = (out[:, 2] + np.pi) % (2 * np.pi) - np.pi
+        out[:, 2] = _wrap(out[:, 2])
         return out
 
 
-def load_plaza(path: str | os.PathLike[str]) -> PlazaData:
-    """Load ``Plaza1.mat`` (or a compatible log) and validate it.
+def _field(m: dict[str, Any], key: str, width: int, p: Path) -> FArray:
+    if key not in m:
+        raise InputError(f"{p}: missing variable {key!r} (a CMU range log has TL, TD, GT, DR, init_heading_offset)")
+    a = np.asarray(m[key])
+    if a.ndim != 2 or a.shape[0] < 1 or a.shape[1] < width:
+        raise InputError(f"{p}: {key} must be a (rows, {width}) array, got shape {a.shape}")
+    if not np.issubdtype(a.dtype, np.number) or np.iscomplexobj(a):
+        raise InputError(f"{p}: {key} must be real numbers, got dtype {a.dtype}")
+    a = a[:, :width].astype(float)
+    bad = ~np.isfinite(a)
+    if bad.any():
+        r, c = np.argwhere(bad)[0]
+        raise InputError(f"{p}: {key} has a non-finite value at row {r + 1}, column {c + 1}")
+    return a
+
+
+def load_plaza(path: str | os.PathLike[str], *, init_heading_offset: float | None = None) -> PlazaData:
+    """Load a CMU range-only log (``Plaza1.mat`` and others of the collection) and validate it.
 
     Parameters
     ----------
-    path : the user's copy of the .mat file.
+    path : str or path-like
+        The user's copy of the ``.mat`` file.
+    init_heading_offset : float, optional
+        Radians; required only when the file lacks ``init_heading_offset`` (a value in the
+        file wins over nothing, and giving both raises unless they agree).
+
+    Returns
+    -------
+    PlazaData
+        The log with conventions 1-5 of the module docstring applied.
 
     Raises
     ------
-    InputError if the file is missing, unreadable or lacks / mangles TL, TD, GT or DR.
+    InputError
+        One line naming the file and the field: missing file or variable, unreadable file,
+        wrong shape, non-numeric or non-finite values, negative ranges, duplicate beacon ids,
+        ranges to beacons that ``TL`` does not list, no odometry after the first GT time.
+
+    Examples
+    --------
+    >>> from selfcal.datasets import load_plaza
+    >>> d = load_plaza("../shared/data/plaza/Plaza1.mat")  # doctest: +SKIP
+    >>> d.beacons.shape, d.init_heading_offset  # doctest: +SKIP
+    ((4, 2), 0.0)
     """
     p = Path(path)
     if not p.is_file():
@@ -73,32 +199,54 @@ def load_plaza(path: str | os.PathLike[str]) -> PlazaData:
 
         m = loadmat(p)
     except Exception as exc:  # scipy raises several types for non-MAT input
-        raise InputError(f"{p}: not a readable MATLAB file ({exc})") from None
-    for key, width in (("TL", 3), ("TD", 4), ("GT", 4), ("DR", 3)):
-        if key not in m:
-            raise InputError(f"{p}: missing variable {key!r} (expected TL, TD, GT, DR)")
-        a = np.asarray(m[key])
-        if a.ndim != 2 or a.shape[1] < width or a.shape[0] < 1 or not np.all(np.isfinite(a[:, :width])):
-            raise InputError(f"{p}: {key} must be a finite (rows, {width}) array, got {a.shape}")
-    TL = np.asarray(m["TL"], dtype=float)
-    TD = np.asarray(m["TD"], dtype=float)
-    GT = np.asarray(m["GT"], dtype=float)
-    DR = np.asarray(m["DR"], dtype=float)
-    ids = TL[:, 0].astype(int)
+        raise InputError(f"{p}: not a readable MATLAB file ({type(exc).__name__})") from None
+    TL = _field(m, "TL", 3, p)
+    TD = _field(m, "TD", 4, p)
+    GT = _field(m, "GT", 4, p)
+    DR = _field(m, "DR", 3, p)
+    if "init_heading_offset" in m:
+        o = np.asarray(m["init_heading_offset"])
+        if o.size != 1 or not np.issubdtype(o.dtype, np.number) or np.iscomplexobj(o):
+            raise InputError(f"{p}: init_heading_offset must be one real number, got shape {o.shape} dtype {o.dtype}")
+        offset = float(o.astype(float).ravel()[0])  # convention 1: may be stored as uint8 / int
+        if not np.isfinite(offset):
+            raise InputError(f"{p}: init_heading_offset is not finite")
+        if init_heading_offset is not None and not np.isclose(float(init_heading_offset), offset):
+            raise InputError(f"{p}: init_heading_offset={init_heading_offset} disagrees with the file's {offset}")
+    elif init_heading_offset is not None:
+        offset = float(init_heading_offset)
+        if not np.isfinite(offset):
+            raise InputError("init_heading_offset must be finite")
+    else:
+        raise InputError(f"{p}: missing variable 'init_heading_offset' (pass init_heading_offset= if the log has none)")
+    if np.any(TL[:, 0] != np.round(TL[:, 0])):
+        raise InputError(f"{p}: TL column 1 (beacon ids) must hold integers")
+    ids = TL[:, 0].astype(np.int64)
+    if np.unique(ids).size != ids.size:
+        raise InputError(f"{p}: TL lists a beacon id twice")
     lookup = {int(b): k for k, b in enumerate(ids)}
-    unknown = sorted({int(b) for b in TD[:, 2]} - set(lookup))
+    sender_is_beacon = np.isin(TD[:, 1], ids)
+    dropped = 0
+    if sender_is_beacon.any() and not sender_is_beacon.all():
+        dropped = int(sender_is_beacon.sum())
+        TD = TD[~sender_is_beacon]
+    unknown = sorted({float(b) for b in TD[:, 2]} - {float(b) for b in ids})
     if unknown:
-        raise InputError(f"{p}: TD refers to beacons {unknown} that TL does not list")
-    if np.any(np.diff(GT[:, 0]) <= 0):
-        raise InputError(f"{p}: GT times must increase")
-    if DR.shape[0] != GT.shape[0] - 1:
-        raise InputError(f"{p}: DR must have one row fewer than GT (increments between GT rows)")
+        raise InputError(f"{p}: TD refers to beacons {unknown[:5]} that TL does not list")
     if np.any(TD[:, 3] < 0):
-        raise InputError(f"{p}: negative ranges in TD")
-    order = np.argsort(TD[:, 0], kind="stable")
-    TD = TD[order]
+        raise InputError(f"{p}: TD column 4 (ranges) has negative values")
+    TD = TD[np.argsort(TD[:, 0], kind="stable")]  # convention 3
+    GT = GT[np.argsort(GT[:, 0], kind="stable")]
+    DR = DR[np.argsort(DR[:, 0], kind="stable")]
+    t0 = GT[0, 0]
+    DR = DR[DR[:, 0] > t0]  # convention 4: increments after the start pose
+    if DR.shape[0] < 1:
+        raise InputError(f"{p}: DR has no odometry after the first GT time {t0}")
+    gt = GT[:, 1:4].copy()
+    gt[:, 2] = _wrap(gt[:, 2] + offset)  # convention 1
     return PlazaData(
         beacon_ids=ids, beacons=TL[:, 1:3].copy(), range_times=TD[:, 0].copy(),
-        range_beacon=np.array([lookup[int(b)] for b in TD[:, 2]]), ranges=TD[:, 3].copy(),
-        gt_times=GT[:, 0].copy(), gt=GT[:, 1:4].copy(), odo_times=DR[:, 0].copy(), odo=DR[:, 1:3].copy(),
+        range_beacon=np.array([lookup[int(b)] for b in TD[:, 2]], dtype=np.int64), ranges=TD[:, 3].copy(),
+        gt_times=GT[:, 0].copy(), gt=gt, odo_times=DR[:, 0].copy(), odo=DR[:, 1:3].copy(),
+        init_heading_offset=offset, ranges_dropped=dropped,
     )

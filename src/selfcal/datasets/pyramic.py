@@ -17,7 +17,7 @@ from numpy.typing import NDArray
 from ..errors import InputError
 from ..io import read_json
 
-__all__ = ["PyramicData", "load_pyramic"]
+__all__ = ["PyramicData", "load_pyramic", "pyramic_from_dict"]
 
 Array = NDArray[np.float64]
 _FILE = "pyramic_tdoa_speaker0.json"
@@ -43,11 +43,12 @@ class PyramicData:
     sources: Array
     microphones: Array
     speed: float
+    mic_ref: int = 0
 
     @property
     def positions(self) -> Array:
-        """(48, 3) reference positions relative to microphone 0 (the z_i of the model)."""
-        return self.microphones - self.microphones[0]
+        """(48, 3) reference positions relative to the reference microphone (the z_i of the model)."""
+        return self.microphones - self.microphones[self.mic_ref]
 
     @property
     def directions(self) -> Array:
@@ -58,29 +59,88 @@ class PyramicData:
 def load_pyramic(path: str | os.PathLike[str]) -> PyramicData:
     """Read the Pyramic JSON (the file, or the folder holding ``pyramic_tdoa_speaker0.json``).
 
-    Raises :class:`~selfcal.errors.InputError` when a key is missing or a shape is wrong.
+    Parameters
+    ----------
+    path : the JSON file or its folder.
+
+    Returns
+    -------
+    PyramicData
+
+    Raises
+    ------
+    InputError
+        A key is missing or a shape is wrong.
+
+    Examples
+    --------
+    >>> data = load_pyramic("../shared/data/pyramic")   # doctest: +SKIP
+    >>> data.D.shape                                      # doctest: +SKIP
+    (48, 180)
     """
     p = Path(path)
     if p.is_dir():
         p = p / _FILE
-    obj = read_json(p)
+    return pyramic_from_dict(read_json(p), label=str(p))
+
+
+def pyramic_from_dict(obj: object, *, label: str = "Pyramic JSON", speed: float | None = None) -> PyramicData:
+    """Build :class:`PyramicData` from the parsed Pyramic calibration JSON layout.
+
+    Keys: ``delays`` [n_mic - 1][n_src] (seconds, microphone i against ``mic_ref``, the
+    reference row omitted), ``sources`` [n_src][3] (unit directions), ``microphones``
+    [3][n_mic] (x, y, z lists, metres), ``sound_speed_mps``, ``mic_ref`` (default 0). The
+    reference microphone's row of zeros is re-inserted at ``mic_ref``, so row i of ``D`` is
+    microphone i.
+
+    Parameters
+    ----------
+    obj : the parsed JSON object.
+    label : name used in error messages.
+    speed : propagation speed (m/s) overriding ``sound_speed_mps`` (None: the file's).
+
+    Raises
+    ------
+    InputError
+        A key is missing, not numeric, or a shape is inconsistent.
+    """
+    p = label
+    if not isinstance(obj, dict):
+        raise InputError(f"{p}: not a Pyramic TDOA file (expected a JSON object with 'delays', 'sources', "
+                         "'microphones', 'sound_speed_mps')")
+    missing = [key for key in ("delays", "sources", "microphones") if key not in obj]
+    if missing:
+        raise InputError(f"{p}: not a Pyramic TDOA file (missing keys {missing}; expected 'delays', 'sources', "
+                         "'microphones', 'sound_speed_mps')")
     try:
         delays = np.asarray(obj["delays"], dtype=float)
         sources = np.asarray(obj["sources"], dtype=float)
         mics = np.asarray(obj["microphones"], dtype=float)
-        speed = float(obj["sound_speed_mps"])
-        ref = int(obj.get("mic_ref", 0))
+        file_speed = float(obj["sound_speed_mps"]) if "sound_speed_mps" in obj else float("nan")
+        ref_raw = obj.get("mic_ref", 0)
+        ref = int(ref_raw)
     except (KeyError, TypeError, ValueError) as exc:
         raise InputError(f"{p}: not a Pyramic TDOA file ({exc})") from None
+    if ref != ref_raw:
+        raise InputError(f"{p}: mic_ref must be an integer, got {ref_raw!r}")
     if mics.ndim != 2 or mics.shape[0] != 3:
         raise InputError(f"{p}: 'microphones' must be 3 lists (x, y, z), got shape {mics.shape}")
     mics = mics.T
-    n_mic, n_src = mics.shape[0], sources.shape[0]
-    if delays.shape != (n_mic - 1, n_src) or sources.shape != (n_src, 3):
-        raise InputError(f"{p}: delays {delays.shape} / sources {sources.shape} do not match {n_mic} microphones")
-    if ref != 0:
-        raise InputError(f"{p}: only mic_ref = 0 is supported, got {ref}")
-    if not np.isfinite(speed) or speed <= 0:
-        raise InputError(f"{p}: sound_speed_mps must be positive, got {speed}")
-    D = np.vstack([np.zeros((1, n_src)), delays * speed])
-    return PyramicData(D=D, delays=delays, sources=sources, microphones=mics, speed=speed)
+    n_mic = mics.shape[0]
+    if sources.ndim != 2 or sources.shape[1] != 3:
+        raise InputError(f"{p}: 'sources' must be a list of [x, y, z] directions, got shape {sources.shape}")
+    n_src = sources.shape[0]
+    if delays.shape != (n_mic - 1, n_src):
+        hint = " (transposed?)" if delays.shape == (n_src, n_mic - 1) else ""
+        raise InputError(f"{p}: 'delays' has shape {delays.shape}, expected ({n_mic - 1}, {n_src}) for {n_mic} "
+                         f"microphones and {n_src} sources{hint}")
+    if not 0 <= ref < n_mic:
+        raise InputError(f"{p}: mic_ref = {ref} is not a microphone index (0..{n_mic - 1})")
+    c = file_speed if speed is None else float(speed)
+    if not np.isfinite(c) or c <= 0:
+        raise InputError(f"{p}: the speed of sound must be a positive number (sound_speed_mps or --speed), got {c}")
+    if np.isinf(delays).any() or not np.isfinite(sources).all() or not np.isfinite(mics).all():
+        raise InputError(f"{p}: 'delays' must be finite or NaN (missing); 'sources' and 'microphones' finite")
+    D = np.insert(delays * c, ref, 0.0, axis=0)
+    return PyramicData(D=D, delays=delays, sources=sources, microphones=mics, speed=c,
+                       mic_ref=ref)

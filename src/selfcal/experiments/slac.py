@@ -2,7 +2,8 @@
 
 * :func:`replica_trial` -- one seeded replica run in both modes (a sweep-runner trial).
 * :func:`reproduce_slac` -- runs the trials, writes Table I / Fig. 3 / Fig. 4 PNGs + JSON.
-* :func:`run_plaza` -- measurement-level localization / SLAC on CMU Plaza with odometry.
+* :func:`plaza_summary` / :func:`score_plaza` / :func:`plot_plaza` -- the CMU range logs
+  (Plaza): per-beacon scale + offset filter and smoother, scored against ground truth.
 """
 
 from __future__ import annotations
@@ -14,10 +15,10 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..datasets.plaza import PlazaData
-from ..slac.measurement import RangeConfig, RangeFilter
 from ..slac.motion import wrap_angle
+from ..slac.ranging import RangeModelConfig, RangeSlacResult, solve_range_slac
 
-__all__ = ["run_plaza", "plaza_summary", "replica_trial", "reproduce_slac", "PAPER_TABLE_I", "PAPER_FIG3_P90"]
+__all__ = ["score_plaza", "plaza_summary", "plot_plaza", "replica_trial", "reproduce_slac", "PAPER_TABLE_I", "PAPER_FIG3_P90"]
 
 FArray = NDArray[np.float64]
 
@@ -32,79 +33,77 @@ PAPER_TABLE_I = {
 PAPER_FIG3_P90 = {"em": 16.6, "chamber": 10.2, "filter": 5.6}
 
 
-def run_plaza(data: PlazaData, *, mode: str = "slac", config: RangeConfig | None = None,
-              init_std: tuple[float, float] = (0.1, 2.0)) -> dict[str, Any]:
-    """Filter the Plaza log with odometry controls and beacon ranges.
+def score_plaza(data: PlazaData, result: RangeSlacResult) -> dict[str, float]:
+    """Errors of a track against the log's ground truth (interpolated at the pose times).
 
-    The pose starts at the first ground-truth pose (std ``init_std`` = (m, deg)); odometry
-    increments become controls ``v = dd / dt``, ``omega = dpsi / dt`` of eq. 14; a range that
-    falls inside an odometry interval is applied after predicting to its time.
+    The heading truth is ``GT(:, 4) + init_heading_offset`` (applied by the loader).
 
     Returns
     -------
-    dict with ``times`` (G,), ``poses`` (G, 3), ``position_rmse`` (m), ``heading_rmse``
-    (deg) against GT at the filter times, ``calibration`` and ``rejected``.
+    dict with ``position_rmse`` (m), ``position_p95`` (m), ``heading_rmse_deg``, ``poses``.
     """
-    x0 = data.gt[0].copy()
-    sd = np.array([init_std[0], init_std[0], np.deg2rad(init_std[1])])
-    B = data.beacons.shape[0]
-    links = [(0, 1 + b) for b in range(B)]
-    filt = RangeFilter(data.beacons, x0[None], np.diag(sd**2)[None], links, mode=mode, config=config)
-    G = data.gt_times.size
-    poses = np.empty((G, 3))
-    poses[0] = x0
-    r_idx = 0
-    K = data.range_times.size
-    used = 0
-    for k in range(G - 1):
-        t0, t1 = data.gt_times[k], data.gt_times[k + 1]
-        dt = t1 - t0
-        v = data.odo[k, 0] / dt
-        w = data.odo[k, 1] / dt
-        t = t0
-        while r_idx < K and data.range_times[r_idx] <= t1:
-            tr = data.range_times[r_idx]
-            if tr > t:
-                filt.predict(np.array([[v, w]]), tr - t)
-                t = tr
-            same = [r_idx]
-            while r_idx + len(same) < K and data.range_times[r_idx + len(same)] == tr:
-                same.append(r_idx + len(same))
-            if tr >= t0:
-                used += filt.update([(0, 1 + int(data.range_beacon[q]), "range", float(data.ranges[q])) for q in same])
-            r_idx += len(same)
-        if t1 > t:
-            filt.predict(np.array([[v, w]]), t1 - t)
-        poses[k + 1] = filt.poses[0]
-    gt = data.gt_at(data.gt_times)
-    e_pos = np.linalg.norm(poses[:, :2] - gt[:, :2], axis=1)
-    e_psi = wrap_angle(poses[:, 2] - gt[:, 2])
-    cal = filt.calibration()
-    ids = data.beacon_ids
-    biases = {str(int(ids[k - 1])) if k >= 1 else "robot": v for k, v in cal["biases"].items()}  # type: ignore[attr-defined]
-    out: dict[str, Any] = {
-        "mode": mode, "times": data.gt_times, "poses": poses,
-        "position_rmse": float(np.sqrt(np.mean(e_pos**2))), "heading_rmse": float(np.rad2deg(np.sqrt(np.mean(e_psi**2)))),
-        "position_errors": e_pos, "biases": biases, "ranges_used": used, "rejected": filt.rejected,
-    }
-    if "scales" in cal:
-        out["scale_factors"] = {str(int(ids[int(k.split("-")[1]) - 1])): v for k, v in cal["scales"].items()}  # type: ignore[attr-defined]
+    t = np.asarray(result.times)
+    keep = (t >= data.gt_times[0]) & (t <= data.gt_times[-1])
+    gt = data.gt_at(t[keep])
+    e = np.linalg.norm(result.poses[keep, :2] - gt[:, :2], axis=1)
+    h = wrap_angle(result.poses[keep, 2] - gt[:, 2])
+    return {"position_rmse": float(np.sqrt(np.mean(e**2))), "position_p95": float(np.percentile(e, 95)),
+            "heading_rmse_deg": float(np.rad2deg(np.sqrt(np.mean(h**2)))), "poses": int(keep.sum())}
+
+
+def plaza_summary(data: PlazaData, *, methods: tuple[str, ...] = ("filter", "smoother"),
+                  config: RangeModelConfig | None = None, progress: bool = False) -> dict[str, Any]:
+    """Run :func:`~selfcal.slac.ranging.solve_range_slac` per method on a CMU range log, score it.
+
+    Returns
+    -------
+    dict: ``methods`` {name: result dict without the track + score + ``seconds``},
+    ``dead_reckoning`` score, ``init_heading_offset``, and ``_results`` {name: RangeSlacResult}
+    (not JSON; the command pops it for the exports and the plot).
+    """
+    import time
+    from types import SimpleNamespace
+
+    out: dict[str, Any] = {"methods": {}, "init_heading_offset": data.init_heading_offset,
+                           "beacon_ids": [int(b) for b in data.beacon_ids], "_results": {}}
+    dr = data.dead_reckoning()
+    out["dead_reckoning"] = score_plaza(data, SimpleNamespace(times=data.pose_times, poses=dr))  # type: ignore[arg-type]
+    for m in methods:
+        t0 = time.perf_counter()
+        r = solve_range_slac(data, method=m, config=config, progress=progress)
+        sec = time.perf_counter() - t0
+        out["methods"][m] = {**r.to_dict(trajectory=False), **score_plaza(data, r), "seconds": sec}
+        out["_results"][m] = r
     return out
 
 
-def plaza_summary(data: PlazaData, config: RangeConfig | None = None) -> dict[str, Any]:
-    """Both modes on Plaza; the JSON contract of ``selfcal slac plaza``."""
-    loc = run_plaza(data, mode="localization", config=config)
-    sl = run_plaza(data, mode="slac", config=config)
-    return {
-        "position_rmse_localization": loc["position_rmse"], "position_rmse_slac": sl["position_rmse"],
-        "heading_rmse_localization": loc["heading_rmse"], "heading_rmse_slac": sl["heading_rmse"],
-        "biases": sl["biases"], "scale_factors": sl.get("scale_factors"),
-        "ranges_used": {"localization": loc["ranges_used"], "slac": sl["ranges_used"]},
-        "rejected": {"localization": loc["rejected"], "slac": sl["rejected"]},
-        "method": "slac-measurement-level", "units": {"position": "m", "heading": "deg", "biases": "m"},
-        "_tracks": {"times": sl["times"], "localization": loc["poses"], "slac": sl["poses"]},
-    }
+def plot_plaza(path: str | Path, data: PlazaData, results: dict[str, RangeSlacResult]) -> None:
+    """Tracks against ground truth, the beacons labelled with their estimated scale / offset (PNG)."""
+    from ..plotting import new_figure, save_figure
+
+    fig, ax = new_figure(size=(7, 7))
+    ax.plot(data.gt[:, 0], data.gt[:, 1], "k-", lw=0.8, label="ground truth")
+    dr = data.dead_reckoning()
+    ax.plot(dr[:, 0], dr[:, 1], ":", color="0.5", lw=0.8, label="dead reckoning (DR)")
+    ref = None
+    for name, r in results.items():
+        sc = score_plaza(data, r)
+        ax.plot(r.poses[:, 0], r.poses[:, 1], lw=0.9, label=f"{name} ({sc['position_rmse']:.2f} m RMSE)")
+        ref = r
+    ax.plot(data.beacons[:, 0], data.beacons[:, 1], "r^", ms=9, label="beacons")
+    for k, (bx, by) in enumerate(data.beacons):
+        txt = f"id {int(data.beacon_ids[k])}"
+        if ref is not None:
+            txt += f"\nscale {ref.scale[k]:.3f}\u00b1{ref.scale_std[k]:.3f}\noffset {ref.offset[k]:+.2f}\u00b1{ref.offset_std[k]:.2f} m"
+        ax.annotate(txt, (bx, by), textcoords="offset points", xytext=(6, 6), fontsize=7)
+    ax.set_aspect("equal")
+    ax.margins(0.15)  # room for the beacon labels
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("y (m)")
+    which = f" ({ref.method} calibration)" if ref is not None else ""
+    ax.set_title(f"Range-only SLAC with per-beacon scale + offset{which}")
+    ax.legend(fontsize=7, loc="best")
+    save_figure(fig, path)
 
 
 def replica_trial(params: dict[str, Any], seed: int) -> dict[str, Any]:

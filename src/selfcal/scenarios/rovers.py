@@ -21,6 +21,7 @@ from numpy.typing import NDArray
 
 from .._checks import as_rng, check_positive
 from ..errors import InputError
+from ..geometry import wrap_angle
 from ..slac.antenna import dipole_response, fourier_basis, multimode_antenna
 from ..slac.motion import motion_step
 from ..slac.signals import SPEED_OF_LIGHT, ofdm_probe, snapshot
@@ -89,7 +90,7 @@ class RoverScenario:
         p = self.node_positions(step)
         dlt = p[self.tx] - p[self.rx]
         phi = np.arctan2(dlt[:, 1], dlt[:, 0]) - self.states[step, self.rx, 2]
-        return (phi + np.pi) % (2 * np.pi) - np.pi
+        return wrap_angle(phi)
 
     def snapshots(self, step: int, rng: np.random.Generator | int | None) -> list[CArray]:
         """Received snapshots (eq. 3) of every link at state index ``step`` (1..S), unit noise."""
@@ -125,7 +126,7 @@ def _drive(x0: FArray, steps: int, T: float, start: int, speed: float, rng: np.r
             to_c = center - x[:2]
             dist = np.linalg.norm(to_c)
             if dist > radius:
-                err = (np.arctan2(to_c[1], to_c[0]) - x[2] + np.pi) % (2 * np.pi) - np.pi
+                err = wrap_angle(np.arctan2(to_c[1], to_c[0]) - x[2])
                 w += 0.3 * np.clip(err, -1, 1)
             ctrl[s] = [speed, np.clip(w, -0.4, 0.4)]
         states[s + 1] = motion_step(x, ctrl[s], T)

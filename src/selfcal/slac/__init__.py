@@ -5,7 +5,9 @@ Modules: :mod:`~selfcal.slac.antenna` (manifold separation, eqs. 7-9), :mod:`~se
 :mod:`~selfcal.slac.motion` (eq. 14), :mod:`~selfcal.slac.filter` (IEKF-like MAP filter, eqs. 20-26),
 :mod:`~selfcal.slac.doa` (coherent ML DoA), :mod:`~selfcal.slac.measurement` (range/bearing level),
 :mod:`~selfcal.slac.run` (logs and :func:`solve_slac`), :mod:`~selfcal.slac.smoother` (optional fixed-lag
-smoother, beyond the paper).
+smoother, beyond the paper), :mod:`~selfcal.slac.ranging` (one robot, odometry + beacon ranges with
+per-beacon scale and offset: robust filter and batch smoother, :func:`solve_range_slac`),
+:mod:`~selfcal.slac.export` (trajectory CSV / TUM).
 """
 
 from __future__ import annotations
@@ -23,6 +25,8 @@ _LAZY = {
     "SlacConfig": "filter", "SlacFilter": "filter", "map_update": "filter",
     "estimate_doa": "doa", "RangeFilter": "measurement", "RangeConfig": "measurement",
     "SlacLog": "run", "SlacResult": "run", "solve_slac": "run", "SlacSmoother": "smoother",
+    "RangeLog": "ranging", "RangeModelConfig": "ranging", "RangeSlacResult": "ranging",
+    "solve_range_slac": "ranging", "write_trajectory_csv": "export", "write_trajectory_tum": "export",
 }
 __all__ = sorted(_LAZY)
 

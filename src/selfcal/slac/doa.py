@@ -13,6 +13,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..errors import InputError
+from ..geometry import wrap_angle
 from .antenna import basis_orders, fourier_basis
 from .signals import delay_grid_search
 
@@ -60,7 +61,7 @@ def estimate_doa_from_y(y: CArray, G: CArray, *, grid: int = 720, newton_steps: 
         phi += step
         if abs(step) < 1e-9:
             break
-    return float((phi + np.pi) % (2 * np.pi) - np.pi)
+    return float(wrap_angle(phi))
 
 
 def estimate_doa(

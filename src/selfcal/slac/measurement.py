@@ -23,6 +23,7 @@ from numpy.typing import NDArray
 
 from .._checks import as_points, check_choice
 from ..errors import InputError
+from ..geometry import wrap_angle
 from .filter import map_update, predict_locations
 
 __all__ = ["RangeConfig", "RangeFilter"]
@@ -192,7 +193,7 @@ class RangeFilter:
             z = np.array([o[3] for o in obs])
             innov = z - h
             bear = np.array([o[2] == "bearing" for o in obs])
-            innov[bear] = (innov[bear] + np.pi) % (2 * np.pi) - np.pi
+            innov[bear] = wrap_angle(innov[bear])
             S = np.einsum("kd,de,ke->k", J, self.P, J) + sd**2
             keep = np.abs(innov) <= self.cfg.gate * np.sqrt(S)
             self.rejected += int((~keep).sum())
@@ -205,7 +206,7 @@ class RangeFilter:
         def fun_grad(x: FArray) -> tuple[float, FArray]:
             h, J, sd = self._model(x, obs)
             r = z - h
-            r[bear] = (r[bear] + np.pi) % (2 * np.pi) - np.pi
+            r[bear] = wrap_angle(r[bear])
             w = r / sd**2
             return float(0.5 * np.sum(r * w)), -(J.T @ w)
 

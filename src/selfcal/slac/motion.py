@@ -19,14 +19,11 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
+from ..geometry import wrap_angle  # the one angle wrap, [-pi, pi) (re-exported here)
+
 __all__ = ["motion_step", "motion_jacobian", "control_jacobian", "process_noise", "wrap_angle"]
 
 FArray = NDArray[np.float64]
-
-
-def wrap_angle(a: float | FArray) -> FArray:
-    """Wrap angles to ``[-pi, pi)``."""
-    return (np.asarray(a, dtype=float) + np.pi) % (2 * np.pi) - np.pi
 
 
 def _sinc_terms(h: FArray) -> tuple[FArray, FArray]:

@@ -17,13 +17,15 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from .._checks import as_rng, check_choice
+from .._checks import as_rng, check_choice, entry
+from .._result import Result
 from ..errors import InputError
 from ..io import atomic_write_bytes, load_npz
 from .doa import estimate_doa_from_y
 from .filter import SlacConfig, SlacFilter
 from .motion import wrap_angle
 from .signals import SPEED_OF_LIGHT, batch_delay_search
+from .validate import validate_log_arrays
 
 __all__ = ["SlacLog", "SlacResult", "solve_slac", "LOG_VERSION"]
 
@@ -143,6 +145,7 @@ class SlacLog:
         req = ("version", "anchors", "ports", "G_em", "G_chamber", "controls", "rx", "tx", "probe", "T",
                "bandwidth", "sigma_v", "sigma_omega", "init_poses", "init_cov", "signals")
         z = load_npz(path, req)
+        validate_log_arrays(z, str(path))  # one named field per error (selfcal.slac.validate)
         if int(z["version"]) != LOG_VERSION:
             raise InputError(f"{path}: log version {int(z['version'])} is not supported (expected {LOG_VERSION})")
         ports = z["ports"].astype(int)
@@ -172,8 +175,8 @@ class SlacLog:
         )
 
 
-@dataclass(frozen=True)
-class SlacResult:
+@dataclass(frozen=True, repr=False)
+class SlacResult(Result):
     """Outcome of :func:`solve_slac` (histories indexed by state 0..S).
 
     Attributes: mode, method, poses (S+1, n, 3), pose_cov (S+1, n, 3, 3), biases (S+1, n+A),
@@ -212,6 +215,7 @@ class SlacResult:
         }
 
 
+@entry(steps="count?")
 def solve_slac(
     log: SlacLog,
     *,
@@ -242,10 +246,21 @@ def solve_slac(
     Returns
     -------
     SlacResult (with metrics against the truth when the log carries it).
-    """
-    from ._threads import limit_blas_threads
 
-    limit_blas_threads(1)  # small dense algebra: BLAS threads only add contention
+    Notes
+    -----
+    The filter does many small (~100 x 100) dense operations per step, where BLAS threads
+    only add synchronisation cost: the run holds the BLAS pools at one thread
+    (``threadpoolctl``, restored on return).
+    """
+    from threadpoolctl import threadpool_limits
+
+    with threadpool_limits(limits=1, user_api="blas"):
+        return _solve_slac(log, mode, prior, config, steps, progress, init)
+
+
+def _solve_slac(log: SlacLog, mode: str, prior: str, config: SlacConfig | None, steps: int | None,
+                progress: bool, init: str) -> SlacResult:
     base = config or SlacConfig()
     cfg = SlacConfig(**{**base.__dict__, "T": log.T, "sigma_v": log.sigma_v, "sigma_omega": log.sigma_omega,
                         "bandwidth": log.bandwidth})
@@ -270,7 +285,7 @@ def solve_slac(
     pred_res = []
     from tqdm.auto import tqdm
 
-    for s in tqdm(range(1, S + 1), disable=not progress, desc=f"slac {mode}", leave=False):
+    for s in tqdm(range(1, S + 1), disable=None if progress else True, desc=f"slac {mode}", leave=False):
         snaps = log.snapshot_fn(s)
         tau, ys, var = batch_delay_search(snaps, log.probe, log.bandwidth)
         ml[s - 1] = SPEED_OF_LIGHT * tau / 2

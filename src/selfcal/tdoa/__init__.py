@@ -6,13 +6,16 @@ per-transmitter offsets from relative distances ``D_ij = z_i . n_j + C_j``; see
 (:func:`solve_minimal`, Algorithm 1), the failure-mode analysis (:func:`analyse_degeneracy`),
 the overdetermined initialisation (:func:`initialize_farfield`), alternating optimisation
 (:func:`refine_alternating`, Algorithm 2) and Levenberg-Marquardt on the spheres
-(:func:`refine_lm`, Algorithm 3).
+(:func:`refine_lm`, Algorithm 3). ``solve_farfield(D, dim=2 | 1 | "auto")`` calibrates planar
+and linear arrays (the determined part of paper 000's degenerate cases); the transposed
+layout is refused by :func:`check_orientation`.
 """
 
 from .degeneracy import DEGENERACIES, DegeneracyReport, analyse_degeneracy, fit_quadric
 from .farfield import (
     FarfieldInit,
     FarfieldResult,
+    check_orientation,
     fit_A_nonlinear,
     initialize_farfield,
     lowrank_fit,
@@ -41,6 +44,7 @@ __all__ = [
     "MinimalSolution",
     "RefineResult",
     "analyse_degeneracy",
+    "check_orientation",
     "farfield_crlb",
     "farfield_jacobian",
     "farfield_residuals",

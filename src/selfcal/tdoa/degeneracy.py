@@ -42,9 +42,11 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from ..robust import mad_std
 from .minimal import quadric_design, sym_from_vec
 
 __all__ = [
+    "top_svd",
     "DEGENERACIES",
     "DegeneracyReport",
     "analyse_degeneracy",
@@ -124,6 +126,29 @@ def fit_quadric(nt: Array) -> tuple[Array, Array, Array]:
     return B, mu, res
 
 
+#: matrices with both sides above this use a truncated SVD (the leading singular triplets only)
+TRUNCATED_SVD_MIN = 300
+
+
+def top_svd(X: Array, r: int) -> tuple[Array, Array, Array]:
+    """Leading ``r`` singular triplets of X (``U`` (m, r), ``s`` (r,), ``Vt`` (r, k)), descending.
+
+    ``numpy.linalg.svd`` for small matrices; for large ones (both sides above
+    :data:`TRUNCATED_SVD_MIN`) ``scipy.sparse.linalg.svds`` (ARPACK, tolerance 0 = machine
+    precision), O(m k r) per iteration instead of O(m k min(m, k)).
+    """
+    X = np.asarray(X, dtype=float)
+    r = max(1, min(int(r), min(X.shape)))
+    if min(X.shape) <= TRUNCATED_SVD_MIN or r >= min(X.shape) - 1:
+        U, s, Vt = np.linalg.svd(X, full_matrices=False)
+        return U[:, :r], s[:r], Vt[:r]
+    from scipy.sparse.linalg import svds
+
+    U, s, Vt = svds(X, k=r, tol=0.0, random_state=0)
+    order = np.argsort(s)[::-1]
+    return U[:, order], s[order], Vt[order]
+
+
 def _sigma(X: Array, U: Array, s: Array, Vt: Array, r: int, rows: int, cols: int) -> float:
     """Noise level from the residual of the rank-r approximation.
 
@@ -134,7 +159,7 @@ def _sigma(X: Array, U: Array, s: Array, Vt: Array, r: int, rows: int, cols: int
     if dof <= 0:
         return 0.0
     R = X - (U[:, :r] * s[:r]) @ Vt[:r]
-    return float(1.4826 * np.median(np.abs(R)) * np.sqrt(R.size / dof))
+    return float(mad_std(R, centre=False) * np.sqrt(R.size / dof))
 
 
 def analyse_degeneracy(
@@ -159,7 +184,7 @@ def analyse_degeneracy(
     DegeneracyReport
     """
     a, k = X.shape[0] - 1, X.shape[1]
-    U, s, Vt = np.linalg.svd(X, full_matrices=False)
+    U, s, Vt = top_svd(X, 8)
     s1 = float(s[0]) if s.size else 0.0
     floor = 1e-14 * s1
 

@@ -30,7 +30,8 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.optimize import least_squares
 
-from .._checks import as_matrix, as_rng, check_choice, check_positive
+from .._checks import as_matrix, as_rng, check_choice, check_positive, entry
+from .._result import Result
 from ..errors import ConvergenceWarning, DegenerateGeometryError, InputError
 from ..geometry import canonical_gauge
 from .degeneracy import (
@@ -41,6 +42,7 @@ from .degeneracy import (
     partial_coplanar_directions,
     partial_parallel_directions,
     partial_planar_motion,
+    top_svd,
 )
 from .minimal import solve_minimal
 from .refine import LOSSES, farfield_residuals, loss_weight, refine_alternating, refine_lm
@@ -53,6 +55,7 @@ __all__ = [
     "fit_A_nonlinear",
     "reduce_matrix",
     "screen_gross_errors",
+    "check_orientation",
     "lowrank_fit",
     "ransac_farfield",
     "METHODS",
@@ -69,8 +72,8 @@ _MAD = 1.4826
 
 
 # ----------------------------------------------------------------------------- result
-@dataclass(frozen=True)
-class FarfieldResult:
+@dataclass(frozen=True, repr=False)
+class FarfieldResult(Result):
     """Result of :func:`solve_farfield`.
 
     Attributes
@@ -93,6 +96,13 @@ class FarfieldResult:
     warnings : human-readable cautions about this estimate (e.g. ``directions-collapsed``:
         the refinement drove the directions towards a common plane, see
         :data:`COLLAPSE_RATIO`); empty when there are none.
+    dim : dimension of ``positions`` / ``directions`` (3 in space, 2 planar, 1 linear).
+    case : ``"spatial"`` (3-D, Theorem 1), ``"planar"`` (positions and directions in one
+        plane: the in-plane geometry; positions off that plane are projected onto it, the
+        out-of-plane coordinate is not observable) or ``"linear"`` (positions on a line, or
+        directions all parallel: one coordinate per position), or the degeneracy's name
+        for a partial reconstruction.
+    determined : what the data determine in this case (paper 000, section 2.2), in words.
     """
 
     positions: Array
@@ -110,6 +120,9 @@ class FarfieldResult:
     cost_history: list[float] = field(default_factory=list)
     position_cov: Array | None = None
     warnings: tuple[str, ...] = ()
+    dim: int = 3
+    case: str = "spatial"
+    determined: str = ""
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-safe dictionary with the DESIGN.md keys (``rejected`` as [i, j] pairs)."""
@@ -128,6 +141,9 @@ class FarfieldResult:
             "diagnostics": None if self.diagnostics is None else self.diagnostics.to_dict(),
             "position_cov": None if self.position_cov is None else self.position_cov.tolist(),
             "warnings": list(self.warnings),
+            "dim": int(self.dim),
+            "case": self.case,
+            "determined": self.determined,
         }
 
 
@@ -263,26 +279,27 @@ def fit_A_nonlinear(nt: Array, A0: Array | None = None) -> Array:
 
     Parameters
     ----------
-    nt : (k, 3) rows ``ntilde_j``; A0 : (3, 3) start.
+    nt : (k, d) rows ``ntilde_j`` (d = 3 in space, 2 in a plane); A0 : (d, d) start.
     """
-    A0 = np.eye(3) if A0 is None else np.asarray(A0, dtype=float)
+    d = nt.shape[1]
+    A0 = np.eye(d) if A0 is None else np.asarray(A0, dtype=float)
 
     def fun(a: Array) -> Array:
-        v = nt @ a.reshape(3, 3).T
+        v = nt @ a.reshape(d, d).T
         return np.sum(v * v, axis=1) - 1.0
 
     def jac(a: Array) -> Array:
-        A = a.reshape(3, 3)
-        v = nt @ A.T  # (k, 3)
-        return (2.0 * v[:, :, None] * nt[:, None, :]).reshape(len(nt), 9)
+        A = a.reshape(d, d)
+        v = nt @ A.T  # (k, d)
+        return (2.0 * v[:, :, None] * nt[:, None, :]).reshape(len(nt), d * d)
 
-    # "lm" needs at least as many residuals as the 9 unknowns
-    meth = "lm" if len(nt) >= 9 else "trf"
+    # "lm" needs at least as many residuals as the d^2 unknowns
+    meth = "lm" if len(nt) >= d * d else "trf"
     sol = least_squares(fun, A0.ravel(), jac=jac, method=meth, xtol=1e-14, ftol=1e-14, gtol=1e-14)
-    return np.asarray(sol.x.reshape(3, 3))
+    return np.asarray(sol.x.reshape(d, d))
 
 
-def initialize_farfield(X: Array) -> FarfieldInit:
+def initialize_farfield(X: Array, *, dim: int = 3) -> FarfieldInit:
     """Overdetermined initialisation (paper 000, section 2.3, modifications (i)-(iii)).
 
     (i) best rank-3 approximation ``Dbar ~ U_3 (S_3 V_3^T)``; (ii) B from the k equations
@@ -297,14 +314,16 @@ def initialize_farfield(X: Array) -> FarfieldInit:
     ----------
     X : (r, k) complete reduced matrix (metres): ``D`` minus a per-column constant (Lemma 1),
         e.g. :func:`reduce_matrix` (r = m-1) or the column-centred D (r = m).
+    dim : 3 (space, the paper) or 2 (the planar analogue: positions and directions in one
+        plane, rank-2 factorisation and the 2 x 2 quadric ``ntilde^T B2 ntilde = 1``).
 
     Returns
     -------
-    FarfieldInit with positions (r, 3), one per row of X, and directions (k, 3).
+    FarfieldInit with positions (r, dim), one per row of X, and directions (k, dim).
     """
-    U, s, Vt = np.linalg.svd(X, full_matrices=False)
+    U, s, Vt = top_svd(X, dim)
     scale = float(s[0]) / np.sqrt(X.shape[1]) if s[0] > 0 else 1.0
-    nt = (s[:3, None] * Vt[:3]).T / scale  # scaled for a well-conditioned quadric fit
+    nt = (s[:dim, None] * Vt[:dim]).T / scale  # scaled for a well-conditioned quadric fit
     B, _, _ = fit_quadric(nt)
     w, Qe = np.linalg.eigh(B)
     pd = bool(w[0] > 0)
@@ -312,7 +331,7 @@ def initialize_farfield(X: Array) -> FarfieldInit:
         A = np.linalg.cholesky(B).T  # B = L L^T = A^T A
     else:
         A_psd = np.sqrt(np.maximum(w, 1e-6 * max(w[-1], 1e-12)))[:, None] * Qe.T
-        candidates = [fit_A_nonlinear(nt, np.eye(3)), fit_A_nonlinear(nt, A_psd), A_psd]
+        candidates = [fit_A_nonlinear(nt, np.eye(dim)), fit_A_nonlinear(nt, A_psd), A_psd]
         best, best_cost = A_psd, np.inf
         for A_try in candidates:
             c = float(np.sum((np.sum((nt @ A_try.T) ** 2, axis=1) - 1.0) ** 2))
@@ -331,8 +350,9 @@ def initialize_farfield(X: Array) -> FarfieldInit:
 
 def _canonical(pos: Array, dirs: Array) -> tuple[Array, Array, Array]:
     """Rotate so that the positions' principal axes are the coordinate axes (row 0 stays 0)."""
-    if np.linalg.matrix_rank(pos, tol=1e-12 * (np.abs(pos).max() + 1e-300)) < 3:
-        return pos, dirs, np.eye(3)
+    d = pos.shape[1]
+    if d == 1 or np.linalg.matrix_rank(pos, tol=1e-12 * (np.abs(pos).max() + 1e-300)) < d:
+        return pos, dirs, np.eye(d)
     _, _, al = canonical_gauge(pos)
     R = al.rotation
     return pos @ R.T, dirs @ R.T, R
@@ -402,13 +422,101 @@ def ransac_farfield(
 _TUNING = {"huber": 1.345, "soft_l1": 1.345, "cauchy": 2.385}
 
 
-def _robust_sigma(D: Array, Z: Array, N: Array, C: Array, used: NDArray[np.bool_]) -> float:
+def _robust_sigma(D: Array, Z: Array, N: Array, C: Array, used: NDArray[np.bool_], *, dim: int = 3) -> float:
     """1.4826 MAD of the model residuals, corrected for the model's degrees of freedom."""
     r = farfield_residuals(np.where(used, D, np.nan), Z, N, C)
     n_obs = int(used.sum())
     m, k = D.shape
-    dof = max(n_obs - (3 * (m - 1) + 3 * k - 3), 1)
+    g = dim * (dim - 1) // 2
+    dof = max(n_obs - (dim * (m - 1) + dim * k - g), 1)
     return _MAD * float(np.nanmedian(np.abs(r[used]))) * float(np.sqrt(n_obs / dof))
+
+def _noise_from_double_centred(D: Array, rank: int) -> float:
+    """Robust per-entry noise level of a complete matrix from its double-centred rank-r residual.
+
+    Both orientations of far-field data (``Z N^T + 1 c^T`` and its transpose) are of rank
+    ``r`` once row and column means are removed, so this estimate does not depend on the
+    orientation: 1.4826 median |R| x sqrt(entries / dof), dof = (m-1-r)(k-1-r).
+    """
+    X = D - D.mean(axis=0, keepdims=True)
+    X = X - X.mean(axis=1, keepdims=True)
+    U, s, Vt = top_svd(X, rank)
+    R = X - (U[:, :rank] * s[:rank]) @ Vt[:rank]
+    dof = (D.shape[0] - 1 - rank) * (D.shape[1] - 1 - rank)
+    return float(_MAD * np.median(np.abs(R)) * np.sqrt(R.size / max(dof, 1)))
+
+
+def check_orientation(D: Array, *, noise_std: float | None = None, rank: int = 3,
+                      rank_factor: float = 1.5) -> None:
+    """Refuse a far-field matrix that looks transposed (rows = transmitters): ``InputError``.
+
+    Far-field data ``D = Z N^T + 1 c^T`` carry one offset per *column*: removing the column
+    means leaves a matrix of rank <= ``rank`` (3 in space), while its transpose
+    ``N Z^T + c 1^T`` keeps the rank-1 offset term after column centring (rank ``rank + 1``)
+    and loses it only after row centring. The (rank+1)-th singular value of each centred
+    matrix is compared with the Marchenko-Pastur edge ``sigma (sqrt(rows - 1) + sqrt(cols))``
+    of an i.i.d. noise matrix, times ``rank_factor`` (the same noise-aware threshold as
+    :func:`~selfcal.tdoa.analyse_degeneracy`; sigma = ``noise_std`` or the robust estimate
+    of the double-centred rank-r residual, valid in both orientations). Significant after
+    column centring but not after row centring -> transposed. A column that is exactly
+    constant while no row is (a reference receiver gives a constant *row*: the Pyramic
+    layout) is named too: in the far-field model it would be a transmitter orthogonal to
+    the whole array.
+
+    Only complete matrices with at least ``rank + 2`` rows and columns are tested (the test
+    needs a (rank+1)-th singular value); others pass silently.
+
+    Parameters
+    ----------
+    D : (m, k) relative distances (metres), NaN = missing.
+    noise_std : known per-entry noise standard deviation (metres) or None.
+    rank : rank of the position/direction factorisation (3 in space, 2 in a plane).
+
+    Raises
+    ------
+    InputError
+        When the matrix looks transposed; the message says "transposed?".
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> rng = np.random.default_rng(0)
+    >>> Z, N = rng.normal(size=(10, 3)), rng.normal(size=(30, 3))
+    >>> N /= np.linalg.norm(N, axis=1, keepdims=True)
+    >>> D = Z @ N.T + rng.normal(size=30)
+    >>> check_orientation(D)          # fine
+    >>> check_orientation(D.T)        # doctest: +IGNORE_EXCEPTION_DETAIL
+    Traceback (most recent call last):
+    InputError: ... transposed? ...
+    """
+    D = np.asarray(D, dtype=float)
+    m, k = D.shape
+    if not np.isfinite(D).all():
+        return
+    scale = float(np.max(np.abs(D - D.mean(axis=0)))) + 1e-300
+    const_col = np.ptp(D, axis=0) <= 1e-12 * scale
+    const_row = np.ptp(D, axis=1) <= 1e-12 * scale
+    if const_col.any() and not const_row.any() and not const_col.all():
+        j = int(np.flatnonzero(const_col)[0])
+        raise InputError(
+            f"matrix ({m} x {k}): column {j} is constant, which in the far-field model is a transmitter "
+            "orthogonal to the whole array, while a reference receiver gives a constant row: is the matrix "
+            f"transposed? (rows must be receivers, columns transmitters; try the {k} x {m} transpose)")
+    if min(m, k) < rank + 2:
+        return
+    sigma = noise_std if noise_std is not None else _noise_from_double_centred(D, rank)
+    sigma = max(float(sigma), 1e-14 * scale)
+    sc = top_svd(D - D.mean(axis=0, keepdims=True), rank + 1)[1]
+    sr = top_svd(D - D.mean(axis=1, keepdims=True), rank + 1)[1]
+    thr_c = rank_factor * sigma * (np.sqrt(m - 1) + np.sqrt(k))
+    thr_r = rank_factor * sigma * (np.sqrt(m) + np.sqrt(k - 1))
+    if sc[rank] > thr_c and sr[rank] <= thr_r:
+        raise InputError(
+            f"matrix ({m} x {k}) does not have the far-field structure with one offset per column "
+            f"(singular value {rank + 1} after removing column means {sc[rank]:.3g} > noise threshold "
+            f"{thr_c:.3g}) but has it with one offset per row ({sr[rank]:.3g} <= {thr_r:.3g}): is it "
+            f"transposed? Rows must be receivers, columns transmitters (try the {k} x {m} transpose)")
+
 
 def _raise_or_return(
     kind: str, message: str, result: FarfieldResult, allow_degenerate: bool
@@ -423,8 +531,9 @@ def _raise_or_return(
 
 
 _DEGENERATE_MESSAGES = {
-    "planar-motion": "the receiver positions lie in a plane (rank 2): only a family of planar "
-    "reconstructions exists; add a position off the plane.",
+    "planar-motion": "the receiver positions lie in a plane (rank 2) and the directions leave it: far-field "
+    "TDOA then fixes the in-plane geometry only up to a 2 x 2 linear map (each direction's in-plane length is "
+    "unknown), with dim=2 too; add a position off the plane, or use sources in the array's plane (dim=2).",
     "coplanar-directions": "the transmitter directions lie in a plane (rank 2): the out-of-plane "
     "coordinate of the positions is unobservable; add a transmitter off that plane.",
     "collinear-motion": "the receiver positions lie on a line (rank <= 1): only a one-parameter "
@@ -437,6 +546,168 @@ _DEGENERATE_MESSAGES = {
 }
 
 
+_DETERMINED = {
+    "spatial": "positions and directions up to a rotation / reflection (first position at the origin)",
+    "planar": "in-plane positions and directions up to a rotation / reflection of the plane; positions off "
+    "the plane of the directions are seen projected onto it (their out-of-plane coordinate is unobservable)",
+    "linear": "positions along the line up to one scale factor >= 1 (reported for the smallest array "
+    "consistent with the data: the largest |projection| of a direction onto the line is 1, exact when a "
+    "source is at endfire); directions' angles to the line only through that projection",
+    "parallel": "the coordinate of each position along the common direction (scale included); nothing across it",
+    "planar-motion": "not determined: with the directions off the positions' plane the in-plane geometry is "
+    "known only up to a 2 x 2 linear map (each direction's in-plane length is unknown); one member shown",
+    "coplanar-directions": "the in-plane geometry (use dim=2); the out-of-plane coordinate is not observable",
+    "collinear-motion": "positions along the line up to scale (use dim=1)",
+    "parallel-directions": "the coordinate along the common direction (use dim=1)",
+    "cone": "not determined: a one-parameter family of geometries fits the data equally well",
+}
+
+
+def _effective_dim(dim: int | str, report: DegeneracyReport) -> int:
+    """The dimension to solve in: ``dim`` itself, or at "auto" the rank test's verdict.
+
+    A rank-2 matrix whose 2-D quadric is inconsistent (``planar-motion``: directions off the
+    positions' plane) has no determined planar solution; 3 is returned so that the caller
+    reports it as a degeneracy. Asking for a dimension the data contradict raises.
+    """
+    rank = int(report.rank)
+    sv = ", ".join(f"{v:.3g}" for v in report.singular_values[:4])
+    detail = f"numerical rank {rank} (singular values {sv}; noise threshold {report.rank_threshold:.3g})"
+    if dim == "auto":
+        if rank == 2 and report.kind == "coplanar-directions":
+            return 2
+        if rank == 1:
+            return 1
+        return 3
+    if dim == 2 and rank == 3:
+        raise DegenerateGeometryError(
+            f"dim=2 but the data are 3-D: {detail}; use dim=3 (or 'auto'; gross errors also raise the rank: "
+            "try loss='huber')", kind="dimension-mismatch")
+    if dim == 2 and rank == 2 and report.kind == "planar-motion":
+        return 3  # reported as planar-motion (not determined) by the caller
+    if dim == 2 and rank < 2:
+        raise DegenerateGeometryError(
+            f"dim=2 but the data have {detail}: positions on a line or parallel directions; use dim=1 "
+            "(or 'auto')", kind="dimension-mismatch")
+    if dim == 1 and rank > 1:
+        raise DegenerateGeometryError(
+            f"dim=1 but the data have {detail}; use dim={min(rank, 3)} (or 'auto')", kind="dimension-mismatch")
+    return int(dim)
+
+
+def _solve_low_dim(D: Array, X: Array, used: NDArray[np.bool_], d: int, report: DegeneracyReport, *,
+                   offsets: str, loss: str, f_scale: float | None, method: str, max_iter: int | None,
+                   tol: float | None, cone_tol: float) -> dict[str, Any]:
+    """Planar (d = 2) or linear (d = 1) far-field calibration from the complete centred X."""
+    m, k = D.shape
+    free = offsets == "free"
+    if d == 1:
+        # rank-1 model D_ij = x_i u_j + C_j: the SVD of the centred (filled) matrix is its least
+        # squares fit; |u_j| <= 1 bounds the scale, fixed here at max |u_j| = 1
+        U, s, Vt = top_svd(X, 1)
+        u = s[0] * Vt[0]
+        a = float(np.max(np.abs(u)))
+        if a <= 0:
+            raise DegenerateGeometryError("every column is constant: no position is observable", kind="no-signal")
+        x = U[:, 0] * a
+        x = x - x[0]
+        q = u / a
+        parallel = report.kind == "parallel-directions"
+        pos, dirs = x[:, None], q[:, None]
+        C = np.asarray(np.nanmean(np.where(used, D - pos @ dirs.T, np.nan), axis=0))
+        if offsets == "reference":
+            C = D[0].copy()
+        case = "parallel" if parallel else "linear"
+        return {"positions": pos, "directions": dirs, "offsets": C, "cov": None, "converged": True,
+                "iterations": 0, "method": "svd-rank1", "pd": True, "history": [], "case": case,
+                "determined": _DETERMINED[case]}
+    if k < 3 or m < 3:
+        raise DegenerateGeometryError(f"{m} x {k}: planar far-field calibration needs at least 3 positions and "
+                                      "3 directions", kind="too-few-sources" if k < 3 else "too-few-receivers")
+    # the 2-D analogue of the cone (Theorem 2): the quadric system for B2 is rank deficient when
+    # the directions lie on two lines through the origin
+    Us, s, Vt = top_svd(X, 2)
+    nt = (s[:2, None] * Vt[:2]).T
+    a_, b_ = nt[:, 0], nt[:, 1]
+    M = np.stack([a_ * a_, b_ * b_, np.sqrt(2.0) * a_ * b_], axis=1)
+    _, mu, Wt = np.linalg.svd(M, full_matrices=False)
+    om = Wt[-1]
+    Om = np.array([[om[0], om[2] / np.sqrt(2.0)], [om[2] / np.sqrt(2.0), om[1]]])
+    nu = 2.0 * report.noise_std * float(np.linalg.norm(nt @ Om))
+    if k < 4 or mu[-1] / max(nu, 1e-300) < cone_tol:
+        raise DegenerateGeometryError(
+            f"planar calibration: the {k} directions lie on (at most) two lines through the origin "
+            f"(quadric SNR {mu[-1] / max(nu, 1e-300):.3g} < {cone_tol:g}), so B2 in ntilde^T B2 ntilde = 1 is not "
+            "determined; add directions from other angles", kind="cone")
+    init = initialize_farfield(X, dim=2)
+    Z, N = init.positions - init.positions[0], init.directions
+    C = np.asarray(np.nanmean(np.where(used, D - Z @ N.T, np.nan), axis=0)) if free else D[0].copy()
+    hist: list[float] = []
+    cov = None
+    its, conv, meth = 0, True, "init"
+    if method in ("auto", "lm", "alternating"):
+        meth = "lm"
+        delta = 1.0
+        if loss != "linear":
+            rob = _robust_sigma(D, Z, N, C, used, dim=2)
+            delta = f_scale if f_scale is not None else _TUNING[loss] * max(rob, 1e-12 * (np.nanmax(np.abs(X)) + 1e-300))
+        out = refine_lm(D, Z, N, C, mask=used, free_offsets=free, loss=loss, delta=delta,
+                        max_iter=max_iter or 200, tol=tol or 1e-12)
+        Z, N, C, cov, hist, its, conv = (out.positions, out.directions, out.offsets, out.position_cov,
+                                         out.history, out.iterations, out.converged)
+    return {"positions": Z, "directions": N, "offsets": C, "cov": cov, "converged": conv, "iterations": its,
+            "method": meth, "pd": init.b_positive_definite, "history": hist, "case": "planar",
+            "determined": _DETERMINED["planar"]}
+
+
+def _solve_known_directions(D: Array, used: NDArray[np.bool_], gross: NDArray[np.bool_], directions: Any, *,
+                            loss: str) -> FarfieldResult:
+    """Positions and offsets by least squares given the unit directions (see ``directions``)."""
+    m, k = D.shape
+    N = np.asarray(as_matrix(directions, "directions", allow_nan=False), dtype=float)
+    if N.shape[0] != k or N.shape[1] not in (2, 3):
+        raise InputError(f"directions: expected ({k}, 2 or 3) unit vectors (one per column of the matrix), got "
+                         f"{N.shape}" + (" (transposed?)" if N.shape[::-1] == (k, 3) else ""))
+    nrm = np.linalg.norm(N, axis=1)
+    if np.any(np.abs(nrm - 1.0) > 1e-3):
+        raise InputError(f"directions: row {int(np.argmax(np.abs(nrm - 1)))} has length "
+                         f"{nrm[np.argmax(np.abs(nrm - 1))]:.4g}; directions must be unit vectors")
+    d = N.shape[1]
+    sv = np.linalg.svd(N, compute_uv=False)
+    if sv[-1] <= 1e-9 * sv[0]:
+        raise DegenerateGeometryError(f"the given directions span fewer than {d} dimensions: the positions' "
+                                      "component across them is unobservable", kind="coplanar-directions")
+    W = used.astype(float)
+    D0 = np.where(used, D, 0.0)
+    # least squares in (z_i, C_j) with z_1 = 0: alternate the exact per-column offsets and the
+    # exact per-row positions (block coordinate descent on a convex quadratic: converges to the
+    # unique minimum); complete data need one round from C = column means
+    Z = np.zeros((m, d))
+    C = np.sum(W * D0, axis=0) / np.maximum(W.sum(0), 1)
+    H = np.einsum("ij,ja,jb->iab", W, N, N)
+    prev = np.inf
+    its = 0
+    for its in range(1, 2001):  # noqa: B007
+        g = np.einsum("ij,ij,ja->ia", W, D0 - C, N)
+        Z = np.linalg.solve(H + 1e-12 * np.eye(d), g[..., None])[..., 0]
+        C = np.sum(W * (D0 - Z @ N.T), axis=0) / np.maximum(W.sum(0), 1)
+        cost = float(np.sum(W * (D0 - Z @ N.T - C) ** 2))
+        if its > 1 and prev - cost <= 1e-14 * max(prev, 1e-300):
+            break
+        prev = cost
+    C = C + Z[0] @ N.T
+    Z = Z - Z[0]
+    r = np.where(used, D - Z @ N.T - C, np.nan)
+    rms = float(np.sqrt(np.nanmean(r**2)))
+    res = FarfieldResult(Z, N.copy(), C, None, rms, True, its, "known-directions", loss, gross.copy(), True,
+                         None, [], None, (), d, "known-directions",
+                         "positions in the frame of the given directions (semi-blind: nothing left free but the "
+                         "first position at the origin); as good as the directions are")
+    return res
+
+
+@entry(matrix="array", f_scale="positive?", noise_std="positive?", max_iter="count?", tol="positive?",
+       rng="rng", reject_k="positive", cone_tol="positive")
 def solve_farfield(
     matrix: Any,
     *,
@@ -456,6 +727,8 @@ def solve_farfield(
     check_degeneracy: bool = True,
     ransac: bool = False,
     rng: np.random.Generator | int | None = None,
+    dim: int | str = 3,
+    directions: Any = None,
 ) -> FarfieldResult:
     """Far-field TDOA self-calibration: positions, directions and offsets from D (paper 000).
 
@@ -480,7 +753,7 @@ def solve_farfield(
     allow_degenerate : return the partial reconstruction of a degenerate configuration
         (with ``degeneracy`` set) instead of raising.
     screen : treat gross errors (:func:`screen_gross_errors`) as missing.
-    reject_k : with a robust loss, entries with |residual| > reject_k robust std are rejected.
+    reject_k : with a robust loss, entries with ``|residual| > reject_k`` robust std are rejected.
     max_iter, tol : refinement limits (defaults 200 / 1e-12 for LM, 2000 / 1e-10 for
         alternating).
     cone_tol : threshold of the cone test (see :mod:`.degeneracy`).
@@ -494,10 +767,27 @@ def solve_farfield(
         solver); entries outside its inlier set are treated as missing and reported in
         ``rejected``. Combine with a robust loss for the best results.
     rng : random generator / seed (used by ``ransac``).
-
-    Returns
-    -------
-    FarfieldResult
+    dim : 3 (space, the paper), 2 (planar: positions and directions in one plane, e.g. a
+        circular / rectangular board with sources around it in its plane; or any array with
+        coplanar directions, whose positions are then seen projected onto that plane),
+        1 (linear: positions on a line, or all directions parallel), or ``"auto"``: the
+        numerical rank of the column-centred matrix against the noise (the Marchenko-Pastur
+        edge test of :func:`~selfcal.tdoa.analyse_degeneracy`) and, at rank 2, the
+        consistency of the 2-D quadric (chi-square per dof of ``ntilde^T B2 ntilde = 1``)
+        decide. What is determined (paper 000, section 2.2) is in ``result.determined``:
+        planar -- the in-plane geometry up to a rotation / reflection of the plane (needs
+        k >= 3 directions not all on two lines); linear -- the positions along the line up
+        to one scale factor (reported with the largest |projection| of a direction = 1:
+        the smallest array consistent with the data, exact when a source is at endfire);
+        parallel directions -- the coordinate along the direction, scale included.
+        Positions with the directions off their plane (``planar-motion``) are not determined
+        (a 2 x 2 family) and raise in every mode.
+    directions : optional (k, d) known unit directions n_j (d = 3 or 2; e.g. from a
+        turntable's angles). Then the problem is linear (semi-blind calibration): positions
+        and offsets by least squares, ``case = "known-directions"``, in the frame of the given
+        directions (no rotation is left free). The only way to calibrate data whose blind
+        problem is degenerate (a ``cone``: all sources at one elevation), provided the
+        directions are right.
 
     Raises
     ------
@@ -508,6 +798,10 @@ def solve_farfield(
         (with ``partial`` = the partial FarfieldResult) unless ``allow_degenerate``.
     """
     check_choice(method, "method", METHODS)
+    if dim not in (1, 2, 3, "auto"):
+        raise InputError(f"dim must be 1, 2, 3 or 'auto', got {dim!r}")
+    if method == "minimal" and dim != 3:
+        raise InputError("method='minimal' (Algorithm 1) is the 3-D 4 x 6 solver; use dim=3")
     check_choice(loss, "loss", LOSSES)
     check_choice(offsets, "offsets", ("auto", "reference", "free"))
     check_choice(direction_solver, "direction_solver", ("global", "local"))
@@ -536,11 +830,14 @@ def solve_farfield(
 
     if method == "minimal" and ((m, k) != (4, 6) or not finite.all()):
         raise InputError(f"method='minimal' needs a complete 4 x 6 matrix, got {m} x {k}")
+    check_orientation(D, noise_std=noise_std, rank=3)
     gross = screen_gross_errors(D) if screen else np.zeros_like(finite)
     if ransac:
         gross = gross | (finite & ~ransac_farfield(np.where(gross, np.nan, D), rng=gen))
     used = finite & ~gross
     complete = bool(used.all())
+    if directions is not None:
+        return _solve_known_directions(D, used, gross, directions, loss=loss)
     if offsets == "auto":
         offsets = "reference" if (complete and loss == "linear") else "free"
     if offsets == "reference" and not np.all(used[0]):
@@ -551,9 +848,21 @@ def solve_farfield(
     if complete and loss == "linear":
         Dfill = D
     else:
-        Dfill, sig = lowrank_fit(D, used.astype(float), rank=3, loss="huber" if loss != "linear" else "linear")
+        fit_loss = "huber" if loss != "linear" else "linear"
+        Dfill, sig = lowrank_fit(D, used.astype(float), rank=dim if isinstance(dim, int) else 3, loss=fit_loss)
         if sigma_entries is None:
             sigma_entries = sig
+        if dim == "auto" or dim == 2:
+            # a rank-r completion puts spurious components into the missing entries;
+            # complete at rank 1, then 2, and keep the first whose next singular value is noise
+            # (a real higher component stays visible in the observed entries); sigma from the
+            # largest (rank-3) fit, unbiased whatever the true rank
+            for r in range(1, 3 if dim == "auto" else 2):
+                Lr, _ = lowrank_fit(D, used.astype(float), rank=r, loss=fit_loss)
+                Fr = np.where(used, D, Lr) if loss == "linear" else Lr
+                if analyse_degeneracy(Fr - Fr.mean(axis=0), noise_std=sigma_entries, cone_tol=cone_tol).rank <= r:
+                    Dfill = Lr
+                    break
     if loss == "linear":
         Dfill = np.where(used, D, Dfill)  # only the gaps are filled
     if init_reference == "first":
@@ -581,6 +890,16 @@ def solve_farfield(
 
     no_rej = np.zeros_like(finite)
     kind_found = report.kind if check_degeneracy else None
+    dim_eff = _effective_dim(dim, report) if check_degeneracy or dim != 3 else 3
+    if dim_eff in (1, 2):
+        if dim_eff == 2 and (dim == 2 or report.kind == "coplanar-directions"):
+            check_orientation(D, noise_std=noise_std, rank=2)
+        sol = _solve_low_dim(D, X, used, dim_eff, report, offsets=offsets, loss=loss, f_scale=f_scale,
+                             method=method, max_iter=max_iter, tol=tol, cone_tol=cone_tol)
+        pos, dirs, C, cov = sol["positions"], sol["directions"], sol["offsets"], sol["cov"]
+        res = _result(pos, dirs, C, kind=None, conv=sol["converged"], its=sol["iterations"], meth=sol["method"],
+                      rej=no_rej, pd=sol["pd"], hist=sol["history"], cov=cov)
+        return replace(res, dim=dim_eff, case=sol["case"], determined=sol["determined"])
     if check_degeneracy and report.rank < 3:
         kind = report.kind or "collinear-motion"
         partial_fn = {
@@ -591,12 +910,16 @@ def solve_farfield(
         }[kind]
         pos, dirs = partial_fn(X)
         pos = pos - pos[0]
+        hint = {"planar-motion": "", "coplanar-directions": " (dim=2 / --dim 2 gives the in-plane geometry)",
+                "collinear-motion": " (dim=1 / --dim 1 gives the positions along the line, up to scale)",
+                "parallel-directions": " (dim=1 / --dim 1 gives the coordinate along the direction)"}[kind]
         part = _result(pos, dirs, _offsets(pos, dirs), kind=kind, conv=False, its=0, meth=f"partial-{kind}",
                        rej=no_rej, pd=False, hist=[])
         sv = ", ".join(f"{v:.3g}" for v in report.singular_values[:4])
         detail = (f" (numerical rank {report.rank}: singular values {sv} against the noise-aware "
                   f"threshold {report.rank_threshold:.3g})")
-        return _raise_or_return(kind, _DEGENERATE_MESSAGES[kind] + detail, part, allow_degenerate)
+        part = replace(part, case=kind, dim=3, determined=_DETERMINED[kind])
+        return _raise_or_return(kind, _DEGENERATE_MESSAGES[kind] + detail + hint, part, allow_degenerate)
     if m < 4:
         raise DegenerateGeometryError(
             f"{m} receiver positions span 3-D but at least 4 are needed (Theorem 1)", kind="too-few-receivers")
@@ -619,7 +942,13 @@ def solve_farfield(
                            meth="minimal", rej=no_rej, pd=True, hist=[])
         method = "init"  # B not positive definite: the nonlinear fit of A (section 2.3)
 
+    if not np.isfinite(X).all():  # never hand LAPACK a non-finite matrix (its DLASCL noise on stderr)
+        raise InputError("matrix: the completed matrix is not finite; check for huge or missing entries")
     init = initialize_farfield(X)
+    if not (np.isfinite(init.positions).all() and np.isfinite(init.directions).all()):
+        raise DegenerateGeometryError(
+            "the initialisation gave non-finite positions (B and its nonlinear fit are singular): the "
+            "geometry is numerically degenerate", kind="no-solution")
     Z, N = init.positions - init.positions[0], init.directions
     C = _offsets(Z, N)
     if kind_found == "cone":
@@ -662,9 +991,16 @@ def solve_farfield(
                 rej = np.asarray(used & (np.abs(r) > reject_k * max(rob, 1e-300)))
     res = _result(Z, N, C, kind=kind_found, conv=conv, its=its, meth=method, rej=rej,
                   pd=init.b_positive_definite, hist=hist, cov=cov)
+    res = replace(res, case="cone" if kind_found == "cone" else "spatial",
+                  determined=_DETERMINED["cone" if kind_found == "cone" else "spatial"])
     cautions = _collapse_warning(init.directions, res.directions)
+    if method == "lm" and res.position_cov is None:
+        cautions = cautions + ("position_cov not computed: both sides of the problem are large (the reduced "
+                               "system exceeds selfcal.tdoa.refine.COV_DIRECT_MAX unknowns); call "
+                               "refine.position_covariance for it",)
     if cautions:
-        warnings.warn(cautions[0], ConvergenceWarning, stacklevel=2)
+        if cautions[0].startswith("directions-collapsed"):
+            warnings.warn(cautions[0], ConvergenceWarning, stacklevel=2)
         res = replace(res, warnings=cautions)
     return res
 

@@ -39,6 +39,7 @@ flags such solutions (``warnings``: ``directions-collapsed``, threshold
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -354,74 +355,320 @@ def refine_alternating(
 
 
 # ----------------------------------------------------------------------------- Algorithm 3
+def _tangent(N: Array) -> Array:
+    """Tangent basis of the unit sphere (d = 3: (k, 3, 2)) or circle (d = 2: (k, 2, 1))."""
+    if N.shape[1] == 3:
+        return sphere_tangent_basis(N)
+    return np.stack([-N[:, 1], N[:, 0]], axis=1)[:, :, None]
+
+
 def _normal_equations(
-    D0: Array, Z: Array, N: Array, C: Array, W: Array, free_offsets: bool
-) -> tuple[Array, Array, Array, Array, Array, Array, Array]:
-    """Blocks of J^T W J and J^T W r for the parametrisation of :func:`farfield_jacobian`."""
-    T = sphere_tangent_basis(N)  # (k, 3, 2)
+    D0: Array, Z: Array, N: Array, C: Array, W: Array, free_offsets: bool, *, coupling: bool = True
+) -> tuple[Any, ...]:
+    """Blocks of J^T W J and J^T W r for the parametrisation of :func:`farfield_jacobian`.
+
+    Works in d = 2 or 3 dimensions (Z (m, d), N (k, d)): Hzz (m-1, d, d), Hzn
+    (m-1, k, d, p), Hnn (k, p, p) with p = d - 1 tangent coordinates (+1 offset).
+    Each coupling block is the outer product ``W_ij n_j b_ij^T``; with ``coupling=False``
+    Hzn is returned in that factored form ``(W[1:], N, b[1:])`` (O(m k p) memory instead
+    of O(m k d p)) for the matrix-free CG step.
+    """
+    T = _tangent(N)  # (k, d, d-1)
     r = np.where(W > 0, farfield_residuals(D0, Z, N, C), 0.0)
-    zt = np.einsum("ia,jab->ijb", Z, T)  # (m, k, 2)
+    zt = np.einsum("ia,jab->ijb", Z, T)  # (m, k, d-1)
     if free_offsets:
-        bcol = np.concatenate([zt, np.ones(zt.shape[:2] + (1,))], axis=-1)  # (m, k, 3)
+        bcol = np.concatenate([zt, np.ones(zt.shape[:2] + (1,))], axis=-1)  # (m, k, p)
     else:
         bcol = zt
-    Hzz = np.einsum("ij,ja,jb->iab", W, N, N)[1:]
-    Hzn = np.einsum("ij,ja,ijb->ijab", W, N, bcol)[1:]
-    Hnn = np.einsum("ij,ija,ijb->jab", W, bcol, bcol)
-    gz = np.einsum("ij,ij,ja->ia", W, r, N)[1:]
-    gn = np.einsum("ij,ij,ija->ja", W, r, bcol)
+    m, k, d = Z.shape[0], N.shape[0], N.shape[1]
+    NN = (N[:, :, None] * N[:, None, :]).reshape(k, d * d)
+    Hzz = (W[1:] @ NN).reshape(m - 1, d, d)  # BLAS products and broadcasting, not einsum loops
+    Wb = W[:, :, None] * bcol  # (m, k, p)
+    Hzn = Wb[1:, :, None, :] * N[None, :, :, None] if coupling else (W[1:], N, bcol[1:])
+    Hnn = np.matmul(Wb.transpose(1, 2, 0), bcol.transpose(1, 0, 2))
+    Wr = W * r
+    gz = (Wr @ N)[1:]
+    gn = np.einsum("ij,ija->ja", Wr, bcol)
     return Hzz, Hzn, Hnn, gz, gn, T, r
 
 
+def _flat(Hzn: Array) -> Array:
+    """(mz, k, d, p) coupling blocks as the (mz d, k p) matrix H_zn."""
+    mz, k, d, p = Hzn.shape
+    return Hzn.transpose(0, 2, 1, 3).reshape(mz * d, k * p)
+
+
+def _eliminate_positions(mz: int, d: int, k: int, p: int) -> bool:
+    """Schur side: eliminate the (block-diagonal) positions when the directions' system is smaller."""
+    return d * mz > p * k
+
+
 def _lm_step(
-    Hzz: Array, Hzn: Array, Hnn: Array, gz: Array, gn: Array, lam: float
+    Hzz: Array, Hzn: Array, Hnn: Array, gz: Array, gn: Array, lam: float, *, side: str = "auto"
 ) -> tuple[Array, Array]:
-    """Solve (H + lam diag H) dx = g by eliminating the per-column blocks (Schur complement)."""
-    mz, k, p = Hzn.shape[0], Hnn.shape[0], Hnn.shape[1]
-    eye_p = np.eye(p)
+    """Solve (H + lam diag H) dx = g by a Schur complement over the smaller side.
+
+    Both the position blocks (d x d) and the per-column blocks (p x p) are block diagonal;
+    only their coupling is dense. ``side="directions"`` eliminates the columns (reduced
+    system of size d(m-1)), ``"positions"`` eliminates the positions (size p k); ``"auto"``
+    takes the smaller, so one step costs O(m k min(dm, pk)) and memory O(m k).
+    """
+    if isinstance(Hzn, tuple):
+        mz, k, d, p = Hzn[0].shape[0], Hzn[1].shape[0], Hzn[1].shape[1], Hnn.shape[1]
+    else:
+        mz, k, d, p = Hzn.shape
+    eye_p, eye_d = np.eye(p), np.eye(d)
     Hnn_d = Hnn + lam * np.einsum("jaa->ja", Hnn)[:, :, None] * eye_p + 1e-12 * eye_p
-    Hzz_d = Hzz + lam * np.einsum("iaa->ia", Hzz)[:, :, None] * np.eye(3) + 1e-12 * np.eye(3)
-    Hnn_inv = np.linalg.inv(Hnn_d)  # (k, p, p)
-    X = np.einsum("ijab,jbc->ijac", Hzn, Hnn_inv)  # Hzn Hnn^-1
-    # sum_j Hzn[i,j] Hnn[j]^-1 Hzn[l,j]^T as one matrix product (BLAS), not an einsum loop
-    Xr = X.transpose(0, 2, 1, 3).reshape(mz * 3, k * p)
-    Hr = Hzn.transpose(0, 2, 1, 3).reshape(mz * 3, k * p)
-    S = -(Xr @ Hr.T)
-    S4 = S.reshape(mz, 3, mz, 3)
-    idx = np.arange(mz)
-    S4[idx, :, idx, :] += Hzz_d
-    rhs = gz - np.einsum("ijab,jb->ia", X, gn)
-    dz = np.linalg.solve(S, rhs.reshape(-1)).reshape(mz, 3)
-    dn = np.einsum("jab,jb->ja", Hnn_inv, gn - np.einsum("ijab,ia->jb", Hzn, dz))
+    Hzz_d = Hzz + lam * np.einsum("iaa->ia", Hzz)[:, :, None] * eye_d + 1e-12 * eye_d
+    if side == "auto":
+        side = "positions" if _eliminate_positions(mz, d, k, p) else "directions"
+        if min(d * mz, p * k) > DIRECT_MAX:
+            side = "cg"
+    if isinstance(Hzn, tuple):
+        return _lm_step_cg_factored(Hzz_d, Hzn, Hnn_d, gz, gn)
+    if side == "cg":
+        return _lm_step_cg(Hzz_d, Hzn, Hnn_d, gz, gn)
+    Hr = _flat(Hzn)
+    if side == "directions":
+        Hnn_inv = np.linalg.inv(Hnn_d)  # (k, p, p)
+        Xf = _flat(np.matmul(Hzn, Hnn_inv[None]))  # Hzn Hnn^-1
+        S = -(Xf @ Hr.T)
+        S4 = S.reshape(mz, d, mz, d)
+        idx = np.arange(mz)
+        S4[idx, :, idx, :] += Hzz_d
+        rhs = gz - (Xf @ gn.reshape(-1)).reshape(mz, d)
+        dz = np.linalg.solve(S, rhs.reshape(-1)).reshape(mz, d)
+        dn = np.einsum("jab,jb->ja", Hnn_inv, gn - (dz.reshape(-1) @ Hr).reshape(k, p))
+        return dz, dn
+    Hzz_inv = np.linalg.inv(Hzz_d)  # (mz, d, d)
+    Yr = _flat(np.matmul(Hzz_inv[:, None], Hzn))  # Hzz^-1 Hzn as (mz d, k p)
+    S = -(Hr.T @ Yr)  # (k p, k p)
+    S4 = S.reshape(k, p, k, p)
+    idx = np.arange(k)
+    S4[idx, :, idx, :] += Hnn_d
+    rhs = gn.reshape(-1) - Yr.T @ gz.reshape(-1)
+    dn = np.linalg.solve(S, rhs)
+    dz = np.einsum("iab,ib->ia", Hzz_inv, gz) - (Yr @ dn).reshape(mz, d)
+    return dz, dn.reshape(k, p)
+
+
+#: largest reduced (Schur) system solved directly; above it (both sides large, e.g. 2000 x 2000)
+#: the reduced system would cost O(m k n) to form and O(n^3) to factor, and the LM step
+#: uses preconditioned conjugate gradients with O(m k) matrix-vector products instead
+DIRECT_MAX = 1500
+#: largest reduced system for which :func:`refine_lm` computes the covariance by default
+#: (n = 2000: 32 MB and a few seconds of one core for the O(n^3) inverse)
+COV_DIRECT_MAX = 2000
+
+
+def _lm_step_cg(Hzz_d: Array, Hzn: Array, Hnn_d: Array, gz: Array, gn: Array, *,
+                rtol: float = 1e-10, max_iter: int = 500) -> tuple[Array, Array]:
+    """The damped Gauss-Newton step by block-Jacobi preconditioned CG on the directions' Schur
+    complement ``S_n = Hnn - H_nz Hzz^-1 H_zn``, never formed: each product costs O(m k d p)."""
+    from scipy.sparse.linalg import LinearOperator, cg
+
+    mz, k, d, p = Hzn.shape
+    Hzz_inv = np.linalg.inv(Hzz_d)
+    Hf = Hzn.transpose(0, 2, 1, 3).reshape(mz * d, k * p)  # one copy, reused by every product
+    HzzB = Hzz_inv
+
+    def zsolve(v: Array) -> Array:
+        return np.einsum("iab,ib->ia", HzzB, v.reshape(mz, d)).reshape(-1)
+
+    def matvec(x: Array) -> Array:
+        x = np.asarray(x).reshape(-1)
+        y = np.einsum("jab,jb->ja", Hnn_d, x.reshape(k, p)).reshape(-1)
+        return y - Hf.T @ zsolve(Hf @ x)
+
+    # block-Jacobi preconditioner: the exact diagonal blocks of S_n
+    Y = np.matmul(Hzz_inv[:, None], Hzn)  # (mz, k, d, p)
+    At = Hzn.transpose(1, 0, 2, 3).reshape(k, mz * d, p)
+    diag = Hnn_d - np.matmul(At.transpose(0, 2, 1), Y.transpose(1, 0, 2, 3).reshape(k, mz * d, p))
+    del At
+    del Y
+    Pinv = np.linalg.inv(diag)
+
+    def precond(x: Array) -> Array:
+        return np.einsum("jab,jb->ja", Pinv, np.asarray(x).reshape(k, p)).reshape(-1)
+
+    n = k * p
+    A = LinearOperator((n, n), matvec=matvec, dtype=float)
+    M = LinearOperator((n, n), matvec=precond, dtype=float)
+    rhs = gn.reshape(-1) - Hf.T @ zsolve(gz.reshape(-1))
+    dn, _ = cg(A, rhs, rtol=rtol, atol=0.0, maxiter=max_iter, M=M)
+    dz = (zsolve(gz.reshape(-1)) - zsolve(Hf @ dn)).reshape(mz, d)
+    return dz, dn.reshape(k, p)
+
+
+def _lm_step_cg_factored(Hzz_d: Array, factors: tuple[Array, Array, Array], Hnn_d: Array, gz: Array,
+                         gn: Array, *, rtol: float = 1e-10, max_iter: int = 500) -> tuple[Array, Array]:
+    """:func:`_lm_step_cg` with the coupling blocks ``W_ij n_j b_ij^T`` kept factored.
+
+    Products with H_zn / H_nz cost O(m k (d + p)) and need no (m, k, d, p) array: the
+    memory stays a few copies of the data.
+    """
+    from scipy.sparse.linalg import LinearOperator, cg
+
+    W, N, bc = factors  # (mz, k), (k, d), (mz, k, p)
+    mz, k, p = bc.shape
+    Hzz_inv = np.linalg.inv(Hzz_d)
+
+    def hzn(x: Array) -> Array:  # (k, p) -> (mz, d): sum_j W_ij n_j (b_ij . x_j)
+        t = np.einsum("ijp,jp->ij", bc, x)
+        return (W * t) @ N
+
+    def hnz(v: Array) -> Array:  # (mz, d) -> (k, p): sum_i W_ij b_ij (n_j . v_i)
+        s_ = W * (v @ N.T)
+        return np.einsum("ij,ijp->jp", s_, bc)
+
+    def zsolve(v: Array) -> Array:
+        return np.einsum("iab,ib->ia", Hzz_inv, v)
+
+    def matvec(x: Array) -> Array:
+        x = np.asarray(x).reshape(k, p)
+        return (np.einsum("jab,jb->ja", Hnn_d, x) - hnz(zsolve(hzn(x)))).reshape(-1)
+
+    qn = np.einsum("ja,iab,jb->ij", N, Hzz_inv, N)  # n_j^T Hzz_i^-1 n_j
+    wq = (W**2 * qn)[:, :, None] * bc
+    diag = Hnn_d - np.matmul(wq.transpose(1, 2, 0), bc.transpose(1, 0, 2))
+    del wq
+    Pinv = np.linalg.inv(diag)
+
+    def precond(x: Array) -> Array:
+        return np.einsum("jab,jb->ja", Pinv, np.asarray(x).reshape(k, p)).reshape(-1)
+
+    n = k * p
+    A = LinearOperator((n, n), matvec=matvec, dtype=float)
+    M = LinearOperator((n, n), matvec=precond, dtype=float)
+    rhs = (gn - hnz(zsolve(gz))).reshape(-1)
+    dn, _ = cg(A, rhs, rtol=rtol, atol=0.0, maxiter=max_iter, M=M)
+    dn = dn.reshape(k, p)
+    dz = zsolve(gz - hzn(dn))
     return dz, dn
 
 
+def _rotation_generators(Z: Array) -> Array:
+    """Orthonormal basis (d(m-1), g) of the infinitesimal rotations of z_2..z_m about z_1 = 0."""
+    Zr = Z[1:]
+    d = Z.shape[1]
+    if d == 3:
+        G = np.stack([np.cross(np.eye(3)[a], Zr).ravel() for a in range(3)], axis=1)
+    else:
+        G = np.stack([-Zr[:, 1], Zr[:, 0]], axis=1).ravel()[:, None]
+    Q, R = np.linalg.qr(G)
+    keep = np.abs(np.diag(R)) > 1e-12 * (np.abs(R).max() + 1e-300)
+    return np.asarray(Q[:, keep])
+
+
 def position_covariance(
-    D: Array, Z: Array, N: Array, C: Array, W: Array, *, free_offsets: bool, dof_extra: int = 0
+    D: Array, Z: Array, N: Array, C: Array, W: Array, *, free_offsets: bool, dof_extra: int = 0,
+    method: str = "auto",
 ) -> Array:
-    """Gauss-Newton covariance of the positions at a least-squares solution: (m, 3, 3).
+    """Gauss-Newton covariance of the positions at a least-squares solution: (m, d, d).
 
     ``sigma^2 [S^+]_ii`` with S the Schur complement of the direction/offset blocks in
     ``J^T W J`` (the positions' information with the directions and offsets profiled out)
-    and ``sigma^2 = cost / (observations - parameters + 3)``. The pseudo-inverse puts the
-    three unobservable rotations in the minimum-norm gauge (z_1 = 0 fixes translation), so
-    the covariances describe errors after the best rotation about the first position.
+    and ``sigma^2 = cost / (observations - parameters + rotations)``. The pseudo-inverse puts
+    the unobservable rotations (3 in space, 1 in a plane) in the minimum-norm gauge
+    (z_1 = 0 fixes translation), so the covariances describe errors after the best rotation
+    about the first position.
+
+    Parameters
+    ----------
+    D, Z, N, C, W : data (m, k), positions (m, d), unit directions (k, d), offsets (k,),
+        weights (m, k) (0 = unused entry).
+    free_offsets : whether the C_j are estimated (adds one parameter per column).
+    dof_extra : further parameters to subtract from the residual degrees of freedom.
+    method : ``"dense"`` -- pseudo-inverse of the d(m-1) x d(m-1) Schur complement (SVD;
+        the reference, O(m^3)); ``"schur"`` -- the same blocks without a pseudo-inverse,
+        ``S^+ = (S + Q Q^T)^-1 - Q Q^T`` with Q the orthonormal rotation generators (the
+        exact null space of S), the inverse's diagonal blocks from whichever side is
+        smaller: a Cholesky inverse of ``S + QQ^T`` (d(m-1) <= p k) or, eliminating the
+        positions, Woodbury's identity with the (p k + g) core
+        ``[[-S_n, H_nz A^-1 Q], [Q^T A^-1 H_zn, I + Q^T A^-1 Q]]`` (A = the block-diagonal
+        position information, S_n the directions' Schur complement), so the cost is
+        O(m k min(dm, pk)) and memory O(m k); ``"auto"`` = ``"schur"``.
+
+    Returns
+    -------
+    (m, d, d) covariance blocks (metres^2), the first one zero (the gauge origin).
+
+    Notes
+    -----
+    ``"schur"`` and ``"dense"`` agree to rounding where S's numerical null space is exactly
+    the rotations (every position seen by d independent directions); the tests check 1e-9.
     """
+    check_choice(method, "method", ("auto", "dense", "schur"))
     D0 = np.where(W > 0, D, 0.0)
     Hzz, Hzn, Hnn, _, _, _, r = _normal_equations(D0, Z, N, C, W, free_offsets)
-    mz, k, p = Hzn.shape[0], Hnn.shape[0], Hnn.shape[1]
-    Hnn_inv = np.linalg.pinv(Hnn)
-    X = np.einsum("ijab,jbc->ijac", Hzn, Hnn_inv)
-    S = -(X.transpose(0, 2, 1, 3).reshape(mz * 3, k * p) @ Hzn.transpose(0, 2, 1, 3).reshape(mz * 3, k * p).T)
-    S4 = S.reshape(mz, 3, mz, 3)
-    idx = np.arange(mz)
-    S4[idx, :, idx, :] += Hzz
+    mz, k, d, p = Hzn.shape
+    Q = _rotation_generators(Z)
+    g = Q.shape[1]
     n_obs = int((W > 0).sum())
-    n_par = 3 * mz + p * k - 3 - dof_extra
+    n_par = d * mz + p * k - g - dof_extra
     sigma2 = float(np.sum(W * r**2)) / max(n_obs - n_par, 1)
-    cov = sigma2 * np.linalg.pinv(S, rcond=1e-10, hermitian=True)
-    blocks = cov.reshape(mz, 3, mz, 3)[idx, :, idx, :]
-    return np.concatenate([np.zeros((1, 3, 3)), blocks], axis=0)
+    idx = np.arange(mz)
+    Hr = _flat(Hzn)
+    if method == "dense" or (method in ("auto", "schur") and not _eliminate_positions(mz, d, k, p)):
+        Hnn_inv = np.linalg.pinv(Hnn)  # (k, p, p) blocks: cheap either way
+        X = np.matmul(Hzn, Hnn_inv[None])
+        S = -(_flat(X) @ Hr.T)
+        S4 = S.reshape(mz, d, mz, d)
+        S4[idx, :, idx, :] += Hzz
+        if method == "dense":
+            cov = np.linalg.pinv(S, rcond=1e-10, hermitian=True)
+        else:
+            cov = _spd_inverse(S + Q @ Q.T)
+            cov = np.linalg.pinv(S, rcond=1e-10, hermitian=True) if cov is None else cov - Q @ Q.T
+        blocks = cov.reshape(mz, d, mz, d)[idx, :, idx, :]
+    else:
+        if np.min(np.linalg.eigvalsh(Hzz)[:, 0] / np.maximum(np.trace(Hzz, axis1=1, axis2=2), 1e-300)) < 1e-10:
+            return position_covariance(D, Z, N, C, W, free_offsets=free_offsets, dof_extra=dof_extra,
+                                       method="dense")  # a position is not seen by d directions
+        A_inv = np.linalg.inv(Hzz)  # (mz, d, d): each position seen by >= d directions
+        Qb = Q.reshape(mz, d, g)
+        U = np.concatenate([Hr, Q], axis=1)  # (mz d, k p + g)
+        Ub = U.reshape(mz, d, -1)
+        Y = np.matmul(A_inv, Ub)  # A^-1 U, per position block: (mz, d, k p + g)
+        Yf = Y.reshape(mz * d, -1)
+        K = U.T @ Yf
+        K[: k * p, : k * p] -= _block_diag(Hnn)
+        K[k * p:, k * p:] += np.eye(g)
+        YK = (Yf @ np.linalg.inv(K)).reshape(mz, d, -1)  # one (kp+g)^3 inverse, then BLAS
+        blocks = A_inv - np.matmul(YK, Y.transpose(0, 2, 1)) - np.matmul(Qb, Qb.transpose(0, 2, 1))
+    blocks = sigma2 * 0.5 * (blocks + blocks.transpose(0, 2, 1))
+    return np.concatenate([np.zeros((1, d, d)), blocks], axis=0)
+
+
+def _block_diag(H: Array) -> Array:
+    """(k, p, p) blocks as the (k p, k p) block-diagonal matrix."""
+    k, p, _ = H.shape
+    out = np.zeros((k * p, k * p))
+    idx = np.arange(k)
+    out.reshape(k, p, k, p)[idx, :, idx, :] = H
+    return out
+
+
+def _spd_inverse(S: Array) -> Array | None:
+    """Inverse of a symmetric positive definite matrix by Cholesky (LAPACK potrf / potri);
+    None when S is not numerically positive definite (the caller falls back to a pseudo-inverse)."""
+    import scipy.linalg as sla
+
+    if not np.isfinite(S).all():
+        return None
+    try:
+        c, _ = sla.cho_factor(S, lower=True, check_finite=False)
+    except np.linalg.LinAlgError:
+        return None
+    inv, info = sla.lapack.dpotri(c, lower=1)
+    if info != 0:
+        return None
+    inv = np.tril(inv) + np.tril(inv, -1).T
+    d = np.diag(S)
+    # a factor this close to singular means extra null directions beyond the rotations
+    if np.max(np.abs(np.diag(inv)) * d) > 1e10:
+        return None
+    return np.asarray(inv)
 
 
 def refine_lm(
@@ -439,6 +686,9 @@ def refine_lm(
     max_iter: int = 200,
     tol: float = 1e-12,
     record_positions: bool = False,
+    covariance: bool | None = None,
+    linear_solver: str = "auto",
+    covariance_method: str = "auto",
 ) -> RefineResult:
     """Levenberg-Marquardt on the product of spheres, paper 000 Algorithm 3.
 
@@ -455,23 +705,43 @@ def refine_lm(
     Convergence: the relative cost decrease of an accepted step is below ``tol``, or the
     step is below ``tol`` relative to the parameters, or lambda exceeds 1e12.
 
-    Parameters are as in :func:`refine_alternating`; ``lam`` > 0.
+    Parameters are as in :func:`refine_alternating`; ``lam`` > 0. Positions (m, d) and
+    directions (k, d) may be 3-D (spheres) or 2-D (circles, the planar far-field problem).
+    ``covariance``: also compute ``position_cov`` (:func:`position_covariance`); None =
+    when its reduced system has at most :data:`COV_DIRECT_MAX` unknowns (above, it costs
+    O(n^3) time and O(n^2) memory with n = min(d(m-1), p k)).
+    ``linear_solver``: how each step's normal equations are solved -- ``"auto"`` (the
+    smaller Schur side, CG above :data:`DIRECT_MAX`), ``"directions"`` (eliminate the
+    directions: a d(m-1) system, the pre-0.2 behaviour and the benchmarks' dense
+    baseline), ``"positions"`` or ``"cg"``. ``covariance_method``: see
+    :func:`position_covariance`.
+    Each step eliminates the smaller block-diagonal side (Schur complement, see
+    :func:`_lm_step`): O(m k min(dm, pk)) time and O(m k) memory.
     """
     check_choice(loss, "loss", LOSSES)
+    check_choice(linear_solver, "linear_solver", ("auto", "directions", "positions", "cg"))
+    check_choice(covariance_method, "covariance_method", ("auto", "dense", "schur"))
     D0, obs, Z, N, C = _start(D, mask, positions, directions, offsets)
     cost = _cost(farfield_residuals(D0, Z, N, C), obs, loss, delta)
     hist, phist = [cost], ([Z.copy()] if record_positions else [])
     converged = False
     it = 0
+    side = linear_solver
+    if side == "auto":
+        d_, p_ = Z.shape[1], Z.shape[1] - 1 + int(free_offsets)
+        if min(d_ * (Z.shape[0] - 1), p_ * N.shape[0]) > DIRECT_MAX:
+            side = "cg-factored"
     for it in range(1, max_iter + 1):  # noqa: B007 (it is reported after the loop)
         W = _weights(D0, Z, N, C, obs, loss, delta)
-        Hzz, Hzn, Hnn, gz, gn, T, _ = _normal_equations(D0, Z, N, C, W, free_offsets)
+        Hzz, Hzn, Hnn, gz, gn, T, _ = _normal_equations(D0, Z, N, C, W, free_offsets,
+                                                        coupling=side != "cg-factored")
+        q = T.shape[2]
         while True:
-            dz, dn = _lm_step(Hzz, Hzn, Hnn, gz, gn, lam)
+            dz, dn = _lm_step(Hzz, Hzn, Hnn, gz, gn, lam, side="cg" if side == "cg-factored" else side)
             Zc = Z.copy()
             Zc[1:] += dz
-            Nc = sphere_exp(N, np.einsum("jab,jb->ja", T, dn[:, :2]))
-            Cc = C + dn[:, 2] if free_offsets else C
+            Nc = sphere_exp(N, np.einsum("jab,jb->ja", T, dn[:, :q]))
+            Cc = C + dn[:, q] if free_offsets else C
             new = _cost(farfield_residuals(D0, Zc, Nc, Cc), obs, loss, delta)
             if not adaptive or new <= cost:
                 break
@@ -495,54 +765,73 @@ def refine_lm(
             converged = True
             break
     W = _weights(D0, Z, N, C, obs, loss, delta)
-    cov = position_covariance(D0, Z, N, C, W, free_offsets=free_offsets)
+    if covariance is None:
+        d_, p_ = Z.shape[1], Z.shape[1] - 1 + int(free_offsets)
+        covariance = min(d_ * (Z.shape[0] - 1), p_ * N.shape[0]) <= COV_DIRECT_MAX
+    cov = (position_covariance(D0, Z, N, C, W, free_offsets=free_offsets, method=covariance_method)
+           if covariance else None)
     return RefineResult(Z, N, C, cost, it, converged, hist, phist, cov)
 
 
 def farfield_crlb(positions: Array, directions: Array, sigma: float, *, free_offsets: bool = True) -> Array:
-    """Cramer-Rao bound of the far-field model for the positions, rigid gauge removed: (m, 3, 3).
+    """Cramer-Rao bound of the far-field model for the positions, gauge removed: (m, d, d).
 
     Fisher information ``J^T J / sigma^2`` of ``D_ij = z_i . n_j + C_j + e_ij`` with i.i.d.
     ``e_ij ~ N(0, sigma^2)`` (paper 000, section 3.3 noise model) in all unknowns: every
-    ``z_i`` (3 each, z_1 included), each ``n_j`` in 2 tangent coordinates and, with
-    ``free_offsets``, each ``C_j``. The information is singular along the rigid motions
-    (translations trade against ``C_j``, rotations of Z against those of N); its
-    pseudo-inverse is projected onto the complement of the rigid motions of the positions,
-    which is the error that remains after aligning an estimate to the truth by a rigid
-    motion (the metric of the reproductions). ``trace(sum_i cov_i) / m`` bounds the
-    expected aligned mean squared position error (to first order; at large noise the
-    estimators leave the asymptotic regime).
+    ``z_i`` (d each, z_1 included), each ``n_j`` in d-1 tangent coordinates of the unit
+    sphere (d = 3) or circle (d = 2) and, with ``free_offsets``, each ``C_j``. For d = 1
+    (a linear array) ``directions`` are the projections ``u_j`` in [-1, 1], each a free
+    scalar. The information is singular along the gauge (translations trade against
+    ``C_j``, rotations of Z against those of N, and for d = 1 the scale ``x -> a x``,
+    ``u -> u / a``); its pseudo-inverse is projected onto the complement of the gauge
+    motions of the positions, which is the error that remains after aligning an estimate to
+    the truth by such a motion (rigid; rigid + scale for d = 1). ``trace(sum_i cov_i) / m``
+    bounds the expected aligned mean squared position error (to first order).
 
     Parameters
     ----------
-    positions : (m, 3) true z_i, metres; directions : (k, 3) true unit n_j;
-    sigma : noise standard deviation of D (metres); free_offsets : C_j unknown (True).
+    positions : (m, d) true z_i, metres; directions : (k, d) true unit n_j ((k, 1)
+        projections for d = 1); sigma : noise standard deviation of D (metres);
+    free_offsets : C_j unknown (True).
 
     Returns
     -------
-    (m, 3, 3) covariance blocks of the aligned positions, metres^2.
+    (m, d, d) covariance blocks of the aligned positions, metres^2.
     """
     Z = np.asarray(positions, dtype=float)
     N = np.asarray(directions, dtype=float)
-    N = N / np.linalg.norm(N, axis=1, keepdims=True)
-    m, k = Z.shape[0], N.shape[0]
-    T = sphere_tangent_basis(N)
-    n_par = 3 * m + 2 * k + (k if free_offsets else 0)
+    if Z.ndim == 1:
+        Z = Z[:, None]
+    if N.ndim == 1:
+        N = N[:, None]
+    m, d = Z.shape
+    k = N.shape[0]
+    if d == 1:
+        T = np.ones((k, 1, 1))
+    else:
+        N = N / np.linalg.norm(N, axis=1, keepdims=True)
+        T = _tangent(N)
+    q = T.shape[2]
+    n_par = d * m + q * k + (k if free_offsets else 0)
     J = np.zeros((m, k, n_par))
     for i in range(m):
-        J[i, :, 3 * i : 3 * i + 3] = N
+        J[i, :, d * i : d * i + d] = N
     zt = np.einsum("ia,jab->ijb", Z, T)
     for j in range(k):
-        J[:, j, 3 * m + 2 * j : 3 * m + 2 * j + 2] = zt[:, j]
+        J[:, j, d * m + q * j : d * m + q * j + q] = zt[:, j]
         if free_offsets:
-            J[:, j, 3 * m + 2 * k + j] = 1.0
+            J[:, j, d * m + q * k + j] = 1.0
     J = J.reshape(m * k, n_par)
-    cov = np.linalg.pinv(J.T @ J, rcond=1e-10, hermitian=True)[: 3 * m, : 3 * m] * sigma**2
-    # rigid-motion generators of the positions: 3 translations, 3 infinitesimal rotations
-    gens = [np.tile(np.eye(3)[a], (m, 1)).ravel() for a in range(3)]
-    gens += [np.cross(np.eye(3)[a], Z).ravel() for a in range(3)]
+    cov = np.linalg.pinv(J.T @ J, rcond=1e-10, hermitian=True)[: d * m, : d * m] * sigma**2
+    gens = [np.tile(np.eye(d)[a], (m, 1)).ravel() for a in range(d)]
+    if d == 3:
+        gens += [np.cross(np.eye(3)[a], Z).ravel() for a in range(3)]
+    elif d == 2:
+        gens += [np.column_stack([-Z[:, 1], Z[:, 0]]).ravel()]
+    else:
+        gens += [Z.ravel()]  # the scale of a linear array
     G = np.array(gens).T
-    proj = np.eye(3 * m) - G @ np.linalg.pinv(G)
+    proj = np.eye(d * m) - G @ np.linalg.pinv(G)
     full = proj @ cov @ proj
     idx = np.arange(m)
-    return np.asarray(full.reshape(m, 3, m, 3)[idx, :, idx, :])
+    return np.asarray(full.reshape(m, d, m, d)[idx, :, idx, :])

@@ -21,7 +21,8 @@ from numpy.typing import NDArray
 
 from .._checks import as_points, check_choice
 from ..errors import InputError
-from .nls import OFFSET_MODES, _flags, _gauge_free_blocks, _make_layout, _pack
+from .covariance import gauge_free_blocks, resolve_covariance
+from .nls import OFFSET_MODES, _flags, _make_layout, _pack
 
 __all__ = ["CrlbResult", "toa_crlb"]
 
@@ -74,6 +75,7 @@ def toa_crlb(
     *,
     offsets: str = "none",
     mask: Array | None = None,
+    covariance: Any = "all",
 ) -> CrlbResult:
     """Gauge-free Cramér-Rao bound ``(J^T Sigma^-1 J)^+`` for the TOA network (003 eq. 17 at the truth).
 
@@ -84,11 +86,23 @@ def toa_crlb(
     offsets: "none" | "receivers" | "sources" | "both" - which offsets are unknown
         (their values do not enter the bound).
     mask: optional (I, J) boolean, True where a range is observed (default all).
+    covariance: which blocks to compute ("all", "receivers", "sources" or indices, as in
+        :func:`selfcal.toa.covariance.normalize_covariance`); the others are NaN and the
+        traces / RMSE bounds are then over the computed blocks only.
 
     Returns
     -------
-    CrlbResult with the per-point (d, d) blocks; computed through the Schur
-    complement of :mod:`selfcal.toa.nls`, O(min(I,J)^2 max(I,J)) time.
+    CrlbResult with the per-point (d, d) blocks; computed by the selected inversion of
+    :mod:`selfcal.toa.covariance` (one factorization of the Schur-reduced Fisher matrix,
+    O(min(I,J)^2 max(I,J)) time for every block), the same path as the NLS covariances.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> rng = np.random.default_rng(1)
+    >>> b = toa_crlb(rng.uniform(0, 5, (8, 3)), rng.uniform(0, 5, (10, 3)), 0.01)
+    >>> b.receiver_bounds.shape
+    (8, 3, 3)
     """
     check_choice(offsets, "offsets", OFFSET_MODES)
     r = as_points(receivers, "receivers")
@@ -105,10 +119,16 @@ def toa_crlb(
     theta = _pack(r, s, np.zeros(I) if has_r else None, np.zeros(J) if has_s else None)
     lay = _make_layout(r, s, offsets)
     w = np.where(m, 1.0 / sig**2, 0.0)
-    Cr, Cs = _gauge_free_blocks(theta, w, lay)
+    ri, si = resolve_covariance(covariance, I, J)
+    Cr, Cs = gauge_free_blocks(theta, w, lay, ri, si)
     rb, sb = Cr[:, :d, :d], Cs[:, :d, :d]
     rt = np.trace(rb, axis1=1, axis2=2)
     st = np.trace(sb, axis1=1, axis2=2)
+
+    def rms(tr: Array) -> float:
+        ok = np.isfinite(tr)
+        return float(np.sqrt(tr[ok].mean())) if ok.any() else float("nan")
+
     return CrlbResult(
         receiver_bounds=rb,
         source_bounds=sb,
@@ -116,6 +136,6 @@ def toa_crlb(
         source_offset_var=Cs[:, d, d].copy() if has_s else None,
         receiver_trace=rt,
         source_trace=st,
-        rmse_receivers=float(np.sqrt(rt.mean())),
-        rmse_sources=float(np.sqrt(st.mean())),
+        rmse_receivers=rms(rt),
+        rmse_sources=rms(st),
     )

@@ -34,7 +34,7 @@ from numpy.typing import NDArray
 
 from .._checks import as_matrix, as_rng, check_choice, check_dim
 from ..errors import DegenerateGeometryError, InputError
-from ..geometry import canonical_gauge
+from ..geometry import align, canonical_gauge
 
 __all__ = [
     "INIT_METHODS",
@@ -67,10 +67,13 @@ _EQ11_MAX_FLOPS = 5e7
 
 
 def _double_centre(sq: Array) -> Array:
-    """``-1/2 J sq J`` with ``J = I - 11^T/n`` (003 eq. 7), for a square matrix."""
-    row = sq.mean(axis=1, keepdims=True)
-    col = sq.mean(axis=0, keepdims=True)
-    return -0.5 * (sq - row - col + sq.mean())
+    """``-1/2 J_n sq J_m`` with ``J_n = I - 11^T/n`` (003 eq. 7): the one double centring.
+
+    For (..., n, m) stacks of (square or rectangular) squared-distance matrices.
+    """
+    row = sq.mean(axis=-1, keepdims=True)
+    col = sq.mean(axis=-2, keepdims=True)
+    return -0.5 * (sq - row - col + sq.mean(axis=(-1, -2), keepdims=True))
 
 
 def _top_eig_coords(B: Array, dim: int) -> Array:
@@ -193,13 +196,8 @@ def _procrustes_stack(X: Array, Y: Array) -> tuple[Array, Array]:
 
     X, Y: (B, n, d). Returns R (B, d, d), t (B, d) minimising ``sum |Y - (X R^T + t)|^2``.
     """
-    mx = X.mean(axis=1)
-    my = Y.mean(axis=1)
-    C = np.einsum("bni,bnj->bij", Y - my[:, None], X - mx[:, None])
-    U, _, Vt = np.linalg.svd(C)
-    R = U @ Vt
-    t = my - np.einsum("bij,bj->bi", R, mx)
-    return R, t
+    a = align(X, Y, reflection=True)  # the one Procrustes (selfcal.geometry)
+    return a.rotation, a.translation
 
 
 def _alg2_sources(D_hat: Array, receivers: Array, Y: Array, dim: int) -> Array:
@@ -220,18 +218,11 @@ def _alg2_sources(D_hat: Array, receivers: Array, Y: Array, dim: int) -> Array:
         Dk[:, :n, :n] = D_hat[np.ix_(rows, rows)]
         Dk[:, :n, n] = Y[np.ix_(rows, cols)].T
         Dk[:, n, :n] = Dk[:, :n, n]
-        coords = _top_eig_coords(_double_centre_stack(Dk**2), dim)  # (B, n+1, d)
+        coords = _top_eig_coords(_double_centre(Dk**2), dim)  # (B, n+1, d)
         ref = np.broadcast_to(receivers[rows], (cols.size, n, dim))
         R, t = _procrustes_stack(coords[:, :n], ref)
         sources[cols] = np.einsum("bij,bj->bi", R, coords[:, n]) + t  # eq. 15
     return sources
-
-
-def _double_centre_stack(sq: Array) -> Array:
-    row = sq.mean(axis=-1, keepdims=True)
-    col = sq.mean(axis=-2, keepdims=True)
-    grand = sq.mean(axis=(-1, -2), keepdims=True)
-    return -0.5 * (sq - row - col + grand)
 
 
 def mds_alg2(ranges: Array, dim: int) -> tuple[Array, Array]:
@@ -419,7 +410,7 @@ def _upgrade_candidates(Sq: Array, dim: int, rng: np.random.Generator) -> list[t
     (d(d+1)/2 + d + 1) gives one candidate; ``L`` is the Cholesky factor of the PSD-projected H.
     """
     I, J = Sq.shape
-    C = -0.5 * (Sq - Sq.mean(axis=1, keepdims=True) - Sq.mean(axis=0, keepdims=True) + Sq.mean())
+    C = _double_centre(Sq)
     U, s, Vt = _truncated_svd(C, dim, rng, power=1)
     if s[-1] <= 1e-9 * s[0]:
         raise DegenerateGeometryError(

@@ -31,10 +31,10 @@ Jacobian has 2d (+1, +2) non-zeros per row and ``J^T J`` is d x d block-diagonal
 within each node set, coupled only through the receiver-source blocks. The default solver (``solver="schur"``) is Levenberg-Marquardt whose
 normal equations are reduced by a Schur complement onto the smaller node set and
 solved matrix-free by preconditioned conjugate gradients (Schur-Jacobi blocks):
-O(I J d) per product, nothing of size (I d)^2 stored. The covariance needs the
-exact inverse and forms the reduced matrix once: one ``n_small d`` Cholesky, its
-triangular inverse and one triangular solve with ``n_large d`` right-hand sides,
-keeping only the d x d diagonal blocks, O(min(I,J)^2 max(I,J) d^3) time.
+O(I J d) per product, nothing of size (I d)^2 stored. The covariance (:mod:`selfcal.toa.covariance`)
+needs the exact inverse: it forms the reduced matrix once, factorises it once and
+computes only the requested d x d diagonal blocks by selected inversion,
+O(min(I,J)^2 max(I,J) d^3) time for all of them.
 ``scipy.optimize.least_squares(method="trf", x_scale="jac")`` with the analytic
 sparse Jacobian is the alternative solver (``solver="trf"``).
 """
@@ -51,8 +51,9 @@ import scipy.sparse
 from numpy.typing import NDArray
 from scipy.optimize import least_squares
 
-from .._checks import as_matrix, as_points, check_choice
+from .._checks import as_matrix, as_points, check_choice, check_positive
 from ..errors import DegenerateGeometryError, InputError
+from . import constrained as _constrained
 
 __all__ = [
     "NlsSolution",
@@ -323,41 +324,6 @@ def _row_blocks(u: Array, lay: _Layout) -> tuple[Array, Array]:
     return np.swapaxes(b, 0, 1), np.swapaxes(a, 0, 1)
 
 
-def _schur_system(aK: Array, bE: Array, w: Array, lay: _Layout) -> tuple[Array, Array, Array, Array]:
-    """Pieces of the weighted normal matrix ``[[A, B], [B^T, D]]`` in K/E form, for the covariance.
-
-    Returns A (nA, nA) on the free K coordinates, Dinv (nE, mE, mE), R (nE, mE, mE)
-    with ``Dinv_e = R_e R_e^T`` and ``H = B R`` (nA, nE*mE), so that
-    ``B D^-1 B^T = H H^T`` (a symmetric rank-k update) and ``B D^-1 = H R^T``.
-    ``w`` is (nK, nE), zero for missing entries.
-    """
-    nK, nE, mK = aK.shape
-    mE = bE.shape[2]
-    keep = _kept_positions(lay)
-    Ablk = np.einsum("kep,keq->kpq", aK * w[..., None], aK)
-    Dblk = np.einsum("kep,keq->epq", bE * w[..., None], bE)
-    Dinv = _inv_blocks(Dblk)
-    Rc: Array = np.asarray(np.linalg.cholesky(Dinv), dtype=np.float64)
-    A = _block_diag(Ablk)[np.ix_(keep, keep)]
-    # H[k p, e r] = w_ke a_ke,p (b_ke^T R_e)_r, built plane by plane (cheaper than einsum)
-    waT = np.moveaxis(aK, 2, 0) * w
-    cT = np.moveaxis(np.einsum("keq,eqr->ker", bE, Rc), 2, 0)
-    H = np.empty((nK, mK, nE, mE))
-    for p in range(mK):
-        for r_ in range(mE):
-            H[:, p, :, r_] = waT[p] * cT[r_]
-    H = H.reshape(nK * mK, nE * mE)[keep]
-    return A, Dinv, Rc, H
-
-
-def _block_diag(blocks: Array) -> Array:
-    n, m, _ = blocks.shape
-    out = np.zeros((n, m, n, m))
-    idx = np.arange(n)
-    out[idx, :, idx, :] = blocks
-    return out.reshape(n * m, n * m)
-
-
 def _pinned_positions(lay: _Layout) -> NDArray[np.intp]:
     """Positions (in K-node-major order) of the pinned K coordinates."""
     return np.nonzero(np.isin(lay.k_idx.ravel(), lay.pins))[0]
@@ -367,16 +333,6 @@ def _kept_positions(lay: _Layout) -> NDArray[np.intp]:
     """Positions (in K-node-major order) of the non-pinned K coordinates."""
     flat = lay.k_idx.ravel()
     return np.nonzero(~np.isin(flat, lay.pins))[0]
-
-
-def _column_block_gram(M: Array) -> Array:
-    """``out[e] = M[:, e, :]^T M[:, e, :]`` for M of shape (rows, n, m): (n, m, m)."""
-    _, n, m = M.shape
-    out = np.empty((n, m, m))
-    for p in range(m):
-        for q in range(p, m):
-            out[:, p, q] = out[:, q, p] = np.einsum("ae,ae->e", M[:, :, p], M[:, :, q])
-    return out
 
 
 def _inv_blocks(blocks: Array) -> Array:
@@ -602,80 +558,13 @@ def _solve_schur_lm(
     return theta, converged, it
 
 
-# ---------------------------------------------------------------------------
-# covariance: diagonal blocks of sigma^2 (J^T W J)^+ through the Schur complement
-# ---------------------------------------------------------------------------
+def __getattr__(name: str) -> Any:
+    """Re-export of the covariance code, which moved to :mod:`selfcal.toa.covariance`."""
+    if name == "_gauge_free_blocks":
+        from .covariance import gauge_free_blocks
 
-
-def _gauge_free_blocks(theta: Array, w: Array, lay: _Layout) -> tuple[Array, Array]:
-    """Diagonal node blocks of ``(J^T W J)^+`` (gauge removed): (I, m_r, m_r), (J, m_s, m_s).
-
-    ``w`` (I, J) are the row weights (0 = missing). The pinned inverse ``C`` is formed
-    only where needed: its node diagonal blocks and ``C Q`` (g columns); then
-    ``(P C P)_kk = C_kk - Q_k Y_k^T - Y_k Q_k^T + Q_k Z Q_k^T`` with ``Y = C Q``,
-    ``Z = Q^T C Q`` and ``P = I - Q Q^T``.
-    """
-    _, u = _unit_vectors(theta, lay)
-    aK, bE = _row_blocks(u, lay)
-    wK = w if lay.k_is_receivers else w.T
-    A, Dinv, Rc, H = _schur_system(aK, bE, wK, lay)
-    nE, mE, _ = Dinv.shape
-    nK, mK = lay.k_idx.shape
-    # S = A - H H^T by a symmetric rank-k update (half the flops of a general product);
-    # H.T is F-ordered, so BLAS reads it without a copy
-    S = scipy.linalg.blas.dsyrk(-1.0, H.T, beta=1.0, c=np.asfortranarray(A), trans=1, lower=1,
-                                overwrite_c=1)
-    # LAPACK reads only the lower triangle of S (F-ordered, no copy)
-    L, info = scipy.linalg.lapack.dpotrf(S, lower=1, clean=1, overwrite_a=1)
-    dl = np.abs(np.diag(L))
-    if info != 0 or dl.min() <= 1e-7 * dl.max():  # not positive definite / cond(S) > ~1e14
-        raise DegenerateGeometryError(
-            "the normal equations are singular beyond the rigid-motion gauge: the geometry is "
-            "degenerate (e.g. all points coplanar in 3-D, or too few ranges per node)",
-            kind="degenerate-geometry",
-        )
-    del S
-    # diagonal blocks only: S^-1 = L^-T L^-1, and with F = B D^-1 = H R^T,
-    # F_e^T S^-1 F_e = R_e (X_e^T X_e) R_e^T where X = L^-1 H (column-block Grams)
-    Linv, info = scipy.linalg.lapack.dtrtri(L, lower=1)
-    if info != 0:
-        raise DegenerateGeometryError("singular reduced normal matrix", kind="degenerate-geometry")
-    X = scipy.linalg.solve_triangular(L, H, lower=True, check_finite=False)
-    G = _column_block_gram(X.reshape(X.shape[0], nE, mE))
-    CE = Dinv + np.einsum("epq,eqr,esr->eps", Rc, G, Rc)
-    del X
-    kept = _kept_positions(lay)
-    Lfull = np.zeros((Linv.shape[0], nK * mK))
-    Lfull[:, kept] = Linv
-    CK = _column_block_gram(Lfull.reshape(Linv.shape[0], nK, mK))
-    del Lfull, Linv
-
-    r, s, _, _ = _unpack(theta, lay.I, lay.J, lay.d, lay.offsets)
-    Q = gauge_basis(r, s, lay.offsets)
-    QK = Q[lay.k_idx.ravel()]  # (nK mK, g)
-    QE = Q[lay.e_idx.ravel()]
-    g = Q.shape[1]
-    # C Q with the pinned coordinates' rows/columns of C equal to zero
-    RtQE = np.einsum("eqp,eqg->epg", Rc, QE.reshape(nE, mE, g)).reshape(nE * mE, g)
-    t = QK[kept] - H @ RtQE  # Q_K - F Q_E
-    YKf = scipy.linalg.cho_solve((L, True), t, check_finite=False)
-    YK = np.zeros_like(QK)
-    YK[kept] = YKf
-    DQ = np.einsum("epq,eqg->epg", Dinv, QE.reshape(nE, mE, g)).reshape(nE * mE, g)
-    FtY = np.einsum("epq,eqg->epg", Rc, (H.T @ YKf).reshape(nE, mE, g)).reshape(nE * mE, g)
-    YE = DQ - FtY
-    Z = QK.T @ YK + QE.T @ YE
-
-    def project(Cb: Array, Qn: Array, Yn: Array) -> Array:
-        n_, m_, _ = Cb.shape
-        Q3 = Qn.reshape(n_, m_, -1)
-        Y3 = Yn.reshape(n_, m_, -1)
-        QY = np.einsum("npg,nqg->npq", Q3, Y3)
-        return Cb - QY - np.swapaxes(QY, 1, 2) + np.einsum("npg,gh,nqh->npq", Q3, Z, Q3)
-
-    PK = project(CK, QK, YK)
-    PE = project(CE, QE, YE)
-    return (PK, PE) if lay.k_is_receivers else (PE, PK)
+        return gauge_free_blocks
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 # ---------------------------------------------------------------------------
@@ -696,7 +585,17 @@ def refine_toa(
     max_nfev: int | None = None,
     xtol: float = 1e-10,
     solver: str = "auto",
-    covariance: bool = True,
+    covariance: Any = True,
+    fixed_receivers: Any = None,
+    fixed_sources: Any = None,
+    receiver_prior: Any = None,
+    source_prior: Any = None,
+    fixed_receiver_offsets: Any = None,
+    fixed_source_offsets: Any = None,
+    common_offsets: str = "none",
+    receiver_offset_basis: Any = None,
+    source_offset_basis: Any = None,
+    noise: float | None = None,
 ) -> NlsSolution:
     """Refine receivers, sources (and offsets) by sparse nonlinear least squares (003 eq. 2, 16-17).
 
@@ -722,14 +621,52 @@ def refine_toa(
         conjugate gradients with a Schur-Jacobi preconditioner) or "trf"
         (``scipy.optimize.least_squares(method="trf", x_scale="jac")`` with the sparse
         analytic Jacobian; ``tr_solver="exact"`` up to 600 unknowns, ``"lsmr"`` above).
-    covariance: compute the 003 eq. 17 covariances (O(min(I,J)^2 max(I,J)) time, the
-        dominant cost for very large networks); NaN-filled when False.
+    covariance: which 003 eq. 17 covariance blocks to compute: True / "all", "receivers",
+        "sources", False / "none", or indices ``{"receivers": idx, "sources": idx}`` /
+        ``(receiver_idx, source_idx)`` (:func:`selfcal.toa.covariance.normalize_covariance`);
+        blocks not asked for are NaN. Selected inversion from one factorization of the
+        reduced system (:mod:`selfcal.toa.covariance`: O(min(I,J)^2 max(I,J) d^3) time for
+        all blocks, the dominant cost for very large networks).
+    fixed_receivers, fixed_sources: (I, d) / (J, d) bool masks (or (I,) / (J,) row
+        masks) of coordinates held at their starting values: known heights are a fixed
+        z column, known anchors fixed rows.
+    receiver_prior, source_prior: Gaussian priors ``(mean, std)`` on positions ("known
+        with a std"): mean (I, d) / (J, d) in metres with NaN where there is no prior,
+        std (I,) / (I, d) metres. Each adds a residual row ``(sigma / std)(x - mean)``.
+    fixed_receiver_offsets, fixed_source_offsets: (I,) / (J,) bool masks of offsets
+        held at their starting values.
+    common_offsets: "none" | "receivers" | "sources" | "both": the offsets of that kind
+        are one common unknown (started at the mean of the starting offsets).
+    receiver_offset_basis, source_offset_basis: general linear constraint
+        ``d = receiver_offsets0 + B x`` with B (I, k) (likewise ``o``), e.g. a fixed
+        mean with free zero-sum deviations.
+    noise: range noise std (metres) weighting the priors; estimated from the fit
+        (re-weighted until it settles) when omitted.
 
     Returns
     -------
-    NlsSolution, in the canonical gauge (:func:`selfcal.geometry.canonical_gauge`).
+    NlsSolution, in the canonical gauge (:func:`selfcal.geometry.canonical_gauge`),
+    except with fixed or prior positions: then in the frame of those positions (the
+    gauge they leave free, e.g. horizontal motions when only heights are known, is held
+    at the start's), with ``solver="trf-constrained"``.
+
+    Notes
+    -----
+    Any constraint keyword selects the constrained path of :mod:`selfcal.toa.constrained`:
+    fixed columns removed from the sparse analytic Jacobian, prior rows appended,
+    ``scipy.optimize.least_squares(method="trf")``, covariance free of the gauge the
+    constraints leave.
+
+    Examples
+    --------
+    Known heights (the z column of every node fixed) with both offsets::
+
+        fz = np.zeros((I, 3), bool); fz[:, 2] = True
+        gz = np.zeros((J, 3), bool); gz[:, 2] = True
+        sol = refine_toa(c * T, r0, s0, offsets="both", fixed_receivers=fz, fixed_sources=gz)
     """
     from ..geometry import canonical_gauge
+    from .covariance import gauge_free_blocks, resolve_covariance
 
     check_choice(offsets, "offsets", OFFSET_MODES)
     check_choice(loss, "loss", LOSSES)
@@ -750,6 +687,19 @@ def refine_toa(
     if f_scale is not None and not (np.isfinite(f_scale) and f_scale > 0):
         raise InputError(f"f_scale must be a positive number (metres), got {f_scale!r}")
 
+    cons = dict(fixed_receivers=fixed_receivers, fixed_sources=fixed_sources,
+                receiver_prior=receiver_prior, source_prior=source_prior,
+                fixed_receiver_offsets=fixed_receiver_offsets,
+                fixed_source_offsets=fixed_source_offsets, common_offsets=common_offsets,
+                receiver_offset_basis=receiver_offset_basis, source_offset_basis=source_offset_basis)
+    if _constrained.is_active(**cons):
+        con = _constrained.make_constraints(I, J, d, offsets, receiver_offsets0=dr0,
+                                            source_offsets0=os0, **cons)
+        return _constrained.refine_constrained(  # type: ignore[no-any-return]
+            Y, r0, s0, offsets, con, loss=loss, f_scale=f_scale, max_nfev=max_nfev, xtol=xtol,
+            covariance=not (covariance is False or (isinstance(covariance, str) and covariance == "none")), noise=check_positive(noise, "noise"))
+
+    cov_r, cov_s = resolve_covariance(covariance, I, J)
     theta0 = _pack(r0, s0, dr0, os0)
     obs = np.isfinite(Y)
     _check_node_counts(obs, d, has_r, has_s)
@@ -800,9 +750,9 @@ def refine_toa(
         wmat = np.zeros((I, J))
         wmat[obs] = drho  # inliers weigh 1, outliers down-weighted as in the final IRLS step
 
-    if covariance:
+    if cov_r.size or cov_s.size:
         # a singular Fisher matrix beyond the gauge: the data do not determine the geometry
-        Cr, Cs = _gauge_free_blocks(theta, wmat, lay)
+        Cr, Cs = gauge_free_blocks(theta, wmat, lay, cov_r, cov_s)
         Cr = Cr * sigma**2
         Cs = Cs * sigma**2
     else:

@@ -304,34 +304,18 @@ def _fit_fixed_common(
     """Least squares over r, s and zero-sum deviations ``e`` with ``d = common + B e``.
 
     ``B`` (I, I-1) maps the I-1 free deviations to I offsets summing to zero (the last
-    one is minus the sum of the others), so the common component is exactly ``common``.
+    one is minus the sum of the others), so the common component is exactly ``common``:
+    a linear offset constraint of :func:`selfcal.toa.nls.refine_toa`.
     """
-    import scipy.sparse
-    from scipy.optimize import least_squares
+    from .nls import refine_toa
 
-    from .nls import _pack, _unpack, toa_jacobian, toa_residuals
-
-    I, J = Y.shape
-    d = r0.shape[1]
+    I = Y.shape[0]
     B = np.vstack([np.eye(I - 1), -np.ones((1, I - 1))])
-    npos = (I + J) * d
-
-    def full(x: Array) -> Array:
-        return np.concatenate([x[:npos], common + B @ x[npos:]])
-
-    def fun(x: Array) -> Array:
-        return toa_residuals(full(x), Y, d, "receivers")
-
-    def jac(x: Array) -> Any:
-        Jf = toa_jacobian(full(x), Y, d, "receivers").tocsc()
-        return scipy.sparse.hstack([Jf[:, :npos], Jf[:, npos:] @ scipy.sparse.csc_matrix(B)]).tocsr()
-
-    x0 = np.concatenate([_pack(r0, s0, None, None), e0])
-    sol = least_squares(fun, x0, jac=jac, method="trf", tr_solver="lsmr",
-                        max_nfev=max_nfev, xtol=1e-10, ftol=1e-10)
-    r, s, dr, _ = _unpack(full(sol.x), I, J, d, "receivers")
+    sol = refine_toa(Y, r0, s0, offsets="receivers", receiver_offsets0=common + B @ e0,
+                     receiver_offset_basis=B, max_nfev=max_nfev, covariance=False)
+    dr = sol.receiver_offsets
     assert dr is not None
-    return r, s, dr, sol.x[npos:], bool(sol.success), int(sol.nfev)
+    return sol.receivers, sol.sources, dr, dr[:-1] - common, bool(sol.converged), int(sol.iterations)
 
 
 def fit_offsets_profile_common(

@@ -22,8 +22,11 @@ from .._checks import (
     check_dim,
     check_positive,
     check_toa_counts,
+    entry,
 )
+from .._result import Result
 from ..errors import DegenerateGeometryError, InputError
+from .covariance import normalize_covariance
 from .nls import LOSSES, OFFSET_MODES, NlsSolution, refine_toa, toa_model
 
 __all__ = ["ResidualTest", "ToaResult", "n_parameters", "residual_test", "solve_toa"]
@@ -117,8 +120,8 @@ def residual_test(residuals: Any, noise: float, n_params: int, *, alpha: float =
     return ResidualTest(chi2, dof, p, float(sd), float(alpha), passed=not p < alpha)
 
 
-@dataclass(frozen=True)
-class ToaResult:
+@dataclass(frozen=True, repr=False)
+class ToaResult(Result):
     """Result of :func:`solve_toa`.
 
     Attributes
@@ -160,6 +163,16 @@ class ToaResult:
     speed: float | None = None
     residuals: Array | None = None
     fit: ResidualTest | None = None
+
+    @property
+    def noise_estimate(self) -> float:
+        """The estimated noise std (alias of ``sigma``), matrix units."""
+        return self.sigma
+
+    @property
+    def noise(self) -> float | None:
+        """The given noise std the residual test used (``fit.noise``), or None."""
+        return None if self.fit is None else self.fit.noise
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-safe dict with exactly the DESIGN.md toa keys plus extras (units, sigma, ...)."""
@@ -348,6 +361,8 @@ def _implausible(sol: NlsSolution, robust: bool = False) -> bool:
 # ---------------------------------------------------------------------------
 
 
+@entry(matrix="array", dim="count", speed="positive?", rng="rng", f_scale="positive?", max_nfev="count?",
+       noise="positive?")
 def solve_toa(
     matrix: Any,
     *,
@@ -360,7 +375,7 @@ def solve_toa(
     rng: np.random.Generator | int | None = None,
     f_scale: float | None = None,
     max_nfev: int | None = None,
-    covariance: bool = True,
+    covariance: Any = True,
     sweep: bool = True,
     noise: float | None = None,
 ) -> ToaResult:
@@ -393,8 +408,10 @@ def solve_toa(
         re-place each node with the others fixed (its reflection through the plane of the
         others, its closed-form position) and refine again while that lowers the cost
         (:func:`_node_sweep`); escapes local minima the residual tests cannot detect.
-    covariance: compute the per-point covariances (NaN-filled when False; skipping them
-        saves most of the time on networks of a thousand nodes per side).
+    covariance: which per-point covariance blocks to compute: True / "all", "receivers",
+        "sources", False / "none", or indices ``{"receivers": idx, "sources": idx}``
+        (:func:`selfcal.toa.covariance.normalize_covariance`); the others are NaN-filled
+        (skipping them saves most of the time on networks of a thousand nodes per side).
     noise: optional std of the measurement noise in the matrix's units (seconds with
         ``speed``). The result then carries ``fit``, the chi-square test of its weighted
         residual sum of squares against its degrees of freedom (:func:`residual_test`,
@@ -414,6 +431,7 @@ def solve_toa(
     check_choice(offsets, "offsets", OFFSET_MODES)
     check_choice(loss, "loss", LOSSES)
     check_choice(method, "method", METHODS)
+    covariance = normalize_covariance(covariance)  # False when no block is asked for
     dim = check_dim(dim)
     spd = check_positive(speed, "speed")
     M = as_matrix(matrix, "matrix", nonnegative=(offsets == "none"))

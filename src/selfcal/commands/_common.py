@@ -1,0 +1,487 @@
+"""Shared command-line plumbing: the top-level error contract, output checks, unit options.
+
+Contract (DESIGN.md, "Inputs and outputs"): exit 0 = trustworthy result, 1 = the result
+failed its own test (a ``FAIL:`` line), 2 = bad input or an unwritable output, with exactly
+one line on stderr and no traceback (``--verbose`` adds the traceback of an internal error).
+Outputs are checked before any work is done and written all together at the end
+(:func:`selfcal.io.staged_outputs`).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import os
+import sys
+import traceback
+import warnings
+from collections.abc import Callable, Iterator, Mapping
+from pathlib import Path
+from typing import Any
+
+import click
+
+from ..errors import SelfcalError
+
+__all__ = [
+    "SelfcalGroup",
+    "OUTPUT_PARAMS",
+    "IMAGE_FORMATS",
+    "check_command_outputs",
+    "command_context",
+    "error_line",
+    "UNITS",
+    "unit_options",
+    "to_metres",
+]
+
+#: Parameter names that are outputs of a command (checked before the command runs).
+OUTPUT_PARAMS = ("out", "out_dir", "plot", "report", "csv", "csv_out")
+
+#: Figure formats matplotlib writes (``--plot FILE.pdf`` writes a PDF); no suffix = PNG.
+IMAGE_FORMATS = ("png", "pdf", "svg", "svgz", "eps", "ps", "jpg", "jpeg", "tif", "tiff", "webp")
+
+_STATE: dict[str, bool] = {"quiet": False, "verbose": False}
+
+
+def error_line(message: object) -> str:
+    """One stderr line for ``message`` (whitespace collapsed, capped at 400 characters)."""
+    text = " ".join(str(message).split())
+    if len(text) > 400:
+        text = text[:397] + "..."
+    return f"selfcal: error: {text}"
+
+
+def _emit_error(message: object) -> None:
+    click.echo(error_line(message), err=True)
+
+
+class SelfcalGroup(click.Group):
+    """The ``selfcal`` group with a last-resort handler around every command.
+
+    * click usage errors -> one line + exit 2 (instead of click's multi-line usage block);
+    * :class:`~selfcal.errors.SelfcalError` / ``OSError`` -> one line + exit 2;
+    * any other exception -> one line ``internal error: ...`` + exit 2 (traceback only with
+      ``--verbose``);
+    * warnings (numpy, tqdm, convergence) are collected: on exit 0 / 1 selfcal's own warnings
+      are printed as ``selfcal: warning:`` lines, numpy's only with ``--verbose``; on exit 2
+      none, so that the error is the only line.
+    """
+
+    def main(self, args: Any = None, prog_name: str | None = None, complete_var: str | None = None,
+             standalone_mode: bool = True, **extra: Any) -> Any:
+        argv = [os.fspath(a) for a in (sys.argv[1:] if args is None else args)]
+        # -q/--quiet and -v/--verbose are accepted anywhere on the line (no command uses them)
+        if "--" in argv:
+            k = argv.index("--")
+            flags, rest = argv[:k], argv[k:]
+        else:
+            flags, rest = argv, []
+        quiet = any(a in ("-q", "--quiet") for a in flags)
+        verbose = any(a in ("-v", "--verbose") for a in flags)
+        argv = [a for a in flags if a not in ("-q", "--quiet", "-v", "--verbose")] + rest
+        if prog_name is None:
+            prog_name = "selfcal"
+        _add_short_out(self)
+        _STATE.update(quiet=quiet, verbose=verbose)
+        code: int = 0
+        real_stdout = sys.stdout
+        captured = io.StringIO()
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            try:
+                with contextlib.ExitStack() as stack:
+                    if quiet:
+                        from ..io import stdout_target
+
+                        stack.enter_context(stdout_target(real_stdout))
+                        stack.enter_context(contextlib.redirect_stdout(captured))
+                    rv = super().main(argv, prog_name, complete_var, standalone_mode=False, **extra)
+                code = rv if isinstance(rv, int) and not isinstance(rv, bool) else 0
+            except SystemExit as exc:
+                c = exc.code
+                code = c if isinstance(c, int) else (0 if c is None else 2)
+                if not isinstance(c, int) and c is not None:
+                    _emit_error(c)
+            except click.exceptions.Exit as exc:
+                code = exc.exit_code
+            except click.exceptions.NoArgsIsHelpError as exc:  # pragma: no cover - click >= 8.2
+                click.echo(exc.ctx.get_help() if exc.ctx else str(exc))
+                code = 2
+            except click.ClickException as exc:
+                ctx = getattr(exc, "ctx", None)
+                where = f"{ctx.command_path}: " if ctx is not None else ""
+                hint = f" (see '{ctx.command_path} --help')" if ctx is not None else ""
+                _emit_error(f"{where}{exc.format_message()}{hint}")
+                code = 2
+            except click.Abort:
+                _emit_error("aborted")
+                code = 130
+            except (KeyboardInterrupt, EOFError):
+                _emit_error("interrupted")
+                code = 130
+            except SelfcalError as exc:
+                _emit_error(exc)
+                code = 2
+            except MemoryError:
+                _emit_error("out of memory: the input or the requested sizes are too large for this machine")
+                code = 2
+            except OSError as exc:
+                name = f"{exc.filename}: " if getattr(exc, "filename", None) else ""
+                _emit_error(f"{name}{exc.strerror or exc}")
+                code = 2
+            except Exception as exc:  # the last resort: never a traceback by default
+                if verbose:
+                    traceback.print_exc()
+                _emit_error(f"internal error: {type(exc).__name__}: {exc}")
+                code = 2
+        if quiet:
+            fails = [ln for ln in captured.getvalue().splitlines() if ln.startswith("FAIL")]
+            for ln in fails:
+                real_stdout.write(ln + "\n")
+        if code in (0, 1):
+            _report_warnings(caught, verbose=verbose, quiet=quiet)
+        if standalone_mode:
+            sys.exit(code)
+        return code
+
+
+def _add_short_out(group: click.Group) -> None:
+    """Give every command's ``--out`` the short form ``-o`` (where ``-o`` is free)."""
+    for cmd in group.commands.values():
+        if isinstance(cmd, click.Group):
+            _add_short_out(cmd)
+            continue
+        taken = {o for p in cmd.params for o in (*p.opts, *p.secondary_opts)}
+        if "-o" in taken:
+            continue
+        for p in cmd.params:
+            if isinstance(p, click.Option) and p.opts and "--out" in p.opts:
+                p.opts.insert(0, "-o")
+                break
+
+
+def _report_warnings(caught: list[warnings.WarningMessage], *, verbose: bool, quiet: bool) -> None:
+    if quiet and not verbose:
+        return
+    seen: set[str] = set()
+    for w in caught:
+        mod = getattr(w, "filename", "") or ""
+        ours = issubclass(w.category, UserWarning) and f"{os.sep}selfcal{os.sep}" in mod
+        if not (ours or verbose):
+            continue
+        text = " ".join(str(w.message).split())
+        if text in seen:
+            continue
+        seen.add(text)
+        click.echo(f"selfcal: warning: {text}", err=True)
+
+
+def _param_kind(param: click.Parameter) -> str:
+    t = param.type
+    if isinstance(t, click.Path) and not t.file_okay:
+        return "dir"
+    return "file"
+
+
+def check_command_outputs(ctx: click.Context | None, kwargs: Mapping[str, Any]) -> list[Any]:
+    """Check every output parameter of the running command before it does any work.
+
+    Returns the output values that are ``"-"`` (standard output).
+
+    Raises
+    ------
+    selfcal.io.OutputError
+        An output is a directory, device, FIFO, socket, read-only, or under a file.
+    """
+    from ..errors import InputError
+    from ..io import check_output_path
+
+    dashes = []
+    if ctx is None:
+        return dashes
+    seen: dict[str, str] = {}
+    for param in ctx.command.params:
+        if param.name not in OUTPUT_PARAMS:
+            continue
+        value = kwargs.get(param.name)
+        if value is None:
+            continue
+        kind = _param_kind(param)
+        opt = param.opts[0] if param.opts else param.name
+        if os.fspath(value) == "-":
+            dashes.append(value)
+        real = check_output_path(value, kind=kind, label=f"{opt} {os.fspath(value)}")
+        if param.name == "plot" and kind == "file" and os.fspath(value) != "-":
+            suffix = Path(os.fspath(value)).suffix.lower().lstrip(".")
+            if suffix and suffix not in IMAGE_FORMATS:
+                raise InputError(f"{opt} {os.fspath(value)}: unknown figure format '.{suffix}' "
+                                 f"(use one of {', '.join(IMAGE_FORMATS[:4])}, ...)")
+        key = os.fspath(real)
+        if key != "-" and key in seen:
+            raise InputError(f"{opt} and {seen[key]} name the same file {os.fspath(value)}")
+        seen[key] = opt
+    if len(dashes) > 1:
+        raise InputError("only one output can be '-' (standard output)")
+    return dashes
+
+
+@contextlib.contextmanager
+def command_context(kwargs: Mapping[str, Any]) -> Iterator[None]:
+    """Check outputs, and with ``--out -`` send the human summary to stderr (stdout = JSON)."""
+    from ..io import stdout_target
+
+    ctx = click.get_current_context(silent=True)
+    dashes = check_command_outputs(ctx, kwargs)
+    with contextlib.ExitStack() as stack:
+        if dashes and not _STATE["quiet"]:  # (with --quiet the group already routes '-' to stdout)
+            stack.enter_context(stdout_target(sys.stdout))
+            stack.enter_context(contextlib.redirect_stdout(sys.stderr))
+        yield
+
+
+# --------------------------------------------------------------------------------------
+# units
+# --------------------------------------------------------------------------------------
+
+#: Units accepted by ``--unit``: lengths (metres) and times (seconds), or samples.
+UNITS = {"m": ("length", 1.0), "mm": ("length", 1e-3), "cm": ("length", 1e-2), "km": ("length", 1e3),
+         "s": ("time", 1.0), "ms": ("time", 1e-3), "us": ("time", 1e-6), "samples": ("time", None)}
+
+
+def unit_options(func: Callable[..., Any]) -> Callable[..., Any]:
+    """``--unit`` and ``--sample-rate`` options of a matrix input (see :func:`to_metres`)."""
+    func = click.option(
+        "--sample-rate", "sample_rate", type=float, default=None, metavar="HZ",
+        help="Sampling rate in Hz, for --unit samples.")(func)
+    func = click.option(
+        "--unit", "unit", type=click.Choice(list(UNITS)), default=None,
+        help="Unit of the matrix entries: m, mm, cm, km (lengths) or s, ms, us, samples (times; need "
+             "--speed). Default: metres, or seconds when --speed is given.")(func)
+    return func
+
+
+def to_metres(matrix: Any, unit: str | None, speed: float | None, sample_rate: float | None,
+              name: str = "matrix") -> tuple[Any, float | None, str]:
+    """Scale a matrix given in ``unit`` to metres (lengths) or seconds (times).
+
+    Returns
+    -------
+    (matrix, speed, unit)
+        The scaled matrix, the speed to pass to the solver (None for lengths), and the unit
+        the matrix is now in (``"m"`` or ``"s"``).
+
+    Raises
+    ------
+    InputError
+        A time unit without ``--speed``, a length unit with ``--speed``, ``samples`` without
+        a valid ``--sample-rate``, or a non-positive / non-finite speed.
+    """
+    import math
+
+    from ..errors import InputError
+
+    if speed is not None and not (math.isfinite(speed) and speed > 0):
+        raise InputError(f"--speed must be a finite positive number in m/s, got {speed:g}")
+    if sample_rate is not None and not (math.isfinite(sample_rate) and sample_rate > 0):
+        raise InputError(f"--sample-rate must be a finite positive number in Hz, got {sample_rate:g}")
+    if unit is None:
+        if sample_rate is not None:
+            raise InputError("--sample-rate is only used with --unit samples")
+        return matrix, speed, ("s" if speed is not None else "m")
+    kind, factor = UNITS[unit]
+    if kind == "length":
+        if speed is not None:
+            raise InputError(f"--unit {unit} is a length; --speed is for a matrix of times (s, ms, us, samples)")
+        if sample_rate is not None:
+            raise InputError("--sample-rate is only used with --unit samples")
+        return matrix * factor, None, "m"
+    if speed is None:
+        raise InputError(f"--unit {unit} is a time; give the propagation --speed in m/s (343 for sound in air)")
+    if unit == "samples":
+        if sample_rate is None:
+            raise InputError("--unit samples needs --sample-rate HZ")
+        factor = 1.0 / sample_rate
+    elif sample_rate is not None:
+        raise InputError("--sample-rate is only used with --unit samples")
+    return matrix * factor, speed, "s"
+
+
+def all_or_nothing(func: Callable[..., Any]) -> Callable[..., Any]:
+    """Decorator: every file the command writes is staged and committed together at its end.
+
+    Put it under ``@handle_errors``. Only for commands that do not read back what they write.
+    """
+    import functools
+
+    @functools.wraps(func)
+    def wrapper(*args: Any, **kwargs: Any) -> Any:
+        from ..io import staged_outputs
+
+        with staged_outputs():
+            return func(*args, **kwargs)
+
+    return wrapper
+
+
+# --------------------------------------------------------------------------------------
+# result payloads: per-point std, 95 % ellipse semi-axes, names, units, CSV
+# --------------------------------------------------------------------------------------
+
+def ellipse95(cov: Any) -> Any:
+    """Semi-axes (largest first) of the 95 % confidence ellipse / ellipsoid of each covariance.
+
+    For a d-dimensional Gaussian point estimate with covariance C the 95 % region is
+    ``x' C^-1 x <= q`` with ``q`` the 0.95 quantile of chi-square with d degrees of
+    freedom; its semi-axes are ``sqrt(q * lambda_i)`` over the eigenvalues of C.
+
+    Parameters
+    ----------
+    cov:
+        (n, d, d) covariances (NaN allowed: gives NaN axes).
+
+    Returns
+    -------
+    numpy.ndarray
+        (n, d) semi-axes in the unit of the coordinates.
+    """
+    import numpy as np
+    from scipy.stats import chi2
+
+    C = np.asarray(cov, dtype=float)
+    n, d = C.shape[0], C.shape[-1]
+    out = np.full((n, d), np.nan)
+    ok = np.isfinite(C).all(axis=(1, 2))
+    if ok.any():
+        w = np.linalg.eigvalsh(0.5 * (C[ok] + np.swapaxes(C[ok], 1, 2)))
+        out[ok] = np.sqrt(chi2.ppf(0.95, d) * np.clip(w, 0.0, None))[:, ::-1]
+    return out
+
+
+def enrich_payload(payload: dict[str, Any], *, names: Mapping[str, Any] | None = None,
+                   units: Mapping[str, str] | None = None) -> dict[str, Any]:
+    """Add ``<base>_std`` and ``<base>_ellipse95`` next to every ``<base>_cov``, names and units.
+
+    ``names`` maps a key (``"receiver_names"``) to a sequence of names (skipped when None);
+    ``units`` is set as ``payload["units"]`` unless the result already carries one.
+    """
+    import numpy as np
+
+    for key in list(payload):
+        if not key.endswith("_cov") or payload[key] is None:
+            continue
+        try:
+            C = np.asarray(payload[key], dtype=float)
+        except (TypeError, ValueError):
+            continue
+        if C.ndim != 3 or C.shape[1] != C.shape[2] or C.shape[0] == 0:
+            continue
+        base = key[: -len("_cov")]
+        diag = np.diagonal(C, axis1=1, axis2=2)
+        payload.setdefault(f"{base}_std", np.sqrt(np.where(diag >= 0, diag, np.nan)).tolist())
+        payload.setdefault(f"{base}_ellipse95", ellipse95(C).tolist())
+    for key, value in (names or {}).items():
+        if value is not None:
+            payload[key] = list(value)
+    if units is not None:
+        payload.setdefault("units", dict(units))
+    return payload
+
+
+def write_nodes_csv(path: Any, payload: Mapping[str, Any],
+                    groups: list[tuple[str, str, str | None]]) -> None:
+    """Write ``--csv``: one row per node (kind, name, coordinates, std per axis).
+
+    ``groups`` lists (kind, positions key, names key) of the payload; the std comes from
+    ``<base>_std`` when :func:`enrich_payload` added it (base = positions key without "s").
+    """
+    import numpy as np
+
+    from ..io import write_csv_rows
+
+    rows: list[list[Any]] = []
+    d = 0
+    for _kind, key, _names in groups:
+        P = payload.get(key)
+        if P is None:
+            continue
+        P = np.atleast_2d(np.asarray(P, dtype=float))
+        d = max(d, P.shape[1])
+    axes = "xyz"[:d] if d <= 3 else [f"c{i}" for i in range(d)]
+    for kind, key, names_key in groups:
+        P = payload.get(key)
+        if P is None:
+            continue
+        P = np.atleast_2d(np.asarray(P, dtype=float))
+        base = key[:-1] if key.endswith("s") else key
+        S = payload.get(f"{base}_std")
+        S = np.full(P.shape, np.nan) if S is None else np.atleast_2d(np.asarray(S, dtype=float))
+        names = payload.get(names_key) if names_key else None
+        for i in range(P.shape[0]):
+            name = names[i] if names is not None and i < len(names) else f"{kind}{i + 1}"
+            coords = list(P[i]) + [np.nan] * (d - P.shape[1])
+            stds = list(S[i]) if S.shape == P.shape else [np.nan] * P.shape[1]
+            rows.append([kind, name, *coords, *(stds + [np.nan] * (d - len(stds)))])
+    header = ["kind", "name", *axes, *[f"{a}_std" for a in axes]]
+    write_csv_rows(path, header, rows)
+
+
+csv_option = click.option(
+    "--csv", "csv_out", type=click.Path(dir_okay=False, path_type=Path), default=None, metavar="FILE",
+    help="Also write the nodes as CSV: kind, name, coordinates, std per axis (m).")
+
+
+# --------------------------------------------------------------------------------------
+# clock jitter: one unit (seconds) on every command, --jitter-us spelled out
+# --------------------------------------------------------------------------------------
+
+def jitter_options(default: float | None, what: str = "") -> Callable[[Callable[..., Any]], Callable[..., Any]]:
+    """``--jitter SECONDS`` and ``--jitter-us MICROSECONDS`` (the same quantity, one of the two)."""
+
+    def deco(func: Callable[..., Any]) -> Callable[..., Any]:
+        func = click.option(
+            "--jitter-us", "jitter_us", type=float, default=None, metavar="US",
+            help="The clock jitter in microseconds instead of --jitter seconds.")(func)
+        func = click.option(
+            "--jitter", "jitter", type=float, default=default, show_default=default is not None, metavar="S",
+            help=f"Clock jitter per (receiver, event), standard deviation in SECONDS {what}".strip() + ".")(func)
+        return func
+
+    return deco
+
+
+def resolve_jitter(jitter: float | None, jitter_us: float | None) -> Any:
+    """The jitter in seconds from ``--jitter`` (s) or ``--jitter-us`` (us), plausibility-checked."""
+    from .._checks import check_float, plausible_jitter
+
+    if jitter_us is not None:
+        us = check_float(jitter_us, "--jitter-us", nonnegative=True)
+        assert us is not None
+        return plausible_jitter(us * 1e-6, "--jitter-us value (as seconds)")
+    return plausible_jitter(jitter, "--jitter")
+
+
+# --------------------------------------------------------------------------------------
+# resource guards of the simulators (refused before anything is allocated)
+# --------------------------------------------------------------------------------------
+
+def check_simulation_size(*, units: int, sample_rate: float, room: tuple[float, float, float],
+                          rt60: float) -> None:
+    """Refuse conference simulations whose signals would not fit in memory (named up front).
+
+    Memory: the recordings are ``units x n_total`` float32 samples with ``n_total =
+    (0.1 s + units * event_spacing) * sample_rate`` (:func:`selfcal.acoustics.room.event_spacing`),
+    plus ``units^2`` impulse responses of about ``rt60 * sample_rate`` float64 taps.
+    """
+    import numpy as np
+
+    from .._checks import check_float, check_int, guard_size
+    from ..acoustics.room import DEFAULT_PROBE, event_spacing
+
+    check_int(units, "--units", minimum=2)
+    check_float(sample_rate, "--sample-rate", positive=True)
+    check_float(rt60, "--rt60", nonnegative=True)
+    spacing = event_spacing(np.asarray(room, dtype=float), float(DEFAULT_PROBE["duration"]), 343.0)
+    n_total = (0.1 + spacing * (units + 1)) * sample_rate
+    need = units * n_total * 4.0 + units**2 * (float(rt60) + spacing) * sample_rate * 8.0
+    guard_size(need, f"a {units}-unit recording at {sample_rate:g} Hz ({n_total / sample_rate:.3g} s per receiver)")

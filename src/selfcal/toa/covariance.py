@@ -1,0 +1,422 @@
+"""Marginal covariance blocks of the TOA network from one factorization of the reduced system.
+
+The weighted normal (Fisher) matrix of the bipartite range model (003 eq. 16-17,
+:mod:`selfcal.toa.nls`) is, with the nodes split into the *kept* set K (the smaller of
+receivers / sources) and the *eliminated* set E::
+
+    N = J^T W J = [[A, B], [B^T, D]],     A, D block-diagonal (m x m per node),
+
+because every range touches one receiver and one source. The gauge (rigid motions and,
+with both offset kinds, the common offset shift) is fixed by pinning g coordinates on the
+K side (:func:`selfcal.toa.nls._make_layout`); pinned coordinates are decoupled (their
+rows and columns of the reduced matrix replaced by the identity) instead of removed, so no
+array is re-indexed. With ``F = B D^-1`` and the Schur complement ``S = A - B D^-1 B^T``
+the pinned inverse ``C`` has the blocks
+
+    C_KK = S^-1,        C_EE = D^-1 + F^T S^-1 F        (diagonal blocks only)
+
+and the reported covariance is gauge-free, ``P C P`` with ``P`` the orthogonal projector
+off the gauge directions ``Q`` (:func:`selfcal.toa.nls.gauge_basis`), which is the
+Moore-Penrose inverse ``N^+`` of 003 eq. 17 (any gauge-fixed inverse differs from ``N^+``
+only along the gauge)::
+
+    (P C P)_nn = C_nn - Q_n Y_n^T - Y_n Q_n^T + Q_n Z Q_n^T,   Y = C Q,  Z = Q^T C Q.
+
+Selected inversion. Only the d x d (or (d+1) x (d+1) with offsets) diagonal blocks that are
+asked for are formed: ``S = L L^T`` is factorised once (LAPACK ``potrf``); a requested E node
+e costs one triangular solve ``X_e = L^-1 H_e`` with its m columns of ``H = B R``
+(``D_e^-1 = R_e R_e^T``), its block is ``D_e^-1 + R_e X_e^T X_e R_e^T``; requested K nodes
+take columns of ``L^-1`` (LAPACK ``trtri`` in place when more than a third of the K
+coordinates are asked for, triangular solves with unit vectors otherwise). ``Y`` and ``Z``
+need g solves with the same factor. No dense inverse of N (or of S) is ever formed.
+
+Cost (n_K = m_K |K| reduced unknowns, n_E = m_E |E|, ``k_E`` requested E nodes, ``k_K``
+requested K coordinates):
+
+- building S: a symmetric rank-n_E update, ``O(n_K^2 n_E)`` time (BLAS ``syrk``), the
+  Jacobian rows generated in column blocks of E nodes (a few tens of MB each);
+- one Cholesky factorization: ``O(n_K^3 / 3)``;
+- E blocks: ``O(n_K^2 m_E k_E)``; K blocks: ``O(n_K^3 / 3)`` (all) or ``O(n_K^2 k_K)``;
+- gauge terms: ``O(n_K^2 g + n_K n_E g)``.
+
+Memory: S (n_K^2 doubles) plus one column block of H, the weight matrix (the data's
+I x J) and the small per-node blocks; nothing of size (I d) x (J d) is stored. The floor
+of a dense network is therefore one dense factorization of the n_K x n_K reduced system
+(9000 x 9000 at 3000 x 3000 in 3-D: 0.65 GB, ~2.4e11 flops) plus the rank-n_E update that
+builds it (~7e11 flops). ``covariance="receivers"`` with receivers on the K side skips every
+E solve; ``"none"`` skips everything.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Any
+
+import numpy as np
+import scipy.linalg
+from numpy.typing import NDArray
+
+from ..errors import DegenerateGeometryError, InputError
+from .nls import _flags, _Layout, _make_layout, _pack, _pinned_positions, _unpack, gauge_basis
+
+__all__ = [
+    "COVARIANCE_MODES",
+    "normalize_covariance",
+    "resolve_covariance",
+    "gauge_free_blocks",
+    "covariance_blocks",
+]
+
+Array = NDArray[np.float64]
+Index = NDArray[np.intp]
+
+COVARIANCE_MODES = ("all", "receivers", "sources", "none")
+
+#: doubles per column block of H (K coordinates x E columns): 4 M doubles = 32 MB
+_BLOCK_DOUBLES = 1 << 22
+
+
+# ---------------------------------------------------------------------------
+# the request
+# ---------------------------------------------------------------------------
+
+
+def _as_index(v: Any, name: str) -> Index | None:
+    if v is None:
+        return None
+    a = np.asarray(v)
+    if a.dtype == bool:
+        a = np.flatnonzero(a)
+    if a.ndim == 0:
+        a = a.reshape(1)
+    if a.ndim != 1 or (a.size and not np.issubdtype(a.dtype, np.integer)):
+        raise InputError(f"covariance: {name} must be a 1-D list of integer indices (or a boolean mask)")
+    if a.size and a.min() < 0:
+        raise InputError(f"covariance: {name} indices must be >= 0, got {int(a.min())}")
+    return np.unique(a.astype(np.intp))
+
+
+def normalize_covariance(spec: Any) -> Any:
+    """Validate a covariance request; ``False`` when nothing is asked for.
+
+    Parameters
+    ----------
+    spec : ``True`` / ``"all"`` (every block), ``"receivers"``, ``"sources"``,
+        ``False`` / ``None`` / ``"none"`` (no block), or explicit indices: a mapping
+        ``{"receivers": idx, "sources": idx}`` or a pair ``(receiver_idx, source_idx)``
+        (either may be None = no block of that kind; integer lists or boolean masks).
+
+    Returns
+    -------
+    ``False``, a mode string, or a pair of sorted unique index arrays (truthy), so that
+    ``if normalize_covariance(spec):`` asks whether anything is to be computed.
+
+    Raises
+    ------
+    InputError
+        For an unknown mode or malformed indices.
+
+    Examples
+    --------
+    >>> normalize_covariance("none"), normalize_covariance(True)
+    (False, 'all')
+    """
+    if spec is None or spec is False:
+        return False
+    if spec is True:
+        return "all"
+    if isinstance(spec, str):
+        if spec not in COVARIANCE_MODES:
+            raise InputError(f"covariance must be one of {', '.join(COVARIANCE_MODES)} or indices, got {spec!r}")
+        return False if spec == "none" else spec
+    if isinstance(spec, Mapping):
+        unknown = set(spec) - {"receivers", "sources"}
+        if unknown:
+            raise InputError(f"covariance: unknown keys {sorted(unknown)} (use 'receivers' and 'sources')")
+        pair = (_as_index(spec.get("receivers"), "receivers"), _as_index(spec.get("sources"), "sources"))
+    elif isinstance(spec, tuple | list) and len(spec) == 2:
+        pair = (_as_index(spec[0], "receivers"), _as_index(spec[1], "sources"))
+    else:
+        raise InputError("covariance must be True/False, 'all', 'receivers', 'sources', 'none', "
+                         "{'receivers': idx, 'sources': idx} or (receiver_idx, source_idx)")
+    e = np.zeros(0, np.intp)
+    return (e if pair[0] is None else pair[0], e if pair[1] is None else pair[1])
+
+
+def resolve_covariance(spec: Any, n_receivers: int, n_sources: int) -> tuple[Index, Index]:
+    """Receiver and source indices whose blocks a request asks for (sorted, bounds-checked).
+
+    Parameters
+    ----------
+    spec : any form accepted by :func:`normalize_covariance`.
+    n_receivers, n_sources : I and J.
+
+    Returns
+    -------
+    (receiver indices, source indices), int arrays (possibly empty).
+    """
+    s = normalize_covariance(spec)
+    allr, alls = np.arange(n_receivers), np.arange(n_sources)
+    none = np.zeros(0, np.intp)
+    if s is False:
+        return none, none
+    if s == "all":
+        return allr, alls
+    if s == "receivers":
+        return allr, none
+    if s == "sources":
+        return none, alls
+    ri, si = s
+    for idx, n, kind in ((ri, n_receivers, "receiver"), (si, n_sources, "source")):
+        if idx.size and idx.max() >= n:
+            raise InputError(f"covariance: {kind} index {int(idx.max())} out of range (there are {n})")
+    return ri, si
+
+
+# ---------------------------------------------------------------------------
+# Jacobian rows in column blocks of E nodes
+# ---------------------------------------------------------------------------
+
+
+def _kept_side(theta: Array, lay: _Layout) -> tuple[Array, Array]:
+    r, s, _, _ = _unpack(theta, lay.I, lay.J, lay.d, lay.offsets)
+    return (r, s) if lay.k_is_receivers else (s, r)
+
+
+def _rows(PK: Array, PE: Array, lay: _Layout) -> tuple[Array, Array]:
+    """Jacobian rows of the pairs (k, e), e in a block: on K (nK, ne, mK) and on E (nK, ne, mE)."""
+    has_r, has_s = _flags(lay.offsets)
+    diff = PK[:, None, :] - PE[None, :, :]
+    if not lay.k_is_receivers:
+        diff = -diff  # u = (receiver - source) / |.|
+    dist = np.sqrt(np.einsum("ked,ked->ke", diff, diff))
+    u = np.divide(diff, dist[..., None], out=np.zeros_like(diff), where=dist[..., None] > 0)
+    ones = np.ones(u.shape[:2] + (1,))
+    a = np.concatenate([u, ones], axis=2) if has_r else u  # receiver rows
+    b = np.concatenate([-u, ones], axis=2) if has_s else -u  # source rows
+    return (a, b) if lay.k_is_receivers else (b, a)
+
+
+def _block_ranges(nE: int, nK: int, mK: int, mE: int) -> list[tuple[int, int]]:
+    per = max(1, _BLOCK_DOUBLES // max(1, nK * max(mK, mE) * mE))
+    return [(e0, min(nE, e0 + per)) for e0 in range(0, nE, per)]
+
+
+def _inv_eliminated(Dblk: Array, e0: int) -> Array:
+    cond_ok = np.linalg.cond(Dblk) < 1e12
+    if not cond_ok.all():
+        bad = e0 + int(np.nonzero(~cond_ok)[0][0])
+        raise DegenerateGeometryError(
+            f"node {bad} of the eliminated set is not determined by its observed ranges "
+            "(too few or collinear observations); it needs at least d+1 (+1 per offset) "
+            "ranges to non-collinear partners",
+            kind="unobservable-node",
+        )
+    return np.asarray(np.linalg.inv(Dblk), dtype=np.float64)
+
+
+def _h_block(aK: Array, bE: Array, wK: Array, Rc: Array, pinned: Index) -> Array:
+    """``H[k p, e r] = w_ke a_ke,p (b_ke^T R_e)_r`` for one E block, pinned rows zero: (nK mK, ne mE)."""
+    nK, ne, mK = aK.shape
+    mE = bE.shape[2]
+    c = np.einsum("keq,eqr->ker", bE, Rc)
+    wa = aK * wK[..., None]
+    H4 = np.empty((nK, mK, ne, mE))
+    for p in range(mK):
+        np.multiply(wa[:, :, p, None], c, out=H4[:, p])
+    H: Array = H4.reshape(nK * mK, ne * mE)
+    H[pinned] = 0.0
+    return H
+
+
+def _block_gram(Xt: Array, m: int) -> Array:
+    """``out[n] = X_n^T X_n`` for the column blocks of X, given ``Xt = X.T`` (n m, rows): (n, m, m)."""
+    X3 = Xt.reshape(-1, m, Xt.shape[1])
+    return np.matmul(X3, np.swapaxes(X3, 1, 2))
+
+
+# ---------------------------------------------------------------------------
+# the blocks
+# ---------------------------------------------------------------------------
+
+
+def gauge_free_blocks(
+    theta: Array,
+    w: Array,
+    lay: _Layout,
+    receivers: Index | None = None,
+    sources: Index | None = None,
+) -> tuple[Array, Array]:
+    """Diagonal node blocks of ``(J^T W J)^+`` (gauge removed) by selected inversion.
+
+    Parameters
+    ----------
+    theta : (n,) parameter vector, receiver-major ``[r, s, d?, o?]`` (:mod:`selfcal.toa.nls`).
+    w : (I, J) weights of the ranges (``1/sigma_ij^2``, or the final IRLS weights), 0 = missing.
+    lay : layout of :func:`selfcal.toa.nls._make_layout` (kept side, pinned coordinates).
+    receivers, sources : indices of the blocks to compute (None = all); the others are NaN.
+
+    Returns
+    -------
+    (I, m_r, m_r), (J, m_s, m_s) blocks in the parameter frame, m = d (+1 with an offset);
+    unit: the inverse of the weights' unit (multiply by sigma^2 for unit weights).
+
+    Raises
+    ------
+    DegenerateGeometryError
+        When the normal matrix is singular beyond the gauge.
+
+    Notes
+    -----
+    Costs and memory are listed in the module docstring.
+    """
+    I, J = lay.I, lay.J
+    ri = np.arange(I) if receivers is None else np.asarray(receivers, np.intp)
+    si = np.arange(J) if sources is None else np.asarray(sources, np.intp)
+    want_K, want_E = (ri, si) if lay.k_is_receivers else (si, ri)
+    nK, mK = lay.k_idx.shape
+    nE, mE = lay.e_idx.shape
+    nA = nK * mK
+    PK, PE = _kept_side(theta, lay)
+    wK = np.asarray(w if lay.k_is_receivers else w.T, dtype=float)
+    pinned = _pinned_positions(lay)
+    blocks = _block_ranges(nE, nK, mK, mE)
+
+    r, s, _, _ = _unpack(theta, I, J, lay.d, lay.offsets)
+    Q = gauge_basis(r, s, lay.offsets)
+    g = Q.shape[1]
+    QK = Q[lay.k_idx.ravel()]  # (nA, g)
+    QE = Q[lay.e_idx.ravel()].reshape(nE, mE, g)
+
+    # pass 1: A, D^-1 = R R^T per E node, S = A - H H^T, t = Q_K - F Q_E
+    Ablk = np.zeros((nK, mK, mK))
+    Dinv = np.empty((nE, mE, mE))
+    Rc = np.empty((nE, mE, mE))
+    S = np.zeros((nA, nA), order="F")
+    t = QK.copy()
+    for e0, e1 in blocks:
+        aK, bE = _rows(PK, PE[e0:e1], lay)
+        wb = wK[:, e0:e1]
+        Ablk += np.einsum("kep,keq->kpq", aK * wb[..., None], aK)
+        Di = _inv_eliminated(np.einsum("kep,keq->epq", bE * wb[..., None], bE), e0)
+        Dinv[e0:e1] = Di
+        Rc[e0:e1] = np.linalg.cholesky(Di)
+        H = _h_block(aK, bE, wb, Rc[e0:e1], pinned)
+        # S -= H H^T, lower triangle, in place (H.T is F-ordered: no copy)
+        S = scipy.linalg.blas.dsyrk(-1.0, H.T, beta=1.0, c=S, trans=1, lower=1, overwrite_c=1)
+        RtQE = np.einsum("eqp,eqg->epg", Rc[e0:e1], QE[e0:e1]).reshape(-1, g)
+        t -= H @ RtQE
+    idx = np.arange(nK)
+    for p in range(mK):
+        for q in range(mK):
+            S[idx * mK + p, idx * mK + q] += Ablk[:, p, q]
+    S[pinned, :] = 0.0
+    S[:, pinned] = 0.0
+    S[pinned, pinned] = 1.0  # decoupled: S^-1 keeps the kept block's inverse
+    t[pinned] = 0.0
+    L, info = scipy.linalg.lapack.dpotrf(S, lower=1, clean=1, overwrite_a=1)
+    del S
+    dl = np.abs(np.diag(L))
+    if info != 0 or dl.min() <= 1e-7 * dl.max():  # not positive definite / cond(S) > ~1e14
+        raise DegenerateGeometryError(
+            "the normal equations are singular beyond the rigid-motion gauge: the geometry is "
+            "degenerate (e.g. all points coplanar in 3-D, or too few ranges per node)",
+            kind="degenerate-geometry",
+        )
+    YK = scipy.linalg.cho_solve((L, True), t, check_finite=False)  # pinned rows stay 0
+
+    # pass 2: Y_E = D^-1 Q_E - F^T Y_K and the requested E blocks
+    YE = np.einsum("epq,eqg->epg", Dinv, QE)
+    CE = np.full((nE, mE, mE), np.nan)
+    wantE = np.zeros(nE, bool)
+    wantE[want_E] = True
+    for e0, e1 in blocks:
+        aK, bE = _rows(PK, PE[e0:e1], lay)
+        H = _h_block(aK, bE, wK[:, e0:e1], Rc[e0:e1], pinned)
+        Rb = Rc[e0:e1]
+        YE[e0:e1] -= np.einsum("epq,eqg->epg", Rb, (H.T @ YK).reshape(e1 - e0, mE, g))
+        sel = np.flatnonzero(wantE[e0:e1])
+        if sel.size:
+            cols = (sel[:, None] * mE + np.arange(mE)).ravel()
+            X = scipy.linalg.solve_triangular(L, H[:, cols], lower=True, check_finite=False)
+            G = _block_gram(np.ascontiguousarray(X.T), mE)
+            Rs = Rb[sel]
+            CE[e0 + sel] = Dinv[e0 + sel] + Rs @ G @ np.swapaxes(Rs, 1, 2)
+    Z = QK.T @ YK + np.einsum("epg,eph->gh", QE, YE)
+
+    # the requested K blocks: columns of L^-1 (S^-1 = L^-T L^-1)
+    CK = np.full((nK, mK, mK), np.nan)
+    if want_K.size:
+        cols = (want_K[:, None] * mK + np.arange(mK)).ravel()
+        if cols.size * 3 > nA:
+            Linv, info = scipy.linalg.lapack.dtrtri(L, lower=1, overwrite_c=1)
+            if info != 0:
+                raise DegenerateGeometryError("singular reduced normal matrix", kind="degenerate-geometry")
+            X = Linv[:, cols]
+        else:
+            E_ = np.zeros((nA, cols.size))
+            E_[cols, np.arange(cols.size)] = 1.0
+            X = scipy.linalg.solve_triangular(L, E_, lower=True, check_finite=False)
+        CK[want_K] = _block_gram(np.ascontiguousarray(X.T), mK)
+        del X
+    # the pinned coordinates are not unknowns of C (its rows / columns there are 0)
+    pk, pp = np.divmod(pinned, mK)
+    CK[pk, pp, :] = np.where(np.isnan(CK[pk, pp, :]), np.nan, 0.0)
+    CK[pk, :, pp] = np.where(np.isnan(CK[pk, :, pp]), np.nan, 0.0)
+
+    def project(Cb: Array, Q3: Array, Y3: Array, want: Index) -> Array:
+        out = np.full_like(Cb, np.nan)
+        if want.size:
+            Qn, Yn = Q3[want], Y3[want]
+            QY = np.einsum("npg,nqg->npq", Qn, Yn)
+            out[want] = Cb[want] - QY - np.swapaxes(QY, 1, 2) + np.einsum("npg,gh,nqh->npq", Qn, Z, Qn)
+        return out
+
+    PKb = project(CK, QK.reshape(nK, mK, g), YK.reshape(nK, mK, g), want_K)
+    PEb = project(CE, QE, YE, want_E)
+    return (PKb, PEb) if lay.k_is_receivers else (PEb, PKb)
+
+
+def covariance_blocks(
+    receivers: Array,
+    sources: Array,
+    weights: Array,
+    *,
+    offsets: str = "none",
+    receiver_offsets: Array | None = None,
+    source_offsets: Array | None = None,
+    covariance: Any = "all",
+) -> tuple[Array, Array]:
+    """Gauge-free marginal blocks of ``(J^T W J)^+`` at a given geometry (003 eq. 17).
+
+    Parameters
+    ----------
+    receivers, sources : (I, d), (J, d) positions, metres.
+    weights : (I, J) weights ``1/sigma_ij^2`` (1/m^2), 0 where a range is missing.
+    offsets : "none" | "receivers" | "sources" | "both" (which offsets are unknown; their
+        values do not enter the Jacobian).
+    receiver_offsets, source_offsets : unused values kept for symmetry with the model; optional.
+    covariance : which blocks (:func:`normalize_covariance`); the others are NaN.
+
+    Returns
+    -------
+    (I, m_r, m_r), (J, m_s, m_s) covariance blocks, m^2 (offset entries last), NaN where not
+    requested.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> rng = np.random.default_rng(0)
+    >>> r, s = rng.uniform(0, 5, (6, 3)), rng.uniform(0, 5, (9, 3))
+    >>> Cr, Cs = covariance_blocks(r, s, np.full((6, 9), 1e4), covariance="receivers")
+    >>> Cr.shape, bool(np.isnan(Cs).all())
+    ((6, 3, 3), True)
+    """
+    r = np.asarray(receivers, float)
+    s = np.asarray(sources, float)
+    I, J = r.shape[0], s.shape[0]
+    has_r, has_s = _flags(offsets)
+    theta = _pack(r, s, np.zeros(I) if has_r else None, np.zeros(J) if has_s else None)
+    lay = _make_layout(r, s, offsets)
+    ri, si = resolve_covariance(covariance, I, J)
+    return gauge_free_blocks(theta, np.asarray(weights, float), lay, ri, si)

@@ -1,0 +1,351 @@
+"""Documented preprocessing recipes for measured range data, in front of :func:`solve_toa`.
+
+A recipe states an assumption about how the data were taken that the bare range model
+does not use, and exploits it before the fit. Each is an option of ``calibrate toa``
+(``--recipe NAME``) and a function here.
+
+``"none"``
+    The matrix as given (the solver's own robust fit and checks).
+
+``"auto"`` (the ``calibrate toa`` default)
+    ``"moving-tag"`` when the columns are detectably a time series, else ``"none"``.
+    The test (:func:`detect_time_order`) is a permutation test of the column order: the
+    total variation of the rows along the given order against that of random orders.
+    Independent sources are exchangeable (any order is as rough as a random one); samples
+    of a moving device are far smoother in their recording order. Applied when the
+    p-value is below 1e-3 (999 permutations), so a matrix of independent sources
+    triggers the recipe with probability 1e-3.
+
+``"moving-tag"``
+    The sources (columns) are successive positions of *one* moving device, in time order
+    (a UWB tag on a drone, a loudspeaker carried around). Each row is then a smooth
+    function of time, and multipath / non-line-of-sight returns are isolated spikes in
+    it. They are removed before the fit by a leave-one-out robust local quadratic in time
+    per row (a Hampel identifier, :func:`selfcal.toa.preprocess.reject_range_outliers`,
+    3.5 robust standard deviations: a Gaussian entry is flagged with probability 5e-4).
+    Tag positions left with fewer than ``dim + 1`` ranges cannot be located (``dim``
+    ranges fix a point only up to a mirror image) and are dropped and reported; the
+    result has NaN rows for them.
+
+Choice of the default: spike rejection alone, by principle (it uses only the stated
+assumption, a smooth trajectory, and no parameter fitted to a data set). A variant that
+additionally chose the common ranging offset by a robust residual profile scored best on
+the two shared LPS flights, but issue 12 reports it worse than the data set authors'
+estimate on 6 of 6 flights of the same system outside ``shared/``, where spike rejection
+alone matched them; leave-one-flight-out and simulated UWB flights with biases and
+multipath (:func:`selfcal.experiments.toa_mds_nls.simulate_uwb_flight`) are scored in
+``selfcal reproduce lps``. The profile stays available as ``common_offset="profile"``
+(an explicit opt-in), never the default.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from .._checks import as_matrix, check_choice
+from ..errors import InputError
+
+__all__ = ["RECIPES", "RecipeResult", "TimeOrderTest", "apply_recipe", "detect_time_order", "moving_tag"]
+
+Array = NDArray[np.float64]
+
+RECIPES = ("auto", "none", "moving-tag")
+
+# the time-order test: significance level and permutations (the smallest attainable
+# p-value is 1 / (n + 1), so n = 999 resolves the 1e-3 level)
+TIME_ORDER_ALPHA = 1e-3
+TIME_ORDER_PERMUTATIONS = 999
+# the spike detector's local quadratic needs a window of samples on each side
+_MIN_SAMPLES = 20
+
+
+@dataclass(frozen=True)
+class TimeOrderTest:
+    """Result of :func:`detect_time_order`.
+
+    Attributes
+    ----------
+    detected: the columns are a time series at level ``alpha``.
+    p_value: permutation p-value of the observed total variation.
+    ratio: observed total variation over the median of the permuted ones (about 1 for
+        exchangeable columns, << 1 for a densely sampled trajectory).
+    alpha, permutations: the test's level and number of random orders.
+    """
+
+    detected: bool
+    p_value: float
+    ratio: float
+    alpha: float
+    permutations: int
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-safe dictionary."""
+        return dataclasses.asdict(self)
+
+
+def _total_variation(Y: Array, order: NDArray[np.intp]) -> float:
+    Z = Y[:, order]
+    dz = np.abs(np.diff(Z, axis=1))
+    return float(np.nansum(dz))
+
+
+def detect_time_order(matrix: Any, *, alpha: float = TIME_ORDER_ALPHA,
+                      permutations: int = TIME_ORDER_PERMUTATIONS, rng: Any = 0) -> TimeOrderTest:
+    """Permutation test: are the columns of ``matrix`` samples of one device in time order?
+
+    Statistic: the total variation ``sum_i sum_j |y_i,j+1 - y_i,j|`` over consecutive
+    observed pairs. Under the null hypothesis (exchangeable columns: independent sources)
+    every column order has the same distribution, so the p-value is the rank of the
+    observed statistic among ``permutations`` random orders, ``(1 + #{TV_perm <= TV}) /
+    (permutations + 1)``. Rows are standardised by their robust scale first so that no
+    receiver dominates.
+
+    Parameters
+    ----------
+    matrix: (I, J) ranges or times, NaN = missing.
+    alpha: significance level.
+    permutations: number of random column orders.
+    rng: seed / Generator of the permutations.
+
+    Returns
+    -------
+    :class:`TimeOrderTest` (never detected with fewer than 20 columns).
+    """
+    from .._checks import as_rng
+
+    Y = as_matrix(matrix, "matrix")
+    I, J = Y.shape
+    if J < _MIN_SAMPLES:
+        return TimeOrderTest(False, 1.0, 1.0, float(alpha), 0)
+    with np.errstate(all="ignore"):
+        med = np.nanmedian(Y, axis=1, keepdims=True)
+        sc = 1.4826 * np.nanmedian(np.abs(Y - med), axis=1, keepdims=True)
+    sc = np.where(np.isfinite(sc) & (sc > 0), sc, 1.0)
+    Z = (Y - med) / sc
+    gen = as_rng(rng)
+    tv = _total_variation(Z, np.arange(J))
+    perm = np.array([_total_variation(Z, gen.permutation(J)) for _ in range(int(permutations))])
+    p = float((1 + np.sum(perm <= tv)) / (permutations + 1))
+    ratio = float(tv / np.median(perm)) if np.median(perm) > 0 else 1.0
+    return TimeOrderTest(bool(p <= alpha), p, ratio, float(alpha), int(permutations))
+
+
+@dataclass(frozen=True)
+class RecipeResult:
+    """A :class:`selfcal.toa.solve.ToaResult` plus what the recipe did to the data.
+
+    Every attribute of the wrapped result is available directly; ``to_dict()`` adds the
+    key ``"recipe"``.
+
+    Attributes
+    ----------
+    result: the calibration (rows / columns of the full input; dropped nodes are NaN).
+    recipe: the recipe name.
+    rejected: (I, J) bool, entries removed as spikes before the fit.
+    dropped_sources, dropped_receivers: indices removed for having too few ranges left.
+    details: recipe-specific numbers (e.g. the profiled common offset).
+    """
+
+    result: Any
+    recipe: str
+    rejected: NDArray[np.bool_]
+    dropped_sources: tuple[int, ...] = ()
+    dropped_receivers: tuple[int, ...] = ()
+    details: dict[str, Any] = field(default_factory=dict)
+
+    def __getattr__(self, name: str) -> Any:
+        if name in ("result", "recipe", "rejected", "details") or name.startswith("__"):
+            raise AttributeError(name)
+        return getattr(self.result, name)
+
+    @property
+    def n_rejected(self) -> int:
+        """Number of entries removed as spikes."""
+        return int(self.rejected.sum())
+
+    def to_dict(self) -> dict[str, Any]:
+        """The wrapped result's dictionary with ``"recipe"`` added."""
+        out = dict(self.result.to_dict())
+        out["recipe"] = {
+            "name": self.recipe,
+            "n_rejected": self.n_rejected,
+            "rejected_fraction": float(self.rejected.sum() / max(self.rejected.size, 1)),
+            "dropped_sources": list(self.dropped_sources),
+            "dropped_receivers": list(self.dropped_receivers),
+            **{k: v for k, v in self.details.items()},
+        }
+        return out
+
+
+def _embed_columns(result: Any, keep: NDArray[np.bool_], J: int, M: Array) -> Any:
+    """Write a result fitted on the kept columns back into the full column count (NaN)."""
+    names = {f.name for f in dataclasses.fields(result)}
+
+    def put(val: Any, shape: tuple[int, ...]) -> Any:
+        if val is None:
+            return None
+        out = np.full((J,) + shape, np.nan)
+        out[keep] = np.asarray(val)
+        return out
+
+    d = np.asarray(result.receivers).shape[1]
+    kw: dict[str, Any] = {
+        "sources": put(result.sources, (d,)),
+        "source_cov": put(result.source_cov, (d, d)),
+        "source_offsets": put(result.source_offsets, ()),
+        "source_offset_std": put(getattr(result, "source_offset_std", None), ()),
+    }
+    if getattr(result, "residuals", None) is not None:
+        res = np.full((M.shape[0], J), np.nan)
+        res[:, keep] = result.residuals
+        kw["residuals"] = res
+    if "n_missing" in names:
+        kw["n_missing"] = int((~np.isfinite(M)).sum())
+    return dataclasses.replace(result, **{k: v for k, v in kw.items() if k in names})
+
+
+def moving_tag(
+    matrix: Any,
+    *,
+    times: Any = None,
+    dim: int = 3,
+    threshold: float = 3.5,
+    half_window: int = 7,
+    degree: int = 2,
+    common_offset: str = "free",
+    speed: float | None = None,
+    **solve_kw: Any,
+) -> RecipeResult:
+    """Calibrate a moving-tag recording: spike rejection in time, then :func:`solve_toa`.
+
+    Parameters
+    ----------
+    matrix: (I, J) ranges in metres (seconds with ``speed``); rows = fixed anchors,
+        columns = tag positions **in time order**; NaN = missing.
+    times: (J,) increasing sample times (any unit); default equally spaced.
+    dim: 2 or 3.
+    threshold, half_window, degree: of the spike detector
+        (:func:`selfcal.toa.preprocess.reject_range_outliers`).
+    common_offset: "free" (default: the fit as ``solve_toa`` does it with the
+        ``offsets`` given in ``solve_kw``) or "profile" (opt-in: per-anchor offsets whose
+        common part minimises the trimmed residual scale,
+        :func:`selfcal.toa.preprocess.fit_offsets_profile_common`; ``offsets`` must be
+        "none" or "receivers").
+    speed: propagation speed (m/s) when the matrix holds seconds.
+    **solve_kw: passed to :func:`selfcal.toa.solve_toa` (``offsets``, ``loss``, ``rng``,
+        ``noise``, ...).
+
+    Returns
+    -------
+    :class:`RecipeResult` (dropped tag positions are NaN rows of ``sources``).
+
+    Raises
+    ------
+    InputError: bad matrix or options, too few samples for the local polynomial.
+    DegenerateGeometryError: what remains after the cleaning does not determine the
+        geometry.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from selfcal.toa.nls import toa_model
+    >>> rng = np.random.default_rng(0)
+    >>> anchors = rng.uniform(0, 5, (6, 3))
+    >>> t = np.linspace(0, 20, 300)
+    >>> tag = np.c_[2.5 + 2 * np.cos(t / 3), 2.5 + 2 * np.sin(t / 2), 1.5 + np.sin(t / 5)]
+    >>> Y = toa_model(anchors, tag) + 0.02 * rng.standard_normal((6, 300))
+    >>> Y[2, 100] += 1.5  # a multipath spike
+    >>> res = moving_tag(Y, rng=0)
+    >>> bool(res.rejected[2, 100])
+    True
+    """
+    from .preprocess import fit_offsets_profile_common, reject_range_outliers
+    from .solve import solve_toa
+
+    check_choice(common_offset, "common_offset", ("free", "profile"))
+    M = as_matrix(matrix, "matrix")
+    I, J = M.shape
+    scale = 1.0 if speed is None else float(speed)
+    rej = reject_range_outliers(M * scale, times, half_window=half_window, degree=degree,
+                                threshold=threshold)
+    cleaned = rej.ranges / scale
+    keep = np.isfinite(cleaned).sum(axis=0) >= dim + 1
+    dropped = tuple(int(j) for j in np.nonzero(~keep)[0])
+    if keep.sum() < dim + 1:
+        raise InputError(f"after spike rejection only {int(keep.sum())} tag positions keep {dim + 1} "
+                         "ranges; the recording is too short or too sparse for this recipe")
+    sub = cleaned[:, keep]
+    details: dict[str, Any] = {"threshold": float(threshold), "half_window": int(half_window),
+                               "degree": int(degree), "common_offset": common_offset}
+    if common_offset == "profile":
+        offs = solve_kw.pop("offsets", "receivers")
+        if offs not in ("none", "receivers"):
+            raise InputError("common_offset='profile' estimates per-anchor offsets: use offsets='receivers'")
+        base = solve_toa(sub, dim=dim, speed=speed, offsets="none", **_plain(solve_kw))
+        prof = fit_offsets_profile_common(sub * scale, base.receivers, base.sources)
+        res = _profile_result(base, prof, sub, scale)
+        details["common_offset_value"] = float(prof.common / scale)
+        details["profile"] = {"grid": (prof.grid / scale).tolist(), "scale": prof.profile.tolist()}
+    else:
+        res = solve_toa(sub, dim=dim, speed=speed, **solve_kw)
+    res = _embed_columns(res, keep, J, M)
+    return RecipeResult(res, "moving-tag", rej.outliers, dropped, (), details)
+
+
+def _plain(kw: dict[str, Any]) -> dict[str, Any]:
+    return {k: v for k, v in kw.items() if k != "offsets"}
+
+
+def _profile_result(base: Any, prof: Any, sub: Array, scale: float) -> Any:
+    """The base ToaResult with the profiled receivers / sources / offsets written in."""
+    from ..geometry import canonical_gauge
+    from .nls import toa_model
+
+    names = {f.name for f in dataclasses.fields(base)}
+    r, s_, _ = canonical_gauge(prof.receivers, prof.sources)
+    assert s_ is not None
+    s = s_
+    model = toa_model(prof.receivers, prof.sources, prof.receiver_offsets)
+    res = np.where(np.isfinite(sub), sub - model / scale, np.nan)
+    I, d = r.shape
+    kw = {
+        "receivers": r, "sources": s, "receiver_offsets": prof.receiver_offsets / scale,
+        "source_offsets": None, "receiver_cov": np.full((I, d, d), np.nan),
+        "source_cov": np.full((s.shape[0], d, d), np.nan), "residual_rms": prof.residual_rms / scale,
+        "converged": prof.converged, "iterations": int(base.iterations) + int(prof.iterations),
+        "method": f"{base.method}+profile-common-offset", "residuals": res,
+        "receiver_offset_std": None, "source_offset_std": None,
+    }
+    return dataclasses.replace(base, **{k: v for k, v in kw.items() if k in names})
+
+
+def apply_recipe(name: str, matrix: Any, **kw: Any) -> Any:
+    """Run recipe ``name`` (one of :data:`RECIPES`) on ``matrix``; ``"none"`` is solve_toa.
+
+    ``"auto"`` runs ``"moving-tag"`` when :func:`detect_time_order` detects that the
+    columns are a time series, else ``"none"``; the test is in ``details["auto"]``.
+    Returns a :class:`RecipeResult` for every recipe (``rejected`` all False for "none").
+    """
+    from .solve import solve_toa
+
+    check_choice(name, "recipe", RECIPES)
+    if name == "auto":
+        M = as_matrix(matrix, "matrix")
+        test = detect_time_order(M)
+        if test.detected:
+            out = moving_tag(M, **kw)
+            return dataclasses.replace(out, details={**out.details, "auto": test.to_dict()})
+        res = solve_toa(M, **kw)
+        return RecipeResult(res, "none", np.zeros(M.shape, bool), details={"auto": test.to_dict()})
+    if name == "none":
+        M = as_matrix(matrix, "matrix")
+        res = solve_toa(M, **kw)
+        return RecipeResult(res, "none", np.zeros(M.shape, bool))
+    if name == "moving-tag":
+        return moving_tag(matrix, **kw)
+    raise InputError(f"unknown recipe {name!r}")  # pragma: no cover - check_choice above

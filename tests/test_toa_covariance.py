@@ -1,0 +1,147 @@
+"""Spec of the selected-inversion covariance (toa/covariance.py) against a dense computation."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from selfcal.errors import InputError
+from selfcal.toa import covariance as cv
+from selfcal.toa import refine_toa, solve_toa, toa_crlb, toa_jacobian, toa_model
+from selfcal.toa.covariance import covariance_blocks, normalize_covariance, resolve_covariance
+from selfcal.toa.nls import _flags, _pack
+
+MODES = ["none", "receivers", "sources", "both"]
+
+
+def gauge_dim(d: int, offsets: str) -> int:
+    return d * (d + 1) // 2 + (offsets == "both")
+
+
+def dense_blocks(r, s, W, offsets):
+    """Independent reference: node blocks of the pseudo-inverse of the dense J^T W J.
+
+    The pseudo-inverse drops exactly the g = d(d+1)/2 (+1) smallest eigenvalues (the gauge),
+    which is more robust than an rcond threshold.
+    """
+    I, d = r.shape
+    J = s.shape[0]
+    has_r, has_s = _flags(offsets)
+    theta = _pack(r, s, np.zeros(I) if has_r else None, np.zeros(J) if has_s else None)
+    Y = np.where(W > 0, 1.0, np.nan)
+    Jm = toa_jacobian(theta, Y, d, offsets).toarray()
+    N = Jm.T @ (W[W > 0][:, None] * Jm)
+    lam, V = np.linalg.eigh(N)
+    g = gauge_dim(d, offsets)
+    C = (V[:, g:] / lam[g:]) @ V[:, g:].T
+    mr, ms = d + has_r, d + has_s
+
+    def idx_r(i):
+        return np.r_[i * d:(i + 1) * d, [(I + J) * d + i] if has_r else []].astype(int)
+
+    def idx_s(j):
+        return np.r_[I * d + j * d:I * d + (j + 1) * d, [(I + J) * d + I * has_r + j] if has_s else []].astype(int)
+
+    Cr = np.array([C[np.ix_(idx_r(i), idx_r(i))] for i in range(I)]).reshape(I, mr, mr)
+    Cs = np.array([C[np.ix_(idx_s(j), idx_s(j))] for j in range(J)]).reshape(J, ms, ms)
+    return Cr, Cs
+
+
+def random_case(seed: int, offsets: str):
+    rng = np.random.default_rng(seed)
+    d = 2 + seed % 2
+    I, J = rng.integers(d + 4, 14, size=2)
+    r = rng.uniform(-5, 5, (I, d))
+    s = rng.uniform(-7, 7, (J, d))
+    W = rng.uniform(0.5, 2.0, (I, J))  # unequal weights: 1/sigma_ij^2
+    W[rng.random((I, J)) < 0.1] = 0.0  # missing entries
+    return r, s, W, offsets
+
+
+@pytest.mark.parametrize("offsets", MODES)
+@pytest.mark.parametrize("seed", range(8))
+def test_blocks_equal_the_dense_pseudo_inverse(seed, offsets):
+    """Selected inversion == dense pinv(J^T W J) blocks to 1e-9 (relative), both kept sides."""
+    r, s, W, _ = random_case(seed, offsets)
+    for rr, ss, WW in ((r, s, W), (s, r, W.T)):  # swap roles so K is receivers once, sources once
+        Cr, Cs = covariance_blocks(rr, ss, WW, offsets=offsets)
+        Dr, Ds = dense_blocks(rr, ss, WW, offsets)
+        scale = max(np.abs(Dr).max(), np.abs(Ds).max())
+        np.testing.assert_allclose(Cr, Dr, rtol=0, atol=1e-9 * scale)
+        np.testing.assert_allclose(Cs, Ds, rtol=0, atol=1e-9 * scale)
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_subset_requests_equal_the_full_computation(seed):
+    """Any subset (modes, index lists, masks) returns exactly the full blocks there, NaN elsewhere."""
+    offsets = MODES[seed % 4]
+    r, s, W, _ = random_case(100 + seed, offsets)
+    I, J = W.shape
+    Cr, Cs = covariance_blocks(r, s, W, offsets=offsets)
+    rng = np.random.default_rng(seed)
+    requests = [
+        "receivers", "sources", "all",
+        (rng.choice(I, 2, replace=False), None),
+        {"sources": rng.choice(J, 3, replace=False)},
+        (rng.random(I) < 0.5, rng.random(J) < 0.5),
+        ([0], [J - 1]),
+    ]
+    for req in requests:
+        ri, si = resolve_covariance(req, I, J)
+        Pr, Ps = covariance_blocks(r, s, W, offsets=offsets, covariance=req)
+        np.testing.assert_allclose(Pr[ri], Cr[ri], rtol=1e-10, atol=1e-12 * np.abs(Cr).max())
+        np.testing.assert_allclose(Ps[si], Cs[si], rtol=1e-10, atol=1e-12 * np.abs(Cs).max())
+        assert np.isnan(np.delete(Pr, ri, axis=0)).all() and np.isnan(np.delete(Ps, si, axis=0)).all()
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_column_blocks_do_not_change_the_result(seed, monkeypatch):
+    """H generated in many small column blocks (the memory-bounded path) == one block."""
+    r, s, W, offsets = random_case(200 + seed, MODES[seed])
+    Cr, Cs = covariance_blocks(r, s, W, offsets=offsets)
+    monkeypatch.setattr(cv, "_BLOCK_DOUBLES", 1)  # one E node per block
+    Pr, Ps = covariance_blocks(r, s, W, offsets=offsets)
+    np.testing.assert_allclose(Pr, Cr, rtol=1e-10, atol=1e-13 * np.abs(Cr).max())
+    np.testing.assert_allclose(Ps, Cs, rtol=1e-10, atol=1e-13 * np.abs(Cs).max())
+
+
+def test_refine_and_crlb_share_the_path(rng):
+    """refine_toa's blocks (sigma^2 scaled, rotated to the output frame) and the CRLB subset options."""
+    I, J, d = 9, 12, 3
+    r = rng.uniform(-5, 5, (I, d))
+    s = rng.uniform(-7, 7, (J, d))
+    Y = toa_model(r, s) + rng.normal(0, 0.01, (I, J))
+    full = refine_toa(Y, r, s)
+    part = refine_toa(Y, r, s, covariance={"sources": [1, 4]})
+    assert np.isnan(part.receiver_cov).all()
+    np.testing.assert_allclose(part.source_cov[[1, 4]], full.source_cov[[1, 4]], rtol=1e-9)
+    assert np.isnan(np.delete(part.source_cov, [1, 4], axis=0)).all()
+    none = refine_toa(Y, r, s, covariance="none")
+    assert np.isnan(none.receiver_cov).all() and np.isnan(none.source_cov).all()
+    b = toa_crlb(r, s, 0.01)
+    br = toa_crlb(r, s, 0.01, covariance="receivers")
+    np.testing.assert_allclose(br.receiver_bounds, b.receiver_bounds, rtol=1e-10)
+    assert br.rmse_receivers == pytest.approx(b.rmse_receivers) and np.isnan(br.rmse_sources)
+
+
+def test_solve_toa_accepts_the_request(rng):
+    I, J, d = 8, 10, 3
+    r = rng.uniform(0, 5, (I, d))
+    s = rng.uniform(0, 5, (J, d))
+    Y = toa_model(r, s) + rng.normal(0, 0.01, (I, J))
+    a = solve_toa(Y, dim=3, init=(r, s), method="nls")
+    b = solve_toa(Y, dim=3, init=(r, s), method="nls", covariance="receivers")
+    np.testing.assert_allclose(b.receiver_cov, a.receiver_cov, rtol=1e-9)
+    assert np.isnan(b.source_cov).all()
+
+
+@pytest.mark.parametrize("bad", ["some", 3.5, ("x",), {"nodes": [1]}, ([-1], None), ([0.5], None)])
+def test_bad_requests_are_input_errors(bad):
+    with pytest.raises(InputError):
+        normalize_covariance(bad)
+
+
+def test_out_of_range_index_is_an_input_error():
+    with pytest.raises(InputError, match="out of range"):
+        resolve_covariance(([0, 9], None), 9, 4)
+    assert normalize_covariance(None) is False and normalize_covariance("none") is False
