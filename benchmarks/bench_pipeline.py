@@ -12,8 +12,9 @@ through :func:`selfcal.acoustics.pipeline.run_pipeline`):
   pipeline, is what the shared machine cannot afford at 48 kHz), with ``--dim 3`` and
   ``--dim auto``.
 
-Per case: wall time per stage (load, detect, calibrate), CPU time of the whole run (the
-machine is shared: CPU seconds are the comparable figure), errors against the truth and the
+Per case: wall and CPU time per stage (load, detect, calibrate; the machine is shared, so
+CPU seconds of the single-threaded run are the comparable figure: on two free cores the
+wall time equals them), errors against the truth and the
 verdict. Same-run reference: one refinement of the TOA engine (``solve_toa(..., method="nls")``
 on the run's own TOA matrix), so ``calibrate / engine`` is the cost of the robust
 calibration around it. Requirement (issue 15): detection + calibration of 120 units within
@@ -91,7 +92,7 @@ def _run_case(case: dict[str, Any], workdir: Path) -> dict[str, Any]:
         cpu = time.process_time() - c0
         err = truth_errors(res, truth)
         engine = _engine_seconds(res)
-        runs.append({"simulate": t_sim, **res.timings,
+        runs.append({"simulate": t_sim, **res.timings, **{f"cpu_{k}": v for k, v in res.timings_cpu.items()},
                      "detect_plus_calibrate": res.timings["detect"] + res.timings["calibrate"],
                      "cpu_run": cpu, "cpu_engine_reference": engine,
                      "position_max_m": err["position_max"], "timing_max_s": err["timing_max"],
@@ -99,9 +100,12 @@ def _run_case(case: dict[str, Any], workdir: Path) -> dict[str, Any]:
                      "method": res.method, "verdict_passed": bool(not res.failed),
                      "verdict": res.message})
         shutil.rmtree(rec, ignore_errors=True)
-    keys = ["simulate", "load", "detect", "calibrate", "detect_plus_calibrate", "cpu_run", "cpu_engine_reference"]
+    keys = ["simulate", "load", "detect", "calibrate", "detect_plus_calibrate", "cpu_run", "cpu_load", "cpu_detect",
+            "cpu_calibrate", "cpu_engine_reference"]
     out = {k: statistics.median(r[k] for r in runs) for k in keys}
-    out["calibrate_over_engine"] = out["calibrate"] / max(out["cpu_engine_reference"], 1e-9)
+    out["cpu_detect_plus_calibrate"] = out["cpu_detect"] + out["cpu_calibrate"]
+    # same-run ratio: the robust calibration (outliers, re-detection, error bars) over one engine refinement
+    out["cpu_calibrate_over_engine"] = out["cpu_calibrate"] / max(out["cpu_engine_reference"], 1e-9)
     out.update({"units": case["units"], "room": list(case["room"]), "layout": case["layout"], "dim": case["dim"],
                 "sample_rate": case["sample_rate"], "image_order": case["max_order"], "rt60": case["rt60"],
                 "repeats": case["repeats"], "runs": runs})
@@ -121,12 +125,12 @@ def main(out_dir: Path) -> dict[str, Any]:
         shutil.rmtree(work, ignore_errors=True)
     big = [r for r in results.values() if r["units"] == 120]
     worst_120 = max((r["detect_plus_calibrate"] for r in big), default=float("nan"))
-    worst_120_cpu = max((r["cpu_run"] for r in big), default=float("nan"))
+    worst_120_cpu = max((r["cpu_detect_plus_calibrate"] for r in big), default=float("nan"))
     report = {
         "cases": results,
         "requirement_120_units_detect_plus_calibrate_s": LIMIT_120,
         "worst_120_units_detect_plus_calibrate_s": worst_120,
-        "worst_120_units_cpu_s": worst_120_cpu,
+        "worst_120_units_cpu_detect_plus_calibrate_s": worst_120_cpu,
         "meets_requirement": bool(worst_120 <= LIMIT_120) if big else None,
         "cpu_count": os.cpu_count(),
         "load_average": list(os.getloadavg()),

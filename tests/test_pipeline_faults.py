@@ -215,3 +215,41 @@ def test_air_and_unit_offset_fields_are_validated(field, value):
            "events": [{"sender": "u000", "time": 0.1}], "temperature": 20.0, field: value}
     with pytest.raises(InputError, match=field):
         parse_setup(raw)
+
+
+def test_pair_offset_std_predicts_the_monte_carlo_spread():
+    """error_bars: the std of delta_i + tau_j (gauge-free) matches repeated noisy solves.
+
+    40 solves of a 10-unit flat room with known heights and 5 us Gaussian TOA noise; the
+    pooled variance ratio of a correct std is ~1 with relative sampling error
+    sqrt(2 / 40) per entry, pooled over 100 correlated pairs: the bounds 0.6-1.6 leave room
+    for that (a wrong model, e.g. the diagonal offset stds added, is off by 2x or more)."""
+    from selfcal.acoustics.geometry import refine_known_heights
+    from selfcal.acoustics.verdict import error_bars
+
+    C = 343.0
+    sc = conference_scene(10, (9.0, 8.0, 3.0), layout="flat", rng=8)
+    d = np.linalg.norm(sc.receivers[:, None] - sc.senders[None], axis=-1)
+    T0 = d / C + sc.sender_onsets[None] + sc.receiver_delays[:, None]
+    sigma = 5e-6
+    pair_true = sc.receiver_delays[:, None] + sc.sender_onsets[None, :]
+    errs = []
+    for k in range(40):
+        T = T0 + np.random.default_rng(k).normal(0.0, sigma, T0.shape)
+        sol = refine_known_heights(T, sc.receivers[:, 2], sc.senders[:, 2], sc.receivers[:, :2], sc.senders[:, :2],
+                                   sc.receiver_delays, sc.sender_onsets, speed=C)
+        errs.append(sol["receiver_offsets"][:, None] + sol["source_offsets"][None, :] - pair_true)
+    bars = error_bars(T0, np.full(T0.shape, sigma), sc.receivers, sc.senders, C, free_z=False)
+    ratio = np.mean(np.array(errs) ** 2) / np.mean(bars.pair_std**2)
+    assert 0.6 < ratio < 1.6, ratio
+
+
+def test_cli_temperature_sets_the_speed_of_sound(tmp_path):
+    out, raw, _, _ = _speed_scene(tmp_path)
+    (out / "setup.json").write_text(json.dumps(dict(raw, speed_of_sound=343.0)))
+    r = CliRunner().invoke(main, ["pipeline", str(out), "--out", str(tmp_path / "r.json"), "--dim", "3",
+                                  "--temperature", "25"])
+    assert r.exit_code in (0, 1), r.output
+    assert json.loads((tmp_path / "r.json").read_text())["speed_of_sound"] == pytest.approx(346.4)
+    r = CliRunner().invoke(main, ["pipeline", str(out), "--out", str(tmp_path / "r2.json"), "--humidity", "40"])
+    assert r.exit_code == 2 and "--humidity needs --temperature" in r.output

@@ -120,7 +120,7 @@ def test_timing_noise_adds_jitter_and_has_a_floor():
 def _simulate(out: Path, jitter_us: float) -> None:
     res = CliRunner().invoke(main, ["simulate", "conference", "--units", "10", "--room", "8x7x3", "--rt60", "0.4",
                                     "--snr", "30", "--seed", "2", "--layout", "flat", "--sample-rate", "16000",
-                                    "--max-order", "2", "--jitter", str(jitter_us), "--out", str(out)])
+                                    "--max-order", "2", "--jitter-us", str(jitter_us), "--out", str(out)])
     assert res.exit_code == 0, res.output
 
 

@@ -145,6 +145,8 @@ class PipelineResult:
         Sender of every event (columns of ``toa_matrix``).
     matrix_std : (I, J) array or None
         Noise-model std of the per-sender TOA matrix, s.
+    timings_cpu : dict
+        CPU seconds of this process per stage (comparable on a shared machine).
     """
 
     receivers: Array
@@ -177,6 +179,7 @@ class PipelineResult:
     rounds: int = 1
     event_senders: NDArray[np.int64] | None = None
     matrix_std: Array | None = None
+    timings_cpu: dict[str, float] = field(default_factory=dict)
 
     @property
     def failed(self) -> bool:
@@ -222,7 +225,7 @@ class PipelineResult:
             "toa_matrix": self.toa_matrix, "detections_missed": self.detections_missed,
             "quality_db": self.quality_db,
             "planarity": None if self.planarity is None else self.planarity.to_dict(),
-            "timings": self.timings, "receiver_names": list(self.receiver_names),
+            "timings": self.timings, "timings_cpu": self.timings_cpu, "receiver_names": list(self.receiver_names),
             "sender_names": list(self.sender_names), "speed_of_sound": self.speed_of_sound,
             "notes": list(self.notes),
             "fit": None if self.fit is None else self.fit.to_dict(), "failed": self.failed,
@@ -287,10 +290,12 @@ def run_pipeline(
     from .recording import load_recording
 
     timings: dict[str, float] = {}
-    t0 = time.perf_counter()
+    cpu: dict[str, float] = {}
+    t0, c0 = time.perf_counter(), time.process_time()
     rec = load_recording(directory)
     setup = rec.setup
     timings["load"] = time.perf_counter() - t0
+    cpu["load"] = time.process_time() - c0
     # validated before the (slow) detection: bad input fails fast
     if jitter is None:
         jitter = setup.clock_jitter
@@ -305,9 +310,10 @@ def run_pipeline(
               else (np.asarray(heights[0], float), np.asarray(heights[1], float)))
         if hz[0].shape != (len(setup.receivers),) or hz[1].shape != (len(setup.senders),):
             raise InputError("heights: need one height per receiver and per sender")
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     det = detect_recording(rec, progress=progress, **(detect_options or {}))
     timings["detect"] = time.perf_counter() - t0
+    cpu["detect"] = time.process_time() - c0
     es = setup.event_senders
     J = len(setup.senders)
     if np.isnan(det.toa).all():
@@ -325,12 +331,13 @@ def run_pipeline(
         s = detection_std(q[None, :], rec.probe.band, jitter=jitter, sample_rate=fs)[0]
         return t, s
 
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     robust = robust_calibrate(det.toa, std_e, es, J, speed=speed, dim=dim, heights=hz, rng=rng,
                               noise=noise if np.isfinite(noise) else None, redetect=redetect,
                               names=(setup.receivers, setup.senders))
     sol, plan, notes = robust.solution, robust.planarity, list(robust.notes)
     timings["calibrate"] = time.perf_counter() - t0
+    cpu["calibrate"] = time.process_time() - c0
     T, S = robust.matrix, robust.matrix_std
     if setup.unit_offsets:
         idx = [(setup.receivers.index(n), setup.senders.index(n), d) for n, d in setup.unit_offsets.items()]
@@ -394,5 +401,5 @@ def run_pipeline(
         sender_names=setup.senders, speed_of_sound=speed, notes=tuple(notes), fit=fit, timing_noise=noise,
         fit_binding=True, outliers=tuple(robust.outliers), dropped_receivers=dr, dropped_senders=dsn,
         error_bars=bars, verdict=verdict, rounds=rounds, event_senders=np.asarray(es, dtype=np.int64),
-        matrix_std=S,
+        matrix_std=S, timings_cpu=cpu,
     )

@@ -275,7 +275,6 @@ def pipeline_errors(result: Any, directory: Path) -> dict[str, Any] | None:
 @click.option("--speed-of-sound", "speed", type=float, default=None, help="m/s (overrides setup.json).")
 @csv_option
 @handle_errors
-@all_or_nothing
 def pipeline_cmd(directory: Path, out: Path, plot: Path | None, report: Path | None, heights: Path | None,
                  dim: str, seed: int, jitter: float | None, temperature: float | None = None,
                  humidity: float | None = None, speed: float | None = None, jitter_us: float | None = None,
@@ -283,8 +282,19 @@ def pipeline_cmd(directory: Path, out: Path, plot: Path | None, report: Path | N
     """Recordings -> arrival times -> delays -> positions (paper 004's three stages).
 
     Exits with status 1 and ``FAIL:`` lines when the calibration fails its residual test or
-    its error bars miss paper 004's requirements (``PipelineResult.failed``).
+    its error bars miss paper 004's requirements (``PipelineResult.failed``); its files are
+    written all the same (committed together, before the exit).
     """
+    if _pipeline_outputs(directory, out, plot, report, heights, dim, seed, jitter, temperature, humidity, speed,
+                         jitter_us, csv_out):
+        raise SystemExit(1)
+
+
+@all_or_nothing
+def _pipeline_outputs(directory: Path, out: Path, plot: Path | None, report: Path | None, heights: Path | None,
+                      dim: str, seed: int, jitter: float | None, temperature: float | None, humidity: float | None,
+                      speed: float | None, jitter_us: float | None, csv_out: Path | None) -> bool:
+    """Run the pipeline and stage every output; True when the calibration failed (exit 1)."""
     from ..acoustics.pipeline import run_pipeline
     from ..acoustics.recording import speed_from_air
     from ..errors import InputError
@@ -328,6 +338,5 @@ def pipeline_cmd(directory: Path, out: Path, plot: Path | None, report: Path | N
     write_json(out, payload)
     for line in summarise(result, errors):
         click.echo(line)
-    if result.failed:
-        raise SystemExit(1)
+    return bool(result.failed)
 
