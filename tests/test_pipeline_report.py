@@ -51,7 +51,8 @@ def test_report_refuses_a_non_regular_file(tmp_path):
     bad.mkdir()
     res = CliRunner().invoke(main, ["pipeline", str(rec), "--out", str(tmp_path / "r.json"), "--heights",
                                     str(rec / "heights.json"), "--report", str(bad)])
-    assert res.exit_code == 2 and "not a regular file" in res.output
+    assert res.exit_code == 2 and ("not a regular file" in res.output or "is a directory" in res.output)
+    assert not (tmp_path / "r.json").exists()  # all or nothing: no result either
 
 
 def test_magnification_makes_ellipses_visible():
