@@ -83,13 +83,6 @@ class Degeneracy(StrEnum):
     DANGER_CYLINDER = ("danger-cylinder",
                        "3-D: the receiver lies on the cylinder through the beacons' circumcircle")
     NO_SOLUTION = ("no-solution", "the bearings admit no pose for the beacon triangle")
-    # dimension and signal (far-field TDOA, paper 000)
-    DIMENSION_MISMATCH = ("dimension-mismatch",
-                          "the dimension asked for contradicts the rank of the data (use dim='auto')")
-    NO_SIGNAL = ("no-signal", "every column of the matrix is constant: nothing varies with position")
-    # user frame (TOA known nodes / reference frame)
-    DEGENERATE_FRAME = ("degenerate-frame",
-                        "the reference nodes do not fix the frame (coincident or collinear references)")
     # initialisation
     INIT_FAILED = ("init-failed", "no initialiser produced a finite geometry")
     UPGRADE_FAILED = ("upgrade-failed", "the linear upgrade of the rank initialiser failed")

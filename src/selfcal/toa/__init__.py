@@ -15,7 +15,14 @@ from __future__ import annotations
 
 from .crlb import CrlbResult, toa_crlb
 from .nls import NlsSolution, refine_toa, toa_jacobian, toa_model, toa_residuals
-from .result import GeometryTest, ResidualTest, ToaResult, geometry_test, n_parameters, residual_test
+from .result import (
+    GeometryTest,
+    ResidualTest,
+    ToaResult,
+    geometry_test,
+    n_parameters,
+    residual_test,
+)
 from .solve import solve_toa
 
 __all__ = [

@@ -22,11 +22,17 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .._checks import check_toa_counts
-from ..errors import DegenerateGeometryError, InputError
+from ..errors import DegenerateGeometryError, InputError, Status
 from .nls import NlsSolution, refine_toa, toa_model
-from ..errors import Status
 from .result import MESSAGES, ToaResult, geometry_test, n_parameters, residual_test
-from .robust import drop_unidentifiable, gross_entries, leverages, noise_scale, outlier_mask, studentized
+from .robust import (
+    drop_unidentifiable,
+    gross_entries,
+    leverages,
+    noise_scale,
+    outlier_mask,
+    studentized,
+)
 from .search import canonical_order, search
 
 __all__ = ["finish", "given_start", "unrefined"]

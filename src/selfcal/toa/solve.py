@@ -15,7 +15,16 @@ from typing import Any
 
 import numpy as np
 
-from .._checks import as_matrix, as_points, as_rng, check_choice, check_dim, check_positive, check_toa_counts, entry
+from .._checks import (
+    as_matrix,
+    as_points,
+    as_rng,
+    check_choice,
+    check_dim,
+    check_positive,
+    check_toa_counts,
+    entry,
+)
 from ..errors import ConvergenceWarning, InputError
 from .covariance import normalize_covariance
 from .fit import finish, given_start, unrefined
