@@ -47,8 +47,8 @@ from selfcal.datasets.plaza import PlazaData, load_plaza
 from selfcal.experiments.slac import score_plaza
 from selfcal.slac.ranging import RangeModelConfig, solve_range_slac
 
-
 BIAS_RW = 1.0
+VERBOSE = False
 
 
 class _Track:
@@ -179,6 +179,8 @@ def gtsam_batch(data: PlazaData, cfg: RangeModelConfig, factor: float, sigma_r: 
             graph.add(gtsam.CustomFactor(robust, [X(k), C(b)], make_error(data.beacons[b], float(data.ranges[q]))))
     params = gtsam.LevenbergMarquardtParams()
     params.setMaxIterations(100)
+    if VERBOSE:
+        params.setVerbosityLM("SUMMARY")
     res = gtsam.LevenbergMarquardtOptimizer(graph, init, params).optimize()
     out = np.empty((data.pose_times.size, 3))
     for k in range(out.shape[0]):
@@ -214,7 +216,7 @@ def main() -> None:
         r = solve_range_slac(data, method=m, config=cfg)
         row(f"selfcal {m}", r.poses, since(t0), r.times)
         if m == "smoother":
-            factor, sigma = float(r.extra["heading_noise_factor"]), float(r.noise_estimate)
+            factor, sigma = r.heading_noise_factor, float(r.noise_estimate)
     print(f"noise used by the baselines (selfcal's ML on this log): heading factor {factor}, range {sigma:.3f} m")
     for name, fn in (("FilterPy EKF + per-beacon bias states", filterpy_ekf),
                      ("GTSAM LM, Pose2 + robust range CustomFactor (scale + offset)", gtsam_batch)):

@@ -25,7 +25,7 @@ from selfcal.aoa import (
     torus_residuals,
 )
 from selfcal.aoa.orientation import rotvec_to_matrix
-from selfcal.errors import DegenerateGeometryError, InputError
+from selfcal.errors import DegenerateGeometryError, InputError, Status
 
 PAPER_BEACONS = np.array([[0.0, 0, 0], [5, 0, 0], [0, 5, 0]])
 
@@ -496,7 +496,9 @@ def test_bearings_that_fit_no_pose_fail_the_residual_test(tmp_path):
     U = local_bearings(b, m, R)[0]
     Uwrong = U[np.roll(np.arange(8), 1)]  # bearings listed against the wrong beacons: fit to ~21 deg
     res = solve_aoa(b, Uwrong)
-    assert not res.success and res.status == 1 and "not a pose" in res.message
+
+    assert not res.success and res.status == Status.FAILED_TEST and "not a pose" in res.message
+    assert res.to_dict()["fit"]["passed"] is False
     np.savetxt(tmp_path / "b.csv", b, delimiter=",")
     np.savetxt(tmp_path / "u.csv", Uwrong, delimiter=",")
     r = CliRunner().invoke(main, ["locate", "aoa", str(tmp_path / "b.csv"), str(tmp_path / "u.csv"),

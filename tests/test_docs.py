@@ -24,7 +24,11 @@ DOCTESTED = [
 ]
 
 #: the public solvers: each must show how it is called (an Examples section)
-SOLVERS: list[str] = []
+SOLVERS: list[str] = [
+    "selfcal.tdoa.farfield.solve_farfield",
+    "selfcal.aoa.pose.solve_aoa",
+    "selfcal.slac.run.solve_slac",
+]
 
 
 def _resolve(path: str) -> object:

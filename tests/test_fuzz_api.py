@@ -32,7 +32,7 @@ hypothesis = pytest.importorskip("hypothesis")
 from hypothesis import HealthCheck, given, settings  # noqa: E402
 from hypothesis import strategies as st  # noqa: E402
 
-FAST = settings(max_examples=25, deadline=None, suppress_health_check=list(HealthCheck), derandomize=True)
+FAST = settings(max_examples=int(os.environ.get("SELFCAL_FUZZ_EXAMPLES", "25")), deadline=None, suppress_health_check=list(HealthCheck), derandomize=True)
 SLOW = settings(max_examples=500, deadline=None, suppress_health_check=list(HealthCheck))
 LEAKS = (ValueError, TypeError, IndexError, KeyError, ZeroDivisionError, OverflowError, MemoryError,
          np.linalg.LinAlgError, AttributeError, UnicodeError)
@@ -373,7 +373,7 @@ def test_solve_aoa_fuzz(b, u, method: str) -> None:  # type: ignore[no-untyped-d
 # ----------------------------------------------------------------------------- SLAC logs, guards
 
 def _tiny_log() -> dict[str, np.ndarray]:
-    n, A, S, N = 2, 2, 3, 8
+    n, S, N = 2, 3, 8
     rx, tx = np.array([0, 1, 0]), np.array([2, 3, 1])
     ports = np.array([1, 2])
     rows = int(ports[rx].sum())

@@ -26,7 +26,7 @@ hypothesis = pytest.importorskip("hypothesis")
 from hypothesis import HealthCheck, given, settings  # noqa: E402
 from hypothesis import strategies as st  # noqa: E402
 
-FAST = settings(max_examples=12, deadline=None, suppress_health_check=list(HealthCheck), derandomize=True)
+FAST = settings(max_examples=int(os.environ.get("SELFCAL_FUZZ_EXAMPLES", "12")), deadline=None, suppress_health_check=list(HealthCheck), derandomize=True)
 SLOW = settings(max_examples=300, deadline=None, suppress_health_check=list(HealthCheck))
 
 
@@ -234,14 +234,257 @@ def test_version_and_help() -> None:
 
 
 def test_internal_error_is_one_line(monkeypatch, matrix_file: Path, tmp_path: Path) -> None:  # type: ignore[no-untyped-def]
-    import selfcal.toa as toa
+    import selfcal.io as sio
 
     def boom(*a, **k):  # type: ignore[no-untyped-def]
         raise ZeroDivisionError("boom")
 
-    monkeypatch.setattr(toa, "solve_toa", boom)
+    monkeypatch.setattr(sio, "read_table", boom)  # any unexpected exception inside a command
     res = invoke(["calibrate", "toa", matrix_file, "-o", tmp_path / "r.json"])
     assert res.exit_code == 2 and res.stderr.strip() == "selfcal: error: internal error: ZeroDivisionError: boom"
     assert not (tmp_path / "r.json").exists()
     res = invoke(["--verbose", "calibrate", "toa", matrix_file, "-o", tmp_path / "r.json"])
     assert res.exit_code == 2 and "Traceback" in res.stderr
+
+
+# ----------------------------------------------------------------------------- readers, units, results
+
+def test_names_units_std_and_csv_round_trip(tmp_path: Path) -> None:
+    import csv
+    import json
+
+    D = toa_matrix(np.random.default_rng(5))
+    p = tmp_path / "m.csv"
+    rows = ["name;" + ";".join(f"spk{j}" for j in range(D.shape[1]))]
+    rows += [f"mic{i};" + ";".join(f"{v:.6f}".replace(".", ",") for v in D[i]) for i in range(D.shape[0])]
+    p.write_bytes(("\ufeff" + "\r\n".join(rows) + "\r\n").encode())
+    res = invoke(["calibrate", "toa", p, "-o", tmp_path / "r.json", "--csv", tmp_path / "r.csv"])
+    assert check_contract(res)[0] == 0
+    doc = json.loads((tmp_path / "r.json").read_text())
+    assert doc["receiver_names"] == [f"mic{i}" for i in range(6)] and doc["source_names"][0] == "spk0"
+    assert "units" in doc and len(doc["receiver_std"]) == 6 and len(doc["receiver_ellipse95"][0]) == 3
+    # std = sqrt(diag(cov)); 95 % semi-axes = sqrt(chi2_3(0.95) * eig(cov)), largest first
+    from scipy.stats import chi2
+
+    C = np.array(doc["receiver_cov"][1])
+    np.testing.assert_allclose(doc["receiver_std"][1], np.sqrt(np.diag(C)), rtol=1e-9)
+    np.testing.assert_allclose(doc["receiver_ellipse95"][1], np.sqrt(chi2.ppf(0.95, 3) * np.linalg.eigvalsh(C))[::-1],
+                               rtol=1e-6)
+    table = list(csv.reader((tmp_path / "r.csv").open()))
+    assert table[0] == ["kind", "name", "x", "y", "z", "x_std", "y_std", "z_std"]
+    assert table[1][:2] == ["receiver", "mic0"] and table[7][:2] == ["source", "spk0"] and len(table) == 15
+
+
+@pytest.mark.parametrize("args,match", [
+    (["--speed", "343"], None),                                 # times in seconds: fine
+    ([], "--speed"),                                            # seconds without --speed: the 1 cm array
+    (["--unit", "m"], None),                                    # explicitly metres: trusted
+    (["--speed", "343", "--unit", "ms"], "__ms__"),             # the same data scaled as ms
+    (["--unit", "s"], "--speed"),                               # a time unit without a speed
+    (["--unit", "samples", "--speed", "343"], "sample-rate"),
+    (["--speed", "0"], "speed"), (["--speed", "nan"], "speed"), (["--sample-rate", "48000"], "samples"),
+])
+def test_units_and_plausibility(tmp_path: Path, args: list[str], match: str | None) -> None:
+    D = toa_matrix(np.random.default_rng(6)) / 343.0  # seconds of flight
+    p = tmp_path / "t.csv"
+    np.savetxt(p, D * (1e3 if match == "__ms__" else 1.0), delimiter=",")
+    res = invoke(["calibrate", "toa", p, "-o", tmp_path / "r.json", *args])
+    code, _, err = check_contract(res, {}, {})
+    if match is None:
+        assert code == 0, err
+    elif match == "__ms__":
+        assert code == 0, err  # --unit ms turns them back into seconds
+        res = invoke(["calibrate", "toa", p, "-o", tmp_path / "r2.json", "--speed", "343"])
+        code, _, err = check_contract(res)
+        assert code == 2 and "milliseconds" in err and not (tmp_path / "r2.json").exists()
+    else:
+        assert code == 2 and match in err, err
+
+
+def test_angles_in_degrees_given_as_radians(tmp_path: Path) -> None:
+    b, a = tmp_path / "b.csv", tmp_path / "a.csv"
+    np.savetxt(b, [[0, 0, 0], [4, 0, 0], [0, 4, 0], [4, 4, 1]], delimiter=",")
+    np.savetxt(a, [[30, 10], [60, 5], [120, -3], [200, 8]], delimiter=",")
+    res = invoke(["locate", "aoa", b, a, "--angles", "rad", "-o", tmp_path / "r.json"])
+    code, _, err = check_contract(res, {}, {})
+    assert code == 2 and "degrees" in err
+
+
+@pytest.mark.parametrize("args,match", [
+    (["pipeline", "{d}", "-o", "{o}", "--jitter", "20"], "jitter-us"),
+    (["simulate", "conference", "--jitter", "5", "--out", "{o}"], "jitter-us"),
+    (["simulate", "conference", "--sample-rate", "1000000000", "--out", "{o}"], "memory"),
+    (["demo", "--jitter", "5", "--out", "{o}"], "jitter-us"),
+    (["slac", "simulate", "--snr-db", "nan", "-o", "{o}"], "snr"),
+    (["slac", "simulate", "--minutes", "1e6", "-o", "{o}"], "memory"),
+    (["slac", "simulate", "--subcarriers", "100000000", "-o", "{o}"], "memory"),
+    (["reproduce", "toa-mds-nls", "--runs", "0", "--out", "{o}"], "runs"),
+    (["reproduce", "aoa", "--step", "nan", "--out", "{o}"], "step"),
+    (["reproduce", "slac", "--minutes", "-1", "--out", "{o}"], "minutes"),
+    (["reproduce", "delays", "--runs", "0", "--out", "{o}"], "runs"),
+    (["reproduce", "farfield", "--runs", "0", "--out", "{o}"], "runs"),
+    (["reproduce", "lps", "--data", "{d}/nothing", "--out", "{o}"], None),
+    (["slac", "plaza", "{d}/nothing.mat", "-o", "{o}"], None),
+])
+def test_commands_refuse_up_front(tmp_path: Path, args: list[str], match: str | None) -> None:
+    """Every command: bad values -> exit 2, one line, nothing written (named mistakes)."""
+    d = tmp_path / "in"
+    d.mkdir()
+    o = tmp_path / "out"
+    before = snapshot(tmp_path)
+    res = invoke([a.format(d=d, o=o) for a in args])
+    code, _, err = check_contract(res, before, snapshot(tmp_path))
+    assert code == 2
+    if match:
+        assert match in err.lower(), err
+
+
+# ----------------------------------------------------------------------------- hypothesis at every command
+
+_CELLS = st.one_of(st.floats(-50, 50).map(lambda v: f"{v:.4g}"), st.sampled_from(["", "NA", "nan", "1_0", "inf", "x"]))
+
+
+@given(rows=st.lists(st.lists(_CELLS, min_size=1, max_size=8), min_size=1, max_size=8),
+       sep=st.sampled_from([",", ";", "\t", " "]),
+       extra=st.lists(st.sampled_from([["--speed", "343"], ["--unit", "mm"], ["--dim", "2"], ["--offsets", "both"],
+                                       ["--offsets", "receivers"], ["--loss", "huber"], ["--method", "nls"],
+                                       ["--unit", "m"], ["--seed", "-1"], ["--speed", "-3"]]), max_size=3))
+@FAST
+def test_fuzz_calibrate_toa(tmp_path_factory, rows, sep: str, extra) -> None:  # type: ignore[no-untyped-def]
+    d = tmp_path_factory.mktemp("toa")
+    p = d / "m.csv"
+    p.write_text("\n".join(sep.join(r) for r in rows) + "\n")
+    (d / "old.json").write_bytes(b"keep")
+    before = snapshot(d)
+    args = ["calibrate", "toa", p, "-o", d / "old.json", "--csv", d / "r.csv"] + [a for e in extra for a in e]
+    res = invoke(args)
+    code, out, err = check_contract(res, before, snapshot(d))
+    if code != 2:
+        import json
+
+        doc = json.loads((d / "old.json").read_text())
+        assert len(doc["receivers"]) >= 1 and "units" in doc
+
+
+@given(m=st.integers(1, 12), k=st.integers(1, 8), scale=st.sampled_from([1e-4, 0.01, 1.0, 1e4]),
+       holes=st.floats(0, 0.6), seed=st.integers(0, 3),
+       extra=st.lists(st.sampled_from([["--speed", "343"], ["--method", "alternating"], ["--ransac"],
+                                       ["--allow-degenerate"], ["--loss", "cauchy"], ["--unit", "mm"],
+                                       ["--noise-std", "0"], ["--noise-std", "0.01"]]), max_size=2))
+@FAST
+def test_fuzz_tdoa_farfield(tmp_path_factory, m: int, k: int, scale: float, holes: float, seed: int, extra) -> None:  # type: ignore[no-untyped-def]
+    d = tmp_path_factory.mktemp("ff")
+    rng = np.random.default_rng(seed)
+    Z, n = rng.normal(size=(m, 3)), rng.normal(size=(k, 3))
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    D = scale * (Z @ n.T + rng.normal(size=k))
+    D[rng.random(D.shape) < holes] = np.nan
+    np.savetxt(d / "m.csv", D, delimiter=",")
+    before = snapshot(d)
+    args = ["calibrate", "tdoa-farfield", d / "m.csv", "-o", d / "r.json"] + [a for e in extra for a in e]
+    res = invoke(args)
+    code, _, _ = check_contract(res)
+    if code == 2:
+        assert snapshot(d) == before
+
+
+@given(nb=st.integers(1, 6), dim=st.sampled_from([2, 3]), angles=st.sampled_from([None, "deg", "rad"]),
+       method=st.sampled_from(["auto", "sol1", "sol2", "p3p", "ml", "linear"]), seed=st.integers(0, 5),
+       ncol=st.integers(1, 4), hint=st.sampled_from([None, "1,2", "1,2,3", "x", "nan,1,1"]))
+@FAST
+def test_fuzz_locate_aoa(tmp_path_factory, nb: int, dim: int, angles, method: str, seed: int, ncol: int, hint) -> None:  # type: ignore[no-untyped-def]
+    d = tmp_path_factory.mktemp("aoa")
+    rng = np.random.default_rng(seed)
+    np.savetxt(d / "b.csv", rng.uniform(-5, 5, (nb, dim)), delimiter=",")
+    np.savetxt(d / "u.csv", rng.normal(size=(nb, ncol)), delimiter=",")
+    before = snapshot(d)
+    args = ["locate", "aoa", d / "b.csv", d / "u.csv", "-o", d / "r.json", "--method", method]
+    args += ["--angles", angles] if angles else []
+    args += ["--hint", hint] if hint else []
+    code, _, _ = check_contract(invoke(args))
+    if code == 2:
+        assert snapshot(d) == before
+
+
+@given(data=st.binary(max_size=300), name=st.sampled_from(["log.npz", "log.npy", "log"]))
+@FAST
+def test_fuzz_slac_run_bytes(tmp_path_factory, data: bytes, name: str) -> None:  # type: ignore[no-untyped-def]
+    d = tmp_path_factory.mktemp("slac")
+    (d / name).write_bytes(data)
+    before = snapshot(d)
+    assert check_contract(invoke(["slac", "run", d / name, "-o", d / "r.json"]), before, snapshot(d))[0] == 2
+
+
+@given(setup=st.recursive(st.none() | st.booleans() | st.floats() | st.integers() | st.text(max_size=4),
+                          lambda c: st.lists(c, max_size=3) | st.dictionaries(
+                              st.sampled_from(["sample_rate", "receivers", "senders", "probe", "events", "time",
+                                               "sender", "duration", "clock_jitter", "type"]), c, max_size=5),
+                          max_leaves=12))
+@FAST
+def test_fuzz_pipeline_setup(tmp_path_factory, setup) -> None:  # type: ignore[no-untyped-def]
+    import json
+
+    d = tmp_path_factory.mktemp("pipe")
+    (d / "rec").mkdir()
+    (d / "rec" / "setup.json").write_text(json.dumps(setup))
+    before = snapshot(d)
+    assert check_contract(invoke(["pipeline", d / "rec", "-o", d / "r.json"]), before, snapshot(d))[0] == 2
+
+
+_NUM = st.sampled_from(["0", "-1", "nan", "inf", "-inf", "1e300", "x", "", "1e-300", "2.5"])
+
+
+@given(opt=st.sampled_from(["--minutes", "--subcarriers", "--snr-db", "--seed"]), value=_NUM)
+@FAST
+def test_fuzz_slac_simulate_options(tmp_path_factory, opt: str, value: str) -> None:  # type: ignore[no-untyped-def]
+    d = tmp_path_factory.mktemp("sim")
+    args = ["slac", "simulate", opt, value, "-o", d / "log.npz"]
+    if opt != "--minutes":
+        args += ["--minutes", "0.02"]
+    code, _, _ = check_contract(invoke(args))
+    if code == 0:
+        from selfcal.slac.run import SlacLog
+
+        assert SlacLog.from_npz(d / "log.npz").n_steps >= 1
+    else:
+        assert not any(d.iterdir())
+
+
+@given(opt=st.sampled_from(["--units", "--rt60", "--snr", "--sample-rate", "--max-order", "--jitter", "--jitter-us",
+                            "--room"]), value=_NUM)
+@FAST
+def test_fuzz_simulate_conference_options(tmp_path_factory, opt: str, value: str) -> None:  # type: ignore[no-untyped-def]
+    d = tmp_path_factory.mktemp("conf")
+    args = ["simulate", "conference", opt, value, "--out", d / "rec", "--units", "4", "--max-order", "0",
+            "--sample-rate", "16000"]
+    if opt in ("--units", "--max-order", "--sample-rate"):
+        args = ["simulate", "conference", "--units", "4", "--max-order", "0", "--sample-rate", "16000",
+                opt, value, "--out", d / "rec"]
+    code, _, _ = check_contract(invoke(args))
+    if code == 2:
+        assert not any(d.iterdir())
+
+
+@pytest.mark.slow
+@given(rows=st.lists(st.lists(_CELLS, min_size=1, max_size=10), min_size=1, max_size=10))
+@SLOW
+def test_fuzz_calibrate_toa_slow(tmp_path_factory, rows) -> None:  # type: ignore[no-untyped-def]
+    d = tmp_path_factory.mktemp("toa")
+    p = d / "m.csv"
+    p.write_text("\n".join(",".join(r) for r in rows) + "\n")
+    check_contract(invoke(["calibrate", "toa", p, "-o", d / "r.json"]))
+
+
+def test_transposed_inputs_are_named(tmp_path: Path) -> None:
+    rng = np.random.default_rng(0)
+    Z, n = rng.normal(size=(10, 3)), rng.normal(size=(5, 3))
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    np.savetxt(tmp_path / "ff.csv", Z @ n.T, delimiter=",")  # 10 positions x 5 transmitters (needs 6)
+    res = invoke(["calibrate", "tdoa-farfield", tmp_path / "ff.csv", "-o", tmp_path / "r.json"])
+    code, _, err = check_contract(res)
+    assert code == 2 and "transposed" in err
+    np.savetxt(tmp_path / "b.csv", rng.uniform(0, 4, (5, 3)).T, delimiter=",")  # beacons as columns
+    np.savetxt(tmp_path / "u.csv", rng.normal(size=(5, 3)), delimiter=",")
+    res = invoke(["locate", "aoa", tmp_path / "b.csv", tmp_path / "u.csv", "-o", tmp_path / "p.json"])
+    code, _, err = check_contract(res)
+    assert code == 2 and "transposed" in err

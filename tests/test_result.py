@@ -201,7 +201,7 @@ def test_aliases_keep_old_names() -> None:
     assert t.noise_estimate == t.sigma and t.noise == 1e-3
     a = _aoa_result()
     assert a.pose_cov is a.covariance
-    assert a.success  # six beacons in general position: one pose
+    assert a.success and a.status == Status.SUCCESS  # six beacons in general position: one pose
 
 
 # ----------------------------------------------------------------------------- registry

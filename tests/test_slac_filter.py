@@ -78,7 +78,7 @@ def test_fd_laplace_covariance_agrees_with_fisher(biased_log: SlacLog) -> None:
 
 
 def test_log_roundtrip_npz(tmp_path, biased_log: SlacLog) -> None:  # type: ignore[no-untyped-def]
-    short = SlacLog(**{**biased_log.__dict__, "controls": biased_log.controls[:5]})
+    short = SlacLog(**{**biased_log.__dict__, "controls": biased_log.controls[:5], "states": biased_log.states[:6]})
     path = tmp_path / "log.npz"
     short.to_npz(path)
     back = SlacLog.from_npz(path)

@@ -81,8 +81,10 @@ def test_to_dict_json_safe() -> None:
     import json
 
     log, _ = synthetic(0, n=200)
-    d = solve_range_slac(log, method="filter").to_dict()
-    json.dumps(d)
+    r = solve_range_slac(log, method="filter")
+    d = r.to_dict()
+    json.dumps(d, allow_nan=False)
+    assert len(repr(r)) < 600 and "scale" in r.summary()
     assert set(d) >= {"status", "message", "success", "scale", "scale_std", "offset", "offset_std", "noise_estimate"}
 
 

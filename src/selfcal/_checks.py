@@ -469,3 +469,29 @@ def guard_size(n_bytes: float, what: str, *, limit: float | None = None) -> None
     if not np.isfinite(n_bytes) or n_bytes > limit:
         need = "an unbounded amount of" if not np.isfinite(n_bytes) else f"{n_bytes / 1e9:.3g} GB of"
         raise InputError(f"{what} would need {need} memory (limit {limit / 1e9:.3g} GB); choose smaller sizes")
+
+
+def guard_recording_setup(sample_rate: float, event_times: Any, probe: Any, n_receivers: int = 1,
+                          where: str = "setup.json") -> None:
+    """Refuse, before any signal is read or synthesised, a setup whose sizes cannot be real.
+
+    A chirp probe of ``duration`` s is ``duration * sample_rate`` float64 samples; an event at
+    time ``t`` needs every receiver's recording to be at least ``t * sample_rate`` samples
+    long. Either beyond the memory limit of :func:`guard_size` is named with what it needs.
+
+    Raises
+    ------
+    InputError
+        Naming the field and the memory.
+    """
+    fs = float(sample_rate)
+    times = np.asarray(event_times, dtype=float)
+    if times.size:
+        t = float(np.max(times))
+        guard_size(t * fs * 4.0 * max(int(n_receivers), 1),
+                   f"{where}: field 'events' (latest time {t:g} s at {fs:g} Hz, {t * fs:.3g} samples per receiver)")
+    if isinstance(probe, dict) and "duration" in probe:
+        d = probe["duration"]
+        if isinstance(d, bool) or not isinstance(d, (int, float)) or not np.isfinite(d) or d <= 0:
+            raise InputError(f"{where}: field 'probe.duration' must be a positive number of seconds, got {d!r}")
+        guard_size(float(d) * fs * 8.0 * 4, f"{where}: field 'probe.duration' ({float(d):g} s at {fs:g} Hz)")

@@ -15,7 +15,8 @@ and gets, without further code,
   ``success`` is ``status == Status.SUCCESS`` and ``message`` says why in one line. The
   default diagnosis reads the conventional fields ``degeneracy``, ``converged`` and
   ``fit`` (a residual test with ``passed``); a class refines it by overriding
-  :meth:`Result._diagnose`.
+  :meth:`Result._diagnose`, or stores ``status`` / ``success`` / ``message`` as fields of
+  its own (then those are used everywhere, e.g. per-problem arrays of a batch).
 * a short ``__repr__`` (arrays shown by shape, never dumped) and :meth:`Result.summary`, a
   text table of every field;
 * ``to_dict()`` that is JSON-safe by construction: whatever a subclass's own ``to_dict``
@@ -114,7 +115,7 @@ def _short(value: Any, width: int = 48) -> str:
     if isinstance(value, (float, np.floating)):
         return f"{float(value):.6g}"
     if isinstance(value, Result):
-        return f"{type(value).__name__}({value.status.name.lower()})"
+        return f"{type(value).__name__}({_status_text(value._state()[0])})"
     if dataclasses.is_dataclass(value) and not isinstance(value, type):
         scalars = [
             f"{f.name}={_short(getattr(value, f.name))}"
@@ -134,13 +135,24 @@ def _short(value: Any, width: int = 48) -> str:
     return text if len(text) <= width else text[: width - 3] + "..."
 
 
+def _status_text(status: Any) -> str:
+    """``0 SUCCESS`` for one status; ``3/4 SUCCESS`` style counts for a per-problem array."""
+    if np.ndim(status) == 0:
+        try:
+            return f"{int(status)} {Status(int(status)).name}"
+        except ValueError:
+            return str(int(status))
+    s = np.asarray(status).ravel()
+    return f"{int(np.sum(s == 0))}/{s.size} SUCCESS"
+
+
 def _wrap_to_dict(own: Callable[[Any], Mapping[str, Any]]) -> Callable[[Any], dict[str, Any]]:
     @functools.wraps(own)
     def to_dict(self: Result) -> dict[str, Any]:
         d = dict(own(self))
-        status, message = self._diagnose()
-        d.setdefault("status", int(status))
-        d.setdefault("success", status == Status.SUCCESS)
+        status, message = self._state()
+        d.setdefault("status", status)
+        d.setdefault("success", self.success)
         d.setdefault("message", message)
         out: dict[str, Any] = jsonable(d)
         return out
@@ -188,6 +200,13 @@ class Result:
             text += f"; residual test passed (p = {getattr(fit, 'p_value', float('nan')):.3g})"
         return Status.SUCCESS, text
 
+    def _state(self) -> tuple[Any, str]:
+        """``(status, message)``: the class's own fields when it has them, else the diagnosis."""
+        names: set[str] = {f.name for f in dataclasses.fields(self)} if dataclasses.is_dataclass(self) else set()
+        if "status" in names:
+            return self.status, str(getattr(self, "message", ""))
+        return self._diagnose()
+
     @property
     def status(self) -> Status:
         """:class:`~selfcal.errors.Status` of the result (``0`` = success)."""
@@ -222,8 +241,9 @@ class Result:
         if not self._repr_fields:
             names += [k for k, v in items.items() if isinstance(v, np.ndarray) and v.ndim >= 1][:3]
         parts = [f"{k}={_short(items[k], 32)}" for k in names if k in items]
-        status = self.status
-        head = f"{type(self).__name__}(success={status == Status.SUCCESS}, status={int(status)} {status.name}"
+        status, _ = self._state()
+        ok = bool(np.all(np.asarray(status) == 0))
+        head = f"{type(self).__name__}(success={ok}, status={_status_text(status)}"
         lines = [head + ","]
         line = "    "
         for p in parts:
@@ -242,9 +262,9 @@ class Result:
         str
             Lines ``name  value``; no array is printed in full.
         """
-        status, message = self._diagnose()
-        rows = [("status", f"{int(status)} {status.name}"), ("message", message)]
-        rows += [(k, _short(v)) for k, v in self._field_items()]
+        status, message = self._state()
+        rows = [("status", _status_text(status)), ("message", message)]
+        rows += [(k, _short(v)) for k, v in self._field_items() if k not in ("status", "message")]
         width = max(len(k) for k, _ in rows)
         title = type(self).__name__
         body = [f"  {k.ljust(width)}  {v}" for k, v in rows]

@@ -64,6 +64,11 @@ class Degeneracy(StrEnum):
                            "the normal equations are singular beyond the gauge")
     RANK_DEFICIENT = ("rank-deficient", "the double-centred squared ranges have rank below d")
     NEAR_PLANAR = ("near-planar", "the layout's thickness is not resolved by the data")
+    DIMENSION_MISMATCH = ("dimension-mismatch",
+                          "the rank of the data contradicts the dimension asked for (use dim='auto')")
+    NO_SIGNAL = ("no-signal", "every column is constant: no position is observable")
+    DEGENERATE_FRAME = ("degenerate-frame",
+                        "the reference nodes of a frame coincide, are collinear or have no position")
     # far-field TDOA (paper 000, sections 2.1-2.2)
     PLANAR_MOTION = ("planar-motion", "the receiver positions are coplanar (rank 2)")
     COPLANAR_DIRECTIONS = ("coplanar-directions", "the far-field directions lie in one plane (rank 2)")

@@ -4,7 +4,12 @@
 - :mod:`.recording`  the recording format (``setup.json`` + ``rx_<name>.wav``), validation
 - :mod:`.detect`     FFT matched-filter, first-significant-peak arrival-time detection
 - :mod:`.room`       pyroomacoustics simulation of a conference network
-- :mod:`.pipeline`   detection -> TOA matrix -> onsets, delays, positions (+ near-planar handling)
+- :mod:`.noise`      timing-noise model of the detections, robust residual check
+- :mod:`.calibrate`  TOA matrix -> onsets, delays, positions: one model fit, outliers, dropped units
+- :mod:`.geometry`   near-planarity, mirror ambiguities, known heights (2-D fallback)
+- :mod:`.verdict`    004 requirements judged from the result's error bars
+- :mod:`.scoring`    errors against a simulation's truth.json
+- :mod:`.pipeline`   orchestration: recording -> detections -> calibration -> verdict
 """
 
 from __future__ import annotations
@@ -18,7 +23,9 @@ _EXPORTS = {
     "Detections": "detect", "detect_arrivals": "detect", "detect_recording": "detect",
     "simulate_conference": "room",
     "PipelineResult": "pipeline", "run_pipeline": "pipeline", "planarity": "pipeline",
-    "refine_known_heights": "pipeline", "calibrate_matrix": "pipeline", "truth_errors": "pipeline",
+    "refine_known_heights": "geometry", "calibrate_matrix": "calibrate", "truth_errors": "scoring",
+    "robust_calibrate": "calibrate", "redetect_arrivals": "detect", "error_bars": "verdict", "judge": "verdict",
+    "residual_check": "noise", "detection_std": "noise",
 }
 
 __all__ = sorted(_EXPORTS)

@@ -12,15 +12,27 @@ time`` (004 sec. 2.2: onsets <= 30 ms, delays <= 20 ms). Per window:
    windows (Rayleigh statistics: the 20th percentile is 0.668 sigma), robust to the
    windows' signal content.
 3. The *first* significant peak, not the strongest: the earliest lag whose envelope
-   exceeds ``max(rel_threshold * window maximum, k_noise * sigma)``, followed to its
-   local maximum. Reflections arrive later and can superpose to a larger peak; the
-   direct path is the first.
+   exceeds ``max(rel_threshold * window maximum, k * level(lag))``, followed to its local
+   maximum. Reflections arrive later and can superpose to a larger peak; the direct path
+   is the first. ``level(lag)`` is a cell-averaging CFAR level: the Rayleigh parameter of
+   the ``REF_TIME`` (2.5 ms) of lags before it (``mean |z|^2 = 2 sigma^2``, a guard of one
+   main lobe between), never below the receiver's level ``sigma``; lags with less history
+   use ``sigma``. A noise burst (a cough) raises the level of the lags it covers, so it
+   does not pass for an arrival, and an arrival inside it must stand out of it.
 4. Sub-sample time: the correlation peak (the real part) nearest the envelope peak,
    refined by Newton steps on the band-limited correlation evaluated exactly from its
    spectrum (``c(tau) = Re sum_k Z_k exp(2 pi i k tau / n) / n``), which has no
    parabolic-interpolation bias.
-5. Quality = ``20 log10(peak envelope / sigma)`` dB. Detections below ``min_quality_db``,
+5. Quality = ``20 log10(peak envelope / level(crossing))`` dB. Detections below the floor,
    without a significant peak, or at a window edge become NaN.
+
+Quality floor by a false-alarm probability (CFAR). Under noise alone the envelope is
+Rayleigh, ``P(|z| > k sigma) = exp(-k^2 / 2)`` per independent lag; a window of ``n``
+lags holds about ``n B / fs`` independent cells (``B`` the probe bandwidth), so the
+threshold ``k = sqrt(2 ln(cells / p_fa))`` keeps the chance of a false detection in a window
+without signal at ``p_fa`` (default ``1e-6`` per window, :data:`FALSE_ALARM`). The same
+principle sets the floor of a re-detection in a narrow window around a predicted time
+(:func:`redetect_arrivals`): fewer cells, a lower floor.
 """
 
 from __future__ import annotations
@@ -35,9 +47,35 @@ from ..errors import InputError
 from .probe import Probe
 from .recording import Recording
 
-__all__ = ["Detections", "detect_arrivals", "detect_recording", "matched_filter"]
+__all__ = ["Detections", "detect_arrivals", "detect_recording", "matched_filter", "redetect_arrivals",
+           "cfar_factor", "FALSE_ALARM"]
 
 RAYLEIGH_P20 = float(np.sqrt(-2.0 * np.log(0.8)))  # 20th percentile of a unit Rayleigh variable
+FALSE_ALARM = 1e-6  # probability of a false detection in a search window holding only noise
+REF_TIME = 2.5e-3  # s, leading reference window of the CFAR noise level (~20 independent cells at 8 kHz)
+
+
+def cfar_factor(n_lags: int, fs: float, band: tuple[float, float], p_fa: float = FALSE_ALARM) -> float:
+    """Envelope threshold over the noise level ``k = sqrt(2 ln(cells / p_fa))`` (module docstring).
+
+    Parameters
+    ----------
+    n_lags : int
+        Lags searched.
+    fs : float
+        Hz.
+    band : (f0, f1)
+        Probe band, Hz (independent cells ~ ``n_lags (f1 - f0) / fs``).
+    p_fa : float
+        False-alarm probability per window.
+
+    Returns
+    -------
+    float
+        ``k`` (the quality floor is ``20 log10 k`` dB).
+    """
+    cells = max(float(n_lags) * (band[1] - band[0]) / fs, 1.0)
+    return float(np.sqrt(2.0 * np.log(cells / p_fa)))
 
 
 @dataclass(frozen=True)
@@ -106,16 +144,40 @@ def matched_filter(segments: NDArray[np.floating[Any]], probe: Probe, n_fft: int
     return np.fft.ifft(full, axis=-1), G
 
 
-def _newton_refine(G: NDArray[np.complex128], n_fft: int, tau0: NDArray[np.float64], iterations: int = 3) -> NDArray[np.float64]:
+def _matched(segments: NDArray[np.float64], P: NDArray[np.complex128], n_fft: int,
+             n_keep: int) -> tuple[NDArray[np.complex128], NDArray[np.complex128]]:
+    """:func:`matched_filter` with the probe's weighted spectrum ``P`` given; keeps ``n_keep`` lags.
+
+    The analytic output is the inverse FFT of the one-sided spectrum; only the bins of the
+    band are non-zero, so the inverse runs on a complex array holding just the one side.
+    """
+    import scipy.fft as sfft
+
+    # single precision for the filter and its envelope (the inputs are 16/24-bit audio); the
+    # sub-sample refinement (_newton_refine) works on the spectrum in double precision
+    G = sfft.rfft(np.asarray(segments, dtype=np.float32), n=n_fft, axis=-1)
+    G *= (2.0 * P).astype(np.complex64)[None, :]
+    G[:, 0] *= 0.5
+    if n_fft % 2 == 0:
+        G[:, -1] *= 0.5
+    full = np.zeros((segments.shape[0], n_fft), dtype=np.complex64)
+    full[:, : G.shape[1]] = G
+    z = sfft.ifft(full, axis=-1, overwrite_x=True)[:, :n_keep]
+    return z, G
+
+
+def _newton_refine(G: NDArray[np.complex128], n_fft: int, tau0: NDArray[np.float64], iterations: int = 2) -> NDArray[np.float64]:
     """Maximise the band-limited correlation ``Re z(tau)`` near ``tau0`` (K,) by Newton steps.
 
     ``z(tau) = sum_k G_k exp(i w_k tau) / n`` over the band's bins; the phase factors of
     contiguous bins are a geometric sequence, built by a cumulative product (one complex
-    exponential per event instead of one per bin).
+    exponential per event instead of one per bin). ``tau0`` should be within a few hundredths
+    of a sample (a parabola through the correlation samples, :func:`_parabolic`); two Newton
+    steps then reach 1e-6 samples.
     """
     active = np.flatnonzero(np.abs(G).max(axis=0) > 0)
     k0, k1 = int(active[0]), int(active[-1]) + 1
-    Gk = G[:, k0:k1]
+    Gk = G[:, k0:k1].astype(np.complex128)
     w = 2.0 * np.pi * np.arange(k0, k1) / n_fft
     Gw = Gk * w
     Gw2 = Gw * w
@@ -133,6 +195,16 @@ def _newton_refine(G: NDArray[np.complex128], n_fft: int, tau0: NDArray[np.float
     return np.clip(tau, tau0 - 1.0, tau0 + 1.0)
 
 
+def _parabolic(z: NDArray[np.complex64], rows: NDArray[np.intp], coarse: NDArray[np.intp]) -> NDArray[np.float64]:
+    """Vertex of the parabola through ``Re z`` at ``coarse - 1, coarse, coarse + 1`` (the Newton start)."""
+    n = z.shape[1]
+    c = np.clip(coarse, 1, n - 2)
+    ym, y0, yp = (z[rows, c - 1].real.astype(float), z[rows, c].real.astype(float), z[rows, c + 1].real.astype(float))
+    den = ym - 2.0 * y0 + yp
+    d = np.where(den < 0, 0.5 * (ym - yp) / np.where(den < 0, den, -1.0), 0.0)
+    return c + np.clip(d, -0.5, 0.5)
+
+
 def detect_arrivals(
     signals: NDArray[np.floating[Any]],
     probe: Probe,
@@ -141,8 +213,9 @@ def detect_arrivals(
     lengths: NDArray[np.int64] | None = None,
     max_lag: float = 0.2,
     rel_threshold: float = 0.3,
-    k_noise: float = 6.0,
-    min_quality_db: float = 20.0,
+    k_noise: float | None = None,
+    min_quality_db: float | None = None,
+    p_fa: float = FALSE_ALARM,
     progress: bool = True,
 ) -> Detections:
     """Detect the direct-path arrival of every event at every receiver (module docstring).
@@ -160,11 +233,13 @@ def detect_arrivals(
         Search window after each nominal time, s (max onset + max delay + max flight time).
     rel_threshold : float
         A peak is significant above this fraction of the window's largest envelope peak.
-    k_noise : float
-        ... and above ``k_noise`` times the envelope noise level (6: false-alarm rate
-        exp(-18) per lag).
-    min_quality_db : float
-        Detections with a lower peak-to-noise ratio are NaN.
+    k_noise : float, optional
+        ... and above ``k_noise`` times the envelope noise level (default: the CFAR factor
+        :func:`cfar_factor` for ``p_fa``).
+    min_quality_db : float, optional
+        Detections with a lower peak-to-noise ratio are NaN (default ``20 log10 k_noise``).
+    p_fa : float
+        False-alarm probability per window of the default thresholds.
     progress : bool
         tqdm bar over receivers.
 
@@ -189,22 +264,40 @@ def detect_arrivals(
     start = np.round(times * fs).astype(np.int64)
     idx = start[:, None] + np.arange(W)[None, :]
     mainlobe = int(np.ceil(2.0 * fs / (probe.band[1] - probe.band[0]))) + 2
+    n_ref = max(int(round(REF_TIME * fs)), 8)
 
+    if k_noise is None:
+        k_noise = cfar_factor(n_lag, fs, probe.band, p_fa)
+    if min_quality_db is None:
+        min_quality_db = 20.0 * float(np.log10(k_noise))
     arrival = np.full((I, E), np.nan)
     quality = np.full((I, E), np.nan)
     noise = np.zeros(I)
     rows = np.arange(E)
+    P = np.conj(np.fft.rfft(probe.samples, n=n_fft)) * _band_weight(n_fft, fs, probe.band)
     for i in tqdm(range(I), desc="detect", unit="rx", disable=None if progress else True, leave=False):
+        if lens[i] <= 0 or not np.any(sig[i, : lens[i]]):
+            continue  # a dead input: nothing to detect
         valid = idx < lens[i]
         seg = np.where(valid, sig[i, np.minimum(idx, N - 1)], 0.0).astype(np.float64)
-        z, G = matched_filter(seg, probe, n_fft)
-        env = np.abs(z[:, :n_lag])
-        sigma = float(np.percentile(env, 20)) / RAYLEIGH_P20
+        z, G = _matched(seg, P, n_fft, n_lag)
+        env = np.abs(z)
+        sigma = float(np.percentile(env[:, ::4], 20)) / RAYLEIGH_P20  # lags 4 apart: still ~1 per cell
         noise[i] = sigma
         if sigma <= 0:
             continue
-        thr = np.maximum(rel_threshold * env.max(axis=1), k_noise * sigma)
-        above = env >= thr[:, None]
+        # cell-averaging CFAR: the noise level of every lag from the n_ref lags before it (a guard
+        # of one main lobe between); lags without that much history use the receiver's level
+        csum = np.concatenate([np.zeros((E, 1)), np.cumsum(env * env, axis=1)], axis=1)
+        lag = np.arange(n_lag)
+        hi = lag - mainlobe
+        lo = hi - n_ref
+        has = lo >= 0
+        lead = np.full((E, n_lag), sigma)
+        lead[:, has] = np.sqrt((csum[:, hi[has]] - csum[:, lo[has]]) / (2.0 * n_ref))
+        level_lag = np.maximum(lead, sigma)
+        thr = np.maximum(rel_threshold * env.max(axis=1)[:, None], k_noise * level_lag)
+        above = env >= thr
         found = above.any(axis=1)
         first = np.argmax(above, axis=1)
         # Follow the envelope up to its first local maximum after the threshold crossing.
@@ -212,13 +305,17 @@ def detect_arrivals(
         rise = env[rows[:, None], look]
         falling = np.diff(rise, axis=1) < 0
         peak = first + np.where(falling.any(axis=1), np.argmax(falling, axis=1), np.argmax(rise, axis=1))
+        level = level_lag[rows, first]
+        q = 20.0 * np.log10(env[rows, peak] / level)
+        quality[i] = np.where(found, q, np.nan)
+        ok = found & (q >= min_quality_db) & (peak > 0) & (peak < n_lag - 1) & (start + peak + L <= lens[i])
+        if not ok.any():
+            continue
         # Correlation (carrier) peak nearest the envelope peak.
         near = np.clip(peak[:, None] + np.arange(-2, 3)[None, :], 0, n_lag - 1)
         coarse = near[rows, np.argmax(z[rows[:, None], near].real, axis=1)]
-        tau = _newton_refine(G, n_fft, coarse.astype(np.float64))
-        q = 20.0 * np.log10(env[rows, peak] / sigma)
-        quality[i] = np.where(found, q, np.nan)
-        ok = found & (q >= min_quality_db) & (peak > 0) & (peak < n_lag - 1) & (start + peak + L <= lens[i])
+        tau = np.full(E, np.nan)
+        tau[ok] = _newton_refine(G[ok], n_fft, _parabolic(z, rows[ok], coarse[ok]))
         arrival[i] = np.where(ok, (start + tau) / fs, np.nan)
     return Detections(arrival, arrival - times[None, :], quality, noise)
 
@@ -239,3 +336,83 @@ def detect_recording(recording: Recording, *, max_lag: float | None = None, prog
         max_lag = max(max_lag - recording.probe.duration, 0.01)
     return detect_arrivals(recording.signals, recording.probe, times, lengths=recording.lengths,
                            max_lag=max_lag, progress=progress, **kwargs)
+
+
+def redetect_arrivals(recording: Recording, detections: Detections, receivers: NDArray[np.intp],
+                      events: NDArray[np.intp], predicted_toa: NDArray[np.float64],
+                      half_width: NDArray[np.float64], *, p_fa: float = FALSE_ALARM) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Detect again near a predicted time: the strongest peak within a narrow window.
+
+    An outlier of the calibration (a reflection picked because the direct path was
+    attenuated, a noise burst) is searched for again around the arrival the calibrated
+    model predicts. The window is ``predicted +- (half_width + half a main lobe)``; the
+    envelope's largest peak there is refined like :func:`detect_arrivals`, and kept when its
+    quality (over the receiver's noise level) passes the CFAR floor of that small window
+    (:func:`cfar_factor` with its few cells).
+
+    Parameters
+    ----------
+    recording : Recording
+    detections : Detections
+        The first pass (for the receivers' noise levels).
+    receivers, events : (K,) int arrays
+        Which (receiver, event) to re-detect.
+    predicted_toa : (K,) array
+        Predicted TOA (arrival minus nominal time), s.
+    half_width : (K,) array
+        Uncertainty of the prediction, s.
+    p_fa : float
+        False-alarm probability per window.
+
+    Returns
+    -------
+    toa : (K,) array
+        s, NaN when nothing passes the floor.
+    quality_db : (K,) array
+        dB (NaN likewise).
+    """
+    probe = recording.probe
+    fs = probe.sample_rate
+    sig = recording.signals
+    ri = np.asarray(receivers, dtype=np.intp)
+    ev = np.asarray(events, dtype=np.intp)
+    K = len(ri)
+    out_t = np.full(K, np.nan)
+    out_q = np.full(K, np.nan)
+    if K == 0:
+        return out_t, out_q
+    L = len(probe.samples)
+    mainlobe = int(np.ceil(2.0 * fs / (probe.band[1] - probe.band[0]))) + 2
+    hw = np.ceil(np.asarray(half_width, float) * fs).astype(np.int64) + mainlobe // 2 + 1
+    pad = int(hw.max()) + mainlobe
+    n_lag = 2 * pad + 1
+    W = n_lag + L - 1
+    n_fft = int(2 ** np.ceil(np.log2(W + L)))
+    t_abs = recording.setup.event_times[ev] + np.asarray(predicted_toa, float)
+    centre = np.round(t_abs * fs).astype(np.int64)
+    start = centre - pad
+    idx = start[:, None] + np.arange(W)[None, :]
+    N = sig.shape[1]
+    lens = recording.lengths[ri]
+    valid = (idx >= 0) & (idx < lens[:, None])
+    seg = np.where(valid, sig[ri[:, None], np.clip(idx, 0, N - 1)], 0.0).astype(np.float64)
+    P = np.conj(np.fft.rfft(probe.samples, n=n_fft)) * _band_weight(n_fft, fs, probe.band)
+    z, G = _matched(seg, P, n_fft, n_lag)
+    env = np.abs(z)
+    lag = np.arange(n_lag)[None, :]
+    inside = np.abs(lag - pad) <= hw[:, None]
+    peak = np.argmax(np.where(inside, env, -1.0), axis=1)
+    rows = np.arange(K)
+    sigma = np.asarray(detections.noise, float)[ri]
+    cells = 2 * hw + 1
+    k = np.array([cfar_factor(int(c), fs, probe.band, p_fa) for c in cells])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        q = 20.0 * np.log10(env[rows, peak] / sigma)
+    ok = (sigma > 0) & (q >= 20.0 * np.log10(k)) & (peak > 0) & (peak < n_lag - 1) & valid.all(axis=1)
+    if ok.any():
+        near = np.clip(peak[:, None] + np.arange(-2, 3)[None, :], 0, n_lag - 1)
+        coarse = near[rows, np.argmax(z[rows[:, None], near].real, axis=1)]
+        tau = _newton_refine(G[ok], n_fft, _parabolic(z, rows[ok], coarse[ok]))
+        out_t[ok] = (start[ok] + tau) / fs - recording.setup.event_times[ev[ok]]
+        out_q[ok] = q[ok]
+    return out_t, out_q

@@ -1,19 +1,15 @@
 """The whole system of paper 004: recordings -> arrival times -> delays -> positions.
 
-Stages (004 fig. 1.3): (1) distance estimation: detect the direct-path arrival of every
-event at every receiver (:mod:`selfcal.acoustics.detect`); (2) onset times and internal
-delays and (3) localization, jointly: the per-sender TOA matrix ``t_ij = |r_i - s_j| / c +
-tau_j + delta_i`` (004 eq. 3.1) goes to :func:`selfcal.toa.solve_toa` with
-``offsets="both"`` (the 004 rank-3 initialiser followed by sparse nonlinear least squares).
+Orchestration only; the jobs live in their modules:
 
-Geometry (conference units sit at nearly one height). A near-planar network makes 3-D
-self-calibration ill-posed: each point may be mirrored through the plane without
-changing any distance to first order, so z is undetermined. The pipeline fits both a
-2-D and a 3-D model and keeps z only when the 3-D fit is significantly better (nested-model
-F test, :func:`compare_fits`) and its thickness is resolved by its own covariances
-(:func:`planarity`); otherwise it calibrates in 2-D, or -- with known heights (``heights``) -- solves
-for the horizontal positions and the offsets with each point's z fixed
-(:func:`refine_known_heights`), so it never reports a z it cannot determine.
+- :mod:`.detect`     stage 1: matched-filter arrival times with their quality (CFAR floor)
+- :mod:`.noise`      the timing-noise model of the detections (residual and outlier tests)
+- :mod:`.calibrate`  stages 2 + 3 through :func:`selfcal.toa.solve_toa`: one model fit,
+                     robust to a minority of wrong detections, dropping unobservable units
+- :mod:`.geometry`   near-planarity, mirror ambiguities, known heights (2-D fallback)
+- :mod:`.verdict`    PASS / FAIL against 004's requirements from the result's error bars
+- :mod:`.scoring`    comparison with a simulation's ``truth.json``
+- :mod:`.report`     the installer's HTML report
 """
 
 from __future__ import annotations
@@ -29,18 +25,26 @@ from numpy.typing import NDArray
 
 from .._checks import entry
 from ..errors import DegenerateGeometryError, InputError
-
-# the near-planar test lives with the TOA model selection (issue 12); re-exported here
-from ..toa.select import (  # noqa: F401
-    NOISE_FLOOR,
-    PLANAR_ALPHA,
-    PLANAR_RATIO,
-    PLANAR_SIGMAS,
+from .calibrate import (
+    Outlier,
+    _predict,
+    apply_scale,
+    calibrate_matrix,
+    robust_calibrate,
+    scale_from_distances,
+)
+from .geometry import (
     ModelComparison,
     Planarity,
     compare_fits,
+    one_side_of_plane,
     planarity,
+    read_heights,
+    refine_known_heights,
 )
+from .noise import MF_FACTOR, TIMING_FLOOR, detection_std, fit_test, residual_check, timing_noise
+from .scoring import truth_errors
+from .verdict import POSITION_REQUIREMENT, TIMING_REQUIREMENT, ErrorBars, Verdict, error_bars, judge
 
 __all__ = [
     "PipelineResult",
@@ -51,6 +55,7 @@ __all__ = [
     "one_side_of_plane",
     "sender_matrix",
     "refine_known_heights",
+    "calibrate_matrix",
     "run_pipeline",
     "read_heights",
     "truth_errors",
@@ -58,81 +63,16 @@ __all__ = [
     "fit_test",
     "TIMING_REQUIREMENT",
     "POSITION_REQUIREMENT",
+    "MF_FACTOR",
+    "TIMING_FLOOR",
 ]
 
 Array = NDArray[np.float64]
-POSITION_REQUIREMENT = 0.10  # m, 004 sec. 2.1 requirement 1(a)
-TIMING_REQUIREMENT = 58e-6  # s, 004 sec. 2.2 (2 cm at 343 m/s)
-TIMING_FLOOR = 20e-9  # s, floor of the per-detection timing std in the residual test (resampling, model)
-MF_FACTOR = 3.0  # the residual test's detection std: this many theoretical matched-filter stds
 FAIL_MESSAGE = "calibration failed the residual test: positions NOT reliable"
-
-
-def timing_noise(quality_db: Array, band: tuple[float, float], event_senders: NDArray[np.int64],
-                 n_senders: int, *, jitter: float = 0.0) -> float:
-    """Timing-noise std of the per-sender TOA matrix, s (the ``noise`` of the residual test).
-
-    Per detection (receiver i, event e) the matched-filter timing std is
-    ``sigma_ie = 1 / (2 pi f_rms 10^(q_ie / 20))`` (the Cramer-Rao bound of a time delay,
-    ``f_rms`` the RMS frequency of the Hann-weighted probe band, ``q_ie`` the detection's
-    peak-to-noise ratio in dB, :mod:`selfcal.acoustics.detect`). The test uses
-    ``max(MF_FACTOR sigma_ie, TIMING_FLOOR)`` (3x: reverberation and sub-sample effects the
-    bound ignores; 20 ns floor) plus the clock ``jitter`` in quadrature; the events of one
-    sender are averaged (:func:`sender_matrix`), so an entry's variance is the sum of its
-    events' variances over the squared count. Returns the RMS of the entries' stds.
-
-    Parameters
-    ----------
-    quality_db : (I, E) array
-        Detection quality, dB; NaN = missed.
-    band : (f0, f1)
-        Probe band, Hz.
-    event_senders : (E,) int array
-        Sender of every event.
-    n_senders : int
-    jitter : float
-        Clock jitter std per (receiver, event), s (simulated or declared).
-
-    Returns
-    -------
-    float
-        Noise std, s (NaN when nothing was detected).
-    """
-    f0, f1 = float(band[0]), float(band[1])
-    f = np.linspace(f0, f1, 1025)
-    w = np.sin(np.pi * (f - f0) / max(f1 - f0, 1e-12)) ** 2
-    f_rms = float(np.sqrt(np.sum(f * f * w) / np.sum(w)))
-    q = np.asarray(quality_db, dtype=float)
-    mf = 1.0 / (2.0 * np.pi * f_rms * 10.0 ** (q / 20.0))
-    var_e = np.maximum(MF_FACTOR * mf, TIMING_FLOOR) ** 2 + float(jitter) ** 2
-    var_e = np.where(np.isfinite(q), var_e, np.nan)
-    entries: list[Array] = []
-    for j in range(int(n_senders)):
-        cols = var_e[:, np.asarray(event_senders) == j]
-        if cols.shape[1]:
-            cnt = np.isfinite(cols).sum(axis=1)
-            ok = cnt > 0
-            entries.append(np.nansum(cols, axis=1)[ok] / cnt[ok] ** 2)
-    allv = np.concatenate(entries) if entries else np.array([])
-    return float(np.sqrt(np.mean(allv))) if allv.size else float("nan")
-
-
-def fit_test(T: Array, solution: dict[str, Any], speed: float, noise: float) -> Any:
-    """Chi-square residual test (:func:`selfcal.toa.residual_test`) of a calibrated solution.
-
-    Residuals ``t_ij - |r_i - s_j| / c - delta_i - tau_j`` (004 eq. 3.1) over the observed
-    entries of the (I, J) matrix ``T`` (s); parameters: the coordinates of the solution's
-    dimension up to a rigid motion (2-D for ``"2d"`` and ``"2d+heights"``, whose z is given)
-    plus I + J - 1 offsets. Returns a :class:`selfcal.toa.ResidualTest`.
-    """
-    from ..toa.solve import n_parameters, residual_test
-
-    r, s = np.asarray(solution["receivers"], float), np.asarray(solution["sources"], float)
-    pred = (np.linalg.norm(r[:, None, :] - s[None, :, :], axis=-1) / speed
-            + np.asarray(solution["receiver_offsets"], float)[:, None]
-            + np.asarray(solution["source_offsets"], float)[None, :])
-    dim = 2 if str(solution["method"]).startswith("2d") else r.shape[1]
-    return residual_test(np.asarray(T, float) - pred, noise, n_parameters(r.shape[0], s.shape[0], dim, "both"))
+SPEED_NOTE = ("scale: with unknown offsets the scale of the geometry comes from the speed of sound "
+              "({c:.2f} m/s): a 1 % error in c scales every distance by 1 %")
+BIAS_NOTE = ("a timing bias common to every detection (a probe differing from the declared one, a loudspeaker's "
+             "group delay) is invisible in the residuals and lands in the onsets")
 
 
 def sender_matrix(toa: Array, event_senders: NDArray[np.int64], n_senders: int) -> Array:
@@ -152,229 +92,6 @@ def sender_matrix(toa: Array, event_senders: NDArray[np.int64], n_senders: int) 
     return out
 
 
-def read_heights(path: str | Path, receivers: tuple[str, ...], senders: tuple[str, ...]) -> tuple[Array, Array]:
-    """Read known heights: JSON ``{"receivers": [...] | {name: z}, "senders": ...}`` in metres.
-
-    Raises
-    ------
-    InputError
-        Missing keys, wrong lengths, unknown names or non-finite values (file and field named).
-    """
-    from ..io import read_json
-
-    p = Path(path)
-    raw = read_json(p, p.name)
-    if not isinstance(raw, dict):
-        raise InputError(f"{p.name}: expected an object with fields 'receivers' and 'senders'")
-    out = []
-    for key, names in (("receivers", receivers), ("senders", senders)):
-        if key not in raw:
-            raise InputError(f"{p.name}: field '{key}' is missing")
-        val = raw[key]
-        if isinstance(val, dict):
-            unknown = set(val) - set(names)
-            if unknown:
-                raise InputError(f"{p.name}: field '{key}' names unknown {sorted(unknown)[0]!r}")
-            missing = [n for n in names if n not in val]
-            if missing:
-                raise InputError(f"{p.name}: field '{key}' lacks {missing[0]!r}")
-            val = [val[n] for n in names]
-        try:
-            z = np.asarray(val, dtype=float)
-        except (TypeError, ValueError):
-            raise InputError(f"{p.name}: field '{key}' must be numbers (metres)") from None
-        if z.shape != (len(names),) or not np.isfinite(z).all():
-            raise InputError(f"{p.name}: field '{key}' must hold {len(names)} finite heights, got shape {z.shape}")
-        out.append(z)
-    return out[0], out[1]
-
-
-def _heights_jacobian(xy_r: Array, xy_s: Array, dz: Array, rows: NDArray[np.intp], cols: NDArray[np.intp],
-                      I: int, J: int) -> Any:
-    import scipy.sparse as sp
-
-    diff = xy_r[rows] - xy_s[cols]
-    dist = np.sqrt((diff**2).sum(axis=1) + dz[rows, cols] ** 2)
-    g = diff / np.maximum(dist, 1e-9)[:, None]
-    m = len(rows)
-    n_xy = 2 * (I + J)
-    # Parameter order: receiver xy (2I), sender xy (2J), receiver offsets (I), sender offsets 2..J.
-    r_idx = np.repeat(np.arange(m), 6)
-    c_idx = np.column_stack([2 * rows, 2 * rows + 1, 2 * I + 2 * cols, 2 * I + 2 * cols + 1,
-                             n_xy + rows, n_xy + I + cols - 1])
-    vals = np.column_stack([-g[:, 0], -g[:, 1], g[:, 0], g[:, 1], -np.ones(m), -np.ones(m)])
-    keep = ~((c_idx == n_xy + I - 1) & (np.arange(6) == 5)[None, :])  # sender 0's offset is the gauge
-    Jm = sp.csr_matrix((vals[keep], (r_idx[keep.ravel()], c_idx[keep])), shape=(m, n_xy + I + J - 1))
-    return Jm, dist
-
-
-def _levenberg_marquardt(resid: Any, jac: Any, theta0: Array, max_iterations: int,
-                         tol: float = 1e-12) -> tuple[Array, Array, Any, int, bool]:
-    """Minimise ``|resid(theta)|^2`` by Levenberg-Marquardt on the sparse normal equations.
-
-    Marquardt's scaling ``A + mu diag(A)`` keeps the gauge null space (rigid motions) from
-    making the step singular; the problems here have a few hundred unknowns, so the
-    normal matrix is solved densely.
-    """
-    theta = theta0.copy()
-    r = resid(theta)
-    cost = float(r @ r)
-    mu = 1e-3
-    converged = False
-    it = 0
-    Jm = jac(theta)
-    while it < max_iterations:
-        it += 1
-        A = (Jm.T @ Jm).toarray()
-        g = Jm.T @ r
-        diag = np.diag(A).copy()
-        diag[diag <= 0] = 1.0
-        improved = False
-        for _ in range(30):
-            try:
-                step = -np.linalg.solve(A + mu * np.diag(diag), g)
-            except np.linalg.LinAlgError:
-                mu *= 10.0
-                continue
-            trial = theta + step
-            r_new = resid(trial)
-            c_new = float(r_new @ r_new)
-            if c_new < cost:
-                improved = True
-                break
-            mu *= 10.0
-        if not improved:
-            converged = True  # no descent direction left: a stationary point
-            break
-        done = cost - c_new <= tol * max(cost, 1e-300) or np.linalg.norm(step) <= tol * (1 + np.linalg.norm(theta))
-        theta, r, cost = trial, r_new, c_new
-        mu = max(mu / 10.0, 1e-12)
-        Jm = jac(theta)
-        if done:
-            converged = True
-            break
-    return theta, r, Jm, it, converged
-
-
-def _gauge_pinv(N: Array, xr: Array, xs: Array) -> Array:
-    """Pseudo-inverse of the normal matrix whose null space is the horizontal rigid motions.
-
-    With ``G`` an orthonormal basis of that null space (x and y translations and the
-    rotation about z of every horizontal coordinate; offsets are untouched),
-    ``N^+ = (N + G G^T)^-1 - G G^T`` -- one Cholesky instead of an eigendecomposition.
-    """
-    from scipy.linalg import cho_factor, cho_solve
-
-    n = N.shape[0]
-    pts = np.vstack([xr, xs])
-    k = 2 * len(pts)
-    G = np.zeros((n, 3))
-    G[0:k:2, 0] = 1.0
-    G[1:k:2, 1] = 1.0
-    centred = pts - pts.mean(axis=0)
-    G[0:k:2, 2] = -centred[:, 1]
-    G[1:k:2, 2] = centred[:, 0]
-    G, _ = np.linalg.qr(G)
-    GG = G @ G.T
-    scale = float(np.mean(np.diag(N))) or 1.0
-    # Scaling G G^T like N keeps the sum well conditioned; N^+ = (N + a G G^T)^-1 - G G^T / a.
-    factor = cho_factor(N + scale * GG)
-    return cho_solve(factor, np.eye(n)) - GG / scale
-
-
-def refine_known_heights(
-    matrix: Array,
-    receiver_heights: Array,
-    sender_heights: Array,
-    receivers_xy: Array,
-    senders_xy: Array,
-    receiver_offsets: Array,
-    source_offsets: Array,
-    *,
-    speed: float,
-    max_iterations: int = 50,
-) -> dict[str, Any]:
-    """Least squares for horizontal positions and offsets with every height known.
-
-    Minimises ``sum_ij (c t_ij - sqrt(|x_i - y_j|^2 + (z_i - w_j)^2) - c delta_i - c tau_j)^2``
-    (004 eq. 3.1 with the heights z_i, w_j given) over the (I + J) x 2 horizontal
-    positions, the I internal delays and the onsets tau_2..tau_J (tau_1 = 0, 004 sec. 3.3).
-    The horizontal gauge (rotation, translation, reflection) stays free; the covariance is
-    ``sigma^2 (J^T J)^+`` (minimum-norm inner constraints).
-
-    Parameters
-    ----------
-    matrix : (I, J) array
-        TOA in seconds, NaN = missing.
-    receiver_heights, sender_heights : (I,), (J,) arrays, m
-    receivers_xy, senders_xy : (I, 2), (J, 2) arrays
-        Initial horizontal positions, m.
-    receiver_offsets, source_offsets : (I,), (J,) arrays
-        Initial delays / onsets, s (shifted so that the first onset is 0).
-    speed : float
-        m/s.
-
-    Returns
-    -------
-    dict
-        ``receivers`` (I, 3), ``sources`` (J, 3), ``receiver_offsets`` (I,) s,
-        ``source_offsets`` (J,) s (first 0), ``receiver_cov`` (I, 3, 3), ``source_cov``
-        (J, 3, 3) (zero z variance: heights are given), ``residual_rms`` (s),
-        ``converged``, ``iterations``.
-    """
-    T = np.asarray(matrix, dtype=float)
-    I, J = T.shape
-    rows, cols = np.nonzero(np.isfinite(T))
-    y = speed * T[rows, cols]
-    dz = np.asarray(receiver_heights, float)[:, None] - np.asarray(sender_heights, float)[None, :]
-    shift = float(source_offsets[0])
-    theta0 = np.concatenate([np.asarray(receivers_xy, float).ravel(), np.asarray(senders_xy, float).ravel(),
-                             speed * (np.asarray(receiver_offsets, float) + shift),
-                             speed * (np.asarray(source_offsets, float)[1:] - shift)])
-    n_xy = 2 * (I + J)
-
-    def unpack(th: Array) -> tuple[Array, Array, Array, Array]:
-        xr = th[: 2 * I].reshape(I, 2)
-        xs = th[2 * I: n_xy].reshape(J, 2)
-        dr = th[n_xy: n_xy + I]
-        ds = np.concatenate([[0.0], th[n_xy + I:]])
-        return xr, xs, dr, ds
-
-    def resid(th: Array) -> Array:
-        xr, xs, dr, ds = unpack(th)
-        dist = np.sqrt(((xr[rows] - xs[cols]) ** 2).sum(axis=1) + dz[rows, cols] ** 2)
-        return y - dist - dr[rows] - ds[cols]
-
-    def jac(th: Array) -> Any:
-        xr, xs, _, _ = unpack(th)
-        return _heights_jacobian(xr, xs, dz, rows, cols, I, J)[0]
-
-    theta, r, Jm, iterations, converged = _levenberg_marquardt(resid, jac, theta0, max_iterations)
-    xr, xs, dr, ds = unpack(theta)
-    m, n = len(r), len(theta)
-    dof = max(m - n + 3, 1)  # 3 = horizontal rigid-motion gauge freedoms
-    sigma2 = float(r @ r) / dof
-    cov = sigma2 * _gauge_pinv((Jm.T @ Jm).toarray(), xr, xs)
-    rcov = np.zeros((I, 3, 3))
-    scov = np.zeros((J, 3, 3))
-    for i in range(I):
-        rcov[i, :2, :2] = cov[2 * i: 2 * i + 2, 2 * i: 2 * i + 2]
-    for j in range(J):
-        k = 2 * I + 2 * j
-        scov[j, :2, :2] = cov[k: k + 2, k: k + 2]
-    return {
-        "receivers": np.column_stack([xr, receiver_heights]),
-        "sources": np.column_stack([xs, sender_heights]),
-        "receiver_offsets": dr / speed,
-        "source_offsets": ds / speed,
-        "receiver_cov": rcov,
-        "source_cov": scov,
-        "residual_rms": float(np.sqrt(np.mean(r**2))) / speed,
-        "converged": converged,
-        "iterations": iterations,
-    }
-
-
 @dataclass(frozen=True)
 class PipelineResult:
     """Positions, delays and onsets from a recording directory.
@@ -382,13 +99,14 @@ class PipelineResult:
     Attributes
     ----------
     receivers : (I, d) array
-        Microphone positions, m (d = 3, or 2 for a near-planar layout without heights).
+        Microphone positions, m (d = 3, or 2 for a near-planar layout without heights);
+        NaN rows for dropped microphones.
     sources : (J, d) array
-        Loudspeaker positions, m.
+        Loudspeaker positions, m (NaN rows for dropped loudspeakers).
     receiver_offsets : (I,) array
         Internal delays, s.
     source_offsets : (J,) array
-        Onset times, s, the first 0 (only differences are observable).
+        Onset times, s, the first kept one 0 (only differences are observable).
     receiver_cov, source_cov : (I, d, d), (J, d, d) arrays
         Position covariances, m^2.
     residual_rms : float
@@ -398,7 +116,7 @@ class PipelineResult:
     method : str
         ``"3d"``, ``"2d"`` or ``"2d+heights"`` plus the TOA solver's method.
     toa_matrix : (I, E) array
-        Detected TOA per (receiver, event), s, NaN = missed.
+        TOA per (receiver, event) used by the fit, s, NaN = missed or excluded.
     detections_missed : int
     quality_db : (I, E) array
     planarity : Planarity or None
@@ -407,12 +125,28 @@ class PipelineResult:
     receiver_names, sender_names : tuple of str
     speed_of_sound : float
     notes : tuple of str
-        Warnings a reader must see (near-planar layout, a failed residual test, ...).
     fit : ResidualTest or None
-        Chi-square test of the final residuals against ``timing_noise`` (:func:`fit_test`):
-        chi2, dof, p-value; ``failed`` when it rejects (p < 1e-3).
+        Chi-square test of the final residuals against ``timing_noise``.
     timing_noise : float
-        Noise std used by the test, s (:func:`timing_noise`).
+        Noise std used by the test, s.
+    fit_binding : bool
+        Kept for compatibility: the residual test always counts (also after a 2-D fallback).
+    outliers : tuple of Outlier
+        Detections excluded (or re-detected) by the robust fit.
+    dropped_receivers, dropped_senders : tuple of str
+        Names of the units left out (not enough detections).
+    error_bars : ErrorBars or None
+        Position, delay, onset and pair-offset stds.
+    verdict : Verdict or None
+        004 requirements judged from the error bars (:func:`selfcal.acoustics.verdict.judge`).
+    rounds : int
+        Events per sender (the smallest count).
+    event_senders : (E,) int array or None
+        Sender of every event (columns of ``toa_matrix``).
+    matrix_std : (I, J) array or None
+        Noise-model std of the per-sender TOA matrix, s.
+    timings_cpu : dict
+        CPU seconds of this process per stage (comparable on a shared machine).
     """
 
     receivers: Array
@@ -437,15 +171,43 @@ class PipelineResult:
     fit: Any = None
     timing_noise: float = float("nan")
     fit_binding: bool = True
+    outliers: tuple[Outlier, ...] = field(default=())
+    dropped_receivers: tuple[str, ...] = field(default=())
+    dropped_senders: tuple[str, ...] = field(default=())
+    error_bars: ErrorBars | None = None
+    verdict: Verdict | None = None
+    rounds: int = 1
+    event_senders: NDArray[np.int64] | None = None
+    matrix_std: Array | None = None
+    timings_cpu: dict[str, float] = field(default_factory=dict)
 
     @property
     def failed(self) -> bool:
-        """True when the residual test rejected the calibration (positions not reliable).
+        """True when the calibration does not meet its own test or 004's requirements.
 
-        Not for the automatic near-planar 2-D fallback (``fit_binding`` False): its model
-        ignores the small heights the F test found insignificant, so its chi2 is informative only.
+        The residual test rejected the fit, or the error bars miss 10 cm / 58 us at 2 sigma,
+        or they could not be judged (:attr:`verdict`).
         """
-        return bool(self.fit_binding and self.fit is not None and not self.fit.passed)
+        if self.verdict is not None:
+            return not self.verdict.passed
+        return bool(self.fit is not None and not self.fit.passed)
+
+    @property
+    def success(self) -> bool:
+        """``not failed``."""
+        return not self.failed
+
+    @property
+    def status(self) -> int:
+        """0 = trustworthy, 1 = failed its own test (the CLI's exit status)."""
+        return int(self.failed)
+
+    @property
+    def message(self) -> str:
+        """The verdict in one line."""
+        if self.verdict is None or self.verdict.passed:
+            return "calibration meets the 004 requirements by its own error bars"
+        return "; ".join(self.verdict.reasons)
 
     @property
     def dim(self) -> int:
@@ -463,277 +225,22 @@ class PipelineResult:
             "toa_matrix": self.toa_matrix, "detections_missed": self.detections_missed,
             "quality_db": self.quality_db,
             "planarity": None if self.planarity is None else self.planarity.to_dict(),
-            "timings": self.timings, "receiver_names": list(self.receiver_names),
+            "timings": self.timings, "timings_cpu": self.timings_cpu, "receiver_names": list(self.receiver_names),
             "sender_names": list(self.sender_names), "speed_of_sound": self.speed_of_sound,
             "notes": list(self.notes),
             "fit": None if self.fit is None else self.fit.to_dict(), "failed": self.failed,
+            "status": self.status, "success": self.success, "message": self.message,
             "timing_noise": self.timing_noise,
+            "outliers": [o.to_dict() for o in self.outliers],
+            "dropped_receivers": list(self.dropped_receivers), "dropped_senders": list(self.dropped_senders),
+            "error_bars": None if self.error_bars is None else self.error_bars.to_dict(),
+            "verdict": None if self.verdict is None else self.verdict.to_dict(),
+            "rounds": self.rounds,
+            "event_senders": None if self.event_senders is None else [int(j) for j in self.event_senders],
         }
 
 
-def _solve(T: Array, dim: int, speed: float, rng: int, init: Any = "auto", noise: float | None = None) -> Any:
-    try:
-        from ..toa import solve_toa
-    except ImportError:  # the package re-export may lag behind the module
-        from ..toa.solve import solve_toa
-
-    if isinstance(init, str):
-        return solve_toa(T, dim=dim, offsets="both", speed=speed, rng=rng, noise=noise)
-    return solve_toa(T, dim=dim, offsets="both", speed=speed, rng=rng, init=init, method="nls")
-
-
-def _solve_retrying(T: Array, speed: float, rng: int, attempts: int = 3, noise: float | None = None) -> Any:
-    """3-D solve; a node that turns unobservable on the way (e.g. a microphone crossing the
-    plane of coplanar loudspeakers during the iterations) gets new random starts."""
-    for k in range(attempts):
-        try:
-            return _solve(T, 3, speed, rng + 1000 * k, noise=noise)
-        except DegenerateGeometryError as exc:
-            if exc.kind != "unobservable-node" or k == attempts - 1:
-                raise
-    raise AssertionError("unreachable")  # pragma: no cover
-
-
-def one_side_of_plane(points: Array, cov: NDArray[np.float64], plane_points: Array) -> tuple[Array, NDArray[np.float64], int]:
-    """Reflect ``points`` onto the majority side of the plane fitted to ``plane_points``.
-
-    When every sender lies in one plane (loudspeakers in desk units on a flat floor),
-    each receiver's distances to all senders are unchanged by reflecting that receiver
-    alone through the plane: 2^I solutions fit equally well, and a solver may return a
-    mix (some microphones under the desk). Self-calibration cannot tell them apart; the
-    physical convention that all microphones are on one side (above their desk
-    loudspeakers) picks one, and the global reflection gauge does the rest. The same
-    holds with the roles swapped.
-
-    Parameters
-    ----------
-    points : (n, 3) array
-    cov : (n, 3, 3) array
-    plane_points : (m, 3) array
-
-    Returns
-    -------
-    points, cov : reflected where needed (covariance ``H C H``, ``H = I - 2 n n^T``)
-    flipped : int
-        How many points were reflected.
-    """
-    centre = plane_points.mean(axis=0)
-    normal = np.linalg.svd(plane_points - centre, full_matrices=False)[2][-1]
-    h = (points - centre) @ normal
-    side = 1.0 if np.sum(h) >= 0 else -1.0
-    flip = np.sign(h) == -side
-    H = np.eye(3) - 2.0 * np.outer(normal, normal)
-    out = points.copy()
-    out[flip] = points[flip] - 2.0 * h[flip, None] * normal[None, :]
-    C = np.array(cov, dtype=float)
-    C[flip] = np.einsum("ab,nbc,cd->nad", H, C[flip], H)
-    return out, C, int(flip.sum())
-
-
-def _resolve_mirrors(T: Array, res: Any, speed: float, rng: int, notes: list[str]) -> Any:
-    """Apply :func:`one_side_of_plane` when receivers or senders alone are (near-)coplanar."""
-    r, s = np.asarray(res.receivers, float), np.asarray(res.sources, float)
-    rc, sc = np.asarray(res.receiver_cov, float), np.asarray(res.source_cov, float)
-    flipped = 0
-    if planarity(s, sc).near_planar and not planarity(r, rc).near_planar:
-        r, rc, flipped = one_side_of_plane(r, rc, s)
-        what = "microphones", "loudspeakers"
-    elif planarity(r, rc).near_planar and not planarity(s, sc).near_planar:
-        s, sc, flipped = one_side_of_plane(s, sc, r)
-        what = "loudspeakers", "microphones"
-    else:
-        return res
-    notes.append(f"the {what[1]} are coplanar, so each {what[0][:-1]}'s side of their plane is not observable; "
-                 f"all {what[0]} were put on one side ({flipped} reflected)")
-    if flipped == 0:
-        return res
-    return _solve(T, 3, speed, rng, init=(r, s, np.asarray(res.receiver_offsets), np.asarray(res.source_offsets)))
-
-
-def _normalise_offsets(dr: Array, ds: Array) -> tuple[Array, Array]:
-    """Shift the common offset so that the first onset is 0 (004 sec. 3.3, tau_1 = 0)."""
-    a = float(ds[0])
-    return dr + a, ds - a
-
-
-def calibrate_matrix(
-    T: Array,
-    *,
-    speed: float,
-    dim: int | str = "auto",
-    heights: tuple[Array, Array] | None = None,
-    rng: int = 0,
-    alpha: float = PLANAR_ALPHA,
-    noise: float | None = None,
-) -> tuple[dict[str, Any], Planarity | None, list[str]]:
-    """Stages 2 + 3 of 004 on an (I, J) per-sender TOA matrix (seconds).
-
-    The 3-D model contains every planar network, so z is determined only when a 3-D fit
-    explains the data significantly better than a 2-D one. Both are always fitted and
-    compared by the nested-model F test of :func:`compare_fits` (Gaussian TOA noise, the
-    noise level estimated from the 3-D residual); a 3-D answer in a worse basin than the
-    planar one is first refined from the lifted 2-D solution, so the verdict does not
-    depend on the solver's random starts. A 3-D answer that passes the test must also
-    resolve its own thickness (:func:`planarity` with the covariances).
-
-    Parameters
-    ----------
-    T : (I, J) array
-        ``t_ij = |r_i - s_j| / c + tau_j + delta_i``, s, NaN = missing.
-    speed : float
-        m/s.
-    dim : 2, 3 or "auto"
-        "auto": 3-D, or 2-D if the layout is near-planar (F test or :func:`planarity`).
-        An explicit 3 on a near-planar layout raises.
-    heights : (receiver heights (I,), sender heights (J,)), optional
-        Known heights, m: 2-D initialisation, then :func:`refine_known_heights`; the
-        result is 3-D with z = the given heights.
-    rng : int
-        Seed of the solver's random initialisations.
-    alpha : float
-        Significance level of the F test: 3-D is kept only when a 3-D improvement as large
-        as the observed one has probability below ``alpha`` under a planar truth.
-    noise : float, optional
-        Timing-noise std, s (:func:`timing_noise`): passed to :func:`selfcal.toa.solve_toa`,
-        whose deep search then runs when a fit fails the residual test.
-
-    Returns
-    -------
-    solution : dict
-        Keys of :func:`refine_known_heights` plus ``method``.
-    planarity : Planarity or None
-        With the 2-D / 3-D comparison in ``comparison``.
-    notes : list of str
-        Verdicts a reader must see (near-planar fallback, z uncertainty of a 3-D answer).
-
-    Raises
-    ------
-    DegenerateGeometryError
-        ``kind="near-planar"`` when ``dim=3`` is asked of a near-planar layout.
-    """
-    notes: list[str] = []
-    if heights is not None:
-        init = _solve(T, 2, speed, rng)
-        dr, ds = _normalise_offsets(np.asarray(init.receiver_offsets), np.asarray(init.source_offsets))
-        sol = refine_known_heights(T, heights[0], heights[1], init.receivers, init.sources, dr, ds, speed=speed)
-        sol["method"] = f"2d+heights ({init.method} init)"
-        return sol, None, notes
-    if dim not in (2, 3, "auto"):
-        raise InputError(f"dim must be 2, 3 or 'auto', got {dim!r}")
-    if dim == 2:
-        return _as_solution(_solve(T, 2, speed, rng), "2d"), None, notes
-    advice = "give known heights (--heights) for 3-D positions or use --dim 2"
-    res2 = _try_solve(T, 2, speed, rng, noise=noise)
-    try:
-        res3 = _solve_retrying(T, speed, rng, noise=noise)
-    except DegenerateGeometryError as exc:
-        res3 = _refit_from_planar(T, res2, speed, rng) if res2 is not None else None
-        if res3 is None:
-            # A 3-D solve that breaks down on data a 2-D solve fits (within half the 004
-            # timing tolerance) means the layout is (numerically) planar.
-            if res2 is None or not res2.residual_rms < 0.5 * TIMING_REQUIREMENT:
-                raise
-            pts2 = np.vstack([res2.receivers, res2.sources])
-            plan = Planarity(True, np.append(planarity(pts2).extents, 0.0), np.array([0.0, 0.0, 1.0]),
-                             float("nan"))
-            msg = (f"near-planar layout: the 3-D calibration is undetermined ({exc}) while a 2-D one fits "
-                   f"(residual {res2.residual_rms * 1e6:.2f} us); z is not determined by the data, {advice}")
-            return _planar_verdict(res2, plan, msg, dim, notes)
-    if res2 is not None and res3.residual_rms > res2.residual_rms:
-        # Worse than the nested planar model: a local minimum of the 3-D cost. Restart from
-        # the planar solution so that the comparison is between the two models, not basins.
-        alt = _refit_from_planar(T, res2, speed, rng)
-        if alt is not None and alt.residual_rms < res3.residual_rms:
-            res3 = alt
-    cmp = None
-    if res2 is not None:
-        I, J = T.shape
-        m = int(np.isfinite(T).sum())
-        cmp = compare_fits(res2.residual_rms, res3.residual_rms, m, I + J, alpha=alpha)
-        if not cmp.significant:
-            pts2 = np.vstack([res2.receivers, res2.sources])
-            plan = Planarity(True, np.append(planarity(pts2).extents, 0.0), np.array([0.0, 0.0, 1.0]),
-                             float("nan"), cmp)
-            msg = (f"near-planar layout: a 3-D fit is no significantly better than a 2-D one "
-                   f"(residual {res3.residual_rms * 1e6:.3g} vs {res2.residual_rms * 1e6:.3g} us, "
-                   f"F = {cmp.f_statistic:.3g}, p = {cmp.p_value:.3g} >= {alpha:g}); "
-                   f"z is not determined by the data, {advice}")
-            return _planar_verdict(res2, plan, msg, dim, notes)
-    res3 = _resolve_mirrors(T, res3, speed, rng, notes)
-    pts = np.vstack([res3.receivers, res3.sources])
-    cov = np.concatenate([np.asarray(res3.receiver_cov), np.asarray(res3.source_cov)])
-    plan = planarity(pts, cov)
-    plan = Planarity(plan.near_planar, plan.extents, plan.normal, plan.normal_std, cmp)
-    if not plan.near_planar:
-        notes.append(_z_note(cov, cmp))
-        return _as_solution(res3, "3d"), plan, notes
-    msg = (f"near-planar layout (thickness {plan.extents[-1]:.3f} m vs extent {plan.extents[0]:.2f} m, "
-           f"normal std {plan.normal_std:.3f} m): z is not determined by the data; {advice}")
-    if res2 is None:
-        if dim == 3:
-            raise DegenerateGeometryError(msg, kind="near-planar")
-        res2 = _solve(T, 2, speed, rng)
-    return _planar_verdict(res2, plan, msg, dim, notes)
-
-
-def _planar_verdict(res2: Any, plan: Planarity, msg: str, dim: int | str,
-                    notes: list[str]) -> tuple[dict[str, Any], Planarity, list[str]]:
-    """Raise for an explicit ``dim=3``; otherwise warn and report the 2-D solution."""
-    if dim == 3:
-        raise DegenerateGeometryError(msg, kind="near-planar")
-    warnings.warn(msg + "; reporting 2-D positions", stacklevel=3)
-    notes.append(msg + "; reported 2-D positions")
-    return _as_solution(res2, "2d"), plan, notes
-
-
-def _z_note(cov: NDArray[np.float64], cmp: ModelComparison | None) -> str:
-    """The z uncertainty of a kept 3-D answer, from its covariances (1 sigma)."""
-    zvar = cov[:, 2, 2]
-    zstd = np.sqrt(zvar[np.isfinite(zvar) & (zvar >= 0)])
-    why = ("" if cmp is None else
-           f"3-D fits significantly better than 2-D (F = {cmp.f_statistic:.3g}, p = {cmp.p_value:.2g}); ")
-    if not zstd.size:
-        return why + "z standard deviations are not available"
-    return why + f"z standard deviation median {np.median(zstd) * 1e3:.2g} mm, max {zstd.max() * 1e3:.2g} mm"
-
-
-def _try_solve(T: Array, dim: int, speed: float, rng: int, noise: float | None = None) -> Any:
-    try:
-        return _solve(T, dim, speed, rng, noise=noise)
-    except DegenerateGeometryError:
-        return None
-
-
-def _refit_from_planar(T: Array, res2: Any, speed: float, rng: int) -> Any:
-    """3-D refinement started from the 2-D solution lifted to z = small random heights.
-
-    Exactly in the plane the out-of-plane gradient is zero, so the start is lifted by a
-    random z of 1 % of the layout's extent; a thick network then leaves the plane, a flat
-    one stays or turns unobservable (None).
-    """
-    pts = np.vstack([res2.receivers, res2.sources])
-    scale = 0.01 * float(np.ptp(pts, axis=0).max() or 1.0)
-    g = np.random.default_rng(rng)
-    lift = [np.column_stack([a, g.normal(0.0, scale, len(a))]) for a in (res2.receivers, res2.sources)]
-    try:
-        return _solve(T, 3, speed, rng, init=(lift[0], lift[1], np.asarray(res2.receiver_offsets),
-                                                np.asarray(res2.source_offsets)))
-    except DegenerateGeometryError:
-        return None
-
-
-def _as_solution(res: Any, label: str) -> dict[str, Any]:
-    dr, ds = _normalise_offsets(np.asarray(res.receiver_offsets, float), np.asarray(res.source_offsets, float))
-    return {
-        "receivers": np.asarray(res.receivers, float), "sources": np.asarray(res.sources, float),
-        "receiver_offsets": dr, "source_offsets": ds,
-        "receiver_cov": np.asarray(res.receiver_cov, float), "source_cov": np.asarray(res.source_cov, float),
-        "residual_rms": float(res.residual_rms), "converged": bool(res.converged),
-        "iterations": int(getattr(res, "iterations", 0)), "method": f"{label} ({res.method})",
-    }
-
-
-@entry(rng="rng", jitter="nonnegative?")
+@entry(rng="rng", jitter="nonnegative?", speed_of_sound="positive?")
 def run_pipeline(
     directory: str | Path,
     *,
@@ -743,6 +250,7 @@ def run_pipeline(
     rng: int = 0,
     detect_options: dict[str, Any] | None = None,
     jitter: float | None = None,
+    speed_of_sound: float | None = None,
 ) -> PipelineResult:
     """Recordings -> arrival times -> onsets, delays and positions (004, all three stages).
 
@@ -764,6 +272,8 @@ def run_pipeline(
         Clock jitter std per (receiver, event), s, part of the timing noise of the residual
         test (:func:`timing_noise`); default: the ``clock_jitter`` declared in setup.json (0
         when absent). Never taken from ``truth.json``.
+    speed_of_sound : float, optional
+        m/s; default the setup's (``speed_of_sound``, or from ``temperature``).
 
     Returns
     -------
@@ -776,117 +286,120 @@ def run_pipeline(
     DegenerateGeometryError
         Too few detections for the unknowns, or ``dim=3`` on a near-planar layout.
     """
-    from .detect import detect_recording
+    from .detect import detect_recording, redetect_arrivals
     from .recording import load_recording
 
     timings: dict[str, float] = {}
-    t0 = time.perf_counter()
+    cpu: dict[str, float] = {}
+    t0, c0 = time.perf_counter(), time.process_time()
     rec = load_recording(directory)
     setup = rec.setup
     timings["load"] = time.perf_counter() - t0
+    cpu["load"] = time.process_time() - c0
     # validated before the (slow) detection: bad input fails fast
     if jitter is None:
         jitter = setup.clock_jitter
     if not np.isfinite(jitter) or jitter < 0:
         raise InputError(f"jitter must be a finite standard deviation >= 0 s, got {jitter!r}")
+    speed = float(setup.speed_of_sound if speed_of_sound is None else speed_of_sound)
+    if not np.isfinite(speed) or speed <= 0:
+        raise InputError(f"speed of sound must be a positive number of m/s, got {speed_of_sound!r}")
     hz = None
     if heights is not None:
         hz = (read_heights(heights, setup.receivers, setup.senders) if isinstance(heights, (str, Path))
               else (np.asarray(heights[0], float), np.asarray(heights[1], float)))
         if hz[0].shape != (len(setup.receivers),) or hz[1].shape != (len(setup.senders),):
             raise InputError("heights: need one height per receiver and per sender")
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     det = detect_recording(rec, progress=progress, **(detect_options or {}))
     timings["detect"] = time.perf_counter() - t0
-    T = sender_matrix(det.toa, setup.event_senders, len(setup.senders))
-    if np.isnan(T).all():
+    cpu["detect"] = time.process_time() - c0
+    es = setup.event_senders
+    J = len(setup.senders)
+    if np.isnan(det.toa).all():
         raise DegenerateGeometryError("no arrival was detected in any recording; check the probe and levels",
                                       kind="no-detections")
-    noise = timing_noise(det.quality_db, rec.probe.band, setup.event_senders, len(setup.senders), jitter=jitter)
-    t0 = time.perf_counter()
-    sol, plan, notes = calibrate_matrix(T, speed=setup.speed_of_sound, dim=dim, heights=hz, rng=rng,
-                                        noise=noise if np.isfinite(noise) else None)
+    fs = setup.sample_rate
+    std_e = detection_std(det.quality_db, rec.probe.band, jitter=jitter, sample_rate=fs)
+    noise = timing_noise(np.where(np.isfinite(det.toa), det.quality_db, np.nan), rec.probe.band, es, J,
+                         jitter=jitter, sample_rate=fs)
+    counts = np.bincount(es, minlength=J)
+    rounds = int(counts[counts > 0].min()) if (counts > 0).any() else 1
+
+    def redetect(ri: NDArray[np.intp], ev: NDArray[np.intp], pred: Array, half: Array) -> tuple[Array, Array]:
+        t, q = redetect_arrivals(rec, det, ri, ev, pred, half)
+        s = detection_std(q[None, :], rec.probe.band, jitter=jitter, sample_rate=fs)[0]
+        return t, s
+
+    t0, c0 = time.perf_counter(), time.process_time()
+    robust = robust_calibrate(det.toa, std_e, es, J, speed=speed, dim=dim, heights=hz, rng=rng,
+                              noise=noise if np.isfinite(noise) else None, redetect=redetect,
+                              names=(setup.receivers, setup.senders))
+    sol, plan, notes = robust.solution, robust.planarity, list(robust.notes)
     timings["calibrate"] = time.perf_counter() - t0
-    fit = fit_test(T, sol, setup.speed_of_sound, noise) if np.isfinite(noise) else None
-    binding = not (plan is not None and plan.near_planar and str(sol["method"]).startswith("2d (")
-                   and hz is None and dim == "auto")
-    if fit is not None and not fit.passed and not binding:
-        notes.append(f"the 2-D fallback's residual test is informative only (chi2 {fit.chi2:.4g} on {fit.dof} dof): "
-                     "its model ignores the heights")
-    elif fit is not None and not fit.passed:
-        msg = (f"{FAIL_MESSAGE} (chi2 {fit.chi2:.4g} on {fit.dof} dof, p = {fit.p_value:.2g} < {fit.alpha:g}, "
-               f"timing noise {noise * 1e6:.3g} us): a wrong basin, bad detections or a larger noise than assumed")
-        warnings.warn(msg, stacklevel=2)
-        notes.append(msg)
+    cpu["calibrate"] = time.process_time() - c0
+    T, S = robust.matrix, robust.matrix_std
+    if setup.unit_offsets:
+        idx = [(setup.receivers.index(n), setup.senders.index(n), d) for n, d in setup.unit_offsets.items()]
+        ri = np.array([a for a, _, _ in idx])
+        sj = np.array([b for _, b, _ in idx])
+        Dk = np.array([c for _, _, c in idx])
+        good = np.isfinite(np.asarray(sol["receivers"])[ri]).all(axis=1) & np.isfinite(np.asarray(sol["sources"])[sj]).all(axis=1)
+        if good.any():
+            lam, lam_std = scale_from_distances(sol, ri[good], sj[good], Dk[good])
+            sol = apply_scale(sol, lam)
+            notes.append(f"scale from {int(good.sum())} known microphone-loudspeaker distances (unit_offsets): "
+                         f"effective speed of sound {speed * lam:.2f} +- {speed * lam_std:.2f} m/s "
+                         f"(assumed {speed:.2f} m/s, distances x {lam:.5f})")
+            speed = speed * lam
+    fit = None
+    kr = np.isfinite(np.asarray(sol["receivers"])).all(axis=1)
+    ks = np.isfinite(np.asarray(sol["sources"])).all(axis=1)
+    pred = _predict(sol, speed)
+    res_e = robust.toa - pred[:, es]
+    res_e[~kr] = np.nan
+    res_e[:, ~ks[es]] = np.nan
+    if np.isfinite(res_e).any():
+        fit = residual_check(res_e, robust.std, es, robust.n_params, cap=robust.threshold)
+    fit_reason = ""
+    if fit is not None and not fit.passed:
+        where = []
+        if fit.scale > fit.scale_limit:
+            where.append(f"residual scale {fit.scale:.3g} > {fit.scale_limit:.3g} of the noise model")
+        if fit.failed_receivers:
+            where.append("microphones " + ", ".join(setup.receivers[i] for i in fit.failed_receivers[:8]))
+        if fit.failed_senders:
+            where.append("loudspeakers " + ", ".join(setup.senders[j] for j in fit.failed_senders[:8]))
+        fit_reason = (f"{FAIL_MESSAGE} ({'; '.join(where)}; chi2 {fit.chi2:.4g} on {fit.dof} dof, "
+                      f"timing noise {noise * 1e6:.3g} us): a wrong basin, bad detections or a larger noise than "
+                      "assumed")
+        if str(sol["method"]).startswith("2d ("):
+            fit_reason += "; the 2-D model ignores the heights: give them with --heights"
+        warnings.warn(fit_reason, stacklevel=2)
+        notes.append(fit_reason)
+    bars = None
+    try:
+        bars = error_bars(T, S, np.asarray(sol["receivers"]), np.asarray(sol["sources"]), speed,
+                          free_z=hz is None and np.asarray(sol["receivers"]).shape[1] == 3,
+                          chi2_per_dof=(fit.chi2 / fit.dof) if fit is not None and fit.dof > 0 else 1.0)
+    except (np.linalg.LinAlgError, ValueError):
+        bars = None
+    labels = tuple(f"microphone {n}" for n in setup.receivers) + tuple(f"loudspeaker {n}" for n in setup.senders)
+    verdict = judge(bars, rounds=rounds, fit_failed=fit is not None and not fit.passed, fit_reason=fit_reason,
+                    names=labels)
+    if not setup.unit_offsets:
+        notes.append(SPEED_NOTE.format(c=speed))
+    notes.append(BIAS_NOTE)
+    dr = tuple(setup.receivers[i] for i in robust.dropped_receivers)
+    dsn = tuple(setup.senders[j] for j in robust.dropped_senders)
     return PipelineResult(
         receivers=sol["receivers"], sources=sol["sources"], receiver_offsets=sol["receiver_offsets"],
         source_offsets=sol["source_offsets"], receiver_cov=sol["receiver_cov"], source_cov=sol["source_cov"],
         residual_rms=sol["residual_rms"], converged=sol["converged"], iterations=sol["iterations"],
-        method=sol["method"], toa_matrix=det.toa, detections_missed=det.missed, quality_db=det.quality_db,
-        planarity=plan, timings=timings, receiver_names=setup.receivers, sender_names=setup.senders,
-        speed_of_sound=setup.speed_of_sound, notes=tuple(notes), fit=fit, timing_noise=noise,
-        fit_binding=binding,
+        method=sol["method"], toa_matrix=robust.toa, detections_missed=int(np.isnan(robust.toa).sum()),
+        quality_db=det.quality_db, planarity=plan, timings=timings, receiver_names=setup.receivers,
+        sender_names=setup.senders, speed_of_sound=speed, notes=tuple(notes), fit=fit, timing_noise=noise,
+        fit_binding=True, outliers=tuple(robust.outliers), dropped_receivers=dr, dropped_senders=dsn,
+        error_bars=bars, verdict=verdict, rounds=rounds, event_senders=np.asarray(es, dtype=np.int64),
+        matrix_std=S, timings_cpu=cpu,
     )
-
-
-def truth_errors(result: PipelineResult, truth: dict[str, Any]) -> dict[str, Any]:
-    """Errors of a pipeline result against a simulation's ``truth.json``.
-
-    Positions are aligned to the truth by a rigid motion with reflection (the gauge of
-    self-calibration), fitted on receivers and senders together; in 2-D the horizontal
-    coordinates are compared; with known heights only the horizontal plane is aligned.
-    Only the sums ``delta_i + tau_j`` of internal delays and onsets are observable (a common
-    shift between the two is not), and a sum is what biases a range (004 sec. 2.2: 58 us
-    = 2 cm). The timing error is therefore the error of the total offset of every
-    (receiver, sender) pair, ``|(delta_i^ + tau_j^) - (delta_i + tau_j)|``; the per-unit
-    ``delay_errors`` / ``onset_errors`` are shown after removing the best common shift.
-
-    Returns
-    -------
-    dict
-        ``position_errors`` (I + J,) m (receivers then senders), ``receiver_errors``,
-        ``sender_errors``, ``delay_errors`` (I,) s, ``onset_errors`` (J,) s, summary
-        ``position_median``, ``position_max``, ``timing_median``, ``timing_max`` (pair
-        offsets), ``delay_onset_max`` (per unit, common shift removed) and
-        ``pass_position``, ``pass_timing``, ``passed`` against 10 cm / 58 us (004).
-    """
-    from ..geometry import align
-
-    tr = np.asarray(truth["receivers"], float)
-    ts = np.asarray(truth["senders"], float)
-    er, es = result.receivers, result.sources
-    d = er.shape[1]
-    true_all = np.vstack([tr, ts])
-    est_all = np.vstack([er, es])
-    if d == 2 or result.method.startswith("2d+heights"):
-        al = align(est_all[:, :2], true_all[:, :2], reflection=True)
-        aligned = al.apply(est_all[:, :2])
-        if d == 3:
-            aligned = np.column_stack([aligned, est_all[:, 2]])
-        ref = true_all[:, : aligned.shape[1]]
-    else:
-        al = align(est_all, true_all, reflection=True)
-        aligned, ref = al.apply(est_all), true_all
-    perr = np.linalg.norm(aligned - ref, axis=1)
-    onset = np.asarray(truth["sender_onsets"], float)
-    delay = np.asarray(truth["receiver_delays"], float)
-    raw_de = result.receiver_offsets - delay
-    raw_on = result.source_offsets - onset
-    # Only delta_i + tau_j is observable: remove the common shift that fits best.
-    a = 0.5 * (float(np.nanmean(raw_de)) - float(np.nanmean(raw_on)))
-    e_de, e_on = raw_de - a, raw_on + a
-    pair = np.abs(raw_de[:, None] + raw_on[None, :])
-    I = len(tr)
-    out = {
-        "position_errors": perr, "receiver_errors": perr[:I], "sender_errors": perr[I:],
-        "delay_errors": e_de, "onset_errors": e_on,
-        "aligned_receivers": aligned[:I], "aligned_sources": aligned[I:],
-        "position_median": float(np.nanmedian(perr)), "position_max": float(np.nanmax(perr)),
-        "timing_median": float(np.nanmedian(pair)), "timing_max": float(np.nanmax(pair)),
-        "delay_onset_max": float(np.nanmax(np.abs(np.concatenate([e_de, e_on])))),
-        "horizontal_only": bool(d == 2),
-    }
-    out["pass_position"] = bool(out["position_max"] <= POSITION_REQUIREMENT)
-    out["pass_timing"] = bool(out["timing_max"] <= TIMING_REQUIREMENT)
-    out["passed"] = bool(out["pass_position"] and out["pass_timing"])
-    return out

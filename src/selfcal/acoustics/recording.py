@@ -4,7 +4,10 @@ Format (see ``docs/recording_format.md``)::
 
     DIR/setup.json
         sample_rate      Hz (positive integer)
-        speed_of_sound   m/s (optional, default 343)
+        speed_of_sound   m/s (optional, default 343; or from temperature / humidity)
+        temperature      degrees C (optional): c = 331.4 + 0.6 T + 0.0124 RH (pyroomacoustics)
+        humidity         relative humidity, % (optional, with temperature; default 0)
+        unit_offsets     {name: m} (optional): known distance from receiver <name> to sender <name>
         receivers        list of names; receiver i is DIR/rx_<name>.wav
         senders          list of names
         probe            {"type": "chirp", "f0": Hz, "f1": Hz, "duration": s} or {"wav": "probe.wav"}
@@ -31,6 +34,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from .._checks import guard_recording_setup
 from ..errors import InputError
 from ..io import atomic_write_bytes, write_json
 from .probe import Probe, probe_from_spec
@@ -44,6 +48,7 @@ __all__ = [
     "load_recording",
     "write_recording",
     "CLIP_RUN",
+    "speed_from_air",
 ]
 
 CLIP_RUN = 3  # this many consecutive full-scale samples mean the converter clipped
@@ -72,6 +77,12 @@ class Setup:
         Declared synchronisation jitter of the units' clocks, std per (receiver, event) in
         seconds (a specification of the equipment, optional field; 0 = not declared). It
         enters the residual test's timing noise.
+    temperature, humidity : float or None
+        Air temperature (degrees C) and relative humidity (%) when declared; ``speed_of_sound``
+        then comes from them (:func:`speed_from_air`).
+    unit_offsets : dict
+        ``{name: m}``: known distance between receiver ``name`` and sender ``name`` (a unit's
+        microphone and loudspeaker), used as scale constraints.
     """
 
     sample_rate: float
@@ -82,6 +93,9 @@ class Setup:
     event_senders: NDArray[np.int64]
     event_times: NDArray[np.float64]
     clock_jitter: float = 0.0
+    temperature: float | None = None
+    humidity: float | None = None
+    unit_offsets: dict[str, float] = field(default_factory=dict)
 
     def to_dict(self) -> dict[str, Any]:
         """The ``setup.json`` content (JSON-safe)."""
@@ -96,6 +110,9 @@ class Setup:
                 for j, t in zip(self.event_senders, self.event_times, strict=True)
             ],
             **({"clock_jitter": self.clock_jitter} if self.clock_jitter > 0 else {}),
+            **({"temperature": self.temperature} if self.temperature is not None else {}),
+            **({"humidity": self.humidity} if self.humidity is not None else {}),
+            **({"unit_offsets": dict(self.unit_offsets)} if self.unit_offsets else {}),
         }
 
 
@@ -163,7 +180,23 @@ def parse_setup(raw: Any, where: str = "setup.json") -> Setup:
     fs = _positive(raw, "sample_rate", where)
     if not float(fs).is_integer():
         raise InputError(f"{where}: field 'sample_rate' must be a whole number of Hz, got {fs:g}")
-    c = _positive(raw, "speed_of_sound", where, default=343.0)
+    temp = hum = None
+    if "temperature" in raw:
+        temp = raw["temperature"]
+        if isinstance(temp, bool) or not isinstance(temp, (int, float)) or not math.isfinite(temp) or not -40 <= temp <= 60:
+            raise InputError(f"{where}: field 'temperature' must be degrees C in [-40, 60], got {temp!r}")
+        temp = float(temp)
+        if "speed_of_sound" in raw:
+            raise InputError(f"{where}: give either field 'speed_of_sound' or 'temperature', not both")
+    if "humidity" in raw:
+        hum = raw["humidity"]
+        if isinstance(hum, bool) or not isinstance(hum, (int, float)) or not math.isfinite(hum) or not 0 <= hum <= 100:
+            raise InputError(f"{where}: field 'humidity' must be a relative humidity in % [0, 100], got {hum!r}")
+        hum = float(hum)
+        if temp is None:
+            raise InputError(f"{where}: field 'humidity' needs field 'temperature'")
+    c = (speed_from_air(temp, hum or 0.0) if temp is not None
+         else _positive(raw, "speed_of_sound", where, default=343.0))
     receivers = _names(raw, "receivers", where)
     senders = _names(raw, "senders", where)
     if "probe" not in raw:
@@ -186,11 +219,41 @@ def parse_setup(raw: Any, where: str = "setup.json") -> Setup:
             raise InputError(f"{where}: field 'events[{k}].time' must be a number >= 0 (seconds), got {t!r}")
         ev_s.append(index[ev["sender"]])
         ev_t.append(float(t))
+    guard_recording_setup(fs, ev_t, probe, len(receivers), where)  # sizes refused before allocation
     jit = raw.get("clock_jitter", 0.0)
     if isinstance(jit, bool) or not isinstance(jit, (int, float)) or not math.isfinite(jit) or jit < 0:
         raise InputError(f"{where}: field 'clock_jitter' must be a number >= 0 (seconds), got {jit!r}")
+    offs: dict[str, float] = {}
+    if "unit_offsets" in raw:
+        uo = raw["unit_offsets"]
+        if not isinstance(uo, dict):
+            raise InputError(f"{where}: field 'unit_offsets' must be an object {{name: metres}}")
+        for name, dist in uo.items():
+            if name not in receivers or name not in senders:
+                raise InputError(f"{where}: field 'unit_offsets.{name}' names no unit (a receiver and a sender "
+                                 "of that name)")
+            if isinstance(dist, bool) or not isinstance(dist, (int, float)) or not math.isfinite(dist) or dist <= 0:
+                raise InputError(f"{where}: field 'unit_offsets.{name}' must be a positive distance in m, got {dist!r}")
+            offs[name] = float(dist)
     return Setup(fs, c, receivers, senders, dict(probe), np.array(ev_s, dtype=np.int64), np.array(ev_t),
-                 clock_jitter=float(jit))
+                 clock_jitter=float(jit), temperature=temp, humidity=hum, unit_offsets=offs)
+
+
+def speed_from_air(temperature: float, humidity: float = 0.0, pressure: float = 101.325) -> float:
+    """Speed of sound in air, m/s, from temperature (C), relative humidity (%) and pressure (kPa).
+
+    ``c = 331.4 + 0.6 T + 0.0124 RH`` (:func:`pyroomacoustics.parameters.calculate_speed_of_sound`,
+    Kleeman & Kuc, Springer Handbook of Robotics, 2008, eq. 21.7; pressure has no first-order
+    effect). 25 C dry: 346.4 m/s; 20 C, 50 %: 344.0 m/s.
+
+    Examples
+    --------
+    >>> round(speed_from_air(25.0), 1)
+    346.4
+    """
+    from pyroomacoustics.parameters import calculate_speed_of_sound
+
+    return float(calculate_speed_of_sound(float(temperature), float(humidity), float(pressure)))
 
 
 def read_setup(directory: str | Path) -> Setup:

@@ -71,6 +71,9 @@ def simulate_conference(
     speed: float = 343.0,
     max_order: int | None = 3,
     jitter: float = 0.0,
+    rounds: int = 1,
+    occlusions: dict[tuple[int, int], float] | None = None,
+    missing_events: tuple[int, ...] = (),
     rng: np.random.Generator | int | None = None,
     progress: bool = False,
 ) -> tuple[Setup, NDArray[np.float32], dict[str, Any]]:
@@ -98,6 +101,15 @@ def simulate_conference(
         residual synchronisation error of wireless units' clocks (004 sec. 2.2: clocks
         agree within 100 us). A constant clock offset is indistinguishable from an internal
         delay; only the part that changes from event to event hurts.
+    rounds : int
+        Events per sender: every sender plays the probe once per round, rounds one after
+        the other (the recording format allows several events per sender; their TOAs are
+        averaged, so the jitter's share of the timing std falls as 1 / sqrt(rounds)).
+    occlusions : dict, optional
+        ``{(receiver, sender): dB}``: the direct path of that pair attenuated by ``dB``
+        (an obstacle between them; the reflections are kept), for fault tests.
+    missing_events : tuple of int
+        Events listed in setup.json but never played (a loudspeaker that stayed silent).
     rng : Generator, int or None
         Noise generator.
     progress : bool
@@ -106,13 +118,13 @@ def simulate_conference(
     Returns
     -------
     setup : Setup
-        One event per sender, in sender order.
+        ``rounds`` events per sender: round by round, senders in order.
     signals : (U, N) float32
         Receiver signals scaled so that the loudest sample is 0.5 (common gain).
     truth : dict
         ``scene.to_dict()`` plus ``speed_of_sound``, ``rt60``, ``snr_db``, ``absorption``,
-        ``max_order``, ``sample_rate``, ``clock_jitter`` and ``arrival_times`` (U x U, s, direct
-        path, jitter included).
+        ``max_order``, ``sample_rate``, ``clock_jitter`` and ``arrival_times`` (U x E, s, direct
+        path, jitter included) and ``rounds``.
     """
     import pyroomacoustics as pra
     from tqdm import tqdm
@@ -144,31 +156,56 @@ def simulate_conference(
     shoebox.add_microphone_array(scene.receivers.T)
     shoebox.compute_rir()
     delay0 = pra_group_delay()
+    direct: dict[tuple[int, int], NDArray[np.float64]] = {}
+    if occlusions:
+        free = pra.ShoeBox(room_dim.tolist(), fs=fs, materials=pra.Material(absorption), max_order=0,
+                           air_absorption=False)
+        free.set_sound_speed(speed)
+        for s_pos in scene.senders:
+            free.add_source(s_pos)
+        free.add_microphone_array(scene.receivers.T)
+        free.compute_rir()
+        for (i, j), db in occlusions.items():
+            direct[(int(i), int(j))] = (1.0 - 10.0 ** (-float(db) / 20.0)) * np.asarray(free.rir[int(i)][int(j)])
 
     U = len(scene.senders)
     if not np.isfinite(jitter) or jitter < 0:
         raise InputError(f"jitter must be a finite standard deviation >= 0 s, got {jitter!r}")
-    shake = jitter * gen.standard_normal((U, U))
+    if int(rounds) != rounds or rounds < 1:
+        raise InputError(f"rounds must be an integer >= 1, got {rounds!r}")
+    K = int(rounds)
+    E = U * K
+    ev_sender = np.tile(np.arange(U, dtype=np.int64), K)  # round by round, senders in order
+    shake = jitter * gen.standard_normal((U, E))
     spacing = event_spacing(room_dim, prb.duration, speed)
-    times: NDArray[np.float64] = 0.1 + spacing * np.arange(U, dtype=np.float64)
+    times: NDArray[np.float64] = 0.1 + spacing * np.arange(E, dtype=np.float64)
     n_total = int(np.ceil((times[-1] + spacing) * fs))
     signals = np.zeros((U, n_total), dtype=np.float32)
     x = prb.samples
-    for j in tqdm(range(U), desc="simulate", unit="event", disable=None if progress else True, leave=False):
+    for j in tqdm(range(U), desc="simulate", unit="sender", disable=None if progress else True, leave=False):
         rirs = [shoebox.rir[i][j] for i in range(U)]
         lh = max(len(h) for h in rirs)
         h = np.zeros((U, lh))
         for i, r in enumerate(rirs):
             h[i, : len(r)] = r
+            if (i, j) in direct:
+                g = direct[(i, j)]
+                h[i, : min(len(g), lh)] -= g[:lh]
         n_conv = lh + len(x) - 1
         n_fft = int(2 ** np.ceil(np.log2(n_conv + 2)))
-        wet = np.fft.irfft(np.fft.rfft(h, n_fft) * np.fft.rfft(x, n_fft)[None, :], n_fft)
-        start = (times[j] + scene.sender_onsets[j] + scene.receiver_delays + shake[:, j]) * fs - delay0
-        n0 = np.floor(start).astype(np.int64)
-        wet = _fractional_shift(wet, start - n0, n_fft)[:, : n_conv + 1]
-        for i in range(U):
-            a, b = max(n0[i], 0), min(n0[i] + wet.shape[1], n_total)
-            signals[i, a:b] += wet[i, a - n0[i] : b - n0[i]].astype(np.float32)
+        spec = np.fft.rfft(h, n_fft) * np.fft.rfft(x, n_fft)[None, :]
+        k_bins = np.arange(spec.shape[-1])
+        for e in np.flatnonzero(ev_sender == j):
+            if int(e) in missing_events:
+                continue
+            start = (times[e] + scene.sender_onsets[j] + scene.receiver_delays + shake[:, e]) * fs - delay0
+            n0 = np.floor(start).astype(np.int64)
+            frac = start - n0
+            wet = np.fft.irfft(spec * np.exp(-2j * np.pi * k_bins[None, :] * frac[:, None] / n_fft),
+                               n_fft)[:, : n_conv + 1]
+            for i in range(U):
+                a, b = max(n0[i], 0), min(n0[i] + wet.shape[1], n_total)
+                signals[i, a:b] += wet[i, a - n0[i] : b - n0[i]].astype(np.float32)
     p_1m = float(np.mean(x**2)) / (4.0 * np.pi) ** 2
     sigma = np.sqrt(p_1m / 10.0 ** (snr_db / 10.0))
     for row in signals:  # row by row: a float64 noise matrix would double the peak memory
@@ -176,13 +213,16 @@ def simulate_conference(
     signals *= np.float32(0.5 / np.abs(signals).max())
 
     dist = np.linalg.norm(scene.receivers[:, None, :] - scene.senders[None, :, :], axis=-1)
-    arrivals = times[None, :] + scene.sender_onsets[None, :] + scene.receiver_delays[:, None] + dist / speed + shake
+    arrivals = (times[None, :] + scene.sender_onsets[ev_sender][None, :] + scene.receiver_delays[:, None]
+                + dist[:, ev_sender] / speed + shake)
     names_r = tuple(f"u{k:03d}" for k in range(U))
     # the simulated clocks' jitter is declared in setup.json as the equipment's specification
-    setup = Setup(float(fs), float(speed), names_r, names_r, prb.spec, np.arange(U, dtype=np.int64), times,
+    setup = Setup(float(fs), float(speed), names_r, names_r, prb.spec, ev_sender, times,
                   clock_jitter=float(jitter))
     truth = scene.to_dict() | {
         "speed_of_sound": speed, "rt60": rt60, "snr_db": snr_db, "absorption": float(absorption),
         "max_order": order, "sample_rate": fs, "arrival_times": arrivals.tolist(), "clock_jitter": jitter,
+        "rounds": K, "occlusions": [[int(i), int(j), float(db)] for (i, j), db in (occlusions or {}).items()],
+        "missing_events": [int(e) for e in missing_events],
     }
     return setup, signals, truth

@@ -14,10 +14,17 @@ from .ml import refine_ml, residuals_2d, residuals_3d
 from .orientation import kabsch, nearest_rotation, orientation_from_vectors
 from .p3p import p3p, p3p_ranges
 from .planar2d import linear_pose_2d
-from .pose import METHODS_2D, METHODS_3D, AoaCandidate, AoaResult, solve_aoa
+from .pose import METHODS_2D, METHODS_3D, AoaCandidate, AoaResult, residual_test, solve_aoa
 from .solution1 import newton_location, solution1, torus_jacobian, torus_residuals
 from .solution2 import newton_ranges, solution2
-from .tdoa import Bearings, angles_to_bearings, bearings_to_angles, tdoa_to_bearings
+from .tdoa import (
+    Bearings,
+    angles_to_bearings,
+    azel_to_bearings,
+    bearings_to_angles,
+    bearings_to_azel,
+    tdoa_to_bearings,
+)
 
 __all__ = [
     "AoaCandidate",
@@ -26,6 +33,8 @@ __all__ = [
     "METHODS_2D",
     "METHODS_3D",
     "angles_to_bearings",
+    "azel_to_bearings",
+    "bearings_to_azel",
     "bearings_to_angles",
     "kabsch",
     "linear_pose_2d",
@@ -36,6 +45,7 @@ __all__ = [
     "p3p",
     "p3p_ranges",
     "refine_ml",
+    "residual_test",
     "residuals_2d",
     "residuals_3d",
     "solution1",

@@ -68,6 +68,56 @@ class AoaCandidate:
         }
 
 
+@dataclass(frozen=True)
+class AoaFit:
+    """Chi-square test of a pose's angular residuals (see :func:`residual_test`).
+
+    Attributes
+    ----------
+    chi2 : float or (B,): ``n_res rms^2 / noise^2``; dof : ``2N - 6`` (3-D) or ``N - 3`` (2-D);
+    p_value : float or (B,) ``P(chi2_dof >= chi2)`` (NaN when dof <= 0); noise : rad;
+    noise_given : whether ``noise`` came from the caller (else the bound
+    :data:`PLAUSIBLE_SIGMA`); alpha : significance (1 - :data:`RESIDUAL_TEST_LEVEL`);
+    passed : bool or (B,); rms : residual RMS (rad).
+    """
+
+    chi2: Any
+    dof: int
+    p_value: Any
+    noise: float
+    noise_given: bool
+    alpha: float
+    passed: Any
+    rms: Any
+
+    def describe(self) -> str:
+        """One line: what the test says."""
+        sig = np.degrees(self.noise)
+        src = "given" if self.noise_given else "assumed bound"
+        if self.dof <= 0:
+            return "exactly determined (3 beacons in 3-D): no residual test possible"
+        if np.ndim(self.passed):
+            n = int(np.sum(~np.asarray(self.passed)))
+            return (f"{n} of {np.size(self.passed)} poses fail the residual test (noise {sig:.3g} deg, {src})"
+                    if n else f"every pose passes the residual test (noise {sig:.3g} deg, {src})")
+        if not self.passed:
+            return (f"the bearings fit this pose only to {np.degrees(self.rms):.3g} deg RMS (chi2 = {self.chi2:.4g} "
+                    f"on {self.dof} dof, p = {self.p_value:.2g}) for noise {sig:.3g} deg ({src}): not a pose "
+                    "(wrong angle convention, beacon order or gross errors?)")
+        return f"residual {np.degrees(self.rms):.3g} deg RMS consistent with noise {sig:.3g} deg ({src})"
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-safe dict."""
+        def f(x: Any) -> Any:
+            a = np.asarray(x, float)
+            return [None if not np.isfinite(v) else float(v) for v in a.ravel()] if a.ndim else (
+                float(a) if np.isfinite(a) else None)
+
+        return {"chi2": f(self.chi2), "dof": int(self.dof), "p_value": f(self.p_value),
+                "noise": float(self.noise), "noise_given": bool(self.noise_given), "alpha": float(self.alpha),
+                "passed": np.asarray(self.passed).tolist(), "rms": f(self.rms)}
+
+
 @dataclass(frozen=True, repr=False)
 class AoaResult(Result):
     """Pose of a receiver (or a batch of receivers) from bearings.
@@ -87,12 +137,13 @@ class AoaResult(Result):
     candidates : tuple of :class:`AoaCandidate` (unbatched only): every pose that explains
         the bearings (about) equally well. More than one means the data are ambiguous.
     n_candidates : int or (B,): number of distinct proper candidates found.
-    success : bool or (B,): the pose passed its residual test (:func:`residual_test`): the
-        bearings fit it at the noise level (``sigma``, else :data:`PLAUSIBLE_SIGMA`); False
-        when they do not (not a pose: wrong convention, wrong beacon order, gross errors) or
-        when the solver did not converge.
-    status : int or (B,): 0 = ok, 1 = residual test failed, 2 = not converged.
-    message : one line explaining ``success``.
+    fit : :class:`AoaFit` or None: the chi-square residual test (:func:`residual_test`) of
+        the pose against the noise (``sigma``, else :data:`PLAUSIBLE_SIGMA`).
+
+    ``status`` / ``success`` / ``message`` (the :class:`~selfcal._result.Result` convention):
+    ``NOT_CONVERGED``; ``FAILED_TEST`` when the bearings do not fit the pose at the noise
+    level (not a pose: wrong angle convention, beacon order, gross errors); ``AMBIGUOUS``
+    when several poses explain the bearings equally well; else ``SUCCESS``.
     """
 
     position: Array
@@ -104,9 +155,7 @@ class AoaResult(Result):
     covariance: Array | None = None
     candidates: tuple[AoaCandidate, ...] = field(default_factory=tuple)
     n_candidates: Any = 1
-    success: Any = True
-    status: Any = 0
-    message: str = ""
+    fit: AoaFit | None = None
 
     @property
     def ambiguous(self) -> Any:
@@ -121,8 +170,14 @@ class AoaResult(Result):
         return self.covariance
 
     def _diagnose(self) -> tuple[Status, str]:
-        status, message = super()._diagnose()
-        if status == Status.SUCCESS and bool(np.any(self.ambiguous)):
+        conv = np.asarray(self.converged, bool)
+        if not conv.all():
+            what = "the solver" if conv.ndim == 0 else f"{int(np.sum(~conv))} of {conv.size} receivers"
+            return Status.NOT_CONVERGED, f"{what} did not converge (or the pose is undetermined)"
+        if self.fit is not None and not bool(np.all(self.fit.passed)):
+            return Status.FAILED_TEST, self.fit.describe()
+        status, message = Status.SUCCESS, "converged" if self.fit is None else self.fit.describe()
+        if bool(np.any(self.ambiguous)):
             n = len(self.candidates) if self.position.ndim == 1 else int(np.count_nonzero(self.ambiguous))
             what = f"{n} poses explain the bearings equally well" if self.position.ndim == 1 else (
                 f"{n} receivers have several equally good poses")
@@ -154,9 +209,7 @@ class AoaResult(Result):
             "covariance": j(self.covariance),
             "candidates": [c.to_dict() for c in self.candidates] if len(self.candidates) > 1 else None,
             "n_candidates": j(self.n_candidates),
-            "success": j(self.success),
-            "status": j(self.status),
-            "message": self.message,
+            "fit": None if self.fit is None else self.fit.to_dict(),
         }
 
 
@@ -373,6 +426,21 @@ def solve_aoa(
     Notes
     -----
     ``success`` comes from :func:`residual_test` (chi-square on the angular residuals).
+
+    Examples
+    --------
+    Noise-free bearings from a receiver at ``m`` (axes aligned with the global frame) to
+    six beacons:
+
+    >>> import numpy as np
+    >>> import selfcal
+    >>> rng = np.random.default_rng(5)
+    >>> beacons = rng.uniform(-5, 5, (6, 3))
+    >>> m = np.array([0.3, -0.2, 0.1])
+    >>> bearings = (beacons - m) / np.linalg.norm(beacons - m, axis=1, keepdims=True)
+    >>> res = selfcal.solve_aoa(beacons, bearings)
+    >>> res.success, np.allclose(res.position, m), np.allclose(res.rotation, np.eye(3))
+    (True, True, True)
     """
     if sign_z_unknown:
         return _solve_sign_ambiguous(beacons, bearings, method=method, sigma=sigma,
@@ -511,40 +579,31 @@ def solve_aoa(
         conv = np.array(conv, bool, copy=True)
         conv[bad] = False  # batched: an undetermined receiver is flagged, not fatal
     rms = _rms(b, U, m, R)
-    passed, ratio = residual_test(rms, N, d, sigma)
-    conv_b = np.asarray(conv, bool)
-    status = np.where(~conv_b, 2, np.where(passed, 0, 1))
-    success = status == 0
+    fit = _fit(rms, N, d, sigma, batched)
     if not batched:
         return AoaResult(
             position=m[0], rotation=R[0], residual_rms=float(rms[0]), method=method,
             converged=bool(conv[0]), iterations=int(iters[0]),
-            covariance=None if cov is None else cov[0], candidates=cand, n_candidates=int(ncand[0]),
-            success=bool(success[0]), status=int(status[0]),
-            message=_message(int(status[0]), float(rms[0]), float(ratio[0]), sigma, N, d),
+            covariance=None if cov is None else cov[0], candidates=cand, n_candidates=int(ncand[0]), fit=fit,
         )
-    nfail = int(np.sum(~success))
     return AoaResult(
         position=m, rotation=R, residual_rms=rms, method=method, converged=conv,
-        iterations=iters, covariance=cov, candidates=(), n_candidates=ncand, success=success, status=status,
-        message="all poses passed the residual test" if nfail == 0 else
-        f"{nfail} of {B} poses failed the residual test or did not converge",
+        iterations=iters, covariance=cov, candidates=(), n_candidates=ncand, fit=fit,
     )
 
 
-def _message(status: int, rms: float, ratio: float, sigma: float | None, n: int, d: int) -> str:
-    sig = np.degrees(PLAUSIBLE_SIGMA if sigma is None else sigma)
-    src = "given" if sigma is not None else "assumed bound"
-    if status == 2:
-        return "the solver did not converge (or the pose is undetermined)"
-    dof = (2 if d == 3 else 1) * n - (6 if d == 3 else 3)
-    if dof <= 0:
-        return f"exactly determined ({n} beacons): no residual test possible"
-    if status == 1:
-        return (f"the bearings fit this pose only to {np.degrees(rms):.3g} deg RMS, {ratio:.3g} x the chi-square "
-                f"{RESIDUAL_TEST_LEVEL:g} quantile for noise {sig:.3g} deg ({src}): not a pose (wrong angle "
-                "convention, beacon order or gross errors?)")
-    return f"residual {np.degrees(rms):.3g} deg RMS consistent with noise {sig:.3g} deg ({src})"
+def _fit(rms: Array, n: int, d: int, sigma: float | None, batched: bool) -> AoaFit:
+    from scipy.stats import chi2 as chi2_dist
+
+    passed, _ = residual_test(rms, n, d, sigma)
+    n_res = (2 if d == 3 else 1) * n
+    dof = n_res - (6 if d == 3 else 3)
+    noise = PLAUSIBLE_SIGMA if sigma is None else float(sigma)
+    stat = n_res * np.asarray(rms, float) ** 2 / noise**2
+    p = chi2_dist.sf(stat, dof) if dof > 0 else np.full(stat.shape, np.nan)
+    pick = (lambda x: x) if batched else (lambda x: np.asarray(x).reshape(-1)[0].item())
+    return AoaFit(pick(stat), dof, pick(p), noise, sigma is not None, 1.0 - RESIDUAL_TEST_LEVEL,
+                  pick(passed), pick(np.asarray(rms, float)))
 
 
 def _solve_sign_ambiguous(beacons: ArrayLike, bearings: ArrayLike, *, method: str, sigma: float | None,

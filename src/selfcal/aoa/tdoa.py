@@ -116,3 +116,37 @@ def bearings_to_angles(vectors: ArrayLike) -> tuple[Array, Array]:
     v = np.asarray(vectors, float)
     v = v / np.linalg.norm(v, axis=-1, keepdims=True)
     return np.arccos(np.clip(v[..., 0], -1, 1)), np.arccos(np.clip(v[..., 1], -1, 1))
+
+
+def azel_to_bearings(azimuth: ArrayLike, elevation: ArrayLike | None = None) -> Array:
+    """Unit bearings from azimuth / elevation (rad) in the receiver frame: (..., 3) or (..., 2).
+
+    Convention (that of DoA estimators such as ``pyroomacoustics.doa``): azimuth in the
+    receiver's xy plane from +x towards +y, elevation from that plane towards +z, so
+    ``(cos el cos az, cos el sin az, sin el)``. Unlike the angles to the x and y axes
+    (:func:`angles_to_bearings`, paper 001 eq. 2) they keep the side of the xy plane. With
+    ``elevation=None`` the 2-D bearings ``(cos az, sin az)``.
+
+    Examples
+    --------
+    >>> azel_to_bearings(0.0, 0.5 * 3.141592653589793).round(12).tolist()
+    [0.0, 0.0, 1.0]
+    """
+    az = np.asarray(azimuth, float)
+    if not np.isfinite(az).all():
+        raise InputError("azimuth must be finite")
+    if elevation is None:
+        return np.stack([np.cos(az), np.sin(az)], axis=-1)
+    el = np.asarray(elevation, float)
+    if az.shape != el.shape:
+        raise InputError(f"azimuth {az.shape} and elevation {el.shape} must have the same shape")
+    if not np.isfinite(el).all():
+        raise InputError("elevation must be finite")
+    return np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)], axis=-1)
+
+
+def bearings_to_azel(vectors: ArrayLike) -> tuple[Array, Array]:
+    """Inverse of :func:`azel_to_bearings` for (..., 3) vectors: (azimuth, elevation) in rad."""
+    v = np.asarray(vectors, float)
+    v = v / np.linalg.norm(v, axis=-1, keepdims=True)
+    return np.arctan2(v[..., 1], v[..., 0]), np.arcsin(np.clip(v[..., 2], -1.0, 1.0))

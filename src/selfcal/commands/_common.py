@@ -485,3 +485,22 @@ def check_simulation_size(*, units: int, sample_rate: float, room: tuple[float, 
     n_total = (0.1 + spacing * (units + 1)) * sample_rate
     need = units * n_total * 4.0 + units**2 * (float(rt60) + spacing) * sample_rate * 8.0
     guard_size(need, f"a {units}-unit recording at {sample_rate:g} Hz ({n_total / sample_rate:.3g} s per receiver)")
+
+
+def transposed_hint(exc: Any, shape: tuple[int, int], *, min_rows: int, min_cols: int) -> None:
+    """Re-raise a too-few-receivers / too-few-sources error saying the matrix looks transposed.
+
+    Only when the transposed shape would meet the minimum (``min_rows`` receivers, ``min_cols``
+    transmitters) and the given one does not; otherwise return and let the caller re-raise.
+    """
+    from ..errors import DegenerateGeometryError
+
+    m, k = shape
+    if getattr(exc, "kind", None) not in ("too-few-receivers", "too-few-sources"):
+        return
+    if (m >= min_rows and k >= min_cols) or not (k >= min_rows and m >= min_cols):
+        return
+    msg = exc.args[0] if exc.args else str(exc)
+    raise DegenerateGeometryError(
+        f"{msg}; the {m} x {k} matrix looks transposed: rows must be receivers, columns transmitters "
+        f"(a {k} x {m} matrix would be solvable)", kind=exc.kind) from None

@@ -52,9 +52,9 @@ def locate_aoa(
     """
     import numpy as np
 
-    from .._checks import plausible_angles
-    from ..aoa import angles_to_bearings, solve_aoa
-    from ..errors import InputError
+    from .._checks import as_points, plausible_angles
+    from ..aoa import angles_to_bearings, azel_to_bearings, solve_aoa
+    from ..errors import InputError, Status
     from ..io import read_table, staged_outputs, write_json
     from ._common import enrich_payload
 
@@ -63,6 +63,7 @@ def locate_aoa(
     u = read_table(bearings, "bearings").values
     d = b.shape[1]
     if d not in (2, 3):
+        as_points(b, "beacons")  # names a list given one coordinate per row (transposed)
         raise InputError(f"beacons: expected N x 2 or N x 3 coordinates, got {b.shape}")
     if u.shape[0] != b.shape[0]:
         raise InputError(f"bearings: {u.shape[0]} rows for {b.shape[0]} beacons (one row per beacon)")
@@ -84,11 +85,11 @@ def locate_aoa(
         a = np.radians(u) if units == "deg" else u
         miss = np.isnan(a).any(axis=1)
         if angles == "azel":
+            a0 = np.where(np.isnan(a), 0.0, a)
             if d == 3 and a.shape[1] == 2:
-                az, el = a[:, 0], a[:, 1]
-                u = np.column_stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.sin(el)])
+                u = azel_to_bearings(a0[:, 0], a0[:, 1])
             elif d == 2 and a.shape[1] == 1:
-                u = np.column_stack([np.cos(a[:, 0]), np.sin(a[:, 0])])
+                u = azel_to_bearings(a0[:, 0])
             else:
                 raise InputError(f"--angles azel: expected N x 2 (azimuth, elevation) for 3-D beacons or N x 1 "
                                  f"(azimuth) for 2-D, got {a.shape} with beacons {b.shape}")
@@ -133,7 +134,8 @@ def locate_aoa(
         f"  method {res.method}" + (f"  ({len(res.candidates)} candidates)" if res.ambiguous else "")
     )
     click.echo(f"  {res.message}")
-    if not res.success:
+    # an ambiguous pose (several exact candidates, all in the JSON) is an answer, not a failure
+    if res.status in (Status.NOT_CONVERGED, Status.FAILED_TEST):
         click.echo(f"FAIL: pose not trustworthy ({res.message})")
         raise SystemExit(1)
 
@@ -178,7 +180,7 @@ def _plot_pose(b: object, u: object, res: object, path: str) -> None:
         ax.set_zlabel("z [m]")
     else:
         ax.set_aspect("equal")
-    ok = "ok" if res.success else "FAIL"  # type: ignore[attr-defined]
+    ok = res.status.name.lower()  # type: ignore[attr-defined]
     ax.set_title(f"AOA pose ({res.method}, residual {np.degrees(res.residual_rms):.2g} deg, {ok}); "  # type: ignore[attr-defined]
                  "dashed: measured bearings", fontsize=9)
     ax.legend(loc="best", fontsize=7)

@@ -70,10 +70,10 @@ def farfield_command(matrix: Path, out: Path, speed: float | None, dim: str, dir
     import numpy as np
 
     from .._checks import FARFIELD_TIMES_AS_METRES_MAX, plausible_matrix_scale
-    from ..errors import InputError
+    from ..errors import DegenerateGeometryError, InputError
     from ..io import read_table, staged_outputs, write_json
     from ..tdoa import solve_farfield
-    from ._common import enrich_payload, to_metres, write_nodes_csv
+    from ._common import enrich_payload, to_metres, transposed_hint, write_nodes_csv
 
     if speed is not None and not (speed > 0 and speed < float("inf")):
         raise InputError(f"--speed must be a positive number, got {speed}")
@@ -102,10 +102,14 @@ def farfield_command(matrix: Path, out: Path, speed: float | None, dim: str, dir
         if directions == "sources":
             raise InputError("--directions sources needs a Pyramic JSON matrix (with 'sources'); give a file")
         known = read_table(Path(directions), name=str(directions)).values
-    res = solve_farfield(D, method=method, loss=loss, directions=known,
-                         noise_std=None if noise_std is None else noise_std * scale,
-                         allow_degenerate=allow_degenerate, ransac=ransac, rng=seed,
-                         dim="auto" if dim == "auto" else int(dim))
+    try:
+        res = solve_farfield(D, method=method, loss=loss, directions=known,
+                             noise_std=None if noise_std is None else noise_std * scale,
+                             allow_degenerate=allow_degenerate, ransac=ransac, rng=seed,
+                             dim="auto" if dim == "auto" else int(dim))
+    except DegenerateGeometryError as exc:
+        transposed_hint(exc, D.shape, min_rows=4, min_cols=6)
+        raise
     out_dict = res.to_dict()
     tunit = "s" if seconds else "m"
     if seconds:

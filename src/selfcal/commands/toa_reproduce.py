@@ -93,9 +93,11 @@ def toa_mds_nls(runs: int, backend: str, scheduler: str | None, seed: int, out_d
               show_default=True, help="Folder for the PNG figures and the JSON of numbers.")
 @click.option("--simulate", "n_sim", type=int, default=3, show_default=True,
               help="Simulated UWB flights (biases, multipath spikes, sparse positions) scored too.")
+@click.option("--variants", "variants_opt", default=None, metavar="A,B,...",
+              help="Comma-separated subset of the variants (default: all).")
 @seed_option
 @handle_errors
-def lps(data_path: str, out_dir: str, n_sim: int, seed: int) -> None:
+def lps(data_path: str, out_dir: str, n_sim: int, variants_opt: str | None, seed: int) -> None:
     """Blind anchor calibration on the LPS UWB flights, scored against motion capture.
 
     Every variant of :func:`selfcal.experiments.lps.calibrate_lps` runs on every flight
@@ -122,6 +124,13 @@ def lps(data_path: str, out_dir: str, n_sim: int, seed: int) -> None:
 
     if n_sim < 0:
         raise InputError(f"--simulate must be >= 0, got {n_sim}")
+    variants = lps_variants()
+    if variants_opt is not None:
+        variants = tuple(v.strip() for v in variants_opt.split(",") if v.strip())
+        bad = [v for v in variants if v not in lps_variants()]
+        if bad or not variants:
+            raise InputError(f"--variants: unknown {', '.join(bad) or '(empty)'}; choose among "
+                             f"{', '.join(lps_variants())}")
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     report: dict[str, Any] = {"recommended": RECOMMENDED, "flights": {}, "simulated": {}}
@@ -146,7 +155,7 @@ def lps(data_path: str, out_dir: str, n_sim: int, seed: int) -> None:
         entry["variants"] = {}
         scores[name] = {}
         best = None
-        for v in lps_variants():
+        for v in variants:
             try:
                 with warnings.catch_warnings():
                     warnings.simplefilter("ignore")
@@ -186,8 +195,8 @@ def lps(data_path: str, out_dir: str, n_sim: int, seed: int) -> None:
             save_figure(fig, out / f"lps_{name}.png")
     real = [n for n in scores if not n.startswith("sim")]
     report["leave_one_flight_out"] = {
-        "real_flights": leave_one_flight_out({n: scores[n] for n in real}, lps_variants()) if len(real) > 1 else None,
-        "all_cases": leave_one_flight_out(scores, lps_variants()) if len(scores) > 1 else None,
+        "real_flights": leave_one_flight_out({n: scores[n] for n in real}, variants) if len(real) > 1 else None,
+        "all_cases": leave_one_flight_out(scores, variants) if len(scores) > 1 else None,
     }
     write_json(out / "lps.json", report)
     click.echo(f"wrote {out / 'lps.json'}")

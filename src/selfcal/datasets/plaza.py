@@ -45,14 +45,11 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..errors import InputError
+from ..geometry import wrap_angle
 
 __all__ = ["PlazaData", "load_plaza", "compose_odometry"]
 
 FArray = NDArray[np.float64]
-
-
-def _wrap(a: FArray) -> FArray:
-    return (np.asarray(a, dtype=float) + np.pi) % (2 * np.pi) - np.pi
 
 
 def compose_odometry(start: FArray, odo: FArray) -> FArray:
@@ -141,7 +138,7 @@ class PlazaData:
         psi = np.unwrap(self.gt[:, 2])
         out = np.column_stack([np.interp(t, self.gt_times, self.gt[:, 0]), np.interp(t, self.gt_times, self.gt[:, 1]),
                                np.interp(t, self.gt_times, psi)])
-        out[:, 2] = _wrap(out[:, 2])
+        out[:, 2] = wrap_angle(out[:, 2])
         return out
 
 
@@ -243,7 +240,7 @@ def load_plaza(path: str | os.PathLike[str], *, init_heading_offset: float | Non
     if DR.shape[0] < 1:
         raise InputError(f"{p}: DR has no odometry after the first GT time {t0}")
     gt = GT[:, 1:4].copy()
-    gt[:, 2] = _wrap(gt[:, 2] + offset)  # convention 1
+    gt[:, 2] = wrap_angle(gt[:, 2] + offset)  # convention 1
     return PlazaData(
         beacon_ids=ids, beacons=TL[:, 1:3].copy(), range_times=TD[:, 0].copy(),
         range_beacon=np.array([lookup[int(b)] for b in TD[:, 2]], dtype=np.int64), ranges=TD[:, 3].copy(),

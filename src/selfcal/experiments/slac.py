@@ -72,7 +72,8 @@ def plaza_summary(data: PlazaData, *, methods: tuple[str, ...] = ("filter", "smo
         t0 = time.perf_counter()
         r = solve_range_slac(data, method=m, config=config, progress=progress)
         sec = time.perf_counter() - t0
-        out["methods"][m] = {**r.to_dict(trajectory=False), **score_plaza(data, r), "seconds": sec}
+        d = {k: v for k, v in r.to_dict().items() if k not in ("times", "poses", "pose_std")}
+        out["methods"][m] = {**d, **score_plaza(data, r), "seconds": sec}
         out["_results"][m] = r
     return out
 

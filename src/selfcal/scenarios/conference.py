@@ -19,6 +19,9 @@ onset times in 0-30 ms (004 sec. 2.2, assumption 4). Three layouts:
 ``stem``
     flat desks, microphones on stems 30-50 cm above the desk loudspeakers: two layers,
     also 3-D.
+``hall``
+    a large hall: the rising rows of ``tiered`` with long gooseneck microphones 5-40 cm
+    from the loudspeaker (the 120-unit benchmark scene of issue 15).
 
 Tables are 2.4 x 1.2 m with three seats on each long side (0.8 m apart, so units are
 at least 0.75 m apart, 004 assumption 1), on a grid with 1.5 m aisles, centred in the
@@ -38,7 +41,7 @@ from ..errors import InputError
 
 __all__ = ["ConferenceScene", "conference_scene", "LAYOUTS", "DESK_HEIGHT"]
 
-LAYOUTS = ("flat", "boundary", "tiered", "stem")
+LAYOUTS = ("flat", "boundary", "tiered", "stem", "hall")
 DESK_HEIGHT = 0.75  # m, table top
 SPEAKER_ABOVE_DESK = 0.05  # m, loudspeaker grille in the desk unit
 TABLE = (2.4, 1.2)
@@ -103,7 +106,7 @@ def _seats(room: NDArray[np.float64], layout: str) -> tuple[NDArray[np.float64],
     rise = a * np.arange(n_y) ** 2
     for ky in range(n_y):
         cy = origin[1] + ky * (TABLE[1] + AISLE) + TABLE[1] / 2
-        z = DESK_HEIGHT + (rise[ky] if layout == "tiered" else 0.0)
+        z = DESK_HEIGHT + (rise[ky] if layout in ("tiered", "hall") else 0.0)
         for kx in range(n_x):
             cx = origin[0] + kx * (TABLE[0] + AISLE) + TABLE[0] / 2
             for side in (-1.0, 1.0):
@@ -129,7 +132,7 @@ def conference_scene(
         Number of units U (>= 5).
     room : (3,) floats
         Room size L x W x H in metres.
-    layout : {"flat", "boundary", "tiered", "stem"}
+    layout : {"flat", "boundary", "tiered", "stem", "hall"}
         See the module docstring.
     rng : Generator, int or None
 
@@ -165,7 +168,7 @@ def conference_scene(
         offset = np.column_stack([length * np.cos(az), length * np.sin(az), gen.uniform(-0.01, 0.01, units)])
     else:
         # A gooseneck microphone 5-15 cm from the loudspeaker, leaning towards the seat.
-        length = gen.uniform(0.05, 0.15, units)
+        length = gen.uniform(0.05, 0.40 if layout == "hall" else 0.15, units)
         elev = np.radians(gen.uniform(20.0, 60.0, units))
         az = np.arctan2(face[:, 1], face[:, 0]) + np.radians(gen.uniform(-45.0, 45.0, units))
         offset = length[:, None] * np.column_stack([np.cos(elev) * np.cos(az), np.cos(elev) * np.sin(az), np.sin(elev)])

@@ -34,16 +34,20 @@ is moved to the nearest odometry time.
 
 from __future__ import annotations
 
+import dataclasses
 import sys
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 from numpy.typing import NDArray
 from scipy import stats
 from scipy.optimize import brentq
 
-from ..errors import InputError
+from .._result import Result
+from ..errors import InputError, Status
+from ..geometry import wrap_angle
+from ..robust import TUNING, loss_rho
 
 __all__ = ["RangeLog", "RangeModelConfig", "RangeSlacResult", "solve_range_slac", "huber_weight"]
 
@@ -52,9 +56,9 @@ IArray = NDArray[np.int64]
 
 
 def huber_weight(e: FArray, k: float) -> FArray:
-    """IRLS weight of the Huber loss for standardised residuals ``e``: ``min(1, k / |e|)``."""
-    a = np.abs(np.asarray(e, dtype=float))
-    return np.where(a <= k, 1.0, k / np.maximum(a, 1e-300))
+    """IRLS weight ``min(1, k / |e|)`` of the Huber loss for standardised residuals ``e``
+    (``rho'`` of :func:`selfcal.robust.loss_rho` at ``z = (e / k)^2``)."""
+    return loss_rho((np.asarray(e, dtype=float) / k) ** 2, "huber")[1]
 
 
 @dataclass(frozen=True)
@@ -120,7 +124,7 @@ class RangeModelConfig:
     odo_drift: float = float(np.deg2rad(1.0))
     init_position_std: float = 0.1
     init_heading_std: float = float(np.deg2rad(2.0))
-    huber: float = 1.345
+    huber: float = TUNING["huber"]
     gate_quantile: float = 0.999
     max_iter: int = 30
     tol: float = 1e-4
@@ -196,9 +200,9 @@ class RangeLog:
             raise InputError("odo_times must be non-decreasing and after start_time")
 
 
-@dataclass(frozen=True)
-class RangeSlacResult:
-    """Outcome of :func:`solve_range_slac`.
+@dataclass(frozen=True, repr=False)
+class RangeSlacResult(Result):
+    """Outcome of :func:`solve_range_slac` (the :class:`~selfcal._result.Result` convention).
 
     Attributes
     ----------
@@ -209,11 +213,15 @@ class RangeSlacResult:
         (filter: at the end of the log).
     noise : float the prior range noise (m); noise_estimate : float the robust estimate from
         the innovations (m; NaN with fewer than 10 ranges, None in ``to_dict``).
+    heading_noise_factor : float the grid factor selected by maximum likelihood;
+        heading_noise_loglik : (G,) the robust log-likelihood of each grid factor.
     ranges_used, ranges_rejected, ranges_outside : int (used in the final pass, gated, outside
         the odometry span).
-    iterations : int (smoother Gauss-Newton iterations; 1 for the filter).
-    status : 0 converged / finished, 1 iteration limit; message : str; success : bool.
+    iterations : int (smoother Gauss-Newton iterations; 1 for the filter); converged : bool.
+    ``status`` / ``message`` / ``success`` come from :class:`~selfcal._result.Result`.
     """
+
+    _repr_fields: ClassVar[tuple[str, ...]] = ("method", "scale", "offset", "noise_estimate", "iterations")
 
     method: str
     times: FArray
@@ -226,40 +234,25 @@ class RangeSlacResult:
     offset_std: FArray
     noise: float
     noise_estimate: float
+    heading_noise_factor: float
+    heading_noise_loglik: FArray
     ranges_used: int
     ranges_rejected: int
     ranges_outside: int
     iterations: int
-    status: int
-    message: str
-    extra: dict[str, Any] = field(default_factory=dict, repr=False)
+    converged: bool
 
-    @property
-    def success(self) -> bool:
-        return self.status == 0
+    def _diagnose(self) -> tuple[Status, str]:
+        if not self.converged:
+            return Status.NOT_CONVERGED, f"smoother stopped at its iteration limit ({self.iterations} iterations)"
+        if self.method == "filter":
+            return Status.SUCCESS, "causal filter pass finished"
+        return Status.SUCCESS, f"Gauss-Newton converged in {self.iterations} iterations"
 
-    def __repr__(self) -> str:
-        return (f"RangeSlacResult(method={self.method!r}, poses={self.poses.shape[0]}, "
-                f"scale={np.round(self.scale, 4).tolist()}, offset={np.round(self.offset, 3).tolist()}, "
-                f"status={self.status}, message={self.message!r})")
-
-    def to_dict(self, *, trajectory: bool = True) -> dict[str, Any]:
-        """JSON-safe dict (lists and Python scalars); ``trajectory=False`` leaves out the track."""
-        d: dict[str, Any] = {
-            "method": self.method, "status": self.status, "message": self.message, "success": self.success,
-            "beacon_ids": [int(b) for b in self.beacon_ids],
-            "scale": self.scale.tolist(), "scale_std": self.scale_std.tolist(),
-            "offset": self.offset.tolist(), "offset_std": self.offset_std.tolist(),
-            "noise": float(self.noise),
-            "noise_estimate": float(self.noise_estimate) if np.isfinite(self.noise_estimate) else None,
-            "ranges_used": int(self.ranges_used), "ranges_rejected": int(self.ranges_rejected),
-            "ranges_outside": int(self.ranges_outside), "iterations": int(self.iterations),
-            "units": {"position": "m", "heading": "rad", "offset": "m", "time": "s"},
-        }
-        if trajectory:
-            d["times"] = self.times.tolist()
-            d["poses"] = self.poses.tolist()
-            d["pose_std"] = self.pose_std.tolist()
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-safe dict of every field (arrays as lists, NaN as None) + status / message / success."""
+        d = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
+        d["units"] = {"position": "m", "heading": "rad", "offset": "m", "time": "s"}
         return d
 
 
@@ -538,7 +531,7 @@ def solve_range_slac(log: RangeLog | Any, *, method: str = "smoother", config: R
     fw = passes[best]
     g_best = grid[best]
     sigma_hat = _noise_from_innovations(fw.innov, fw.innov_var0)
-    iterations, status, message = 1, 0, "causal filter pass finished"
+    iterations, status = 1, 0
     if method == "filter":
         # multiple-model mixture with the causal weights p(model | ranges up to node n)
         W = np.exp(LL - LL.max(axis=0))
@@ -556,7 +549,7 @@ def solve_range_slac(log: RangeLog | Any, *, method: str = "smoother", config: R
         var = np.column_stack([cfg.odo_distance**2 * z_d, g_best**2 * (cfg.odo_turn**2 * z_t + cfg.odo_drift**2 * z_d)])
         ref = fw.mf
         weights = np.ones(K)
-        status, message = 1, f"iteration limit {cfg.max_iter} reached"
+        status = 1
         iterations = 0
         ms, Ps = ref, fw.Pf
         for it in range(cfg.max_iter):
@@ -568,7 +561,7 @@ def solve_range_slac(log: RangeLog | Any, *, method: str = "smoother", config: R
             step = np.max(np.abs(ms[:, :3] - ref[:, :3]))
             ref = ms
             if step < cfg.tol:
-                status, message = 0, f"Gauss-Newton converged in {iterations} iterations"
+                status = 0
                 break
         x_nodes, P_nodes = ms, Ps
         cal_x, cal_P = ms[0], Ps[0]
@@ -577,7 +570,7 @@ def solve_range_slac(log: RangeLog | Any, *, method: str = "smoother", config: R
     sd_nodes = np.sqrt(np.maximum(np.diagonal(P_nodes, axis1=1, axis2=2), 0.0))
     pn = ch.pose_nodes
     poses = x_nodes[pn, :3].copy()
-    poses[:, 2] = (poses[:, 2] + np.pi) % (2 * np.pi) - np.pi
+    poses[:, 2] = wrap_angle(poses[:, 2])
     cal_sd = np.sqrt(np.maximum(np.diag(cal_P), 0.0))
     return RangeSlacResult(
         method=method, times=ch.times[pn].copy(), poses=poses, pose_std=sd_nodes[pn, :3].copy(),
@@ -585,7 +578,7 @@ def solve_range_slac(log: RangeLog | Any, *, method: str = "smoother", config: R
         scale=cal_x[3 : 3 + B].copy(), scale_std=cal_sd[3 : 3 + B].copy(),
         offset=cal_x[3 + B :].copy(), offset_std=cal_sd[3 + B :].copy(),
         noise=float(cfg.range_noise), noise_estimate=float(sigma_hat),
+        heading_noise_factor=float(g_best), heading_noise_loglik=LL[:, -1].copy(),
         ranges_used=used, ranges_rejected=rejected, ranges_outside=ch.outside, iterations=iterations,
-        status=status, message=message,
-        extra={"heading_noise_factor": float(g_best), "heading_noise_loglik": LL[:, -1].tolist()},
+        converged=status == 0,
     )

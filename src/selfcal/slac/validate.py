@@ -23,6 +23,8 @@ __all__ = ["validate_log_arrays", "check_simulation_request", "LOG_ROWS_PER_STEP
 
 #: Snapshot rows per step of the 3-anchor / 4-rover replica (docs/slac_log_format.md: R = 42).
 LOG_ROWS_PER_STEP = 42
+#: Largest |SNR| (dB) of a simulated log: complex64 snapshots resolve ~150 dB, so more is meaningless.
+MAX_SNR_DB = 200.0
 #: Step of the replica (s).
 STEP_SECONDS = 0.1
 
@@ -194,7 +196,11 @@ def check_simulation_request(minutes: Any, subcarriers: Any, snr_db: Any, *, lim
 
     m = check_float(minutes, "--minutes", positive=True, allow_none=False)
     N = check_int(subcarriers, "--subcarriers", minimum=8)
-    check_float(snr_db, "--snr-db", allow_none=False)
+    snr = check_float(snr_db, "--snr-db", allow_none=False)
+    assert snr is not None
+    if abs(snr) > MAX_SNR_DB:
+        raise InputError(f"--snr-db {snr:g} is beyond +-{MAX_SNR_DB:g} dB; the complex64 snapshots hold about "
+                         f"150 dB of dynamic range")
     assert m is not None and N is not None
     steps = m * 60.0 / STEP_SECONDS
     need = 2.0 * 8.0 * steps * LOG_ROWS_PER_STEP * N

@@ -34,6 +34,7 @@ from .._checks import as_matrix, as_rng, check_choice, check_positive, entry
 from .._result import Result
 from ..errors import ConvergenceWarning, DegenerateGeometryError, InputError
 from ..geometry import canonical_gauge
+from ..robust import TUNING, mad_std
 from .degeneracy import (
     DegeneracyReport,
     analyse_degeneracy,
@@ -68,7 +69,6 @@ METHODS = ("auto", "lm", "alternating", "init", "minimal")
 #: ML cost itself has such minima: the out-of-plane scale of the positions is then barely
 #: determined and the array comes out stretched (see the audit note in :mod:`.refine`).
 COLLAPSE_RATIO = 0.2
-_MAD = 1.4826
 
 
 # ----------------------------------------------------------------------------- result
@@ -182,7 +182,7 @@ def screen_gross_errors(D: Array, *, factor: float = 20.0) -> NDArray[np.bool_]:
     X = D - np.nanmedian(D, axis=0, keepdims=True)
     med = np.nanmedian(X, axis=1, keepdims=True)
     dev = np.abs(X - med)
-    mad = _MAD * np.nanmedian(dev, axis=1, keepdims=True)
+    mad = mad_std(X, axis=1, keepdims=True)
     q_row = np.nanpercentile(dev, 90, axis=1, keepdims=True) / 3.0
     q_all = 0.05 * float(np.nanpercentile(dev, 90))
     scale = np.maximum(np.maximum(mad, q_row), max(q_all, 1e-300))
@@ -239,7 +239,7 @@ def lowrank_fit(
         Xc = Dn - cmed
         rmed = np.nanmedian(Xc, axis=1, keepdims=True)
         dev = np.abs(Xc - rmed)
-        sc = np.maximum(_MAD * np.nanmedian(dev, axis=1, keepdims=True),
+        sc = np.maximum(mad_std(Xc, axis=1, keepdims=True),
                         np.nanpercentile(dev, 90, axis=1, keepdims=True) / 3.0)
         Xc = np.clip(Xc, rmed - 3.0 * sc, rmed + 3.0 * sc)
         F = np.where(obs, Xc + cmed, cmed)
@@ -255,7 +255,7 @@ def lowrank_fit(
         R = np.where(obs, D0 - P @ Q.T - c, 0.0)
         # robust scale corrected for the fit's degrees of freedom: without the correction
         # the scale shrinks from one iteration to the next and the weights collapse
-        sigma = _MAD * float(np.median(np.abs(R[obs]))) * dof_fac
+        sigma = mad_std(R[obs], centre=False) * dof_fac
         if loss != "linear" and sigma > 0:
             Wr = W * loss_weight((R / (1.345 * sigma)) ** 2, loss)
         Pa = np.hstack([P, ones])
@@ -268,7 +268,7 @@ def lowrank_fit(
             break
     L = P @ Q.T + c
     R = np.where(obs, D0 - L, 0.0)
-    return L, _MAD * float(np.median(np.abs(R[obs]))) * dof_fac
+    return L, mad_std(R[obs], centre=False) * dof_fac
 
 
 def fit_A_nonlinear(nt: Array, A0: Array | None = None) -> Array:
@@ -419,7 +419,7 @@ def ransac_farfield(
 
 # ----------------------------------------------------------------------------- entry point
 #: robust-loss scale in units of the noise standard deviation (95 % Gaussian efficiency)
-_TUNING = {"huber": 1.345, "soft_l1": 1.345, "cauchy": 2.385}
+_TUNING = TUNING
 
 
 def _robust_sigma(D: Array, Z: Array, N: Array, C: Array, used: NDArray[np.bool_], *, dim: int = 3) -> float:
@@ -429,7 +429,7 @@ def _robust_sigma(D: Array, Z: Array, N: Array, C: Array, used: NDArray[np.bool_
     m, k = D.shape
     g = dim * (dim - 1) // 2
     dof = max(n_obs - (dim * (m - 1) + dim * k - g), 1)
-    return _MAD * float(np.nanmedian(np.abs(r[used]))) * float(np.sqrt(n_obs / dof))
+    return mad_std(r[used], centre=False) * float(np.sqrt(n_obs / dof))
 
 def _noise_from_double_centred(D: Array, rank: int) -> float:
     """Robust per-entry noise level of a complete matrix from its double-centred rank-r residual.
@@ -443,7 +443,7 @@ def _noise_from_double_centred(D: Array, rank: int) -> float:
     U, s, Vt = top_svd(X, rank)
     R = X - (U[:, :rank] * s[:rank]) @ Vt[:rank]
     dof = (D.shape[0] - 1 - rank) * (D.shape[1] - 1 - rank)
-    return float(_MAD * np.median(np.abs(R)) * np.sqrt(R.size / max(dof, 1)))
+    return float(mad_std(R, centre=False) * np.sqrt(R.size / max(dof, 1)))
 
 
 def check_orientation(D: Array, *, noise_std: float | None = None, rank: int = 3,
@@ -580,18 +580,17 @@ def _effective_dim(dim: int | str, report: DegeneracyReport) -> int:
             return 1
         return 3
     if dim == 2 and rank == 3:
-        raise DegenerateGeometryError(
+        raise InputError(
             f"dim=2 but the data are 3-D: {detail}; use dim=3 (or 'auto'; gross errors also raise the rank: "
-            "try loss='huber')", kind="dimension-mismatch")
+            "try loss='huber')")
     if dim == 2 and rank == 2 and report.kind == "planar-motion":
         return 3  # reported as planar-motion (not determined) by the caller
     if dim == 2 and rank < 2:
-        raise DegenerateGeometryError(
+        raise InputError(
             f"dim=2 but the data have {detail}: positions on a line or parallel directions; use dim=1 "
-            "(or 'auto')", kind="dimension-mismatch")
+            "(or 'auto')")
     if dim == 1 and rank > 1:
-        raise DegenerateGeometryError(
-            f"dim=1 but the data have {detail}; use dim={min(rank, 3)} (or 'auto')", kind="dimension-mismatch")
+        raise InputError(f"dim=1 but the data have {detail}; use dim={min(rank, 3)} (or 'auto')")
     return int(dim)
 
 
@@ -608,7 +607,7 @@ def _solve_low_dim(D: Array, X: Array, used: NDArray[np.bool_], d: int, report: 
         u = s[0] * Vt[0]
         a = float(np.max(np.abs(u)))
         if a <= 0:
-            raise DegenerateGeometryError("every column is constant: no position is observable", kind="no-signal")
+            raise InputError("matrix: every column is constant: no position is observable")
         x = U[:, 0] * a
         x = x - x[0]
         q = u / a
@@ -777,7 +776,7 @@ def solve_farfield(
         decide. What is determined (paper 000, section 2.2) is in ``result.determined``:
         planar -- the in-plane geometry up to a rotation / reflection of the plane (needs
         k >= 3 directions not all on two lines); linear -- the positions along the line up
-        to one scale factor (reported with the largest |projection| of a direction = 1:
+        to one scale factor (reported with the largest ``|projection|`` of a direction = 1:
         the smallest array consistent with the data, exact when a source is at endfire);
         parallel directions -- the coordinate along the direction, scale included.
         Positions with the directions off their plane (``planar-motion``) are not determined
@@ -796,6 +795,23 @@ def solve_farfield(
     DegenerateGeometryError
         ``kind`` = "too-few-receivers" / "too-few-sources", or one of the failure modes
         (with ``partial`` = the partial FarfieldResult) unless ``allow_degenerate``.
+
+    Examples
+    --------
+    Eight receiver positions, twelve far-away transmitters, 0.1 mm noise:
+
+    >>> import numpy as np
+    >>> import selfcal
+    >>> rng = np.random.default_rng(4)
+    >>> Z = rng.normal(size=(8, 3))
+    >>> N = rng.normal(size=(12, 3))
+    >>> N /= np.linalg.norm(N, axis=1, keepdims=True)
+    >>> D = Z @ N.T + rng.normal(size=12) + 1e-4 * rng.standard_normal((8, 12))
+    >>> res = selfcal.solve_farfield(D)
+    >>> res.success, res.degeneracy, res.positions.shape
+    (True, None, (8, 3))
+    >>> bool(res.residual_rms < 2e-4)
+    True
     """
     check_choice(method, "method", METHODS)
     if dim not in (1, 2, 3, "auto"):

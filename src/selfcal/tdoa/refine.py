@@ -46,6 +46,8 @@ from numpy.typing import NDArray
 
 from .._checks import check_choice
 from ..geometry import sphere_exp, sphere_tangent_basis
+from ..robust import LOSSES
+from ..robust import loss_rho as _loss_table
 
 __all__ = [
     "LOSSES",
@@ -63,7 +65,6 @@ __all__ = [
 ]
 
 Array = NDArray[np.float64]
-LOSSES = ("linear", "huber", "soft_l1", "cauchy")
 
 
 @dataclass(frozen=True)
@@ -91,28 +92,12 @@ class RefineResult:
 # ----------------------------------------------------------------------------- losses
 def loss_rho(s: Array, loss: str) -> Array:
     """Loss ``rho(s)`` of squared, scaled residuals ``s = r^2 / delta^2`` (scipy convention)."""
-    if loss == "linear":
-        return s
-    if loss == "huber":
-        return np.where(s <= 1.0, s, 2.0 * np.sqrt(s) - 1.0)
-    if loss == "soft_l1":
-        return 2.0 * (np.sqrt(1.0 + s) - 1.0)
-    if loss == "cauchy":
-        return np.log1p(s)
-    raise ValueError(loss)
+    return _loss_table(s, loss)[0]
 
 
 def loss_weight(s: Array, loss: str) -> Array:
     """IRLS weight ``rho'(s)`` for squared, scaled residuals ``s`` (1 for the linear loss)."""
-    if loss == "linear":
-        return np.ones_like(s)
-    if loss == "huber":
-        return np.where(s <= 1.0, 1.0, 1.0 / np.sqrt(np.maximum(s, 1.0)))
-    if loss == "soft_l1":
-        return 1.0 / np.sqrt(1.0 + s)
-    if loss == "cauchy":
-        return 1.0 / (1.0 + s)
-    raise ValueError(loss)
+    return _loss_table(s, loss)[1]
 
 
 def _cost(r: Array, mask: NDArray[np.bool_], loss: str, delta: float) -> float:

@@ -53,6 +53,7 @@ from scipy.optimize import least_squares
 
 from .._checks import as_matrix, as_points, check_choice, check_positive
 from ..errors import DegenerateGeometryError, InputError
+from ..robust import LOSSES, TUNING, loss_rho, mad_std
 from . import constrained as _constrained
 
 __all__ = [
@@ -69,7 +70,6 @@ __all__ = [
 Array = NDArray[np.float64]
 
 OFFSET_MODES = ("none", "receivers", "sources", "both")
-LOSSES = ("linear", "huber", "soft_l1", "cauchy")
 
 # solver="trf": above this many unknowns least_squares uses tr_solver="lsmr" (sparse)
 # instead of "exact" (a dense SVD per iteration)
@@ -354,31 +354,15 @@ def _inv_blocks(blocks: Array) -> Array:
 # ---------------------------------------------------------------------------
 
 
-def _rho(z: Array, loss: str) -> tuple[Array, Array]:
-    if loss == "linear":
-        return z, np.ones_like(z)
-    if loss == "huber":
-        big = z > 1
-        sq = np.sqrt(np.where(big, z, 1.0))
-        return np.where(big, 2 * sq - 1, z), np.where(big, 1 / sq, 1.0)
-    if loss == "soft_l1":
-        t = np.sqrt(1 + z)
-        return 2 * (t - 1), 1 / t
-    if loss == "cauchy":
-        return np.log1p(z), 1 / (1 + z)
-    raise InputError(f"unknown loss {loss!r}")
-
-
-# residual scale in units of sigma giving 95% efficiency under Gaussian noise (Huber 1964,
-# Holland & Welsch 1977); soft_l1 (pseudo-Huber) borrows Huber's constant
-_TUNING = {"huber": 1.345, "soft_l1": 1.345, "cauchy": 2.385}
+_rho = loss_rho  # the one robust-loss table (selfcal.robust)
+_TUNING = TUNING  # 95 % Gaussian efficiency scales (selfcal.robust)
 
 
 def _robust_sigma(f: Array) -> float:
     """Normal-consistent MAD of residuals (robust noise std), metres."""
     if f.size == 0:
         return 0.0
-    return float(1.4826 * np.median(np.abs(f - np.median(f))))
+    return float(mad_std(f))
 
 
 # ---------------------------------------------------------------------------

@@ -30,6 +30,7 @@ from numpy.typing import NDArray
 
 from .._checks import as_matrix, check_choice, check_positive
 from ..errors import InputError
+from ..robust import mad_std
 
 __all__ = [
     "CommonOffsetProfile",
@@ -43,8 +44,6 @@ __all__ = [
 
 Array = NDArray[np.float64]
 
-# MAD -> standard deviation for Gaussian data
-_MAD_TO_SIGMA = 1.4826
 # bisquare tuning constant (in robust-sigma units) for the local fits: 95 % Gaussian efficiency
 _BISQUARE_C = 4.685
 
@@ -144,7 +143,7 @@ def local_polynomial_prediction(
         res = Yw - (X @ coef[..., None])[..., 0]
         absr = np.where(w, np.abs(res), np.nan)
         with np.errstate(all="ignore"):
-            s = _MAD_TO_SIGMA * np.nanmedian(absr, axis=1, keepdims=True)
+            s = mad_std(absr, axis=1, centre=False, keepdims=True)  # absr: |residuals| of the fit
         s = np.where(np.isfinite(s) & (s > 0), s, np.inf)
         u = res / (_BISQUARE_C * s)
         wts = np.where(w & (np.abs(u) < 1), (1 - u**2) ** 2, 0.0)
@@ -212,7 +211,7 @@ def reject_range_outliers(
     dev = Y - pred
     with np.errstate(all="ignore"):
         med = np.nanmedian(dev, axis=1, keepdims=True)
-        scale = _MAD_TO_SIGMA * np.nanmedian(np.abs(dev - med), axis=1)
+        scale = mad_std(dev, axis=1)
     scale = np.where(np.isfinite(scale), scale, np.inf)
     z = (dev - med) / np.where(scale > 0, scale, np.inf)[:, None]
     z = np.where(np.isfinite(z), z, 0.0)
@@ -253,7 +252,7 @@ def robust_scale(residuals: Any, kind: str = "mad", keep: float = 0.7) -> float:
         raise InputError("robust_scale: no finite residuals")
     a = np.abs(e - np.median(e))
     if kind == "mad":
-        return float(_MAD_TO_SIGMA * np.median(a))
+        return float(mad_std(e))
     h = max(int(np.ceil(keep * a.size)), 1)
     return float(np.sqrt(np.mean(np.partition(a, h - 1)[:h] ** 2)))
 

@@ -49,6 +49,7 @@ from numpy.typing import NDArray
 
 from .._checks import as_matrix, check_choice
 from ..errors import InputError
+from ..robust import mad_std
 
 __all__ = ["RECIPES", "RecipeResult", "TimeOrderTest", "apply_recipe", "detect_time_order", "moving_tag"]
 
@@ -124,7 +125,7 @@ def detect_time_order(matrix: Any, *, alpha: float = TIME_ORDER_ALPHA,
         return TimeOrderTest(False, 1.0, 1.0, float(alpha), 0)
     with np.errstate(all="ignore"):
         med = np.nanmedian(Y, axis=1, keepdims=True)
-        sc = 1.4826 * np.nanmedian(np.abs(Y - med), axis=1, keepdims=True)
+        sc = mad_std(Y, axis=1, keepdims=True)
     sc = np.where(np.isfinite(sc) & (sc > 0), sc, 1.0)
     Z = (Y - med) / sc
     gen = as_rng(rng)

@@ -1,0 +1,472 @@
+"""Geometry of conference networks: near-planarity, mirror ambiguities and known heights.
+
+Conference units often sit at (nearly) one height. A near-planar network makes 3-D
+self-calibration ill-posed: each point may be mirrored through the plane without changing
+any distance to first order, so z is undetermined. This module holds the tests and the
+fallbacks the calibration (:mod:`selfcal.acoustics.calibrate`) uses:
+
+- :func:`planarity`: is the layout thinner than its own position uncertainty (or 1 % of
+  its extent)? Judged on one 3-D fit's geometry and covariances.
+- :func:`compare_fits`: nested-model F test of a 3-D against a 2-D fit (kept for analyses;
+  the pipeline no longer fits both models by default).
+- :func:`one_side_of_plane`: the microphone-side convention when only the loudspeakers are
+  coplanar.
+- :func:`refine_known_heights`: horizontal positions and offsets with every z given.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ..errors import InputError
+
+__all__ = ["Planarity", "ModelComparison", "planarity", "compare_fits", "one_side_of_plane",
+           "read_heights", "refine_known_heights", "PLANAR_RATIO", "PLANAR_SIGMAS", "PLANAR_ALPHA"]
+
+Array = NDArray[np.float64]
+PLANAR_RATIO = 0.01  # thinnest / widest extent below which a layout counts as flat
+PLANAR_SIGMAS = 3.0  # thickness below this many standard deviations along the normal = flat
+PLANAR_ALPHA = 1e-3  # F-test level: a 3-D improvement less likely than this under a planar truth keeps z
+NOISE_FLOOR = 1e-10  # s, below any real detection error; keeps the F test finite on exact data
+
+
+@dataclass(frozen=True)
+class ModelComparison:
+    """Nested-model F test of a 3-D fit against a 2-D fit of the same TOA matrix.
+
+    Attributes
+    ----------
+    residual_2d, residual_3d : float
+        RMS TOA residuals, s.
+    observations : int
+        Observed entries m.
+    extra_parameters : int
+        k = n - 3 unknowns the 3-D model adds (one coordinate per node, less the three
+        extra rigid-motion gauge freedoms of 3-D).
+    dof_3d : int
+        m minus the 3-D model's free parameters, ``4 n - 7`` (n = I + J nodes).
+    f_statistic : float
+        ``((RSS_2 - RSS_3) / k) / (RSS_3 / dof_3d)``.
+    p_value : float
+        Probability of an F at least this large under a planar truth (F(k, dof_3d)).
+    significant : bool
+        ``p_value < alpha``: z is determined by the data.
+    """
+
+    residual_2d: float
+    residual_3d: float
+    observations: int
+    extra_parameters: int
+    dof_3d: int
+    f_statistic: float
+    p_value: float
+    significant: bool
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-safe dictionary."""
+        return {"residual_2d": self.residual_2d, "residual_3d": self.residual_3d,
+                "observations": self.observations, "extra_parameters": self.extra_parameters,
+                "dof_3d": self.dof_3d, "f_statistic": self.f_statistic, "p_value": self.p_value,
+                "significant": self.significant}
+
+
+def compare_fits(residual_2d: float, residual_3d: float, observations: int, nodes: int, *,
+                 alpha: float = PLANAR_ALPHA, noise_floor: float = NOISE_FLOOR) -> ModelComparison:
+    """F test: does the 3-D model fit the TOAs significantly better than the planar one?
+
+    With Gaussian noise, the planar model nested in the 3-D one and ``RSS = m rms^2``,
+    ``F = ((RSS_2 - RSS_3) / k) / (RSS_3 / (m - p_3))`` follows F(k, m - p_3) when the
+    network is planar (k = n - 3 extra unknowns, p_3 = 4 n - 7: 3 n coordinates plus
+    n - 1 offset differences less 6 gauge freedoms; offsets ``"both"``). The noise
+    variance ``RSS_3 / (m - p_3)`` is floored at ``noise_floor^2`` so exact data give a
+    finite answer. Without residual degrees of freedom the test cannot reject, and z is
+    kept only if the 2-D fit is off by more than the floor.
+
+    Parameters
+    ----------
+    residual_2d, residual_3d : float
+        RMS residuals of the two fits over the ``observations`` entries, s.
+    observations : int
+    nodes : int
+        I + J.
+    alpha : float
+        Significance level.
+    noise_floor : float
+        s.
+
+    Returns
+    -------
+    ModelComparison
+    """
+    from scipy.stats import f as f_dist
+
+    k = max(nodes - 3, 1)
+    dof = observations - (4 * nodes - 7)
+    rss2 = observations * residual_2d**2
+    rss3 = observations * residual_3d**2
+    if dof < 1:
+        stat = float("inf") if residual_2d > residual_3d + noise_floor else 0.0
+        p = 0.0 if stat > 0 else 1.0
+    else:
+        var = max(rss3 / dof, noise_floor**2)
+        stat = float((rss2 - rss3) / k / var)
+        p = float(f_dist.sf(stat, k, dof)) if stat > 0 else 1.0
+    return ModelComparison(float(residual_2d), float(residual_3d), int(observations), int(k), int(dof),
+                           stat, p, bool(p < alpha))
+
+
+@dataclass(frozen=True)
+class Planarity:
+    """How flat a network is.
+
+    Attributes
+    ----------
+    near_planar : bool
+    extents : (d,) array
+        Standard deviations of the centred positions along their principal axes, m
+        (singular values / sqrt(n)), largest first.
+    normal : (d,) array
+        Direction of least extent.
+    normal_std : float
+        RMS standard deviation of the positions along ``normal`` from their covariances, m
+        (NaN without covariances).
+    comparison : ModelComparison or None
+        The 2-D / 3-D F test behind the verdict (:func:`compare_fits`), when one was made.
+    """
+
+    near_planar: bool
+    extents: Array
+    normal: Array
+    normal_std: float
+    comparison: ModelComparison | None = None
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-safe dictionary."""
+        return {"near_planar": self.near_planar, "extents": self.extents, "normal": self.normal,
+                "normal_std": self.normal_std,
+                "comparison": None if self.comparison is None else self.comparison.to_dict()}
+
+
+def planarity(points: Array, cov: NDArray[np.float64] | None = None, *, ratio: float = PLANAR_RATIO,
+              sigmas: float = PLANAR_SIGMAS) -> Planarity:
+    """Decide whether (n, 3) ``points`` are too close to a plane for a 3-D calibration.
+
+    Near-planar when the thinnest extent ``e_3`` is below ``ratio * e_1`` or below
+    ``sigmas`` times the RMS standard deviation along the normal (``sqrt(mean n^T C_k n)``):
+    then the thickness of the layout is not resolved by the data.
+
+    Parameters
+    ----------
+    points : (n, d) array, m
+    cov : (n, d, d) array, optional
+        Per-point covariances, m^2 (non-finite ones are ignored).
+    """
+    P = np.asarray(points, dtype=float)
+    P = P[np.isfinite(P).all(axis=1)]
+    centred = P - P.mean(axis=0)
+    _, s, vt = np.linalg.svd(centred, full_matrices=False)
+    ext = s / np.sqrt(max(len(P), 1))
+    normal = vt[-1]
+    nstd = float("nan")
+    if cov is not None:
+        C = np.asarray(cov, dtype=float)
+        ok = np.isfinite(C).all(axis=(1, 2))
+        if ok.any():
+            nstd = float(np.sqrt(np.mean(np.einsum("i,kij,j->k", normal, C[ok], normal))))
+    flat = bool(ext[-1] < ratio * ext[0] or (np.isfinite(nstd) and ext[-1] < sigmas * nstd))
+    return Planarity(flat, ext, normal, nstd)
+
+
+def one_side_of_plane(points: Array, cov: NDArray[np.float64], plane_points: Array) -> tuple[Array, NDArray[np.float64], int]:
+    """Reflect ``points`` onto the majority side of the plane fitted to ``plane_points``.
+
+    When every sender lies in one plane (loudspeakers in desk units on a flat floor),
+    each receiver's distances to all senders are unchanged by reflecting that receiver
+    alone through the plane: 2^I solutions fit equally well, and a solver may return a
+    mix (some microphones under the desk). Self-calibration cannot tell them apart; the
+    physical convention that all microphones are on one side (above their desk
+    loudspeakers) picks one, and the global reflection gauge does the rest. The same
+    holds with the roles swapped.
+
+    Parameters
+    ----------
+    points : (n, 3) array
+    cov : (n, 3, 3) array
+    plane_points : (m, 3) array
+
+    Returns
+    -------
+    points, cov : reflected where needed (covariance ``H C H``, ``H = I - 2 n n^T``)
+    flipped : int
+        How many points were reflected.
+    """
+    centre = plane_points.mean(axis=0)
+    normal = np.linalg.svd(plane_points - centre, full_matrices=False)[2][-1]
+    h = (points - centre) @ normal
+    side = 1.0 if np.sum(h) >= 0 else -1.0
+    flip = np.sign(h) == -side
+    H = np.eye(3) - 2.0 * np.outer(normal, normal)
+    out = points.copy()
+    out[flip] = points[flip] - 2.0 * h[flip, None] * normal[None, :]
+    C = np.array(cov, dtype=float)
+    C[flip] = np.einsum("ab,nbc,cd->nad", H, C[flip], H)
+    return out, C, int(flip.sum())
+
+
+def read_heights(path: str | Path, receivers: tuple[str, ...], senders: tuple[str, ...]) -> tuple[Array, Array]:
+    """Read known heights: JSON ``{"receivers": [...] | {name: z}, "senders": ...}`` in metres.
+
+    Raises
+    ------
+    InputError
+        Missing keys, wrong lengths, unknown names or non-finite values (file and field named).
+    """
+    from ..io import read_json
+
+    p = Path(path)
+    raw = read_json(p, p.name)
+    if not isinstance(raw, dict):
+        raise InputError(f"{p.name}: expected an object with fields 'receivers' and 'senders'")
+    out = []
+    for key, names in (("receivers", receivers), ("senders", senders)):
+        if key not in raw:
+            raise InputError(f"{p.name}: field '{key}' is missing")
+        val = raw[key]
+        if isinstance(val, dict):
+            unknown = set(val) - set(names)
+            if unknown:
+                raise InputError(f"{p.name}: field '{key}' names unknown {sorted(unknown)[0]!r}")
+            missing = [n for n in names if n not in val]
+            if missing:
+                raise InputError(f"{p.name}: field '{key}' lacks {missing[0]!r}")
+            val = [val[n] for n in names]
+        try:
+            z = np.asarray(val, dtype=float)
+        except (TypeError, ValueError):
+            raise InputError(f"{p.name}: field '{key}' must be numbers (metres)") from None
+        if z.shape != (len(names),) or not np.isfinite(z).all():
+            raise InputError(f"{p.name}: field '{key}' must hold {len(names)} finite heights, got shape {z.shape}")
+        out.append(z)
+    return out[0], out[1]
+
+
+def _heights_jacobian(xy_r: Array, xy_s: Array, dz: Array, rows: NDArray[np.intp], cols: NDArray[np.intp],
+                      I: int, J: int) -> Any:
+    import scipy.sparse as sp
+
+    diff = xy_r[rows] - xy_s[cols]
+    dist = np.sqrt((diff**2).sum(axis=1) + dz[rows, cols] ** 2)
+    g = diff / np.maximum(dist, 1e-9)[:, None]
+    m = len(rows)
+    n_xy = 2 * (I + J)
+    # Parameter order: receiver xy (2I), sender xy (2J), receiver offsets (I), sender offsets 2..J.
+    r_idx = np.repeat(np.arange(m), 6)
+    c_idx = np.column_stack([2 * rows, 2 * rows + 1, 2 * I + 2 * cols, 2 * I + 2 * cols + 1,
+                             n_xy + rows, n_xy + I + cols - 1])
+    vals = np.column_stack([-g[:, 0], -g[:, 1], g[:, 0], g[:, 1], -np.ones(m), -np.ones(m)])
+    keep = ~((c_idx == n_xy + I - 1) & (np.arange(6) == 5)[None, :])  # sender 0's offset is the gauge
+    Jm = sp.csr_matrix((vals[keep], (r_idx[keep.ravel()], c_idx[keep])), shape=(m, n_xy + I + J - 1))
+    return Jm, dist
+
+
+def _levenberg_marquardt(resid: Any, jac: Any, theta0: Array, max_iterations: int,
+                         tol: float = 1e-12) -> tuple[Array, Array, Any, int, bool]:
+    """Minimise ``|resid(theta)|^2`` by Levenberg-Marquardt on the sparse normal equations.
+
+    Marquardt's scaling ``A + mu diag(A)`` keeps the gauge null space (rigid motions) from
+    making the step singular; the problems here have a few hundred unknowns, so the
+    normal matrix is solved densely.
+    """
+    theta = theta0.copy()
+    r = resid(theta)
+    cost = float(r @ r)
+    mu = 1e-3
+    converged = False
+    it = 0
+    Jm = jac(theta)
+    while it < max_iterations:
+        it += 1
+        A = (Jm.T @ Jm).toarray()
+        g = Jm.T @ r
+        diag = np.diag(A).copy()
+        diag[diag <= 0] = 1.0
+        improved = False
+        for _ in range(30):
+            try:
+                step = -np.linalg.solve(A + mu * np.diag(diag), g)
+            except np.linalg.LinAlgError:
+                mu *= 10.0
+                continue
+            trial = theta + step
+            r_new = resid(trial)
+            c_new = float(r_new @ r_new)
+            if c_new < cost:
+                improved = True
+                break
+            mu *= 10.0
+        if not improved:
+            converged = True  # no descent direction left: a stationary point
+            break
+        done = cost - c_new <= tol * max(cost, 1e-300) or np.linalg.norm(step) <= tol * (1 + np.linalg.norm(theta))
+        theta, r, cost = trial, r_new, c_new
+        mu = max(mu / 10.0, 1e-12)
+        Jm = jac(theta)
+        if done:
+            converged = True
+            break
+    return theta, r, Jm, it, converged
+
+
+def _gauge_pinv(N: Array, xr: Array, xs: Array) -> Array:
+    """Pseudo-inverse of the normal matrix whose null space is the horizontal rigid motions.
+
+    With ``G`` an orthonormal basis of that null space (x and y translations and the
+    rotation about z of every horizontal coordinate; offsets are untouched),
+    ``N^+ = (N + G G^T)^-1 - G G^T`` -- one Cholesky instead of an eigendecomposition.
+    """
+    from scipy.linalg import cho_factor, cho_solve
+
+    n = N.shape[0]
+    pts = np.vstack([xr, xs])
+    k = 2 * len(pts)
+    G = np.zeros((n, 3))
+    G[0:k:2, 0] = 1.0
+    G[1:k:2, 1] = 1.0
+    centred = pts - pts.mean(axis=0)
+    G[0:k:2, 2] = -centred[:, 1]
+    G[1:k:2, 2] = centred[:, 0]
+    G, _ = np.linalg.qr(G)
+    GG = G @ G.T
+    scale = float(np.mean(np.diag(N))) or 1.0
+    # Scaling G G^T like N keeps the sum well conditioned; N^+ = (N + a G G^T)^-1 - G G^T / a.
+    try:
+        factor = cho_factor(N + scale * GG)
+    except np.linalg.LinAlgError:  # a further null direction (a node with too few entries): SVD
+        return np.linalg.pinv(N, hermitian=True)
+    return cho_solve(factor, np.eye(n)) - GG / scale
+
+
+def refine_known_heights(
+    matrix: Array,
+    receiver_heights: Array,
+    sender_heights: Array,
+    receivers_xy: Array,
+    senders_xy: Array,
+    receiver_offsets: Array,
+    source_offsets: Array,
+    *,
+    speed: float,
+    max_iterations: int = 50,
+    f_scale: float | None = None,
+) -> dict[str, Any]:
+    """Least squares for horizontal positions and offsets with every height known.
+
+    Minimises ``sum_ij (c t_ij - sqrt(|x_i - y_j|^2 + (z_i - w_j)^2) - c delta_i - c tau_j)^2``
+    (004 eq. 3.1 with the heights z_i, w_j given) over the (I + J) x 2 horizontal
+    positions, the I internal delays and the onsets tau_2..tau_J (tau_1 = 0, 004 sec. 3.3).
+    The horizontal gauge (rotation, translation, reflection) stays free; the covariance is
+    ``sigma^2 (J^T J)^+`` (minimum-norm inner constraints).
+
+    Parameters
+    ----------
+    matrix : (I, J) array
+        TOA in seconds, NaN = missing.
+    receiver_heights, sender_heights : (I,), (J,) arrays, m
+    receivers_xy, senders_xy : (I, 2), (J, 2) arrays
+        Initial horizontal positions, m.
+    receiver_offsets, source_offsets : (I,), (J,) arrays
+        Initial delays / onsets, s (shifted so that the first onset is 0).
+    speed : float
+        m/s.
+    f_scale : float, optional
+        s: a Cauchy loss of this scale instead of least squares (iteratively reweighted:
+        weights ``1 / (1 + (e / f_scale)^2)``), robust to a minority of wrong entries.
+
+    Returns
+    -------
+    dict
+        ``receivers`` (I, 3), ``sources`` (J, 3), ``receiver_offsets`` (I,) s,
+        ``source_offsets`` (J,) s (first 0), ``receiver_cov`` (I, 3, 3), ``source_cov``
+        (J, 3, 3) (zero z variance: heights are given), ``residual_rms`` (s),
+        ``converged``, ``iterations``.
+    """
+    T = np.asarray(matrix, dtype=float)
+    I, J = T.shape
+    rows, cols = np.nonzero(np.isfinite(T))
+    y = speed * T[rows, cols]
+    dz = np.asarray(receiver_heights, float)[:, None] - np.asarray(sender_heights, float)[None, :]
+    shift = float(source_offsets[0])
+    theta0 = np.concatenate([np.asarray(receivers_xy, float).ravel(), np.asarray(senders_xy, float).ravel(),
+                             speed * (np.asarray(receiver_offsets, float) + shift),
+                             speed * (np.asarray(source_offsets, float)[1:] - shift)])
+    n_xy = 2 * (I + J)
+
+    def unpack(th: Array) -> tuple[Array, Array, Array, Array]:
+        xr = th[: 2 * I].reshape(I, 2)
+        xs = th[2 * I: n_xy].reshape(J, 2)
+        dr = th[n_xy: n_xy + I]
+        ds = np.concatenate([[0.0], th[n_xy + I:]])
+        return xr, xs, dr, ds
+
+    def resid(th: Array) -> Array:
+        xr, xs, dr, ds = unpack(th)
+        dist = np.sqrt(((xr[rows] - xs[cols]) ** 2).sum(axis=1) + dz[rows, cols] ** 2)
+        return y - dist - dr[rows] - ds[cols]
+
+    def jac(th: Array) -> Any:
+        xr, xs, _, _ = unpack(th)
+        return _heights_jacobian(xr, xs, dz, rows, cols, I, J)[0]
+
+    if f_scale is None:
+        theta, r, Jm, iterations, converged = _levenberg_marquardt(resid, jac, theta0, max_iterations)
+    else:
+        import scipy.sparse as sp
+
+        theta, iterations, converged = theta0, 0, False
+        fs_m = float(f_scale) * speed
+        for _ in range(8):  # IRLS: weights from the current residuals, then weighted LM
+            w = np.sqrt(1.0 / (1.0 + (resid(theta) / fs_m) ** 2))
+            W = sp.diags(w)
+
+            def wres(th: Array, w: Array = w) -> Array:
+                return w * resid(th)
+
+            def wjac(th: Array, W: Any = W) -> Any:
+                return W @ jac(th)
+
+            theta_new, r, Jm, it, converged = _levenberg_marquardt(wres, wjac, theta, max_iterations)
+            iterations += it
+            step = float(np.abs(theta_new - theta).max())
+            theta = theta_new
+            if step < 1e-9:
+                break
+        r = resid(theta)
+        Jm = jac(theta)
+    xr, xs, dr, ds = unpack(theta)
+    m, n = len(r), len(theta)
+    dof = max(m - n + 3, 1)  # 3 = horizontal rigid-motion gauge freedoms
+    sigma2 = float(r @ r) / dof
+    cov = sigma2 * _gauge_pinv((Jm.T @ Jm).toarray(), xr, xs)
+    rcov = np.zeros((I, 3, 3))
+    scov = np.zeros((J, 3, 3))
+    for i in range(I):
+        rcov[i, :2, :2] = cov[2 * i: 2 * i + 2, 2 * i: 2 * i + 2]
+    for j in range(J):
+        k = 2 * I + 2 * j
+        scov[j, :2, :2] = cov[k: k + 2, k: k + 2]
+    return {
+        "receivers": np.column_stack([xr, receiver_heights]),
+        "sources": np.column_stack([xs, sender_heights]),
+        "receiver_offsets": dr / speed,
+        "source_offsets": ds / speed,
+        "receiver_cov": rcov,
+        "source_cov": scov,
+        "residual_rms": float(np.sqrt(np.mean(r**2))) / speed,
+        "converged": converged,
+        "iterations": iterations,
+    }
