@@ -158,9 +158,8 @@ class GeometryTest:
 
     Leave-one-out cross-validation in closed form (Allen's PRESS): the linearised
     prediction error of entry k from a fit without it is ``r_k / (1 - h_k)`` (``h_k`` its
-    leverage), so one fit gives every held-out error; ``press`` is their median square (a
-    few entries with ``h -> 1`` would dominate the sum). The geometric model passes when
-    its ``press`` is below that of the model without geometry (all points at one
+    leverage), so ``PRESS = sum_k (r_k / (1 - h_k))^2`` needs one fit. The geometric model
+    passes when its PRESS is below that of the model without geometry (all points at one
     place: ``d_i + o_j``, ``d_i``, ``o_j`` or a constant, :func:`null_parameters`). A
     matrix that fits no geometry (uniform random entries) is fitted closely by the many
     parameters of the geometry but predicted badly (``h ~ n / m`` near 1) and fails;
@@ -168,8 +167,7 @@ class GeometryTest:
 
     Attributes
     ----------
-    press, press_null: median squared leave-one-out error of the fit and of the model without
-        geometry (squared matrix units),
+    press, press_null: PRESS of the fit and of the model without geometry (squared matrix units),
         over the entries ``observations`` where both leverages are below 1 - 1e-8.
     rss, rss_null: residual sums of squares over the same entries.
     n_params, n_null: free parameters of the two models.
@@ -276,10 +274,8 @@ def geometry_test(ranges: Any, residuals: Any, leverages: Any, dim: int, offsets
     H0 = _additive_leverages(use, has_r, has_s)
     ok = use & np.isfinite(H) & (1 - H > 1e-8) & (1 - H0 > 1e-8)
     I, J = Y.shape
-    # the median squared leave-one-out error: a few entries the fit nearly interpolates
-    # (h -> 1) would dominate the plain PRESS sum
-    press = float(np.median((E[ok] / (1 - H[ok])) ** 2)) if ok.any() else float("nan")
-    press0 = float(np.median((E0[ok] / (1 - H0[ok])) ** 2)) if ok.any() else float("nan")
+    press = float(np.sum((E[ok] / (1 - H[ok])) ** 2))
+    press0 = float(np.sum((E0[ok] / (1 - H0[ok])) ** 2))
     rss = float(np.sum(E[use] ** 2))
     rss0 = float(np.sum(E0[use] ** 2))
     n1 = n_parameters(I, J, dim, offsets)
