@@ -17,6 +17,10 @@ The per-sender TOA matrix ``t_ij = |r_i - s_j| / c + tau_j + delta_i`` (004 eq. 
 - **units without enough detections are dropped** (fewer than ``d + 2`` senders for a
   receiver or receivers for a sender: not identifiable with a check left), with a note,
   and the rest are calibrated.
+
+Length (671 lines, above the ~600 guideline): the robust per-round flow (screening, 2-D /
+3-D verdict, known heights, mirror resolution) is one pipeline stage whose steps share the
+solver state.
 """
 
 from __future__ import annotations
