@@ -34,6 +34,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..errors import DegenerateGeometryError, InputError
+from ..robust import mad_std
 from .geometry import (
     PLANAR_ALPHA,
     ModelComparison,
@@ -504,7 +505,7 @@ def robust_calibrate(
         m = int(np.isfinite(res).sum())
         lev = np.sqrt(max(1.0 - n_par / max(m, 1), 1e-3))
         z = res / (s_ev * lev)
-        scale = max(1.0, 1.4826 * float(np.nanmedian(np.abs(z)))) if np.isfinite(z).any() else 1.0
+        scale = max(1.0, mad_std(z, centre=False)) if np.isfinite(z).any() else 1.0
         z = z / scale
         az = np.where(np.isfinite(z), np.abs(z), 0.0)
         # the largest of its receiver and of its sender: one bad entry does not take its neighbours along
