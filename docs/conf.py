@@ -38,6 +38,7 @@ nitpicky = False
 suppress_warnings = [
     "myst.header",  # the format pages start at ## under their # title
     "misc.highlighting_failure",  # abbreviated JSON examples ("...") in the format pages
+    "myst.xref_missing",  # README links (included on the results page) are relative to the repo
 ]
 
 # autodoc: documented members only, in source order, with type hints in the signature

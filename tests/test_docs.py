@@ -25,6 +25,8 @@ DOCTESTED = [
 
 #: the public solvers: each must show how it is called (an Examples section)
 SOLVERS: list[str] = [
+    "selfcal.toa.solve.solve_toa",
+    "selfcal.acoustics.pipeline.run_pipeline",
     "selfcal.tdoa.farfield.solve_farfield",
     "selfcal.aoa.pose.solve_aoa",
     "selfcal.slac.run.solve_slac",

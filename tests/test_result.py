@@ -184,7 +184,7 @@ def _planarity():
     return planarity(rng.normal(size=(10, 3)) * [3, 2, 0.01])
 
 
-@pytest.mark.parametrize("make", [_toa_result, _farfield_result, _aoa_result])
+@pytest.mark.parametrize("make", [_toa_result, _farfield_result, _aoa_result, _planarity])
 def test_solver_results_follow_the_convention(make) -> None:
     r = make()
     assert isinstance(r, Result)

@@ -23,6 +23,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from .._result import Result
 from ..errors import InputError
 
 __all__ = ["Planarity", "ModelComparison", "planarity", "compare_fits", "one_side_of_plane",
@@ -120,8 +121,8 @@ def compare_fits(residual_2d: float, residual_3d: float, observations: int, node
                            stat, p, bool(p < alpha))
 
 
-@dataclass(frozen=True)
-class Planarity:
+@dataclass(frozen=True, repr=False)
+class Planarity(Result):
     """How flat a network is.
 
     Attributes

@@ -18,6 +18,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from ..robust import mad_std
+
 __all__ = ["timing_noise", "detection_std", "sender_std", "fit_test", "rms_frequency", "TIMING_FLOOR", "MF_FACTOR",
            "FLOOR_SAMPLES", "timing_floor", "ResidualCheck", "residual_check"]
 
@@ -225,7 +227,7 @@ def residual_check(residuals: Array, std: Array, event_senders: NDArray[np.int64
     n_params : int
         Free parameters of the fitted model (gauge removed).
     cap : float
-        |z| bound of the outlier test (larger |z| were excluded; the per-unit sums cap at it).
+        ``|z|`` bound of the outlier test (larger ``|z|`` were excluded; the per-unit sums cap at it).
     alpha : float
 
     Returns
@@ -242,7 +244,7 @@ def residual_check(residuals: Array, std: Array, event_senders: NDArray[np.int64
     lev = np.sqrt(max(1.0 - n_params / max(m, 1), 1e-3))
     z = np.where(ok, e / np.where(ok, sd, 1.0) / lev, np.nan)
     zf = z[ok]
-    scale = float(1.4826 * np.median(np.abs(zf))) if m else float("nan")
+    scale = mad_std(zf, centre=False) if m else float("nan")
     limit = 1.0 + float(norm.isf(alpha / 2.0)) * float(np.sqrt(MAD_VAR / max(m, 1)))
     az = np.where(ok, np.abs(z), np.nan)
     es = np.asarray(event_senders)
@@ -255,7 +257,7 @@ def residual_check(residuals: Array, std: Array, event_senders: NDArray[np.int64
     for k, u in enumerate(units):
         if n_k[k] == 0:
             continue
-        sk = 1.4826 * float(np.nanmedian(u))
+        sk = mad_std(u, centre=False)  # u = |z|: the same scale
         if sk > 1.0 + q_unit * np.sqrt(MAD_VAR / n_k[k]):
             bad.append(k)
     I = az.shape[0]

@@ -24,6 +24,9 @@ State (eqs. 10-16), in this order::
 
 Beyond the paper: the anchors' ranging biases can be states too (``anchor_biases=True``),
 since eq. 1 adds both ends' biases and real anchors have them as well.
+
+Length (716 lines, above the ~600 guideline): state layout, link bookkeeping, the MAP /
+Laplace update and predict / update in one class; splitting them is open in issue 17.
 """
 
 from __future__ import annotations

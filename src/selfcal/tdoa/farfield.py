@@ -18,6 +18,10 @@ Robustness (beyond the paper, its future work): with ``loss != "linear"`` the st
 and the refinement are iteratively re-weighted; entries whose final residual exceeds
 ``reject_k`` robust standard deviations are reported in ``rejected``. :func:`ransac_farfield`
 additionally offers RANSAC over the minimal solver.
+
+Length (1038 lines, above the ~600 guideline): the entry point with screening, rank
+selection, the planar / linear cases and the partial reconstructions; the cases could move
+to modules of their own.
 """
 
 from __future__ import annotations

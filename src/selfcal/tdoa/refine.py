@@ -34,6 +34,9 @@ even when started at the true geometry) has nearly coplanar directions and a str
 array. See ``selfcal.experiments.farfield.FINDING``. :func:`selfcal.tdoa.solve_farfield`
 flags such solutions (``warnings``: ``directions-collapsed``, threshold
 ``selfcal.tdoa.farfield.COLLAPSE_RATIO``).
+
+Length (822 lines, above the ~600 guideline): alternating and LM refinement, the Schur / CG
+steps and the covariance share the sphere parametrisation.
 """
 
 from __future__ import annotations

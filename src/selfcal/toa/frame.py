@@ -27,6 +27,9 @@ handedness) and :class:`FrameInfo` says so; add a reference off the plane / line
 Node names. A node is named ``r<i>`` (receiver i, 0-based) or ``s<j>`` (source j), by a
 bare integer (a receiver index: receivers are usually the anchors), or by a name from
 the ``receiver_names`` / ``source_names`` lists when given.
+
+Length (745 lines, above the ~600 guideline): known nodes and every reference-frame
+convention, each with its undetermined part.
 """
 
 from __future__ import annotations

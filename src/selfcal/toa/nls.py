@@ -37,6 +37,9 @@ computes only the requested d x d diagonal blocks by selected inversion,
 O(min(I,J)^2 max(I,J) d^3) time for all of them.
 ``scipy.optimize.least_squares(method="trf", x_scale="jac")`` with the analytic
 sparse Jacobian is the alternative solver (``solver="trf"``).
+
+Length (800 lines, above the ~600 guideline): the sparse engine (layout, Jacobian, LM
+driver, fixed masks, constraint glue) shares private layout types.
 """
 
 from __future__ import annotations
