@@ -6,9 +6,10 @@ any distance to first order, so z is undetermined. This module holds the tests a
 fallbacks the calibration (:mod:`selfcal.acoustics.calibrate`) uses:
 
 - :func:`planarity`: is the layout thinner than its own position uncertainty (or 1 % of
-  its extent)? Judged on one 3-D fit's geometry and covariances.
-- :func:`compare_fits`: nested-model F test of a 3-D against a 2-D fit (kept for analyses;
-  the pipeline no longer fits both models by default).
+  its extent)? Judged on one 3-D fit's geometry and covariances (re-exported from
+  :mod:`selfcal.toa.select`, the TOA package's model choice).
+- :func:`compare_fits`: nested-model F test of a 3-D against a 2-D fit (likewise; the
+  pipeline no longer fits both models by default).
 - :func:`one_side_of_plane`: the microphone-side convention when only the loudspeakers are
   coplanar.
 - :func:`refine_known_heights`: horizontal positions and offsets with every z given.
@@ -16,171 +17,27 @@ fallbacks the calibration (:mod:`selfcal.acoustics.calibrate`) uses:
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
-from .._result import Result
 from ..errors import InputError
+from ..toa.select import (  # one implementation: the TOA package's model choice (dim="auto")
+    PLANAR_ALPHA,
+    PLANAR_RATIO,
+    PLANAR_SIGMAS,
+    ModelComparison,
+    Planarity,
+    compare_fits,
+    planarity,
+)
 
 __all__ = ["Planarity", "ModelComparison", "planarity", "compare_fits", "one_side_of_plane",
            "read_heights", "refine_known_heights", "PLANAR_RATIO", "PLANAR_SIGMAS", "PLANAR_ALPHA"]
 
 Array = NDArray[np.float64]
-PLANAR_RATIO = 0.01  # thinnest / widest extent below which a layout counts as flat
-PLANAR_SIGMAS = 3.0  # thickness below this many standard deviations along the normal = flat
-PLANAR_ALPHA = 1e-3  # F-test level: a 3-D improvement less likely than this under a planar truth keeps z
-NOISE_FLOOR = 1e-10  # s, below any real detection error; keeps the F test finite on exact data
-
-
-@dataclass(frozen=True)
-class ModelComparison:
-    """Nested-model F test of a 3-D fit against a 2-D fit of the same TOA matrix.
-
-    Attributes
-    ----------
-    residual_2d, residual_3d : float
-        RMS TOA residuals, s.
-    observations : int
-        Observed entries m.
-    extra_parameters : int
-        k = n - 3 unknowns the 3-D model adds (one coordinate per node, less the three
-        extra rigid-motion gauge freedoms of 3-D).
-    dof_3d : int
-        m minus the 3-D model's free parameters, ``4 n - 7`` (n = I + J nodes).
-    f_statistic : float
-        ``((RSS_2 - RSS_3) / k) / (RSS_3 / dof_3d)``.
-    p_value : float
-        Probability of an F at least this large under a planar truth (F(k, dof_3d)).
-    significant : bool
-        ``p_value < alpha``: z is determined by the data.
-    """
-
-    residual_2d: float
-    residual_3d: float
-    observations: int
-    extra_parameters: int
-    dof_3d: int
-    f_statistic: float
-    p_value: float
-    significant: bool
-
-    def to_dict(self) -> dict[str, Any]:
-        """JSON-safe dictionary."""
-        return {"residual_2d": self.residual_2d, "residual_3d": self.residual_3d,
-                "observations": self.observations, "extra_parameters": self.extra_parameters,
-                "dof_3d": self.dof_3d, "f_statistic": self.f_statistic, "p_value": self.p_value,
-                "significant": self.significant}
-
-
-def compare_fits(residual_2d: float, residual_3d: float, observations: int, nodes: int, *,
-                 alpha: float = PLANAR_ALPHA, noise_floor: float = NOISE_FLOOR) -> ModelComparison:
-    """F test: does the 3-D model fit the TOAs significantly better than the planar one?
-
-    With Gaussian noise, the planar model nested in the 3-D one and ``RSS = m rms^2``,
-    ``F = ((RSS_2 - RSS_3) / k) / (RSS_3 / (m - p_3))`` follows F(k, m - p_3) when the
-    network is planar (k = n - 3 extra unknowns, p_3 = 4 n - 7: 3 n coordinates plus
-    n - 1 offset differences less 6 gauge freedoms; offsets ``"both"``). The noise
-    variance ``RSS_3 / (m - p_3)`` is floored at ``noise_floor^2`` so exact data give a
-    finite answer. Without residual degrees of freedom the test cannot reject, and z is
-    kept only if the 2-D fit is off by more than the floor.
-
-    Parameters
-    ----------
-    residual_2d, residual_3d : float
-        RMS residuals of the two fits over the ``observations`` entries, s.
-    observations : int
-    nodes : int
-        I + J.
-    alpha : float
-        Significance level.
-    noise_floor : float
-        s.
-
-    Returns
-    -------
-    ModelComparison
-    """
-    from scipy.stats import f as f_dist
-
-    k = max(nodes - 3, 1)
-    dof = observations - (4 * nodes - 7)
-    rss2 = observations * residual_2d**2
-    rss3 = observations * residual_3d**2
-    if dof < 1:
-        stat = float("inf") if residual_2d > residual_3d + noise_floor else 0.0
-        p = 0.0 if stat > 0 else 1.0
-    else:
-        var = max(rss3 / dof, noise_floor**2)
-        stat = float((rss2 - rss3) / k / var)
-        p = float(f_dist.sf(stat, k, dof)) if stat > 0 else 1.0
-    return ModelComparison(float(residual_2d), float(residual_3d), int(observations), int(k), int(dof),
-                           stat, p, bool(p < alpha))
-
-
-@dataclass(frozen=True, repr=False)
-class Planarity(Result):
-    """How flat a network is.
-
-    Attributes
-    ----------
-    near_planar : bool
-    extents : (d,) array
-        Standard deviations of the centred positions along their principal axes, m
-        (singular values / sqrt(n)), largest first.
-    normal : (d,) array
-        Direction of least extent.
-    normal_std : float
-        RMS standard deviation of the positions along ``normal`` from their covariances, m
-        (NaN without covariances).
-    comparison : ModelComparison or None
-        The 2-D / 3-D F test behind the verdict (:func:`compare_fits`), when one was made.
-    """
-
-    near_planar: bool
-    extents: Array
-    normal: Array
-    normal_std: float
-    comparison: ModelComparison | None = None
-
-    def to_dict(self) -> dict[str, Any]:
-        """JSON-safe dictionary."""
-        return {"near_planar": self.near_planar, "extents": self.extents, "normal": self.normal,
-                "normal_std": self.normal_std,
-                "comparison": None if self.comparison is None else self.comparison.to_dict()}
-
-
-def planarity(points: Array, cov: NDArray[np.float64] | None = None, *, ratio: float = PLANAR_RATIO,
-              sigmas: float = PLANAR_SIGMAS) -> Planarity:
-    """Decide whether (n, 3) ``points`` are too close to a plane for a 3-D calibration.
-
-    Near-planar when the thinnest extent ``e_3`` is below ``ratio * e_1`` or below
-    ``sigmas`` times the RMS standard deviation along the normal (``sqrt(mean n^T C_k n)``):
-    then the thickness of the layout is not resolved by the data.
-
-    Parameters
-    ----------
-    points : (n, d) array, m
-    cov : (n, d, d) array, optional
-        Per-point covariances, m^2 (non-finite ones are ignored).
-    """
-    P = np.asarray(points, dtype=float)
-    P = P[np.isfinite(P).all(axis=1)]
-    centred = P - P.mean(axis=0)
-    _, s, vt = np.linalg.svd(centred, full_matrices=False)
-    ext = s / np.sqrt(max(len(P), 1))
-    normal = vt[-1]
-    nstd = float("nan")
-    if cov is not None:
-        C = np.asarray(cov, dtype=float)
-        ok = np.isfinite(C).all(axis=(1, 2))
-        if ok.any():
-            nstd = float(np.sqrt(np.mean(np.einsum("i,kij,j->k", normal, C[ok], normal))))
-    flat = bool(ext[-1] < ratio * ext[0] or (np.isfinite(nstd) and ext[-1] < sigmas * nstd))
-    return Planarity(flat, ext, normal, nstd)
 
 
 def one_side_of_plane(points: Array, cov: NDArray[np.float64], plane_points: Array) -> tuple[Array, NDArray[np.float64], int]:

@@ -25,6 +25,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from .._result import Result
 from ..errors import ConvergenceWarning, DegenerateGeometryError
 from .result import ToaResult, n_parameters
 
@@ -145,8 +146,8 @@ def compare_fits(residual_2d: float, residual_3d: float, observations: int, node
                            stat, p, bool(p < alpha))
 
 
-@dataclass(frozen=True)
-class Planarity:
+@dataclass(frozen=True, repr=False)
+class Planarity(Result):
     """How flat a network is.
 
     Attributes
