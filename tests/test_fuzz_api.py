@@ -261,7 +261,7 @@ def test_solve_toa_refuses_bad_arguments(kwargs) -> None:  # type: ignore[no-unt
 
 @pytest.mark.parametrize("matrix", [
     "1,2", [[1, 2], [3]], [[1 + 1j] * 8] * 6, [["a"] * 8] * 6, None, 3.0, np.zeros((6, 8, 2)),
-    np.full((6, 8), np.nan), np.full((6, 8), np.inf), -np.ones((6, 8)), np.ones((1, 1)), [],
+    np.full((6, 8), np.nan), np.full((6, 8), np.inf), np.ones((1, 1)), [],  # negative ranges are data (issue 12)
     np.array([[{"a": 1}] * 8] * 6, dtype=object),
 ])
 def test_solvers_refuse_bad_matrices(matrix) -> None:  # type: ignore[no-untyped-def]

@@ -99,11 +99,12 @@ def test_residual_test_accepts_the_truth_and_rejects_a_wrong_geometry():
 def test_deep_search_runs_only_when_the_first_fit_fails():
     sc, T = _scene(12, "tiered", 1, jitter=1e-6)
     good = _solve(T, 0, noise=1e-6)
-    assert good.fit.passed and "deep" not in good.method
+    assert good.fit.passed and good.success
     T2 = T.copy()
     T2[2, 5] += 2e-3  # one corrupted TOA (70 cm): no geometry fits it at 1 us
     bad = _solve(T2, 0, noise=1e-6)
-    assert "deep" in bad.method and not bad.fit.passed
+    # the search (toa/search.py) tries more candidates, and the verdict stays honest
+    assert "search" in bad.method and not bad.fit.passed and not bad.success
 
 
 def test_timing_noise_adds_jitter_and_has_a_floor():
