@@ -449,12 +449,30 @@ DIRECT_MAX = 1500
 COV_DIRECT_MAX = 2000
 
 
+def _block_jacobi_cg(matvec: Any, diag: Array, rhs: Array, *, rtol: float, max_iter: int) -> Array:
+    """Solve ``S x = rhs`` by CG preconditioned with the exact (k, p, p) diagonal blocks of S.
+
+    ``matvec`` applies S to a flat (k p,) vector; the result is flat too.
+    """
+    from scipy.sparse.linalg import LinearOperator, cg
+
+    k, p, _ = diag.shape
+    Pinv = np.linalg.inv(diag)
+
+    def precond(x: Array) -> Array:
+        return np.einsum("jab,jb->ja", Pinv, np.asarray(x).reshape(k, p)).reshape(-1)
+
+    n = k * p
+    A = LinearOperator((n, n), matvec=matvec, dtype=float)
+    M = LinearOperator((n, n), matvec=precond, dtype=float)
+    x, _ = cg(A, rhs, rtol=rtol, atol=0.0, maxiter=max_iter, M=M)
+    return np.asarray(x)
+
+
 def _lm_step_cg(Hzz_d: Array, Hzn: Array, Hnn_d: Array, gz: Array, gn: Array, *,
                 rtol: float = 1e-10, max_iter: int = 500) -> tuple[Array, Array]:
     """The damped Gauss-Newton step by block-Jacobi preconditioned CG on the directions' Schur
     complement ``S_n = Hnn - H_nz Hzz^-1 H_zn``, never formed: each product costs O(m k d p)."""
-    from scipy.sparse.linalg import LinearOperator, cg
-
     mz, k, d, p = Hzn.shape
     Hzz_inv = np.linalg.inv(Hzz_d)
     Hf = Hzn.transpose(0, 2, 1, 3).reshape(mz * d, k * p)  # one copy, reused by every product
@@ -474,16 +492,8 @@ def _lm_step_cg(Hzz_d: Array, Hzn: Array, Hnn_d: Array, gz: Array, gn: Array, *,
     diag = Hnn_d - np.matmul(At.transpose(0, 2, 1), Y.transpose(1, 0, 2, 3).reshape(k, mz * d, p))
     del At
     del Y
-    Pinv = np.linalg.inv(diag)
-
-    def precond(x: Array) -> Array:
-        return np.einsum("jab,jb->ja", Pinv, np.asarray(x).reshape(k, p)).reshape(-1)
-
-    n = k * p
-    A = LinearOperator((n, n), matvec=matvec, dtype=float)
-    M = LinearOperator((n, n), matvec=precond, dtype=float)
     rhs = gn.reshape(-1) - Hf.T @ zsolve(gz.reshape(-1))
-    dn, _ = cg(A, rhs, rtol=rtol, atol=0.0, maxiter=max_iter, M=M)
+    dn = _block_jacobi_cg(matvec, diag, rhs, rtol=rtol, max_iter=max_iter)
     dz = (zsolve(gz.reshape(-1)) - zsolve(Hf @ dn)).reshape(mz, d)
     return dz, dn.reshape(k, p)
 
@@ -495,8 +505,6 @@ def _lm_step_cg_factored(Hzz_d: Array, factors: tuple[Array, Array, Array], Hnn_
     Products with H_zn / H_nz cost O(m k (d + p)) and need no (m, k, d, p) array: the
     memory stays a few copies of the data.
     """
-    from scipy.sparse.linalg import LinearOperator, cg
-
     W, N, bc = factors  # (mz, k), (k, d), (mz, k, p)
     mz, k, p = bc.shape
     Hzz_inv = np.linalg.inv(Hzz_d)
@@ -520,17 +528,8 @@ def _lm_step_cg_factored(Hzz_d: Array, factors: tuple[Array, Array, Array], Hnn_
     wq = (W**2 * qn)[:, :, None] * bc
     diag = Hnn_d - np.matmul(wq.transpose(1, 2, 0), bc.transpose(1, 0, 2))
     del wq
-    Pinv = np.linalg.inv(diag)
-
-    def precond(x: Array) -> Array:
-        return np.einsum("jab,jb->ja", Pinv, np.asarray(x).reshape(k, p)).reshape(-1)
-
-    n = k * p
-    A = LinearOperator((n, n), matvec=matvec, dtype=float)
-    M = LinearOperator((n, n), matvec=precond, dtype=float)
     rhs = (gn - hnz(zsolve(gz))).reshape(-1)
-    dn, _ = cg(A, rhs, rtol=rtol, atol=0.0, maxiter=max_iter, M=M)
-    dn = dn.reshape(k, p)
+    dn = _block_jacobi_cg(matvec, diag, rhs, rtol=rtol, max_iter=max_iter).reshape(k, p)
     dz = zsolve(gz - hzn(dn))
     return dz, dn
 
