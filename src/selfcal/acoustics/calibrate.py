@@ -45,7 +45,7 @@ from .geometry import (
 )
 from .verdict import TIMING_REQUIREMENT
 
-__all__ = ["calibrate_matrix", "refit", "robust_calibrate", "Outlier", "RobustFit", "OUTLIER_ALPHA",
+__all__ = ["calibrate_matrix", "refit", "robust_calibrate", "sender_matrix", "Outlier", "RobustFit", "OUTLIER_ALPHA",
            "n_parameters_of"]
 
 Array = NDArray[np.float64]
@@ -364,14 +364,20 @@ class RobustFit:
     n_params: int
 
 
-def _sender_mean(toa: Array, es: NDArray[np.int64], J: int) -> Array:
+def sender_matrix(toa: Array, event_senders: NDArray[np.int64], n_senders: int) -> Array:
+    """Average the (I, E) event TOA matrix into an (I, J) per-sender matrix (NaN-aware).
+
+    Events of one sender share its position and onset, so their TOAs (relative to their
+    nominal times) estimate the same ``t_ij``; the mean lowers the noise.
+    """
     I = toa.shape[0]
-    out = np.full((I, J), np.nan)
-    for j in range(J):
-        cols = toa[:, es == j]
+    out = np.full((I, n_senders), np.nan)
+    for j in range(n_senders):
+        cols = toa[:, event_senders == j]
         if cols.shape[1]:
             cnt = np.isfinite(cols).sum(axis=1)
-            out[:, j] = np.where(cnt > 0, np.nansum(cols, axis=1) / np.maximum(cnt, 1), np.nan)
+            total = np.nansum(cols, axis=1)
+            out[:, j] = np.where(cnt > 0, total / np.maximum(cnt, 1), np.nan)
     return out
 
 
@@ -466,7 +472,7 @@ def robust_calibrate(
     d_model = 2 if (dim == 2 or heights is not None) else 3
     need = d_model + 2
     notes: list[str] = []
-    T = _sender_mean(toa, es, J)
+    T = sender_matrix(toa, es, J)
     kr, ks = _drop_units(T, need)
     if kr.sum() < need or ks.sum() < need:
         raise DegenerateGeometryError(
@@ -487,7 +493,7 @@ def robust_calibrate(
     s_ev = std[np.ix_(kr, ev_keep)]
     es_k = sub_es[ev_keep]
     Jk = int(ks.sum())
-    Tk = _sender_mean(t_ev, es_k, Jk)
+    Tk = sender_matrix(t_ev, es_k, Jk)
     sol, plan, cnotes = calibrate_matrix(Tk, speed=speed, dim=dim, heights=hz, rng=rng)
     notes.extend(cnotes)
     n_par = n_parameters_of(sol, len(Tk), Jk)
@@ -544,7 +550,7 @@ def robust_calibrate(
             # outliers are out: one deep search if the cleaned fit still fails its residual check
             from .noise import residual_check
 
-            Tk = _sender_mean(t_ev, es_k, Jk)
+            Tk = sender_matrix(t_ev, es_k, Jk)
             test = residual_check(t_ev - _predict(sol, speed)[:, es_k], s_ev, es_k, n_par, cap=zc)
             searched = True
             if test.passed:
@@ -577,14 +583,14 @@ def robust_calibrate(
             t_ev[a, b] = nt if good else np.nan
             if good:
                 s_ev[a, b] = new_s[k]
-        Tk = _sender_mean(t_ev, es_k, Jk)
+        Tk = sender_matrix(t_ev, es_k, Jk)
         try:
             sol = refit(Tk, sol, speed, hz)
             needs_ls = False
         except DegenerateGeometryError:
             break
     if needs_ls:  # the robust start found nothing to exclude: finish with least squares (covariances)
-        sol = refit(_sender_mean(t_ev, es_k, Jk), sol, speed, hz)
+        sol = refit(sender_matrix(t_ev, es_k, Jk), sol, speed, hz)
     if outliers:
         redo = sum(o.redetected for o in outliers)
         worst = max(outliers, key=lambda o: abs(o.z))
@@ -593,7 +599,7 @@ def robust_calibrate(
                      f"loudspeaker {sn[worst.sender]}, residual {worst.residual * 1e6:.3g} us")
     from .noise import sender_std
 
-    Tk = _sender_mean(t_ev, es_k, Jk)
+    Tk = sender_matrix(t_ev, es_k, Jk)
     Sk = sender_std(s_ev, t_ev, es_k, Jk)
     toa_out = toa.copy()
     toa_out[np.ix_(kr, ev_keep)] = t_ev

@@ -69,7 +69,7 @@ def detection_std(quality_db: Array, band: tuple[float, float], *, jitter: float
 
 
 def sender_std(std_e: Array, toa: Array, event_senders: NDArray[np.int64], n_senders: int) -> Array:
-    """Std of the per-sender averages (:func:`selfcal.acoustics.pipeline.sender_matrix`), (I, J) s.
+    """Std of the per-sender averages (:func:`selfcal.acoustics.calibrate.sender_matrix`), (I, J) s.
 
     The entry averages the observed events of sender j at receiver i, so its variance is the
     sum of their variances over the squared count. NaN where no event was observed.

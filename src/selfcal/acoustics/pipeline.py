@@ -33,6 +33,7 @@ from .calibrate import (
     calibrate_matrix,
     robust_calibrate,
     scale_from_distances,
+    sender_matrix,
 )
 from .geometry import (
     ModelComparison,
@@ -74,23 +75,6 @@ SPEED_NOTE = ("scale: with unknown offsets the scale of the geometry comes from 
               "({c:.2f} m/s): a 1 % error in c scales every distance by 1 %")
 BIAS_NOTE = ("a timing bias common to every detection (a probe differing from the declared one, a loudspeaker's "
              "group delay) is invisible in the residuals and lands in the onsets")
-
-
-def sender_matrix(toa: Array, event_senders: NDArray[np.int64], n_senders: int) -> Array:
-    """Average the (I, E) event TOA matrix into an (I, J) per-sender matrix (NaN-aware).
-
-    Events of one sender share its position and onset, so their TOAs (relative to their
-    nominal times) estimate the same ``t_ij``; the mean lowers the noise.
-    """
-    I = toa.shape[0]
-    out = np.full((I, n_senders), np.nan)
-    for j in range(n_senders):
-        cols = toa[:, event_senders == j]
-        if cols.shape[1]:
-            cnt = np.isfinite(cols).sum(axis=1)
-            total = np.nansum(cols, axis=1)
-            out[:, j] = np.where(cnt > 0, total / np.maximum(cnt, 1), np.nan)
-    return out
 
 
 @dataclass(frozen=True, repr=False)
