@@ -12,11 +12,11 @@ import numpy as np
 import pytest
 
 from selfcal.errors import InputError
-from selfcal.plotting import save_figure
 from selfcal.plotting import aoa as paoa
 from selfcal.plotting import conference as pconf
 from selfcal.plotting import delays as pdel
 from selfcal.plotting import farfield as pff
+from selfcal.plotting import save_figure
 from selfcal.plotting import slac as pslac
 from selfcal.plotting import toa as ptoa
 
