@@ -121,7 +121,7 @@ def reproduce_slac(out_dir: str | Path, *, minutes: float = 12.5, subcarriers: i
                                      "init": init, "smoother_lag": smoother_lag}],
                      runs=runs, seed=seed, backend=backend, scheduler=scheduler, progress=progress, desc="slac replica")
     agents = rows[0]["agents"]
-    table = {}
+    table: dict[str, dict[str, Any]] = {}
     for k, a in enumerate(agents):
         table[a] = {
             "position_rmse_localization": float(np.median([r["localization"]["position_rmse"][k] for r in rows])),
@@ -143,8 +143,8 @@ def reproduce_slac(out_dir: str | Path, *, minutes: float = 12.5, subcarriers: i
     t = np.arange(1, len(r0["ranging_rmse_uncorrected"]) + 1) * 0.1 / 60
     plot_ranging_rmse(t, {"without correction": r0["ranging_rmse_uncorrected"], "SLAC": r0["ranging_rmse_corrected"]},
                       out / "fig4_ranging_rmse.png", window=50)
-    plot_position_rmse(agents, {"localization": [table[a]["position_rmse_localization"] for a in agents],
-                                "SLAC": [table[a]["position_rmse_slac"] for a in agents]},
+    plot_position_rmse(agents, {"localization": [float(table[a]["position_rmse_localization"]) for a in agents],
+                                "SLAC": [float(table[a]["position_rmse_slac"]) for a in agents]},
                        out / "table1_position_rmse.png")
     summary = {
         "minutes": minutes, "subcarriers": subcarriers, "runs": runs, "seed": seed, "init": init, "smoother_lag": smoother_lag,

@@ -47,7 +47,9 @@ def new_figure(nrows: int = 1, ncols: int = 1, *, size: tuple[float, float] = (6
 
 
 def _format(path: str | os.PathLike[str] | None, fig: Figure) -> str:
-    suffix = "" if path is None else os.path.splitext(os.fspath(path))[1].lower().lstrip(".")
+    if path is None:
+        return "png"
+    suffix = os.path.splitext(os.fspath(path))[1].lower().lstrip(".")
     if not suffix:
         return "png"
     if suffix not in fig.canvas.get_supported_filetypes():

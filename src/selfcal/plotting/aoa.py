@@ -50,7 +50,7 @@ def plot_pose(beacons: NDArray[np.float64], bearings: NDArray[np.float64], res: 
     span = float(np.max(np.ptp(np.vstack([B, m[None]]), axis=0))) or 1.0
     L = 0.15 * span
     fig = Figure(figsize=(7.0, 6.0))
-    ax = fig.add_subplot(1, 1, 1, projection="3d" if d == 3 else None)
+    ax: Any = fig.add_subplot(1, 1, 1, projection="3d" if d == 3 else None)  # Axes3D in 3-D
     P = B if d == 3 else np.column_stack([B, np.zeros(len(B))])
     mm = m if d == 3 else np.append(m, 0.0)
     RR = R if d == 3 else np.block([[R, np.zeros((2, 1))], [np.zeros((1, 2)), np.ones((1, 1))]])

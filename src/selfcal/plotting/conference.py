@@ -86,7 +86,9 @@ def plot_timing(result: Any, path: Path | None = None, errors: dict[str, Any] | 
     Figure
     """
     if requirement is None:
-        from ..acoustics.pipeline import TIMING_REQUIREMENT as requirement
+        from ..acoustics.pipeline import TIMING_REQUIREMENT
+
+        requirement = float(TIMING_REQUIREMENT)
     fig, (ax1, ax2) = new_figure(1, 2, size=(11.0, 4.2))
     if errors is not None:
         ax1.plot(np.asarray(errors["delay_errors"]) * 1e6, "o", label="internal delay error")

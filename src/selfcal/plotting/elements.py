@@ -84,7 +84,8 @@ def plot_positions(
         tr = np.asarray(truth, float)
         from matplotlib.markers import MarkerStyle
 
-        style = {"facecolors": "none", "edgecolors": "k"} if MarkerStyle(marker).is_filled() else {"c": "k"}
+        style: dict[str, Any] = ({"facecolors": "none", "edgecolors": "k"} if MarkerStyle(marker).is_filled()
+                                 else {"c": "k"})
         ax.scatter(tr[:, a], tr[:, b], s=40, marker=marker, label=f"{label} (truth)", zorder=2, **style)
     if cov is not None:
         idx = np.ix_([a, b], [a, b])

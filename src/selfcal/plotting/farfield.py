@@ -55,7 +55,7 @@ def plot_farfield(res: Any, path: Path | None = None) -> Figure:
             fig.colorbar(sc, ax=ax0, label="z [m]")
         ax0.legend(loc="best", fontsize=8)
     ax0.set_title(f"receiver positions ({res.case}, first at the origin)")
-    ax1 = fig.add_subplot(1, 2, 2, projection="3d" if d == 3 else None)
+    ax1: Any = fig.add_subplot(1, 2, 2, projection="3d" if d == 3 else None)  # Axes3D in 3-D
     if d == 3:
         u, v = np.mgrid[0 : 2 * np.pi : 37j, 0 : np.pi : 19j]
         ax1.plot_wireframe(np.cos(u) * np.sin(v), np.sin(u) * np.sin(v), np.cos(v), color="0.85", lw=0.4)
