@@ -37,14 +37,15 @@ import re
 import stat
 import sys
 import tempfile
-from collections.abc import Iterator, Mapping, Sequence
-from dataclasses import dataclass, fields, is_dataclass
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import IO, Any
 
 import numpy as np
 from numpy.typing import NDArray
 
+from ._result import jsonable
 from .errors import InputError, SelfcalError
 
 __all__ = [
@@ -54,7 +55,6 @@ __all__ = [
     "read_table",
     "read_matrix",
     "write_matrix",
-    "to_jsonable",
     "write_json",
     "read_json",
     "atomic_write_bytes",
@@ -346,41 +346,8 @@ def staged_outputs() -> Iterator[None]:
     _commit(stage.items)
 
 
-def to_jsonable(obj: Any) -> Any:
-    """Convert results (dataclasses, arrays, numpy scalars) to JSON-safe Python objects.
-
-    Non-finite floats become ``null`` (strict JSON has no NaN); masked entries too.
-    """
-    if hasattr(obj, "to_dict") and callable(obj.to_dict):
-        return to_jsonable(obj.to_dict())
-    if is_dataclass(obj) and not isinstance(obj, type):
-        return {f.name: to_jsonable(getattr(obj, f.name)) for f in fields(obj)}
-    if isinstance(obj, Mapping):
-        return {str(k): to_jsonable(v) for k, v in obj.items()}
-    if isinstance(obj, np.ma.MaskedArray):
-        return to_jsonable(np.ma.filled(obj.astype(float), np.nan))
-    if isinstance(obj, np.ndarray):
-        return to_jsonable(obj.tolist())
-    if isinstance(obj, (list, tuple)):
-        return [to_jsonable(v) for v in obj]
-    if isinstance(obj, (np.bool_, bool)):
-        return bool(obj)
-    if isinstance(obj, (np.integer,)):
-        return int(obj)
-    if isinstance(obj, (float, np.floating)):
-        f = float(obj)
-        return f if math.isfinite(f) else None
-    if isinstance(obj, Path):
-        return str(obj)
-    if obj is None or isinstance(obj, (str, int)):
-        return obj
-    if isinstance(obj, complex):
-        raise SerializationError("complex numbers have no JSON form")
-    raise SerializationError(f"an object of type {type(obj).__name__} has no JSON form")
-
-
 def write_json(path: str | os.PathLike[str], obj: Any, *, indent: int = 2) -> None:
-    """Serialise ``obj`` with :func:`to_jsonable` and write it atomically as strict JSON.
+    """Serialise ``obj`` with :func:`selfcal._result.jsonable` (strict) and write it atomically as strict JSON.
 
     Raises
     ------
@@ -390,7 +357,7 @@ def write_json(path: str | os.PathLike[str], obj: Any, *, indent: int = 2) -> No
         The path cannot be written (see :func:`atomic_write_bytes`).
     """
     try:
-        text = json.dumps(to_jsonable(obj), indent=indent, allow_nan=False)
+        text = json.dumps(jsonable(obj, strict=True), indent=indent, allow_nan=False)
     except (TypeError, ValueError) as exc:
         raise SerializationError(f"result has no strict-JSON form ({exc})") from None
     atomic_write_bytes(path, (text + "\n").encode())
