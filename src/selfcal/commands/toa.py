@@ -8,15 +8,12 @@ from __future__ import annotations
 
 import importlib.util
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import click
 
 from ._base import calibrate, handle_errors
 from ._common import csv_option, unit_options
-
-if TYPE_CHECKING:
-    from ..toa.solve import ToaResult
 
 
 def _auto_available() -> bool:
@@ -117,7 +114,9 @@ def toa_command(matrix: Path, speed: float | None, offsets: str | None, dim: str
     # all artefacts staged and committed together; a FAIL (exit 1) still writes its result
     with staged_outputs():
         if plot is not None:
-            _plot(res, plot, framed is not None)
+            from ..plotting.toa import plot_toa
+
+            plot_toa(res, plot, user_frame=framed is not None)
         write_json(out, payload)
         if csv_out is not None:
             write_nodes_csv(csv_out, payload, [("receiver", "receivers", "receiver_names"),
@@ -198,15 +197,3 @@ def _trustworthy(res: Any) -> tuple[bool, str]:
     if not bool(res.converged):
         return False, "the solver did not converge"
     return True, ""
-
-
-def _plot(res: ToaResult, path: Path, user_frame: bool) -> None:
-    from ..plotting import new_figure, plot_positions, save_figure
-
-    fig, ax = new_figure()
-    plot_positions(ax, res.receivers, cov=res.receiver_cov, label="receivers", color="C0", marker="x")
-    plot_positions(ax, res.sources, cov=res.source_cov, label="sources", color="C3", marker="s")
-    gauge = "user frame" if user_frame else "canonical gauge"
-    ax.set_title(f"TOA self-calibration (95% ellipses, {gauge})")
-    ax.legend(loc="best", fontsize=8)
-    save_figure(fig, path)
