@@ -363,7 +363,8 @@ def gauge_free_blocks(
             Linv, info = scipy.linalg.lapack.dtrtri(L, lower=1, overwrite_c=1)
             if info != 0:
                 raise DegenerateGeometryError("singular reduced normal matrix", kind="degenerate-geometry")
-            X = Linv[:, cols]
+            # every column asked for: use L^-1 as it is (a fancy-indexed copy would double the memory)
+            X = Linv if cols.size == nA else Linv[:, cols]
         else:
             E_ = np.zeros((nA, cols.size))
             E_[cols, np.arange(cols.size)] = 1.0
