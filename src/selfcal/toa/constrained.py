@@ -294,9 +294,8 @@ def refine_constrained(
     (True / "all", "receivers", "sources", "none" / False, or indices): only the requested
     node blocks are solved for, the others are NaN, as on the unconstrained path.
     """
-    from .covariance import resolve_covariance
-
     from ..geometry import canonical_gauge
+    from .covariance import resolve_covariance
     from .nls import _TUNING, NlsSolution, _robust_sigma, _unpack, toa_jacobian, toa_residuals
 
     I, J = Y.shape
