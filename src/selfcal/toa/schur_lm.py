@@ -54,12 +54,54 @@ def _inv_blocks(blocks: Array) -> Array:
     return np.asarray(np.linalg.inv(blocks), dtype=np.float64)
 
 
-def _rowsum(a: Array, b: Array) -> Array:
-    return np.einsum("ke,ke->k", a, b)
+class Grid:
+    """All nK x nE pairs as 2-D arrays (dense data; missing entries carry weight 0)."""
+
+    def __init__(self, nK: int, nE: int) -> None:
+        self.nK, self.nE = nK, nE
+
+    def pairs(self, a: Array, b: Array) -> Array:
+        """``a_k - b_e`` for every pair."""
+        return np.subtract.outer(a, b)
+
+    def kx(self, v: Array) -> Array:
+        """A per-K-node value on every pair."""
+        return v[:, None]
+
+    def ex(self, v: Array) -> Array:
+        """A per-E-node value on every pair."""
+        return v[None, :]
+
+    def ksum(self, a: Array, b: Array | None = None) -> Array:
+        """``sum_e a b`` per K node."""
+        return a.sum(1) if b is None else np.einsum("ke,ke->k", a, b)
+
+    def esum(self, a: Array, b: Array | None = None) -> Array:
+        """``sum_k a b`` per E node."""
+        return a.sum(0) if b is None else np.einsum("ke,ke->e", a, b)
 
 
-def _colsum(a: Array, b: Array) -> Array:
-    return np.einsum("ke,ke->e", a, b)
+class Pairs(Grid):
+    """Only the observed pairs ``(k[m], e[m])`` as 1-D arrays (sparse data)."""
+
+    def __init__(self, k: NDArray[np.intp], e: NDArray[np.intp], nK: int, nE: int) -> None:
+        super().__init__(nK, nE)
+        self.k, self.e = k, e
+
+    def pairs(self, a: Array, b: Array) -> Array:
+        return a[self.k] - b[self.e]
+
+    def kx(self, v: Array) -> Array:
+        return v[self.k]
+
+    def ex(self, v: Array) -> Array:
+        return v[self.e]
+
+    def ksum(self, a: Array, b: Array | None = None) -> Array:
+        return np.bincount(self.k, a if b is None else a * b, minlength=self.nK)
+
+    def esum(self, a: Array, b: Array | None = None) -> Array:
+        return np.bincount(self.e, a if b is None else a * b, minlength=self.nE)
 
 
 class _Oriented:
@@ -78,13 +120,13 @@ class _Oriented:
         return K[:, :d], E[:, :d], (K[:, d] if self.hasK else None), (E[:, d] if self.hasE else None)
 
 
-def directions(xK: Array, xE: Array) -> tuple[list[Array], Array]:
-    """Unit-vector components ``U_p`` (d arrays nK x nE) and the distances (nK x nE).
+def directions(xK: Array, xE: Array, pat: Grid) -> tuple[list[Array], Array]:
+    """Unit-vector components ``U_p`` (d arrays, one value per pair) and the distances.
 
     ``U = (x_k - x_e) / |x_k - x_e|``, zero where two points coincide (the range is not
     differentiable there).
     """
-    U = [np.subtract.outer(xK[:, p], xE[:, p]) for p in range(xK.shape[1])]
+    U = [pat.pairs(xK[:, p], xE[:, p]) for p in range(xK.shape[1])]
     dist = U[0] * U[0]
     for Up in U[1:]:
         dist += Up * Up
@@ -104,27 +146,27 @@ class _Reduced:
     diagonal blocks of S (Schur-Jacobi).
     """
 
-    def __init__(self, U: list[Array], w: Array, hasK: bool, hasE: bool, damping: float) -> None:
+    def __init__(self, U: list[Array], w: Array, hasK: bool, hasE: bool, damping: float, pat: Grid) -> None:
         d = len(U)
-        nK, nE = w.shape
-        self.U, self.w, self.hasK, self.hasE, self.d = U, w, hasK, hasE, d
+        nK, nE = pat.nK, pat.nE
+        self.U, self.w, self.hasK, self.hasE, self.d, self.pat = U, w, hasK, hasE, d, pat
         self.mK, self.mE = d + hasK, d + hasE
         A = np.zeros((nK, self.mK, self.mK))
         D = np.zeros((nE, self.mE, self.mE))
         for p in range(d):
             wUp = w * U[p]  # one temporary at a time: the working set stays ~(d + 4) x the data
             for q in range(p, d):
-                A[:, p, q] = _rowsum(wUp, U[q])
-                D[:, p, q] = _colsum(wUp, U[q])
+                A[:, p, q] = pat.ksum(wUp, U[q])
+                D[:, p, q] = pat.esum(wUp, U[q])
             if hasK:
-                A[:, p, d] = wUp.sum(1)
+                A[:, p, d] = pat.ksum(wUp)
             if hasE:
-                D[:, p, d] = -wUp.sum(0)
+                D[:, p, d] = -pat.esum(wUp)
             del wUp
         if hasK:
-            A[:, d, d] = w.sum(1)
+            A[:, d, d] = pat.ksum(w)
         if hasE:
-            D[:, d, d] = w.sum(0)
+            D[:, d, d] = pat.esum(w)
         A = np.triu(A) + np.swapaxes(np.triu(A, 1), 1, 2)
         D = np.triu(D) + np.swapaxes(np.triu(D, 1), 1, 2)
         if damping > 0:
@@ -133,65 +175,65 @@ class _Reduced:
         self.A = A
         self.Dinv = Dinv = _inv_blocks(D)
         # c = w^2 b^T D_e^-1 b with b = [-U, 1?]
-        c = np.zeros((nK, nE))
+        c = np.zeros_like(w)
         for p in range(d):
             for q in range(p, d):
-                c += U[p] * U[q] * ((1.0 if p == q else 2.0) * Dinv[None, :, p, q])
+                c += U[p] * U[q] * pat.ex((1.0 if p == q else 2.0) * Dinv[:, p, q])
             if hasE:
-                c -= U[p] * (2.0 * Dinv[None, :, p, d])
+                c -= U[p] * pat.ex(2.0 * Dinv[:, p, d])
         if hasE:
-            c += Dinv[None, :, d, d]
+            c += pat.ex(Dinv[:, d, d])
         c *= w
         c *= w
         Sb = A.copy()
         for p in range(d):
             cUp = c * U[p]
             for q in range(p, d):
-                v = _rowsum(cUp, U[q])
+                v = pat.ksum(cUp, U[q])
                 Sb[:, p, q] -= v
                 if q != p:
                     Sb[:, q, p] -= v
             if hasK:
-                v = cUp.sum(1)
+                v = pat.ksum(cUp)
                 Sb[:, p, d] -= v
                 Sb[:, d, p] -= v
             del cUp
         if hasK:
-            Sb[:, d, d] -= c.sum(1)
+            Sb[:, d, d] -= pat.ksum(c)
         self.Pinv = _inv_blocks(Sb)
 
     def bt(self, x: Array) -> Array:
         """``B^T x``: K vector (nK mK,) to E vector (nE mE,)."""
-        d = self.d
+        d, pat = self.d, self.pat
         X = x.reshape(-1, self.mK)
-        t = self.U[0] * X[:, 0:1]
+        t = self.U[0] * pat.kx(X[:, 0])
         for p in range(1, d):
-            t += self.U[p] * X[:, p : p + 1]
+            t += self.U[p] * pat.kx(X[:, p])
         if self.hasK:
-            t += X[:, d : d + 1]
+            t += pat.kx(X[:, d])
         t *= self.w
-        out = np.empty((t.shape[1], self.mE))
+        out = np.empty((pat.nE, self.mE))
         for q in range(d):
-            out[:, q] = -_colsum(t, self.U[q])
+            out[:, q] = -pat.esum(t, self.U[q])
         if self.hasE:
-            out[:, d] = t.sum(0)
+            out[:, d] = pat.esum(t)
         return out.ravel()
 
     def b(self, y: Array) -> Array:
         """``B y``: E vector (nE mE,) to K vector (nK mK,)."""
-        d = self.d
+        d, pat = self.d, self.pat
         Yv = y.reshape(-1, self.mE)
-        t = self.U[0] * (-Yv[:, 0])
+        t = self.U[0] * pat.ex(-Yv[:, 0])
         for q in range(1, d):
-            t -= self.U[q] * Yv[:, q]
+            t -= self.U[q] * pat.ex(Yv[:, q])
         if self.hasE:
-            t += Yv[:, d]
+            t += pat.ex(Yv[:, d])
         t *= self.w
-        out = np.empty((t.shape[0], self.mK))
+        out = np.empty((pat.nK, self.mK))
         for p in range(d):
-            out[:, p] = _rowsum(t, self.U[p])
+            out[:, p] = pat.ksum(t, self.U[p])
         if self.hasK:
-            out[:, d] = t.sum(1)
+            out[:, d] = pat.ksum(t)
         return out.ravel()
 
     def dinv(self, y: Array) -> Array:
@@ -206,14 +248,16 @@ class _Reduced:
 
 def solve_schur_lm(
     theta0: Array, Y: Array, lay: object, loss: str, f_scale: float, max_nfev: int | None, xtol: float,
-    gauge: Callable[[Array], Array],
+    gauge: Callable[[Array], Array], pairs: tuple[NDArray[np.intp], NDArray[np.intp]] | None = None,
 ) -> tuple[Array, bool, int]:
     """Levenberg-Marquardt (Marquardt diagonal damping) on the Schur-reduced normal equations.
 
     Parameters
     ----------
     theta0 : (n,) start, receiver-major parameter vector (:mod:`selfcal.toa.nls`).
-    Y : (I, J) ranges, NaN = missing.
+    Y : (I, J) ranges, NaN = missing; or, with ``pairs``, the (m,) observed ranges.
+    pairs : None (dense Y) or ``(i, j)``, the receiver and source index of each entry of Y:
+        the observed-pairs path (:class:`Pairs`), O(m) memory and time per product.
     lay : the :class:`selfcal.toa.nls._Layout` (kept / eliminated sides).
     loss, f_scale : robust loss and its scale (metres).
     max_nfev : iteration cap (default 100); xtol : relative step tolerance.
@@ -235,20 +279,33 @@ def solve_schur_lm(
 
     ori = _Oriented(lay)
     k_is_r = lay.k_is_receivers  # type: ignore[attr-defined]
-    YK = np.ascontiguousarray(Y if k_is_r else Y.T)
-    obs = np.isfinite(YK)
+    nK, nE = lay.k_idx.shape[0], lay.e_idx.shape[0]  # type: ignore[attr-defined]
+    pat: Grid
+    obs: NDArray[np.bool_] | None
+    if pairs is None:
+        YK = np.ascontiguousarray(Y if k_is_r else Y.T)
+        obs = np.isfinite(YK)
+        pat = Grid(nK, nE)
+    else:
+        ki, ei = (pairs[0], pairs[1]) if k_is_r else (pairs[1], pairs[0])
+        YK, obs = np.asarray(Y, float), None
+        pat = Pairs(np.asarray(ki, np.intp), np.asarray(ei, np.intp), nK, nE)
     n = lay.n  # type: ignore[attr-defined]
     k_flat = lay.k_idx.ravel()  # type: ignore[attr-defined]
     e_flat = lay.e_idx.ravel()  # type: ignore[attr-defined]
 
     def evaluate(theta: Array) -> tuple[float, Array, Array, list[Array]]:
         xK, xE, oK, oE = ori.split(theta)
-        U, f = directions(xK, xE)
+        U, f = directions(xK, xE, pat)
         if oK is not None:
-            f += oK[:, None]
+            f += pat.kx(oK)
         if oE is not None:
-            f += oE[None, :]
+            f += pat.ex(oE)
         f -= YK
+        if obs is None:
+            rho, w = loss_rho((f / f_scale) ** 2, loss)
+            cost = 0.5 * f_scale**2 * float(rho.sum())
+            return cost, f, np.array(w, float), U
         f[~obs] = 0.0
         rho, drho = loss_rho((f / f_scale) ** 2, loss)
         cost = 0.5 * f_scale**2 * float(rho[obs].sum())
@@ -269,15 +326,15 @@ def solve_schur_lm(
         it += 1
         Qg = gauge(theta)
         wf = w * f
-        gK = np.empty((wf.shape[0], d + ori.hasK))
-        gE = np.empty((wf.shape[1], d + ori.hasE))
+        gK = np.empty((nK, d + ori.hasK))
+        gE = np.empty((nE, d + ori.hasE))
         for p in range(d):
-            gK[:, p] = _rowsum(wf, U[p])
-            gE[:, p] = -_colsum(wf, U[p])
+            gK[:, p] = pat.ksum(wf, U[p])
+            gE[:, p] = -pat.esum(wf, U[p])
         if ori.hasK:
-            gK[:, d] = wf.sum(1)
+            gK[:, d] = pat.ksum(wf)
         if ori.hasE:
-            gE[:, d] = wf.sum(0)
+            gE[:, d] = pat.esum(wf)
         del wf
         gK, gE = gK.ravel(), gE.ravel()
         gnorm = float(np.sqrt(gK @ gK + gE @ gE))
@@ -288,7 +345,7 @@ def solve_schur_lm(
         improved = False
         for _ in range(12):
             try:
-                red = _Reduced(U, w, ori.hasK, ori.hasE, lam)
+                red = _Reduced(U, w, ori.hasK, ori.hasE, lam, pat)
             except DegenerateGeometryError:
                 lam *= 10
                 continue
