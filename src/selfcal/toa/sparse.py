@@ -30,6 +30,7 @@ diameter rounds. Memory is O(m + I + J).
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -58,6 +59,8 @@ class SparseToaResult(Result):
     converged, iterations, cost : solver status, LM iterations, ``0.5 RSS``.
     located : fraction of the nodes the initialiser reached (1.0 after a plain refine).
     seed_shape : (receivers, sources) of the initialiser's dense seed patch, (0, 0) if none.
+    unlocated_receivers, unlocated_sources : indices of the nodes the blind growth never
+        reached (too few ranges to the located part): NaN positions, their pairs unused.
     """
 
     receivers: Array
@@ -70,6 +73,8 @@ class SparseToaResult(Result):
     cost: float
     located: float = 1.0
     seed_shape: tuple[int, int] = (0, 0)
+    unlocated_receivers: Index = dataclasses.field(default_factory=lambda: np.zeros(0, np.intp))
+    unlocated_sources: Index = dataclasses.field(default_factory=lambda: np.zeros(0, np.intp))
 
 
 def _check_pairs(i: object, j: object, ranges: object, I: int | None, J: int | None
@@ -199,9 +204,14 @@ def refine_toa_sparse(
 # ---------------------------------------------------------------------------
 
 
-def _seed_patch(i: Index, j: Index, I: int, J: int, size: int, rng: np.random.Generator
+def _seed_patch(i: Index, j: Index, I: int, J: int, size: int, rng: np.random.Generator, d: int
                 ) -> tuple[Index, Index]:
-    """A near-complete bipartite block: receivers sharing most sources (greedy)."""
+    """A locally dense block of the observation graph (missing entries allowed).
+
+    A well-connected receiver r0 and its sources S0; the ``size`` receivers sharing most of
+    S0; then alternately the sources seen by half of those receivers and the receivers that
+    see half of those sources (at least d + 2 each), until the block stops changing.
+    """
     import scipy.sparse
 
     A = scipy.sparse.csr_matrix((np.ones(i.size), (i, j)), shape=(I, J))
@@ -210,19 +220,19 @@ def _seed_patch(i: Index, j: Index, I: int, J: int, size: int, rng: np.random.Ge
     top = np.flatnonzero(deg >= np.quantile(deg, 0.9))
     r0 = int(rng.choice(top))
     S = A[r0].indices
-    R = [r0]
-    while len(R) < size:
-        cnt = np.asarray(A[:, S].sum(1)).ravel()
-        cnt[R] = -1
-        best = int(np.argmax(cnt))
-        if cnt[best] < max(size, 0.6 * S.size):
+    overlap = np.asarray(A[:, S].sum(1)).ravel()
+    R = np.argsort(-overlap, kind="stable")[:size]
+    for _ in range(10):
+        seen = np.asarray(AT[:, R].sum(1)).ravel()
+        S_new = np.flatnonzero(seen >= max(d + 2, 0.5 * R.size))
+        cnt = np.asarray(A[:, S_new].sum(1)).ravel()
+        R_new = np.flatnonzero(cnt >= max(d + 2, 0.5 * S_new.size))
+        if R_new.size > 2 * size:
+            R_new = R_new[np.argsort(-cnt[R_new], kind="stable")[: 2 * size]]
+        if np.array_equal(R_new, np.sort(R)) and np.array_equal(S_new, np.sort(S)):
             break
-        R.append(best)
-    R_arr = np.array(R)
-    # sources seen by at least 80 % of the seed receivers
-    seen = np.asarray(AT[:, R_arr].sum(1)).ravel()
-    S_arr = np.flatnonzero(seen >= 0.8 * R_arr.size)
-    return R_arr, S_arr
+        R, S = np.sort(R_new), S_new
+    return np.sort(R), np.sort(S)
 
 
 def _multilaterate(node: Index, anc: Array, dist: Array, n: int, d: int) -> tuple[Array, Array]:
@@ -263,7 +273,7 @@ def _multilaterate(node: Index, anc: Array, dist: Array, n: int, d: int) -> tupl
 def initialize_toa_sparse(
     i: NDArray[np.integer], j: NDArray[np.integer], ranges: Array, n_receivers: int | None = None,
     n_sources: int | None = None, *, dim: int = 3, rng: int | np.random.Generator | None = 0,
-    seed_size: int = 12,
+    seed_size: int = 20,
 ) -> tuple[Array, Array, float, tuple[int, int]]:
     """Blind start for a sparse network by multilateration growth from a dense seed patch.
 
@@ -298,7 +308,7 @@ def initialize_toa_sparse(
     ii, jj, y, I, J = _check_pairs(i, j, ranges, n_receivers, n_sources)
     gen = np.random.default_rng(rng)
     d = int(dim)
-    R, S = _seed_patch(ii, jj, I, J, seed_size, gen)
+    R, S = _seed_patch(ii, jj, I, J, seed_size, gen, d)
     if R.size < d + 2 or S.size < d + 2:
         raise DegenerateGeometryError(
             f"the densest patch found has {R.size} receivers x {S.size} sources; the blind seed needs "
@@ -389,13 +399,16 @@ def solve_toa_sparse(
 
     Returns
     -------
-    SparseToaResult (canonical gauge); ``located`` says which fraction the initialiser reached.
+    SparseToaResult (canonical gauge); ``located`` says which fraction the initialiser
+    reached, the nodes it never reached (too few ranges to the located part, e.g. d + 1
+    nearly coplanar partners at the edge of the network) are listed in
+    ``unlocated_receivers`` / ``unlocated_sources`` with NaN positions.
 
     Raises
     ------
     InputError, DegenerateGeometryError
         Malformed pairs; a node with fewer than d + 1 ranges; a network the growth cannot
-        cover (some nodes never reached: they have too few ranges to the located part).
+        cover (less than half of the nodes reached).
 
     Examples
     --------
@@ -408,15 +421,29 @@ def solve_toa_sparse(
     d = int(dim)
     _counts_ok(ii, jj, I, J, d + 1)
     r0, s0, located, seed = initialize_toa_sparse(ii, jj, y, I, J, dim=d, rng=rng)
-    if located < 1.0:
-        nr = int((~np.isfinite(r0[:, 0])).sum())
-        ns = int((~np.isfinite(s0[:, 0])).sum())
+    lr, ls = np.isfinite(r0[:, 0]), np.isfinite(s0[:, 0])
+    if located < 0.5:
         raise DegenerateGeometryError(
-            f"the multilateration growth reached {located:.1%} of the nodes ({nr} receivers and {ns} "
-            f"sources have fewer than {d + 1} ranges to the located part): the network is not "
+            f"the multilateration growth reached only {located:.1%} of the nodes: the network is not "
             "rigidly connected enough for a blind solve", kind="too-few-measurements")
-    r, s, conv, it = _lm(ii, jj, y, r0, s0, max_nfev, 1e-10)
-    return _result(ii, jj, y, r, s, conv, it, located, seed)
+    # the nodes never reached stay NaN; the fit is on the located part and the pairs inside it
+    m = lr[ii] & ls[jj]
+    R, S = np.flatnonzero(lr), np.flatnonzero(ls)
+    ridx = -np.ones(I, np.intp)
+    ridx[R] = np.arange(R.size)
+    sidx = -np.ones(J, np.intp)
+    sidx[S] = np.arange(S.size)
+    si, sj = ridx[ii[m]], sidx[jj[m]]
+    _counts_ok(si, sj, R.size, S.size, d)
+    r, s, conv, it = _lm(si, sj, y[m], r0[R], s0[S], max_nfev, 1e-10)
+    sub = _result(si, sj, y[m], r, s, conv, it, located, seed)
+    rf = np.full((I, d), np.nan)
+    sf = np.full((J, d), np.nan)
+    rf[R], sf[S] = sub.receivers, sub.sources
+    res = np.full(ii.size, np.nan)
+    res[m] = sub.residuals
+    return dataclasses.replace(sub, receivers=rf, sources=sf, residuals=res,
+                               unlocated_receivers=np.flatnonzero(~lr), unlocated_sources=np.flatnonzero(~ls))
 
 
 def simulate_sparse_network(
