@@ -429,8 +429,8 @@ def solve_toa_sparse(
 
     Examples
     --------
-    >>> r, s, i, j, y = simulate_sparse_network(150, 150, 0.15, rng=1)
-    >>> sol = solve_toa_sparse(i, j, y, 150, 150, rng=0)
+    >>> r, s, i, j, y = simulate_sparse_network(60, 60, 0.4, size=20.0, rng=1)
+    >>> sol = solve_toa_sparse(i, j, y, 60, 60, rng=0)
     >>> bool(sol.converged), bool(sol.noise_estimate < 0.02)
     (True, True)
     """
