@@ -18,6 +18,16 @@ Part 2, ``offsets="both"`` (paper 004): U units (a microphone and a loudspeaker 
 in a 10 x 10 x 3 m room, internal delays U(0, 20 ms) and onsets U(0, 30 ms) times 343 m/s, range
 noise 1 mm, 5 % missing; ``solve_toa(Y, offsets="both", covariance="none")`` blind.
 
+Part 3, ``large`` (``SELFCAL_BENCH_TOA_LARGE``, default 2000x2000): refine + every covariance
+block from a near-truth start, CPU time and peak memory, with the BLAS floor of the exact blocks
+(syrk + potrf + trtri + trsm on matrices of the reduced system's size, same run) and one dense
+factorization of the reduced system alone.
+
+Part 4, ``sparse`` (``SELFCAL_BENCH_TOA_SPARSE``, default ``2000:0.01,10000:0.01`` = nodes per
+side : fraction of pairs observed): :func:`selfcal.toa.solve_toa_sparse` blind on a network with
+ranges only between nearby nodes (100 m cube, 1 cm), against the engine started at the truth and,
+up to 3000 nodes, the CRLB.
+
 Every row carries the wall time (median over ``repeats``), the peak resident memory during its
 first call (sampled every 5 ms from /proc, no tracing overhead; absolute and above the RSS at the
 call's start) and its efficiency: aligned RMSE (003 eq. 18) over the
@@ -57,6 +67,20 @@ def _sizes() -> list[tuple[int, int, int]]:
     for tok in filter(str.strip, env.split(",")):
         i, j = (int(v) for v in tok.lower().split("x"))
         out.append((i, j, 3 if i * j <= 1e5 else 1))
+    return out
+
+
+def _large() -> list[tuple[int, int]]:
+    env = os.environ.get("SELFCAL_BENCH_TOA_LARGE", "2000x2000")
+    return [tuple(int(v) for v in tok.lower().split("x")) for tok in filter(str.strip, env.split(","))]  # type: ignore[misc]
+
+
+def _sparse() -> list[tuple[int, float]]:
+    env = os.environ.get("SELFCAL_BENCH_TOA_SPARSE", "2000:0.01,10000:0.01")
+    out = []
+    for tok in filter(str.strip, env.split(",")):
+        n, f = tok.split(":")
+        out.append((int(n), float(f)))
     return out
 
 
@@ -100,19 +124,22 @@ def _timed(fn: Any, repeats: int = 1) -> tuple[dict[str, Any], Any]:
     """Median wall time over ``repeats`` and the peak resident memory of the first call.
 
     ``peak_rss_mb`` is the process's peak RSS during the call (data and interpreter included),
-    ``peak_rss_increase_mb`` the part above the RSS at its start.
+    ``peak_rss_increase_mb`` the part above the RSS at its start; ``cpu_s`` the median process
+    CPU time (less inflated than wall time by other jobs on a shared machine).
     """
-    times, out = [], None
+    times, cpus, out = [], [], None
     with _PeakRss() as mem:
-        t = time.perf_counter()
+        t, c = time.perf_counter(), time.process_time()
         out = fn()
         times.append(time.perf_counter() - t)
+        cpus.append(time.process_time() - c)
     for _ in range(repeats - 1):
-        t = time.perf_counter()
+        t, c = time.perf_counter(), time.process_time()
         out = fn()
         times.append(time.perf_counter() - t)
-    return {"time_s": statistics.median(times), "times_s": times, "peak_rss_mb": mem.peak,
-            "peak_rss_increase_mb": mem.peak - mem.base}, out
+        cpus.append(time.process_time() - c)
+    return {"time_s": statistics.median(times), "times_s": times, "cpu_s": statistics.median(cpus),
+            "peak_rss_mb": mem.peak, "peak_rss_increase_mb": mem.peak - mem.base}, out
 
 
 def _scene(I: int, J: int, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -168,6 +195,9 @@ def _dense_case(I: int, J: int, reps: int) -> dict[str, Any]:
     row, _ = _timed(lambda: covariance_blocks(sol.receivers, sol.sources, w), reps)
     case["ours_cov"] = row
     case["cov_over_solve"] = row["time_s"] / case["ours_solve"]["time_s"]
+    case["cov_over_solve_cpu"] = row["cpu_s"] / case["ours_solve"]["cpu_s"]
+    case["cov_floor"] = _blas_floor(DIM * min(I, J), DIM * max(I, J))
+    case["cov_floor_over_solve_cpu"] = case["cov_floor"]["total_cpu_s"] / case["ours_solve"]["cpu_s"]
     row, solc = _timed(lambda: refine_toa(Y, r0, s0), 1)
     pred = float(np.sqrt(np.trace(solc.receiver_cov, axis1=1, axis2=2).mean()))
     case["ours_solve_cov"] = {**row, "predicted_rmse_receivers": pred}
@@ -178,6 +208,95 @@ def _dense_case(I: int, J: int, reps: int) -> dict[str, Any]:
                          **_accuracy(rt, st, r, s, crlb)}
     case["solve_over_scipy"] = case["ours_solve"]["time_s"] / row["time_s"]
     case["blind_cov_over_scipy"] = case["ours_blind_cov"]["time_s"] / row["time_s"]
+    return case
+
+
+def _blas_floor(nA: int, nB: int) -> dict[str, Any]:
+    """CPU time of the four BLAS / LAPACK calls the exact covariance blocks cannot avoid.
+
+    Random matrices of the reduced system's sizes (nA = d x kept nodes, nB = d x eliminated
+    nodes): ``syrk`` (S = A - H H^T, nA^2 nB flops), ``potrf`` (nA^3 / 3), ``trtri`` (the K
+    blocks, nA^3 / 3) and ``trsm`` (the E blocks, nA^2 nB). Their sum is the floor of the
+    selected inversion on this machine, measured in the same run as the solve.
+    """
+    import scipy.linalg
+
+    rng = np.random.default_rng(0)
+    H = np.asfortranarray(rng.normal(size=(nA, nB)))
+    out: dict[str, Any] = {"nA": nA, "nB": nB}
+    c = time.process_time()
+    S = scipy.linalg.blas.dsyrk(1.0, H, trans=0, lower=1)
+    out["syrk_cpu_s"] = time.process_time() - c
+    S = np.asfortranarray(S + S.T - np.diag(np.diag(S)) + nB * np.eye(nA))
+    c = time.process_time()
+    L, _ = scipy.linalg.lapack.dpotrf(S, lower=1, clean=1, overwrite_a=1)
+    out["potrf_cpu_s"] = time.process_time() - c
+    c = time.process_time()
+    scipy.linalg.solve_triangular(L, H, lower=True, check_finite=False, overwrite_b=True)
+    out["trsm_cpu_s"] = time.process_time() - c
+    c = time.process_time()
+    scipy.linalg.lapack.dtrtri(L, lower=1, overwrite_c=1)
+    out["trtri_cpu_s"] = time.process_time() - c
+    out["total_cpu_s"] = out["syrk_cpu_s"] + out["potrf_cpu_s"] + out["trsm_cpu_s"] + out["trtri_cpu_s"]
+    return out
+
+
+def _large_case(I: int, J: int) -> dict[str, Any]:
+    """Refine + all covariance blocks from a near-truth start (3 cm): time, CPU, peak memory.
+
+    The start is the truth plus 3 cm so the row measures the engine and the covariance at
+    this size, not the initialiser; ``floor`` is the BLAS floor of the covariance (above)
+    and ``factorization_floor_cpu_s`` one dense Cholesky of the reduced system alone.
+    """
+    from selfcal.toa import refine_toa
+
+    r, s, Y = _scene(I, J, seed=I + J)
+    rng = np.random.default_rng(1)
+    r0, s0 = r + rng.normal(0, 0.03, r.shape), s + rng.normal(0, 0.03, s.shape)
+    case: dict[str, Any] = {"shape": [I, J], "missing": MISSING, "start": "truth + 3 cm"}
+    row, sol = _timed(lambda: refine_toa(Y, r0, s0, covariance="none"))
+    case["solve"] = {**row, "iterations": sol.iterations}
+    row, _ = _timed(lambda: refine_toa(Y, r0, s0, covariance="all"))
+    case["solve_cov"] = row
+    case["cov_cpu_s"] = row["cpu_s"] - case["solve"]["cpu_s"]
+    nA, nB = DIM * min(I, J), DIM * max(I, J)
+    case["floor"] = _blas_floor(nA, nB)
+    case["factorization_floor_cpu_s"] = case["floor"]["potrf_cpu_s"]
+    return case
+
+
+def _sparse_case(N: int, fraction: float) -> dict[str, Any]:
+    """Blind sparse network: N x N nodes in a 100 m cube, ranges only below the distance that
+    gives ``fraction`` of the pairs, 1 cm noise (:func:`selfcal.toa.sparse.simulate_sparse_network`).
+
+    Accuracy: against the same engine started at the truth (``oracle``: the ML estimate
+    itself; a ratio of 1 says the blind run found the ML minimum) and, up to 3000 nodes, the
+    CRLB of the observed pairs (``toa_crlb`` with the mask).
+    """
+    from selfcal.metrics import aligned_rmse
+    from selfcal.toa import refine_toa_sparse, solve_toa_sparse, toa_crlb
+    from selfcal.toa.sparse import simulate_sparse_network
+
+    r, s, i, j, y = simulate_sparse_network(N, N, fraction, noise=SIGMA, rng=N)
+    case: dict[str, Any] = {"nodes": [N, N], "fraction": fraction, "pairs": int(i.size),
+                            "ranges_per_node": i.size / N}
+    row, sol = _timed(lambda: solve_toa_sparse(i, j, y, N, N, rng=0))
+    mr, ms = np.isfinite(sol.receivers[:, 0]), np.isfinite(sol.sources[:, 0])
+    e = aligned_rmse(sol.receivers[mr], r[mr], sol.sources[ms], s[ms])
+    case["blind"] = {**row, "converged": sol.converged, "iterations": sol.iterations,
+                     "located": sol.located, "seed_shape": list(sol.seed_shape),
+                     "noise_estimate": sol.noise_estimate, "rmse_receivers": e.rmse_receivers,
+                     "rmse_sources": e.rmse_sources}
+    orc = refine_toa_sparse(i, j, y, r, s)
+    eo = aligned_rmse(orc.receivers[mr], r[mr], orc.sources[ms], s[ms])
+    case["oracle"] = {"rmse_receivers": eo.rmse_receivers, "rmse_sources": eo.rmse_sources}
+    case["blind_over_oracle"] = e.rmse_receivers / eo.rmse_receivers
+    if N <= 3000:
+        mask = np.zeros((N, N), bool)
+        mask[i, j] = True
+        crlb = toa_crlb(r[mr], s[ms], SIGMA, mask=mask[np.ix_(mr, ms)])
+        case["efficiency_receivers"] = e.rmse_receivers / crlb.rmse_receivers
+        case["efficiency_sources"] = e.rmse_sources / crlb.rmse_sources
     return case
 
 
@@ -212,6 +331,8 @@ def main(out_dir: Path) -> dict[str, Any]:
                     "python": platform.python_version(), "numpy": np.__version__,
                     "OPENBLAS_NUM_THREADS": os.environ.get("OPENBLAS_NUM_THREADS")},
         "cases": [],
+        "large": [],
+        "sparse": [],
         "offsets_both": [],
     }
     for I, J, reps in _sizes():
@@ -220,6 +341,19 @@ def main(out_dir: Path) -> dict[str, Any]:
         print(f"[toa] {I}x{J}: solve {case['ours_solve']['time_s']:.3g} s, cov {case['ours_cov']['time_s']:.3g} s "
               f"(x{case['cov_over_solve']:.2f}), blind+cov {case['ours_blind_cov']['time_s']:.3g} s, "
               f"scipy trf {case['scipy_trf']['time_s']:.3g} s, cov peak RSS +{case['ours_cov']['peak_rss_increase_mb']:.0f} MB")
+    for I, J in _large():
+        case = _large_case(I, J)
+        report["large"].append(case)
+        print(f"[toa] {I}x{J} near-truth: solve {case['solve']['cpu_s']:.3g} s CPU, +cov {case['cov_cpu_s']:.3g} s "
+              f"(BLAS floor {case['floor']['total_cpu_s']:.3g} s, one potrf {case['factorization_floor_cpu_s']:.3g} s), "
+              f"peak RSS {case['solve_cov']['peak_rss_mb']:.0f} MB")
+    for N, frac in _sparse():
+        case = _sparse_case(N, frac)
+        report["sparse"].append(case)
+        b = case["blind"]
+        print(f"[toa] sparse {N}x{N} ({case['pairs']} pairs): blind {b['time_s']:.3g} s ({b['cpu_s']:.3g} s CPU), "
+              f"peak RSS {b['peak_rss_mb']:.0f} MB, noise {b['noise_estimate']:.4g}, blind/oracle "
+              f"{case['blind_over_oracle']:.3f}")
     for U in _units():
         row = _units_case(U)
         report["offsets_both"].append(row)
