@@ -11,6 +11,7 @@ from selfcal.errors import ConvergenceWarning, DegenerateGeometryError, InputErr
 from selfcal.geometry import align
 from selfcal.scenarios.units import ROOMS, make_units, true_offset_vector
 from selfcal.toa import offsets as off
+from selfcal.toa import rank3
 
 C = 343.0
 US = 1e-6 * C  # one microsecond, in metres
@@ -296,7 +297,7 @@ def test_scalable_lm_reaches_the_minimum_of_the_joint_reference(seed: int, monke
     frac = (0.0, 0.05, 0.10)[seed % 3]
     R[rng.random(R.shape) < frac] = np.nan
     p0 = p + rng.normal(0.0, 2 * US, p.size)
-    monkeypatch.setattr(off, "_DENSE_JOINT_MAX", 0)  # the scalable path even at this size
+    monkeypatch.setattr(rank3, "_DENSE_JOINT_MAX", 0)  # the scalable path even at this size
     new = off.rank3_lm(R, p0=p0)
     ref = off._rank3_lm_joint(R, p0=p0)
     # never a worse stationary point than the reference (with missing entries the two take
