@@ -151,7 +151,7 @@ def _scaled(Y: Array, dim: int, offsets: str, rng: np.random.Generator) -> list[
     if offsets != "both":
         return []
     try:
-        off.check_rank_identifiable(*Y.shape, dim)
+        off.check_rank_identifiable(Y.shape[0], Y.shape[1], dim)
         return []
     except DegenerateGeometryError:
         return scaled_random_starts(Y, dim, offsets, rng, n=SCALED_STARTS)
