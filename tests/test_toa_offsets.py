@@ -401,3 +401,49 @@ def test_distance_lower_bounds_never_exceed_the_true_distances() -> None:
             true = np.linalg.norm(pts[:, None] - pts[None], axis=-1)
             assert np.all(B <= true + 1e-9)
             assert np.all(B[~np.eye(len(pts), dtype=bool)] > 0)  # and they are informative
+
+
+def test_scaled_starts_apply_only_where_the_rank_method_cannot_identify_the_offsets() -> None:
+    """The 'scaled' initialiser runs for both offsets on 12 x 6 (16 < 17), never on 12 x 7 or other models."""
+    from selfcal.toa.search import INITIALISERS, SCALED_STARTS
+
+    init = INITIALISERS["scaled"]
+    for J, offsets, expect in ((6, "both", SCALED_STARTS), (7, "both", 0), (6, "receivers", 0), (6, "none", 0)):
+        _, _, _, _, R = _minimal_scene(0, J=J)
+        got = init(R, 3, offsets, np.random.default_rng(0))
+        assert len(got) == expect
+        for r0, s0, d0, o0 in got:  # finite starts of the right shapes, offsets for both kinds
+            assert r0.shape == (12, 3) and s0.shape == (J, 3) and d0 is not None and o0 is not None
+            assert np.isfinite(r0).all() and np.isfinite(s0).all()
+
+
+@pytest.mark.slow
+def test_minimal_12x6_search_reaches_the_truth_started_minimum_or_lower() -> None:
+    """12 x 6, both offsets, 20 us: the search (trf engine) finds the truth-started minimum or a lower one.
+
+    Measured 9 of 12 draws with the scaled starts against 1 of 12 without them (same run). At a
+    true rate of 0.75, 12 or more of 24 draws happen with probability 0.998 (binomial); at the
+    rate without them (<= 0.3) with probability < 0.04. The issue's 95 % is not reached: on
+    many draws the data admit minima far from the truth with a cost within a few sigma^2 of the
+    truth-started one (7 redundant measurements; the CRLB is 0.4-1.1 m for receivers in a
+    1.5 m cube), see benchmarks/bench_toa_minimal.py.
+    """
+    from selfcal.toa import refine_toa
+    from selfcal.toa.search import search
+
+    hits = 0
+    for seed in range(24):
+        g = np.random.default_rng(seed)  # the scene of benchmarks/bench_toa_minimal.py, 20 us noise
+        r = g.uniform(0.0, 1.5, (12, 3))
+        u = g.normal(size=(6, 3))
+        u /= np.linalg.norm(u, axis=1)[:, None]
+        s = 0.75 + u * 4.0 * g.uniform(0, 1, (6, 1)) ** (1 / 3)
+        d, o = g.uniform(0, 0.01 * C, 12), g.uniform(0, 0.1 * C, 6)
+        R = np.linalg.norm(r[:, None] - s[None], axis=-1) + d[:, None] + o[None] + g.normal(0, 20 * US, (12, 6))
+        ref = refine_toa(R, r, s, offsets="both", receiver_offsets0=d, source_offsets0=o, covariance=False,
+                         solver="trf")
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            out = search(R, 3, "both", rng=np.random.default_rng(seed), solver="trf")
+        hits += bool(np.nansum(out.solution.residuals**2) <= np.nansum(ref.residuals**2) * (1 + 1e-6))
+    assert hits >= 12
