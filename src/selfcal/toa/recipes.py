@@ -51,7 +51,8 @@ from .._checks import as_matrix, check_choice
 from ..errors import InputError
 from ..robust import mad_std
 
-__all__ = ["RECIPES", "RecipeResult", "TimeOrderTest", "apply_recipe", "detect_time_order", "moving_tag"]
+__all__ = ["RECIPES", "RecipeResult", "TimeOrderTest", "apply_recipe", "detect_time_order", "moving_tag",
+           "spike_threshold"]
 
 Array = NDArray[np.float64]
 
@@ -215,9 +216,10 @@ def moving_tag(
     *,
     times: Any = None,
     dim: int = 3,
-    threshold: float = 3.5,
+    threshold: float | str = 3.5,
     half_window: int = 7,
     degree: int = 2,
+    one_sided: bool = False,
     common_offset: str = "free",
     speed: float | None = None,
     **solve_kw: Any,
@@ -230,8 +232,12 @@ def moving_tag(
         columns = tag positions **in time order**; NaN = missing.
     times: (J,) increasing sample times (any unit); default equally spaced.
     dim: 2 or 3.
-    threshold, half_window, degree: of the spike detector
-        (:func:`selfcal.toa.preprocess.reject_range_outliers`).
+    threshold, half_window, degree, one_sided: of the spike detector
+        (:func:`selfcal.toa.preprocess.reject_range_outliers`). ``threshold`` in robust
+        standard deviations, or ``"bonferroni"``: the normal quantile that flags any
+        Gaussian entry of the matrix with probability at most
+        :data:`selfcal.toa.robust.OUTLIER_ALPHA` (:func:`spike_threshold`), the same
+        false-alarm rule as the solver's own outlier test.
     common_offset: "free" (default: the fit as ``solve_toa`` does it with the
         ``offsets`` given in ``solve_kw``) or "profile" (opt-in: per-anchor offsets whose
         common part minimises the trimmed residual scale,
@@ -272,8 +278,13 @@ def moving_tag(
     M = as_matrix(matrix, "matrix")
     I, J = M.shape
     scale = 1.0 if speed is None else float(speed)
+    if isinstance(threshold, str):
+        check_choice(threshold, "threshold", ("bonferroni",))
+        k = spike_threshold(M, one_sided)
+    else:
+        k = float(threshold)
     rej = reject_range_outliers(M * scale, times, half_window=half_window, degree=degree,
-                                threshold=threshold)
+                                threshold=k, one_sided=one_sided)
     cleaned = rej.ranges / scale
     keep = np.isfinite(cleaned).sum(axis=0) >= dim + 1
     dropped = tuple(int(j) for j in np.nonzero(~keep)[0])
@@ -281,8 +292,9 @@ def moving_tag(
         raise InputError(f"after spike rejection only {int(keep.sum())} tag positions keep {dim + 1} "
                          "ranges; the recording is too short or too sparse for this recipe")
     sub = cleaned[:, keep]
-    details: dict[str, Any] = {"threshold": float(threshold), "half_window": int(half_window),
-                               "degree": int(degree), "common_offset": common_offset}
+    details: dict[str, Any] = {"threshold": float(k), "half_window": int(half_window),
+                               "degree": int(degree), "one_sided": bool(one_sided),
+                               "common_offset": common_offset}
     if common_offset == "profile":
         offs = solve_kw.pop("offsets", "receivers")
         if offs not in ("none", "receivers"):
@@ -296,6 +308,27 @@ def moving_tag(
         res = solve_toa(sub, dim=dim, speed=speed, **solve_kw)
     res = _embed_columns(res, keep, J, M)
     return RecipeResult(res, "moving-tag", rej.outliers, dropped, (), details)
+
+
+def spike_threshold(matrix: Any, one_sided: bool = False, alpha: float | None = None) -> float:
+    """Spike threshold (robust sigmas) with family-wise false-alarm rate ``alpha`` over the matrix.
+
+    ``k = Phi^-1(1 - alpha / m)`` one-sided (only positive spikes tested), ``Phi^-1(1 - alpha /
+    (2 m))`` two-sided, ``m`` the observed entries (Bonferroni): under Gaussian noise the
+    probability that any clean entry is rejected is at most ``alpha`` (default
+    :data:`selfcal.toa.robust.OUTLIER_ALPHA`, 1 %), whatever the recording's length.
+
+    Examples
+    --------
+    >>> round(spike_threshold(np.ones((6, 600)), one_sided=True), 2)
+    4.54
+    """
+    from .robust import OUTLIER_ALPHA, outlier_threshold
+
+    a = OUTLIER_ALPHA if alpha is None else float(alpha)
+    m = int(np.isfinite(np.asarray(matrix, float)).sum())
+    # outlier_threshold is the two-sided quantile Phi^-1(1 - a / (2 m)); one-sided = twice a
+    return outlier_threshold(m, 2 * a if one_sided else a)
 
 
 def _plain(kw: dict[str, Any]) -> dict[str, Any]:
