@@ -191,6 +191,10 @@ def test_moving_tag_recipe_rejects_spikes_and_drops_positions(tmp_path):
     assert data["recipe"]["n_rejected"] >= len(spikes)
     S = np.array(data["sources"], dtype=float)
     assert np.isnan(S[60]).all()
+    # the result's masks and drops are in the input's numbering (6 x 240), not the kept columns'
+    assert np.array(data["outliers"]).shape == (6, 240) and np.array(data["residuals"]).shape == (6, 240)
+    assert set(data["recipe"]["dropped_sources"]) <= set(data["dropped_sources"])
+    assert set(data["dropped_sources"]) == set(np.nonzero(np.isnan(S).any(axis=1))[0])
     err = aligned_rmse(np.array(data["receivers"]), anchors)
     assert err.rmse_receivers < 0.05
     assert "spikes rejected" in res.output

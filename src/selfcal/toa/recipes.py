@@ -206,6 +206,15 @@ def _embed_columns(result: Any, keep: NDArray[np.bool_], J: int, M: Array) -> An
         res = np.full((M.shape[0], J), np.nan)
         res[:, keep] = result.residuals
         kw["residuals"] = res
+    if getattr(result, "outliers", None) is not None:
+        out = np.zeros((M.shape[0], J), bool)
+        out[:, keep] = result.outliers
+        kw["outliers"] = out
+    if "dropped_sources" in names:
+        # the solver's drops are in the kept columns' numbering; every NaN row is reported
+        cols = np.nonzero(keep)[0]
+        solver = {int(cols[j]) for j in getattr(result, "dropped_sources", ())}
+        kw["dropped_sources"] = tuple(sorted(solver | {int(j) for j in np.nonzero(~keep)[0]}))
     if "n_missing" in names:
         kw["n_missing"] = int((~np.isfinite(M)).sum())
     return dataclasses.replace(result, **{k: v for k, v in kw.items() if k in names})
