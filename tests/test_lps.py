@@ -235,3 +235,23 @@ def test_simulated_flight_has_the_documented_structure():
     est = np.array([np.median((Y - D)[i][clean[i]]) for i in range(6)])
     np.testing.assert_allclose(est, sim["bias"], atol=0.02)
     assert np.all((Y - D)[sim["spikes"] & np.isfinite(Y)] > sim["bias"].min() - 0.2)
+
+
+def test_spike_threshold_has_its_stated_false_alarm_rate():
+    """``spike_threshold`` is Bonferroni over the observed entries: on pure Gaussian noise
+    the probability that any entry of a 6 x 600 matrix exceeds it is at most alpha = 1 %.
+    Over 400 matrices the count of matrices with a false alarm is Binomial(400, <= 0.01):
+    mean <= 4, and P(X >= 13) < 3e-4 (Poisson(4) tail), the bound asserted."""
+    from selfcal.toa.recipes import spike_threshold
+    from selfcal.toa.robust import OUTLIER_ALPHA
+
+    rng = np.random.default_rng(0)
+    Z = rng.standard_normal((400, 6, 600))
+    k1 = spike_threshold(Z[0], one_sided=True)
+    k2 = spike_threshold(Z[0], one_sided=False)
+    assert k2 > k1 > 4.0  # the two-sided test splits alpha over both tails
+    hits1 = int(np.sum(Z.max(axis=(1, 2)) > k1))
+    hits2 = int(np.sum(np.abs(Z).max(axis=(1, 2)) > k2))
+    assert hits1 <= 12 and hits2 <= 12
+    assert OUTLIER_ALPHA == 0.01
+

@@ -243,10 +243,9 @@ def score_recipe_variants(data: str, n_sim: int, variants: Sequence[str] | None 
     import json
 
     table: dict[str, dict[str, dict[str, Any]]] = {}
-    for name, (Y, A) in lps_cases(data, n_sim).items():
-        if cases and name not in cases:
-            continue
-        for v in variants or list(RECIPE_VARIANTS):
+    all_cases = {k: v for k, v in lps_cases(data, n_sim).items() if not cases or k in cases}
+    for v in variants or list(RECIPE_VARIANTS):  # variant-major: every case of a variant first
+        for name, (Y, A) in all_cases.items():
             row = score_recipe_variant(Y, A, v)
             table.setdefault(name, {})[v] = row
             print(json.dumps({"case": name, "variant": v, **row}), flush=True)
