@@ -22,7 +22,7 @@ if TYPE_CHECKING:
 
 
 @calibrate.command("tdoa-farfield")
-@click.argument("matrix", type=click.Path(dir_okay=False, path_type=Path))
+@click.argument("matrix", nargs=-1, required=True, type=click.Path(path_type=Path))
 @click.option("--out", "out", type=click.Path(dir_okay=False, path_type=Path), required=True,
               help="Result JSON (positions, directions, offsets, residual_rms, degeneracy, ...).")
 @click.option("--speed", type=float, default=None, metavar="C",
@@ -52,7 +52,7 @@ if TYPE_CHECKING:
 @csv_option
 @unit_options
 @handle_errors
-def farfield_command(matrix: Path, out: Path, speed: float | None, dim: str, directions: str | None,
+def farfield_command(matrix: tuple[Path, ...], out: Path, speed: float | None, dim: str, directions: str | None,
                      method: str, loss: str,
                      noise_std: float | None, ransac: bool, seed: int, allow_degenerate: bool,
                      plot: Path | None, csv_out: Path | None = None, unit: str | None = None,
@@ -62,9 +62,12 @@ def farfield_command(matrix: Path, out: Path, speed: float | None, dim: str, dir
     Rows are receiver positions (microphones, antenna positions), columns far transmitters;
     entry = relative distance z_i . n_j + C_j (metres, or seconds with --speed). A .json
     file in the Pyramic calibration layout (keys delays [m-1][k] in seconds against
-    microphone mic_ref, sources, microphones, sound_speed_mps) is read directly; its
-    hand-measured microphones are not used by the estimate, only compared with it. A
-    degenerate geometry (planar-motion, coplanar-directions, cone, collinear-motion,
+    microphone mic_ref, or [m-1][k][speakers] for several speakers, sources, microphones,
+    sound_speed_mps) is read directly; its hand-measured microphones are not used by the
+    estimate, only compared with it. Several Pyramic files (or a folder of them) are
+    calibrated jointly, all speakers' columns side by side: one speaker's directions lie on
+    a cone (one elevation), speakers at different elevations break it. A degenerate
+    geometry (planar-motion, coplanar-directions, cone, collinear-motion,
     parallel-directions) exits with status 2 naming it, unless --allow-degenerate.
     """
     import numpy as np
@@ -80,20 +83,29 @@ def farfield_command(matrix: Path, out: Path, speed: float | None, dim: str, dir
     reference = None
     known = None
     row_names = col_names = None
-    if matrix.suffix.lower() == ".json":
-        from ..datasets.pyramic import pyramic_from_dict
-        from ..io import read_json
+    pyramic = None
+    pyr = [p.is_dir() or p.suffix.lower() == ".json" for p in matrix]
+    if any(pyr) and not all(pyr) or (len(matrix) > 1 and not all(pyr)):
+        raise InputError("several matrices (or a folder) are read only as Pyramic JSON files; give one CSV / "
+                         ".npy matrix, or Pyramic .json files")
+    if all(pyr):
+        from ..datasets.pyramic import load_pyramic
 
-        data = pyramic_from_dict(read_json(matrix), label=str(matrix), speed=speed)
-        D, scale, seconds = data.D, data.speed, True
-        reference = data.positions
+        pyramic = load_pyramic(list(matrix), speed=speed)
+        D, seconds = pyramic.D, True
+        scale = pyramic.column_speed if pyramic.column_speed is not None else np.full(D.shape[1], pyramic.speed)
+        reference = pyramic.positions
         if directions == "sources":
-            known = data.directions
+            known = pyramic.directions
+        elev = ", ".join(f"{e:.1f}" for e in pyramic.elevations().values())
+        click.echo(f"selfcal calibrate tdoa-farfield: Pyramic data, {len(pyramic.speakers)} speaker(s) at "
+                   f"elevation(s) {elev} deg (file's source directions), {D.shape[1]} columns in all")
     else:
-        table = read_table(matrix, name=str(matrix))
+        matrix_path = matrix[0]
+        table = read_table(matrix_path, name=str(matrix_path))
         row_names, col_names = table.row_names, table.col_names
-        M, speed, _ = to_metres(table.values, unit, speed, sample_rate, name=str(matrix))
-        plausible_matrix_scale(M, speed=speed, explicit_unit=unit is not None, name=str(matrix),
+        M, speed, _ = to_metres(table.values, unit, speed, sample_rate, name=str(matrix_path))
+        plausible_matrix_scale(M, speed=speed, explicit_unit=unit is not None, name=str(matrix_path),
                                min_span=FARFIELD_TIMES_AS_METRES_MAX)
         seconds = speed is not None
         scale = speed if speed is not None else 1.0
@@ -104,18 +116,24 @@ def farfield_command(matrix: Path, out: Path, speed: float | None, dim: str, dir
         known = read_table(Path(directions), name=str(directions)).values
     try:
         res = solve_farfield(D, method=method, loss=loss, directions=known,
-                             noise_std=None if noise_std is None else noise_std * scale,
+                             noise_std=None if noise_std is None else noise_std * float(np.mean(scale)),
                              allow_degenerate=allow_degenerate, ransac=ransac, rng=seed,
                              dim="auto" if dim == "auto" else int(dim))
     except DegenerateGeometryError as exc:
         transposed_hint(exc, D.shape, min_rows=4, min_cols=6)
+        if pyramic is not None and exc.kind == "cone":
+            _pyramic_cone_hint(exc, pyramic)
         raise
     out_dict = res.to_dict()
     tunit = "s" if seconds else "m"
     if seconds:
-        out_dict["offsets"] = (np.asarray(res.offsets) / scale).tolist()
-        out_dict["residual_rms"] = float(res.residual_rms / scale)
-        out_dict["speed"] = float(scale)
+        speed_col = np.broadcast_to(np.asarray(scale, dtype=float), (D.shape[1],))
+        out_dict["offsets"] = (np.asarray(res.offsets) / speed_col).tolist()
+        out_dict["residual_rms"] = float(res.residual_rms / float(np.mean(speed_col)))
+        out_dict["speed"] = float(np.mean(speed_col))
+    if pyramic is not None:
+        out_dict["speaker"] = [int(s) for s in pyramic.speaker] if pyramic.speaker is not None else None
+        out_dict["speaker_elevation_deg"] = {str(s): e for s, e in pyramic.elevations().items()}
     ref_rmse = None
     if reference is not None and res.positions.shape[1] == 3:
         ref_rmse = _aligned_rmse(res.positions, reference)
@@ -149,10 +167,24 @@ def farfield_command(matrix: Path, out: Path, speed: float | None, dim: str, dir
     if res.degeneracy is None and not res.converged:
         failure = f"the refinement did not converge in {res.iterations} iterations"
     elif noise_std is not None and res.degeneracy is None:
-        failure = _residual_failure(res, D, noise_std * scale)
+        failure = _residual_failure(res, D, noise_std * float(np.mean(scale)))
     if failure is not None:
         click.echo(f"FAIL: calibration not trustworthy ({failure})")
         raise SystemExit(1)
+
+
+def _pyramic_cone_hint(exc: Exception, data: object) -> None:
+    """Re-raise a ``[cone]`` refusal on Pyramic data saying which speakers were given and what breaks it."""
+    from ..errors import DegenerateGeometryError
+
+    elev = data.elevations()  # type: ignore[attr-defined]
+    msg = exc.args[0] if exc.args else str(exc)
+    listed = ", ".join(f"speaker {s} at {e:.1f} deg" for s, e in elev.items())
+    raise DegenerateGeometryError(
+        f"{msg} Pyramic data given: {listed}. One speaker's directions (one elevation) always lie on a cone; "
+        "speakers at different absolute elevations break it: give their files together "
+        "(calibrate tdoa-farfield a.json b.json ..., or their folder), or use --directions sources (semi-blind, "
+        "as good as the file's directions)", kind=exc.kind, partial=getattr(exc, "partial", None)) from None
 
 
 def _residual_failure(res: FarfieldResult, D: object, sigma: float) -> str | None:
