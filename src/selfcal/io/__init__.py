@@ -3,21 +3,9 @@
 Matrices follow the project convention: rows = receivers, columns = transmitters
 (points as rows), ``nan`` / ``NA`` / an empty CSV field = missing.
 
-The I/O contract (DESIGN.md, "Inputs and outputs"):
-
-* **Outputs never destroy anything.** :func:`atomic_write_bytes` writes a temporary file
-  beside the target and ``os.replace``-s it, but only over a regular file or a new path.
-  A symlink is written through (its target is replaced, the link stays); a directory,
-  device, FIFO or socket at the path is refused with :class:`OutputError`. ``"-"`` means
-  standard output. Any failure (parent is a file, disk full, read-only, name too long) is an
-  :class:`OutputError` and leaves no new file behind.
-* **All or nothing.** Inside :func:`staged_outputs` every write is buffered and the whole set
-  is committed when the block ends without an exception (temporary files first, then the
-  renames), or nothing is written.
-* **Readers take real files.** :func:`read_table` sniffs the delimiter (comma, semicolon,
-  tab, whitespace), a header row and a first column of names, a UTF-8 BOM, CRLF line ends,
-  ``#`` comments (``np.savetxt`` output loads), and refuses what Python's ``float`` would
-  misread (``1_0``); errors name the row and the column.
+The I/O contract (DESIGN.md, "Inputs and outputs"): outputs never destroy anything and are
+written all together or not at all (:mod:`selfcal.io.outputs`); readers take real files and
+refuse what they would misread (:mod:`selfcal.io.inputs`).
 
 Two modules by job: :mod:`selfcal.io.inputs` (the readers) and :mod:`selfcal.io.outputs`
 (the writers); everything is re-exported here (``from selfcal.io import write_json``).
