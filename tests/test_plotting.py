@@ -208,3 +208,29 @@ def test_unknown_suffix_is_refused_and_nothing_written(tmp_path: Path) -> None:
     with pytest.raises(InputError, match="unknown figure format"):
         save_figure(fig, tmp_path / "x.txt")
     assert list(tmp_path.iterdir()) == []
+
+
+def test_cli_plot_suffix_picks_the_format(tmp_path: Path) -> None:
+    """``--plot FILE.pdf`` / ``.svg`` write that format (not PNG bytes under another name)."""
+    from click.testing import CliRunner
+
+    from selfcal.cli import main
+
+    g = np.random.default_rng(4)
+    B = np.array([[0.0, 0, 0], [5, 0, 0], [0, 5, 0], [5, 5, 1]])
+    u = B - np.array([2.0, 1.0, -3.0])
+    np.savetxt(tmp_path / "b.csv", B, delimiter=",")
+    np.savetxt(tmp_path / "u.csv", u / np.linalg.norm(u, axis=1, keepdims=True), delimiter=",")
+    r = CliRunner().invoke(main, ["locate", "aoa", str(tmp_path / "b.csv"), str(tmp_path / "u.csv"),
+                                  "--out", str(tmp_path / "a.json"), "--plot", str(tmp_path / "a.pdf")])
+    assert r.exit_code == 0, r.output
+    assert (tmp_path / "a.pdf").read_bytes()[:5] == MAGIC[".pdf"]
+    Z = g.uniform(-0.5, 0.5, (8, 3))
+    Z[0] = 0
+    N = g.normal(size=(12, 3))
+    N /= np.linalg.norm(N, axis=1, keepdims=True)
+    np.savetxt(tmp_path / "D.csv", Z @ N.T + g.normal(size=12), delimiter=",")
+    r = CliRunner().invoke(main, ["calibrate", "tdoa-farfield", str(tmp_path / "D.csv"), "--out",
+                                  str(tmp_path / "f.json"), "--plot", str(tmp_path / "f.svg")])
+    assert r.exit_code == 0, r.output
+    assert (tmp_path / "f.svg").read_bytes()[:5] == MAGIC[".svg"]
