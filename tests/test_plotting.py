@@ -234,3 +234,10 @@ def test_cli_plot_suffix_picks_the_format(tmp_path: Path) -> None:
                                   str(tmp_path / "f.json"), "--plot", str(tmp_path / "f.svg")])
     assert r.exit_code == 0, r.output
     assert (tmp_path / "f.svg").read_bytes()[:5] == MAGIC[".svg"]
+
+
+def test_every_format_the_cli_accepts_is_one_matplotlib_writes(tmp_path: Path) -> None:
+    from selfcal.commands._common import IMAGE_FORMATS
+
+    fig = ptoa.plot_network(*_network(2))
+    assert set(IMAGE_FORMATS) <= set(fig.canvas.get_supported_filetypes())
