@@ -12,8 +12,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 import selfcal
+from selfcal._result import jsonable
 from selfcal.errors import DegenerateGeometryError, InputError
-from selfcal.io import to_jsonable
 from selfcal.metrics import aligned_rmse
 from selfcal.toa import ToaResult, solve_toa, toa_model
 
@@ -89,7 +89,7 @@ def test_to_dict_has_the_design_keys_and_is_strict_json(rng):
     assert out["receiver_offsets"] is None and out["source_offsets"] is None
     assert np.array(out["receiver_cov"]).shape == (6, 3, 3)
     assert res.n_missing == 1
-    json.dumps(to_jsonable(out), allow_nan=False)
+    json.dumps(jsonable(out), allow_nan=False)
     # canonical gauge: receiver centroid at the origin
     np.testing.assert_allclose(np.mean(out["receivers"], axis=0), 0.0, atol=1e-9)
 

@@ -130,9 +130,9 @@ def compare_fits(residual_2d: float, residual_3d: float, observations: int, node
     """
     from scipy.stats import f as f_dist
 
-    k = max(nodes - 3, 1)
+    k = max(n_parameters(nodes, 0, 3) - n_parameters(nodes, 0, 2), 1)  # the n - 3 heights of a plane
     n_off = nodes - 1 if n_offsets is None else int(n_offsets)
-    dof = observations - (3 * nodes - 6 + n_off)
+    dof = observations - (n_parameters(nodes, 0, 3) + n_off)
     rss2 = observations * residual_2d**2
     rss3 = observations * residual_3d**2
     if dof < 1:
