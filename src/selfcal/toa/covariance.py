@@ -45,6 +45,15 @@ of a dense network is therefore one dense factorization of the n_K x n_K reduced
 (9000 x 9000 at 3000 x 3000 in 3-D: 0.65 GB, ~2.4e11 flops) plus the rank-n_E update that
 builds it (~7e11 flops). ``covariance="receivers"`` with receivers on the K side skips every
 E solve; ``"none"`` skips everything.
+
+Floor (measured, ``benchmarks/bench_toa.py``, one BLAS thread on the 2-core machine): the exact
+blocks cannot avoid syrk (n_K^2 n_E m_E), potrf (n_K^3/3), trsm (n_K^2 n_E m_E, the E blocks)
+and trtri (n_K^3/3, the K blocks): about 2.7 n^3 flops for a square network with n = d I
+reduced unknowns. At 1000 x 1000 those four calls take 2.2 s of CPU, at 2000 x 2000 15.5 s
+(the whole covariance: 3.0 s and 19.2 s); the matrix-free solve they are compared with takes
+0.8 s and 4.2 s (:mod:`selfcal.toa.schur_lm`), so the exact blocks cost ~3-4x the solve, not
+0.5x: that would need approximate blocks. H is kept between the two passes when it fits in
+256 MB (``_KEEP_H_DOUBLES``), rebuilt block by block above.
 """
 
 from __future__ import annotations
