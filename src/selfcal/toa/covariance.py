@@ -316,7 +316,7 @@ def gauge_free_blocks(
     U = _components(PK, PE)
     Ablk, Dblk = diagonal_blocks(U, wK, hasK, hasE, Grid(nK, nE))
     Dinv = _inv_eliminated(Dblk, 0)
-    Rc = np.linalg.cholesky(Dinv)
+    Rc: Array = np.asarray(np.linalg.cholesky(Dinv), dtype=np.float64)
     # pass 1: S = A - H H^T, t = Q_K - F Q_E
     S = np.zeros((nA, nA), order="F")
     t = QK.copy()

@@ -98,10 +98,10 @@ class Pairs(Grid):
         return v[self.e]
 
     def ksum(self, a: Array, b: Array | None = None) -> Array:
-        return np.bincount(self.k, a if b is None else a * b, minlength=self.nK)
+        return np.bincount(self.k, a if b is None else a * b, minlength=self.nK).astype(np.float64, copy=False)
 
     def esum(self, a: Array, b: Array | None = None) -> Array:
-        return np.bincount(self.e, a if b is None else a * b, minlength=self.nE)
+        return np.bincount(self.e, a if b is None else a * b, minlength=self.nE).astype(np.float64, copy=False)
 
 
 class _Oriented:
