@@ -144,7 +144,9 @@ def farfield_command(matrix: tuple[Path, ...], out: Path, speed: float | None, d
                "position_cov": "m^2"})
     with staged_outputs():  # the figure, the JSON and the CSV together, or none
         if plot is not None:
-            _plot(res, plot)
+            from ..plotting.farfield import plot_farfield
+
+            plot_farfield(res, plot)
         write_json(out, payload)
         if csv_out is not None:
             write_nodes_csv(csv_out, payload, [("position", "positions", "position_names")])
@@ -231,54 +233,6 @@ def _aligned_rmse(est: object, ref: object) -> float:
     A, B = np.asarray(est, dtype=float), np.asarray(ref, dtype=float)
     al = align(A, B, reflection=True)
     return float(np.sqrt(np.mean(np.sum((al.apply(A) - B) ** 2, axis=1))))
-
-
-def _plot(res: FarfieldResult, path: Path) -> None:
-    """Positions (with 95 % ellipses in 2-D) and the directions on the unit sphere (3-D),
-    circle (2-D) or segment (1-D), coloured by each transmitter's offset C_j (metres)."""
-    import numpy as np
-    from matplotlib.figure import Figure
-
-    from ..plotting import plot_positions, save_figure
-
-    fig = Figure(figsize=(12.0, 5.2))
-    P, n, d = res.positions, res.directions, res.dim
-    ax0 = fig.add_subplot(1, 2, 1)
-    if d == 1:
-        ax0.scatter(P[:, 0], np.zeros(len(P)), s=25)
-        ax0.set_xlabel("position along the line [m] (up to scale)")
-        ax0.set_ylabel("(none) [m]")
-        ax0.set_yticks([])
-    else:
-        plot_positions(ax0, P, cov=res.position_cov if d == 2 else None, label="positions")
-        if d == 3:
-            sc = ax0.scatter(P[:, 0], P[:, 1], c=P[:, 2], cmap="viridis", s=25, zorder=4)
-            fig.colorbar(sc, ax=ax0, label="z [m]")
-        ax0.legend(loc="best", fontsize=8)
-    ax0.set_title(f"receiver positions ({res.case}, first at the origin)")
-    ax1 = fig.add_subplot(1, 2, 2, projection="3d" if d == 3 else None)
-    if d == 3:
-        u, v = np.mgrid[0 : 2 * np.pi : 37j, 0 : np.pi : 19j]
-        ax1.plot_wireframe(np.cos(u) * np.sin(v), np.sin(u) * np.sin(v), np.cos(v), color="0.85", lw=0.4)
-        sc = ax1.scatter(n[:, 0], n[:, 1], n[:, 2], c=res.offsets, cmap="plasma", s=14, depthshade=False)
-        ax1.set_xlabel("n_x [unit]")
-        ax1.set_ylabel("n_y [unit]")
-        ax1.set_zlabel("n_z [unit]")
-        ax1.set_box_aspect((1, 1, 1))
-    elif d == 2:
-        t = np.linspace(0, 2 * np.pi, 200)
-        ax1.plot(np.cos(t), np.sin(t), color="0.8", lw=0.8)
-        sc = ax1.scatter(n[:, 0], n[:, 1], c=res.offsets, cmap="plasma", s=18)
-        ax1.set_aspect("equal")
-        ax1.set_xlabel("n_x [unit]")
-        ax1.set_ylabel("n_y [unit]")
-    else:
-        sc = ax1.scatter(n[:, 0], np.arange(len(n)), c=res.offsets, cmap="plasma", s=14)
-        ax1.set_xlabel("projection of the direction on the line [unit] (cos of the angle)")
-        ax1.set_ylabel("transmitter index [-]")
-    fig.colorbar(sc, ax=ax1, label="offset C_j [m]", shrink=0.8)
-    ax1.set_title("transmitter directions" + (f" [{res.degeneracy}]" if res.degeneracy else ""))
-    save_figure(fig, path)
 
 
 @reproduce.command("farfield")
