@@ -133,3 +133,81 @@ def _spd_inverse(S: Array) -> Array | None:
     if np.max(np.abs(np.diag(inv)) * d) > 1e10:
         return None
     return np.asarray(inv)
+
+
+def linear_position_covariance(D: Array, x: Array, u: Array, C: Array, W: Array, *,
+                               scale_free: bool = True) -> Array:
+    """Gauss-Newton covariance of a linear array's positions (the 1-D far-field model): (m, 1, 1).
+
+    Model ``D_ij = x_i u_j + C_j`` with ``x_1 = 0`` (translation gauge), ``u_j`` the
+    projection of direction j on the line and ``C_j`` free. The per-column unknowns
+    ``(u_j, C_j)`` are eliminated by a Schur complement (2 x 2 blocks), leaving the
+    (m-1) x (m-1) information ``S`` of the positions. With ``scale_free`` (the linear case:
+    the data fix the positions only up to a scale, ``x -> a x``, ``u -> u / a``) ``S`` is
+    singular along the scale motion ``x``; its pseudo-inverse projected onto the complement of
+    that motion is the covariance of the errors that remain after the best scaling about the
+    first position. Without it (parallel directions, ``u_j = +-1`` known) the ``u_j`` are not
+    unknowns and ``S`` is regular. ``sigma^2 = RSS / (observations - unknowns + gauge)``.
+
+    Parameters
+    ----------
+    D : (m, k) data (metres); x : (m,) or (m, 1) positions along the line, x_1 = 0;
+    u : (k,) or (k, 1) projections; C : (k,) offsets (the residual uses the least-squares
+    offsets for x and u, whichever C is given); W : (m, k) weights (0 = unused).
+    scale_free : whether u is estimated (the scale gauge is then removed).
+
+    Returns
+    -------
+    (m, 1, 1) variances of the positions (metres^2), the first zero.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> rng = np.random.default_rng(0)
+    >>> x = np.linspace(0.0, 0.3, 8); u = rng.uniform(-1, 1, 20); C = rng.normal(size=20)
+    >>> D = np.outer(x, u) + C + 1e-3 * rng.standard_normal((8, 20))
+    >>> cov = linear_position_covariance(D, x, u, C, np.ones((8, 20)))
+    >>> cov.shape, bool(cov[0, 0, 0] == 0.0)
+    ((8, 1, 1), True)
+    """
+    x = np.asarray(x, dtype=float).reshape(-1)
+    u = np.asarray(u, dtype=float).reshape(-1)
+    C = np.asarray(C, dtype=float).reshape(-1)
+    W = np.asarray(W, dtype=float)
+    m, k = W.shape
+    # residual at the least-squares offsets for these x, u (the reported C may be the paper's
+    # reference offsets C_j = D_1j, whose residual carries the first row's noise twice)
+    D0 = np.where(W > 0, D, 0.0)
+    C = np.sum(W * (D0 - np.outer(x, u)), axis=0) / np.maximum(W.sum(axis=0), 1e-300)
+    r = np.where(W > 0, D0 - np.outer(x, u) - C, 0.0)
+    Wz = W[1:]
+    # information blocks: positions (diagonal), columns (2 x 2 or 1 x 1), coupling
+    Hxx = Wz @ (u**2)  # (m-1,)
+    if scale_free:
+        xs = x[1:]
+        Hcc = np.empty((k, 2, 2))
+        Hcc[:, 0, 0] = W.T @ (x**2)
+        Hcc[:, 0, 1] = Hcc[:, 1, 0] = W.T @ x
+        Hcc[:, 1, 1] = W.sum(axis=0)
+        # d r_ij / d x_i = u_j couples to (u_j: x_i, C_j: 1); the residual term r_ij of the exact
+        # Hessian is left out (Gauss-Newton)
+        Hxc = np.stack([Wz * u[None, :] * xs[:, None], Wz * u[None, :]], axis=-1)  # (m-1, k, 2)
+        Hinv = np.linalg.pinv(Hcc)
+        T = np.einsum("ija,jab->ijb", Hxc, Hinv)
+        S = np.diag(Hxx) - np.einsum("ija,lja->il", T, Hxc)
+        n_par = (m - 1) + 2 * k - 1
+    else:
+        cnt = np.maximum(W.sum(axis=0), 1e-300)
+        Hxc = Wz * u[None, :]  # (m-1, k)
+        S = np.diag(Hxx) - (Hxc / cnt[None, :]) @ Hxc.T
+        n_par = (m - 1) + k
+    n_obs = int((W > 0).sum())
+    sigma2 = float(np.sum(W * r**2)) / max(n_obs - n_par, 1)
+    cov = np.linalg.pinv(S, rcond=1e-10, hermitian=True)
+    if scale_free:
+        g = x[1:] / max(float(np.linalg.norm(x[1:])), 1e-300)
+        P = np.eye(m - 1) - np.outer(g, g)
+        cov = P @ cov @ P
+    out = np.zeros((m, 1, 1))
+    out[1:, 0, 0] = sigma2 * np.diag(cov)
+    return out
