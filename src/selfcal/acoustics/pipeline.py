@@ -361,7 +361,7 @@ def run_pipeline(
     res_e[~kr] = np.nan
     res_e[:, ~ks[es]] = np.nan
     if np.isfinite(res_e).any():
-        fit = residual_check(res_e, robust.std, es, robust.n_params, cap=robust.threshold)
+        fit = residual_check(res_e, robust.std, es, robust.n_params, cap=robust.threshold, leverage=robust.leverage)
     fit_reason = ""
     if fit is not None and not fit.passed:
         where = []
