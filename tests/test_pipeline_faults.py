@@ -186,7 +186,6 @@ def _speed_scene(tmp_path: Path) -> tuple[Path, dict, dict, object]:
     return out, json.loads((out / "setup.json").read_text()), truth, sc
 
 
-@pytest.mark.xfail(strict=False, reason="known gap after merging the issue-12 solve_toa: with the right c (25 C) the 3-D solve lands in a wrong basin, position max 16.8 cm against 4.2 cm with the 1 %-wrong c (passed on the pipeline branch alone)")
 def test_temperature_and_unit_offsets_fix_the_scale(tmp_path):
     """Issue 15: with unknown offsets the scale comes from c. A declared temperature gives c by
     the standard formula (25 C -> 346.4 m/s); known microphone-loudspeaker distances recover it

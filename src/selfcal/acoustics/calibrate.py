@@ -54,13 +54,29 @@ MAX_OUTLIER_ROUNDS = 12
 
 
 def _solve(T: Array, dim: int, speed: float, rng: int, init: Any = "auto", noise: float | None = None,
-           f_scale: float | None = None) -> Any:
+           f_scale: float | None = None, units: NDArray[np.intp] | None = None) -> Any:
+    """One :func:`selfcal.toa.solve_toa` call with both offsets.
+
+    ``init="auto"``: the search, started from the units' two-way start
+    (:func:`selfcal.acoustics.units.unit_start`) when ``units`` pairs every receiver with
+    a sender, else blind. An explicit ``init``: one refinement from it (``f_scale``: Cauchy).
+    """
     try:
         from ..toa import solve_toa
     except ImportError:  # the package re-export may lag behind the module
         from ..toa.solve import solve_toa
 
     if isinstance(init, str):
+        from .units import unit_start
+
+        first = None
+        if units is not None:
+            try:
+                first = unit_start(T, units, speed, dim, rng=rng)
+            except DegenerateGeometryError:
+                first = None
+        if first is not None:
+            return solve_toa(T, dim=dim, offsets="both", speed=speed, rng=rng, noise=noise, init=first)
         return solve_toa(T, dim=dim, offsets="both", speed=speed, rng=rng, noise=noise)
     if f_scale is not None:
         return solve_toa(T, dim=dim, offsets="both", speed=speed, rng=rng, init=init, method="nls",
@@ -68,12 +84,13 @@ def _solve(T: Array, dim: int, speed: float, rng: int, init: Any = "auto", noise
     return solve_toa(T, dim=dim, offsets="both", speed=speed, rng=rng, init=init, method="nls")
 
 
-def _solve_retrying(T: Array, speed: float, rng: int, attempts: int = 3, noise: float | None = None) -> Any:
+def _solve_retrying(T: Array, speed: float, rng: int, attempts: int = 3, noise: float | None = None,
+                    units: NDArray[np.intp] | None = None) -> Any:
     """3-D solve; a node that turns unobservable on the way (e.g. a microphone crossing the
     plane of coplanar loudspeakers during the iterations) gets new random starts."""
     for k in range(attempts):
         try:
-            return _solve(T, 3, speed, rng + 1000 * k, noise=noise)
+            return _solve(T, 3, speed, rng + 1000 * k, noise=noise, units=units)
         except DegenerateGeometryError as exc:
             if exc.kind != "unobservable-node" or k == attempts - 1:
                 raise
@@ -101,7 +118,7 @@ def _resolve_mirrors(T: Array, res: Any, speed: float, rng: int, notes: list[str
 
 
 def _heights_fit(T: Array, heights: tuple[Array, Array], speed: float, rng: int,
-                 weights: Array | None) -> dict[str, Any]:
+                 weights: Array | None, units: NDArray[np.intp] | None = None) -> dict[str, Any]:
     """Known heights: :func:`refine_known_heights` from the better of two blind starts.
 
     The blind solves do not know the heights: the 2-D one (z ignored) and the 3-D one
@@ -114,7 +131,7 @@ def _heights_fit(T: Array, heights: tuple[Array, Array], speed: float, rng: int,
     starts = []
     for d in (2, 3):
         try:
-            starts.append(_solve(T, d, speed, rng))
+            starts.append(_solve(T, d, speed, rng, units=units))
         except DegenerateGeometryError:
             continue
     if not starts:
@@ -207,6 +224,7 @@ def calibrate_matrix(
     alpha: float = PLANAR_ALPHA,
     noise: float | None = None,
     weights: Array | None = None,
+    units: NDArray[np.intp] | None = None,
 ) -> tuple[dict[str, Any], Planarity | None, list[str]]:
     """Stages 2 + 3 of 004 on an (I, J) per-sender TOA matrix (seconds), one model fit.
 
@@ -238,6 +256,10 @@ def calibrate_matrix(
         ``1 / std`` of every entry: weighted least squares in the known-heights refinement
         (:func:`refine_known_heights`); the 2-D / 3-D fits of :func:`selfcal.toa.solve_toa`
         take no weights and ignore them.
+    units : (K, 2) int array, optional
+        ``(receiver, sender)`` of the units (microphone and loudspeaker in one housing,
+        :func:`selfcal.acoustics.units.unit_pairs`): the searches start from their two-way
+        distances (:func:`selfcal.acoustics.units.unit_start`).
 
     Returns
     -------
@@ -254,18 +276,18 @@ def calibrate_matrix(
     """
     notes: list[str] = []
     if heights is not None:
-        return _heights_fit(T, heights, speed, rng, weights), None, notes
+        return _heights_fit(T, heights, speed, rng, weights, units), None, notes
     if dim not in (2, 3, "auto"):
         raise InputError(f"dim must be 2, 3 or 'auto', got {dim!r}")
     if dim == 2:
-        return _as_solution(_solve(T, 2, speed, rng, noise=noise), "2d"), None, notes
+        return _as_solution(_solve(T, 2, speed, rng, noise=noise, units=units), "2d"), None, notes
     advice = "give known heights (--heights) for 3-D positions or use --dim 2"
     try:
-        res3 = _solve_retrying(T, speed, rng, noise=noise)
+        res3 = _solve_retrying(T, speed, rng, noise=noise, units=units)
     except DegenerateGeometryError as exc:
         if dim == 3:
             raise
-        res2 = _try_solve(T, 2, speed, rng, noise=noise)
+        res2 = _try_solve(T, 2, speed, rng, noise=noise, units=units)
         # A 3-D solve that breaks down on data a 2-D solve fits (within half the 004
         # timing tolerance) means the layout is (numerically) planar.
         if res2 is None or not res2.residual_rms < 0.5 * TIMING_REQUIREMENT:
@@ -286,7 +308,7 @@ def calibrate_matrix(
            f"normal std {plan.normal_std:.3f} m): z is not determined by the data; {advice}")
     if dim == 3:
         raise DegenerateGeometryError(msg, kind="near-planar")
-    res2 = _solve(T, 2, speed, rng, noise=noise)
+    res2 = _solve(T, 2, speed, rng, noise=noise, units=units)
     return _planar_verdict(res2, plan, msg, dim, notes)
 
 
@@ -311,9 +333,10 @@ def _z_note(cov: NDArray[np.float64], cmp: ModelComparison | None) -> str:
     return why + f"z standard deviation median {np.median(zstd) * 1e3:.2g} mm, max {zstd.max() * 1e3:.2g} mm"
 
 
-def _try_solve(T: Array, dim: int, speed: float, rng: int, noise: float | None = None) -> Any:
+def _try_solve(T: Array, dim: int, speed: float, rng: int, noise: float | None = None,
+               units: NDArray[np.intp] | None = None) -> Any:
     try:
-        return _solve(T, dim, speed, rng, noise=noise)
+        return _solve(T, dim, speed, rng, noise=noise, units=units)
     except DegenerateGeometryError:
         return None
 
@@ -532,6 +555,7 @@ def robust_calibrate(
     redetect: Callable[[NDArray[np.intp], NDArray[np.intp], Array, Array], tuple[Array, Array]] | None = None,
     alpha: float = OUTLIER_ALPHA,
     names: tuple[tuple[str, ...], tuple[str, ...]] | None = None,
+    units: NDArray[np.intp] | None = None,
 ) -> RobustFit:
     """Calibrate from the event TOA matrix with outlier exclusion and unit dropping (module docstring).
 
@@ -557,6 +581,9 @@ def robust_calibrate(
         Family-wise false-alarm probability of the outlier test.
     names : (receiver names, sender names), optional
         For the notes.
+    units : (K, 2) int array, optional
+        ``(receiver, sender)`` of the units (:func:`selfcal.acoustics.units.unit_pairs`):
+        the start of the searches (:func:`calibrate_matrix`), restricted to the kept units.
 
     Returns
     -------
@@ -611,7 +638,12 @@ def robust_calibrate(
         with np.errstate(divide="ignore", invalid="ignore"):
             return 1.0 / sender_std(s_ev, t_ev, es_k, Jk)
 
-    sol, plan, cnotes = calibrate_matrix(Tk, speed=speed, dim=dim, heights=hz, rng=rng, weights=wts())
+    units_k = None
+    if units is not None and len(units):
+        u = np.asarray(units, dtype=np.intp).reshape(-1, 2)
+        u = u[kr[u[:, 0]] & ks[u[:, 1]]]
+        units_k = np.column_stack([np.cumsum(kr)[u[:, 0]] - 1, np.cumsum(ks)[u[:, 1]] - 1])
+    sol, plan, cnotes = calibrate_matrix(Tk, speed=speed, dim=dim, heights=hz, rng=rng, weights=wts(), units=units_k)
     notes.extend(cnotes)
     n_par = n_parameters_of(sol, len(Tk), Jk)
     ri_full = np.flatnonzero(kr)
@@ -715,7 +747,7 @@ def robust_calibrate(
                 break
             try:
                 sol2, plan2, cn2 = calibrate_matrix(Tk, speed=speed, dim=dim, heights=hz, rng=rng, noise=noise,
-                                                    weights=wts())
+                                                    weights=wts(), units=units_k)
             except DegenerateGeometryError:
                 break
             if sol2["residual_rms"] < sol["residual_rms"]:
