@@ -55,13 +55,29 @@ MAX_OUTLIER_ROUNDS = 12
 
 
 def _solve(T: Array, dim: int, speed: float, rng: int, init: Any = "auto", noise: float | None = None,
-           f_scale: float | None = None) -> Any:
+           f_scale: float | None = None, units: NDArray[np.intp] | None = None) -> Any:
+    """One :func:`selfcal.toa.solve_toa` call with both offsets.
+
+    ``init="auto"``: the search, started from the units' two-way start
+    (:func:`selfcal.acoustics.units.unit_start`) when ``units`` pairs every receiver with
+    a sender, else blind. An explicit ``init``: one refinement from it (``f_scale``: Cauchy).
+    """
     try:
         from ..toa import solve_toa
     except ImportError:  # the package re-export may lag behind the module
         from ..toa.solve import solve_toa
 
     if isinstance(init, str):
+        from .units import unit_start
+
+        first = None
+        if units is not None:
+            try:
+                first = unit_start(T, units, speed, dim, rng=rng)
+            except DegenerateGeometryError:
+                first = None
+        if first is not None:
+            return solve_toa(T, dim=dim, offsets="both", speed=speed, rng=rng, noise=noise, init=first)
         return solve_toa(T, dim=dim, offsets="both", speed=speed, rng=rng, noise=noise)
     if f_scale is not None:
         return solve_toa(T, dim=dim, offsets="both", speed=speed, rng=rng, init=init, method="nls",
@@ -69,12 +85,13 @@ def _solve(T: Array, dim: int, speed: float, rng: int, init: Any = "auto", noise
     return solve_toa(T, dim=dim, offsets="both", speed=speed, rng=rng, init=init, method="nls")
 
 
-def _solve_retrying(T: Array, speed: float, rng: int, attempts: int = 3, noise: float | None = None) -> Any:
+def _solve_retrying(T: Array, speed: float, rng: int, attempts: int = 3, noise: float | None = None,
+                    units: NDArray[np.intp] | None = None) -> Any:
     """3-D solve; a node that turns unobservable on the way (e.g. a microphone crossing the
     plane of coplanar loudspeakers during the iterations) gets new random starts."""
     for k in range(attempts):
         try:
-            return _solve(T, 3, speed, rng + 1000 * k, noise=noise)
+            return _solve(T, 3, speed, rng + 1000 * k, noise=noise, units=units)
         except DegenerateGeometryError as exc:
             if exc.kind != "unobservable-node" or k == attempts - 1:
                 raise
@@ -99,6 +116,55 @@ def _resolve_mirrors(T: Array, res: Any, speed: float, rng: int, notes: list[str
     if flipped == 0:
         return res
     return _solve(T, 3, speed, rng, init=(r, s, np.asarray(res.receiver_offsets), np.asarray(res.source_offsets)))
+
+
+def _heights_fit(T: Array, heights: tuple[Array, Array], speed: float, rng: int,
+                 weights: Array | None, units: NDArray[np.intp] | None = None) -> dict[str, Any]:
+    """Known heights: :func:`refine_known_heights` from the better of two blind starts.
+
+    The blind solves do not know the heights: the 2-D one (z ignored) and the 3-D one
+    (z free, projected) are searches on different models and land in different basins when
+    the matrix is sparse or holds a wrong detection. Each start is refined with the heights
+    under a Cauchy loss (scale 2.385 stds, from ``weights``; least squares without them), the
+    start whose robust cost ``sum log(1 + (z / 2.385)^2)`` is lower is kept and finished by
+    (weighted) least squares; the outlier test of :func:`robust_calibrate` follows.
+    """
+    starts = []
+    for d in (2, 3):
+        try:
+            starts.append(_solve(T, d, speed, rng, units=units))
+        except DegenerateGeometryError:
+            continue
+    if not starts:
+        raise DegenerateGeometryError("no blind start for the known-heights fit: the 2-D and 3-D solves both "
+                                      "broke down", kind="unobservable-node")
+    sd = None if weights is None else 1.0 / np.asarray(weights, float)
+    f_sc = None if sd is None else 2.385 * float(np.nanmedian(sd[np.isfinite(sd)]))
+    best: tuple[float, dict[str, Any], Any] | None = None
+    for init in starts:
+        r0, s0, dr0, ds0 = _place_dropped(T, heights, np.asarray(init.receivers, float)[:, :2],
+                                          np.asarray(init.sources, float)[:, :2],
+                                          np.asarray(init.receiver_offsets, float),
+                                          np.asarray(init.source_offsets, float), speed)
+        dr, ds = _normalise_offsets(dr0, ds0)
+        try:
+            sol = refine_known_heights(T, heights[0], heights[1], r0, s0, dr, ds, speed=speed, f_scale=f_sc,
+                                       weights=weights)
+        except (DegenerateGeometryError, np.linalg.LinAlgError, ValueError):
+            continue
+        e = T - _predict(sol, speed)
+        zz = e / (sd if sd is not None else float(np.nanstd(e)) or 1.0)
+        cost = float(np.nansum(np.log1p((zz / 2.385) ** 2)))
+        if np.isfinite(cost) and (best is None or cost < best[0]):
+            best = (cost, sol, init)
+    if best is None:
+        raise DegenerateGeometryError("the known-heights fit broke down from every blind start", kind="unobservable-node")
+    _, sol, init = best
+    if f_sc is not None:
+        sol = refine_known_heights(T, heights[0], heights[1], sol["receivers"][:, :2], sol["sources"][:, :2],
+                                   sol["receiver_offsets"], sol["source_offsets"], speed=speed, weights=weights)
+    sol["method"] = f"2d+heights ({init.method} init)"
+    return sol
 
 
 def _place_dropped(T: Array, heights: tuple[Array, Array], r: Array, s: Array, dr: Array, ds: Array,
@@ -158,6 +224,8 @@ def calibrate_matrix(
     rng: int = 0,
     alpha: float = PLANAR_ALPHA,
     noise: float | None = None,
+    weights: Array | None = None,
+    units: NDArray[np.intp] | None = None,
 ) -> tuple[dict[str, Any], Planarity | None, list[str]]:
     """Stages 2 + 3 of 004 on an (I, J) per-sender TOA matrix (seconds), one model fit.
 
@@ -185,6 +253,14 @@ def calibrate_matrix(
         Timing-noise std, s: passed to :func:`selfcal.toa.solve_toa`, whose deep search then
         runs when a fit fails the residual test (slow; :func:`robust_calibrate` passes it only
         after the outliers are out).
+    weights : (I, J) array, optional
+        ``1 / std`` of every entry: weighted least squares in the known-heights refinement
+        (:func:`refine_known_heights`); the 2-D / 3-D fits of :func:`selfcal.toa.solve_toa`
+        take no weights and ignore them.
+    units : (K, 2) int array, optional
+        ``(receiver, sender)`` of the units (microphone and loudspeaker in one housing,
+        :func:`selfcal.acoustics.units.unit_pairs`): the searches start from their two-way
+        distances (:func:`selfcal.acoustics.units.unit_start`).
 
     Returns
     -------
@@ -201,25 +277,18 @@ def calibrate_matrix(
     """
     notes: list[str] = []
     if heights is not None:
-        init = _solve(T, 2, speed, rng)
-        r0, s0, dr0, ds0 = _place_dropped(T, heights, np.asarray(init.receivers, float), np.asarray(init.sources, float),
-                                          np.asarray(init.receiver_offsets, float), np.asarray(init.source_offsets, float),
-                                          speed)
-        dr, ds = _normalise_offsets(dr0, ds0)
-        sol = refine_known_heights(T, heights[0], heights[1], r0, s0, dr, ds, speed=speed)
-        sol["method"] = f"2d+heights ({init.method} init)"
-        return sol, None, notes
+        return _heights_fit(T, heights, speed, rng, weights, units), None, notes
     if dim not in (2, 3, "auto"):
         raise InputError(f"dim must be 2, 3 or 'auto', got {dim!r}")
     if dim == 2:
-        return _as_solution(_solve(T, 2, speed, rng, noise=noise), "2d"), None, notes
+        return _as_solution(_solve(T, 2, speed, rng, noise=noise, units=units), "2d"), None, notes
     advice = "give known heights (--heights) for 3-D positions or use --dim 2"
     try:
-        res3 = _solve_retrying(T, speed, rng, noise=noise)
+        res3 = _solve_retrying(T, speed, rng, noise=noise, units=units)
     except DegenerateGeometryError as exc:
         if dim == 3:
             raise
-        res2 = _try_solve(T, 2, speed, rng, noise=noise)
+        res2 = _try_solve(T, 2, speed, rng, noise=noise, units=units)
         # A 3-D solve that breaks down on data a 2-D solve fits (within half the 004
         # timing tolerance) means the layout is (numerically) planar.
         if res2 is None or not res2.residual_rms < 0.5 * TIMING_REQUIREMENT:
@@ -240,7 +309,7 @@ def calibrate_matrix(
            f"normal std {plan.normal_std:.3f} m): z is not determined by the data; {advice}")
     if dim == 3:
         raise DegenerateGeometryError(msg, kind="near-planar")
-    res2 = _solve(T, 2, speed, rng, noise=noise)
+    res2 = _solve(T, 2, speed, rng, noise=noise, units=units)
     return _planar_verdict(res2, plan, msg, dim, notes)
 
 
@@ -265,9 +334,10 @@ def _z_note(cov: NDArray[np.float64], cmp: ModelComparison | None) -> str:
     return why + f"z standard deviation median {np.median(zstd) * 1e3:.2g} mm, max {zstd.max() * 1e3:.2g} mm"
 
 
-def _try_solve(T: Array, dim: int, speed: float, rng: int, noise: float | None = None) -> Any:
+def _try_solve(T: Array, dim: int, speed: float, rng: int, noise: float | None = None,
+               units: NDArray[np.intp] | None = None) -> Any:
     try:
-        return _solve(T, dim, speed, rng, noise=noise)
+        return _solve(T, dim, speed, rng, noise=noise, units=units)
     except DegenerateGeometryError:
         return None
 
@@ -290,9 +360,18 @@ def _refit_from_planar(T: Array, res2: Any, speed: float, rng: int) -> Any:
         return None
 
 
+def _toa_outliers(res: Any, shape: tuple[int, int]) -> NDArray[np.bool_]:
+    """The (I, J) mask of entries :func:`selfcal.toa.solve_toa`'s outlier rule excluded."""
+    mask = getattr(res, "outliers", None)
+    if mask is None or np.shape(mask) != tuple(shape):
+        return np.zeros(shape, bool)
+    return np.asarray(mask, bool)
+
+
 def _as_solution(res: Any, label: str) -> dict[str, Any]:
     dr, ds = _normalise_offsets(np.asarray(res.receiver_offsets, float), np.asarray(res.source_offsets, float))
     return {
+        "toa_outliers": _toa_outliers(res, (len(res.receivers), len(res.sources))),
         "receivers": np.asarray(res.receivers, float), "sources": np.asarray(res.sources, float),
         "receiver_offsets": dr, "source_offsets": ds,
         "receiver_cov": np.asarray(res.receiver_cov, float), "source_cov": np.asarray(res.source_cov, float),
@@ -302,7 +381,7 @@ def _as_solution(res: Any, label: str) -> dict[str, Any]:
 
 
 def refit(T: Array, sol: dict[str, Any], speed: float, heights: tuple[Array, Array] | None = None, *,
-          f_scale: float | None = None) -> dict[str, Any]:
+          f_scale: float | None = None, weights: Array | None = None) -> dict[str, Any]:
     """Refine a solution on a changed TOA matrix from where it stands (same model, no search).
 
     Parameters
@@ -318,6 +397,8 @@ def refit(T: Array, sol: dict[str, Any], speed: float, heights: tuple[Array, Arr
     f_scale : float, optional
         s: a Cauchy loss of this scale (robust start for the outlier test; covariances of
         such a refit are not computed for 2-D / 3-D).
+    weights : (I, J) array, optional
+        ``1 / std`` per entry (known-heights model only, as :func:`calibrate_matrix`).
 
     Returns
     -------
@@ -330,7 +411,7 @@ def refit(T: Array, sol: dict[str, Any], speed: float, heights: tuple[Array, Arr
     if method.startswith("2d+heights"):
         assert heights is not None
         out = refine_known_heights(T, heights[0], heights[1], r[:, :2], s[:, :2], dr, ds, speed=speed,
-                                   f_scale=f_scale)
+                                   f_scale=f_scale, weights=weights)
         out["method"] = method
         return out
     d = 2 if method.startswith("2d") else 3
@@ -394,6 +475,9 @@ class RobustFit:
         Detection stds after re-detections, s.
     n_params : int
         Free parameters of the kept model.
+    leverage : (I, E) array or None
+        Residual std factor ``sqrt(1 - h / n)`` of every detection in the final fit
+        (:func:`event_leverage`), NaN where not used.
     """
 
     solution: dict[str, Any]
@@ -408,6 +492,7 @@ class RobustFit:
     threshold: float
     std: Array
     n_params: int
+    leverage: Array | None = None
 
 
 def sender_matrix(toa: Array, event_senders: NDArray[np.int64], n_senders: int) -> Array:
@@ -471,6 +556,7 @@ def robust_calibrate(
     redetect: Callable[[NDArray[np.intp], NDArray[np.intp], Array, Array], tuple[Array, Array]] | None = None,
     alpha: float = OUTLIER_ALPHA,
     names: tuple[tuple[str, ...], tuple[str, ...]] | None = None,
+    units: NDArray[np.intp] | None = None,
 ) -> RobustFit:
     """Calibrate from the event TOA matrix with outlier exclusion and unit dropping (module docstring).
 
@@ -496,6 +582,9 @@ def robust_calibrate(
         Family-wise false-alarm probability of the outlier test.
     names : (receiver names, sender names), optional
         For the notes.
+    units : (K, 2) int array, optional
+        ``(receiver, sender)`` of the units (:func:`selfcal.acoustics.units.unit_pairs`):
+        the start of the searches (:func:`calibrate_matrix`), restricted to the kept units.
 
     Returns
     -------
@@ -540,7 +629,22 @@ def robust_calibrate(
     es_k = sub_es[ev_keep]
     Jk = int(ks.sum())
     Tk = sender_matrix(t_ev, es_k, Jk)
-    sol, plan, cnotes = calibrate_matrix(Tk, speed=speed, dim=dim, heights=hz, rng=rng)
+    from .noise import sender_std
+
+    def wts() -> Array | None:
+        """1 / std of the per-sender entries: the known-heights fit is weighted (the only one
+        that takes weights, :func:`calibrate_matrix`)."""
+        if hz is None:
+            return None
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return 1.0 / sender_std(s_ev, t_ev, es_k, Jk)
+
+    units_k = None
+    if units is not None and len(units):
+        u = np.asarray(units, dtype=np.intp).reshape(-1, 2)
+        u = u[kr[u[:, 0]] & ks[u[:, 1]]]
+        units_k = np.column_stack([np.cumsum(kr)[u[:, 0]] - 1, np.cumsum(ks)[u[:, 1]] - 1])
+    sol, plan, cnotes = calibrate_matrix(Tk, speed=speed, dim=dim, heights=hz, rng=rng, weights=wts(), units=units_k)
     notes.extend(cnotes)
     n_par = n_parameters_of(sol, len(Tk), Jk)
     ri_full = np.flatnonzero(kr)
@@ -551,14 +655,54 @@ def robust_calibrate(
     searched = False
     robust_start = False
     needs_ls = False
-    for _ in range(MAX_OUTLIER_ROUNDS + 1):
+
+    def exclude(ok: list[tuple[int, int]], pred: Array, res: Array, z: Array, scale: float, lev: Array) -> None:
+        """Record the flagged (receiver, event) entries as outliers; re-detect each near its
+        predicted time (kept when within the outlier bound of the prediction), else NaN."""
+        if not ok:
+            return
+        fi = np.array([a for a, _ in ok])
+        fe = np.array([b for _, b in ok])
+        new_t = np.full(len(fi), np.nan)
+        new_s = np.full(len(fi), np.nan)
+        if redetect is not None:
+            half = np.maximum(zc * s_ev[fi, fe] * scale, 0.0)
+            new_t, new_s = redetect(ri_full[fi], ev_full[fe], pred[fi, es_k[fe]], half)
+            new_t = np.asarray(new_t, float)
+            new_s = np.asarray(new_s, float)
+        for k, (a, b) in enumerate(ok):
+            nt = new_t[k]
+            good = np.isfinite(nt) and abs(nt - pred[a, es_k[b]]) <= zc * new_s[k] * scale * lev[a, b]
+            outliers.append(Outlier(int(ri_full[a]), int(ev_full[b]), int(es[ev_full[b]]), float(res[a, b]),
+                                    float(z[a, b]), bool(good),
+                                    float(nt - pred[a, es_k[b]]) if good else float("nan")))
+            t_ev[a, b] = nt if good else np.nan
+            if good:
+                s_ev[a, b] = new_s[k]
+
+    def standardised(sol: dict[str, Any]) -> tuple[Array, Array, Array, float, Array]:
+        """Predicted TOA (I, J), event residuals, their z (noise model, leverage, robust scale)."""
         pred = _predict(sol, speed)
         res = t_ev - pred[:, es_k]
-        m = int(np.isfinite(res).sum())
-        lev = np.sqrt(max(1.0 - n_par / max(m, 1), 1e-3))
+        lev = event_leverage(sol, t_ev, es_k, Jk, speed, wts())
         z = res / (s_ev * lev)
         scale = max(1.0, mad_std(z, centre=False)) if np.isfinite(z).any() else 1.0
-        z = z / scale
+        return pred, res, z / scale, scale, lev
+
+    # the entries the TOA package's robust fit rejected (solve_toa's outlier rule) are the
+    # first outliers: excluded from the start, re-detected near the time that fit predicts
+    flagged = np.asarray(sol.get("toa_outliers", np.zeros(Tk.shape, bool)), bool)
+    if flagged.any():
+        pred, res, z, scale, lev = standardised(sol)
+        first_ok = [(int(a), int(b)) for a, b in zip(*np.nonzero(flagged[:, es_k] & np.isfinite(t_ev)), strict=True)]
+        exclude(first_ok, pred, res, z, scale, lev)
+        Tk = sender_matrix(t_ev, es_k, Jk)
+        try:
+            sol = refit(Tk, sol, speed, hz, weights=wts())
+        except DegenerateGeometryError:
+            pass
+    for _ in range(MAX_OUTLIER_ROUNDS + 1):
+        pred, res, z, scale, lev = standardised(sol)
         az = np.where(np.isfinite(z), np.abs(z), 0.0)
         # the largest of its receiver and of its sender: one bad entry does not take its neighbours along
         sender_max = np.zeros((az.shape[0], Jk))
@@ -574,7 +718,7 @@ def robust_calibrate(
             robust_start = True
             try:
                 f_sc = 2.385 * float(np.nanmedian(s_ev)) * scale
-                sol = refit(Tk, sol, speed, hz, f_scale=f_sc)
+                sol = refit(Tk, sol, speed, hz, f_scale=f_sc, weights=wts())
                 needs_ls = True
                 continue
             except DegenerateGeometryError:
@@ -597,12 +741,14 @@ def robust_calibrate(
             from .noise import residual_check
 
             Tk = sender_matrix(t_ev, es_k, Jk)
-            test = residual_check(t_ev - _predict(sol, speed)[:, es_k], s_ev, es_k, n_par, cap=zc)
+            test = residual_check(t_ev - _predict(sol, speed)[:, es_k], s_ev, es_k, n_par, cap=zc,
+                                  leverage=event_leverage(sol, t_ev, es_k, Jk, speed, wts()))
             searched = True
             if test.passed:
                 break
             try:
-                sol2, plan2, cn2 = calibrate_matrix(Tk, speed=speed, dim=dim, heights=hz, rng=rng, noise=noise)
+                sol2, plan2, cn2 = calibrate_matrix(Tk, speed=speed, dim=dim, heights=hz, rng=rng, noise=noise,
+                                                    weights=wts(), units=units_k)
             except DegenerateGeometryError:
                 break
             if sol2["residual_rms"] < sol["residual_rms"]:
@@ -611,40 +757,21 @@ def robust_calibrate(
                 notes[:] = [n for n in notes if n not in cnotes] + cn2
                 cnotes = cn2
             continue
-        fi = np.array([a for a, _ in ok])
-        fe = np.array([b for _, b in ok])
-        new_t = np.full(len(fi), np.nan)
-        new_s = np.full(len(fi), np.nan)
-        if redetect is not None:
-            half = np.maximum(zc * s_ev[fi, fe] * scale, 0.0)
-            new_t, new_s = redetect(ri_full[fi], ev_full[fe], pred[fi, es_k[fe]], half)
-            new_t = np.asarray(new_t, float)
-            new_s = np.asarray(new_s, float)
-        for k, (a, b) in enumerate(ok):
-            nt = new_t[k]
-            good = np.isfinite(nt) and abs(nt - pred[a, es_k[b]]) <= zc * new_s[k] * scale * lev
-            outliers.append(Outlier(int(ri_full[a]), int(ev_full[b]), int(es[ev_full[b]]), float(res[a, b]),
-                                    float(z[a, b]), bool(good),
-                                    float(nt - pred[a, es_k[b]]) if good else float("nan")))
-            t_ev[a, b] = nt if good else np.nan
-            if good:
-                s_ev[a, b] = new_s[k]
+        exclude(ok, pred, res, z, scale, lev)
         Tk = sender_matrix(t_ev, es_k, Jk)
         try:
-            sol = refit(Tk, sol, speed, hz)
+            sol = refit(Tk, sol, speed, hz, weights=wts())
             needs_ls = False
         except DegenerateGeometryError:
             break
     if needs_ls:  # the robust start found nothing to exclude: finish with least squares (covariances)
-        sol = refit(sender_matrix(t_ev, es_k, Jk), sol, speed, hz)
+        sol = refit(sender_matrix(t_ev, es_k, Jk), sol, speed, hz, weights=wts())
     if outliers:
         redo = sum(o.redetected for o in outliers)
         worst = max(outliers, key=lambda o: abs(o.z))
         notes.append(f"{len(outliers)} outlier detection(s) (|z| > {zc:.2f}, Bonferroni at {alpha:g}) excluded, "
                      f"{redo} re-detected near the predicted time; worst: microphone {rn[worst.receiver]}, "
                      f"loudspeaker {sn[worst.sender]}, residual {worst.residual * 1e6:.3g} us")
-    from .noise import sender_std
-
     Tk = sender_matrix(t_ev, es_k, Jk)
     Sk = sender_std(s_ev, t_ev, es_k, Jk)
     toa_out = toa.copy()
@@ -656,7 +783,9 @@ def robust_calibrate(
     std_out = np.array(std, dtype=float)
     std_out[np.ix_(kr, ev_keep)] = s_ev
     full = _scatter(sol, kr, ks)
-    return RobustFit(full, plan, notes, outliers, toa_out, Tf, Sf, dropped_r, dropped_s, zc, std_out, n_par)
+    lev_out = np.full(toa.shape, np.nan)
+    lev_out[np.ix_(kr, ev_keep)] = event_leverage(sol, t_ev, es_k, Jk, speed, wts())
+    return RobustFit(full, plan, notes, outliers, toa_out, Tf, Sf, dropped_r, dropped_s, zc, std_out, n_par, lev_out)
 
 
 def n_parameters_of(sol: dict[str, Any], I: int, J: int) -> int:
@@ -667,6 +796,83 @@ def n_parameters_of(sol: dict[str, Any], I: int, J: int) -> int:
     """
     d = 2 if str(sol["method"]).startswith("2d") else 3
     return n_parameters(I, J, d, "both")
+
+
+def hat_diagonal(sol: dict[str, Any], observed: NDArray[np.bool_], speed: float,
+                 weights: Array | None = None) -> Array:
+    """Leverages ``h_ij`` of the least-squares fit of a solution on its per-sender TOA matrix.
+
+    ``h = diag(A (A^T A)^+ A^T)`` for the Jacobian ``A`` of the model ``|r_i - s_j| / c +
+    delta_i + tau_j`` over the observed entries, with the coordinates the solution's model
+    frees (x, y for ``2d`` and ``2d+heights``, x, y, z for ``3d``); the gauge is the null
+    space of ``A^T A`` (pseudo-inverse). A residual's variance is ``sigma^2 (1 - h_ij)``: a
+    sparsely observed node's entries have leverages near 1 and small residuals whatever
+    their errors, a well observed one's near 0. Positions in metres and offsets in metres
+    (times c) keep ``A^T A`` well scaled.
+
+    Parameters
+    ----------
+    sol : dict
+        ``receivers`` (I, d), ``sources`` (J, d), ``method``.
+    observed : (I, J) bool
+    speed : float
+        m/s.
+    weights : (I, J) array, optional
+        Row weights ``1 / std`` of a weighted fit (the hat matrix of ``W A``).
+
+    Returns
+    -------
+    (I, J) array
+        ``h_ij`` in [0, 1] (NaN where not observed).
+    """
+    import scipy.sparse as sp
+
+    r, s = np.asarray(sol["receivers"], float), np.asarray(sol["sources"], float)
+    d = 2 if str(sol["method"]).startswith("2d") else 3
+    I, J = observed.shape
+    ii, jj = np.nonzero(observed)
+    out = np.full((I, J), np.nan)
+    if ii.size == 0:
+        return out
+    diff = r[ii, :d] - s[jj, :d]
+    full = r[ii] - s[jj]
+    u = diff / np.maximum(np.linalg.norm(full, axis=1), 1e-12)[:, None]
+    m = ii.size
+    n = d * (I + J) + I + J
+    rows = np.repeat(np.arange(m), 2 * d + 2)
+    cols = np.concatenate([d * ii[:, None] + np.arange(d)[None], d * (I + jj)[:, None] + np.arange(d)[None],
+                           (d * (I + J) + ii)[:, None], (d * (I + J) + I + jj)[:, None]], axis=1).ravel()
+    vals = np.concatenate([u, -u, np.ones((m, 1)), np.ones((m, 1))], axis=1)
+    if weights is not None:
+        wv = np.asarray(weights, float)[ii, jj]
+        vals = vals * np.where(np.isfinite(wv) & (wv > 0), wv / np.nanmedian(wv), 0.0)[:, None]
+    vals = vals.ravel()
+    A = sp.csr_matrix((vals, (rows, cols)), shape=(m, n))
+    N = (A.T @ A).toarray()
+    w, V = np.linalg.eigh(N)
+    keep = w > w.max() * 1e-10
+    B = A @ (V[:, keep] / np.sqrt(w[keep]))  # orthonormal basis of the column space of A
+    out[ii, jj] = np.clip(np.einsum("ij,ij->i", B, B), 0.0, 1.0)
+    return out
+
+
+def event_leverage(sol: dict[str, Any], toa: Array, event_senders: NDArray[np.int64], n_senders: int,
+                   speed: float, weights: Array | None = None) -> Array:
+    """Residual std factor ``sqrt(1 - h_ij / n_ij)`` of every event detection (I, E).
+
+    The fit sees the per-sender mean of the ``n_ij`` events of sender j at receiver i; an
+    event's residual from the model is its deviation from that mean (variance
+    ``sigma^2 (1 - 1 / n)``) plus the mean's residual (``sigma^2 (1 - h) / n``):
+    ``sigma^2 (1 - h / n)`` (:func:`hat_diagonal`, ``weights`` as there). Floored at 1e-3.
+    """
+    es = np.asarray(event_senders, dtype=np.int64)
+    fin = np.isfinite(toa)
+    cnt = np.zeros((toa.shape[0], n_senders))
+    for j in range(n_senders):
+        cnt[:, j] = fin[:, es == j].sum(axis=1)
+    h = hat_diagonal(sol, cnt > 0, speed, weights)
+    f = np.sqrt(np.maximum(1.0 - np.nan_to_num(h) / np.maximum(cnt, 1.0), 1e-6))
+    return np.where(fin, f[:, es], np.nan)
 
 
 def _predict(sol: dict[str, Any], speed: float) -> Array:

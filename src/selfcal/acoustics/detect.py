@@ -416,9 +416,10 @@ def redetect_arrivals(recording: Recording, detections: Detections, receivers: N
     An outlier of the calibration (a reflection picked because the direct path was
     attenuated, a noise burst) is searched for again around the arrival the calibrated
     model predicts. The window is ``predicted +- (half_width + half a main lobe)``; the
-    envelope's largest peak there is refined like :func:`detect_arrivals`, and kept when its
-    quality (over the receiver's noise level) passes the CFAR floor of that small window
-    (:func:`cfar_factor` with its few cells).
+    envelope's largest peak there is refined like :func:`detect_arrivals`, and kept when it
+    passes the CFAR floor of that small window (:func:`cfar_factor` with its few cells) over
+    the local noise level (the leading level before the window, never below the receiver's)
+    and the trailing test after it (a window inside a noise burst gives NaN).
 
     Parameters
     ----------
@@ -453,36 +454,49 @@ def redetect_arrivals(recording: Recording, detections: Detections, receivers: N
         return out_t, out_q
     L = len(probe.samples)
     mainlobe = int(np.ceil(2.0 * fs / (probe.band[1] - probe.band[0]))) + 2
+    n_ref = max(int(round(REF_TIME * fs)), 8)
+    head = n_ref + mainlobe
+    tail = mainlobe + TRAIL_BLOCKS * n_ref
     hw = np.ceil(np.asarray(half_width, float) * fs).astype(np.int64) + mainlobe // 2 + 1
     pad = int(hw.max()) + mainlobe
     n_lag = 2 * pad + 1
-    W = n_lag + L - 1
-    n_fft = int(2 ** np.ceil(np.log2(W + L)))
+    n_keep = head + n_lag + tail
+    W = n_keep + L - 1
+    n_fft = _fft_size(W)
     t_abs = recording.setup.event_times[ev] + np.asarray(predicted_toa, float)
     centre = np.round(t_abs * fs).astype(np.int64)
     start = centre - pad
-    idx = start[:, None] + np.arange(W)[None, :]
+    idx = (start - head)[:, None] + np.arange(W)[None, :]
     N = sig.shape[1]
     lens = recording.lengths[ri]
     valid = (idx >= 0) & (idx < lens[:, None])
-    seg = np.where(valid, sig[ri[:, None], np.clip(idx, 0, N - 1)], 0.0).astype(np.float64)
+    seg = np.where(valid, sig[ri[:, None], np.clip(idx, 0, N - 1)], 0.0)
+    core = valid[:, head: head + n_lag + L - 1].all(axis=1)
     P = np.conj(np.fft.rfft(probe.samples, n=n_fft)) * _band_weight(n_fft, fs, probe.band)
-    z, G = _matched(seg, P, n_fft, n_lag)
-    env = np.abs(z)
+    z_all, G = _matched(seg, P, n_fft, n_keep)
+    env_all = np.abs(z_all)
+    z, env = z_all[:, head: head + n_lag], env_all[:, head: head + n_lag]
     lag = np.arange(n_lag)[None, :]
     inside = np.abs(lag - pad) <= hw[:, None]
     peak = np.argmax(np.where(inside, env, -1.0), axis=1)
     rows = np.arange(K)
     sigma = np.asarray(detections.noise, float)[ri]
+    # the local noise: the leading level before the window and the trailing one after it
+    # (greatest-of, as detect_arrivals), never below the receiver's level
+    lead, trail = _cfar_levels(env_all, head, n_lag, n_ref, mainlobe, n_ref * (probe.band[1] - probe.band[0]) / fs)
+    level = np.maximum(sigma, lead[rows, np.clip(pad - hw, 0, n_lag - 1)])
+    trail_hi = trail[rows, np.clip(pad + hw, 0, n_lag - 1)]
     cells = 2 * hw + 1
     k = np.array([cfar_factor(int(c), fs, probe.band, p_fa) for c in cells])
+    k_trail = float(np.sqrt(2.0 * np.log(cfar_cells(TRAIL_BLOCKS * n_ref, fs, probe.band) / BURST_FALSE_ALARM)))
+    pk = env[rows, peak]
     with np.errstate(divide="ignore", invalid="ignore"):
-        q = 20.0 * np.log10(env[rows, peak] / sigma)
-    ok = (sigma > 0) & (q >= 20.0 * np.log10(k)) & (peak > 0) & (peak < n_lag - 1) & valid.all(axis=1)
+        q = 20.0 * np.log10(pk / level)
+    ok = ((sigma > 0) & (pk >= k * level) & (pk >= k_trail * trail_hi) & (peak > 0) & (peak < n_lag - 1) & core)
     if ok.any():
         near = np.clip(peak[:, None] + np.arange(-2, 3)[None, :], 0, n_lag - 1)
         coarse = near[rows, np.argmax(z[rows[:, None], near].real, axis=1)]
-        tau = _newton_refine(G[ok], n_fft, _parabolic(z, rows[ok], coarse[ok]))
+        tau = _newton_refine(G[ok], n_fft, _parabolic(z_all, rows[ok], coarse[ok] + head)) - head
         out_t[ok] = (start[ok] + tau) / fs - recording.setup.event_times[ev[ok]]
         out_q[ok] = q[ok]
     return out_t, out_q

@@ -221,6 +221,7 @@ def refine_known_heights(
     speed: float,
     max_iterations: int = 50,
     f_scale: float | None = None,
+    weights: Array | None = None,
 ) -> dict[str, Any]:
     """Least squares for horizontal positions and offsets with every height known.
 
@@ -244,6 +245,11 @@ def refine_known_heights(
     f_scale : float, optional
         s: a Cauchy loss of this scale instead of least squares (iteratively reweighted:
         weights ``1 / (1 + (e / f_scale)^2)``), robust to a minority of wrong entries.
+    weights : (I, J) array, optional
+        ``1 / std`` of every entry (1/s): weighted least squares, the ML fit when the entries'
+        noise differs (a detection in a noise burst against a clean one). Default equal
+        weights. The covariance is then ``s^2 (J^T W J)^+`` with ``s^2`` the weighted
+        residual sum over the degrees of freedom.
 
     Returns
     -------
@@ -271,14 +277,24 @@ def refine_known_heights(
         ds = np.concatenate([[0.0], th[n_xy + I:]])
         return xr, xs, dr, ds
 
+    if weights is None:
+        wt = np.ones(len(rows))
+    else:
+        wt = np.asarray(weights, float)[rows, cols]
+        wt = np.where(np.isfinite(wt) & (wt > 0), wt, 0.0)
+        wt = wt / (float(np.exp(np.mean(np.log(wt[wt > 0])))) if (wt > 0).any() else 1.0)  # geometric mean 1
+    import scipy.sparse as _sp
+
+    Wt = _sp.diags(wt)
+
     def resid(th: Array) -> Array:
         xr, xs, dr, ds = unpack(th)
         dist = np.sqrt(((xr[rows] - xs[cols]) ** 2).sum(axis=1) + dz[rows, cols] ** 2)
-        return y - dist - dr[rows] - ds[cols]
+        return wt * (y - dist - dr[rows] - ds[cols])
 
     def jac(th: Array) -> Any:
         xr, xs, _, _ = unpack(th)
-        return _heights_jacobian(xr, xs, dz, rows, cols, I, J)[0]
+        return Wt @ _heights_jacobian(xr, xs, dz, rows, cols, I, J)[0]
 
     if f_scale is None:
         theta, r, Jm, iterations, converged = _levenberg_marquardt(resid, jac, theta0, max_iterations)
@@ -324,7 +340,7 @@ def refine_known_heights(
         "source_offsets": ds / speed,
         "receiver_cov": rcov,
         "source_cov": scov,
-        "residual_rms": float(np.sqrt(np.mean(r**2))) / speed,
+        "residual_rms": float(np.sqrt(np.mean((r[wt > 0] / wt[wt > 0]) ** 2))) / speed if (wt > 0).any() else float("nan"),
         "converged": converged,
         "iterations": iterations,
     }

@@ -214,7 +214,7 @@ class ResidualCheck:
 
 
 def residual_check(residuals: Array, std: Array, event_senders: NDArray[np.int64], n_params: int, *,
-                   cap: float, alpha: float = RESIDUAL_ALPHA) -> ResidualCheck:
+                   cap: float, alpha: float = RESIDUAL_ALPHA, leverage: Array | None = None) -> ResidualCheck:
     """Robust residual check of a calibration (:class:`ResidualCheck`).
 
     Parameters
@@ -229,6 +229,10 @@ def residual_check(residuals: Array, std: Array, event_senders: NDArray[np.int64
     cap : float
         ``|z|`` bound of the outlier test (larger ``|z|`` were excluded; the per-unit sums cap at it).
     alpha : float
+    leverage : (I, E) array, optional
+        Residual std factor of every entry, ``sqrt(1 - h)``
+        (:func:`selfcal.acoustics.calibrate.event_leverage`); default the mean one,
+        ``sqrt(1 - n_params / m)``.
 
     Returns
     -------
@@ -241,8 +245,13 @@ def residual_check(residuals: Array, std: Array, event_senders: NDArray[np.int64
     sd = np.asarray(std, float)
     ok = np.isfinite(e) & np.isfinite(sd) & (sd > 0)
     m = int(ok.sum())
-    lev = np.sqrt(max(1.0 - n_params / max(m, 1), 1e-3))
-    z = np.where(ok, e / np.where(ok, sd, 1.0) / lev, np.nan)
+    if leverage is None:
+        lev: Any = np.sqrt(max(1.0 - n_params / max(m, 1), 1e-3))
+    else:
+        lev = np.asarray(leverage, float)
+        ok &= np.isfinite(lev) & (lev > 0)
+        m = int(ok.sum())
+    z = np.where(ok, e / np.where(ok, sd, 1.0) / np.where(ok, lev, 1.0), np.nan)
     zf = z[ok]
     scale = mad_std(zf, centre=False) if m else float("nan")
     limit = 1.0 + float(norm.isf(alpha / 2.0)) * float(np.sqrt(MAD_VAR / max(m, 1)))
@@ -263,7 +272,7 @@ def residual_check(residuals: Array, std: Array, event_senders: NDArray[np.int64
     I = az.shape[0]
     bad_r = tuple(int(k) for k in bad if k < I)
     bad_s = tuple(int(k - I) for k in bad if k >= I)
-    chi2 = float(np.nansum(zf**2)) * lev**2
+    chi2 = float(np.sum((e[ok] / sd[ok]) ** 2))
     dof = int(m - n_params)
     p = float(chi2_dist.sf(chi2, dof)) if dof > 0 else float("nan")
     passed = bool(m > 0 and not scale > limit and not bad_r and not bad_s)

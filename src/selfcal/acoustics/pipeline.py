@@ -46,6 +46,7 @@ from .geometry import (
 )
 from .noise import MF_FACTOR, TIMING_FLOOR, detection_std, fit_test, residual_check, timing_noise
 from .scoring import truth_errors
+from .units import unit_pairs
 from .verdict import POSITION_REQUIREMENT, TIMING_REQUIREMENT, ErrorBars, Verdict, error_bars, judge
 
 __all__ = [
@@ -335,7 +336,7 @@ def run_pipeline(
     t0, c0 = time.perf_counter(), time.process_time()
     robust = robust_calibrate(det.toa, std_e, es, J, speed=speed, dim=dim, heights=hz, rng=rng,
                               noise=noise if np.isfinite(noise) else None, redetect=redetect,
-                              names=(setup.receivers, setup.senders))
+                              names=(setup.receivers, setup.senders), units=unit_pairs(setup.receivers, setup.senders))
     sol, plan, notes = robust.solution, robust.planarity, list(robust.notes)
     timings["calibrate"] = time.perf_counter() - t0
     cpu["calibrate"] = time.process_time() - c0
@@ -361,7 +362,7 @@ def run_pipeline(
     res_e[~kr] = np.nan
     res_e[:, ~ks[es]] = np.nan
     if np.isfinite(res_e).any():
-        fit = residual_check(res_e, robust.std, es, robust.n_params, cap=robust.threshold)
+        fit = residual_check(res_e, robust.std, es, robust.n_params, cap=robust.threshold, leverage=robust.leverage)
     fit_reason = ""
     if fit is not None and not fit.passed:
         where = []
