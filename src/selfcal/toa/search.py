@@ -27,7 +27,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..errors import DegenerateGeometryError, InputError
-from .moves import Start, moves
+from .moves import Move, Start, moves
 from .nls import NlsSolution, _rho, refine_toa, toa_model
 from .result import _additive_fit
 
@@ -182,6 +182,8 @@ class SearchOutcome:
     f_scale: the fixed robust-loss scale of the search (metres; 1 for the linear loss).
     stopped: why the search ended: "test" (the chi-square test passed), "exact" (residuals at
         the solver's precision: no candidate can do better), "budget", "exhausted".
+    history: (candidate name, cost) of every start and accepted move.
+    partial_refits: partial refits run to rank the moves of a few nodes (not in ``refinements``).
     """
 
     solution: NlsSolution
@@ -192,10 +194,16 @@ class SearchOutcome:
     f_scale: float
     stopped: str
     history: list[tuple[str, float]] = field(default_factory=list)
+    partial_refits: int = 0
 
 
 def _cost(sol: NlsSolution, loss: str, fs: float) -> float:
-    f = sol.residuals[np.isfinite(sol.residuals)]
+    return _cost_of(sol.residuals, loss, fs)
+
+
+def _cost_of(residuals: Array, loss: str, fs: float) -> float:
+    """The ML cost of the search: ``sum rho`` of the finite residuals at the search's one scale."""
+    f = residuals[np.isfinite(residuals)]
     if loss == "linear":
         return 0.5 * float(f @ f)
     rho, _ = _rho((f / fs) ** 2, loss)
@@ -204,6 +212,39 @@ def _cost(sol: NlsSolution, loss: str, fs: float) -> float:
 
 def _as_start(sol: NlsSolution) -> Start:
     return sol.receivers, sol.sources, sol.receiver_offsets, sol.source_offsets
+
+
+#: a move is "local" (ranked by a partial refit) when it moves at most this many nodes
+LOCAL_MAX_NODES = 2
+
+
+def _is_local(mv: Move, I: int, J: int) -> bool:
+    n = len(mv.receivers) + len(mv.sources)
+    return n <= LOCAL_MAX_NODES and n < I + J
+
+
+def _combine(base: Start, found: list[tuple[Move, Start]]) -> tuple[str, Start]:
+    """One start with the refitted nodes of every move of ``found`` (best first) that moves no
+    node an earlier one moved: a move of the union of their subsets."""
+    r, s = base[0].copy(), base[1].copy()
+    d = None if base[2] is None else base[2].copy()
+    o = None if base[3] is None else base[3].copy()
+    used_r: set[int] = set()
+    used_s: set[int] = set()
+    names: list[str] = []
+    for mv, st in found:
+        if used_r & set(mv.receivers) or used_s & set(mv.sources):
+            continue
+        used_r |= set(mv.receivers)
+        used_s |= set(mv.sources)
+        names.append(mv.name)
+        ir, js = list(mv.receivers), list(mv.sources)
+        r[ir], s[js] = st[0][ir], st[1][js]
+        if d is not None and st[2] is not None:
+            d[ir] = st[2][ir]
+        if o is not None and st[3] is not None:
+            o[js] = st[3][js]
+    return "+".join(names), (r, s, d, o)
 
 
 def search(
@@ -254,6 +295,7 @@ def search(
     nb = default_budget(I, J) if budget is None else max(1, int(budget))
     fs: float | None = f_scale if loss != "linear" else 1.0
     count = 0
+    partial_count = 0
     iters = 0
     history: list[tuple[str, float]] = []
     last_err: Exception | None = None
@@ -284,6 +326,35 @@ def search(
             fs = max(_TUNING[loss] * float(sol.sigma), 1e-12 * (1.0 + float(np.nanmax(np.abs(Y)))))
             return refine(_as_start(sol), nfev)
         return sol
+
+    has_r, has_s = offsets in ("receivers", "both"), offsets in ("sources", "both")
+    observed = np.isfinite(Y)
+
+    def refine_part(mv: Move) -> tuple[float, Start] | None:
+        """Refit only the moved nodes (and their offsets) on the entries that touch them."""
+        nonlocal partial_count, iters
+        partial_count += 1
+        r0, s0, d0, o0 = mv.start
+        touch = np.zeros((I, J), bool)
+        touch[list(mv.receivers), :] = True
+        touch[:, list(mv.sources)] = True
+        fr = np.ones(I, bool)
+        fr[list(mv.receivers)] = False
+        fsrc = np.ones(J, bool)
+        fsrc[list(mv.sources)] = False
+        try:
+            sol = refine_toa(np.where(touch & observed, Y, np.nan), r0, s0, offsets=offsets, receiver_offsets0=d0,
+                             source_offsets0=o0, loss=loss, f_scale=fs if loss != "linear" else None,
+                             max_nfev=MOVE_NFEV, covariance=False, fixed_receivers=fr, fixed_sources=fsrc,
+                             fixed_receiver_offsets=fr if has_r else None,
+                             fixed_source_offsets=fsrc if has_s else None)
+        except (DegenerateGeometryError, InputError, np.linalg.LinAlgError, ValueError):
+            return None
+        iters += sol.iterations
+        st = _as_start(sol)
+        with np.errstate(all="ignore"):
+            R = np.where(observed, Y - toa_model(*st), np.nan)
+        return _cost_of(R, loss, fs or 1.0), st
 
     # ---- starts
     if starts is None:
@@ -332,7 +403,36 @@ def search(
         while improved and stopped == "exhausted":
             improved = False
             round_best: tuple[float, str, NlsSolution] | None = None
-            for mname, st in moves(_as_start(best), obs):
+            base = _as_start(best)
+            local: list[Move] = []
+            for mv in moves(base, obs):
+                if _is_local(mv, I, J):
+                    local.append(mv)
+                    continue
+                if count >= nb:
+                    stopped = "budget"
+                    break
+                sol = refine(mv.start, MOVE_NFEV)
+                if sol is None:
+                    continue
+                c = _cost(sol, loss, fs or 1.0)
+                if c < best_cost * (1 - ACCEPT_REL) and (round_best is None or c < round_best[0]):
+                    round_best = (c, mv.name, sol)
+            # the moves of a few nodes: ranked by a partial refit, the improving ones (disjoint,
+            # best first) applied together and refined in full; the best alone if that fails
+            screened: list[tuple[float, int, Move, Start]] = []
+            for k, mv in enumerate(local if stopped == "exhausted" else []):
+                got = refine_part(mv)
+                if got is not None and got[0] < best_cost * (1 - ACCEPT_REL):
+                    screened.append((got[0], k, mv, got[1]))
+            screened.sort(key=lambda t: (t[0], t[1]))
+            tries: list[tuple[str, Start]] = []
+            if screened:
+                union = _combine(base, [(mv, st) for _, _, mv, st in screened])
+                tries.append(union)
+                if union[0] != screened[0][2].name:
+                    tries.append((screened[0][2].name, screened[0][3]))
+            for mname, st in tries:
                 if count >= nb:
                     stopped = "budget"
                     break
@@ -342,6 +442,7 @@ def search(
                 c = _cost(sol, loss, fs or 1.0)
                 if c < best_cost * (1 - ACCEPT_REL) and (round_best is None or c < round_best[0]):
                     round_best = (c, mname, sol)
+                    break  # the union improved: no need to try the best move alone
             if round_best is not None:
                 c, mname, sol = round_best
                 if not sol.converged:
@@ -356,4 +457,5 @@ def search(
                     why = done(best)
                     if why is not None:
                         stopped = why
-    return SearchOutcome(best, best_name, tuple(accepted), count, iters, float(fs or 1.0), stopped, history)
+    return SearchOutcome(best, best_name, tuple(accepted), count, iters, float(fs or 1.0), stopped, history,
+                         partial_count)
