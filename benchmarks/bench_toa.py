@@ -16,7 +16,21 @@ range noise sigma = 1 cm, 5 % of the entries missing at random. For each size:
 
 Part 2, ``offsets="both"`` (paper 004): U units (a microphone and a loudspeaker 5 cm apart each)
 in a 10 x 10 x 3 m room, internal delays U(0, 20 ms) and onsets U(0, 30 ms) times 343 m/s, range
-noise 1 mm, 5 % missing; ``solve_toa(Y, offsets="both", covariance="none")`` blind.
+noise 1 mm, 5 % missing; ``solve_toa(Y, offsets="both", covariance="none")`` blind, with its CPU
+time, against two same-run baselines: ``truth_start``, one ``refine_toa`` from the true geometry and
+offsets (``blind_over_truth_start`` CPU ratio; ``rss_over_truth_start`` ~ 1 says the blind solve
+reached the same minimum), and up to ``OLD_INIT_MAX`` units ``init_before`` / ``init_now``, the
+rank-d initialiser's old full-size multistart against the start it takes now.
+
+Part 3, ``large`` (``SELFCAL_BENCH_TOA_LARGE``, default 2000x2000): refine + every covariance
+block from a near-truth start, CPU time and peak memory, with the BLAS floor of the exact blocks
+(syrk + potrf + trtri + trsm on matrices of the reduced system's size, same run) and one dense
+factorization of the reduced system alone.
+
+Part 4, ``sparse`` (``SELFCAL_BENCH_TOA_SPARSE``, default ``2000:0.01,10000:0.01`` = nodes per
+side : fraction of pairs observed): :func:`selfcal.toa.solve_toa_sparse` blind on a network with
+ranges only between nearby nodes (100 m cube, 1 cm), against the engine started at the truth and,
+up to 3000 nodes, the CRLB.
 
 Every row carries the wall time (median over ``repeats``), the peak resident memory during its
 first call (sampled every 5 ms from /proc, no tracing overhead; absolute and above the RSS at the
@@ -47,6 +61,9 @@ SIGMA = 0.01
 SIGMA_UNITS = 0.001
 MISSING = 0.05
 DIM = 3
+#: offsets='both' rows: the initialiser's before/after baseline runs up to this many units (the
+#: old full-size multistart takes minutes above it)
+OLD_INIT_MAX = 500
 
 
 def _sizes() -> list[tuple[int, int, int]]:
@@ -57,6 +74,20 @@ def _sizes() -> list[tuple[int, int, int]]:
     for tok in filter(str.strip, env.split(",")):
         i, j = (int(v) for v in tok.lower().split("x"))
         out.append((i, j, 3 if i * j <= 1e5 else 1))
+    return out
+
+
+def _large() -> list[tuple[int, int]]:
+    env = os.environ.get("SELFCAL_BENCH_TOA_LARGE", "2000x2000")
+    return [tuple(int(v) for v in tok.lower().split("x")) for tok in filter(str.strip, env.split(","))]  # type: ignore[misc]
+
+
+def _sparse() -> list[tuple[int, float]]:
+    env = os.environ.get("SELFCAL_BENCH_TOA_SPARSE", "2000:0.01,10000:0.01")
+    out = []
+    for tok in filter(str.strip, env.split(",")):
+        n, f = tok.split(":")
+        out.append((int(n), float(f)))
     return out
 
 
@@ -100,19 +131,22 @@ def _timed(fn: Any, repeats: int = 1) -> tuple[dict[str, Any], Any]:
     """Median wall time over ``repeats`` and the peak resident memory of the first call.
 
     ``peak_rss_mb`` is the process's peak RSS during the call (data and interpreter included),
-    ``peak_rss_increase_mb`` the part above the RSS at its start.
+    ``peak_rss_increase_mb`` the part above the RSS at its start; ``cpu_s`` the median process
+    CPU time (less inflated than wall time by other jobs on a shared machine).
     """
-    times, out = [], None
+    times, cpus, out = [], [], None
     with _PeakRss() as mem:
-        t = time.perf_counter()
+        t, c = time.perf_counter(), time.process_time()
         out = fn()
         times.append(time.perf_counter() - t)
+        cpus.append(time.process_time() - c)
     for _ in range(repeats - 1):
-        t = time.perf_counter()
+        t, c = time.perf_counter(), time.process_time()
         out = fn()
         times.append(time.perf_counter() - t)
-    return {"time_s": statistics.median(times), "times_s": times, "peak_rss_mb": mem.peak,
-            "peak_rss_increase_mb": mem.peak - mem.base}, out
+        cpus.append(time.process_time() - c)
+    return {"time_s": statistics.median(times), "times_s": times, "cpu_s": statistics.median(cpus),
+            "peak_rss_mb": mem.peak, "peak_rss_increase_mb": mem.peak - mem.base}, out
 
 
 def _scene(I: int, J: int, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -168,6 +202,9 @@ def _dense_case(I: int, J: int, reps: int) -> dict[str, Any]:
     row, _ = _timed(lambda: covariance_blocks(sol.receivers, sol.sources, w), reps)
     case["ours_cov"] = row
     case["cov_over_solve"] = row["time_s"] / case["ours_solve"]["time_s"]
+    case["cov_over_solve_cpu"] = row["cpu_s"] / case["ours_solve"]["cpu_s"]
+    case["cov_floor"] = _blas_floor(DIM * min(I, J), DIM * max(I, J))
+    case["cov_floor_over_solve_cpu"] = case["cov_floor"]["total_cpu_s"] / case["ours_solve"]["cpu_s"]
     row, solc = _timed(lambda: refine_toa(Y, r0, s0), 1)
     pred = float(np.sqrt(np.trace(solc.receiver_cov, axis1=1, axis2=2).mean()))
     case["ours_solve_cov"] = {**row, "predicted_rmse_receivers": pred}
@@ -181,8 +218,97 @@ def _dense_case(I: int, J: int, reps: int) -> dict[str, Any]:
     return case
 
 
+def _blas_floor(nA: int, nB: int) -> dict[str, Any]:
+    """CPU time of the four BLAS / LAPACK calls the exact covariance blocks cannot avoid.
+
+    Random matrices of the reduced system's sizes (nA = d x kept nodes, nB = d x eliminated
+    nodes): ``syrk`` (S = A - H H^T, nA^2 nB flops), ``potrf`` (nA^3 / 3), ``trtri`` (the K
+    blocks, nA^3 / 3) and ``trsm`` (the E blocks, nA^2 nB). Their sum is the floor of the
+    selected inversion on this machine, measured in the same run as the solve.
+    """
+    import scipy.linalg
+
+    rng = np.random.default_rng(0)
+    H = np.asfortranarray(rng.normal(size=(nA, nB)))
+    out: dict[str, Any] = {"nA": nA, "nB": nB}
+    c = time.process_time()
+    S = scipy.linalg.blas.dsyrk(1.0, H, trans=0, lower=1)
+    out["syrk_cpu_s"] = time.process_time() - c
+    S = np.asfortranarray(S + S.T - np.diag(np.diag(S)) + nB * np.eye(nA))
+    c = time.process_time()
+    L, _ = scipy.linalg.lapack.dpotrf(S, lower=1, clean=1, overwrite_a=1)
+    out["potrf_cpu_s"] = time.process_time() - c
+    c = time.process_time()
+    scipy.linalg.solve_triangular(L, H, lower=True, check_finite=False, overwrite_b=True)
+    out["trsm_cpu_s"] = time.process_time() - c
+    c = time.process_time()
+    scipy.linalg.lapack.dtrtri(L, lower=1, overwrite_c=1)
+    out["trtri_cpu_s"] = time.process_time() - c
+    out["total_cpu_s"] = out["syrk_cpu_s"] + out["potrf_cpu_s"] + out["trsm_cpu_s"] + out["trtri_cpu_s"]
+    return out
+
+
+def _large_case(I: int, J: int) -> dict[str, Any]:
+    """Refine + all covariance blocks from a near-truth start (3 cm): time, CPU, peak memory.
+
+    The start is the truth plus 3 cm so the row measures the engine and the covariance at
+    this size, not the initialiser; ``floor`` is the BLAS floor of the covariance (above)
+    and ``factorization_floor_cpu_s`` one dense Cholesky of the reduced system alone.
+    """
+    from selfcal.toa import refine_toa
+
+    r, s, Y = _scene(I, J, seed=I + J)
+    rng = np.random.default_rng(1)
+    r0, s0 = r + rng.normal(0, 0.03, r.shape), s + rng.normal(0, 0.03, s.shape)
+    case: dict[str, Any] = {"shape": [I, J], "missing": MISSING, "start": "truth + 3 cm"}
+    row, sol = _timed(lambda: refine_toa(Y, r0, s0, covariance="none"))
+    case["solve"] = {**row, "iterations": sol.iterations}
+    row, _ = _timed(lambda: refine_toa(Y, r0, s0, covariance="all"))
+    case["solve_cov"] = row
+    case["cov_cpu_s"] = row["cpu_s"] - case["solve"]["cpu_s"]
+    nA, nB = DIM * min(I, J), DIM * max(I, J)
+    case["floor"] = _blas_floor(nA, nB)
+    case["factorization_floor_cpu_s"] = case["floor"]["potrf_cpu_s"]
+    return case
+
+
+def _sparse_case(N: int, fraction: float) -> dict[str, Any]:
+    """Blind sparse network: N x N nodes in a 100 m cube, ranges only below the distance that
+    gives ``fraction`` of the pairs, 1 cm noise (:func:`selfcal.toa.sparse.simulate_sparse_network`).
+
+    Accuracy: against the same engine started at the truth (``oracle``: the ML estimate
+    itself; a ratio of 1 says the blind run found the ML minimum) and, up to 3000 nodes, the
+    CRLB of the observed pairs (``toa_crlb`` with the mask).
+    """
+    from selfcal.metrics import aligned_rmse
+    from selfcal.toa import refine_toa_sparse, solve_toa_sparse, toa_crlb
+    from selfcal.toa.sparse import simulate_sparse_network
+
+    r, s, i, j, y = simulate_sparse_network(N, N, fraction, noise=SIGMA, rng=N)
+    case: dict[str, Any] = {"nodes": [N, N], "fraction": fraction, "pairs": int(i.size),
+                            "ranges_per_node": i.size / N}
+    row, sol = _timed(lambda: solve_toa_sparse(i, j, y, N, N, rng=0))
+    mr, ms = np.isfinite(sol.receivers[:, 0]), np.isfinite(sol.sources[:, 0])
+    e = aligned_rmse(sol.receivers[mr], r[mr], sol.sources[ms], s[ms])
+    case["blind"] = {**row, "converged": sol.converged, "iterations": sol.iterations,
+                     "located": sol.located, "seed_shape": list(sol.seed_shape),
+                     "noise_estimate": sol.noise_estimate, "rmse_receivers": e.rmse_receivers,
+                     "rmse_sources": e.rmse_sources}
+    orc = refine_toa_sparse(i, j, y, r, s)
+    eo = aligned_rmse(orc.receivers[mr], r[mr], orc.sources[ms], s[ms])
+    case["oracle"] = {"rmse_receivers": eo.rmse_receivers, "rmse_sources": eo.rmse_sources}
+    case["blind_over_oracle"] = e.rmse_receivers / eo.rmse_receivers
+    if N <= 3000:
+        mask = np.zeros((N, N), bool)
+        mask[i, j] = True
+        crlb = toa_crlb(r[mr], s[ms], SIGMA, mask=mask[np.ix_(mr, ms)])
+        case["efficiency_receivers"] = e.rmse_receivers / crlb.rmse_receivers
+        case["efficiency_sources"] = e.rmse_sources / crlb.rmse_sources
+    return case
+
+
 def _units_case(U: int, seed: int = 0) -> dict[str, Any]:
-    from selfcal.toa import solve_toa, toa_crlb, toa_model
+    from selfcal.toa import refine_toa, solve_toa, toa_crlb, toa_model
 
     rng = np.random.default_rng(seed)
     box = np.array([10.0, 10.0, 3.0])
@@ -194,10 +320,35 @@ def _units_case(U: int, seed: int = 0) -> dict[str, Any]:
     miss = rng.random((U, U)) < MISSING
     Y[miss] = np.nan
     crlb = toa_crlb(mic, spk, SIGMA_UNITS, offsets="both", mask=~miss)
+    cpu = time.process_time()
     row, res = _timed(lambda: solve_toa(Y, dim=DIM, offsets="both", rng=0, covariance="none"), 1)
-    return {"units": U, "missing": MISSING, **row, "method": res.method,
-            "crlb": {"rmse_receivers": crlb.rmse_receivers, "rmse_sources": crlb.rmse_sources},
-            **_accuracy(res.receivers, res.sources, mic, spk, crlb)}
+    row["cpu_s"] = time.process_time() - cpu
+    out: dict[str, Any] = {"units": U, "missing": MISSING, **row, "method": res.method,
+                           "crlb": {"rmse_receivers": crlb.rmse_receivers, "rmse_sources": crlb.rmse_sources},
+                           **_accuracy(res.receivers, res.sources, mic, spk, crlb)}
+    rss_blind = float(np.nansum(res.residuals**2))
+    # same-run baseline 1: one refinement of the engine started from the truth (the floor of
+    # any blind solve, and the minimum it must reach: rss_over_truth_start ~ 1)
+    cpu = time.process_time()
+    row, ref = _timed(lambda: refine_toa(Y, mic, spk, offsets="both", receiver_offsets0=d, source_offsets0=o,
+                                         covariance="none"), 1)
+    row["cpu_s"] = time.process_time() - cpu
+    out["truth_start"] = {**row, "iterations": ref.iterations, "rss_m2": float(np.nansum(ref.residuals**2))}
+    out["rss_blind_m2"] = rss_blind
+    out["rss_over_truth_start"] = rss_blind / out["truth_start"]["rss_m2"]
+    out["blind_over_truth_start"] = out["cpu_s"] / max(row["cpu_s"], 1e-9)
+    # same-run baseline 2 (up to OLD_INIT_MAX units): the rank-d initialiser as it ran before
+    # 2026-12-01, the full-size multistart with the missing entries as unknowns (max_candidates=2
+    # keeps that path), against the one start solve_toa now takes (max_candidates=1)
+    if U <= OLD_INIT_MAX:
+        from selfcal.toa.offsets import initialize_offsets_candidates
+
+        for key, k in (("init_now", 1), ("init_before", 2)):
+            cpu = time.process_time()
+            row, _ = _timed(lambda k=k: initialize_offsets_candidates(Y, DIM, rng=0, max_candidates=k), 1)
+            out[key] = {**row, "cpu_s": time.process_time() - cpu}
+        out["init_now_over_before"] = out["init_now"]["cpu_s"] / out["init_before"]["cpu_s"]
+    return out
 
 
 def main(out_dir: Path) -> dict[str, Any]:
@@ -212,6 +363,8 @@ def main(out_dir: Path) -> dict[str, Any]:
                     "python": platform.python_version(), "numpy": np.__version__,
                     "OPENBLAS_NUM_THREADS": os.environ.get("OPENBLAS_NUM_THREADS")},
         "cases": [],
+        "large": [],
+        "sparse": [],
         "offsets_both": [],
     }
     for I, J, reps in _sizes():
@@ -220,11 +373,25 @@ def main(out_dir: Path) -> dict[str, Any]:
         print(f"[toa] {I}x{J}: solve {case['ours_solve']['time_s']:.3g} s, cov {case['ours_cov']['time_s']:.3g} s "
               f"(x{case['cov_over_solve']:.2f}), blind+cov {case['ours_blind_cov']['time_s']:.3g} s, "
               f"scipy trf {case['scipy_trf']['time_s']:.3g} s, cov peak RSS +{case['ours_cov']['peak_rss_increase_mb']:.0f} MB")
+    for I, J in _large():
+        case = _large_case(I, J)
+        report["large"].append(case)
+        print(f"[toa] {I}x{J} near-truth: solve {case['solve']['cpu_s']:.3g} s CPU, +cov {case['cov_cpu_s']:.3g} s "
+              f"(BLAS floor {case['floor']['total_cpu_s']:.3g} s, one potrf {case['factorization_floor_cpu_s']:.3g} s), "
+              f"peak RSS {case['solve_cov']['peak_rss_mb']:.0f} MB")
+    for N, frac in _sparse():
+        case = _sparse_case(N, frac)
+        report["sparse"].append(case)
+        b = case["blind"]
+        print(f"[toa] sparse {N}x{N} ({case['pairs']} pairs): blind {b['time_s']:.3g} s ({b['cpu_s']:.3g} s CPU), "
+              f"peak RSS {b['peak_rss_mb']:.0f} MB, noise {b['noise_estimate']:.4g}, blind/oracle "
+              f"{case['blind_over_oracle']:.3f}")
     for U in _units():
         row = _units_case(U)
         report["offsets_both"].append(row)
-        print(f"[toa] offsets=both {U} units: {row['time_s']:.3g} s, peak RSS {row['peak_rss_mb']:.0f} MB, "
-              f"efficiency {row['efficiency_receivers']:.3f}")
+        print(f"[toa] offsets=both {U} units: {row['time_s']:.3g} s ({row['cpu_s']:.3g} s CPU, "
+              f"x{row['blind_over_truth_start']:.2f} a truth-started refinement), peak RSS {row['peak_rss_mb']:.0f} MB, "
+              f"rss/truth-start {row['rss_over_truth_start']:.6f}, efficiency {row['efficiency_receivers']:.3f}")
     report["machine"]["load_average_at_end"] = list(os.getloadavg())
     path = out_dir / "toa.json"
     tmp = path.with_suffix(".json.tmp")

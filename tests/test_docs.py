@@ -21,6 +21,8 @@ DOCTESTED = [
     "selfcal.geometry.align",
     "selfcal.geometry.wrap_angle",
     "selfcal.geometry.fit_plane",
+    "selfcal.geometry.rotate_covariances",
+    "selfcal.plotting.conference.ellipse_magnification",
 ]
 
 #: the public solvers: each must show how it is called (an Examples section)

@@ -272,25 +272,26 @@ def small_filter():  # type: ignore[no-untyped-def]
 
 def test_information_equals_generic_jacobian_assembly(small_filter) -> None:  # type: ignore[no-untyped-def]
     f, log, snaps, var = small_filter
-    groups = f._groups(log.rx, log.tx, snaps, var)
+    groups = f.link_groups(log.rx, log.tx, snaps, var)
     x = f.x + 0.01 * np.random.default_rng(0).standard_normal(f.D)
-    H = f._information(x, groups, fej=False)
+    H = f.information(x, groups, fej=False)
     ref = np.zeros((f.D, f.D))
     xe = np.append(x, 0.0)
     for grp in groups:
-        M = grp["M"]
-        _, d, rho, phi = f._geometry(xe, grp)
-        G = f._G_of(xe, grp) if M > 1 else None
-        t = link_loglik(grp["X"], rho, grp["var"], f.k, f.S, phi=phi if M > 1 else None, G=G,
-                        expansion=grp["exp"])
-        Fd = link_fisher(t, grp["var"], f.k, f._probe_power, phi=phi if M > 1 else None, G=G)
+        lay = grp.layout
+        M = lay.M
+        _, d, rho, phi = f.links.geometry(xe, lay)
+        G = f.links.G_of(xe, lay) if M > 1 else None
+        t = link_loglik(grp.X, rho, grp.var, f.k, f.links.S, phi=phi if M > 1 else None, G=G,
+                        expansion=grp.exp)
+        Fd = link_fisher(t, grp.var, f.k, f.links.probe_power, phi=phi if M > 1 else None, G=G)
         # Jacobian of (rho, phi, g) w.r.t. x by central differences of the range model
         Jg = np.zeros((d.size, 2, f.D))
         for j in range(f.D):
             e = np.zeros(f.D + 1)
             e[j] = 1e-6
-            _, _, rp, pp_ = f._geometry(xe + e, grp)
-            _, _, rm, pm = f._geometry(xe - e, grp)
+            _, _, rp, pp_ = f.links.geometry(xe + e, lay)
+            _, _, rm, pm = f.links.geometry(xe - e, lay)
             Jg[:, 0, j] = (rp - rm) / 2e-6
             Jg[:, 1, j] = (pp_ - pm) / 2e-6
         for l in range(d.size):
@@ -298,25 +299,25 @@ def test_information_equals_generic_jacobian_assembly(small_filter) -> None:  # 
                 J = Jg[l, :1]
             else:
                 Jgg = np.zeros((Fd.shape[1] - 2, f.D))
-                Jgg[np.arange(Jgg.shape[0]), grp["gidx"][l]] = 1.0
+                Jgg[np.arange(Jgg.shape[0]), lay.gidx[l]] = 1.0
                 J = np.vstack([Jg[l], Jgg])
             ref += J.T @ Fd[l] @ J
     np.testing.assert_allclose(H, ref, rtol=0, atol=1e-6 * np.abs(ref).max())
     # a second call with the cached layout gives the same matrix
-    np.testing.assert_array_equal(f._information(x, f._groups(log.rx, log.tx, snaps, var), fej=False), H)
+    np.testing.assert_array_equal(f.information(x, f.link_groups(log.rx, log.tx, snaps, var), fej=False), H)
 
 
 def test_filter_gradient_matches_finite_differences(small_filter) -> None:  # type: ignore[no-untyped-def]
     f, log, snaps, var = small_filter
-    groups = f._groups(log.rx, log.tx, snaps, var)
+    groups = f.link_groups(log.rx, log.tx, snaps, var)
     x = f.x + 0.005 * np.random.default_rng(1).standard_normal(f.D)
-    _, g = f._fun_grad(x, groups)
+    _, g = f.neg_loglik(x, groups)
     idx = list(range(12)) + [f.D - 1, int(f.bias_index[0]), int(f.g_index[0][3])]
     for j in idx:
         h = 1e-6 * max(1.0, abs(x[j]))
         e = np.zeros(f.D)
         e[j] = h
-        num = (f._fun_grad(x + e, groups)[0] - f._fun_grad(x - e, groups)[0]) / (2 * h)
+        num = (f.neg_loglik(x + e, groups)[0] - f.neg_loglik(x - e, groups)[0]) / (2 * h)
         assert abs(num - g[j]) <= 1e-5 * max(1.0, abs(g[j])), (j, num, g[j])
 
 
@@ -333,9 +334,9 @@ def test_cached_layout_follows_changing_link_sets(small_filter) -> None:  # type
     a.update(log.rx, log.tx, snaps, var)  # fills the cache with the full pattern
     a.update(log.rx[sub], log.tx[sub], [snaps[i] for i in sub], var[sub])
     b = fresh()
-    b._layout_cache.clear()
+    b.links.cache.clear()
     b.update(log.rx, log.tx, snaps, var)
-    b._layout_cache.clear()
+    b.links.cache.clear()
     b.update(log.rx[sub], log.tx[sub], [snaps[i] for i in sub], var[sub])
     np.testing.assert_array_equal(a.x, b.x)
     np.testing.assert_array_equal(a.P, b.P)

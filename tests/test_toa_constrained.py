@@ -313,3 +313,42 @@ def test_constraint_errors():
     sol = refine_toa(Y3 + 1e-3 * rng.normal(size=Y.shape), r, s, fixed_receivers=fr)
     np.testing.assert_array_equal(sol.receivers[0], r[0])
     assert np.isfinite(sol.receiver_cov).all()
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_covariance_subset_equals_full_blocks(seed):
+    """A covariance request on the constrained path computes exactly the requested blocks.
+
+    Same fit, same sparse factorization: the requested blocks must equal the full
+    computation's to round-off and every block not asked for is NaN (as on the
+    unconstrained path of toa/covariance.py).
+    """
+    rng, r, s, dr, os_ = _network(seed + 30, I=7, J=9)
+    I, J, d = 7, 9, 3
+    Y = toa_model(r, s, dr, os_) + rng.normal(0, NOISE, (I, J))
+    Y[rng.random((I, J)) < 0.1] = np.nan
+    fr = np.zeros((I, d), bool)
+    fr[:, 2] = True
+    r0 = r + rng.normal(0, 0.05, r.shape)
+    s0 = s + rng.normal(0, 0.05, s.shape)
+    r0[:, 2] = r[:, 2]
+    kw = dict(offsets="both", fixed_receivers=fr)
+    full = refine_toa(Y, r0, s0, covariance="all", **kw)
+    ri, si = np.array([0, 3, 6]), np.array([1, 8])
+    for spec, want_r, want_s in (("receivers", np.arange(I), []), ("sources", [], np.arange(J)),
+                                 ({"receivers": ri, "sources": si}, ri, si), ((None, si), [], si)):
+        sub = refine_toa(Y, r0, s0, covariance=spec, **kw)
+        np.testing.assert_allclose(sub.receivers, full.receivers, atol=1e-12)
+        mr = np.zeros(I, bool)
+        mr[want_r] = True
+        ms = np.zeros(J, bool)
+        ms[want_s] = True
+        np.testing.assert_allclose(sub.receiver_cov[mr], full.receiver_cov[mr], rtol=1e-9, atol=1e-15)
+        np.testing.assert_allclose(sub.source_cov[ms], full.source_cov[ms], rtol=1e-9, atol=1e-15)
+        assert np.isnan(sub.receiver_cov[~mr]).all() and np.isnan(sub.source_cov[~ms]).all()
+        if ms.any():
+            np.testing.assert_allclose(sub.source_offset_std[ms], full.source_offset_std[ms], rtol=1e-9)
+    none = refine_toa(Y, r0, s0, covariance="none", **kw)
+    assert np.isnan(none.receiver_cov).all() and np.isnan(none.source_cov).all()
+    with pytest.raises(InputError):
+        refine_toa(Y, r0, s0, covariance={"receivers": [I]}, **kw)

@@ -11,6 +11,7 @@ from selfcal.errors import ConvergenceWarning, DegenerateGeometryError, InputErr
 from selfcal.geometry import align
 from selfcal.scenarios.units import ROOMS, make_units, true_offset_vector
 from selfcal.toa import offsets as off
+from selfcal.toa import rank3
 
 C = 343.0
 US = 1e-6 * C  # one microsecond, in metres
@@ -296,7 +297,7 @@ def test_scalable_lm_reaches_the_minimum_of_the_joint_reference(seed: int, monke
     frac = (0.0, 0.05, 0.10)[seed % 3]
     R[rng.random(R.shape) < frac] = np.nan
     p0 = p + rng.normal(0.0, 2 * US, p.size)
-    monkeypatch.setattr(off, "_DENSE_JOINT_MAX", 0)  # the scalable path even at this size
+    monkeypatch.setattr(rank3, "_DENSE_JOINT_MAX", 0)  # the scalable path even at this size
     new = off.rank3_lm(R, p0=p0)
     ref = off._rank3_lm_joint(R, p0=p0)
     # never a worse stationary point than the reference (with missing entries the two take
@@ -336,3 +337,113 @@ def test_complete_core_equals_the_plain_greedy() -> None:
         if a is not None and b is not None:
             np.testing.assert_array_equal(a[0], b[0])
             np.testing.assert_array_equal(a[1], b[1])
+
+
+# ----------------------------------------------------------------------------- minimal networks (issue 12)
+
+
+def _minimal_scene(seed: int, I: int = 12, J: int = 6) -> tuple[np.ndarray, ...]:
+    """The 12 x 6 scene of benchmarks/bench_toa_minimal.py, noise-free, in metres."""
+    g = np.random.default_rng(seed)
+    r = g.uniform(0.0, 1.5, (I, 3))
+    u = g.normal(size=(J, 3))
+    u /= np.linalg.norm(u, axis=1)[:, None]
+    s = 0.75 + u * 4.0 * g.uniform(0, 1, (J, 1)) ** (1 / 3)
+    d, o = g.uniform(0, 0.01 * C, I), g.uniform(0, 0.1 * C, J)
+    R = np.linalg.norm(r[:, None] - s[None], axis=-1) + d[:, None] + o[None]
+    return r, s, d, o, R
+
+
+def _rank_equation_jacobian(R: np.ndarray, p: np.ndarray, dim: int = 3) -> np.ndarray:
+    """Finite-difference Jacobian of the rank-d equations U_perp^T M(p) V_perp at p (bases fixed at p)."""
+    M0 = off.offset_matrix(R, p, model="exact", centring="reference")
+    U, _, Vt = np.linalg.svd(M0)
+    Up, Vp = U[:, dim:], Vt[dim:].T
+    h = 1e-6 * (1.0 + np.abs(p).max())
+    cols = [(Up.T @ (off.offset_matrix(R, p + h * e, model="exact", centring="reference")
+                     - off.offset_matrix(R, p - h * e, model="exact", centring="reference")) @ Vp).ravel() / (2 * h)
+            for e in np.eye(p.size)]
+    return np.array(cols).T
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_at_12x6_the_rank3_offsets_form_exactly_a_one_parameter_family(seed: int) -> None:
+    """Theory of the minimal network: 16 rank-3 equations for 17 offsets, no further degeneracy.
+
+    At the noise-free truth the equations vanish (F = 0) and their Jacobian has rank 16 (a
+    one-dimensional null space: the offsets are a curve, not a point); one source more
+    (12 x 7: 24 equations for 18 offsets) makes the true offsets an isolated solution. The
+    rank is judged at 1e-8 of the largest singular value, far above the finite-difference
+    error and far below the smallest non-zero value measured (1.5e-4 to 6e-3 of the largest
+    on these seeds). That weak conditioning is why the family is of no use with 20 us noise:
+    projecting the noisy data's truth onto it moves the offsets by 5-27 m (bench_toa_minimal).
+    """
+    for J, null in ((6, 1), (7, 0)):
+        r, s, d, o, R = _minimal_scene(seed, J=J)
+        p = np.concatenate([d + o[0], o[1:] - o[0]])
+        M = off.offset_matrix(R, p, model="exact", centring="reference")
+        sv_M = np.linalg.svd(M, compute_uv=False)
+        assert sv_M[3] <= 1e-9 * sv_M[0]  # rank 3 at the truth
+        sv = np.linalg.svd(_rank_equation_jacobian(R, p), compute_uv=False)
+        rank = int(np.sum(sv > 1e-8 * sv[0]))
+        assert p.size - rank == null
+
+
+def test_distance_lower_bounds_never_exceed_the_true_distances() -> None:
+    """Offset-free double differences bound every pairwise distance from below (triangle inequality)."""
+    from selfcal.toa.scaled_starts import distance_lower_bounds
+
+    for seed in range(10):
+        r, s, _, _, R = _minimal_scene(seed)
+        R = R.copy()
+        R[np.random.default_rng(seed).random(R.shape) < 0.1] = np.nan  # missing entries are skipped
+        for pts, B in ((r, distance_lower_bounds(R)), (s, distance_lower_bounds(R.T))):
+            true = np.linalg.norm(pts[:, None] - pts[None], axis=-1)
+            assert np.all(B <= true + 1e-9)
+            assert np.all(B[~np.eye(len(pts), dtype=bool)] > 0)  # and they are informative
+
+
+def test_scaled_starts_apply_only_where_the_rank_method_cannot_identify_the_offsets() -> None:
+    """The 'scaled' initialiser runs for both offsets on 12 x 6 (16 < 17), never on 12 x 7 or other models."""
+    from selfcal.toa.search import INITIALISERS, SCALED_STARTS
+
+    init = INITIALISERS["scaled"]
+    for J, offsets, expect in ((6, "both", SCALED_STARTS), (7, "both", 0), (6, "receivers", 0), (6, "none", 0)):
+        _, _, _, _, R = _minimal_scene(0, J=J)
+        got = init(R, 3, offsets, np.random.default_rng(0))
+        assert len(got) == expect
+        for r0, s0, d0, o0 in got:  # finite starts of the right shapes, offsets for both kinds
+            assert r0.shape == (12, 3) and s0.shape == (J, 3) and d0 is not None and o0 is not None
+            assert np.isfinite(r0).all() and np.isfinite(s0).all()
+
+
+@pytest.mark.slow
+def test_minimal_12x6_search_reaches_the_truth_started_minimum_or_lower() -> None:
+    """12 x 6, both offsets, 20 us: the search (trf engine) finds the truth-started minimum or a lower one.
+
+    Measured 9 of 12 draws with the scaled starts against 1 of 12 without them (same run). At a
+    true rate of 0.75, 12 or more of 24 draws happen with probability 0.998 (binomial); at the
+    rate without them (<= 0.3) with probability < 0.04. The issue's 95 % is not reached: on
+    many draws the data admit minima far from the truth with a cost within a few sigma^2 of the
+    truth-started one (7 redundant measurements; the CRLB is 0.4-1.1 m for receivers in a
+    1.5 m cube), see benchmarks/bench_toa_minimal.py.
+    """
+    from selfcal.toa import refine_toa
+    from selfcal.toa.search import search
+
+    hits = 0
+    for seed in range(24):
+        g = np.random.default_rng(seed)  # the scene of benchmarks/bench_toa_minimal.py, 20 us noise
+        r = g.uniform(0.0, 1.5, (12, 3))
+        u = g.normal(size=(6, 3))
+        u /= np.linalg.norm(u, axis=1)[:, None]
+        s = 0.75 + u * 4.0 * g.uniform(0, 1, (6, 1)) ** (1 / 3)
+        d, o = g.uniform(0, 0.01 * C, 12), g.uniform(0, 0.1 * C, 6)
+        R = np.linalg.norm(r[:, None] - s[None], axis=-1) + d[:, None] + o[None] + g.normal(0, 20 * US, (12, 6))
+        ref = refine_toa(R, r, s, offsets="both", receiver_offsets0=d, source_offsets0=o, covariance=False,
+                         solver="trf")
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            out = search(R, 3, "both", rng=np.random.default_rng(seed), solver="trf")
+        hits += bool(np.nansum(out.solution.residuals**2) <= np.nansum(ref.residuals**2) * (1 + 1e-6))
+    assert hits >= 12

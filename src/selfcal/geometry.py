@@ -19,6 +19,7 @@ __all__ = [
     "Alignment",
     "align",
     "apply_alignment",
+    "rotate_covariances",
     "rotation_2d",
     "rotation_from_rotvec",
     "rotvec_from_rotation",
@@ -136,6 +137,34 @@ def align(
 def apply_alignment(points: Array, alignment: Alignment) -> Array:
     """Map (n, d) ``points`` with ``alignment`` (convenience for :meth:`Alignment.apply`)."""
     return alignment.apply(points)
+
+
+def rotate_covariances(cov: Array, R: Array) -> Array:
+    """Covariances of rotated points: ``R C R^T`` for each (d, d) block (a fresh array).
+
+    Parameters
+    ----------
+    cov : (n, d, d) array
+        Covariances, m^2.
+    R : (k, k) array
+        Rotation with k <= d; it acts on the first k coordinates (a planar alignment of 3-D
+        points rotates x and y and leaves z as it was).
+
+    Returns
+    -------
+    (n, d, d) array
+
+    Examples
+    --------
+    >>> C = np.array([np.diag([4.0, 1.0])])
+    >>> np.round(rotate_covariances(C, rotation_2d(np.pi / 2))[0], 12)
+    array([[1., 0.],
+           [0., 4.]])
+    """
+    C = np.array(cov, dtype=float)
+    k = np.asarray(R).shape[0]
+    C[:, :k, :k] = np.einsum("ab,nbc,dc->nad", R, C[:, :k, :k], R)
+    return C
 
 
 def rotation_2d(theta: float | Array) -> Array:

@@ -100,6 +100,48 @@ def _resolve_mirrors(T: Array, res: Any, speed: float, rng: int, notes: list[str
     return _solve(T, 3, speed, rng, init=(r, s, np.asarray(res.receiver_offsets), np.asarray(res.source_offsets)))
 
 
+def _place_dropped(T: Array, heights: tuple[Array, Array], r: Array, s: Array, dr: Array, ds: Array,
+                   speed: float) -> tuple[Array, Array, Array, Array]:
+    """Start positions for the nodes a 2-D initial solve left out (NaN rows), from their own entries.
+
+    ``solve_toa`` drops a node whose entries turned outliers or too few; the known-height
+    refinement needs a start for every node that :func:`robust_calibrate` kept. Each such
+    node is placed alone against the placed others: its offset in closed form (the mean
+    residual), its horizontal position by the smallest residual variance on a grid over the
+    others' extent, then refined by least squares (one node: 3 unknowns).
+    """
+    from scipy.optimize import least_squares
+
+    r, s, dr, ds = r.copy(), s.copy(), dr.copy(), ds.copy()
+    for side in (0, 1):
+        own, other = (r, s) if side == 0 else (s, r)
+        own_off, other_off = (dr, ds) if side == 0 else (ds, dr)
+        M = T if side == 0 else T.T
+        zo, zt = (heights[0], heights[1]) if side == 0 else (heights[1], heights[0])
+        placed = np.isfinite(other).all(axis=1) & np.isfinite(other_off)
+        for k in np.flatnonzero(~(np.isfinite(own).all(axis=1) & np.isfinite(own_off))):
+            cols = np.isfinite(M[k]) & placed
+            if cols.sum() < 3:
+                continue
+            y = speed * (M[k, cols] - other_off[cols])
+            pts = other[cols]
+            dz2 = (zo[k] - zt[cols]) ** 2
+
+            def resid(p: Array, y: Array = y, pts: Array = pts, dz2: Array = dz2) -> Array:
+                return y - np.sqrt(((pts - p[:2]) ** 2).sum(axis=1) + dz2) - p[2]
+
+            lo, hi = other[placed].min(axis=0), other[placed].max(axis=0)
+            gx, gy = np.meshgrid(np.linspace(lo[0], hi[0], 9), np.linspace(lo[1], hi[1], 9))
+            grid = np.column_stack([gx.ravel(), gy.ravel()])
+            dist = np.sqrt(((grid[:, None, :] - pts[None]) ** 2).sum(axis=-1) + dz2[None])
+            best = grid[int(np.argmin(np.var(y[None] - dist, axis=1)))]
+            off0 = float(np.mean(y - np.sqrt(((pts - best) ** 2).sum(axis=1) + dz2)))
+            p = least_squares(resid, np.array([best[0], best[1], off0])).x
+            own[k] = p[:2]
+            own_off[k] = p[2] / speed
+    return r, s, dr, ds
+
+
 def _normalise_offsets(dr: Array, ds: Array) -> tuple[Array, Array]:
     """Shift the common offset so that the first onset is 0 (004 sec. 3.3, tau_1 = 0)."""
     a = float(ds[0])
@@ -159,8 +201,11 @@ def calibrate_matrix(
     notes: list[str] = []
     if heights is not None:
         init = _solve(T, 2, speed, rng)
-        dr, ds = _normalise_offsets(np.asarray(init.receiver_offsets), np.asarray(init.source_offsets))
-        sol = refine_known_heights(T, heights[0], heights[1], init.receivers, init.sources, dr, ds, speed=speed)
+        r0, s0, dr0, ds0 = _place_dropped(T, heights, np.asarray(init.receivers, float), np.asarray(init.sources, float),
+                                          np.asarray(init.receiver_offsets, float), np.asarray(init.source_offsets, float),
+                                          speed)
+        dr, ds = _normalise_offsets(dr0, ds0)
+        sol = refine_known_heights(T, heights[0], heights[1], r0, s0, dr, ds, speed=speed)
         sol["method"] = f"2d+heights ({init.method} init)"
         return sol, None, notes
     if dim not in (2, 3, "auto"):

@@ -17,8 +17,19 @@ time`` (004 sec. 2.2: onsets <= 30 ms, delays <= 20 ms). Per window:
    is the first. ``level(lag)`` is a cell-averaging CFAR level: the Rayleigh parameter of
    the ``REF_TIME`` (2.5 ms) of lags before it (``mean |z|^2 = 2 sigma^2``, a guard of one
    main lobe between), never below the receiver's level ``sigma``; lags with less history
-   use ``sigma``. A noise burst (a cough) raises the level of the lags it covers, so it
-   does not pass for an arrival, and an arrival inside it must stand out of it.
+   use ``sigma``; the segment starts that many lags before the window, so the first lags
+   have their history too (a burst still sounding from the previous event is measured).
+   A noise burst (a cough) raises the level of the lags it covers, so an arrival inside it
+   must stand out of it. Its *onset* inside a window is caught by a greatest-of CFAR: the
+   lag must also exceed ``k_trail`` times the trailing level, the quietest of
+   :data:`TRAIL_BLOCKS` blocks of ``REF_TIME`` after it (an ordered statistic: a direct
+   path's discrete reflections fill some blocks, a burst fills all; unbiased under noise
+   alone, :func:`_min_power_bias`). Under a burst's onset the peak over that level is
+   Rayleigh, so ``k_trail = sqrt(2 ln(cells / BURST_FALSE_ALARM))`` over the trailing
+   cells; the diffuse reverberation after a direct path lies ``~ 10 log10(DRR RT60 B / 13.8)``
+   dB below its peak (27 dB + DRR at RT60 1 s, B 7.5 kHz), so a direct path more than
+   ~14 dB below the reverberant field (far pairs in a large reverberant hall) becomes a
+   missed detection rather than a doubtful one.
 4. Sub-sample time: the correlation peak (the real part) nearest the envelope peak,
    refined by Newton steps on the band-limited correlation evaluated exactly from its
    spectrum (``c(tau) = Re sum_k Z_k exp(2 pi i k tau / n) / n``), which has no
@@ -37,6 +48,7 @@ principle sets the floor of a re-detection in a narrow window around a predicted
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 from typing import Any
 
@@ -53,6 +65,59 @@ __all__ = ["Detections", "detect_arrivals", "detect_recording", "matched_filter"
 RAYLEIGH_P20 = float(np.sqrt(-2.0 * np.log(0.8)))  # 20th percentile of a unit Rayleigh variable
 FALSE_ALARM = 1e-6  # probability of a false detection in a search window holding only noise
 REF_TIME = 2.5e-3  # s, leading reference window of the CFAR noise level (~20 independent cells at 8 kHz)
+BURST_FALSE_ALARM = 1e-3  # probability that a noise burst's onset passes the trailing test (one
+# wrong detection for the robust fit: bursts are rare events, reverberant tails are not)
+TRAIL_BLOCKS = 4  # trailing reference: this many blocks of REF_TIME after a lag (10 ms), the quietest kept
+
+
+def _fft_size(n: int) -> int:
+    """FFT length for a linear correlation of ``n`` samples (a fast composite size, ``scipy.fft``)."""
+    import scipy.fft as sfft
+
+    return int(sfft.next_fast_len(int(n), real=False))
+
+
+@functools.lru_cache(maxsize=64)
+def _min_power_bias(cells: float, blocks: int) -> float:
+    """``E[min_b P_b] / E[P]`` of ``blocks`` independent block powers of stationary Rayleigh noise.
+
+    A block's mean power over ``cells`` independent cells is Gamma(cells) / cells distributed
+    (``mean |z|^2 = 2 sigma^2``); the expected minimum of ``blocks`` of them is
+    ``int_0^inf P(X > x)^blocks dx``, below 1: dividing by it makes the trailing level unbiased
+    under noise alone.
+    """
+    from scipy import integrate, stats
+
+    a = max(float(cells), 1.0)
+    val, _ = integrate.quad(lambda x: stats.gamma.sf(x, a, scale=1.0 / a) ** blocks, 0.0, np.inf, limit=200)
+    return float(val)
+
+
+def cfar_cells(n_lags: int, fs: float, band: tuple[float, float]) -> float:
+    """Independent matched-filter cells in ``n_lags`` lags: ``n_lags (f1 - f0) / fs`` (at least 1)."""
+    return max(float(n_lags) * (band[1] - band[0]) / fs, 1.0)
+
+
+def _cfar_levels(env: NDArray[np.floating[Any]], head: int, n_lag: int, n_ref: int, guard: int,
+                 cells: float) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Leading and trailing Rayleigh levels of the lags ``head .. head + n_lag - 1`` of ``env`` (E, n).
+
+    Leading: ``sqrt(mean |z|^2 / 2)`` over the ``n_ref`` lags ending ``guard`` lags before the
+    lag (cell averaging). Trailing: the same over each of :data:`TRAIL_BLOCKS` consecutive
+    blocks of ``n_ref`` lags starting ``guard`` after it, the *smallest* block power kept
+    (an ordered statistic: the direct path's discrete reflections fill some blocks, a noise
+    burst fills all), divided by its expectation under stationary noise
+    (:func:`_min_power_bias`, ``cells`` independent cells per block).
+    """
+    e2 = np.asarray(env, dtype=np.float64) ** 2
+    cs = np.zeros((e2.shape[0], e2.shape[1] + 1))
+    np.cumsum(e2, axis=1, out=cs[:, 1:])
+    t = head + np.arange(n_lag)
+    lead = np.sqrt(np.maximum(cs[:, t - guard] - cs[:, t - guard - n_ref], 0.0) / (2.0 * n_ref))
+    first = t + guard
+    blocks = np.stack([cs[:, first + (b + 1) * n_ref] - cs[:, first + b * n_ref] for b in range(TRAIL_BLOCKS)])
+    low = np.maximum(blocks.min(axis=0), 0.0) / (2.0 * n_ref * _min_power_bias(cells, TRAIL_BLOCKS))
+    return lead, np.sqrt(low)
 
 
 def cfar_factor(n_lags: int, fs: float, band: tuple[float, float], p_fa: float = FALSE_ALARM) -> float:
@@ -74,8 +139,7 @@ def cfar_factor(n_lags: int, fs: float, band: tuple[float, float], p_fa: float =
     float
         ``k`` (the quality floor is ``20 log10 k`` dB).
     """
-    cells = max(float(n_lags) * (band[1] - band[0]) / fs, 1.0)
-    return float(np.sqrt(2.0 * np.log(cells / p_fa)))
+    return float(np.sqrt(2.0 * np.log(cfar_cells(n_lags, fs, band) / p_fa)))
 
 
 @dataclass(frozen=True)
@@ -259,12 +323,21 @@ def detect_arrivals(
     lens = np.full(I, N, dtype=np.int64) if lengths is None else np.asarray(lengths, dtype=np.int64)
     L = len(probe.samples)
     n_lag = int(np.ceil(max_lag * fs)) + 1
-    W = n_lag + L - 1
-    n_fft = int(2 ** np.ceil(np.log2(W + L)))
-    start = np.round(times * fs).astype(np.int64)
-    idx = start[:, None] + np.arange(W)[None, :]
     mainlobe = int(np.ceil(2.0 * fs / (probe.band[1] - probe.band[0]))) + 2
     n_ref = max(int(round(REF_TIME * fs)), 8)
+    # history before the window (leading reference of its first lags) and after it (trailing blocks)
+    head = n_ref + mainlobe
+    tail = mainlobe + TRAIL_BLOCKS * n_ref
+    n_keep = head + n_lag + tail
+    W = n_keep + L - 1
+    n_fft = _fft_size(W + L)
+    start = np.round(times * fs).astype(np.int64)
+    idx = (start - head)[:, None] + np.arange(W)[None, :]
+    win = slice(head, head + n_lag)
+    cells_per_block = n_ref * (probe.band[1] - probe.band[0]) / fs
+    # trailing test: a peak over the noise that follows it, Rayleigh under a burst's onset, with
+    # BURST_FALSE_ALARM per burst over the cells of the trailing reference
+    k_trail = float(np.sqrt(2.0 * np.log(cfar_cells(TRAIL_BLOCKS * n_ref, fs, probe.band) / BURST_FALSE_ALARM)))
 
     if k_noise is None:
         k_noise = cfar_factor(n_lag, fs, probe.band, p_fa)
@@ -278,25 +351,21 @@ def detect_arrivals(
     for i in tqdm(range(I), desc="detect", unit="rx", disable=None if progress else True, leave=False):
         if lens[i] <= 0 or not np.any(sig[i, : lens[i]]):
             continue  # a dead input: nothing to detect
-        valid = idx < lens[i]
-        seg = np.where(valid, sig[i, np.minimum(idx, N - 1)], 0.0).astype(np.float64)
-        z, G = _matched(seg, P, n_fft, n_lag)
-        env = np.abs(z)
+        valid = (idx >= 0) & (idx < lens[i])
+        seg = np.where(valid, sig[i, np.clip(idx, 0, N - 1)], 0.0)
+        z_all, G = _matched(seg, P, n_fft, n_keep)
+        env_all = np.abs(z_all)
+        z, env = z_all[:, win], env_all[:, win]
         sigma = float(np.percentile(env[:, ::4], 20)) / RAYLEIGH_P20  # lags 4 apart: still ~1 per cell
         noise[i] = sigma
         if sigma <= 0:
             continue
-        # cell-averaging CFAR: the noise level of every lag from the n_ref lags before it (a guard
-        # of one main lobe between); lags without that much history use the receiver's level
-        csum = np.concatenate([np.zeros((E, 1)), np.cumsum(env * env, axis=1)], axis=1)
-        lag = np.arange(n_lag)
-        hi = lag - mainlobe
-        lo = hi - n_ref
-        has = lo >= 0
-        lead = np.full((E, n_lag), sigma)
-        lead[:, has] = np.sqrt((csum[:, hi[has]] - csum[:, lo[has]]) / (2.0 * n_ref))
+        lead, trail = _cfar_levels(env_all, head, n_lag, n_ref, mainlobe, cells_per_block)
         level_lag = np.maximum(lead, sigma)
-        thr = np.maximum(rel_threshold * env.max(axis=1)[:, None], k_noise * level_lag)
+        # greatest-of CFAR: a lag must stand out of the noise before it (lead) and of the noise
+        # after it (trail): a noise burst starting in the window raises the trailing level at
+        # its onset, where the leading one is still quiet
+        thr = np.maximum(rel_threshold * env.max(axis=1)[:, None], np.maximum(k_noise * level_lag, k_trail * trail))
         above = env >= thr
         found = above.any(axis=1)
         first = np.argmax(above, axis=1)
@@ -308,14 +377,15 @@ def detect_arrivals(
         level = level_lag[rows, first]
         q = 20.0 * np.log10(env[rows, peak] / level)
         quality[i] = np.where(found, q, np.nan)
-        ok = found & (q >= min_quality_db) & (peak > 0) & (peak < n_lag - 1) & (start + peak + L <= lens[i])
+        ok = (found & (q >= min_quality_db) & (peak > 0) & (peak < n_lag - 1)
+              & (start + peak + L <= lens[i]))
         if not ok.any():
             continue
         # Correlation (carrier) peak nearest the envelope peak.
         near = np.clip(peak[:, None] + np.arange(-2, 3)[None, :], 0, n_lag - 1)
         coarse = near[rows, np.argmax(z[rows[:, None], near].real, axis=1)]
         tau = np.full(E, np.nan)
-        tau[ok] = _newton_refine(G[ok], n_fft, _parabolic(z, rows[ok], coarse[ok]))
+        tau[ok] = _newton_refine(G[ok], n_fft, _parabolic(z_all, rows[ok], coarse[ok] + head)) - head
         arrival[i] = np.where(ok, (start + tau) / fs, np.nan)
     return Detections(arrival, arrival - times[None, :], quality, noise)
 

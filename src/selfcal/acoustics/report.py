@@ -12,111 +12,17 @@ embedded as base64 PNG; the page loads nothing and runs no script.
 
 from __future__ import annotations
 
-import base64
 import html
-import io
 import warnings
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-from numpy.typing import NDArray
+
+from ..plotting import png_base64
+from ..plotting.conference import ellipse_magnification, plot_report_map, plot_residuals
 
 __all__ = ["write_html_report", "render_html", "ellipse_magnification"]
-
-CHI2_2D_95 = 5.991  # chi-square quantile, 2 dof, 95 %: the ellipse radius in sigmas is its square root
-
-
-def ellipse_magnification(std: NDArray[np.float64], extent: float) -> float:
-    """Factor (1-2-5 steps) that makes the median 95 % ellipse about 4 % of the map's extent.
-
-    Parameters
-    ----------
-    std : array
-        Position stds, m.
-    extent : float
-        Map extent, m.
-
-    Returns
-    -------
-    float
-        1, 2, 5, 10, 20, ... (the largest at most the wanted factor; never below 1).
-    """
-    s = np.asarray(std, float)
-    s = s[np.isfinite(s) & (s > 0)]
-    if not s.size or extent <= 0:
-        return 1.0
-    want = 0.04 * extent / (np.sqrt(CHI2_2D_95) * float(np.median(s)))
-    if want <= 1.0:
-        return 1.0
-    k = int(np.floor(np.log10(want)))
-    return float(max(m * 10.0**k for m in (1, 2, 5) if m * 10.0**k <= want))
-
-
-def _png(fig: Any) -> str:
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=110, bbox_inches="tight")
-    import matplotlib.pyplot as plt
-
-    plt.close(fig)
-    return base64.b64encode(buf.getvalue()).decode("ascii")
-
-
-def _map_png(result: Any) -> tuple[str, float]:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    from matplotlib.patches import Ellipse
-
-    r, s = np.asarray(result.receivers, float), np.asarray(result.sources, float)
-    rc, sc = np.asarray(result.receiver_cov, float), np.asarray(result.source_cov, float)
-    pts = np.vstack([r, s])[:, :2]
-    ok = np.isfinite(pts).all(axis=1)
-    extent = float(np.ptp(pts[ok], axis=0).max()) if ok.any() else 1.0
-    std = np.sqrt(np.concatenate([np.trace(rc[:, :2, :2], axis1=1, axis2=2), np.trace(sc[:, :2, :2], axis1=1, axis2=2)]))
-    mag = ellipse_magnification(std, extent)
-    fig, ax = plt.subplots(figsize=(8.0, 7.0))
-    k95 = np.sqrt(CHI2_2D_95)
-    for P, C, names, color, marker, label in ((r, rc, result.receiver_names, "C0", "o", "microphones"),
-                                              (s, sc, result.sender_names, "C3", "s", "loudspeakers")):
-        good = np.isfinite(P).all(axis=1)
-        ax.scatter(P[good, 0], P[good, 1], c=color, marker=marker, s=8, label=label, zorder=2)
-        for k in np.flatnonzero(good):
-            c2 = C[k, :2, :2]
-            if np.isfinite(c2).all():
-                w, v = np.linalg.eigh(c2)
-                w = np.maximum(w, 0.0)
-                ang = float(np.degrees(np.arctan2(v[1, 1], v[0, 1])))
-                ax.add_patch(Ellipse((P[k, 0], P[k, 1]), 2 * k95 * mag * np.sqrt(w[1]), 2 * k95 * mag * np.sqrt(w[0]),
-                                     angle=ang, fill=False, color=color, lw=1.2, zorder=3))
-            if marker == "o":
-                ax.annotate(names[k], (P[k, 0], P[k, 1]), fontsize=6, xytext=(3, 3), textcoords="offset points")
-    ax.set_aspect("equal")
-    ax.set_xlabel("x [m]")
-    ax.set_ylabel("y [m]")
-    ax.grid(alpha=0.3)
-    ax.legend(loc="best", fontsize=8)
-    ax.set_title(f"units and 95 % ellipses (ellipses magnified x{mag:g})")
-    return _png(fig), mag
-
-
-def _residual_png(result: Any, z: NDArray[np.float64]) -> str:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(7.5, 6.0))
-    lim = max(3.0, float(np.nanmax(np.abs(z)))) if np.isfinite(z).any() else 3.0
-    im = ax.imshow(z, cmap="RdBu_r", vmin=-min(lim, 10.0), vmax=min(lim, 10.0), aspect="auto", interpolation="nearest")
-    fig.colorbar(im, ax=ax, label="residual / noise std (grey: missed or excluded)")
-    ax.set_xlabel("loudspeaker (sender)")
-    ax.set_ylabel("microphone (receiver)")
-    ax.set_title("TOA residuals, detected minus modelled")
-    ax.set_facecolor("0.8")
-    return _png(fig)
-
 
 def _fmt(x: float, scale: float, digits: int = 3) -> str:
     return "&ndash;" if not np.isfinite(x) else f"{x * scale:.{digits}g}"
@@ -163,8 +69,8 @@ def render_html(result: Any, errors: dict[str, Any] | None = None, *, summary: l
     noise = np.asarray(getattr(result, "matrix_std", None) if getattr(result, "matrix_std", None) is not None
                        else np.full((I, J), result.timing_noise), float)
     z = R / noise
-    map_b64, mag = _map_png(result)
-    res_b64 = _residual_png(result, z)
+    map_fig, mag = plot_report_map(result)
+    map_b64, res_b64 = png_base64(map_fig), png_base64(plot_residuals(z))
     v = result.verdict
     passed = v is not None and v.passed
     head = "PASS" if passed else "FAIL"

@@ -197,7 +197,7 @@ def check_command_outputs(ctx: click.Context | None, kwargs: Mapping[str, Any]) 
     from ..errors import InputError
     from ..io import check_output_path
 
-    dashes = []
+    dashes: list[Any] = []
     if ctx is None:
         return dashes
     seen: dict[str, str] = {}

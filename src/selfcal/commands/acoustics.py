@@ -113,66 +113,6 @@ def simulate_conference_cmd(units: int, room_text: str, rt60: float, snr: float,
                f"image order {truth['max_order']})")
 
 
-def _rotate_cov(cov: Any, R: Any) -> Any:
-    import numpy as np
-
-    C = np.array(cov, dtype=float)
-    k = R.shape[0]
-    C[:, :k, :k] = np.einsum("ab,nbc,dc->nad", R, C[:, :k, :k], R)
-    return C
-
-
-def plot_map(result: Any, path: Path, errors: dict[str, Any] | None = None, title: str = "") -> None:
-    """True vs estimated receivers and senders with 95 % ellipses (in the truth frame if known)."""
-    import numpy as np
-
-    from ..geometry import align
-    from ..plotting import new_figure, plot_positions, save_figure
-
-    fig, ax = new_figure(size=(7.0, 6.5))
-    er, es = result.receivers, result.sources
-    rc, sc = result.receiver_cov, result.source_cov
-    tr = ts = None
-    if errors is not None:
-        er, es = errors["aligned_receivers"], errors["aligned_sources"]
-        tr, ts = np.asarray(errors["true_receivers"]), np.asarray(errors["true_senders"])
-        k = 2 if er.shape[1] == 2 or result.method.startswith("2d+heights") else 3
-        al = align(np.vstack([result.receivers, result.sources])[:, :k], np.vstack([tr, ts])[:, :k])
-        rc, sc = _rotate_cov(rc, al.rotation), _rotate_cov(sc, al.rotation)
-    plot_positions(ax, er, truth=tr, cov=rc, label="microphones", color="C0", marker="o")
-    plot_positions(ax, es, truth=ts, cov=sc, label="loudspeakers", color="C3", marker="s")
-    ax.legend(loc="best", fontsize=8)
-    ax.set_title(title or f"{result.method}: positions (95 % ellipses)")
-    save_figure(fig, path)
-
-
-def plot_timing(result: Any, path: Path, errors: dict[str, Any] | None = None) -> None:
-    """Delay / onset estimates (errors vs truth when known, in us) and run time per stage."""
-    import numpy as np
-
-    from ..acoustics.pipeline import TIMING_REQUIREMENT
-    from ..plotting import new_figure, save_figure
-
-    fig, (ax1, ax2) = new_figure(1, 2, size=(11.0, 4.2))
-    if errors is not None:
-        ax1.plot(np.asarray(errors["delay_errors"]) * 1e6, "o", label="internal delay error")
-        ax1.plot(np.asarray(errors["onset_errors"]) * 1e6, "s", label="onset time error")
-        for s in (-1, 1):
-            ax1.axhline(s * TIMING_REQUIREMENT * 1e6, color="r", ls="--", lw=0.8)
-        ax1.set_ylabel("error [us], common shift removed (red: 58 us)")
-    else:
-        ax1.plot(result.receiver_offsets * 1e3, "o", label="internal delay")
-        ax1.plot(result.source_offsets * 1e3, "s", label="onset time (first = 0)")
-        ax1.set_ylabel("estimate [ms]")
-    ax1.set_xlabel("unit")
-    ax1.legend(fontsize=8)
-    names = list(result.timings)
-    ax2.bar(names, [result.timings[n] for n in names], color="C2")
-    ax2.set_ylabel("run time [s]")
-    ax2.set_title("time per stage")
-    save_figure(fig, path)
-
-
 def summarise(result: Any, errors: dict[str, Any] | None) -> list[str]:
     """Lines of the summary table printed by ``selfcal pipeline`` / ``selfcal demo``.
 
@@ -299,6 +239,7 @@ def _pipeline_outputs(directory: Path, out: Path, plot: Path | None, report: Pat
     from ..acoustics.recording import speed_from_air
     from ..errors import InputError
     from ..io import write_json
+    from ..plotting.conference import plot_map, plot_timing
     from ._common import enrich_payload, write_nodes_csv
 
     jitter = resolve_jitter(jitter, jitter_us)

@@ -124,7 +124,9 @@ def locate_aoa(
         res = solve_aoa(b, u, method=method, sigma=sigma, position_hint=position_hint)
     with staged_outputs():  # the figure and the result together, or neither
         if plot is not None:
-            _plot_pose(b, u, res, plot)
+            from ..plotting.aoa import plot_pose
+
+            plot_pose(b, u, res, plot)
         write_json(out, enrich_payload(res.to_dict(), names={"beacon_names": btab.row_names},
                                        units={"position": "m",
                                               "rotation": "columns = receiver axes in the global frame",
@@ -138,53 +140,6 @@ def locate_aoa(
     if res.status in (Status.NOT_CONVERGED, Status.FAILED_TEST):
         click.echo(f"FAIL: pose not trustworthy ({res.message})")
         raise SystemExit(1)
-
-
-def _plot_pose(b: object, u: object, res: object, path: str) -> None:
-    """Beacons, receiver position, its axes (columns of R) and the measured bearing rays."""
-    import numpy as np
-    from matplotlib.figure import Figure
-
-    from ..plotting import save_figure
-
-    B = np.asarray(b, float)
-    U = np.asarray(u, float)
-    m = np.asarray(res.position, float)  # type: ignore[attr-defined]
-    R = np.asarray(res.rotation, float)  # type: ignore[attr-defined]
-    d = B.shape[1]
-    span = float(np.max(np.ptp(np.vstack([B, m[None]]), axis=0))) or 1.0
-    L = 0.15 * span
-    fig = Figure(figsize=(7.0, 6.0))
-    ax = fig.add_subplot(1, 1, 1, projection="3d" if d == 3 else None)
-    P = B if d == 3 else np.column_stack([B, np.zeros(len(B))])
-    mm = m if d == 3 else np.append(m, 0.0)
-    RR = R if d == 3 else np.block([[R, np.zeros((2, 1))], [np.zeros((1, 2)), np.ones((1, 1))]])
-    UU = U if d == 3 else np.column_stack([U, np.zeros(len(U))])
-    coords = (lambda v: (v[..., 0], v[..., 1], v[..., 2])) if d == 3 else (lambda v: (v[..., 0], v[..., 1]))
-    ax.scatter(*coords(P), c="C3", marker="s", s=40, label="beacons")
-    ax.scatter(*coords(mm[None]), c="k", s=50, label="receiver")
-    for a, (col, name) in enumerate(zip(("r", "g", "b"), "xyz", strict=True)):
-        if d == 2 and a == 2:
-            break
-        tip = mm + L * RR[:, a]
-        ax.plot(*coords(np.vstack([mm, tip])), color=col, lw=2.5, label=f"receiver {name} axis")
-    for k in range(len(P)):
-        if not np.isfinite(UU[k]).all():
-            continue
-        ray = RR @ (UU[k] / np.linalg.norm(UU[k]))
-        dist = float(np.linalg.norm(P[k] - mm))
-        ax.plot(*coords(np.vstack([mm, mm + dist * ray])), color="0.5", lw=0.8, ls="--")
-    ax.set_xlabel("x [m]")
-    ax.set_ylabel("y [m]")
-    if d == 3:
-        ax.set_zlabel("z [m]")
-    else:
-        ax.set_aspect("equal")
-    ok = res.status.name.lower()  # type: ignore[attr-defined]
-    ax.set_title(f"AOA pose ({res.method}, residual {np.degrees(res.residual_rms):.2g} deg, {ok}); "  # type: ignore[attr-defined]
-                 "dashed: measured bearings", fontsize=9)
-    ax.legend(loc="best", fontsize=7)
-    save_figure(fig, path)
 
 
 @reproduce.command("aoa")
@@ -213,7 +168,7 @@ def reproduce_aoa(
     )
     from ..experiments.runner import run_sweep, write_rows
     from ..io import write_json
-    from ..plotting import new_figure, plot_heatmap, save_figure
+    from ..plotting.aoa import plot_error_surfaces
 
     if runs < 1 or not (0 < step <= 5):
         raise InputError("--runs must be >= 1 and --step in (0, 5]")
@@ -226,19 +181,11 @@ def reproduce_aoa(
     common = summarize([r for r, ok in zip(rows, both, strict=True) if ok])
     write_rows(rows, outdir / "aoa_trials.csv")
     labels = {"sol1": "Solution 1", "sol2": "Solution 2", "ml": "ML (3 beacons)", "ml4": "ML (4 beacons)"}
-    fig, axes = new_figure(1, len(METHODS), size=(4.2 * len(METHODS), 3.6))
-    for ax, m in zip(axes, METHODS, strict=True):
-        x, y, z = grid_means(rows, f"{m}_loc")
-        plot_heatmap(ax, x, y, z, label="mean location error [m]")
-        ax.set_title(f"{labels[m]}: location (Fig. 3/4)")
-    save_figure(fig, outdir / "location_error.png")
+    plot_error_surfaces([(f"{labels[m]}: location (Fig. 3/4)", *grid_means(rows, f"{m}_loc")) for m in METHODS],
+                        outdir / "location_error.png", label="mean location error [m]")
     for m in METHODS:
-        fig, axes = new_figure(1, 3, size=(12.6, 3.6))
-        for ax, axis in zip(axes, "xyz", strict=True):
-            x, y, z = grid_means(rows, f"{m}_{axis}")
-            plot_heatmap(ax, x, y, z, label="mean error [deg]", cmap="magma")
-            ax.set_title(f"{labels[m]}: {axis}-axis orientation")
-        save_figure(fig, outdir / f"orientation_{m}.png")
+        plot_error_surfaces([(f"{labels[m]}: {axis}-axis orientation", *grid_means(rows, f"{m}_{axis}"))
+                             for axis in "xyz"], outdir / f"orientation_{m}.png", label="mean error [deg]", cmap="magma")
     report = {
         "paper": "001",
         "setup": {"runs": runs, "step_m": step, "sigma_deg": sigma_deg, "seed": seed,

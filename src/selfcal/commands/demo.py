@@ -36,11 +36,10 @@ def demo_cmd(out: Path, seed: int, units: int, room_text: str, layout: str, rt60
     """Simulate, detect, calibrate and check paper 004's requirements (``make demo``)."""
     from ..acoustics.pipeline import run_pipeline
     from ..io import staged_outputs, write_json
+    from ..plotting.conference import plot_map, plot_timing
     from .acoustics import (
         parse_room,
         pipeline_errors,
-        plot_map,
-        plot_timing,
         summarise,
         write_simulation,
     )

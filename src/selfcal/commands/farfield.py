@@ -22,7 +22,7 @@ if TYPE_CHECKING:
 
 
 @calibrate.command("tdoa-farfield")
-@click.argument("matrix", type=click.Path(dir_okay=False, path_type=Path))
+@click.argument("matrix", nargs=-1, required=True, type=click.Path(path_type=Path))
 @click.option("--out", "out", type=click.Path(dir_okay=False, path_type=Path), required=True,
               help="Result JSON (positions, directions, offsets, residual_rms, degeneracy, ...).")
 @click.option("--speed", type=float, default=None, metavar="C",
@@ -52,7 +52,7 @@ if TYPE_CHECKING:
 @csv_option
 @unit_options
 @handle_errors
-def farfield_command(matrix: Path, out: Path, speed: float | None, dim: str, directions: str | None,
+def farfield_command(matrix: tuple[Path, ...], out: Path, speed: float | None, dim: str, directions: str | None,
                      method: str, loss: str,
                      noise_std: float | None, ransac: bool, seed: int, allow_degenerate: bool,
                      plot: Path | None, csv_out: Path | None = None, unit: str | None = None,
@@ -62,9 +62,12 @@ def farfield_command(matrix: Path, out: Path, speed: float | None, dim: str, dir
     Rows are receiver positions (microphones, antenna positions), columns far transmitters;
     entry = relative distance z_i . n_j + C_j (metres, or seconds with --speed). A .json
     file in the Pyramic calibration layout (keys delays [m-1][k] in seconds against
-    microphone mic_ref, sources, microphones, sound_speed_mps) is read directly; its
-    hand-measured microphones are not used by the estimate, only compared with it. A
-    degenerate geometry (planar-motion, coplanar-directions, cone, collinear-motion,
+    microphone mic_ref, or [m-1][k][speakers] for several speakers, sources, microphones,
+    sound_speed_mps) is read directly; its hand-measured microphones are not used by the
+    estimate, only compared with it. Several Pyramic files (or a folder of them) are
+    calibrated jointly, all speakers' columns side by side: one speaker's directions lie on
+    a cone (one elevation), speakers at different elevations break it. A degenerate
+    geometry (planar-motion, coplanar-directions, cone, collinear-motion,
     parallel-directions) exits with status 2 naming it, unless --allow-degenerate.
     """
     import numpy as np
@@ -80,20 +83,29 @@ def farfield_command(matrix: Path, out: Path, speed: float | None, dim: str, dir
     reference = None
     known = None
     row_names = col_names = None
-    if matrix.suffix.lower() == ".json":
-        from ..datasets.pyramic import pyramic_from_dict
-        from ..io import read_json
+    pyramic = None
+    pyr = [p.is_dir() or p.suffix.lower() == ".json" for p in matrix]
+    if any(pyr) and not all(pyr) or (len(matrix) > 1 and not all(pyr)):
+        raise InputError("several matrices (or a folder) are read only as Pyramic JSON files; give one CSV / "
+                         ".npy matrix, or Pyramic .json files")
+    if all(pyr):
+        from ..datasets.pyramic import load_pyramic
 
-        data = pyramic_from_dict(read_json(matrix), label=str(matrix), speed=speed)
-        D, scale, seconds = data.D, data.speed, True
-        reference = data.positions
+        pyramic = load_pyramic(list(matrix), speed=speed)
+        D, seconds = pyramic.D, True
+        scale = pyramic.column_speed if pyramic.column_speed is not None else np.full(D.shape[1], pyramic.speed)
+        reference = pyramic.positions
         if directions == "sources":
-            known = data.directions
+            known = pyramic.directions
+        elev = ", ".join(f"{e:.1f}" for e in pyramic.elevations().values())
+        click.echo(f"selfcal calibrate tdoa-farfield: Pyramic data, {len(pyramic.speakers)} speaker(s) at "
+                   f"elevation(s) {elev} deg (file's source directions), {D.shape[1]} columns in all")
     else:
-        table = read_table(matrix, name=str(matrix))
+        matrix_path = matrix[0]
+        table = read_table(matrix_path, name=str(matrix_path))
         row_names, col_names = table.row_names, table.col_names
-        M, speed, _ = to_metres(table.values, unit, speed, sample_rate, name=str(matrix))
-        plausible_matrix_scale(M, speed=speed, explicit_unit=unit is not None, name=str(matrix),
+        M, speed, _ = to_metres(table.values, unit, speed, sample_rate, name=str(matrix_path))
+        plausible_matrix_scale(M, speed=speed, explicit_unit=unit is not None, name=str(matrix_path),
                                min_span=FARFIELD_TIMES_AS_METRES_MAX)
         seconds = speed is not None
         scale = speed if speed is not None else 1.0
@@ -104,18 +116,24 @@ def farfield_command(matrix: Path, out: Path, speed: float | None, dim: str, dir
         known = read_table(Path(directions), name=str(directions)).values
     try:
         res = solve_farfield(D, method=method, loss=loss, directions=known,
-                             noise_std=None if noise_std is None else noise_std * scale,
+                             noise_std=None if noise_std is None else noise_std * float(np.mean(scale)),
                              allow_degenerate=allow_degenerate, ransac=ransac, rng=seed,
                              dim="auto" if dim == "auto" else int(dim))
     except DegenerateGeometryError as exc:
         transposed_hint(exc, D.shape, min_rows=4, min_cols=6)
+        if pyramic is not None and exc.kind == "cone":
+            _pyramic_cone_hint(exc, pyramic)
         raise
     out_dict = res.to_dict()
     tunit = "s" if seconds else "m"
     if seconds:
-        out_dict["offsets"] = (np.asarray(res.offsets) / scale).tolist()
-        out_dict["residual_rms"] = float(res.residual_rms / scale)
-        out_dict["speed"] = float(scale)
+        speed_col = np.broadcast_to(np.asarray(scale, dtype=float), (D.shape[1],))
+        out_dict["offsets"] = (np.asarray(res.offsets) / speed_col).tolist()
+        out_dict["residual_rms"] = float(res.residual_rms / float(np.mean(speed_col)))
+        out_dict["speed"] = float(np.mean(speed_col))
+    if pyramic is not None:
+        out_dict["speaker"] = [int(s) for s in pyramic.speaker] if pyramic.speaker is not None else None
+        out_dict["speaker_elevation_deg"] = {str(s): e for s, e in pyramic.elevations().items()}
     ref_rmse = None
     if reference is not None and res.positions.shape[1] == 3:
         ref_rmse = _aligned_rmse(res.positions, reference)
@@ -126,7 +144,9 @@ def farfield_command(matrix: Path, out: Path, speed: float | None, dim: str, dir
                "position_cov": "m^2"})
     with staged_outputs():  # the figure, the JSON and the CSV together, or none
         if plot is not None:
-            _plot(res, plot)
+            from ..plotting.farfield import plot_farfield
+
+            plot_farfield(res, plot)
         write_json(out, payload)
         if csv_out is not None:
             write_nodes_csv(csv_out, payload, [("position", "positions", "position_names")])
@@ -147,10 +167,24 @@ def farfield_command(matrix: Path, out: Path, speed: float | None, dim: str, dir
     if res.degeneracy is None and not res.converged:
         failure = f"the refinement did not converge in {res.iterations} iterations"
     elif noise_std is not None and res.degeneracy is None:
-        failure = _residual_failure(res, D, noise_std * scale)
+        failure = _residual_failure(res, D, noise_std * float(np.mean(scale)))
     if failure is not None:
         click.echo(f"FAIL: calibration not trustworthy ({failure})")
         raise SystemExit(1)
+
+
+def _pyramic_cone_hint(exc: Exception, data: object) -> None:
+    """Re-raise a ``[cone]`` refusal on Pyramic data saying which speakers were given and what breaks it."""
+    from ..errors import DegenerateGeometryError
+
+    elev = data.elevations()  # type: ignore[attr-defined]
+    msg = exc.args[0] if exc.args else str(exc)
+    listed = ", ".join(f"speaker {s} at {e:.1f} deg" for s, e in elev.items())
+    raise DegenerateGeometryError(
+        f"{msg} Pyramic data given: {listed}. One speaker's directions (one elevation) always lie on a cone; "
+        "speakers at different absolute elevations break it: give their files together "
+        "(calibrate tdoa-farfield a.json b.json ..., or their folder), or use --directions sources (semi-blind, "
+        "as good as the file's directions)", kind=exc.kind, partial=getattr(exc, "partial", None)) from None
 
 
 def _residual_failure(res: FarfieldResult, D: object, sigma: float) -> str | None:
@@ -199,54 +233,6 @@ def _aligned_rmse(est: object, ref: object) -> float:
     A, B = np.asarray(est, dtype=float), np.asarray(ref, dtype=float)
     al = align(A, B, reflection=True)
     return float(np.sqrt(np.mean(np.sum((al.apply(A) - B) ** 2, axis=1))))
-
-
-def _plot(res: FarfieldResult, path: Path) -> None:
-    """Positions (with 95 % ellipses in 2-D) and the directions on the unit sphere (3-D),
-    circle (2-D) or segment (1-D), coloured by each transmitter's offset C_j (metres)."""
-    import numpy as np
-    from matplotlib.figure import Figure
-
-    from ..plotting import plot_positions, save_figure
-
-    fig = Figure(figsize=(12.0, 5.2))
-    P, n, d = res.positions, res.directions, res.dim
-    ax0 = fig.add_subplot(1, 2, 1)
-    if d == 1:
-        ax0.scatter(P[:, 0], np.zeros(len(P)), s=25)
-        ax0.set_xlabel("position along the line [m] (up to scale)")
-        ax0.set_ylabel("(none) [m]")
-        ax0.set_yticks([])
-    else:
-        plot_positions(ax0, P, cov=res.position_cov if d == 2 else None, label="positions")
-        if d == 3:
-            sc = ax0.scatter(P[:, 0], P[:, 1], c=P[:, 2], cmap="viridis", s=25, zorder=4)
-            fig.colorbar(sc, ax=ax0, label="z [m]")
-        ax0.legend(loc="best", fontsize=8)
-    ax0.set_title(f"receiver positions ({res.case}, first at the origin)")
-    ax1 = fig.add_subplot(1, 2, 2, projection="3d" if d == 3 else None)
-    if d == 3:
-        u, v = np.mgrid[0 : 2 * np.pi : 37j, 0 : np.pi : 19j]
-        ax1.plot_wireframe(np.cos(u) * np.sin(v), np.sin(u) * np.sin(v), np.cos(v), color="0.85", lw=0.4)
-        sc = ax1.scatter(n[:, 0], n[:, 1], n[:, 2], c=res.offsets, cmap="plasma", s=14, depthshade=False)
-        ax1.set_xlabel("n_x [unit]")
-        ax1.set_ylabel("n_y [unit]")
-        ax1.set_zlabel("n_z [unit]")
-        ax1.set_box_aspect((1, 1, 1))
-    elif d == 2:
-        t = np.linspace(0, 2 * np.pi, 200)
-        ax1.plot(np.cos(t), np.sin(t), color="0.8", lw=0.8)
-        sc = ax1.scatter(n[:, 0], n[:, 1], c=res.offsets, cmap="plasma", s=18)
-        ax1.set_aspect("equal")
-        ax1.set_xlabel("n_x [unit]")
-        ax1.set_ylabel("n_y [unit]")
-    else:
-        sc = ax1.scatter(n[:, 0], np.arange(len(n)), c=res.offsets, cmap="plasma", s=14)
-        ax1.set_xlabel("projection of the direction on the line [unit] (cos of the angle)")
-        ax1.set_ylabel("transmitter index [-]")
-    fig.colorbar(sc, ax=ax1, label="offset C_j [m]", shrink=0.8)
-    ax1.set_title("transmitter directions" + (f" [{res.degeneracy}]" if res.degeneracy else ""))
-    save_figure(fig, path)
 
 
 @reproduce.command("farfield")

@@ -71,19 +71,10 @@ def run_cmd(log_path: Path, mode: str, prior: str, out: Path, plot: Path | None,
         m["ranging_rmse_uncorrected_mean"] = float(np.mean(m.pop("ranging_rmse_uncorrected")))
         m["ranging_rmse_corrected_mean"] = float(np.mean(m.pop("ranging_rmse_corrected")))
     if plot is not None:
-        from ..plotting import new_figure, save_figure
+        from ..plotting.slac import plot_trajectories
 
-        fig, ax = new_figure(size=(6, 6))
-        for i in range(log.n_agents):
-            ax.plot(res.poses[:, i, 0], res.poses[:, i, 1], label=(log.names[i] if log.names else f"agent {i}"))
-            if log.states is not None:
-                ax.plot(log.states[: res.poses.shape[0], i, 0], log.states[: res.poses.shape[0], i, 1], "k:", lw=0.8)
-        ax.plot(log.anchors[:, 0], log.anchors[:, 1], "k^", label="anchors")
-        ax.set_aspect("equal")
-        ax.set_xlabel("x (m)")
-        ax.set_ylabel("y (m)")
-        ax.legend()
-        save_figure(fig, plot / f"trajectories_{mode}.png")
+        plot_trajectories(res.poses, log.anchors, plot / f"trajectories_{mode}.png", names=log.names,
+                          truth=log.states)
     write_json(out, d)
     click.echo(f"wrote {out}")
 
@@ -113,8 +104,9 @@ def plaza_cmd(path: Path, out: Path, method: str, csv_path: Path | None, tum_pat
     import sys
 
     from ..datasets.plaza import load_plaza
-    from ..experiments.slac import plaza_summary, plot_plaza
+    from ..experiments.slac import plaza_summary, score_plaza
     from ..io import staged_outputs, write_json
+    from ..plotting.slac import plot_plaza
     from ..slac.export import write_trajectory_csv, write_trajectory_tum
 
     data = load_plaza(path, init_heading_offset=init_heading_offset)
@@ -128,7 +120,7 @@ def plaza_cmd(path: Path, out: Path, method: str, csv_path: Path | None, tum_pat
         if tum_path is not None:
             write_trajectory_tum(tum_path, main)
         if plot is not None:
-            plot_plaza(plot, data, results)
+            plot_plaza(data, results, plot, rmse={k: score_plaza(data, r)["position_rmse"] for k, r in results.items()})
         write_json(out, s)
     for m, d in s["methods"].items():
         click.echo(f"{m}: position RMSE {d['position_rmse']:.3f} m, heading RMSE {d['heading_rmse_deg']:.2f} deg, "

@@ -8,15 +8,12 @@ from __future__ import annotations
 
 import importlib.util
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import click
 
 from ._base import calibrate, handle_errors
 from ._common import csv_option, unit_options
-
-if TYPE_CHECKING:
-    from ..toa.solve import ToaResult
 
 
 def _auto_available() -> bool:
@@ -34,7 +31,9 @@ def _auto_available() -> bool:
 @click.option("--dim", type=click.Choice(["2", "3", "auto"]), default=None,
               help="Dimension (auto = near-planar test). Default: the solver's default (3).")
 @click.option("--loss", type=click.Choice(["linear", "huber", "soft_l1", "cauchy"]), default=None,
-              help="Loss of the fit (default: the solver's default).")
+              help="Loss of the fit. Default: the solver's robust default (outliers found on a "
+                   "soft-L1 fit with a data-estimated scale, flagged by a Bonferroni rule, then "
+                   "least squares on the inliers).")
 @click.option("--method", type=click.Choice(["auto", "nls", "rank3"]), default="auto", show_default=True,
               help="auto: initialise + NLS + search; nls: one refinement; rank3: 004 initialiser only.")
 @click.option("--noise", type=float, default=None, metavar="SIGMA",
@@ -97,13 +96,17 @@ def toa_command(matrix: Path, speed: float | None, offsets: str | None, dim: str
     framed: FramedToaResult | None = None
     d_out = np.asarray(res.receivers).shape[1]
     off_used = _offsets_of(res)
-    loss_used = loss or getattr(res, "loss", None) or "linear"
+    # the constrained / frame refits see what the blind fit used: the recipe's spikes and
+    # the outliers the solver removed are left out; the default ("auto") fits the inliers
+    # by least squares, as the blind fit's last step does
+    loss_used = loss if loss is not None else "linear"
+    M_fit = _fitted_entries(M, rec.rejected, getattr(res, "outliers", None))
     if known_table is not None and known is not None:
         I, J = M.shape
         nodes = parse_known(_redim(known_table, known, d_out), I, J, d_out)
-        framed = fit_known(M, res, nodes, offsets=off_used, loss=loss_used, noise=noise)
+        framed = fit_known(M_fit, res, nodes, offsets=off_used, loss=loss_used, noise=noise)
     elif frame is not None:
-        framed = apply_frame(res, frame, matrix=M, offsets=off_used, loss=loss_used)
+        framed = apply_frame(res, frame, matrix=M_fit, offsets=off_used, loss=loss_used)
     if framed is not None:
         res = framed.result
     payload = enrich_payload(dict(res.to_dict()), names={"receiver_names": table.row_names,
@@ -117,7 +120,9 @@ def toa_command(matrix: Path, speed: float | None, offsets: str | None, dim: str
     # all artefacts staged and committed together; a FAIL (exit 1) still writes its result
     with staged_outputs():
         if plot is not None:
-            _plot(res, plot, framed is not None)
+            from ..plotting.toa import plot_toa
+
+            plot_toa(res, plot, user_frame=framed is not None)
         write_json(out, payload)
         if csv_out is not None:
             write_nodes_csv(csv_out, payload, [("receiver", "receivers", "receiver_names"),
@@ -156,6 +161,17 @@ def toa_command(matrix: Path, speed: float | None, offsets: str | None, dim: str
     if not ok:
         click.echo(f"FAIL: calibration not trustworthy ({why})")
         raise SystemExit(1)
+
+
+def _fitted_entries(M: Any, rejected: Any, outliers: Any) -> Any:
+    """The matrix with the recipe's rejected spikes and the solver's outliers set to NaN."""
+    import numpy as np
+
+    out = np.array(M, dtype=float)
+    for mask in (rejected, outliers):
+        if mask is not None and np.shape(mask) == out.shape:
+            out[np.asarray(mask, bool)] = np.nan
+    return out
 
 
 def _redim(table: dict[str, tuple[float, ...]], path: Path, d: int) -> dict[str, tuple[float, ...]]:
@@ -198,15 +214,3 @@ def _trustworthy(res: Any) -> tuple[bool, str]:
     if not bool(res.converged):
         return False, "the solver did not converge"
     return True, ""
-
-
-def _plot(res: ToaResult, path: Path, user_frame: bool) -> None:
-    from ..plotting import new_figure, plot_positions, save_figure
-
-    fig, ax = new_figure()
-    plot_positions(ax, res.receivers, cov=res.receiver_cov, label="receivers", color="C0", marker="x")
-    plot_positions(ax, res.sources, cov=res.source_cov, label="sources", color="C3", marker="s")
-    gauge = "user frame" if user_frame else "canonical gauge"
-    ax.set_title(f"TOA self-calibration (95% ellipses, {gauge})")
-    ax.legend(loc="best", fontsize=8)
-    save_figure(fig, path)

@@ -13,29 +13,6 @@ NOISE_LEVELS = (0.01, 0.03, 0.1, 0.2, 0.3, 0.5)
 SOURCE_COUNTS = (3, 4, 5, 6, 8, 10, 15, 20)
 
 
-def _plot_curves(summary: list[dict[str, Any]], key: str, xlabel: str, title: str, path: Path,
-                 logx: bool) -> None:
-    import numpy as np
-
-    from ..plotting import new_figure, save_figure
-
-    fig, ax = new_figure(size=(6.0, 4.5))
-    x = np.array([e[key] for e in summary], float)
-    for name, label, style in (("mds_rmse", "MDS (Alg. 2)", "s-"), ("nls_rmse", "NLS", "o-"),
-                               ("crlb_rmse", "sqrt(CRLB)", "k--")):
-        y = np.array([np.nan if e[name] is None else e[name] for e in summary], float)
-        ax.plot(x, y, style, label=label)
-    if logx:
-        ax.set_xscale("log")
-        ax.set_yscale("log")
-    ax.set_xlabel(xlabel)
-    ax.set_ylabel("sensor RMSE (m), eq. 18a")
-    ax.set_title(title)
-    ax.grid(True, which="both", alpha=0.3)
-    ax.legend()
-    save_figure(fig, path)
-
-
 @reproduce.command("toa-mds-nls")
 @click.option("--runs", type=int, default=500, show_default=True, help="Monte-Carlo runs per point.")
 @backend_option
@@ -51,7 +28,7 @@ def toa_mds_nls(runs: int, backend: str, scheduler: str | None, seed: int, out_d
     from ..experiments.runner import run_sweep, write_rows
     from ..experiments.toa_mds_nls import PAPER_003, example_network, summarise, trial_003
     from ..io import write_json
-    from ..plotting import new_figure, plot_positions, save_figure
+    from ..plotting.toa import plot_network, plot_rmse_curves
 
     if runs < 1:
         raise InputError(f"--runs must be >= 1, got {runs}")
@@ -65,18 +42,14 @@ def toa_mds_nls(runs: int, backend: str, scheduler: str | None, seed: int, out_d
     s6, s7 = summarise(rows6, "sigma"), summarise(rows7, "n_sources")
     ex = example_network(seed)
 
-    fig, ax = new_figure(size=(6.5, 6.0))
-    plot_positions(ax, ex["receivers"], truth=ex["true_receivers"], cov=ex["receiver_cov"],
-                   label="sensors (NLS)", color="C0", marker="^")
-    plot_positions(ax, ex["sources"], truth=ex["true_sources"], cov=ex["source_cov"],
-                   label="sources (NLS)", color="C1", marker="s")
-    ax.set_aspect("equal")
-    ax.set_title("003 Fig. 5: NLS estimate with 95% ellipses (sigma = 0.3 m)")
-    ax.legend(loc="upper right", fontsize=8)
-    save_figure(fig, out / "fig5_network.png")
-    _plot_curves(s6, "sigma", "range noise std (m)", "003 Fig. 6: N=8, K=10", out / "fig6_rmse_vs_noise.png", True)
-    _plot_curves(s7, "n_sources", "number of source locations K", "003 Fig. 7: N=8, sigma=0.3 m",
-                 out / "fig7_rmse_vs_sources.png", False)
+    plot_network(ex["receivers"], ex["sources"], out / "fig5_network.png", receiver_cov=ex["receiver_cov"],
+                 source_cov=ex["source_cov"], true_receivers=ex["true_receivers"], true_sources=ex["true_sources"],
+                 labels=("sensors (NLS)", "sources (NLS)"), markers=("^", "s"),
+                 title="003 Fig. 5: NLS estimate with 95% ellipses (sigma = 0.3 m)")
+    plot_rmse_curves(s6, "sigma", "range noise std (m)", "003 Fig. 6: N=8, K=10", out / "fig6_rmse_vs_noise.png",
+                     logx=True)
+    plot_rmse_curves(s7, "n_sources", "number of source locations K (-)", "003 Fig. 7: N=8, sigma=0.3 m",
+                     out / "fig7_rmse_vs_sources.png")
     write_rows(rows6 + rows7, out / "trials.csv")
     fig5 = {k: v for k, v in ex.items() if isinstance(v, float)}
     write_json(out / "toa_mds_nls.json", {"paper": PAPER_003, "runs": runs, "seed": seed,
@@ -120,7 +93,7 @@ def lps(data_path: str, out_dir: str, n_sim: int, variants_opt: str | None, seed
     )
     from ..io import write_json
     from ..metrics import aligned_rmse
-    from ..plotting import new_figure, plot_positions, save_figure
+    from ..plotting.toa import plot_lps_flight
 
     if n_sim < 0:
         raise InputError(f"--simulate must be >= 0, got {n_sim}")
@@ -184,15 +157,9 @@ def lps(data_path: str, out_dir: str, n_sim: int, variants_opt: str | None, seed
         (report["flights"] if name.startswith("data") or not name.startswith("sim") else report["simulated"])[name] = entry
         if best is not None:
             err, res = best
-            fig, ax = new_figure(size=(6.0, 5.5))
-            tg = err.alignment.apply(res["sources"])
-            ax.plot(tg[:, 0], tg[:, 1], ".", ms=2, color="C1", alpha=0.4, label="tag (blind)")
-            plot_positions(ax, err.alignment.apply(res["receivers"]), truth=anchors,
-                           label="anchors (blind)", color="C0", marker="^")
-            ax.set_aspect("equal")
-            ax.set_title(f"LPS {name} ({RECOMMENDED}): blind anchors, RMSE {err.rmse_receivers:.3f} m")
-            ax.legend(fontsize=8)
-            save_figure(fig, out / f"lps_{name}.png")
+            plot_lps_flight(err.alignment.apply(res["receivers"]), err.alignment.apply(res["sources"]), anchors,
+                            out / f"lps_{name}.png",
+                            title=f"LPS {name} ({RECOMMENDED}): blind anchors, RMSE {err.rmse_receivers:.3f} m")
     real = [n for n in scores if not n.startswith("sim")]
     report["leave_one_flight_out"] = {
         "real_flights": leave_one_flight_out({n: scores[n] for n in real}, variants) if len(real) > 1 else None,

@@ -268,91 +268,6 @@ def _summarise_accuracy(rows: list[dict[str, Any]]) -> list[dict[str, Any]]:
     return out
 
 
-def _plot_accuracy(summary: list[dict[str, Any]], path: Path) -> None:
-    from ..plotting import new_figure, save_figure
-
-    fig, axes = new_figure(2, 2, size=(11.0, 8.0))
-    for row, room in enumerate(("large", "small")):
-        for col, (key, label) in enumerate((("frobenius_s2", "final Frobenius norm F (s$^2$)"),
-                                            ("p_error_s", r"$\|\hat p - p\|$ (s)"))):
-            ax = axes[row, col]
-            for method, colour in (("faithful", "C0"), ("fast", "C1")):
-                for suffix, style, tag in (("", "--", "unfiltered"), ("_filtered", "-", "filtered")):
-                    items = [s for s in summary if s["room"] == room and s["method"] == method
-                             and s[key + suffix].get("n", 0) > 0]
-                    if not items:
-                        continue
-                    x = np.array([s["units"] for s in items], float) + (0.4 if method == "fast" else -0.4)
-                    x = x + (0.15 if suffix else -0.15)
-                    mean = np.array([s[key + suffix]["mean"] for s in items])
-                    lo = np.array([s[key + suffix]["min"] for s in items])
-                    hi = np.array([s[key + suffix]["max"] for s in items])
-                    ax.errorbar(x, mean, yerr=[mean - lo, hi - mean], fmt="o" + style, color=colour,
-                                alpha=1.0 if suffix else 0.5, capsize=3, label=f"{method}, {tag}")
-            if key == "frobenius_s2":
-                ax.axhline(ACCEPT_S2, color="k", lw=0.8, ls=":", label="acceptance 8e-7 s$^2$")
-            else:
-                ax.axhline(1e-6, color="k", lw=0.8, ls=":", label="1 us")
-            ax.set_yscale("log")
-            ax.set_xlabel("units")
-            ax.set_ylabel(label)
-            ax.set_title(f"{'30 x 30 x 12' if room == 'large' else '12 x 12 x 2'} m$^3$")
-            ax.legend(fontsize=7)
-    save_figure(fig, path)
-
-
-def _plot_timing(rows: list[dict[str, Any]], path: Path) -> None:
-    from ..plotting import new_figure, save_figure
-
-    fig, ax = new_figure(size=(7.0, 5.0))
-    groups = []
-    labels = []
-    for units in sorted({r["units"] for r in rows}):
-        for method in ("faithful", "fast"):
-            sel = [r for r in rows if r["units"] == units and r["method"] == method]
-            if sel:
-                key = "extrapolated_seconds" if method == "faithful" else "seconds"
-                groups.append([r[key] for r in sel])
-                labels.append(f"{units} units\n{method}")
-    ax.boxplot(groups, tick_labels=labels)
-    ax.set_yscale("log")
-    ax.set_ylabel("run time (s); faithful: to convergence, extrapolated when capped")
-    ax.axhline(PAPER["time_20_units_mean_s"], color="C2", ls=":", label="thesis mean, 20 units (MATLAB)")
-    ax.axhline(PAPER["time_120_units_mean_s"], color="C3", ls=":", label="thesis mean, 120 units (MATLAB)")
-    ax.legend(fontsize=8)
-    save_figure(fig, path)
-
-
-def _plot_lambda(rows: list[dict[str, Any]], path: Path) -> None:
-    from ..plotting import new_figure, save_figure
-
-    fig, ax = new_figure(size=(7.0, 5.0))
-    for r in rows:
-        ax.loglog(r["history_iteration"], r["history_frobenius_s2"], label=f"lambda = {r['lam_s']:g}")
-    ax.set_xlabel("iteration")
-    ax.set_ylabel("F (3.17) (s$^2$)")
-    ax.legend(fontsize=8)
-    save_figure(fig, path)
-
-
-def _plot_noise(summary: list[dict[str, Any]], path: Path) -> None:
-    from ..plotting import new_figure, save_figure
-
-    fig, ax = new_figure(size=(7.0, 5.0))
-    for room, marker in (("large", "o"), ("small", "s")):
-        items = [s for s in summary if s["room"] == room]
-        if not items:
-            continue
-        sig = np.array([s["sigma"] for s in items]) * 1e6
-        ax.loglog(sig, [s["offset_rmse_nls_s"] for s in items], marker + "-", label=f"{room}: NLS")
-        ax.loglog(sig, [s["offset_rmse_rank3_s"] for s in items], marker + "--", label=f"{room}: rank-3 only")
-        ax.loglog(sig, [s["offset_crlb_s"] for s in items], marker + ":", color="k", label=f"{room}: sqrt CRLB")
-    ax.set_xlabel("timing noise sigma (us)")
-    ax.set_ylabel("offset RMSE (s), minimum-norm gauge")
-    ax.legend(fontsize=8)
-    save_figure(fig, path)
-
-
 def reproduce_all(
     out: Path,
     *,
@@ -378,6 +293,8 @@ def reproduce_all(
     ``full=True`` is the thesis protocol: 20 faithful tests per point, 1e6 iterations, 25 / 15
     timing runs of both methods, uncapped.
     """
+    from ..plotting.delays import plot_accuracy, plot_lambda, plot_noise, plot_timing
+
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     if full:
@@ -396,7 +313,7 @@ def reproduce_all(
             runs=faithful_runs, seed=seed + 1, desc="Fig 4.1-4.3 faithful", **sweep)
     write_rows(acc_rows, out / "accuracy_rows.csv")
     acc = _summarise_accuracy(acc_rows)
-    _plot_accuracy(acc, out / "fig4_1-4_3_accuracy.png")
+    plot_accuracy(acc, out / "fig4_1-4_3_accuracy.png", accept_s2=ACCEPT_S2)
 
     grid_t = [{"room": "small", "units": 20, "method": "fast", "max_iter": 0},
               {"room": "large", "units": 120, "method": "fast", "max_iter": 0}]
@@ -408,7 +325,8 @@ def reproduce_all(
             t_rows += run_sweep(timing_trial, [{**g, "method": "faithful", "max_iter": cap}], runs=n,
                                 seed=seed + 2, desc=f"Fig 4.4 faithful {g['units']}", **sweep)
     write_rows(t_rows, out / "timing_rows.csv")
-    _plot_timing(t_rows, out / "fig4_4_timing.png")
+    plot_timing(t_rows, out / "fig4_4_timing.png",
+                thesis_means={20: PAPER["time_20_units_mean_s"], 120: PAPER["time_120_units_mean_s"]})
     timing = []
     for g in grid_t:
         for method in ("fast", "faithful"):
@@ -429,7 +347,7 @@ def reproduce_all(
     lam_rows = run_sweep(lambda_trial, [{"lam_s": lam, "units": 12, "room": "large", "setup_seed": seed,
                                          "max_iter": lambda_max_iter} for lam in LAMBDAS],
                          runs=1, seed=seed + 3, desc="Fig 4.5", **sweep)
-    _plot_lambda(lam_rows, out / "fig4_5_lambda.png")
+    plot_lambda(lam_rows, out / "fig4_5_lambda.png")
     lam_summary = [{k: r[k] for k in ("lam_s", "iterations", "converged", "lam_switch_iteration",
                                       "frobenius_s2", "p_error_s", "seconds")} for r in lam_rows]
 
@@ -455,7 +373,7 @@ def reproduce_all(
                     "position_efficiency": float(np.sqrt(pmse / pcrlb)),
                     "nls_converged": sum(bool(r["nls_converged"]) for r in sel),
                 })
-        _plot_noise(noise_summary, out / "noise_efficiency.png")
+        plot_noise(noise_summary, out / "noise_efficiency.png")
 
     summary = {
         "paper": PAPER,

@@ -309,7 +309,12 @@ def reproduce_all(
     -------
     The summary dict written to ``farfield.json`` (with a ``report`` list of text lines).
     """
-    from ..plotting import new_figure, save_figure
+    from ..plotting.farfield import (
+        plot_convergence,
+        plot_initialisation,
+        plot_minimal_solver,
+        plot_noise,
+    )
 
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -339,18 +344,7 @@ def reproduce_all(
                   f"{exact['tests']} tests (paper: 6.8e-15 over 10,000)")
     for x in fig1[:-1]:
         report.append(f"  R={x['distance']:<8g} failure rate {x['failure_rate']:.3f}  mean error {x['mean_error']:.3g}")
-    fig, ax = new_figure(size=(7, 4.5))
-    d3 = [x for x in fig1 if x["model"] == "3d"]
-    xs = np.arange(len(d3))
-    ax.bar(xs, [x["failure_rate"] for x in d3], color="0.7", label="failure rate (B not PD)")
-    ax.set_ylabel("failure rate")
-    ax.set_xticks(xs, [f"{x['distance']:g}" for x in d3], rotation=45)
-    ax.set_xlabel("relative distance R")
-    ax2 = ax.twinx()
-    ax2.semilogy(xs, [x["mean_error"] for x in d3], "o-", color="C0", label="mean position error")
-    ax2.set_ylabel("mean position error")
-    ax.set_title(f"Fig. 1: minimal solver (exact far field: {exact['mean_error']:.1e})")
-    save_figure(fig, out / "fig1.png")
+    plot_minimal_solver(fig1, out / "fig1.png")
 
     # ---- Fig. 2
     sizes = [(4, 6), (4, 8), (5, 8), (6, 10), (8, 16), (10, 20)]
@@ -365,18 +359,7 @@ def reproduce_all(
         fig2.append({"size": f"r{m}-s{k}", "distance": d, "tests": n, "failure_rate": 1 - ok / max(n, 1),
                      "mean_error": sum(x["error_sum"] for x in rs) / max(ok, 1)})
     summary["fig2"] = fig2
-    fig, axes = new_figure(1, 2, size=(11, 4.5))
-    for m, k in sizes:
-        sel = [x for x in fig2 if x["size"] == f"r{m}-s{k}"]
-        axes[0].loglog([x["distance"] for x in sel], [x["mean_error"] for x in sel], "o-", label=f"r{m}-s{k}")
-        axes[1].semilogx([x["distance"] for x in sel], [x["failure_rate"] for x in sel], "o-", label=f"r{m}-s{k}")
-    axes[0].set_xlabel("relative distance R")
-    axes[0].set_ylabel("mean position error")
-    axes[1].set_xlabel("relative distance R")
-    axes[1].set_ylabel("failure rate (B not PD)")
-    axes[0].legend()
-    axes[0].set_title("Fig. 2: overdetermined initialisation")
-    save_figure(fig, out / "fig2.png")
+    plot_initialisation(fig2, out / "fig2.png")
     for size in ("r4-s6", "r10-s20"):
         x = next(v for v in fig2 if v["size"] == size and v["distance"] == 1e2)
         report.append(f"Fig.2 {size} at R=100: failure rate {x['failure_rate']:.3f}, mean error {x['mean_error']:.3g}")
@@ -424,17 +407,8 @@ def reproduce_all(
                   f"{fig3['alternating_final_error_median']:.3f}, ML (free C_j) "
                   f"{fig3['ml_final_error_median']:.3f}; RMSE init {fig3['rmse']['init']:.3g}, ML "
                   f"{fig3['rmse']['ml']:.3g}, CRLB {fig3['rmse']['crlb']:.3g}")
-    fig, ax = new_figure(size=(7, 4.5))
-    it = np.arange(length)
-    ax.plot(it, alt_curve, label="alternating (Alg. 2)")
-    ax.plot(it, lm_curve, label="LM, lambda = 1 (Alg. 3)")
-    ax.plot(it, lma_curve, "--", label="LM, adaptive lambda")
-    ax.set_xscale("symlog")
-    ax.set_xlabel("iteration")
-    ax.set_ylabel("median (over draws) of the mean position error")
-    ax.set_title("Fig. 3: convergence, m = k = 10, sigma = 0.1")
-    ax.legend()
-    save_figure(fig, out / "fig3.png")
+    plot_convergence({"alternating (Alg. 2)": alt_curve, "LM, lambda = 1 (Alg. 3)": lm_curve,
+                      "LM, adaptive lambda": lma_curve}, out / "fig3.png")
 
     # ---- Fig. 4
     sigmas = [0.0, 1e-4, 1e-3, 3e-3, 1e-2, 3e-2, 1e-1]
@@ -458,22 +432,7 @@ def reproduce_all(
                               (("init", "init_rms"), ("lm_paper_cost", "lm_rms"), ("ml", "ml_rms"),
                                ("crlb", "crlb_rms"))}})
     summary["fig4"] = fig4
-    fig, axes = new_figure(1, 2, size=(11, 4.5))
-    for ax, d in zip(axes, (1e7, 1e2), strict=True):
-        sel = [x for x in fig4 if x["distance"] == d]
-        sx = [max(x["sigma"], 1e-5) for x in sel]
-        ax.loglog(sx, [x["init_error"] for x in sel], "o-", label="initialisation (mean)")
-        ax.loglog(sx, [x["lm_error"] for x in sel], "s-", label="LM (mean)")
-        ax.loglog(sx, [x["init_error_median"] for x in sel], "o:", label="initialisation (median)")
-        ax.loglog(sx, [x["lm_error_median"] for x in sel], "s:", label="LM (median)")
-        ax.loglog(sx, [x["ml_error_median"] for x in sel], "^:", label="ML, C_j free (median)")
-        ax.loglog(sx, [x["rmse"]["crlb"] for x in sel], "k--", label="CRLB (aligned RMSE)")
-        ax.set_xlabel("noise std (0 plotted at 1e-5)")
-        ax.set_ylabel("mean position error")
-        ax.set_title(f"Fig. 4: m=5, k=10, R={d:g}; failure rate " +
-                     ", ".join(f"{x['failure_rate']:.2f}" for x in sel))
-        ax.legend()
-    save_figure(fig, out / "fig4.png")
+    plot_noise(fig4, out / "fig4.png")
     for d in (1e7, 1e2):
         x = next(v for v in fig4 if v["distance"] == d and v["sigma"] == 1e-2)
         report.append(f"Fig.4 R={d:g}, sigma=0.01: mean (median) error init {x['init_error']:.3g} "

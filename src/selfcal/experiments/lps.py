@@ -178,3 +178,88 @@ def leave_one_flight_out(scores: Mapping[str, Mapping[str, float]],
         rows[f] = {"selected": pick, "held_out_rmse": float(scores[f][pick])}
     held = [float(r["held_out_rmse"]) for r in rows.values()]
     return {"per_flight": rows, "median_held_out_rmse": float(np.median(held)) if held else None}
+
+
+#: spike-rejection / fit variants of the ``moving-tag`` recipe scored by
+#: :func:`score_recipe_variants` (keyword arguments of :func:`selfcal.toa.recipes.moving_tag`)
+RECIPE_VARIANTS: dict[str, dict[str, Any]] = {
+    "2s-3.5": {"threshold": 3.5, "one_sided": False},
+    "1s-3.5": {"threshold": 3.5, "one_sided": True},
+    "2s-bonf": {"threshold": "bonferroni", "one_sided": False},
+    "1s-bonf": {"threshold": "bonferroni", "one_sided": True},
+    "1s-bonf-huber": {"threshold": "bonferroni", "one_sided": True, "loss": "huber"},
+    "1s-bonf-receivers": {"threshold": "bonferroni", "one_sided": True, "offsets": "receivers"},
+}
+
+
+def lps_cases(data: str, n_sim: int, n_positions: int = 400) -> dict[str, tuple[Array, Array]]:
+    """``{name: (ranges (6, N), true anchors (6, 3))}``: the LPS flights in ``data`` + simulated ones."""
+    from pathlib import Path
+
+    from ..datasets.lps import load_lps, lps_files
+
+    out: dict[str, tuple[Array, Array]] = {}
+    for f in lps_files(Path(data)) if data else []:
+        fl = load_lps(f)
+        out[fl.name] = (fl.ranges, fl.anchors_true)
+    for k in range(n_sim):
+        sim = simulate_uwb_flight(k, n_positions=n_positions)
+        out[f"sim{k}"] = (sim["ranges"], sim["anchors"])
+    return out
+
+
+def score_recipe_variant(ranges: Array, anchors: Array, variant: str, *, rng: int = 0) -> dict[str, Any]:
+    """Anchor RMSE after rigid alignment of ``moving_tag(ranges, **RECIPE_VARIANTS[variant])``.
+
+    Exactly what ``calibrate toa`` runs with ``--recipe moving-tag`` and the options of the
+    variant. Returns rmse (m), exit status the CLI would give (0 / 1), rejected count,
+    threshold, residual sum of squares and count (for an information criterion), CPU s.
+    """
+    import time
+    import warnings
+
+    from ..metrics import aligned_rmse
+    from ..toa.recipes import moving_tag
+
+    t0 = time.process_time()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        res = moving_tag(ranges, rng=rng, **RECIPE_VARIANTS[variant])
+    cpu = time.process_time() - t0
+    R = np.asarray(res.result.residuals, float)
+    used = np.isfinite(R) & ~np.asarray(res.result.outliers, bool)
+    return {
+        "rmse": float(aligned_rmse(res.receivers, anchors).rmse_receivers),
+        "success": bool(res.result.success), "n_rejected": res.n_rejected,
+        "n_outliers": int(np.asarray(res.result.outliers).sum()),
+        "threshold": res.details["threshold"], "rss": float(np.sum(R[used] ** 2)), "m": int(used.sum()),
+        "cpu_s": round(cpu, 1),
+    }
+
+
+def score_recipe_variants(data: str, n_sim: int, variants: Sequence[str] | None = None,
+                          cases: Sequence[str] | None = None) -> dict[str, dict[str, dict[str, Any]]]:
+    """Every variant on every case (``{case: {variant: score_recipe_variant(...)}}``), printed as it goes."""
+    import json
+
+    table: dict[str, dict[str, dict[str, Any]]] = {}
+    all_cases = {k: v for k, v in lps_cases(data, n_sim).items() if not cases or k in cases}
+    for v in variants or list(RECIPE_VARIANTS):  # variant-major: every case of a variant first
+        for name, (Y, A) in all_cases.items():
+            row = score_recipe_variant(Y, A, v)
+            table.setdefault(name, {})[v] = row
+            print(json.dumps({"case": name, "variant": v, **row}), flush=True)
+    return table
+
+
+if __name__ == "__main__":  # pragma: no cover - the experiment of the issue-12 report
+    import argparse
+
+    ap = argparse.ArgumentParser(description="moving-tag recipe variants on LPS flights + simulated ones")
+    ap.add_argument("--data", default="", help="LPS folder or .mat file")
+    ap.add_argument("--simulate", type=int, default=3)
+    ap.add_argument("--variants", default="", help="comma-separated subset of RECIPE_VARIANTS")
+    ap.add_argument("--cases", default="", help="comma-separated subset of the cases")
+    a = ap.parse_args()
+    score_recipe_variants(a.data, a.simulate, [v for v in a.variants.split(",") if v] or None,
+                          [c for c in a.cases.split(",") if c] or None)

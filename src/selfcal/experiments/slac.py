@@ -2,8 +2,9 @@
 
 * :func:`replica_trial` -- one seeded replica run in both modes (a sweep-runner trial).
 * :func:`reproduce_slac` -- runs the trials, writes Table I / Fig. 3 / Fig. 4 PNGs + JSON.
-* :func:`plaza_summary` / :func:`score_plaza` / :func:`plot_plaza` -- the CMU range logs
-  (Plaza): per-beacon scale + offset filter and smoother, scored against ground truth.
+* :func:`plaza_summary` / :func:`score_plaza` -- the CMU range logs (Plaza): per-beacon
+  scale + offset filter and smoother, scored against ground truth (the figure is
+  :func:`selfcal.plotting.slac.plot_plaza`).
 """
 
 from __future__ import annotations
@@ -18,7 +19,7 @@ from ..datasets.plaza import PlazaData
 from ..slac.motion import wrap_angle
 from ..slac.ranging import RangeModelConfig, RangeSlacResult, solve_range_slac
 
-__all__ = ["score_plaza", "plaza_summary", "plot_plaza", "replica_trial", "reproduce_slac", "PAPER_TABLE_I", "PAPER_FIG3_P90"]
+__all__ = ["score_plaza", "plaza_summary", "replica_trial", "reproduce_slac", "PAPER_TABLE_I", "PAPER_FIG3_P90"]
 
 FArray = NDArray[np.float64]
 
@@ -78,35 +79,6 @@ def plaza_summary(data: PlazaData, *, methods: tuple[str, ...] = ("filter", "smo
     return out
 
 
-def plot_plaza(path: str | Path, data: PlazaData, results: dict[str, RangeSlacResult]) -> None:
-    """Tracks against ground truth, the beacons labelled with their estimated scale / offset (PNG)."""
-    from ..plotting import new_figure, save_figure
-
-    fig, ax = new_figure(size=(7, 7))
-    ax.plot(data.gt[:, 0], data.gt[:, 1], "k-", lw=0.8, label="ground truth")
-    dr = data.dead_reckoning()
-    ax.plot(dr[:, 0], dr[:, 1], ":", color="0.5", lw=0.8, label="dead reckoning (DR)")
-    ref = None
-    for name, r in results.items():
-        sc = score_plaza(data, r)
-        ax.plot(r.poses[:, 0], r.poses[:, 1], lw=0.9, label=f"{name} ({sc['position_rmse']:.2f} m RMSE)")
-        ref = r
-    ax.plot(data.beacons[:, 0], data.beacons[:, 1], "r^", ms=9, label="beacons")
-    for k, (bx, by) in enumerate(data.beacons):
-        txt = f"id {int(data.beacon_ids[k])}"
-        if ref is not None:
-            txt += f"\nscale {ref.scale[k]:.3f}\u00b1{ref.scale_std[k]:.3f}\noffset {ref.offset[k]:+.2f}\u00b1{ref.offset_std[k]:.2f} m"
-        ax.annotate(txt, (bx, by), textcoords="offset points", xytext=(6, 6), fontsize=7)
-    ax.set_aspect("equal")
-    ax.margins(0.15)  # room for the beacon labels
-    ax.set_xlabel("x (m)")
-    ax.set_ylabel("y (m)")
-    which = f" ({ref.method} calibration)" if ref is not None else ""
-    ax.set_title(f"Range-only SLAC with per-beacon scale + offset{which}")
-    ax.legend(fontsize=7, loc="best")
-    save_figure(fig, path)
-
-
 def replica_trial(params: dict[str, Any], seed: int) -> dict[str, Any]:
     """One replica run (both modes) -> Table I / Fig. 3 / Fig. 4 numbers (module-level, picklable)."""
     from ..scenarios.rovers import make_rover_scenario
@@ -141,7 +113,7 @@ def reproduce_slac(out_dir: str | Path, *, minutes: float = 12.5, subcarriers: i
     consistent error bars, about 5x slower; ``docs/slac_consistency.md``).
     """
     from ..io import write_json
-    from ..plotting import new_figure, plot_cdf, save_figure
+    from ..plotting.slac import plot_doa_cdf, plot_position_rmse, plot_ranging_rmse
     from .runner import run_sweep
 
     out = Path(out_dir)
@@ -149,7 +121,7 @@ def reproduce_slac(out_dir: str | Path, *, minutes: float = 12.5, subcarriers: i
                                      "init": init, "smoother_lag": smoother_lag}],
                      runs=runs, seed=seed, backend=backend, scheduler=scheduler, progress=progress, desc="slac replica")
     agents = rows[0]["agents"]
-    table = {}
+    table: dict[str, dict[str, Any]] = {}
     for k, a in enumerate(agents):
         table[a] = {
             "position_rmse_localization": float(np.median([r["localization"]["position_rmse"][k] for r in rows])),
@@ -160,42 +132,20 @@ def reproduce_slac(out_dir: str | Path, *, minutes: float = 12.5, subcarriers: i
             "nees_slac": float(np.median([r["slac"]["nees_mean"][k] for r in rows])),
             "paper": dict(zip(("pos_loc", "pos_slac", "head_loc", "head_slac"), PAPER_TABLE_I.get(a, ()), strict=False)),
         }
-    doa = {}
-    fig, ax = new_figure(size=(6, 4.5))
+    doa, cdfs = {}, {}
     for name in ("em", "chamber", "filter"):
         errs = np.concatenate([r["slac"]["doa"]["Dias"][name]["errors_deg"] for r in rows])
         doa[name] = {"p90_deg": float(np.percentile(errs, 90)), "median_deg": float(np.median(errs)),
                      "paper_p90_deg": PAPER_FIG3_P90[name]}
-        plot_cdf(ax, errs, label={"em": "EM simulation", "chamber": "chamber", "filter": "SLAC"}[name])
-    ax.set_xlabel("absolute DoA error (deg)")
-    ax.set_ylabel("empirical CDF")
-    ax.set_title("Fig. 3 replica: DoA error at Dias (MMA)")
-    ax.legend()
-    save_figure(fig, out / "fig3_doa_cdf.png")
-    fig, ax = new_figure(size=(7, 4))
+        cdfs[{"em": "EM simulation", "chamber": "chamber", "filter": "SLAC"}[name]] = errs
+    plot_doa_cdf(cdfs, out / "fig3_doa_cdf.png")
     r0 = rows[0]["slac"]
     t = np.arange(1, len(r0["ranging_rmse_uncorrected"]) + 1) * 0.1 / 60
-    w = 50
-
-    def smooth(v: FArray) -> FArray:
-        return np.convolve(np.asarray(v), np.ones(w) / w, mode="same")
-
-    ax.plot(t, smooth(r0["ranging_rmse_uncorrected"]), label="without correction")
-    ax.plot(t, smooth(r0["ranging_rmse_corrected"]), label="SLAC")
-    ax.set_xlabel("time (min)")
-    ax.set_ylabel("ranging RMSE (m), 5 s average")
-    ax.set_title("Fig. 4 replica")
-    ax.legend()
-    save_figure(fig, out / "fig4_ranging_rmse.png")
-    fig, ax = new_figure(size=(7, 4))
-    xs = np.arange(len(agents))
-    ax.bar(xs - 0.2, [table[a]["position_rmse_localization"] for a in agents], 0.4, label="localization")
-    ax.bar(xs + 0.2, [table[a]["position_rmse_slac"] for a in agents], 0.4, label="SLAC")
-    ax.set_xticks(xs, agents)
-    ax.set_ylabel("position RMSE (m)")
-    ax.set_title("Table I replica")
-    ax.legend()
-    save_figure(fig, out / "table1_position_rmse.png")
+    plot_ranging_rmse(t, {"without correction": r0["ranging_rmse_uncorrected"], "SLAC": r0["ranging_rmse_corrected"]},
+                      out / "fig4_ranging_rmse.png", window=50)
+    plot_position_rmse(agents, {"localization": [float(table[a]["position_rmse_localization"]) for a in agents],
+                                "SLAC": [float(table[a]["position_rmse_slac"]) for a in agents]},
+                       out / "table1_position_rmse.png")
     summary = {
         "minutes": minutes, "subcarriers": subcarriers, "runs": runs, "seed": seed, "init": init, "smoother_lag": smoother_lag,
         "table_I": table, "fig3_doa": doa,

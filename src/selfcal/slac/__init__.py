@@ -2,7 +2,9 @@
 
 Modules: :mod:`~selfcal.slac.antenna` (manifold separation, eqs. 7-9), :mod:`~selfcal.slac.signals`
 (OFDM snapshots, eqs. 3-4), :mod:`~selfcal.slac.likelihood` (concentrated likelihoods, eqs. 18-19),
-:mod:`~selfcal.slac.motion` (eq. 14), :mod:`~selfcal.slac.filter` (IEKF-like MAP filter, eqs. 20-26),
+:mod:`~selfcal.slac.motion` (eq. 14), :mod:`~selfcal.slac.filter` (IEKF-like MAP filter, eqs. 20-26; its
+state layout :mod:`~selfcal.slac.state`, link bookkeeping :mod:`~selfcal.slac.links`, MAP / Laplace update
+:mod:`~selfcal.slac.laplace`, linear algebra :mod:`~selfcal.slac.linalg`),
 :mod:`~selfcal.slac.doa` (coherent ML DoA), :mod:`~selfcal.slac.measurement` (range/bearing level),
 :mod:`~selfcal.slac.run` (logs and :func:`solve_slac`), :mod:`~selfcal.slac.smoother` (optional fixed-lag
 smoother, beyond the paper), :mod:`~selfcal.slac.ranging` (one robot, odometry + beacon ranges with
@@ -22,7 +24,7 @@ _LAZY = {
     "concentrated_loglik": "likelihood", "link_loglik": "likelihood", "link_fisher": "likelihood",
     "fisher_blocks": "likelihood", "FisherBlocks": "likelihood",
     "motion_step": "motion", "motion_jacobian": "motion", "process_noise": "motion",
-    "SlacConfig": "filter", "SlacFilter": "filter", "map_update": "filter",
+    "SlacConfig": "filter", "SlacFilter": "filter", "map_update": "laplace",
     "estimate_doa": "doa", "RangeFilter": "measurement", "RangeConfig": "measurement",
     "SlacLog": "run", "SlacResult": "run", "solve_slac": "run", "SlacSmoother": "smoother",
     "RangeLog": "ranging", "RangeModelConfig": "ranging", "RangeSlacResult": "ranging",

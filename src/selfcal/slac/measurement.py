@@ -24,7 +24,8 @@ from numpy.typing import NDArray
 from .._checks import as_points, check_choice
 from ..errors import InputError
 from ..geometry import wrap_angle
-from .filter import map_update, predict_locations
+from .laplace import map_update
+from .state import predict_locations
 
 __all__ = ["RangeConfig", "RangeFilter"]
 

@@ -15,9 +15,9 @@ Window at step s with K' = min(K, s) steps (base index b = s - K'):
   singular process noise needs no inverse;
 * cost ``1/2 |[x_b; c] - m|^2_{P_m^-1} + 1/2 sum_k w_k^T Q_w^-1 w_k + sum_{k=b+1}^{s} NLL_k([x_k; c])``
   with NLL_k the negative log-likelihood of the snapshots of step k (eqs. 18-19, 24,
-  :meth:`SlacFilter._fun_grad`); its gradient by the chain rule through the rollout
+  :meth:`SlacFilter.neg_loglik`); its gradient by the chain rule through the rollout
   (adjoint recursion ``lambda_k = dNLL_k/dx_k + F_k^T lambda_{k+1}``, ``dJ/dw_k = B_k^T lambda_{k+1}``);
-* minimised by :func:`~selfcal.slac.filter.map_update` warm-started at the previous window's
+* minimised by :func:`~selfcal.slac.laplace.map_update` warm-started at the previous window's
   solution; Laplace covariance from the Fisher information chained through the rollout
   Jacobians, ``H = P_z^-1 + sum_k J_k^T I_k J_k`` (first-estimates g information as in the
   filter);
@@ -34,6 +34,7 @@ step s, comparable with the filter's.
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Sequence
 from typing import Any
 
@@ -42,15 +43,12 @@ import scipy.linalg as sla
 from numpy.typing import NDArray
 
 from ..errors import InputError
-from .filter import (
-    SlacFilter,
-    UpdateInfo,
-    _chol_inv,
-    _safe_cholesky,
-    map_update,
-    propagate_pose_block,
-)
+from .filter import SlacFilter
+from .laplace import UpdateInfo, map_update
+from .linalg import safe_cholesky, spd_inverse
+from .links import LinkGroup
 from .motion import control_jacobian, motion_jacobian
+from .state import propagate_pose_block
 
 __all__ = ["SlacSmoother"]
 
@@ -83,7 +81,7 @@ class SlacSmoother:
         self.m = filt.x.copy()
         self.Pm = filt.P.copy()
         self.controls: list[FArray] = []  # u_b .. u_{s-1}, each (n, 2)
-        self.groups: list[list[dict[str, Any]]] = []  # measurement groups of steps b+1 .. s
+        self.groups: list[list[LinkGroup]] = []  # measurement groups of steps b+1 .. s
         self.z = self.m.copy()  # current window solution [x_b, w_b.., c] (no w yet)
         self.steps = 0
 
@@ -149,7 +147,7 @@ class SlacSmoother:
         for j in range(1, K + 1):
             if not self.groups[j - 1]:
                 continue
-            f, g = self.filt._fun_grad(np.concatenate([X[j].ravel(), c]), self.groups[j - 1])
+            f, g = self.filt.neg_loglik(np.concatenate([X[j].ravel(), c]), self.groups[j - 1])
             total += f
             lam[j] = g[:p].reshape(n, 3)
             gc += g[p:]
@@ -164,7 +162,7 @@ class SlacSmoother:
         """Fisher information (Dz, Dz) of the window likelihood: ``sum_k J_k^T I_k J_k``.
 
         ``I_k`` (D, D) is the filter's information of step k at ``[x_k; c]``
-        (:meth:`SlacFilter._information`, first-estimates g part when ``fej``), ``J_k`` the
+        (:meth:`SlacFilter.information`, first-estimates g part when ``fej``), ``J_k`` the
         Jacobian of ``[x_k; c]`` with respect to z (pose rows through the rollout, identity for c).
         """
         X, F, B = self._rollout(z)
@@ -177,7 +175,7 @@ class SlacSmoother:
         for j in range(1, self.window + 1):
             if not self.groups[j - 1]:
                 continue
-            Ik = self.filt._information(np.concatenate([X[j].ravel(), c]), self.groups[j - 1], fej=fej)
+            Ik = self.filt.information(np.concatenate([X[j].ravel(), c]), self.groups[j - 1], fej=fej)
             J = Js[j]
             Ipp, Ipc = Ik[:p, :p], Ik[:p, p:]
             H[:nxw, :nxw] += J.T @ Ipp @ J
@@ -220,20 +218,20 @@ class SlacSmoother:
         ybar = self.m.copy()
         ybar[:p] = X[1].ravel() + Fp @ (self.m[:p] - x0.ravel()) - Bp @ w[0].ravel()
         Pb = propagate_pose_block(self.Pm, Fp, Bp @ np.diag(self._qw) @ Bp.T + 1e-12 * np.eye(p))
-        Pinv = _chol_inv(Pb)
+        Pinv = spd_inverse(Pb)
         grp = self.groups[0]
         if grp:
-            _, g = self.filt._fun_grad(ystar, grp)
-            info = self.filt._information(ystar, grp)
+            _, g = self.filt.neg_loglik(ystar, grp)
+            info = self.filt.information(ystar, grp)
         else:
             g = np.zeros(ystar.size)
             info = np.zeros((ystar.size, ystar.size))
         Lam = Pinv + info
-        Cl = _safe_cholesky(0.5 * (Lam + Lam.T))
+        Cl = safe_cholesky(0.5 * (Lam + Lam.T))
         rhs = Pinv @ (ystar - ybar) + g
         step = np.linalg.solve(Cl.T, np.linalg.solve(Cl, rhs))
         self.m = ystar - step
-        Pn = _chol_inv(Lam)
+        Pn = spd_inverse(Lam)
         self.Pm = 0.5 * (Pn + Pn.T)
         # drop the oldest step; the window now starts at x_{b+1}
         nw = 2 * n
@@ -268,11 +266,10 @@ class SlacSmoother:
         # measurement groups (delay series around the dead-reckoned prediction); X is copied
         # because the filter's layout cache reuses one buffer per link pattern
         f.x = np.concatenate([X[-1].ravel(), c])
-        groups: list[dict[str, Any]] = []
+        groups: list[LinkGroup] = []
         if rx_a.size:
-            groups = f._groups(rx_a, tx_a, snapshots, np.asarray(noise_var, dtype=float))
-            for g in groups:
-                g["X"] = np.array(g["X"], copy=True)
+            groups = [dataclasses.replace(g, X=np.array(g.X, copy=True))
+                      for g in f.link_groups(rx_a, tx_a, snapshots, np.asarray(noise_var, dtype=float))]
         self.groups.append(groups)
         if self.window > self.lag:
             # undo the append, marginalise at the previous solution, re-append

@@ -330,3 +330,38 @@ def partial_parallel_directions(X: Array) -> tuple[Array, Array]:
     dirs = np.zeros((len(sign), 3))
     dirs[:, 0] = sign
     return pos, dirs
+
+
+#: what each failure mode means, in words (the refusal messages)
+MESSAGES = {
+    "planar-motion": "the receiver positions lie in a plane (rank 2) and the directions leave it: far-field "
+    "TDOA then fixes the in-plane geometry only up to a 2 x 2 linear map (each direction's in-plane length is "
+    "unknown), with dim=2 too; add a position off the plane, or use sources in the array's plane (dim=2).",
+    "coplanar-directions": "the transmitter directions lie in a plane (rank 2): the out-of-plane "
+    "coordinate of the positions is unobservable; add a transmitter off that plane.",
+    "collinear-motion": "the receiver positions lie on a line (rank <= 1): only a one-parameter "
+    "family of reconstructions exists.",
+    "parallel-directions": "all transmitter directions are parallel (rank <= 1): only the "
+    "coordinate along that direction is observable.",
+    "cone": "the transmitter directions lie on a common quadratic cone (e.g. all at one elevation): the "
+    "constraints n^T B n = 1 do not determine B, so the geometry is ambiguous; add transmitters "
+    "off the cone.",
+}
+
+
+#: what the data determine in each case (``FarfieldResult.determined``)
+DETERMINED = {
+    "spatial": "positions and directions up to a rotation / reflection (first position at the origin)",
+    "planar": "in-plane positions and directions up to a rotation / reflection of the plane; positions off "
+    "the plane of the directions are seen projected onto it (their out-of-plane coordinate is unobservable)",
+    "linear": "positions along the line up to one scale factor >= 1 (reported for the smallest array "
+    "consistent with the data: the largest |projection| of a direction onto the line is 1, exact when a "
+    "source is at endfire); directions' angles to the line only through that projection",
+    "parallel": "the coordinate of each position along the common direction (scale included); nothing across it",
+    "planar-motion": "not determined: with the directions off the positions' plane the in-plane geometry is "
+    "known only up to a 2 x 2 linear map (each direction's in-plane length is unknown); one member shown",
+    "coplanar-directions": "the in-plane geometry (use dim=2); the out-of-plane coordinate is not observable",
+    "collinear-motion": "positions along the line up to scale (use dim=1)",
+    "parallel-directions": "the coordinate along the common direction (use dim=1)",
+    "cone": "not determined: a one-parameter family of geometries fits the data equally well",
+}

@@ -7,6 +7,9 @@
 - :mod:`.select`: ``offsets="auto"`` (BIC) and ``dim="auto"`` (F test, planarity).
 - :func:`refine_toa` / :class:`NlsSolution` (:mod:`.nls`): the sparse nonlinear least
   squares engine for ``|r_i - s_j| + d_i + o_j``, the only fit of the model.
+- :mod:`.schur_lm`: the Levenberg-Marquardt driver of ``refine_toa`` (dense grid or pairs).
+- :func:`solve_toa_sparse` / :func:`refine_toa_sparse` (:mod:`.sparse`): observed-pairs
+  path for large sparse networks (multilateration growth from a dense seed patch).
 - :func:`toa_crlb` / :class:`CrlbResult` (:mod:`.crlb`): the gauge-free Cramér-Rao bound.
 - :mod:`.mds` (003 Algorithms 1/2, scalable initialiser), :mod:`.offsets` (004 rank-3).
 """
@@ -24,18 +27,22 @@ from .result import (
     residual_test,
 )
 from .solve import solve_toa
+from .sparse import SparseToaResult, refine_toa_sparse, solve_toa_sparse
 
 __all__ = [
     "CrlbResult",
     "GeometryTest",
     "NlsSolution",
     "ResidualTest",
+    "SparseToaResult",
     "ToaResult",
     "geometry_test",
     "n_parameters",
     "refine_toa",
+    "refine_toa_sparse",
     "residual_test",
     "solve_toa",
+    "solve_toa_sparse",
     "toa_crlb",
     "toa_jacobian",
     "toa_model",

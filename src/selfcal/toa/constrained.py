@@ -285,17 +285,22 @@ def _rho(z: Array, loss: str) -> tuple[Array, Array]:
 def refine_constrained(
     Y: Array, r0: Array, s0: Array, offsets: str, con: Constraints, *,
     loss: str, f_scale: float | None, max_nfev: int | None, xtol: float,
-    covariance: bool, noise: float | None,
+    covariance: Any, noise: float | None,
 ) -> Any:
     """Constrained fit of the range model; returns a :class:`selfcal.toa.nls.NlsSolution`.
 
     See the module docstring. Called by :func:`selfcal.toa.nls.refine_toa` only.
+    ``covariance`` is any request of :func:`selfcal.toa.covariance.normalize_covariance`
+    (True / "all", "receivers", "sources", "none" / False, or indices): only the requested
+    node blocks are solved for, the others are NaN, as on the unconstrained path.
     """
     from ..geometry import canonical_gauge
+    from .covariance import resolve_covariance
     from .nls import _TUNING, NlsSolution, _robust_sigma, _unpack, toa_jacobian, toa_residuals
 
     I, J = Y.shape
     d = r0.shape[1]
+    want_r, want_s = resolve_covariance(covariance, I, J)
     has_r, has_s = offsets in ("receivers", "both"), offsets in ("sources", "both")
     obs = np.isfinite(Y)
     _check_counts(obs, con, d)
@@ -420,10 +425,10 @@ def refine_constrained(
     sigma = sigma_of(f, fp)
 
     nr, ns = d + has_r, d + has_s
-    if covariance and np.isfinite(sigma):
+    if (want_r.size or want_s.size) and np.isfinite(sigma):
         Gsol = _residual_gauge(par, con, r, s, offsets)  # the gauge at the solution
         Cr, Cs = _node_covariances(th, Y, d, offsets, par, F, Gsol, TF, prior_pos, wprior, drho,
-                                   m, I, J, has_r, has_s)
+                                   m, I, J, has_r, has_s, want_r, want_s)
         Cr, Cs = Cr * sigma**2, Cs * sigma**2
     else:
         Cr = np.full((I, nr, nr), np.nan)
@@ -491,8 +496,13 @@ def _node_covariances(
     th: Array, Y: Array, d: int, offsets: str, par: _Param, F: NDArray[np.intp], Gx: Array,
     TF: scipy.sparse.csc_matrix, prior_pos: NDArray[np.intp], wprior: Array, drho: Array,
     m: int, I: int, J: int, has_r: bool, has_s: bool,
+    want_r: NDArray[np.intp] | None = None, want_s: NDArray[np.intp] | None = None,
 ) -> tuple[Array, Array]:
-    """Node blocks of ``T P (J^T W J)_pinned^-1 P T^T`` (unit noise), (I, nr, nr), (J, ns, ns)."""
+    """Node blocks of ``T P (J^T W J)_pinned^-1 P T^T`` (unit noise), (I, nr, nr), (J, ns, ns).
+
+    Only the nodes in ``want_r`` / ``want_s`` (None = all) are solved for (one sparse LU,
+    then the columns each requested node touches); the other blocks are NaN.
+    """
     from .nls import _node_indices, toa_jacobian
 
     Jm = toa_jacobian(th, Y, d, offsets) @ TF
@@ -523,12 +533,15 @@ def _node_covariances(
     r_idx, s_idx, _ = _node_indices(I, J, d, offsets)
     T = par.T.tocsr()
     out = []
-    for idx in (r_idx, s_idx):
+    for idx, want in ((r_idx, want_r), (s_idx, want_s)):
         nn, mm = idx.shape
-        blocks = np.zeros((nn, mm, mm))
+        want = np.arange(nn) if want is None else np.asarray(want, np.intp)
+        blocks = np.full((nn, mm, mm), np.nan)
+        blocks[want] = 0.0
         chunk = max(1, 512 // mm)
-        for a in range(0, nn, chunk):
-            sel = idx[a : a + chunk]
+        for a in range(0, want.size, chunk):
+            nodes = want[a : a + chunk]
+            sel = idx[nodes]
             Tsub = T[sel.ravel()]
             cols = np.unique(Tsub.indices)
             if cols.size == 0:
@@ -544,6 +557,6 @@ def _node_covariances(
                 Gs, Ys = Gx[cols], Yg[cols]
                 Css = Css - Gs @ Ys.T - Ys @ Gs.T + Gs @ Z @ Gs.T
             Tc = Tsub[:, cols].toarray().reshape(sel.shape[0], mm, cols.size)
-            blocks[a : a + sel.shape[0]] = np.einsum("npc,cq,nrq->npr", Tc, Css, Tc)
+            blocks[nodes] = np.einsum("npc,cq,nrq->npr", Tc, Css, Tc)
         out.append(blocks)
     return out[0], out[1]

@@ -74,6 +74,9 @@ COVARIANCE_MODES = ("all", "receivers", "sources", "none")
 
 #: doubles per column block of H (K coordinates x E columns): 4 M doubles = 32 MB
 _BLOCK_DOUBLES = 1 << 22
+#: H is kept between the two passes (instead of rebuilt) when it has at most this many
+#: doubles (256 MB); larger networks rebuild it block by block (memory = S + one block)
+_KEEP_H_DOUBLES = 1 << 25
 
 
 # ---------------------------------------------------------------------------
@@ -294,6 +297,8 @@ def gauge_free_blocks(
     Rc = np.empty((nE, mE, mE))
     S = np.zeros((nA, nA), order="F")
     t = QK.copy()
+    keep = nA * nE * mE <= _KEEP_H_DOUBLES
+    Hs: list[Array] = []
     for e0, e1 in blocks:
         aK, bE = _rows(PK, PE[e0:e1], lay)
         wb = wK[:, e0:e1]
@@ -306,6 +311,9 @@ def gauge_free_blocks(
         S = scipy.linalg.blas.dsyrk(-1.0, H.T, beta=1.0, c=S, trans=1, lower=1, overwrite_c=1)
         RtQE = np.einsum("eqp,eqg->epg", Rc[e0:e1], QE[e0:e1]).reshape(-1, g)
         t -= H @ RtQE
+        if keep:
+            Hs.append(H)
+        del H, aK, bE
     idx = np.arange(nK)
     for p in range(mK):
         for q in range(mK):
@@ -330,9 +338,12 @@ def gauge_free_blocks(
     CE = np.full((nE, mE, mE), np.nan)
     wantE = np.zeros(nE, bool)
     wantE[want_E] = True
-    for e0, e1 in blocks:
-        aK, bE = _rows(PK, PE[e0:e1], lay)
-        H = _h_block(aK, bE, wK[:, e0:e1], Rc[e0:e1], pinned)
+    for b_i, (e0, e1) in enumerate(blocks):
+        if keep:
+            H = Hs[b_i]
+        else:
+            aK, bE = _rows(PK, PE[e0:e1], lay)
+            H = _h_block(aK, bE, wK[:, e0:e1], Rc[e0:e1], pinned)
         Rb = Rc[e0:e1]
         YE[e0:e1] -= np.einsum("epq,eqg->epg", Rb, (H.T @ YK).reshape(e1 - e0, mE, g))
         sel = np.flatnonzero(wantE[e0:e1])
@@ -352,7 +363,8 @@ def gauge_free_blocks(
             Linv, info = scipy.linalg.lapack.dtrtri(L, lower=1, overwrite_c=1)
             if info != 0:
                 raise DegenerateGeometryError("singular reduced normal matrix", kind="degenerate-geometry")
-            X = Linv[:, cols]
+            # every column asked for: use L^-1 as it is (a fancy-indexed copy would double the memory)
+            X = Linv if cols.size == nA else Linv[:, cols]
         else:
             E_ = np.zeros((nA, cols.size))
             E_[cols, np.arange(cols.size)] = 1.0

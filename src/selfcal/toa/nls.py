@@ -38,13 +38,15 @@ O(min(I,J)^2 max(I,J) d^3) time for all of them.
 ``scipy.optimize.least_squares(method="trf", x_scale="jac")`` with the analytic
 sparse Jacobian is the alternative solver (``solver="trf"``).
 
-Length (800 lines, above the ~600 guideline): the sparse engine (layout, Jacobian, LM
-driver, fixed masks, constraint glue) shares private layout types.
+Files: the Levenberg-Marquardt driver and its matrix-free reduced operator live in
+:mod:`selfcal.toa.schur_lm`, the covariance in :mod:`selfcal.toa.covariance`, the constrained
+path in :mod:`selfcal.toa.constrained`; this module keeps the model, the Jacobian, the gauge,
+the layout shared by all of them and :func:`refine_toa` (about 630 lines, slightly above the
+~600 guideline because refine_toa's docstring documents every constraint keyword).
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -161,7 +163,13 @@ def toa_model(
     """Modelled range matrix ``|r_i - s_j| + d_i + o_j`` (004 sec. 3 in metres), shape (I, J)."""
     r = np.asarray(receivers, float)
     s = np.asarray(sources, float)
-    D = np.sqrt(((r[:, None, :] - s[None, :, :]) ** 2).sum(-1))
+    # component by component: no (I, J, d) temporary
+    D = np.zeros((r.shape[0], s.shape[0]))
+    for p in range(r.shape[1]):
+        t = np.subtract.outer(r[:, p], s[:, p])
+        t *= t
+        D += t
+    np.sqrt(D, out=D)
     if receiver_offsets is not None:
         D = D + np.asarray(receiver_offsets, float)[:, None]
     if source_offsets is not None:
@@ -307,49 +315,9 @@ def _make_layout(r: Array, s: Array, offsets: str) -> _Layout:
     return _Layout(I, J, d, offsets, k_is_r, k_idx, e_idx, pins, n)
 
 
-def _unit_vectors(theta: Array, lay: _Layout) -> tuple[Array, Array]:
-    """Distances (I, J) and unit vectors u_ij = (r_i - s_j)/|.| (I, J, d)."""
-    r, s, _, _ = _unpack(theta, lay.I, lay.J, lay.d, lay.offsets)
-    diff = r[:, None, :] - s[None, :, :]
-    dist = np.sqrt((diff**2).sum(-1))
-    u = np.divide(diff, dist[..., None], out=np.zeros_like(diff), where=dist[..., None] > 0)
-    return dist, u
-
-
-def _row_blocks(u: Array, lay: _Layout) -> tuple[Array, Array]:
-    """Per-residual Jacobian rows on the K and E nodes: (nK, nE, mK), (nK, nE, mE)."""
-    has_r, has_s = _flags(lay.offsets)
-    ones = np.ones(u.shape[:2] + (1,))
-    a = np.concatenate([u, ones], axis=2) if has_r else u
-    b = np.concatenate([-u, ones], axis=2) if has_s else -u
-    if lay.k_is_receivers:
-        return a, b
-    return np.swapaxes(b, 0, 1), np.swapaxes(a, 0, 1)
-
-
 def _pinned_positions(lay: _Layout) -> NDArray[np.intp]:
     """Positions (in K-node-major order) of the pinned K coordinates."""
     return np.nonzero(np.isin(lay.k_idx.ravel(), lay.pins))[0]
-
-
-def _kept_positions(lay: _Layout) -> NDArray[np.intp]:
-    """Positions (in K-node-major order) of the non-pinned K coordinates."""
-    flat = lay.k_idx.ravel()
-    return np.nonzero(~np.isin(flat, lay.pins))[0]
-
-
-def _inv_blocks(blocks: Array) -> Array:
-    """Inverse of each small symmetric block; an unobservable node raises DegenerateGeometryError."""
-    cond_ok = np.linalg.cond(blocks) < 1e12
-    if not cond_ok.all():
-        bad = int(np.nonzero(~cond_ok)[0][0])
-        raise DegenerateGeometryError(
-            f"node {bad} of the eliminated set is not determined by its observed ranges "
-            "(too few or collinear observations); it needs at least d+1 (+1 per offset) "
-            "ranges to non-collinear partners",
-            kind="unobservable-node",
-        )
-    return np.asarray(np.linalg.inv(blocks), dtype=np.float64)
 
 
 # ---------------------------------------------------------------------------
@@ -402,147 +370,16 @@ def _solve_trf(
     return full(res.x), bool(res.status > 0), int(res.njev or res.nfev)
 
 
-_Op = Callable[[Array], Array]
-
-
-def _reduced_operator(
-    aK: Array, bE: Array, w: Array, damping: float
-) -> tuple[_Op, _Op, _Op, _Op, _Op]:
-    """Matrix-free Schur complement ``S = A - B D^-1 B^T`` of the damped normal matrix.
-
-    Returns ``(S @ x, preconditioner @ x, B @ y, B^T @ x, D^-1 @ y)`` on K / E vectors.
-    No coordinate is pinned here: the Marquardt damping makes S positive definite and
-    the caller projects the gauge out of the step (pinning would create soft modes of
-    relative stiffness ~1/n that slow conjugate gradients down ~3x). The preconditioner is the inverse of the exact d x d diagonal blocks of S
-    (Schur-Jacobi). Every product costs O(nK nE m) instead of the O(nK^2 nE m^2) of
-    forming S, and nothing of size nK x nE x m^2 is stored.
-    """
-    nK, nE, mK = aK.shape
-    mE = bE.shape[2]
-    Ablk = np.einsum("kep,keq->kpq", aK * w[..., None], aK)
-    Dblk = np.einsum("kep,keq->epq", bE * w[..., None], bE)
-    if damping > 0:
-        Ablk = Ablk + damping * np.einsum("kpp->kp", Ablk)[:, :, None] * np.eye(mK)
-        Dblk = Dblk + damping * np.einsum("epp->ep", Dblk)[:, :, None] * np.eye(mE)
-    Dinv = _inv_blocks(Dblk)
-    c = np.einsum("keq,eqr,ker->ke", bE, Dinv, bE, optimize=True) * w**2
-    Sblk = Ablk - np.einsum("ke,kep,keq->kpq", c, aK, aK, optimize=True)
-    Pinv = _inv_blocks(Sblk)
-
-    # component-major copies: the products below are then plain contiguous array
-    # arithmetic, ~2x faster than the equivalent einsum on (nK, nE, m) arrays
-    aT = np.ascontiguousarray(np.moveaxis(aK, 2, 0))
-    bT = np.ascontiguousarray(np.moveaxis(bE, 2, 0))
-
-    def bt(x: Array) -> Array:
-        X = x.reshape(nK, mK)
-        t = aT[0] * X[:, 0:1]
-        for p in range(1, mK):
-            t += aT[p] * X[:, p : p + 1]
-        t *= w
-        return np.stack([np.einsum("ke,ke->e", t, bT[q]) for q in range(mE)], axis=1).ravel()
-
-    def b(y: Array) -> Array:
-        Yv = y.reshape(nE, mE)
-        t = bT[0] * Yv[:, 0]
-        for q in range(1, mE):
-            t += bT[q] * Yv[:, q]
-        t *= w
-        return np.stack([np.einsum("ke,ke->k", t, aT[p]) for p in range(mK)], axis=1).ravel()
-
-    def dinv(y: Array) -> Array:
-        return np.einsum("epq,eq->ep", Dinv, y.reshape(nE, mE)).ravel()
-
-    def smul(x: Array) -> Array:
-        return np.einsum("kpq,kq->kp", Ablk, x.reshape(nK, mK)).ravel() - b(dinv(bt(x)))
-
-    def prec(x: Array) -> Array:
-        return np.einsum("kpq,kq->kp", Pinv, x.reshape(nK, mK)).ravel()
-
-    return smul, prec, b, bt, dinv
-
-
-def _solve_schur_lm(
+def _solve_schur(
     theta0: Array, Y: Array, lay: _Layout, loss: str, f_scale: float, max_nfev: int | None, xtol: float
 ) -> tuple[Array, bool, int]:
-    """Levenberg-Marquardt (Marquardt diagonal damping) on the Schur-reduced normal equations.
+    """The Schur LM engine of :mod:`selfcal.toa.schur_lm` with this layout's gauge basis."""
+    from .schur_lm import solve_schur_lm
 
-    Each step solves the reduced system on the smaller node set by conjugate
-    gradients with a Schur-Jacobi preconditioner (inexact Newton; Agarwal et al.,
-    "Bundle adjustment in the large", 2010), then back-substitutes the eliminated
-    nodes. Robust losses use iteratively reweighted normal equations with weights
-    rho'(z), whose fixed points are the stationary points of the robust cost.
-    """
-    from scipy.sparse.linalg import LinearOperator, cg
+    def gauge(theta: Array) -> Array:
+        return gauge_basis(*_unpack(theta, lay.I, lay.J, lay.d, lay.offsets)[:2], lay.offsets)
 
-    obs = np.isfinite(Y)
-    Yz = np.where(obs, Y, 0.0)
-
-    def evaluate(theta: Array) -> tuple[float, Array, Array]:
-        r, s, dr, os_ = _unpack(theta, lay.I, lay.J, lay.d, lay.offsets)
-        f = np.where(obs, toa_model(r, s, dr, os_) - Yz, 0.0)
-        z = (f / f_scale) ** 2
-        rho, drho = _rho(z, loss)
-        cost = 0.5 * f_scale**2 * float(rho[obs].sum())
-        return cost, f, np.where(obs, drho, 0.0)
-
-    ftol = 1e-8  # relative cost decrease that stops the iteration (scipy's default)
-    theta = theta0.copy()
-    cost, f, w = evaluate(theta)
-    g0 = 1.0
-    lam = 1e-4
-    converged = False
-    max_it = max_nfev or 100
-    it = 0
-    nk = lay.k_idx.size
-    while it < max_it:
-        it += 1
-        _, u = _unit_vectors(theta, lay)
-        aK, bE = _row_blocks(u, lay)
-        Qg = gauge_basis(*_unpack(theta, lay.I, lay.J, lay.d, lay.offsets)[:2], lay.offsets)
-        fK = f if lay.k_is_receivers else f.T
-        wK = w if lay.k_is_receivers else w.T
-        gK = np.einsum("kep,ke->kp", aK, wK * fK).ravel()
-        gE = np.einsum("kep,ke->ep", bE, wK * fK).ravel()
-        gnorm = float(np.sqrt(gK @ gK + gE @ gE))
-        g0 = gnorm if it == 1 else g0
-        # inexact Newton forcing term (Eisenstat-Walker style): loose CG solves far from
-        # the minimum, tight ones once the gradient has dropped (keeps the fast local rate)
-        cg_rtol = float(np.clip(gnorm / max(g0, 1e-300), 1e-8, 1e-3))
-        improved = False
-        for _ in range(12):
-            try:
-                smul, prec, b, bt, dinv = _reduced_operator(aK, bE, wK, lam)
-            except DegenerateGeometryError:
-                lam *= 10
-                continue
-            rhs = -gK + b(dinv(gE))
-            op = LinearOperator((nk, nk), matvec=smul, dtype=float)
-            pc = LinearOperator((nk, nk), matvec=prec, dtype=float)
-            x, _ = cg(op, rhs, rtol=cg_rtol, maxiter=500, M=pc)
-            y = dinv(-gE - bt(x))
-            step = np.zeros(lay.n)
-            step[lay.k_idx.ravel()] = x
-            step[lay.e_idx.ravel()] = y
-            step -= Qg @ (Qg.T @ step)  # no rigid drift (and no common offset shift)
-            trial = theta + step
-            c2, f2, w2 = evaluate(trial)
-            if c2 <= cost:
-                small = np.linalg.norm(step) <= xtol * (xtol + np.linalg.norm(theta))
-                rel = (cost - c2) <= ftol * max(cost, 1e-300)
-                theta, cost, f, w = trial, c2, f2, w2
-                lam = max(lam / 10, 1e-8)
-                improved = True
-                converged = bool(small or rel)
-                break
-            lam *= 10
-        if not improved:
-            # no damped step descends: a minimum up to round-off if the gradient is tiny
-            converged = gnorm <= 1e-6 * max(1.0, np.sqrt(2 * cost))
-            break
-        if converged:
-            break
-    return theta, converged, it
+    return solve_schur_lm(theta0, Y, lay, loss, f_scale, max_nfev, xtol, gauge)
 
 
 def __getattr__(name: str) -> Any:
@@ -684,7 +521,7 @@ def refine_toa(
                                             source_offsets0=os0, **cons)
         return _constrained.refine_constrained(  # type: ignore[no-any-return]
             Y, r0, s0, offsets, con, loss=loss, f_scale=f_scale, max_nfev=max_nfev, xtol=xtol,
-            covariance=not (covariance is False or (isinstance(covariance, str) and covariance == "none")), noise=check_positive(noise, "noise"))
+            covariance=covariance, noise=check_positive(noise, "noise"))
 
     cov_r, cov_s = resolve_covariance(covariance, I, J)
     theta0 = _pack(r0, s0, dr0, os0)
@@ -702,7 +539,7 @@ def refine_toa(
     # "auto" = Schur LM: measured faster than least_squares at every size we tried (8x10 to
     # 1000x1000), see benchmarks/bench_toa.py; "trf" stays available as the reference
     use_trf = solver == "trf"
-    run = _solve_trf if use_trf else _solve_schur_lm
+    run = _solve_trf if use_trf else _solve_schur
 
     if loss == "linear":
         fs = 1.0

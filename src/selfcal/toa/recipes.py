@@ -21,8 +21,14 @@ does not use, and exploits it before the fit. Each is an option of ``calibrate t
     (a UWB tag on a drone, a loudspeaker carried around). Each row is then a smooth
     function of time, and multipath / non-line-of-sight returns are isolated spikes in
     it. They are removed before the fit by a leave-one-out robust local quadratic in time
-    per row (a Hampel identifier, :func:`selfcal.toa.preprocess.reject_range_outliers`,
-    3.5 robust standard deviations: a Gaussian entry is flagged with probability 5e-4).
+    per row (a Hampel identifier, :func:`selfcal.toa.preprocess.reject_range_outliers`).
+    Only entries *above* the local prediction are tested (``one_sided=True``): a
+    reflected or obstructed path is longer than the direct one, never shorter. The
+    threshold (``threshold="bonferroni"``, :func:`spike_threshold`) is the normal quantile
+    ``Phi^-1(1 - alpha / m)`` over the ``m`` observed entries, alpha = 1 %: on Gaussian
+    noise no entry of the whole recording is rejected with probability 99 %, the same
+    false-alarm rule as the solver's own outlier test (about 4.5 robust sigmas for a
+    6 x 600 flight).
     Tag positions left with fewer than ``dim + 1`` ranges cannot be located (``dim``
     ranges fix a point only up to a mirror image) and are dropped and reported; the
     result has NaN rows for them.
@@ -51,7 +57,8 @@ from .._checks import as_matrix, check_choice
 from ..errors import InputError
 from ..robust import mad_std
 
-__all__ = ["RECIPES", "RecipeResult", "TimeOrderTest", "apply_recipe", "detect_time_order", "moving_tag"]
+__all__ = ["RECIPES", "RecipeResult", "TimeOrderTest", "apply_recipe", "detect_time_order", "moving_tag",
+           "spike_threshold"]
 
 Array = NDArray[np.float64]
 
@@ -205,6 +212,15 @@ def _embed_columns(result: Any, keep: NDArray[np.bool_], J: int, M: Array) -> An
         res = np.full((M.shape[0], J), np.nan)
         res[:, keep] = result.residuals
         kw["residuals"] = res
+    if getattr(result, "outliers", None) is not None:
+        out = np.zeros((M.shape[0], J), bool)
+        out[:, keep] = result.outliers
+        kw["outliers"] = out
+    if "dropped_sources" in names:
+        # the solver's drops are in the kept columns' numbering; every NaN row is reported
+        cols = np.nonzero(keep)[0]
+        solver = {int(cols[j]) for j in getattr(result, "dropped_sources", ())}
+        kw["dropped_sources"] = tuple(sorted(solver | {int(j) for j in np.nonzero(~keep)[0]}))
     if "n_missing" in names:
         kw["n_missing"] = int((~np.isfinite(M)).sum())
     return dataclasses.replace(result, **{k: v for k, v in kw.items() if k in names})
@@ -215,9 +231,10 @@ def moving_tag(
     *,
     times: Any = None,
     dim: int = 3,
-    threshold: float = 3.5,
+    threshold: float | str = "bonferroni",
     half_window: int = 7,
     degree: int = 2,
+    one_sided: bool = True,
     common_offset: str = "free",
     speed: float | None = None,
     **solve_kw: Any,
@@ -230,8 +247,12 @@ def moving_tag(
         columns = tag positions **in time order**; NaN = missing.
     times: (J,) increasing sample times (any unit); default equally spaced.
     dim: 2 or 3.
-    threshold, half_window, degree: of the spike detector
-        (:func:`selfcal.toa.preprocess.reject_range_outliers`).
+    threshold, half_window, degree, one_sided: of the spike detector
+        (:func:`selfcal.toa.preprocess.reject_range_outliers`). ``threshold`` in robust
+        standard deviations, or ``"bonferroni"``: the normal quantile that flags any
+        Gaussian entry of the matrix with probability at most
+        :data:`selfcal.toa.robust.OUTLIER_ALPHA` (:func:`spike_threshold`), the same
+        false-alarm rule as the solver's own outlier test.
     common_offset: "free" (default: the fit as ``solve_toa`` does it with the
         ``offsets`` given in ``solve_kw``) or "profile" (opt-in: per-anchor offsets whose
         common part minimises the trimmed residual scale,
@@ -272,8 +293,13 @@ def moving_tag(
     M = as_matrix(matrix, "matrix")
     I, J = M.shape
     scale = 1.0 if speed is None else float(speed)
+    if isinstance(threshold, str):
+        check_choice(threshold, "threshold", ("bonferroni",))
+        k = spike_threshold(M, one_sided)
+    else:
+        k = float(threshold)
     rej = reject_range_outliers(M * scale, times, half_window=half_window, degree=degree,
-                                threshold=threshold)
+                                threshold=k, one_sided=one_sided)
     cleaned = rej.ranges / scale
     keep = np.isfinite(cleaned).sum(axis=0) >= dim + 1
     dropped = tuple(int(j) for j in np.nonzero(~keep)[0])
@@ -281,8 +307,9 @@ def moving_tag(
         raise InputError(f"after spike rejection only {int(keep.sum())} tag positions keep {dim + 1} "
                          "ranges; the recording is too short or too sparse for this recipe")
     sub = cleaned[:, keep]
-    details: dict[str, Any] = {"threshold": float(threshold), "half_window": int(half_window),
-                               "degree": int(degree), "common_offset": common_offset}
+    details: dict[str, Any] = {"threshold": float(k), "half_window": int(half_window),
+                               "degree": int(degree), "one_sided": bool(one_sided),
+                               "common_offset": common_offset}
     if common_offset == "profile":
         offs = solve_kw.pop("offsets", "receivers")
         if offs not in ("none", "receivers"):
@@ -296,6 +323,27 @@ def moving_tag(
         res = solve_toa(sub, dim=dim, speed=speed, **solve_kw)
     res = _embed_columns(res, keep, J, M)
     return RecipeResult(res, "moving-tag", rej.outliers, dropped, (), details)
+
+
+def spike_threshold(matrix: Any, one_sided: bool = False, alpha: float | None = None) -> float:
+    """Spike threshold (robust sigmas) with family-wise false-alarm rate ``alpha`` over the matrix.
+
+    ``k = Phi^-1(1 - alpha / m)`` one-sided (only positive spikes tested), ``Phi^-1(1 - alpha /
+    (2 m))`` two-sided, ``m`` the observed entries (Bonferroni): under Gaussian noise the
+    probability that any clean entry is rejected is at most ``alpha`` (default
+    :data:`selfcal.toa.robust.OUTLIER_ALPHA`, 1 %), whatever the recording's length.
+
+    Examples
+    --------
+    >>> round(spike_threshold(np.ones((6, 600)), one_sided=True), 2)
+    4.54
+    """
+    from .robust import OUTLIER_ALPHA, outlier_threshold
+
+    a = OUTLIER_ALPHA if alpha is None else float(alpha)
+    m = int(np.isfinite(np.asarray(matrix, float)).sum())
+    # outlier_threshold is the two-sided quantile Phi^-1(1 - a / (2 m)); one-sided = twice a
+    return outlier_threshold(m, 2 * a if one_sided else a)
 
 
 def _plain(kw: dict[str, Any]) -> dict[str, Any]:

@@ -218,16 +218,16 @@ def _additive_leverages(obs: NDArray[np.bool_], rows: bool, cols: bool, max_unkn
     """Leverages of the additive model's design at the observed entries (mean n / m when large)."""
     I, J = obs.shape
     ii, jj = np.nonzero(obs)
+    n = 1 + (I - 1 if rows else 0) + (J - 1 if cols else 0)
+    H = np.full(obs.shape, np.nan)
+    if n > max_unknowns or ii.size * n > 5e7:  # decided before any (entries x n) array is built
+        H[obs] = min(n / max(ii.size, 1), 1.0)
+        return H
     cols_ = [np.ones((ii.size, 1))]
     if rows:
         cols_.append(np.eye(I)[ii][:, 1:])
     if cols:
         cols_.append(np.eye(J)[jj][:, 1:])
-    n = sum(c.shape[1] for c in cols_)
-    H = np.full(obs.shape, np.nan)
-    if n > max_unknowns or ii.size * n > 5e7:
-        H[obs] = min(n / max(ii.size, 1), 1.0)
-        return H
     X = np.hstack(cols_)
     U, sv, _ = np.linalg.svd(X, full_matrices=False)
     rank = int(np.sum(sv > sv[0] * 1e-10))

@@ -142,12 +142,30 @@ def _mds(method: str) -> _Init:
     return init
 
 
+def _scaled(Y: Array, dim: int, offsets: str, rng: np.random.Generator) -> list[Start]:
+    """Random starts at the data's distance bounds (selfcal.toa.scaled_starts), only where no
+    other initialiser has information on the offsets: both kinds, rank-d method not identifiable."""
+    from . import offsets as off
+    from .scaled_starts import scaled_random_starts
+
+    if offsets != "both":
+        return []
+    try:
+        off.check_rank_identifiable(Y.shape[0], Y.shape[1], dim)
+        return []
+    except DegenerateGeometryError:
+        return scaled_random_starts(Y, dim, offsets, rng, n=SCALED_STARTS)
+
+
+#: random starts of the "scaled" initialiser (a share of the search's one budget)
+SCALED_STARTS = 8
 #: the initialisers, in the order the search runs them (small networks run all of them)
 INITIALISERS: dict[str, _Init] = {
     "rank3": _rank3,
     "mds-rank": _mds("rank"),
     "mds-multilat": _mds("mds-multilat"),
     "mds-alg2": _mds("alg2"),
+    "scaled": _scaled,
 }
 #: the one initialiser of large networks (I + J > MOVES_MAX_NODES): the affordable 003 choice
 LARGE_INITIALISERS = ("rank3", "mds-auto")

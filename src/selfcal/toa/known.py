@@ -1,0 +1,187 @@
+"""Known node positions for a TOA calibration: constrain the fit and set the frame.
+
+``known=`` (``--known FILE.csv``, ``name,x,y,z[,std]``): the blind solution is moved onto
+the known nodes by a weighted least-squares rigid motion (Kabsch), then refined by
+:func:`selfcal.toa.nls.refine_toa` with the exact nodes as fixed rows and the others as
+Gaussian priors. ``k`` affinely independent known nodes fix a rigid motion in ``d``
+dimensions only when ``k >= d + 1``; what they leave open (a mirror, a rotation about a
+line, every rotation) is held at the blind solution's canonical gauge and reported in
+:class:`selfcal.toa.nodes.FrameInfo`. Re-exported by :mod:`selfcal.toa.frame`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ..errors import DegenerateGeometryError
+from .nodes import FramedToaResult, FrameInfo, KnownNode, node_positions, replace_fields, units
+
+__all__ = ["fit_known"]
+
+Array = NDArray[np.float64]
+
+_RANK_TOL = 1e-6  # relative singular value below which known nodes are called degenerate
+
+
+def _affine_rank(P: Array) -> tuple[int, float]:
+    if P.shape[0] < 2:
+        return 0, 0.0
+    sv = np.linalg.svd(P - P.mean(0), compute_uv=False)
+    return int((sv > _RANK_TOL * max(sv[0], 1e-300)).sum()), float(sv[0])
+
+
+def _rigid(X: Array, Y: Array, w: Array, allow_reflection: bool) -> tuple[Array, Array]:
+    """Weighted least-squares rigid motion ``y = R x + t`` (Kabsch, Umeyama 1991)."""
+    from ..geometry import align
+
+    if X.shape[0] == 1:
+        return np.eye(X.shape[1]), Y[0] - X[0]
+    al = align(X, Y, reflection=allow_reflection, weights=w)
+    return al.rotation, al.translation
+
+
+def fit_known(
+    matrix: Any, result: Any, known: Sequence[KnownNode], *, offsets: str = "none",
+    loss: str = "linear", f_scale: float | None = None, noise: float | None = None,
+    max_nfev: int | None = None, covariance: bool = True,
+) -> FramedToaResult:
+    """Constrain a calibration by known node positions and express it in their frame.
+
+    1. Move the blind ``result`` onto the known nodes by the weighted least-squares rigid
+       motion (weights ``1 / std^2``, exact nodes weighted as the most certain ones;
+       reflection allowed only when the known nodes span the space, ``rank = d``).
+    2. Refine with :func:`selfcal.toa.nls.refine_toa`: exact nodes are fixed rows, the
+       others Gaussian priors ``N(position, std^2 I)``; the noise that weights the priors
+       is ``noise`` when given, else estimated by the fit.
+
+    Parameters
+    ----------
+    matrix: the (I, J) ranges (metres) or times (seconds with the result's ``speed``).
+    result: the blind :class:`selfcal.toa.solve.ToaResult`.
+    known: from :func:`parse_known`.
+    offsets, loss, f_scale, max_nfev, covariance: as for :func:`selfcal.toa.nls.refine_toa`
+        (``f_scale`` / ``noise`` in the matrix's units).
+    noise: range noise std in the matrix's units, weighting the priors.
+
+    Returns
+    -------
+    :class:`FramedToaResult` whose positions are in the known frame.
+    """
+    from .nls import refine_toa
+
+    c = units(result)
+    Y = np.asarray(matrix, float) * c
+    R0 = np.asarray(result.receivers, float)
+    S0 = np.asarray(result.sources, float)
+    I, d = R0.shape
+    J = S0.shape[0]
+    ok_r, ok_s = np.isfinite(R0).all(1), np.isfinite(S0).all(1)
+    usable = [k for k in known if (ok_r if k.kind == "receiver" else ok_s)[k.index]]
+    dropped = [k.name for k in known if k not in usable]
+    if not usable:
+        raise DegenerateGeometryError("none of the known nodes has an estimated position", kind="degenerate-frame")
+    est = np.array([node_positions(result, k.kind)[k.index] for k in usable])
+    ref = np.array([k.position for k in usable], float)
+    stds = np.array([k.std if k.std is not None else 0.0 for k in usable])
+    rank, spread = _affine_rank(ref)
+    tiny = max(1e-3 * spread, 1e-9) if spread > 0 else 1e-3
+    w = 1.0 / np.maximum(stds, tiny * 1e-3) ** 2
+    full = rank == d
+    # (a) align on the known nodes; the undetermined part stays at the canonical gauge
+    # (reflection is a choice only when the references span the space)
+    Rm, t = _rigid(est, ref, w, allow_reflection=full)
+    before = float(np.sqrt(np.mean(np.sum((est @ Rm.T + t - ref) ** 2, axis=1))))
+    Ra, Sa = R0 @ Rm.T + t, S0 @ Rm.T + t
+    # (b) the constrained refit
+    fr = np.zeros((I, d), bool)
+    fs = np.zeros((J, d), bool)
+    pr_m, pr_s = np.full((I, d), np.nan), np.full((J, d), np.nan)
+    pr_sd, ps_sd = np.ones(I), np.ones(J)
+    for k in usable:
+        pts, mask, mu, sd = (Ra, fr, pr_m, pr_sd) if k.kind == "receiver" else (Sa, fs, pr_s, ps_sd)
+        if k.std is None:
+            pts[k.index] = k.position
+            mask[k.index] = True
+        else:
+            mu[k.index] = k.position
+            sd[k.index] = k.std
+    kw: dict[str, Any] = {}
+    if fr.any():
+        kw["fixed_receivers"] = fr[ok_r]
+    if fs.any():
+        kw["fixed_sources"] = fs[ok_s]
+    if np.isfinite(pr_m).any():
+        kw["receiver_prior"] = (pr_m[ok_r], pr_sd[ok_r])
+    if np.isfinite(pr_s).any():
+        kw["source_prior"] = (pr_s[ok_s], ps_sd[ok_s])
+    do = None if result.receiver_offsets is None else np.asarray(result.receiver_offsets, float)[ok_r] * c
+    so = None if result.source_offsets is None else np.asarray(result.source_offsets, float)[ok_s] * c
+    sol = refine_toa(Y[np.ix_(ok_r, ok_s)], Ra[ok_r], Sa[ok_s], offsets=offsets, receiver_offsets0=do,
+                     source_offsets0=so, loss=loss, f_scale=None if f_scale is None else f_scale * c,
+                     noise=None if noise is None else noise * c, max_nfev=max_nfev,
+                     covariance=covariance, **kw)
+    out = _embed(result, sol, ok_r, ok_s, c, f"{result.method}+known({len(usable)})")
+    fitted = np.array([node_positions(out, k.kind)[k.index] for k in usable])
+    after = float(np.sqrt(np.mean(np.sum((fitted - ref) ** 2, axis=1))))
+    info = _known_info(usable, rank, d, before, after, dropped)
+    return FramedToaResult(out, info)
+
+
+def _known_info(usable: Sequence[KnownNode], rank: int, d: int, before: float, after: float,
+                dropped: Sequence[str]) -> FrameInfo:
+    names = tuple(k.name for k in usable)
+    # continuous freedoms left by k affinely independent points in d dimensions
+    rot = d * (d - 1) // 2
+    if rank >= d:
+        gauge, mirror = 0, True
+        msg = f"frame fully determined by {len(usable)} known nodes"
+    else:
+        mirror = False
+        if rank == 0:
+            gauge = rot  # translation fixed by the one point, every rotation free
+            what = "every rotation about it and the mirror image"
+        elif d == 3 and rank == 1:
+            gauge = 1
+            what = "the rotation about the line through them and the mirror image"
+        else:
+            gauge = 0
+            what = "the mirror image through their " + ("plane" if d == 3 else "line")
+        msg = (f"{len(usable)} known node(s) of affine rank {rank} leave {what} undetermined: "
+               "held at the blind solution's canonical gauge (proper rotation); add a known node "
+               f"off their {'plane' if rank == 2 else 'line' if rank == 1 else 'point'} to fix it")
+    if dropped:
+        msg += f"; known node(s) without an estimate ignored: {', '.join(dropped)}"
+    return FrameInfo(kind="known", references=names, rank=rank, determined=rank >= d, residual_gauge=gauge,
+                     mirror_resolved=mirror, message=msg, known_rms=before, known_rms_fit=after)
+
+
+def _embed(result: Any, sol: Any, ok_r: NDArray[np.bool_], ok_s: NDArray[np.bool_], c: float,
+           method: str) -> Any:
+    """A copy of ``result`` with the (sub-network) NlsSolution ``sol`` written in."""
+    I, d = np.asarray(result.receivers).shape
+    J = np.asarray(result.sources).shape[0]
+
+    def put(n: int, ok: NDArray[np.bool_], val: Array | None, shape: tuple[int, ...], k: float = 1.0) -> Array | None:
+        if val is None:
+            return None
+        out = np.full((n,) + shape, np.nan)
+        out[ok] = np.asarray(val) * k
+        return out
+
+    res = np.full((I, J), np.nan)
+    res[np.ix_(ok_r, ok_s)] = sol.residuals / c
+    return replace_fields(
+        result,
+        receivers=put(I, ok_r, sol.receivers, (d,)), sources=put(J, ok_s, sol.sources, (d,)),
+        receiver_offsets=put(I, ok_r, sol.receiver_offsets, (), 1 / c),
+        source_offsets=put(J, ok_s, sol.source_offsets, (), 1 / c),
+        receiver_cov=put(I, ok_r, sol.receiver_cov, (d, d)), source_cov=put(J, ok_s, sol.source_cov, (d, d)),
+        receiver_offset_std=put(I, ok_r, sol.receiver_offset_std, (), 1 / c),
+        source_offset_std=put(J, ok_s, sol.source_offset_std, (), 1 / c),
+        residual_rms=sol.residual_rms / c, sigma=sol.sigma / c, converged=sol.converged,
+        iterations=int(result.iterations) + int(sol.iterations), method=method, residuals=res,
+    )

@@ -1,0 +1,380 @@
+"""Levenberg-Marquardt on the Schur-reduced normal equations (the default engine of refine_toa).
+
+The residual of entry (k, e) of the range matrix, oriented with the *kept* node set K
+(the smaller one, :class:`selfcal.toa.nls._Layout`) in the rows, is::
+
+    f_ke = |x_k - x_e| + o_k + o_e - y_ke          (003 eq. 2; 004 sec. 3 offsets)
+
+so its Jacobian row is ``a_ke = [U_ke, 1?]`` on node k and ``b_ke = [-U_ke, 1?]`` on
+node e, with the unit vector ``U_ke = (x_k - x_e) / |x_k - x_e|``. Everything the solver
+needs is a sum over the observed pairs of products of the d component arrays ``U_p``
+(each nK x nE, the size of the data) with the weights ``w`` and the residuals ``f``:
+
+- the diagonal blocks ``A_k = sum_e w a a^T`` and ``D_e = sum_k w b b^T`` (both from the
+  same products ``w U_p U_q``, summed over the other axis);
+- the Schur-Jacobi preconditioner, the exact d x d diagonal blocks of
+  ``S = A - B D^-1 B^T``: ``S_k = A_k - sum_e c_ke a a^T`` with ``c = w^2 b^T D_e^-1 b``;
+- the products ``B^T x`` and ``B y`` of one CG step: ``(m_K + m_E)`` multiply-adds of
+  nK x nE arrays each.
+
+Component-major storage (d arrays of nK x nE, never an (nK, nE, d) tensor and its
+transposed copies) keeps the working set at ~(d + 4) times the data and lets every
+product run as plain contiguous array arithmetic. Cost per CG product O(nK nE (m_K + m_E)),
+per Levenberg-Marquardt iteration O(nK nE d^2) for the blocks; nothing of size
+(nK d) x (nE d) is formed (Agarwal et al., "Bundle adjustment in the large", 2010, for the
+inexact-Newton Schur scheme).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ..errors import DegenerateGeometryError
+from ..robust import loss_rho
+
+Array = NDArray[np.float64]
+
+__all__ = ["solve_schur_lm"]
+
+
+def _inv_blocks(blocks: Array) -> Array:
+    """Inverse of each small symmetric block; an unobservable node raises DegenerateGeometryError."""
+    cond_ok = np.linalg.cond(blocks) < 1e12
+    if not cond_ok.all():
+        bad = int(np.nonzero(~cond_ok)[0][0])
+        raise DegenerateGeometryError(
+            f"node {bad} of the eliminated set is not determined by its observed ranges "
+            "(too few or collinear observations); it needs at least d+1 (+1 per offset) "
+            "ranges to non-collinear partners",
+            kind="unobservable-node",
+        )
+    return np.asarray(np.linalg.inv(blocks), dtype=np.float64)
+
+
+class Grid:
+    """All nK x nE pairs as 2-D arrays (dense data; missing entries carry weight 0)."""
+
+    def __init__(self, nK: int, nE: int) -> None:
+        self.nK, self.nE = nK, nE
+
+    def pairs(self, a: Array, b: Array) -> Array:
+        """``a_k - b_e`` for every pair."""
+        return np.subtract.outer(a, b)
+
+    def kx(self, v: Array) -> Array:
+        """A per-K-node value on every pair."""
+        return v[:, None]
+
+    def ex(self, v: Array) -> Array:
+        """A per-E-node value on every pair."""
+        return v[None, :]
+
+    def ksum(self, a: Array, b: Array | None = None) -> Array:
+        """``sum_e a b`` per K node."""
+        return a.sum(1) if b is None else np.einsum("ke,ke->k", a, b)
+
+    def esum(self, a: Array, b: Array | None = None) -> Array:
+        """``sum_k a b`` per E node."""
+        return a.sum(0) if b is None else np.einsum("ke,ke->e", a, b)
+
+
+class Pairs(Grid):
+    """Only the observed pairs ``(k[m], e[m])`` as 1-D arrays (sparse data)."""
+
+    def __init__(self, k: NDArray[np.intp], e: NDArray[np.intp], nK: int, nE: int) -> None:
+        super().__init__(nK, nE)
+        self.k, self.e = k, e
+
+    def pairs(self, a: Array, b: Array) -> Array:
+        return a[self.k] - b[self.e]
+
+    def kx(self, v: Array) -> Array:
+        return v[self.k]
+
+    def ex(self, v: Array) -> Array:
+        return v[self.e]
+
+    def ksum(self, a: Array, b: Array | None = None) -> Array:
+        return np.bincount(self.k, a if b is None else a * b, minlength=self.nK)
+
+    def esum(self, a: Array, b: Array | None = None) -> Array:
+        return np.bincount(self.e, a if b is None else a * b, minlength=self.nE)
+
+
+class _Oriented:
+    """The parameter vector split into kept / eliminated positions and offsets (views)."""
+
+    def __init__(self, lay: object) -> None:
+        self.lay = lay
+        self.hasK = lay.k_idx.shape[1] > lay.d  # type: ignore[attr-defined]
+        self.hasE = lay.e_idx.shape[1] > lay.d  # type: ignore[attr-defined]
+
+    def split(self, theta: Array) -> tuple[Array, Array, Array | None, Array | None]:
+        lay = self.lay
+        d = lay.d  # type: ignore[attr-defined]
+        K = theta[lay.k_idx]  # type: ignore[attr-defined]
+        E = theta[lay.e_idx]  # type: ignore[attr-defined]
+        return K[:, :d], E[:, :d], (K[:, d] if self.hasK else None), (E[:, d] if self.hasE else None)
+
+
+def directions(xK: Array, xE: Array, pat: Grid) -> tuple[list[Array], Array]:
+    """Unit-vector components ``U_p`` (d arrays, one value per pair) and the distances.
+
+    ``U = (x_k - x_e) / |x_k - x_e|``, zero where two points coincide (the range is not
+    differentiable there).
+    """
+    U = [pat.pairs(xK[:, p], xE[:, p]) for p in range(xK.shape[1])]
+    dist = U[0] * U[0]
+    for Up in U[1:]:
+        dist += Up * Up
+    np.sqrt(dist, out=dist)
+    inv = np.divide(1.0, dist, out=np.zeros_like(dist), where=dist > 0)
+    for Up in U:
+        Up *= inv
+    return U, dist
+
+
+class _Reduced:
+    """Matrix-free damped Schur complement ``S = A - B D^-1 B^T`` on the kept nodes.
+
+    No coordinate is pinned: the Marquardt damping makes S positive definite and the caller
+    projects the gauge out of the step (pinning would create soft modes of relative stiffness
+    ~1/n that slow conjugate gradients down ~3x). The preconditioner is the inverse of the exact
+    diagonal blocks of S (Schur-Jacobi).
+    """
+
+    def __init__(self, U: list[Array], w: Array, hasK: bool, hasE: bool, damping: float, pat: Grid) -> None:
+        d = len(U)
+        nK, nE = pat.nK, pat.nE
+        self.U, self.w, self.hasK, self.hasE, self.d, self.pat = U, w, hasK, hasE, d, pat
+        self.mK, self.mE = d + hasK, d + hasE
+        A = np.zeros((nK, self.mK, self.mK))
+        D = np.zeros((nE, self.mE, self.mE))
+        for p in range(d):
+            wUp = w * U[p]  # one temporary at a time: the working set stays ~(d + 4) x the data
+            for q in range(p, d):
+                A[:, p, q] = pat.ksum(wUp, U[q])
+                D[:, p, q] = pat.esum(wUp, U[q])
+            if hasK:
+                A[:, p, d] = pat.ksum(wUp)
+            if hasE:
+                D[:, p, d] = -pat.esum(wUp)
+            del wUp
+        if hasK:
+            A[:, d, d] = pat.ksum(w)
+        if hasE:
+            D[:, d, d] = pat.esum(w)
+        A = np.triu(A) + np.swapaxes(np.triu(A, 1), 1, 2)
+        D = np.triu(D) + np.swapaxes(np.triu(D, 1), 1, 2)
+        if damping > 0:
+            A = A + damping * np.einsum("kpp->kp", A)[:, :, None] * np.eye(self.mK)
+            D = D + damping * np.einsum("epp->ep", D)[:, :, None] * np.eye(self.mE)
+        self.A = A
+        self.Dinv = Dinv = _inv_blocks(D)
+        # c = w^2 b^T D_e^-1 b with b = [-U, 1?]
+        c = np.zeros_like(w)
+        for p in range(d):
+            for q in range(p, d):
+                c += U[p] * U[q] * pat.ex((1.0 if p == q else 2.0) * Dinv[:, p, q])
+            if hasE:
+                c -= U[p] * pat.ex(2.0 * Dinv[:, p, d])
+        if hasE:
+            c += pat.ex(Dinv[:, d, d])
+        c *= w
+        c *= w
+        Sb = A.copy()
+        for p in range(d):
+            cUp = c * U[p]
+            for q in range(p, d):
+                v = pat.ksum(cUp, U[q])
+                Sb[:, p, q] -= v
+                if q != p:
+                    Sb[:, q, p] -= v
+            if hasK:
+                v = pat.ksum(cUp)
+                Sb[:, p, d] -= v
+                Sb[:, d, p] -= v
+            del cUp
+        if hasK:
+            Sb[:, d, d] -= pat.ksum(c)
+        self.Pinv = _inv_blocks(Sb)
+
+    def bt(self, x: Array) -> Array:
+        """``B^T x``: K vector (nK mK,) to E vector (nE mE,)."""
+        d, pat = self.d, self.pat
+        X = x.reshape(-1, self.mK)
+        t = self.U[0] * pat.kx(X[:, 0])
+        for p in range(1, d):
+            t += self.U[p] * pat.kx(X[:, p])
+        if self.hasK:
+            t += pat.kx(X[:, d])
+        t *= self.w
+        out = np.empty((pat.nE, self.mE))
+        for q in range(d):
+            out[:, q] = -pat.esum(t, self.U[q])
+        if self.hasE:
+            out[:, d] = pat.esum(t)
+        return out.ravel()
+
+    def b(self, y: Array) -> Array:
+        """``B y``: E vector (nE mE,) to K vector (nK mK,)."""
+        d, pat = self.d, self.pat
+        Yv = y.reshape(-1, self.mE)
+        t = self.U[0] * pat.ex(-Yv[:, 0])
+        for q in range(1, d):
+            t -= self.U[q] * pat.ex(Yv[:, q])
+        if self.hasE:
+            t += pat.ex(Yv[:, d])
+        t *= self.w
+        out = np.empty((pat.nK, self.mK))
+        for p in range(d):
+            out[:, p] = pat.ksum(t, self.U[p])
+        if self.hasK:
+            out[:, d] = pat.ksum(t)
+        return out.ravel()
+
+    def dinv(self, y: Array) -> Array:
+        return np.einsum("epq,eq->ep", self.Dinv, y.reshape(-1, self.mE)).ravel()
+
+    def smul(self, x: Array) -> Array:
+        return np.einsum("kpq,kq->kp", self.A, x.reshape(-1, self.mK)).ravel() - self.b(self.dinv(self.bt(x)))
+
+    def prec(self, x: Array) -> Array:
+        return np.einsum("kpq,kq->kp", self.Pinv, x.reshape(-1, self.mK)).ravel()
+
+
+def solve_schur_lm(
+    theta0: Array, Y: Array, lay: object, loss: str, f_scale: float, max_nfev: int | None, xtol: float,
+    gauge: Callable[[Array], Array], pairs: tuple[NDArray[np.intp], NDArray[np.intp]] | None = None,
+) -> tuple[Array, bool, int]:
+    """Levenberg-Marquardt (Marquardt diagonal damping) on the Schur-reduced normal equations.
+
+    Parameters
+    ----------
+    theta0 : (n,) start, receiver-major parameter vector (:mod:`selfcal.toa.nls`).
+    Y : (I, J) ranges, NaN = missing; or, with ``pairs``, the (m,) observed ranges.
+    pairs : None (dense Y) or ``(i, j)``, the receiver and source index of each entry of Y:
+        the observed-pairs path (:class:`Pairs`), O(m) memory and time per product.
+    lay : the :class:`selfcal.toa.nls._Layout` (kept / eliminated sides).
+    loss, f_scale : robust loss and its scale (metres).
+    max_nfev : iteration cap (default 100); xtol : relative step tolerance.
+    gauge : ``theta -> Q`` orthonormal gauge basis (n, g); the step is projected off it.
+
+    Returns
+    -------
+    (theta, converged, iterations).
+
+    Notes
+    -----
+    Each step solves the reduced system on the smaller node set by conjugate gradients with
+    the Schur-Jacobi preconditioner (inexact Newton with an Eisenstat-Walker forcing term),
+    then back-substitutes the eliminated nodes. Robust losses use iteratively reweighted normal
+    equations with weights rho'(z), whose fixed points are the stationary points of the robust
+    cost.
+    """
+    from scipy.sparse.linalg import LinearOperator, cg
+
+    ori = _Oriented(lay)
+    k_is_r = lay.k_is_receivers  # type: ignore[attr-defined]
+    nK, nE = lay.k_idx.shape[0], lay.e_idx.shape[0]  # type: ignore[attr-defined]
+    pat: Grid
+    obs: NDArray[np.bool_] | None
+    if pairs is None:
+        YK = np.ascontiguousarray(Y if k_is_r else Y.T)
+        obs = np.isfinite(YK)
+        pat = Grid(nK, nE)
+    else:
+        ki, ei = (pairs[0], pairs[1]) if k_is_r else (pairs[1], pairs[0])
+        YK, obs = np.asarray(Y, float), None
+        pat = Pairs(np.asarray(ki, np.intp), np.asarray(ei, np.intp), nK, nE)
+    n = lay.n  # type: ignore[attr-defined]
+    k_flat = lay.k_idx.ravel()  # type: ignore[attr-defined]
+    e_flat = lay.e_idx.ravel()  # type: ignore[attr-defined]
+
+    def evaluate(theta: Array) -> tuple[float, Array, Array, list[Array]]:
+        xK, xE, oK, oE = ori.split(theta)
+        U, f = directions(xK, xE, pat)
+        if oK is not None:
+            f += pat.kx(oK)
+        if oE is not None:
+            f += pat.ex(oE)
+        f -= YK
+        if obs is None:
+            rho, w = loss_rho((f / f_scale) ** 2, loss)
+            cost = 0.5 * f_scale**2 * float(rho.sum())
+            return cost, f, np.array(w, float), U
+        f[~obs] = 0.0
+        rho, drho = loss_rho((f / f_scale) ** 2, loss)
+        cost = 0.5 * f_scale**2 * float(rho[obs].sum())
+        w = np.where(obs, drho, 0.0)
+        return cost, f, w, U
+
+    ftol = 1e-8  # relative cost decrease that stops the iteration (scipy's default)
+    theta = theta0.copy()
+    cost, f, w, U = evaluate(theta)
+    g0 = 1.0
+    lam = 1e-4
+    converged = False
+    max_it = max_nfev or 100
+    it = 0
+    nk = k_flat.size
+    d = lay.d  # type: ignore[attr-defined]
+    while it < max_it:
+        it += 1
+        Qg = gauge(theta)
+        wf = w * f
+        gK = np.empty((nK, d + ori.hasK))
+        gE = np.empty((nE, d + ori.hasE))
+        for p in range(d):
+            gK[:, p] = pat.ksum(wf, U[p])
+            gE[:, p] = -pat.esum(wf, U[p])
+        if ori.hasK:
+            gK[:, d] = pat.ksum(wf)
+        if ori.hasE:
+            gE[:, d] = pat.esum(wf)
+        del wf
+        gK, gE = gK.ravel(), gE.ravel()
+        gnorm = float(np.sqrt(gK @ gK + gE @ gE))
+        g0 = gnorm if it == 1 else g0
+        # inexact Newton forcing term (Eisenstat-Walker style): loose CG solves far from
+        # the minimum, tight ones once the gradient has dropped (keeps the fast local rate)
+        cg_rtol = float(np.clip(gnorm / max(g0, 1e-300), 1e-8, 1e-3))
+        improved = False
+        for _ in range(12):
+            try:
+                red = _Reduced(U, w, ori.hasK, ori.hasE, lam, pat)
+            except DegenerateGeometryError:
+                lam *= 10
+                continue
+            rhs = -gK + red.b(red.dinv(gE))
+            op = LinearOperator((nk, nk), matvec=red.smul, dtype=float)
+            pc = LinearOperator((nk, nk), matvec=red.prec, dtype=float)
+            x, _ = cg(op, rhs, rtol=cg_rtol, maxiter=500, M=pc)
+            y = red.dinv(-gE - red.bt(x))
+            del red
+            step = np.zeros(n)
+            step[k_flat] = x
+            step[e_flat] = y
+            step -= Qg @ (Qg.T @ step)  # no rigid drift (and no common offset shift)
+            trial = theta + step
+            c2, f2, w2, U2 = evaluate(trial)
+            if c2 <= cost:
+                small = np.linalg.norm(step) <= xtol * (xtol + np.linalg.norm(theta))
+                rel = (cost - c2) <= ftol * max(cost, 1e-300)
+                theta, cost, f, w, U = trial, c2, f2, w2, U2
+                lam = max(lam / 10, 1e-8)
+                improved = True
+                converged = bool(small or rel)
+                break
+            del f2, w2, U2
+            lam *= 10
+        if not improved:
+            # no damped step descends: a minimum up to round-off if the gradient is tiny
+            converged = gnorm <= 1e-6 * max(1.0, np.sqrt(2 * cost))
+            break
+        if converged:
+            break
+    return theta, converged, it
