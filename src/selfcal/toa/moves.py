@@ -86,10 +86,11 @@ def _pairs(r: Array, s: Array) -> list[tuple[int, int, Array, Array]]:
     return out
 
 
-#: node-wise moves (1. and 2.) only up to this many nodes: above it their number (two or three per
-#: node, each a partial refit of O(I + J) entries) costs more than a round of full refinements;
-#: the collective ones always run
-NODEWISE_MAX_NODES = 120
+#: node-wise moves (1. and 2.) only up to this many nodes: their number grows with the nodes (two
+#: or three per node, each a partial refit of O(I + J) entries, ~10-20 ms here), so a round costs
+#: O((I + J)^2); at 60 nodes it is ~1 s, the cost of a few full refinements (the bound of the
+#: dense solver in selfcal.toa.fit as well). The collective moves always run.
+NODEWISE_MAX_NODES = 60
 
 
 def moves(start: Start, observed: NDArray[np.bool_]) -> Iterator[Move]:

@@ -11,11 +11,22 @@
    multilateration, Algorithm 2). Starting offsets are the least-squares offsets of the
    start geometry.
 3. **Moves** (:mod:`selfcal.toa.moves`): reflect or lift subsets of nodes through fitted planes.
+   A move of one or two nodes is ranked by a *partial refit* (the one engine with every
+   other node and offset fixed, on the entries that touch the moved nodes, at most
+   :data:`MOVE_NFEV` iterations): its full cost after that refit bounds what a full
+   refinement from it reaches. The improving ones (lower cost than the current best), best
+   first and with disjoint nodes, are applied together -- a move of the union of their
+   subsets -- and refined in full; the best alone if the union does not improve. The
+   collective moves (half the network or more) are refined in full directly.
 4. **One engine**: every candidate is refined by :func:`selfcal.toa.nls.refine_toa`.
 5. **One acceptance rule**: a candidate replaces the best one when its ML cost (the
    robust cost with one fixed scale for the whole search) is lower. With a known noise,
    the chi-square test of :func:`selfcal.toa.result.residual_test` is the stopping rule.
 6. **One budget**: at most ``budget`` refinements (default :func:`default_budget`).
+   The starts share it by successive halving (Jamieson & Talwalkar 2016): every start
+   refined :data:`MOVE_NFEV` iterations, the better half continued with twice as many,
+   and so on; the last one is refined to convergence. Hopeless starts (an MDS start far
+   from any basin that would take hundreds of iterations) so cost ten iterations each.
 """
 
 from __future__ import annotations
@@ -392,21 +403,62 @@ def search(
     best_cost = np.inf
     best_name = ""
     stopped = "exhausted"
-    for name, st in starts:
-        if count >= nb and best is not None:
+    # successive halving over the starts: each refined MOVE_NFEV iterations, then the better
+    # half continued with twice the iterations, until one is left; it is refined to the end.
+    # A lone start, and the first one when the robust scale is still unknown (it sets the
+    # scale), are refined to the end at once.
+    pool: list[tuple[float, int, str, NlsSolution]] = []
+    nfev = MOVE_NFEV if len(starts) > 1 else max_nfev
+
+    def cap(n: int | None) -> int | None:
+        return n if max_nfev is None or n is None else min(n, max_nfev)
+
+    for k, (name, st) in enumerate(starts):
+        if count >= nb and pool:
             stopped = "budget"
             break
-        sol = refine(st, max_nfev)
+        sol = refine(st, max_nfev if fs is None else cap(nfev))
         if sol is None:
             continue
         c = _cost(sol, loss, fs or 1.0)
         history.append((name, c))
-        if c < best_cost * (1 - ACCEPT_REL):
-            best, best_cost, best_name = sol, c, name
-            why = done(best)
+        pool.append((c, k, name, sol))
+        why = done(sol)
+        if why is not None:
+            pool = [pool[-1]]
+            stopped = why
+            break
+    while len(pool) > 1 and stopped == "exhausted":
+        pool.sort(key=lambda t: (t[0], t[1]))
+        pool = pool[: (len(pool) + 1) // 2]
+        nfev = None if nfev is None else 2 * nfev
+        for idx, (_, k, name, sol) in enumerate(pool):
+            if sol.converged:
+                continue
+            if count >= nb:
+                stopped = "budget"
+                break
+            more = refine(_as_start(sol), cap(nfev))
+            if more is None:
+                continue
+            pool[idx] = (_cost(more, loss, fs or 1.0), k, name, more)
+            why = done(more)
             if why is not None:
+                pool = [pool[idx]]
                 stopped = why
                 break
+    if pool:
+        c, _, best_name, best = min(pool, key=lambda t: (t[0], t[1]))
+        best_cost = c
+        if not best.converged and stopped not in ("test", "exact"):
+            full = refine(_as_start(best), max_nfev)
+            if full is not None:
+                best, best_cost = full, _cost(full, loss, fs or 1.0)
+                why = done(best)
+                if why is not None:
+                    stopped = why
+                elif stopped == "budget":
+                    stopped = "exhausted" if count < nb else "budget"
     if best is None:
         msg = str(last_err.args[0]) if last_err is not None else "no initialiser applies"
         kind = getattr(last_err, "kind", "init-failed")
