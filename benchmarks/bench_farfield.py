@@ -40,14 +40,20 @@ def _median_time(fn: Callable[[], Any], reps: int) -> float:
     return float(np.median(times))
 
 
+#: CPU seconds of the last :func:`_timed_peak` call (wall time is inflated on a shared machine)
+_LAST_CPU = [0.0]
+
+
 def _timed_peak(fn: Callable[[], Any]) -> tuple[Any, float, float]:
-    """(result, seconds, peak MiB of traced allocations) of one call."""
+    """(result, wall seconds, peak MiB of traced allocations) of one call; its CPU seconds in
+    ``_LAST_CPU[0]``."""
     import tracemalloc
 
     tracemalloc.start()
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     out = fn()
     dt = time.perf_counter() - t0
+    _LAST_CPU[0] = time.process_time() - c0
     _, peak = tracemalloc.get_traced_memory()
     tracemalloc.stop()
     return out, dt, peak / 2**20
@@ -76,13 +82,15 @@ def _scaling_row(m: int, k: int, seed: int) -> dict[str, Any]:
     # the covariance as refine_lm decides by default (skipped above COV_DIRECT_MAX unknowns)
     sparse, t_sp, mem_sp = _timed_peak(lambda: refine_lm(D, Z0, init.directions, C0, free_offsets=True))
     row: dict[str, Any] = {"m": m, "k": k, "entries": m * k, "sparse_seconds": t_sp, "sparse_peak_mib": mem_sp,
+                           "sparse_cpu_seconds": _LAST_CPU[0],
                            "sparse_iterations": sparse.iterations, "data_mib": D.nbytes / 2**20,
                            "covariance_computed": sparse.position_cov is not None}
     if 3 * (m - 1) <= DENSE_MAX:
         dense, t_de, mem_de = _timed_peak(lambda: refine_lm(
             D, Z0, init.directions, C0, free_offsets=True, covariance=True, linear_solver="directions",
             covariance_method="dense"))
-        row.update({"dense_seconds": t_de, "dense_peak_mib": mem_de, "speedup_vs_dense": t_de / t_sp,
+        row.update({"dense_seconds": t_de, "dense_cpu_seconds": _LAST_CPU[0], "dense_peak_mib": mem_de,
+                    "speedup_vs_dense": t_de / t_sp, "cpu_speedup_vs_dense": _LAST_CPU[0] / row["sparse_cpu_seconds"],
                     "cov_max_rel_diff": float(np.abs(sparse.position_cov - dense.position_cov).max()
                                               / np.abs(dense.position_cov).max()),
                     "cost_rel_diff": abs(sparse.cost - dense.cost) / dense.cost})
@@ -99,6 +107,24 @@ def _scaling_row(m: int, k: int, seed: int) -> dict[str, Any]:
             row.update({"dense_step_seconds": t_step_de, "sparse_step_seconds": t_step_sp,
                         "step_speedup_vs_dense": t_step_de / t_step_sp})
     return row
+
+
+def format_table(rows: list[dict[str, Any]]) -> str:
+    """The scaling table as markdown: size, sparse seconds / peak MiB, dense baseline, ratio."""
+    lines = ["| m x k | sparse LM + cov [s wall / CPU] | peak [MiB] | dense baseline [s wall / CPU] | "
+             "dense / sparse (CPU) | note |",
+             "|---|---|---|---|---|---|"]
+    for r in rows:
+        dense = f"{r['dense_seconds']:.2f} / {r['dense_cpu_seconds']:.2f}" if "dense_seconds" in r else "-"
+        ratio = f"{r['cpu_speedup_vs_dense']:.2f}" if "cpu_speedup_vs_dense" in r else (
+            f"{r['step_speedup_vs_dense']:.1f} (one step)" if "step_speedup_vs_dense" in r else "-")
+        note = "covariance skipped (above COV_DIRECT_MAX)" if not r["covariance_computed"] else ""
+        if "dense_skipped" in r:
+            note = (note + "; " if note else "") + "dense baseline skipped (minutes)"
+        lines.append(f"| {r['m']} x {r['k']} | {r['sparse_seconds']:.2f} / {r['sparse_cpu_seconds']:.2f} | "
+                     f"{r['sparse_peak_mib']:.0f} | {dense} | "
+                     f"{ratio} | {note} |")
+    return "\n".join(lines)
 
 
 def _unit(v: np.ndarray) -> np.ndarray:
@@ -166,6 +192,10 @@ def main(out_dir: Path) -> dict[str, Any]:
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     write_json(out_dir / "farfield.json", result)
+    import sys
+
+    print("far-field scaling (LM from the same start, wall seconds; dense = the pre-issue-16 path):", file=sys.stderr)
+    print(format_table(table), file=sys.stderr)
     return result
 
 

@@ -294,8 +294,11 @@ def _sparse_case(N: int, fraction: float) -> dict[str, Any]:
                      "located": sol.located, "seed_shape": list(sol.seed_shape),
                      "noise_estimate": sol.noise_estimate, "rmse_receivers": e.rmse_receivers,
                      "rmse_sources": e.rmse_sources}
-    orc = refine_toa_sparse(i, j, y, r, s)
-    eo = aligned_rmse(orc.receivers[mr], r[mr], orc.sources[ms], s[ms])
+    # the oracle: the same engine from the truth, on the nodes and pairs the blind fit used
+    used = mr[i] & ms[j]
+    ri, si = np.cumsum(mr) - 1, np.cumsum(ms) - 1
+    orc = refine_toa_sparse(ri[i[used]], si[j[used]], y[used], r[mr], s[ms])
+    eo = aligned_rmse(orc.receivers, r[mr], orc.sources, s[ms])
     case["oracle"] = {"rmse_receivers": eo.rmse_receivers, "rmse_sources": eo.rmse_sources}
     case["blind_over_oracle"] = e.rmse_receivers / eo.rmse_receivers
     if N <= 3000:

@@ -18,6 +18,7 @@ import time
 import numpy as np
 from scipy.stats import chi2
 
+from selfcal.experiments.slac import score_slac
 from selfcal.scenarios.rovers import make_rover_scenario
 from selfcal.slac.filter import SlacConfig
 from selfcal.slac.motion import wrap_angle
@@ -44,7 +45,7 @@ for seed in seeds:
         t0 = time.perf_counter()
         r = solve_slac(log, mode="slac", prior="chamber", init="snapshot", config=SlacConfig(smoother_lag=lag))
         rate = log.n_steps / (time.perf_counter() - t0)
-        m = r.metrics
+        m = score_slac(log, r)
         tr = log.states
         e = np.concatenate([r.poses[1:, :, :2] - tr[1:, :, :2],
                             wrap_angle(r.poses[1:, :, 2] - tr[1:, :, 2])[:, :, None]], axis=2)

@@ -22,6 +22,7 @@ DOCTESTED = [
     "selfcal.geometry.wrap_angle",
     "selfcal.geometry.fit_plane",
     "selfcal.geometry.rotate_covariances",
+    "selfcal.geometry.n_parameters",
     "selfcal.plotting.conference.ellipse_magnification",
 ]
 

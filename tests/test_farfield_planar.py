@@ -161,3 +161,59 @@ def test_auto_with_missing_entries_keeps_the_planar_rank():
         res = solve_farfield(D, dim="auto")
         assert res.case == "planar"
         assert aligned_sq_error(res.positions, Z) / 16 < (5e-4) ** 2
+
+
+def test_linear_array_covariance_matches_a_dense_numeric_computation():
+    # the 1-D covariance (Schur complement over the (u_j, C_j) blocks, scale gauge projected out)
+    # against the pseudo-inverse of a finite-difference J^T J over all unknowns
+    from selfcal.tdoa.covariance import linear_position_covariance
+
+    rng = np.random.default_rng(3)
+    m, k = 8, 25
+    x = np.concatenate([[0.0], np.sort(rng.uniform(-0.2, 0.2, m - 1))])
+    u = rng.uniform(-1, 1, k)
+    C = rng.normal(size=k)
+    D = np.outer(x, u) + C + 1e-3 * rng.standard_normal((m, k))
+    W = (rng.random((m, k)) > 0.1).astype(float)
+    res = solve_farfield(np.where(W > 0, D, np.nan), dim=1)
+    xs, us, Cs = res.positions[:, 0], res.directions[:, 0], res.offsets
+    cov = linear_position_covariance(D, xs, us, Cs, W)
+
+    def model(p):
+        xx = np.concatenate([[0.0], p[: m - 1]])
+        return (np.outer(xx, p[m - 1: m - 1 + k]) + p[m - 1 + k:]).ravel()
+
+    p0 = np.concatenate([xs[1:], us, Cs])
+    eps = 1e-6
+    J = np.stack([(model(p0 + eps * e) - model(p0 - eps * e)) / (2 * eps) for e in np.eye(p0.size)], axis=1)
+    Jw = J * np.sqrt(W.ravel())[:, None]
+    full = np.linalg.pinv(Jw.T @ Jw, rcond=1e-10, hermitian=True)[: m - 1, : m - 1]
+    g = xs[1:] / np.linalg.norm(xs[1:])
+    P = np.eye(m - 1) - np.outer(g, g)
+    Cls = np.sum(W * (D - np.outer(xs, us)), axis=0) / W.sum(axis=0)  # least-squares offsets
+    r = np.where(W > 0, D - np.outer(xs, us) - Cls, 0.0)
+    sigma2 = np.sum(r**2) / (W.sum() - (m - 1 + 2 * k - 1))
+    ref = sigma2 * np.diag(P @ full @ P)
+    assert np.allclose(cov[1:, 0, 0], ref, rtol=1e-5, atol=0)
+    assert res.position_cov is not None and np.allclose(res.position_cov[:, 0, 0], cov[:, 0, 0])
+
+
+@pytest.mark.slow
+def test_linear_array_covariance_predicts_the_scatter():
+    # over seeds, the reported variances match the scatter of the scale-aligned positions
+    rng = np.random.default_rng(11)
+    m, k = 8, 60
+    x = np.linspace(0, 0.3, m)
+    u = rng.uniform(-1, 1, k)
+    u[0] = 1.0  # an endfire source: the reported scale (max |u| = 1) is then the true one
+    errs, preds = [], []
+    for seed in range(200):
+        g = np.random.default_rng(seed)
+        D = np.outer(x, u) + g.normal(size=k) + 1e-3 * g.standard_normal((m, k))
+        res = solve_farfield(D, dim=1)
+        est = res.positions[:, 0]
+        a = (est @ x) / (est @ est)  # best scaling about the first position
+        errs.append(a * est - x)
+        preds.append(res.position_cov[:, 0, 0])
+    ratio = np.mean(np.array(errs)[:, 1:] ** 2, axis=0) / np.mean(np.array(preds)[:, 1:], axis=0)
+    assert np.all((ratio > 0.7) & (ratio < 1.4)), ratio  # 200 draws: each ratio within ~15 % (2 sd)

@@ -40,17 +40,12 @@ def check_figure(fig: Any, path: Path) -> None:
             assert UNIT.search(label), f"axis label without unit: {label!r} in {ax.get_title()!r}"
 
 
-@pytest.fixture(params=[".png", ".pdf", ".svg"])
-def suffix(request: pytest.FixtureRequest) -> str:
-    return str(request.param)
-
-
 def _network(dim: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
     g = np.random.default_rng(seed)
     return g.uniform(0, 4, (6, dim)), g.uniform(0, 4, (8, dim))
 
 
-@pytest.mark.parametrize("dim", [2, 3])
+@pytest.mark.parametrize(("dim", "suffix"), [(2, ".png"), (3, ".pdf"), (3, ".svg")])
 def test_toa_network_three_views_in_3d(tmp_path: Path, suffix: str, dim: int) -> None:
     from selfcal import solve_toa
     from selfcal.geometry import pairwise_distances
@@ -213,3 +208,36 @@ def test_unknown_suffix_is_refused_and_nothing_written(tmp_path: Path) -> None:
     with pytest.raises(InputError, match="unknown figure format"):
         save_figure(fig, tmp_path / "x.txt")
     assert list(tmp_path.iterdir()) == []
+
+
+def test_cli_plot_suffix_picks_the_format(tmp_path: Path) -> None:
+    """``--plot FILE.pdf`` / ``.svg`` write that format (not PNG bytes under another name)."""
+    from click.testing import CliRunner
+
+    from selfcal.cli import main
+
+    g = np.random.default_rng(4)
+    B = np.array([[0.0, 0, 0], [5, 0, 0], [0, 5, 0], [5, 5, 1]])
+    u = B - np.array([2.0, 1.0, -3.0])
+    np.savetxt(tmp_path / "b.csv", B, delimiter=",")
+    np.savetxt(tmp_path / "u.csv", u / np.linalg.norm(u, axis=1, keepdims=True), delimiter=",")
+    r = CliRunner().invoke(main, ["locate", "aoa", str(tmp_path / "b.csv"), str(tmp_path / "u.csv"),
+                                  "--out", str(tmp_path / "a.json"), "--plot", str(tmp_path / "a.pdf")])
+    assert r.exit_code == 0, r.output
+    assert (tmp_path / "a.pdf").read_bytes()[:5] == MAGIC[".pdf"]
+    Z = g.uniform(-0.5, 0.5, (8, 3))
+    Z[0] = 0
+    N = g.normal(size=(12, 3))
+    N /= np.linalg.norm(N, axis=1, keepdims=True)
+    np.savetxt(tmp_path / "D.csv", Z @ N.T + g.normal(size=12), delimiter=",")
+    r = CliRunner().invoke(main, ["calibrate", "tdoa-farfield", str(tmp_path / "D.csv"), "--out",
+                                  str(tmp_path / "f.json"), "--plot", str(tmp_path / "f.svg")])
+    assert r.exit_code == 0, r.output
+    assert (tmp_path / "f.svg").read_bytes()[:5] == MAGIC[".svg"]
+
+
+def test_every_format_the_cli_accepts_is_one_matplotlib_writes(tmp_path: Path) -> None:
+    from selfcal.commands._common import IMAGE_FORMATS
+
+    fig = ptoa.plot_network(*_network(2))
+    assert set(IMAGE_FORMATS) <= set(fig.canvas.get_supported_filetypes())

@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 from scipy.stats import chi2
 
+from selfcal.experiments.slac import score_slac
 from selfcal.scenarios.rovers import make_rover_scenario
 from selfcal.slac.filter import SlacConfig, SlacFilter
 from selfcal.slac.likelihood import pack_g
@@ -51,16 +52,16 @@ def test_antenna_priors_are_consistent_with_the_installed_response(log: SlacLog)
 
 @pytest.mark.xfail(strict=True, reason="the full-G SLAC filter is overconfident in heading; docs/slac_consistency.md")
 def test_full_slac_filter_with_chamber_prior_is_consistent(log: SlacLog) -> None:
-    r = solve_slac(log, mode="slac", prior="chamber", init="snapshot")
+    r = score_slac(log, solve_slac(log, mode="slac", prior="chamber", init="snapshot"))
     # per rover: the multi-port rover's time-averaged NEES is the one far above its band
     lo, hi = chi2.ppf([0.025, 0.975], 3)
-    assert np.all((lo <= r.metrics["nees_mean"]) & (r.metrics["nees_mean"] <= hi)), r.metrics["nees_mean"]
+    assert np.all((lo <= r["nees_mean"]) & (r["nees_mean"] <= hi)), r["nees_mean"]
 
 
 def test_full_slac_with_chamber_prior_is_consistent(log: SlacLog) -> None:
     # the fixed-lag smoother (10 steps = 1 s) re-solves the early steps jointly: the heading /
     # G ridge error of the filter is not locked in (docs/slac_consistency.md)
-    r = solve_slac(log, mode="slac", prior="chamber", init="snapshot", config=SlacConfig(smoother_lag=10))
+    r = score_slac(log, solve_slac(log, mode="slac", prior="chamber", init="snapshot", config=SlacConfig(smoother_lag=10)))
     lo, hi = chi2.ppf([0.025, 0.975], 3)
-    assert np.all((lo <= r.metrics["nees_mean"]) & (r.metrics["nees_mean"] <= hi)), r.metrics["nees_mean"]
-    assert np.mean(r.metrics["nees_mean"]) < 5.0
+    assert np.all((lo <= r["nees_mean"]) & (r["nees_mean"] <= hi)), r["nees_mean"]
+    assert np.mean(r["nees_mean"]) < 5.0

@@ -96,10 +96,14 @@ def test_subset_requests_equal_the_full_computation(seed):
 
 @pytest.mark.parametrize("seed", range(4))
 def test_column_blocks_do_not_change_the_result(seed, monkeypatch):
-    """H generated in many small column blocks (the memory-bounded path) == one block."""
+    """H generated in many small column blocks (the memory-bounded path) == one block, kept or rebuilt."""
     r, s, W, offsets = random_case(200 + seed, MODES[seed])
     Cr, Cs = covariance_blocks(r, s, W, offsets=offsets)
     monkeypatch.setattr(cv, "_BLOCK_DOUBLES", 1)  # one E node per block
+    Pr, Ps = covariance_blocks(r, s, W, offsets=offsets)
+    np.testing.assert_allclose(Pr, Cr, rtol=1e-10, atol=1e-13 * np.abs(Cr).max())
+    np.testing.assert_allclose(Ps, Cs, rtol=1e-10, atol=1e-13 * np.abs(Cs).max())
+    monkeypatch.setattr(cv, "_KEEP_H_DOUBLES", 0)  # H rebuilt in pass 2 (the large-network path)
     Pr, Ps = covariance_blocks(r, s, W, offsets=offsets)
     np.testing.assert_allclose(Pr, Cr, rtol=1e-10, atol=1e-13 * np.abs(Cr).max())
     np.testing.assert_allclose(Ps, Cs, rtol=1e-10, atol=1e-13 * np.abs(Cs).max())

@@ -421,7 +421,7 @@ def test_scaled_starts_apply_only_where_the_rank_method_cannot_identify_the_offs
 def test_minimal_12x6_search_reaches_the_truth_started_minimum_or_lower() -> None:
     """12 x 6, both offsets, 20 us: the search (trf engine) finds the truth-started minimum or a lower one.
 
-    Measured 9 of 12 draws with the scaled starts against 1 of 12 without them (same run). At a
+    Measured 15 of 18 draws with the scaled starts against 2 of 18 without them (same run). At a
     true rate of 0.75, 12 or more of 24 draws happen with probability 0.998 (binomial); at the
     rate without them (<= 0.3) with probability < 0.04. The issue's 95 % is not reached: on
     many draws the data admit minima far from the truth with a cost within a few sigma^2 of the

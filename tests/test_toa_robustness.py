@@ -93,13 +93,14 @@ def _conference_times(U, room, seed, jitter):
     return sc, T + np.random.default_rng(seed + 1000).normal(0, jitter, T.shape)
 
 
-@pytest.mark.xfail(strict=False, reason=SEARCH_GAP + "stops in a minimum ~2-13 % above the truth-started fit on these tiered scenes (measured 4.20/4.00/4.38 us vs 4.11/3.90/3.88 us); the removed per-node sweeps escaped it")
 @pytest.mark.parametrize("seed", [7, 8, 9])
 def test_tiered_conference_with_jitter_reaches_the_basin_of_the_truth(seed):
     """20 units on tiered rows, 5 us jitter: no worse than the refinement started at the truth.
 
     Before the node sweeps / pair flips these three seeds stopped in a local minimum (microphones
-    low, their loudspeakers high) with a residual ~10 % above the truth-started one.
+    low, their loudspeakers high) with a residual ~10 % above the truth-started one; the one
+    search reaches it with the pair moves ranked by partial refits (1 flipped unit on seeds 7
+    and 8, 4 on seed 9, applied together).
     """
     sc, T = _conference_times(20, (12.0, 12.0, 3.0), seed, 5e-6)
     res = _solve(T, seed)
@@ -218,6 +219,25 @@ def test_a_single_absurd_entry_never_crashes_and_is_flagged(value):
     assert res.outliers[3, 5] and res.outliers.sum() <= 2
     assert _err(res, r, s) < 0.03  # ~3 sigma: the other 139 entries are clean
     json.dumps(res.to_dict(), allow_nan=False)
+
+
+def test_the_gross_entry_fence_flags_no_clean_entry_of_small_matrices():
+    """Median polish zeroes a residual per row and column, so on 5 x 5 the quartiles of its
+    residuals collapsed and the far-out fence dropped every node of clean networks (found by
+    the permutation hypothesis test). Clean 5-9 node networks over 100 draws: nothing is
+    flagged (2000 draws measured: the largest clean entry at 2.5 of the 3 spreads); a 1e300 / 1e6 typo in them still is."""
+    from selfcal.toa.robust import gross_entries
+
+    for seed in range(100):
+        g = np.random.default_rng(seed)
+        I, J, d = int(g.integers(5, 10)), int(g.integers(5, 10)), int(g.integers(2, 4))
+        Y = np.linalg.norm(g.uniform(-5, 5, (I, 1, d)) - g.uniform(-7, 7, (1, J, d)), axis=-1)
+        Y = Y + g.normal(0, 0.01, Y.shape) + (g.normal(0, 1, (1, J)) if seed % 2 else 0.0)
+        assert not gross_entries(Y).any()
+        for typo in (1e300, 1e6):
+            Z = Y.copy()
+            Z[seed % I, seed % J] = typo
+            assert gross_entries(Z)[seed % I, seed % J]
 
 
 @pytest.mark.parametrize("seed", range(2))

@@ -8,8 +8,12 @@ import pytest
 from selfcal.errors import DegenerateGeometryError, InputError
 from selfcal.metrics import aligned_rmse
 from selfcal.toa import refine_toa, toa_crlb, toa_model
-from selfcal.toa.sparse import (initialize_toa_sparse, refine_toa_sparse, simulate_sparse_network,
-                                solve_toa_sparse)
+from selfcal.toa.sparse import (
+    initialize_toa_sparse,
+    refine_toa_sparse,
+    simulate_sparse_network,
+    solve_toa_sparse,
+)
 
 
 @pytest.mark.parametrize("seed", range(4))

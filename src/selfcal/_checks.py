@@ -13,6 +13,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .errors import DegenerateGeometryError, InputError
+from .geometry import n_parameters
 
 __all__ = [
     "as_array",
@@ -140,18 +141,6 @@ def min_counts_toa(dim: int, offsets: str) -> tuple[int, int]:
     return base, base
 
 
-def _toa_unknowns(I: int, J: int, dim: int, offsets: str) -> int:
-    gauge = dim * (dim + 1) // 2
-    n = dim * (I + J) - gauge
-    if offsets in ("receivers", "both"):
-        n += I
-    if offsets in ("sources", "both"):
-        n += J
-    if offsets == "both":
-        n -= 1  # a common shift between the two kinds of offsets is unobservable
-    return n
-
-
 def check_toa_counts(shape: tuple[int, int], n_observed: int, dim: int, offsets: str) -> None:
     """Raise :class:`DegenerateGeometryError` when an I x J TOA problem is under-determined.
 
@@ -173,7 +162,7 @@ def check_toa_counts(shape: tuple[int, int], n_observed: int, dim: int, offsets:
             f"(they must span {dim}-D space)",
             kind="too-few-sources",
         )
-    unknowns = _toa_unknowns(I, J, dim, offsets)
+    unknowns = n_parameters(I, J, dim, offsets)
     if n_observed < unknowns + 1 and offsets != "none":
         raise DegenerateGeometryError(
             f"{n_observed} observed entries for {unknowns} unknowns ({I} receivers x {J} transmitters, "

@@ -47,7 +47,7 @@ from .errors import Status
 __all__ = ["Result", "Status", "jsonable"]
 
 
-def jsonable(obj: Any) -> Any:
+def jsonable(obj: Any, *, strict: bool = False) -> Any:
     """Convert ``obj`` to plain JSON-safe Python (strict JSON: no NaN, no inf).
 
     Parameters
@@ -55,6 +55,11 @@ def jsonable(obj: Any) -> Any:
     obj : Any
         Result objects (anything with ``to_dict``), dataclasses, mappings, sequences,
         NumPy arrays and scalars, enums, paths, complex numbers.
+    strict : bool
+        Raise ``TypeError`` for complex numbers and for an object with none of these forms
+        instead of encoding it as ``{"real", "imag"}`` or its ``str`` (the writers,
+        :func:`selfcal.io.write_json`, use this: such an object in a payload is a programming
+        error, not something to guess an encoding for).
 
     Returns
     -------
@@ -62,7 +67,12 @@ def jsonable(obj: Any) -> Any:
         ``None``, ``bool``, ``int``, ``float`` (finite), ``str``, ``list`` or ``dict`` with
         ``str`` keys, nested. Non-finite floats become ``None``; complex numbers become
         ``{"real": x, "imag": y}``; masked array entries ``None``; enums their value; other
-        objects their ``str``.
+        objects their ``str`` (or ``TypeError`` with ``strict``).
+
+    Notes
+    -----
+    The one JSON converter of the package: ``Result.to_dict``, :func:`selfcal.io.write_json`
+    and the sweep runner's CSV rows all go through it.
 
     Examples
     --------
@@ -70,36 +80,45 @@ def jsonable(obj: Any) -> Any:
     >>> jsonable({"x": np.array([1.0, np.nan]), "n": np.int64(3), 2: (np.True_,)})
     {'x': [1.0, None], 'n': 3, '2': [True]}
     """
-    if obj is None or isinstance(obj, (bool, str)):
-        return obj
-    if isinstance(obj, Enum):
-        return jsonable(obj.value)
-    if isinstance(obj, int):  # after bool and Enum (IntEnum is an int)
-        return int(obj)
-    if isinstance(obj, float):
-        return obj if math.isfinite(obj) else None
-    if isinstance(obj, np.generic):
-        return jsonable(obj.item())
-    if isinstance(obj, complex):
-        return {"real": jsonable(obj.real), "imag": jsonable(obj.imag)}
-    if isinstance(obj, np.ma.MaskedArray):  # masked entries are missing: None
-        return jsonable(np.ma.filled(obj.astype(complex if np.iscomplexobj(obj) else float), np.nan))
-    if isinstance(obj, np.ndarray):
-        if np.iscomplexobj(obj):
-            return {"real": jsonable(obj.real.tolist()), "imag": jsonable(obj.imag.tolist())}
-        return jsonable(obj.tolist())
-    if isinstance(obj, Mapping):
-        return {str(jsonable(k)) if not isinstance(k, str) else k: jsonable(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple, set, frozenset)):
-        return [jsonable(v) for v in obj]
-    if isinstance(obj, PurePath):
+
+    def _conv(obj: Any) -> Any:
+        if obj is None or isinstance(obj, (bool, str)):
+            return obj
+        if isinstance(obj, Enum):
+            return _conv(obj.value)
+        if isinstance(obj, int):  # after bool and Enum (IntEnum is an int)
+            return int(obj)
+        if isinstance(obj, float):
+            return obj if math.isfinite(obj) else None
+        if isinstance(obj, np.generic):
+            return _conv(obj.item())
+        if isinstance(obj, complex) or (isinstance(obj, np.ndarray) and np.iscomplexobj(obj)):
+            if strict:  # a writer refuses to guess an encoding: results encode their complex fields
+                raise TypeError("complex numbers have no strict JSON form")
+            if isinstance(obj, complex):
+                return {"real": _conv(obj.real), "imag": _conv(obj.imag)}
+        if isinstance(obj, np.ma.MaskedArray):  # masked entries are missing: None
+            return _conv(np.ma.filled(obj.astype(complex if np.iscomplexobj(obj) else float), np.nan))
+        if isinstance(obj, np.ndarray):
+            if np.iscomplexobj(obj):
+                return {"real": _conv(obj.real.tolist()), "imag": _conv(obj.imag.tolist())}
+            return _conv(obj.tolist())
+        if isinstance(obj, Mapping):
+            return {str(_conv(k)) if not isinstance(k, str) else k: _conv(v) for k, v in obj.items()}
+        if isinstance(obj, (list, tuple, set, frozenset)):
+            return [_conv(v) for v in obj]
+        if isinstance(obj, PurePath):
+            return str(obj)
+        to_dict = getattr(obj, "to_dict", None)
+        if callable(to_dict) and not isinstance(obj, type):
+            return _conv(to_dict())
+        if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
+            return {f.name: _conv(getattr(obj, f.name)) for f in dataclasses.fields(obj)}
+        if strict:
+            raise TypeError(f"an object of type {type(obj).__name__} has no JSON form")
         return str(obj)
-    to_dict = getattr(obj, "to_dict", None)
-    if callable(to_dict) and not isinstance(obj, type):
-        return jsonable(to_dict())
-    if dataclasses.is_dataclass(obj) and not isinstance(obj, type):
-        return {f.name: jsonable(getattr(obj, f.name)) for f in dataclasses.fields(obj)}
-    return str(obj)
+
+    return _conv(obj)
 
 
 def _short(value: Any, width: int = 48) -> str:

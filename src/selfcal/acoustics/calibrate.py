@@ -26,6 +26,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..errors import DegenerateGeometryError, InputError
+from ..geometry import n_parameters
 from .geometry import (
     PLANAR_ALPHA,
     ModelComparison,
@@ -414,7 +415,7 @@ def n_parameters_of(sol: dict[str, Any], I: int, J: int) -> int:
     likewise; 3-D: 3 (I + J) less 6.
     """
     d = 2 if str(sol["method"]).startswith("2d") else 3
-    return d * (I + J) - d * (d + 1) // 2 + I + J - 1
+    return n_parameters(I, J, d, "both")
 
 
 def _predict(sol: dict[str, Any], speed: float) -> Array:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import sys
 from pathlib import Path
+from typing import Any
 
 import click
 
@@ -62,7 +63,13 @@ def run_cmd(log_path: Path, mode: str, prior: str, out: Path, plot: Path | None,
     res = solve_slac(log, mode=mode, prior=prior, progress=sys.stderr.isatty(), init=init,
                      config=SlacConfig(smoother_lag=smoother_lag))
     d = res.to_dict()
-    m = d["metrics"]
+    m: dict[str, Any] = {}
+    if log.states is not None:  # a simulated log: errors against its truth
+        from .._result import jsonable
+        from ..experiments.slac import score_slac
+
+        m = jsonable(score_slac(log, res))
+    d["metrics"] = m
     if m:
         for key in ("doa",):
             for agent in m.get(key, {}).values():

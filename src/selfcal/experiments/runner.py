@@ -39,8 +39,9 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from .._checks import check_choice
+from .._result import jsonable
 from ..errors import InputError
-from ..io import atomic_write_bytes, to_jsonable, write_json
+from ..io import atomic_write_bytes, write_json
 
 __all__ = ["run_sweep", "write_rows", "BACKENDS", "CONNECT_TIMEOUT_S", "check_scheduler_address"]
 
@@ -248,5 +249,5 @@ def write_rows(rows: Sequence[dict[str, Any]], path: str | os.PathLike[str]) -> 
     w = csv.DictWriter(buf, fieldnames=keys)
     w.writeheader()
     for r in rows:
-        w.writerow({k: to_jsonable(v) for k, v in r.items()})
+        w.writerow({k: jsonable(v) for k, v in r.items()})
     atomic_write_bytes(p, buf.getvalue().encode())

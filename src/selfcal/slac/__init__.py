@@ -17,16 +17,11 @@ from __future__ import annotations
 import importlib
 from typing import Any
 
+#: the entry points (the building blocks stay in their modules: ``selfcal.slac.likelihood``, ...)
 _LAZY = {
-    "AntennaResponse": "antenna", "fourier_basis": "antenna", "sampling_matrix": "antenna",
-    "dipole_response": "antenna", "multimode_antenna": "antenna",
-    "ofdm_probe": "signals", "snapshot": "signals", "delayed_spectrum": "signals",
-    "concentrated_loglik": "likelihood", "link_loglik": "likelihood", "link_fisher": "likelihood",
-    "fisher_blocks": "likelihood", "FisherBlocks": "likelihood",
-    "motion_step": "motion", "motion_jacobian": "motion", "process_noise": "motion",
-    "SlacConfig": "filter", "SlacFilter": "filter", "map_update": "laplace",
+    "SlacLog": "run", "SlacResult": "run", "solve_slac": "run",
+    "SlacConfig": "filter", "SlacFilter": "filter", "SlacSmoother": "smoother",
     "estimate_doa": "doa", "RangeFilter": "measurement", "RangeConfig": "measurement",
-    "SlacLog": "run", "SlacResult": "run", "solve_slac": "run", "SlacSmoother": "smoother",
     "RangeLog": "ranging", "RangeModelConfig": "ranging", "RangeSlacResult": "ranging",
     "solve_range_slac": "ranging", "write_trajectory_csv": "export", "write_trajectory_tum": "export",
 }

@@ -34,7 +34,7 @@ from .likelihood import unpack_g
 from .linalg import inverse_from_cholesky, tri_solve
 from .links import LinkGroup, LinkModel
 from .signals import range_wavenumber
-from .state import predict_locations, propagate_pose_block, state_layout
+from .state import pose_blocks, pose_means, predict_locations, propagate_pose_block, state_layout
 
 __all__ = ["SlacConfig", "SlacFilter", "UpdateInfo", "map_update", "predict_locations", "propagate_pose_block",
            "tri_solve", "inverse_from_cholesky"]
@@ -166,12 +166,12 @@ class SlacFilter:
     @property
     def poses(self) -> FArray:
         """(n, 3) current pose estimates."""
-        return self.x[: 3 * self.n].reshape(self.n, 3).copy()
+        return pose_means(self.x, self.n)
 
     @property
     def pose_covariances(self) -> FArray:
         """(n, 3, 3) current pose covariances."""
-        return np.stack([self.P[3 * i : 3 * i + 3, 3 * i : 3 * i + 3] for i in range(self.n)])
+        return pose_blocks(self.P, self.n)
 
     @property
     def biases(self) -> FArray:

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -241,6 +242,15 @@ class LinkModel:
             return unpack_g(xe[lay.gidx], lay.M, U)
         return np.stack([self.G_prior[int(i)] for i in r])  # type: ignore[misc]
 
+    def _terms(self, xe: FArray, grp: LinkGroup, *, want_grad: bool) -> tuple[Any, ...]:
+        """``(layout, diff, d, phi, G, LinkTerms)`` of one group at the extended state ``xe``."""
+        lay = grp.layout
+        diff, d, rho, phi = self.geometry(xe, lay)
+        G = self.G_of(xe, lay) if lay.M > 1 else None
+        terms = link_loglik(grp.X, rho, grp.var, self.k, self.S, phi=phi if lay.M > 1 else None, G=G,
+                            want_grad=want_grad, expansion=grp.exp)
+        return lay, diff, d, phi, G, terms
+
     @staticmethod
     def _grad_index(lay: LinkLayout, with_g: bool) -> IArray:
         """Where each value :meth:`neg_loglik` produces for the group goes (fixed per pattern)."""
@@ -259,12 +269,8 @@ class LinkModel:
         val_parts: list[FArray] = []
         total = 0.0
         for grp in groups:
-            lay = grp.layout
-            diff, d, rho, phi = self.geometry(xe, lay)
+            lay, diff, d, phi, _, terms = self._terms(xe, grp, want_grad=True)
             M = lay.M
-            G = self.G_of(xe, lay) if M > 1 else None
-            terms = link_loglik(grp.X, rho, grp.var, self.k, self.S,
-                                phi=phi if M > 1 else None, G=G, expansion=grp.exp)
             total -= float(terms.value.sum())
             u = diff / d[:, None]
             gr = terms.d_rho  # minus the gradient of the NLL
@@ -311,13 +317,8 @@ class LinkModel:
         gg_blocks: list[tuple[int, FArray]] = []
         pp = self.probe_power
         for grp in groups:
-            lay = grp.layout
-            diff, d, rho, phi = self.geometry(xe, lay)
+            lay, diff, d, phi, G, terms = self._terms(xe, grp, want_grad=False)
             M = lay.M
-            G = self.G_of(xe, lay) if M > 1 else None
-            terms = link_loglik(grp.X, rho, grp.var, self.k, self.S,
-                                phi=phi if M > 1 else None, G=G, want_grad=False,
-                                expansion=grp.exp)
             fb = fisher_blocks(terms, grp.var, self.k, pp, phi=phi if M > 1 else None, G=G)
             L_ = d.size
             u = diff / d[:, None]

@@ -25,7 +25,7 @@ from .._checks import as_points, check_choice
 from ..errors import InputError
 from ..geometry import wrap_angle
 from .laplace import map_update
-from .state import predict_locations
+from .state import pose_blocks, pose_means, predict_locations
 
 __all__ = ["RangeConfig", "RangeFilter"]
 
@@ -118,11 +118,11 @@ class RangeFilter:
 
     @property
     def poses(self) -> FArray:
-        return self.x[: 3 * self.n].reshape(self.n, 3).copy()
+        return pose_means(self.x, self.n)
 
     @property
     def pose_covariances(self) -> FArray:
-        return np.stack([self.P[3 * i : 3 * i + 3, 3 * i : 3 * i + 3] for i in range(self.n)])
+        return pose_blocks(self.P, self.n)
 
     def calibration(self) -> dict[str, object]:
         """Bias (per node) and scale (per link) estimates with standard deviations."""

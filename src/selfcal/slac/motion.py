@@ -35,6 +35,13 @@ def _sinc_terms(h: FArray) -> tuple[FArray, FArray]:
     return s, ds
 
 
+def _unpack(state: FArray, controls: FArray, T: float) -> tuple[FArray, FArray, FArray, FArray, FArray]:
+    """``(x, u, v, omega, h = omega T / 2)`` as float arrays: the common start of eq. 14 and its Jacobians."""
+    x = np.asarray(state, dtype=float)
+    u = np.asarray(controls, dtype=float)
+    return x, u, u[..., 0], u[..., 1], u[..., 1] * T / 2.0
+
+
 def motion_step(state: FArray, controls: FArray, T: float) -> FArray:
     """Predicted state ``f(x, u)`` of eq. 14.
 
@@ -48,10 +55,7 @@ def motion_step(state: FArray, controls: FArray, T: float) -> FArray:
     -------
     (..., 3) next state (heading not wrapped, so that it stays continuous).
     """
-    x = np.asarray(state, dtype=float)
-    u = np.asarray(controls, dtype=float)
-    v, w = u[..., 0], u[..., 1]
-    h = w * T / 2.0
+    x, u, v, w, h = _unpack(state, controls, T)
     s, _ = _sinc_terms(h)
     th = x[..., 2] + h
     out = np.empty(np.broadcast(x, np.empty(u.shape[:-1] + (3,))).shape)
@@ -63,10 +67,7 @@ def motion_step(state: FArray, controls: FArray, T: float) -> FArray:
 
 def motion_jacobian(state: FArray, controls: FArray, T: float) -> FArray:
     """Jacobian ``d f / d x`` (..., 3, 3) of :func:`motion_step` with respect to the state."""
-    x = np.asarray(state, dtype=float)
-    u = np.asarray(controls, dtype=float)
-    v, w = u[..., 0], u[..., 1]
-    h = w * T / 2.0
+    x, u, v, w, h = _unpack(state, controls, T)
     s, _ = _sinc_terms(h)
     th = x[..., 2] + h
     F = np.zeros(np.broadcast_shapes(x.shape[:-1], u.shape[:-1]) + (3, 3))
@@ -80,10 +81,7 @@ def motion_jacobian(state: FArray, controls: FArray, T: float) -> FArray:
 
 def control_jacobian(state: FArray, controls: FArray, T: float) -> FArray:
     """Jacobian ``d f / d [v, omega]`` (..., 3, 2) of :func:`motion_step`."""
-    x = np.asarray(state, dtype=float)
-    u = np.asarray(controls, dtype=float)
-    v, w = u[..., 0], u[..., 1]
-    h = w * T / 2.0
+    x, u, v, w, h = _unpack(state, controls, T)
     s, ds = _sinc_terms(h)
     th = x[..., 2] + h
     c, sn = np.cos(th), np.sin(th)

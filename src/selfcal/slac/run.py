@@ -21,9 +21,7 @@ from .._checks import as_rng, check_choice, entry
 from .._result import Result
 from ..errors import InputError
 from ..io import atomic_write_bytes, load_npz
-from .doa import estimate_doa_from_y
 from .filter import SlacConfig, SlacFilter
-from .motion import wrap_angle
 from .signals import SPEED_OF_LIGHT, batch_delay_search
 from .validate import validate_log_arrays
 
@@ -183,7 +181,8 @@ class SlacResult(Result):
     bias_std (n+A,) final, sampling_matrices {agent: (M, U)} final, ml_ranges (S, L)
     antenna-agnostic ML round-trip ranges, port_vectors {agent: (S, L_i, M)} delay-compensated
     snapshots of multi-port receivers (for DoA post-processing), iterations (S,), converged (S,),
-    residual_rms (m, ML range minus the filter's predicted range), metrics (vs truth, if known).
+    residual_rms (m, ML range minus the filter's predicted range). Errors against a simulated
+    truth are not part of the result: :func:`selfcal.experiments.slac.score_slac`.
     """
 
     mode: str
@@ -197,7 +196,6 @@ class SlacResult(Result):
     iterations: NDArray[np.int64]
     converged_steps: NDArray[np.bool_]
     residual_rms: float
-    metrics: dict[str, Any]
     method: str = "slac-iekf-bfgs"
 
     @property
@@ -211,7 +209,6 @@ class SlacResult(Result):
             "residual_rms": self.residual_rms, "final_poses": self.poses[-1], "final_pose_cov": self.pose_cov[-1],
             "poses": self.poses, "biases": self.biases[-1], "bias_std": self.bias_std,
             "sampling_matrices": {str(k): {"real": v.real, "imag": v.imag} for k, v in self.sampling_matrices.items()},
-            "metrics": self.metrics,
         }
 
 
@@ -245,7 +242,7 @@ def solve_slac(
 
     Returns
     -------
-    SlacResult (with metrics against the truth when the log carries it).
+    SlacResult (errors against the log's truth: :func:`selfcal.experiments.slac.score_slac`).
 
     Notes
     -----
@@ -315,12 +312,10 @@ def _solve_slac(log: SlacLog, mode: str, prior: str, config: SlacConfig | None, 
         poses[s], covs[s], biases[s] = filt.poses, filt.pose_covariances, filt.biases
     Gs = {i: filt.sampling_matrix(i) for i in mp_agents}
     res = np.concatenate(pred_res) if pred_res else np.zeros(0)
-    metrics = _metrics(log, poses, covs, biases, filt.bias_std, ml, pv, Gs, S) if log.states is not None else {}
     return SlacResult(
         mode=mode, poses=poses, pose_cov=covs, biases=biases, bias_std=filt.bias_std,
         sampling_matrices={k: v for k, v in Gs.items() if v is not None}, ml_ranges=ml, port_vectors=pv,
         iterations=iters, converged_steps=conv, residual_rms=float(np.sqrt(np.mean(res**2))) if res.size else 0.0,
-        metrics=metrics,
         method=("slac-iekf-bfgs" if filt.config.optimizer == "bfgs" else "slac-iekf-quasi-newton")
         + (f"-fixed-lag-{cfg.smoother_lag}" if smoother is not None else ""),
     )
@@ -337,57 +332,3 @@ def _initial_state(log: SlacLog, init: str, prior: str, bias_std: float) -> tupl
                                  log.probe, log.bandwidth, headings=log.init_poses[:, 2],
                                  heading_std=np.sqrt(log.init_cov[:, 2, 2]), bias_std=bias_std)
     return back_propagate(ini.poses, ini.cov, log.controls[0], log.T, log.sigma_v, log.sigma_omega)
-
-
-def _metrics(log: SlacLog, poses: FArray, covs: FArray, biases: FArray, bias_std: FArray, ml: FArray,
-             pv: dict[int, CArray], Gs: dict[int, CArray | None], S: int) -> dict[str, Any]:
-    """Errors against the truth: Table I, NEES, ranging RMSE (Fig. 4), DoA errors (Fig. 3)."""
-    assert log.states is not None
-    tr = log.states[: S + 1]
-    n = log.n_agents
-    e_pos = np.linalg.norm(poses[:, :, :2] - tr[:, :, :2], axis=2)
-    e_psi = wrap_angle(poses[:, :, 2] - tr[:, :, 2])
-    err = np.concatenate([poses[:, :, :2] - tr[:, :, :2], e_psi[:, :, None]], axis=2)
-    nees = np.einsum("sni,snij,snj->sn", err, np.linalg.inv(covs), err)
-    names = list(log.names) if log.names else [f"agent{i}" for i in range(n)]
-    out: dict[str, Any] = {
-        "agents": names,
-        "position_rmse": np.sqrt(np.mean(e_pos[1:] ** 2, axis=0)),
-        "heading_rmse_deg": np.rad2deg(np.sqrt(np.mean(e_psi[1:] ** 2, axis=0))),
-        "nees_mean": np.mean(nees[1:], axis=0),
-        "nees_dof": 3,
-    }
-    # ranging RMSE over all links per step, without / with the bias correction (Fig. 4)
-    d_true = np.stack([np.linalg.norm(np.vstack([tr[s, :, :2], log.anchors])[log.tx]
-                                      - np.vstack([tr[s, :, :2], log.anchors])[log.rx], axis=1)
-                       for s in range(1, S + 1)])
-    corr = ml + biases[1:][:, log.rx] + biases[1:][:, log.tx]
-    out["ranging_rmse_uncorrected"] = np.sqrt(np.mean((ml - d_true) ** 2, axis=1))
-    out["ranging_rmse_corrected"] = np.sqrt(np.mean((corr - d_true) ** 2, axis=1))
-    if log.biases is not None:
-        out["true_biases"] = log.biases
-        out["bias_error"] = biases[-1] - log.biases
-        out["bias_std"] = bias_std
-    doa: dict[str, Any] = {}
-    for i, y in pv.items():
-        links = np.flatnonzero(log.rx == i)
-        true_phi = []
-        for s in range(1, S + 1):
-            p = np.vstack([tr[s, :, :2], log.anchors])
-            dl = p[log.tx[links]] - p[i]
-            true_phi.append(np.arctan2(dl[:, 1], dl[:, 0]) - tr[s, i, 2])
-        tp = np.array(true_phi)
-        sub = np.arange(0, S, max(1, S // 400))  # DoA post-processing on <= ~400 snapshots per link
-        cands = {"em": log.G_em[i, : log.ports[i]], "chamber": log.G_chamber[i, : log.ports[i]]}
-        G_est = Gs.get(i)
-        if G_est is not None:
-            cands["filter"] = G_est
-        errs = {}
-        for name, G in cands.items():
-            e = [abs(float(wrap_angle(estimate_doa_from_y(y[s, l], G, grid=360) - tp[s, l])))
-                 for s in sub for l in range(links.size)]
-            errs[name] = np.rad2deg(np.array(e))
-        doa[names[i]] = {k: {"p90_deg": float(np.percentile(v, 90)), "median_deg": float(np.median(v)),
-                             "errors_deg": v} for k, v in errs.items()}
-    out["doa"] = doa
-    return out

@@ -24,7 +24,7 @@ from .antenna import basis_orders
 from .likelihood import pack_g
 from .motion import motion_jacobian, motion_step, process_noise
 
-__all__ = ["StateLayout", "state_layout", "predict_locations", "propagate_pose_block"]
+__all__ = ["StateLayout", "state_layout", "predict_locations", "propagate_pose_block", "pose_means", "pose_blocks"]
 
 FArray = NDArray[np.float64]
 CArray = NDArray[np.complex128]
@@ -167,3 +167,13 @@ def propagate_pose_block(P: FArray, Fp: FArray, Qp: FArray) -> FArray:
     P_new[:p, p:] = rows[:, p:]
     P_new[p:, :p] = rows[:, p:].T
     return P_new
+
+
+def pose_means(x: FArray, n: int) -> FArray:
+    """The n agents' poses (n, 3) ``[x, y, psi]`` from a state whose first ``3 n`` entries are poses (a copy)."""
+    return x[: 3 * n].reshape(n, 3).copy()
+
+
+def pose_blocks(P: FArray, n: int) -> FArray:
+    """The n agents' pose covariances (n, 3, 3): the diagonal 3 x 3 blocks of the state covariance."""
+    return np.stack([P[3 * i : 3 * i + 3, 3 * i : 3 * i + 3] for i in range(n)])

@@ -20,10 +20,16 @@ residual ``R`` of the best rank-r approximation (r = the tested rank) as
 ``1.4826 median|R_ij| sqrt(m k / ((m-1-r)(k-r)))`` (a robust version of
 ``sum_{i>r} s_i^2 / ((m-1-r)(k-r))``; m-1 because centring removes one row's freedom),
 floored at ``1e-14 s_1`` (rounding).
-A singular value ``s_r`` counts as signal when it exceeds
-``rank_factor * sigma_r * (sqrt(m-1) + sqrt(k))`` -- ``sigma (sqrt(m-1) + sqrt(k))`` is the
-largest singular value of an i.i.d. noise matrix (Marchenko-Pastur edge) -- and
-``rel_floor * s_1``. The cone test asks whether a quadric ``Omega`` (unit Frobenius norm)
+The rank is chosen by nested tests (rank r - 1 against rank r, r = 3, 2, 1): ``s_r`` counts
+as signal when it exceeds ``sigma_r q``, q = :func:`noise_edge` ``(m - r, k - r + 1, alpha)``:
+the (1 - alpha) quantile of the largest singular value of the (m-1-(r-1)) x (k-(r-1)) noise
+matrix that remains under the smaller model (Tracy-Widom, Johnstone 2001), and
+``rel_floor * s_1``. A classical F test of the two nested fits would be wrong here: the r-th
+singular direction is chosen by the data, so under the smaller model ``s_r^2 / sigma^2`` is
+the largest eigenvalue of a Wishart matrix (about ``(sqrt(m) + sqrt(k))^2``), not a
+chi-square with ``m + k - 2r + 1`` degrees of freedom (mean ``m + k``): for 47 x 180 the F
+test would call pure noise signal nearly always. The false-alarm rate alpha (default
+1e-3) is checked over many seeds in the tests. The cone test asks whether a quadric ``Omega`` (unit Frobenius norm)
 with ``ntilde_j^T Omega ntilde_j = 0`` for all j exists up to noise: the smallest singular
 value ``mu_6`` of the design matrix of ``ntilde_j^T B ntilde_j = 1`` is compared with the
 size that noise alone gives it along its singular vector ``Omega_6``,
@@ -46,6 +52,9 @@ from ..robust import mad_std
 from .minimal import quadric_design, sym_from_vec
 
 __all__ = [
+    "RANK_ALPHA",
+    "noise_edge",
+    "tw1_quantile",
     "top_svd",
     "DEGENERACIES",
     "DegeneracyReport",
@@ -162,11 +171,56 @@ def _sigma(X: Array, U: Array, s: Array, Vt: Array, r: int, rows: int, cols: int
     return float(mad_std(R, centre=False) * np.sqrt(R.size / dof))
 
 
+#: false-alarm rate of each step of the nested rank test (the probability that a matrix of
+#: rank r plus i.i.d. Gaussian noise is called rank r + 1)
+RANK_ALPHA = 1e-3
+#: upper quantiles of the Tracy-Widom law for real matrices (beta = 1), by tail probability
+#: (Tracy and Widom 1996; the tables of Bejan 2005); checked against a Monte-Carlo of the
+#: Gaussian orthogonal ensemble in the tests
+_TW1 = {0.05: 0.9793, 0.01: 2.0234, 0.005: 2.4224, 0.001: 3.2724}
+
+
+def tw1_quantile(alpha: float) -> float:
+    """Upper ``alpha`` quantile of the Tracy-Widom (beta = 1) law, log-interpolated in alpha.
+
+    Tabulated for 0.001 <= alpha <= 0.05 (:data:`_TW1`); outside that range a ``ValueError``.
+    """
+    a = float(alpha)
+    keys = sorted(_TW1)
+    if not keys[0] <= a <= keys[-1]:
+        raise ValueError(f"alpha must be in [{keys[0]}, {keys[-1]}], got {alpha!r}")
+    return float(np.interp(np.log(a), np.log(keys), [_TW1[q] for q in keys]))
+
+
+def noise_edge(rows: int, cols: int, alpha: float = RANK_ALPHA) -> float:
+    """(1 - alpha) quantile of the largest singular value of a rows x cols matrix of i.i.d. N(0, 1).
+
+    Johnstone's (2001) Tracy-Widom approximation of the largest eigenvalue ``l`` of the
+    Wishart matrix ``X^T X`` (n = max(rows, cols), p = min(rows, cols)):
+    ``(l - mu) / s ~ TW1`` with ``mu = (sqrt(n - 1) + sqrt(p))^2`` and
+    ``s = (sqrt(n - 1) + sqrt(p)) (1/sqrt(n - 1) + 1/sqrt(p))^(1/3)``; returns
+    ``sqrt(mu + s q_alpha)``. Its centre is the Marchenko-Pastur edge ``sqrt(n) + sqrt(p)``.
+
+    Examples
+    --------
+    >>> round(noise_edge(47, 180, 0.001), 2)   # vs the MP edge sqrt(180) + sqrt(47) = 20.28
+    21.2
+    """
+    n, p = max(int(rows), int(cols)), min(int(rows), int(cols))
+    if p < 1:
+        return 0.0
+    a, b = np.sqrt(max(n - 1, 1)), np.sqrt(p)
+    mu = (a + b) ** 2
+    sd = (a + b) * (1.0 / a + 1.0 / b) ** (1.0 / 3.0)
+    return float(np.sqrt(max(mu + sd * tw1_quantile(alpha), 0.0)))
+
+
 def analyse_degeneracy(
     X: Array,
     *,
     noise_std: float | None = None,
-    rank_factor: float = 1.5,
+    alpha: float = RANK_ALPHA,
+    rank_factor: float | None = None,
     rel_floor: float = 1e-9,
     cone_tol: float = 3.0,
     chi2_tol: float = 25.0,
@@ -177,7 +231,10 @@ def analyse_degeneracy(
     ----------
     X : (m, k) complete column-centred relative distances (metres).
     noise_std : noise standard deviation of the entries of D (metres) if known.
-    rank_factor, rel_floor, cone_tol, chi2_tol : thresholds (see the module docstring).
+    alpha : false-alarm rate of each step of the nested rank test (:data:`RANK_ALPHA`).
+    rank_factor : None (the nested test) or a factor on the Marchenko-Pastur edge (the
+        rule before 0.3, kept for comparison).
+    rel_floor, cone_tol, chi2_tol : thresholds (see the module docstring).
 
     Returns
     -------
@@ -193,7 +250,17 @@ def analyse_degeneracy(
         return max(float(est), floor)
 
     def thr(r: int) -> float:
-        return max(rank_factor * sig(r) * (np.sqrt(a) + np.sqrt(k)), rel_floor * s1)
+        # nested test of "rank >= r" against "rank <= r - 1": under the smaller model the r-th
+        # singular value is the largest of an (a - r + 1) x (k - r + 1) noise matrix
+        if rank_factor is not None:  # the former rule: rank_factor x the Marchenko-Pastur edge
+            return max(rank_factor * sig(r) * (np.sqrt(a) + np.sqrt(k)), rel_floor * s1)
+        # sigma under the smaller model (rank r - 1): its residual still holds s_r, so the
+        # estimate is not depleted by the noise direction the larger model would remove. With a
+        # single remaining dimension (e.g. r = 3 in a 4 x 6 matrix) noise and s_r cannot be told
+        # apart: the numerical rank (rel_floor) decides, as for exact data
+        if min(a - r + 1, k - r + 1) < 2 and noise_std is None:
+            return rel_floor * s1
+        return max(sig(r - 1) * noise_edge(a - r + 1, k - r + 1, alpha), rel_floor * s1)
 
     rank = 0
     for r in (3, 2, 1):

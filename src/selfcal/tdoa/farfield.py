@@ -142,7 +142,8 @@ def solve_farfield(
     direction_solver : for "alternating": "global" or "local" (see :mod:`.refine`).
     allow_degenerate : return the partial reconstruction of a degenerate configuration
         (with ``degeneracy`` set) instead of raising.
-    screen : treat gross errors (:func:`screen_gross_errors`) as missing.
+    screen : treat gross errors (:func:`screen_gross_errors`: a residual test at family-wise
+        false-alarm rate 1 %) as missing.
     reject_k : with a robust loss, entries with ``|residual| > reject_k`` robust std are rejected.
     max_iter, tol : refinement limits (defaults 200 / 1e-12 for LM, 2000 / 1e-10 for
         alternating).
@@ -161,8 +162,9 @@ def solve_farfield(
         circular / rectangular board with sources around it in its plane; or any array with
         coplanar directions, whose positions are then seen projected onto that plane),
         1 (linear: positions on a line, or all directions parallel), or ``"auto"``: the
-        numerical rank of the column-centred matrix against the noise (the Marchenko-Pastur
-        edge test of :func:`~selfcal.tdoa.analyse_degeneracy`) and, at rank 2, the
+        numerical rank of the column-centred matrix against the noise (nested tests of rank
+        r - 1 against r at false-alarm rate 1e-3, Tracy-Widom quantiles, in
+        :func:`~selfcal.tdoa.analyse_degeneracy`) and, at rank 2, the
         consistency of the 2-D quadric (chi-square per dof of ``ntilde^T B2 ntilde = 1``)
         decide. What is determined (paper 000, section 2.2) is in ``result.determined``:
         planar -- the in-plane geometry up to a rotation / reflection of the plane (needs

@@ -10,6 +10,7 @@ from numpy.typing import NDArray
 
 from ..errors import DegenerateGeometryError, InputError
 from ..robust import TUNING as _TUNING
+from .covariance import linear_position_covariance
 from .degeneracy import DETERMINED as _DETERMINED
 from .degeneracy import DegeneracyReport, top_svd
 from .initialize import initialize_farfield
@@ -75,7 +76,8 @@ def _solve_low_dim(D: Array, X: Array, used: NDArray[np.bool_], d: int, report: 
         if offsets == "reference":
             C = D[0].copy()
         case = "parallel" if parallel else "linear"
-        return {"positions": pos, "directions": dirs, "offsets": C, "cov": None, "converged": True,
+        cov = linear_position_covariance(D, pos, dirs, C, used.astype(float), scale_free=not parallel)
+        return {"positions": pos, "directions": dirs, "offsets": C, "cov": cov, "converged": True,
                 "iterations": 0, "method": "svd-rank1", "pd": True, "history": [], "case": case,
                 "determined": _DETERMINED[case]}
     if k < 3 or m < 3:

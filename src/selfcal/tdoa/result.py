@@ -36,8 +36,10 @@ class FarfieldResult(Result):
         definite (the paper's success criterion; False -> A came from the nonlinear fit).
     diagnostics : the degeneracy report (singular values, noise level, cone ratio...).
     cost_history : refinement cost after every iteration (first = initial cost).
-    position_cov : (m, 3, 3) Gauss-Newton covariance of each position (m^2) after LM, in
-        the gauge "best rotation about the first position" (None for other methods).
+    position_cov : (m, d, d) Gauss-Newton covariance of each position (m^2) after LM, in
+        the gauge "best rotation about the first position"; for a linear array (d = 1) the
+        errors after the best scaling about the first position
+        (:func:`~selfcal.tdoa.covariance.linear_position_covariance`); None for other methods.
     warnings : human-readable cautions about this estimate (e.g. ``directions-collapsed``:
         the refinement drove the directions towards a common plane, see
         :data:`COLLAPSE_RATIO`); empty when there are none.

@@ -15,22 +15,39 @@ from ..robust import mad_std
 from .minimal import solve_minimal
 from .refine import farfield_residuals, loss_weight
 
-__all__ = ["screen_gross_errors", "lowrank_fit", "ransac_farfield"]
+__all__ = ["SCREEN_ALPHA", "LEVERAGE_MAX", "entry_leverages", "far_field_parameters", "implausible_entries", "screen_gross_errors", "lowrank_fit",
+           "ransac_farfield"]
 
 Array = NDArray[np.float64]
 
 
-def screen_gross_errors(D: Array, *, factor: float = 20.0) -> NDArray[np.bool_]:
-    """Flag gross errors: (m, k) bool mask.
+#: family-wise false-alarm rate of :func:`screen_gross_errors` (probability that a clean
+#: matrix with Gaussian noise loses any entry)
+SCREEN_ALPHA = 0.01
 
-    Column medians remove the offsets C_j. In row i of the centred matrix an entry is gross
+
+def far_field_parameters(m: int, k: int, d: int = 3) -> int:
+    """Free parameters of the far-field model on an m x k matrix in d dimensions.
+
+    ``d (m - 1)`` positions (the first at the origin), ``(d - 1) k`` unit directions, ``k``
+    offsets, minus the ``d (d - 1) / 2`` rotations: 3(m-1) + 3k - 3 in space (paper 000,
+    Theorem 1: a 4 x 6 matrix has exactly as many entries as unknowns).
+    """
+    return d * (m - 1) + (d - 1) * k + k - d * (d - 1) // 2
+
+
+def implausible_entries(D: Array, *, factor: float = 20.0) -> NDArray[np.bool_]:
+    """Entries no far-field matrix with moderate noise can hold: (m, k) bool mask (model-free).
+
+    Column medians remove the offsets C_j. In row i of the centred matrix an entry is flagged
     when it lies more than ``factor`` robust spreads from the row median, the spread being
     ``max(1.4826 MAD_i, q90_i / 3, 0.05 q90)`` (q90_i: 90th percentile of the row's absolute
     deviations, q90 the same over the whole matrix). The quantile terms keep rows with
     two-valued or nearly constant data (parallel directions, a position near the median)
     from being flagged; the global term means a gross error must exceed the spread of the
-    whole data set. Such entries cannot come from a far-field model with Gaussian noise;
-    they are treated as missing.
+    whole data set. Only errors far beyond the array's size are caught, and with fewer than
+    10 columns the row quantile contains the error itself: :func:`screen_gross_errors` adds
+    the model-based test.
     """
     X = D - np.nanmedian(D, axis=0, keepdims=True)
     med = np.nanmedian(X, axis=1, keepdims=True)
@@ -43,6 +60,164 @@ def screen_gross_errors(D: Array, *, factor: float = 20.0) -> NDArray[np.bool_]:
         return np.asarray(np.isfinite(D) & (dev > factor * scale))
 
 
+#: largest number of unknowns for which :func:`screen_gross_errors` computes each entry's leverage
+#: (a dense pseudo-inverse, O(p^3)); above, every entry gets the mean leverage p / n
+LEVERAGE_MAX = 300
+
+
+def entry_leverages(P: Array, Q: Array, W: Array) -> Array:
+    """Leverage ``h_ij = g_ij^T (J^T W J)^+ g_ij`` of every entry in the fit of ``P Q^T + 1 c^T``: (m, k).
+
+    ``g_ij`` is the gradient of ``L_ij = P_i . Q_j + c_j`` in (P, Q, c). For an entry in the
+    least-squares fit (W_ij = 1) the residual variance is ``sigma^2 (1 - h_ij)``; for one left
+    out, the prediction error variance is ``sigma^2 (1 + h_ij)``. The pseudo-inverse removes
+    the GL(rank) gauge of the factorisation.
+    """
+    m, r = P.shape
+    k = Q.shape[0]
+    Pa = np.hstack([P, np.ones((m, 1))])
+    q = r + 1
+    npar = m * r + k * q
+    H = np.zeros((npar, npar))
+    Hpp = np.einsum("ij,ja,jb->iab", W, Q, Q)
+    Hqq = np.einsum("ij,ia,ib->jab", W, Pa, Pa)
+    Hpq = W[:, :, None, None] * Q[None, :, :, None] * Pa[:, None, None, :]  # (m, k, r, q)
+    idx_p = np.arange(m)
+    idx_q = np.arange(k)
+    H[: m * r, : m * r].reshape(m, r, m, r)[idx_p, :, idx_p, :] = Hpp
+    H[m * r:, m * r:].reshape(k, q, k, q)[idx_q, :, idx_q, :] = Hqq
+    H[: m * r, m * r:] = Hpq.transpose(0, 2, 1, 3).reshape(m * r, k * q)
+    H[m * r:, : m * r] = H[: m * r, m * r:].T
+    Hi = np.linalg.pinv(H, rcond=1e-10, hermitian=True)
+    A = Hi[: m * r, : m * r].reshape(m, r, m, r)[idx_p, :, idx_p, :]  # (m, r, r)
+    Cq = Hi[m * r:, m * r:].reshape(k, q, k, q)[idx_q, :, idx_q, :]  # (k, q, q)
+    B = Hi[: m * r, m * r:].reshape(m, r, k, q).transpose(0, 2, 1, 3)  # (m, k, r, q)
+    h = (np.einsum("ja,iab,jb->ij", Q, A, Q) + 2.0 * np.einsum("ja,ijab,ib->ij", Q, B, Pa)
+         + np.einsum("ia,jab,ib->ij", Pa, Cq, Pa))
+    return np.asarray(np.clip(h, 0.0, 1.0))
+
+
+def _redundant(used: NDArray[np.bool_], n_fit: int, rank: int) -> bool:
+    """Enough redundancy for the residual test: at least a third of the kept entries are residual
+    degrees of freedom (mean leverage <= 2/3), every column keeps 2 entries and every row ``rank``."""
+    n = int(used.sum())
+    return bool(n - n_fit >= n / 3.0 and (used.sum(axis=0) >= 2).all() and (used.sum(axis=1) >= rank).all())
+
+
+def screen_gross_errors(
+    D: Array,
+    *,
+    alpha: float = SCREEN_ALPHA,
+    rank: int = 3,
+    noise_std: float | None = None,
+    factor: float = 20.0,
+    rounds: int = 4,
+) -> NDArray[np.bool_]:
+    """Flag gross errors with a stated false-alarm rate: (m, k) bool mask.
+
+    Two stages. (1) :func:`implausible_entries`, the model-free pre-screen (errors far beyond
+    the array's size), so that they cannot spoil the fit of stage 2. (2) A residual test
+    against the far-field structure: the least-squares fit ``L`` of ``D = P Q^T + 1 c^T``
+    (:func:`lowrank_fit`, rank ``rank``) to the entries not yet flagged, and an entry is
+    gross when
+
+    ``|D_ij - L_ij| > t sigma sqrt(1 -/+ h)``,  ``t = Phi^-1(1 - alpha / (2 n))``
+
+    (Bonferroni over the n observed entries; ``h`` the entry's leverage in the least-squares
+    fit of the kept entries, :func:`entry_leverages`, or the mean leverage above
+    :data:`LEVERAGE_MAX` unknowns; ``1 - h`` for an entry in the fit, ``1 + h`` for one left
+    out, whose residual is a prediction error; sigma = ``noise_std`` or 1.4826 MAD of the
+    studentised residuals). The fit is repeated without the flagged entries until the flags
+    stop changing (at most ``rounds`` fits): a gross entry set aside no longer pulls the fit,
+    and a clean one flagged next to it is given back. (Where the redundancy test below
+    passes, one spike cannot be absorbed by the rank-``rank`` fit; in smaller matrices it
+    can, and the test does not run.)
+
+    Under the far-field model with i.i.d. Gaussian noise a clean matrix loses any entry with
+    probability about ``alpha`` (checked over many seeds in the tests); a gross error is
+    caught when it exceeds about ``t sigma`` plus what the fit absorbs of it. The residual
+    test needs redundancy: it runs when at least a third of the entries are residual degrees
+    of freedom of the fit (``n - rank (m + k - rank) - k >= n / 3``, e.g. 12 x 12 or 10 x 30
+    in space); below (the minimal 4 x 6 problem, where any matrix fits exactly, or 8 x 9)
+    only the pre-screen acts, which misses errors within a few array sizes when k < 10.
+
+    Parameters
+    ----------
+    D : (m, k) relative distances (metres), NaN = missing.
+    alpha : family-wise false-alarm rate (default :data:`SCREEN_ALPHA`).
+    rank : dimension of the model (3 in space; 2 or 1 for planar / linear arrays).
+    noise_std : known noise standard deviation (metres) or None (estimated).
+    factor : threshold of the pre-screen, in robust spreads.
+    rounds : most fits of stage 2.
+
+    Returns
+    -------
+    (m, k) bool, True = gross (treated as missing by the solver).
+
+    Examples
+    --------
+    A +1 m error in a 5 cm array of 12 microphones with 12 transmitters:
+
+    >>> import numpy as np
+    >>> rng = np.random.default_rng(0)
+    >>> Z = rng.uniform(-0.025, 0.025, (12, 3))
+    >>> N = rng.normal(size=(12, 3))
+    >>> N /= np.linalg.norm(N, axis=1, keepdims=True)
+    >>> D = Z @ N.T + rng.normal(size=12) + 1e-4 * rng.standard_normal((12, 12))
+    >>> D[3, 4] += 1.0
+    >>> np.argwhere(screen_gross_errors(D)).tolist()
+    [[3, 4]]
+    """
+    from scipy.stats import norm
+
+    D = np.asarray(D, dtype=float)
+    finite = np.isfinite(D)
+    pre = implausible_entries(D, factor=factor)
+    m, k = D.shape
+    n_all = int(finite.sum())
+    if n_all == 0:
+        return pre
+    t = float(norm.isf(alpha / (2.0 * n_all)))
+    used = finite & ~pre
+    n = int(used.sum())
+    n_fit = rank * (m + k - rank) + k  # unknowns of the least-squares fit below
+    if not _redundant(used, n_fit, rank):
+        return pre
+    flags = pre.copy()
+    verified = False
+    # then least squares on the entries kept, every entry tested against it, until the flags settle:
+    # excluded entries cannot pull the fit, and clean ones flagged by the rough start come back
+    for _ in range(max(int(rounds), 1)):
+        used = finite & ~flags
+        n = int(used.sum())
+        if not _redundant(used, n_fit, rank):
+            break
+        W = used.astype(float)
+        L, _, P, Q = lowrank_fit(D, W, rank=rank, loss="linear", factors=True)
+        if n_fit <= LEVERAGE_MAX:
+            h = np.minimum(entry_leverages(P, Q, W), 0.99)
+        else:
+            h = np.full((m, k), min(n_fit / n, 0.99))
+        res = np.abs(np.where(finite, D, 0.0) - L)
+        # robust sigma from the studentised residuals of the kept entries
+        sigma = float(noise_std) if noise_std is not None else float(
+            mad_std((res / np.sqrt(1.0 - h))[used], centre=False))
+        # floor: the rounding level of the fit (noise-free data)
+        sigma = max(sigma, 1e-9 * float(np.max(np.abs(L - L.mean(axis=0)))))
+        if not sigma > 0:
+            break
+        sd = sigma * np.where(used, np.sqrt(1.0 - h), np.sqrt(1.0 + h))
+        with np.errstate(invalid="ignore"):
+            new = pre | (finite & (res > t * sd))
+        verified = True
+        if np.array_equal(new, flags):
+            break
+        flags = new
+    if not verified:
+        return pre
+    return np.asarray(flags)
+
+
 def lowrank_fit(
     D: Array,
     W: Array,
@@ -51,7 +226,8 @@ def lowrank_fit(
     loss: str = "linear",
     iterations: int = 50,
     start: Array | None = None,
-) -> tuple[Array, float]:
+    factors: bool = False,
+) -> tuple[Array, float] | tuple[Array, float, Array, Array]:
     """Weighted (robust) fit of the far-field structure ``L = P Q^T + 1 c^T`` to D.
 
     ``P`` (m, rank), ``Q`` (k, rank), ``c`` (k,): the rank-3 factorisation plus one offset
@@ -72,7 +248,8 @@ def lowrank_fit(
     Returns
     -------
     L : (m, k) complete fitted matrix; sigma : robust noise estimate (1.4826 MAD of the
-    residuals over used entries, inflated by the residual degrees of freedom).
+    residuals over used entries, inflated by the residual degrees of freedom); with
+    ``factors=True`` also P (m, rank) and Q (k, rank).
     """
     m, k = D.shape
     obs = W > 0
@@ -91,9 +268,10 @@ def lowrank_fit(
         cmed = np.nanmedian(Dn, axis=0, keepdims=True)
         Xc = Dn - cmed
         rmed = np.nanmedian(Xc, axis=1, keepdims=True)
-        dev = np.abs(Xc - rmed)
-        sc = np.maximum(mad_std(Xc, axis=1, keepdims=True),
-                        np.nanpercentile(dev, 90, axis=1, keepdims=True) / 3.0)
+        # high-breakdown spreads only (a row quantile would contain the gross entry itself when
+        # the row is short): the row's MAD, floored at half the whole matrix's MAD for rows
+        # whose entries barely vary (a position near the median one)
+        sc = np.maximum(mad_std(Xc, axis=1, keepdims=True), 0.5 * mad_std(Xc[np.isfinite(Xc)]))
         Xc = np.clip(Xc, rmed - 3.0 * sc, rmed + 3.0 * sc)
         F = np.where(obs, Xc + cmed, cmed)
     c = F.mean(axis=0)
@@ -121,7 +299,57 @@ def lowrank_fit(
             break
     L = P @ Q.T + c
     R = np.where(obs, D0 - L, 0.0)
-    return L, mad_std(R[obs], centre=False) * dof_fac
+    sig = mad_std(R[obs], centre=False) * dof_fac
+    if factors:
+        return L, sig, P, Q
+    return L, sig
+
+
+def consensus_prediction(D: Array, *, iterations: int = 200,
+                         rng: np.random.Generator | int | None = None) -> Array | None:
+    """The best minimal-sample hypothesis's prediction of the whole matrix (LMedS): (m, k) or None.
+
+    Each hypothesis solves a random 4 x 6 sub-problem (Algorithm 1, batched), extends it to
+    every column (``Dbar_j = Z n_j`` on the 3 sampled position differences) and every row
+    (least squares over the sampled columns) and is scored by the median absolute residual;
+    a sample free of gross errors predicts the clean structure. None when no sample of
+    complete entries gives a valid (positive definite B) solution.
+    """
+    gen = as_rng(rng)
+    D = np.asarray(D, dtype=float)
+    m, k = D.shape
+    finite = np.isfinite(D)
+    rows = np.array([gen.choice(m, 4, replace=False) for _ in range(iterations)])
+    cols = np.array([gen.choice(k, 6, replace=False) for _ in range(iterations)])
+    sub = D[rows[:, :, None], cols[:, None, :]]
+    ok = np.all(np.isfinite(sub), axis=(1, 2))
+    sol = solve_minimal(np.where(np.isfinite(sub), sub, 0.0))
+    good = np.flatnonzero(ok & sol.valid)
+    if good.size == 0:
+        return None
+    best_med, best_P = np.inf, None
+    Df = np.where(finite, D, np.nan)
+    for h in good:
+        r, c = rows[h], cols[h]
+        Zs = sol.positions[h]  # (4, 3), relative to row r[0]
+        Ns = sol.directions[h]  # (6, 3)
+        if not (np.isfinite(Zs).all() and np.isfinite(Ns).all()) or np.linalg.cond(Zs[1:]) > 1e12:
+            continue
+        # every row: z_i - z_r0 from the sampled columns
+        Y = Df[:, c] - Df[r[0], c][None, :]  # (m, 6)
+        Zall = np.linalg.lstsq(Ns, np.nan_to_num(Y.T), rcond=None)[0].T
+        # every column: n_j from the three sampled position differences, normalised
+        Yc = Df[r[1:], :] - Df[r[0], :][None, :]  # (3, k)
+        Nall = np.linalg.solve(Zs[1:], np.nan_to_num(Yc)).T
+        Nall /= np.maximum(np.linalg.norm(Nall, axis=1, keepdims=True), 1e-300)
+        Cj = Df[r[0], :]
+        R = Df - Zall @ Nall.T - Cj[None, :]
+        med = float(np.nanmedian(np.abs(R)))
+        if np.isfinite(med) and med < best_med:
+            best_med, best_P = med, Zall @ Nall.T + Cj[None, :]
+    if best_P is None or not np.isfinite(np.where(finite, best_P, 0.0)).all():
+        return None
+    return np.where(np.isfinite(best_P), best_P, 0.0)
 
 
 def ransac_farfield(
@@ -143,39 +371,13 @@ def ransac_farfield(
     """
     gen = as_rng(rng)
     D = np.asarray(D, dtype=float)
-    m, k = D.shape
     finite = np.isfinite(D)
-    rows = np.array([gen.choice(m, 4, replace=False) for _ in range(iterations)])
-    cols = np.array([gen.choice(k, 6, replace=False) for _ in range(iterations)])
-    sub = D[rows[:, :, None], cols[:, None, :]]
-    ok = np.all(np.isfinite(sub), axis=(1, 2))
-    sol = solve_minimal(np.where(np.isfinite(sub), sub, 0.0))
-    good = np.flatnonzero(ok & sol.valid)
-    if good.size == 0:
+    pred = consensus_prediction(D, iterations=iterations, rng=gen)
+    if pred is None:
         return finite
-    best_med, best_R, best_P = np.inf, None, None
-    Df = np.where(finite, D, np.nan)
-    for h in good:
-        r, c = rows[h], cols[h]
-        Zs = sol.positions[h]  # (4, 3), relative to row r[0]
-        Ns = sol.directions[h]  # (6, 3)
-        # every row: z_i - z_r0 from the sampled columns
-        Y = Df[:, c] - Df[r[0], c][None, :]  # (m, 6)
-        Zall = np.linalg.lstsq(Ns, np.nan_to_num(Y.T), rcond=None)[0].T
-        # every column: n_j from the three sampled position differences, normalised
-        Yc = Df[r[1:], :] - Df[r[0], :][None, :]  # (3, k)
-        Nall = np.linalg.solve(Zs[1:], np.nan_to_num(Yc)).T
-        Nall /= np.maximum(np.linalg.norm(Nall, axis=1, keepdims=True), 1e-300)
-        Cj = Df[r[0], :]
-        R = Df - Zall @ Nall.T - Cj[None, :]
-        med = float(np.nanmedian(np.abs(R)))
-        if med < best_med:
-            best_med, best_R, best_P = med, R, Zall @ Nall.T + Cj[None, :]
-    assert best_R is not None and best_P is not None
     # local optimisation: one minimal sample extrapolates poorly to the other rows and
     # columns, so refine the consensus model by a robust (Huber) structured fit of all entries
     # started from it, and threshold against that fit
-    pred = np.where(np.isfinite(best_P), best_P, 0.0)
     L, sig = lowrank_fit(np.where(finite, D, 0.0), finite.astype(float), rank=3, loss="huber", start=pred)
     lim = 4.0 * sig if threshold is None else float(threshold)
     with np.errstate(invalid="ignore"):

@@ -45,6 +45,15 @@ of a dense network is therefore one dense factorization of the n_K x n_K reduced
 (9000 x 9000 at 3000 x 3000 in 3-D: 0.65 GB, ~2.4e11 flops) plus the rank-n_E update that
 builds it (~7e11 flops). ``covariance="receivers"`` with receivers on the K side skips every
 E solve; ``"none"`` skips everything.
+
+Floor (measured, ``benchmarks/bench_toa.py``, one BLAS thread on the 2-core machine): the exact
+blocks cannot avoid syrk (n_K^2 n_E m_E), potrf (n_K^3/3), trsm (n_K^2 n_E m_E, the E blocks)
+and trtri (n_K^3/3, the K blocks): about 2.7 n^3 flops for a square network with n = d I
+reduced unknowns. At 1000 x 1000 those four calls take 2.2 s of CPU, at 2000 x 2000 15.5 s
+(the whole covariance: 3.0 s and 19.2 s); the matrix-free solve they are compared with takes
+0.8 s and 4.2 s (:mod:`selfcal.toa.schur_lm`), so the exact blocks cost ~3-4x the solve, not
+0.5x: that would need approximate blocks. H is kept between the two passes when it fits in
+256 MB (``_KEEP_H_DOUBLES``), rebuilt block by block above.
 """
 
 from __future__ import annotations
@@ -186,18 +195,16 @@ def _kept_side(theta: Array, lay: _Layout) -> tuple[Array, Array]:
     return (r, s) if lay.k_is_receivers else (s, r)
 
 
-def _rows(PK: Array, PE: Array, lay: _Layout) -> tuple[Array, Array]:
-    """Jacobian rows of the pairs (k, e), e in a block: on K (nK, ne, mK) and on E (nK, ne, mE)."""
-    has_r, has_s = _flags(lay.offsets)
-    diff = PK[:, None, :] - PE[None, :, :]
-    if not lay.k_is_receivers:
-        diff = -diff  # u = (receiver - source) / |.|
-    dist = np.sqrt(np.einsum("ked,ked->ke", diff, diff))
-    u = np.divide(diff, dist[..., None], out=np.zeros_like(diff), where=dist[..., None] > 0)
-    ones = np.ones(u.shape[:2] + (1,))
-    a = np.concatenate([u, ones], axis=2) if has_r else u  # receiver rows
-    b = np.concatenate([-u, ones], axis=2) if has_s else -u  # source rows
-    return (a, b) if lay.k_is_receivers else (b, a)
+def _components(PK: Array, PE: Array) -> list[Array]:
+    """Unit-vector components ``U_p = (x_k - x_e) / |x_k - x_e|`` (d arrays nK x nE).
+
+    The Jacobian row of pair (k, e) is ``a = [U, 1?]`` on the kept node and ``b = [-U, 1?]``
+    on the eliminated one (:mod:`selfcal.toa.schur_lm`).
+    """
+    from .schur_lm import Grid, directions
+
+    U, _ = directions(PK, PE, Grid(PK.shape[0], PE.shape[0]))
+    return U
 
 
 def _block_ranges(nE: int, nK: int, mK: int, mE: int) -> list[tuple[int, int]]:
@@ -218,15 +225,26 @@ def _inv_eliminated(Dblk: Array, e0: int) -> Array:
     return np.asarray(np.linalg.inv(Dblk), dtype=np.float64)
 
 
-def _h_block(aK: Array, bE: Array, wK: Array, Rc: Array, pinned: Index) -> Array:
-    """``H[k p, e r] = w_ke a_ke,p (b_ke^T R_e)_r`` for one E block, pinned rows zero: (nK mK, ne mE)."""
-    nK, ne, mK = aK.shape
-    mE = bE.shape[2]
-    c = np.einsum("keq,eqr->ker", bE, Rc)
-    wa = aK * wK[..., None]
+def _h_block(Ub: list[Array], hasK: bool, hasE: bool, wK: Array, Rc: Array, pinned: Index) -> Array:
+    """``H[k p, e r] = w_ke a_ke,p (b_ke^T R_e)_r`` for one E block, pinned rows zero: (nK mK, ne mE).
+
+    ``Ub`` are the unit-vector components of the block (d arrays nK x ne), ``Rc`` (ne, mE, mE).
+    """
+    d = len(Ub)
+    nK, ne = wK.shape
+    mK, mE = d + hasK, d + hasE
     H4 = np.empty((nK, mK, ne, mE))
-    for p in range(mK):
-        np.multiply(wa[:, :, p, None], c, out=H4[:, p])
+    c = np.empty((nK, ne))
+    wa = [wK * Ub[p] for p in range(d)] + ([wK] if hasK else [])
+    for r in range(mE):
+        # c_r = b^T R_e[:, r] with b = [-U, 1?]
+        np.multiply(Ub[0], -Rc[None, :, 0, r], out=c)
+        for q in range(1, d):
+            c -= Ub[q] * Rc[None, :, q, r]
+        if hasE:
+            c += Rc[None, :, d, r]
+        for p in range(mK):
+            np.multiply(wa[p], c, out=H4[:, p, :, r])
     H: Array = H4.reshape(nK * mK, ne * mE)
     H[pinned] = 0.0
     return H
@@ -291,29 +309,28 @@ def gauge_free_blocks(
     QK = Q[lay.k_idx.ravel()]  # (nA, g)
     QE = Q[lay.e_idx.ravel()].reshape(nE, mE, g)
 
-    # pass 1: A, D^-1 = R R^T per E node, S = A - H H^T, t = Q_K - F Q_E
-    Ablk = np.zeros((nK, mK, mK))
-    Dinv = np.empty((nE, mE, mE))
-    Rc = np.empty((nE, mE, mE))
+    # the node blocks A (K) and D (E) from component sums over all pairs, D^-1 = R R^T
+    from .schur_lm import Grid, diagonal_blocks
+
+    hasK, hasE = mK > lay.d, mE > lay.d
+    U = _components(PK, PE)
+    Ablk, Dblk = diagonal_blocks(U, wK, hasK, hasE, Grid(nK, nE))
+    Dinv = _inv_eliminated(Dblk, 0)
+    Rc: Array = np.asarray(np.linalg.cholesky(Dinv), dtype=np.float64)
+    # pass 1: S = A - H H^T, t = Q_K - F Q_E
     S = np.zeros((nA, nA), order="F")
     t = QK.copy()
     keep = nA * nE * mE <= _KEEP_H_DOUBLES
     Hs: list[Array] = []
     for e0, e1 in blocks:
-        aK, bE = _rows(PK, PE[e0:e1], lay)
-        wb = wK[:, e0:e1]
-        Ablk += np.einsum("kep,keq->kpq", aK * wb[..., None], aK)
-        Di = _inv_eliminated(np.einsum("kep,keq->epq", bE * wb[..., None], bE), e0)
-        Dinv[e0:e1] = Di
-        Rc[e0:e1] = np.linalg.cholesky(Di)
-        H = _h_block(aK, bE, wb, Rc[e0:e1], pinned)
+        H = _h_block([Up[:, e0:e1] for Up in U], hasK, hasE, wK[:, e0:e1], Rc[e0:e1], pinned)
         # S -= H H^T, lower triangle, in place (H.T is F-ordered: no copy)
         S = scipy.linalg.blas.dsyrk(-1.0, H.T, beta=1.0, c=S, trans=1, lower=1, overwrite_c=1)
         RtQE = np.einsum("eqp,eqg->epg", Rc[e0:e1], QE[e0:e1]).reshape(-1, g)
         t -= H @ RtQE
         if keep:
             Hs.append(H)
-        del H, aK, bE
+        del H
     idx = np.arange(nK)
     for p in range(mK):
         for q in range(mK):
@@ -342,8 +359,7 @@ def gauge_free_blocks(
         if keep:
             H = Hs[b_i]
         else:
-            aK, bE = _rows(PK, PE[e0:e1], lay)
-            H = _h_block(aK, bE, wK[:, e0:e1], Rc[e0:e1], pinned)
+            H = _h_block([Up[:, e0:e1] for Up in U], hasK, hasE, wK[:, e0:e1], Rc[e0:e1], pinned)
         Rb = Rc[e0:e1]
         YE[e0:e1] -= np.einsum("epq,eqg->epg", Rb, (H.T @ YK).reshape(e1 - e0, mE, g))
         sel = np.flatnonzero(wantE[e0:e1])

@@ -17,21 +17,35 @@ Subsets, in this order (node indices are the search's canonical order, see
    the receivers;
 4. every receiver-source pair of 2. at once (reflected, and moved onto its plane).
 
-Each move returns a start ``(receivers, sources, receiver_offsets, source_offsets)``; the
-search refines it with the one engine (:func:`selfcal.toa.nls.refine_toa`).
+Each move is a :class:`Move`: its name, the start ``(receivers, sources,
+receiver_offsets, source_offsets)`` and the nodes it moved. The search refines it with
+the one engine (:func:`selfcal.toa.nls.refine_toa`): a move of a few nodes first by a
+partial refit (only the moved nodes and their offsets free, on the entries that touch
+them), which ranks it at a small fraction of a full refinement's cost.
 """
 
 from __future__ import annotations
 
 from collections.abc import Iterator
+from typing import NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
 
-__all__ = ["Start", "fit_plane", "moves", "reflect"]
+__all__ = ["Move", "Start", "fit_plane", "moves", "reflect"]
 
 Array = NDArray[np.float64]
 Start = tuple[Array, Array, "Array | None", "Array | None"]
+
+
+class Move(NamedTuple):
+    """One candidate of the search: ``name`` (e.g. ``"pair-r2s5"``), its ``start`` and the
+    receivers / sources it moved (canonical indices; all of a kind for the collective moves)."""
+
+    name: str
+    start: Start
+    receivers: tuple[int, ...]
+    sources: tuple[int, ...]
 
 #: a node counts as "in the plane" of its partners below this relative distance
 IN_PLANE = 1e-6
@@ -72,12 +86,14 @@ def _pairs(r: Array, s: Array) -> list[tuple[int, int, Array, Array]]:
     return out
 
 
-#: node-wise moves (1. and 2.) only up to this many nodes: above it their number (one or two per
-#: node, each a refinement) costs more than the search's budget; the collective ones always run
-NODEWISE_MAX_NODES = 24
+#: node-wise moves (1. and 2.) only up to this many nodes: their number grows with the nodes (two
+#: or three per node, each a partial refit of O(I + J) entries, ~10-20 ms here), so a round costs
+#: O((I + J)^2); at 60 nodes it is ~1 s, the cost of a few full refinements (the bound of the
+#: dense solver in selfcal.toa.fit as well). The collective moves always run.
+NODEWISE_MAX_NODES = 60
 
 
-def moves(start: Start, observed: NDArray[np.bool_]) -> Iterator[tuple[str, Start]]:
+def moves(start: Start, observed: NDArray[np.bool_]) -> Iterator[Move]:
     """Candidate starts from a refined solution, in the fixed order of the module docstring.
 
     Parameters
@@ -87,7 +103,7 @@ def moves(start: Start, observed: NDArray[np.bool_]) -> Iterator[tuple[str, Star
 
     Yields
     ------
-    (name, start) pairs; ``name`` says the move, e.g. ``"reflect-r3"``, ``"pair-r2s5"``.
+    Move; ``name`` says the move, e.g. ``"reflect-r3"``, ``"pair-r2s5"``.
     """
     r0, s0, d0, o0 = start
     r0, s0 = np.asarray(r0, float), np.asarray(s0, float)
@@ -99,6 +115,8 @@ def moves(start: Start, observed: NDArray[np.bool_]) -> Iterator[tuple[str, Star
     def pack(r: Array, s: Array) -> Start:
         return r, s, None if d0 is None else d0.copy(), None if o0 is None else o0.copy()
 
+    J = s0.shape[0]
+    every_r, every_s = tuple(range(I)), tuple(range(J))
     nodewise = n_all <= NODEWISE_MAX_NODES
     # 1. single nodes
     for k in range(n_all if nodewise else 0):
@@ -107,11 +125,12 @@ def moves(start: Start, observed: NDArray[np.bool_]) -> Iterator[tuple[str, Star
         p = allpts[k]
         r, s = r0.copy(), s0.copy()
         tgt, idx, name = (r, k, f"r{k}") if k < I else (s, k - I, f"s{k - I}")
+        who = ((idx,), ()) if k < I else ((), (idx,))
         h = float((p - c) @ n)
         span = float(np.sqrt(np.mean(np.sum((rest - c) ** 2, axis=1)))) or 1.0
         if abs(h) > IN_PLANE * span:
             tgt[idx] = p - 2.0 * h * n
-            yield f"reflect-{name}", pack(r, s)
+            yield Move(f"reflect-{name}", pack(r, s), *who)
         # a node in (or next to) the plane of its partners: lift it off on both sides
         partners = s0[observed[idx]] if k < I else r0[observed[:, idx]]
         if partners.shape[0] > dim:
@@ -124,19 +143,19 @@ def moves(start: Start, observed: NDArray[np.bool_]) -> Iterator[tuple[str, Star
                 for sign, tag in ((1.0, "+"), (-1.0, "-")):
                     r2, s2 = r0.copy(), s0.copy()
                     (r2 if k < I else s2)[idx] = p + sign * lift * pn
-                    yield f"lift{tag}-{name}", pack(r2, s2)
+                    yield Move(f"lift{tag}-{name}", pack(r2, s2), *who)
     # 2. receiver + nearest source
     pairs = _pairs(r0, s0)
     for i, j, mid, n in pairs if nodewise else []:
         r, s = r0.copy(), s0.copy()
         r[i] = reflect(r0[i], mid, n)
         s[j] = reflect(s0[j], mid, n)
-        yield f"pair-r{i}s{j}", pack(r, s)
+        yield Move(f"pair-r{i}s{j}", pack(r, s), (i,), (j,))
     # 3. one kind through the plane of the other
     c, n, _ = fit_plane(s0)
-    yield "reflect-receivers", pack(reflect(r0, c, n), s0.copy())
+    yield Move("reflect-receivers", pack(reflect(r0, c, n), s0.copy()), every_r, ())
     c, n, _ = fit_plane(r0)
-    yield "reflect-sources", pack(r0.copy(), reflect(s0, c, n))
+    yield Move("reflect-sources", pack(r0.copy(), reflect(s0, c, n)), (), every_s)
     # 4. all pairs at once
     if pairs:
         for fraction, tag in ((1.0, "reflect"), (0.5, "project")):
@@ -144,4 +163,5 @@ def moves(start: Start, observed: NDArray[np.bool_]) -> Iterator[tuple[str, Star
             for i, j, mid, n in pairs:
                 r[i] = reflect(r0[i], mid, n, fraction)
                 s[j] = reflect(s0[j], mid, n, fraction)
-            yield f"{tag}-pairs", pack(r, s)
+            yield Move(f"{tag}-pairs", pack(r, s), tuple(sorted({i for i, *_ in pairs})),
+                       tuple(sorted({j for _, j, *_ in pairs})))

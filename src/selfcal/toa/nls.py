@@ -31,7 +31,9 @@ Jacobian has 2d (+1, +2) non-zeros per row and ``J^T J`` is d x d block-diagonal
 within each node set, coupled only through the receiver-source blocks. The default solver (``solver="schur"``) is Levenberg-Marquardt whose
 normal equations are reduced by a Schur complement onto the smaller node set and
 solved matrix-free by preconditioned conjugate gradients (Schur-Jacobi blocks):
-O(I J d) per product, nothing of size (I d)^2 stored. The covariance (:mod:`selfcal.toa.covariance`)
+O(I J d) per product, nothing of size (I d)^2 stored; the working set is the d unit-vector
+components and a few residual / weight arrays, each the size of the data
+(:mod:`selfcal.toa.schur_lm`; 3000 x 3000 peaks at 1.1 GB). The covariance (:mod:`selfcal.toa.covariance`)
 needs the exact inverse: it forms the reduced matrix once, factorises it once and
 computes only the requested d x d diagonal blocks by selected inversion,
 O(min(I,J)^2 max(I,J) d^3) time for all of them.
@@ -450,7 +452,8 @@ def refine_toa(
         ``(receiver_idx, source_idx)`` (:func:`selfcal.toa.covariance.normalize_covariance`);
         blocks not asked for are NaN. Selected inversion from one factorization of the
         reduced system (:mod:`selfcal.toa.covariance`: O(min(I,J)^2 max(I,J) d^3) time for
-        all blocks, the dominant cost for very large networks).
+        all blocks, the dominant cost for very large networks). With constraints the
+        same request is honoured by the sparse-LU path of :mod:`selfcal.toa.constrained`.
     fixed_receivers, fixed_sources: (I, d) / (J, d) bool masks (or (I,) / (J,) row
         masks) of coordinates held at their starting values: known heights are a fixed
         z column, known anchors fixed rows.

@@ -54,9 +54,13 @@ in its simulation). Its thresholds are on quantities in s^2 and scale with c^2: 
 convergence threshold 1e-12 s^2, lambda threshold 1e-8 s^2 and acceptance 8e-7 s^2 become
 ``THESIS_TOL``, ``THESIS_LAM_SWITCH`` and ``THESIS_ACCEPT`` in m^2 (c = 343 m/s).
 
-Length (1549 lines, above the ~600 guideline): the 004 rank-3 method, the thesis reference
-iteration kept as the tests' reference, the fast solver and the position upgrade; the
-reference iteration could move under tests/.
+Below the condition (e.g. 12 receivers x 6 senders in 3-D: 16 equations for 17 offsets) the
+offsets satisfying the rank condition form a one-parameter family (a curve through the true
+p; its Jacobian has rank 16, tested), so the method cannot give a start there; the curve is
+also weakly conditioned (smallest non-zero singular value ~1e-3 of the largest), so with
+20 us timing noise it passes metres away from the true offsets. ``solve_toa`` then relies on
+the other initialisers (:mod:`selfcal.toa.scaled_starts`).
+
 Files of the 004 method (one job each; :mod:`selfcal.toa.offsets` re-exports them all):
 this module (the model), :mod:`.rank3_thesis` (the thesis iteration, the tests'
 reference), :mod:`.rank3` (the fast variable-projection LM and the acceptance/restarts),

@@ -39,9 +39,12 @@ additionally chose the common ranging offset by a robust residual profile scored
 the two shared LPS flights, but issue 12 reports it worse than the data set authors'
 estimate on 6 of 6 flights of the same system outside ``shared/``, where spike rejection
 alone matched them; leave-one-flight-out and simulated UWB flights with biases and
-multipath (:func:`selfcal.experiments.toa_mds_nls.simulate_uwb_flight`) are scored in
+multipath (:func:`selfcal.experiments.lps.simulate_uwb_flight`) are scored in
 ``selfcal reproduce lps``. The profile stays available as ``common_offset="profile"``
-(an explicit opt-in), never the default.
+(an explicit opt-in), never the default. The one-sided Bonferroni rule replaced a
+two-sided 3.5-sigma rule by principle (the physics of NLOS, a stated false-alarm rate);
+every variant on the shared and simulated flights is in
+:func:`selfcal.experiments.lps.score_recipe_variants` (README, "Results on real data").
 """
 
 from __future__ import annotations

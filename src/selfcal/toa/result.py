@@ -23,6 +23,7 @@ from numpy.typing import NDArray
 from .._checks import check_choice, check_positive
 from .._result import Result
 from ..errors import Status
+from ..geometry import n_parameters
 from .nls import OFFSET_MODES
 
 __all__ = [
@@ -51,24 +52,6 @@ MESSAGES = {
     "chi2-failed": "the residuals are too large for the given noise (chi-square test failed)",
     "cv-failed": "the data are not predicted by a geometry better than by offsets alone (cross-validated test failed)",
 }
-
-
-def n_parameters(n_receivers: int, n_sources: int, dim: int, offsets: str) -> int:
-    """Free parameters of the TOA model up to the gauge (003 eq. 2, 004 eq. 3.1).
-
-    ``dim (I + J)`` coordinates minus the ``dim (dim + 1) / 2`` of a rigid motion, plus
-    ``I + J - 1`` offsets for ``offsets="both"`` (a common shift between delays and onsets
-    is not observable), ``I`` for "receivers", ``J`` for "sources", 0 for "none".
-
-    Examples
-    --------
-    >>> n_parameters(12, 6, 3, "both")   # 3 * 18 - 6 + 12 + 6 - 1
-    65
-    """
-    check_choice(offsets, "offsets", OFFSET_MODES)
-    I, J = int(n_receivers), int(n_sources)
-    n_off = {"none": 0, "receivers": I, "sources": J, "both": I + J - 1}[offsets]
-    return dim * (I + J) - dim * (dim + 1) // 2 + n_off
 
 
 def null_parameters(n_receivers: int, n_sources: int, offsets: str) -> int:

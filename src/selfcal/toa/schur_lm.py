@@ -98,10 +98,10 @@ class Pairs(Grid):
         return v[self.e]
 
     def ksum(self, a: Array, b: Array | None = None) -> Array:
-        return np.bincount(self.k, a if b is None else a * b, minlength=self.nK)
+        return np.bincount(self.k, a if b is None else a * b, minlength=self.nK).astype(np.float64, copy=False)
 
     def esum(self, a: Array, b: Array | None = None) -> Array:
-        return np.bincount(self.e, a if b is None else a * b, minlength=self.nE)
+        return np.bincount(self.e, a if b is None else a * b, minlength=self.nE).astype(np.float64, copy=False)
 
 
 class _Oriented:
@@ -137,6 +137,36 @@ def directions(xK: Array, xE: Array, pat: Grid) -> tuple[list[Array], Array]:
     return U, dist
 
 
+def diagonal_blocks(U: list[Array], w: Array, hasK: bool, hasE: bool, pat: Grid) -> tuple[Array, Array]:
+    """The node blocks of the weighted normal matrix: ``A_k = sum_e w a a^T``, ``D_e = sum_k w b b^T``.
+
+    ``a = [U, 1?]``, ``b = [-U, 1?]`` (the offset entry when that side has offsets). Both come
+    from the same products ``w U_p U_q``, summed over the other axis. Returns (nK, mK, mK),
+    (nE, mE, mE).
+    """
+    d = len(U)
+    mK, mE = d + hasK, d + hasE
+    A = np.zeros((pat.nK, mK, mK))
+    D = np.zeros((pat.nE, mE, mE))
+    for p in range(d):
+        wUp = w * U[p]  # one temporary at a time: the working set stays ~(d + 4) x the data
+        for q in range(p, d):
+            A[:, p, q] = pat.ksum(wUp, U[q])
+            D[:, p, q] = pat.esum(wUp, U[q])
+        if hasK:
+            A[:, p, d] = pat.ksum(wUp)
+        if hasE:
+            D[:, p, d] = -pat.esum(wUp)
+        del wUp
+    if hasK:
+        A[:, d, d] = pat.ksum(w)
+    if hasE:
+        D[:, d, d] = pat.esum(w)
+    A = np.triu(A) + np.swapaxes(np.triu(A, 1), 1, 2)
+    D = np.triu(D) + np.swapaxes(np.triu(D, 1), 1, 2)
+    return A, D
+
+
 class _Reduced:
     """Matrix-free damped Schur complement ``S = A - B D^-1 B^T`` on the kept nodes.
 
@@ -148,27 +178,9 @@ class _Reduced:
 
     def __init__(self, U: list[Array], w: Array, hasK: bool, hasE: bool, damping: float, pat: Grid) -> None:
         d = len(U)
-        nK, nE = pat.nK, pat.nE
         self.U, self.w, self.hasK, self.hasE, self.d, self.pat = U, w, hasK, hasE, d, pat
         self.mK, self.mE = d + hasK, d + hasE
-        A = np.zeros((nK, self.mK, self.mK))
-        D = np.zeros((nE, self.mE, self.mE))
-        for p in range(d):
-            wUp = w * U[p]  # one temporary at a time: the working set stays ~(d + 4) x the data
-            for q in range(p, d):
-                A[:, p, q] = pat.ksum(wUp, U[q])
-                D[:, p, q] = pat.esum(wUp, U[q])
-            if hasK:
-                A[:, p, d] = pat.ksum(wUp)
-            if hasE:
-                D[:, p, d] = -pat.esum(wUp)
-            del wUp
-        if hasK:
-            A[:, d, d] = pat.ksum(w)
-        if hasE:
-            D[:, d, d] = pat.esum(w)
-        A = np.triu(A) + np.swapaxes(np.triu(A, 1), 1, 2)
-        D = np.triu(D) + np.swapaxes(np.triu(D, 1), 1, 2)
+        A, D = diagonal_blocks(U, w, hasK, hasE, pat)
         if damping > 0:
             A = A + damping * np.einsum("kpp->kp", A)[:, :, None] * np.eye(self.mK)
             D = D + damping * np.einsum("epp->ep", D)[:, :, None] * np.eye(self.mE)

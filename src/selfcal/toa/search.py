@@ -11,11 +11,22 @@
    multilateration, Algorithm 2). Starting offsets are the least-squares offsets of the
    start geometry.
 3. **Moves** (:mod:`selfcal.toa.moves`): reflect or lift subsets of nodes through fitted planes.
+   A move of one or two nodes is ranked by a *partial refit* (the one engine with every
+   other node and offset fixed, on the entries that touch the moved nodes, at most
+   :data:`MOVE_NFEV` iterations): its full cost after that refit bounds what a full
+   refinement from it reaches. The improving ones (lower cost than the current best), best
+   first and with disjoint nodes, are applied together -- a move of the union of their
+   subsets -- and refined in full; the best alone if the union does not improve. The
+   collective moves (half the network or more) are refined in full directly.
 4. **One engine**: every candidate is refined by :func:`selfcal.toa.nls.refine_toa`.
 5. **One acceptance rule**: a candidate replaces the best one when its ML cost (the
    robust cost with one fixed scale for the whole search) is lower. With a known noise,
    the chi-square test of :func:`selfcal.toa.result.residual_test` is the stopping rule.
 6. **One budget**: at most ``budget`` refinements (default :func:`default_budget`).
+   The starts share it by successive halving (Jamieson & Talwalkar 2016): every start
+   refined :data:`MOVE_NFEV` iterations, the better half continued with twice as many,
+   and so on; the last one is refined to convergence. Hopeless starts (an MDS start far
+   from any basin that would take hundreds of iterations) so cost ten iterations each.
 """
 
 from __future__ import annotations
@@ -27,7 +38,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..errors import DegenerateGeometryError, InputError
-from .moves import Start, moves
+from .moves import Move, Start, moves
 from .nls import NlsSolution, _rho, refine_toa, toa_model
 from .result import _additive_fit
 
@@ -200,6 +211,8 @@ class SearchOutcome:
     f_scale: the fixed robust-loss scale of the search (metres; 1 for the linear loss).
     stopped: why the search ended: "test" (the chi-square test passed), "exact" (residuals at
         the solver's precision: no candidate can do better), "budget", "exhausted".
+    history: (candidate name, cost) of every start and accepted move.
+    partial_refits: partial refits run to rank the moves of a few nodes (not in ``refinements``).
     """
 
     solution: NlsSolution
@@ -210,10 +223,16 @@ class SearchOutcome:
     f_scale: float
     stopped: str
     history: list[tuple[str, float]] = field(default_factory=list)
+    partial_refits: int = 0
 
 
 def _cost(sol: NlsSolution, loss: str, fs: float) -> float:
-    f = sol.residuals[np.isfinite(sol.residuals)]
+    return _cost_of(sol.residuals, loss, fs)
+
+
+def _cost_of(residuals: Array, loss: str, fs: float) -> float:
+    """The ML cost of the search: ``sum rho`` of the finite residuals at the search's one scale."""
+    f = residuals[np.isfinite(residuals)]
     if loss == "linear":
         return 0.5 * float(f @ f)
     rho, _ = _rho((f / fs) ** 2, loss)
@@ -222,6 +241,39 @@ def _cost(sol: NlsSolution, loss: str, fs: float) -> float:
 
 def _as_start(sol: NlsSolution) -> Start:
     return sol.receivers, sol.sources, sol.receiver_offsets, sol.source_offsets
+
+
+#: a move is "local" (ranked by a partial refit) when it moves at most this many nodes
+LOCAL_MAX_NODES = 2
+
+
+def _is_local(mv: Move, I: int, J: int) -> bool:
+    n = len(mv.receivers) + len(mv.sources)
+    return n <= LOCAL_MAX_NODES and n < I + J
+
+
+def _combine(base: Start, found: list[tuple[Move, Start]]) -> tuple[str, Start]:
+    """One start with the refitted nodes of every move of ``found`` (best first) that moves no
+    node an earlier one moved: a move of the union of their subsets."""
+    r, s = base[0].copy(), base[1].copy()
+    d = None if base[2] is None else base[2].copy()
+    o = None if base[3] is None else base[3].copy()
+    used_r: set[int] = set()
+    used_s: set[int] = set()
+    names: list[str] = []
+    for mv, st in found:
+        if used_r & set(mv.receivers) or used_s & set(mv.sources):
+            continue
+        used_r |= set(mv.receivers)
+        used_s |= set(mv.sources)
+        names.append(mv.name)
+        ir, js = list(mv.receivers), list(mv.sources)
+        r[ir], s[js] = st[0][ir], st[1][js]
+        if d is not None and st[2] is not None:
+            d[ir] = st[2][ir]
+        if o is not None and st[3] is not None:
+            o[js] = st[3][js]
+    return "+".join(names), (r, s, d, o)
 
 
 def search(
@@ -272,6 +324,7 @@ def search(
     nb = default_budget(I, J) if budget is None else max(1, int(budget))
     fs: float | None = f_scale if loss != "linear" else 1.0
     count = 0
+    partial_count = 0
     iters = 0
     history: list[tuple[str, float]] = []
     last_err: Exception | None = None
@@ -303,6 +356,35 @@ def search(
             return refine(_as_start(sol), nfev)
         return sol
 
+    has_r, has_s = offsets in ("receivers", "both"), offsets in ("sources", "both")
+    observed = np.isfinite(Y)
+
+    def refine_part(mv: Move) -> tuple[float, Start] | None:
+        """Refit only the moved nodes (and their offsets) on the entries that touch them."""
+        nonlocal partial_count, iters
+        partial_count += 1
+        r0, s0, d0, o0 = mv.start
+        touch = np.zeros((I, J), bool)
+        touch[list(mv.receivers), :] = True
+        touch[:, list(mv.sources)] = True
+        fr = np.ones(I, bool)
+        fr[list(mv.receivers)] = False
+        fsrc = np.ones(J, bool)
+        fsrc[list(mv.sources)] = False
+        try:
+            sol = refine_toa(np.where(touch & observed, Y, np.nan), r0, s0, offsets=offsets, receiver_offsets0=d0,
+                             source_offsets0=o0, loss=loss, f_scale=fs if loss != "linear" else None,
+                             max_nfev=MOVE_NFEV, covariance=False, fixed_receivers=fr, fixed_sources=fsrc,
+                             fixed_receiver_offsets=fr if has_r else None,
+                             fixed_source_offsets=fsrc if has_s else None)
+        except (DegenerateGeometryError, InputError, np.linalg.LinAlgError, ValueError):
+            return None
+        iters += sol.iterations
+        st = _as_start(sol)
+        with np.errstate(all="ignore"):
+            R = np.where(observed, Y - toa_model(*st), np.nan)
+        return _cost_of(R, loss, fs or 1.0), st
+
     # ---- starts
     if starts is None:
         reg = _LARGE if large else INITIALISERS
@@ -321,21 +403,62 @@ def search(
     best_cost = np.inf
     best_name = ""
     stopped = "exhausted"
-    for name, st in starts:
-        if count >= nb and best is not None:
+    # successive halving over the starts: each refined MOVE_NFEV iterations, then the better
+    # half continued with twice the iterations, until one is left; it is refined to the end.
+    # A lone start, and the first one when the robust scale is still unknown (it sets the
+    # scale), are refined to the end at once.
+    pool: list[tuple[float, int, str, NlsSolution]] = []
+    nfev = MOVE_NFEV if len(starts) > 1 else max_nfev
+
+    def cap(n: int | None) -> int | None:
+        return n if max_nfev is None or n is None else min(n, max_nfev)
+
+    for k, (name, st) in enumerate(starts):
+        if count >= nb and pool:
             stopped = "budget"
             break
-        sol = refine(st, max_nfev)
+        sol = refine(st, max_nfev if fs is None else cap(nfev))
         if sol is None:
             continue
         c = _cost(sol, loss, fs or 1.0)
         history.append((name, c))
-        if c < best_cost * (1 - ACCEPT_REL):
-            best, best_cost, best_name = sol, c, name
-            why = done(best)
+        pool.append((c, k, name, sol))
+        why = done(sol)
+        if why is not None:
+            pool = [pool[-1]]
+            stopped = why
+            break
+    while len(pool) > 1 and stopped == "exhausted":
+        pool.sort(key=lambda t: (t[0], t[1]))
+        pool = pool[: (len(pool) + 1) // 2]
+        nfev = None if nfev is None else 2 * nfev
+        for idx, (_, k, name, sol) in enumerate(pool):
+            if sol.converged:
+                continue
+            if count >= nb:
+                stopped = "budget"
+                break
+            more = refine(_as_start(sol), cap(nfev))
+            if more is None:
+                continue
+            pool[idx] = (_cost(more, loss, fs or 1.0), k, name, more)
+            why = done(more)
             if why is not None:
+                pool = [pool[idx]]
                 stopped = why
                 break
+    if pool:
+        c, _, best_name, best = min(pool, key=lambda t: (t[0], t[1]))
+        best_cost = c
+        if not best.converged and stopped not in ("test", "exact"):
+            full = refine(_as_start(best), max_nfev)
+            if full is not None:
+                best, best_cost = full, _cost(full, loss, fs or 1.0)
+                why = done(best)
+                if why is not None:
+                    stopped = why
+                elif stopped == "budget":
+                    stopped = "exhausted" if count < nb else "budget"
     if best is None:
         msg = str(last_err.args[0]) if last_err is not None else "no initialiser applies"
         kind = getattr(last_err, "kind", "init-failed")
@@ -350,7 +473,36 @@ def search(
         while improved and stopped == "exhausted":
             improved = False
             round_best: tuple[float, str, NlsSolution] | None = None
-            for mname, st in moves(_as_start(best), obs):
+            base = _as_start(best)
+            local: list[Move] = []
+            for mv in moves(base, obs):
+                if _is_local(mv, I, J):
+                    local.append(mv)
+                    continue
+                if count >= nb:
+                    stopped = "budget"
+                    break
+                sol = refine(mv.start, MOVE_NFEV)
+                if sol is None:
+                    continue
+                c = _cost(sol, loss, fs or 1.0)
+                if c < best_cost * (1 - ACCEPT_REL) and (round_best is None or c < round_best[0]):
+                    round_best = (c, mv.name, sol)
+            # the moves of a few nodes: ranked by a partial refit, the improving ones (disjoint,
+            # best first) applied together and refined in full; the best alone if that fails
+            screened: list[tuple[float, int, Move, Start]] = []
+            for k, mv in enumerate(local if stopped == "exhausted" else []):
+                got = refine_part(mv)
+                if got is not None and got[0] < best_cost * (1 - ACCEPT_REL):
+                    screened.append((got[0], k, mv, got[1]))
+            screened.sort(key=lambda t: (t[0], t[1]))
+            tries: list[tuple[str, Start]] = []
+            if screened:
+                union = _combine(base, [(mv, st) for _, _, mv, st in screened])
+                tries.append(union)
+                if union[0] != screened[0][2].name:
+                    tries.append((screened[0][2].name, screened[0][3]))
+            for mname, st in tries:
                 if count >= nb:
                     stopped = "budget"
                     break
@@ -360,6 +512,7 @@ def search(
                 c = _cost(sol, loss, fs or 1.0)
                 if c < best_cost * (1 - ACCEPT_REL) and (round_best is None or c < round_best[0]):
                     round_best = (c, mname, sol)
+                    break  # the union improved: no need to try the best move alone
             if round_best is not None:
                 c, mname, sol = round_best
                 if not sol.converged:
@@ -374,4 +527,5 @@ def search(
                     why = done(best)
                     if why is not None:
                         stopped = why
-    return SearchOutcome(best, best_name, tuple(accepted), count, iters, float(fs or 1.0), stopped, history)
+    return SearchOutcome(best, best_name, tuple(accepted), count, iters, float(fs or 1.0), stopped, history,
+                         partial_count)

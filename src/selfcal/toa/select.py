@@ -1,8 +1,10 @@
 """Model selection for TOA calibration: which offsets (``offsets="auto"``) and which dimension (``dim="auto"``).
 
 - :func:`choose_offsets`: none / receivers / sources / both by the Bayesian information
-  criterion on the robust fits (``BIC = m ln(RSS / m) + n ln m`` with the noise unknown,
-  ``RSS / sigma^2 + n ln m`` with it given), over the entries every candidate kept.
+  criterion on the robust fits (``BIC = m ln(RSS / m) + (n + n_out) ln m`` with the noise
+  unknown, ``RSS / sigma^2 + (n + n_out) ln m`` with it given) over the same m entries for
+  every candidate, each entry a candidate removed as an outlier one more parameter
+  (mean-shift outlier model).
   BIC compares the non-nested pair receivers / sources too and is consistent (picks the
   true model with probability -> 1 as m grows).
 - :func:`compare_fits` / :class:`ModelComparison`: the nested-model F test of a 3-D fit
@@ -130,9 +132,9 @@ def compare_fits(residual_2d: float, residual_3d: float, observations: int, node
     """
     from scipy.stats import f as f_dist
 
-    k = max(nodes - 3, 1)
+    k = max(n_parameters(nodes, 0, 3) - n_parameters(nodes, 0, 2), 1)  # the n - 3 heights of a plane
     n_off = nodes - 1 if n_offsets is None else int(n_offsets)
-    dof = observations - (3 * nodes - 6 + n_off)
+    dof = observations - (n_parameters(nodes, 0, 3) + n_off)
     rss2 = observations * residual_2d**2
     rss3 = observations * residual_3d**2
     if dof < 1:
@@ -241,9 +243,14 @@ def _n_off(mode: str, I: int, J: int) -> int:
 def choose_offsets(M: Array, dim: int, solve: Solver, **kw: Any) -> tuple[ToaResult, dict[str, Any]]:
     """Fit every offsets mode and keep the smallest BIC (module docstring); (result, statistics).
 
-    The RSS of every candidate is taken over the entries all candidates fitted (observed,
-    not an outlier, node not dropped in any), in the matrix's units; with a given noise
-    ``kw["noise"]`` the criterion is ``RSS / noise^2 + n ln m``.
+    Every candidate is judged on the same m entries, all those observed in M. An entry a
+    candidate did not fit (removed as an outlier, or of a node it dropped) counts as one
+    more parameter of that candidate (the mean-shift outlier model: removing an entry is
+    fitting it exactly with a free shift); its RSS is over the entries it kept, its n the
+    parameters of its kept nodes. So a
+    model too small for the data cannot win by calling the entries it cannot fit outliers.
+    ``BIC = m ln(RSS / m) + (n + n_out) ln m`` (noise unknown) or
+    ``RSS / noise^2 + (n + n_out) ln m`` with ``kw["noise"]`` given, in the matrix's units.
     """
     fits: dict[str, ToaResult] = {}
     for mode in OFFSET_CANDIDATES:
@@ -253,26 +260,27 @@ def choose_offsets(M: Array, dim: int, solve: Solver, **kw: Any) -> tuple[ToaRes
     if not fits:
         raise DegenerateGeometryError("no offsets model could be fitted to this matrix", kind="too-few-measurements")
     common = np.isfinite(M)
-    for res in fits.values():
-        assert res.residuals is not None and res.outliers is not None
-        common &= np.isfinite(res.residuals) & ~res.outliers
     m = int(common.sum())
-    I, J = M.shape
     noise = kw.get("noise")
     bic: dict[str, float] = {}
     rss: dict[str, float] = {}
+    n_out: dict[str, int] = {}
     for mode, res in fits.items():
-        assert res.residuals is not None
-        e = res.residuals[common]
+        assert res.residuals is not None and res.outliers is not None
+        kept = common & ~res.outliers & np.isfinite(res.residuals)
+        e = res.residuals[kept]
         rss[mode] = float(e @ e)
-        n = n_parameters(I, J, dim, mode)
+        n_out[mode] = int((common & ~kept).sum())
+        kr = np.isfinite(res.receivers).all(axis=1)
+        ks = np.isfinite(res.sources).all(axis=1)
+        n = n_parameters(int(kr.sum()), int(ks.sum()), dim, mode) + n_out[mode]
         if noise is not None:
             bic[mode] = rss[mode] / noise**2 + n * math.log(max(m, 1))
         else:
             bic[mode] = m * math.log(max(rss[mode], 1e-300) / max(m, 1)) + n * math.log(max(m, 1))
     chosen = min(bic, key=lambda k: (bic[k], OFFSET_CANDIDATES.index(k)))
     stats = {"criterion": "BIC", "chosen": chosen, "observations": m,
-             "bic": bic, "rss": rss}
+             "bic": bic, "rss": rss, "outliers": n_out}
     return fits[chosen], stats
 
 

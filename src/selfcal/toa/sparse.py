@@ -377,6 +377,33 @@ def initialize_toa_sparse(
     return r, s, located, (int(R.size), int(S.size)), noise
 
 
+def _second_chance(i: Index, j: Index, y: Array, r: Array, s: Array, d: int, noise: float) -> int:
+    """Multilaterate the unlocated nodes with >= d + 2 ranges to located ones (in place); count added."""
+    added = 0
+    for side in ("r", "s"):
+        lr, ls = np.isfinite(r[:, 0]), np.isfinite(s[:, 0])
+        if side == "r":
+            m = ~lr[i] & ls[j]
+            node_all, anc_all, pos = i[m], s[j[m]], r
+        else:
+            m = lr[i] & ~ls[j]
+            node_all, anc_all, pos = j[m], r[i[m]], s
+        if not node_all.size:
+            continue
+        cnt = np.bincount(node_all, minlength=pos.shape[0])
+        cand = np.flatnonzero(cnt >= d + 2)
+        if not cand.size:
+            continue
+        loc = -np.ones(pos.shape[0], np.intp)
+        loc[cand] = np.arange(cand.size)
+        keep = loc[node_all] >= 0
+        x, rms = _multilaterate(loc[node_all[keep]], anc_all[keep], y[m][keep], cand.size, d)
+        ok = np.isfinite(rms) & (rms <= 4.0 * noise)
+        pos[cand[ok]] = x[ok]
+        added += int(ok.sum())
+    return added
+
+
 def _refine_located(i: Index, j: Index, y: Array, r: Array, s: Array, d: int) -> tuple[Array, Array]:
     """A few LM iterations on the located nodes and the pairs among them."""
     lr, ls = np.isfinite(r[:, 0]), np.isfinite(s[:, 0])
@@ -462,17 +489,28 @@ def _grow_and_fit(ii: Index, jj: Index, y: Array, I: int, J: int, d: int, gen: n
         raise DegenerateGeometryError(
             f"the multilateration growth reached only {located:.1%} of the nodes: the network is not "
             "rigidly connected enough for a blind solve", kind="too-few-measurements")
-    # the nodes never reached stay NaN; the fit is on the located part and the pairs inside it
-    m = lr[ii] & ls[jj]
-    R, S = np.flatnonzero(lr), np.flatnonzero(ls)
-    ridx = -np.ones(I, np.intp)
-    ridx[R] = np.arange(R.size)
-    sidx = -np.ones(J, np.intp)
-    sidx[S] = np.arange(S.size)
-    si, sj = ridx[ii[m]], sidx[jj[m]]
-    _counts_ok(si, sj, R.size, S.size, d)
-    r, s, conv, it = _lm(si, sj, y[m], r0[R], s0[S], max_nfev, 1e-10)
-    sub = _result(si, sj, y[m], r, s, conv, it, located, seed)
+    # the nodes never reached stay NaN; the fit is on the located part and the pairs inside it.
+    # After the fit, nodes left out with >= d + 2 ranges to it get a second chance from the
+    # fitted (more accurate) positions, checked against the fitted noise, then one refit.
+    for final in (False, True):
+        m = lr[ii] & ls[jj]
+        R, S = np.flatnonzero(lr), np.flatnonzero(ls)
+        ridx = -np.ones(I, np.intp)
+        ridx[R] = np.arange(R.size)
+        sidx = -np.ones(J, np.intp)
+        sidx[S] = np.arange(S.size)
+        si, sj = ridx[ii[m]], sidx[jj[m]]
+        _counts_ok(si, sj, R.size, S.size, d)
+        r, s, conv, it = _lm(si, sj, y[m], r0[R], s0[S], max_nfev, 1e-10)
+        sub = _result(si, sj, y[m], r, s, conv, it, located, seed)
+        if final or (lr.all() and ls.all()):
+            break
+        r0, s0 = np.full((I, d), np.nan), np.full((J, d), np.nan)
+        r0[R], s0[S] = r, s
+        added = _second_chance(ii, jj, y, r0, s0, d, sub.noise_estimate)
+        if not added:
+            break
+        lr, ls = np.isfinite(r0[:, 0]), np.isfinite(s0[:, 0])
     rf = np.full((I, d), np.nan)
     sf = np.full((J, d), np.nan)
     rf[R], sf[S] = sub.receivers, sub.sources

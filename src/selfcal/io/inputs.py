@@ -1,0 +1,318 @@
+"""Readers: CSV / NPY matrices with their names, JSON, NPZ logs (never pickle).
+
+Readers take real files. :func:`read_table` sniffs the delimiter (comma, semicolon, tab,
+whitespace), a header row and a first column of names, a UTF-8 BOM, CRLF line ends, ``#``
+comments (``np.savetxt`` output loads), and refuses what Python's ``float`` would misread
+(``1_0``); errors name the row and the column.
+"""
+
+from __future__ import annotations
+
+import csv
+import io as _io
+import json
+import math
+import os
+import re
+import stat
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ..errors import InputError
+from ._paths import _is_dash, _kind_name, _oserror_text
+
+#: Cell texts read as a missing value (case-insensitive), besides the empty field.
+MISSING_TOKENS = frozenset({"", "na", "nan", "n/a", "null", "none", "-nan", "+nan"})
+
+# strict decimal number: no underscores, no hex, no "infinity" spelled out
+_NUMBER = re.compile(r"[+-]?(?:\d+(?:\.\d*)?|\.\d+)(?:[eE][+-]?\d+)?\Z", re.ASCII)  # linear time
+_INF = re.compile(r"[+-]?inf\Z", re.IGNORECASE | re.ASCII)
+_DECIMAL_COMMA = re.compile(r"[+-]?\d+,\d+(?:[eE][+-]?\d+)?\Z", re.ASCII)
+
+
+
+# --------------------------------------------------------------------------------------
+# inputs
+# --------------------------------------------------------------------------------------
+
+def _read_input_bytes(path: str | os.PathLike[str], label: str) -> bytes:
+    if _is_dash(path):
+        stream = sys.stdin
+        buf = getattr(stream, "buffer", None)
+        data = buf.read() if buf is not None else stream.read()
+        return data if isinstance(data, bytes) else data.encode()
+    p = Path(path)
+    try:
+        st = os.stat(p)
+    except FileNotFoundError:
+        raise InputError(f"{label}: file not found") from None
+    except OSError as exc:
+        raise InputError(f"{label}: cannot read ({_oserror_text(exc)})") from None
+    if stat.S_ISDIR(st.st_mode):
+        raise InputError(f"{label}: is a directory, not a file")
+    if not stat.S_ISREG(st.st_mode):
+        raise InputError(f"{label}: is {_kind_name(st.st_mode)}; give a regular file (or '-' for standard input)")
+    try:
+        return p.read_bytes()
+    except OSError as exc:
+        raise InputError(f"{label}: cannot read ({_oserror_text(exc)})") from None
+    except MemoryError:
+        raise InputError(f"{label}: too large to read into memory ({st.st_size} bytes)") from None
+
+
+@dataclass(frozen=True)
+class Table:
+    """A numeric matrix read from a file, with the names it carried.
+
+    Attributes
+    ----------
+    values:
+        (rows, cols) float array, NaN = missing.
+    row_names:
+        Names from a first column of labels (one per row), or None.
+    col_names:
+        Names from a header row (one per value column), or None.
+    """
+
+    values: NDArray[np.float64]
+    row_names: tuple[str, ...] | None = None
+    col_names: tuple[str, ...] | None = None
+
+
+def _cell_kind(cell: str) -> str:
+    c = cell.strip().strip('"').strip("'").strip()
+    if c.lower() in MISSING_TOKENS:
+        return "missing"
+    if _NUMBER.match(c) or _INF.match(c):
+        return "number"
+    return "text"
+
+
+def _short(cell: str) -> str:
+    c = cell.strip()
+    return repr(c if len(c) <= 24 else c[:20] + "...")
+
+
+def _sniff_delimiter(lines: list[str]) -> str | None:
+    """Pick ',', ';' or tab when every line has the same positive count; None = whitespace."""
+    best = None
+    for d in (",", ";", "\t", "|"):
+        counts = {ln.count(d) for ln in lines}
+        if min(counts) > 0 and (best is None or len(counts) == 1):
+            if best is None or len(counts) == 1 and best[1] > 1:
+                best = (d, len(counts))
+    if best is not None:
+        return best[0]
+    # a delimiter missing from some lines (e.g. a one-column file) -> the most frequent one
+    total = {d: sum(ln.count(d) for ln in lines) for d in (",", ";", "\t")}
+    d, n = max(total.items(), key=lambda kv: kv[1])
+    return d if n > 0 else None
+
+
+def _split(lines: list[str], delim: str | None) -> list[list[str]]:
+    if delim is None:
+        return [ln.split() for ln in lines]
+    old = csv.field_size_limit()
+    csv.field_size_limit(min(sys.maxsize, 2**31 - 1))  # cells of any size, no _csv.Error
+    try:
+        return [next(csv.reader([ln], delimiter=delim, skipinitialspace=True), []) for ln in lines]
+    except csv.Error as exc:
+        raise InputError(f"unreadable CSV ({exc})") from None
+    finally:
+        csv.field_size_limit(old)
+
+
+def read_table(path: str | os.PathLike[str], name: str | None = None) -> Table:
+    """Read a numeric matrix from ``.npy`` or delimited text, keeping row/column names.
+
+    Parameters
+    ----------
+    path:
+        ``.npy`` (no pickle) or text; ``"-"`` reads text from standard input.
+    name:
+        Label used in error messages (default: the path).
+
+    Returns
+    -------
+    Table
+        The values (NaN = missing) and any names.
+
+    Notes
+    -----
+    Text dialects: comma, semicolon (with decimal commas), tab, ``|`` or whitespace separated
+    (sniffed; ``np.savetxt`` output loads), UTF-8 with or without BOM, LF or CRLF, blank and
+    ``#`` comment lines skipped. Missing: empty, ``NA``, ``NaN``, ``nan``, ``N/A``, ``null``.
+    A first row with a non-numeric value column is a header; a first column whose cells are
+    not numbers is a column of row names. Numbers are strict decimals: ``1_0``, ``0x10`` and
+    the like are refused with the row and column named. A 1-D input becomes one column.
+
+    Raises
+    ------
+    InputError
+        Not found, unreadable, not text, ragged rows, a non-number (row and column named).
+
+    Examples
+    --------
+    >>> import tempfile, pathlib
+    >>> p = pathlib.Path(tempfile.mkdtemp()) / "m.csv"
+    >>> _ = p.write_text("name;s1;s2\\nrx1;1,5;NA\\n")
+    >>> t = read_table(p)
+    >>> t.row_names, t.col_names, t.values.tolist()
+    (('rx1',), ('s1', 's2'), [[1.5, nan]])
+    """
+    label = name or os.fspath(path)
+    if not _is_dash(path) and Path(path).suffix.lower() in (".npy", ".npz"):
+        return Table(_read_npy(path, label))
+    data = _read_input_bytes(path, label)
+    if data[:6] == b"\x93NUMPY":
+        return Table(_read_npy(_io.BytesIO(data), label))
+    if data[:2] == b"PK":
+        raise InputError(f"{label}: looks like an .npz archive; give a .csv or .npy matrix")
+    if b"\x00" in data[:65536]:
+        raise InputError(f"{label}: not a text file (binary data)")
+    try:
+        text = data.decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        raise InputError(f"{label}: not UTF-8 text (byte {exc.start})") from None
+    numbered = [(i + 1, ln) for i, ln in enumerate(text.splitlines())]
+    numbered = [(i, ln) for i, ln in numbered if ln.strip() and not ln.lstrip().startswith("#")]
+    if not numbered:
+        raise InputError(f"{label}: the file is empty")
+    lines = [ln for _, ln in numbered]
+    delim = _sniff_delimiter(lines)
+    try:
+        rows = _split(lines, delim)
+    except InputError as exc:
+        raise InputError(f"{label}: {exc}") from None
+    decimal_comma = delim == ";" and any(_DECIMAL_COMMA.match(c.strip()) for r in rows for c in r)
+    if decimal_comma:
+        rows = [[c.replace(",", ".") if _DECIMAL_COMMA.match(c.strip()) else c for c in r] for r in rows]
+    widths = {len(r) for r in rows}
+    if len(widths) != 1:
+        w0 = len(rows[0])
+        k = next(k for k, r in enumerate(rows) if len(r) != w0)
+        raise InputError(
+            f"{label}: rows have different numbers of fields {sorted(widths)[:6]}: line {numbered[k][0]} has "
+            f"{len(rows[k])}, line {numbered[0][0]} has {w0}"
+        )
+    ncol = widths.pop()
+    kinds = [[_cell_kind(c) for c in r] for r in rows]
+    # header: the first row has a text value cell and a later row has none there
+    header = False
+    if len(rows) > 1:
+        first_cols = range(1, ncol) if ncol > 1 else range(0, 1)
+        if any(kinds[0][c] == "text" for c in first_cols) and any(
+            all(kinds[r][c] != "text" for c in first_cols) for r in range(1, len(rows))
+        ):
+            header = True
+    body = range(1 if header else 0, len(rows))
+    names_col = ncol > 1 and any(kinds[r][0] == "text" for r in body) and any(
+        all(k != "text" for k in kinds[r][1:]) for r in body
+    )
+    c0 = 1 if names_col else 0
+    values = np.empty((len(body), ncol - c0), dtype=float)
+    for out_r, r in enumerate(body):
+        for c in range(c0, ncol):
+            cell = rows[r][c].strip().strip('"').strip("'").strip()
+            kind = kinds[r][c]
+            if kind == "missing":
+                values[out_r, c - c0] = math.nan
+            elif kind == "number":
+                values[out_r, c - c0] = float(cell)
+            else:
+                raise InputError(f"{label}: row {numbered[r][0]}, column {c + 1}: {_short(cell)} is not a number")
+    if values.size == 0:
+        raise InputError(f"{label}: no numeric values (only a header or names)")
+    row_names = tuple(rows[r][0].strip().strip('"') for r in body) if names_col else None
+    col_names = tuple(c.strip().strip('"') for c in rows[0][c0:]) if header else None
+    return Table(values, row_names, col_names)
+
+
+def _read_npy(src: Any, label: str) -> NDArray[np.float64]:
+    if isinstance(src, (str, os.PathLike)):
+        p = Path(src)
+        if p.suffix.lower() == ".npz":
+            raise InputError(f"{label}: an .npz archive is not a matrix; give a .csv or .npy file")
+        if not p.is_file():
+            _read_input_bytes(p, label)  # raises the not-found / not-a-file message
+    try:
+        arr = np.load(src, allow_pickle=False)
+    except (ValueError, OSError, EOFError) as exc:
+        raise InputError(f"{label}: not a readable .npy array without pickle ({exc})") from None
+    if not isinstance(arr, np.ndarray):
+        raise InputError(f"{label}: not a single .npy array")
+    if arr.dtype.kind == "c":
+        raise InputError(f"{label}: complex values; give real numbers")
+    if arr.dtype.kind not in "fiub":
+        raise InputError(f"{label}: .npy dtype {arr.dtype} is not numeric")
+    arr = np.asarray(arr, dtype=float)
+    if arr.ndim == 0:
+        arr = arr.reshape(1, 1)
+    if arr.ndim == 1:
+        arr = arr[:, None]
+    if arr.ndim != 2:
+        raise InputError(f"{label}: expected a 2-D matrix, got shape {arr.shape}")
+    return arr
+
+
+def read_matrix(path: str | os.PathLike[str], name: str | None = None) -> NDArray[np.float64]:
+    """Read a numeric matrix from delimited text or ``.npy`` (see :func:`read_table`).
+
+    Returns
+    -------
+    numpy.ndarray
+        (rows, cols) float array, NaN = missing; a 1-D file becomes a column.
+
+    Raises
+    ------
+    InputError
+        The file is missing, unreadable or not a numeric matrix (row and column named).
+    """
+    return read_table(path, name).values
+
+
+def read_json(path: str | os.PathLike[str], name: str | None = None) -> Any:
+    """Read a JSON file (``"-"`` = standard input), raising :class:`InputError` naming the file."""
+    label = name or os.fspath(path)
+    data = _read_input_bytes(path, label)
+    try:
+        return json.loads(data.decode("utf-8-sig"))
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise InputError(f"{label}: malformed JSON ({exc})") from None
+    except RecursionError:
+        raise InputError(f"{label}: JSON nested too deeply") from None
+
+
+def load_npz(path: str | os.PathLike[str], required: tuple[str, ...] = ()) -> dict[str, NDArray[Any]]:
+    """Load an ``.npz`` archive without pickle; check that ``required`` keys exist.
+
+    Raises
+    ------
+    InputError
+        Missing, empty, truncated, a ``.npy`` instead, object arrays, or required keys missing.
+    """
+    p = Path(path)
+    label = str(p)
+    data = _read_input_bytes(p, label)
+    if not data:
+        raise InputError(f"{label}: the file is empty")
+    if data[:6] == b"\x93NUMPY":
+        raise InputError(f"{label}: is a single .npy array; an .npz archive is expected")
+    if data[:2] != b"PK":
+        raise InputError(f"{label}: not an .npz archive")
+    import zipfile
+
+    try:
+        with np.load(_io.BytesIO(data), allow_pickle=False) as z:
+            out = {k: z[k] for k in z.files}
+    except (ValueError, OSError, EOFError, zipfile.BadZipFile, KeyError) as exc:
+        raise InputError(f"{label}: not a readable .npz archive without pickle ({exc})") from None
+    missing = [k for k in required if k not in out]
+    if missing:
+        raise InputError(f"{label}: missing arrays {missing}")
+    return out
