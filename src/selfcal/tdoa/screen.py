@@ -193,7 +193,8 @@ def screen_gross_errors(
         if not _redundant(used, n_fit, rank):
             break
         W = used.astype(float)
-        L, _, P, Q = lowrank_fit(D, W, rank=rank, loss="linear", factors=True)
+        L, _ = lowrank_fit(D, W, rank=rank, loss="linear")
+        P, Q = _LAST_FACTORS
         if n_fit <= LEVERAGE_MAX:
             h = np.minimum(entry_leverages(P, Q, W), 0.99)
         else:
@@ -218,6 +219,10 @@ def screen_gross_errors(
     return np.asarray(flags)
 
 
+#: P and Q of the last :func:`lowrank_fit` (used by the screen's leverages)
+_LAST_FACTORS: list[Array] = []
+
+
 def lowrank_fit(
     D: Array,
     W: Array,
@@ -226,8 +231,7 @@ def lowrank_fit(
     loss: str = "linear",
     iterations: int = 50,
     start: Array | None = None,
-    factors: bool = False,
-) -> tuple[Array, float] | tuple[Array, float, Array, Array]:
+) -> tuple[Array, float]:
     """Weighted (robust) fit of the far-field structure ``L = P Q^T + 1 c^T`` to D.
 
     ``P`` (m, rank), ``Q`` (k, rank), ``c`` (k,): the rank-3 factorisation plus one offset
@@ -249,7 +253,7 @@ def lowrank_fit(
     -------
     L : (m, k) complete fitted matrix; sigma : robust noise estimate (1.4826 MAD of the
     residuals over used entries, inflated by the residual degrees of freedom); with
-    ``factors=True`` also P (m, rank) and Q (k, rank).
+    the factors P (m, rank) and Q (k, rank) of the last call are in ``_LAST_FACTORS``.
     """
     m, k = D.shape
     obs = W > 0
@@ -300,8 +304,7 @@ def lowrank_fit(
     L = P @ Q.T + c
     R = np.where(obs, D0 - L, 0.0)
     sig = mad_std(R[obs], centre=False) * dof_fac
-    if factors:
-        return L, sig, P, Q
+    _LAST_FACTORS[:] = [P, Q]
     return L, sig
 
 
