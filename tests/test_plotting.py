@@ -225,11 +225,11 @@ def test_cli_plot_suffix_picks_the_format(tmp_path: Path) -> None:
                                   "--out", str(tmp_path / "a.json"), "--plot", str(tmp_path / "a.pdf")])
     assert r.exit_code == 0, r.output
     assert (tmp_path / "a.pdf").read_bytes()[:5] == MAGIC[".pdf"]
-    Z = g.uniform(-0.5, 0.5, (8, 3))
+    Z = g.uniform(-1.0, 1.0, (10, 3))  # a well-spread 3-D array: rank 3 + offsets, far from degenerate
     Z[0] = 0
-    N = g.normal(size=(12, 3))
+    N = g.normal(size=(15, 3))
     N /= np.linalg.norm(N, axis=1, keepdims=True)
-    np.savetxt(tmp_path / "D.csv", Z @ N.T + g.normal(size=12), delimiter=",")
+    np.savetxt(tmp_path / "D.csv", Z @ N.T + 0.1 * g.normal(size=15), delimiter=",")
     r = CliRunner().invoke(main, ["calibrate", "tdoa-farfield", str(tmp_path / "D.csv"), "--out",
                                   str(tmp_path / "f.json"), "--plot", str(tmp_path / "f.svg")])
     assert r.exit_code == 0, r.output

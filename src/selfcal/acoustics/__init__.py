@@ -24,7 +24,7 @@ _EXPORTS = {
     "simulate_conference": "room",
     "PipelineResult": "pipeline", "run_pipeline": "pipeline", "planarity": "pipeline",
     "refine_known_heights": "geometry", "calibrate_matrix": "calibrate", "truth_errors": "scoring",
-    "robust_calibrate": "calibrate", "redetect_arrivals": "detect", "error_bars": "verdict", "judge": "verdict",
+    "robust_calibrate": "robust_fit", "redetect_arrivals": "detect", "error_bars": "verdict", "judge": "verdict",
     "residual_check": "noise", "detection_std": "noise",
 }
 

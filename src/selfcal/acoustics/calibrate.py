@@ -1,33 +1,25 @@
-"""Stages 2 + 3 of 004 on the TOA matrix: onsets, internal delays and positions, robustly.
+"""Stages 2 + 3 of 004 on the per-sender TOA matrix: one model fit (onsets, delays, positions).
 
 The per-sender TOA matrix ``t_ij = |r_i - s_j| / c + tau_j + delta_i`` (004 eq. 3.1) goes to
-:func:`selfcal.toa.solve_toa` with ``offsets="both"``. Around it:
+:func:`selfcal.toa.solve_toa` with ``offsets="both"``:
 
 - **one model fit by default**: 3-D (or 2-D / 2-D with known heights when asked). With
   ``dim="auto"`` the 3-D fit's own geometry and covariances decide whether z is resolved
   (:func:`selfcal.acoustics.geometry.planarity`); only a near-planar verdict (or a 3-D
   breakdown) fits the 2-D model as well.
-- **robust to a minority of wrong detections** (:func:`robust_calibrate`): after a fit the
-  residual of every detection is standardised by its noise model
-  (:mod:`selfcal.acoustics.noise`) and by ``sqrt(1 - p / m)`` (the mean leverage); a
-  residual beyond the Bonferroni bound ``Phi^-1(1 - alpha / (2 m))`` (``alpha`` = 1 %
-  family-wise) that is the largest of its receiver and of its sender is an outlier. It is
-  excluded (or re-detected in a narrow window around its predicted time), and the fit is
-  refined from where it stands; repeated until no outlier is left.
-- **units without enough detections are dropped** (fewer than ``d + 2`` senders for a
-  receiver or receivers for a sender: not identifiable with a check left), with a note,
-  and the rest are calibrated.
+- **what the pipeline knows goes in**: the units (a microphone and a loudspeaker in one
+  housing, :mod:`selfcal.acoustics.units`) start the search; known heights are a weighted
+  least-squares fit (:func:`selfcal.acoustics.geometry.refine_known_heights`, 1 / std per
+  entry) from the better of the 2-D and 3-D blind starts.
 
-Length (671 lines, above the ~600 guideline): the robust per-round flow (screening, 2-D /
-3-D verdict, known heights, mirror resolution) is one pipeline stage whose steps share the
-solver state.
+The robust event-level loop around it (outliers, re-detection, dropped units) is
+:mod:`selfcal.acoustics.robust_fit`; the outlier statistics :mod:`selfcal.acoustics.leverage`;
+the scale from known unit distances :mod:`selfcal.acoustics.scale`.
 """
 
 from __future__ import annotations
 
 import warnings
-from collections.abc import Callable
-from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -35,7 +27,6 @@ from numpy.typing import NDArray
 
 from ..errors import DegenerateGeometryError, InputError
 from ..geometry import n_parameters
-from ..robust import mad_std
 from .geometry import (
     PLANAR_ALPHA,
     ModelComparison,
@@ -46,12 +37,9 @@ from .geometry import (
 )
 from .verdict import TIMING_REQUIREMENT
 
-__all__ = ["calibrate_matrix", "refit", "robust_calibrate", "sender_matrix", "Outlier", "RobustFit", "OUTLIER_ALPHA",
-           "n_parameters_of"]
+__all__ = ["calibrate_matrix", "refit", "sender_matrix", "n_parameters_of"]
 
 Array = NDArray[np.float64]
-OUTLIER_ALPHA = 0.01  # family-wise false-alarm probability of the outlier test over all detections
-MAX_OUTLIER_ROUNDS = 12
 
 
 def _solve(T: Array, dim: int, speed: float, rng: int, init: Any = "auto", noise: float | None = None,
@@ -127,7 +115,7 @@ def _heights_fit(T: Array, heights: tuple[Array, Array], speed: float, rng: int,
     the matrix is sparse or holds a wrong detection. Each start is refined with the heights
     under a Cauchy loss (scale 2.385 stds, from ``weights``; least squares without them), the
     start whose robust cost ``sum log(1 + (z / 2.385)^2)`` is lower is kept and finished by
-    (weighted) least squares; the outlier test of :func:`robust_calibrate` follows.
+    (weighted) least squares; the outlier test of :func:`selfcal.acoustics.robust_fit.robust_calibrate` follows.
     """
     starts = []
     for d in (2, 3):
@@ -172,7 +160,7 @@ def _place_dropped(T: Array, heights: tuple[Array, Array], r: Array, s: Array, d
     """Start positions for the nodes a 2-D initial solve left out (NaN rows), from their own entries.
 
     ``solve_toa`` drops a node whose entries turned outliers or too few; the known-height
-    refinement needs a start for every node that :func:`robust_calibrate` kept. Each such
+    refinement needs a start for every node that :func:`selfcal.acoustics.robust_fit.robust_calibrate` kept. Each such
     node is placed alone against the placed others: its offset in closed form (the mean
     residual), its horizontal position by the smallest residual variance on a grid over the
     others' extent, then refined by least squares (one node: 3 unknowns).
@@ -251,7 +239,7 @@ def calibrate_matrix(
         Unused (kept for the former F-test signature).
     noise : float, optional
         Timing-noise std, s: passed to :func:`selfcal.toa.solve_toa`, whose deep search then
-        runs when a fit fails the residual test (slow; :func:`robust_calibrate` passes it only
+        runs when a fit fails the residual test (slow; :func:`selfcal.acoustics.robust_fit.robust_calibrate` passes it only
         after the outliers are out).
     weights : (I, J) array, optional
         ``1 / std`` of every entry: weighted least squares in the known-heights refinement
@@ -342,24 +330,6 @@ def _try_solve(T: Array, dim: int, speed: float, rng: int, noise: float | None =
         return None
 
 
-def _refit_from_planar(T: Array, res2: Any, speed: float, rng: int) -> Any:
-    """3-D refinement started from the 2-D solution lifted to z = small random heights.
-
-    Exactly in the plane the out-of-plane gradient is zero, so the start is lifted by a
-    random z of 1 % of the layout's extent; a thick network then leaves the plane, a flat
-    one stays or turns unobservable (None).
-    """
-    pts = np.vstack([res2.receivers, res2.sources])
-    scale = 0.01 * float(np.ptp(pts, axis=0).max() or 1.0)
-    g = np.random.default_rng(rng)
-    lift = [np.column_stack([a, g.normal(0.0, scale, len(a))]) for a in (res2.receivers, res2.sources)]
-    try:
-        return _solve(T, 3, speed, rng, init=(lift[0], lift[1], np.asarray(res2.receiver_offsets),
-                                                np.asarray(res2.source_offsets)))
-    except DegenerateGeometryError:
-        return None
-
-
 def _toa_outliers(res: Any, shape: tuple[int, int]) -> NDArray[np.bool_]:
     """The (I, J) mask of entries :func:`selfcal.toa.solve_toa`'s outlier rule excluded."""
     mask = getattr(res, "outliers", None)
@@ -421,80 +391,6 @@ def refit(T: Array, sol: dict[str, Any], speed: float, heights: tuple[Array, Arr
     return out
 
 
-@dataclass(frozen=True)
-class Outlier:
-    """A detection the robust fit excluded (or re-detected).
-
-    Attributes
-    ----------
-    receiver, event, sender : int
-        Indices (rows of the TOA matrix, events of setup.json, senders).
-    residual : float
-        Detected minus modelled TOA, s.
-    z : float
-        Residual over its standard deviation (noise model and leverage).
-    redetected : bool
-        A new detection near the predicted time replaced it.
-    new_residual : float
-        Residual of the replacement, s (NaN when not re-detected).
-    """
-
-    receiver: int
-    event: int
-    sender: int
-    residual: float
-    z: float
-    redetected: bool = False
-    new_residual: float = float("nan")
-
-    def to_dict(self) -> dict[str, Any]:
-        """JSON-safe dictionary."""
-        return {"receiver": self.receiver, "event": self.event, "sender": self.sender, "residual": self.residual,
-                "z": self.z, "redetected": self.redetected, "new_residual": self.new_residual}
-
-
-@dataclass(frozen=True)
-class RobustFit:
-    """Outcome of :func:`robust_calibrate`.
-
-    Attributes
-    ----------
-    solution : dict
-        Full-size solution (dropped units' rows NaN).
-    planarity : Planarity or None
-    notes : list of str
-    outliers : list of Outlier
-    toa : (I, E) array
-        The event TOA matrix after exclusions / re-detections, s.
-    matrix, matrix_std : (I, J) arrays
-        Per-sender TOA matrix and its std, s (dropped units NaN).
-    dropped_receivers, dropped_senders : list of int
-    threshold : float
-        Bonferroni bound on |z| used.
-    std : (I, E) array
-        Detection stds after re-detections, s.
-    n_params : int
-        Free parameters of the kept model.
-    leverage : (I, E) array or None
-        Residual std factor ``sqrt(1 - h / n)`` of every detection in the final fit
-        (:func:`event_leverage`), NaN where not used.
-    """
-
-    solution: dict[str, Any]
-    planarity: Planarity | None
-    notes: list[str]
-    outliers: list[Outlier]
-    toa: Array
-    matrix: Array
-    matrix_std: Array
-    dropped_receivers: list[int]
-    dropped_senders: list[int]
-    threshold: float
-    std: Array
-    n_params: int
-    leverage: Array | None = None
-
-
 def sender_matrix(toa: Array, event_senders: NDArray[np.int64], n_senders: int) -> Array:
     """Average the (I, E) event TOA matrix into an (I, J) per-sender matrix (NaN-aware).
 
@@ -512,282 +408,6 @@ def sender_matrix(toa: Array, event_senders: NDArray[np.int64], n_senders: int) 
     return out
 
 
-def _drop_units(T: Array, need: int) -> tuple[NDArray[np.bool_], NDArray[np.bool_]]:
-    """Receivers / senders kept: at least ``need`` observations among the kept others (iterated)."""
-    kr = np.ones(T.shape[0], bool)
-    ks = np.ones(T.shape[1], bool)
-    obs = np.isfinite(T)
-    while True:
-        sub = obs & kr[:, None] & ks[None, :]
-        nr = kr & (sub.sum(axis=1) >= need)
-        ns = ks & (sub.sum(axis=0) >= need)
-        if (nr == kr).all() and (ns == ks).all():
-            return kr, ks
-        kr, ks = nr, ns
-
-
-def _scatter(sol: dict[str, Any], kr: NDArray[np.bool_], ks: NDArray[np.bool_]) -> dict[str, Any]:
-    """Full-size solution with NaN rows for the dropped units."""
-    I, J = len(kr), len(ks)
-    out = dict(sol)
-    for key, keep, n in (("receivers", kr, I), ("sources", ks, J), ("receiver_offsets", kr, I),
-                         ("source_offsets", ks, J), ("receiver_cov", kr, I), ("source_cov", ks, J),
-                         ("receiver_offset_std", kr, I), ("source_offset_std", ks, J)):
-        if key not in sol or sol[key] is None:
-            continue
-        a = np.asarray(sol[key], float)
-        full = np.full((n,) + a.shape[1:], np.nan)
-        full[keep] = a
-        out[key] = full
-    return out
-
-
-def robust_calibrate(
-    toa: Array,
-    std: Array,
-    event_senders: NDArray[np.int64],
-    n_senders: int,
-    *,
-    speed: float,
-    dim: int | str = "auto",
-    heights: tuple[Array, Array] | None = None,
-    rng: int = 0,
-    noise: float | None = None,
-    redetect: Callable[[NDArray[np.intp], NDArray[np.intp], Array, Array], tuple[Array, Array]] | None = None,
-    alpha: float = OUTLIER_ALPHA,
-    names: tuple[tuple[str, ...], tuple[str, ...]] | None = None,
-    units: NDArray[np.intp] | None = None,
-) -> RobustFit:
-    """Calibrate from the event TOA matrix with outlier exclusion and unit dropping (module docstring).
-
-    Parameters
-    ----------
-    toa : (I, E) array
-        Detected TOA of every event (arrival minus nominal time), s, NaN = missed.
-    std : (I, E) array
-        Noise-model std of every detection, s (:func:`selfcal.acoustics.noise.detection_std`).
-    event_senders : (E,) int array
-    n_senders : int
-    speed : float
-        m/s.
-    dim, heights, rng :
-        As :func:`calibrate_matrix`.
-    noise : float, optional
-        Timing-noise std of the residual test, s; when the cleaned fit fails that test the
-        deep search of :func:`selfcal.toa.solve_toa` runs once on the cleaned matrix.
-    redetect : callable, optional
-        ``redetect(receivers, events, predicted_toa, half_width) -> (toa, std)`` (NaN =
-        nothing acceptable): a new detection of an outlier near its predicted time.
-    alpha : float
-        Family-wise false-alarm probability of the outlier test.
-    names : (receiver names, sender names), optional
-        For the notes.
-    units : (K, 2) int array, optional
-        ``(receiver, sender)`` of the units (:func:`selfcal.acoustics.units.unit_pairs`):
-        the start of the searches (:func:`calibrate_matrix`), restricted to the kept units.
-
-    Returns
-    -------
-    RobustFit
-
-    Raises
-    ------
-    DegenerateGeometryError
-        Fewer than ``d + 2`` units left on one side (``kind="unobservable-node"``), or as
-        :func:`calibrate_matrix`.
-    """
-    from scipy.stats import norm
-
-    toa = np.array(toa, dtype=float)
-    std = np.asarray(std, float)
-    es = np.asarray(event_senders, dtype=np.int64)
-    I, E = toa.shape
-    J = int(n_senders)
-    rn, sn = names if names is not None else (tuple(f"#{i}" for i in range(I)), tuple(f"#{j}" for j in range(J)))
-    d_model = 2 if (dim == 2 or heights is not None) else 3
-    need = d_model + 2
-    notes: list[str] = []
-    T = sender_matrix(toa, es, J)
-    kr, ks = _drop_units(T, need)
-    if kr.sum() < need or ks.sum() < need:
-        raise DegenerateGeometryError(
-            f"only {int(kr.sum())} receivers and {int(ks.sum())} senders have >= {need} detections each; "
-            "too few to calibrate (check levels, cabling and the event times)", kind="unobservable-node")
-    dropped_r = [int(i) for i in np.flatnonzero(~kr)]
-    dropped_s = [int(j) for j in np.flatnonzero(~ks)]
-    for i in dropped_r:
-        notes.append(f"dropped microphone {rn[i]}: {int(np.isfinite(T[i]).sum())} of {J} senders detected "
-                     f"(need {need}); dead, disconnected or silent input")
-    for j in dropped_s:
-        notes.append(f"dropped loudspeaker {sn[j]}: heard by {int(np.isfinite(T[:, j]).sum())} of {I} "
-                     f"microphones (need {need}); silent, or its events are missing from the audio")
-    hz = None if heights is None else (np.asarray(heights[0])[kr], np.asarray(heights[1])[ks])
-    ev_keep = ks[es]
-    sub_es = np.cumsum(ks)[es] - 1  # sender index within the kept senders
-    t_ev = toa[np.ix_(kr, ev_keep)]
-    s_ev = std[np.ix_(kr, ev_keep)]
-    es_k = sub_es[ev_keep]
-    Jk = int(ks.sum())
-    Tk = sender_matrix(t_ev, es_k, Jk)
-    from .noise import sender_std
-
-    def wts() -> Array | None:
-        """1 / std of the per-sender entries: the known-heights fit is weighted (the only one
-        that takes weights, :func:`calibrate_matrix`)."""
-        if hz is None:
-            return None
-        with np.errstate(divide="ignore", invalid="ignore"):
-            return 1.0 / sender_std(s_ev, t_ev, es_k, Jk)
-
-    units_k = None
-    if units is not None and len(units):
-        u = np.asarray(units, dtype=np.intp).reshape(-1, 2)
-        u = u[kr[u[:, 0]] & ks[u[:, 1]]]
-        units_k = np.column_stack([np.cumsum(kr)[u[:, 0]] - 1, np.cumsum(ks)[u[:, 1]] - 1])
-    sol, plan, cnotes = calibrate_matrix(Tk, speed=speed, dim=dim, heights=hz, rng=rng, weights=wts(), units=units_k)
-    notes.extend(cnotes)
-    n_par = n_parameters_of(sol, len(Tk), Jk)
-    ri_full = np.flatnonzero(kr)
-    ev_full = np.flatnonzero(ev_keep)
-    outliers: list[Outlier] = []
-    m = int(np.isfinite(t_ev).sum())
-    zc = float(norm.isf(alpha / (2.0 * max(m, 1))))
-    searched = False
-    robust_start = False
-    needs_ls = False
-
-    def exclude(ok: list[tuple[int, int]], pred: Array, res: Array, z: Array, scale: float, lev: Array) -> None:
-        """Record the flagged (receiver, event) entries as outliers; re-detect each near its
-        predicted time (kept when within the outlier bound of the prediction), else NaN."""
-        if not ok:
-            return
-        fi = np.array([a for a, _ in ok])
-        fe = np.array([b for _, b in ok])
-        new_t = np.full(len(fi), np.nan)
-        new_s = np.full(len(fi), np.nan)
-        if redetect is not None:
-            half = np.maximum(zc * s_ev[fi, fe] * scale, 0.0)
-            new_t, new_s = redetect(ri_full[fi], ev_full[fe], pred[fi, es_k[fe]], half)
-            new_t = np.asarray(new_t, float)
-            new_s = np.asarray(new_s, float)
-        for k, (a, b) in enumerate(ok):
-            nt = new_t[k]
-            good = np.isfinite(nt) and abs(nt - pred[a, es_k[b]]) <= zc * new_s[k] * scale * lev[a, b]
-            outliers.append(Outlier(int(ri_full[a]), int(ev_full[b]), int(es[ev_full[b]]), float(res[a, b]),
-                                    float(z[a, b]), bool(good),
-                                    float(nt - pred[a, es_k[b]]) if good else float("nan")))
-            t_ev[a, b] = nt if good else np.nan
-            if good:
-                s_ev[a, b] = new_s[k]
-
-    def standardised(sol: dict[str, Any]) -> tuple[Array, Array, Array, float, Array]:
-        """Predicted TOA (I, J), event residuals, their z (noise model, leverage, robust scale)."""
-        pred = _predict(sol, speed)
-        res = t_ev - pred[:, es_k]
-        lev = event_leverage(sol, t_ev, es_k, Jk, speed, wts())
-        z = res / (s_ev * lev)
-        scale = max(1.0, mad_std(z, centre=False)) if np.isfinite(z).any() else 1.0
-        return pred, res, z / scale, scale, lev
-
-    # the entries the TOA package's robust fit rejected (solve_toa's outlier rule) are the
-    # first outliers: excluded from the start, re-detected near the time that fit predicts
-    flagged = np.asarray(sol.get("toa_outliers", np.zeros(Tk.shape, bool)), bool)
-    if flagged.any():
-        pred, res, z, scale, lev = standardised(sol)
-        first_ok = [(int(a), int(b)) for a, b in zip(*np.nonzero(flagged[:, es_k] & np.isfinite(t_ev)), strict=True)]
-        exclude(first_ok, pred, res, z, scale, lev)
-        Tk = sender_matrix(t_ev, es_k, Jk)
-        try:
-            sol = refit(Tk, sol, speed, hz, weights=wts())
-        except DegenerateGeometryError:
-            pass
-    for _ in range(MAX_OUTLIER_ROUNDS + 1):
-        pred, res, z, scale, lev = standardised(sol)
-        az = np.where(np.isfinite(z), np.abs(z), 0.0)
-        # the largest of its receiver and of its sender: one bad entry does not take its neighbours along
-        sender_max = np.zeros((az.shape[0], Jk))
-        for j in range(Jk):
-            cols = es_k == j
-            if cols.any():
-                sender_max[:, j] = az[:, cols].max(axis=1)
-        worst_in_sender = sender_max.max(axis=0)
-        if not robust_start and (az > zc).any():
-            # a wrong entry pulls a least-squares fit towards itself and spreads its error over
-            # its receiver's and sender's other entries (masking): restart from a Cauchy fit
-            # (scale 2.385 stds: 95 % efficiency under Gaussian noise), then rank the residuals
-            robust_start = True
-            try:
-                f_sc = 2.385 * float(np.nanmedian(s_ev)) * scale
-                sol = refit(Tk, sol, speed, hz, f_scale=f_sc, weights=wts())
-                needs_ls = True
-                continue
-            except DegenerateGeometryError:
-                pass
-        flag = (az > zc) & (az >= az.max(axis=1, keepdims=True)) & (az >= worst_in_sender[es_k][None, :])
-        # never below the identifiability bound
-        cnt_r = np.isfinite(Tk).sum(axis=1)
-        cnt_s = np.isfinite(Tk).sum(axis=0)
-        fi, fe = np.nonzero(flag)
-        ok = []
-        for a, b in zip(fi, fe, strict=True):
-            last = np.isfinite(t_ev[a, es_k == es_k[b]]).sum() == 1
-            if last and (cnt_r[a] <= need or cnt_s[es_k[b]] <= need):
-                continue
-            ok.append((a, b))
-        if not ok:
-            if searched or noise is None:
-                break
-            # outliers are out: one deep search if the cleaned fit still fails its residual check
-            from .noise import residual_check
-
-            Tk = sender_matrix(t_ev, es_k, Jk)
-            test = residual_check(t_ev - _predict(sol, speed)[:, es_k], s_ev, es_k, n_par, cap=zc,
-                                  leverage=event_leverage(sol, t_ev, es_k, Jk, speed, wts()))
-            searched = True
-            if test.passed:
-                break
-            try:
-                sol2, plan2, cn2 = calibrate_matrix(Tk, speed=speed, dim=dim, heights=hz, rng=rng, noise=noise,
-                                                    weights=wts(), units=units_k)
-            except DegenerateGeometryError:
-                break
-            if sol2["residual_rms"] < sol["residual_rms"]:
-                sol, plan = sol2, plan2
-                n_par = n_parameters_of(sol, len(Tk), Jk)
-                notes[:] = [n for n in notes if n not in cnotes] + cn2
-                cnotes = cn2
-            continue
-        exclude(ok, pred, res, z, scale, lev)
-        Tk = sender_matrix(t_ev, es_k, Jk)
-        try:
-            sol = refit(Tk, sol, speed, hz, weights=wts())
-            needs_ls = False
-        except DegenerateGeometryError:
-            break
-    if needs_ls:  # the robust start found nothing to exclude: finish with least squares (covariances)
-        sol = refit(sender_matrix(t_ev, es_k, Jk), sol, speed, hz, weights=wts())
-    if outliers:
-        redo = sum(o.redetected for o in outliers)
-        worst = max(outliers, key=lambda o: abs(o.z))
-        notes.append(f"{len(outliers)} outlier detection(s) (|z| > {zc:.2f}, Bonferroni at {alpha:g}) excluded, "
-                     f"{redo} re-detected near the predicted time; worst: microphone {rn[worst.receiver]}, "
-                     f"loudspeaker {sn[worst.sender]}, residual {worst.residual * 1e6:.3g} us")
-    Tk = sender_matrix(t_ev, es_k, Jk)
-    Sk = sender_std(s_ev, t_ev, es_k, Jk)
-    toa_out = toa.copy()
-    toa_out[np.ix_(kr, ev_keep)] = t_ev
-    Tf = np.full((I, J), np.nan)
-    Sf = np.full((I, J), np.nan)
-    Tf[np.ix_(kr, ks)] = Tk
-    Sf[np.ix_(kr, ks)] = Sk
-    std_out = np.array(std, dtype=float)
-    std_out[np.ix_(kr, ev_keep)] = s_ev
-    full = _scatter(sol, kr, ks)
-    lev_out = np.full(toa.shape, np.nan)
-    lev_out[np.ix_(kr, ev_keep)] = event_leverage(sol, t_ev, es_k, Jk, speed, wts())
-    return RobustFit(full, plan, notes, outliers, toa_out, Tf, Sf, dropped_r, dropped_s, zc, std_out, n_par, lev_out)
-
-
 def n_parameters_of(sol: dict[str, Any], I: int, J: int) -> int:
     """Free parameters of a solution's model (gauge removed): coordinates plus I + J - 1 offsets.
 
@@ -798,137 +418,7 @@ def n_parameters_of(sol: dict[str, Any], I: int, J: int) -> int:
     return n_parameters(I, J, d, "both")
 
 
-def hat_diagonal(sol: dict[str, Any], observed: NDArray[np.bool_], speed: float,
-                 weights: Array | None = None) -> Array:
-    """Leverages ``h_ij`` of the least-squares fit of a solution on its per-sender TOA matrix.
-
-    ``h = diag(A (A^T A)^+ A^T)`` for the Jacobian ``A`` of the model ``|r_i - s_j| / c +
-    delta_i + tau_j`` over the observed entries, with the coordinates the solution's model
-    frees (x, y for ``2d`` and ``2d+heights``, x, y, z for ``3d``); the gauge is the null
-    space of ``A^T A`` (pseudo-inverse). A residual's variance is ``sigma^2 (1 - h_ij)``: a
-    sparsely observed node's entries have leverages near 1 and small residuals whatever
-    their errors, a well observed one's near 0. Positions in metres and offsets in metres
-    (times c) keep ``A^T A`` well scaled.
-
-    Parameters
-    ----------
-    sol : dict
-        ``receivers`` (I, d), ``sources`` (J, d), ``method``.
-    observed : (I, J) bool
-    speed : float
-        m/s.
-    weights : (I, J) array, optional
-        Row weights ``1 / std`` of a weighted fit (the hat matrix of ``W A``).
-
-    Returns
-    -------
-    (I, J) array
-        ``h_ij`` in [0, 1] (NaN where not observed).
-    """
-    import scipy.sparse as sp
-
-    r, s = np.asarray(sol["receivers"], float), np.asarray(sol["sources"], float)
-    d = 2 if str(sol["method"]).startswith("2d") else 3
-    I, J = observed.shape
-    ii, jj = np.nonzero(observed)
-    out = np.full((I, J), np.nan)
-    if ii.size == 0:
-        return out
-    diff = r[ii, :d] - s[jj, :d]
-    full = r[ii] - s[jj]
-    u = diff / np.maximum(np.linalg.norm(full, axis=1), 1e-12)[:, None]
-    m = ii.size
-    n = d * (I + J) + I + J
-    rows = np.repeat(np.arange(m), 2 * d + 2)
-    cols = np.concatenate([d * ii[:, None] + np.arange(d)[None], d * (I + jj)[:, None] + np.arange(d)[None],
-                           (d * (I + J) + ii)[:, None], (d * (I + J) + I + jj)[:, None]], axis=1).ravel()
-    vals = np.concatenate([u, -u, np.ones((m, 1)), np.ones((m, 1))], axis=1)
-    if weights is not None:
-        wv = np.asarray(weights, float)[ii, jj]
-        vals = vals * np.where(np.isfinite(wv) & (wv > 0), wv / np.nanmedian(wv), 0.0)[:, None]
-    vals = vals.ravel()
-    A = sp.csr_matrix((vals, (rows, cols)), shape=(m, n))
-    N = (A.T @ A).toarray()
-    w, V = np.linalg.eigh(N)
-    keep = w > w.max() * 1e-10
-    B = A @ (V[:, keep] / np.sqrt(w[keep]))  # orthonormal basis of the column space of A
-    out[ii, jj] = np.clip(np.einsum("ij,ij->i", B, B), 0.0, 1.0)
-    return out
-
-
-def event_leverage(sol: dict[str, Any], toa: Array, event_senders: NDArray[np.int64], n_senders: int,
-                   speed: float, weights: Array | None = None) -> Array:
-    """Residual std factor ``sqrt(1 - h_ij / n_ij)`` of every event detection (I, E).
-
-    The fit sees the per-sender mean of the ``n_ij`` events of sender j at receiver i; an
-    event's residual from the model is its deviation from that mean (variance
-    ``sigma^2 (1 - 1 / n)``) plus the mean's residual (``sigma^2 (1 - h) / n``):
-    ``sigma^2 (1 - h / n)`` (:func:`hat_diagonal`, ``weights`` as there). Floored at 1e-3.
-    """
-    es = np.asarray(event_senders, dtype=np.int64)
-    fin = np.isfinite(toa)
-    cnt = np.zeros((toa.shape[0], n_senders))
-    for j in range(n_senders):
-        cnt[:, j] = fin[:, es == j].sum(axis=1)
-    h = hat_diagonal(sol, cnt > 0, speed, weights)
-    f = np.sqrt(np.maximum(1.0 - np.nan_to_num(h) / np.maximum(cnt, 1.0), 1e-6))
-    return np.where(fin, f[:, es], np.nan)
-
-
 def _predict(sol: dict[str, Any], speed: float) -> Array:
     r, s = np.asarray(sol["receivers"], float), np.asarray(sol["sources"], float)
     return (np.linalg.norm(r[:, None, :] - s[None, :, :], axis=-1) / speed
             + np.asarray(sol["receiver_offsets"], float)[:, None] + np.asarray(sol["source_offsets"], float)[None, :])
-
-
-def scale_from_distances(sol: dict[str, Any], receivers: NDArray[np.intp], senders: NDArray[np.intp],
-                         distances: Array) -> tuple[float, float]:
-    """Scale factor of a solution from known receiver-sender distances (a unit's microphone and loudspeaker).
-
-    With unknown offsets, positions and the speed of sound are confounded exactly: the
-    model ``|r_i - s_j| / c + delta_i + tau_j`` is unchanged by ``r, s, c -> lam r, lam s,
-    lam c``. Known distances ``D_k`` fix ``lam``: weighted least squares ``lam = sum w_k d_k
-    D_k / sum w_k d_k^2`` over the estimated distances ``d_k`` with ``w_k = 1 / var(d_k)``
-    (``var(d_k) = u^T (C_i + C_j) u``, u the unit vector, cross-covariance neglected).
-
-    Parameters
-    ----------
-    sol : dict
-        Solution with ``receivers``, ``sources``, ``receiver_cov``, ``source_cov``.
-    receivers, senders : (K,) int arrays
-        The pairs.
-    distances : (K,) array
-        Known distances, m.
-
-    Returns
-    -------
-    lam : float
-        Scale factor (1 = the assumed speed of sound is right).
-    lam_std : float
-        Its standard deviation.
-    """
-    r = np.asarray(sol["receivers"], float)[receivers]
-    s = np.asarray(sol["sources"], float)[senders]
-    rc = np.asarray(sol["receiver_cov"], float)[receivers]
-    sc = np.asarray(sol["source_cov"], float)[senders]
-    D = np.asarray(distances, float)
-    diff = r - s
-    d = np.linalg.norm(diff, axis=1)
-    u = diff / np.maximum(d, 1e-12)[:, None]
-    var = np.einsum("ki,kij,kj->k", u, rc + sc, u)
-    ok = np.isfinite(d) & np.isfinite(var) & (d > 0)
-    var = np.where(var > 0, var, np.nanmedian(var[ok & (var > 0)]) if (ok & (var > 0)).any() else 1e-8)
-    w = 1.0 / var[ok]
-    lam = float(np.sum(w * d[ok] * D[ok]) / np.sum(w * d[ok] ** 2))
-    lam_std = float(lam / np.sqrt(np.sum(d[ok] ** 2 / var[ok])))
-    return lam, lam_std
-
-
-def apply_scale(sol: dict[str, Any], lam: float) -> dict[str, Any]:
-    """Positions times ``lam``, covariances times ``lam^2`` (offsets unchanged)."""
-    out = dict(sol)
-    for key in ("receivers", "sources"):
-        out[key] = np.asarray(sol[key], float) * lam
-    for key in ("receiver_cov", "source_cov"):
-        out[key] = np.asarray(sol[key], float) * lam**2
-    return out

@@ -231,7 +231,7 @@ def residual_check(residuals: Array, std: Array, event_senders: NDArray[np.int64
     alpha : float
     leverage : (I, E) array, optional
         Residual std factor of every entry, ``sqrt(1 - h)``
-        (:func:`selfcal.acoustics.calibrate.event_leverage`); default the mean one,
+        (:func:`selfcal.acoustics.leverage.event_leverage`); default the mean one,
         ``sqrt(1 - n_params / m)``.
 
     Returns

@@ -26,15 +26,7 @@ from numpy.typing import NDArray
 from .._checks import entry
 from .._result import Result
 from ..errors import DegenerateGeometryError, InputError, Status
-from .calibrate import (
-    Outlier,
-    _predict,
-    apply_scale,
-    calibrate_matrix,
-    robust_calibrate,
-    scale_from_distances,
-    sender_matrix,
-)
+from .calibrate import _predict, calibrate_matrix, sender_matrix
 from .geometry import (
     ModelComparison,
     Planarity,
@@ -45,6 +37,8 @@ from .geometry import (
     refine_known_heights,
 )
 from .noise import MF_FACTOR, TIMING_FLOOR, detection_std, fit_test, residual_check, timing_noise
+from .robust_fit import Outlier, robust_calibrate
+from .scale import apply_scale, scale_from_distances
 from .scoring import truth_errors
 from .units import unit_pairs
 from .verdict import POSITION_REQUIREMENT, TIMING_REQUIREMENT, ErrorBars, Verdict, error_bars, judge
@@ -362,7 +356,7 @@ def run_pipeline(
     res_e[~kr] = np.nan
     res_e[:, ~ks[es]] = np.nan
     if np.isfinite(res_e).any():
-        fit = residual_check(res_e, robust.std, es, robust.n_params, cap=robust.threshold, leverage=robust.leverage)
+        fit = residual_check(res_e, robust.std, es, robust.n_params, cap=robust.threshold)
     fit_reason = ""
     if fit is not None and not fit.passed:
         where = []

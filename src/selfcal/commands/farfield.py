@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import click
 
@@ -93,7 +93,8 @@ def farfield_command(matrix: tuple[Path, ...], out: Path, speed: float | None, d
 
         pyramic = load_pyramic(list(matrix), speed=speed)
         D, seconds = pyramic.D, True
-        scale = pyramic.column_speed if pyramic.column_speed is not None else np.full(D.shape[1], pyramic.speed)
+        scale: Any = pyramic.column_speed if pyramic.column_speed is not None else np.full(D.shape[1],
+                                                                                           pyramic.speed)
         reference = pyramic.positions
         if directions == "sources":
             known = pyramic.directions
@@ -173,11 +174,11 @@ def farfield_command(matrix: tuple[Path, ...], out: Path, speed: float | None, d
         raise SystemExit(1)
 
 
-def _pyramic_cone_hint(exc: Exception, data: object) -> None:
+def _pyramic_cone_hint(exc: Any, data: Any) -> None:
     """Re-raise a ``[cone]`` refusal on Pyramic data saying which speakers were given and what breaks it."""
     from ..errors import DegenerateGeometryError
 
-    elev = data.elevations()  # type: ignore[attr-defined]
+    elev = data.elevations()
     msg = exc.args[0] if exc.args else str(exc)
     listed = ", ".join(f"speaker {s} at {e:.1f} deg" for s, e in elev.items())
     raise DegenerateGeometryError(

@@ -174,7 +174,7 @@ def join_pyramic(parts: Sequence[PyramicData], *, labels: Sequence[str] | None =
     first = parts[0]
     ids: list[NDArray[np.int64]] = []
     used: set[int] = set()
-    for name, p in zip(names, parts):
+    for name, p in zip(names, parts, strict=True):
         if p.microphones.shape != first.microphones.shape or not np.allclose(
                 p.microphones, first.microphones, atol=1e-9, rtol=0.0):
             raise InputError(f"{name}: its microphones differ from those of {names[0]}; only recordings of the "

@@ -193,7 +193,7 @@ def screen_gross_errors(
         if not _redundant(used, n_fit, rank):
             break
         W = used.astype(float)
-        L, _, P, Q = lowrank_fit(D, W, rank=rank, loss="linear", factors=True)
+        L, _, P, Q = _lowrank_factors(D, W, rank=rank, loss="linear")
         if n_fit <= LEVERAGE_MAX:
             h = np.minimum(entry_leverages(P, Q, W), 0.99)
         else:
@@ -226,8 +226,21 @@ def lowrank_fit(
     loss: str = "linear",
     iterations: int = 50,
     start: Array | None = None,
-    factors: bool = False,
-) -> tuple[Array, float] | tuple[Array, float, Array, Array]:
+) -> tuple[Array, float]:
+    """Weighted (robust) fit of ``L = P Q^T + 1 c^T`` to D: ``(L, sigma)``; see :func:`_lowrank_factors`."""
+    L, sig, _, _ = _lowrank_factors(D, W, rank=rank, loss=loss, iterations=iterations, start=start)
+    return L, sig
+
+
+def _lowrank_factors(
+    D: Array,
+    W: Array,
+    *,
+    rank: int = 3,
+    loss: str = "linear",
+    iterations: int = 50,
+    start: Array | None = None,
+) -> tuple[Array, float, Array, Array]:
     """Weighted (robust) fit of the far-field structure ``L = P Q^T + 1 c^T`` to D.
 
     ``P`` (m, rank), ``Q`` (k, rank), ``c`` (k,): the rank-3 factorisation plus one offset
@@ -249,7 +262,7 @@ def lowrank_fit(
     -------
     L : (m, k) complete fitted matrix; sigma : robust noise estimate (1.4826 MAD of the
     residuals over used entries, inflated by the residual degrees of freedom); with
-    ``factors=True`` also P (m, rank) and Q (k, rank).
+    :func:`_lowrank_factors` also returns the factors P (m, rank) and Q (k, rank).
     """
     m, k = D.shape
     obs = W > 0
@@ -300,9 +313,10 @@ def lowrank_fit(
     L = P @ Q.T + c
     R = np.where(obs, D0 - L, 0.0)
     sig = mad_std(R[obs], centre=False) * dof_fac
-    if factors:
-        return L, sig, P, Q
-    return L, sig
+    return L, sig, P, Q
+
+
+lowrank_fit.__doc__ = _lowrank_factors.__doc__  # one docstring (Parameters / Returns) for both
 
 
 def consensus_prediction(D: Array, *, iterations: int = 200,
