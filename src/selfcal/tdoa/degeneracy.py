@@ -21,10 +21,14 @@ residual ``R`` of the best rank-r approximation (r = the tested rank) as
 ``sum_{i>r} s_i^2 / ((m-1-r)(k-r))``; m-1 because centring removes one row's freedom),
 floored at ``1e-14 s_1`` (rounding).
 The rank is chosen by nested tests (rank r - 1 against rank r, r = 3, 2, 1): ``s_r`` counts
-as signal when it exceeds ``sigma_r q``, q = :func:`noise_edge` ``(m - r, k - r + 1, alpha)``:
-the (1 - alpha) quantile of the largest singular value of the (m-1-(r-1)) x (k-(r-1)) noise
-matrix that remains under the smaller model (Tracy-Widom, Johnstone 2001), and
-``rel_floor * s_1``. A classical F test of the two nested fits would be wrong here: the r-th
+as signal when it exceeds ``sigma q`` and ``rel_floor * s_1``. With a given noise, sigma is
+that noise and q = :func:`noise_edge` ``(m - r, k - r + 1, alpha)``: the (1 - alpha) quantile
+of the largest singular value of the (m-1-(r-1)) x (k-(r-1)) noise matrix that remains under
+the smaller model (Tracy-Widom, Johnstone 2001). With an estimated noise, sigma comes from
+the rank-r residual with the largest noise component's expected energy added back
+(:func:`_sigma_null`), so a real ``s_r`` never sets the level it is compared with, and q =
+:func:`null_edge`, the quantile of that estimated-noise statistic (exact by a seeded
+Monte-Carlo for small matrices, where it matters). A classical F test of the two nested fits would be wrong here: the r-th
 singular direction is chosen by the data, so under the smaller model ``s_r^2 / sigma^2`` is
 the largest eigenvalue of a Wishart matrix (about ``(sqrt(m) + sqrt(k))^2``), not a
 chi-square with ``m + k - 2r + 1`` degrees of freedom (mean ``m + k``): for 47 x 180 the F
@@ -42,6 +46,7 @@ rms spread of ``|ntilde_j|`` is within ``2 sigma``.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 from typing import Any
 
@@ -171,6 +176,31 @@ def _sigma(X: Array, U: Array, s: Array, Vt: Array, r: int, rows: int, cols: int
     return float(mad_std(R, centre=False) * np.sqrt(R.size / dof))
 
 
+def _sigma_null(X: Array, U: Array, s: Array, Vt: Array, r: int, rows: int, cols: int) -> float | None:
+    """Noise level under "rank <= r - 1" from the residual of the rank-r approximation.
+
+    Under the smaller model the r-th singular value is the largest of the
+    (rows - r + 1) x (cols - r + 1) noise matrix that remains, so the rank-r residual holds the
+    noise energy less that largest component: sigma^2 ((rows - r + 1)(cols - r + 1) - mu), with
+    mu = E[s_max^2] (Johnstone's centre). Estimating sigma there, rather than from the rank-(r - 1)
+    residual, keeps a real r-th component out of the noise estimate: from the rank-(r - 1)
+    residual a noise-free rank-3 matrix of 8 x 12 was called rank 2, because its s_3 then sets
+    the noise level it is compared with. ``None`` when fewer than two degrees of freedom remain
+    (the numerical rank decides there). The median absolute residual is used, as in
+    :func:`_sigma`, so that a few gross errors do not inflate it.
+    """
+    nr, nc = rows - r + 1, cols - r + 1
+    n, p = max(nr, nc), min(nr, nc)
+    if p < 1:
+        return None
+    mu = (np.sqrt(max(n - 1, 1)) + np.sqrt(p)) ** 2
+    left = nr * nc - mu
+    if left < 2.0:
+        return None
+    R = X - (U[:, :r] * s[:r]) @ Vt[:r]
+    return float(mad_std(R, centre=False) * np.sqrt(R.size / left))
+
+
 #: false-alarm rate of each step of the nested rank test (the probability that a matrix of
 #: rank r plus i.i.d. Gaussian noise is called rank r + 1)
 RANK_ALPHA = 1e-3
@@ -215,6 +245,48 @@ def noise_edge(rows: int, cols: int, alpha: float = RANK_ALPHA) -> float:
     return float(np.sqrt(max(mu + sd * tw1_quantile(alpha), 0.0)))
 
 
+#: matrices with at most this many entries get the exact (Monte-Carlo) null quantile of the
+#: estimated-noise statistic in :func:`null_edge`; larger ones the Tracy-Widom edge
+NULL_MC_MAX_ENTRIES = 1500
+
+
+@functools.lru_cache(maxsize=256)
+def null_edge(rows: int, cols: int, alpha: float = RANK_ALPHA) -> float:
+    """(1 - alpha) quantile of ``s_max / sigma_hat`` for a rows x cols Gaussian noise matrix.
+
+    ``sigma_hat`` is the estimate :func:`_sigma_null` makes from the same matrix (the median
+    absolute residual of its rank-1 approximation, scaled by ``sqrt(entries / (entries - mu))``),
+    so the quantile accounts for the noise being estimated from the data it is tested on, which
+    the Tracy-Widom edge of :func:`noise_edge` (known noise) does not; that matters for the
+    small matrices of real arrays (8 x 12: 2 % false alarms with the known-noise edge). Exact by
+    a Monte-Carlo of ``max(20 / alpha, 2000)`` draws with a fixed seed (deterministic, cached)
+    for matrices of at most :data:`NULL_MC_MAX_ENTRIES` entries; :func:`noise_edge` above, where
+    the estimate's own scatter is negligible.
+    """
+    nr, nc = int(rows), int(cols)
+    if nr * nc > NULL_MC_MAX_ENTRIES or min(nr, nc) < 1:
+        return noise_edge(nr, nc, alpha)
+    n, p = max(nr, nc), min(nr, nc)
+    left = nr * nc - (np.sqrt(max(n - 1, 1)) + np.sqrt(p)) ** 2
+    if left < 2.0:
+        return noise_edge(nr, nc, alpha)
+    draws = int(max(20.0 / alpha, 2000))
+    rng = np.random.default_rng(20011)
+    stats = []
+    chunk = max(1, min(draws, 2_000_000 // (nr * nc)))
+    done = 0
+    while done < draws:
+        b = min(chunk, draws - done)
+        G = rng.standard_normal((b, nr, nc))
+        Ub, sb, Vb = np.linalg.svd(G, full_matrices=False)
+        R = G - sb[:, 0, None, None] * Ub[:, :, :1] * Vb[:, :1, :]
+        mad = mad_std(R.reshape(b, -1), axis=1, centre=False)
+        stats.append(sb[:, 0] / np.maximum(mad * np.sqrt(nr * nc / left), 1e-300))
+        done += b
+    return float(np.quantile(np.concatenate(stats), 1.0 - alpha))
+
+
+
 def analyse_degeneracy(
     X: Array,
     *,
@@ -254,13 +326,17 @@ def analyse_degeneracy(
         # singular value is the largest of an (a - r + 1) x (k - r + 1) noise matrix
         if rank_factor is not None:  # the former rule: rank_factor x the Marchenko-Pastur edge
             return max(rank_factor * sig(r) * (np.sqrt(a) + np.sqrt(k)), rel_floor * s1)
-        # sigma under the smaller model (rank r - 1): its residual still holds s_r, so the
-        # estimate is not depleted by the noise direction the larger model would remove. With a
-        # single remaining dimension (e.g. r = 3 in a 4 x 6 matrix) noise and s_r cannot be told
-        # apart: the numerical rank (rel_floor) decides, as for exact data
-        if min(a - r + 1, k - r + 1) < 2 and noise_std is None:
+        # sigma under the smaller model, estimated from the rank-r residual with the expected
+        # energy of the largest noise component added back (_sigma_null), so a real s_r does not
+        # set the level it is compared with. With too few remaining degrees of freedom (e.g.
+        # r = 3 in a 4 x 6 matrix) noise and s_r cannot be told apart: the numerical rank
+        # (rel_floor) decides, as for exact data
+        if noise_std is not None:
+            return max(sig(r) * noise_edge(a - r + 1, k - r + 1, alpha), rel_floor * s1)
+        est = _sigma_null(X, U, s, Vt, r, a, k)
+        if est is None:
             return rel_floor * s1
-        return max(sig(r - 1) * noise_edge(a - r + 1, k - r + 1, alpha), rel_floor * s1)
+        return max(max(est, floor) * null_edge(a - r + 1, k - r + 1, alpha), rel_floor * s1)
 
     rank = 0
     for r in (3, 2, 1):
