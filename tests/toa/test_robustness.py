@@ -316,7 +316,7 @@ def _minimal_draw(seed):
     from pathlib import Path
 
     spec = importlib.util.spec_from_file_location(
-        "bench_toa_minimal", Path(__file__).resolve().parents[1] / "benchmarks" / "bench_toa_minimal.py")
+        "bench_toa_minimal", Path(__file__).resolve().parents[2] / "benchmarks" / "bench_toa_minimal.py")
     mod = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(mod)
     return mod.one(seed)

@@ -13,7 +13,7 @@ import pytest
 from click.testing import CliRunner
 
 from selfcal.cli import main
-from test_pipeline_faults import _make  # tests/ is on sys.path (rootdir conftest, prepend mode)
+from tests.acoustics.test_pipeline_faults import _make
 
 
 @pytest.fixture(scope="module")
