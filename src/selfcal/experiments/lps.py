@@ -48,8 +48,9 @@ def calibrate_lps(ranges: Array, variant: str = "none", *, rng: int = 0) -> dict
     ``receivers-huber``  per-anchor offsets (ranging bias) + Huber loss, started from ``none``
                          with zero offsets.
     ``clean``            the moving-tag recipe (:func:`selfcal.toa.recipes.moving_tag`):
-                         multipath spikes removed in time (robust local quadratic, 3.5
-                         robust sigmas), then ``none``. The recommended variant.
+                         multipath spikes removed in time (robust local quadratic, one-sided
+                         at the Bonferroni threshold of :func:`~selfcal.toa.recipes.spike_threshold`,
+                         the recipe's defaults), then ``none``. The recommended variant.
     ``clean-huber``      ``clean`` with a Huber loss.
     ``clean-profile``    ``clean``, then per-anchor offsets whose common component is chosen
                          by :func:`selfcal.toa.preprocess.fit_offsets_profile_common` (minimum
@@ -73,7 +74,11 @@ def calibrate_lps(ranges: Array, variant: str = "none", *, rng: int = 0) -> dict
     keep = np.isfinite(Y).sum(axis=0) >= 4
     extra["n_dropped"] = int((~keep).sum())
     if variant.startswith("clean"):
-        rej = reject_range_outliers(Y)
+        # the moving-tag recipe's defaults: one-sided (a blocked or reflected path only
+        # lengthens a range), at the solver's Bonferroni false-alarm rule
+        from ..toa.recipes import spike_threshold
+
+        rej = reject_range_outliers(Y, threshold=spike_threshold(Y, True), one_sided=True)
         extra["n_rejected"] = rej.n_rejected
         keep &= np.isfinite(rej.ranges).sum(axis=0) >= 4
         extra["n_dropped"] = int((~keep).sum())
