@@ -112,24 +112,24 @@ def _heights_fit(T: Array, heights: tuple[Array, Array], speed: float, rng: int,
 
     The blind solves do not know the heights: the 2-D one (z ignored) and the 3-D one
     (z free, projected) are searches on different models and land in different basins when
-    the matrix is sparse or holds a wrong detection. Each start is refined with the heights
+    the matrix is sparse or holds a wrong detection. The 3-D start is tried only when the
+    2-D one does not fit at the detections' stated noise (:func:`_fits_its_noise`). Each start is refined with the heights
     under a Cauchy loss (scale 2.385 stds, from ``weights``; least squares without them), the
     start whose robust cost ``sum log(1 + (z / 2.385)^2)`` is lower is kept and finished by
     (weighted) least squares; the outlier test of :func:`selfcal.acoustics.robust_fit.robust_calibrate` follows.
     """
-    starts = []
-    for d in (2, 3):
-        try:
-            starts.append(_solve(T, d, speed, rng, units=units))
-        except DegenerateGeometryError:
-            continue
-    if not starts:
-        raise DegenerateGeometryError("no blind start for the known-heights fit: the 2-D and 3-D solves both "
-                                      "broke down", kind="unobservable-node")
     sd = None if weights is None else 1.0 / np.asarray(weights, float)
     f_sc = None if sd is None else 2.385 * float(np.nanmedian(sd[np.isfinite(sd)]))
     best: tuple[float, dict[str, Any], Any] | None = None
-    for init in starts:
+    tried = 0
+    for d in (2, 3):
+        if d == 3 and best is not None and sd is not None and _fits_its_noise(best[0], T):
+            break  # the 2-D start already fits at the detections' own noise: no second search
+        try:
+            init = _solve(T, d, speed, rng, units=units)
+        except DegenerateGeometryError:
+            continue
+        tried += 1
         r0, s0, dr0, ds0 = _place_dropped(T, heights, np.asarray(init.receivers, float)[:, :2],
                                           np.asarray(init.sources, float)[:, :2],
                                           np.asarray(init.receiver_offsets, float),
@@ -145,6 +145,9 @@ def _heights_fit(T: Array, heights: tuple[Array, Array], speed: float, rng: int,
         cost = float(np.nansum(np.log1p((zz / 2.385) ** 2)))
         if np.isfinite(cost) and (best is None or cost < best[0]):
             best = (cost, sol, init)
+    if not tried:
+        raise DegenerateGeometryError("no blind start for the known-heights fit: the 2-D and 3-D solves both "
+                                      "broke down", kind="unobservable-node")
     if best is None:
         raise DegenerateGeometryError("the known-heights fit broke down from every blind start", kind="unobservable-node")
     _, sol, init = best
@@ -153,6 +156,23 @@ def _heights_fit(T: Array, heights: tuple[Array, Array], speed: float, rng: int,
                                    sol["receiver_offsets"], sol["source_offsets"], speed=speed, weights=weights)
     sol["method"] = f"2d+heights ({init.method} init)"
     return sol
+
+
+#: mean and standard deviation of log(1 + (z / 2.385)^2) for z ~ N(0, 1) (numerical integration
+#: by a 4e6-draw Monte-Carlo: 0.1446, 0.1756): the per-entry Cauchy cost of a fit at its noise
+_CAUCHY_COST_MEAN, _CAUCHY_COST_STD = 0.1446, 0.1756
+
+
+def _fits_its_noise(cost: float, T: Array) -> bool:
+    """Whether a robust (Cauchy) cost is that of a fit at the detections' stated noise.
+
+    The cost of m residuals at their own stds is a sum of m i.i.d. terms under the noise
+    model; it is accepted below its mean + 3.09 standard deviations (the one-sided 0.1 %
+    quantile of the normal approximation). A wrong basin leaves whole rows and columns at
+    many stds and exceeds it by orders of magnitude; then the 3-D start is also tried.
+    """
+    m = int(np.isfinite(T).sum())
+    return bool(np.isfinite(cost) and cost <= m * _CAUCHY_COST_MEAN + 3.09 * np.sqrt(m) * _CAUCHY_COST_STD)
 
 
 def _place_dropped(T: Array, heights: tuple[Array, Array], r: Array, s: Array, dr: Array, ds: Array,
