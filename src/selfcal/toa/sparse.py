@@ -341,29 +341,7 @@ def initialize_toa_sparse(
     need = d + 2
     last_refine = R.size + S.size
     while True:
-        grew = False
-        for side in ("r", "s"):
-            lr, ls = np.isfinite(r[:, 0]), np.isfinite(s[:, 0])
-            if side == "r":
-                m = ~lr[ii] & ls[jj]
-                node_all, anc_all, pos = ii[m], s[jj[m]], r
-            else:
-                m = lr[ii] & ~ls[jj]
-                node_all, anc_all, pos = jj[m], r[ii[m]], s
-            if not node_all.size:
-                continue
-            cnt = np.bincount(node_all, minlength=pos.shape[0])
-            cand = np.flatnonzero(cnt >= need)
-            if not cand.size:
-                continue
-            loc = -np.ones(pos.shape[0], np.intp)
-            loc[cand] = np.arange(cand.size)
-            keep = loc[node_all] >= 0
-            x, rms = _multilaterate(loc[node_all[keep]], anc_all[keep], y[m][keep], cand.size, d)
-            # a fix whose own residual is far above the noise is postponed (more anchors later)
-            ok = np.isfinite(rms) & (rms <= 4.0 * noise)  # a right fix has rms <= ~noise
-            pos[cand[ok]] = x[ok]
-            grew = grew or bool(ok.any())
+        grew = _place_once(ii, jj, y, r, s, d, need, noise) > 0
         n_loc = int(np.isfinite(r[:, 0]).sum() + np.isfinite(s[:, 0]).sum())
         if grew and n_loc >= 2 * last_refine and n_loc < I + J:
             r, s = _refine_located(ii, jj, y, r, s, d)
@@ -379,6 +357,16 @@ def initialize_toa_sparse(
 
 def _second_chance(i: Index, j: Index, y: Array, r: Array, s: Array, d: int, noise: float) -> int:
     """Multilaterate the unlocated nodes with >= d + 2 ranges to located ones (in place); count added."""
+    return _place_once(i, j, y, r, s, d, d + 2, noise)
+
+
+def _place_once(i: Index, j: Index, y: Array, r: Array, s: Array, d: int, need: int, noise: float) -> int:
+    """One placement pass (in place): every unlocated node with >= ``need`` ranges to located ones.
+
+    Receivers first, then sources against the receivers located so far. A fix whose own
+    residual is far above the noise is postponed (more anchors later): a right fix has
+    rms <= ~noise, so it is kept only below 4 x noise. Returns the number of nodes placed.
+    """
     added = 0
     for side in ("r", "s"):
         lr, ls = np.isfinite(r[:, 0]), np.isfinite(s[:, 0])
@@ -391,7 +379,7 @@ def _second_chance(i: Index, j: Index, y: Array, r: Array, s: Array, d: int, noi
         if not node_all.size:
             continue
         cnt = np.bincount(node_all, minlength=pos.shape[0])
-        cand = np.flatnonzero(cnt >= d + 2)
+        cand = np.flatnonzero(cnt >= need)
         if not cand.size:
             continue
         loc = -np.ones(pos.shape[0], np.intp)
