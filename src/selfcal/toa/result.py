@@ -293,7 +293,7 @@ def geometry_statistic(ranges: Any, dim: int, offsets: str) -> float:
     """``RSS(geometry) / RSS(no geometry)`` of one fixed, cheap procedure (see :class:`PermutationTest`).
 
     The geometry is the better of the 003 starts of :data:`PERMUTATION_INITS` (MDS +
-    multilateration, Algorithm 2; :func:`selfcal.toa.mds.initialize_toa`) with
+    multilateration, Algorithm 2 of :mod:`selfcal.toa.mds`, in the gauge they return) with
     the least-squares offsets of ``offsets``; no refinement. ``inf`` when no start applies.
 
     Parameters
@@ -306,8 +306,10 @@ def geometry_statistic(ranges: Any, dim: int, offsets: str) -> float:
     float, >= 0 (above 1 when the start fits worse than the model without geometry).
     """
     from ..errors import DegenerateGeometryError, InputError
-    from .mds import initialize_toa
+    from .mds import mds_alg2, mds_multilateration
     from .nls import toa_model
+
+    inits = {"mds-multilat": lambda Z: mds_multilateration(Z, dim, rng=0), "alg2": lambda Z: mds_alg2(Z, dim)}
 
     Y = np.asarray(ranges, dtype=float)
     has_r, has_s = offsets in ("receivers", "both"), offsets in ("sources", "both")
@@ -321,7 +323,7 @@ def geometry_statistic(ranges: Any, dim: int, offsets: str) -> float:
     for method in PERMUTATION_INITS:
         try:
             with np.errstate(all="ignore"):
-                r, s = initialize_toa(Y - shift, dim, method=method, rng=0)
+                r, s = inits[method](Y - shift)
                 E = Y - toa_model(np.asarray(r, float), np.asarray(s, float))
                 E = E - _additive_fit(E, has_r, has_s) if (has_r or has_s) else E
         except (DegenerateGeometryError, InputError, np.linalg.LinAlgError, ValueError, FloatingPointError):
@@ -401,17 +403,27 @@ def permutation_test(ranges: Any, dim: int, offsets: str, *, copies: int = PERMU
     """
     g = np.random.default_rng(seed)
     Y0 = np.asarray(ranges, dtype=float)
-    for complete in (True, False):  # a complete block when it is testable, else the block as it is
+
+    def block(complete: bool) -> tuple[Array, int]:
         rows, cols = _test_block(np.isfinite(Y0), int(max_side), dim, g, complete)
-        Y = Y0[np.ix_(rows, cols)]
-        obs = np.isfinite(Y)
-        keep_r, keep_c = obs.sum(axis=1) > 0, obs.sum(axis=0) > 0
-        Y, obs = Y[np.ix_(keep_r, keep_c)], obs[np.ix_(keep_r, keep_c)]
-        I, J = Y.shape
-        if I > dim and J > dim and int(obs.sum()) > n_parameters(I, J, dim, offsets):
-            break
-    else:
+        B = Y0[np.ix_(rows, cols)]
+        ob = np.isfinite(B)
+        B = B[np.ix_(ob.sum(axis=1) > 0, ob.sum(axis=0) > 0)]
+        I, J = B.shape
+        spare = int(np.isfinite(B).sum()) - n_parameters(I, J, dim, offsets) if I > dim and J > dim else 0
+        return B, spare
+
+    # the complete block is cheaper; it is used while it keeps at least half the spare
+    # entries (the power) of the block as it is
+    Y, spare = block(False)
+    if not np.isfinite(Y).all():
+        Yc, spare_c = block(True)
+        if 2 * spare_c >= spare:
+            Y, spare = Yc, spare_c
+    if spare <= 0:
         return None
+    obs = np.isfinite(Y)
+    I, J = Y.shape
     has_r, has_s = offsets in ("receivers", "both"), offsets in ("sources", "both")
     F = _additive_fit(Y, has_r, has_s)
     e = (Y - F)[obs]
