@@ -37,7 +37,17 @@ from ..robust import loss_rho
 
 Array = NDArray[np.float64]
 
-__all__ = ["solve_schur_lm"]
+__all__ = ["DIRECT_MAX_UNKNOWNS", "solve_schur_lm"]
+
+#: reduced systems of at most this many unknowns (nK mK) are solved directly (dense Cholesky
+#: of S) instead of by preconditioned conjugate gradients: measured crossover, see solve_schur_lm
+DIRECT_MAX_UNKNOWNS = 200
+#: ... and only while forming S stays cheap: (nK mK)^2 (nE mE) multiply-adds and (nK mK) (nE mE)
+#: doubles for the dense ``W`` (32 MB)
+DIRECT_MAX_FLOPS = 1e8
+DIRECT_MAX_ENTRIES = 4e6
+#: forcing-term range of the inexact (CG) steps: relative residual of each CG solve
+CG_RTOL = (1e-8, 1e-3)
 
 
 def _inv_blocks(blocks: Array) -> Array:
@@ -176,7 +186,8 @@ class _Reduced:
     diagonal blocks of S (Schur-Jacobi).
     """
 
-    def __init__(self, U: list[Array], w: Array, hasK: bool, hasE: bool, damping: float, pat: Grid) -> None:
+    def __init__(self, U: list[Array], w: Array, hasK: bool, hasE: bool, damping: float, pat: Grid,
+                 precondition: bool = True) -> None:
         d = len(U)
         self.U, self.w, self.hasK, self.hasE, self.d, self.pat = U, w, hasK, hasE, d, pat
         self.mK, self.mE = d + hasK, d + hasE
@@ -186,6 +197,8 @@ class _Reduced:
             D = D + damping * np.einsum("epp->ep", D)[:, :, None] * np.eye(self.mE)
         self.A = A
         self.Dinv = Dinv = _inv_blocks(D)
+        if not precondition:  # the direct step needs no preconditioner
+            return
         # c = w^2 b^T D_e^-1 b with b = [-U, 1?]
         c = np.zeros_like(w)
         for p in range(d):
@@ -257,10 +270,61 @@ class _Reduced:
     def prec(self, x: Array) -> Array:
         return np.einsum("kpq,kq->kp", self.Pinv, x.reshape(-1, self.mK)).ravel()
 
+    def dense(self) -> Array:
+        """The reduced matrix ``S = A - B D^-1 B^T`` itself, (nK mK, nK mK).
+
+        With ``D_e^-1 = L_e L_e^T`` (Cholesky) the pair block of ``B D^-1/2`` is
+        ``W_ke = w_ke a_ke (L_e^T b_ke)^T``, so ``S = A - W W^T`` with ``W`` a dense
+        (nK mK, nE mE) array (zero where a pair is not observed): O(nK nE mK mE) memory,
+        O((nK mK)^2 nE mE) time, the price of a direct step (:data:`DIRECT_MAX_UNKNOWNS`).
+        """
+        pat, mK, mE = self.pat, self.mK, self.mE
+        nK, nE = pat.nK, pat.nE
+        L = np.linalg.cholesky(self.Dinv)  # (nE, mE, mE); Dinv is positive definite (damped)
+        a = list(self.U) + ([None] if self.hasK else [])
+        b = [-Up for Up in self.U] + ([None] if self.hasE else [])
+        W = np.zeros((nK, mK, nE, mE))
+        for r in range(mE):
+            G = None  # (L_e^T b_ke)_r = sum_q b_q L_e[q, r], one value per pair
+            for q in range(r, mE):
+                Lq = pat.ex(L[:, q, r])
+                t = Lq if b[q] is None else b[q] * Lq
+                G = t if G is None else G + t
+            G = G * self.w
+            for p in range(mK):
+                v = G if a[p] is None else G * a[p]
+                if isinstance(pat, Pairs):
+                    W[pat.k, p, pat.e, r] = v
+                else:
+                    W[:, p, :, r] = v
+        W2 = W.reshape(nK * mK, nE * mE)
+        S = -(W2 @ W2.T)
+        idx = np.arange(nK)
+        for p in range(mK):
+            S[(idx * mK + p)[:, None], (idx * mK)[:, None] + np.arange(mK)] += self.A[:, p, :]
+        return 0.5 * (S + S.T)
+
+
+def _direct_solve(S: Array, rhs: Array) -> Array | None:
+    """``S^-1 rhs`` by Cholesky; least squares when S is not numerically positive definite;
+    None when not even that is finite (the caller raises the damping)."""
+    import scipy.linalg
+
+    try:
+        c = scipy.linalg.cho_factor(S, lower=True, check_finite=False)
+        x = scipy.linalg.cho_solve(c, rhs, check_finite=False)
+    except (np.linalg.LinAlgError, ValueError):
+        try:
+            x = scipy.linalg.lstsq(S, rhs, check_finite=False)[0]
+        except (np.linalg.LinAlgError, ValueError):
+            return None
+    return np.asarray(x, float) if np.isfinite(x).all() else None
+
 
 def solve_schur_lm(
     theta0: Array, Y: Array, lay: object, loss: str, f_scale: float, max_nfev: int | None, xtol: float,
     gauge: Callable[[Array], Array], pairs: tuple[NDArray[np.intp], NDArray[np.intp]] | None = None,
+    direct: bool | None = None,
 ) -> tuple[Array, bool, int]:
     """Levenberg-Marquardt (Marquardt diagonal damping) on the Schur-reduced normal equations.
 
@@ -274,6 +338,8 @@ def solve_schur_lm(
     loss, f_scale : robust loss and its scale (metres).
     max_nfev : iteration cap (default 100); xtol : relative step tolerance.
     gauge : ``theta -> Q`` orthonormal gauge basis (n, g); the step is projected off it.
+    direct : solve each reduced system directly (dense Cholesky) instead of by CG; default
+        (None): directly when it has at most :data:`DIRECT_MAX_UNKNOWNS` unknowns.
 
     Returns
     -------
@@ -283,7 +349,12 @@ def solve_schur_lm(
     -----
     Each step solves the reduced system on the smaller node set by conjugate gradients with
     the Schur-Jacobi preconditioner (inexact Newton with an Eisenstat-Walker forcing term),
-    then back-substitutes the eliminated nodes. Robust losses use iteratively reweighted normal
+    then back-substitutes the eliminated nodes. Small reduced systems are formed and solved
+    exactly instead (Cholesky, least squares if it fails): at 12 x 6 with both offsets a CG
+    step costs ~150 matrix-free products of Python overhead for 24 unknowns. The iterates
+    are those of the CG path with an exact inner solve (tested); the crossover
+    :data:`DIRECT_MAX_UNKNOWNS` was measured per iteration on square dense networks
+    (``benchmarks/bench_toa_minimal.py --engine``). Robust losses use iteratively reweighted normal
     equations with weights rho'(z), whose fixed points are the stationary points of the robust
     cost.
     """
@@ -334,6 +405,9 @@ def solve_schur_lm(
     it = 0
     nk = k_flat.size
     d = lay.d  # type: ignore[attr-defined]
+    ne = e_flat.size
+    use_direct = (nk <= DIRECT_MAX_UNKNOWNS and nk * nk * ne <= DIRECT_MAX_FLOPS and nk * ne <= DIRECT_MAX_ENTRIES
+                  if direct is None else bool(direct))
     while it < max_it:
         it += 1
         Qg = gauge(theta)
@@ -353,18 +427,24 @@ def solve_schur_lm(
         g0 = gnorm if it == 1 else g0
         # inexact Newton forcing term (Eisenstat-Walker style): loose CG solves far from
         # the minimum, tight ones once the gradient has dropped (keeps the fast local rate)
-        cg_rtol = float(np.clip(gnorm / max(g0, 1e-300), 1e-8, 1e-3))
+        cg_rtol = float(np.clip(gnorm / max(g0, 1e-300), *CG_RTOL))
         improved = False
         for _ in range(12):
             try:
-                red = _Reduced(U, w, ori.hasK, ori.hasE, lam, pat)
+                red = _Reduced(U, w, ori.hasK, ori.hasE, lam, pat, precondition=not use_direct)
             except DegenerateGeometryError:
                 lam *= 10
                 continue
             rhs = -gK + red.b(red.dinv(gE))
-            op = LinearOperator((nk, nk), matvec=red.smul, dtype=float)
-            pc = LinearOperator((nk, nk), matvec=red.prec, dtype=float)
-            x, _ = cg(op, rhs, rtol=cg_rtol, maxiter=500, M=pc)
+            if use_direct:
+                x = _direct_solve(red.dense(), rhs)
+                if x is None:
+                    lam *= 10
+                    continue
+            else:
+                op = LinearOperator((nk, nk), matvec=red.smul, dtype=float)
+                pc = LinearOperator((nk, nk), matvec=red.prec, dtype=float)
+                x, _ = cg(op, rhs, rtol=cg_rtol, maxiter=500, M=pc)
             y = red.dinv(-gE - red.bt(x))
             del red
             step = np.zeros(n)
