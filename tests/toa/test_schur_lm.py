@@ -47,8 +47,8 @@ def test_direct_step_gives_the_iterates_of_an_exact_cg_step(case: tuple, monkeyp
     for seed in (0,) if case[2] == "both" else (0, 1):  # exact CG steps are slow on 'both'
         th0, Y, lay, gauge = _problem(*case, seed=seed)
         for nfev in (1, 5, 25):
-            a = sl.solve_schur_lm(th0, Y, lay, "linear", 1.0, nfev, 1e-10, gauge, direct=True)
-            b = sl.solve_schur_lm(th0, Y, lay, "linear", 1.0, nfev, 1e-10, gauge, direct=False)
+            a = sl.solve_schur_lm(th0, Y, lay, "linear", 1.0, nfev, 1e-10, gauge, step="reduced")
+            b = sl.solve_schur_lm(th0, Y, lay, "linear", 1.0, nfev, 1e-10, gauge, step="cg")
             assert a[2] == b[2] and a[1] == b[1]
             np.testing.assert_allclose(a[0], b[0], rtol=0, atol=1e-8 * np.abs(b[0]).max())
 
@@ -60,8 +60,8 @@ def test_direct_step_on_observed_pairs_equals_the_dense_grid() -> None:
     by its cost (to 1e-9) and its parameters to 1e-5 of their scale."""
     th0, Y, lay, gauge = _problem(10, 14, "both", 3, 0.2, seed=3)
     i, j = np.nonzero(np.isfinite(Y))
-    a = sl.solve_schur_lm(th0, Y, lay, "linear", 1.0, None, 1e-10, gauge, direct=True)
-    b = sl.solve_schur_lm(th0, Y[i, j], lay, "linear", 1.0, None, 1e-10, gauge, pairs=(i, j), direct=True)
+    a = sl.solve_schur_lm(th0, Y, lay, "linear", 1.0, None, 1e-10, gauge, step="reduced")
+    b = sl.solve_schur_lm(th0, Y[i, j], lay, "linear", 1.0, None, 1e-10, gauge, pairs=(i, j), step="reduced")
     assert a[1] and b[1]
     ca = float(np.sum(nls.toa_residuals(a[0], Y, 3, "both") ** 2))
     cb = float(np.sum(nls.toa_residuals(b[0], Y, 3, "both") ** 2))
@@ -95,11 +95,27 @@ def test_direct_step_with_a_robust_loss_reaches_the_cg_minimum() -> None:
     th0, Y, lay, gauge = _problem(10, 14, "receivers", 3, 0.0, seed=4)
     Y = Y.copy()
     Y[2, 3] += 5.0  # a gross entry, down-weighted by soft-L1
-    a = sl.solve_schur_lm(th0, Y, lay, "soft_l1", 0.01, 200, 1e-12, gauge, direct=True)
-    b = sl.solve_schur_lm(th0, Y, lay, "soft_l1", 0.01, 200, 1e-12, gauge, direct=False)
+    a = sl.solve_schur_lm(th0, Y, lay, "soft_l1", 0.01, 200, 1e-12, gauge, step="reduced")
+    b = sl.solve_schur_lm(th0, Y, lay, "soft_l1", 0.01, 200, 1e-12, gauge, step="cg")
     assert a[1] and b[1]
     ra = nls.toa_residuals(a[0], Y, 3, "receivers")
     rb = nls.toa_residuals(b[0], Y, 3, "receivers")
     ca = float(np.sum(2 * (np.sqrt(1 + (ra / 0.01) ** 2) - 1)))
     cb = float(np.sum(2 * (np.sqrt(1 + (rb / 0.01) ** 2) - 1)))
     assert abs(ca - cb) <= 1e-6 * cb
+
+
+@pytest.mark.parametrize("case", CASES, ids=[f"{c[0]}x{c[1]}-{c[2]}-{c[3]}d" for c in CASES])
+def test_dense_step_gives_the_iterates_of_the_reduced_step(case: tuple) -> None:
+    """The full normal matrix and its Schur reduction solve the same damped system exactly: the
+    same iterates (to round-off times cond, ~1e-8) and iteration counts at every cap."""
+    th0, Y, lay, gauge = _problem(*case, seed=2)
+    for nfev in (1, 5, 25):
+        a = sl.solve_schur_lm(th0, Y, lay, "linear", 1.0, nfev, 1e-10, gauge, step="dense")
+        b = sl.solve_schur_lm(th0, Y, lay, "linear", 1.0, nfev, 1e-10, gauge, step="reduced")
+        assert a[2] == b[2] and a[1] == b[1]
+        np.testing.assert_allclose(a[0], b[0], rtol=0, atol=1e-8 * np.abs(b[0]).max())
+    i, j = np.nonzero(np.isfinite(Y))
+    c = sl.solve_schur_lm(th0, Y[i, j], lay, "linear", 1.0, 5, 1e-10, gauge, pairs=(i, j), step="dense")
+    d = sl.solve_schur_lm(th0, Y, lay, "linear", 1.0, 5, 1e-10, gauge, step="dense")
+    np.testing.assert_allclose(c[0], d[0], rtol=0, atol=1e-6 * np.abs(d[0]).max())

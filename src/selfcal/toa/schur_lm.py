@@ -37,8 +37,10 @@ from ..robust import loss_rho
 
 Array = NDArray[np.float64]
 
-__all__ = ["DIRECT_MAX_UNKNOWNS", "solve_schur_lm"]
+__all__ = ["DENSE_MAX_UNKNOWNS", "DIRECT_MAX_UNKNOWNS", "solve_schur_lm"]
 
+#: problems of at most this many unknowns in all form the full normal matrix (step "dense")
+DENSE_MAX_UNKNOWNS = 120
 #: reduced systems of at most this many unknowns (nK mK) are solved directly (dense Cholesky
 #: of S) instead of by preconditioned conjugate gradients: measured crossover, see solve_schur_lm
 DIRECT_MAX_UNKNOWNS = 200
@@ -305,6 +307,25 @@ class _Reduced:
         return 0.5 * (S + S.T)
 
 
+def _dense_normal(U: list[Array], w: Array, hasK: bool, hasE: bool, rows: NDArray[np.intp],
+                  colK: NDArray[np.intp], colE: NDArray[np.intp], n: int) -> tuple[Array, Array]:
+    """The full weighted normal matrix ``H = J^T W J`` (n, n) in [K nodes, E nodes] order, and its diagonal.
+
+    ``rows`` are the pairs (flattened nK x nE grid, or the observed pairs), ``colK`` / ``colE``
+    the columns of each pair's K / E parameters; J is formed dense (pairs x n), which is what
+    makes this the step of small problems only (:data:`DENSE_MAX_UNKNOWNS`).
+    """
+    m = rows.size
+    wr = np.ravel(w)
+    Jm = np.zeros((m, n))
+    ar = np.arange(m)[:, None]
+    ones = [np.ones(m)]
+    Jm[ar, colK] = np.column_stack([np.ravel(Up) for Up in U] + (ones if hasK else []))
+    Jm[ar, colE] = np.column_stack([-np.ravel(Up) for Up in U] + (ones if hasE else []))
+    H = Jm.T @ (wr[:, None] * Jm)
+    return H, np.diag(H).copy()
+
+
 def _direct_solve(S: Array, rhs: Array) -> Array | None:
     """``S^-1 rhs`` by Cholesky; least squares when S is not numerically positive definite;
     None when not even that is finite (the caller raises the damping)."""
@@ -324,7 +345,7 @@ def _direct_solve(S: Array, rhs: Array) -> Array | None:
 def solve_schur_lm(
     theta0: Array, Y: Array, lay: object, loss: str, f_scale: float, max_nfev: int | None, xtol: float,
     gauge: Callable[[Array], Array], pairs: tuple[NDArray[np.intp], NDArray[np.intp]] | None = None,
-    direct: bool | None = None,
+    step: str = "auto",
 ) -> tuple[Array, bool, int]:
     """Levenberg-Marquardt (Marquardt diagonal damping) on the Schur-reduced normal equations.
 
@@ -338,8 +359,12 @@ def solve_schur_lm(
     loss, f_scale : robust loss and its scale (metres).
     max_nfev : iteration cap (default 100); xtol : relative step tolerance.
     gauge : ``theta -> Q`` orthonormal gauge basis (n, g); the step is projected off it.
-    direct : solve each reduced system directly (dense Cholesky) instead of by CG; default
-        (None): directly when it has at most :data:`DIRECT_MAX_UNKNOWNS` unknowns.
+    step : how each damped system is solved: "dense" (the full normal matrix ``J^T W J``
+        formed once per iteration and Cholesky-factorised per damping trial), "reduced" (the
+        Schur-reduced matrix formed and factorised), "cg" (matrix-free preconditioned CG) or
+        "auto" (default): "dense" up to :data:`DENSE_MAX_UNKNOWNS` unknowns, else "reduced"
+        while forming S is cheap (:data:`DIRECT_MAX_UNKNOWNS`, :data:`DIRECT_MAX_FLOPS`,
+        :data:`DIRECT_MAX_ENTRIES`), else "cg".
 
     Returns
     -------
@@ -406,8 +431,20 @@ def solve_schur_lm(
     nk = k_flat.size
     d = lay.d  # type: ignore[attr-defined]
     ne = e_flat.size
-    use_direct = (nk <= DIRECT_MAX_UNKNOWNS and nk * nk * ne <= DIRECT_MAX_FLOPS and nk * ne <= DIRECT_MAX_ENTRIES
-                  if direct is None else bool(direct))
+    if step not in ("auto", "dense", "reduced", "cg"):
+        raise ValueError(f"step must be 'auto', 'dense', 'reduced' or 'cg', got {step!r}")
+    mode = step
+    if mode == "auto":
+        mode = ("dense" if n <= DENSE_MAX_UNKNOWNS else
+                "reduced" if nk <= DIRECT_MAX_UNKNOWNS and nk * nk * ne <= DIRECT_MAX_FLOPS
+                and nk * ne <= DIRECT_MAX_ENTRIES else "cg")
+    if mode == "dense":
+        rows = np.arange(pat.nK * pat.nE) if obs is not None else np.arange(pat.k.size)  # type: ignore[attr-defined]
+        kk = rows // pat.nE if obs is not None else pat.k  # type: ignore[attr-defined]
+        ee = rows % pat.nE if obs is not None else pat.e  # type: ignore[attr-defined]
+        mK, mE = d + ori.hasK, d + ori.hasE
+        colK = kk[:, None] * mK + np.arange(mK)
+        colE = nk + ee[:, None] * mE + np.arange(mE)
     while it < max_it:
         it += 1
         Qg = gauge(theta)
@@ -429,32 +466,43 @@ def solve_schur_lm(
         # the minimum, tight ones once the gradient has dropped (keeps the fast local rate)
         cg_rtol = float(np.clip(gnorm / max(g0, 1e-300), *CG_RTOL))
         improved = False
+        if mode == "dense":
+            H, hdiag = _dense_normal(U, w, ori.hasK, ori.hasE, rows, colK, colE, nk + ne)
+            gfull = np.concatenate([gK, gE])
         for _ in range(12):
-            try:
-                red = _Reduced(U, w, ori.hasK, ori.hasE, lam, pat, precondition=not use_direct)
-            except DegenerateGeometryError:
-                lam *= 10
-                continue
-            rhs = -gK + red.b(red.dinv(gE))
-            if use_direct:
-                x = _direct_solve(red.dense(), rhs)
-                if x is None:
+            if mode == "dense":
+                xy = _direct_solve(H + np.diag(lam * hdiag), -gfull)  # Marquardt: diag * (1 + lam)
+                if xy is None:
                     lam *= 10
                     continue
+                x, y = xy[:nk], xy[nk:]
             else:
-                op = LinearOperator((nk, nk), matvec=red.smul, dtype=float)
-                pc = LinearOperator((nk, nk), matvec=red.prec, dtype=float)
-                x, _ = cg(op, rhs, rtol=cg_rtol, maxiter=500, M=pc)
-            y = red.dinv(-gE - red.bt(x))
-            del red
-            step = np.zeros(n)
-            step[k_flat] = x
-            step[e_flat] = y
-            step -= Qg @ (Qg.T @ step)  # no rigid drift (and no common offset shift)
-            trial = theta + step
+                try:
+                    red = _Reduced(U, w, ori.hasK, ori.hasE, lam, pat, precondition=mode == "cg")
+                except DegenerateGeometryError:
+                    lam *= 10
+                    continue
+                rhs = -gK + red.b(red.dinv(gE))
+                if mode == "reduced":
+                    xr = _direct_solve(red.dense(), rhs)
+                    if xr is None:
+                        lam *= 10
+                        continue
+                    x = xr
+                else:
+                    op = LinearOperator((nk, nk), matvec=red.smul, dtype=float)
+                    pc = LinearOperator((nk, nk), matvec=red.prec, dtype=float)
+                    x, _ = cg(op, rhs, rtol=cg_rtol, maxiter=500, M=pc)
+                y = red.dinv(-gE - red.bt(x))
+                del red
+            dx = np.zeros(n)
+            dx[k_flat] = x
+            dx[e_flat] = y
+            dx -= Qg @ (Qg.T @ dx)  # no rigid drift (and no common offset shift)
+            trial = theta + dx
             c2, f2, w2, U2 = evaluate(trial)
             if c2 <= cost:
-                small = np.linalg.norm(step) <= xtol * (xtol + np.linalg.norm(theta))
+                small = np.linalg.norm(dx) <= xtol * (xtol + np.linalg.norm(theta))
                 rel = (cost - c2) <= ftol * max(cost, 1e-300)
                 theta, cost, f, w, U = trial, c2, f2, w2, U2
                 lam = max(lam / 10, 1e-8)
