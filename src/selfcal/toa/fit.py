@@ -98,6 +98,15 @@ def finish(M: Array, dim: int, offsets: str, *, init: Any, speed: float | None, 
     gross = gross_entries(Yc)
     used = obs & ~gross
     keep_r, keep_s = drop_unidentifiable(used, dim, offsets)
+    if gross.any():
+        try:
+            _check_kept(used, keep_r, keep_s, dim, offsets)
+        except DegenerateGeometryError:
+            # the screen must not make an identifiable network unidentifiable: screen nothing
+            # (the robust loss and the outlier rule still judge every entry)
+            gross = np.zeros_like(gross)
+            used = obs.copy()
+            keep_r, keep_s = drop_unidentifiable(used, dim, offsets)
     _check_kept(used, keep_r, keep_s, dim, offsets)
     n_par_of = lambda kr, ks: n_parameters(int(kr.sum()), int(ks.sum()), dim, offsets)  # noqa: E731
 
