@@ -48,6 +48,10 @@ DIRECT_MAX_UNKNOWNS = 200
 #: doubles for the dense ``W`` (32 MB)
 DIRECT_MAX_FLOPS = 1e8
 DIRECT_MAX_ENTRIES = 4e6
+#: default iteration cap per step kind: the cap bounds the work, and a dense or reduced
+#: iteration (at most 120 unknowns) costs about 1 ms (ill-conditioned
+#: small networks crawl along flat valleys: 12 x 6 with both offsets needs 170-300 from the truth)
+DEFAULT_MAX_IT = {"dense": 400, "reduced": 100, "cg": 100}
 #: forcing-term range of the inexact (CG) steps: relative residual of each CG solve
 CG_RTOL = (1e-8, 1e-3)
 
@@ -357,7 +361,7 @@ def solve_schur_lm(
         the observed-pairs path (:class:`Pairs`), O(m) memory and time per product.
     lay : the :class:`selfcal.toa.nls._Layout` (kept / eliminated sides).
     loss, f_scale : robust loss and its scale (metres).
-    max_nfev : iteration cap (default 100); xtol : relative step tolerance.
+    max_nfev : iteration cap (default :data:`DEFAULT_MAX_IT` of the step kind); xtol : relative step tolerance.
     gauge : ``theta -> Q`` orthonormal gauge basis (n, g); the step is projected off it.
     step : how each damped system is solved: "dense" (the full normal matrix ``J^T W J``
         formed once per iteration and Cholesky-factorised per damping trial), "reduced" (the
@@ -426,7 +430,6 @@ def solve_schur_lm(
     g0 = 1.0
     lam = 1e-4
     converged = False
-    max_it = max_nfev or 100
     it = 0
     nk = k_flat.size
     d = lay.d  # type: ignore[attr-defined]
@@ -438,6 +441,7 @@ def solve_schur_lm(
         mode = ("dense" if n <= DENSE_MAX_UNKNOWNS else
                 "reduced" if nk <= DIRECT_MAX_UNKNOWNS and nk * nk * ne <= DIRECT_MAX_FLOPS
                 and nk * ne <= DIRECT_MAX_ENTRIES else "cg")
+    max_it = max_nfev or DEFAULT_MAX_IT[mode]
     if mode == "dense":
         rows = np.arange(pat.nK * pat.nE) if obs is not None else np.arange(pat.k.size)  # type: ignore[attr-defined]
         kk = rows // pat.nE if obs is not None else pat.k  # type: ignore[attr-defined]
