@@ -169,7 +169,7 @@ def _scaled(Y: Array, dim: int, offsets: str, rng: np.random.Generator) -> list[
 
 
 #: random starts of the "scaled" initialiser (a share of the search's one budget)
-SCALED_STARTS = 8
+SCALED_STARTS = 16
 #: the initialisers, in the order the search runs them (small networks run all of them)
 INITIALISERS: dict[str, _Init] = {
     "rank3": _rank3,
@@ -321,7 +321,7 @@ def search(
     """
     I, J = Y.shape
     large = I + J > MOVES_MAX_NODES
-    nb = default_budget(I, J) if budget is None else max(1, int(budget))
+    nb_given = None if budget is None else max(1, int(budget))
     fs: float | None = f_scale if loss != "linear" else 1.0
     count = 0
     partial_count = 0
@@ -399,6 +399,9 @@ def search(
                 break
         if first is not None:
             starts.insert(0, first)
+    # the default budget: the moves' allowance plus what successive halving over the starts
+    # costs at most (n + n/2 + n/4 + ... < 2n refinements)
+    nb = nb_given if nb_given is not None else default_budget(I, J) + (0 if large else 2 * len(starts))
     best: NlsSolution | None = None
     best_cost = np.inf
     best_name = ""
