@@ -149,3 +149,33 @@ def test_out_of_range_index_is_an_input_error():
     with pytest.raises(InputError, match="out of range"):
         resolve_covariance(([0, 9], None), 9, 4)
     assert normalize_covariance(None) is False and normalize_covariance("none") is False
+
+
+def test_dense_threads_obeys_the_environment(monkeypatch):
+    """The default thread count is the process's cores, capped by a stated BLAS limit, never raised."""
+    import os
+
+    for var in cv._THREAD_ENV:
+        monkeypatch.delenv(var, raising=False)
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    assert cv.dense_threads() == cores
+    monkeypatch.setenv("OMP_NUM_THREADS", "1")
+    assert cv.dense_threads() == 1
+    monkeypatch.setenv("OMP_NUM_THREADS", "junk")  # not a limit: ignored
+    monkeypatch.setenv("OPENBLAS_NUM_THREADS", str(10 * cores))  # above the cores: the cores
+    assert cv.dense_threads() == cores
+
+
+@pytest.mark.parametrize("offsets", ["none", "both"])
+def test_threads_do_not_change_the_blocks_and_are_restored(offsets):
+    """Two BLAS threads give the dense reference's blocks (1e-9) and leave the process's setting as it was."""
+    from threadpoolctl import threadpool_info
+
+    r, s, W, _ = random_case(7, offsets)
+    before = [(i["filepath"], i["num_threads"]) for i in threadpool_info()]
+    Cr, Cs = covariance_blocks(r, s, W, offsets=offsets, threads=2)
+    assert [(i["filepath"], i["num_threads"]) for i in threadpool_info()] == before
+    Dr, Ds = dense_blocks(r, s, W, offsets)
+    scale = max(np.abs(Dr).max(), np.abs(Ds).max())
+    np.testing.assert_allclose(Cr, Dr, rtol=0, atol=1e-9 * scale)
+    np.testing.assert_allclose(Cs, Ds, rtol=0, atol=1e-9 * scale)

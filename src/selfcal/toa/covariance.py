@@ -58,7 +58,9 @@ reduced unknowns. At 1000 x 1000 those four calls take 2.2 s of CPU, at 2000 x 2
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+import os
+from collections.abc import Iterator, Mapping
+from contextlib import contextmanager
 from typing import Any
 
 import numpy as np
@@ -74,6 +76,7 @@ __all__ = [
     "resolve_covariance",
     "gauge_free_blocks",
     "covariance_blocks",
+    "dense_threads",
 ]
 
 Array = NDArray[np.float64]
@@ -86,6 +89,67 @@ _BLOCK_DOUBLES = 1 << 22
 #: H is kept between the two passes (instead of rebuilt) when it has at most this many
 #: doubles (256 MB); larger networks rebuild it block by block (memory = S + one block)
 _KEEP_H_DOUBLES = 1 << 25
+#: reduced systems smaller than this (coordinates) run the dense algebra as the caller's BLAS
+#: is set: one factorization takes < 10 ms there, as long as threads take to start and
+#: threadpoolctl to find the BLAS libraries
+_THREADS_MIN_N = 1024
+#: environment variables that state a user's cap on BLAS threads (honoured, never raised)
+_THREAD_ENV = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS", "BLIS_NUM_THREADS")
+
+
+# ---------------------------------------------------------------------------
+# BLAS threads for the dense algebra
+# ---------------------------------------------------------------------------
+
+
+def dense_threads() -> int:
+    """BLAS threads the dense covariance algebra runs on by default.
+
+    The cores this process may run on (``os.sched_getaffinity``; ``os.cpu_count`` where
+    that does not exist), capped by the smallest positive integer among the environment
+    variables that state a thread limit for BLAS (``OPENBLAS_NUM_THREADS``,
+    ``OMP_NUM_THREADS``, ``MKL_NUM_THREADS``, ``BLIS_NUM_THREADS``): a user or a scheduler
+    that set one is obeyed, never raised.
+
+    Returns
+    -------
+    int, at least 1.
+
+    Notes
+    -----
+    The exact blocks are ~2.7 n^3 flops of level-3 BLAS on n x n matrices (module
+    docstring); such calls scale with the cores, while the matrix-free solve
+    (:mod:`selfcal.toa.schur_lm`) is memory-bound NumPy arithmetic. Only the dense algebra is
+    scoped (:func:`threadpoolctl.threadpool_limits` as a context, restored on return), the
+    rest of the process keeps its setting.
+
+    Examples
+    --------
+    >>> dense_threads() >= 1
+    True
+    """
+    try:
+        cores = len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):  # pragma: no cover - not Linux
+        cores = os.cpu_count() or 1
+    for var in _THREAD_ENV:
+        v = os.environ.get(var, "").strip()
+        if v.isdigit() and int(v) > 0:
+            cores = min(cores, int(v))
+    return max(int(cores), 1)
+
+
+@contextmanager
+def _blas_scope(n: int, threads: int | None) -> Iterator[None]:
+    """BLAS limited to ``threads`` (default :func:`dense_threads`) for an n x n reduced system."""
+    if threads is None and n < _THREADS_MIN_N:
+        yield
+        return
+    from threadpoolctl import threadpool_limits
+
+    with threadpool_limits(limits=max(int(threads if threads is not None else dense_threads()), 1),
+                           user_api="blas"):
+        yield
 
 
 # ---------------------------------------------------------------------------
@@ -267,6 +331,8 @@ def gauge_free_blocks(
     lay: _Layout,
     receivers: Index | None = None,
     sources: Index | None = None,
+    *,
+    threads: int | None = None,
 ) -> tuple[Array, Array]:
     """Diagonal node blocks of ``(J^T W J)^+`` (gauge removed) by selected inversion.
 
@@ -276,6 +342,9 @@ def gauge_free_blocks(
     w : (I, J) weights of the ranges (``1/sigma_ij^2``, or the final IRLS weights), 0 = missing.
     lay : layout of :func:`selfcal.toa.nls._make_layout` (kept side, pinned coordinates).
     receivers, sources : indices of the blocks to compute (None = all); the others are NaN.
+    threads : BLAS threads for the dense algebra (syrk, potrf, trsm, trtri); None =
+        :func:`dense_threads` above ``_THREADS_MIN_N`` reduced coordinates, the caller's
+        setting below.
 
     Returns
     -------
@@ -291,6 +360,13 @@ def gauge_free_blocks(
     -----
     Costs and memory are listed in the module docstring.
     """
+    nA = lay.k_idx.size
+    with _blas_scope(nA, threads):
+        return _gauge_free_blocks(theta, w, lay, receivers, sources)
+
+
+def _gauge_free_blocks(theta: Array, w: Array, lay: _Layout, receivers: Index | None,
+                       sources: Index | None) -> tuple[Array, Array]:
     I, J = lay.I, lay.J
     ri = np.arange(I) if receivers is None else np.asarray(receivers, np.intp)
     si = np.arange(J) if sources is None else np.asarray(sources, np.intp)
@@ -364,8 +440,11 @@ def gauge_free_blocks(
         YE[e0:e1] -= np.einsum("epq,eqg->epg", Rb, (H.T @ YK).reshape(e1 - e0, mE, g))
         sel = np.flatnonzero(wantE[e0:e1])
         if sel.size:
-            cols = (sel[:, None] * mE + np.arange(mE)).ravel()
-            X = scipy.linalg.solve_triangular(L, H[:, cols], lower=True, check_finite=False)
+            # every node of the block asked for: solve in place of H (no fancy-indexed copy)
+            every = sel.size == e1 - e0
+            Hc = H if every else H[:, (sel[:, None] * mE + np.arange(mE)).ravel()]
+            X = scipy.linalg.solve_triangular(L, Hc, lower=True, check_finite=False, overwrite_b=True)
+            del Hc
             G = _block_gram(np.ascontiguousarray(X.T), mE)
             Rs = Rb[sel]
             CE[e0 + sel] = Dinv[e0 + sel] + Rs @ G @ np.swapaxes(Rs, 1, 2)
@@ -414,6 +493,7 @@ def covariance_blocks(
     receiver_offsets: Array | None = None,
     source_offsets: Array | None = None,
     covariance: Any = "all",
+    threads: int | None = None,
 ) -> tuple[Array, Array]:
     """Gauge-free marginal blocks of ``(J^T W J)^+`` at a given geometry (003 eq. 17).
 
@@ -425,6 +505,8 @@ def covariance_blocks(
         values do not enter the Jacobian).
     receiver_offsets, source_offsets : unused values kept for symmetry with the model; optional.
     covariance : which blocks (:func:`normalize_covariance`); the others are NaN.
+    threads : BLAS threads for the dense algebra (None = :func:`dense_threads` on large
+        networks, see :func:`gauge_free_blocks`).
 
     Returns
     -------
@@ -447,4 +529,4 @@ def covariance_blocks(
     theta = _pack(r, s, np.zeros(I) if has_r else None, np.zeros(J) if has_s else None)
     lay = _make_layout(r, s, offsets)
     ri, si = resolve_covariance(covariance, I, J)
-    return gauge_free_blocks(theta, np.asarray(weights, float), lay, ri, si)
+    return gauge_free_blocks(theta, np.asarray(weights, float), lay, ri, si, threads=threads)
