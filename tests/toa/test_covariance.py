@@ -179,3 +179,45 @@ def test_threads_do_not_change_the_blocks_and_are_restored(offsets):
     scale = max(np.abs(Dr).max(), np.abs(Ds).max())
     np.testing.assert_allclose(Cr, Dr, rtol=0, atol=1e-9 * scale)
     np.testing.assert_allclose(Cs, Ds, rtol=0, atol=1e-9 * scale)
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_local_blocks_are_within_their_first_order_error(seed):
+    """covariance="local" (each node's own block inverted) vs the exact gauge-free blocks.
+
+    The exact marginal adds the partners' uncertainty, whose relative size is the mean
+    leverage of the node's ranges in their partners' blocks (~d / ranges of a partner), and
+    removes the global gauge motions (same order), so the block-wise relative error is
+    bounded by (d + 1) / n_min, n_min the fewest ranges of any node.
+    """
+    rng = np.random.default_rng(300 + seed)
+    d = 2 + seed % 2
+    I, J = (int(v) for v in rng.integers(15, 120, 2))
+    r, s = rng.uniform(0, 10, (I, d)), rng.uniform(0, 10, (J, d))
+    W = rng.uniform(0.5, 2.0, (I, J))
+    W[rng.random((I, J)) < 0.2] = 0.0
+    n_min = min((W > 0).sum(1).min(), (W > 0).sum(0).min())
+    for C, Lb in zip(covariance_blocks(r, s, W), covariance_blocks(r, s, W, covariance="local")):
+        rel = np.linalg.norm(Lb - C, axis=(1, 2)) / np.linalg.norm(C, axis=(1, 2))
+        assert rel.max() <= (d + 1) / n_min
+        np.testing.assert_allclose(Lb, np.swapaxes(Lb, 1, 2))  # symmetric
+        assert (np.linalg.eigvalsh(Lb) > 0).all()
+
+
+def test_local_through_refine_and_its_limits(rng):
+    """refine_toa(covariance="local") = the conditional blocks times sigma^2; offsets and the CRLB refuse it."""
+    r, s = rng.uniform(0, 10, (30, 3)), rng.uniform(0, 10, (40, 3))
+    Y = toa_model(r, s) + rng.normal(0, 0.01, (30, 40))
+    sol = refine_toa(Y, r, s, covariance="local")
+    Lr, Ls = covariance_blocks(sol.receivers, sol.sources, np.ones((30, 40)), covariance="local")
+    # the solution's blocks are in the canonical frame: compare rotation-invariant traces
+    tr = np.trace(sol.receiver_cov, axis1=1, axis2=2)
+    np.testing.assert_allclose(tr, sol.sigma**2 * np.trace(Lr, axis1=1, axis2=2), rtol=1e-8)
+    np.testing.assert_allclose(np.trace(sol.source_cov, axis1=1, axis2=2),
+                               sol.sigma**2 * np.trace(Ls, axis1=1, axis2=2), rtol=1e-8)
+    assert np.isfinite(sol.source_cov).all()
+    with pytest.raises(InputError, match="offsets='none'"):
+        covariance_blocks(r, s, np.ones((30, 40)), offsets="receivers", covariance="local")
+    with pytest.raises(InputError, match="not a bound"):
+        toa_crlb(r, s, 0.01, covariance="local")
+    assert normalize_covariance("local") == "local"
