@@ -247,7 +247,7 @@ def _dense_case(I: int, J: int, reps: int) -> dict[str, Any]:
     if on("ours_cov_local"):
         row, loc = _timed(lambda: covariance_blocks(sol.receivers, sol.sources, w, covariance="local"), reps)
         if exact is not None:  # block-wise relative Frobenius error against the exact blocks
-            err = [np.linalg.norm(a - b, axis=(1, 2)) / np.linalg.norm(b, axis=(1, 2)) for a, b in zip(loc, exact)]
+            err = [np.linalg.norm(a - b, axis=(1, 2)) / np.linalg.norm(b, axis=(1, 2)) for a, b in zip(loc, exact, strict=True)]
             row["rel_error_max"] = float(max(e.max() for e in err))
             row["rel_error_median"] = float(np.median(np.concatenate(err)))
         case["ours_cov_local"] = row

@@ -197,7 +197,7 @@ def test_local_blocks_are_within_their_first_order_error(seed):
     W = rng.uniform(0.5, 2.0, (I, J))
     W[rng.random((I, J)) < 0.2] = 0.0
     n_min = min((W > 0).sum(1).min(), (W > 0).sum(0).min())
-    for C, Lb in zip(covariance_blocks(r, s, W), covariance_blocks(r, s, W, covariance="local")):
+    for C, Lb in zip(covariance_blocks(r, s, W), covariance_blocks(r, s, W, covariance="local"), strict=True):
         rel = np.linalg.norm(Lb - C, axis=(1, 2)) / np.linalg.norm(C, axis=(1, 2))
         assert rel.max() <= (d + 1) / n_min
         np.testing.assert_allclose(Lb, np.swapaxes(Lb, 1, 2))  # symmetric

@@ -44,16 +44,48 @@ I x J) and the small per-node blocks; nothing of size (I d) x (J d) is stored. T
 of a dense network is therefore one dense factorization of the n_K x n_K reduced system
 (9000 x 9000 at 3000 x 3000 in 3-D: 0.65 GB, ~2.4e11 flops) plus the rank-n_E update that
 builds it (~7e11 flops). ``covariance="receivers"`` with receivers on the K side skips every
-E solve; ``"none"`` skips everything.
-
-Floor (measured, ``benchmarks/bench_toa.py``, one BLAS thread on the 2-core machine): the exact
-blocks cannot avoid syrk (n_K^2 n_E m_E), potrf (n_K^3/3), trsm (n_K^2 n_E m_E, the E blocks)
-and trtri (n_K^3/3, the K blocks): about 2.7 n^3 flops for a square network with n = d I
-reduced unknowns. At 1000 x 1000 those four calls take 2.2 s of CPU, at 2000 x 2000 15.5 s
-(the whole covariance: 3.0 s and 19.2 s); the matrix-free solve they are compared with takes
-0.8 s and 4.2 s (:mod:`selfcal.toa.schur_lm`), so the exact blocks cost ~3-4x the solve, not
-0.5x: that would need approximate blocks. H is kept between the two passes when it fits in
+E solve; ``"none"`` skips everything. H is kept between the two passes when it fits in
 256 MB (``_KEEP_H_DOUBLES``), rebuilt block by block above.
+
+Why the exact blocks cost O(n^3) while the solve does not. The solve never forms S: each
+conjugate-gradient step applies ``S x = A x - B D^-1 B^T x`` as two passes over the observed
+pairs, O(nnz) (:mod:`selfcal.toa.schur_lm`), and a well-conditioned network converges in a
+few tens of such products: O(nnz x iterations) = O(n^2) for a dense I x J network. A
+marginal block is a *column* of the inverse, ``C e_k``, and every column of ``S^-1`` is dense
+when the bipartite graph is dense (every node is correlated with every other through the
+sources they share and through the global gauge motions). Asking for all n of them is n
+solves; by CG that is n x O(nnz x iterations) = O(n^3 x iterations); by one dense
+factorization it is O(n^3) with BLAS-3 efficiency, which is what this module does. Neither
+the sparsity of N (there is none in S: it is dense) nor the selected-inversion recurrences
+(they save work only where the factor has zeros; a dense factor has none) lower the exponent,
+so the exact blocks of a dense network are bounded below by ~one dense factorization of the
+n_K x n_K reduced system plus the rank-n_E update that forms it and the n_K^2 n_E triangular
+solve of the E blocks: about 2.7 n^3 flops for a square network with n = d I reduced
+unknowns (syrk n_K^2 n_E, potrf n_K^3/3, trsm n_K^2 n_E, trtri n_K^3/3). There is no LM
+factorization to share: the engine solves its damped steps by CG (and a direct step would
+factor the *damped* S, not the S whose inverse is the covariance).
+
+Measured (``benchmarks/bench_toa.py``, one BLAS thread, the shared 2-core machine at load
+~4, CPU s): 1000 x 1000 the exact blocks 2.80 s (their four BLAS calls alone 2.10 s) against a
+0.95 s solve and SciPy ``least_squares`` (trf, analytic sparse Jacobian) 2.24 s; 2000 x 2000
+19.5 s against a 2.5 s solve and SciPy 12.3 s. So on one core the exact blocks cost ~3x
+(1000^2) to ~8x (2000^2) the solve, growing like n: ``<= 0.5x`` the solve is not reachable
+with exact blocks. What can be had:
+
+- threads: the dense algebra runs inside a scoped :func:`threadpoolctl.threadpool_limits`
+  (:func:`dense_threads`: the process's cores, capped by a stated ``OPENBLAS_NUM_THREADS`` /
+  ``OMP_NUM_THREADS`` / ...), the rest of the process keeps its setting. Level-3 BLAS scales
+  with the cores on an idle machine; on an oversubscribed one (the benchmark's, load ~4 on 2
+  cores) two threads were *slower* (1000 x 1000: 6.7 s wall against 6.3 s on one).
+- ``covariance="local"`` (:func:`local_blocks`): each node's conditional covariance, its own
+  information block inverted, O(I J d^2) (0.06 s at 1000 x 1000, 0.24 s at 2000 x 2000). It
+  trades every inter-node correlation and the gauge for speed: relative error
+  ``O((d + 1) / n_min)``, ``n_min`` the fewest ranges of any node (0.25 % largest, 0.11 %
+  median at 1000 x 1000); without offsets only (with them a common offset trades against the
+  scale, a soft global mode the conditional blocks miss).
+
+The file is above 600 lines because this docstring is the module's cost model and the
+request parsing, the exact and the approximate blocks share its helpers (one home).
 """
 
 from __future__ import annotations
