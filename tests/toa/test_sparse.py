@@ -91,3 +91,41 @@ def test_sparse_input_errors():
         refine_toa_sparse(np.r_[i[keep], 0], np.r_[j[keep], 0], np.r_[y[keep], 1.0], r, s)
     with pytest.raises(InputError):
         simulate_sparse_network(5, 5, 0.0)
+
+
+def test_mirror_recheck_moves_a_mirrored_node_back():
+    """A node with d + 1 ranges to nearly coplanar partners, placed at its mirror, is moved back.
+
+    Four sources within 5 cm of the plane z = 0 and a receiver 3 m above it: the reflection
+    fits the four ranges to ~cm (one redundant range), so only the comparison of the two
+    placements' residuals can tell. Noise-free ranges: the true side fits exactly.
+    """
+    from selfcal.toa.sparse import _mirror_recheck
+
+    rng = np.random.default_rng(0)
+    s = np.c_[rng.uniform(-4, 4, (4, 2)), rng.uniform(-0.05, 0.05, 4)]
+    r_true = np.array([[0.5, -0.3, 3.0]])
+    i, j = np.zeros(4, np.intp), np.arange(4)
+    y = np.linalg.norm(r_true[i] - s[j], axis=1)
+    mirrored = r_true * [1, 1, -1]
+    assert np.abs(np.linalg.norm(mirrored[i] - s[j], axis=1) - y).max() < 0.4  # the mirror nearly fits
+    r, s2, wr, ws, moved = _mirror_recheck(i, j, y, mirrored, s, 3)
+    assert moved == 1 and list(wr) == [0] and ws.size == 4
+    np.testing.assert_allclose(r, r_true, atol=1e-9)
+    r, _, _, _, moved = _mirror_recheck(i, j, y, r_true.copy(), s, 3)  # right side: stays
+    assert moved == 0
+    np.testing.assert_allclose(r, r_true, atol=0)
+
+
+def test_blind_sparse_lists_its_weakly_placed_nodes():
+    """weakly_placed_* = the located nodes with at most d + 1 fitted ranges (an independent count)."""
+    I = J = 100
+    r, s, i, j, y = simulate_sparse_network(I, J, 0.12, noise=0.01, size=20.0, rng=0)
+    sol = solve_toa_sparse(i, j, y, I, J, rng=0)
+    used = np.isfinite(sol.residuals)
+    cr, cs = np.bincount(i[used], minlength=I), np.bincount(j[used], minlength=J)
+    mr, ms = np.isfinite(sol.receivers[:, 0]), np.isfinite(sol.sources[:, 0])
+    np.testing.assert_array_equal(sol.weakly_placed_receivers, np.flatnonzero(mr & (cr <= 4)))
+    np.testing.assert_array_equal(sol.weakly_placed_sources, np.flatnonzero(ms & (cs <= 4)))
+    assert sol.weakly_placed_receivers.size + sol.weakly_placed_sources.size > 0  # this network has some
+    assert sol.mirrors_taken >= 0 and abs(sol.noise_estimate / 0.01 - 1) < 0.2
