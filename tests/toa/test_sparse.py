@@ -129,3 +129,31 @@ def test_blind_sparse_lists_its_weakly_placed_nodes():
     np.testing.assert_array_equal(sol.weakly_placed_sources, np.flatnonzero(ms & (cs <= 4)))
     assert sol.weakly_placed_receivers.size + sol.weakly_placed_sources.size > 0  # this network has some
     assert sol.mirrors_taken >= 0 and abs(sol.noise_estimate / 0.01 - 1) < 0.2
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_sparse_covariance_equals_the_dense_blocks(seed):
+    """CG columns of N^+ (sparse path) = the dense path's selected inversion, to 1e-9 relative.
+
+    Same network, same observed pairs and unequal weights; both are the Moore-Penrose
+    marginal blocks (the gauge projected out), so they agree up to the CG tolerance.
+    """
+    from selfcal.toa.covariance import covariance_blocks
+    from selfcal.toa.sparse_covariance import sparse_covariance_blocks
+
+    rng = np.random.default_rng(seed)
+    d = 2 + seed % 2
+    I, J = 12 + seed, 15 - seed
+    r, s = rng.uniform(0, 5, (I, d)), rng.uniform(0, 5, (J, d))
+    W = rng.uniform(0.5, 2.0, (I, J)) * 1e4
+    W[rng.random((I, J)) < 0.3] = 0.0
+    i, j = np.nonzero(W > 0)
+    Dr, Ds = covariance_blocks(r, s, W)
+    want = (rng.choice(I, 3, replace=False), rng.choice(J, 2, replace=False))
+    Cr, Cs = sparse_covariance_blocks(i, j, r, s, weights=W[i, j], covariance=want, rtol=1e-13)
+    scale = max(np.abs(Dr).max(), np.abs(Ds).max())
+    np.testing.assert_allclose(Cr[want[0]], Dr[want[0]], rtol=0, atol=1e-9 * scale)
+    np.testing.assert_allclose(Cs[want[1]], Ds[want[1]], rtol=0, atol=1e-9 * scale)
+    assert np.isnan(np.delete(Cr, want[0], axis=0)).all() and np.isnan(np.delete(Cs, want[1], axis=0)).all()
+    with pytest.raises(InputError):
+        sparse_covariance_blocks(i, j, r, s, covariance="local")

@@ -26,8 +26,10 @@ final fit, moves it when the mirror fits its ranges better, refits, and lists th
 ``weakly_placed_receivers`` / ``weakly_placed_sources``.
 
 Model and gauge are those of :mod:`selfcal.toa.nls` (003 eq. 2 without offsets; the result
-is in the canonical gauge of :func:`selfcal.geometry.canonical_gauge`). Offsets, robust
-losses and covariances are not offered on this path (the dense path has them).
+is in the canonical gauge of :func:`selfcal.geometry.canonical_gauge`). Offsets and robust
+losses are not offered on this path (the dense path has them); exact covariance blocks of
+selected nodes come from :func:`selfcal.toa.sparse_covariance.sparse_covariance_blocks`
+(d matrix-free CG solves per node).
 
 The file is above 600 lines because the result type, the engine wrapper, the growth and its
 mirror re-check share the pair bookkeeping (index maps, batched multilateration).
