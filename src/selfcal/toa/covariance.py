@@ -39,8 +39,9 @@ requested K coordinates):
 - E blocks: ``O(n_K^2 m_E k_E)``; K blocks: ``O(n_K^3 / 3)`` (all) or ``O(n_K^2 k_K)``;
 - gauge terms: ``O(n_K^2 g + n_K n_E g)``.
 
-Memory: S (n_K^2 doubles) plus one column block of H, the weight matrix (the data's
-I x J) and the small per-node blocks; nothing of size (I d) x (J d) is stored. The floor
+Memory: S (n_K^2 doubles) plus one column block of H and of the unit-vector components,
+the weight matrix (the data's I x J) and the small per-node blocks; nothing of size
+(I d) x (J d) is stored, nor the d I x J component arrays. The floor
 of a dense network is therefore one dense factorization of the n_K x n_K reduced system
 (9000 x 9000 at 3000 x 3000 in 3-D: 0.65 GB, ~2.4e11 flops) plus the rank-n_E update that
 builds it (~7e11 flops). ``covariance="receivers"`` with receivers on the K side skips every
@@ -425,21 +426,31 @@ def _gauge_free_blocks(theta: Array, w: Array, lay: _Layout, receivers: Index | 
     QK = Q[lay.k_idx.ravel()]  # (nA, g)
     QE = Q[lay.e_idx.ravel()].reshape(nE, mE, g)
 
-    # the node blocks A (K) and D (E) from component sums over all pairs, D^-1 = R R^T
+    # the node blocks A (K) and D (E) from component sums over the pairs, D^-1 = R R^T, and the
+    # unit-vector components, all generated per column block of E nodes (memory: one block)
     from .schur_lm import Grid, diagonal_blocks
 
     hasK, hasE = mK > lay.d, mE > lay.d
-    U = _components(PK, PE)
-    Ablk, Dblk = diagonal_blocks(U, wK, hasK, hasE, Grid(nK, nE))
-    Dinv = _inv_eliminated(Dblk, 0)
-    Rc: Array = np.asarray(np.linalg.cholesky(Dinv), dtype=np.float64)
-    # pass 1: S = A - H H^T, t = Q_K - F Q_E
+    Ablk = np.zeros((nK, mK, mK))
+    Dinv = np.empty((nE, mE, mE))
+    Rc = np.empty((nE, mE, mE))
+
+    def comps(e0: int, e1: int) -> list[Array]:
+        return _components(PK, PE[e0:e1])
+
+    # pass 1: A, D^-1, S = A - H H^T, t = Q_K - F Q_E
     S = np.zeros((nA, nA), order="F")
     t = QK.copy()
     keep = nA * nE * mE <= _KEEP_H_DOUBLES
     Hs: list[Array] = []
     for e0, e1 in blocks:
-        H = _h_block([Up[:, e0:e1] for Up in U], hasK, hasE, wK[:, e0:e1], Rc[e0:e1], pinned)
+        Ub = comps(e0, e1)
+        Ab, Db = diagonal_blocks(Ub, wK[:, e0:e1], hasK, hasE, Grid(nK, e1 - e0))
+        Ablk += Ab
+        Dinv[e0:e1] = _inv_eliminated(Db, e0)
+        Rc[e0:e1] = np.linalg.cholesky(Dinv[e0:e1])
+        H = _h_block(Ub, hasK, hasE, wK[:, e0:e1], Rc[e0:e1], pinned)
+        del Ub
         # S -= H H^T, lower triangle, in place (H.T is F-ordered: no copy)
         S = scipy.linalg.blas.dsyrk(-1.0, H.T, beta=1.0, c=S, trans=1, lower=1, overwrite_c=1)
         RtQE = np.einsum("eqp,eqg->epg", Rc[e0:e1], QE[e0:e1]).reshape(-1, g)
@@ -475,7 +486,7 @@ def _gauge_free_blocks(theta: Array, w: Array, lay: _Layout, receivers: Index | 
         if keep:
             H = Hs[b_i]
         else:
-            H = _h_block([Up[:, e0:e1] for Up in U], hasK, hasE, wK[:, e0:e1], Rc[e0:e1], pinned)
+            H = _h_block(comps(e0, e1), hasK, hasE, wK[:, e0:e1], Rc[e0:e1], pinned)
         Rb = Rc[e0:e1]
         YE[e0:e1] -= np.einsum("epq,eqg->epg", Rb, (H.T @ YK).reshape(e1 - e0, mE, g))
         sel = np.flatnonzero(wantE[e0:e1])
