@@ -69,7 +69,8 @@ factor the *damped* S, not the S whose inverse is the covariance).
 Measured (``benchmarks/bench_toa.py``, one BLAS thread, the shared 2-core machine at load
 ~4, CPU s): 1000 x 1000 the exact blocks 2.80 s (their four BLAS calls alone 2.10 s) against a
 0.95 s solve and SciPy ``least_squares`` (trf, analytic sparse Jacobian) 2.24 s; 2000 x 2000
-19.5 s against a 2.5 s solve and SciPy 12.3 s. So on one core the exact blocks cost ~3x
+19.5 s against a 2.5 s solve and SciPy 12.3 s; 3000 x 3000 67 s (peak RSS 0.94 GB, 0.76 GB
+above the data: S and one column block). So on one core the exact blocks cost ~3x
 (1000^2) to ~8x (2000^2) the solve, growing like n: ``<= 0.5x`` the solve is not reachable
 with exact blocks. What can be had:
 
