@@ -1,4 +1,4 @@
-"""TDOA -> AOA conversion for two orthogonal sensor pairs (paper 001, eq. 2-4).
+"""Bearings: unit lines of sight in the receiver frame, from two orthogonal TDOA pairs or angles (paper 001, eq. 2-4).
 
 The receiver carries two orthogonal sensor pairs whose baselines define its local x and y
 axes (paper Fig. 1). Under the far-field assumption the TDOA of a pair gives the cosine of the
