@@ -43,6 +43,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..errors import DegenerateGeometryError, InputError
+from ..geometry import rotate_covariances
 from .known import fit_known
 from .nodes import (
     FramedToaResult,
@@ -54,7 +55,6 @@ from .nodes import (
     read_known_csv,
     replace_fields,
     resolve_node,
-    rotate_cov,
     units,
 )
 
@@ -181,8 +181,8 @@ def apply_frame(result: Any, frame: str | Mapping[str, Any], *, matrix: Any = No
         if role in refs:
             kind, idx = refs[role]
             (Rn if kind == "receiver" else Sn)[idx, list(axes)] = 0.0
-    rc = rotate_cov(np.asarray(result.receiver_cov, float), Rm)
-    scv = rotate_cov(np.asarray(result.source_cov, float), Rm)
+    rc = rotate_covariances(np.asarray(result.receiver_cov, float), Rm)
+    scv = rotate_covariances(np.asarray(result.source_cov, float), Rm)
     out = replace_fields(result, receivers=Rn, sources=Sn, receiver_cov=rc, source_cov=scv,
                    method=f"{result.method}+frame")
     if matrix is not None and np.isfinite(rc).all() and np.isfinite(scv).all():

@@ -27,7 +27,7 @@ from numpy.typing import NDArray
 from ..errors import InputError
 
 __all__ = ["FrameInfo", "FramedToaResult", "KnownNode", "node_positions", "parse_frame", "parse_known",
-           "read_known_csv", "replace_fields", "resolve_node", "rotate_cov", "units"]
+           "read_known_csv", "replace_fields", "resolve_node", "units"]
 
 Array = NDArray[np.float64]
 
@@ -287,11 +287,6 @@ def replace_fields(result: Any, **kw: Any) -> Any:
     """dataclasses.replace with only the fields the result type has."""
     names = {f.name for f in dataclasses.fields(result)}
     return dataclasses.replace(result, **{k: v for k, v in kw.items() if k in names})
-
-
-def rotate_cov(C: Array, R: Array) -> Array:
-    """(n, d, d) covariances rotated by ``R``: ``R C_k R^T``."""
-    return np.einsum("ab,nbc,dc->nad", R, C, R)
 
 
 def node_positions(result: Any, kind: str) -> Array:
