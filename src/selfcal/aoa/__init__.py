@@ -20,10 +20,7 @@ True
 
 from __future__ import annotations
 
-import importlib
-import warnings
-from typing import Any
-
+from .._api import moved_names
 from .bearings import (
     Bearings,
     angles_to_bearings,
@@ -60,15 +57,7 @@ _MOVED = {
     "newton_ranges": "solution2",
     "refine_ml": "ml", "residuals_2d": "ml", "residuals_3d": "ml",
 }
-
-
-def __getattr__(name: str) -> Any:
-    if name in _MOVED:
-        home = f"{__name__}.{_MOVED[name]}"
-        warnings.warn(f"selfcal.aoa.{name} is a building block: import it from {home}",
-                      DeprecationWarning, stacklevel=2)
-        return getattr(importlib.import_module(home), name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+__getattr__ = moved_names(__name__, _MOVED)
 
 
 def __dir__() -> list[str]:

@@ -18,10 +18,7 @@ screening, RANSAC), :mod:`~selfcal.tdoa.orientation` (the transposed-layout chec
 
 from __future__ import annotations
 
-import importlib
-import warnings
-from typing import Any
-
+from .._api import moved_names
 from .crlb import farfield_crlb
 from .degeneracy import DegeneracyReport, analyse_degeneracy
 from .farfield import solve_farfield
@@ -53,15 +50,7 @@ _MOVED = {
     "refine_alternating": "alternating", "sphere_lstsq_global": "alternating",
     "sphere_lstsq_local": "alternating",
 }
-
-
-def __getattr__(name: str) -> Any:
-    if name in _MOVED:
-        home = f"{__name__}.{_MOVED[name]}"
-        warnings.warn(f"selfcal.tdoa.{name} is a building block: import it from {home}",
-                      DeprecationWarning, stacklevel=2)
-        return getattr(importlib.import_module(home), name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+__getattr__ = moved_names(__name__, _MOVED)
 
 
 def __dir__() -> list[str]:
