@@ -148,25 +148,25 @@ def simulate_conference(
     except ValueError as exc:
         raise InputError(f"rt60 = {rt60:g} s is not reachable in this room ({exc})") from None
     order = int(needed if max_order is None else min(needed, max_order))
-    shoebox = pra.ShoeBox(room_dim.tolist(), fs=fs, materials=pra.Material(absorption), max_order=order,
+
+    def impulse_responses(image_order: int) -> Any:
+        """The room's impulse responses ``rir[receiver][sender]`` up to ``image_order`` reflections."""
+        box = pra.ShoeBox(room_dim.tolist(), fs=fs, materials=pra.Material(absorption), max_order=image_order,
                           air_absorption=False)
-    shoebox.set_sound_speed(speed)
-    for s in scene.senders:
-        shoebox.add_source(s)
-    shoebox.add_microphone_array(scene.receivers.T)
-    shoebox.compute_rir()
+        box.set_sound_speed(speed)
+        for s_pos in scene.senders:
+            box.add_source(s_pos)
+        box.add_microphone_array(scene.receivers.T)
+        box.compute_rir()
+        return box.rir
+
+    room_rir = impulse_responses(order)
     delay0 = pra_group_delay()
     direct: dict[tuple[int, int], NDArray[np.float64]] = {}
     if occlusions:
-        free = pra.ShoeBox(room_dim.tolist(), fs=fs, materials=pra.Material(absorption), max_order=0,
-                           air_absorption=False)
-        free.set_sound_speed(speed)
-        for s_pos in scene.senders:
-            free.add_source(s_pos)
-        free.add_microphone_array(scene.receivers.T)
-        free.compute_rir()
+        free_rir = impulse_responses(0)  # the direct paths alone
         for (i, j), db in occlusions.items():
-            direct[(int(i), int(j))] = (1.0 - 10.0 ** (-float(db) / 20.0)) * np.asarray(free.rir[int(i)][int(j)])
+            direct[(int(i), int(j))] = (1.0 - 10.0 ** (-float(db) / 20.0)) * np.asarray(free_rir[int(i)][int(j)])
 
     U = len(scene.senders)
     if not np.isfinite(jitter) or jitter < 0:
@@ -183,7 +183,7 @@ def simulate_conference(
     signals = np.zeros((U, n_total), dtype=np.float32)
     x = prb.samples
     for j in tqdm(range(U), desc="simulate", unit="sender", disable=None if progress else True, leave=False):
-        rirs = [shoebox.rir[i][j] for i in range(U)]
+        rirs = [room_rir[i][j] for i in range(U)]
         lh = max(len(h) for h in rirs)
         h = np.zeros((U, lh))
         for i, r in enumerate(rirs):

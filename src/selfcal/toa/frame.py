@@ -53,9 +53,9 @@ from .nodes import (
     parse_frame,
     parse_known,
     read_known_csv,
+    refit_data,
     replace_fields,
     resolve_node,
-    units,
 )
 
 __all__ = [
@@ -199,10 +199,8 @@ def _frame_covariance(result: Any, matrix: Any, refs: dict[str, tuple[str, int]]
     """Covariances in the reference frame: refit with exactly the frame's gauge fixed."""
     from .nls import refine_toa
 
-    c = units(result)
-    Y = np.asarray(matrix, float) * c
-    R = np.asarray(result.receivers, float)
-    S = np.asarray(result.sources, float)
+    data = refit_data(result, matrix)
+    R, S, ok_r, ok_s = data.receivers, data.sources, data.ok_r, data.ok_s
     I, d = R.shape
     J = S.shape[0]
     fr = np.zeros((I, d), bool)
@@ -211,11 +209,8 @@ def _frame_covariance(result: Any, matrix: Any, refs: dict[str, tuple[str, int]]
         if role in refs:
             kind, idx = refs[role]
             (fr if kind == "receiver" else fs)[idx, list(axes)] = True
-    ok_r, ok_s = np.isfinite(R).all(1), np.isfinite(S).all(1)
-    Ysub = Y[np.ix_(ok_r, ok_s)]
-    do = None if result.receiver_offsets is None else np.asarray(result.receiver_offsets, float)[ok_r] * c
-    so = None if result.source_offsets is None else np.asarray(result.source_offsets, float)[ok_s] * c
-    sol = refine_toa(Ysub, R[ok_r], S[ok_s], offsets=offsets, receiver_offsets0=do, source_offsets0=so,
+    sol = refine_toa(data.Y[np.ix_(ok_r, ok_s)], R[ok_r], S[ok_s], offsets=offsets,
+                     receiver_offsets0=data.receiver_offsets, source_offsets0=data.source_offsets,
                      loss=loss, fixed_receivers=fr[ok_r], fixed_sources=fs[ok_s])
     rc = np.full((I, d, d), np.nan)
     scv = np.full((J, d, d), np.nan)
