@@ -337,7 +337,7 @@ def robust_calibrate(
             last = np.isfinite(t_ev[a, es_k == es_k[b]]).sum() == 1
             if last and (cnt_r[a] <= need or cnt_s[es_k[b]] <= need):
                 continue
-            ok.append((a, b))
+            ok.append((int(a), int(b)))
         if not ok:
             if searched or noise is None:
                 break

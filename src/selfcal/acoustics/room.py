@@ -193,15 +193,15 @@ def simulate_conference(
                 h[i, : min(len(g), lh)] -= g[:lh]
         n_conv = lh + len(x) - 1
         n_fft = int(2 ** np.ceil(np.log2(n_conv + 2)))
-        spec = np.fft.rfft(h, n_fft) * np.fft.rfft(x, n_fft)[None, :]
-        k_bins = np.arange(spec.shape[-1])
+        conv = np.fft.rfft(h, n_fft) * np.fft.rfft(x, n_fft)[None, :]
+        k_bins = np.arange(conv.shape[-1])
         for e in np.flatnonzero(ev_sender == j):
             if int(e) in missing_events:
                 continue
             start = (times[e] + scene.sender_onsets[j] + scene.receiver_delays + shake[:, e]) * fs - delay0
             n0 = np.floor(start).astype(np.int64)
             frac = start - n0
-            wet = np.fft.irfft(spec * np.exp(-2j * np.pi * k_bins[None, :] * frac[:, None] / n_fft),
+            wet = np.fft.irfft(conv * np.exp(-2j * np.pi * k_bins[None, :] * frac[:, None] / n_fft),
                                n_fft)[:, : n_conv + 1]
             for i in range(U):
                 a, b = max(n0[i], 0), min(n0[i] + wet.shape[1], n_total)
