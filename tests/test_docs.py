@@ -33,6 +33,8 @@ SOLVERS: list[str] = [
     "selfcal.tdoa.farfield.solve_farfield",
     "selfcal.aoa.pose.solve_aoa",
     "selfcal.slac.run.solve_slac",
+    "selfcal.slac.ranging.solve_range_slac",
+    "selfcal.toa.sparse.solve_toa_sparse",
 ]
 
 
