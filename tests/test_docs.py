@@ -23,6 +23,7 @@ DOCTESTED = [
     "selfcal.geometry.fit_plane",
     "selfcal.geometry.rotate_covariances",
     "selfcal.geometry.n_parameters",
+    "selfcal.aoa.checks.residual_test",
     "selfcal.plotting.conference.ellipse_magnification",
 ]
 
