@@ -125,6 +125,33 @@ def test_farfield_rigid_motion_and_units(seed, m, k, noise, scale) -> None:  # t
     _check_farfield_rigid_motion_and_units(seed, m, k, noise, scale)
 
 
+@pytest.mark.parametrize("seed", [0, 1])
+def test_farfield_known_directions_and_planar_arrays_move_with_the_scene(seed: int) -> None:
+    from selfcal.tdoa import solve_farfield
+
+    g = np.random.default_rng(seed)
+    m, k = 8, 10
+    C, E = g.normal(size=k), 1e-3 * g.normal(size=(m, k))
+    # known directions (semi-blind): the answer is in the frame of the given directions, so a
+    # rotation of array and directions rotates the positions (first row at 0) exactly
+    Z, N = g.uniform(-1, 1, (m, 3)), _unit(g.normal(size=(k, 3)))
+    Q, t = Rotation.random(random_state=seed).as_matrix(), g.normal(size=3)
+    a = solve_farfield(Z @ N.T + C + E, directions=N)
+    b = solve_farfield((Z @ Q.T + t) @ (N @ Q.T).T + C + E, directions=N @ Q.T)
+    assert a.case == b.case == "known-directions"
+    np.testing.assert_allclose(b.positions, a.positions @ Q.T, atol=1e-9)
+    # planar arrays (dim=2): a rotation in the plane changes D by column constants only
+    Z2, N2 = g.uniform(-1, 1, (m, 2)), _unit(g.normal(size=(k, 2)))
+    R2 = rotation_2d(g.uniform(-np.pi, np.pi))
+    D = Z2 @ N2.T + C + E
+    D_moved = (Z2 @ R2.T + t[:2]) @ (N2 @ R2.T).T + C + E
+    a, b = solve_farfield(D, dim=2), solve_farfield(D_moved, dim=2)
+    assert a.case == b.case == "planar"
+    np.testing.assert_allclose(_prediction(b) - _prediction(a), D_moved - D, atol=1e-7)
+    s = solve_farfield(1e3 * D, dim=2)
+    np.testing.assert_allclose(s.positions, 1e3 * a.positions, atol=1e-7 * 1e3)
+
+
 @pytest.mark.slow
 @MORE
 @given(seed=st.integers(0, 10_000), m=st.integers(4, 12), k=st.integers(6, 16),
