@@ -98,6 +98,15 @@ def finish(M: Array, dim: int, offsets: str, *, init: Any, speed: float | None, 
     gross = gross_entries(Yc)
     used = obs & ~gross
     keep_r, keep_s = drop_unidentifiable(used, dim, offsets)
+    if gross.any():
+        try:
+            _check_kept(used, keep_r, keep_s, dim, offsets)
+        except DegenerateGeometryError:
+            # the screen must not make an identifiable network unidentifiable: screen nothing
+            # (the robust loss and the outlier rule still judge every entry)
+            gross = np.zeros_like(gross)
+            used = obs.copy()
+            keep_r, keep_s = drop_unidentifiable(used, dim, offsets)
     _check_kept(used, keep_r, keep_s, dim, offsets)
     n_par_of = lambda kr, ks: n_parameters(int(kr.sum()), int(ks.sum()), dim, offsets)  # noqa: E731
 
@@ -284,15 +293,15 @@ def _without_covariance(sol: NlsSolution) -> NlsSolution:
 
 
 def _solver(Y: Array, dim: int, offsets: str) -> str:
-    """The engine's dense trust-region solver for small problems, its Schur LM above.
+    """The engine's solver: its default ("auto", the Schur LM) at every size.
 
-    Small, ill-conditioned problems (few sources far from the receivers, both offsets)
-    take the LM hundreds of damped steps; the dense ``trf`` of ``least_squares`` is then
-    several times faster. Above ``MOVES_MAX_NODES`` nodes the Schur LM is the faster one
-    (benchmarks/bench_toa.py).
+    Small problems take its dense step (:mod:`selfcal.toa.schur_lm`, ~1 ms per iteration at
+    12 x 6 with both offsets, where the CG step cost 15 ms and ``trf`` was chosen here for
+    them); measured equal or faster than ``trf`` with the same costs on 8 x 10 (2-D and 3-D),
+    10 x 14, 12 x 14, 20 x 20 with both offsets and 30 x 40 (``benchmarks/bench_toa_minimal.py``
+    notes in issue 12).
     """
-    I, J = Y.shape
-    return "trf" if I + J <= 60 else "auto"
+    return "auto"
 
 
 def _refine(Y: Array, start: Start, dim: int, offsets: str, loss: str, fs: float | None, max_nfev: int | None,

@@ -23,7 +23,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .._checks import check_positive
-from .._result import Result
+from .._result import Result, jsonable
 from ..errors import Status
 from ..geometry import n_parameters
 from .trust import (  # noqa: F401 (re-exported: the trust tests' home is selfcal.toa.trust)
@@ -145,17 +145,7 @@ def _num(x: float) -> float | None:
     return x if math.isfinite(x) else None
 
 
-def _jsonable(a: Any) -> Any:
-    """Arrays -> nested lists with NaN / inf -> None (strict JSON)."""
-    if a is None:
-        return None
-    arr = np.asarray(a)
-    if arr.dtype == bool:
-        return arr.tolist()
-    arr = arr.astype(float)
-    obj = arr.astype(object)
-    obj[~np.isfinite(arr)] = None
-    return obj.tolist()
+_jsonable = jsonable  # arrays -> nested lists, NaN / inf -> None: the one converter (selfcal._result)
 
 
 @dataclass(frozen=True, repr=False)
