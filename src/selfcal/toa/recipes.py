@@ -396,7 +396,9 @@ def _common_offset(base: Any, sub: Array, scale: float) -> tuple[Any, dict[str, 
     dof = m - n_parameters(int(kr.sum()), int(ks.sum()), base.dim, "none") - 1
     stat = (rss0 - rss1) / (rss1 / dof) if dof > 0 and rss1 > 0 else float("nan")
     p = float(f_dist.sf(stat, 1, dof)) if np.isfinite(stat) else float("nan")
-    c = float(np.mean(com.receiver_offsets))
+    assert com.receiver_offsets is not None
+    offs = np.asarray(com.receiver_offsets, float)
+    c = float(np.mean(offs))
     sd = com.receiver_offset_std
     info["std"] = float(np.mean(sd)) / scale if sd is not None and np.isfinite(sd).all() else float("nan")
     info.update({"value": c / scale, "f_statistic": float(stat), "p_value": p, "dof": int(dof),
@@ -415,13 +417,13 @@ def _common_offset(base: Any, sub: Array, scale: float) -> tuple[Any, dict[str, 
     from .nls import toa_model
 
     R = np.full((I, J), np.nan)
-    model = toa_model(com.receivers, com.sources, com.receiver_offsets) / scale
+    model = toa_model(com.receivers, com.sources, offs) / scale
     R[np.ix_(kr, ks)] = np.where(np.isfinite(sub[np.ix_(kr, ks)]), sub[np.ix_(kr, ks)] - model, np.nan)
     inl = used & np.isfinite(R)
     names = {f.name for f in dataclasses.fields(base)}
     kw = {
         "receivers": put(com.receivers, kr, (d,)), "sources": put(com.sources, ks, (d,)),
-        "receiver_offsets": put(com.receiver_offsets / scale, kr, ()), "offsets": "receivers",
+        "receiver_offsets": put(offs / scale, kr, ()), "offsets": "receivers",
         "receiver_cov": put(com.receiver_cov, kr, (d, d)), "source_cov": put(com.source_cov, ks, (d, d)),
         "residual_rms": float(np.sqrt(np.mean(R[inl] ** 2))) if inl.any() else float("nan"),
         "converged": com.converged, "iterations": int(base.iterations) + int(com.iterations),
