@@ -184,7 +184,11 @@ def test_calibrate_toa_defaults_on_the_raw_flights(tmp_path, flight):
     0.236 m on data4 (authors 0.235) and 0.176 m on data5 (authors 0.170), 57 s / 51 s CPU
     (0.238 / 0.175 m before the search changes merged at 22:40).
     Both the authors' and this anchor set are 10-16 % too small (size ratio 0.84 / 0.90):
-    a common ranging bias that the flights' geometry does not identify (issue 12 notes)."""
+    a common ranging bias. The opt-in ``--common-offset test`` (one range offset common to
+    every entry, nested F test at p < 1e-3) adopts c = -0.39 / -0.33 m and reaches 0.185 /
+    0.155 m, but is not the default: F = 953 / 1305 says the flights' misfit is systematic,
+    so the test is no selection on measured flights (issue 12 notes). Re-measured after the
+    permutation verdict: 0.236 / 0.176 m, exit 0, 24 / 22 s CPU."""
     rmse, data, res = _cli_default_anchor_rmse(tmp_path, flight)
     assert data["recipe"]["name"] == "moving-tag"
     assert res.exit_code == 0, res.output

@@ -42,6 +42,10 @@ def _auto_available() -> bool:
               help="Preprocessing recipe: moving-tag = columns are one moving device in time order "
                    "(multipath spikes rejected in time, under-observed positions dropped); auto = "
                    "moving-tag when a permutation test finds the columns in time order (p < 1e-3).")
+@click.option("--common-offset", "common_offset", type=click.Choice(["free", "test"]), default="free",
+              show_default=True,
+              help="moving-tag recipe with offsets none: 'test' adds one range offset common to every "
+                   "entry (a UWB antenna delay) when a nested F test finds it (p < 1e-3).")
 @click.option("--known", "known", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="CSV name,x,y,z[,std] of nodes with known positions (r<i>, s<j> or a receiver "
                    "index); they constrain the fit and set the frame.")
@@ -57,7 +61,8 @@ def _auto_available() -> bool:
 @unit_options
 @handle_errors
 def toa_command(matrix: Path, speed: float | None, offsets: str | None, dim: str | None,
-                loss: str | None, method: str, noise: float | None, recipe: str, known: Path | None,
+                loss: str | None, method: str, noise: float | None, recipe: str, common_offset: str,
+                known: Path | None,
                 frame: str | None, seed: int, out: Path, plot: Path | None, csv_out: Path | None = None,
                 unit: str | None = None, sample_rate: float | None = None) -> None:
     """Calibrate receivers and sources from an I x J TOA/range MATRIX (CSV or .npy, NaN = missing).
@@ -91,7 +96,7 @@ def toa_command(matrix: Path, speed: float | None, offsets: str | None, dim: str
     known_table = None
     if known is not None:
         known_table = read_known_csv(known, 2 if dim == "2" else 3)  # validated before the solve
-    rec = apply_recipe(recipe, M, **kw)
+    rec = apply_recipe(recipe, M, common_offset=common_offset, **kw)
     res: Any = rec.result
     framed: FramedToaResult | None = None
     d_out = np.asarray(res.receivers).shape[1]

@@ -283,8 +283,11 @@ def _without_covariance(sol: NlsSolution) -> NlsSolution:
     """``sol`` with NaN covariances (a degenerate geometry has none)."""
     import dataclasses
 
-    nan = lambda a: None if a is None else np.full(np.shape(a), np.nan)  # noqa: E731
-    return dataclasses.replace(sol, receiver_cov=nan(sol.receiver_cov), source_cov=nan(sol.source_cov),
+    def nan(a: Array | None) -> Array | None:
+        return None if a is None else np.full(np.shape(a), np.nan)
+
+    return dataclasses.replace(sol, receiver_cov=np.full(np.shape(sol.receiver_cov), np.nan),
+                               source_cov=np.full(np.shape(sol.source_cov), np.nan),
                                receiver_offset_std=nan(sol.receiver_offset_std),
                                source_offset_std=nan(sol.source_offset_std))
 
