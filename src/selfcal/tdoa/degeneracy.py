@@ -59,6 +59,8 @@ from .minimal import quadric_design, sym_from_vec
 __all__ = [
     "RANK_ALPHA",
     "noise_edge",
+    "null_edge",
+    "rank_threshold",
     "tw1_quantile",
     "top_svd",
     "DEGENERACIES",
@@ -287,6 +289,66 @@ def null_edge(rows: int, cols: int, alpha: float = RANK_ALPHA) -> float:
 
 
 
+def rank_threshold(
+    X: Array,
+    r: int,
+    *,
+    rows: int,
+    cols: int,
+    noise_std: float | None = None,
+    alpha: float = RANK_ALPHA,
+    rel_floor: float = 1e-9,
+    svd: tuple[Array, Array, Array] | None = None,
+) -> float:
+    """Threshold on ``s_r`` of the nested test "rank >= r" against "rank <= r - 1" (metres).
+
+    The test of the module docstring, shared by :func:`analyse_degeneracy` and the orientation
+    check (:func:`~selfcal.tdoa.orientation.check_orientation`): ``s_r`` of X is signal at
+    false-alarm rate ``alpha`` when it exceeds the returned value. Under the smaller model
+    ``s_r`` is the largest singular value of the ``(rows - r + 1) x (cols - r + 1)`` noise
+    matrix that remains; with a given ``noise_std`` the threshold is
+    ``noise_std x noise_edge(rows - r + 1, cols - r + 1, alpha)``, without it the noise is
+    estimated under the smaller model (:func:`_sigma_null`) and the quantile is
+    :func:`null_edge` of that estimated-noise statistic. Never below ``rel_floor x s_1``
+    (numerical rank) nor ``1e-14 s_1`` per unit of noise (rounding); where too few degrees
+    of freedom remain to estimate the noise, the numerical rank alone decides.
+
+    Parameters
+    ----------
+    X : (M, K) matrix whose r-th singular value is tested (e.g. a column-centred far-field
+        matrix, metres).
+    r : the rank tested (1-based index of the singular value).
+    rows, cols : degrees of freedom of X's two sides (``M - 1`` for a side whose mean was
+        removed).
+    noise_std : per-entry noise standard deviation (metres) when known.
+    alpha : false-alarm rate (default :data:`RANK_ALPHA`).
+    rel_floor : numerical-rank floor relative to ``s_1``.
+    svd : the leading singular triplets ``(U, s, Vt)`` of X (at least r of them) if
+        already computed (:func:`top_svd`).
+
+    Returns
+    -------
+    float, the threshold on ``s_r``.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> G = np.random.default_rng(0).standard_normal((30, 40))
+    >>> s = np.linalg.svd(G, compute_uv=False)
+    >>> bool(s[0] > rank_threshold(G, 1, rows=30, cols=40, noise_std=1.0))   # pure noise: no signal
+    False
+    """
+    U, s, Vt = svd if svd is not None else top_svd(X, r)
+    s1 = float(s[0]) if len(s) else 0.0
+    floor = 1e-14 * s1
+    if noise_std is not None:
+        return max(max(float(noise_std), floor) * noise_edge(rows - r + 1, cols - r + 1, alpha), rel_floor * s1)
+    est = _sigma_null(X, U, s, Vt, r, rows, cols)
+    if est is None:
+        return rel_floor * s1
+    return max(max(est, floor) * null_edge(rows - r + 1, cols - r + 1, alpha), rel_floor * s1)
+
+
 def analyse_degeneracy(
     X: Array,
     *,
@@ -331,12 +393,8 @@ def analyse_degeneracy(
         # set the level it is compared with. With too few remaining degrees of freedom (e.g.
         # r = 3 in a 4 x 6 matrix) noise and s_r cannot be told apart: the numerical rank
         # (rel_floor) decides, as for exact data
-        if noise_std is not None:
-            return max(sig(r) * noise_edge(a - r + 1, k - r + 1, alpha), rel_floor * s1)
-        est = _sigma_null(X, U, s, Vt, r, a, k)
-        if est is None:
-            return rel_floor * s1
-        return max(max(est, floor) * null_edge(a - r + 1, k - r + 1, alpha), rel_floor * s1)
+        return rank_threshold(X, r, rows=a, cols=k, noise_std=noise_std, alpha=alpha, rel_floor=rel_floor,
+                              svd=(U, s, Vt))
 
     rank = 0
     for r in (3, 2, 1):
