@@ -12,7 +12,13 @@ For every seeded draw:
 - ``blind``: ``solve_toa(T, dim=3, offsets="both", speed=343, rng=seed)`` with its defaults.
 
 A blind solve "lands in the basin" when its sum of squared residuals over all entries is
-at most the reference's times (1 + 1e-6) (it found that minimum or a lower one).
+at most the reference's plus 0.01 sigma^2 (``in_basin``: it found that minimum or a lower
+one; a chi-square difference of 0.01 is below anything a test can see, and of the order of
+the reference's own convergence precision in these flat valleys); ``in_basin_strict`` uses
+the reference's times (1 + 1e-6). When the blind minimum is lower but elsewhere, the truth's
+basin is not the ML estimate's: ``same_minimum`` says whether the blind geometry is the
+reference's (aligned node distance below 1 % of the CRLB), ``lower_than_reference`` whether
+it is strictly lower. The rate comes with its exact (Clopper-Pearson) 95 % interval.
 
 What the theory allows, recorded per draw (issue 12's notes):
 
@@ -25,11 +31,19 @@ What the theory allows, recorded per draw (issue 12's notes):
   strictly below the truth-started one (the truth is then not the ML estimate's basin);
 - ``rmse_blind_m`` / ``rmse_reference_m``: aligned RMSE of all nodes against the truth.
 
+Measured (seeds 0-47, 20 us, 2026-12-02, load 2-7 on 2 cores): 38 of 48 in the basin, 79 %
+(exact 95 % CI 65-90 %; strict 35 of 48), 2.3 s CPU median per blind solve vs 0.50 s for the one
+truth-started refinement. 27 of 48 blind minima are *below* the truth-started one, with a median
+aligned RMSE of 4.0 m against 1.2 m for the truth-started fit; 47 of 48 blind fits pass the
+chi-square test at p >= 1e-3, so the data cannot tell them from the truth's minimum. Median
+gauge-free CRLB: 0.65 m for the microphones, 2.3 m for the sources. Same run, the code before
+(ab7ff8e) on seeds 0-15: 7 of 16 at 2.6 s; now 12 of 16 at 2.3 s.
+
 Times: wall and CPU (``time.process_time``) per solve; ``peak_rss_mb`` is the process's peak
 resident memory (``resource.getrusage``). ``--noise`` (seconds) runs the same scenes at another
 timing noise (where the theory is kinder).
 
-Run: ``python benchmarks/bench_toa_minimal.py [--draws 20] [--noise 20e-6] [--out DIR]``.
+Run: ``python benchmarks/bench_toa_minimal.py [--draws 20] [--first 0] [--noise 20e-6] [--out DIR]``.
 """
 
 from __future__ import annotations
@@ -83,20 +97,24 @@ def one(seed: int) -> dict[str, Any]:
     t_ref, c_ref = time.perf_counter() - t0, time.process_time() - c0
     rss_ref = float(np.nansum(ref.residuals**2))
     t0, c0 = time.perf_counter(), time.process_time()
-    rmse = float("nan")
+    rmse = same = float("nan")
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         try:
             res = solve_toa(T, dim=3, offsets="both", speed=C, rng=seed)
             rss = float(np.nansum((res.residuals * C) ** 2))
-            ok, status = bool(rss <= rss_ref * (1 + 1e-6)), int(res.status)
+            ok, status = bool(rss <= rss_ref + 0.01 * sigma**2), int(res.status)
             rmse = _rmse(res.receivers, res.sources, r, s)
+            same = _rmse(res.receivers, res.sources, ref.receivers, ref.sources)
         except Exception as exc:  # a failure is a data point here
             rss, ok, status = float("inf"), False, -99
             print(f"seed {seed}: {type(exc).__name__}: {exc}")
     t_blind, c_blind = time.perf_counter() - t0, time.process_time() - c0
     crlb = toa_crlb(r, s, max(sigma, 1e-12), offsets="both")
-    return {"seed": seed, "in_basin": ok, "rss_blind_m2": rss, "rss_reference_m2": rss_ref,
+    crlb_all = float(np.sqrt((12 * crlb.rmse_receivers**2 + 6 * crlb.rmse_sources**2) / 18))
+    return {"seed": seed, "in_basin": ok, "in_basin_strict": bool(rss <= rss_ref * (1 + 1e-6)),
+            "same_minimum": bool(same <= 0.01 * crlb_all), "distance_to_reference_m": same,
+            "rss_blind_m2": rss, "rss_reference_m2": rss_ref,
             "lower_than_reference": bool(rss < rss_ref * (1 - 1e-6)),
             "chi2_p_blind": float(chi2.sf(rss / sigma**2, dof)) if sigma > 0 else float("nan"),
             "chi2_p_reference": float(chi2.sf(rss_ref / sigma**2, dof)) if sigma > 0 else float("nan"),
@@ -106,23 +124,30 @@ def one(seed: int) -> dict[str, Any]:
             "status": status}
 
 
-def main(out_dir: Path | None = None, draws: int = 20, noise: float | None = None) -> dict[str, Any]:
+def main(out_dir: Path | None = None, draws: int = 20, noise: float | None = None, first: int = 0) -> dict[str, Any]:
     import resource
+
+    from scipy.stats import binomtest
 
     global NOISE
     if noise is not None:
         NOISE = float(noise)
     rows = []
-    for seed in range(draws):
+    for seed in range(first, first + draws):
         rows.append(one(seed))
         row = rows[-1]
         print(f"[toa_minimal] seed {seed}: in basin {row['in_basin']}, rss/ref {row['rss_blind_m2'] / row['rss_reference_m2']:.3f}, "
               f"chi2 p {row['chi2_p_blind']:.2g} (ref {row['chi2_p_reference']:.2g}), rmse {row['rmse_blind_m']:.2f} m "
               f"(ref {row['rmse_reference_m']:.2f}, CRLB r {row['crlb_rmse_receivers_m']:.2f}), "
-              f"{row['cpu_blind_s']:.2f} s CPU", flush=True)
+              f"{row['cpu_blind_s']:.2f} s CPU, same minimum {row['same_minimum']}", flush=True)
     med = statistics.median
-    out = {"benchmark": "toa_minimal", "draws": draws, "noise_s": NOISE,
-           "in_basin_rate": sum(r["in_basin"] for r in rows) / len(rows),
+    k = sum(r["in_basin"] for r in rows)
+    ci = binomtest(k, len(rows)).proportion_ci(0.95, method="exact")
+    out = {"benchmark": "toa_minimal", "draws": draws, "first_seed": first, "noise_s": NOISE,
+           "in_basin": k, "in_basin_rate": k / len(rows), "in_basin_ci95": [float(ci.low), float(ci.high)],
+           "in_basin_strict_rate": sum(r["in_basin_strict"] for r in rows) / len(rows),
+           "same_minimum_rate": sum(r["same_minimum"] for r in rows) / len(rows),
+           "failed_seeds": [r["seed"] for r in rows if not r["in_basin"]],
            "lower_than_reference_rate": sum(r["lower_than_reference"] for r in rows) / len(rows),
            "chi2_pass_rate_blind": sum(r["chi2_p_blind"] >= 1e-3 for r in rows) / len(rows),
            "median_blind_s": med(r["t_blind_s"] for r in rows), "median_reference_s": med(r["t_reference_s"] for r in rows),
@@ -144,7 +169,8 @@ if __name__ == "__main__":
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--draws", type=int, default=20)
     ap.add_argument("--noise", type=float, default=None, help="timing noise std, seconds (default 20e-6)")
+    ap.add_argument("--first", type=int, default=0, help="first seed")
     ap.add_argument("--out", type=Path, default=None)
     a = ap.parse_args()
-    res = main(a.out, a.draws, a.noise)
+    res = main(a.out, a.draws, a.noise, a.first)
     print(json.dumps({k: v for k, v in res.items() if k != "rows"}, indent=1))

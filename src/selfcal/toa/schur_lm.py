@@ -48,10 +48,10 @@ DIRECT_MAX_UNKNOWNS = 200
 #: doubles for the dense ``W`` (32 MB)
 DIRECT_MAX_FLOPS = 1e8
 DIRECT_MAX_ENTRIES = 4e6
-#: default iteration cap per step kind: the cap bounds the work, and a dense or reduced
-#: iteration (at most 120 unknowns) costs about 1 ms (ill-conditioned
-#: small networks crawl along flat valleys: 12 x 6 with both offsets needs 170-300 from the truth)
-DEFAULT_MAX_IT = {"dense": 400, "reduced": 100, "cg": 100}
+#: default iteration cap per step kind (the same for all: a larger cap for the cheap dense
+#: step was tried, 400, and made the robust stages of solve_toa at 12 x 6 crawl along flat
+#: valleys towards far-field minima without converging, for no gain in the basin rate)
+DEFAULT_MAX_IT = {"dense": 100, "reduced": 100, "cg": 100}
 #: forcing-term range of the inexact (CG) steps: relative residual of each CG solve
 CG_RTOL = (1e-8, 1e-3)
 
