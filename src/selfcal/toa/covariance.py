@@ -585,7 +585,13 @@ def local_blocks(theta: Array, w: Array, lay: _Layout) -> tuple[Array, Array]:
     wK = np.asarray(w if lay.k_is_receivers else w.T, dtype=float)
     nK, mK = lay.k_idx.shape
     nE, mE = lay.e_idx.shape
-    Ablk, Dblk = diagonal_blocks(_components(PK, PE), wK, mK > lay.d, mE > lay.d, Grid(nK, nE))
+    # the node blocks from the components of one column block of E nodes at a time (memory)
+    Ablk = np.zeros((nK, mK, mK))
+    Dblk = np.empty((nE, mE, mE))
+    for e0, e1 in _block_ranges(nE, nK, mK, mE):
+        Ab, Dblk[e0:e1] = diagonal_blocks(_components(PK, PE[e0:e1]), wK[:, e0:e1], False, False,
+                                          Grid(nK, e1 - e0))
+        Ablk += Ab
     CK, CE = _inv_eliminated(Ablk, 0), _inv_eliminated(Dblk, 0)
     return (CK, CE) if lay.k_is_receivers else (CE, CK)
 
