@@ -164,18 +164,23 @@ def test_out_of_range_index_is_an_input_error():
 
 
 def test_dense_threads_obeys_the_environment(monkeypatch):
-    """The default thread count is the process's cores, capped by a stated BLAS limit, never raised."""
+    """The default is the process's cores, capped by a stated limit (environment or in-process), never raised."""
     import os
+
+    from threadpoolctl import threadpool_limits
 
     for var in cv._THREAD_ENV:
         monkeypatch.delenv(var, raising=False)
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
-    assert cv.dense_threads() == cores
-    monkeypatch.setenv("OMP_NUM_THREADS", "1")
-    assert cv.dense_threads() == 1
-    monkeypatch.setenv("OMP_NUM_THREADS", "junk")  # not a limit: ignored
-    monkeypatch.setenv("OPENBLAS_NUM_THREADS", str(10 * cores))  # above the cores: the cores
-    assert cv.dense_threads() == cores
+    with threadpool_limits(limits=cores, user_api="blas"):  # an unlimited BLAS: every core
+        assert cv.dense_threads() == cores
+        monkeypatch.setenv("OMP_NUM_THREADS", "1")
+        assert cv.dense_threads() == 1
+        monkeypatch.setenv("OMP_NUM_THREADS", "junk")  # not a limit: ignored
+        monkeypatch.setenv("OPENBLAS_NUM_THREADS", str(10 * cores))  # above the cores: the cores
+        assert cv.dense_threads() == cores
+    with threadpool_limits(limits=1, user_api="blas"):  # the caller's in-process limit
+        assert cv.dense_threads() == 1
 
 
 @pytest.mark.parametrize("offsets", ["none", "both"])

@@ -157,3 +157,45 @@ def test_sparse_covariance_equals_the_dense_blocks(seed):
     assert np.isnan(np.delete(Cr, want[0], axis=0)).all() and np.isnan(np.delete(Cs, want[1], axis=0)).all()
     with pytest.raises(InputError):
         sparse_covariance_blocks(i, j, r, s, covariance="local")
+
+
+def test_sparse_solvers_return_the_requested_blocks(rng):
+    """refine_toa_sparse / solve_toa_sparse covariance= : the dense path's blocks in the result's frame.
+
+    The refine on a complete-ish network equals refine_toa's receiver_cov / source_cov (same
+    minimum, same sigma, same canonical frame) to 1e-6 relative (CG tolerance 1e-10 and the
+    minimum's own round-off); the blind solve returns finite blocks only where asked, equal to
+    the dense path's blocks at its fitted positions on the pairs it used.
+    """
+    I, J = 10, 12
+    r, s = rng.uniform(0, 5, (I, 3)), rng.uniform(0, 5, (J, 3))
+    Y = toa_model(r, s) + rng.normal(0, 0.01, (I, J))
+    Y[rng.random((I, J)) < 0.2] = np.nan
+    i, j = np.nonzero(np.isfinite(Y))
+    dense = refine_toa(Y, r, s)
+    sp = refine_toa_sparse(i, j, Y[i, j], r, s, covariance="all")
+    scale = max(np.abs(dense.receiver_cov).max(), np.abs(dense.source_cov).max())
+    np.testing.assert_allclose(sp.receiver_cov, dense.receiver_cov, rtol=0, atol=1e-6 * scale)
+    np.testing.assert_allclose(sp.source_cov, dense.source_cov, rtol=0, atol=1e-6 * scale)
+    assert refine_toa_sparse(i, j, Y[i, j], r, s).receiver_cov is None
+    with pytest.raises(InputError):
+        refine_toa_sparse(i, j, Y[i, j], r, s, covariance="local")
+
+    r, s, i, j, y = simulate_sparse_network(60, 60, 0.4, size=20.0, rng=1)
+    sol = solve_toa_sparse(i, j, y, 60, 60, rng=0, covariance=([0, 7], [3]))
+    assert np.isfinite(sol.receiver_cov[[0, 7]]).all() and np.isfinite(sol.source_cov[3]).all()
+    assert np.isnan(np.delete(sol.receiver_cov, [0, 7], axis=0)).all()
+    assert np.isnan(np.delete(sol.source_cov, [3], axis=0)).all()
+    # independent: the dense path's blocks at the blind fit's positions, on the pairs it used
+    from selfcal.toa.covariance import covariance_blocks
+
+    lr, ls = np.isfinite(sol.receivers[:, 0]), np.isfinite(sol.sources[:, 0])
+    assert lr[[0, 7]].all() and ls[3]
+    used = np.isfinite(sol.residuals)
+    W = np.zeros((60, 60))
+    W[i[used], j[used]] = 1.0
+    Dr, Ds = covariance_blocks(sol.receivers[lr], sol.sources[ls], W[np.ix_(lr, ls)])
+    ri, si = np.cumsum(lr) - 1, np.cumsum(ls) - 1
+    n2 = sol.noise_estimate**2
+    np.testing.assert_allclose(sol.receiver_cov[[0, 7]], n2 * Dr[ri[[0, 7]]], rtol=0, atol=1e-6 * n2 * np.abs(Dr).max())
+    np.testing.assert_allclose(sol.source_cov[3], n2 * Ds[si[3]], rtol=0, atol=1e-6 * n2 * np.abs(Ds).max())

@@ -75,8 +75,9 @@ above the data: S and one column block). So on one core the exact blocks cost ~3
 with exact blocks. What can be had:
 
 - threads: the dense algebra runs inside a scoped :func:`threadpoolctl.threadpool_limits`
-  (:func:`dense_threads`: the process's cores, capped by a stated ``OPENBLAS_NUM_THREADS`` /
-  ``OMP_NUM_THREADS`` / ...), the rest of the process keeps its setting. Level-3 BLAS scales
+  (:func:`dense_threads`: the process's cores, capped by any stated limit,
+  ``OPENBLAS_NUM_THREADS`` / ``OMP_NUM_THREADS`` / ... or the caller's in-process setting;
+  ``threads=`` of :func:`covariance_blocks` chooses), the rest of the process keeps its setting. Level-3 BLAS scales
   with the cores on an idle machine; on an oversubscribed one (the benchmark's, load ~4 on 2
   cores) two threads were *slower* (1000 x 1000: 6.7 s wall against 6.3 s on one).
 - ``covariance="local"`` (:func:`local_blocks`): each node's conditional covariance, its own
@@ -142,10 +143,12 @@ def dense_threads() -> int:
     """BLAS threads the dense covariance algebra runs on by default.
 
     The cores this process may run on (``os.sched_getaffinity``; ``os.cpu_count`` where
-    that does not exist), capped by the smallest positive integer among the environment
-    variables that state a thread limit for BLAS (``OPENBLAS_NUM_THREADS``,
-    ``OMP_NUM_THREADS``, ``MKL_NUM_THREADS``, ``BLIS_NUM_THREADS``): a user or a scheduler
-    that set one is obeyed, never raised.
+    that does not exist), capped by every limit already stated: the smallest positive
+    integer among the environment variables that set a BLAS thread count
+    (``OPENBLAS_NUM_THREADS``, ``OMP_NUM_THREADS``, ``MKL_NUM_THREADS``,
+    ``BLIS_NUM_THREADS``) and the loaded BLAS libraries' current setting (an in-process
+    :func:`threadpoolctl.threadpool_limits` of the caller). A limit a user or a scheduler set
+    is obeyed, never raised; an unlimited BLAS gets all the cores.
 
     Returns
     -------
@@ -155,9 +158,9 @@ def dense_threads() -> int:
     -----
     The exact blocks are ~2.7 n^3 flops of level-3 BLAS on n x n matrices (module
     docstring); such calls scale with the cores, while the matrix-free solve
-    (:mod:`selfcal.toa.schur_lm`) is memory-bound NumPy arithmetic. Only the dense algebra is
-    scoped (:func:`threadpoolctl.threadpool_limits` as a context, restored on return), the
-    rest of the process keeps its setting.
+    (:mod:`selfcal.toa.schur_lm`) is memory-bound NumPy arithmetic. The dense algebra runs in
+    a scoped :func:`threadpoolctl.threadpool_limits` (restored on return), so an explicit
+    ``threads=`` of :func:`covariance_blocks` applies to it alone.
 
     Examples
     --------
@@ -172,6 +175,12 @@ def dense_threads() -> int:
         v = os.environ.get(var, "").strip()
         if v.isdigit() and int(v) > 0:
             cores = min(cores, int(v))
+    from threadpoolctl import threadpool_info
+
+    current = [int(lib["num_threads"]) for lib in threadpool_info()
+               if lib.get("user_api") == "blas" and int(lib.get("num_threads") or 0) > 0]
+    if current:
+        cores = min(cores, max(current))
     return max(int(cores), 1)
 
 
@@ -585,7 +594,13 @@ def local_blocks(theta: Array, w: Array, lay: _Layout) -> tuple[Array, Array]:
     wK = np.asarray(w if lay.k_is_receivers else w.T, dtype=float)
     nK, mK = lay.k_idx.shape
     nE, mE = lay.e_idx.shape
-    Ablk, Dblk = diagonal_blocks(_components(PK, PE), wK, mK > lay.d, mE > lay.d, Grid(nK, nE))
+    # the node blocks from the components of one column block of E nodes at a time (memory)
+    Ablk = np.zeros((nK, mK, mK))
+    Dblk = np.empty((nE, mE, mE))
+    for e0, e1 in _block_ranges(nE, nK, mK, mE):
+        Ab, Dblk[e0:e1] = diagonal_blocks(_components(PK, PE[e0:e1]), wK[:, e0:e1], False, False,
+                                          Grid(nK, e1 - e0))
+        Ablk += Ab
     CK, CE = _inv_eliminated(Ablk, 0), _inv_eliminated(Dblk, 0)
     return (CK, CE) if lay.k_is_receivers else (CE, CK)
 

@@ -28,11 +28,13 @@ final fit, moves it when the mirror fits its ranges better, refits, and lists th
 Model and gauge are those of :mod:`selfcal.toa.nls` (003 eq. 2 without offsets; the result
 is in the canonical gauge of :func:`selfcal.geometry.canonical_gauge`). Offsets and robust
 losses are not offered on this path (the dense path has them); exact covariance blocks of
-selected nodes come from :func:`selfcal.toa.sparse_covariance.sparse_covariance_blocks`
-(d matrix-free CG solves per node).
+selected nodes (``covariance=`` of :func:`refine_toa_sparse` / :func:`solve_toa_sparse`) come
+from :func:`selfcal.toa.sparse_covariance.sparse_covariance_blocks` (d matrix-free CG solves
+per node).
 
-The file is above 600 lines because the result type, the engine wrapper, the growth and its
-mirror re-check share the pair bookkeeping (index maps, batched multilateration).
+The file is above 600 lines because the result type, the engine wrapper, the growth, its
+mirror re-check and the covariance request share the pair bookkeeping (index maps, batched
+multilateration); the covariance arithmetic itself lives in :mod:`selfcal.toa.sparse_covariance`.
 
 Cost. A CG product is O(m); the number of CG iterations grows with the graph diameter
 (hops across the network), the growth initialiser is O(m) per round and needs about
@@ -43,6 +45,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -78,6 +81,10 @@ class SparseToaResult(Result):
         solve re-checks each against its mirror after the final fit (:func:`solve_toa_sparse`);
         their positions deserve less trust than the noise level suggests.
     mirrors_taken : how many weakly placed nodes that re-check moved to their mirror side.
+    receiver_cov, source_cov : (I, d, d), (J, d, d) gauge-free covariance blocks (m^2, the
+        canonical frame, ``noise_estimate**2`` times :func:`selfcal.toa.sparse_covariance.
+        sparse_covariance_blocks`) of the nodes asked for with ``covariance=``, NaN for the
+        others; None when none was asked for.
     """
 
     receivers: Array
@@ -95,6 +102,8 @@ class SparseToaResult(Result):
     weakly_placed_receivers: Index = dataclasses.field(default_factory=lambda: np.zeros(0, np.intp))
     weakly_placed_sources: Index = dataclasses.field(default_factory=lambda: np.zeros(0, np.intp))
     mirrors_taken: int = 0
+    receiver_cov: Array | None = None
+    source_cov: Array | None = None
 
 
 def _check_pairs(i: object, j: object, ranges: object, I: int | None, J: int | None
@@ -150,25 +159,34 @@ def _lm(i: Index, j: Index, y: Array, r0: Array, s0: Array, max_nfev: int | None
 
 
 def _result(i: Index, j: Index, y: Array, r: Array, s: Array, conv: bool, it: int,
-            located: float = 1.0, seed_shape: tuple[int, int] = (0, 0)) -> SparseToaResult:
-    from ..geometry import canonical_gauge
+            located: float = 1.0, seed_shape: tuple[int, int] = (0, 0),
+            cov: tuple[Index, Index] | None = None) -> SparseToaResult:
+    """The result in the canonical gauge; ``cov`` = (receiver, source) indices whose blocks to compute."""
+    from ..geometry import canonical_gauge, rotate_covariances
 
     f = y - np.linalg.norm(r[i] - s[j], axis=1)
     d = r.shape[1]
     n = (r.shape[0] + s.shape[0]) * d
     g = d * (d + 1) // 2
     dof = f.size - n + g
-    rc, sc, _ = canonical_gauge(r, s)
+    noise = float(np.sqrt(f @ f / dof)) if dof > 0 else float("nan")
+    rc, sc, al = canonical_gauge(r, s)
     assert sc is not None
+    Cr = Cs = None
+    if cov is not None and (cov[0].size or cov[1].size):
+        from .sparse_covariance import sparse_covariance_blocks
+
+        Br, Bs = sparse_covariance_blocks(i, j, r, s, covariance=cov)
+        Cr, Cs = (rotate_covariances(B * noise**2, al.rotation) for B in (Br, Bs))
     return SparseToaResult(
         receivers=rc, sources=sc, residuals=f, residual_rms=float(np.sqrt(np.mean(f**2))),
-        noise_estimate=float(np.sqrt(f @ f / dof)) if dof > 0 else float("nan"),
-        converged=conv, iterations=it, cost=0.5 * float(f @ f), located=located, seed_shape=seed_shape)
+        noise_estimate=noise, converged=conv, iterations=it, cost=0.5 * float(f @ f), located=located,
+        seed_shape=seed_shape, receiver_cov=Cr, source_cov=Cs)
 
 
 def refine_toa_sparse(
     i: NDArray[np.integer], j: NDArray[np.integer], ranges: Array, receivers0: Array, sources0: Array,
-    *, max_nfev: int | None = None, xtol: float = 1e-10,
+    *, max_nfev: int | None = None, xtol: float = 1e-10, covariance: Any = "none",
 ) -> SparseToaResult:
     """Refine receivers and sources from the observed pairs only (003 eq. 2, 16; sparse path).
 
@@ -179,6 +197,10 @@ def refine_toa_sparse(
     receivers0, sources0 : (I, d), (J, d) starting positions, d in {2, 3}.
     max_nfev : cap on LM iterations (default 100).
     xtol : relative step tolerance.
+    covariance : which nodes' covariance blocks (``(receiver_idx, source_idx)``,
+        ``{"receivers": idx, "sources": idx}``, "receivers" / "sources" / "all", default
+        "none"): d CG solves per node (:mod:`selfcal.toa.sparse_covariance`), so ask for the
+        nodes you need on a large network.
 
     Returns
     -------
@@ -214,9 +236,20 @@ def refine_toa_sparse(
     d = r0.shape[1]
     s0 = as_points(sources0, "sources0", dim=d)
     ii, jj, y, I, J = _check_pairs(i, j, ranges, r0.shape[0], s0.shape[0])
+    cov = _sparse_request(covariance, I, J)
     _counts_ok(ii, jj, I, J, d)
     r, s, conv, it = _lm(ii, jj, y, r0, s0, max_nfev, xtol)
-    return _result(ii, jj, y, r, s, conv, it)
+    return _result(ii, jj, y, r, s, conv, it, cov=cov)
+
+
+def _sparse_request(covariance: Any, I: int, J: int) -> tuple[Index, Index]:
+    """Receiver and source indices of a covariance request (``"local"`` refused on this path)."""
+    from .covariance import is_local, normalize_covariance, resolve_covariance
+
+    if is_local(normalize_covariance(covariance)):
+        raise InputError("covariance='local' is not offered on the sparse path (its error ~(d+1) / fewest ranges "
+                         "per node is large there); ask for indices")
+    return resolve_covariance(covariance, I, J)
 
 
 # ---------------------------------------------------------------------------
@@ -500,7 +533,7 @@ def _refine_located(i: Index, j: Index, y: Array, r: Array, s: Array, d: int) ->
 def solve_toa_sparse(
     i: NDArray[np.integer], j: NDArray[np.integer], ranges: Array, n_receivers: int | None = None,
     n_sources: int | None = None, *, dim: int = 3, rng: int | np.random.Generator | None = 0,
-    max_nfev: int | None = None, tries: int = 3,
+    max_nfev: int | None = None, tries: int = 3, covariance: Any = "none",
 ) -> SparseToaResult:
     """Blind self-calibration of a sparse TOA network from its observed pairs.
 
@@ -514,6 +547,9 @@ def solve_toa_sparse(
     tries : growths from different seed patches at most; the first whose final noise estimate
         is within 1.5x its seed patch's (and that reached 90 % of the nodes) is returned,
         else the best fit (smallest noise estimate) of all tries.
+    covariance : which nodes' covariance blocks, in the caller's numbering (as in
+        :func:`refine_toa_sparse`; default "none"); computed once, for the returned fit;
+        unlocated nodes' blocks are NaN.
 
     Returns
     -------
@@ -537,6 +573,7 @@ def solve_toa_sparse(
     (True, True)
     """
     ii, jj, y, I, J = _check_pairs(i, j, ranges, n_receivers, n_sources)
+    want_r, want_s = _sparse_request(covariance, I, J)
     d = int(dim)
     gen = np.random.default_rng(rng)
     best: SparseToaResult | None = None
@@ -553,7 +590,28 @@ def solve_toa_sparse(
         if sol.noise_estimate <= 1.5 * seed_noise and sol.located >= 0.9:
             break
     assert best is not None
+    if want_r.size or want_s.size:
+        best = _with_covariance(best, ii, jj, y, want_r, want_s)
     return best
+
+
+def _with_covariance(sol: SparseToaResult, ii: Index, jj: Index, y: Array, want_r: Index, want_s: Index
+                     ) -> SparseToaResult:
+    """The blind fit with the requested nodes' covariance blocks (on its located part and pairs)."""
+    lr, ls = np.isfinite(sol.receivers[:, 0]), np.isfinite(sol.sources[:, 0])
+    m = np.isfinite(sol.residuals)
+    ridx, sidx = np.cumsum(lr) - 1, np.cumsum(ls) - 1
+    sub_r, sub_s = ridx[want_r[lr[want_r]]], sidx[want_s[ls[want_s]]]
+    from .sparse_covariance import sparse_covariance_blocks
+
+    # the fit's positions are in the canonical frame already: the gauge-free blocks there are too
+    Br, Bs = sparse_covariance_blocks(ridx[ii[m]], sidx[jj[m]], sol.receivers[lr], sol.sources[ls],
+                                      covariance=(sub_r, sub_s))
+    d = sol.receivers.shape[1]
+    Cr = np.full((lr.size, d, d), np.nan)
+    Cs = np.full((ls.size, d, d), np.nan)
+    Cr[lr], Cs[ls] = Br * sol.noise_estimate**2, Bs * sol.noise_estimate**2
+    return dataclasses.replace(sol, receiver_cov=Cr, source_cov=Cs)
 
 
 def _grow_and_fit(ii: Index, jj: Index, y: Array, I: int, J: int, d: int, gen: np.random.Generator,
