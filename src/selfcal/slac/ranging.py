@@ -488,10 +488,10 @@ def solve_range_slac(log: RangeLog | Any, *, method: str = "smoother", config: R
 
     References
     ----------
-    B. M. Bell, "The iterated Kalman smoother as a Gauss-Newton method", SIAM J. Optim. 4 (1994).
-    C. J. Masreliez, R. D. Martin, "Robust Bayesian estimation for the linear model and
-    robustifying the Kalman filter", IEEE TAC 22 (1977).
-    J. Djugash, S. Singh, "Motion-aided network SLAM with range", IJRR 31 (2012) (the logs).
+    - Bell, B. M., "The iterated Kalman smoother as a Gauss-Newton method", SIAM J. Optim. 4 (1994).
+    - Masreliez, C. J. and Martin, R. D., "Robust Bayesian estimation for the linear model and
+      robustifying the Kalman filter", IEEE TAC 22 (1977).
+    - Djugash, J. and Singh, S., "Motion-aided network SLAM with range", IJRR 31 (2012) (the logs).
 
     Examples
     --------
