@@ -160,6 +160,9 @@ def farfield_command(matrix: tuple[Path, ...], out: Path, speed: float | None, d
     if ref_rmse is not None:
         click.echo(f"  RMS distance to the file's hand-measured microphones after rigid alignment "
                    f"{1e3 * ref_rmse:.3g} mm (not used by the estimate)")
+    if res.untestable:
+        click.echo(f"selfcal: warning: {res.untestable} entries cannot be checked for gross errors: too few spare "
+                   "measurements (add receivers or transmitters)", err=True)
     if res.degeneracy is not None:
         click.echo(f"selfcal: warning: degenerate geometry [{res.degeneracy}]: wrote a partial reconstruction",
                    err=True)
