@@ -22,13 +22,9 @@ from typing import Any
 import numpy as np
 
 from selfcal.io import write_json
-from selfcal.tdoa import (
-    initialize_farfield,
-    refine_alternating,
-    refine_lm,
-    solve_farfield,
-    solve_minimal,
-)
+from selfcal.tdoa import refine_lm, solve_farfield, solve_minimal
+from selfcal.tdoa.alternating import refine_alternating
+from selfcal.tdoa.initialize import initialize_farfield
 
 
 def _median_time(fn: Callable[[], Any], reps: int) -> float:

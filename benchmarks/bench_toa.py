@@ -6,13 +6,20 @@ range noise sigma = 1 cm, 5 % of the entries missing at random. For each size:
 - ``init``: ``selfcal.toa.mds.initialize_toa(method="rank")``, timed once; every solver below
   starts from it (same start).
 - ``ours_solve``: ``refine_toa(Y, r0, s0, covariance="none")`` (the Schur LM engine);
-  ``ours_cov``: the covariance alone at the solution (:func:`selfcal.toa.covariance.covariance_blocks`,
-  selected inversion, all blocks) and ``cov_over_solve``; ``ours_solve_cov``: the two in one call.
-- ``ours_blind_cov``: ``solve_toa(Y, dim=3)`` end to end (initialisation + NLS + covariances).
+  ``ours_cov``: the exact covariance alone at the solution
+  (:func:`selfcal.toa.covariance.covariance_blocks`, selected inversion, all blocks, one BLAS
+  thread) with ``cov_floor``, the CPU time of its four unavoidable BLAS calls on matrices of its
+  size; ``ours_cov_2threads``: the same on two BLAS threads (compare wall time: CPU time counts
+  both threads); ``ours_cov_local``: ``covariance="local"`` (each node's conditional block,
+  O(I J d^2)) with its block-wise relative error against ``ours_cov``.
+- ``ours_blind_cov`` / ``ours_blind_local``: ``solve_toa(Y, dim=3)`` end to end
+  (initialisation, search, outlier rounds, final fit, exact / local covariances).
 - ``scipy_trf``: ``scipy.optimize.least_squares(method="trf", x_scale="jac", tr_solver="lsmr")``
   with the analytic sparse Jacobian (:func:`selfcal.toa.toa_jacobian`), all coordinates free,
-  no covariance: what a competent user would write. ``blind_cov_over_scipy`` is the ratio of
-  our whole pipeline to that solve alone.
+  no covariance: what a competent user would write.
+- ``ratios``: every row over ``scipy_trf`` and over ``ours_solve``, CPU and wall, same run.
+  ``SELFCAL_BENCH_TOA_ROWS`` (comma list of the row names above) runs a subset: a 2000 x 2000
+  case is minutes of CPU; the baseline rows always run, so the ratios stay same-run.
 
 Part 2, ``offsets="both"`` (paper 004): U units (a microphone and a loudspeaker 5 cm apart each)
 in a 10 x 10 x 3 m room, internal delays U(0, 20 ms) and onsets U(0, 30 ms) times 343 m/s, range
@@ -183,38 +190,81 @@ def _scipy_trf(Y: np.ndarray, r0: np.ndarray, s0: np.ndarray) -> tuple[np.ndarra
     return res.x[: I * DIM].reshape(I, DIM), res.x[I * DIM:].reshape(J, DIM), res
 
 
+def _rows() -> set[str] | None:
+    """Rows of the dense cases to run (``SELFCAL_BENCH_TOA_ROWS``, comma list; None = all).
+
+    A 2000 x 2000 case takes minutes of CPU; its rows can be measured in separate runs
+    (``ours_solve`` and ``scipy_trf`` are always run: every ratio is against them, same run).
+    """
+    env = os.environ.get("SELFCAL_BENCH_TOA_ROWS")
+    return None if not env else {t.strip() for t in env.split(",") if t.strip()}
+
+
+def _cpu_ratio(case: dict[str, Any], a: str, b: str) -> dict[str, float]:
+    """``a / b`` in CPU time and in wall time (both rows of the same run)."""
+    return {"cpu": case[a]["cpu_s"] / case[b]["cpu_s"], "wall": case[a]["time_s"] / case[b]["time_s"]}
+
+
 def _dense_case(I: int, J: int, reps: int) -> dict[str, Any]:
+    """Same network, same start (the rank initialiser), one process, these rows:
+
+    ``scipy_trf`` (the baseline), ``ours_solve``, ``ours_cov`` (exact blocks, one BLAS
+    thread), ``ours_cov_2threads`` (the same, two threads: CPU time counts both, compare wall),
+    ``ours_cov_local`` (``covariance="local"``), ``ours_blind_cov`` (``solve_toa`` end to end
+    with exact blocks at the default threads) and ``ours_blind_local``. ``ratios``: each row
+    over the solve and over SciPy, CPU and wall.
+    """
     from selfcal.toa import refine_toa, solve_toa, toa_crlb
-    from selfcal.toa.covariance import covariance_blocks
+    from selfcal.toa.covariance import covariance_blocks, dense_threads
     from selfcal.toa.mds import initialize_toa
+
+    want = _rows()
+
+    def on(name: str) -> bool:
+        return want is None or name in want
 
     r, s, Y = _scene(I, J, seed=I + J)
     obs = np.isfinite(Y)
     crlb = toa_crlb(r, s, SIGMA, mask=obs)
-    case: dict[str, Any] = {"shape": [I, J], "missing": MISSING, "repeats": reps,
+    case: dict[str, Any] = {"shape": [I, J], "missing": MISSING, "repeats": reps, "dense_threads": dense_threads(),
                             "crlb": {"rmse_receivers": crlb.rmse_receivers, "rmse_sources": crlb.rmse_sources}}
     row, (r0, s0) = _timed(lambda: initialize_toa(Y, DIM, method="rank", rng=0))
     case["init"] = row
+    row, (rt, st, res) = _timed(lambda: _scipy_trf(Y, r0, s0), 1)
+    case["scipy_trf"] = {**row, "nfev": int(res.nfev), "status": int(res.status), **_accuracy(rt, st, r, s, crlb)}
     row, sol = _timed(lambda: refine_toa(Y, r0, s0, covariance="none"), reps)
     case["ours_solve"] = {**row, "iterations": sol.iterations, "converged": sol.converged,
                           **_accuracy(sol.receivers, sol.sources, r, s, crlb)}
     w = np.where(obs, 1.0, 0.0)
-    row, _ = _timed(lambda: covariance_blocks(sol.receivers, sol.sources, w), reps)
-    case["ours_cov"] = row
-    case["cov_over_solve"] = row["time_s"] / case["ours_solve"]["time_s"]
-    case["cov_over_solve_cpu"] = row["cpu_s"] / case["ours_solve"]["cpu_s"]
-    case["cov_floor"] = _blas_floor(DIM * min(I, J), DIM * max(I, J))
-    case["cov_floor_over_solve_cpu"] = case["cov_floor"]["total_cpu_s"] / case["ours_solve"]["cpu_s"]
-    row, solc = _timed(lambda: refine_toa(Y, r0, s0), 1)
-    pred = float(np.sqrt(np.trace(solc.receiver_cov, axis1=1, axis2=2).mean()))
-    case["ours_solve_cov"] = {**row, "predicted_rmse_receivers": pred}
-    row, blind = _timed(lambda: solve_toa(Y, dim=DIM, rng=0), 1)
-    case["ours_blind_cov"] = {**row, "method": blind.method, **_accuracy(blind.receivers, blind.sources, r, s, crlb)}
-    row, (rt, st, res) = _timed(lambda: _scipy_trf(Y, r0, s0), 1)
-    case["scipy_trf"] = {**row, "nfev": int(res.nfev), "status": int(res.status),
-                         **_accuracy(rt, st, r, s, crlb)}
-    case["solve_over_scipy"] = case["ours_solve"]["time_s"] / row["time_s"]
-    case["blind_cov_over_scipy"] = case["ours_blind_cov"]["time_s"] / row["time_s"]
+    exact = None
+    if on("ours_cov"):
+        row, exact = _timed(lambda: covariance_blocks(sol.receivers, sol.sources, w, threads=1), reps)
+        case["ours_cov"] = row
+        case["cov_floor"] = _blas_floor(DIM * min(I, J), DIM * max(I, J))
+    if on("ours_cov_2threads"):
+        row, _ = _timed(lambda: covariance_blocks(sol.receivers, sol.sources, w, threads=2), reps)
+        case["ours_cov_2threads"] = row
+    if on("ours_cov_local"):
+        row, loc = _timed(lambda: covariance_blocks(sol.receivers, sol.sources, w, covariance="local"), reps)
+        if exact is not None:  # block-wise relative Frobenius error against the exact blocks
+            err = [np.linalg.norm(a - b, axis=(1, 2)) / np.linalg.norm(b, axis=(1, 2)) for a, b in zip(loc, exact, strict=True)]
+            row["rel_error_max"] = float(max(e.max() for e in err))
+            row["rel_error_median"] = float(np.median(np.concatenate(err)))
+        case["ours_cov_local"] = row
+    for key, spec in (("ours_blind_cov", "all"), ("ours_blind_local", "local")):
+        if on(key):
+            row, blind = _timed(lambda spec=spec: solve_toa(Y, dim=DIM, rng=0, covariance=spec), 1)
+            pred = float(np.sqrt(np.nanmean(np.trace(blind.receiver_cov, axis1=1, axis2=2))))
+            case[key] = {**row, "method": blind.method, "predicted_rmse_receivers": pred,
+                         **_accuracy(blind.receivers, blind.sources, r, s, crlb)}
+    case["ratios"] = {}
+    for key in ("ours_solve", "ours_cov", "ours_cov_2threads", "ours_cov_local", "ours_blind_cov", "ours_blind_local"):
+        if key in case:
+            case["ratios"][f"{key}_over_scipy"] = _cpu_ratio(case, key, "scipy_trf")
+            if key != "ours_solve":
+                case["ratios"][f"{key}_over_solve"] = _cpu_ratio(case, key, "ours_solve")
+    if "cov_floor" in case:
+        case["ratios"]["cov_floor_over_solve"] = {"cpu": case["cov_floor"]["total_cpu_s"] / case["ours_solve"]["cpu_s"]}
     return case
 
 
@@ -373,9 +423,15 @@ def main(out_dir: Path) -> dict[str, Any]:
     for I, J, reps in _sizes():
         case = _dense_case(I, J, reps)
         report["cases"].append(case)
-        print(f"[toa] {I}x{J}: solve {case['ours_solve']['time_s']:.3g} s, cov {case['ours_cov']['time_s']:.3g} s "
-              f"(x{case['cov_over_solve']:.2f}), blind+cov {case['ours_blind_cov']['time_s']:.3g} s, "
-              f"scipy trf {case['scipy_trf']['time_s']:.3g} s, cov peak RSS +{case['ours_cov']['peak_rss_increase_mb']:.0f} MB")
+        parts = [f"[toa] {I}x{J} (CPU s): scipy trf {case['scipy_trf']['cpu_s']:.3g}, solve {case['ours_solve']['cpu_s']:.3g}"]
+        for key, label in (("ours_cov", "cov"), ("ours_cov_2threads", "cov 2 threads (wall)"),
+                           ("ours_cov_local", "cov local"), ("ours_blind_cov", "blind+cov"),
+                           ("ours_blind_local", "blind+local")):
+            if key in case:
+                v = case[key]["time_s" if "2threads" in key else "cpu_s"]
+                ratio = case["ratios"][f"{key}_over_scipy"]["wall" if "2threads" in key else "cpu"]
+                parts.append(f"{label} {v:.3g} (x{ratio:.2f} scipy)")
+        print(", ".join(parts))
     for I, J in _large():
         case = _large_case(I, J)
         report["large"].append(case)

@@ -23,6 +23,7 @@ DOCTESTED = [
     "selfcal.geometry.fit_plane",
     "selfcal.geometry.rotate_covariances",
     "selfcal.geometry.n_parameters",
+    "selfcal.aoa.checks.residual_test",
     "selfcal.plotting.conference.ellipse_magnification",
 ]
 
@@ -33,6 +34,8 @@ SOLVERS: list[str] = [
     "selfcal.tdoa.farfield.solve_farfield",
     "selfcal.aoa.pose.solve_aoa",
     "selfcal.slac.run.solve_slac",
+    "selfcal.slac.ranging.solve_range_slac",
+    "selfcal.toa.sparse.solve_toa_sparse",
 ]
 
 

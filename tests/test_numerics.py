@@ -133,3 +133,18 @@ def test_loss_table_is_a_consistent_robust_loss(loss: str) -> None:
     r0, d0 = loss_rho(np.zeros(1), loss)
     assert r0[0] == 0.0 and d0[0] == 1.0
     assert np.all(drho <= 1.0 + 1e-12) and np.all(np.diff(drho) <= 1e-12)
+
+
+def test_cauchy_cost_moments_match_a_monte_carlo() -> None:
+    # the known-heights fit accepts a Cauchy cost below m mean + 3.09 sqrt(m) sd; mean and sd
+    # come from quadrature: a 4e5-draw sample mean / sd must agree within 5 standard errors
+    from selfcal.acoustics.calibrate import _cauchy_cost, _cauchy_cost_moments
+
+    z = np.random.default_rng(7).normal(size=400_000)
+    terms = np.log1p((z / 2.385) ** 2)
+    mean, sd = _cauchy_cost_moments()
+    se = terms.std() / np.sqrt(z.size)
+    assert abs(terms.mean() - mean) < 5 * se
+    m4 = np.mean((terms - terms.mean()) ** 4)  # se of a sample sd: sqrt((m4 - sd^4) / n) / (2 sd)
+    assert abs(terms.std() - sd) < 5 * np.sqrt((m4 - sd**4) / z.size) / (2 * sd)
+    assert _cauchy_cost(z) == pytest.approx(terms.sum())

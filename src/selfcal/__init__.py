@@ -20,6 +20,7 @@ __version__ = "0.1.0"
 _LAZY: dict[str, str] = {
     "solve_toa": "selfcal.toa",
     "ToaResult": "selfcal.toa",
+    "solve_toa_sparse": "selfcal.toa",
     "solve_farfield": "selfcal.tdoa",
     "FarfieldResult": "selfcal.tdoa",
     "solve_aoa": "selfcal.aoa",
@@ -27,8 +28,12 @@ _LAZY: dict[str, str] = {
     "solve_slac": "selfcal.slac",
     "SlacResult": "selfcal.slac",
     "SlacLog": "selfcal.slac",
+    "solve_range_slac": "selfcal.slac",
+    "RangeLog": "selfcal.slac",
     "run_pipeline": "selfcal.acoustics",
     "PipelineResult": "selfcal.acoustics",
+    "load_recording": "selfcal.acoustics",
+    "simulate_conference": "selfcal.acoustics",
     "load_lps": "selfcal.datasets",
     "load_plaza": "selfcal.datasets",
     "load_pyramic": "selfcal.datasets",
@@ -37,6 +42,7 @@ _LAZY: dict[str, str] = {
     "align": "selfcal.geometry",
     "aligned_rmse": "selfcal.metrics",
     "read_matrix": "selfcal.io",
+    "read_table": "selfcal.io",
     "write_json": "selfcal.io",
     "run_sweep": "selfcal.experiments",
 }

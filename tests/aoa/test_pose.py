@@ -9,22 +9,12 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from selfcal.aoa import (
-    angles_to_bearings,
-    bearings_to_angles,
-    orientation_from_vectors,
-    p3p,
-    refine_ml,
-    residuals_2d,
-    residuals_3d,
-    solution1,
-    solution2,
-    solve_aoa,
-    tdoa_to_bearings,
-    torus_jacobian,
-    torus_residuals,
-)
-from selfcal.aoa.orientation import rotvec_to_matrix
+from selfcal.aoa import angles_to_bearings, bearings_to_angles, solve_aoa, tdoa_to_bearings
+from selfcal.aoa.ml import refine_ml, residuals_2d, residuals_3d
+from selfcal.aoa.orientation import orientation_from_vectors, rotvec_to_matrix
+from selfcal.aoa.p3p import p3p
+from selfcal.aoa.solution1 import solution1, torus_jacobian, torus_residuals
+from selfcal.aoa.solution2 import solution2
 from selfcal.errors import DegenerateGeometryError, InputError, Status
 
 PAPER_BEACONS = np.array([[0.0, 0, 0], [5, 0, 0], [0, 5, 0]])

@@ -9,18 +9,11 @@ import pytest
 
 from selfcal.errors import DegenerateGeometryError, InputError
 from selfcal.geometry import align, sphere_exp, sphere_tangent_basis
-from selfcal.tdoa import (
-    analyse_degeneracy,
-    farfield_jacobian,
-    initialize_farfield,
-    refine_alternating,
-    refine_lm,
-    solve_farfield,
-    solve_minimal,
-    sphere_lstsq_global,
-    sphere_lstsq_local,
-)
+from selfcal.tdoa import analyse_degeneracy, refine_lm, solve_farfield, solve_minimal
+from selfcal.tdoa.alternating import refine_alternating, sphere_lstsq_global, sphere_lstsq_local
+from selfcal.tdoa.initialize import initialize_farfield
 from selfcal.tdoa.minimal import quadric_design
+from selfcal.tdoa.model import farfield_jacobian
 
 TETRA = np.array([[0, 0, 0], [1, 0, 0], [0.5, np.sqrt(3) / 2, 0], [0.5, np.sqrt(3) / 6, np.sqrt(2 / 3)]])
 
@@ -334,7 +327,7 @@ def test_result_to_dict_is_strict_json(rng):
 
 
 def test_ransac_over_the_minimal_solver_finds_the_outliers(rng):
-    from selfcal.tdoa import ransac_farfield
+    from selfcal.tdoa.screen import ransac_farfield
 
     sigma = 0.005
     D, Z, _ = farfield_problem(rng, 20, 40, sigma=sigma)

@@ -15,7 +15,8 @@ from scipy.optimize import least_squares
 
 from selfcal.experiments.farfield import FINDING, fig3_trial, fig4_trial
 from selfcal.geometry import align
-from selfcal.tdoa import farfield_crlb, initialize_farfield, refine_lm
+from selfcal.tdoa import farfield_crlb, refine_lm
+from selfcal.tdoa.initialize import initialize_farfield
 
 
 def unit(v: np.ndarray) -> np.ndarray:

@@ -331,3 +331,38 @@ def test_dim_auto_reports_2d_for_a_flat_layout_and_3d_otherwise():
     assert solve_toa(thick, dim="auto", rng=0).dim == 3
     res = solve_toa(flat, dim="auto", rng=0)
     assert res.dim == 2 and res.receivers.shape == (8, 2) and res.selection["dim"]["chosen"] == 2
+
+
+@pytest.mark.parametrize("offsets", ["none", "both"])
+def test_a_false_gross_entry_alarm_never_makes_a_network_unidentifiable(offsets, monkeypatch):
+    """Issue 12: the gross-entry screen flagged one clean entry of a minimal network and the
+    drop left as many entries as unknowns, so the solve raised. A screen that would leave an
+    identifiable network unidentifiable screens nothing: the solve returns, and on clean data
+    it equals the unscreened solve. Forced alarms: in a 5 x 5 network in 3-D without offsets
+    (25 entries, 24 unknowns) three entries of receiver 0 (it would be dropped, leaving
+    20 entries for 21 unknowns); in a 7 x 8 network with both offsets, thinned to one entry
+    above the limit (which needs one redundant entry with both offsets), entry (0, 0)."""
+    from selfcal.toa import fit as fit_mod
+    from selfcal.toa.result import n_parameters
+
+    I, J = (5, 5) if offsets == "none" else (7, 8)
+    g = np.random.default_rng(3)
+    r, s, dr, o = network(g, I, J, 3, offsets)
+    Y = toa_model(r, s, dr, o) + g.normal(0, 1e-3, (I, J))
+    if offsets == "both":  # remove entries down to one above the identifiability limit
+        extra = I * J - n_parameters(I, J, 3, offsets) - 1
+        Y[np.arange(extra) % I, 1 + np.arange(extra) // I] = np.nan
+    assert np.isfinite(Y).sum() == n_parameters(I, J, 3, offsets) + 1
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        plain = solve_toa(Y, offsets=offsets, rng=0)
+
+        def false_alarm(M):
+            out = np.zeros(M.shape, bool)
+            out[0, : 3 if offsets == "none" else 1] = True
+            return out & np.isfinite(M)
+
+        monkeypatch.setattr(fit_mod, "gross_entries", false_alarm)
+        res = solve_toa(Y, offsets=offsets, rng=0)
+    assert res.dropped_receivers == () and res.dropped_sources == () and not res.outliers.any()
+    np.testing.assert_allclose(res.receivers, plain.receivers, atol=1e-8)

@@ -91,3 +91,69 @@ def test_sparse_input_errors():
         refine_toa_sparse(np.r_[i[keep], 0], np.r_[j[keep], 0], np.r_[y[keep], 1.0], r, s)
     with pytest.raises(InputError):
         simulate_sparse_network(5, 5, 0.0)
+
+
+def test_mirror_recheck_moves_a_mirrored_node_back():
+    """A node with d + 1 ranges to nearly coplanar partners, placed at its mirror, is moved back.
+
+    Four sources within 5 cm of the plane z = 0 and a receiver 3 m above it: the reflection
+    fits the four ranges to ~cm (one redundant range), so only the comparison of the two
+    placements' residuals can tell. Noise-free ranges: the true side fits exactly.
+    """
+    from selfcal.toa.sparse import _mirror_recheck
+
+    rng = np.random.default_rng(0)
+    s = np.c_[rng.uniform(-4, 4, (4, 2)), rng.uniform(-0.05, 0.05, 4)]
+    r_true = np.array([[0.5, -0.3, 3.0]])
+    i, j = np.zeros(4, np.intp), np.arange(4)
+    y = np.linalg.norm(r_true[i] - s[j], axis=1)
+    mirrored = r_true * [1, 1, -1]
+    assert np.abs(np.linalg.norm(mirrored[i] - s[j], axis=1) - y).max() < 0.4  # the mirror nearly fits
+    r, s2, wr, ws, moved = _mirror_recheck(i, j, y, mirrored, s, 3)
+    assert moved == 1 and list(wr) == [0] and ws.size == 4
+    np.testing.assert_allclose(r, r_true, atol=1e-9)
+    r, _, _, _, moved = _mirror_recheck(i, j, y, r_true.copy(), s, 3)  # right side: stays
+    assert moved == 0
+    np.testing.assert_allclose(r, r_true, atol=0)
+
+
+def test_blind_sparse_lists_its_weakly_placed_nodes():
+    """weakly_placed_* = the located nodes with at most d + 1 fitted ranges (an independent count)."""
+    I = J = 100
+    r, s, i, j, y = simulate_sparse_network(I, J, 0.12, noise=0.01, size=20.0, rng=0)
+    sol = solve_toa_sparse(i, j, y, I, J, rng=0)
+    used = np.isfinite(sol.residuals)
+    cr, cs = np.bincount(i[used], minlength=I), np.bincount(j[used], minlength=J)
+    mr, ms = np.isfinite(sol.receivers[:, 0]), np.isfinite(sol.sources[:, 0])
+    np.testing.assert_array_equal(sol.weakly_placed_receivers, np.flatnonzero(mr & (cr <= 4)))
+    np.testing.assert_array_equal(sol.weakly_placed_sources, np.flatnonzero(ms & (cs <= 4)))
+    assert sol.weakly_placed_receivers.size + sol.weakly_placed_sources.size > 0  # this network has some
+    assert sol.mirrors_taken >= 0 and abs(sol.noise_estimate / 0.01 - 1) < 0.2
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_sparse_covariance_equals_the_dense_blocks(seed):
+    """CG columns of N^+ (sparse path) = the dense path's selected inversion, to 1e-9 relative.
+
+    Same network, same observed pairs and unequal weights; both are the Moore-Penrose
+    marginal blocks (the gauge projected out), so they agree up to the CG tolerance.
+    """
+    from selfcal.toa.covariance import covariance_blocks
+    from selfcal.toa.sparse_covariance import sparse_covariance_blocks
+
+    rng = np.random.default_rng(seed)
+    d = 2 + seed % 2
+    I, J = 12 + seed, 15 - seed
+    r, s = rng.uniform(0, 5, (I, d)), rng.uniform(0, 5, (J, d))
+    W = rng.uniform(0.5, 2.0, (I, J)) * 1e4
+    W[rng.random((I, J)) < 0.3] = 0.0
+    i, j = np.nonzero(W > 0)
+    Dr, Ds = covariance_blocks(r, s, W)
+    want = (rng.choice(I, 3, replace=False), rng.choice(J, 2, replace=False))
+    Cr, Cs = sparse_covariance_blocks(i, j, r, s, weights=W[i, j], covariance=want, rtol=1e-13)
+    scale = max(np.abs(Dr).max(), np.abs(Ds).max())
+    np.testing.assert_allclose(Cr[want[0]], Dr[want[0]], rtol=0, atol=1e-9 * scale)
+    np.testing.assert_allclose(Cs[want[1]], Ds[want[1]], rtol=0, atol=1e-9 * scale)
+    assert np.isnan(np.delete(Cr, want[0], axis=0)).all() and np.isnan(np.delete(Cs, want[1], axis=0)).all()
+    with pytest.raises(InputError):
+        sparse_covariance_blocks(i, j, r, s, covariance="local")

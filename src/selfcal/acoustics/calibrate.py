@@ -20,6 +20,7 @@ the scale from known unit distances :mod:`selfcal.acoustics.scale`.
 from __future__ import annotations
 
 import warnings
+from functools import cache
 from typing import Any
 
 import numpy as np
@@ -27,6 +28,7 @@ from numpy.typing import NDArray
 
 from ..errors import DegenerateGeometryError, InputError
 from ..geometry import n_parameters
+from ..robust import TUNING, loss_rho
 from .geometry import (
     PLANAR_ALPHA,
     ModelComparison,
@@ -35,7 +37,7 @@ from .geometry import (
     planarity,
     refine_known_heights,
 )
-from .verdict import TIMING_REQUIREMENT
+from .requirements import TIMING_REQUIREMENT
 
 __all__ = ["calibrate_matrix", "refit", "sender_matrix", "n_parameters_of"]
 
@@ -114,12 +116,12 @@ def _heights_fit(T: Array, heights: tuple[Array, Array], speed: float, rng: int,
     (z free, projected) are searches on different models and land in different basins when
     the matrix is sparse or holds a wrong detection. The 3-D start is tried only when the
     2-D one does not fit at the detections' stated noise (:func:`_fits_its_noise`). Each start is refined with the heights
-    under a Cauchy loss (scale 2.385 stds, from ``weights``; least squares without them), the
-    start whose robust cost ``sum log(1 + (z / 2.385)^2)`` is lower is kept and finished by
+    under a Cauchy loss (scale ``TUNING["cauchy"]`` = 2.385 stds, from ``weights``; least squares
+    without them), the start whose robust cost ``sum log(1 + (z / 2.385)^2)`` is lower is kept and finished by
     (weighted) least squares; the outlier test of :func:`selfcal.acoustics.robust_fit.robust_calibrate` follows.
     """
     sd = None if weights is None else 1.0 / np.asarray(weights, float)
-    f_sc = None if sd is None else 2.385 * float(np.nanmedian(sd[np.isfinite(sd)]))
+    f_sc = None if sd is None else TUNING["cauchy"] * float(np.nanmedian(sd[np.isfinite(sd)]))
     best: tuple[float, dict[str, Any], Any] | None = None
     tried = 0
     for d in (2, 3):
@@ -142,7 +144,7 @@ def _heights_fit(T: Array, heights: tuple[Array, Array], speed: float, rng: int,
             continue
         e = T - _predict(sol, speed)
         zz = e / (sd if sd is not None else float(np.nanstd(e)) or 1.0)
-        cost = float(np.nansum(np.log1p((zz / 2.385) ** 2)))
+        cost = _cauchy_cost(zz)
         if np.isfinite(cost) and (best is None or cost < best[0]):
             best = (cost, sol, init)
     if not tried:
@@ -158,9 +160,26 @@ def _heights_fit(T: Array, heights: tuple[Array, Array], speed: float, rng: int,
     return sol
 
 
-#: mean and standard deviation of log(1 + (z / 2.385)^2) for z ~ N(0, 1) (numerical integration
-#: by a 4e6-draw Monte-Carlo: 0.1446, 0.1756): the per-entry Cauchy cost of a fit at its noise
-_CAUCHY_COST_MEAN, _CAUCHY_COST_STD = 0.1446, 0.1756
+def _cauchy_cost(z: Array) -> float:
+    """``sum rho((z / c)^2)`` of the Cauchy loss, ``c = TUNING["cauchy"]``, over the finite z (in stds)."""
+    return float(np.nansum(loss_rho((z / TUNING["cauchy"]) ** 2, "cauchy")[0]))
+
+
+@cache
+def _cauchy_cost_moments() -> tuple[float, float]:
+    """Mean and standard deviation of one term of :func:`_cauchy_cost` for ``z ~ N(0, 1)``.
+
+    By quadrature (scipy.stats.norm.expect): 0.1447 and 0.1756 for ``c = 2.385``; the cost of
+    a fit at its own noise is a sum of such i.i.d. terms.
+    """
+    from scipy.stats import norm
+
+    def rho(z: float) -> float:
+        return float(np.log1p((z / TUNING["cauchy"]) ** 2))
+
+    mean = float(norm.expect(rho))
+    second = float(norm.expect(lambda z: rho(z) ** 2))
+    return mean, float(np.sqrt(second - mean**2))
 
 
 def _fits_its_noise(cost: float, T: Array) -> bool:
@@ -172,7 +191,8 @@ def _fits_its_noise(cost: float, T: Array) -> bool:
     many stds and exceeds it by orders of magnitude; then the 3-D start is also tried.
     """
     m = int(np.isfinite(T).sum())
-    return bool(np.isfinite(cost) and cost <= m * _CAUCHY_COST_MEAN + 3.09 * np.sqrt(m) * _CAUCHY_COST_STD)
+    mean, std = _cauchy_cost_moments()
+    return bool(np.isfinite(cost) and cost <= m * mean + 3.09 * np.sqrt(m) * std)
 
 
 def _place_dropped(T: Array, heights: tuple[Array, Array], r: Array, s: Array, dr: Array, ds: Array,

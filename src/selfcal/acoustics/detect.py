@@ -208,8 +208,8 @@ def matched_filter(segments: NDArray[np.floating[Any]], probe: Probe, n_fft: int
     return np.fft.ifft(full, axis=-1), G
 
 
-def _matched(segments: NDArray[np.float64], P: NDArray[np.complex128], n_fft: int,
-             n_keep: int) -> tuple[NDArray[np.complex128], NDArray[np.complex128]]:
+def _matched(segments: NDArray[np.floating[Any]], P: NDArray[np.inexact[Any]], n_fft: int,
+             n_keep: int) -> tuple[NDArray[np.complex64], NDArray[np.complex64]]:
     """:func:`matched_filter` with the probe's weighted spectrum ``P`` given; keeps ``n_keep`` lags.
 
     The analytic output is the inverse FFT of the one-sided spectrum; only the bins of the
@@ -259,7 +259,7 @@ def _newton_refine(G: NDArray[np.complex128], n_fft: int, tau0: NDArray[np.float
     return np.clip(tau, tau0 - 1.0, tau0 + 1.0)
 
 
-def _parabolic(z: NDArray[np.complex64], rows: NDArray[np.intp], coarse: NDArray[np.intp]) -> NDArray[np.float64]:
+def _parabolic(z: NDArray[np.complexfloating[Any, Any]], rows: NDArray[np.intp], coarse: NDArray[np.intp]) -> NDArray[np.float64]:
     """Vertex of the parabola through ``Re z`` at ``coarse - 1, coarse, coarse + 1`` (the Newton start)."""
     n = z.shape[1]
     c = np.clip(coarse, 1, n - 2)

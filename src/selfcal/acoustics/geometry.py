@@ -205,8 +205,8 @@ def _gauge_pinv(N: Array, xr: Array, xs: Array) -> Array:
     try:
         factor = cho_factor(N + scale * GG)
     except np.linalg.LinAlgError:  # a further null direction (a node with too few entries): SVD
-        return np.linalg.pinv(N, hermitian=True)
-    return cho_solve(factor, np.eye(n)) - GG / scale
+        return np.asarray(np.linalg.pinv(N, hermitian=True), dtype=np.float64)
+    return np.asarray(cho_solve(factor, np.eye(n)) - GG / scale, dtype=np.float64)
 
 
 def refine_known_heights(

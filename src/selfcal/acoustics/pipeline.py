@@ -37,11 +37,12 @@ from .geometry import (
     refine_known_heights,
 )
 from .noise import MF_FACTOR, TIMING_FLOOR, detection_std, fit_test, residual_check, timing_noise
+from .requirements import POSITION_REQUIREMENT, TIMING_REQUIREMENT
 from .robust_fit import Outlier, robust_calibrate
 from .scale import apply_scale, scale_from_distances
 from .scoring import truth_errors
 from .units import unit_pairs
-from .verdict import POSITION_REQUIREMENT, TIMING_REQUIREMENT, ErrorBars, Verdict, error_bars, judge
+from .verdict import ErrorBars, Verdict, error_bars, judge
 
 __all__ = [
     "PipelineResult",

@@ -82,7 +82,7 @@ def render_html(result: Any, errors: dict[str, Any] | None = None, *, summary: l
     out_s = {o.sender for o in result.outliers}
     for k in range(max(I, J)):
         cells = []
-        for P, C, names, offs, ostd, dropped, outl in (
+        for P, C, names, offs, ostd, dropped, flagged in (
                 (result.receivers, result.receiver_cov, result.receiver_names, result.receiver_offsets,
                  None if bars is None else bars.delay_std, result.dropped_receivers, out_r),
                 (result.sources, result.source_cov, result.sender_names, result.source_offsets,
@@ -91,7 +91,7 @@ def render_html(result: Any, errors: dict[str, Any] | None = None, *, summary: l
                 cells.append("<td></td>" * (d + 3))
                 continue
             name = names[k]
-            status = "dropped" if name in dropped else ("outlier(s)" if k in outl else "")
+            status = "dropped" if name in dropped else ("outlier(s)" if k in flagged else "")
             pos = "".join(f"<td>{_fmt(float(P[k, a]), 1.0, 5)}</td>" for a in range(d))
             pstd = float(np.sqrt(np.trace(C[k]))) if np.isfinite(C[k]).all() else float("nan")
             os_ = float(ostd[k]) if ostd is not None else float("nan")

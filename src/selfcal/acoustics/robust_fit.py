@@ -27,7 +27,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..errors import DegenerateGeometryError
-from ..robust import mad_std
+from ..robust import TUNING, mad_std
 from .calibrate import _predict, calibrate_matrix, n_parameters_of, refit, sender_matrix
 from .geometry import Planarity
 from .leverage import event_leverage
@@ -321,7 +321,7 @@ def robust_calibrate(
             # (scale 2.385 stds: 95 % efficiency under Gaussian noise), then rank the residuals
             robust_start = True
             try:
-                f_sc = 2.385 * float(np.nanmedian(s_ev)) * scale
+                f_sc = TUNING["cauchy"] * float(np.nanmedian(s_ev)) * scale
                 sol = refit(Tk, sol, speed, hz, f_scale=f_sc, weights=wts())
                 needs_ls = True
                 continue
@@ -337,7 +337,7 @@ def robust_calibrate(
             last = np.isfinite(t_ev[a, es_k == es_k[b]]).sum() == 1
             if last and (cnt_r[a] <= need or cnt_s[es_k[b]] <= need):
                 continue
-            ok.append((a, b))
+            ok.append((int(a), int(b)))
         if not ok:
             if searched or noise is None:
                 break

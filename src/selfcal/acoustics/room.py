@@ -148,25 +148,25 @@ def simulate_conference(
     except ValueError as exc:
         raise InputError(f"rt60 = {rt60:g} s is not reachable in this room ({exc})") from None
     order = int(needed if max_order is None else min(needed, max_order))
-    shoebox = pra.ShoeBox(room_dim.tolist(), fs=fs, materials=pra.Material(absorption), max_order=order,
+
+    def impulse_responses(image_order: int) -> Any:
+        """The room's impulse responses ``rir[receiver][sender]`` up to ``image_order`` reflections."""
+        box = pra.ShoeBox(room_dim.tolist(), fs=fs, materials=pra.Material(absorption), max_order=image_order,
                           air_absorption=False)
-    shoebox.set_sound_speed(speed)
-    for s in scene.senders:
-        shoebox.add_source(s)
-    shoebox.add_microphone_array(scene.receivers.T)
-    shoebox.compute_rir()
+        box.set_sound_speed(speed)
+        for s_pos in scene.senders:
+            box.add_source(s_pos)
+        box.add_microphone_array(scene.receivers.T)
+        box.compute_rir()
+        return box.rir
+
+    room_rir = impulse_responses(order)
     delay0 = pra_group_delay()
     direct: dict[tuple[int, int], NDArray[np.float64]] = {}
     if occlusions:
-        free = pra.ShoeBox(room_dim.tolist(), fs=fs, materials=pra.Material(absorption), max_order=0,
-                           air_absorption=False)
-        free.set_sound_speed(speed)
-        for s_pos in scene.senders:
-            free.add_source(s_pos)
-        free.add_microphone_array(scene.receivers.T)
-        free.compute_rir()
+        free_rir = impulse_responses(0)  # the direct paths alone
         for (i, j), db in occlusions.items():
-            direct[(int(i), int(j))] = (1.0 - 10.0 ** (-float(db) / 20.0)) * np.asarray(free.rir[int(i)][int(j)])
+            direct[(int(i), int(j))] = (1.0 - 10.0 ** (-float(db) / 20.0)) * np.asarray(free_rir[int(i)][int(j)])
 
     U = len(scene.senders)
     if not np.isfinite(jitter) or jitter < 0:
@@ -183,7 +183,7 @@ def simulate_conference(
     signals = np.zeros((U, n_total), dtype=np.float32)
     x = prb.samples
     for j in tqdm(range(U), desc="simulate", unit="sender", disable=None if progress else True, leave=False):
-        rirs = [shoebox.rir[i][j] for i in range(U)]
+        rirs = [room_rir[i][j] for i in range(U)]
         lh = max(len(h) for h in rirs)
         h = np.zeros((U, lh))
         for i, r in enumerate(rirs):
@@ -193,15 +193,15 @@ def simulate_conference(
                 h[i, : min(len(g), lh)] -= g[:lh]
         n_conv = lh + len(x) - 1
         n_fft = int(2 ** np.ceil(np.log2(n_conv + 2)))
-        spec = np.fft.rfft(h, n_fft) * np.fft.rfft(x, n_fft)[None, :]
-        k_bins = np.arange(spec.shape[-1])
+        conv = np.fft.rfft(h, n_fft) * np.fft.rfft(x, n_fft)[None, :]
+        k_bins = np.arange(conv.shape[-1])
         for e in np.flatnonzero(ev_sender == j):
             if int(e) in missing_events:
                 continue
             start = (times[e] + scene.sender_onsets[j] + scene.receiver_delays + shake[:, e]) * fs - delay0
             n0 = np.floor(start).astype(np.int64)
             frac = start - n0
-            wet = np.fft.irfft(spec * np.exp(-2j * np.pi * k_bins[None, :] * frac[:, None] / n_fft),
+            wet = np.fft.irfft(conv * np.exp(-2j * np.pi * k_bins[None, :] * frac[:, None] / n_fft),
                                n_fft)[:, : n_conv + 1]
             for i in range(U):
                 a, b = max(n0[i], 0), min(n0[i] + wet.shape[1], n_total)

@@ -29,12 +29,11 @@ import numpy as np
 import scipy.sparse
 from numpy.typing import NDArray
 
+from .requirements import POSITION_REQUIREMENT, SIGMAS, TIMING_REQUIREMENT
+
 __all__ = ["POSITION_REQUIREMENT", "TIMING_REQUIREMENT", "SIGMAS", "ErrorBars", "Verdict", "error_bars", "judge"]
 
 Array = NDArray[np.float64]
-POSITION_REQUIREMENT = 0.10  # m, 004 sec. 2.1 requirement 1(a)
-TIMING_REQUIREMENT = 58e-6  # s, 004 sec. 2.2 (2 cm at 343 m/s)
-SIGMAS = 2.0  # a requirement is met when this many standard deviations fit inside it (~95 %)
 
 
 @dataclass(frozen=True)

@@ -1,5 +1,13 @@
 """selfcal.aoa: receiver location and orientation from angles of arrival (paper 001).
 
+The package exports the entry points: :func:`solve_aoa` with its result classes and method
+names, the residual test, and the conversions of measurements into bearings
+(:mod:`~selfcal.aoa.bearings`: two orthogonal TDOA pairs, angles, azimuth / elevation). The
+paper's solutions stay importable from their modules (:mod:`~selfcal.aoa.solution1`,
+:mod:`~selfcal.aoa.solution2`, :mod:`~selfcal.aoa.p3p`, :mod:`~selfcal.aoa.planar2d`,
+:mod:`~selfcal.aoa.ml`, :mod:`~selfcal.aoa.orientation`); ``solve_aoa(method=...)`` selects
+them.
+
 >>> import numpy as np
 >>> from selfcal.aoa import solve_aoa
 >>> beacons = np.array([[0.0, 0, 0], [5, 0, 0], [0, 5, 0], [5, 5, 0]])
@@ -10,14 +18,10 @@
 True
 """
 
-from .ml import refine_ml, residuals_2d, residuals_3d
-from .orientation import kabsch, nearest_rotation, orientation_from_vectors
-from .p3p import p3p, p3p_ranges
-from .planar2d import linear_pose_2d
-from .pose import METHODS_2D, METHODS_3D, AoaCandidate, AoaResult, residual_test, solve_aoa
-from .solution1 import newton_location, solution1, torus_jacobian, torus_residuals
-from .solution2 import newton_ranges, solution2
-from .tdoa import (
+from __future__ import annotations
+
+from .._api import moved_names
+from .bearings import (
     Bearings,
     angles_to_bearings,
     azel_to_bearings,
@@ -25,6 +29,9 @@ from .tdoa import (
     bearings_to_azel,
     tdoa_to_bearings,
 )
+from .checks import residual_test
+from .pose import METHODS_2D, METHODS_3D, solve_aoa
+from .result import AoaCandidate, AoaResult
 
 __all__ = [
     "AoaCandidate",
@@ -34,24 +41,24 @@ __all__ = [
     "METHODS_3D",
     "angles_to_bearings",
     "azel_to_bearings",
-    "bearings_to_azel",
     "bearings_to_angles",
-    "kabsch",
-    "linear_pose_2d",
-    "nearest_rotation",
-    "newton_location",
-    "newton_ranges",
-    "orientation_from_vectors",
-    "p3p",
-    "p3p_ranges",
-    "refine_ml",
+    "bearings_to_azel",
     "residual_test",
-    "residuals_2d",
-    "residuals_3d",
-    "solution1",
-    "solution2",
     "solve_aoa",
     "tdoa_to_bearings",
-    "torus_jacobian",
-    "torus_residuals",
 ]
+
+#: building blocks once exported here -> the module that defines them (deprecated here).
+#: ``p3p``, ``solution1`` and ``solution2`` are not listed: those names are the submodules.
+_MOVED = {
+    "kabsch": "orientation", "nearest_rotation": "orientation", "orientation_from_vectors": "orientation",
+    "p3p_ranges": "p3p", "linear_pose_2d": "planar2d",
+    "newton_location": "solution1", "torus_jacobian": "solution1", "torus_residuals": "solution1",
+    "newton_ranges": "solution2",
+    "refine_ml": "ml", "residuals_2d": "ml", "residuals_3d": "ml",
+}
+__getattr__ = moved_names(__name__, _MOVED)
+
+
+def __dir__() -> list[str]:
+    return sorted(__all__)

@@ -11,6 +11,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from .._checks import as_points
 from ..errors import DegenerateGeometryError, InputError
+from ..geometry import gauge_freedoms
 from .ml import residuals_2d, residuals_3d
 from .result import AoaFit
 
@@ -160,17 +161,37 @@ def residual_test(residual_rms: Any, n_beacons: int, dim: int, sigma: float | No
 
     Parameters
     ----------
-    residual_rms : float or (B,) rad; n_beacons : beacons used; dim : 2 or 3;
-    sigma : angular noise std (rad) or None.
+    residual_rms : float or (B,) array
+        RMS angular residual of each pose, rad (``AoaResult.residual_rms``).
+    n_beacons : int
+        Beacons used (N).
+    dim : {2, 3}
+    sigma : float, optional
+        Angular noise std, rad; None uses :data:`PLAUSIBLE_SIGMA`.
 
     Returns
     -------
-    passed (bool array), ratio (statistic over the quantile; > 1 fails).
+    passed : bool array, the shape of ``residual_rms``
+    ratio : float array
+        The statistic over the quantile; above 1 fails.
+
+    Notes
+    -----
+    Gaussian angular noise is the model of paper 001's simulations; the chi-square count of
+    the least-squares residuals is the standard fit test under it, here at level
+    :data:`RESIDUAL_TEST_LEVEL` (0.999).
+
+    Examples
+    --------
+    Six beacons in 3-D (6 degrees of freedom): an RMS of 1 sigma passes, 3 sigma fails.
+
+    >>> passed, ratio = residual_test([0.01, 0.03], 6, 3, sigma=0.01)
+    >>> passed.tolist(), bool(ratio[1] > 1)
+    ([True, False], True)
     """
     from scipy.stats import chi2
 
-    n_res = (2 if dim == 3 else 1) * n_beacons
-    dof = n_res - (6 if dim == 3 else 3)
+    n_res, dof = _n_residuals_dof(n_beacons, dim)
     sig = PLAUSIBLE_SIGMA if sigma is None else float(sigma)
     rms = np.asarray(residual_rms, float)
     if dof <= 0:
@@ -179,12 +200,21 @@ def residual_test(residual_rms: Any, n_beacons: int, dim: int, sigma: float | No
     return np.asarray(np.isfinite(rms) & (ratio <= 1.0)), np.asarray(ratio)
 
 
+def _n_residuals_dof(n_beacons: int, dim: int) -> tuple[int, int]:
+    """Angle residuals (two per beacon in 3-D, one in 2-D) and their degrees of freedom.
+
+    The unknown pose is a rigid motion (position and orientation), so it takes
+    :func:`~selfcal.geometry.gauge_freedoms` parameters: 6 in 3-D, 3 in 2-D.
+    """
+    n_res = (2 if dim == 3 else 1) * int(n_beacons)
+    return n_res, n_res - gauge_freedoms(dim)
+
+
 def _fit(rms: Array, n: int, d: int, sigma: float | None, batched: bool) -> AoaFit:
     from scipy.stats import chi2 as chi2_dist
 
     passed, _ = residual_test(rms, n, d, sigma)
-    n_res = (2 if d == 3 else 1) * n
-    dof = n_res - (6 if d == 3 else 3)
+    n_res, dof = _n_residuals_dof(n, d)
     noise = PLAUSIBLE_SIGMA if sigma is None else float(sigma)
     stat = n_res * np.asarray(rms, float) ** 2 / noise**2
     p = chi2_dist.sf(stat, dof) if dof > 0 else np.full(stat.shape, np.nan)

@@ -75,7 +75,7 @@ def _axis_errors(R_est: Array, R_true: Array) -> Array:
 
 
 def _noisy_bearings(beacons: Array, m: Array, R: Array, sigma_deg: float, rng: np.random.Generator) -> tuple[Array, int]:
-    from ..aoa.tdoa import angles_to_bearings, bearings_to_angles
+    from ..aoa.bearings import angles_to_bearings, bearings_to_angles
 
     g = beacons - m
     local = (g / np.linalg.norm(g, axis=1, keepdims=True)) @ R  # R^T (b - m)/|b - m|

@@ -14,6 +14,7 @@ import numpy as np
 from matplotlib.figure import Figure
 from numpy.typing import NDArray
 
+from ..acoustics.requirements import TIMING_REQUIREMENT
 from ._common import finish, new_figure
 from .elements import confidence_ellipse, plot_positions, position_views
 
@@ -79,16 +80,14 @@ def plot_timing(result: Any, path: Path | None = None, errors: dict[str, Any] | 
         With ``delay_errors`` / ``onset_errors`` (s): those are drawn, in microseconds.
     requirement : float, optional
         Timing requirement drawn as +- lines, s (default: paper 004's 58 us,
-        :data:`selfcal.acoustics.pipeline.TIMING_REQUIREMENT`).
+        :data:`selfcal.acoustics.requirements.TIMING_REQUIREMENT`).
 
     Returns
     -------
     Figure
     """
     if requirement is None:
-        from ..acoustics.pipeline import TIMING_REQUIREMENT
-
-        requirement = float(TIMING_REQUIREMENT)
+        requirement = TIMING_REQUIREMENT
     fig, (ax1, ax2) = new_figure(1, 2, size=(11.0, 4.2))
     if errors is not None:
         ax1.plot(np.asarray(errors["delay_errors"]) * 1e6, "o", label="internal delay error")

@@ -5,7 +5,7 @@ Modules: :mod:`~selfcal.slac.antenna` (manifold separation, eqs. 7-9), :mod:`~se
 :mod:`~selfcal.slac.motion` (eq. 14), :mod:`~selfcal.slac.filter` (IEKF-like MAP filter, eqs. 20-26; its
 state layout :mod:`~selfcal.slac.state`, link bookkeeping :mod:`~selfcal.slac.links`, MAP / Laplace update
 :mod:`~selfcal.slac.laplace`, linear algebra :mod:`~selfcal.slac.linalg`),
-:mod:`~selfcal.slac.doa` (coherent ML DoA), :mod:`~selfcal.slac.measurement` (range/bearing level),
+:mod:`~selfcal.slac.doa` (coherent ML DoA),
 :mod:`~selfcal.slac.run` (logs and :func:`solve_slac`), :mod:`~selfcal.slac.smoother` (optional fixed-lag
 smoother, beyond the paper), :mod:`~selfcal.slac.ranging` (one robot, odometry + beacon ranges with
 per-beacon scale and offset: robust filter and batch smoother, :func:`solve_range_slac`),
@@ -21,7 +21,7 @@ from typing import Any
 _LAZY = {
     "SlacLog": "run", "SlacResult": "run", "solve_slac": "run",
     "SlacConfig": "filter", "SlacFilter": "filter", "SlacSmoother": "smoother",
-    "estimate_doa": "doa", "RangeFilter": "measurement", "RangeConfig": "measurement",
+    "estimate_doa": "doa",
     "RangeLog": "ranging", "RangeModelConfig": "ranging", "RangeSlacResult": "ranging",
     "solve_range_slac": "ranging", "write_trajectory_csv": "export", "write_trajectory_tum": "export",
 }

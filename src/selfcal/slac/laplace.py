@@ -5,9 +5,8 @@ analytic gradient in coordinates whitened by the posterior information at the st
 the identity is already a good inverse Hessian), then ``P_hat`` = the inverse Hessian of the
 objective at the solution, with the likelihood Hessian replaced by its Fisher information
 (``covariance="fisher"``) or taken by central differences of the gradient (``"fd"``, the
-paper's numerical Hessian). Used by the filter (:mod:`selfcal.slac.filter`), the fixed-lag
-smoother (:mod:`selfcal.slac.smoother`) and the range/bearing filter
-(:mod:`selfcal.slac.measurement`).
+paper's numerical Hessian). Used by the filter (:mod:`selfcal.slac.filter`) and the fixed-lag
+smoother (:mod:`selfcal.slac.smoother`).
 """
 
 from __future__ import annotations

@@ -2,63 +2,56 @@
 
 ``solve_farfield(D)`` recovers receiver positions, unit transmitter directions and
 per-transmitter offsets from relative distances ``D_ij = z_i . n_j + C_j``; see
-:mod:`selfcal.tdoa.farfield`. The building blocks are public: the batched minimal solver
-(:func:`solve_minimal`, Algorithm 1), the failure-mode analysis (:func:`analyse_degeneracy`),
-the overdetermined initialisation (:func:`initialize_farfield`), alternating optimisation
-(:func:`refine_alternating`, Algorithm 2) and Levenberg-Marquardt on the spheres
-(:func:`refine_lm`, Algorithm 3). ``solve_farfield(D, dim=2 | 1 | "auto")`` calibrates planar
-and linear arrays (the determined part of paper 000's degenerate cases); the transposed
-layout is refused by :func:`check_orientation`.
+:mod:`selfcal.tdoa.farfield`. ``solve_farfield(D, dim=2 | 1 | "auto")`` calibrates planar
+and linear arrays (the determined part of paper 000's degenerate cases).
+
+The package exports the entry points: the solver and its result, the batched minimal
+solver (:func:`solve_minimal`, Algorithm 1), refinement from a given start
+(:func:`refine_lm`, Algorithm 3), the failure-mode analysis (:func:`analyse_degeneracy`) and
+the Cramer-Rao bound (:func:`farfield_crlb`). The building blocks stay importable from
+their modules: :mod:`~selfcal.tdoa.initialize` (overdetermined initialisation),
+:mod:`~selfcal.tdoa.alternating` (Algorithm 2), :mod:`~selfcal.tdoa.lm`,
+:mod:`~selfcal.tdoa.model` (residuals, Jacobian), :mod:`~selfcal.tdoa.screen` (gross-error
+screening, RANSAC), :mod:`~selfcal.tdoa.orientation` (the transposed-layout check),
+:mod:`~selfcal.tdoa.degeneracy` (quadric fit, the degeneracy table).
 """
 
-from .degeneracy import DEGENERACIES, DegeneracyReport, analyse_degeneracy, fit_quadric
-from .farfield import (
-    FarfieldInit,
-    FarfieldResult,
-    check_orientation,
-    fit_A_nonlinear,
-    initialize_farfield,
-    lowrank_fit,
-    ransac_farfield,
-    reduce_matrix,
-    screen_gross_errors,
-    solve_farfield,
-)
+from __future__ import annotations
+
+from .._api import moved_names
+from .crlb import farfield_crlb
+from .degeneracy import DegeneracyReport, analyse_degeneracy
+from .farfield import solve_farfield
+from .lm import refine_lm
 from .minimal import MinimalSolution, solve_minimal
-from .refine import (
-    RefineResult,
-    farfield_crlb,
-    farfield_jacobian,
-    farfield_residuals,
-    refine_alternating,
-    refine_lm,
-    sphere_lstsq_global,
-    sphere_lstsq_local,
-)
+from .model import RefineResult
+from .result import FarfieldResult
 
 __all__ = [
-    "DEGENERACIES",
     "DegeneracyReport",
-    "FarfieldInit",
     "FarfieldResult",
     "MinimalSolution",
     "RefineResult",
     "analyse_degeneracy",
-    "check_orientation",
     "farfield_crlb",
-    "farfield_jacobian",
-    "farfield_residuals",
-    "fit_A_nonlinear",
-    "fit_quadric",
-    "initialize_farfield",
-    "lowrank_fit",
-    "ransac_farfield",
-    "reduce_matrix",
-    "refine_alternating",
     "refine_lm",
-    "screen_gross_errors",
     "solve_farfield",
     "solve_minimal",
-    "sphere_lstsq_global",
-    "sphere_lstsq_local",
 ]
+
+#: building blocks once exported here -> the module that defines them (deprecated here)
+_MOVED = {
+    "DEGENERACIES": "degeneracy", "fit_quadric": "degeneracy",
+    "FarfieldInit": "result",
+    "check_orientation": "orientation",
+    "fit_A_nonlinear": "initialize", "initialize_farfield": "initialize", "reduce_matrix": "initialize",
+    "lowrank_fit": "screen", "ransac_farfield": "screen", "screen_gross_errors": "screen",
+    "farfield_jacobian": "model", "farfield_residuals": "model",
+    "refine_alternating": "alternating", "sphere_lstsq_global": "alternating",
+    "sphere_lstsq_local": "alternating",
+}
+__getattr__ = moved_names(__name__, _MOVED)
+
+
+def __dir__() -> list[str]:
+    return sorted(__all__)

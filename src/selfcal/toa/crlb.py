@@ -21,7 +21,7 @@ from numpy.typing import NDArray
 
 from .._checks import as_points, check_choice
 from ..errors import InputError
-from .covariance import gauge_free_blocks, resolve_covariance
+from .covariance import gauge_free_blocks, is_local, normalize_covariance, resolve_covariance
 from .nls import OFFSET_MODES, _flags, _make_layout, _pack
 
 __all__ = ["CrlbResult", "toa_crlb"]
@@ -119,6 +119,8 @@ def toa_crlb(
     theta = _pack(r, s, np.zeros(I) if has_r else None, np.zeros(J) if has_s else None)
     lay = _make_layout(r, s, offsets)
     w = np.where(m, 1.0 / sig**2, 0.0)
+    if is_local(normalize_covariance(covariance)):
+        raise InputError("toa_crlb: covariance='local' is an approximation, not a bound; ask for 'all' or indices")
     ri, si = resolve_covariance(covariance, I, J)
     Cr, Cs = gauge_free_blocks(theta, w, lay, ri, si)
     rb, sb = Cr[:, :d, :d], Cs[:, :d, :d]

@@ -98,6 +98,15 @@ def finish(M: Array, dim: int, offsets: str, *, init: Any, speed: float | None, 
     gross = gross_entries(Yc)
     used = obs & ~gross
     keep_r, keep_s = drop_unidentifiable(used, dim, offsets)
+    if gross.any():
+        try:
+            _check_kept(used, keep_r, keep_s, dim, offsets)
+        except DegenerateGeometryError:
+            # the screen must not make an identifiable network unidentifiable: screen nothing
+            # (the robust loss and the outlier rule still judge every entry)
+            gross = np.zeros_like(gross)
+            used = obs.copy()
+            keep_r, keep_s = drop_unidentifiable(used, dim, offsets)
     _check_kept(used, keep_r, keep_s, dim, offsets)
     n_par_of = lambda kr, ks: n_parameters(int(kr.sum()), int(ks.sum()), dim, offsets)  # noqa: E731
 
@@ -117,8 +126,11 @@ def finish(M: Array, dim: int, offsets: str, *, init: Any, speed: float | None, 
     outliers = np.zeros((I, J), bool)
     best: NlsSolution | None = None
     prev_keep = (keep_r.copy(), keep_s.copy())
+    degenerate = False  # the best fit collapsed to a line / point (data that fit no dim-D geometry)
     # 4. the search (ML cost on the entries in use), 5. the outlier rule; a changed set of
     # inliers runs the search again from the winner (at most twice: the rule converges fast)
+    if given is None and not one:
+        given = _nested_start(sub(used, keep_r, keep_s), dim, offsets, rng, loss, fs, max_nfev)
     for rnd in range(3):
         Ys = sub(used, keep_r, keep_s)
         first = given if best is None else ("previous", _restrict(_embed_start(best, prev_keep, keep_r, keep_s),
@@ -142,7 +154,13 @@ def finish(M: Array, dim: int, offsets: str, *, init: Any, speed: float | None, 
             # candidates: the rule on a robust refit over every entry that is not absurd; the
             # linear fit without them is what the rule then judges every entry against
             Yr = sub(obs & ~gross, keep_r, keep_s)
-            rob = _refine(Yr, _start(best), dim, offsets, robust_loss, fs, max_nfev, False)
+            try:
+                rob = _refine(Yr, _start(best), dim, offsets, robust_loss, fs, max_nfev, False)
+            except DegenerateGeometryError:
+                # the winner is (nearly) collinear: no outlier rule on a geometry of lower
+                # dimension; the trust test judges it below
+                degenerate = True
+                break
             iters += rob.iterations
             n_runs += 1
             cand = _flag(Yc, rob, keep_r, keep_s, offsets, sd, np.isfinite(Yr)) | gross[np.ix_(keep_r, keep_s)]
@@ -187,15 +205,23 @@ def finish(M: Array, dim: int, offsets: str, *, init: Any, speed: float | None, 
     label += f"+search({n_runs})" if n_runs > 1 else ""
     Yf = sub(used, keep_r, keep_s)
     st = _restrict(_embed_start(best, prev_keep, keep_r, keep_s), keep_r, keep_s)
-    try:
-        final = _refine(Yf, st, dim, offsets, final_loss, fs, max_nfev, _cov_spec(covariance, pr, pc, keep_r, keep_s))
-    except DegenerateGeometryError:
-        if not covariance:
-            raise
-        final = _refine(Yf, st, dim, offsets, final_loss, fs, max_nfev, False)
-    iters += final.iterations
-    n_runs += 1
-    if not robust:  # flagged for the reader, not removed
+    final = best
+    if not degenerate:
+        try:
+            final = _refine(Yf, st, dim, offsets, final_loss, fs, max_nfev,
+                            _cov_spec(covariance, pr, pc, keep_r, keep_s))
+        except DegenerateGeometryError:
+            try:
+                final = _refine(Yf, st, dim, offsets, final_loss, fs, max_nfev, False)
+            except DegenerateGeometryError:
+                degenerate = True  # the search's winner is (nearly) collinear: reported, not raised
+        iters += final.iterations if final is not best else 0
+        n_runs += 1
+    if degenerate:
+        final = _without_covariance(best)
+        keep_r, keep_s = prev_keep  # the nodes the winner was fitted on
+        Yf = sub(used, keep_r, keep_s)
+    if not robust and not degenerate:  # flagged for the reader, not removed
         outliers = np.zeros((I, J), bool)
         outliers[np.ix_(keep_r, keep_s)] = _flag(Yc, final, keep_r, keep_s, offsets, sd, np.isfinite(Yf))
 
@@ -206,34 +232,73 @@ def finish(M: Array, dim: int, offsets: str, *, init: Any, speed: float | None, 
     dof = m - n_par
     noise_est = _noise_estimate(R_fit, dof)
     fit = geo = None
+    passed: bool | None = None
     if sd is not None:
         fit = residual_test(R_fit / scale, sd / scale, n_par)
-        passed: bool | None = fit.passed
-    else:
+        passed = fit.passed
+    elif not degenerate:
         geo = geometry_test(Yf, R_fit, leverages(Yf, *_start(final), offsets), dim, offsets)
         passed = geo.passed
     status, key = _verdict(passed, dof, final.converged, sd is not None)
+    if degenerate:
+        status, key = Status.FAILED_TEST, "degenerate"
     message = MESSAGES[key]
     if key == "chi2-failed" and fit is not None:
         message += f" (chi2 = {fit.chi2:.4g} for {fit.dof} dof, p = {fit.p_value:.3g})"
     if key == "cv-failed" and geo is not None:
-        message += f" (PRESS {geo.press:.3g} vs {geo.press_null:.3g} without geometry)"
+        pt = geo.permutation
+        perm = "" if pt is None else (f"; RSS ratio {pt.statistic:.3g} vs {pt.null_min:.3g} at least in "
+                                      f"{pt.copies} permuted copies, p = {pt.p_value:.2g}")
+        message += f" (median PRESS {geo.press:.3g} vs {geo.press_null:.3g} without geometry{perm})"
 
     # 7. back to the caller's numbering
     return _package(M, Yc, final, keep_r, keep_s, pr, pc, outliers, speed, label, iters, n_runs, fit, geo,
                     status, message, noise, noise_est, dim, offsets, n_negative)
 
 
-def _solver(Y: Array, dim: int, offsets: str) -> str:
-    """The engine's dense trust-region solver for small problems, its Schur LM above.
+def _nested_start(Y: Array, dim: int, offsets: str, rng: np.random.Generator, loss: str, fs: float | None,
+                  max_nfev: int | None) -> tuple[str, Start] | None:
+    """The offsets-free fit with zero offsets: a start of every model that nests it.
 
-    Small, ill-conditioned problems (few sources far from the receivers, both offsets)
-    take the LM hundreds of damped steps; the dense ``trf`` of ``least_squares`` is then
-    several times faster. Above ``MOVES_MAX_NODES`` nodes the Schur LM is the faster one
-    (benchmarks/bench_toa.py).
+    Zero offsets make the nested model's solution a point of the larger model with the same
+    cost, so the larger model's search, which only accepts lower costs, never ends above it
+    (before, ``offsets="receivers"`` ended at RSS 28.1 vs 24.0 for the offsets-free fit on the
+    LPS flight data4). The nested model is found by the search's starts without moves (on
+    large networks its one start, :func:`selfcal.toa.search.default_budget`).
     """
+    if offsets == "none":
+        return None
+    try:
+        out = search(Y, dim, "none", rng=rng, loss="linear" if loss == "auto" else loss, f_scale=fs,
+                     max_nfev=max_nfev, use_moves=False, solver=_solver(Y, dim, "none"))
+    except (DegenerateGeometryError, InputError):
+        return None
+    sol = out.solution
     I, J = Y.shape
-    return "trf" if I + J <= 60 else "auto"
+    has_r, has_s = offsets in ("receivers", "both"), offsets in ("sources", "both")
+    return ("nested", (sol.receivers, sol.sources, np.zeros(I) if has_r else None, np.zeros(J) if has_s else None))
+
+
+def _without_covariance(sol: NlsSolution) -> NlsSolution:
+    """``sol`` with NaN covariances (a degenerate geometry has none)."""
+    import dataclasses
+
+    nan = lambda a: None if a is None else np.full(np.shape(a), np.nan)  # noqa: E731
+    return dataclasses.replace(sol, receiver_cov=nan(sol.receiver_cov), source_cov=nan(sol.source_cov),
+                               receiver_offset_std=nan(sol.receiver_offset_std),
+                               source_offset_std=nan(sol.source_offset_std))
+
+
+def _solver(Y: Array, dim: int, offsets: str) -> str:
+    """The engine's solver: its default ("auto", the Schur LM) at every size.
+
+    Small problems take its dense step (:mod:`selfcal.toa.schur_lm`, ~1 ms per iteration at
+    12 x 6 with both offsets, where the CG step cost 15 ms and ``trf`` was chosen here for
+    them); measured equal or faster than ``trf`` with the same costs on 8 x 10 (2-D and 3-D),
+    10 x 14, 12 x 14, 20 x 20 with both offsets and 30 x 40 (``benchmarks/bench_toa_minimal.py``
+    notes in issue 12).
+    """
+    return "auto"
 
 
 def _refine(Y: Array, start: Start, dim: int, offsets: str, loss: str, fs: float | None, max_nfev: int | None,

@@ -43,6 +43,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..errors import DegenerateGeometryError, InputError
+from ..geometry import rotate_covariances
 from .known import fit_known
 from .nodes import (
     FramedToaResult,
@@ -52,10 +53,9 @@ from .nodes import (
     parse_frame,
     parse_known,
     read_known_csv,
+    refit_data,
     replace_fields,
     resolve_node,
-    rotate_cov,
-    units,
 )
 
 __all__ = [
@@ -181,8 +181,8 @@ def apply_frame(result: Any, frame: str | Mapping[str, Any], *, matrix: Any = No
         if role in refs:
             kind, idx = refs[role]
             (Rn if kind == "receiver" else Sn)[idx, list(axes)] = 0.0
-    rc = rotate_cov(np.asarray(result.receiver_cov, float), Rm)
-    scv = rotate_cov(np.asarray(result.source_cov, float), Rm)
+    rc = rotate_covariances(np.asarray(result.receiver_cov, float), Rm)
+    scv = rotate_covariances(np.asarray(result.source_cov, float), Rm)
     out = replace_fields(result, receivers=Rn, sources=Sn, receiver_cov=rc, source_cov=scv,
                    method=f"{result.method}+frame")
     if matrix is not None and np.isfinite(rc).all() and np.isfinite(scv).all():
@@ -199,10 +199,8 @@ def _frame_covariance(result: Any, matrix: Any, refs: dict[str, tuple[str, int]]
     """Covariances in the reference frame: refit with exactly the frame's gauge fixed."""
     from .nls import refine_toa
 
-    c = units(result)
-    Y = np.asarray(matrix, float) * c
-    R = np.asarray(result.receivers, float)
-    S = np.asarray(result.sources, float)
+    data = refit_data(result, matrix)
+    R, S, ok_r, ok_s = data.receivers, data.sources, data.ok_r, data.ok_s
     I, d = R.shape
     J = S.shape[0]
     fr = np.zeros((I, d), bool)
@@ -211,11 +209,8 @@ def _frame_covariance(result: Any, matrix: Any, refs: dict[str, tuple[str, int]]
         if role in refs:
             kind, idx = refs[role]
             (fr if kind == "receiver" else fs)[idx, list(axes)] = True
-    ok_r, ok_s = np.isfinite(R).all(1), np.isfinite(S).all(1)
-    Ysub = Y[np.ix_(ok_r, ok_s)]
-    do = None if result.receiver_offsets is None else np.asarray(result.receiver_offsets, float)[ok_r] * c
-    so = None if result.source_offsets is None else np.asarray(result.source_offsets, float)[ok_s] * c
-    sol = refine_toa(Ysub, R[ok_r], S[ok_s], offsets=offsets, receiver_offsets0=do, source_offsets0=so,
+    sol = refine_toa(data.Y[np.ix_(ok_r, ok_s)], R[ok_r], S[ok_s], offsets=offsets,
+                     receiver_offsets0=data.receiver_offsets, source_offsets0=data.source_offsets,
                      loss=loss, fixed_receivers=fr[ok_r], fixed_sources=fs[ok_s])
     rc = np.full((I, d, d), np.nan)
     scv = np.full((J, d, d), np.nan)

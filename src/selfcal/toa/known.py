@@ -18,7 +18,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..errors import DegenerateGeometryError
-from .nodes import FramedToaResult, FrameInfo, KnownNode, node_positions, replace_fields, units
+from .nodes import FramedToaResult, FrameInfo, KnownNode, node_positions, refit_data, replace_fields
 
 __all__ = ["fit_known"]
 
@@ -73,13 +73,10 @@ def fit_known(
     """
     from .nls import refine_toa
 
-    c = units(result)
-    Y = np.asarray(matrix, float) * c
-    R0 = np.asarray(result.receivers, float)
-    S0 = np.asarray(result.sources, float)
+    data = refit_data(result, matrix)
+    c, R0, S0, ok_r, ok_s = data.c, data.receivers, data.sources, data.ok_r, data.ok_s
     I, d = R0.shape
     J = S0.shape[0]
-    ok_r, ok_s = np.isfinite(R0).all(1), np.isfinite(S0).all(1)
     usable = [k for k in known if (ok_r if k.kind == "receiver" else ok_s)[k.index]]
     dropped = [k.name for k in known if k not in usable]
     if not usable:
@@ -118,10 +115,8 @@ def fit_known(
         kw["receiver_prior"] = (pr_m[ok_r], pr_sd[ok_r])
     if np.isfinite(pr_s).any():
         kw["source_prior"] = (pr_s[ok_s], ps_sd[ok_s])
-    do = None if result.receiver_offsets is None else np.asarray(result.receiver_offsets, float)[ok_r] * c
-    so = None if result.source_offsets is None else np.asarray(result.source_offsets, float)[ok_s] * c
-    sol = refine_toa(Y[np.ix_(ok_r, ok_s)], Ra[ok_r], Sa[ok_s], offsets=offsets, receiver_offsets0=do,
-                     source_offsets0=so, loss=loss, f_scale=None if f_scale is None else f_scale * c,
+    sol = refine_toa(data.Y[np.ix_(ok_r, ok_s)], Ra[ok_r], Sa[ok_s], offsets=offsets,
+                     receiver_offsets0=data.receiver_offsets, source_offsets0=data.source_offsets, loss=loss, f_scale=None if f_scale is None else f_scale * c,
                      noise=None if noise is None else noise * c, max_nfev=max_nfev,
                      covariance=covariance, **kw)
     out = _embed(result, sol, ok_r, ok_s, c, f"{result.method}+known({len(usable)})")

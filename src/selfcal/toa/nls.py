@@ -459,6 +459,9 @@ def refine_toa(
         reduced system (:mod:`selfcal.toa.covariance`: O(min(I,J)^2 max(I,J) d^3) time for
         all blocks, the dominant cost for very large networks). With constraints the
         same request is honoured by the sparse-LU path of :mod:`selfcal.toa.constrained`.
+        ``"local"``: every block approximated by the node's conditional covariance
+        (:func:`selfcal.toa.covariance.local_blocks`, O(I J d^2), relative error
+        ~(d + 1) / partners on dense networks); the constrained path computes it exactly.
     fixed_receivers, fixed_sources: (I, d) / (J, d) bool masks (or (I,) / (J,) row
         masks) of coordinates held at their starting values: known heights are a fixed
         z column, known anchors fixed rows.
@@ -498,7 +501,7 @@ def refine_toa(
         sol = refine_toa(c * T, r0, s0, offsets="both", fixed_receivers=fz, fixed_sources=gz)
     """
     from ..geometry import canonical_gauge
-    from .covariance import gauge_free_blocks, resolve_covariance
+    from .covariance import gauge_free_blocks, is_local, local_blocks, resolve_covariance
 
     check_choice(offsets, "offsets", OFFSET_MODES)
     check_choice(loss, "loss", LOSSES)
@@ -584,7 +587,10 @@ def refine_toa(
 
     if cov_r.size or cov_s.size:
         # a singular Fisher matrix beyond the gauge: the data do not determine the geometry
-        Cr, Cs = gauge_free_blocks(theta, wmat, lay, cov_r, cov_s)
+        if is_local(covariance):  # the approximate conditional blocks, O(I J d^2)
+            Cr, Cs = local_blocks(theta, wmat, lay)
+        else:
+            Cr, Cs = gauge_free_blocks(theta, wmat, lay, cov_r, cov_s)
         Cr = Cr * sigma**2
         Cs = Cs * sigma**2
     else:

@@ -27,7 +27,7 @@ from numpy.typing import NDArray
 from ..errors import InputError
 
 __all__ = ["FrameInfo", "FramedToaResult", "KnownNode", "node_positions", "parse_frame", "parse_known",
-           "read_known_csv", "replace_fields", "resolve_node", "rotate_cov", "units"]
+           "read_known_csv", "RefitData", "refit_data", "replace_fields", "resolve_node", "units"]
 
 Array = NDArray[np.float64]
 
@@ -283,15 +283,49 @@ def units(result: Any) -> float:
     return 1.0 if spd is None else float(spd)
 
 
+@dataclass(frozen=True)
+class RefitData:
+    """What a refit of a TOA result starts from, in metres, over its located nodes.
+
+    Attributes
+    ----------
+    c : float
+        Metres per matrix unit (:func:`units`).
+    Y : (I, J) array
+        The matrix in metres.
+    receivers, sources : (I, d), (J, d) arrays
+        The result's positions (NaN rows: not located).
+    ok_r, ok_s : (I,), (J,) bool arrays
+        Located receivers / sources.
+    receiver_offsets, source_offsets : arrays or None
+        The result's offsets in metres, of the located nodes only.
+    """
+
+    c: float
+    Y: Array
+    receivers: Array
+    sources: Array
+    ok_r: NDArray[np.bool_]
+    ok_s: NDArray[np.bool_]
+    receiver_offsets: Array | None
+    source_offsets: Array | None
+
+
+def refit_data(result: Any, matrix: Any) -> RefitData:
+    """The :class:`RefitData` of a result and the matrix it was fitted to."""
+    c = units(result)
+    R = np.asarray(result.receivers, float)
+    S = np.asarray(result.sources, float)
+    ok_r, ok_s = np.isfinite(R).all(1), np.isfinite(S).all(1)
+    do = None if result.receiver_offsets is None else np.asarray(result.receiver_offsets, float)[ok_r] * c
+    so = None if result.source_offsets is None else np.asarray(result.source_offsets, float)[ok_s] * c
+    return RefitData(c, np.asarray(matrix, float) * c, R, S, ok_r, ok_s, do, so)
+
+
 def replace_fields(result: Any, **kw: Any) -> Any:
     """dataclasses.replace with only the fields the result type has."""
     names = {f.name for f in dataclasses.fields(result)}
     return dataclasses.replace(result, **{k: v for k, v in kw.items() if k in names})
-
-
-def rotate_cov(C: Array, R: Array) -> Array:
-    """(n, d, d) covariances rotated by ``R``: ``R C_k R^T``."""
-    return np.einsum("ab,nbc,dc->nad", R, C, R)
 
 
 def node_positions(result: Any, kind: str) -> Array:

@@ -21,7 +21,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .._checks import check_choice, check_positive
-from .._result import Result
+from .._result import Result, jsonable
 from ..errors import Status
 from ..geometry import n_parameters
 from .nls import OFFSET_MODES
@@ -30,11 +30,15 @@ __all__ = [
     "MESSAGES",
     "RESIDUAL_ALPHA",
     "GeometryTest",
+    "PERMUTATION_ALPHA",
+    "PERMUTATION_COPIES",
+    "PermutationTest",
     "ResidualTest",
     "ToaResult",
     "geometry_test",
     "n_parameters",
     "null_parameters",
+    "permutation_test",
     "residual_test",
 ]
 
@@ -43,14 +47,26 @@ Array = NDArray[np.float64]
 #: significance level of both trust tests: a fit whose p-value is below this fails
 RESIDUAL_ALPHA = 1e-3
 
+#: Monte-Carlo copies of the permutation test of the geometry (noise unknown) and its level:
+#: with B exchangeable copies the observed statistic is the smallest of the B + 1 with
+#: probability 1 / (B + 1) under the null, so 19 copies give a test of level exactly 0.05
+PERMUTATION_COPIES = 19
+PERMUTATION_ALPHA = 0.05
+#: the permutation test runs on at most this many receivers and this many sources (the
+#: best-observed ones, ties at random): its cost stays that of a small network
+PERMUTATION_MAX_SIDE = 16
+#: the 003 initialisers (MDS + multilateration, Algorithm 2) whose best start (least-squares offsets) is the test's fixed procedure
+PERMUTATION_INITS = ("mds-multilat", "alg2")
+
 #: messages of the trust verdicts (``ToaResult.status`` is a :class:`selfcal.errors.Status`)
 MESSAGES = {
     "chi2-passed": "the residuals are consistent with the given noise (chi-square test passed)",
-    "cv-passed": "the geometry predicts the data better than offsets alone (cross-validated test passed)",
+    "cv-passed": "the data fit a geometry: better than offsets alone (permutation and cross-validated tests passed)",
     "untestable": "no redundant measurement: the fit is exact and cannot be tested",
     "not-converged": "the final refinement stopped before convergence",
+    "degenerate": "the best fit collapses onto a line or a point: the data determine no geometry of this dimension",
     "chi2-failed": "the residuals are too large for the given noise (chi-square test failed)",
-    "cv-failed": "the data are not predicted by a geometry better than by offsets alone (cross-validated test failed)",
+    "cv-failed": "the data are not explained by a geometry better than by offsets alone (geometry test failed)",
 }
 
 
@@ -136,27 +152,78 @@ def residual_test(residuals: Any, noise: float, n_params: int, *, alpha: float =
 
 
 @dataclass(frozen=True)
-class GeometryTest:
-    """Does the geometry predict held-out entries better than offsets alone? (noise unknown)
+class PermutationTest:
+    """Monte-Carlo permutation test: do the data fit a geometry at all? (noise unknown)
 
-    Leave-one-out cross-validation in closed form (Allen's PRESS): the linearised
-    prediction error of entry k from a fit without it is ``r_k / (1 - h_k)`` (``h_k`` its
-    leverage), so ``PRESS = sum_k (r_k / (1 - h_k))^2`` needs one fit. The geometric model
-    passes when its PRESS is below that of the model without geometry (all points at one
-    place: ``d_i + o_j``, ``d_i``, ``o_j`` or a constant, :func:`null_parameters`). A
-    matrix that fits no geometry (uniform random entries) is fitted closely by the many
-    parameters of the geometry but predicted badly (``h ~ n / m`` near 1) and fails;
-    measured ranges of a real network pass by orders of magnitude.
+    The statistic ``T = RSS(geometry) / RSS(no geometry)`` is computed by one *fixed*,
+    cheap procedure (:func:`geometry_statistic`: the better of two 003 initialisers with
+    least-squares offsets, no refinement) on the data and on ``copies`` copies without
+    geometry: the fit of the model without geometry (:func:`null_parameters`) plus its
+    residuals permuted at random over the observed entries (re-centred so every copy has
+    the same additive fit and residual sum of squares, Freedman & Lane 1983). Under the
+    null (entries exchangeable about an additive fit, e.g. a uniform random matrix) the
+    B + 1 values are exchangeable, so ``p = (1 + #{T_b <= T}) / (B + 1)`` is a valid
+    p-value: ``P(p <= alpha) <= alpha`` whatever the procedure's quality (Besag & Clifford
+    1989). The same procedure on data and copies is what makes it exact; its quality only
+    sets the power.
 
     Attributes
     ----------
-    press, press_null: PRESS of the fit and of the model without geometry (squared matrix units),
-        over the entries ``observations`` where both leverages are below 1 - 1e-8.
-    rss, rss_null: residual sums of squares over the same entries.
+    statistic: T of the data (dimensionless, 0 = exact geometry).
+    null_min, null_median: smallest and median T of the copies.
+    copies: B.
+    p_value: ``(1 + #{T_b <= T}) / (B + 1)``.
+    alpha: level; ``passed`` is ``p_value <= alpha``.
+    receivers, sources: size of the (sub-)matrix tested (at most ``PERMUTATION_MAX_SIDE`` each).
+    passed: the data fit a geometry better than every copy without one.
+    """
+
+    statistic: float
+    null_min: float
+    null_median: float
+    copies: int
+    p_value: float
+    alpha: float
+    receivers: int
+    sources: int
+    passed: bool
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-safe dict."""
+        return {"test": "permutation", "statistic": _num(self.statistic), "null_min": _num(self.null_min),
+                "null_median": _num(self.null_median), "copies": int(self.copies),
+                "p_value": _num(self.p_value), "alpha": float(self.alpha), "receivers": int(self.receivers),
+                "sources": int(self.sources), "passed": bool(self.passed)}
+
+
+@dataclass(frozen=True)
+class GeometryTest:
+    """Do the data fit a geometry better than offsets alone? (noise unknown)
+
+    Two tests, both must pass:
+
+    - the permutation test (:class:`PermutationTest`, level 0.05 by construction): the
+      stated false-alarm rate on data without geometry;
+    - leave-one-out cross-validation in closed form (Allen's PRESS): the linearised
+      prediction error of entry k from a fit without it is ``r_k / (1 - h_k)`` (``h_k`` its
+      leverage). The geometric model must predict better than the model without geometry
+      (all points at one place: ``d_i + o_j``, ``d_i``, ``o_j`` or a constant,
+      :func:`null_parameters`). The comparison is on the *median* squared prediction error
+      (times the number of entries, to read as a PRESS): one entry of leverage near 1 (a
+      node seen by few others) multiplies its term by ``1 / (1 - h)^2`` and would decide a
+      sum alone.
+
+    Attributes
+    ----------
+    press, press_null: ``m * median_k (r_k / (1 - h_k))^2`` of the fit and of the model
+        without geometry (squared matrix units), over the entries ``observations`` where
+        both leverages are below 1 - 1e-8.
+    rss, rss_null: residual sums of squares over the entries used.
     n_params, n_null: free parameters of the two models.
     f_statistic, p_value: the nested-model F test of the two RSS (for information: its F
         reference law assumes a linear model and is optimistic for the nonlinear fit).
-    passed: ``press < press_null``.
+    permutation: the permutation test, or None when it could not run (too few entries).
+    passed: ``press < press_null`` and the permutation test passed.
     """
 
     press: float
@@ -169,14 +236,16 @@ class GeometryTest:
     f_statistic: float
     p_value: float
     passed: bool
+    permutation: PermutationTest | None = None
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-safe dict."""
-        return {"test": "loo-cv", "press": _num(self.press), "press_null": _num(self.press_null),
+        return {"test": "permutation+loo-cv", "press": _num(self.press), "press_null": _num(self.press_null),
                 "rss": _num(self.rss), "rss_null": _num(self.rss_null),
                 "n_params": int(self.n_params), "n_null": int(self.n_null),
                 "observations": int(self.observations), "f_statistic": _num(self.f_statistic),
-                "p_value": _num(self.p_value), "passed": bool(self.passed)}
+                "p_value": _num(self.p_value), "passed": bool(self.passed),
+                "permutation": None if self.permutation is None else self.permutation.to_dict()}
 
 
 def _additive_fit(Y: Array, rows: bool, cols: bool, iterations: int = 100) -> Array:
@@ -189,11 +258,13 @@ def _additive_fit(Y: Array, rows: bool, cols: bool, iterations: int = 100) -> Ar
         return np.full(Y.shape, Z.sum() / max(obs.sum(), 1))
     a = np.zeros(Y.shape[0])
     b = np.zeros(Y.shape[1])
-    for _ in range(iterations if rows and cols else 1):
+    complete = bool(obs.all())
+    for _ in range(iterations if rows and cols and not complete else 1):
         if rows:
             a = ((Z - b[None, :]) * obs).sum(axis=1) / n_r
         if cols:
             b = ((Z - a[:, None]) * obs).sum(axis=0) / n_c
+    # a complete matrix: one sweep of row then column means is the exact two-way fit
     return a[:, None] + b[None, :]
 
 
@@ -218,9 +289,164 @@ def _additive_leverages(obs: NDArray[np.bool_], rows: bool, cols: bool, max_unkn
     return H
 
 
+def geometry_statistic(ranges: Any, dim: int, offsets: str) -> float:
+    """``RSS(geometry) / RSS(no geometry)`` of one fixed, cheap procedure (see :class:`PermutationTest`).
+
+    The geometry is the better of the 003 starts of :data:`PERMUTATION_INITS` (MDS +
+    multilateration, Algorithm 2 of :mod:`selfcal.toa.mds`, in the gauge they return) with
+    the least-squares offsets of ``offsets``; no refinement. ``inf`` when no start applies.
+
+    Parameters
+    ----------
+    ranges: (I, J) ranges (metres), NaN = missing.
+    dim, offsets: the model.
+
+    Returns
+    -------
+    float, >= 0 (above 1 when the start fits worse than the model without geometry).
+    """
+    from ..errors import DegenerateGeometryError, InputError
+    from .mds import mds_alg2, mds_multilateration
+    from .nls import toa_model
+
+    inits = {"mds-multilat": lambda Z: mds_multilateration(Z, dim, rng=0), "alg2": lambda Z: mds_alg2(Z, dim)}
+
+    Y = np.asarray(ranges, dtype=float)
+    has_r, has_s = offsets in ("receivers", "both"), offsets in ("sources", "both")
+    obs = np.isfinite(Y)
+    e0 = (Y - _additive_fit(Y, has_r, has_s))[obs]
+    rss0 = float(e0 @ e0)
+    if not rss0 > 0:
+        return float("inf")
+    shift = min(0.0, float(np.nanmin(Y)))  # negative ranges: shifted for the initialiser only
+    best = float("inf")
+    for method in PERMUTATION_INITS:
+        try:
+            with np.errstate(all="ignore"):
+                r, s = inits[method](Y - shift)
+                E = Y - toa_model(np.asarray(r, float), np.asarray(s, float))
+                E = E - _additive_fit(E, has_r, has_s) if (has_r or has_s) else E
+        except (DegenerateGeometryError, InputError, np.linalg.LinAlgError, ValueError, FloatingPointError):
+            continue
+        e = E[obs]
+        if np.isfinite(e).all():
+            best = min(best, float(e @ e) / rss0)
+    return best
+
+
+def _test_block(obs: NDArray[np.bool_], side: int, dim: int, g: np.random.Generator,
+                complete: bool = True) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
+    """The tested block: at most ``side`` rows, then ``side`` columns, with the most observed
+    entries (ties at random); then, while it has missing entries, the row or column missing the
+    most is removed, down to ``dim + 3`` a side (a complete block is several times cheaper to
+    initialise than one that needs completing).
+
+    Chosen from the mask only (never the values), so the entries of the block stay
+    exchangeable under the null.
+    """
+    I, J = obs.shape
+
+    def pick(counts: NDArray[np.intp], n: int) -> NDArray[np.intp]:
+        order = g.permutation(counts.size)
+        order = order[np.argsort(-counts[order], kind="stable")]
+        return np.sort(order[:n])
+
+    rows = pick(obs.sum(axis=1), min(I, side)) if I > side else np.arange(I)
+    cols = pick(obs[rows].sum(axis=0), min(J, side)) if J > side else np.arange(J)
+    B = obs[np.ix_(rows, cols)]
+    while complete and not B.all():
+        miss_r, miss_c = (~B).sum(axis=1), (~B).sum(axis=0)
+        by_row = miss_r.max() * B.shape[1] >= miss_c.max() * B.shape[0]  # the larger missing fraction
+        if by_row and B.shape[0] > dim + 3:
+            k = int(g.choice(np.flatnonzero(miss_r == miss_r.max())))
+            rows, B = np.delete(rows, k), np.delete(B, k, axis=0)
+        elif B.shape[1] > dim + 3:
+            k = int(g.choice(np.flatnonzero(miss_c == miss_c.max())))
+            cols, B = np.delete(cols, k), np.delete(B, k, axis=1)
+        elif B.shape[0] > dim + 3:
+            k = int(g.choice(np.flatnonzero(miss_r == miss_r.max())))
+            rows, B = np.delete(rows, k), np.delete(B, k, axis=0)
+        else:
+            break
+    return rows, cols
+
+
+def permutation_test(ranges: Any, dim: int, offsets: str, *, copies: int = PERMUTATION_COPIES,
+                     alpha: float = PERMUTATION_ALPHA, seed: int = 0,
+                     max_side: int = PERMUTATION_MAX_SIDE) -> PermutationTest | None:
+    """Permutation test of "the data fit no geometry" (:class:`PermutationTest`).
+
+    Parameters
+    ----------
+    ranges: (I, J) the entries a fit used (NaN elsewhere), metres.
+    dim, offsets: the model.
+    copies: B, the Monte-Carlo copies (level ``1 / (B + 1)`` is the smallest attainable).
+    alpha: level.
+    seed: seed of the permutations and of the sub-block (fixed: the verdict is
+        reproducible; the permutations do not depend on the data, so the level holds).
+    max_side: at most this many receivers and sources are tested (:func:`_test_block`).
+
+    Returns
+    -------
+    PermutationTest, or None when the tested block has no redundant entry (nothing to test).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from selfcal.toa import toa_model
+    >>> g = np.random.default_rng(0)
+    >>> permutation_test(g.uniform(0, 10, (8, 10)), 2, "none").passed
+    False
+    >>> r, s = g.uniform(0, 10, (8, 2)), g.uniform(0, 10, (10, 2))
+    >>> permutation_test(toa_model(r, s) + g.normal(0, 0.05, (8, 10)), 2, "none").passed
+    True
+    """
+    g = np.random.default_rng(seed)
+    Y0 = np.asarray(ranges, dtype=float)
+
+    def block(complete: bool) -> tuple[Array, int]:
+        rows, cols = _test_block(np.isfinite(Y0), int(max_side), dim, g, complete)
+        B = Y0[np.ix_(rows, cols)]
+        ob = np.isfinite(B)
+        B = B[np.ix_(ob.sum(axis=1) > 0, ob.sum(axis=0) > 0)]
+        I, J = B.shape
+        spare = int(np.isfinite(B).sum()) - n_parameters(I, J, dim, offsets) if I > dim and J > dim else 0
+        return B, spare
+
+    # the complete block is cheaper; it is used while it keeps at least half the spare
+    # entries (the power) of the block as it is
+    Y, spare = block(False)
+    if not np.isfinite(Y).all():
+        Yc, spare_c = block(True)
+        if 2 * spare_c >= spare:
+            Y, spare = Yc, spare_c
+    if spare <= 0:
+        return None
+    obs = np.isfinite(Y)
+    I, J = Y.shape
+    has_r, has_s = offsets in ("receivers", "both"), offsets in ("sources", "both")
+    F = _additive_fit(Y, has_r, has_s)
+    e = (Y - F)[obs]
+    rss0 = float(e @ e)
+    t_obs = geometry_statistic(Y, dim, offsets)
+    null = np.empty(int(copies))
+    for b in range(int(copies)):
+        Z = np.full(Y.shape, np.nan)
+        Z[obs] = g.permutation(e)
+        if has_r or has_s:  # re-centred: the copy's additive fit is F, its residual RSS rss0
+            Z = Z - _additive_fit(Z, has_r, has_s)
+        z = Z[obs]
+        if z @ z > 0:
+            Z *= np.sqrt(rss0 / float(z @ z))
+        null[b] = geometry_statistic(F + Z, dim, offsets)
+    p = float((1 + np.sum(null <= t_obs)) / (copies + 1))
+    return PermutationTest(float(t_obs), float(np.min(null)), float(np.median(null)), int(copies), p,
+                           float(alpha), I, J, bool(p <= alpha))
+
+
 def geometry_test(ranges: Any, residuals: Any, leverages: Any, dim: int, offsets: str, *,
-                  alpha: float = RESIDUAL_ALPHA) -> GeometryTest:
-    """Cross-validated test of the geometric model against the model without geometry (noise unknown).
+                  alpha: float = RESIDUAL_ALPHA, permutation: bool = True) -> GeometryTest:
+    """Test of the geometric model against the model without geometry (noise unknown).
 
     Parameters
     ----------
@@ -229,6 +455,7 @@ def geometry_test(ranges: Any, residuals: Any, leverages: Any, dim: int, offsets
     leverages: (I, J) the fit's leverages (:func:`selfcal.toa.robust.leverages`).
     dim, offsets: the fitted model.
     alpha: level of the informational F test.
+    permutation: run the permutation test (:func:`permutation_test`).
 
     Returns
     -------
@@ -257,8 +484,10 @@ def geometry_test(ranges: Any, residuals: Any, leverages: Any, dim: int, offsets
     H0 = _additive_leverages(use, has_r, has_s)
     ok = use & np.isfinite(H) & (1 - H > 1e-8) & (1 - H0 > 1e-8)
     I, J = Y.shape
-    press = float(np.sum((E[ok] / (1 - H[ok])) ** 2))
-    press0 = float(np.sum((E0[ok] / (1 - H0[ok])) ** 2))
+    n_ok = int(ok.sum())
+    # robust PRESS: the median squared leave-one-out error, on the scale of a sum
+    press = float(n_ok * np.median((E[ok] / (1 - H[ok])) ** 2)) if n_ok else float("nan")
+    press0 = float(n_ok * np.median((E0[ok] / (1 - H0[ok])) ** 2)) if n_ok else float("nan")
     rss = float(np.sum(E[use] ** 2))
     rss0 = float(np.sum(E0[use] ** 2))
     n1 = n_parameters(I, J, dim, offsets)
@@ -270,8 +499,10 @@ def geometry_test(ranges: Any, residuals: Any, leverages: Any, dim: int, offsets
         p = float(f_dist.sf(stat, k, dof))
     else:
         stat, p = float("nan"), float("nan")
-    return GeometryTest(press, press0, rss, rss0, n1, n0, int(ok.sum()), float(stat), p,
-                        bool(press < press0 or (press == 0.0 and press0 > 0.0)))
+    perm = permutation_test(Yu, dim, offsets) if permutation else None
+    cv_ok = bool(press < press0 or (press == 0.0 and press0 > 0.0))
+    return GeometryTest(press, press0, rss, rss0, n1, n0, n_ok, float(stat), p,
+                        cv_ok and (perm is None or perm.passed), perm)
 
 
 def _num(x: float) -> float | None:
@@ -280,17 +511,7 @@ def _num(x: float) -> float | None:
     return x if math.isfinite(x) else None
 
 
-def _jsonable(a: Any) -> Any:
-    """Arrays -> nested lists with NaN / inf -> None (strict JSON)."""
-    if a is None:
-        return None
-    arr = np.asarray(a)
-    if arr.dtype == bool:
-        return arr.tolist()
-    arr = arr.astype(float)
-    obj = arr.astype(object)
-    obj[~np.isfinite(arr)] = None
-    return obj.tolist()
+_jsonable = jsonable  # arrays -> nested lists, NaN / inf -> None: the one converter (selfcal._result)
 
 
 @dataclass(frozen=True, repr=False)

@@ -35,15 +35,42 @@ OUTLIER_ALPHA = 0.01
 TUKEY_FAR = 3.0
 
 
+def _nanmedian_rows(R: Array) -> Array:
+    """Row medians ignoring NaN, equal to ``np.nanmedian(R, axis=1)`` (NaN for an all-NaN row).
+
+    One vectorised sort of the rows (NaN sort last) and the middle one or two finite
+    entries of each: ``np.nanmedian`` loops over the rows in Python above 600 columns
+    (``apply_along_axis``; 2.6 s of the 1000 x 1000 median polish, 20 calls).
+    """
+    S = np.sort(R, axis=1)
+    n = R.shape[1] - np.isnan(R).sum(axis=1)
+    lo = np.take_along_axis(S, np.maximum((n - 1) // 2, 0)[:, None], axis=1)[:, 0]
+    hi = np.take_along_axis(S, (n // 2)[:, None], axis=1)[:, 0]  # n // 2 <= n - 1 when n >= 1
+    with np.errstate(invalid="ignore"):
+        med = (lo + hi) / 2
+    med[n == 0] = np.nan
+    return med
+
+
 def _median_polish(Y: Array, iterations: int = 10) -> Array:
-    """Residuals of Tukey's median polish ``y_ij ~ m + a_i + b_j`` over the observed entries."""
+    """Residuals of Tukey's median polish ``y_ij ~ m + a_i + b_j`` over the observed entries.
+
+    Stops early at a fixed point (every row and column median exactly 0: further sweeps
+    would change nothing), so the result equals that of all ``iterations`` sweeps.
+    """
     R = np.array(Y, dtype=float)
+    if R.size == 0:
+        return R
     with np.errstate(all="ignore"):
         for _ in range(iterations):
-            a = np.nanmedian(R, axis=1)
-            R = R - np.where(np.isfinite(a), a, 0.0)[:, None]
-            b = np.nanmedian(R, axis=0)
-            R = R - np.where(np.isfinite(b), b, 0.0)[None, :]
+            a = _nanmedian_rows(R)
+            a = np.where(np.isfinite(a), a, 0.0)
+            R = R - a[:, None]
+            b = _nanmedian_rows(R.T)
+            b = np.where(np.isfinite(b), b, 0.0)
+            R = R - b[None, :]
+            if not a.any() and not b.any():
+                break
     return R
 
 

@@ -13,6 +13,17 @@ is free of every offset and at most ``2 |r_i - r_l|`` (triangle inequality), lik
 positions whose pairwise distances have the RMS of those lower bounds (in d dimensions
 ``E|x - y|^2 = 2 d std^2``) and least-squares offsets for them; the search refines each
 with the one engine and keeps the lowest ML cost.
+
+The same double difference is also at most ``2 |s_j - s_k|``: the bound of one set
+saturates at the extent of the other, so the larger of the two sets (sources around a
+compact array, or receivers around a few sources) is bounded only from below, by about the
+smaller set's size, and nothing in the offset-free data bounds it from above (a distant
+node's range is absorbed by its offset: the far-field degeneracy). The starts therefore
+spread the scale of one set at a time geometrically, :data:`SCALE_FACTORS` (one octave
+apart, both sets in turn since the data do not say which one is the larger): measured on
+the 12 x 6 scene (10 starts each, refined to convergence), the share of starts reaching the
+truth-started minimum went from 0-3 of 10 at the bounds' scale to 4-7 of 10 with the
+sources 4 times larger on four of five hard draws.
 """
 
 from __future__ import annotations
@@ -22,9 +33,13 @@ from numpy.typing import NDArray
 
 from .moves import Start
 
-__all__ = ["distance_lower_bounds", "scaled_random_starts"]
+__all__ = ["SCALE_FACTORS", "distance_lower_bounds", "scaled_random_starts"]
 
 Array = NDArray[np.float64]
+
+#: (receiver factor, source factor) of the successive starts, cycled: the bounds' scale, then
+#: one set at a time 2, 4, 8 times larger (module docstring)
+SCALE_FACTORS = ((1.0, 1.0), (1.0, 2.0), (2.0, 1.0), (1.0, 4.0), (4.0, 1.0), (1.0, 8.0), (8.0, 1.0), (2.0, 2.0))
 
 
 def distance_lower_bounds(Y: Array) -> Array:
@@ -63,7 +78,7 @@ def scaled_random_starts(Y: Array, dim: int, offsets: str, rng: np.random.Genera
     dim : 2 or 3.
     offsets : the offset model (the starting offsets are its least-squares offsets).
     rng : the search's Generator.
-    n : number of starts.
+    n : number of starts; start k has the scales of ``SCALE_FACTORS[k % 8]``.
 
     Returns
     -------
@@ -85,9 +100,10 @@ def scaled_random_starts(Y: Array, dim: int, offsets: str, rng: np.random.Genera
     sr, ss = sr or ss, ss or sr
     I, J = Y.shape
     out: list[Start] = []
-    for _ in range(int(n)):
-        r0 = rng.normal(0.0, sr, (I, dim))
-        s0 = rng.normal(0.0, ss, (J, dim))
+    for k in range(int(n)):
+        fr, fs = SCALE_FACTORS[k % len(SCALE_FACTORS)]
+        r0 = rng.normal(0.0, sr * fr, (I, dim))
+        s0 = rng.normal(0.0, ss * fs, (J, dim))
         d0, o0 = least_squares_offsets(Y, r0, s0, offsets)
         out.append((r0, s0, d0, o0))
     return out

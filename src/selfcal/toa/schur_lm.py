@@ -37,7 +37,23 @@ from ..robust import loss_rho
 
 Array = NDArray[np.float64]
 
-__all__ = ["solve_schur_lm"]
+__all__ = ["DENSE_MAX_UNKNOWNS", "DIRECT_MAX_UNKNOWNS", "solve_schur_lm"]
+
+#: problems of at most this many unknowns in all form the full normal matrix (step "dense")
+DENSE_MAX_UNKNOWNS = 120
+#: reduced systems of at most this many unknowns (nK mK) are solved directly (dense Cholesky
+#: of S) instead of by preconditioned conjugate gradients: measured crossover, see solve_schur_lm
+DIRECT_MAX_UNKNOWNS = 200
+#: ... and only while forming S stays cheap: (nK mK)^2 (nE mE) multiply-adds and (nK mK) (nE mE)
+#: doubles for the dense ``W`` (32 MB)
+DIRECT_MAX_FLOPS = 1e8
+DIRECT_MAX_ENTRIES = 4e6
+#: default iteration cap per step kind: the cap bounds the work, and a dense or reduced
+#: iteration (at most 120 unknowns) costs about 1 ms (ill-conditioned
+#: small networks crawl along flat valleys: 12 x 6 with both offsets needs 170-300 from the truth)
+DEFAULT_MAX_IT = {"dense": 400, "reduced": 100, "cg": 100}
+#: forcing-term range of the inexact (CG) steps: relative residual of each CG solve
+CG_RTOL = (1e-8, 1e-3)
 
 
 def _inv_blocks(blocks: Array) -> Array:
@@ -176,7 +192,8 @@ class _Reduced:
     diagonal blocks of S (Schur-Jacobi).
     """
 
-    def __init__(self, U: list[Array], w: Array, hasK: bool, hasE: bool, damping: float, pat: Grid) -> None:
+    def __init__(self, U: list[Array], w: Array, hasK: bool, hasE: bool, damping: float, pat: Grid,
+                 precondition: bool = True) -> None:
         d = len(U)
         self.U, self.w, self.hasK, self.hasE, self.d, self.pat = U, w, hasK, hasE, d, pat
         self.mK, self.mE = d + hasK, d + hasE
@@ -186,6 +203,8 @@ class _Reduced:
             D = D + damping * np.einsum("epp->ep", D)[:, :, None] * np.eye(self.mE)
         self.A = A
         self.Dinv = Dinv = _inv_blocks(D)
+        if not precondition:  # the direct step needs no preconditioner
+            return
         # c = w^2 b^T D_e^-1 b with b = [-U, 1?]
         c = np.zeros_like(w)
         for p in range(d):
@@ -257,10 +276,80 @@ class _Reduced:
     def prec(self, x: Array) -> Array:
         return np.einsum("kpq,kq->kp", self.Pinv, x.reshape(-1, self.mK)).ravel()
 
+    def dense(self) -> Array:
+        """The reduced matrix ``S = A - B D^-1 B^T`` itself, (nK mK, nK mK).
+
+        With ``D_e^-1 = L_e L_e^T`` (Cholesky) the pair block of ``B D^-1/2`` is
+        ``W_ke = w_ke a_ke (L_e^T b_ke)^T``, so ``S = A - W W^T`` with ``W`` a dense
+        (nK mK, nE mE) array (zero where a pair is not observed): O(nK nE mK mE) memory,
+        O((nK mK)^2 nE mE) time, the price of a direct step (:data:`DIRECT_MAX_UNKNOWNS`).
+        """
+        pat, mK, mE = self.pat, self.mK, self.mE
+        nK, nE = pat.nK, pat.nE
+        L = np.linalg.cholesky(self.Dinv)  # (nE, mE, mE); Dinv is positive definite (damped)
+        a = list(self.U) + ([None] if self.hasK else [])
+        b = [-Up for Up in self.U] + ([None] if self.hasE else [])
+        W = np.zeros((nK, mK, nE, mE))
+        for r in range(mE):
+            G = None  # (L_e^T b_ke)_r = sum_q b_q L_e[q, r], one value per pair
+            for q in range(r, mE):
+                Lq = pat.ex(L[:, q, r])
+                t = Lq if b[q] is None else b[q] * Lq
+                G = t if G is None else G + t
+            G = G * self.w
+            for p in range(mK):
+                v = G if a[p] is None else G * a[p]
+                if isinstance(pat, Pairs):
+                    W[pat.k, p, pat.e, r] = v
+                else:
+                    W[:, p, :, r] = v
+        W2 = W.reshape(nK * mK, nE * mE)
+        S = -(W2 @ W2.T)
+        idx = np.arange(nK)
+        for p in range(mK):
+            S[(idx * mK + p)[:, None], (idx * mK)[:, None] + np.arange(mK)] += self.A[:, p, :]
+        return 0.5 * (S + S.T)
+
+
+def _dense_normal(U: list[Array], w: Array, hasK: bool, hasE: bool, rows: NDArray[np.intp],
+                  colK: NDArray[np.intp], colE: NDArray[np.intp], n: int) -> tuple[Array, Array]:
+    """The full weighted normal matrix ``H = J^T W J`` (n, n) in [K nodes, E nodes] order, and its diagonal.
+
+    ``rows`` are the pairs (flattened nK x nE grid, or the observed pairs), ``colK`` / ``colE``
+    the columns of each pair's K / E parameters; J is formed dense (pairs x n), which is what
+    makes this the step of small problems only (:data:`DENSE_MAX_UNKNOWNS`).
+    """
+    m = rows.size
+    wr = np.ravel(w)
+    Jm = np.zeros((m, n))
+    ar = np.arange(m)[:, None]
+    ones = [np.ones(m)]
+    Jm[ar, colK] = np.column_stack([np.ravel(Up) for Up in U] + (ones if hasK else []))
+    Jm[ar, colE] = np.column_stack([-np.ravel(Up) for Up in U] + (ones if hasE else []))
+    H = Jm.T @ (wr[:, None] * Jm)
+    return H, np.diag(H).copy()
+
+
+def _direct_solve(S: Array, rhs: Array) -> Array | None:
+    """``S^-1 rhs`` by Cholesky; least squares when S is not numerically positive definite;
+    None when not even that is finite (the caller raises the damping)."""
+    import scipy.linalg
+
+    try:
+        c = scipy.linalg.cho_factor(S, lower=True, check_finite=False)
+        x = scipy.linalg.cho_solve(c, rhs, check_finite=False)
+    except (np.linalg.LinAlgError, ValueError):
+        try:
+            x = scipy.linalg.lstsq(S, rhs, check_finite=False)[0]
+        except (np.linalg.LinAlgError, ValueError):
+            return None
+    return np.asarray(x, float) if np.isfinite(x).all() else None
+
 
 def solve_schur_lm(
     theta0: Array, Y: Array, lay: object, loss: str, f_scale: float, max_nfev: int | None, xtol: float,
     gauge: Callable[[Array], Array], pairs: tuple[NDArray[np.intp], NDArray[np.intp]] | None = None,
+    step: str = "auto",
 ) -> tuple[Array, bool, int]:
     """Levenberg-Marquardt (Marquardt diagonal damping) on the Schur-reduced normal equations.
 
@@ -272,8 +361,14 @@ def solve_schur_lm(
         the observed-pairs path (:class:`Pairs`), O(m) memory and time per product.
     lay : the :class:`selfcal.toa.nls._Layout` (kept / eliminated sides).
     loss, f_scale : robust loss and its scale (metres).
-    max_nfev : iteration cap (default 100); xtol : relative step tolerance.
+    max_nfev : iteration cap (default :data:`DEFAULT_MAX_IT` of the step kind); xtol : relative step tolerance.
     gauge : ``theta -> Q`` orthonormal gauge basis (n, g); the step is projected off it.
+    step : how each damped system is solved: "dense" (the full normal matrix ``J^T W J``
+        formed once per iteration and Cholesky-factorised per damping trial), "reduced" (the
+        Schur-reduced matrix formed and factorised), "cg" (matrix-free preconditioned CG) or
+        "auto" (default): "dense" up to :data:`DENSE_MAX_UNKNOWNS` unknowns, else "reduced"
+        while forming S is cheap (:data:`DIRECT_MAX_UNKNOWNS`, :data:`DIRECT_MAX_FLOPS`,
+        :data:`DIRECT_MAX_ENTRIES`), else "cg".
 
     Returns
     -------
@@ -283,7 +378,12 @@ def solve_schur_lm(
     -----
     Each step solves the reduced system on the smaller node set by conjugate gradients with
     the Schur-Jacobi preconditioner (inexact Newton with an Eisenstat-Walker forcing term),
-    then back-substitutes the eliminated nodes. Robust losses use iteratively reweighted normal
+    then back-substitutes the eliminated nodes. Small reduced systems are formed and solved
+    exactly instead (Cholesky, least squares if it fails): at 12 x 6 with both offsets a CG
+    step costs ~150 matrix-free products of Python overhead for 24 unknowns. The iterates
+    are those of the CG path with an exact inner solve (tested); the crossover
+    :data:`DIRECT_MAX_UNKNOWNS` was measured per iteration on square dense networks
+    (``benchmarks/bench_toa_minimal.py --engine``). Robust losses use iteratively reweighted normal
     equations with weights rho'(z), whose fixed points are the stationary points of the robust
     cost.
     """
@@ -330,10 +430,25 @@ def solve_schur_lm(
     g0 = 1.0
     lam = 1e-4
     converged = False
-    max_it = max_nfev or 100
     it = 0
     nk = k_flat.size
     d = lay.d  # type: ignore[attr-defined]
+    ne = e_flat.size
+    if step not in ("auto", "dense", "reduced", "cg"):
+        raise ValueError(f"step must be 'auto', 'dense', 'reduced' or 'cg', got {step!r}")
+    mode = step
+    if mode == "auto":
+        mode = ("dense" if n <= DENSE_MAX_UNKNOWNS else
+                "reduced" if nk <= DIRECT_MAX_UNKNOWNS and nk * nk * ne <= DIRECT_MAX_FLOPS
+                and nk * ne <= DIRECT_MAX_ENTRIES else "cg")
+    max_it = max_nfev or DEFAULT_MAX_IT[mode]
+    if mode == "dense":
+        rows = np.arange(pat.nK * pat.nE) if obs is not None else np.arange(pat.k.size)  # type: ignore[attr-defined]
+        kk = rows // pat.nE if obs is not None else pat.k  # type: ignore[attr-defined]
+        ee = rows % pat.nE if obs is not None else pat.e  # type: ignore[attr-defined]
+        mK, mE = d + ori.hasK, d + ori.hasE
+        colK = kk[:, None] * mK + np.arange(mK)
+        colE = nk + ee[:, None] * mE + np.arange(mE)
     while it < max_it:
         it += 1
         Qg = gauge(theta)
@@ -353,28 +468,45 @@ def solve_schur_lm(
         g0 = gnorm if it == 1 else g0
         # inexact Newton forcing term (Eisenstat-Walker style): loose CG solves far from
         # the minimum, tight ones once the gradient has dropped (keeps the fast local rate)
-        cg_rtol = float(np.clip(gnorm / max(g0, 1e-300), 1e-8, 1e-3))
+        cg_rtol = float(np.clip(gnorm / max(g0, 1e-300), *CG_RTOL))
         improved = False
+        if mode == "dense":
+            H, hdiag = _dense_normal(U, w, ori.hasK, ori.hasE, rows, colK, colE, nk + ne)
+            gfull = np.concatenate([gK, gE])
         for _ in range(12):
-            try:
-                red = _Reduced(U, w, ori.hasK, ori.hasE, lam, pat)
-            except DegenerateGeometryError:
-                lam *= 10
-                continue
-            rhs = -gK + red.b(red.dinv(gE))
-            op = LinearOperator((nk, nk), matvec=red.smul, dtype=float)
-            pc = LinearOperator((nk, nk), matvec=red.prec, dtype=float)
-            x, _ = cg(op, rhs, rtol=cg_rtol, maxiter=500, M=pc)
-            y = red.dinv(-gE - red.bt(x))
-            del red
-            step = np.zeros(n)
-            step[k_flat] = x
-            step[e_flat] = y
-            step -= Qg @ (Qg.T @ step)  # no rigid drift (and no common offset shift)
-            trial = theta + step
+            if mode == "dense":
+                xy = _direct_solve(H + np.diag(lam * hdiag), -gfull)  # Marquardt: diag * (1 + lam)
+                if xy is None:
+                    lam *= 10
+                    continue
+                x, y = xy[:nk], xy[nk:]
+            else:
+                try:
+                    red = _Reduced(U, w, ori.hasK, ori.hasE, lam, pat, precondition=mode == "cg")
+                except DegenerateGeometryError:
+                    lam *= 10
+                    continue
+                rhs = -gK + red.b(red.dinv(gE))
+                if mode == "reduced":
+                    xr = _direct_solve(red.dense(), rhs)
+                    if xr is None:
+                        lam *= 10
+                        continue
+                    x = xr
+                else:
+                    op = LinearOperator((nk, nk), matvec=red.smul, dtype=float)
+                    pc = LinearOperator((nk, nk), matvec=red.prec, dtype=float)
+                    x, _ = cg(op, rhs, rtol=cg_rtol, maxiter=500, M=pc)
+                y = red.dinv(-gE - red.bt(x))
+                del red
+            dx = np.zeros(n)
+            dx[k_flat] = x
+            dx[e_flat] = y
+            dx -= Qg @ (Qg.T @ dx)  # no rigid drift (and no common offset shift)
+            trial = theta + dx
             c2, f2, w2, U2 = evaluate(trial)
             if c2 <= cost:
-                small = np.linalg.norm(step) <= xtol * (xtol + np.linalg.norm(theta))
+                small = np.linalg.norm(dx) <= xtol * (xtol + np.linalg.norm(theta))
                 rel = (cost - c2) <= ftol * max(cost, 1e-300)
                 theta, cost, f, w, U = trial, c2, f2, w2, U2
                 lam = max(lam / 10, 1e-8)

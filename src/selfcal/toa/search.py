@@ -41,6 +41,7 @@ from ..errors import DegenerateGeometryError, InputError
 from .moves import Move, Start, moves
 from .nls import NlsSolution, _rho, refine_toa, toa_model
 from .result import _additive_fit
+from .robust import _nanmedian_rows
 
 __all__ = ["INITIALISERS", "MOVES_MAX_NODES", "SearchOutcome", "canonical_order", "default_budget",
            "least_squares_offsets", "search"]
@@ -73,8 +74,7 @@ def canonical_order(Y: Array) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
     [1, 2, 0]
     """
     def order(M: Array) -> NDArray[np.intp]:
-        with np.errstate(all="ignore"):
-            med = np.nanmedian(M, axis=1)
+        med = _nanmedian_rows(M)  # = np.nanmedian(M, axis=1), vectorised above 600 columns
         srt = np.sort(M, axis=1)  # NaN sort last
         keys = [np.where(np.isfinite(srt[:, k]), srt[:, k], np.inf) for k in range(srt.shape[1] - 1, -1, -1)]
         return np.lexsort(keys + [np.where(np.isfinite(med), med, np.inf)]).astype(np.intp)
@@ -169,7 +169,7 @@ def _scaled(Y: Array, dim: int, offsets: str, rng: np.random.Generator) -> list[
 
 
 #: random starts of the "scaled" initialiser (a share of the search's one budget)
-SCALED_STARTS = 8
+SCALED_STARTS = 16
 #: the initialisers, in the order the search runs them (small networks run all of them)
 INITIALISERS: dict[str, _Init] = {
     "rank3": _rank3,
@@ -321,7 +321,7 @@ def search(
     """
     I, J = Y.shape
     large = I + J > MOVES_MAX_NODES
-    nb = default_budget(I, J) if budget is None else max(1, int(budget))
+    nb_given = None if budget is None else max(1, int(budget))
     fs: float | None = f_scale if loss != "linear" else 1.0
     count = 0
     partial_count = 0
@@ -399,6 +399,9 @@ def search(
                 break
         if first is not None:
             starts.insert(0, first)
+    # the default budget: the moves' allowance plus what successive halving over the starts
+    # costs at most (n + n/2 + n/4 + ... < 2n refinements)
+    nb = nb_given if nb_given is not None else default_budget(I, J) + (0 if large else 2 * len(starts))
     best: NlsSolution | None = None
     best_cost = np.inf
     best_name = ""

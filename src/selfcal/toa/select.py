@@ -240,6 +240,31 @@ def _n_off(mode: str, I: int, J: int) -> int:
     return {"none": 0, "receivers": I, "sources": J, "both": I + J - 1}[mode]
 
 
+def _rss(res: ToaResult) -> float:
+    assert res.residuals is not None
+    e = res.residuals[np.isfinite(res.residuals) & ~np.asarray(res.outliers, bool)]
+    return float(e @ e)
+
+
+def _nested_init(res: ToaResult, mode: str, speed: float | None) -> tuple[Any, ...]:
+    """A fit as a start of ``mode`` (metres; dropped nodes at the centroid, missing offsets 0)."""
+    k = 1.0 if speed is None else float(speed)
+
+    def fill(P: Array) -> Array:
+        P = np.array(P, dtype=float)
+        bad = ~np.isfinite(P).all(axis=1)
+        P[bad] = np.nanmean(P[~bad], axis=0) if (~bad).any() else 0.0
+        return P
+
+    def off(a: Array | None, n: int) -> Array:
+        return np.zeros(n) if a is None else np.nan_to_num(np.asarray(a, float) * k)
+
+    r, s = fill(res.receivers), fill(res.sources)
+    d = off(res.receiver_offsets, len(r)) if mode in ("receivers", "both") else None
+    o = off(res.source_offsets, len(s)) if mode in ("sources", "both") else None
+    return r, s, d, o
+
+
 def choose_offsets(M: Array, dim: int, solve: Solver, **kw: Any) -> tuple[ToaResult, dict[str, Any]]:
     """Fit every offsets mode and keep the smallest BIC (module docstring); (result, statistics).
 
@@ -254,7 +279,13 @@ def choose_offsets(M: Array, dim: int, solve: Solver, **kw: Any) -> tuple[ToaRes
     """
     fits: dict[str, ToaResult] = {}
     for mode in OFFSET_CANDIDATES:
-        res = _quiet(solve, M, dim, mode, **kw)
+        # every model is also started from the best fit of the models it nests (offsets of the
+        # other kinds at zero): its search accepts only lower costs, so it never ends above them
+        nested = [fits[k] for k in fits if k == "none" or mode == "both"]
+        init = _nested_init(min(nested, key=_rss), mode, kw.get("speed")) if nested else "auto"
+        res = _quiet(solve, M, dim, mode, init=init, **kw)
+        if res is None and not isinstance(init, str):
+            res = _quiet(solve, M, dim, mode, **kw)
         if res is not None:
             fits[mode] = res
     if not fits:

@@ -19,9 +19,20 @@ observed pairs:
   the sparse engine each time it has doubled, until no node can be added.
 - :func:`solve_toa_sparse` chains the two.
 
+Nodes left with at most d + 1 ranges in the final fit are *weakly placed* (one redundant
+range: a placement mirrored across their partners' hyperplane fits almost as well when the
+partners are nearly coplanar); the blind solve re-checks each against its mirror after the
+final fit, moves it when the mirror fits its ranges better, refits, and lists them in
+``weakly_placed_receivers`` / ``weakly_placed_sources``.
+
 Model and gauge are those of :mod:`selfcal.toa.nls` (003 eq. 2 without offsets; the result
-is in the canonical gauge of :func:`selfcal.geometry.canonical_gauge`). Offsets, robust
-losses and covariances are not offered on this path (the dense path has them).
+is in the canonical gauge of :func:`selfcal.geometry.canonical_gauge`). Offsets and robust
+losses are not offered on this path (the dense path has them); exact covariance blocks of
+selected nodes come from :func:`selfcal.toa.sparse_covariance.sparse_covariance_blocks`
+(d matrix-free CG solves per node).
+
+The file is above 600 lines because the result type, the engine wrapper, the growth and its
+mirror re-check share the pair bookkeeping (index maps, batched multilateration).
 
 Cost. A CG product is O(m); the number of CG iterations grows with the graph diameter
 (hops across the network), the growth initialiser is O(m) per round and needs about
@@ -61,6 +72,12 @@ class SparseToaResult(Result):
     seed_shape : (receivers, sources) of the initialiser's dense seed patch, (0, 0) if none.
     unlocated_receivers, unlocated_sources : indices of the nodes the blind growth never
         reached (too few ranges to the located part): NaN positions, their pairs unused.
+    weakly_placed_receivers, weakly_placed_sources : located nodes with at most d + 1 ranges
+        in the final fit (one redundant range: a placement mirrored across their partners'
+        hyperplane fits almost as well when the partners are nearly coplanar). The blind
+        solve re-checks each against its mirror after the final fit (:func:`solve_toa_sparse`);
+        their positions deserve less trust than the noise level suggests.
+    mirrors_taken : how many weakly placed nodes that re-check moved to their mirror side.
     """
 
     receivers: Array
@@ -75,6 +92,9 @@ class SparseToaResult(Result):
     seed_shape: tuple[int, int] = (0, 0)
     unlocated_receivers: Index = dataclasses.field(default_factory=lambda: np.zeros(0, np.intp))
     unlocated_sources: Index = dataclasses.field(default_factory=lambda: np.zeros(0, np.intp))
+    weakly_placed_receivers: Index = dataclasses.field(default_factory=lambda: np.zeros(0, np.intp))
+    weakly_placed_sources: Index = dataclasses.field(default_factory=lambda: np.zeros(0, np.intp))
+    mirrors_taken: int = 0
 
 
 def _check_pairs(i: object, j: object, ranges: object, I: int | None, J: int | None
@@ -252,7 +272,17 @@ def _multilaterate(node: Index, anc: Array, dist: Array, n: int, d: int) -> tupl
             M[:, a, b] = M[:, b, a] = np.bincount(node, A[:, a] * A[:, b], minlength=n)
     scale = np.einsum("npp->n", M)[:, None, None] + 1e-300
     x = np.linalg.solve(M + 1e-12 * scale * np.eye(d), v[:, :, None])[:, :, 0]
-    for _ in range(5):  # Gauss-Newton on the ranges, lightly damped
+    return _gauss_newton(node, anc, dist, x, n, d, 5)
+
+
+def _gauss_newton(node: Index, anc: Array, dist: Array, x: Array, n: int, d: int, steps: int
+                  ) -> tuple[Array, Array]:
+    """``steps`` lightly damped Gauss-Newton steps on the ranges of ``n`` nodes from ``x`` (anchors fixed).
+
+    Returns the positions (n, d) and each node's residual rms.
+    """
+    cnt = np.bincount(node, minlength=n).astype(float)
+    for _ in range(steps):
         diff = x[node] - anc
         nrm = np.linalg.norm(diff, axis=1)
         u = diff / np.maximum(nrm, 1e-12)[:, None]
@@ -268,6 +298,63 @@ def _multilaterate(node: Index, anc: Array, dist: Array, n: int, d: int) -> tupl
     res = np.linalg.norm(x[node] - anc, axis=1) - dist
     rms = np.sqrt(np.bincount(node, res**2, minlength=n) / cnt)
     return x, rms
+
+
+def _mirror_recheck(i: Index, j: Index, y: Array, r: Array, s: Array, d: int
+                    ) -> tuple[Array, Array, Index, Index, int]:
+    """Weakly placed nodes (at most d + 1 ranges) against their mirror placement.
+
+    With d + 1 ranges a node has one redundant range: when its partners lie close to a
+    hyperplane, the reflection of the node across it fits its ranges almost as well, and a
+    growth that placed it on the wrong side leaves no large residual to notice. Each such
+    node is reflected across the least-squares hyperplane of its partners, refined by
+    Gauss-Newton with the partners fixed, and moved there when that fits its ranges better.
+
+    Returns (r, s, weak receiver indices, weak source indices, number of nodes moved);
+    ``r`` and ``s`` are copies when a node moved.
+    """
+    moved = 0
+    weak = []
+    for side in ("r", "s"):
+        node_all, pos, anc_pos = (i, r, s[j]) if side == "r" else (j, s, r[i])
+        cnt = np.bincount(node_all, minlength=pos.shape[0])
+        w = np.flatnonzero(cnt <= d + 1)
+        weak.append(w)
+        if not w.size:
+            continue
+        loc = -np.ones(pos.shape[0], np.intp)
+        loc[w] = np.arange(w.size)
+        keep = loc[node_all] >= 0
+        node, anc, dist = loc[node_all[keep]], anc_pos[keep], y[keep]
+        # both placements re-optimised with the partners fixed (the joint fit's point is not the
+        # node-only optimum, so an unrefined comparison would favour any refined start)
+        x, _ = _gauss_newton(node, anc, dist, pos[w], w.size, d, 10)
+        res = np.linalg.norm(x[node] - anc, axis=1) - dist
+        rss = np.bincount(node, res**2, minlength=w.size)
+        # the partners' least-squares hyperplane: centroid and the normal (smallest singular vector)
+        c = np.stack([np.bincount(node, anc[:, a], minlength=w.size) for a in range(d)], 1) / cnt[w][:, None]
+        D = anc - c[node]
+        Cov = np.einsum("ka,kb->kab", D, D)
+        Cn = np.zeros((w.size, d, d))
+        np.add.at(Cn, node, Cov)
+        nrm = np.linalg.eigh(Cn)[1][:, :, 0]
+        xm = x - 2.0 * np.einsum("na,na->n", x - c, nrm)[:, None] * nrm
+        xm, _ = _gauss_newton(node, anc, dist, xm, w.size, d, 10)
+        res_m = np.linalg.norm(xm[node] - anc, axis=1) - dist
+        rss_m = np.bincount(node, res_m**2, minlength=w.size)
+        # better beyond round-off (with d ranges both sides fit exactly: keep the node where it is)
+        tol = 1e-20 * np.bincount(node, dist**2, minlength=w.size)
+        apart = np.linalg.norm(xm - x, axis=1) > 1e-6 * (1.0 + np.linalg.norm(x - c, axis=1))
+        better = np.isfinite(rss_m) & (rss_m + tol < rss) & apart
+        if better.any():
+            pos = pos.copy()
+            pos[w[better]] = xm[better]
+            moved += int(better.sum())
+            if side == "r":
+                r = pos
+            else:
+                s = pos
+    return r, s, weak[0], weak[1], moved
 
 
 def initialize_toa_sparse(
@@ -480,6 +567,7 @@ def _grow_and_fit(ii: Index, jj: Index, y: Array, I: int, J: int, d: int, gen: n
     # the nodes never reached stay NaN; the fit is on the located part and the pairs inside it.
     # After the fit, nodes left out with >= d + 2 ranges to it get a second chance from the
     # fitted (more accurate) positions, checked against the fitted noise, then one refit.
+    mirrors = 0
     for final in (False, True):
         m = lr[ii] & ls[jj]
         R, S = np.flatnonzero(lr), np.flatnonzero(ls)
@@ -490,6 +578,12 @@ def _grow_and_fit(ii: Index, jj: Index, y: Array, I: int, J: int, d: int, gen: n
         si, sj = ridx[ii[m]], sidx[jj[m]]
         _counts_ok(si, sj, R.size, S.size, d)
         r, s, conv, it = _lm(si, sj, y[m], r0[R], s0[S], max_nfev, 1e-10)
+        # the nodes with one redundant range against their mirror placement; one refit if any moved
+        r, s, weak_r, weak_s, moved = _mirror_recheck(si, sj, y[m], r, s, d)
+        if moved:
+            r, s, conv, it2 = _lm(si, sj, y[m], r, s, max_nfev, 1e-10)
+            it += it2
+        mirrors += moved
         sub = _result(si, sj, y[m], r, s, conv, it, located, seed)
         if final or (lr.all() and ls.all()):
             break
@@ -505,7 +599,9 @@ def _grow_and_fit(ii: Index, jj: Index, y: Array, I: int, J: int, d: int, gen: n
     res = np.full(ii.size, np.nan)
     res[m] = sub.residuals
     out = dataclasses.replace(sub, receivers=rf, sources=sf, residuals=res,
-                              unlocated_receivers=np.flatnonzero(~lr), unlocated_sources=np.flatnonzero(~ls))
+                              unlocated_receivers=np.flatnonzero(~lr), unlocated_sources=np.flatnonzero(~ls),
+                              weakly_placed_receivers=R[weak_r], weakly_placed_sources=S[weak_s],
+                              mirrors_taken=mirrors)
     return out, seed_noise
 
 

@@ -1,4 +1,4 @@
-"""TDOA -> AOA conversion for two orthogonal sensor pairs (paper 001, eq. 2-4).
+"""Bearings: unit lines of sight in the receiver frame, from two orthogonal TDOA pairs or angles (paper 001, eq. 2-4).
 
 The receiver carries two orthogonal sensor pairs whose baselines define its local x and y
 axes (paper Fig. 1). Under the far-field assumption the TDOA of a pair gives the cosine of the
@@ -40,6 +40,16 @@ class Bearings:
     def to_dict(self) -> dict[str, object]:
         """JSON-safe form."""
         return {"vectors": self.vectors.tolist(), "clipped": self.clipped.tolist()}
+
+
+def _paired(x: ArrayLike, y: ArrayLike, names: tuple[str, str], not_finite: str) -> tuple[Array, Array]:
+    """Two measurements of one beacon set as float arrays: the same shape, finite."""
+    a, b = np.asarray(x, float), np.asarray(y, float)
+    if a.shape != b.shape:
+        raise InputError(f"{names[0]} {a.shape} and {names[1]} {b.shape} must have the same shape")
+    if not (np.isfinite(a).all() and np.isfinite(b).all()):
+        raise InputError(not_finite)
+    return a, b
 
 
 def _from_cosines(ca: Array, cb: Array) -> Bearings:
@@ -86,12 +96,8 @@ def tdoa_to_bearings(
     b12 = check_positive(baseline_12, "baseline_12", allow_none=False)
     b34 = check_positive(baseline_34, "baseline_34", allow_none=False)
     c = check_positive(speed, "speed", allow_none=False)
-    t12 = np.asarray(tdoa_12, float)
-    t34 = np.asarray(tdoa_34, float)
-    if t12.shape != t34.shape:
-        raise InputError(f"tdoa_12 {t12.shape} and tdoa_34 {t34.shape} must have the same shape")
-    if not (np.isfinite(t12).all() and np.isfinite(t34).all()):
-        raise InputError("TDOAs must be finite (drop the beacons that were not received)")
+    t12, t34 = _paired(tdoa_12, tdoa_34, ("tdoa_12", "tdoa_34"),
+                       "TDOAs must be finite (drop the beacons that were not received)")
     assert b12 is not None and b34 is not None and c is not None
     return _from_cosines(c * t12 / b12, c * t34 / b34)
 
@@ -102,12 +108,7 @@ def angles_to_bearings(alpha: ArrayLike, beta: ArrayLike) -> Bearings:
     This is how the paper's simulation perturbs the measurements: noise on ``alpha`` and
     ``beta``, then eq. 4 for the third cosine.
     """
-    a = np.asarray(alpha, float)
-    b = np.asarray(beta, float)
-    if a.shape != b.shape:
-        raise InputError(f"alpha {a.shape} and beta {b.shape} must have the same shape")
-    if not (np.isfinite(a).all() and np.isfinite(b).all()):
-        raise InputError("alpha and beta must be finite")
+    a, b = _paired(alpha, beta, ("alpha", "beta"), "alpha and beta must be finite")
     return _from_cosines(np.cos(a), np.cos(b))
 
 
