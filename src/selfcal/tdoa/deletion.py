@@ -42,6 +42,7 @@ from numpy.typing import NDArray
 from ..robust import TUNING, mad_std
 from .degeneracy import fit_quadric, rank_threshold, top_svd
 from .model import farfield_jacobian, farfield_residuals
+from .screen import far_field_parameters
 
 __all__ = ["DeletionScreen", "farfield_leverages", "deletion_screen", "POWER_Z"]
 
@@ -251,6 +252,9 @@ def deletion_screen(
     if full is not None:
         Z, N, C, s2 = full
         h, rank = farfield_leverages(Z, N, used)
+        # a fit whose Jacobian lost rank (a degenerate member of a distorted fit) leaves its
+        # parameters undetermined, not spare measurements: count the model's parameters
+        rank = max(rank, far_field_parameters(m, k))
         spare = int(used.sum()) - rank
         if spare < (1 if known else 2):
             return DeletionScreen(none, used.copy(), False)
@@ -276,7 +280,7 @@ def deletion_screen(
         return DeletionScreen(none, used.copy(), False)
     Z, N, C = fit
     h, rank = farfield_leverages(Z, N, used)
-    spare = int(used.sum()) - rank
+    spare = int(used.sum()) - max(rank, far_field_parameters(m, k))
     # with an estimated noise, the fit without the candidate needs >= 1 spare measurement
     if spare < (1 if known else 2):
         return DeletionScreen(none, used.copy(), False)
