@@ -75,6 +75,26 @@ def farfield_leverages(Z: Array, N: Array, used: Mask) -> tuple[Array, int]:
     residual variance is ``sigma^2 (1 - h)``); for one left out ``1 + h`` scales the variance of
     its prediction error. ``rank``: numerical rank of ``J_u`` (the number of parameters the
     data determine; the kept entries minus it are the spare measurements).
+
+    Parameters
+    ----------
+    Z : (m, 3) positions (first row fixed as the gauge), N : (k, 3) unit directions (metres,
+        unitless) -- the fit at which the model is linearised.
+    used : (m, k) bool, the entries in the fit.
+
+    Returns
+    -------
+    h : (m, k) leverages (in [0, 1] for used entries, >= 0 for the others); rank : int.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> rng = np.random.default_rng(0)
+    >>> Z, N = rng.normal(size=(6, 3)), rng.normal(size=(8, 3))
+    >>> N /= np.linalg.norm(N, axis=1, keepdims=True)
+    >>> h, rank = farfield_leverages(Z - Z[0], N, np.ones((6, 8), dtype=bool))
+    >>> rank, round(float(np.sum(1 - h)), 6)     # 3 (m - 1) + 3 k - 3 parameters, 48 - 36 spare
+    (36, 12.0)
     """
     m, k = used.shape
     J = farfield_jacobian(Z, N, free_offsets=True)
