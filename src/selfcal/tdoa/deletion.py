@@ -169,7 +169,7 @@ def _lmeds_row(y: Array, A: Array, n_par: int) -> Array:
         med = float(np.median(np.abs(A @ x - y)))
         if med < best_med:
             best, best_med = x, med
-    return best if best is not None else np.linalg.lstsq(A, y, rcond=None)[0]
+    return np.asarray(best if best is not None else np.linalg.lstsq(A, y, rcond=None)[0], dtype=float)
 
 
 def _robust_fit(D: Array, used: Mask, noise_std: float | None, extent: float,
@@ -250,7 +250,8 @@ def deletion_screen(
     -------
     DeletionScreen (flags and untestable entries among ``used``).
     """
-    from scipy.stats import norm, t as student
+    from scipy.stats import norm
+    from scipy.stats import t as student
 
     D = np.asarray(D, dtype=float)
     used = np.asarray(used, dtype=bool).copy()
@@ -260,6 +261,7 @@ def deletion_screen(
     colmean = Dz.sum(0) / np.maximum(used.sum(0), 1)
     extent = float(np.max(np.abs(np.where(used, D - colmean, 0.0)))) + 1e-300
     known = noise_std is not None and noise_std > 0
+    sig_known = float(noise_std) if noise_std is not None else 0.0
 
     def quantile(n_test: int, dof: int) -> float:
         a = alpha / (2.0 * max(n_test, 1))
@@ -280,7 +282,7 @@ def deletion_screen(
             return DeletionScreen(none, used.copy(), False)
         red = np.clip(1.0 - h, 0.0, 1.0)
         r = farfield_residuals(Dz, Z, N, C)
-        sig = float(noise_std) if known else float(np.sqrt(s2))
+        sig = sig_known if known else float(np.sqrt(s2))
         q = quantile(int(used.sum()), spare - 1)
         unt = used & ((red <= 1e-9) | (sig * (q + POWER_Z) > extent * np.sqrt(red)))
         test = used & ~unt
@@ -306,7 +308,7 @@ def deletion_screen(
         return DeletionScreen(none, used.copy(), False)
     red = np.clip(1.0 - h, 0.0, 1.0)
     r0 = np.abs(farfield_residuals(Dz, Z, N, C))
-    sigma0 = float(noise_std) if known else float(mad_std((r0 / np.sqrt(np.maximum(red, 1e-12)))[used & (red > 1e-6)],
+    sigma0 = sig_known if known else float(mad_std((r0 / np.sqrt(np.maximum(red, 1e-12)))[used & (red > 1e-6)],
                                                           centre=False))
     sigma0 = max(sigma0, 1e-12 * extent)
     q0 = quantile(int(used.sum()), spare - 1)
@@ -329,7 +331,7 @@ def deletion_screen(
         dof = int(used_c.sum()) - rank_c
         rc = farfield_residuals(Dz, Zc, Nc, Cc)
         if known:
-            sigma = float(noise_std)
+            sigma = sig_known
         else:
             if dof < 1:
                 break

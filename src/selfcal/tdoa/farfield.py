@@ -53,7 +53,13 @@ from .minimal import solve_minimal
 from .orientation import check_orientation
 from .refine import LOSSES, farfield_residuals, refine_alternating, refine_lm
 from .result import FarfieldInit, FarfieldResult
-from .screen import _robust_sigma, gross_error_screen, lowrank_fit, ransac_farfield, screen_gross_errors
+from .screen import (
+    _robust_sigma,
+    gross_error_screen,
+    lowrank_fit,
+    ransac_farfield,
+    screen_gross_errors,
+)
 from .semiblind import _solve_known_directions
 
 __all__ = [
