@@ -156,3 +156,88 @@ def test_joining_refuses_different_arrays_and_repeated_files(tmp_path, real):
     p.write_text(json.dumps(a))
     with pytest.raises(InputError, match="given twice"):
         load_pyramic([p, p])
+
+
+# --------------------------------------------------------------------------- layout variants
+def _upstream(files):
+    """The upstream single-file layout: delays [mic][source][speaker], sources [xyz][source][speaker]."""
+    return {"sound_speed_mps": files[0]["sound_speed_mps"], "mic_ref": 0,
+            "delays": np.stack([np.array(f["delays"]) for f in files], axis=-1).tolist(),
+            "sources": np.stack([np.array(f["sources"]).T for f in files], axis=-1).tolist(),
+            "microphones": files[0]["microphones"]}
+
+
+def _small_files():
+    mics = np.random.default_rng(0).uniform(-0.1, 0.1, (8, 3))
+    return mics, simulate_pyramic(mics, [13.0, -15.0], azimuth_step_deg=30.0, gross=0, rng=1)
+
+
+def test_loader_reads_the_variants_of_the_upstream_layout():
+    mics, files = _small_files()  # 2 speakers x 12 positions
+    up = _upstream(files)
+    full = pyramic_from_dict(up)
+    assert full.D.shape == (8, 24) and full.skipped == 0 and full.speakers == [0, 1]
+    # a (source, speaker) pair never recorded (all null) is dropped with its direction; a single
+    # missing delay stays missing
+    d = np.array(up["delays"], dtype=object)
+    d[:, 5, 1] = None
+    d[3, 7, 0] = None
+    part = pyramic_from_dict({**up, "delays": d.tolist()})
+    assert part.skipped == 1 and part.D.shape == (8, 23) and np.isnan(part.D).sum() == 1
+    assert np.allclose(part.sources, np.delete(full.sources, 12 + 5, axis=0))
+    # absent metadata: mic_ref 0, no microphones (size from the delays), no sources
+    no_ref = {key: v for key, v in up.items() if key != "mic_ref"}
+    assert np.array_equal(pyramic_from_dict(no_ref).D, full.D)
+    no_mics = pyramic_from_dict({key: v for key, v in up.items() if key != "microphones"})
+    assert not no_mics.has_microphones and no_mics.D.shape == (8, 24) and np.array_equal(no_mics.D, full.D)
+    no_src = pyramic_from_dict({key: v for key, v in up.items() if key != "sources"})
+    assert not no_src.has_sources and np.array_equal(no_src.D, full.D)
+    assert all(np.isnan(e) for e in no_src.elevations().values())
+    # the speed: required from somewhere
+    no_speed = {key: v for key, v in up.items() if key != "sound_speed_mps"}
+    with pytest.raises(InputError, match="--speed"):
+        pyramic_from_dict(no_speed)
+    assert np.allclose(pyramic_from_dict(no_speed, speed=C).D, full.D)
+
+
+def test_loader_refuses_ragged_and_directionless_columns_in_one_line():
+    mics, files = _small_files()
+    up = _upstream(files)
+    rag = {**up, "delays": [[row[:1] if j == 3 else row for j, row in enumerate(m)] for m in up["delays"]]}
+    with pytest.raises(InputError, match="ragged.*pad the missing ones with null, or give each speaker its own file"):
+        pyramic_from_dict(rag)
+    s = np.array(up["sources"], dtype=object)
+    s[:, 2, 0] = None
+    with pytest.raises(InputError, match="source 2 has delays but no finite direction"):
+        pyramic_from_dict({**up, "sources": s.tolist()})
+
+
+def test_speakers_with_different_turntable_positions_join(tmp_path):
+    mics, files = _small_files()
+    half = {**files[1], "delays": np.array(files[1]["delays"])[:, ::2].tolist(),
+            "sources": np.array(files[1]["sources"])[::2].tolist()}
+    for i, f in enumerate([files[0], half]):
+        (tmp_path / f"pyramic_tdoa_{i}.json").write_text(json.dumps(f))
+    data = load_pyramic(tmp_path)
+    assert data.D.shape == (8, 18) and list(np.bincount(data.speaker)) == [12, 6]
+
+
+def test_cli_on_incomplete_upstream_files(tmp_path, real):
+    files = simulate_pyramic(real.microphones, [13.16, -15.5, 1.0], azimuth_step_deg=12.0, rng=3)
+    up = _upstream(files)
+    d = np.array(up["delays"], dtype=object)
+    d[:, 4, 2] = None
+    bare = {key: v for key, v in up.items() if key not in ("microphones", "mic_ref")}
+    p = tmp_path / "pyramic_tdoa.json"
+    p.write_text(json.dumps({**bare, "delays": d.tolist()}))
+    r = CliRunner().invoke(main, ["calibrate", "tdoa-farfield", str(p), "--out", str(tmp_path / "o.json")])
+    assert r.exit_code == 0, r.output
+    assert "1 (source, speaker) column(s) without any delay skipped" in r.output
+    assert "no 'microphones' in the file" in r.output
+    res = json.loads((tmp_path / "o.json").read_text())
+    assert len(res["directions"]) == 89 and "reference_rmse" not in res
+    rag = {**up, "delays": [[row[:2] if j == 1 else row for j, row in enumerate(m)] for m in up["delays"]]}
+    p.write_text(json.dumps(rag))
+    r = CliRunner().invoke(main, ["calibrate", "tdoa-farfield", str(p), "--out", str(tmp_path / "o2.json")])
+    assert r.exit_code == 2 and "ragged" in r.output and "Traceback" not in r.output
+    assert len([ln for ln in r.output.splitlines() if ln.startswith("selfcal: error")]) == 1

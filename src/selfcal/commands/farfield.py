@@ -95,12 +95,23 @@ def farfield_command(matrix: tuple[Path, ...], out: Path, speed: float | None, d
         D, seconds = pyramic.D, True
         scale: Any = pyramic.column_speed if pyramic.column_speed is not None else np.full(D.shape[1],
                                                                                            pyramic.speed)
-        reference = pyramic.positions
+        reference = pyramic.positions if pyramic.has_microphones else None
         if directions == "sources":
+            if not pyramic.has_sources:
+                raise InputError("--directions sources: the Pyramic file(s) give no 'sources' (directions) for "
+                                 "every column")
             known = pyramic.directions
-        elev = ", ".join(f"{e:.1f}" for e in pyramic.elevations().values())
+        if pyramic.has_sources:
+            elev = "elevation(s) " + ", ".join(f"{e:.1f}" for e in pyramic.elevations().values()) + \
+                " deg (file's source directions)"
+        else:
+            elev = "unknown elevations (no 'sources' in the file)"
         click.echo(f"selfcal calibrate tdoa-farfield: Pyramic data, {len(pyramic.speakers)} speaker(s) at "
-                   f"elevation(s) {elev} deg (file's source directions), {D.shape[1]} columns in all")
+                   f"{elev}, {D.shape[1]} columns in all")
+        if pyramic.skipped:
+            click.echo(f"  {pyramic.skipped} (source, speaker) column(s) without any delay skipped")
+        if not pyramic.has_microphones:
+            click.echo("  no 'microphones' in the file: no comparison with hand-measured positions")
     else:
         matrix_path = matrix[0]
         table = read_table(matrix_path, name=str(matrix_path))
@@ -134,7 +145,8 @@ def farfield_command(matrix: tuple[Path, ...], out: Path, speed: float | None, d
         out_dict["speed"] = float(np.mean(speed_col))
     if pyramic is not None:
         out_dict["speaker"] = [int(s) for s in pyramic.speaker] if pyramic.speaker is not None else None
-        out_dict["speaker_elevation_deg"] = {str(s): e for s, e in pyramic.elevations().items()}
+        out_dict["speaker_elevation_deg"] = {str(s): (e if np.isfinite(e) else None)
+                                             for s, e in pyramic.elevations().items()}
     ref_rmse = None
     if reference is not None and res.positions.shape[1] == 3:
         ref_rmse = _aligned_rmse(res.positions, reference)
@@ -160,6 +172,9 @@ def farfield_command(matrix: tuple[Path, ...], out: Path, speed: float | None, d
     if ref_rmse is not None:
         click.echo(f"  RMS distance to the file's hand-measured microphones after rigid alignment "
                    f"{1e3 * ref_rmse:.3g} mm (not used by the estimate)")
+    if res.untestable:
+        click.echo(f"selfcal: warning: {res.untestable} entries cannot be checked for gross errors: too few spare "
+                   "measurements (add receivers or transmitters)", err=True)
     if res.degeneracy is not None:
         click.echo(f"selfcal: warning: degenerate geometry [{res.degeneracy}]: wrote a partial reconstruction",
                    err=True)

@@ -28,6 +28,15 @@ Layouts read
   vector has unit norm;
 * common keys: ``microphones`` [3][n_mic] (x, y, z lists, metres), ``sound_speed_mps``,
   ``mic_ref`` (default 0).
+
+Variants read (each else refused in one line): delays ``null`` / ``NaN`` (missing); a source
+(column) with no delay at all, e.g. a turntable position one speaker skipped in the upstream
+layout, is dropped with its direction (``PyramicData.skipped``); speakers with different
+numbers of turntable positions, one file each (a single file holds one rectangular
+[mic][source][speaker] array: pad with ``null``); ``microphones`` absent (no reference
+positions: the number of microphones is that of the delays plus the reference);
+``sources`` absent (no elevations, no ``--directions sources``); ``mic_ref`` absent (0);
+``sound_speed_mps`` absent (``speed`` / ``--speed`` then required).
 """
 
 from __future__ import annotations
@@ -67,6 +76,11 @@ class PyramicData:
     mic_ref : reference microphone.
     speaker : (k,) speaker id of each column.
     column_speed : (k,) speed of sound used for each column (m/s).
+    skipped : number of (source, speaker) columns of the file(s) dropped because they hold no
+        delay at all.
+
+    ``microphones`` is NaN when the file gives none, ``sources`` when it gives no directions
+    (:attr:`has_microphones`, :attr:`has_sources`).
     """
 
     D: Array
@@ -77,6 +91,17 @@ class PyramicData:
     mic_ref: int = 0
     speaker: NDArray[np.int64] | None = None
     column_speed: Array | None = None
+    skipped: int = 0
+
+    @property
+    def has_microphones(self) -> bool:
+        """Whether the file(s) gave the hand-measured microphone positions."""
+        return bool(np.isfinite(self.microphones).all())
+
+    @property
+    def has_sources(self) -> bool:
+        """Whether the file(s) gave the source directions."""
+        return bool(np.isfinite(self.sources).all())
 
     @property
     def positions(self) -> Array:
@@ -97,7 +122,7 @@ class PyramicData:
     def elevations(self) -> dict[int, float]:
         """Mean source elevation of each speaker (degrees above the array's xy plane)."""
         ids = np.zeros(self.D.shape[1], dtype=np.int64) if self.speaker is None else self.speaker
-        el = np.degrees(np.arcsin(np.clip(self.sources[:, 2], -1.0, 1.0)))
+        el = np.degrees(np.arcsin(np.clip(self.sources[:, 2], -1.0, 1.0)))  # NaN without sources
         return {s: float(np.mean(el[ids == s])) for s in self.speakers}
 
 
@@ -175,7 +200,11 @@ def join_pyramic(parts: Sequence[PyramicData], *, labels: Sequence[str] | None =
     ids: list[NDArray[np.int64]] = []
     used: set[int] = set()
     for name, p in zip(names, parts, strict=True):
-        if p.microphones.shape != first.microphones.shape or not np.allclose(
+        if p.microphones.shape != first.microphones.shape:
+            raise InputError(f"{name}: {p.microphones.shape[0]} microphones but {names[0]} has "
+                             f"{first.microphones.shape[0]}; only recordings of the same array can be calibrated "
+                             "together")
+        if p.has_microphones and first.has_microphones and not np.allclose(
                 p.microphones, first.microphones, atol=1e-9, rtol=0.0):
             raise InputError(f"{name}: its microphones differ from those of {names[0]}; only recordings of the "
                              "same array can be calibrated together")
@@ -188,20 +217,26 @@ def join_pyramic(parts: Sequence[PyramicData], *, labels: Sequence[str] | None =
         used |= set(sp.tolist())
         ids.append(sp)
     speeds = [np.full(p.D.shape[1], p.speed) if p.column_speed is None else p.column_speed for p in parts]
+    mics = next((p.microphones for p in parts if p.has_microphones), first.microphones)
     return PyramicData(
         D=np.concatenate([p.D for p in parts], axis=1),
         delays=np.concatenate([p.delays for p in parts], axis=1),
         sources=np.concatenate([p.sources for p in parts], axis=0),
-        microphones=first.microphones.copy(),
+        microphones=mics.copy(),
         speed=first.speed,
         mic_ref=first.mic_ref,
         speaker=np.concatenate(ids),
         column_speed=np.concatenate(speeds),
+        skipped=sum(p.skipped for p in parts),
     )
 
 
-def _flatten_speakers(p: str, delays: Array, sources: Array) -> tuple[Array, Array, int]:
+def _flatten_speakers(p: str, delays: Array, sources: Array | None) -> tuple[Array, Array, int]:
     """(n_mic-1, n_src, n_spk) delays and their sources -> speaker-major (n_mic-1, n_spk n_src), (k, 3)."""
+    n_spk = delays.shape[2]
+    flat_d = delays.transpose(0, 2, 1).reshape(delays.shape[0], -1)
+    if sources is None:  # no directions given: speaker-major columns, directions unknown
+        return flat_d, np.full((flat_d.shape[1], 3), np.nan), n_spk
     if sources.ndim != 3:
         raise InputError(f"{p}: 'delays' has 3 axes (microphone, source, speaker) but 'sources' has shape "
                          f"{sources.shape}; expected [3][n_src][n_spk] or [n_src][n_spk][3]")
@@ -209,7 +244,8 @@ def _flatten_speakers(p: str, delays: Array, sources: Array) -> tuple[Array, Arr
     for a in range(3):
         if sources.shape[a] == 3:
             nrm = np.linalg.norm(np.moveaxis(sources, a, -1), axis=-1)
-            if np.all(np.abs(nrm - 1.0) < 1e-3):
+            # unit vectors (NaN only where a source is missing: its column is dropped later)
+            if np.all(np.isnan(nrm) | (np.abs(nrm - 1.0) < 1e-3)) and np.isfinite(nrm).any():
                 axis = a
                 break
     if axis is None:
@@ -218,8 +254,6 @@ def _flatten_speakers(p: str, delays: Array, sources: Array) -> tuple[Array, Arr
     if S.shape[:2] != delays.shape[1:]:
         raise InputError(f"{p}: 'sources' {sources.shape} do not match 'delays' {delays.shape} "
                          "(expected one direction per source and speaker)")
-    n_spk = delays.shape[2]
-    flat_d = delays.transpose(0, 2, 1).reshape(delays.shape[0], -1)
     flat_s = S.transpose(1, 0, 2).reshape(-1, 3)
     return flat_d, flat_s, n_spk
 
@@ -249,23 +283,30 @@ def pyramic_from_dict(obj: object, *, label: str = "Pyramic JSON", speed: float 
     if not isinstance(obj, dict):
         raise InputError(f"{p}: not a Pyramic TDOA file (expected a JSON object with 'delays', 'sources', "
                          "'microphones', 'sound_speed_mps')")
-    missing = [key for key in ("delays", "sources", "microphones") if key not in obj]
-    if missing:
-        raise InputError(f"{p}: not a Pyramic TDOA file (missing keys {missing}; expected 'delays', 'sources', "
+    if "delays" not in obj:
+        raise InputError(f"{p}: not a Pyramic TDOA file (no 'delays'; expected 'delays', 'sources', "
                          "'microphones', 'sound_speed_mps')")
     try:
-        delays = np.asarray(obj["delays"], dtype=float)
-        sources = np.asarray(obj["sources"], dtype=float)
-        mics = np.asarray(obj["microphones"], dtype=float)
-        file_speed = float(obj["sound_speed_mps"]) if "sound_speed_mps" in obj else float("nan")
+        delays = _numeric(obj["delays"], p, "delays")
+        sources = None if obj.get("sources") is None else _numeric(obj["sources"], p, "sources")
+        mics = None if obj.get("microphones") is None else _numeric(obj["microphones"], p, "microphones")
+        raw_speed = obj.get("sound_speed_mps")
+        file_speed = float(raw_speed) if raw_speed is not None else float("nan")
         ref_raw = obj.get("mic_ref", 0)
         ref = int(ref_raw)
         spk_raw = obj.get("speaker", None)
         spk = None if spk_raw is None else np.asarray(spk_raw, dtype=np.int64)
+    except InputError:
+        raise
     except (KeyError, TypeError, ValueError) as exc:
         raise InputError(f"{p}: not a Pyramic TDOA file ({exc})") from None
     if ref != ref_raw:
         raise InputError(f"{p}: mic_ref must be an integer, got {ref_raw!r}")
+    if delays.ndim not in (2, 3) or delays.shape[0] < 1:
+        raise InputError(f"{p}: 'delays' must be [n_mic - 1][n_src] or [n_mic - 1][n_src][n_spk], got shape "
+                         f"{delays.shape}")
+    if mics is None:  # no hand-measured positions: the array size from the delays
+        mics = np.full((3, delays.shape[0] + 1), np.nan)
     if mics.ndim != 2 or mics.shape[0] != 3:
         raise InputError(f"{p}: 'microphones' must be 3 lists (x, y, z), got shape {mics.shape}")
     mics = mics.T
@@ -276,6 +317,8 @@ def pyramic_from_dict(obj: object, *, label: str = "Pyramic JSON", speed: float 
             raise InputError(f"{p}: 'delays' has shape {delays.shape}, expected ({n_mic - 1}, n_src, n_spk) for "
                              f"{n_mic} microphones")
         delays, sources, n_spk = _flatten_speakers(p, delays, sources)
+    if sources is None:
+        sources = np.full((delays.shape[1], 3), np.nan)
     if sources.ndim != 2 or sources.shape[1] != 3:
         raise InputError(f"{p}: 'sources' must be a list of [x, y, z] directions, got shape {sources.shape}")
     n_src = sources.shape[0]
@@ -286,10 +329,14 @@ def pyramic_from_dict(obj: object, *, label: str = "Pyramic JSON", speed: float 
     if not 0 <= ref < n_mic:
         raise InputError(f"{p}: mic_ref = {ref} is not a microphone index (0..{n_mic - 1})")
     c = file_speed if speed is None else float(speed)
+    if speed is None and raw_speed is None:
+        raise InputError(f"{p}: no 'sound_speed_mps' in the file; give the speed of sound (--speed, m/s)")
     if not np.isfinite(c) or c <= 0:
         raise InputError(f"{p}: the speed of sound must be a positive number (sound_speed_mps or --speed), got {c}")
-    if np.isinf(delays).any() or not np.isfinite(sources).all() or not np.isfinite(mics).all():
-        raise InputError(f"{p}: 'delays' must be finite or NaN (missing); 'sources' and 'microphones' finite")
+    if np.isinf(delays).any():
+        raise InputError(f"{p}: 'delays' must be finite or null / NaN (missing)")
+    if np.isnan(mics).any() and not np.isnan(mics).all():
+        raise InputError(f"{p}: 'microphones' must be finite (or absent)")
     per = n_src // n_spk
     if spk is None:
         speaker = np.repeat(np.arange(n_spk, dtype=np.int64), per)
@@ -301,9 +348,34 @@ def pyramic_from_dict(obj: object, *, label: str = "Pyramic JSON", speed: float 
         speaker = spk
     else:
         raise InputError(f"{p}: 'speaker' must be one id, one per speaker or one per source; got shape {spk.shape}")
+    # a column without any delay (a source / speaker pair not recorded) carries nothing: dropped
+    keep = np.isfinite(delays).any(axis=0)
+    if not keep.any():
+        raise InputError(f"{p}: 'delays' holds no number (all null / NaN)")
+    bad_src = keep & ~np.isfinite(sources).all(axis=1)
+    if bad_src.any() and np.isfinite(sources).any():
+        j = int(np.flatnonzero(bad_src)[0])
+        raise InputError(f"{p}: source {j} has delays but no finite direction in 'sources'")
+    delays, sources, speaker = delays[:, keep], sources[keep], speaker[keep]
     D = np.insert(delays * c, ref, 0.0, axis=0)
     return PyramicData(D=D, delays=delays, sources=sources, microphones=mics, speed=c,
-                       mic_ref=ref, speaker=speaker, column_speed=np.full(n_src, c))
+                       mic_ref=ref, speaker=speaker, column_speed=np.full(delays.shape[1], c),
+                       skipped=int((~keep).sum()))
+
+
+def _numeric(value: object, p: str, key: str) -> Array:
+    """A nested list of numbers (``null`` = NaN) as a float array; ragged or non-numeric: InputError."""
+    try:
+        arr = np.asarray(value, dtype=float)
+    except ValueError as exc:
+        if "inhomogeneous" in str(exc) or "sequence" in str(exc):
+            raise InputError(
+                f"{p}: '{key}' is ragged (lists of different lengths). In one file every speaker needs the same "
+                "turntable positions: pad the missing ones with null, or give each speaker its own file") from None
+        raise InputError(f"{p}: '{key}' is not numeric ({exc})") from None
+    except TypeError as exc:
+        raise InputError(f"{p}: '{key}' is not numeric ({exc})") from None
+    return arr
 
 
 def simulate_pyramic(

@@ -53,7 +53,13 @@ from .minimal import solve_minimal
 from .orientation import check_orientation
 from .refine import LOSSES, farfield_residuals, refine_alternating, refine_lm
 from .result import FarfieldInit, FarfieldResult
-from .screen import _robust_sigma, lowrank_fit, ransac_farfield, screen_gross_errors
+from .screen import (
+    _robust_sigma,
+    gross_error_screen,
+    lowrank_fit,
+    ransac_farfield,
+    screen_gross_errors,
+)
 from .semiblind import _solve_known_directions
 
 __all__ = [
@@ -240,13 +246,17 @@ def solve_farfield(
     if method == "minimal" and ((m, k) != (4, 6) or not finite.all()):
         raise InputError(f"method='minimal' needs a complete 4 x 6 matrix, got {m} x {k}")
     check_orientation(D, noise_std=noise_std, rank=3)
-    gross = screen_gross_errors(D) if screen else np.zeros_like(finite)
+    scr = gross_error_screen(D) if screen else None
+    gross = scr.mask if scr is not None else np.zeros_like(finite)
+    untestable = int(scr.untestable.sum()) if scr is not None else 0
+    screen_note = (scr.message,) if scr is not None and scr.message else ()
     if ransac:
         gross = gross | (finite & ~ransac_farfield(np.where(gross, np.nan, D), rng=gen))
     used = finite & ~gross
     complete = bool(used.all())
     if directions is not None:
-        return _solve_known_directions(D, used, gross, directions, loss=loss)
+        res0 = _solve_known_directions(D, used, gross, directions, loss=loss)
+        return replace(res0, untestable=untestable, warnings=screen_note + res0.warnings)
     if offsets == "auto":
         offsets = "reference" if (complete and loss == "linear") else "free"
     if offsets == "reference" and not np.all(used[0]):
@@ -295,7 +305,7 @@ def solve_farfield(
         r = farfield_residuals(np.where(used & ~rej, D, np.nan), pos, dirs, C)
         rms = float(np.sqrt(np.nanmean(r**2))) if np.isfinite(r).any() else float("nan")
         return FarfieldResult(pos, dirs, C, kind, rms, conv, its, meth, loss, rej | gross, pd, report, hist,
-                              cov)
+                              cov, warnings=screen_note, untestable=untestable)
 
     no_rej = np.zeros_like(finite)
     kind_found = report.kind if check_degeneracy else None
@@ -410,7 +420,7 @@ def solve_farfield(
     if cautions:
         if cautions[0].startswith("directions-collapsed"):
             warnings.warn(cautions[0], ConvergenceWarning, stacklevel=2)
-        res = replace(res, warnings=cautions)
+        res = replace(res, warnings=res.warnings + cautions)
     return res
 
 

@@ -24,6 +24,12 @@ def orientation_statistics(D: Array, *, rank: int = 3, noise_std: float | None =
     "rank <= rank", false-alarm ``alpha``; degrees of freedom ``(m - 1) x k`` and
     ``m x (k - 1)``).
 
+    Parameters
+    ----------
+    D : (m, k) complete far-field matrix (metres).
+    rank : model rank (3 in space, 2 in a plane); noise_std : known noise (metres) or None;
+    alpha : false-alarm rate of each test.
+
     Returns
     -------
     dict with ``s_given``, ``thr_given``, ``s_transposed``, ``thr_transposed`` (metres) and

@@ -50,6 +50,10 @@ class FarfieldResult(Result):
         directions all parallel: one coordinate per position), or the degeneracy's name
         for a partial reconstruction.
     determined : what the data determine in this case (paper 000, section 2.2), in words.
+    untestable : number of observed entries the gross-error screen could not check (too few
+        spare measurements: their redundancy ``1 - h_ij`` is ~0, e.g. every entry of the
+        minimal 4 x 6 problem; :func:`~selfcal.tdoa.screen.gross_error_screen`); a line in
+        ``warnings`` says so when it is not 0.
     """
 
     positions: Array
@@ -70,6 +74,7 @@ class FarfieldResult(Result):
     dim: int = 3
     case: str = "spatial"
     determined: str = ""
+    untestable: int = 0
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-safe dictionary with the DESIGN.md keys (``rejected`` as [i, j] pairs)."""
@@ -91,6 +96,7 @@ class FarfieldResult(Result):
             "dim": int(self.dim),
             "case": self.case,
             "determined": self.determined,
+            "untestable": int(self.untestable),
         }
 
 

@@ -7,6 +7,8 @@
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 from numpy.typing import NDArray
 
@@ -15,7 +17,8 @@ from ..robust import mad_std
 from .minimal import solve_minimal
 from .refine import farfield_residuals, loss_weight
 
-__all__ = ["SCREEN_ALPHA", "LEVERAGE_MAX", "entry_leverages", "far_field_parameters", "implausible_entries", "screen_gross_errors", "lowrank_fit",
+__all__ = ["SCREEN_ALPHA", "LEVERAGE_MAX", "GrossScreen", "entry_leverages", "far_field_parameters",
+           "implausible_entries", "gross_error_screen", "screen_gross_errors", "lowrank_fit", "consensus_model",
            "ransac_farfield"]
 
 Array = NDArray[np.float64]
@@ -65,6 +68,13 @@ def implausible_entries(D: Array, *, factor: float = 20.0) -> NDArray[np.bool_]:
 LEVERAGE_MAX = 300
 
 
+#: the far-field model's own test (:mod:`~selfcal.tdoa.deletion`) runs on matrices of at most this
+#: many observed entries whose structure keeps fewer than half of them spare; the others get the
+#: structure's residual test. A cost bound: a suspect matrix costs m + k leave-one-out fits and a
+#: dense SVD of the (n, 3 (m + k)) Jacobian per flagged entry (about 0.3 s CPU at 20 x 6)
+MODEL_TEST_MAX = 200
+
+
 def entry_leverages(P: Array, Q: Array, W: Array) -> Array:
     """Leverage ``h_ij = g_ij^T (J^T W J)^+ g_ij`` of every entry in the fit of ``P Q^T + 1 c^T``: (m, k).
 
@@ -104,6 +114,31 @@ def _redundant(used: NDArray[np.bool_], n_fit: int, rank: int) -> bool:
     return bool(n - n_fit >= n / 3.0 and (used.sum(axis=0) >= 2).all() and (used.sum(axis=1) >= rank).all())
 
 
+@dataclass(frozen=True)
+class GrossScreen:
+    """Outcome of :func:`gross_error_screen`.
+
+    mask : (m, k) entries found gross; untestable : (m, k) observed entries that cannot be
+    checked (too few spare measurements: an error as large as the array could pass, see
+    :mod:`~selfcal.tdoa.deletion`); method : ``"structure"`` (the residual test below),
+    ``"model"`` (the far-field model's deletion test of small matrices) or ``"pre-screen"``
+    (only the model-free stage ran).
+    """
+
+    mask: NDArray[np.bool_]
+    untestable: NDArray[np.bool_]
+    method: str
+
+    @property
+    def message(self) -> str:
+        """One line about the untestable entries ('' when every entry could be checked)."""
+        n = int(self.untestable.sum())
+        if n == 0:
+            return ""
+        return (f"{n} entries cannot be checked for gross errors: too few spare measurements (an error as "
+                "large as the array could pass unnoticed in them); add receivers or transmitters")
+
+
 def screen_gross_errors(
     D: Array,
     *,
@@ -113,7 +148,20 @@ def screen_gross_errors(
     factor: float = 20.0,
     rounds: int = 4,
 ) -> NDArray[np.bool_]:
-    """Flag gross errors with a stated false-alarm rate: (m, k) bool mask.
+    """Flag gross errors with a stated false-alarm rate: (m, k) bool mask (:func:`gross_error_screen`)."""
+    return gross_error_screen(D, alpha=alpha, rank=rank, noise_std=noise_std, factor=factor, rounds=rounds).mask
+
+
+def gross_error_screen(
+    D: Array,
+    *,
+    alpha: float = SCREEN_ALPHA,
+    rank: int = 3,
+    noise_std: float | None = None,
+    factor: float = 20.0,
+    rounds: int = 4,
+) -> GrossScreen:
+    """Flag gross errors with a stated false-alarm rate; say which entries cannot be checked.
 
     Two stages. (1) :func:`implausible_entries`, the model-free pre-screen (errors far beyond
     the array's size), so that they cannot spoil the fit of stage 2. (2) A residual test
@@ -131,15 +179,20 @@ def screen_gross_errors(
     stop changing (at most ``rounds`` fits): a gross entry set aside no longer pulls the fit,
     and a clean one flagged next to it is given back. (Where the redundancy test below
     passes, one spike cannot be absorbed by the rank-``rank`` fit; in smaller matrices it
-    can, and the test does not run.)
+    can, and the far-field model's own test below takes over.)
 
     Under the far-field model with i.i.d. Gaussian noise a clean matrix loses any entry with
     probability about ``alpha`` (checked over many seeds in the tests); a gross error is
     caught when it exceeds about ``t sigma`` plus what the fit absorbs of it. The residual
     test needs redundancy: it runs when at least a third of the entries are residual degrees
     of freedom of the fit (``n - rank (m + k - rank) - k >= n / 3``, e.g. 12 x 12 or 10 x 30
-    in space); below (the minimal 4 x 6 problem, where any matrix fits exactly, or 8 x 9)
-    only the pre-screen acts, which misses errors within a few array sizes when k < 10.
+    in space). Where fewer than half the entries are spare for the structure (5 x 7, 8 x 9,
+    20 x 6, 12 x 12, ...; at most :data:`MODEL_TEST_MAX` entries) and in space, the deletion
+    test of :mod:`~selfcal.tdoa.deletion` runs instead (the structure test when the far-field
+    model cannot be fitted, e.g. a planar array): each entry against the far-field model proper
+    (unit directions: ``k - 3`` fewer unknowns than the structure), one candidate at a time,
+    with its own redundancy ``1 - h_ij``; entries whose redundancy is ~0 (every entry of the
+    minimal 4 x 6 problem, which any matrix fits exactly) are reported as ``untestable``.
 
     Parameters
     ----------
@@ -152,7 +205,8 @@ def screen_gross_errors(
 
     Returns
     -------
-    (m, k) bool, True = gross (treated as missing by the solver).
+    GrossScreen: ``mask`` (m, k) bool, True = gross (treated as missing by the solver),
+    ``untestable`` (m, k) bool, ``method``.
 
     Examples
     --------
@@ -165,7 +219,7 @@ def screen_gross_errors(
     >>> N /= np.linalg.norm(N, axis=1, keepdims=True)
     >>> D = Z @ N.T + rng.normal(size=12) + 1e-4 * rng.standard_normal((12, 12))
     >>> D[3, 4] += 1.0
-    >>> np.argwhere(screen_gross_errors(D)).tolist()
+    >>> np.argwhere(gross_error_screen(D).mask).tolist()
     [[3, 4]]
     """
     from scipy.stats import norm
@@ -175,29 +229,45 @@ def screen_gross_errors(
     pre = implausible_entries(D, factor=factor)
     m, k = D.shape
     n_all = int(finite.sum())
+    none = np.zeros((m, k), dtype=bool)
     if n_all == 0:
-        return pre
+        return GrossScreen(pre, none, "pre-screen")
     t = float(norm.isf(alpha / (2.0 * n_all)))
     used = finite & ~pre
     n = int(used.sum())
     n_fit = rank * (m + k - rank) + k  # unknowns of the least-squares fit below
+    if rank == 3 and m >= 4 and k >= 6 and n <= MODEL_TEST_MAX and n - n_fit < n / 2.0:
+        # the far-field model's own test where the structure keeps fewer than half the entries
+        # spare: there the model's k - 3 extra spare measurements (unit directions) are a large
+        # share of the redundancy (5 x 7: 5 against 1; 20 x 6: 48 against 45, and the structure's
+        # fit of its 6 columns is easily pulled by one large error)
+        from .deletion import deletion_screen
+
+        dele = deletion_screen(D, used, alpha=alpha, noise_std=noise_std)
+        if dele.tested or not _redundant(used, n_fit, rank):
+            return GrossScreen(pre | dele.flags, dele.untestable, "model" if dele.tested else "pre-screen")
     if not _redundant(used, n_fit, rank):
-        return pre
+        return GrossScreen(pre, used, "pre-screen")
     flags = pre.copy()
+    untestable = none
+    extent = float(np.max(np.abs(np.where(finite, D - np.nanmean(D, axis=0, keepdims=True), 0.0)))) + 1e-300
     verified = False
     # then least squares on the entries kept, every entry tested against it, until the flags settle:
     # excluded entries cannot pull the fit, and clean ones flagged by the rough start come back
-    for _ in range(max(int(rounds), 1)):
+    # A large error pulls the least-squares fit and hides among the flags it causes (20 x 6, +1 m on
+    # a 5 cm array: 14 clean entries flagged, the gross one not): when the first least-squares
+    # round flags anything, its flags are replaced by those of a robust (Cauchy) fit, and the
+    # least-squares rounds go on from there. Clean data never take the robust round.
+    robust_round = False
+    for _ in range(max(int(rounds), 1) + 1):
         used = finite & ~flags
         n = int(used.sum())
         if not _redundant(used, n_fit, rank):
             break
         W = used.astype(float)
-        L, _, P, Q = _lowrank_factors(D, W, rank=rank, loss="linear")
-        if n_fit <= LEVERAGE_MAX:
-            h = np.minimum(entry_leverages(P, Q, W), 0.99)
-        else:
-            h = np.full((m, k), min(n_fit / n, 0.99))
+        L, _, P, Q = _lowrank_factors(D, W, rank=rank, loss="cauchy" if robust_round else "linear")
+        h_raw = entry_leverages(P, Q, W) if n_fit <= LEVERAGE_MAX else np.full((m, k), min(n_fit / n, 1.0))
+        h = np.minimum(h_raw, 0.99)
         res = np.abs(np.where(finite, D, 0.0) - L)
         # robust sigma from the studentised residuals of the kept entries
         sigma = float(noise_std) if noise_std is not None else float(
@@ -207,15 +277,21 @@ def screen_gross_errors(
         if not sigma > 0:
             break
         sd = sigma * np.where(used, np.sqrt(1.0 - h), np.sqrt(1.0 + h))
+        # minimal detectable bias (80 % power) beyond the array's extent: the entry cannot be checked
+        untestable = used & (sigma * (t + 0.8416) > extent * np.sqrt(np.clip(1.0 - h_raw, 0.0, 1.0)))
         with np.errstate(invalid="ignore"):
-            new = pre | (finite & (res > t * sd))
+            new = pre | (finite & ~untestable & (res > t * sd))
+        if not verified and not robust_round and (new & ~pre).any():
+            robust_round = True  # redo this round robustly (flags unchanged)
+            continue
         verified = True
+        robust_round = False
         if np.array_equal(new, flags):
             break
         flags = new
     if not verified:
-        return pre
-    return np.asarray(flags)
+        return GrossScreen(pre, used, "pre-screen")
+    return GrossScreen(np.asarray(flags), untestable & ~flags, "structure")
 
 
 def lowrank_fit(
@@ -329,9 +405,26 @@ def consensus_prediction(D: Array, *, iterations: int = 200,
     a sample free of gross errors predicts the clean structure. None when no sample of
     complete entries gives a valid (positive definite B) solution.
     """
+    model = consensus_model(D, iterations=iterations, rng=rng)
+    if model is None:
+        return None
+    Z, N, C = model
+    P = Z @ N.T + C[None, :]
+    return np.where(np.isfinite(P), P, 0.0)
+
+
+def consensus_model(D: Array, *, iterations: int = 200,
+                    rng: np.random.Generator | int | None = None) -> tuple[Array, Array, Array] | None:
+    """The far-field model ``(Z (m, 3), N (k, 3), C (k,))`` of the best minimal sample (LMedS), or None.
+
+    The hypothesis of :func:`consensus_prediction` (positions of every row, unit directions and
+    offsets of every column) rather than its prediction: a robust start for a far-field fit.
+    """
     gen = as_rng(rng)
     D = np.asarray(D, dtype=float)
     m, k = D.shape
+    if m < 4 or k < 6:
+        return None
     finite = np.isfinite(D)
     rows = np.array([gen.choice(m, 4, replace=False) for _ in range(iterations)])
     cols = np.array([gen.choice(k, 6, replace=False) for _ in range(iterations)])
@@ -341,7 +434,8 @@ def consensus_prediction(D: Array, *, iterations: int = 200,
     good = np.flatnonzero(ok & sol.valid)
     if good.size == 0:
         return None
-    best_med, best_P = np.inf, None
+    best_med: float = np.inf
+    best: tuple[Array, Array, Array] | None = None
     Df = np.where(finite, D, np.nan)
     for h in good:
         r, c = rows[h], cols[h]
@@ -360,10 +454,17 @@ def consensus_prediction(D: Array, *, iterations: int = 200,
         R = Df - Zall @ Nall.T - Cj[None, :]
         med = float(np.nanmedian(np.abs(R)))
         if np.isfinite(med) and med < best_med:
-            best_med, best_P = med, Zall @ Nall.T + Cj[None, :]
-    if best_P is None or not np.isfinite(np.where(finite, best_P, 0.0)).all():
+            best_med, best = med, (Zall, Nall, Cj)
+    if best is None:
         return None
-    return np.where(np.isfinite(best_P), best_P, 0.0)
+    Z, N, C = best
+    if not (np.isfinite(Z).all() and np.isfinite(N).all()):
+        return None
+    # offsets of the columns whose sampled reference entry is missing: their median residual
+    C = np.where(np.isfinite(C), C, np.nanmedian(Df - Z @ N.T, axis=0))
+    if not np.isfinite(C).all():
+        return None
+    return Z, N, C
 
 
 def ransac_farfield(
