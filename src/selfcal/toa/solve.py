@@ -92,8 +92,10 @@ def solve_toa(
     sweep: run the plane moves of the search (:mod:`selfcal.toa.moves`).
     noise: optional std of the measurement noise in the matrix's units. The result then
         carries ``fit``, the chi-square test of its residuals (rejected at p < 1e-3), which
-        is also the search's stopping rule; without it, the F test of the geometry against
-        offsets alone (``geometry``) says whether the data fit a geometry at all.
+        is also the search's stopping rule; without it, the geometry test
+        (:func:`selfcal.toa.trust.geometry_test`: a permutation test against offsets alone
+        plus a median leave-one-out check, ``geometry``) says whether the data fit a
+        geometry at all.
     budget: maximal refinements of the search (default :func:`selfcal.toa.search.default_budget`).
 
     Returns
