@@ -192,6 +192,12 @@ def offset_matrix(ranges: Array, p: Array, *, model: str = "exact", centring: st
     return _centre(_centre(D, 0, centring), 1, centring)
 
 
+def rank_identifiable(n_receivers: int, n_senders: int, dim: int = 3) -> bool:
+    """Whether the rank-d method determines p (:func:`check_rank_identifiable`'s condition)."""
+    I, J, d = int(n_receivers), int(n_senders), int(dim)
+    return I >= d + 2 and J >= d + 2 and (I - 1 - d) * (J - 1 - d) >= I + J - 1
+
+
 def check_rank_identifiable(n_receivers: int, n_senders: int, dim: int = 3) -> None:
     """Raise ``DegenerateGeometryError(kind="too-few-units")`` when the rank-d method cannot determine p.
 
@@ -200,7 +206,7 @@ def check_rank_identifiable(n_receivers: int, n_senders: int, dim: int = 3) -> N
     U >= 8 in 3-D and U >= 7 in 2-D (thesis 3.18 gives U >= 7 for the full 3-D model).
     """
     I, J, d = int(n_receivers), int(n_senders), int(dim)
-    if I < d + 2 or J < d + 2 or (I - 1 - d) * (J - 1 - d) < I + J - 1:
+    if not rank_identifiable(I, J, d):
         units = 8 if d == 3 else 7
         raise DegenerateGeometryError(
             f"{I} receivers x {J} senders cannot determine the {I + J - 1} offsets with the rank-{d} "

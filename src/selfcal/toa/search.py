@@ -40,6 +40,7 @@ from numpy.typing import NDArray
 from ..errors import DegenerateGeometryError, InputError
 from .moves import Move, Start, moves
 from .nls import NlsSolution, _rho, refine_toa, toa_model
+from .rank3_model import rank_identifiable
 from .result import _additive_fit
 from .robust import _nanmedian_rows
 
@@ -120,9 +121,7 @@ def _rank3(Y: Array, dim: int, offsets: str, rng: np.random.Generator) -> list[S
     if offsets == "none":
         return []
     I, J = Y.shape
-    try:
-        off.check_rank_identifiable(I, J, dim)
-    except DegenerateGeometryError:
+    if not rank_identifiable(I, J, dim):
         return []
     k = 4 if I + J <= MOVES_MAX_NODES else 1
     try:
@@ -162,16 +161,13 @@ def _mds(method: str) -> _Init:
 def _scaled(Y: Array, dim: int, offsets: str, rng: np.random.Generator) -> list[Start]:
     """Random starts at the data's distance bounds (selfcal.toa.scaled_starts), only where no
     other initialiser has information on the offsets: both kinds, rank-d method not identifiable."""
-    from . import offsets as off
     from .scaled_starts import scaled_random_starts
 
     if offsets != "both":
         return []
-    try:
-        off.check_rank_identifiable(Y.shape[0], Y.shape[1], dim)
+    if rank_identifiable(Y.shape[0], Y.shape[1], dim):
         return []
-    except DegenerateGeometryError:
-        return scaled_random_starts(Y, dim, offsets, rng, n=SCALED_STARTS)
+    return scaled_random_starts(Y, dim, offsets, rng, n=SCALED_STARTS)
 
 
 #: random starts of the "scaled" initialiser (a share of the search's one budget)
