@@ -124,6 +124,10 @@ def simulate_uwb_flight(
     spike_mean: float = 0.4,
     missing: float = 0.005,
     sparse_positions: int = 2,
+    layout: str = "room",
+    noise_corr: float = 0.0,
+    nlos_rate: float = 0.0,
+    nlos_mean: float = 0.3,
 ) -> dict[str, Array]:
     """A simulated LPS-like flight: 6 UWB anchors, one tag on a smooth trajectory.
 
@@ -133,13 +137,28 @@ def simulate_uwb_flight(
     mean ``spike_mean``, in short bursts of 1-3 samples), missing ranges, and a few tag
     positions with only 2 ranges.
 
+    Options for the faults of issue 12's trials (all off by default, so a seed draws the
+    same flight as before):
+
+    - ``layout="room"``: anchors near the corners of an 8 x 6 x 3 m room, the tag in its
+      interior (ranges 2.4-6.8 m: a common range offset is barely separable from the
+      scale); ``"lps"``: the Lund LPS geometry, anchors in a ~2.4 x 2.0 x 1.2 m volume and
+      the tag flying through and around it (ranges ~0.2-3.5 m, as on data4 / data5).
+    - ``noise_corr``: AR(1) coefficient of the range noise along time (marginal std
+      ``noise``); the residuals of the measured flights have lag-1 autocorrelation ~0.8.
+    - ``nlos_rate``: per anchor and sample, the rate at which a non-line-of-sight segment
+      starts (10-40 consecutive samples with one positive excess ~ Exp(``nlos_mean``)).
+
     Returns
     -------
     dict with ``ranges`` (6, N), ``anchors`` (6, 3), ``tag`` (N, 3), ``bias`` (6,),
     ``spikes`` (6, N) bool.
     """
+    from .._checks import check_choice
+
+    check_choice(layout, "layout", ("room", "lps"))
     rng = np.random.default_rng(seed)
-    box = np.array([8.0, 6.0, 3.0])
+    box = np.array([8.0, 6.0, 3.0]) if layout == "room" else np.array([2.4, 2.0, 1.2])
     # anchors near the walls / corners at mixed heights (a 3-D, non-coplanar set)
     corners = np.array([[0, 0, 0], [1, 0, 1], [1, 1, 0], [0, 1, 1], [0.5, 0, 0.9], [0.5, 1, 0.1]], float)
     anchors = (corners + rng.uniform(-0.08, 0.08, corners.shape)).clip(0, 1) * box
@@ -150,10 +169,18 @@ def simulate_uwb_flight(
         ph = rng.uniform(0, 2 * np.pi, 3)
         amp = rng.uniform(0.1, 0.3, 3)
         tag[:, a] = (0.5 + (amp[:, None] * np.sin(2 * np.pi * f[:, None] * t + ph[:, None])).sum(0) / 2)
-    tag = (0.15 + 0.7 * tag.clip(0, 1)) * box
+    if layout == "room":
+        tag = (0.15 + 0.7 * tag.clip(0, 1)) * box
+    else:  # through and around the anchor volume (1.3x its size), as the LPS drone flies
+        tag = (0.5 + 1.86 * (tag.clip(0, 1) - 0.5)) * box
     D = np.linalg.norm(anchors[:, None] - tag[None], axis=2)
     bias = rng.normal(bias_mean, bias_std, 6)
-    Y = D + bias[:, None] + noise * rng.standard_normal(D.shape)
+    white = rng.standard_normal(D.shape)
+    if noise_corr:
+        from scipy.signal import lfilter
+
+        white = lfilter([np.sqrt(1 - noise_corr**2)], [1.0, -noise_corr], white, axis=1)
+    Y = D + bias[:, None] + noise * white
     spikes = np.zeros(D.shape, bool)
     starts = rng.random(D.shape) < spike_rate / 2
     for i, j in zip(*np.nonzero(starts), strict=True):
@@ -162,6 +189,12 @@ def simulate_uwb_flight(
     Y[rng.random(D.shape) < missing] = np.nan
     for j in rng.choice(n_positions, sparse_positions, replace=False):
         Y[rng.choice(6, 4, replace=False), j] = np.nan
+    if nlos_rate:
+        g = np.random.default_rng([seed, 1])
+        for i, j in zip(*np.nonzero(g.random(D.shape) < nlos_rate), strict=True):
+            seg = slice(j, j + int(g.integers(10, 41)))
+            Y[i, seg] += g.exponential(nlos_mean)
+            spikes[i, seg] = True
     return {"ranges": Y, "anchors": anchors, "tag": tag, "bias": bias, "spikes": spikes}
 
 

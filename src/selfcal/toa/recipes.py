@@ -243,7 +243,7 @@ def moving_tag(
     half_window: int = 7,
     degree: int = 2,
     one_sided: bool = True,
-    common_offset: str = "free",
+    common_offset: str = "test",
     speed: float | None = None,
     **solve_kw: Any,
 ) -> RecipeResult:
@@ -261,14 +261,13 @@ def moving_tag(
         Gaussian entry of the matrix with probability at most
         :data:`selfcal.toa.robust.OUTLIER_ALPHA` (:func:`spike_threshold`), the same
         false-alarm rule as the solver's own outlier test.
-    common_offset: "free" (default: the fit as ``solve_toa`` does it with the
-        ``offsets`` given in ``solve_kw``), "test" (opt-in: with offsets "none", one range
-        offset common to every entry, a UWB antenna delay, adopted when the nested-model
-        F test finds it at p < 1e-3, :func:`_common_offset`; the test is in
-        ``details["common_offset_test"]``; not the default: on measured flights the F test
-        rejects any model by its systematic misfit, so it is no selection there) or
-        "profile" (opt-in: per-anchor offsets whose
-        common part minimises the trimmed residual scale,
+    common_offset: "test" (default: with offsets "none", one range offset common to every
+        entry, a UWB antenna delay, kept when the block jackknife t test over time blocks
+        finds it at p < 1e-3, :func:`selfcal.toa.common_offset.choose_common_offset`; the
+        result then has ``offsets="common"`` and the test is in
+        ``details["common_offset_test"]``), "free" (the fit as ``solve_toa`` does it with
+        the ``offsets`` given in ``solve_kw``, no common offset) or "profile" (opt-in:
+        per-anchor offsets whose common part minimises the trimmed residual scale,
         :func:`selfcal.toa.preprocess.fit_offsets_profile_common`; ``offsets`` must be
         "none" or "receivers").
     speed: propagation speed (m/s) when the matrix holds seconds.
@@ -335,8 +334,12 @@ def moving_tag(
     else:
         res = solve_toa(sub, dim=dim, speed=speed, **solve_kw)
         if common_offset == "test" and res.offsets == "none":
-            res, details["common_offset_test"] = _common_offset(res, sub, scale)
-            details["common_offset_value"] = details["common_offset_test"]["value"]
+            from .common_offset import choose_common_offset
+
+            res, test = choose_common_offset(res, sub, scale)
+            details["common_offset_test"] = test
+            details["common_offset_value"] = test.get("value") if test["adopted"] else 0.0
+            details["offsets"] = res.offsets
     res = _embed_columns(res, keep, J, M)
     return RecipeResult(res, "moving-tag", rej.outliers, dropped, (), details)
 
@@ -360,77 +363,6 @@ def spike_threshold(matrix: Any, one_sided: bool = False, alpha: float | None = 
     m = int(np.isfinite(np.asarray(matrix, float)).sum())
     # outlier_threshold is the two-sided quantile Phi^-1(1 - a / (2 m)); one-sided = twice a
     return outlier_threshold(m, 2 * a if one_sided else a)
-
-
-def _common_offset(base: Any, sub: Array, scale: float) -> tuple[Any, dict[str, Any]]:
-    """Nested-model F test of one range offset common to every entry against none; adopted at p < 1e-3.
-
-    The model ``|r_i - s_j| + c`` (a UWB antenna delay shared by the hardware) adds one
-    parameter to the offsets-free fit ``base``; refitted from it on the entries it used, with
-    ``F = (RSS_0 - RSS_1) / (RSS_1 / (m - n - 1))`` ~ F(1, m - n - 1) under "no common offset"
-    (:data:`selfcal.toa.result.RESIDUAL_ALPHA` level, the solver's own). c is identifiable only
-    through the spread of the ranges (it trades against the scale of the geometry), so the fit
-    is weak where the ranges barely vary; the test then keeps ``base``.
-    """
-    from scipy.stats import f as f_dist
-
-    from ..errors import DegenerateGeometryError
-    from .nls import refine_toa
-    from .result import RESIDUAL_ALPHA, n_parameters
-
-    kr = np.isfinite(base.receivers).all(axis=1)
-    ks = np.isfinite(base.sources).all(axis=1)
-    used = np.isfinite(base.residuals) & ~np.asarray(base.outliers, bool)
-    Z = np.where(used, sub * scale, np.nan)[np.ix_(kr, ks)]
-    info: dict[str, Any] = {"test": "F", "alpha": RESIDUAL_ALPHA, "adopted": False}
-    try:
-        com = refine_toa(Z, base.receivers[kr], base.sources[ks], offsets="receivers",
-                         common_offsets="receivers", covariance=True)
-    except (DegenerateGeometryError, InputError, np.linalg.LinAlgError, ValueError) as exc:
-        info["error"] = str(exc)
-        return base, info
-    e0 = (base.residuals[np.ix_(kr, ks)] * scale)[np.isfinite(Z)]
-    rss0 = float(e0 @ e0)
-    rss1 = float(np.nansum(com.residuals**2))
-    m = int(np.isfinite(Z).sum())
-    dof = m - n_parameters(int(kr.sum()), int(ks.sum()), base.dim, "none") - 1
-    stat = (rss0 - rss1) / (rss1 / dof) if dof > 0 and rss1 > 0 else float("nan")
-    p = float(f_dist.sf(stat, 1, dof)) if np.isfinite(stat) else float("nan")
-    assert com.receiver_offsets is not None
-    offs = np.asarray(com.receiver_offsets, float)
-    c = float(np.mean(offs))
-    sd = com.receiver_offset_std
-    info["std"] = float(np.mean(sd)) / scale if sd is not None and np.isfinite(sd).all() else float("nan")
-    info.update({"value": c / scale, "f_statistic": float(stat), "p_value": p, "dof": int(dof),
-                 "rss_none": rss0 / scale**2, "rss_common": rss1 / scale**2, "iterations": int(com.iterations)})
-    if not (p < RESIDUAL_ALPHA and com.converged):
-        return base, info
-    info["adopted"] = True
-    I, J = base.receivers.shape[0], base.sources.shape[0]
-    d = base.receivers.shape[1]
-
-    def put(a: Array, k: NDArray[np.bool_], tail: tuple[int, ...]) -> Array:
-        out = np.full((k.size,) + tail, np.nan)
-        out[k] = a
-        return out
-
-    from .nls import toa_model
-
-    R = np.full((I, J), np.nan)
-    model = toa_model(com.receivers, com.sources, offs) / scale
-    R[np.ix_(kr, ks)] = np.where(np.isfinite(sub[np.ix_(kr, ks)]), sub[np.ix_(kr, ks)] - model, np.nan)
-    inl = used & np.isfinite(R)
-    names = {f.name for f in dataclasses.fields(base)}
-    kw = {
-        "receivers": put(com.receivers, kr, (d,)), "sources": put(com.sources, ks, (d,)),
-        "receiver_offsets": put(offs / scale, kr, ()), "offsets": "receivers",
-        "receiver_cov": put(com.receiver_cov, kr, (d, d)), "source_cov": put(com.source_cov, ks, (d, d)),
-        "residual_rms": float(np.sqrt(np.mean(R[inl] ** 2))) if inl.any() else float("nan"),
-        "converged": com.converged, "iterations": int(base.iterations) + int(com.iterations),
-        "method": f"{base.method}+common-offset", "residuals": R,
-        "receiver_offset_std": None if com.receiver_offset_std is None else put(com.receiver_offset_std / scale, kr, ()),
-    }
-    return dataclasses.replace(base, **{k: v for k, v in kw.items() if k in names}), info
 
 
 def _plain(kw: dict[str, Any]) -> dict[str, Any]:
@@ -460,7 +392,7 @@ def _profile_result(base: Any, prof: Any, sub: Array, scale: float) -> Any:
     return dataclasses.replace(base, **{k: v for k, v in kw.items() if k in names})
 
 
-def apply_recipe(name: str, matrix: Any, *, common_offset: str = "free", **kw: Any) -> Any:
+def apply_recipe(name: str, matrix: Any, *, common_offset: str = "test", **kw: Any) -> Any:
     """Run recipe ``name`` (one of :data:`RECIPES`) on ``matrix``; ``"none"`` is solve_toa.
 
     ``"auto"`` runs ``"moving-tag"`` when :func:`detect_time_order` detects that the
