@@ -290,6 +290,56 @@ def score_recipe_variants(data: str, n_sim: int, variants: Sequence[str] | None 
     return table
 
 
+#: the common-offset trial's simulated faults (keyword arguments of simulate_uwb_flight)
+COMMON_OFFSET_FAULTS: dict[str, dict[str, Any]] = {
+    "lps-pa": {"layout": "lps", "n_positions": 500},
+    "lps-common": {"layout": "lps", "n_positions": 500, "bias_std": 0.0},
+    "lps-none": {"layout": "lps", "n_positions": 500, "bias_std": 0.0, "bias_mean": 0.0},
+    "lps-none_ar": {"layout": "lps", "n_positions": 500, "bias_std": 0.0, "bias_mean": 0.0, "noise_corr": 0.8},
+    "lps-pa_ar": {"layout": "lps", "n_positions": 500, "noise_corr": 0.8},
+    "lps-pa_nlos": {"layout": "lps", "n_positions": 500, "nlos_rate": 0.002},
+    "room-pa": {"n_positions": 400},
+    "room-common": {"n_positions": 400, "bias_std": 0.0},
+    "room-none": {"n_positions": 400, "bias_std": 0.0, "bias_mean": 0.0},
+}
+
+
+def score_common_offset(ranges: Array, anchors: Array, *, rng: int = 0) -> dict[str, Any]:
+    """The moving-tag recipe without the common offset, then its block test (both fits scored).
+
+    Returns the anchor RMSE without and with the common offset (whatever the test says),
+    the test's decision at its level and its numbers (:func:`selfcal.toa.common_offset.block_offset_test`),
+    so that other levels can be read off the p-value.
+    """
+    import warnings
+
+    from ..metrics import aligned_rmse
+    from ..toa.common_offset import block_offset_test
+    from ..toa.recipes import moving_tag
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        res = moving_tag(ranges, rng=rng, common_offset="free")
+        keep = np.isfinite(res.result.sources).all(axis=1)
+        sub = np.where(res.rejected, np.nan, np.asarray(ranges, float))[:, keep]
+        base = _Columns(res.result, keep)
+        com, info = block_offset_test(base, sub)
+    r0 = float(aligned_rmse(res.receivers, anchors).rmse_receivers)
+    r1 = float(aligned_rmse(com.receivers, anchors).rmse_receivers) if com is not None else float("nan")
+    return {"rmse_without": r0, "rmse_with": r1, **{k: v for k, v in info.items() if k != "replicates"}}
+
+
+class _Columns:
+    """The kept columns of a result, as :func:`block_offset_test` reads them."""
+
+    def __init__(self, res: Any, keep: NDArray[np.bool_]) -> None:
+        self.receivers = res.receivers
+        self.sources = res.sources[keep]
+        self.residuals = res.residuals[:, keep]
+        self.outliers = np.asarray(res.outliers, bool)[:, keep]
+        self.dim = res.dim
+
+
 if __name__ == "__main__":  # pragma: no cover - the experiment of the issue-12 report
     import argparse
 
@@ -298,6 +348,23 @@ if __name__ == "__main__":  # pragma: no cover - the experiment of the issue-12 
     ap.add_argument("--simulate", type=int, default=3)
     ap.add_argument("--variants", default="", help="comma-separated subset of RECIPE_VARIANTS")
     ap.add_argument("--cases", default="", help="comma-separated subset of the cases")
+    ap.add_argument("--common-offset-trial", default="", metavar="FAULT:SEED",
+                    help="score the common-offset block test on one case (a COMMON_OFFSET_FAULTS key "
+                         "and seed, or an LPS .mat file) and exit")
     a = ap.parse_args()
+    if a.common_offset_trial:
+        import json
+
+        if a.common_offset_trial.endswith(".mat"):
+            from ..datasets.lps import load_lps
+
+            fl = load_lps(a.common_offset_trial)
+            Y, A = fl.ranges, fl.anchors_true
+        else:
+            fault, seed = a.common_offset_trial.split(":")
+            sim = simulate_uwb_flight(int(seed), **COMMON_OFFSET_FAULTS[fault])
+            Y, A = sim["ranges"], sim["anchors"]
+        print(json.dumps({"case": a.common_offset_trial, **score_common_offset(Y, A)}))
+        raise SystemExit(0)
     score_recipe_variants(a.data, a.simulate, [v for v in a.variants.split(",") if v] or None,
                           [c for c in a.cases.split(",") if c] or None)
