@@ -86,12 +86,13 @@ def test_no_bias_is_not_kept_even_with_serially_correlated_noise():
 
 @pytest.mark.slow
 def test_block_test_level_and_power_over_seeds():
-    """10 seeds each. Power: common bias -0.17 m kept on >= 9 of 10 (|t| ~ 8-14 measured
-    against 2.13, a miss per flight is far below 1 %). Level 5 %: no bias, white or AR(1)
-    noise, kept on <= 4 of 20 (Binomial(20, 0.05) >= 5 has probability 1.6 %)."""
+    """10 seeds each (~100 s CPU). Power: common bias -0.17 m kept on >= 8 of 10 (measured
+    10 of 10, |t| 2.9-14 against t_15's 2.13; the weakest seed's trajectory determines c
+    least). Level 5 %: no bias, white or AR(1) noise, kept on <= 4 of 20 (Binomial(20, 0.05)
+    >= 5 has probability 1.6 %; measured 0 of 20, largest |t| 2.1)."""
     assert COMMON_OFFSET_ALPHA == 0.05
     kept = sum(i["adopted"] for i in _decisions("common", range(10)))
-    assert kept >= 9
+    assert kept >= 8
     null = _decisions("none", range(10)) + _decisions("none_ar", range(10))
     assert sum(i["adopted"] for i in null) <= 4
 
