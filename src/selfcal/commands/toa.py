@@ -42,10 +42,11 @@ def _auto_available() -> bool:
               help="Preprocessing recipe: moving-tag = columns are one moving device in time order "
                    "(multipath spikes rejected in time, under-observed positions dropped); auto = "
                    "moving-tag when a permutation test finds the columns in time order (p < 1e-3).")
-@click.option("--common-offset", "common_offset", type=click.Choice(["free", "test"]), default="free",
+@click.option("--common-offset", "common_offset", type=click.Choice(["free", "test"]), default="test",
               show_default=True,
               help="moving-tag recipe with offsets none: 'test' adds one range offset common to every "
-                   "entry (a UWB antenna delay) when a nested F test finds it (p < 1e-3).")
+                   "entry (a UWB antenna delay) when a block jackknife t test over time blocks finds it "
+                   "(p < 1e-3); 'free' = never.")
 @click.option("--known", "known", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="CSV name,x,y,z[,std] of nodes with known positions (r<i>, s<j> or a receiver "
                    "index); they constrain the fit and set the frame.")
@@ -100,7 +101,8 @@ def toa_command(matrix: Path, speed: float | None, offsets: str | None, dim: str
     res: Any = rec.result
     framed: FramedToaResult | None = None
     d_out = np.asarray(res.receivers).shape[1]
-    off_used = _offsets_of(res)
+    # a kept common range offset (moving-tag recipe) is its own model: the refits keep it
+    off_used = "common" if getattr(res, "offsets", None) == "common" else _offsets_of(res)
     # the constrained / frame refits see what the blind fit used: the recipe's spikes and
     # the outliers the solver removed are left out; the default ("auto") fits the inliers
     # by least squares, as the blind fit's last step does
@@ -147,6 +149,11 @@ def toa_command(matrix: Path, speed: float | None, offsets: str | None, dim: str
         reason = f" (auto: columns in time order, permutation p = {auto['p_value']:.2g})" if auto else ""
         lines.append(f"  recipe {used}{reason}: {rec.n_rejected} spikes rejected, {len(rec.dropped_sources)} "
                      "tag positions dropped (too few ranges left)")
+        co = rec.details.get("common_offset_test")
+        if co and "p_value" in co:
+            lines.append(f"  common range offset {co['value']:.4g} {'s' if speed is not None else 'm'} "
+                         f"{'kept' if co['adopted'] else 'not kept'} (block jackknife t = {co['t_statistic']:.3g}, "
+                         f"{co['blocks']} blocks, p = {co['p_value']:.2g}, level {co['alpha']:g})")
     counts = _counts(res)
     if counts:
         lines.append("  " + ", ".join(counts))

@@ -124,6 +124,10 @@ def simulate_uwb_flight(
     spike_mean: float = 0.4,
     missing: float = 0.005,
     sparse_positions: int = 2,
+    layout: str = "room",
+    noise_corr: float = 0.0,
+    nlos_rate: float = 0.0,
+    nlos_mean: float = 0.3,
 ) -> dict[str, Array]:
     """A simulated LPS-like flight: 6 UWB anchors, one tag on a smooth trajectory.
 
@@ -133,13 +137,28 @@ def simulate_uwb_flight(
     mean ``spike_mean``, in short bursts of 1-3 samples), missing ranges, and a few tag
     positions with only 2 ranges.
 
+    Options for the faults of issue 12's trials (all off by default, so a seed draws the
+    same flight as before):
+
+    - ``layout="room"``: anchors near the corners of an 8 x 6 x 3 m room, the tag in its
+      interior (ranges 2.4-6.8 m: a common range offset is barely separable from the
+      scale); ``"lps"``: the Lund LPS geometry, anchors in a ~2.4 x 2.0 x 1.2 m volume and
+      the tag flying through and around it (ranges ~0.2-3.5 m, as on data4 / data5).
+    - ``noise_corr``: AR(1) coefficient of the range noise along time (marginal std
+      ``noise``); the residuals of the measured flights have lag-1 autocorrelation ~0.8.
+    - ``nlos_rate``: per anchor and sample, the rate at which a non-line-of-sight segment
+      starts (10-40 consecutive samples with one positive excess ~ Exp(``nlos_mean``)).
+
     Returns
     -------
     dict with ``ranges`` (6, N), ``anchors`` (6, 3), ``tag`` (N, 3), ``bias`` (6,),
     ``spikes`` (6, N) bool.
     """
+    from .._checks import check_choice
+
+    check_choice(layout, "layout", ("room", "lps"))
     rng = np.random.default_rng(seed)
-    box = np.array([8.0, 6.0, 3.0])
+    box = np.array([8.0, 6.0, 3.0]) if layout == "room" else np.array([2.4, 2.0, 1.2])
     # anchors near the walls / corners at mixed heights (a 3-D, non-coplanar set)
     corners = np.array([[0, 0, 0], [1, 0, 1], [1, 1, 0], [0, 1, 1], [0.5, 0, 0.9], [0.5, 1, 0.1]], float)
     anchors = (corners + rng.uniform(-0.08, 0.08, corners.shape)).clip(0, 1) * box
@@ -150,10 +169,18 @@ def simulate_uwb_flight(
         ph = rng.uniform(0, 2 * np.pi, 3)
         amp = rng.uniform(0.1, 0.3, 3)
         tag[:, a] = (0.5 + (amp[:, None] * np.sin(2 * np.pi * f[:, None] * t + ph[:, None])).sum(0) / 2)
-    tag = (0.15 + 0.7 * tag.clip(0, 1)) * box
+    if layout == "room":
+        tag = (0.15 + 0.7 * tag.clip(0, 1)) * box
+    else:  # through and around the anchor volume (1.3x its size), as the LPS drone flies
+        tag = (0.5 + 1.86 * (tag.clip(0, 1) - 0.5)) * box
     D = np.linalg.norm(anchors[:, None] - tag[None], axis=2)
     bias = rng.normal(bias_mean, bias_std, 6)
-    Y = D + bias[:, None] + noise * rng.standard_normal(D.shape)
+    white = rng.standard_normal(D.shape)
+    if noise_corr:
+        from scipy.signal import lfilter
+
+        white = lfilter([np.sqrt(1 - noise_corr**2)], [1.0, -noise_corr], white, axis=1)
+    Y = D + bias[:, None] + noise * white
     spikes = np.zeros(D.shape, bool)
     starts = rng.random(D.shape) < spike_rate / 2
     for i, j in zip(*np.nonzero(starts), strict=True):
@@ -162,6 +189,12 @@ def simulate_uwb_flight(
     Y[rng.random(D.shape) < missing] = np.nan
     for j in rng.choice(n_positions, sparse_positions, replace=False):
         Y[rng.choice(6, 4, replace=False), j] = np.nan
+    if nlos_rate:
+        g = np.random.default_rng([seed, 1])
+        for i, j in zip(*np.nonzero(g.random(D.shape) < nlos_rate), strict=True):
+            seg = slice(j, j + int(g.integers(10, 41)))
+            Y[i, seg] += g.exponential(nlos_mean)
+            spikes[i, seg] = True
     return {"ranges": Y, "anchors": anchors, "tag": tag, "bias": bias, "spikes": spikes}
 
 
@@ -257,6 +290,56 @@ def score_recipe_variants(data: str, n_sim: int, variants: Sequence[str] | None 
     return table
 
 
+#: the common-offset trial's simulated faults (keyword arguments of simulate_uwb_flight)
+COMMON_OFFSET_FAULTS: dict[str, dict[str, Any]] = {
+    "lps-pa": {"layout": "lps", "n_positions": 500},
+    "lps-common": {"layout": "lps", "n_positions": 500, "bias_std": 0.0},
+    "lps-none": {"layout": "lps", "n_positions": 500, "bias_std": 0.0, "bias_mean": 0.0},
+    "lps-none_ar": {"layout": "lps", "n_positions": 500, "bias_std": 0.0, "bias_mean": 0.0, "noise_corr": 0.8},
+    "lps-pa_ar": {"layout": "lps", "n_positions": 500, "noise_corr": 0.8},
+    "lps-pa_nlos": {"layout": "lps", "n_positions": 500, "nlos_rate": 0.002},
+    "room-pa": {"n_positions": 400},
+    "room-common": {"n_positions": 400, "bias_std": 0.0},
+    "room-none": {"n_positions": 400, "bias_std": 0.0, "bias_mean": 0.0},
+}
+
+
+def score_common_offset(ranges: Array, anchors: Array, *, rng: int = 0) -> dict[str, Any]:
+    """The moving-tag recipe without the common offset, then its block test (both fits scored).
+
+    Returns the anchor RMSE without and with the common offset (whatever the test says),
+    the test's decision at its level and its numbers (:func:`selfcal.toa.common_offset.block_offset_test`),
+    so that other levels can be read off the p-value.
+    """
+    import warnings
+
+    from ..metrics import aligned_rmse
+    from ..toa.common_offset import block_offset_test
+    from ..toa.recipes import moving_tag
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        res = moving_tag(ranges, rng=rng, common_offset="free")
+        keep = np.isfinite(res.result.sources).all(axis=1)
+        sub = np.where(res.rejected, np.nan, np.asarray(ranges, float))[:, keep]
+        base = _Columns(res.result, keep)
+        com, info = block_offset_test(base, sub)
+    r0 = float(aligned_rmse(res.receivers, anchors).rmse_receivers)
+    r1 = float(aligned_rmse(com.receivers, anchors).rmse_receivers) if com is not None else float("nan")
+    return {"rmse_without": r0, "rmse_with": r1, **{k: v for k, v in info.items() if k != "replicates"}}
+
+
+class _Columns:
+    """The kept columns of a result, as :func:`block_offset_test` reads them."""
+
+    def __init__(self, res: Any, keep: NDArray[np.bool_]) -> None:
+        self.receivers = res.receivers
+        self.sources = res.sources[keep]
+        self.residuals = res.residuals[:, keep]
+        self.outliers = np.asarray(res.outliers, bool)[:, keep]
+        self.dim = res.dim
+
+
 if __name__ == "__main__":  # pragma: no cover - the experiment of the issue-12 report
     import argparse
 
@@ -265,6 +348,23 @@ if __name__ == "__main__":  # pragma: no cover - the experiment of the issue-12 
     ap.add_argument("--simulate", type=int, default=3)
     ap.add_argument("--variants", default="", help="comma-separated subset of RECIPE_VARIANTS")
     ap.add_argument("--cases", default="", help="comma-separated subset of the cases")
+    ap.add_argument("--common-offset-trial", default="", metavar="FAULT:SEED",
+                    help="score the common-offset block test on one case (a COMMON_OFFSET_FAULTS key "
+                         "and seed, or an LPS .mat file) and exit")
     a = ap.parse_args()
+    if a.common_offset_trial:
+        import json
+
+        if a.common_offset_trial.endswith(".mat"):
+            from ..datasets.lps import load_lps
+
+            fl = load_lps(a.common_offset_trial)
+            Y, A = fl.ranges, fl.anchors_true
+        else:
+            fault, seed = a.common_offset_trial.split(":")
+            sim = simulate_uwb_flight(int(seed), **COMMON_OFFSET_FAULTS[fault])
+            Y, A = sim["ranges"], sim["anchors"]
+        print(json.dumps({"case": a.common_offset_trial, **score_common_offset(Y, A)}))
+        raise SystemExit(0)
     score_recipe_variants(a.data, a.simulate, [v for v in a.variants.split(",") if v] or None,
                           [c for c in a.cases.split(",") if c] or None)

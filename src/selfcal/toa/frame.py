@@ -96,7 +96,8 @@ def apply_frame(result: Any, frame: str | Mapping[str, Any], *, matrix: Any = No
         :func:`selfcal.toa.nls.refine_toa` with A fixed, B's off-axis and C's
         out-of-plane coordinates fixed (the gauge of this frame); otherwise the
         gauge-free covariances are only rotated.
-    offsets, loss: the model of ``result`` (for the covariance refit).
+    offsets, loss: the model of ``result`` (for the covariance refit); ``"common"`` = one
+        offset shared by every receiver.
     receiver_names, source_names: optional node names.
 
     Returns
@@ -209,7 +210,9 @@ def _frame_covariance(result: Any, matrix: Any, refs: dict[str, tuple[str, int]]
         if role in refs:
             kind, idx = refs[role]
             (fr if kind == "receiver" else fs)[idx, list(axes)] = True
-    sol = refine_toa(data.Y[np.ix_(ok_r, ok_s)], R[ok_r], S[ok_s], offsets=offsets,
+    # "common": one offset shared by every receiver (the moving-tag recipe's kept model)
+    off, common = ("receivers", "receivers") if offsets == "common" else (offsets, "none")
+    sol = refine_toa(data.Y[np.ix_(ok_r, ok_s)], R[ok_r], S[ok_s], offsets=off, common_offsets=common,
                      receiver_offsets0=data.receiver_offsets, source_offsets0=data.source_offsets,
                      loss=loss, fixed_receivers=fr[ok_r], fixed_sources=fs[ok_s])
     rc = np.full((I, d, d), np.nan)

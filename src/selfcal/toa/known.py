@@ -64,7 +64,9 @@ def fit_known(
     result: the blind :class:`selfcal.toa.solve.ToaResult`.
     known: from :func:`parse_known`.
     offsets, loss, f_scale, max_nfev, covariance: as for :func:`selfcal.toa.nls.refine_toa`
-        (``f_scale`` / ``noise`` in the matrix's units).
+        (``f_scale`` / ``noise`` in the matrix's units); ``offsets="common"``: one offset
+        shared by every receiver (``common_offsets="receivers"``), the model the moving-tag
+        recipe keeps (:func:`selfcal.toa.common_offset.choose_common_offset`).
     noise: range noise std in the matrix's units, weighting the priors.
 
     Returns
@@ -115,7 +117,9 @@ def fit_known(
         kw["receiver_prior"] = (pr_m[ok_r], pr_sd[ok_r])
     if np.isfinite(pr_s).any():
         kw["source_prior"] = (pr_s[ok_s], ps_sd[ok_s])
-    sol = refine_toa(data.Y[np.ix_(ok_r, ok_s)], Ra[ok_r], Sa[ok_s], offsets=offsets,
+    # "common": one offset shared by every receiver (the moving-tag recipe's kept model)
+    off, common = ("receivers", "receivers") if offsets == "common" else (offsets, "none")
+    sol = refine_toa(data.Y[np.ix_(ok_r, ok_s)], Ra[ok_r], Sa[ok_s], offsets=off, common_offsets=common,
                      receiver_offsets0=data.receiver_offsets, source_offsets0=data.source_offsets, loss=loss, f_scale=None if f_scale is None else f_scale * c,
                      noise=None if noise is None else noise * c, max_nfev=max_nfev,
                      covariance=covariance, **kw)
