@@ -166,12 +166,14 @@ def reproduce_aoa(
         paper_grid,
         summarize,
     )
+    from .._checks import check_runs
     from ..experiments.runner import run_sweep, write_rows
     from ..io import write_json
     from ..plotting.aoa import plot_error_surfaces
 
     if runs < 1 or not (0 < step <= 5):
         raise InputError("--runs must be >= 1 and --step in (0, 5]")
+    check_runs(runs)
     grid = [{**p, "sigma_deg": sigma_deg} for p in paper_grid(step)]
     rows = run_sweep(aoa_trial, grid, runs=runs, seed=seed, backend=backend, scheduler=scheduler, desc="aoa")
     outdir = Path(out)

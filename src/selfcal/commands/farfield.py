@@ -265,11 +265,14 @@ def reproduce_farfield(runs: int | None, full: bool, backend: str, scheduler: st
                        out: Path) -> None:
     """Reproduce paper 000's Fig. 1-4 (minimal solver vs relative distance, initialisation for
     several sizes, LM vs alternating convergence, error vs noise) with our numbers beside the paper's."""
+    from .._checks import check_runs
     from ..errors import InputError
     from ..experiments.farfield import reproduce_all
 
     if runs is not None and runs < 1:
         raise InputError("--runs must be >= 1")
+    if runs is not None:
+        check_runs(runs)
     summary = reproduce_all(out, runs=runs, full=full, backend=backend, scheduler=scheduler, seed=seed)
     for line in summary["report"]:
         click.echo(line)
