@@ -82,8 +82,8 @@ def position_covariance(
         if method == "dense":
             cov = np.linalg.pinv(S, rcond=1e-10, hermitian=True)
         else:
-            cov = _spd_inverse(S + Q @ Q.T)
-            cov = np.linalg.pinv(S, rcond=1e-10, hermitian=True) if cov is None else cov - Q @ Q.T
+            inv = _spd_inverse(S + Q @ Q.T)
+            cov = np.linalg.pinv(S, rcond=1e-10, hermitian=True) if inv is None else inv - Q @ Q.T
         blocks = cov.reshape(mz, d, mz, d)[idx, :, idx, :]
     else:
         if np.min(np.linalg.eigvalsh(Hzz)[:, 0] / np.maximum(np.trace(Hzz, axis1=1, axis2=2), 1e-300)) < 1e-10:

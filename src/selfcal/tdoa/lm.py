@@ -65,7 +65,7 @@ def _lm_step(
         idx = np.arange(mz)
         S4[idx, :, idx, :] += Hzz_d
         rhs = gz - (Xf @ gn.reshape(-1)).reshape(mz, d)
-        dz = np.linalg.solve(S, rhs.reshape(-1)).reshape(mz, d)
+        dz = np.asarray(np.linalg.solve(S, rhs.reshape(-1)), dtype=np.float64).reshape(mz, d)
         dn = np.einsum("jab,jb->ja", Hnn_inv, gn - (dz.reshape(-1) @ Hr).reshape(k, p))
         return dz, dn
     Hzz_inv = np.linalg.inv(Hzz_d)  # (mz, d, d)
@@ -75,7 +75,7 @@ def _lm_step(
     idx = np.arange(k)
     S4[idx, :, idx, :] += Hnn_d
     rhs = gn.reshape(-1) - Yr.T @ gz.reshape(-1)
-    dn = np.linalg.solve(S, rhs)
+    dn = np.asarray(np.linalg.solve(S, rhs), dtype=np.float64)
     dz = np.einsum("iab,ib->ia", Hzz_inv, gz) - (Yr @ dn).reshape(mz, d)
     return dz, dn.reshape(k, p)
 
