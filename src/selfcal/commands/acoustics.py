@@ -46,12 +46,11 @@ def write_simulation(out: Path, *, units: int, room: tuple[float, float, float],
     """
     import numpy as np
 
+    from .._checks import check_int
     from ..acoustics.recording import write_recording
     from ..acoustics.room import simulate_conference
     from ..errors import InputError
     from ..scenarios.conference import conference_scene
-
-    from .._checks import check_int
 
     if out.exists() and (not out.is_dir() or (any(out.iterdir()) and not (out / "setup.json").is_file())):
         raise InputError(f"{out}: exists and is not a recording directory; choose another --out")

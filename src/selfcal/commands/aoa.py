@@ -157,6 +157,7 @@ def reproduce_aoa(
     """Paper 001 Section 5: Table 1 and the error surfaces of Fig. 3-6, plus ML (3 and 4 beacons)."""
     import numpy as np
 
+    from .._checks import check_runs
     from ..errors import InputError
     from ..experiments.aoa import (
         METHODS,
@@ -166,7 +167,6 @@ def reproduce_aoa(
         paper_grid,
         summarize,
     )
-    from .._checks import check_runs
     from ..experiments.runner import run_sweep, write_rows
     from ..io import write_json
     from ..plotting.aoa import plot_error_surfaces
