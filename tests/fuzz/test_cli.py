@@ -607,3 +607,28 @@ def test_output_file_path_ending_in_a_separator_is_refused(tmp_path: Path) -> No
     with pytest.raises(OutputError):
         write_json(str(tmp_path / "zz") + os.sep, {"a": 1})
     assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("args,match", [
+    # sigma**2 underflowed (ZeroDivisionError after the JSON was written)
+    (["calibrate", "tdoa-farfield", "{ff}", "--noise-std", "1e-308", "-o", "{o}"], None),
+    (["locate", "aoa", "{b}", "{u}", "--sigma-deg", "99999999999999999999", "-o", "{o}"], "below 180"),
+    (["reproduce", "aoa", "--sigma-deg", "nan", "--out", "{d}/out"], "below 180"),
+    (["simulate", "conference", "--units", "3", "--out", "{d}/rec"], "--units must be >= 5"),
+])
+def test_more_malformed_options(tmp_path: Path, args: list[str], match: str | None) -> None:
+    rng = np.random.default_rng(2)
+    Z, n = rng.normal(size=(8, 3)), rng.normal(size=(10, 3))
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    np.savetxt(tmp_path / "ff.csv", Z @ n.T + 1e-3 * rng.normal(size=(8, 10)), delimiter=",")
+    np.savetxt(tmp_path / "b.csv", rng.uniform(-5, 5, (5, 3)), delimiter=",")
+    np.savetxt(tmp_path / "u.csv", n[:5], delimiter=",")
+    d = tmp_path / "w"
+    d.mkdir()
+    fmt = {"ff": tmp_path / "ff.csv", "b": tmp_path / "b.csv", "u": tmp_path / "u.csv", "o": d / "r.json", "d": d}
+    before = snapshot(d)
+    code, out, err = check_contract(invoke([a.format(**fmt) for a in args]), before, snapshot(d))
+    if match is None:  # a result failing its own test at that noise: exit 1, written
+        assert code == 1 and (d / "r.json").is_file(), err
+    else:
+        assert code == 2 and match in err, err

@@ -482,7 +482,7 @@ def check_simulation_size(*, units: int, sample_rate: float, room: tuple[float, 
     from .._checks import check_float, check_int, guard_size
     from ..acoustics.room import DEFAULT_PROBE, event_spacing
 
-    check_int(units, "--units", minimum=2)
+    check_int(units, "--units", minimum=5)  # conference_scene needs 5
     check_float(sample_rate, "--sample-rate", positive=True)
     check_float(rt60, "--rt60", nonnegative=True)
     spacing = event_spacing(np.asarray(room, dtype=float), float(DEFAULT_PROBE["duration"]), 343.0)

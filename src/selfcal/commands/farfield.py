@@ -232,7 +232,8 @@ def _residual_failure(res: FarfieldResult, D: object, sigma: float) -> str | Non
     dof = int(used.sum()) - n_par
     if dof <= 0 or sigma <= 0:
         return None
-    stat = float(np.sum(r**2)) / sigma**2
+    with np.errstate(over="ignore"):
+        stat = float(np.sum((r / sigma) ** 2))  # sigma**2 underflows for sigma < 1e-154
     q = float(chi2.ppf(0.999, dof))
     if stat > q:
         return (f"residual RMS {float(np.sqrt(np.sum(r**2) / used.sum())):.3g} m against the given noise "
