@@ -105,6 +105,29 @@ def test_canonical_gauge_is_invariant_to_rigid_motion(rng: np.random.Generator) 
     np.testing.assert_allclose(A, B, atol=1e-9)
 
 
+@pytest.mark.parametrize("d", [2, 3])
+@pytest.mark.parametrize("seed", range(5))
+def test_canonical_gauge_mirror_rule(seed: int, d: int) -> None:
+    """proper=False: a configuration and any mirror image / rigid motion of it give the same output,
+    every principal axis with a non-negative third moment; proper=True keeps det +1, so mirror
+    images stay mirror images (the handedness of the input)."""
+    rng = np.random.default_rng(seed)
+    X = rng.normal(size=(9, d)) * [5, 3, 1][:d] + rng.exponential(size=(9, d))  # skewed: moments nonzero
+    M = _random_rotation(rng, d, proper=False)
+    if np.linalg.det(M) > 0:
+        M[:, 0] *= -1  # an improper orthogonal map: a mirror image
+    A, _, al_a = canonical_gauge(X, proper=False)
+    B, _, al_b = canonical_gauge(X @ M.T + 3.0, proper=False)
+    np.testing.assert_allclose(A, B, atol=1e-9)
+    assert np.all((A**3).sum(axis=0) >= 0)
+    assert np.linalg.det(al_a.rotation) * np.linalg.det(al_b.rotation) == pytest.approx(-1.0)
+    P, _, al_p = canonical_gauge(X)
+    Q, _, al_q = canonical_gauge(X @ M.T + 3.0)
+    assert np.linalg.det(al_p.rotation) == pytest.approx(1.0) and np.linalg.det(al_q.rotation) == pytest.approx(1.0)
+    np.testing.assert_allclose(np.abs(P), np.abs(Q), atol=1e-9)  # the same up to the flipped last axis
+    assert not np.allclose(P, Q, atol=1e-6)
+
+
 @settings(max_examples=60, deadline=None)
 @given(arrays(np.float64, st.tuples(st.integers(1, 6), st.integers(1, 6)), elements=st.sampled_from([0.0, 1.5, -2.0, np.nan, np.inf])))
 def test_as_matrix_refuses_bad_values(a: np.ndarray) -> None:

@@ -18,6 +18,7 @@ from .geometry import n_parameters
 __all__ = [
     "as_array",
     "check_int",
+    "check_runs",
     "check_float",
     "entry",
     "plausible_matrix_scale",
@@ -33,6 +34,12 @@ __all__ = [
     "min_counts_toa",
     "check_toa_counts",
 ]
+
+
+#: Largest magnitude of a matrix entry the solvers accept: they form squares, products and sums
+#: of up to ~1e12 such terms, which must stay below the float64 maximum (1.8e308), so
+#: |entry| <= sqrt(1.8e308 / 1e12) ~ 1.3e148. Larger values are a unit mistake or corrupt data.
+MAX_ABS_ENTRY = float(np.sqrt(np.finfo(np.float64).max / 1e12))
 
 
 def as_matrix(
@@ -62,6 +69,11 @@ def as_matrix(
         raise InputError(f"{name}: entry ({i}, {j}) is NaN but missing values are not allowed here")
     if nan.all():
         raise InputError(f"{name}: every entry is missing (NaN)")
+    big = np.abs(np.where(nan, 0.0, arr)) > MAX_ABS_ENTRY
+    if big.any():
+        i, j = np.argwhere(big)[0]
+        raise InputError(f"{name}: entry ({i}, {j}) = {arr[i, j]:.3g} is beyond {MAX_ABS_ENTRY:.2g}, where the "
+                         f"least-squares sums overflow double precision; give the data in another unit")
     if nonnegative and (arr[~nan] < 0).any():
         i, j = np.argwhere(np.where(nan, 0.0, arr) < 0)[0]
         raise InputError(f"{name}: entry ({i}, {j}) = {arr[i, j]:g} is negative; ranges and times of flight must be >= 0")
@@ -83,6 +95,9 @@ def as_points(value: Any, name: str = "points", *, dim: int | None = None, allow
         raise InputError(f"{name}: points must have 2 or 3 coordinates, got {d}")
     if np.isinf(arr).any() or (not allow_nan and np.isnan(arr).any()):
         raise InputError(f"{name}: contains NaN or inf")
+    if (np.abs(np.nan_to_num(arr)) > MAX_ABS_ENTRY).any():
+        raise InputError(f"{name}: coordinates beyond {MAX_ABS_ENTRY:.2g} overflow double precision; "
+                         f"give them in another unit")
     return arr
 
 
@@ -458,6 +473,26 @@ def guard_size(n_bytes: float, what: str, *, limit: float | None = None) -> None
     if not np.isfinite(n_bytes) or n_bytes > limit:
         need = "an unbounded amount of" if not np.isfinite(n_bytes) else f"{n_bytes / 1e9:.3g} GB of"
         raise InputError(f"{what} would need {need} memory (limit {limit / 1e9:.3g} GB); choose smaller sizes")
+
+
+#: Memory one Monte-Carlo trial holds until its sweep ends (its task tuple, spawned
+#: ``SeedSequence`` and tidy result row): at least 1 kB, so a run count is bounded by memory.
+TRIAL_BYTES = 1024.0
+
+
+def check_runs(value: Any, name: str = "--runs", *, minimum: int = 1, settings: int = 1) -> int:
+    """Return a Monte-Carlo run count, refusing non-integers, values < ``minimum`` and counts
+    whose trials (``value * settings``, :data:`TRIAL_BYTES` each) could not be held in memory.
+
+    Raises
+    ------
+    InputError
+        Naming the option (before anything is written or run).
+    """
+    v = check_int(value, name, minimum=minimum)
+    assert v is not None
+    guard_size(float(v) * max(int(settings), 1) * TRIAL_BYTES, f"{name} {v}")
+    return v
 
 
 def guard_recording_setup(sample_rate: float, event_times: Any, probe: Any, n_receivers: int = 1,

@@ -286,14 +286,48 @@ def sphere_exp(n: Array, v: Array) -> Array:
     return out / np.linalg.norm(out, axis=-1, keepdims=True)
 
 
-def canonical_gauge(receivers: Array, sources: Array | None = None) -> tuple[Array, Array | None, Alignment]:
+def canonical_gauge(receivers: Array, sources: Array | None = None, *,
+                    proper: bool = True) -> tuple[Array, Array | None, Alignment]:
     """Put an anchor-free reconstruction in selfcal's canonical gauge.
 
     Canonical gauge: receiver centroid at the origin, receiver principal axes along
-    the coordinate axes (largest spread first), each axis oriented so that the
-    third moment of the receiver coordinates along it is non-negative. This fixes
-    translation and rotation; the mirror ambiguity is fixed by making the transform
-    proper (det +1). Returns the transformed receivers, sources and the transform.
+    the coordinate axes (largest spread first), each axis oriented so that the third
+    moment of the receiver coordinates along it is non-negative.
+
+    Parameters
+    ----------
+    receivers : (I, d) array
+        Positions that define the gauge (NaN rows ignored).
+    sources : (J, d) array, optional
+        Moved with the same transform.
+    proper : bool
+        True (default): the transform is a rotation (det +1): when the third-moment signs
+        would make it a reflection, the last axis is flipped back, so a mirror image of the
+        input stays a mirror image of the output (the handedness the solver found is kept).
+        False: every axis follows the third-moment rule and the transform may be a
+        reflection, so a configuration and its mirror image give the same output -- the
+        deterministic choice for problems whose data cannot tell the mirrors apart (anchor-free
+        TOA, far-field TDOA); never for a frame the user gave.
+
+    Returns
+    -------
+    receivers, sources, alignment
+        The transformed points and the :class:`Alignment` (``rotation`` orthogonal, det +1
+        when ``proper``).
+
+    Notes
+    -----
+    The rule is undecided where a third moment vanishes (a configuration symmetric about a
+    principal plane) or two principal spreads are equal; the sign then follows rounding.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> X = np.random.default_rng(0).normal(size=(8, 3))
+    >>> A, _, _ = canonical_gauge(X, proper=False)
+    >>> B, _, _ = canonical_gauge(X * np.array([1.0, 1.0, -1.0]), proper=False)  # the mirror image
+    >>> bool(np.allclose(A, B))
+    True
     """
     R = np.asarray(receivers, dtype=float)
     c = np.nanmean(R, axis=0)
@@ -306,7 +340,7 @@ def canonical_gauge(receivers: Array, sources: Array | None = None) -> tuple[Arr
     signs = np.sign((proj**3).sum(axis=0))
     signs[signs == 0] = 1.0
     basis = basis * signs[:, None]
-    if np.linalg.det(basis) < 0:
+    if proper and np.linalg.det(basis) < 0:
         basis[-1] *= -1.0
     al = Alignment(rotation=basis, translation=-basis @ c, scale=1.0)
     S = None if sources is None else al.apply(sources)

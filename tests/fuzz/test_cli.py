@@ -488,3 +488,147 @@ def test_transposed_inputs_are_named(tmp_path: Path) -> None:
     res = invoke(["locate", "aoa", tmp_path / "b.csv", tmp_path / "u.csv", "-o", tmp_path / "p.json"])
     code, _, err = check_contract(res)
     assert code == 2 and "transposed" in err
+
+
+# ----------------------------------------------------------------------------- malformed inputs found by hand (hygiene)
+
+def _tiny_recording(d: Path, *, wav: bytes | None = None, setup_extra: dict | None = None) -> Path:  # type: ignore[type-arg]
+    """A two-unit recording folder written by hand (no simulation): valid unless told otherwise."""
+    import json
+
+    from scipy.io import wavfile
+
+    rec = d / "rec"
+    rec.mkdir()
+    setup = {"sample_rate": 16000, "receivers": ["a", "b"], "senders": ["a", "b"],
+             "probe": {"type": "chirp", "f0": 500.0, "f1": 4000.0, "duration": 0.02},
+             "events": [{"sender": "a", "time": 0.05}, {"sender": "b", "time": 0.15}], **(setup_extra or {})}
+    (rec / "setup.json").write_text(json.dumps(setup))
+    x = (0.01 * np.random.default_rng(0).normal(size=4000) * 32767).astype(np.int16)
+    for n in ("a", "b"):
+        wavfile.write(rec / f"rx_{n}.wav", 16000, x)
+    if wav is not None:
+        (rec / "rx_b.wav").write_bytes(wav)
+    return rec
+
+
+_BIG_INT_JSON = '{"delays": [[0.001, 0.002]], "sound_speed_mps": ' + "9" * 5000 + "}"
+
+
+@pytest.mark.parametrize("case", [
+    "ff-json-huge-int", "heights-json-huge-int", "toa-1e308", "ff-1e308", "ff-one-1e308", "aoa-beacons-1e300",
+    "wav-corrupt-header", "wav-is-dir", "setup-is-dir",
+    "setup-speed-1e6", "pipeline-speed-1e308", "jitter-us-1e308", "demo-rt60-1e308", "demo-snr-minus-1e308",
+    "demo-seed-negative", "farfield-runs-1e20", "toa-mds-nls-runs-1e20", "delays-runs-1e20",
+    "delays-noise-runs-1e20", "aoa-runs-1e20", "slac-runs-1e20", "slac-minutes-1e308", "slac-minutes-1e20",
+    "lps-bad-mat", "plaza-dir", "plaza-fifo",
+])
+def test_malformed_inputs_exit_2_with_one_line(tmp_path: Path, case: str) -> None:
+    """Each case is a reproducer of a defect found by hand: an internal error (a 5000-digit JSON
+    integer, a corrupt WAV header, 1e20 runs, 1e308 lengths), LAPACK noise on stdout (entries
+    near 1e308), an output folder created by a failed run, or a misleading message. Contract:
+    exit 2, one ``selfcal: error:`` line (no internal error), nothing written."""
+    d = tmp_path / "w"
+    d.mkdir()
+    o = d / "r.json"
+    rng = np.random.default_rng(1)
+    Z, n = rng.normal(size=(8, 3)), rng.normal(size=(10, 3))
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    ff = Z @ n.T
+    match = None
+    if case in ("ff-json-huge-int", "heights-json-huge-int"):
+        (d / "x.json").write_text(_BIG_INT_JSON if case.startswith("ff") else
+                                  '{"receivers": [' + "1" * 5000 + '], "senders": [1, 2]}')
+        args = (["calibrate", "tdoa-farfield", d / "x.json", "-o", o] if case.startswith("ff") else
+                ["pipeline", _tiny_recording(d), "--heights", d / "x.json", "-o", o])
+        match = "malformed json"
+    elif case in ("toa-1e308", "ff-1e308", "ff-one-1e308"):
+        M = np.full((6, 8), 1e308) if case != "ff-one-1e308" else np.where(np.arange(80).reshape(8, 10) == 7, 1e308, ff)
+        np.savetxt(d / "m.csv", M, delimiter=",")
+        args = ["calibrate", "toa" if case == "toa-1e308" else "tdoa-farfield", d / "m.csv", "-o", o]
+        match = "another unit"
+    elif case == "aoa-beacons-1e300":
+        np.savetxt(d / "b.csv", 1e300 * rng.uniform(-5, 5, (5, 3)), delimiter=",")
+        np.savetxt(d / "u.csv", n[:5], delimiter=",")
+        args, match = ["locate", "aoa", d / "b.csv", d / "u.csv", "-o", o], "another unit"
+    elif case in ("wav-corrupt-header", "wav-is-dir", "setup-is-dir"):
+        rec = _tiny_recording(d, wav=b"RIFF\x00\x00\x00\x00WAVEfmt " if case == "wav-corrupt-header" else None)
+        if case == "wav-is-dir":
+            (rec / "rx_b.wav").unlink()
+            (rec / "rx_b.wav").mkdir()
+        if case == "setup-is-dir":
+            (rec / "setup.json").unlink()
+            (rec / "setup.json").mkdir()
+        args = ["pipeline", rec, "-o", o]
+        match = {"wav-corrupt-header": "rx_b.wav: not a readable wav", "wav-is-dir": "rx_b.wav: not a regular file",
+                 "setup-is-dir": "setup.json: is a directory"}[case]
+    elif case == "setup-speed-1e6":
+        args, match = ["pipeline", _tiny_recording(d, setup_extra={"speed_of_sound": 1e6}), "-o", o], "physical bound"
+    elif case == "pipeline-speed-1e308":
+        args, match = ["pipeline", _tiny_recording(d), "--speed-of-sound", "1e308", "-o", o], "physical bound"
+    elif case == "jitter-us-1e308":
+        args, match = ["pipeline", _tiny_recording(d), "--jitter-us", "1e308", "-o", o], "--jitter-us 1e+308 us"
+    elif case.startswith("demo-"):
+        opt = {"demo-rt60-1e308": ["--rt60", "1e308"], "demo-snr-minus-1e308": ["--snr", "-1e308"],
+               "demo-seed-negative": ["--seed", "-1"]}[case]
+        args, match = ["demo", "--units", "6", *opt, "--out", d / "demo"], opt[0].lstrip("-")
+    elif case.endswith("-runs-1e20"):
+        sub = case[: -len("-runs-1e20")]
+        opt = "--runs"
+        if sub == "delays-noise":
+            sub, opt = "delays", "--noise-runs"
+        args, match = ["reproduce", sub, opt, "99999999999999999999", "--out", d / "out"], "memory"
+    elif case.startswith("slac-minutes"):
+        args = ["reproduce", "slac", "--minutes", "1e308" if case.endswith("1e308") else "1e20", "--out", d / "out"]
+        match = "memory"
+    elif case == "lps-bad-mat":
+        (d / "data4.mat").write_bytes(b"MATLAB 5.0 garbage")
+        args, match = ["reproduce", "lps", "--data", d / "data4.mat", "--simulate", "0", "--out", d / "out"], "matlab"
+    else:  # plaza on a folder / FIFO: named as such, not "file not found"
+        p = d / "p.mat"
+        p.mkdir() if case == "plaza-dir" else os.mkfifo(p)
+        args = ["slac", "plaza", p, "-o", o]
+        match = "is a directory" if case == "plaza-dir" else "not a regular file"
+    before = snapshot(d)
+    res = invoke(args)
+    code, out, err = check_contract(res, before, snapshot(d))
+    assert code == 2, err
+    assert match.lower() in err.lower(), err
+
+
+def test_output_file_path_ending_in_a_separator_is_refused(tmp_path: Path) -> None:
+    """``write_json("out/")`` names a folder: refused, nothing created (the CLI's click paths
+    drop the trailing separator before selfcal sees them, so this is the library's check)."""
+    from selfcal.io import check_output_path, write_json
+    from selfcal.io.outputs import OutputError
+
+    with pytest.raises(OutputError, match="give a file name"):
+        check_output_path(str(tmp_path / "zz") + os.sep)
+    with pytest.raises(OutputError):
+        write_json(str(tmp_path / "zz") + os.sep, {"a": 1})
+    assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("args,match", [
+    # sigma**2 underflowed (ZeroDivisionError after the JSON was written)
+    (["calibrate", "tdoa-farfield", "{ff}", "--noise-std", "1e-308", "-o", "{o}"], None),
+    (["locate", "aoa", "{b}", "{u}", "--sigma-deg", "99999999999999999999", "-o", "{o}"], "below 180"),
+    (["reproduce", "aoa", "--sigma-deg", "nan", "--out", "{d}/out"], "below 180"),
+    (["simulate", "conference", "--units", "3", "--out", "{d}/rec"], "--units must be >= 5"),
+])
+def test_more_malformed_options(tmp_path: Path, args: list[str], match: str | None) -> None:
+    rng = np.random.default_rng(2)
+    Z, n = rng.normal(size=(8, 3)), rng.normal(size=(10, 3))
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    np.savetxt(tmp_path / "ff.csv", Z @ n.T + 1e-3 * rng.normal(size=(8, 10)), delimiter=",")
+    np.savetxt(tmp_path / "b.csv", rng.uniform(-5, 5, (5, 3)), delimiter=",")
+    np.savetxt(tmp_path / "u.csv", n[:5], delimiter=",")
+    d = tmp_path / "w"
+    d.mkdir()
+    fmt = {"ff": tmp_path / "ff.csv", "b": tmp_path / "b.csv", "u": tmp_path / "u.csv", "o": d / "r.json", "d": d}
+    before = snapshot(d)
+    code, out, err = check_contract(invoke([a.format(**fmt) for a in args]), before, snapshot(d))
+    if match is None:  # a result failing its own test at that noise: exit 1, written
+        assert code == 1 and (d / "r.json").is_file(), err
+    else:
+        assert code == 2 and match in err, err

@@ -75,3 +75,57 @@ def test_matrix_free_cg_step_matches_the_direct_step():
     b = _lm_step(*fac[:5], 0.1, side="cg")
     for x, y in zip(a, b, strict=True):
         assert np.abs(x - y).max() <= 1e-8 * np.abs(x).max()
+
+
+# ----------------------------------------------------------------------------- units (m vs mm)
+
+def _start_near(Z, N, C, rng, spread=0.05):
+    Z0 = Z + spread * rng.normal(size=Z.shape)
+    Z0[0] = 0
+    N0 = N + spread * rng.normal(size=N.shape)
+    N0 /= np.linalg.norm(N0, axis=1, keepdims=True)
+    return Z0, N0, C + spread * rng.normal(size=C.shape)
+
+
+@pytest.mark.parametrize("free_offsets", [True, False])
+@pytest.mark.parametrize("seed", range(6))
+def test_lm_fit_is_invariant_under_a_change_of_units(seed, free_offsets):
+    """The same data in kilometres and in millimetres: the fit scales, the directions do not move.
+
+    The LM step is Marquardt-damped (lambda diag(J^T J)) with a ridge relative to each kind of
+    unknown's largest diagonal entry, the cost test is relative and the step test compares
+    lengths with the array's extent and angles with sqrt(k), so the runs agree to rounding
+    (1e-8 of the array). The absolute 1e-12 ridge used before moved km-scale fits by up to
+    2e-4 of the array (seeds 1, 5, 7) and the old step test mixed metres with radians.
+    """
+    m, k = (4, 7) if seed % 2 else (9, 12)
+    D, Z, N, C = _problem(seed, m, k, 3, sigma=1e-3)
+    Z0, N0, C0 = _start_near(Z, N, C, np.random.default_rng(100 + seed))
+    if not free_offsets:
+        C0 = C  # known offsets
+    kw = dict(free_offsets=free_offsets, covariance=False)
+    a = refine_lm(D, Z0, N0, C0, **kw)
+    assert a.converged
+    size = np.abs(a.positions).max()
+    for s in (1e-3, 1e3):
+        b = refine_lm(s * D, s * Z0, N0, s * C0, **kw)
+        assert b.converged and abs(b.iterations - a.iterations) <= 1  # the last step may round either way
+        assert np.abs(b.positions / s - a.positions).max() <= 1e-8 * size
+        assert np.abs(b.directions - a.directions).max() <= 1e-8
+        assert np.abs(b.offsets / s - a.offsets).max() <= 1e-8 * max(np.abs(a.offsets).max(), size)
+        assert b.cost / s**2 == pytest.approx(a.cost, rel=1e-8)
+
+
+def test_step_test_is_unit_free():
+    from selfcal.tdoa.lm import _small_step
+
+    rng = np.random.default_rng(0)
+    Z, C = rng.normal(size=(6, 3)), rng.normal(size=9)
+    dz, dn = 1e-11 * rng.normal(size=(5, 3)), 1e-11 * rng.normal(size=(9, 3))
+    for s in (1e-3, 1.0, 1e3, 1e6):
+        dn_s = dn.copy()
+        dn_s[:, 2] *= s  # the offset column is a length; the two tangent columns are angles
+        assert _small_step(s * dz, dn_s, s * Z, s * C, 2, 1e-10) == _small_step(dz, dn, Z, C, 2, 1e-10)
+    # a step that is small in metres but large in kilometres-as-metres is not "small" any more
+    assert _small_step(dz, dn, Z, C, 2, 1e-10)
+    assert not _small_step(dz, dn, 1e-3 * Z, 1e-3 * C, 2, 1e-10)

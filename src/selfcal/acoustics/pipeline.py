@@ -284,7 +284,7 @@ def run_pipeline(
     (True, (20, 3))
     """
     from .detect import detect_recording, redetect_arrivals
-    from .recording import load_recording
+    from .recording import MAX_SPEED_OF_SOUND, load_recording
 
     timings: dict[str, float] = {}
     cpu: dict[str, float] = {}
@@ -301,6 +301,9 @@ def run_pipeline(
     speed = float(setup.speed_of_sound if speed_of_sound is None else speed_of_sound)
     if not np.isfinite(speed) or speed <= 0:
         raise InputError(f"speed of sound must be a positive number of m/s, got {speed_of_sound!r}")
+    if speed > MAX_SPEED_OF_SOUND:
+        raise InputError(f"speed of sound {speed:g} m/s exceeds the physical bound {MAX_SPEED_OF_SOUND:g} m/s "
+                         f"of any medium; is it in m/s?")
     hz = None
     if heights is not None:
         hz = (read_heights(heights, setup.receivers, setup.senders) if isinstance(heights, (str, Path))

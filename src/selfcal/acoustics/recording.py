@@ -24,7 +24,6 @@ whose message starts with the file name and names the field.
 from __future__ import annotations
 
 import io as _io
-import json
 import math
 import re
 from dataclasses import dataclass, field
@@ -52,6 +51,9 @@ __all__ = [
 ]
 
 CLIP_RUN = 3  # this many consecutive full-scale samples mean the converter clipped
+#: Upper bound on the speed of sound in any condensed phase, c_max = alpha (m_e / 2 m_p)^(1/2) c
+#: ~ 36.1 km/s (Trachenko et al., Sci. Adv. 6, eabc8662, 2020); a larger value is a unit mistake.
+MAX_SPEED_OF_SOUND = 36_100.0
 _NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]*$")
 
 
@@ -197,6 +199,9 @@ def parse_setup(raw: Any, where: str = "setup.json") -> Setup:
             raise InputError(f"{where}: field 'humidity' needs field 'temperature'")
     c = (speed_from_air(temp, hum or 0.0) if temp is not None
          else _positive(raw, "speed_of_sound", where, default=343.0))
+    if c > MAX_SPEED_OF_SOUND:
+        raise InputError(f"{where}: field 'speed_of_sound' = {c:g} m/s exceeds the physical bound "
+                         f"{MAX_SPEED_OF_SOUND:g} m/s of any medium; is it in m/s?")
     receivers = _names(raw, "receivers", where)
     senders = _names(raw, "senders", where)
     if "probe" not in raw:
@@ -261,13 +266,11 @@ def read_setup(directory: str | Path) -> Setup:
     path = Path(directory) / "setup.json"
     if not Path(directory).is_dir():
         raise InputError(f"{directory}: not a directory (expected a recording directory with setup.json)")
-    if not path.is_file():
+    if not path.exists():
         raise InputError(f"setup.json: missing in {directory}")
-    try:
-        raw = json.loads(path.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise InputError(f"setup.json: malformed JSON ({exc})") from None
-    return parse_setup(raw)
+    from ..io import read_json  # refuses directories / FIFOs / devices; JSON errors named
+
+    return parse_setup(read_json(path, name="setup.json"))
 
 
 def read_wav(path: str | Path) -> tuple[NDArray[np.float64], float]:
@@ -290,12 +293,16 @@ def read_wav(path: str | Path) -> tuple[NDArray[np.float64], float]:
     from scipy.io import wavfile
 
     p = Path(path)
-    if not p.is_file():
+    if not p.exists():
         raise InputError(f"{p.name}: missing (expected in {p.parent})")
+    if not p.is_file():
+        raise InputError(f"{p.name}: not a regular file (in {p.parent})")
     try:
         fs, data = wavfile.read(p, mmap=False)
     except (ValueError, OSError, EOFError) as exc:
         raise InputError(f"{p.name}: not a readable WAV file ({exc})") from None
+    except Exception as exc:  # scipy's parser fails on some corrupt headers with other types (UnboundLocalError)
+        raise InputError(f"{p.name}: not a readable WAV file (corrupt header: {type(exc).__name__})") from None
     if data.ndim != 1:
         raise InputError(f"{p.name}: has {data.shape[1]} channels; each receiver needs a mono file")
     if data.size == 0:

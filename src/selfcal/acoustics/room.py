@@ -36,6 +36,9 @@ __all__ = ["simulate_conference", "event_spacing", "pra_group_delay", "DEFAULT_P
 
 DEFAULT_PROBE: dict[str, Any] = {"type": "chirp", "f0": 500.0, "f1": 12000.0, "duration": 0.05}
 MAX_OFFSET = 0.050  # s: onset (<= 30 ms) + internal delay (<= 20 ms), 004 sec. 2.2
+#: Lowest simulated SNR (dB): below about -144 dB (a float32 sample's 24-bit mantissa) the direct
+#: sound is lost in the rounding of the noise, and 10**(snr/10) underflows long before -1e308.
+MIN_SNR_DB = -150.0
 
 
 def pra_group_delay() -> int:
@@ -134,6 +137,9 @@ def simulate_conference(
     check_positive(speed, "speed", allow_none=False)
     if not np.isfinite(snr_db):
         raise InputError(f"snr must be finite dB, got {snr_db!r}")
+    if snr_db < MIN_SNR_DB:
+        raise InputError(f"snr {snr_db:g} dB is below {MIN_SNR_DB:g} dB: the direct sound would lie under the "
+                         f"float32 samples' resolution of the noise (24-bit mantissa, ~144 dB)")
     fs = int(sample_rate)
     spec = dict(probe) if probe is not None else dict(DEFAULT_PROBE)
     if probe is None:

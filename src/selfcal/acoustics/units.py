@@ -62,8 +62,8 @@ def unit_start(T: Array, pairs: NDArray[np.intp], speed: float, dim: int, *,
     dim : int
         2 or 3.
     rng : int
-        Seed of the small random split of each unit's microphone from its loudspeaker (the
-        model's gradient is undefined at zero distance).
+        Unused (the microphone is split from its loudspeaker, where the model's gradient is
+        undefined, along a direction the geometry fixes; kept for the signature).
 
     Returns
     -------
@@ -103,9 +103,13 @@ def unit_start(T: Array, pairs: NDArray[np.intp], speed: float, dim: int, *,
         if not np.isfinite(D).all():
             return None
     P = classical_mds(D, dim)
-    g = np.random.default_rng(rng)
-    split = g.normal(0.0, 1.0, (K, dim))
-    split *= 0.05 / np.linalg.norm(split, axis=1, keepdims=True)  # 5 cm, the smallest unit of 004
+    # each microphone 5 cm (the smallest unit of 004) from its loudspeaker, away from the units'
+    # centroid: a direction fixed by the geometry, not by the units' numbering, so the start (and
+    # the fit) is equivariant under relabelling and rigid motions
+    out = P - P.mean(axis=0)
+    norm = np.linalg.norm(out, axis=1, keepdims=True)
+    axis = np.eye(dim)[0]  # a unit at the centroid itself: any fixed direction will do
+    split = 0.05 * np.where(norm > 0, out / np.where(norm > 0, norm, 1.0), axis)
     r = np.empty((I, dim))
     s = np.empty((J, dim))
     r[pairs[:, 0]] = P + split

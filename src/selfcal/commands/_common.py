@@ -452,12 +452,16 @@ def jitter_options(default: float | None, what: str = "") -> Callable[[Callable[
 
 def resolve_jitter(jitter: float | None, jitter_us: float | None) -> Any:
     """The jitter in seconds from ``--jitter`` (s) or ``--jitter-us`` (us), plausibility-checked."""
-    from .._checks import check_float, plausible_jitter
+    from .._checks import MAX_PLAUSIBLE_JITTER_S, check_float, plausible_jitter
+    from ..errors import InputError
 
     if jitter_us is not None:
         us = check_float(jitter_us, "--jitter-us", nonnegative=True)
         assert us is not None
-        return plausible_jitter(us * 1e-6, "--jitter-us value (as seconds)")
+        if us * 1e-6 >= MAX_PLAUSIBLE_JITTER_S:
+            raise InputError(f"--jitter-us {us:g} us ({us * 1e-6:g} s) is not a clock jitter; it must be below "
+                             f"{MAX_PLAUSIBLE_JITTER_S * 1e6:g} us")
+        return us * 1e-6
     return plausible_jitter(jitter, "--jitter")
 
 
@@ -478,13 +482,14 @@ def check_simulation_size(*, units: int, sample_rate: float, room: tuple[float, 
     from .._checks import check_float, check_int, guard_size
     from ..acoustics.room import DEFAULT_PROBE, event_spacing
 
-    check_int(units, "--units", minimum=2)
+    check_int(units, "--units", minimum=5)  # conference_scene needs 5
     check_float(sample_rate, "--sample-rate", positive=True)
     check_float(rt60, "--rt60", nonnegative=True)
     spacing = event_spacing(np.asarray(room, dtype=float), float(DEFAULT_PROBE["duration"]), 343.0)
     n_total = (0.1 + spacing * (units + 1)) * sample_rate
     need = units * n_total * 4.0 + units**2 * (float(rt60) + spacing) * sample_rate * 8.0
-    guard_size(need, f"a {units}-unit recording at {sample_rate:g} Hz ({n_total / sample_rate:.3g} s per receiver)")
+    guard_size(need, f"a {units}-unit recording at {sample_rate:g} Hz, rt60 {rt60:g} s "
+                     f"({n_total / sample_rate:.3g} s per receiver)")
 
 
 def transposed_hint(exc: Any, shape: tuple[int, int], *, min_rows: int, min_cols: int) -> None:

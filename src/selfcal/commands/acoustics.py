@@ -46,6 +46,7 @@ def write_simulation(out: Path, *, units: int, room: tuple[float, float, float],
     """
     import numpy as np
 
+    from .._checks import check_int
     from ..acoustics.recording import write_recording
     from ..acoustics.room import simulate_conference
     from ..errors import InputError
@@ -53,7 +54,7 @@ def write_simulation(out: Path, *, units: int, room: tuple[float, float, float],
 
     if out.exists() and (not out.is_dir() or (any(out.iterdir()) and not (out / "setup.json").is_file())):
         raise InputError(f"{out}: exists and is not a recording directory; choose another --out")
-    rng = np.random.default_rng(seed)
+    rng = np.random.default_rng(check_int(seed, "--seed", minimum=0))
     scene = conference_scene(units, room, layout=layout, rng=rng)
     setup, signals, truth = simulate_conference(scene, rt60=rt60, snr_db=snr, sample_rate=sample_rate,
                                                 max_order=max_order, jitter=jitter, rounds=rounds,

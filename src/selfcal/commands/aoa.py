@@ -107,8 +107,9 @@ def locate_aoa(
         raise InputError("--method linear is the 2-D closed form; use p3p/sol1/sol2/ml in 3-D")
     if method in ("sol1", "sol2", "p3p") and d == 2:
         raise InputError(f"--method {method} is 3-D; in 2-D use linear, ml or auto")
-    if sigma_deg is not None and not (np.isfinite(sigma_deg) and sigma_deg > 0):
-        raise InputError(f"--sigma-deg must be a positive number, got {sigma_deg}")
+    if sigma_deg is not None and not (np.isfinite(sigma_deg) and 0 < sigma_deg < 180):
+        raise InputError(f"--sigma-deg must be a positive number of degrees below 180 (an angle between two "
+                         f"directions is at most 180), got {sigma_deg}")
     sigma = None if sigma_deg is None else float(np.radians(sigma_deg))
     position_hint = None
     if hint is not None:
@@ -157,6 +158,7 @@ def reproduce_aoa(
     """Paper 001 Section 5: Table 1 and the error surfaces of Fig. 3-6, plus ML (3 and 4 beacons)."""
     import numpy as np
 
+    from .._checks import check_runs
     from ..errors import InputError
     from ..experiments.aoa import (
         METHODS,
@@ -172,6 +174,9 @@ def reproduce_aoa(
 
     if runs < 1 or not (0 < step <= 5):
         raise InputError("--runs must be >= 1 and --step in (0, 5]")
+    if not (np.isfinite(sigma_deg) and 0 < sigma_deg < 180):
+        raise InputError(f"--sigma-deg must be a positive number of degrees below 180, got {sigma_deg}")
+    check_runs(runs)
     grid = [{**p, "sigma_deg": sigma_deg} for p in paper_grid(step)]
     rows = run_sweep(aoa_trial, grid, runs=runs, seed=seed, backend=backend, scheduler=scheduler, desc="aoa")
     outdir = Path(out)

@@ -32,6 +32,7 @@ from ._base import backend_option, handle_errors, reproduce, scheduler_option, s
 def reproduce_delays(runs: int, faithful_runs: int, max_iter: int, cap_120: int, noise_runs: int, full: bool,
                      quick: bool, backend: str, scheduler: str | None, seed: int, out: Path) -> None:
     """Reproduce 004 Fig. 4.1-4.5 (+ noise vs CRLB): figures and delays.json in --out."""
+    from .._checks import check_runs
     from ..errors import InputError
     from ..experiments.delays import UNITS, reproduce_all
 
@@ -39,6 +40,8 @@ def reproduce_delays(runs: int, faithful_runs: int, max_iter: int, cap_120: int,
                              ("max-iter", max_iter, 1), ("cap-120", cap_120, 1)):
         if value < low:
             raise InputError(f"--{name} must be >= {low}, got {value}")
+    for name, value in (("runs", runs), ("faithful-runs", faithful_runs), ("noise-runs", noise_runs)):
+        check_runs(value, f"--{name}", minimum=0)
     kwargs: dict[str, object] = {}
     if quick:
         kwargs = {"units": (12, 16), "timing_runs": (2, 1), "faithful_timing_runs": (1, 1),

@@ -15,7 +15,7 @@ from pathlib import Path
 import click
 
 from ._base import handle_errors, main
-from ._common import jitter_options, resolve_jitter
+from ._common import check_simulation_size, jitter_options, resolve_jitter
 
 
 @main.command("demo")
@@ -46,6 +46,7 @@ def demo_cmd(out: Path, seed: int, units: int, room_text: str, layout: str, rt60
 
     room = parse_room(room_text)
     jitter = resolve_jitter(jitter, jitter_us) * 1e6  # microseconds below (messages, payload)
+    check_simulation_size(units=units, sample_rate=48000, room=room, rt60=rt60)
     rec_dir = out / "recording"
     click.echo(f"selfcal demo: {units} units ({layout}), room {room_text} m, RT60 {rt60:g} s, SNR {snr:g} dB, "
                f"clock jitter {jitter:g} us, seed {seed}")

@@ -156,11 +156,15 @@ def reproduce_slac_cmd(minutes: float, subcarriers: int, runs: int, out: Path, b
     """Paper 002 replica: Table I, Fig. 3 (DoA CDF), Fig. 4 (ranging RMSE) -> PNG + JSON in --out."""
     import json
 
+    from .._checks import check_runs
     from ..errors import InputError
     from ..experiments.slac import reproduce_slac
+    from ..slac.validate import check_simulation_request
 
     if minutes <= 0 or runs < 1 or subcarriers < 8:
         raise InputError("--minutes must be > 0, --runs >= 1 and --subcarriers >= 8")
+    check_runs(runs)
+    check_simulation_request(minutes, subcarriers, 30.0)  # each run simulates such a log
     s = reproduce_slac(out, minutes=minutes, subcarriers=subcarriers, runs=runs, seed=seed, backend=backend,
                        scheduler=scheduler, init=init, smoother_lag=smoother_lag)
     click.echo(json.dumps({"table_I": s["table_I"], "fig3_doa": s["fig3_doa"], "fig4": s["fig4"]}, indent=1))

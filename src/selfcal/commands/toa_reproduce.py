@@ -24,6 +24,7 @@ SOURCE_COUNTS = (3, 4, 5, 6, 8, 10, 15, 20)
 def toa_mds_nls(runs: int, backend: str, scheduler: str | None, seed: int, out_dir: str) -> None:
     """Reproduce paper 003: Fig. 5 (one network, 95% ellipses), Fig. 6 (RMSE vs noise),
     Fig. 7 (RMSE vs number of sources), Table I set-up."""
+    from .._checks import check_runs
     from ..errors import InputError
     from ..experiments.runner import run_sweep, write_rows
     from ..experiments.toa_mds_nls import PAPER_003, example_network, summarise, trial_003
@@ -32,6 +33,7 @@ def toa_mds_nls(runs: int, backend: str, scheduler: str | None, seed: int, out_d
 
     if runs < 1:
         raise InputError(f"--runs must be >= 1, got {runs}")
+    check_runs(runs)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     rows6 = run_sweep(trial_003, [{"sigma": s, "n_sources": 10} for s in NOISE_LEVELS], runs=runs,
@@ -105,7 +107,6 @@ def lps(data_path: str, out_dir: str, n_sim: int, variants_opt: str | None, seed
             raise InputError(f"--variants: unknown {', '.join(bad) or '(empty)'}; choose among "
                              f"{', '.join(lps_variants())}")
     out = Path(out_dir)
-    out.mkdir(parents=True, exist_ok=True)
     report: dict[str, Any] = {"recommended": RECOMMENDED, "flights": {}, "simulated": {}}
     cases: list[tuple[str, Any, Any, Any, dict[str, Any]]] = []
     for f in lps_files(data_path):
@@ -123,6 +124,7 @@ def lps(data_path: str, out_dir: str, n_sim: int, variants_opt: str | None, seed
         sim = simulate_uwb_flight(seed + k)
         cases.append((f"sim{seed + k}", sim["ranges"], sim["anchors"], sim["tag"],
                       {"bias": sim["bias"].tolist(), "n_spikes": int(sim["spikes"].sum())}))
+    out.mkdir(parents=True, exist_ok=True)  # only once the data have been read: bad input writes nothing
     scores: dict[str, dict[str, float]] = {}
     for name, Y, anchors, tag, entry in cases:
         entry["variants"] = {}

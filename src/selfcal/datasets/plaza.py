@@ -189,8 +189,10 @@ def load_plaza(path: str | os.PathLike[str], *, init_heading_offset: float | Non
     ((4, 2), 0.0)
     """
     p = Path(path)
-    if not p.is_file():
+    if not p.exists():
         raise InputError(f"{p}: file not found")
+    if not p.is_file():
+        raise InputError(f"{p}: {'is a directory' if p.is_dir() else 'not a regular file'}; give a .mat file")
     try:
         from scipy.io import loadmat
 

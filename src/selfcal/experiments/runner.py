@@ -38,7 +38,7 @@ from typing import Any
 import numpy as np
 from tqdm.auto import tqdm
 
-from .._checks import check_choice
+from .._checks import TRIAL_BYTES, check_choice, guard_size
 from .._result import jsonable
 from ..errors import InputError
 from ..io import atomic_write_bytes, write_json
@@ -181,7 +181,9 @@ def run_sweep(
         if backend != "dask":
             raise InputError("--scheduler needs --backend dask")
         scheduler = check_scheduler_address(scheduler)
-    tasks = _tasks(list(grid), int(runs), int(seed))
+    grid = list(grid)
+    guard_size(float(runs) * max(len(grid), 1) * TRIAL_BYTES, f"{runs} runs x {len(grid)} settings")
+    tasks = _tasks(grid, int(runs), int(seed))
     rows: list[dict[str, Any] | None] = [None] * len(tasks)
     show = bool(progress) and sys.stderr.isatty()
     bar = tqdm(total=len(tasks), desc=desc, disable=not show, leave=False)

@@ -286,6 +286,8 @@ def read_json(path: str | os.PathLike[str], name: str | None = None) -> Any:
         raise InputError(f"{label}: malformed JSON ({exc})") from None
     except RecursionError:
         raise InputError(f"{label}: JSON nested too deeply") from None
+    except ValueError as exc:  # an integer literal beyond Python's 4300-digit conversion limit
+        raise InputError(f"{label}: malformed JSON ({' '.join(str(exc).split())[:120]})") from None
 
 
 def load_npz(path: str | os.PathLike[str], required: tuple[str, ...] = ()) -> dict[str, NDArray[Any]]:

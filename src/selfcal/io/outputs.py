@@ -94,6 +94,8 @@ def check_output_path(path: str | os.PathLike[str], *, kind: str = "file",
         return Path("-")
     if raw == "" or "\x00" in raw:
         raise OutputError(f"{name!r}: not a usable path")
+    if kind == "file" and raw.endswith(os.sep):
+        raise OutputError(f"{name}: ends with '{os.sep}' (a folder); give a file name")
     real = Path(os.path.realpath(raw))
     try:
         st = os.stat(real)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.linalg import block_diag
 
 from .._checks import check_choice
 from .model import _eliminate_positions, _flat, _normal_equations
@@ -82,8 +83,8 @@ def position_covariance(
         if method == "dense":
             cov = np.linalg.pinv(S, rcond=1e-10, hermitian=True)
         else:
-            cov = _spd_inverse(S + Q @ Q.T)
-            cov = np.linalg.pinv(S, rcond=1e-10, hermitian=True) if cov is None else cov - Q @ Q.T
+            inv = _spd_inverse(S + Q @ Q.T)
+            cov = np.linalg.pinv(S, rcond=1e-10, hermitian=True) if inv is None else inv - Q @ Q.T
         blocks = cov.reshape(mz, d, mz, d)[idx, :, idx, :]
     else:
         if np.min(np.linalg.eigvalsh(Hzz)[:, 0] / np.maximum(np.trace(Hzz, axis1=1, axis2=2), 1e-300)) < 1e-10:
@@ -96,21 +97,12 @@ def position_covariance(
         Y = np.matmul(A_inv, Ub)  # A^-1 U, per position block: (mz, d, k p + g)
         Yf = Y.reshape(mz * d, -1)
         K = U.T @ Yf
-        K[: k * p, : k * p] -= _block_diag(Hnn)
+        K[: k * p, : k * p] -= block_diag(*Hnn)
         K[k * p:, k * p:] += np.eye(g)
         YK = (Yf @ np.linalg.inv(K)).reshape(mz, d, -1)  # one (kp+g)^3 inverse, then BLAS
         blocks = A_inv - np.matmul(YK, Y.transpose(0, 2, 1)) - np.matmul(Qb, Qb.transpose(0, 2, 1))
     blocks = sigma2 * 0.5 * (blocks + blocks.transpose(0, 2, 1))
     return np.concatenate([np.zeros((1, d, d)), blocks], axis=0)
-
-
-def _block_diag(H: Array) -> Array:
-    """(k, p, p) blocks as the (k p, k p) block-diagonal matrix."""
-    k, p, _ = H.shape
-    out = np.zeros((k * p, k * p))
-    idx = np.arange(k)
-    out.reshape(k, p, k, p)[idx, :, idx, :] = H
-    return out
 
 
 def _spd_inverse(S: Array) -> Array | None:

@@ -276,10 +276,11 @@ def solve_farfield(
             # complete at rank 1, then 2, and keep the first whose next singular value is noise
             # (a real higher component stays visible in the observed entries); sigma from the
             # largest (rank-3) fit, unbiased whatever the true rank
-            for r in range(1, 3 if dim == "auto" else 2):
-                Lr, _ = lowrank_fit(D, used.astype(float), rank=r, loss=fit_loss)
+            for rank_r in range(1, 3 if dim == "auto" else 2):
+                Lr, _ = lowrank_fit(D, used.astype(float), rank=rank_r, loss=fit_loss)
                 Fr = np.where(used, D, Lr) if loss == "linear" else Lr
-                if analyse_degeneracy(Fr - Fr.mean(axis=0), noise_std=sigma_entries, cone_tol=cone_tol).rank <= r:
+                if analyse_degeneracy(Fr - Fr.mean(axis=0), noise_std=sigma_entries,
+                                      cone_tol=cone_tol).rank <= rank_r:
                     Dfill = Lr
                     break
     if loss == "linear":
@@ -313,12 +314,12 @@ def solve_farfield(
     if dim_eff in (1, 2):
         if dim_eff == 2 and (dim == 2 or report.kind == "coplanar-directions"):
             check_orientation(D, noise_std=noise_std, rank=2)
-        sol = _solve_low_dim(D, X, used, dim_eff, report, offsets=offsets, loss=loss, f_scale=f_scale,
+        low = _solve_low_dim(D, X, used, dim_eff, report, offsets=offsets, loss=loss, f_scale=f_scale,
                              method=method, max_iter=max_iter, tol=tol, cone_tol=cone_tol)
-        pos, dirs, C, cov = sol["positions"], sol["directions"], sol["offsets"], sol["cov"]
-        res = _result(pos, dirs, C, kind=None, conv=sol["converged"], its=sol["iterations"], meth=sol["method"],
-                      rej=no_rej, pd=sol["pd"], hist=sol["history"], cov=cov)
-        return replace(res, dim=dim_eff, case=sol["case"], determined=sol["determined"])
+        res = _result(low["positions"], low["directions"], low["offsets"], kind=None, conv=low["converged"],
+                      its=low["iterations"], meth=low["method"], rej=no_rej, pd=low["pd"], hist=low["history"],
+                      cov=low["cov"])
+        return replace(res, dim=dim_eff, case=low["case"], determined=low["determined"])
     if check_degeneracy and report.rank < 3:
         kind = report.kind or "collinear-motion"
         partial_fn = {

@@ -104,10 +104,17 @@ def initialize_farfield(X: Array, *, dim: int = 3) -> FarfieldInit:
 
 
 def _canonical(pos: Array, dirs: Array) -> tuple[Array, Array, Array]:
-    """Rotate so that the positions' principal axes are the coordinate axes (row 0 stays 0)."""
+    """Rotate so that the positions' principal axes are the coordinate axes (row 0 stays 0).
+
+    Far-field TDOA cannot tell a solution from its mirror image (``z_i . n_j`` is unchanged
+    when both are reflected), so the mirror is chosen by the same rule as every axis
+    (:func:`selfcal.geometry.canonical_gauge` with ``proper=False``: non-negative third moment
+    of the positions along each principal axis): the output does not depend on which of the
+    two the solver's path reached.
+    """
     d = pos.shape[1]
     if d == 1 or np.linalg.matrix_rank(pos, tol=1e-12 * (np.abs(pos).max() + 1e-300)) < d:
         return pos, dirs, np.eye(d)
-    _, _, al = canonical_gauge(pos)
+    _, _, al = canonical_gauge(pos, proper=False)
     R = al.rotation
     return pos @ R.T, dirs @ R.T, R

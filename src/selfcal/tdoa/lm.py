@@ -40,8 +40,14 @@ def _lm_step(
     else:
         mz, k, d, p = Hzn.shape
     eye_p, eye_d = np.eye(p), np.eye(d)
-    Hnn_d = Hnn + lam * np.einsum("jaa->ja", Hnn)[:, :, None] * eye_p + 1e-12 * eye_p
-    Hzz_d = Hzz + lam * np.einsum("iaa->ia", Hzz)[:, :, None] * eye_d + 1e-12 * eye_d
+    # Marquardt damping lam diag(H) plus a ridge of 1e-12 times the largest diagonal entry of
+    # each kind of unknown (position axes, direction tangents, offsets): both scale with the
+    # unit of the data, so the step does not depend on it (an absolute ridge would)
+    dnn, dzz = np.einsum("jaa->ja", Hnn), np.einsum("iaa->ia", Hzz)
+    ridge_n = 1e-12 * np.maximum(dnn.max(axis=0), np.finfo(float).tiny)
+    ridge_z = 1e-12 * np.maximum(dzz.max(axis=0), np.finfo(float).tiny)
+    Hnn_d = Hnn + (lam * dnn + ridge_n)[:, :, None] * eye_p
+    Hzz_d = Hzz + (lam * dzz + ridge_z)[:, :, None] * eye_d
     if side == "auto":
         side = "positions" if _eliminate_positions(mz, d, k, p) else "directions"
         if min(d * mz, p * k) > DIRECT_MAX:
@@ -59,7 +65,7 @@ def _lm_step(
         idx = np.arange(mz)
         S4[idx, :, idx, :] += Hzz_d
         rhs = gz - (Xf @ gn.reshape(-1)).reshape(mz, d)
-        dz = np.linalg.solve(S, rhs.reshape(-1)).reshape(mz, d)
+        dz = np.asarray(np.linalg.solve(S, rhs.reshape(-1)), dtype=np.float64).reshape(mz, d)
         dn = np.einsum("jab,jb->ja", Hnn_inv, gn - (dz.reshape(-1) @ Hr).reshape(k, p))
         return dz, dn
     Hzz_inv = np.linalg.inv(Hzz_d)  # (mz, d, d)
@@ -69,7 +75,7 @@ def _lm_step(
     idx = np.arange(k)
     S4[idx, :, idx, :] += Hnn_d
     rhs = gn.reshape(-1) - Yr.T @ gz.reshape(-1)
-    dn = np.linalg.solve(S, rhs)
+    dn = np.asarray(np.linalg.solve(S, rhs), dtype=np.float64)
     dz = np.einsum("iab,ib->ia", Hzz_inv, gz) - (Yr @ dn).reshape(mz, d)
     return dz, dn.reshape(k, p)
 
@@ -171,6 +177,22 @@ def _lm_step_cg_factored(Hzz_d: Array, factors: tuple[Array, Array, Array], Hnn_
     return dz, dn
 
 
+def _small_step(dz: Array, dn: Array, Z: Array, C: Array, q: int, tol: float) -> bool:
+    """Scale-free step test: each kind of unknown against its own size.
+
+    Positions and offsets are lengths (the matrix's unit): their step is compared with
+    ``L = sqrt(|Z|^2 + |C|^2)`` (``Z_0 = 0``, so ``|Z|`` is the array's extent); the direction
+    steps are angles (radians) compared with ``|N| = sqrt(k)``. Rescaling the data (m -> mm)
+    scales ``dz``, the offset steps and ``L`` alike and leaves the angles, so the test, like
+    the Marquardt-damped step and the relative cost test, does not depend on the unit.
+    """
+    k = dn.shape[0]
+    length = float(np.sqrt(np.sum(Z**2) + np.sum(C**2)))
+    moved = float(np.sqrt(np.sum(dz**2) + np.sum(dn[:, q:] ** 2)))
+    turned = float(np.sqrt(np.sum(dn[:, :q] ** 2)))
+    return moved <= tol * length and turned <= tol * np.sqrt(k)
+
+
 def refine_lm(
     D: Array,
     positions: Array,
@@ -203,7 +225,8 @@ def refine_lm(
     constant and every step is taken, as in the paper.
 
     Convergence: the relative cost decrease of an accepted step is below ``tol``, or the
-    step is below ``tol`` relative to the parameters, or lambda exceeds 1e12.
+    step is below ``tol`` relative to the parameters (lengths against the array's extent,
+    direction angles against ``sqrt(k)``: the test is unit-free), or lambda exceeds 1e12.
 
     Parameters are as in :func:`refine_alternating`; ``lam`` > 0. Positions (m, d) and
     directions (k, d) may be 3-D (spheres) or 2-D (circles, the planar far-field problem).
@@ -251,7 +274,7 @@ def refine_lm(
         if adaptive and new > cost:
             converged = True  # no descent direction left at machine precision
             break
-        small_step = np.sqrt(np.sum(dz**2) + np.sum(dn**2)) <= tol * (1.0 + np.sqrt(np.sum(Z**2)))
+        small_step = _small_step(dz, dn, Z, C, q, tol)
         rel = (cost - new) / max(cost, 1e-300)
         Z, N, C = Zc, Nc, Cc
         if adaptive:

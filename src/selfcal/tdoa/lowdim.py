@@ -76,8 +76,8 @@ def _solve_low_dim(D: Array, X: Array, used: NDArray[np.bool_], d: int, report: 
         if offsets == "reference":
             C = D[0].copy()
         case = "parallel" if parallel else "linear"
-        cov = linear_position_covariance(D, pos, dirs, C, used.astype(float), scale_free=not parallel)
-        return {"positions": pos, "directions": dirs, "offsets": C, "cov": cov, "converged": True,
+        line_cov = linear_position_covariance(D, pos, dirs, C, used.astype(float), scale_free=not parallel)
+        return {"positions": pos, "directions": dirs, "offsets": C, "cov": line_cov, "converged": True,
                 "iterations": 0, "method": "svd-rank1", "pd": True, "history": [], "case": case,
                 "determined": _DETERMINED[case]}
     if k < 3 or m < 3:
@@ -102,7 +102,7 @@ def _solve_low_dim(D: Array, X: Array, used: NDArray[np.bool_], d: int, report: 
     Z, N = init.positions - init.positions[0], init.directions
     C = np.asarray(np.nanmean(np.where(used, D - Z @ N.T, np.nan), axis=0)) if free else D[0].copy()
     hist: list[float] = []
-    cov = None
+    cov: Array | None = None
     its, conv, meth = 0, True, "init"
     if method in ("auto", "lm", "alternating"):
         meth = "lm"

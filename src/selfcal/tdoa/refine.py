@@ -44,7 +44,7 @@ from __future__ import annotations
 
 from ..robust import LOSSES
 from .alternating import refine_alternating, sphere_lstsq_global, sphere_lstsq_local
-from .covariance import _block_diag, _rotation_generators, _spd_inverse, position_covariance
+from .covariance import _rotation_generators, _spd_inverse, position_covariance
 from .crlb import farfield_crlb
 from .lm import (
     COV_DIRECT_MAX,
@@ -93,6 +93,6 @@ __all__ = [
 #: the refinements by name (``solve_farfield(method=...)``), registry style
 REFINERS = {"lm": refine_lm, "alternating": refine_alternating}
 
-_PRIVATE = (_block_diag, _rotation_generators, _spd_inverse, _block_jacobi_cg, _lm_step, _lm_step_cg,
+_PRIVATE = (_rotation_generators, _spd_inverse, _block_jacobi_cg, _lm_step, _lm_step_cg,
             _lm_step_cg_factored, _cost, _eliminate_positions, _flat, _normal_equations,
             _positions_given_directions, _prepare, _start, _tangent, _weights)  # kept importable from here

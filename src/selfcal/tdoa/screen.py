@@ -13,7 +13,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .._checks import as_rng
-from ..robust import mad_std
+from ..robust import TUNING, mad_std
 from .minimal import solve_minimal
 from .refine import farfield_residuals, loss_weight
 
@@ -328,7 +328,8 @@ def _lowrank_factors(
     ----------
     D : (m, k), W : (m, k) weights (0 = missing / rejected).
     rank : rank of ``P Q^T`` (3 for far-field data).
-    loss : IRLS loss on the residuals, scaled by 1.345 x their robust standard deviation
+    loss : IRLS loss on the residuals, scaled by the loss's tuning constant
+        (:data:`selfcal.robust.TUNING`: 1.345 for Huber) x their robust standard deviation
         (1.4826 MAD x sqrt(entries / residual dof)); robust losses also start from a
         winsorised D (each row of the column-centred matrix clipped to 3 robust spreads).
     start : optional complete (m, k) matrix whose structure starts the iteration
@@ -377,7 +378,7 @@ def _lowrank_factors(
         # the scale shrinks from one iteration to the next and the weights collapse
         sigma = mad_std(R[obs], centre=False) * dof_fac
         if loss != "linear" and sigma > 0:
-            Wr = W * loss_weight((R / (1.345 * sigma)) ** 2, loss)
+            Wr = W * loss_weight((R / (TUNING[loss] * sigma)) ** 2, loss)
         Pa = np.hstack([P, ones])
         Hq = np.einsum("ij,ia,ib->jab", Wr, Pa, Pa) + eye_q * (1.0 + np.trace(Pa.T @ Pa))
         Qa = np.linalg.solve(Hq, np.einsum("ij,ij,ia->ja", Wr, D0, Pa)[..., None])[..., 0]
