@@ -11,7 +11,9 @@ Steps (every rule stated in :mod:`selfcal.toa.robust`):
    robust estimate, and the final refit without the outliers (and with covariances);
 6. the trust test (:func:`~selfcal.toa.result.residual_test` with a given noise,
    :func:`~selfcal.toa.result.geometry_test` without) -> ``status`` / ``message``;
-7. the result in the caller's numbering, dropped nodes as NaN rows.
+7. the result in the caller's numbering, dropped nodes as NaN rows;
+8. the determinacy test (:func:`~selfcal.toa.trust.determinacy_test`) on the result's own
+   covariances: more than half of the nodes undetermined fails the result, fewer are named.
 """
 
 from __future__ import annotations
@@ -25,7 +27,7 @@ from .._checks import check_toa_counts
 from ..errors import DegenerateGeometryError, InputError, Status
 from .nls import NlsSolution, refine_toa, toa_model
 from .rank3_model import rank_identifiable
-from .result import MESSAGES, ToaResult, geometry_test, n_parameters, residual_test
+from .result import MESSAGES, ToaResult, determinacy_test, geometry_test, n_parameters, residual_test
 from .robust import (
     drop_unidentifiable,
     gross_entries,
@@ -252,9 +254,40 @@ def finish(M: Array, dim: int, offsets: str, *, init: Any, speed: float | None, 
                                       f"{pt.copies} permuted copies, p = {pt.p_value:.2g}")
         message += f" (median PRESS {geo.press:.3g} vs {geo.press_null:.3g} without geometry{perm})"
 
-    # 7. back to the caller's numbering
-    return _package(M, Yc, final, keep_r, keep_s, pr, pc, outliers, speed, label, iters, n_runs, fit, geo,
-                    status, message, noise, noise_est, dim, offsets, n_negative)
+    # 7. back to the caller's numbering, 8. is the geometry determined?
+    res = _package(M, Yc, final, keep_r, keep_s, pr, pc, outliers, speed, label, iters, n_runs, fit, geo,
+                   status, message, noise, noise_est, dim, offsets, n_negative)
+    return _judge_determinacy(res, sd, float(final.sigma), covariance, key)
+
+
+def _judge_determinacy(res: ToaResult, sd: float | None, sigma_fit: float, covariance: Any,
+                       key: str) -> ToaResult:
+    """Attach the determinacy test (:func:`~selfcal.toa.trust.determinacy_test`) and apply its rule.
+
+    The covariances of the final fit are ``sigma_fit^2 (J^T J)^+``; with a given noise ``sd``
+    (metres) they are rescaled to it (the estimate has only ``m - n`` degrees of freedom,
+    7 at 12 x 6 with both offsets). More than half of the tested nodes undetermined turns a
+    success or a non-converged fit into FAILED_TEST ("undetermined"); fewer are named in the
+    message of a result that keeps its status. An already failed or untestable result keeps
+    its verdict (the test is still attached).
+    """
+    import dataclasses
+
+    skipped = "covariance=False: no covariance to test" if covariance is False else None
+    if sd is not None and sigma_fit > 0 and np.isfinite(sigma_fit):
+        scale, noise, src = (sd / sigma_fit) ** 2, sd, "given"
+    else:
+        scale, noise, src = 1.0, sigma_fit, "estimated"
+    det = determinacy_test(res.receivers, res.sources, res.receiver_cov, res.source_cov, noise=noise,
+                           cov_scale=scale, noise_source=src, skipped=skipped)
+    status, message = Status(res.verdict), res.verdict_message
+    n, m = det.n_undetermined, det.tested
+    if det.failed and status != Status.FAILED_TEST and key != "untestable":
+        status = Status.FAILED_TEST
+        message = MESSAGES["undetermined"].format(n=n, m=m, names=det.names())
+    elif n and status != Status.FAILED_TEST:
+        message += MESSAGES["some-undetermined"].format(n=n, m=m, names=det.names())
+    return dataclasses.replace(res, determinacy=det, verdict=int(status), verdict_message=message)
 
 
 def _nested_start(Y: Array, dim: int, offsets: str, rng: np.random.Generator, loss: str, fs: float | None,

@@ -7,6 +7,10 @@
 - :func:`geometry_test` / :class:`GeometryTest`: the permutation test and leave-one-out
   cross-validation (median PRESS) of the fit against the model without geometry; what
   :func:`selfcal.toa.solve_toa` reports as ``geometry`` when no noise level is given.
+- :func:`determinacy_test` / :class:`DeterminacyTest`: do the data determine the fitted
+  geometry? Each node's 95 % confidence region (the result's own covariance, noise given or
+  estimated) against the size of its node set (:func:`set_scale`); what ``solve_toa``
+  reports as ``determinacy`` (and ``undetermined_receivers`` / ``undetermined_sources``).
 
 Split from :mod:`selfcal.toa.result` (which re-exports every name) to keep both files
 below ~600 lines.
@@ -26,6 +30,11 @@ from ..geometry import n_parameters
 from .nls import OFFSET_MODES
 
 __all__ = [
+    "DETERMINED_LEVEL",
+    "UNDETERMINED_FAIL_FRACTION",
+    "DeterminacyTest",
+    "determinacy_test",
+    "set_scale",
     "PERMUTATION_ALPHA",
     "PERMUTATION_COPIES",
     "RESIDUAL_ALPHA",
@@ -427,3 +436,190 @@ def _num(x: float) -> float | None:
     """A float for JSON (None for NaN / inf)."""
     x = float(x)
     return x if math.isfinite(x) else None
+
+
+# ---------------------------------------------------------------------------
+# Is the fitted geometry determined by the data? (the result's own covariance)
+# ---------------------------------------------------------------------------
+
+#: confidence level of the determinacy test's per-node region
+DETERMINED_LEVEL = 0.95
+#: the result fails its test when more than this fraction of the tested nodes is undetermined
+UNDETERMINED_FAIL_FRACTION = 0.5
+#: nodes per chunk of the pairwise distances of :func:`set_scale` (memory chunk x n doubles)
+_SCALE_CHUNK = 512
+
+
+@dataclass(frozen=True)
+class DeterminacyTest:
+    """Does the data determine the fitted geometry? Each node's confidence region against its set's size.
+
+    A node is *undetermined* when the largest semi-axis of its 95 % confidence ellipsoid
+    (from the result's own gauge-free covariance, 003 eq. 17 at the estimate),
+    ``extent_n = sqrt(chi2_d^-1(0.95) * lambda_max(C_n))``, exceeds the size of its node set
+    (:func:`set_scale`, the robust RMS radius of the receivers or of the sources): the data
+    then cannot place the node inside the array it belongs to, so its position (which side
+    of the others, which of the mirror / far-field minima) is not known. Scale-free: a rigid
+    motion or a change of units changes neither side's ratio.
+
+    Verdict: ``failed`` when more than :data:`UNDETERMINED_FAIL_FRACTION` (half) of the
+    tested nodes are undetermined (the geometry as a whole is not determined: the result
+    fails its own test); with fewer the result keeps its status and names them (a
+    warning).
+
+    Attributes
+    ----------
+    receiver_extent, source_extent: (I,), (J,) 95 % semi-axes (metres); NaN where the node
+        was dropped or its covariance block was not computed.
+    receiver_scale, source_scale: sizes of the two node sets (metres, :func:`set_scale`).
+    undetermined_receivers, undetermined_sources: (I,), (J,) bool masks.
+    level: the confidence level (0.95).
+    noise: the noise std the covariance is scaled to (matrix units of the fit, metres).
+    noise_source: "given" (the caller's ``noise``) or "estimated" (the fit's residuals).
+    tested: nodes with a finite covariance block.
+    failed: more than half of the tested nodes are undetermined.
+    skipped: why nothing was tested (e.g. ``covariance=False``), else None.
+    """
+
+    receiver_extent: Array
+    source_extent: Array
+    receiver_scale: float
+    source_scale: float
+    undetermined_receivers: NDArray[np.bool_]
+    undetermined_sources: NDArray[np.bool_]
+    level: float
+    noise: float
+    noise_source: str
+    tested: int
+    failed: bool
+    skipped: str | None = None
+
+    @property
+    def n_undetermined(self) -> int:
+        """Number of undetermined nodes (receivers + sources)."""
+        return int(self.undetermined_receivers.sum() + self.undetermined_sources.sum())
+
+    def names(self) -> str:
+        """``"receivers 0, 3; sources 5"``: the undetermined nodes (caller's numbering)."""
+        parts = []
+        for label, mask in (("receivers", self.undetermined_receivers), ("sources", self.undetermined_sources)):
+            idx = np.flatnonzero(mask)
+            if idx.size:
+                shown = ", ".join(str(int(i)) for i in idx[:12]) + (f", ... ({idx.size})" if idx.size > 12 else "")
+                parts.append(f"{label} {shown}")
+        return "; ".join(parts)
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-safe dict (extents and scales in metres)."""
+        def lst(a: Array) -> list[float | None]:
+            return [_num(v) for v in np.asarray(a, float)]
+
+        return {"test": "determinacy", "level": float(self.level), "noise": _num(self.noise),
+                "noise_source": self.noise_source, "receiver_scale": _num(self.receiver_scale),
+                "source_scale": _num(self.source_scale), "receiver_extent": lst(self.receiver_extent),
+                "source_extent": lst(self.source_extent),
+                "undetermined_receivers": [int(i) for i in np.flatnonzero(self.undetermined_receivers)],
+                "undetermined_sources": [int(j) for j in np.flatnonzero(self.undetermined_sources)],
+                "n_undetermined": self.n_undetermined, "tested": int(self.tested),
+                "fail_fraction": UNDETERMINED_FAIL_FRACTION, "failed": bool(self.failed), "skipped": self.skipped}
+
+
+def set_scale(points: Any) -> float:
+    """Robust RMS radius of a node set: ``median_a median_{b != a} |x_a - x_b| / sqrt(2)`` (metres).
+
+    For any set the RMS pairwise distance is ``sqrt(2)`` times the RMS distance from the
+    centroid, so this is the RMS radius with both means replaced by medians: invariant under
+    rigid motions and relabelling, and not inflated by a few nodes placed far away (a
+    far-field source of a bad fit would otherwise set the scale it is judged by). Rows with
+    NaN are ignored; O(n^2) time in chunks of :data:`_SCALE_CHUNK` rows.
+
+    Parameters
+    ----------
+    points: (n, d) positions.
+
+    Returns
+    -------
+    float; NaN with fewer than two finite rows.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> round(set_scale(np.array([[0.0, 0], [1, 0], [0, 1], [1, 1]])), 4)
+    0.7071
+    """
+    P = np.asarray(points, dtype=float)
+    P = P[np.isfinite(P).all(axis=1)]
+    n = P.shape[0]
+    if n < 2:
+        return float("nan")
+    med = np.empty(n)
+    for a in range(0, n, _SCALE_CHUNK):
+        D = np.linalg.norm(P[a:a + _SCALE_CHUNK, None, :] - P[None, :, :], axis=-1)
+        D[np.arange(D.shape[0]), np.arange(a, a + D.shape[0])] = np.nan  # not the node itself
+        med[a:a + D.shape[0]] = np.nanmedian(D, axis=1)
+    return float(np.median(med) / math.sqrt(2.0))
+
+
+def determinacy_test(receivers: Any, sources: Any, receiver_cov: Any, source_cov: Any, *,
+                     noise: float = float("nan"), cov_scale: float = 1.0, noise_source: str = "estimated",
+                     level: float = DETERMINED_LEVEL, skipped: str | None = None) -> DeterminacyTest:
+    """Test whether the data determine each fitted node (:class:`DeterminacyTest` states the rule).
+
+    Parameters
+    ----------
+    receivers, sources: (I, d), (J, d) fitted positions (metres; NaN rows = dropped nodes).
+    receiver_cov, source_cov: (I, d, d), (J, d, d) the fit's gauge-free covariances (m^2;
+        NaN blocks are not tested).
+    noise: the noise std the covariances are expressed at (for the report).
+    cov_scale: factor applied to the covariances first: ``(noise_given / sigma_fit)^2`` when
+        the caller gave the noise (the fit's covariances are scaled by its own estimate).
+    noise_source: "given" or "estimated".
+    level: confidence level of the per-node region.
+    skipped: a reason to test nothing (the covariance was not computed).
+
+    Returns
+    -------
+    DeterminacyTest
+
+    Notes
+    -----
+    Cost: one ``d x d`` eigenvalue problem per node and the O(n^2) scales of
+    :func:`set_scale`; no covariance is computed here (what the fit computed is used, so
+    ``covariance=False`` or ``"local"`` is what the test sees).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> r = np.array([[0.0, 0], [4, 0], [0, 4], [4, 4]])
+    >>> t = determinacy_test(r, r + 1, np.tile(np.eye(2) * 1e-4, (4, 1, 1)),
+    ...                      np.tile(np.eye(2), (4, 1, 1)) * np.array([1e-4, 1e-4, 1e-4, 400])[:, None, None])
+    >>> t.names(), t.failed
+    ('sources 3', False)
+    """
+    from scipy.stats import chi2
+
+    R, S = np.asarray(receivers, float), np.asarray(sources, float)
+    Cr, Cs = np.asarray(receiver_cov, float), np.asarray(source_cov, float)
+    d = R.shape[1]
+    q = float(chi2.ppf(level, d))
+    rho_r, rho_s = set_scale(R), set_scale(S)
+
+    def extent(P: Array, C: Array) -> Array:
+        out = np.full(P.shape[0], np.nan)
+        ok = np.isfinite(P).all(axis=1) & np.isfinite(C.reshape(C.shape[0], -1)).all(axis=1)
+        if skipped is None and ok.any():
+            lam = np.linalg.eigvalsh(0.5 * (C[ok] + np.swapaxes(C[ok], 1, 2)))[:, -1]
+            out[ok] = np.sqrt(q * float(cov_scale) * np.maximum(lam, 0.0))
+        return out
+
+    er, es = extent(R, Cr), extent(S, Cs)
+    with np.errstate(invalid="ignore"):
+        ur = np.isfinite(er) & (er > rho_r) if np.isfinite(rho_r) else np.zeros(er.shape, bool)
+        us = np.isfinite(es) & (es > rho_s) if np.isfinite(rho_s) else np.zeros(es.shape, bool)
+    tested = int(np.isfinite(er).sum() + np.isfinite(es).sum())
+    n_bad = int(ur.sum() + us.sum())
+    failed = bool(tested > 0 and n_bad > UNDETERMINED_FAIL_FRACTION * tested)
+    if skipped is None and tested == 0:
+        skipped = "no covariance block is finite (no redundant measurement, or none was computed)"
+    return DeterminacyTest(er, es, rho_r, rho_s, ur, us, float(level), float(noise), noise_source, tested,
+                           failed, skipped)
