@@ -58,7 +58,7 @@ def network(I: int, J: int, dim: int, offsets: str, noise: float,
 def _truth_case(I: int, J: int, dim: int, offsets: str, noise: float, draws: int, first: int) -> dict[str, Any]:
     from selfcal.metrics import aligned_rmse
     from selfcal.toa import refine_toa
-    from selfcal.toa.trust import determinacy_test
+    from selfcal.toa.trust import determinacy_test, fisher_blocks
 
     out: dict[str, Any] = {"given_any": 0, "given_failed": 0, "est_any": 0, "est_failed": 0, "draws": draws,
                            "max_ratio": 0.0}
@@ -69,9 +69,11 @@ def _truth_case(I: int, J: int, dim: int, offsets: str, noise: float, draws: int
         sol = refine_toa(Y, r, s, offsets=offsets, receiver_offsets0=d, source_offsets0=o)
         e = aligned_rmse(sol.receivers, r, sol.sources, s, fit_on="all")
         errs.append(float(np.sqrt(np.mean(np.r_[e.receiver_errors, e.source_errors] ** 2))))
-        for tag, k, nz in (("given", (noise / sol.sigma) ** 2, noise), ("est", 1.0, sol.sigma)):
-            t = determinacy_test(sol.receivers, sol.sources, sol.receiver_cov, sol.source_cov, noise=nz,
-                                 cov_scale=k)
+        for tag, nz in (("given", noise), ("est", sol.sigma)):
+            # what solve_toa does on networks of <= DENSE_MAX_UNKNOWNS unknowns
+            Cr, Cs = fisher_blocks(Y, sol.receivers, sol.sources, sol.receiver_offsets, sol.source_offsets,
+                                   offsets, nz)
+            t = determinacy_test(sol.receivers, sol.sources, Cr, Cs, noise=nz)
             out[f"{tag}_any"] += int(t.n_undetermined > 0)
             out[f"{tag}_failed"] += int(t.failed)
             if tag == "given":

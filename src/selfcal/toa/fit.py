@@ -28,6 +28,7 @@ from ..errors import DegenerateGeometryError, InputError, Status
 from .nls import NlsSolution, refine_toa, toa_model
 from .rank3_model import rank_identifiable
 from .result import MESSAGES, ToaResult, determinacy_test, geometry_test, n_parameters, residual_test
+from .trust import DENSE_MAX_UNKNOWNS, fisher_blocks
 from .robust import (
     drop_unidentifiable,
     gross_entries,
@@ -209,6 +210,7 @@ def finish(M: Array, dim: int, offsets: str, *, init: Any, speed: float | None, 
     Yf = sub(used, keep_r, keep_s)
     st = _restrict(_embed_start(best, prev_keep, keep_r, keep_s), keep_r, keep_s)
     final = best
+    singular = False  # the covariance was refused: singular beyond the gauge at the estimate
     if not degenerate:
         try:
             final = _refine(Yf, st, dim, offsets, final_loss, fs, max_nfev,
@@ -216,6 +218,7 @@ def finish(M: Array, dim: int, offsets: str, *, init: Any, speed: float | None, 
         except DegenerateGeometryError:
             try:
                 final = _refine(Yf, st, dim, offsets, final_loss, fs, max_nfev, False)
+                singular = covariance is not False
             except DegenerateGeometryError:
                 degenerate = True  # the search's winner is (nearly) collinear: reported, not raised
         iters += final.iterations if final is not best else 0
@@ -257,11 +260,28 @@ def finish(M: Array, dim: int, offsets: str, *, init: Any, speed: float | None, 
     # 7. back to the caller's numbering, 8. is the geometry determined?
     res = _package(M, Yc, final, keep_r, keep_s, pr, pc, outliers, speed, label, iters, n_runs, fit, geo,
                    status, message, noise, noise_est, dim, offsets, n_negative)
-    return _judge_determinacy(res, sd, float(final.sigma), covariance, key)
+    blocks = None
+    sig = sd if sd is not None else float(final.sigma)
+    if covariance is not False and not degenerate and np.isfinite(sig) and sig > 0:
+        # small networks: the blocks in the gauge of the well-placed nodes (trust.fisher_blocks);
+        # larger ones (None) are judged on the fit's own blocks
+        sb = fisher_blocks(Yf, *_start(final), offsets, sig)
+        if sb is not None:  # in the caller's numbering, as _package embeds the result's blocks
+            inv_r, inv_c = np.argsort(pr), np.argsort(pc)
+            blocks = tuple(_embed_rows(B, k, inv, dim) for B, k, inv in ((sb[0], keep_r, inv_r),
+                                                                          (sb[1], keep_s, inv_c)))
+    return _judge_determinacy(res, sd, float(final.sigma), covariance, key, singular, blocks)
 
 
-def _judge_determinacy(res: ToaResult, sd: float | None, sigma_fit: float, covariance: Any,
-                       key: str) -> ToaResult:
+def _embed_rows(B: Array, keep: NDArray[np.bool_], inv: NDArray[np.intp], dim: int) -> Array:
+    """(kept, d, d) blocks in canonical order -> the caller's numbering, NaN for dropped nodes."""
+    out = np.full((keep.size, dim, dim), np.nan)
+    out[keep] = B
+    return out[inv]
+
+
+def _judge_determinacy(res: ToaResult, sd: float | None, sigma_fit: float, covariance: Any, key: str,
+                       singular: bool = False, blocks: Any = None) -> ToaResult:
     """Attach the determinacy test (:func:`~selfcal.toa.trust.determinacy_test`) and apply its rule.
 
     The covariances of the final fit are ``sigma_fit^2 (J^T J)^+``; with a given noise ``sd``
@@ -278,11 +298,21 @@ def _judge_determinacy(res: ToaResult, sd: float | None, sigma_fit: float, covar
         scale, noise, src = (sd / sigma_fit) ** 2, sd, "given"
     else:
         scale, noise, src = 1.0, sigma_fit, "estimated"
-    det = determinacy_test(res.receivers, res.sources, res.receiver_cov, res.source_cov, noise=noise,
-                           cov_scale=scale, noise_source=src, skipped=skipped)
+    Cr, Cs = res.receiver_cov, res.source_cov
+    if blocks is not None:
+        Cr, Cs, scale = blocks[0], blocks[1], 1.0  # fisher_blocks are at the noise already
+    elif singular:
+        skipped = (f"the normal equations are singular beyond the gauge and the network has more than "
+                   f"{DENSE_MAX_UNKNOWNS} unknowns: the undetermined nodes are not named")
+    det = determinacy_test(res.receivers, res.sources, Cr, Cs, noise=noise, cov_scale=scale,
+                           noise_source=src, skipped=skipped)
+    if singular and blocks is None:
+        det = dataclasses.replace(det, failed=True)
     status, message = Status(res.verdict), res.verdict_message
     n, m = det.n_undetermined, det.tested
-    if det.failed and status != Status.FAILED_TEST and key != "untestable":
+    if singular and blocks is None and status != Status.FAILED_TEST and key != "untestable":
+        status, message = Status.FAILED_TEST, MESSAGES["singular"]
+    elif det.failed and status != Status.FAILED_TEST and key != "untestable":
         status = Status.FAILED_TEST
         message = MESSAGES["undetermined"].format(n=n, m=m, names=det.names())
     elif n and status != Status.FAILED_TEST:

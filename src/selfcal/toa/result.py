@@ -76,6 +76,8 @@ MESSAGES = {
     "cv-failed": "the data are not explained by a geometry better than by offsets alone (geometry test failed)",
     "undetermined": "the data do not determine the geometry: {n} of {m} nodes have a 95 % confidence region "
                     "larger than their node set ({names})",
+    "singular": "the data do not determine the geometry: the normal equations are singular beyond the "
+                "rigid-motion gauge at the estimate (no covariance)",
     "some-undetermined": "; but {n} of {m} nodes are not determined by the data (95 % confidence region "
                          "larger than their node set): {names}",
 }
