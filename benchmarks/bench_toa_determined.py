@@ -73,7 +73,8 @@ def _truth_case(I: int, J: int, dim: int, offsets: str, noise: float, draws: int
             # what solve_toa does on networks of <= DENSE_MAX_UNKNOWNS unknowns
             Cr, Cs = fisher_blocks(Y, sol.receivers, sol.sources, sol.receiver_offsets, sol.source_offsets,
                                    offsets, nz)
-            t = determinacy_test(sol.receivers, sol.sources, Cr, Cs, noise=nz)
+            t = determinacy_test(sol.receivers, sol.sources, Cr, Cs, noise=nz, observed=np.isfinite(Y),
+                                 offsets=offsets)
             out[f"{tag}_any"] += int(t.n_undetermined > 0)
             out[f"{tag}_failed"] += int(t.failed)
             if tag == "given":
@@ -124,8 +125,10 @@ def minimal(draws: int, first: int, given: bool) -> list[dict[str, Any]]:
     sys.path.insert(0, str(Path(__file__).parent))
     from bench_toa_minimal import C, NOISE, scene
 
+    from selfcal.geometry import align
     from selfcal.metrics import aligned_rmse
     from selfcal.toa import solve_toa
+    from selfcal.toa.trust import set_scale
 
     rows = []
     for seed in range(first, first + draws):
@@ -138,10 +141,22 @@ def minimal(draws: int, first: int, given: bool) -> list[dict[str, Any]]:
         e = aligned_rmse(res.receivers, r, res.sources, s, fit_on="all")
         err = np.r_[e.receiver_errors, e.source_errors]
         t = res.determinacy
+        # per node: aligned on the nodes the test calls determined (all when fewer than d + 1),
+        # "metres off" = error above the robust radius of the node's true set
+        u = np.zeros(18, bool) if t is None else np.r_[t.undetermined_receivers, t.undetermined_sources]
+        P, Pt = np.vstack([res.receivers, res.sources]), np.vstack([r, s])
+        ok = np.isfinite(P).all(axis=1)
+        core = ok & ~u if (ok & ~u).sum() >= 4 else ok
+        al = align(P[core], Pt[core])
+        en = np.linalg.norm(al.apply(np.where(ok[:, None], P, 0.0)) - Pt, axis=1)
+        big = ok & (en > np.r_[np.full(12, set_scale(r)), np.full(6, set_scale(s))])
+        row_nodes = {"nodes_off": int(big.sum()), "nodes_off_flagged": int((big & u).sum()),
+                     "flagged": int(u.sum()), "flagged_off": int((u & big).sum()),
+                     "core_rmse_m": float(np.sqrt(np.mean(en[core & ~u] ** 2))) if (core & ~u).any() else None}
         row = {"seed": seed, "given": given, "status": int(res.status), "message": res.message[:60],
                "rmse_m": float(np.sqrt(np.nanmean(err**2))), "rmse_receivers_m": float(e.rmse_receivers),
                "undetermined": None if t is None else t.n_undetermined, "tested": None if t is None else t.tested,
-               "determinacy_failed": bool(t is not None and t.failed), "cpu_s": cpu}
+               "determinacy_failed": bool(t is not None and t.failed), **row_nodes, "cpu_s": cpu}
         print(json.dumps(row), flush=True)
         rows.append(row)
     return rows

@@ -286,8 +286,9 @@ def _judge_determinacy(res: ToaResult, sd: float | None, sigma_fit: float, covar
 
     The covariances of the final fit are ``sigma_fit^2 (J^T J)^+``; with a given noise ``sd``
     (metres) they are rescaled to it (the estimate has only ``m - n`` degrees of freedom,
-    7 at 12 x 6 with both offsets). More than half of the tested nodes undetermined turns a
-    success or a non-converged fit into FAILED_TEST ("undetermined"); fewer are named in the
+    7 at 12 x 6 with both offsets). More than half of the tested nodes undetermined, or a
+    determined core that its own ranges cannot identify, turns a success or a non-converged
+    fit into FAILED_TEST ("undetermined"); fewer are named in the
     message of a result that keeps its status. An already failed or untestable result keeps
     its verdict (the test is still attached).
     """
@@ -304,8 +305,11 @@ def _judge_determinacy(res: ToaResult, sd: float | None, sigma_fit: float, covar
     elif singular:
         skipped = (f"the normal equations are singular beyond the gauge and the network has more than "
                    f"{DENSE_MAX_UNKNOWNS} unknowns: the undetermined nodes are not named")
+    used = None
+    if res.residuals is not None:
+        used = np.isfinite(res.residuals) & (~res.outliers if res.outliers is not None else True)
     det = determinacy_test(res.receivers, res.sources, Cr, Cs, noise=noise, cov_scale=scale,
-                           noise_source=src, skipped=skipped)
+                           noise_source=src, skipped=skipped, observed=used, offsets=res.offsets)
     if singular and blocks is None:
         det = dataclasses.replace(det, failed=True)
     status, message = Status(res.verdict), res.verdict_message
@@ -315,6 +319,8 @@ def _judge_determinacy(res: ToaResult, sd: float | None, sigma_fit: float, covar
     elif det.failed and status != Status.FAILED_TEST and key != "untestable":
         status = Status.FAILED_TEST
         message = MESSAGES["undetermined"].format(n=n, m=m, names=det.names())
+        if det.core is not None:
+            message += f"; {det.core}"
     elif n and status != Status.FAILED_TEST:
         message += MESSAGES["some-undetermined"].format(n=n, m=m, names=det.names())
     return dataclasses.replace(res, determinacy=det, verdict=int(status), verdict_message=message)

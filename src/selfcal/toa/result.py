@@ -205,8 +205,9 @@ class ToaResult(Result):
         do not determine (properties, from ``determinacy``; JSON: their indices).
 
     Verdict (``status``): FAILED_TEST when the residual / geometry test fails, when the best
-    fit is degenerate, or when more than half of the tested nodes are undetermined (the data
-    do not determine the geometry as a whole); NOT_CONVERGED when the last refinement stopped
+    fit is degenerate, when more than half of the tested nodes are undetermined (the data
+    do not determine the geometry as a whole) or when the determined nodes alone are not an
+    identifiable network (:class:`DeterminacyTest`); NOT_CONVERGED when the last refinement stopped
     early; SUCCESS otherwise. A success with fewer undetermined nodes says so in ``message``
     (and :func:`~selfcal.toa.solve_toa` warns, :class:`~selfcal.errors.ConvergenceWarning`),
     naming them: those nodes are not to be trusted, the rest is.

@@ -464,9 +464,13 @@ class DeterminacyTest:
     motion or a change of units changes neither side's ratio.
 
     Verdict: ``failed`` when more than :data:`UNDETERMINED_FAIL_FRACTION` (half) of the
-    tested nodes are undetermined (the geometry as a whole is not determined: the result
-    fails its own test); with fewer the result keeps its status and names them (a
-    warning).
+    tested nodes are undetermined (the geometry as a whole is not determined), or when the
+    determined nodes do not form a network their own ranges can identify (the count
+    condition of :func:`selfcal._checks.check_toa_counts` on the determined receivers x
+    determined sources: d + 1 of each, at least as many ranges as unknowns): their
+    placement then rests on nodes the data do not place. Either way the result fails its
+    own test. Otherwise the result keeps its status and names the undetermined nodes (a
+    warning): those are not to be used, the rest is determined.
 
     Attributes
     ----------
@@ -478,8 +482,11 @@ class DeterminacyTest:
     noise: the noise std the covariance is scaled to (matrix units of the fit, metres).
     noise_source: "given" (the caller's ``noise``) or "estimated" (the fit's residuals).
     tested: nodes with a finite covariance block.
-    failed: more than half of the tested nodes are undetermined.
+    failed: more than half of the tested nodes are undetermined, or the determined core is
+        not identifiable by its own ranges.
     skipped: why nothing was tested (e.g. ``covariance=False``), else None.
+    core: why the determined nodes are not an identifiable network (None when they are, or
+        when no observation mask was given).
     """
 
     receiver_extent: Array
@@ -494,6 +501,7 @@ class DeterminacyTest:
     tested: int
     failed: bool
     skipped: str | None = None
+    core: str | None = None
 
     @property
     def n_undetermined(self) -> int:
@@ -550,7 +558,8 @@ class DeterminacyTest:
                 "undetermined_receivers": [int(i) for i in np.flatnonzero(self.undetermined_receivers)],
                 "undetermined_sources": [int(j) for j in np.flatnonzero(self.undetermined_sources)],
                 "n_undetermined": self.n_undetermined, "tested": int(self.tested),
-                "fail_fraction": UNDETERMINED_FAIL_FRACTION, "failed": bool(self.failed), "skipped": self.skipped}
+                "fail_fraction": UNDETERMINED_FAIL_FRACTION, "failed": bool(self.failed), "skipped": self.skipped,
+                "core": self.core}
 
 
 def set_scale(points: Any) -> float:
@@ -591,7 +600,8 @@ def set_scale(points: Any) -> float:
 
 def determinacy_test(receivers: Any, sources: Any, receiver_cov: Any, source_cov: Any, *,
                      noise: float = float("nan"), cov_scale: float = 1.0, noise_source: str = "estimated",
-                     level: float = DETERMINED_LEVEL, skipped: str | None = None) -> DeterminacyTest:
+                     level: float = DETERMINED_LEVEL, skipped: str | None = None, observed: Any = None,
+                     offsets: str = "none") -> DeterminacyTest:
     """Test whether the data determine each fitted node (:class:`DeterminacyTest` states the rule).
 
     Parameters
@@ -605,6 +615,9 @@ def determinacy_test(receivers: Any, sources: Any, receiver_cov: Any, source_cov
     noise_source: "given" or "estimated".
     level: confidence level of the per-node region.
     skipped: a reason to test nothing (the covariance was not computed).
+    observed: optional (I, J) bool, the entries the fit used: enables the core check (the
+        determined nodes must be identifiable from their own ranges, model ``offsets``).
+    offsets: the fitted offsets mode (for the core check).
 
     Returns
     -------
@@ -652,10 +665,23 @@ def determinacy_test(receivers: Any, sources: Any, receiver_cov: Any, source_cov
     tested = int((~np.isnan(er)).sum() + (~np.isnan(es)).sum())
     n_bad = int(ur.sum() + us.sum())
     failed = bool(tested > 0 and n_bad > UNDETERMINED_FAIL_FRACTION * tested)
+    core = None
+    if observed is not None and n_bad and skipped is None:
+        from .._checks import check_toa_counts
+        from ..errors import DegenerateGeometryError
+
+        kr = np.isfinite(R).all(axis=1) & ~ur
+        ks = np.isfinite(S).all(axis=1) & ~us
+        sub = np.asarray(observed, bool)[np.ix_(kr, ks)]
+        try:
+            check_toa_counts(sub.shape, int(sub.sum()), d, offsets)
+        except DegenerateGeometryError as exc:
+            core = f"the determined nodes alone are not identifiable: {exc.args[0]}"
+            failed = True
     if skipped is None and tested == 0:
         skipped = "no covariance block is finite (no redundant measurement, or none was computed)"
     return DeterminacyTest(er, es, rho_r, rho_s, ur, us, float(level), float(noise), noise_source, tested,
-                           failed, skipped)
+                           failed, skipped, core)
 
 
 #: unknowns up to which :func:`fisher_blocks` forms and inverts the dense normal matrix
