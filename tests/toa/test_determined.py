@@ -290,3 +290,28 @@ def test_cli_good_scene_prints_no_undetermined_line(tmp_path):
     assert res.exit_code == 0, res.output
     assert "undetermined" not in res.output and "FAIL" not in res.output
     assert data["undetermined_receivers"] == [] and data["undetermined_sources"] == []
+
+
+def test_fisher_blocks_equal_the_explicit_s_transformation():
+    # independent computation: N^+ by SVD, the weighted S-transformation as a dense matrix
+    from selfcal.toa.nls import _pack, gauge_basis, toa_jacobian
+
+    r, s, d, o, Y = _network(7, 8, 3, "both", 0.02, 2)
+    sol = refine_toa(Y, r, s, offsets="both", receiver_offsets0=d, source_offsets0=o, covariance=False)
+    th = _pack(sol.receivers, sol.sources, sol.receiver_offsets, sol.source_offsets)
+    Jd = toa_jacobian(th, Y, 3, "both").toarray()
+    N = Jd.T @ Jd
+    Np = np.linalg.pinv(N, rcond=1e-10)
+    I, J = 7, 8
+    node = np.r_[np.repeat(np.arange(I), 3), I + np.repeat(np.arange(J), 3), np.arange(I), I + np.arange(J)]
+    w = np.array([1 / np.trace(np.linalg.inv(N[np.ix_(node == k, node == k)])[:3, :3]) for k in range(I + J)])
+    G = gauge_basis(sol.receivers, sol.sources, "both")
+    W = np.diag(w[node])
+    T = np.eye(th.size) - G @ np.linalg.solve(G.T @ W @ G, G.T @ W)
+    C = 0.02**2 * T @ Np @ T.T
+    Cr, Cs = fisher_blocks(Y, sol.receivers, sol.sources, sol.receiver_offsets, sol.source_offsets, "both", 0.02)
+    for k in range(I):
+        assert np.allclose(Cr[k], C[3 * k:3 * k + 3, 3 * k:3 * k + 3], rtol=1e-6, atol=1e-12)
+    for k in range(J):
+        a = 3 * (I + k)
+        assert np.allclose(Cs[k], C[a:a + 3, a:a + 3], rtol=1e-6, atol=1e-12)

@@ -713,7 +713,7 @@ def fisher_blocks(ranges: Any, receivers: Any, sources: Any, receiver_offsets: A
     frame; on a network of similar nodes this is the minimum-norm gauge.
 
     ``N = J^T J`` (003 eq. 16) is lifted, ``M = N + c Q Q^T`` (``c`` its largest
-    eigenvalue): ``M^-1`` differs from ``N^+`` only along the gauge, which the
+    diagonal entry): ``M^-1`` differs from ``N^+`` only along the gauge, which the
     S-transformation ``T = I - G (G^T W G)^-1 G^T W`` removes. A singular M (cond above
     1 / :data:`SINGULAR_RCOND`) is eigendecomposed: the directions below the cut give the
     nodes they move (squared share above :data:`SINGULAR_SHARE`) an infinite variance.
@@ -758,31 +758,37 @@ def fisher_blocks(ranges: Any, receivers: Any, sources: Any, receiver_offsets: A
             w[k] = 1.0 / tr if np.isfinite(tr) and tr > 0 else 0.0
         except np.linalg.LinAlgError:
             w[k] = 0.0
-    lam_top = float(np.linalg.eigvalsh(N)[-1]) or 1.0
-    Mx = N + lam_top * (Q @ Q.T)
+    c = float(np.max(np.diag(N))) or 1.0  # any c > 0 lifts the gauge; N's scale keeps M well-conditioned
+    Mx = N + c * (Q @ Q.T)
     Wd = w[node]
     GW = Q.T * Wd  # (g, n)
     K = np.linalg.lstsq(GW @ Q, GW, rcond=None)[0]  # (G^T W G)^-1 G^T W
-    T = np.eye(n) - Q @ K
     bad = np.zeros(n, bool)
     L, info = scipy.linalg.lapack.dpotrf(Mx, lower=1, clean=1)
     dl = np.abs(np.diag(L))
     if info == 0 and dl.min() > np.sqrt(SINGULAR_RCOND) * dl.max():
-        C = scipy.linalg.cho_solve((L, True), np.eye(n), check_finite=False)
+        C, info = scipy.linalg.lapack.dpotri(L, lower=1)  # M^-1 from the factor (lower triangle)
+        C = np.tril(C) + np.tril(C, -1).T
     else:
         lam, V = np.linalg.eigh(Mx)
         ok = lam > SINGULAR_RCOND * lam[-1]
         C = (V[:, ok] / lam[ok]) @ V[:, ok].T
         # the undetermined directions in the same gauge (orthogonal to the gauge they would
         # carry a translation of every node, ~1/n each), normalised
-        Vn = T @ V[:, ~ok]
+        Vn = V[:, ~ok] - Q @ (K @ V[:, ~ok])
         Vn /= np.maximum(np.linalg.norm(Vn, axis=0), np.finfo(float).tiny)
         bad = (Vn**2).sum(axis=1) > SINGULAR_SHARE
-    CW = (T @ C @ T.T) * float(sigma) ** 2
+    # diagonal blocks of T C T^T, T = I - Q K, without forming it: O(g n^2)
+    KC = K @ C  # (g, n)
+    KCK = KC @ K.T  # (g, g)
+    s2 = float(sigma) ** 2
 
     def blocks(first: int, count: int) -> Array:
-        idx = first + np.arange(count)[:, None] * d + np.arange(d)
-        B = CW[idx[:, :, None], idx[:, None, :]]
+        idx = first + np.arange(count)[:, None] * d + np.arange(d)  # (count, d)
+        Cb = C[idx[:, :, None], idx[:, None, :]]
+        Qn = Q[idx]  # (count, d, g)
+        X = np.einsum("nag,gnb->nab", Qn, KC[:, idx])
+        B = (Cb - X - np.swapaxes(X, 1, 2) + np.einsum("nag,gh,nbh->nab", Qn, KCK, Qn)) * s2
         inf = bad[idx].any(axis=1)
         B[inf] = np.where(np.eye(d, dtype=bool), np.inf, 0.0)
         return B
