@@ -123,7 +123,7 @@ def wellposed(mode: str, draws: int, first: int, sizes: Any = SIZES) -> list[dic
 
 def minimal(draws: int, first: int, given: bool) -> list[dict[str, Any]]:
     sys.path.insert(0, str(Path(__file__).parent))
-    from bench_toa_minimal import C, NOISE, scene
+    from bench_toa_minimal import NOISE, C, scene
 
     from selfcal.geometry import align
     from selfcal.metrics import aligned_rmse

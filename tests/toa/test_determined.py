@@ -32,7 +32,7 @@ from selfcal.toa import refine_toa, solve_toa, toa_model
 from selfcal.toa.trust import DeterminacyTest, determinacy_test, fisher_blocks, set_scale
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
-from bench_toa_minimal import C, NOISE, scene  # noqa: E402
+from bench_toa_minimal import NOISE, C, scene  # noqa: E402
 
 
 def _network(I, J, dim, offsets, noise, seed):

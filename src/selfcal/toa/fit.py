@@ -25,10 +25,17 @@ from numpy.typing import NDArray
 
 from .._checks import check_toa_counts
 from ..errors import DegenerateGeometryError, InputError, Status
+from .determinacy import DENSE_MAX_UNKNOWNS, fisher_blocks
 from .nls import NlsSolution, refine_toa, toa_model
 from .rank3_model import rank_identifiable
-from .result import MESSAGES, ToaResult, determinacy_test, geometry_test, n_parameters, residual_test
-from .trust import DENSE_MAX_UNKNOWNS, fisher_blocks
+from .result import (
+    MESSAGES,
+    ToaResult,
+    determinacy_test,
+    geometry_test,
+    n_parameters,
+    residual_test,
+)
 from .robust import (
     drop_unidentifiable,
     gross_entries,

@@ -29,16 +29,15 @@ from .._checks import check_positive
 from .._result import Result, jsonable
 from ..errors import Status
 from ..geometry import n_parameters
+from .determinacy import DeterminacyTest, determinacy_test
 from .trust import (  # noqa: F401 (re-exported: the trust tests' home is selfcal.toa.trust)
     PERMUTATION_ALPHA,
     PERMUTATION_COPIES,
     RESIDUAL_ALPHA,
-    DeterminacyTest,
     GeometryTest,
     PermutationTest,
     _additive_fit,
     _additive_leverages,
-    determinacy_test,
     geometry_statistic,
     geometry_test,
     null_parameters,
