@@ -20,6 +20,21 @@ Two families of scenes:
   solve's verdict against its aligned RMSE to the truth (all 18 nodes, rigid alignment on
   all), noise given and not.
 
+Measured (2026-12-02, code of branch ``undetermined``):
+
+- ``wellposed --mode truth --draws 100``: 0 of 100 draws with any node flagged in every case
+  except 8 x 10 both 5 cm (2-D: 15 any / 0 failed with the noise given, 14 / 1 estimated;
+  3-D: 59 / 11 given, 60 / 12 estimated; the truth-started fit is 0.26 / 0.74 m off in
+  median, max 37 / 5.3 m, so these networks are not well posed) and 12 x 14 3-D both 5 cm
+  (1 / 0 with the noise estimated). Largest extent / scale elsewhere 0.95 (12 x 14 3-D both
+  5 cm), 0.15 at 30 x 40.
+- ``wellposed --mode blind --draws 20 --sizes 8x10`` (2-D, and 3-D without offsets): 0 flagged
+  except 2-D both 5 cm: 5 of 20 with a node named, none failed.
+- ``minimal --draws 48`` (noise estimated): every fit with aligned RMSE > 2 m fails (29 / 29);
+  45 / 48 fail; the 3 successes (0.76, 1.28, 1.99 m) name 1-2 nodes. ``--given``: 48 / 48 fail.
+  Nodes off by more than their true set's radius: 223 of 267 named (noise estimated), 193 of
+  223 (given).
+
 Run: ``python benchmarks/bench_toa_determined.py --family wellposed --mode truth --draws 100``;
 ``--family minimal --draws 48 [--first 0] [--given]``. Prints one line per case and writes
 JSON with ``--out DIR``.
