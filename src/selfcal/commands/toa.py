@@ -168,6 +168,10 @@ def toa_command(matrix: Path, speed: float | None, offsets: str | None, dim: str
             f"  predicted position std (RMS over points): receivers {np.sqrt(tr[ok_tr].mean()):.4g} m, "
             f"sources {np.sqrt(ts[ok_ts].mean()):.4g} m"
         )
+    det = getattr(res, "determinacy", None)
+    if det is not None and det.n_undetermined:
+        lines.append(f"  undetermined: {det.n_undetermined} of {det.tested} nodes have a 95 % confidence region "
+                     f"larger than their node set ({det.names()})")
     lines.append(f"  wrote {out}" + (f" and {plot}" if plot is not None else ""))
     click.echo("\n".join(lines))
     if not ok:

@@ -11,7 +11,9 @@ Steps (every rule stated in :mod:`selfcal.toa.robust`):
    robust estimate, and the final refit without the outliers (and with covariances);
 6. the trust test (:func:`~selfcal.toa.result.residual_test` with a given noise,
    :func:`~selfcal.toa.result.geometry_test` without) -> ``status`` / ``message``;
-7. the result in the caller's numbering, dropped nodes as NaN rows.
+7. the result in the caller's numbering, dropped nodes as NaN rows;
+8. the determinacy test (:func:`~selfcal.toa.trust.determinacy_test`) on the result's own
+   covariances: more than half of the nodes undetermined fails the result, fewer are named.
 """
 
 from __future__ import annotations
@@ -23,9 +25,17 @@ from numpy.typing import NDArray
 
 from .._checks import check_toa_counts
 from ..errors import DegenerateGeometryError, InputError, Status
+from .determinacy import DENSE_MAX_UNKNOWNS, fisher_blocks
 from .nls import NlsSolution, refine_toa, toa_model
 from .rank3_model import rank_identifiable
-from .result import MESSAGES, ToaResult, geometry_test, n_parameters, residual_test
+from .result import (
+    MESSAGES,
+    ToaResult,
+    determinacy_test,
+    geometry_test,
+    n_parameters,
+    residual_test,
+)
 from .robust import (
     drop_unidentifiable,
     gross_entries,
@@ -207,6 +217,7 @@ def finish(M: Array, dim: int, offsets: str, *, init: Any, speed: float | None, 
     Yf = sub(used, keep_r, keep_s)
     st = _restrict(_embed_start(best, prev_keep, keep_r, keep_s), keep_r, keep_s)
     final = best
+    singular = False  # the covariance was refused: singular beyond the gauge at the estimate
     if not degenerate:
         try:
             final = _refine(Yf, st, dim, offsets, final_loss, fs, max_nfev,
@@ -214,6 +225,7 @@ def finish(M: Array, dim: int, offsets: str, *, init: Any, speed: float | None, 
         except DegenerateGeometryError:
             try:
                 final = _refine(Yf, st, dim, offsets, final_loss, fs, max_nfev, False)
+                singular = covariance is not False
             except DegenerateGeometryError:
                 degenerate = True  # the search's winner is (nearly) collinear: reported, not raised
         iters += final.iterations if final is not best else 0
@@ -252,9 +264,73 @@ def finish(M: Array, dim: int, offsets: str, *, init: Any, speed: float | None, 
                                       f"{pt.copies} permuted copies, p = {pt.p_value:.2g}")
         message += f" (median PRESS {geo.press:.3g} vs {geo.press_null:.3g} without geometry{perm})"
 
-    # 7. back to the caller's numbering
-    return _package(M, Yc, final, keep_r, keep_s, pr, pc, outliers, speed, label, iters, n_runs, fit, geo,
-                    status, message, noise, noise_est, dim, offsets, n_negative)
+    # 7. back to the caller's numbering, 8. is the geometry determined?
+    res = _package(M, Yc, final, keep_r, keep_s, pr, pc, outliers, speed, label, iters, n_runs, fit, geo,
+                   status, message, noise, noise_est, dim, offsets, n_negative)
+    blocks = None
+    sig = sd if sd is not None else float(final.sigma)
+    if covariance is not False and not degenerate and np.isfinite(sig) and sig > 0:
+        # small networks: the blocks in the gauge of the well-placed nodes (trust.fisher_blocks);
+        # larger ones (None) are judged on the fit's own blocks
+        sb = fisher_blocks(Yf, *_start(final), offsets, sig)
+        if sb is not None:  # in the caller's numbering, as _package embeds the result's blocks
+            inv_r, inv_c = np.argsort(pr), np.argsort(pc)
+            blocks = tuple(_embed_rows(B, k, inv, dim) for B, k, inv in ((sb[0], keep_r, inv_r),
+                                                                          (sb[1], keep_s, inv_c)))
+    return _judge_determinacy(res, sd, float(final.sigma), covariance, key, singular, blocks)
+
+
+def _embed_rows(B: Array, keep: NDArray[np.bool_], inv: NDArray[np.intp], dim: int) -> Array:
+    """(kept, d, d) blocks in canonical order -> the caller's numbering, NaN for dropped nodes."""
+    out = np.full((keep.size, dim, dim), np.nan)
+    out[keep] = B
+    return out[inv]
+
+
+def _judge_determinacy(res: ToaResult, sd: float | None, sigma_fit: float, covariance: Any, key: str,
+                       singular: bool = False, blocks: Any = None) -> ToaResult:
+    """Attach the determinacy test (:func:`~selfcal.toa.trust.determinacy_test`) and apply its rule.
+
+    The covariances of the final fit are ``sigma_fit^2 (J^T J)^+``; with a given noise ``sd``
+    (metres) they are rescaled to it (the estimate has only ``m - n`` degrees of freedom,
+    7 at 12 x 6 with both offsets). More than half of the tested nodes undetermined, or a
+    determined core that its own ranges cannot identify, turns a success or a non-converged
+    fit into FAILED_TEST ("undetermined"); fewer are named in the
+    message of a result that keeps its status. An already failed or untestable result keeps
+    its verdict (the test is still attached).
+    """
+    import dataclasses
+
+    skipped = "covariance=False: no covariance to test" if covariance is False else None
+    if sd is not None and sigma_fit > 0 and np.isfinite(sigma_fit):
+        scale, noise, src = (sd / sigma_fit) ** 2, sd, "given"
+    else:
+        scale, noise, src = 1.0, sigma_fit, "estimated"
+    Cr, Cs = res.receiver_cov, res.source_cov
+    if blocks is not None:
+        Cr, Cs, scale = blocks[0], blocks[1], 1.0  # fisher_blocks are at the noise already
+    elif singular:
+        skipped = (f"the normal equations are singular beyond the gauge and the network has more than "
+                   f"{DENSE_MAX_UNKNOWNS} unknowns: the undetermined nodes are not named")
+    used = None
+    if res.residuals is not None:
+        used = np.isfinite(res.residuals) & (~res.outliers if res.outliers is not None else True)
+    det = determinacy_test(res.receivers, res.sources, Cr, Cs, noise=noise, cov_scale=scale,
+                           noise_source=src, skipped=skipped, observed=used, offsets=res.offsets)
+    if singular and blocks is None:
+        det = dataclasses.replace(det, failed=True)
+    status, message = Status(res.verdict), res.verdict_message
+    n, m = det.n_undetermined, det.tested
+    if singular and blocks is None and status != Status.FAILED_TEST and key != "untestable":
+        status, message = Status.FAILED_TEST, MESSAGES["singular"]
+    elif det.failed and status != Status.FAILED_TEST and key != "untestable":
+        status = Status.FAILED_TEST
+        message = MESSAGES["undetermined"].format(n=n, m=m, names=det.names())
+        if det.core is not None:
+            message += f"; {det.core}"
+    elif n and status != Status.FAILED_TEST:
+        message += MESSAGES["some-undetermined"].format(n=n, m=m, names=det.names())
+    return dataclasses.replace(res, determinacy=det, verdict=int(status), verdict_message=message)
 
 
 def _nested_start(Y: Array, dim: int, offsets: str, rng: np.random.Generator, loss: str, fs: float | None,

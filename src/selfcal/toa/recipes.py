@@ -239,6 +239,11 @@ def _embed_columns(result: Any, keep: NDArray[np.bool_], J: int, M: Array) -> An
         kw["dropped_sources"] = tuple(sorted(solver | {int(j) for j in np.nonzero(~keep)[0]}))
     if "n_missing" in names:
         kw["n_missing"] = int((~np.isfinite(M)).sum())
+    det = getattr(result, "determinacy", None)
+    if det is not None and "determinacy" in names:  # the undetermined nodes in the caller's numbering
+        kw["determinacy"] = det.embedded(None, keep)
+        if det.n_undetermined:
+            kw["verdict_message"] = result.verdict_message.replace(det.names(), kw["determinacy"].names())
     return dataclasses.replace(result, **{k: v for k, v in kw.items() if k in names})
 
 

@@ -8,6 +8,9 @@
   cross-validation (median PRESS) of the geometric model against the model without
   geometry (offsets only, or a constant): data that fit no geometry (a uniform random
   matrix) fail it.
+- :func:`determinacy_test` / :class:`DeterminacyTest`: do the data determine the fitted
+  geometry? Each node's 95 % confidence region (the result's covariance) against the size
+  of its node set; more than half undetermined fails the result, fewer are named (warning).
 - :class:`ToaResult`: frozen, a :class:`selfcal._result.Result` (``status`` / ``message`` /
   ``success`` in the style of :class:`scipy.optimize.OptimizeResult`, short repr, summary,
   ``to_dict()`` JSON-safe).
@@ -26,6 +29,7 @@ from .._checks import check_positive
 from .._result import Result, jsonable
 from ..errors import Status
 from ..geometry import n_parameters
+from .determinacy import DeterminacyTest, determinacy_test
 from .trust import (  # noqa: F401 (re-exported: the trust tests' home is selfcal.toa.trust)
     PERMUTATION_ALPHA,
     PERMUTATION_COPIES,
@@ -42,6 +46,8 @@ from .trust import (  # noqa: F401 (re-exported: the trust tests' home is selfca
 
 __all__ = [
     "MESSAGES",
+    "DeterminacyTest",
+    "determinacy_test",
     "RESIDUAL_ALPHA",
     "GeometryTest",
     "PERMUTATION_ALPHA",
@@ -67,6 +73,12 @@ MESSAGES = {
     "degenerate": "the best fit collapses onto a line or a point: the data determine no geometry of this dimension",
     "chi2-failed": "the residuals are too large for the given noise (chi-square test failed)",
     "cv-failed": "the data are not explained by a geometry better than by offsets alone (geometry test failed)",
+    "undetermined": "the data do not determine the geometry: {n} of {m} nodes have a 95 % confidence region "
+                    "larger than their node set ({names})",
+    "singular": "the data do not determine the geometry: the normal equations are singular beyond the "
+                "rigid-motion gauge at the estimate (no covariance)",
+    "some-undetermined": "; but {n} of {m} nodes are not determined by the data (95 % confidence region "
+                         "larger than their node set): {names}",
 }
 
 
@@ -185,6 +197,19 @@ class ToaResult(Result):
     dim, offsets: the model reported (after ``"auto"`` choices).
     selection: what the ``"auto"`` choices compared (statistics), empty when none was made.
     n_negative: number of negative entries in the input (measurements, kept).
+    determinacy: the determinacy test (:class:`DeterminacyTest`: each node's 95 % confidence
+        region from the covariances above, at the given noise when there is one, against the
+        robust radius of its node set), or None (``method="rank3"``).
+    undetermined_receivers, undetermined_sources: (I,), (J,) bool masks of the nodes the data
+        do not determine (properties, from ``determinacy``; JSON: their indices).
+
+    Verdict (``status``): FAILED_TEST when the residual / geometry test fails, when the best
+    fit is degenerate, when more than half of the tested nodes are undetermined (the data
+    do not determine the geometry as a whole) or when the determined nodes alone are not an
+    identifiable network (:class:`DeterminacyTest`); NOT_CONVERGED when the last refinement stopped
+    early; SUCCESS otherwise. A success with fewer undetermined nodes says so in ``message``
+    (and :func:`~selfcal.toa.solve_toa` warns, :class:`~selfcal.errors.ConvergenceWarning`),
+    naming them: those nodes are not to be trusted, the rest is.
     """
 
     receivers: Array
@@ -217,6 +242,21 @@ class ToaResult(Result):
     offsets: str = "none"
     selection: dict[str, Any] = field(default_factory=dict)
     n_negative: int = 0
+    determinacy: DeterminacyTest | None = None
+
+    @property
+    def undetermined_receivers(self) -> NDArray[np.bool_]:
+        """(I,) bool: receivers whose 95 % region exceeds the receivers' size (:class:`DeterminacyTest`)."""
+        if self.determinacy is None:
+            return np.zeros(np.shape(self.receivers)[0], bool)
+        return np.asarray(self.determinacy.undetermined_receivers, bool)
+
+    @property
+    def undetermined_sources(self) -> NDArray[np.bool_]:
+        """(J,) bool: sources whose 95 % region exceeds the sources' size (:class:`DeterminacyTest`)."""
+        if self.determinacy is None:
+            return np.zeros(np.shape(self.sources)[0], bool)
+        return np.asarray(self.determinacy.undetermined_sources, bool)
 
     _repr_fields = ("method", "dim", "offsets", "residual_rms", "noise_estimate")
 
@@ -259,6 +299,9 @@ class ToaResult(Result):
             "fit": None if self.fit is None else self.fit.to_dict(),
             "geometry": None if self.geometry is None else self.geometry.to_dict(),
             "selection": _select_json(self.selection),
+            "determinacy": None if self.determinacy is None else self.determinacy.to_dict(),
+            "undetermined_receivers": [int(i) for i in np.flatnonzero(self.undetermined_receivers)],
+            "undetermined_sources": [int(j) for j in np.flatnonzero(self.undetermined_sources)],
             "units": {"positions": "m", "covariances": "m^2", "offsets": unit, "residual_rms": unit,
                       "noise": unit},
         }

@@ -158,7 +158,8 @@ def solve_toa(
         res = choose(M, dim, offsets, solve=_solve_fixed, **kw)
     else:
         res = _solve_fixed(M, int(dim), offsets, init=init, **kw)  # type: ignore[arg-type]
-    if not res.success:
+    if not res.success or res.undetermined_receivers.any() or res.undetermined_sources.any():
+        # a success with undetermined nodes warns too: its message names them
         warnings.warn(f"solve_toa: {res.message}", ConvergenceWarning, stacklevel=2)
     return res
 

@@ -7,6 +7,9 @@
 - :func:`geometry_test` / :class:`GeometryTest`: the permutation test and leave-one-out
   cross-validation (median PRESS) of the fit against the model without geometry; what
   :func:`selfcal.toa.solve_toa` reports as ``geometry`` when no noise level is given.
+- :func:`determinacy_test` / :class:`DeterminacyTest` (home :mod:`selfcal.toa.determinacy`,
+  re-exported): do the data determine the fitted geometry? Each node's 95 % confidence
+  region against the size of its node set; what ``solve_toa`` reports as ``determinacy``.
 
 Split from :mod:`selfcal.toa.result` (which re-exports every name) to keep both files
 below ~600 lines.
@@ -23,9 +26,24 @@ from numpy.typing import NDArray
 
 from .._checks import check_choice
 from ..geometry import n_parameters
+from .determinacy import (  # noqa: F401 (re-exported: the trust tests are named here)
+    DENSE_MAX_UNKNOWNS,
+    DETERMINED_LEVEL,
+    UNDETERMINED_FAIL_FRACTION,
+    DeterminacyTest,
+    determinacy_test,
+    fisher_blocks,
+    set_scale,
+)
 from .nls import OFFSET_MODES
 
 __all__ = [
+    "DETERMINED_LEVEL",
+    "UNDETERMINED_FAIL_FRACTION",
+    "DeterminacyTest",
+    "determinacy_test",
+    "fisher_blocks",
+    "set_scale",
     "PERMUTATION_ALPHA",
     "PERMUTATION_COPIES",
     "RESIDUAL_ALPHA",
