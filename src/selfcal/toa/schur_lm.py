@@ -311,25 +311,6 @@ class _Reduced:
         return 0.5 * (S + S.T)
 
 
-def _dense_normal(U: list[Array], w: Array, hasK: bool, hasE: bool, rows: NDArray[np.intp],
-                  colK: NDArray[np.intp], colE: NDArray[np.intp], n: int) -> tuple[Array, Array]:
-    """The full weighted normal matrix ``H = J^T W J`` (n, n) in [K nodes, E nodes] order, and its diagonal.
-
-    ``rows`` are the pairs (flattened nK x nE grid, or the observed pairs), ``colK`` / ``colE``
-    the columns of each pair's K / E parameters; J is formed dense (pairs x n), which is what
-    makes this the step of small problems only (:data:`DENSE_MAX_UNKNOWNS`).
-    """
-    m = rows.size
-    wr = np.ravel(w)
-    Jm = np.zeros((m, n))
-    ar = np.arange(m)[:, None]
-    ones = [np.ones(m)]
-    Jm[ar, colK] = np.column_stack([np.ravel(Up) for Up in U] + (ones if hasK else []))
-    Jm[ar, colE] = np.column_stack([-np.ravel(Up) for Up in U] + (ones if hasE else []))
-    H = Jm.T @ (wr[:, None] * Jm)
-    return H, np.diag(H).copy()
-
-
 def _direct_solve(S: Array, rhs: Array) -> Array | None:
     """``S^-1 rhs`` by Cholesky; least squares when S is not numerically positive definite;
     None when not even that is finite (the caller raises the damping)."""
@@ -362,9 +343,11 @@ def solve_schur_lm(
     lay : the :class:`selfcal.toa.nls._Layout` (kept / eliminated sides).
     loss, f_scale : robust loss and its scale (metres).
     max_nfev : iteration cap (default :data:`DEFAULT_MAX_IT` of the step kind); xtol : relative step tolerance.
-    gauge : ``theta -> Q`` orthonormal gauge basis (n, g); the step is projected off it.
+    gauge : ``theta -> Q`` orthonormal gauge basis (n, g); the step is projected off it (the
+        "dense" step projects the same gauge analytically, :class:`selfcal.toa.dense_lm.GaugeProjector`).
     step : how each damped system is solved: "dense" (the full normal matrix ``J^T W J``
-        formed once per iteration and Cholesky-factorised per damping trial), "reduced" (the
+        formed once per iteration and Cholesky-factorised per damping trial, in
+        :func:`selfcal.toa.dense_lm.solve_dense_lm`), "reduced" (the
         Schur-reduced matrix formed and factorised), "cg" (matrix-free preconditioned CG) or
         "auto" (default): "dense" up to :data:`DENSE_MAX_UNKNOWNS` unknowns, else "reduced"
         while forming S is cheap (:data:`DIRECT_MAX_UNKNOWNS`, :data:`DIRECT_MAX_FLOPS`,
@@ -443,12 +426,15 @@ def solve_schur_lm(
                 and nk * ne <= DIRECT_MAX_ENTRIES else "cg")
     max_it = max_nfev or DEFAULT_MAX_IT[mode]
     if mode == "dense":
-        rows = np.arange(pat.nK * pat.nE) if obs is not None else np.arange(pat.k.size)  # type: ignore[attr-defined]
-        kk = rows // pat.nE if obs is not None else pat.k  # type: ignore[attr-defined]
-        ee = rows % pat.nE if obs is not None else pat.e  # type: ignore[attr-defined]
-        mK, mE = d + ori.hasK, d + ori.hasE
-        colK = kk[:, None] * mK + np.arange(mK)
-        colE = nk + ee[:, None] * mE + np.arange(mE)
+        from .dense_lm import solve_dense_lm
+
+        if pairs is None:
+            ii, jj = np.nonzero(np.isfinite(Y))
+            yv = np.asarray(Y, float)[ii, jj]
+        else:
+            ii, jj, yv = np.asarray(pairs[0], np.intp), np.asarray(pairs[1], np.intp), np.asarray(Y, float)
+        return solve_dense_lm(theta0, yv, ii, jj, lay.I, lay.J, d, lay.offsets, loss,  # type: ignore[attr-defined]
+                              f_scale, max_nfev, xtol, max_it=DEFAULT_MAX_IT["dense"])
     while it < max_it:
         it += 1
         Qg = gauge(theta)
@@ -470,35 +456,25 @@ def solve_schur_lm(
         # the minimum, tight ones once the gradient has dropped (keeps the fast local rate)
         cg_rtol = float(np.clip(gnorm / max(g0, 1e-300), *CG_RTOL))
         improved = False
-        if mode == "dense":
-            H, hdiag = _dense_normal(U, w, ori.hasK, ori.hasE, rows, colK, colE, nk + ne)
-            gfull = np.concatenate([gK, gE])
         for _ in range(12):
-            if mode == "dense":
-                xy = _direct_solve(H + np.diag(lam * hdiag), -gfull)  # Marquardt: diag * (1 + lam)
-                if xy is None:
+            try:
+                red = _Reduced(U, w, ori.hasK, ori.hasE, lam, pat, precondition=mode == "cg")
+            except DegenerateGeometryError:
+                lam *= 10
+                continue
+            rhs = -gK + red.b(red.dinv(gE))
+            if mode == "reduced":
+                xr = _direct_solve(red.dense(), rhs)
+                if xr is None:
                     lam *= 10
                     continue
-                x, y = xy[:nk], xy[nk:]
+                x = xr
             else:
-                try:
-                    red = _Reduced(U, w, ori.hasK, ori.hasE, lam, pat, precondition=mode == "cg")
-                except DegenerateGeometryError:
-                    lam *= 10
-                    continue
-                rhs = -gK + red.b(red.dinv(gE))
-                if mode == "reduced":
-                    xr = _direct_solve(red.dense(), rhs)
-                    if xr is None:
-                        lam *= 10
-                        continue
-                    x = xr
-                else:
-                    op = LinearOperator((nk, nk), matvec=red.smul, dtype=float)
-                    pc = LinearOperator((nk, nk), matvec=red.prec, dtype=float)
-                    x, _ = cg(op, rhs, rtol=cg_rtol, maxiter=500, M=pc)
-                y = red.dinv(-gE - red.bt(x))
-                del red
+                op = LinearOperator((nk, nk), matvec=red.smul, dtype=float)
+                pc = LinearOperator((nk, nk), matvec=red.prec, dtype=float)
+                x, _ = cg(op, rhs, rtol=cg_rtol, maxiter=500, M=pc)
+            y = red.dinv(-gE - red.bt(x))
+            del red
             dx = np.zeros(n)
             dx[k_flat] = x
             dx[e_flat] = y
