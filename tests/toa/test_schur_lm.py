@@ -158,22 +158,3 @@ def test_dense_step_with_free_parameters_holds_the_others_and_reaches_a_stationa
     Jm = nls.toa_jacobian(th, Y, 3, "both").toarray()
     grad = Jm.T @ nls.toa_residuals(th, Y, 3, "both")
     assert np.abs(grad[free]).max() <= 1e-6 * np.abs(Jm[:, free]).max() * np.sqrt(np.nanmean(Y**2))
-
-
-@pytest.mark.parametrize("case", CASES[:2] + CASES[4:], ids=[f"{c[0]}x{c[1]}-{c[2]}-{c[3]}d" for c in CASES[:2] + CASES[4:]])
-def test_batched_dense_step_gives_the_iterates_of_one_start_at_a_time(case: tuple) -> None:
-    """solve_dense_lm_batch runs every start's own damping sequence: per start the same
-    iterates (to round-off), iteration count and convergence flag as solve_dense_lm."""
-    from selfcal.toa.dense_lm import solve_dense_lm, solve_dense_lm_batch
-
-    I, J, offsets, d, _ = case
-    starts = [_problem(*case, seed=k) for k in range(4)]
-    Y = starts[0][1]
-    ii, jj = np.nonzero(np.isfinite(Y))
-    th = np.array([p[0] for p in starts])
-    for nfev in (3, 30):
-        bt, bc, bi = solve_dense_lm_batch(th, Y[ii, jj], ii, jj, I, J, d, offsets, "linear", 1.0, nfev, 1e-10)
-        for k in range(len(th)):
-            t, c, n = solve_dense_lm(th[k], Y[ii, jj], ii, jj, I, J, d, offsets, "linear", 1.0, nfev, 1e-10)
-            assert (n, c) == (bi[k], bc[k])
-            np.testing.assert_allclose(bt[k], t, rtol=0, atol=1e-8 * np.abs(t).max())

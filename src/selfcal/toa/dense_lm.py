@@ -52,17 +52,6 @@ def _rotation_generators(d: int) -> list[tuple[int, int]]:
     return [(0, 1)] if d == 2 else [(0, 1), (0, 2), (1, 2)]
 
 
-def _well_conditioned(G: Array) -> bool:
-    """Whether a 1 x 1 or 3 x 3 Gram matrix is far from singular (Hadamard ratio det / prod diag)."""
-    g = G.tolist()
-    if len(g) == 1:
-        return g[0][0] > 0.0
-    (a, b, c), (_, e, f), (_, _, i) = g
-    det = a * (e * i - f * f) - b * (b * i - f * c) + c * (b * f - e * c)
-    prod = a * e * i
-    return prod > 0.0 and det > 1e-12 * prod
-
-
 class GaugeProjector:
     """The orthogonal projector off the gauge directions at one point (formed once per iteration).
 
@@ -76,7 +65,7 @@ class GaugeProjector:
     -----
     Translations (one unit vector per coordinate), rotations about the centroid (centred, so
     orthogonal to the translations) and the shift (on the offsets only) are mutually
-    orthogonal; only the d(d-1)/2 rotations need their Gram matrix (``V^T (V V^T)^-1 V``). ``apply`` gives ``(I - Q Q^T) dx`` with Q the orthonormal basis of
+    orthogonal; only the d(d-1)/2 rotation vectors need orthonormalising (Gram-Schmidt). ``apply`` gives ``(I - Q Q^T) dx`` with Q the orthonormal basis of
     :func:`selfcal.toa.nls.gauge_basis`, to round-off.
     """
 
@@ -84,19 +73,22 @@ class GaugeProjector:
         self.N, self.d, self.I, self.both = N, d, I, both
         P = theta[: N * d].reshape(N, d)
         P = P - P.sum(axis=0) * (1.0 / N)
-        gens = _rotation_generators(d)
-        V = np.zeros((len(gens), N * d))
-        for k, (a, b) in enumerate(gens):  # rotation a -> b: (-x_b, x_a) on coordinates (a, b)
-            V[k, a::d] = -P[:, b]
-            V[k, b::d] = P[:, a]
-        G = V @ V.T
-        ok = _well_conditioned(G)
-        if ok:  # the rotations' projector V^T G^-1 V, applied as (V dx) @ (G^-1 V)
-            W = np.linalg.solve(G, V)
-        if not ok:  # points on a line: a dependent rotation adds no direction
-            _, sv, Vt = np.linalg.svd(V, full_matrices=False)
-            V = W = Vt[sv > 1e-10 * max(float(sv[0]), 1e-300)]
-        self.V, self.W = V, W
+        rows: list[Array] = []
+        big = 0.0
+        for a, b in _rotation_generators(d):  # rotation a -> b: (-x_b, x_a) on coordinates (a, b)
+            v = np.zeros((N, d))
+            v[:, a] = -P[:, b]
+            v[:, b] = P[:, a]
+            v = v.ravel()
+            big = max(big, math.sqrt(float(v @ v)))
+            for q in rows:  # Gram-Schmidt (twice is enough for three vectors)
+                v = v - float(q @ v) * q
+            for q in rows:
+                v = v - float(q @ v) * q
+            nv = math.sqrt(float(v @ v))
+            if nv > 1e-10 * big:  # a dependent rotation (points on a line) adds no direction
+                rows.append(v / nv)
+        self.Qr = np.array(rows).reshape(len(rows), N * d)
 
     def apply(self, dx: Array) -> Array:
         """``dx`` minus its projection on the gauge directions (in place); returns dx."""
@@ -104,7 +96,7 @@ class GaugeProjector:
         X = dx[: N * d].reshape(N, d)
         X -= X.sum(axis=0) * (1.0 / N)
         flat = dx[: N * d]
-        flat -= (self.V @ flat) @ self.W
+        flat -= (self.Qr @ flat) @ self.Qr
         if self.both:
             off = dx[N * d:]
             shift = (off[: self.I].sum() - off[self.I:].sum()) / off.size
@@ -246,183 +238,4 @@ def solve_dense_lm(
             break
         if converged:
             break
-    return theta, converged, it
-
-
-def _batch_projectors(theta: Array, N: int, d: int) -> tuple[Array, Array]:
-    """Rotation parts ``(V, W)`` of the gauge projectors of a batch (B, n) of points:
-    ``V`` (B, g_rot, N d) the rotation vectors, ``W = (V V^T)^-1 V``; see :class:`GaugeProjector`."""
-    B = theta.shape[0]
-    P = theta[:, : N * d].reshape(B, N, d)
-    P = P - P.sum(axis=1, keepdims=True) * (1.0 / N)
-    gens = _rotation_generators(d)
-    V = np.zeros((B, len(gens), N * d))
-    for k, (a, b) in enumerate(gens):
-        V[:, k, a::d] = -P[:, :, b]
-        V[:, k, b::d] = P[:, :, a]
-    G = V @ V.transpose(0, 2, 1)
-    ok = np.array([_well_conditioned(Gb) for Gb in G])
-    W = np.empty_like(V)
-    if ok.any():
-        W[ok] = np.linalg.solve(G[ok], V[ok])
-    for b in np.nonzero(~ok)[0]:  # points on a line: the single-point projector's fallback
-        gp = GaugeProjector(theta[b], N, d, 0, False)
-        V[b] = 0.0
-        W[b] = 0.0
-        V[b, : gp.V.shape[0]] = gp.V
-        W[b, : gp.W.shape[0]] = gp.W
-    return V, W
-
-
-def solve_dense_lm_batch(
-    theta0: Array, y: Array, ii: NDArray[np.intp], jj: NDArray[np.intp], I: int, J: int, d: int,
-    offsets: str, loss: str, f_scale: float, max_nfev: int | None, xtol: float, max_it: int = 100,
-) -> tuple[Array, NDArray[np.bool_], NDArray[np.intp]]:
-    """:func:`solve_dense_lm` on a batch of starts at once (the search's pool of starts).
-
-    Parameters
-    ----------
-    theta0 : (B, n) starts, receiver-major; the other parameters as :func:`solve_dense_lm`
-        (no ``free`` mask: the gauge is projected out of every step).
-
-    Returns
-    -------
-    theta (B, n), converged (B,), iterations (B,): per start, the iterates of
-    :func:`solve_dense_lm` from that start (to round-off: tested).
-
-    Notes
-    -----
-    Each start keeps its own damping, iteration count and damping trials; one pass of the
-    loop runs one damping trial of every unfinished start with stacked arrays (the normal
-    matrices (B, n, n), their solves, the residuals (B, m)), so the Python overhead of an
-    iteration, which is what a 12 x 6 iteration costs, is paid once per pass instead of once
-    per start. Starts that begin a new iteration form their normal matrix in the same pass.
-    """
-    has_r, has_s = offsets in ("receivers", "both"), offsets in ("sources", "both")
-    both = has_r and has_s
-    theta = np.array(theta0, dtype=float, copy=True)
-    if theta.ndim != 2:
-        raise ValueError("theta0 must be (B, n)")
-    Bn, n = theta.shape
-    N = I + J
-    m = y.size
-    i_off = N * d
-    j_off = N * d + (I if has_r else 0)
-    sj, ri, oj = I + jj, i_off + ii, j_off + jj
-    linear = loss == "linear"
-    ar = np.arange(m)
-    Jf = np.zeros((Bn, m, n))
-    if has_r:
-        Jf[:, ar, ri] = 1.0
-    if has_s:
-        Jf[:, ar, oj] = 1.0
-    rcol = ii[:, None] * d + np.arange(d)
-    scol = I * d + jj[:, None] * d + np.arange(d)
-    pos_r = (ar[:, None] * n + rcol).ravel()
-    pos_s = (ar[:, None] * n + scol).ravel()
-    dpos = np.arange(n) * (n + 1)
-
-    def evaluate(t: Array) -> tuple[Array, Array, Array, Array]:
-        k = t.shape[0]
-        P = t[:, : N * d].reshape(k, N, d)
-        u = P[:, ii] - P[:, sj]
-        dist = np.sqrt(np.einsum("bmp,bmp->bm", u, u))
-        f = dist - y
-        if has_r:
-            f += t[:, ri]
-        if has_s:
-            f += t[:, oj]
-        u *= np.divide(1.0, dist, out=np.zeros_like(dist), where=dist > 0)[:, :, None]
-        if linear:
-            return 0.5 * np.einsum("bm,bm->b", f, f), f, np.ones_like(f), u
-        rho, w = loss_rho((f / f_scale) ** 2, loss)
-        return 0.5 * f_scale**2 * np.sum(rho, axis=1), f, np.asarray(w, float), u
-
-    cost, f, w, u = evaluate(theta)
-    lam = np.full(Bn, 1e-4)
-    converged = np.zeros(Bn, bool)
-    it = np.zeros(Bn, np.intp)
-    trials = np.zeros(Bn, np.intp)
-    active = np.ones(Bn, bool)
-    fresh = np.ones(Bn, bool)  # starts an iteration: form its normal matrix
-    cap = max_nfev or max_it
-    H = np.zeros((Bn, n, n))
-    g = np.zeros((Bn, n))
-    gnorm = np.zeros(Bn)
-    tnorm = np.zeros(Bn)
-    V = np.zeros((Bn, len(_rotation_generators(d)), N * d))
-    W = np.zeros_like(V)
-    Jflat = Jf.reshape(Bn, -1)
-    while active.any():
-        nb = np.nonzero(active & fresh)[0]
-        if nb.size:
-            over = it[nb] >= cap
-            active[nb[over]] = False
-            nb = nb[~over]
-        if nb.size:
-            it[nb] += 1
-            uf = u[nb].reshape(nb.size, -1)
-            Jflat[nb[:, None], pos_r] = uf
-            Jflat[nb[:, None], pos_s] = -uf
-            Jm = Jf[nb]
-            JT = Jm.transpose(0, 2, 1)
-            if linear:
-                H[nb] = JT @ Jm
-                g[nb] = np.einsum("bnm,bm->bn", JT, f[nb])
-            else:
-                Jw = Jm * w[nb][:, :, None]
-                H[nb] = JT @ Jw
-                g[nb] = np.einsum("bmn,bm->bn", Jw, f[nb])
-            gnorm[nb] = np.sqrt(np.einsum("bn,bn->b", g[nb], g[nb]))
-            tnorm[nb] = np.sqrt(np.einsum("bn,bn->b", theta[nb], theta[nb]))
-            V[nb], W[nb] = _batch_projectors(theta[nb], N, d)
-            trials[nb] = 0
-            fresh[nb] = False
-        act = np.nonzero(active)[0]
-        if not act.size:
-            break
-        Hd = H[act].copy()
-        Hd.reshape(act.size, -1)[:, dpos] += lam[act][:, None] * H[act].reshape(act.size, -1)[:, dpos]
-        rhs = -g[act]
-        try:
-            x = np.linalg.solve(Hd, rhs[:, :, None])[:, :, 0]
-        except np.linalg.LinAlgError:
-            x = np.full_like(rhs, np.nan)
-            for k in range(act.size):
-                xk = _solve(Hd[k], rhs[k])
-                if xk is not None:
-                    x[k] = xk
-        ok = np.isfinite(x).all(axis=1)
-        trials[act] += 1
-        # gauge: translations, rotations, the common shift (GaugeProjector.apply, stacked)
-        X = x[:, : N * d].reshape(act.size, N, d)
-        X -= X.sum(axis=1, keepdims=True) * (1.0 / N)
-        flat = x[:, : N * d]
-        flat -= np.einsum("bk,bkn->bn", np.einsum("bkn,bn->bk", V[act], flat), W[act])
-        if both:
-            off = x[:, N * d:]
-            shift = (off[:, :I].sum(axis=1) - off[:, I:].sum(axis=1)) / off.shape[1]
-            off[:, :I] -= shift[:, None]
-            off[:, I:] += shift[:, None]
-        x[~ok] = 0.0
-        trial = theta[act] + x
-        c2, f2, w2, u2 = evaluate(trial)
-        acc = ok & (c2 <= cost[act])
-        a_idx = act[acc]
-        if a_idx.size:
-            dxn = np.sqrt(np.einsum("bn,bn->b", x[acc], x[acc]))
-            small = dxn <= xtol * (xtol + tnorm[a_idx])
-            rel = (cost[a_idx] - c2[acc]) <= FTOL * np.maximum(cost[a_idx], 1e-300)
-            theta[a_idx], cost[a_idx], f[a_idx], w[a_idx], u[a_idx] = trial[acc], c2[acc], f2[acc], w2[acc], u2[acc]
-            lam[a_idx] = np.maximum(lam[a_idx] / 10, 1e-8)
-            converged[a_idx] = small | rel
-            active[a_idx[converged[a_idx]]] = False
-            fresh[a_idx] = True
-        r_idx = act[~acc]
-        if r_idx.size:
-            lam[r_idx] *= 10
-            out = r_idx[trials[r_idx] >= TRIALS]  # no damped step descends
-            if out.size:
-                converged[out] = gnorm[out] <= 1e-6 * np.maximum(1.0, np.sqrt(2 * cost[out]))
-                active[out] = False
     return theta, converged, it

@@ -45,12 +45,11 @@ Files: the Levenberg-Marquardt driver and its matrix-free reduced operator live 
 path in :mod:`selfcal.toa.constrained`; this module keeps the model, the Jacobian, the gauge,
 the layout shared by all of them and :func:`refine_toa`.
 
-Length (about 680 lines, above the ~600 guideline; refine_toa's docstring documents every
+Length (about 650 lines, above the ~600 guideline; refine_toa's docstring documents every
 constraint keyword): the entry :func:`refine_toa`, its
 validation of masks, constraints and priors, the gauge and the Jacobian are one job (the
 engine's interface) and are kept together; the LM driver itself is :mod:`selfcal.toa.schur_lm`
-and the covariance :mod:`selfcal.toa.covariance`; ``_solution`` packages a refined vector for both
-refine_toa and the search's batched starts.
+and the covariance :mod:`selfcal.toa.covariance`.
 """
 
 from __future__ import annotations
@@ -501,7 +500,8 @@ def refine_toa(
         gz = np.zeros((J, 3), bool); gz[:, 2] = True
         sol = refine_toa(c * T, r0, s0, offsets="both", fixed_receivers=fz, fixed_sources=gz)
     """
-    from .covariance import resolve_covariance
+    from ..geometry import canonical_gauge
+    from .covariance import gauge_free_blocks, is_local, local_blocks, resolve_covariance
 
     check_choice(offsets, "offsets", OFFSET_MODES)
     check_choice(loss, "loss", LOSSES)
@@ -567,34 +567,6 @@ def refine_toa(
             theta, conv2, nit2 = run(theta, Y, lay, loss, fs, max_nfev, xtol)
             conv, nit = conv2, nit + nit2
 
-    return _solution(theta, Y, obs, offsets, d, loss, fs, conv, nit, n_free, "trf" if use_trf else "schur-lm",
-                     lambda wmat, sigma: _blocks(theta, wmat, lay, covariance, cov_r, cov_s, sigma))
-
-
-def _blocks(theta: Array, wmat: Array, lay: _Layout, covariance: Any, cov_r: Any, cov_s: Any,
-            sigma: float) -> tuple[Array, Array] | None:
-    """The requested 003 eq. 17 blocks times sigma^2, or None when none is asked for."""
-    from .covariance import gauge_free_blocks, is_local, local_blocks
-
-    if not (cov_r.size or cov_s.size):
-        return None
-    # a singular Fisher matrix beyond the gauge: the data do not determine the geometry
-    if is_local(covariance):  # the approximate conditional blocks, O(I J d^2)
-        Cr, Cs = local_blocks(theta, wmat, lay)
-    else:
-        Cr, Cs = gauge_free_blocks(theta, wmat, lay, cov_r, cov_s)
-    return Cr * sigma**2, Cs * sigma**2
-
-
-def _solution(theta: Array, Y: Array, obs: NDArray[np.bool_], offsets: str, d: int, loss: str, fs: float,
-              conv: bool, nit: int, n_free: int, solver: str, blocks: Any = None) -> NlsSolution:
-    """Package a refined parameter vector as an :class:`NlsSolution` (canonical gauge, noise
-    estimate, residuals); ``blocks(wmat, sigma)`` gives the covariance blocks (NaN without it)."""
-    from ..geometry import canonical_gauge
-
-    I, J = Y.shape
-    has_r, has_s = _flags(offsets)
-    m = int(obs.sum())
     r, s, dr, os_ = _unpack(theta, I, J, d, offsets)
     model = toa_model(r, s, dr, os_)
     resid = np.where(obs, Y - model, np.nan)
@@ -613,9 +585,14 @@ def _solution(theta: Array, Y: Array, obs: NDArray[np.bool_], offsets: str, d: i
         wmat = np.zeros((I, J))
         wmat[obs] = drho  # inliers weigh 1, outliers down-weighted as in the final IRLS step
 
-    got = blocks(wmat, sigma) if blocks is not None else None
-    if got is not None:
-        Cr, Cs = got
+    if cov_r.size or cov_s.size:
+        # a singular Fisher matrix beyond the gauge: the data do not determine the geometry
+        if is_local(covariance):  # the approximate conditional blocks, O(I J d^2)
+            Cr, Cs = local_blocks(theta, wmat, lay)
+        else:
+            Cr, Cs = gauge_free_blocks(theta, wmat, lay, cov_r, cov_s)
+        Cr = Cr * sigma**2
+        Cs = Cs * sigma**2
     else:
         Cr = np.full((I, d + has_r, d + has_r), np.nan)
         Cs = np.full((J, d + has_s, d + has_s), np.nan)
@@ -649,7 +626,7 @@ def _solution(theta: Array, Y: Array, obs: NDArray[np.bool_], offsets: str, d: i
         converged=conv,
         iterations=nit,
         cost=cost,
-        solver=solver,
+        solver="trf" if use_trf else "schur-lm",
     )
 
 

@@ -38,14 +38,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..errors import DegenerateGeometryError, InputError
-from ..robust import TUNING
 from .moves import Move, Start, moves
-from ..geometry import gauge_freedoms
-from .dense_lm import solve_dense_lm, solve_dense_lm_batch
+from .dense_lm import solve_dense_lm
 from .nls import NlsSolution, _pack, _rho, _unpack, refine_toa, toa_model
-from .nls import _check_node_counts as check_node_counts
-from .nls import _solution as nls_solution
-from .schur_lm import DEFAULT_MAX_IT, DENSE_MAX_UNKNOWNS
 from .rank3_model import rank_identifiable
 from .result import _additive_fit
 from .robust import _nanmedian_rows
@@ -68,6 +63,8 @@ ACCEPT_REL = 1e-9
 #: unfinished iterations, accepted again and again (measured: 18 accepted moves, the same ten
 #: twice, on one draw)
 ACCEPT_CHI2 = 0.01
+# residual scale in units of sigma giving 95% efficiency under Gaussian noise (Huber 1964)
+_TUNING = {"linear": 1.0, "huber": 1.345, "soft_l1": 1.345, "cauchy": 2.385}
 
 
 def canonical_order(Y: Array) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
@@ -367,37 +364,12 @@ def search(
             return None
         iters += sol.iterations
         if fs is None:  # the first robust refinement sets the search's scale
-            fs = max(TUNING[loss] * float(sol.sigma), 1e-12 * (1.0 + float(np.nanmax(np.abs(Y)))))
+            fs = max(_TUNING[loss] * float(sol.sigma), 1e-12 * (1.0 + float(np.nanmax(np.abs(Y)))))
             return refine(_as_start(sol), nfev)
         return sol
 
     has_r, has_s = offsets in ("receivers", "both"), offsets in ("sources", "both")
     observed = np.isfinite(Y)
-    n_unknowns = (I + J) * dim + (I if has_r else 0) + (J if has_s else 0)
-    batched = solver in ("auto", "schur") and n_unknowns <= DENSE_MAX_UNKNOWNS
-
-    def refine_many(sts: list[Start], nfev: int | None) -> list[NlsSolution | None]:
-        """``refine`` of several starts at once: the engine's dense step on the stacked starts
-        (:func:`selfcal.toa.dense_lm.solve_dense_lm_batch`, the same iterates per start) where
-        the problem is small and the robust scale is set; else one after the other."""
-        nonlocal count, iters, last_err
-        if not batched or fs is None or len(sts) < 2:
-            return [refine(st, nfev) for st in sts]
-        count += len(sts)
-        try:
-            check_node_counts(observed, dim, has_r, has_s)
-        except DegenerateGeometryError as exc:
-            last_err = exc
-            return [None] * len(sts)
-        ii, jj = np.nonzero(observed)
-        th0 = np.array([_pack_start(st) for st in sts])
-        ths, convs, its = solve_dense_lm_batch(th0, Y[ii, jj], ii, jj, I, J, dim, offsets, loss,
-                                               fs if loss != "linear" else 1.0, nfev, 1e-10,
-                                               max_it=DEFAULT_MAX_IT["dense"])
-        iters += int(its.sum())
-        n_free = n_unknowns - gauge_freedoms(dim) - (1 if has_r and has_s else 0)
-        return [nls_solution(t, Y, observed, offsets, dim, loss, fs if loss != "linear" else 1.0, bool(c), int(k),
-                             n_free, "schur-lm") for t, c, k in zip(ths, convs, its)]
 
     def refine_part(mv: Move) -> tuple[float, Start] | None:
         """Refit only the moved nodes (and their offsets) on the entries that touch them.
@@ -471,12 +443,11 @@ def search(
     def cap(n: int | None) -> int | None:
         return n if max_nfev is None or n is None else min(n, max_nfev)
 
-    # the first robust refinement sets the search's scale (refined to the end alone)
-    first_sols: list[NlsSolution | None] = [refine(starts[0][1], max_nfev)] if starts and fs is None else []
-    k0 = len(first_sols)
-    room = max(nb - count, 0 if any(t is not None for t in first_sols) else 1)  # one refinement at least
-    first_sols += refine_many([st for _, st in starts[k0:k0 + room]], cap(nfev))
-    for k, ((name, _), sol) in enumerate(zip(starts, first_sols)):
+    for k, (name, st) in enumerate(starts):
+        if count >= nb and pool:
+            stopped = "budget"
+            break
+        sol = refine(st, max_nfev if fs is None else cap(nfev))
         if sol is None:
             continue
         c = _cost(sol, loss, fs or 1.0)
@@ -487,20 +458,19 @@ def search(
             pool = [pool[-1]]
             stopped = why
             break
-    if stopped == "exhausted" and len(first_sols) < len(starts) and pool:
-        stopped = "budget"
     while len(pool) > 1 and stopped == "exhausted":
         pool.sort(key=lambda t: (t[0], t[1]))
         pool = pool[: (len(pool) + 1) // 2]
         nfev = None if nfev is None else 2 * nfev
-        todo = [idx for idx, t in enumerate(pool) if not t[3].converged][: max(nb - count, 0)]
-        if len(todo) < sum(not t[3].converged for t in pool):
-            stopped = "budget"
-        mores = refine_many([_as_start(pool[idx][3]) for idx in todo], cap(nfev))
-        for idx, more in zip(todo, mores):
+        for idx, (_, k, name, sol) in enumerate(pool):
+            if sol.converged:
+                continue
+            if count >= nb:
+                stopped = "budget"
+                break
+            more = refine(_as_start(sol), cap(nfev))
             if more is None:
                 continue
-            _, k, name, _ = pool[idx]
             pool[idx] = (_cost(more, loss, fs or 1.0), k, name, more)
             why = done(more)
             if why is not None:
