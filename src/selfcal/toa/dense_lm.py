@@ -76,10 +76,10 @@ class GaugeProjector:
         rows: list[Array] = []
         big = 0.0
         for a, b in _rotation_generators(d):  # rotation a -> b: (-x_b, x_a) on coordinates (a, b)
-            v = np.zeros((N, d))
-            v[:, a] = -P[:, b]
-            v[:, b] = P[:, a]
-            v = v.ravel()
+            v2 = np.zeros((N, d))
+            v2[:, a] = -P[:, b]
+            v2[:, b] = P[:, a]
+            v: Array = v2.ravel()
             big = max(big, math.sqrt(float(v @ v)))
             for q in rows:  # Gram-Schmidt (twice is enough for three vectors)
                 v = v - float(q @ v) * q

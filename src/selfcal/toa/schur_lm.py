@@ -286,19 +286,23 @@ class _Reduced:
         """
         pat, mK, mE = self.pat, self.mK, self.mE
         nK, nE = pat.nK, pat.nE
-        L = np.linalg.cholesky(self.Dinv)  # (nE, mE, mE); Dinv is positive definite (damped)
-        a = list(self.U) + ([None] if self.hasK else [])
-        b = [-Up for Up in self.U] + ([None] if self.hasE else [])
+        L: Array = np.asarray(np.linalg.cholesky(self.Dinv), float)  # (nE, mE, mE); Dinv is positive definite (damped)
+        # the Jacobian entries of each pair per parameter; None = the offset's constant 1
+        a: list[Array | None] = [*self.U, *([None] if self.hasK else [])]
+        b: list[Array | None] = [*(-Up for Up in self.U), *([None] if self.hasE else [])]
         W = np.zeros((nK, mK, nE, mE))
         for r in range(mE):
-            G = None  # (L_e^T b_ke)_r = sum_q b_q L_e[q, r], one value per pair
+            G: Array | None = None  # (L_e^T b_ke)_r = sum_q b_q L_e[q, r], one value per pair
             for q in range(r, mE):
                 Lq = pat.ex(L[:, q, r])
-                t = Lq if b[q] is None else b[q] * Lq
+                bq = b[q]
+                t = Lq if bq is None else bq * Lq
                 G = t if G is None else G + t
+            assert G is not None
             G = G * self.w
             for p in range(mK):
-                v = G if a[p] is None else G * a[p]
+                ap = a[p]
+                v = G if ap is None else G * ap
                 if isinstance(pat, Pairs):
                     W[pat.k, p, pat.e, r] = v
                 else:

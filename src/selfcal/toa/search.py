@@ -38,8 +38,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..errors import DegenerateGeometryError, InputError
-from .moves import Move, Start, moves
+from ..robust import TUNING
 from .dense_lm import solve_dense_lm
+from .moves import Move, Start, moves
 from .nls import NlsSolution, _pack, _rho, _unpack, refine_toa, toa_model
 from .rank3_model import rank_identifiable
 from .result import _additive_fit
@@ -63,8 +64,6 @@ ACCEPT_REL = 1e-9
 #: unfinished iterations, accepted again and again (measured: 18 accepted moves, the same ten
 #: twice, on one draw)
 ACCEPT_CHI2 = 0.01
-# residual scale in units of sigma giving 95% efficiency under Gaussian noise (Huber 1964)
-_TUNING = {"linear": 1.0, "huber": 1.345, "soft_l1": 1.345, "cauchy": 2.385}
 
 
 def canonical_order(Y: Array) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
@@ -363,8 +362,8 @@ def search(
             last_err = exc
             return None
         iters += sol.iterations
-        if fs is None:  # the first robust refinement sets the search's scale
-            fs = max(_TUNING[loss] * float(sol.sigma), 1e-12 * (1.0 + float(np.nanmax(np.abs(Y)))))
+        if fs is None:  # the first robust refinement sets the search's scale (95 % efficiency, selfcal.robust)
+            fs = max(TUNING[loss] * float(sol.sigma), 1e-12 * (1.0 + float(np.nanmax(np.abs(Y)))))
             return refine(_as_start(sol), nfev)
         return sol
 
@@ -528,9 +527,9 @@ def search(
             # best first) applied together and refined in full; the best alone if that fails
             screened: list[tuple[float, int, Move, Start]] = []
             for k, mv in enumerate(local if stopped == "exhausted" else []):
-                got = refine_part(mv)
-                if got is not None and got[0] < best_cost - gain():
-                    screened.append((got[0], k, mv, got[1]))
+                part = refine_part(mv)
+                if part is not None and part[0] < best_cost - gain():
+                    screened.append((part[0], k, mv, part[1]))
             screened.sort(key=lambda t: (t[0], t[1]))
             tries: list[tuple[str, Start]] = []
             if screened:
