@@ -34,6 +34,7 @@ from numpy.typing import NDArray
 
 from ..errors import DegenerateGeometryError
 from ..robust import loss_rho
+from .dense_lm import damping_after_success
 
 Array = NDArray[np.float64]
 
@@ -416,6 +417,20 @@ def solve_schur_lm(
     cost, f, w, U = evaluate(theta)
     g0 = 1.0
     lam = 1e-4
+    nu = 2.0
+
+    def predicted_decrease(dx: Array) -> float:
+        """``-(g^T dx + |J dx|_W^2 / 2)``: the cost decrease the Gauss-Newton model predicts."""
+        xK, xE, oK, oE = ori.split(dx)
+        t = U[0] * (pat.kx(xK[:, 0]) - pat.ex(xE[:, 0]))
+        for p in range(1, xK.shape[1]):
+            t += U[p] * (pat.kx(xK[:, p]) - pat.ex(xE[:, p]))
+        if oK is not None:
+            t += pat.kx(oK)
+        if oE is not None:
+            t += pat.ex(oE)
+        gd = float(gK @ dx[k_flat] + gE @ dx[e_flat])
+        return -(gd + 0.5 * float(np.sum(w * t * t)))
     converged = False
     it = 0
     nk = k_flat.size
@@ -464,13 +479,13 @@ def solve_schur_lm(
             try:
                 red = _Reduced(U, w, ori.hasK, ori.hasE, lam, pat, precondition=mode == "cg")
             except DegenerateGeometryError:
-                lam *= 10
+                lam, nu = lam * nu, 2.0 * nu
                 continue
             rhs = -gK + red.b(red.dinv(gE))
             if mode == "reduced":
                 xr = _direct_solve(red.dense(), rhs)
                 if xr is None:
-                    lam *= 10
+                    lam, nu = lam * nu, 2.0 * nu
                     continue
                 x = xr
             else:
@@ -488,13 +503,14 @@ def solve_schur_lm(
             if c2 <= cost:
                 small = np.linalg.norm(dx) <= xtol * (xtol + np.linalg.norm(theta))
                 rel = (cost - c2) <= ftol * max(cost, 1e-300)
+                lam = damping_after_success(lam, cost - c2, predicted_decrease(dx))
+                nu = 2.0
                 theta, cost, f, w, U = trial, c2, f2, w2, U2
-                lam = max(lam / 10, 1e-8)
                 improved = True
                 converged = bool(small or rel)
                 break
             del f2, w2, U2
-            lam *= 10
+            lam, nu = lam * nu, 2.0 * nu
         if not improved:
             # no damped step descends: a minimum up to round-off if the gradient is tiny
             converged = gnorm <= 1e-6 * max(1.0, np.sqrt(2 * cost))
