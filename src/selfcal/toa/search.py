@@ -173,9 +173,9 @@ def _scaled(Y: Array, dim: int, offsets: str, rng: np.random.Generator) -> list[
 #: random starts of the "scaled" initialiser (a share of the search's one budget): three cycles
 #: of its 8 scale pairs (selfcal.toa.scaled_starts.SCALE_FACTORS). Cost model: successive
 #: halving over n starts from MOVE_NFEV iterations costs ~ n MOVE_NFEV (log2 n + 1) iterations,
-#: ~1400 for n = 24 at 12 x 6 with both offsets, i.e. ~0.35 s at the dense step's ~0.25 ms per
-#: iteration, a third of the 1 s target of issue 12 (two cycles, 16, were the share when an
-#: iteration cost twice as much)
+#: ~1400 for n = 24 at 12 x 6 with both offsets, i.e. ~0.3 s at the dense step's measured
+#: 0.23 ms per iteration, a third of the 1 s target of issue 12 (two cycles, 16, were the share
+#: when an iteration cost 0.67 ms)
 SCALED_STARTS = 24
 #: the initialisers, in the order the search runs them (small networks run all of them)
 INITIALISERS: dict[str, _Init] = {
