@@ -119,3 +119,42 @@ def test_dense_step_gives_the_iterates_of_the_reduced_step(case: tuple) -> None:
     c = sl.solve_schur_lm(th0, Y[i, j], lay, "linear", 1.0, 5, 1e-10, gauge, pairs=(i, j), step="dense")
     d = sl.solve_schur_lm(th0, Y, lay, "linear", 1.0, 5, 1e-10, gauge, step="dense")
     np.testing.assert_allclose(c[0], d[0], rtol=0, atol=1e-6 * np.abs(d[0]).max())
+
+
+@pytest.mark.parametrize("offsets,d", [("both", 3), ("none", 3), ("receivers", 2), ("both", 2)])
+def test_analytic_gauge_projector_equals_the_qr_basis_projector(offsets: str, d: int) -> None:
+    """The dense step's projector (translations, rotations by Gram-Schmidt, common shift) is
+    ``I - Q Q^T`` with Q the orthonormal QR basis of nls.gauge_basis (independent computation)."""
+    from selfcal.toa.dense_lm import GaugeProjector
+
+    g = np.random.default_rng(7)
+    I, J = 7, 5
+    r, s = g.normal(size=(I, d)), g.normal(size=(J, d)) * 3
+    hr, hs = nls._flags(offsets)
+    th = nls._pack(r, s, g.normal(size=I) if hr else None, g.normal(size=J) if hs else None)
+    Q = nls.gauge_basis(r, s, offsets)
+    proj = GaugeProjector(th, I + J, d, I, offsets == "both")
+    for _ in range(3):
+        dx = g.normal(size=th.size)
+        want = dx - Q @ (Q.T @ dx)
+        np.testing.assert_allclose(proj.apply(dx.copy()), want, rtol=0, atol=1e-12 * np.abs(dx).max())
+
+
+def test_dense_step_with_free_parameters_holds_the_others_and_reaches_a_stationary_point() -> None:
+    """A partial refit (the search's move ranking): fixed parameters keep their values exactly,
+    and the free ones end where the gradient of the cost over them vanishes (checked on the
+    analytic Jacobian of nls.toa_jacobian, an independent computation)."""
+    from selfcal.toa.dense_lm import solve_dense_lm
+
+    th0, Y, lay, _ = _problem(12, 6, "both", 3, 0.0, seed=1)
+    free = np.zeros(th0.size, bool)
+    free[3:6] = True  # receiver 1
+    free[(12 + 4) * 3:(12 + 5) * 3] = True  # source 4
+    free[18 * 3 + 1] = True  # its receiver offset
+    ii, jj = np.nonzero(np.isfinite(Y))
+    th, conv, _ = solve_dense_lm(th0, Y[ii, jj], ii, jj, 12, 6, 3, "both", "linear", 1.0, 200, 1e-12, free=free)
+    assert conv
+    np.testing.assert_array_equal(th[~free], th0[~free])
+    Jm = nls.toa_jacobian(th, Y, 3, "both").toarray()
+    grad = Jm.T @ nls.toa_residuals(th, Y, 3, "both")
+    assert np.abs(grad[free]).max() <= 1e-6 * np.abs(Jm[:, free]).max() * np.sqrt(np.nanmean(Y**2))

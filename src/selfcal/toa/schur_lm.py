@@ -34,6 +34,7 @@ from numpy.typing import NDArray
 
 from ..errors import DegenerateGeometryError
 from ..robust import loss_rho
+from .dense_lm import damping_after_success
 
 Array = NDArray[np.float64]
 
@@ -286,19 +287,23 @@ class _Reduced:
         """
         pat, mK, mE = self.pat, self.mK, self.mE
         nK, nE = pat.nK, pat.nE
-        L = np.linalg.cholesky(self.Dinv)  # (nE, mE, mE); Dinv is positive definite (damped)
-        a = list(self.U) + ([None] if self.hasK else [])
-        b = [-Up for Up in self.U] + ([None] if self.hasE else [])
+        L: Array = np.asarray(np.linalg.cholesky(self.Dinv), float)  # (nE, mE, mE); Dinv is positive definite (damped)
+        # the Jacobian entries of each pair per parameter; None = the offset's constant 1
+        a: list[Array | None] = [*self.U, *([None] if self.hasK else [])]
+        b: list[Array | None] = [*(-Up for Up in self.U), *([None] if self.hasE else [])]
         W = np.zeros((nK, mK, nE, mE))
         for r in range(mE):
-            G = None  # (L_e^T b_ke)_r = sum_q b_q L_e[q, r], one value per pair
+            G: Array | None = None  # (L_e^T b_ke)_r = sum_q b_q L_e[q, r], one value per pair
             for q in range(r, mE):
                 Lq = pat.ex(L[:, q, r])
-                t = Lq if b[q] is None else b[q] * Lq
+                bq = b[q]
+                t = Lq if bq is None else bq * Lq
                 G = t if G is None else G + t
+            assert G is not None
             G = G * self.w
             for p in range(mK):
-                v = G if a[p] is None else G * a[p]
+                ap = a[p]
+                v = G if ap is None else G * ap
                 if isinstance(pat, Pairs):
                     W[pat.k, p, pat.e, r] = v
                 else:
@@ -309,25 +314,6 @@ class _Reduced:
         for p in range(mK):
             S[(idx * mK + p)[:, None], (idx * mK)[:, None] + np.arange(mK)] += self.A[:, p, :]
         return 0.5 * (S + S.T)
-
-
-def _dense_normal(U: list[Array], w: Array, hasK: bool, hasE: bool, rows: NDArray[np.intp],
-                  colK: NDArray[np.intp], colE: NDArray[np.intp], n: int) -> tuple[Array, Array]:
-    """The full weighted normal matrix ``H = J^T W J`` (n, n) in [K nodes, E nodes] order, and its diagonal.
-
-    ``rows`` are the pairs (flattened nK x nE grid, or the observed pairs), ``colK`` / ``colE``
-    the columns of each pair's K / E parameters; J is formed dense (pairs x n), which is what
-    makes this the step of small problems only (:data:`DENSE_MAX_UNKNOWNS`).
-    """
-    m = rows.size
-    wr = np.ravel(w)
-    Jm = np.zeros((m, n))
-    ar = np.arange(m)[:, None]
-    ones = [np.ones(m)]
-    Jm[ar, colK] = np.column_stack([np.ravel(Up) for Up in U] + (ones if hasK else []))
-    Jm[ar, colE] = np.column_stack([-np.ravel(Up) for Up in U] + (ones if hasE else []))
-    H = Jm.T @ (wr[:, None] * Jm)
-    return H, np.diag(H).copy()
 
 
 def _direct_solve(S: Array, rhs: Array) -> Array | None:
@@ -362,9 +348,11 @@ def solve_schur_lm(
     lay : the :class:`selfcal.toa.nls._Layout` (kept / eliminated sides).
     loss, f_scale : robust loss and its scale (metres).
     max_nfev : iteration cap (default :data:`DEFAULT_MAX_IT` of the step kind); xtol : relative step tolerance.
-    gauge : ``theta -> Q`` orthonormal gauge basis (n, g); the step is projected off it.
+    gauge : ``theta -> Q`` orthonormal gauge basis (n, g); the step is projected off it (the
+        "dense" step projects the same gauge analytically, :class:`selfcal.toa.dense_lm.GaugeProjector`).
     step : how each damped system is solved: "dense" (the full normal matrix ``J^T W J``
-        formed once per iteration and Cholesky-factorised per damping trial), "reduced" (the
+        formed once per iteration and Cholesky-factorised per damping trial, in
+        :func:`selfcal.toa.dense_lm.solve_dense_lm`), "reduced" (the
         Schur-reduced matrix formed and factorised), "cg" (matrix-free preconditioned CG) or
         "auto" (default): "dense" up to :data:`DENSE_MAX_UNKNOWNS` unknowns, else "reduced"
         while forming S is cheap (:data:`DIRECT_MAX_UNKNOWNS`, :data:`DIRECT_MAX_FLOPS`,
@@ -429,6 +417,20 @@ def solve_schur_lm(
     cost, f, w, U = evaluate(theta)
     g0 = 1.0
     lam = 1e-4
+    nu = 2.0
+
+    def predicted_decrease(dx: Array) -> float:
+        """``-(g^T dx + |J dx|_W^2 / 2)``: the cost decrease the Gauss-Newton model predicts."""
+        xK, xE, oK, oE = ori.split(dx)
+        t = U[0] * (pat.kx(xK[:, 0]) - pat.ex(xE[:, 0]))
+        for p in range(1, xK.shape[1]):
+            t += U[p] * (pat.kx(xK[:, p]) - pat.ex(xE[:, p]))
+        if oK is not None:
+            t += pat.kx(oK)
+        if oE is not None:
+            t += pat.ex(oE)
+        gd = float(gK @ dx[k_flat] + gE @ dx[e_flat])
+        return -(gd + 0.5 * float(np.sum(w * t * t)))
     converged = False
     it = 0
     nk = k_flat.size
@@ -443,12 +445,15 @@ def solve_schur_lm(
                 and nk * ne <= DIRECT_MAX_ENTRIES else "cg")
     max_it = max_nfev or DEFAULT_MAX_IT[mode]
     if mode == "dense":
-        rows = np.arange(pat.nK * pat.nE) if obs is not None else np.arange(pat.k.size)  # type: ignore[attr-defined]
-        kk = rows // pat.nE if obs is not None else pat.k  # type: ignore[attr-defined]
-        ee = rows % pat.nE if obs is not None else pat.e  # type: ignore[attr-defined]
-        mK, mE = d + ori.hasK, d + ori.hasE
-        colK = kk[:, None] * mK + np.arange(mK)
-        colE = nk + ee[:, None] * mE + np.arange(mE)
+        from .dense_lm import solve_dense_lm
+
+        if pairs is None:
+            ii, jj = np.nonzero(np.isfinite(Y))
+            yv = np.asarray(Y, float)[ii, jj]
+        else:
+            ii, jj, yv = np.asarray(pairs[0], np.intp), np.asarray(pairs[1], np.intp), np.asarray(Y, float)
+        return solve_dense_lm(theta0, yv, ii, jj, lay.I, lay.J, d, lay.offsets, loss,  # type: ignore[attr-defined]
+                              f_scale, max_nfev, xtol, max_it=DEFAULT_MAX_IT["dense"])
     while it < max_it:
         it += 1
         Qg = gauge(theta)
@@ -470,35 +475,25 @@ def solve_schur_lm(
         # the minimum, tight ones once the gradient has dropped (keeps the fast local rate)
         cg_rtol = float(np.clip(gnorm / max(g0, 1e-300), *CG_RTOL))
         improved = False
-        if mode == "dense":
-            H, hdiag = _dense_normal(U, w, ori.hasK, ori.hasE, rows, colK, colE, nk + ne)
-            gfull = np.concatenate([gK, gE])
         for _ in range(12):
-            if mode == "dense":
-                xy = _direct_solve(H + np.diag(lam * hdiag), -gfull)  # Marquardt: diag * (1 + lam)
-                if xy is None:
-                    lam *= 10
+            try:
+                red = _Reduced(U, w, ori.hasK, ori.hasE, lam, pat, precondition=mode == "cg")
+            except DegenerateGeometryError:
+                lam, nu = lam * nu, 2.0 * nu
+                continue
+            rhs = -gK + red.b(red.dinv(gE))
+            if mode == "reduced":
+                xr = _direct_solve(red.dense(), rhs)
+                if xr is None:
+                    lam, nu = lam * nu, 2.0 * nu
                     continue
-                x, y = xy[:nk], xy[nk:]
+                x = xr
             else:
-                try:
-                    red = _Reduced(U, w, ori.hasK, ori.hasE, lam, pat, precondition=mode == "cg")
-                except DegenerateGeometryError:
-                    lam *= 10
-                    continue
-                rhs = -gK + red.b(red.dinv(gE))
-                if mode == "reduced":
-                    xr = _direct_solve(red.dense(), rhs)
-                    if xr is None:
-                        lam *= 10
-                        continue
-                    x = xr
-                else:
-                    op = LinearOperator((nk, nk), matvec=red.smul, dtype=float)
-                    pc = LinearOperator((nk, nk), matvec=red.prec, dtype=float)
-                    x, _ = cg(op, rhs, rtol=cg_rtol, maxiter=500, M=pc)
-                y = red.dinv(-gE - red.bt(x))
-                del red
+                op = LinearOperator((nk, nk), matvec=red.smul, dtype=float)
+                pc = LinearOperator((nk, nk), matvec=red.prec, dtype=float)
+                x, _ = cg(op, rhs, rtol=cg_rtol, maxiter=500, M=pc)
+            y = red.dinv(-gE - red.bt(x))
+            del red
             dx = np.zeros(n)
             dx[k_flat] = x
             dx[e_flat] = y
@@ -508,13 +503,14 @@ def solve_schur_lm(
             if c2 <= cost:
                 small = np.linalg.norm(dx) <= xtol * (xtol + np.linalg.norm(theta))
                 rel = (cost - c2) <= ftol * max(cost, 1e-300)
+                lam = damping_after_success(lam, cost - c2, predicted_decrease(dx))
+                nu = 2.0
                 theta, cost, f, w, U = trial, c2, f2, w2, U2
-                lam = max(lam / 10, 1e-8)
                 improved = True
                 converged = bool(small or rel)
                 break
             del f2, w2, U2
-            lam *= 10
+            lam, nu = lam * nu, 2.0 * nu
         if not improved:
             # no damped step descends: a minimum up to round-off if the gradient is tiny
             converged = gnorm <= 1e-6 * max(1.0, np.sqrt(2 * cost))

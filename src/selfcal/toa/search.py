@@ -38,8 +38,10 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..errors import DegenerateGeometryError, InputError
+from ..robust import TUNING
+from .dense_lm import solve_dense_lm
 from .moves import Move, Start, moves
-from .nls import NlsSolution, _rho, refine_toa, toa_model
+from .nls import NlsSolution, _pack, _rho, _unpack, refine_toa, toa_model
 from .rank3_model import rank_identifiable
 from .result import _additive_fit
 from .robust import _nanmedian_rows
@@ -62,8 +64,6 @@ ACCEPT_REL = 1e-9
 #: unfinished iterations, accepted again and again (measured: 18 accepted moves, the same ten
 #: twice, on one draw)
 ACCEPT_CHI2 = 0.01
-# residual scale in units of sigma giving 95% efficiency under Gaussian noise (Huber 1964)
-_TUNING = {"linear": 1.0, "huber": 1.345, "soft_l1": 1.345, "cauchy": 2.385}
 
 
 def canonical_order(Y: Array) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
@@ -170,8 +170,13 @@ def _scaled(Y: Array, dim: int, offsets: str, rng: np.random.Generator) -> list[
     return scaled_random_starts(Y, dim, offsets, rng, n=SCALED_STARTS)
 
 
-#: random starts of the "scaled" initialiser (a share of the search's one budget)
-SCALED_STARTS = 16
+#: random starts of the "scaled" initialiser (a share of the search's one budget): three cycles
+#: of its 8 scale pairs (selfcal.toa.scaled_starts.SCALE_FACTORS). Cost model: successive
+#: halving over n starts from MOVE_NFEV iterations costs ~ n MOVE_NFEV (log2 n + 1) iterations,
+#: ~1400 for n = 24 at 12 x 6 with both offsets, i.e. ~0.3 s at the dense step's measured
+#: 0.23 ms per iteration, a third of the 1 s target of issue 12 (two cycles, 16, were the share
+#: when an iteration cost 0.67 ms)
+SCALED_STARTS = 24
 #: the initialisers, in the order the search runs them (small networks run all of them)
 INITIALISERS: dict[str, _Init] = {
     "rank3": _rank3,
@@ -243,6 +248,15 @@ def _cost_of(residuals: Array, loss: str, fs: float) -> float:
 
 def _as_start(sol: NlsSolution) -> Start:
     return sol.receivers, sol.sources, sol.receiver_offsets, sol.source_offsets
+
+
+def _pack_start(st: Start) -> Array:
+    return _pack(*st)
+
+
+def _unpack_start(theta: Array, I: int, J: int, dim: int, offsets: str) -> Start:
+    r, s, d, o = _unpack(theta, I, J, dim, offsets)
+    return r.copy(), s.copy(), None if d is None else d.copy(), None if o is None else o.copy()
 
 
 #: a move is "local" (ranked by a partial refit) when it moves at most this many nodes
@@ -353,8 +367,8 @@ def search(
             last_err = exc
             return None
         iters += sol.iterations
-        if fs is None:  # the first robust refinement sets the search's scale
-            fs = max(_TUNING[loss] * float(sol.sigma), 1e-12 * (1.0 + float(np.nanmax(np.abs(Y)))))
+        if fs is None:  # the first robust refinement sets the search's scale (95 % efficiency, selfcal.robust)
+            fs = max(TUNING[loss] * float(sol.sigma), 1e-12 * (1.0 + float(np.nanmax(np.abs(Y)))))
             return refine(_as_start(sol), nfev)
         return sol
 
@@ -362,27 +376,42 @@ def search(
     observed = np.isfinite(Y)
 
     def refine_part(mv: Move) -> tuple[float, Start] | None:
-        """Refit only the moved nodes (and their offsets) on the entries that touch them."""
+        """Refit only the moved nodes (and their offsets) on the entries that touch them.
+
+        The engine's dense Levenberg-Marquardt step (:func:`selfcal.toa.dense_lm.solve_dense_lm`)
+        with every other parameter held: the fixed nodes hold the frame, so no gauge is
+        projected; a few free unknowns on a few entries (4 on 6 at 12 x 6 with both offsets).
+        """
         nonlocal partial_count, iters
         partial_count += 1
         r0, s0, d0, o0 = mv.start
+        ir, js = list(mv.receivers), list(mv.sources)
         touch = np.zeros((I, J), bool)
-        touch[list(mv.receivers), :] = True
-        touch[:, list(mv.sources)] = True
-        fr = np.ones(I, bool)
-        fr[list(mv.receivers)] = False
-        fsrc = np.ones(J, bool)
-        fsrc[list(mv.sources)] = False
+        touch[ir, :] = True
+        touch[:, js] = True
+        ii, jj = np.nonzero(touch & observed)
+        theta0 = _pack_start(mv.start)
+        free = np.zeros(theta0.size, bool)
+        for i in ir:
+            free[i * dim:(i + 1) * dim] = True
+        for j in js:
+            free[(I + j) * dim:(I + j + 1) * dim] = True
+        k = (I + J) * dim
+        if has_r:
+            free[k + np.asarray(ir, np.intp)] = True
+            k += I
+        if has_s:
+            free[k + np.asarray(js, np.intp)] = True
         try:
-            sol = refine_toa(np.where(touch & observed, Y, np.nan), r0, s0, offsets=offsets, receiver_offsets0=d0,
-                             source_offsets0=o0, loss=loss, f_scale=fs if loss != "linear" else None,
-                             max_nfev=MOVE_NFEV, covariance=False, fixed_receivers=fr, fixed_sources=fsrc,
-                             fixed_receiver_offsets=fr if has_r else None,
-                             fixed_source_offsets=fsrc if has_s else None)
-        except (DegenerateGeometryError, InputError, np.linalg.LinAlgError, ValueError):
+            theta, _, nit = solve_dense_lm(theta0, Y[ii, jj], ii, jj, I, J, dim, offsets, loss,
+                                           fs if loss != "linear" and fs is not None else 1.0, MOVE_NFEV,
+                                           1e-10, free=free)
+        except (np.linalg.LinAlgError, ValueError):
             return None
-        iters += sol.iterations
-        st = _as_start(sol)
+        iters += nit
+        if not np.isfinite(theta).all():
+            return None
+        st = _unpack_start(theta, I, J, dim, offsets)
         with np.errstate(all="ignore"):
             R = np.where(observed, Y - toa_model(*st), np.nan)
         return _cost_of(R, loss, fs or 1.0), st
@@ -503,9 +532,9 @@ def search(
             # best first) applied together and refined in full; the best alone if that fails
             screened: list[tuple[float, int, Move, Start]] = []
             for k, mv in enumerate(local if stopped == "exhausted" else []):
-                got = refine_part(mv)
-                if got is not None and got[0] < best_cost - gain():
-                    screened.append((got[0], k, mv, got[1]))
+                part = refine_part(mv)
+                if part is not None and part[0] < best_cost - gain():
+                    screened.append((part[0], k, mv, part[1]))
             screened.sort(key=lambda t: (t[0], t[1]))
             tries: list[tuple[str, Start]] = []
             if screened:
