@@ -31,13 +31,19 @@ What the theory allows, recorded per draw (issue 12's notes):
   strictly below the truth-started one (the truth is then not the ML estimate's basin);
 - ``rmse_blind_m`` / ``rmse_reference_m``: aligned RMSE of all nodes against the truth.
 
-Measured (seeds 0-47, 20 us, 2026-12-02, load 2-7 on 2 cores): 38 of 48 in the basin, 79 %
-(exact 95 % CI 65-90 %; strict 35 of 48), 2.3 s CPU median per blind solve vs 0.50 s for the one
-truth-started refinement. 27 of 48 blind minima are *below* the truth-started one, with a median
-aligned RMSE of 4.0 m against 1.2 m for the truth-started fit; 47 of 48 blind fits pass the
-chi-square test at p >= 1e-3, so the data cannot tell them from the truth's minimum. Median
-gauge-free CRLB: 0.65 m for the microphones, 2.3 m for the sources. Same run, the code before
-(ab7ff8e) on seeds 0-15: 7 of 16 at 2.6 s; now 12 of 16 at 2.3 s.
+Measured (seeds 0-199, 20 us, 2026-12-02, load 3-5 on 2 shared cores, in slices of
+``--draws 20 --first K``): 165 of 200 in the basin, 82.5 % (exact 95 % CI 76.5-87.5 %; strict
+160), blind CPU median 0.87 s (max 1.54 s) vs 0.34 s for the one truth-started ``trf``
+refinement (ratio 2.6, same run). Seeds 0-47 were studied while changing the engine and the
+search (43 of 48, 90 %); on the 152 draws not studied (48-199) 122, 80 % (CI 73-86 %), 0.83 s.
+Same session, the code at the start of the stop (2223f20) on seeds 48-87: 33 of 40 at 1.64 s
+CPU median; now 33 of 40 at 0.93 s (the speed-up is real, the rate gain of the studied seeds
+did not carry over). 101 of 200 blind minima are *below* the truth-started one; 193 of 200
+blind fits pass the chi-square test at p >= 1e-3, so the data cannot tell them from the
+truth's minimum. Of the 35 failures, 8 miss by a chi-square gap of 0.01-0.07, most where the
+truth-started ``trf`` fit crawls further along the far-field valley of a distant source (its
+aligned RMSE 23 m to 1.7 km); 27 are distinct minima (gaps 0.15-38). Median gauge-free CRLB:
+0.64 m for the microphones, 2.3 m for the sources.
 
 Times: wall and CPU (``time.process_time``) per solve; ``peak_rss_mb`` is the process's peak
 resident memory (``resource.getrusage``). ``--noise`` (seconds) runs the same scenes at another
