@@ -45,6 +45,15 @@ truth-started ``trf`` fit crawls further along the far-field valley of a distant
 aligned RMSE 23 m to 1.7 km); 27 are distinct minima (gaps 0.15-38). Median gauge-free CRLB:
 0.64 m for the microphones, 2.3 m for the sources.
 
+Held-out seeds 200-359 (never studied; 2026-12-02, same load, ``--draws 20 --first K`` for
+K = 200, 220, ..., 340): the committed search (1a90334) 132 of 160, 82.5 % (CI 75.7-88.0 %),
+blind CPU median 0.87 s (max 1.50 s), truth-started ``trf`` 0.38 s. Tried against it in the
+same run and *not kept*: the first rung of the successive halving split in two halves and the
+starts ranked by the Aitken (delta-squared) limit of their cost sequence c0, c5, c10 (where a
+start is heading, not where it is after 10 iterations): 134 of 160, 83.8 % (CI 77.1-89.1 %),
+7 draws gained and 5 lost (exact McNemar p = 0.77), CPU median 0.96 s (paired ratio 1.09): no
+gain a test can see, at more time.
+
 Times: wall and CPU (``time.process_time``) per solve; ``peak_rss_mb`` is the process's peak
 resident memory (``resource.getrusage``). ``--noise`` (seconds) runs the same scenes at another
 timing noise (where the theory is kinder).
