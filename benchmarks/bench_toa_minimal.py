@@ -52,7 +52,12 @@ same run and *not kept*: the first rung of the successive halving split in two h
 starts ranked by the Aitken (delta-squared) limit of their cost sequence c0, c5, c10 (where a
 start is heading, not where it is after 10 iterations): 134 of 160, 83.8 % (CI 77.1-89.1 %),
 7 draws gained and 5 lost (exact McNemar p = 0.77), CPU median 0.96 s (paired ratio 1.09): no
-gain a test can see, at more time.
+gain a test can see, at more time. Also not kept (same seeds, run after it): before each
+halving, starts whose modelled ranges agree (RMS) within the better one's residual RMS
+counted once: 116 of 160 (3 gained, 19 lost, McNemar p = 0.0009; after 10 iterations that
+test merges distinct basins); the same only between *converged* starts agreeing within 1 % of
+the residual RMS: 133 of 160 (1 gained, 0 lost), CPU median 0.84 s (paired 0.94, but the
+truth-started refinement was 0.35 s in that run against 0.38 s: the load, not the change).
 
 Times: wall and CPU (``time.process_time``) per solve; ``peak_rss_mb`` is the process's peak
 resident memory (``resource.getrusage``). ``--noise`` (seconds) runs the same scenes at another
