@@ -632,3 +632,41 @@ def test_more_malformed_options(tmp_path: Path, args: list[str], match: str | No
         assert code == 1 and (d / "r.json").is_file(), err
     else:
         assert code == 2 and match in err, err
+
+
+@pytest.fixture(scope="module")
+def slac_log_arrays(tmp_path_factory) -> dict[str, np.ndarray]:  # type: ignore[no-untyped-def,type-arg]
+    """The arrays of a short simulated SLAC log (N = 8 subcarriers): mutated one field at a time."""
+    from selfcal.scenarios.rovers import make_rover_scenario
+    from selfcal.slac.run import SlacLog
+
+    p = tmp_path_factory.mktemp("slaclog") / "log.npz"
+    SlacLog.from_scenario(make_rover_scenario(0.02, n_subcarriers=8, rng=3), seed=3).to_npz(p)
+    return dict(np.load(p))
+
+
+@pytest.mark.parametrize("field,value,code", [
+    ("version", "x", 2),         # a text version: ValueError inside int() before
+    ("signals", "zeros", 1),     # nothing to range with: was TypeError (mean of None), now FAIL
+    ("controls", "huge", 1),     # an odometry step of 1e308 m: was TypeError, now FAIL
+])
+def test_slac_run_on_corrupt_logs(tmp_path: Path, slac_log_arrays, field: str, value: str, code: int) -> None:  # type: ignore[no-untyped-def]
+    z = dict(slac_log_arrays)
+    if value == "x":
+        z[field] = np.array("x")
+    elif value == "zeros":
+        z[field] = np.zeros_like(z[field])
+    else:
+        z[field] = z[field].copy()
+        z[field].flat[0] = 1e308
+    np.savez(tmp_path / "log.npz", **z)
+    before = snapshot(tmp_path)
+    c, out, err = check_contract(invoke(["slac", "run", tmp_path / "log.npz", "-o", tmp_path / "r.json"]),
+                                 before, snapshot(tmp_path))
+    assert c == code, err
+    assert code == 2 or (tmp_path / "r.json").is_file(), out + err
+    if code == 1:  # the result is written, JSON-safe, and says it failed
+        import json
+
+        doc = json.loads((tmp_path / "r.json").read_text())
+        assert doc["success"] is False and "FAIL" in out
