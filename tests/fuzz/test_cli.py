@@ -670,3 +670,27 @@ def test_slac_run_on_corrupt_logs(tmp_path: Path, slac_log_arrays, field: str, v
 
         doc = json.loads((tmp_path / "r.json").read_text())
         assert doc["success"] is False and "FAIL" in out
+
+
+@pytest.mark.parametrize("field,value,match", [
+    ("speaker", 1e308, "not a pyramic"),               # OverflowError converting it to int64 before
+    ("sound_speed_mps", True, "must be a number"),     # a bool was read as 1 m/s (exit 0 with --directions sources)
+    ("mic_ref", True, "must be a number"),
+])
+def test_pyramic_json_field_types(tmp_path: Path, field: str, value: object, match: str) -> None:
+    import json
+
+    rng = np.random.default_rng(4)
+    mics = rng.normal(scale=0.1, size=(8, 3))
+    az = np.linspace(0, 2 * np.pi, 12, endpoint=False)
+    src = np.column_stack([np.cos(az), np.sin(az), np.full(12, 0.3)])
+    src /= np.linalg.norm(src, axis=1, keepdims=True)
+    delays = ((mics[1:] - mics[0]) @ -src.T) / 343.0
+    doc = {"sound_speed_mps": 343.0, "mic_ref": 0, "microphones": mics.T.tolist(), "delays": delays.tolist(),
+           "sources": src.tolist(), field: value}
+    p = tmp_path / "pyramic_tdoa_x.json"
+    p.write_text(json.dumps(doc))
+    before = snapshot(tmp_path)
+    res = invoke(["calibrate", "tdoa-farfield", p, "--directions", "sources", "-o", tmp_path / "r.json"])
+    code, _, err = check_contract(res, before, snapshot(tmp_path))
+    assert code == 2 and match in err.lower(), err
