@@ -694,3 +694,14 @@ def test_pyramic_json_field_types(tmp_path: Path, field: str, value: object, mat
     res = invoke(["calibrate", "tdoa-farfield", p, "--directions", "sources", "-o", tmp_path / "r.json"])
     code, _, err = check_contract(res, before, snapshot(tmp_path))
     assert code == 2 and match in err.lower(), err
+
+
+def test_pipeline_report_folder_that_is_a_file_is_refused_up_front(tmp_path: Path) -> None:
+    """``--report PATH`` without .html is a folder: an existing file there is refused before the
+    pipeline runs (it failed only when the figures were written, after the whole calibration)."""
+    rec = _tiny_recording(tmp_path)
+    (tmp_path / "rep").write_text("keep")
+    before = snapshot(tmp_path)
+    res = invoke(["pipeline", rec, "-o", tmp_path / "r.json", "--report", tmp_path / "rep"])
+    code, _, err = check_contract(res, before, snapshot(tmp_path))
+    assert code == 2 and "not a directory" in err, err
