@@ -705,3 +705,18 @@ def test_pipeline_report_folder_that_is_a_file_is_refused_up_front(tmp_path: Pat
     res = invoke(["pipeline", rec, "-o", tmp_path / "r.json", "--report", tmp_path / "rep"])
     code, _, err = check_contract(res, before, snapshot(tmp_path))
     assert code == 2 and "not a directory" in err, err
+
+
+@pytest.mark.parametrize("kind,angles,match", [
+    ("azel", [[10.0, 95.0]] * 5, "within +-90"),        # an elevation of 95 deg was read as a direction
+    ("azel", [[10.0, 1e308]] * 5, "within +-90"),       # ... and 1e308 deg gave 'receiver on the beacon plane'
+    ("axes", [[-30.0, 60.0]] * 5, "within [0, 180]"),   # an angle to an axis is never negative
+    ("vectors", [[1e300, 1e300, 1e300]] * 5, "not a unit vector"),  # the norm overflowed and skipped the check
+])
+def test_bearing_angles_out_of_range(tmp_path: Path, kind: str, angles: list, match: str) -> None:  # type: ignore[type-arg]
+    np.savetxt(tmp_path / "b.csv", np.random.default_rng(0).uniform(-5, 5, (5, 3)), delimiter=",")
+    np.savetxt(tmp_path / "a.csv", np.array(angles), delimiter=",")
+    before = snapshot(tmp_path)
+    res = invoke(["locate", "aoa", tmp_path / "b.csv", tmp_path / "a.csv", "--angles", kind, "-o", tmp_path / "r.json"])
+    code, _, err = check_contract(res, before, snapshot(tmp_path))
+    assert code == 2 and match in err, err
