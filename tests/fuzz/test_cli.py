@@ -720,3 +720,23 @@ def test_bearing_angles_out_of_range(tmp_path: Path, kind: str, angles: list, ma
     res = invoke(["locate", "aoa", tmp_path / "b.csv", tmp_path / "a.csv", "--angles", kind, "-o", tmp_path / "r.json"])
     code, _, err = check_contract(res, before, snapshot(tmp_path))
     assert code == 2 and match in err, err
+
+
+@pytest.mark.parametrize("field", ["TL", "DR"])
+def test_plaza_values_beyond_double_precision(tmp_path: Path, field: str) -> None:
+    """A beacon at 1e308 m raised ValueError inside the range solver; an odometry step of 1e308
+    gave exit 0. Every numeric variable of the log is bounded like the matrices (MAX_ABS_ENTRY)."""
+    import scipy.io as sio
+
+    t = np.arange(20.0)
+    m = {"TL": np.array([[1, 0.0, 0.0], [2, 10.0, 0.0], [3, 0.0, 10.0], [4, 10.0, 10.0]]),
+         "TD": np.column_stack([t, np.zeros(20), 1 + t % 4, np.full(20, 5.0)]),
+         "GT": np.column_stack([t, np.full(20, 5.0), np.full(20, 5.0), np.zeros(20)]),
+         "DR": np.column_stack([t, np.full(20, 0.1), np.zeros(20)]), "init_heading_offset": np.array([[0]])}
+    m[field] = m[field].astype(float)
+    m[field][-1, -1] = 1e308
+    sio.savemat(tmp_path / "p.mat", m)
+    before = snapshot(tmp_path)
+    res = invoke(["slac", "plaza", tmp_path / "p.mat", "-o", tmp_path / "r.json"])
+    code, _, err = check_contract(res, before, snapshot(tmp_path))
+    assert code == 2 and f"{field} row" in err and "beyond" in err, err
