@@ -210,17 +210,16 @@ def test_written_files_respect_the_umask(tmp_path) -> None:  # type: ignore[no-u
 def test_magnitude_and_run_count_guards() -> None:
     """Entries whose sums of squares overflow float64 and run counts whose trials cannot be held
     in memory are refused by name; the bound itself is the documented one."""
-    from selfcal._checks import MAX_ABS_ENTRY, TRIAL_BYTES, as_points, check_runs
+    from selfcal._checks import MAX_ABS_ENTRY, TRIAL_BYTES, check_magnitude, check_runs
     from selfcal.errors import InputError
 
     assert MAX_ABS_ENTRY == pytest.approx(np.sqrt(np.finfo(float).max / 1e12))
     ok = np.full((3, 4), MAX_ABS_ENTRY / 2)
     assert np.isfinite(float(ok[0, 0]) ** 2 * 1e12)  # 1e12 such squares still sum to a finite number
-    as_matrix(ok)
-    with pytest.raises(InputError, match="another unit"):
-        as_matrix(np.where(np.eye(3, 4) > 0, 2 * MAX_ABS_ENTRY, 1.0))
-    with pytest.raises(InputError, match="another unit"):
-        as_points(np.full((4, 3), 1e300))
+    check_magnitude(np.where(np.eye(3, 4) > 0, np.nan, ok), "m")  # NaN = missing, not large
+    with pytest.raises(InputError, match=r"entry \(0, 0\).*another unit"):
+        check_magnitude(np.where(np.eye(3, 4) > 0, 2 * MAX_ABS_ENTRY, 1.0), "m")
+    as_matrix(np.full((3, 4), 1e300))  # as_matrix itself does not bound: the TOA outlier rule flags such typos
     assert check_runs(20) == 20 and check_runs(0, minimum=0) == 0
     with pytest.raises(InputError, match="memory"):
         check_runs(int(1e20))
