@@ -219,10 +219,27 @@ def test_magnitude_and_run_count_guards() -> None:
     check_magnitude(np.where(np.eye(3, 4) > 0, np.nan, ok), "m")  # NaN = missing, not large
     with pytest.raises(InputError, match=r"entry \(0, 0\).*another unit"):
         check_magnitude(np.where(np.eye(3, 4) > 0, 2 * MAX_ABS_ENTRY, 1.0), "m")
-    as_matrix(np.full((3, 4), 1e300))  # as_matrix itself does not bound: the TOA outlier rule flags such typos
     assert check_runs(20) == 20 and check_runs(0, minimum=0) == 0
     with pytest.raises(InputError, match="memory"):
         check_runs(int(1e20))
     with pytest.raises(InputError):
         check_runs(0)
     assert TRIAL_BYTES >= 1024
+
+
+def test_as_matrix_refuses_a_matrix_in_an_overflowing_unit_but_leaves_single_absurd_entries_to_the_solver():
+    """A matrix whose typical entry is beyond MAX_ABS_ENTRY is a unit mistake: refused with one
+    line. One absurd entry in a plausible matrix is a gross outlier for the TOA solver's robust
+    fit (issue 12), so ``huge="scale"`` (default) passes it; ``huge="entry"`` refuses it."""
+    from selfcal._checks import MAX_ABS_ENTRY, as_matrix
+    from selfcal.errors import InputError
+
+    M = np.arange(1.0, 13.0).reshape(3, 4)
+    one = M.copy()
+    one[1, 2] = 1e300
+    assert as_matrix(one)[1, 2] == 1e300
+    with pytest.raises(InputError, match="another unit"):
+        as_matrix(one, huge="entry")
+    with pytest.raises(InputError, match="another unit"):
+        as_matrix(np.full((3, 4), 10 * MAX_ABS_ENTRY))
+    assert np.array_equal(as_matrix(M, huge="entry"), M)

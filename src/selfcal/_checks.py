@@ -50,11 +50,17 @@ def as_matrix(
     allow_nan: bool = True,
     nonnegative: bool = False,
     min_shape: tuple[int, int] = (1, 1),
+    huge: str = "scale",
 ) -> NDArray[np.float64]:
     """Convert ``value`` to a float (rows, cols) matrix and validate it.
 
     NaN is allowed only as "missing" (``allow_nan``); +-inf is always refused.
     With ``nonnegative`` every finite entry must be >= 0 (ranges, times of flight).
+    Magnitudes beyond :data:`MAX_ABS_ENTRY`: with ``huge="scale"`` (default) the matrix is
+    refused when its median finite magnitude is beyond it (a unit mistake or corrupt data);
+    single absurd entries in an otherwise plausible matrix are left to the solver, whose
+    robust fit flags them as gross outliers (the TOA solver, issue 12). ``huge="entry"``
+    refuses any such entry (solvers without a gross-error model for them).
     """
     arr = as_array(value, name)
     if arr.ndim != 2:
@@ -70,6 +76,14 @@ def as_matrix(
         raise InputError(f"{name}: entry ({i}, {j}) is NaN but missing values are not allowed here")
     if nan.all():
         raise InputError(f"{name}: every entry is missing (NaN)")
+    mag = np.abs(np.where(nan, 0.0, arr))
+    big = mag > MAX_ABS_ENTRY
+    if huge == "scale" and big.any() and not np.median(mag[~nan]) > MAX_ABS_ENTRY:
+        big[:] = False
+    if big.any():
+        i, j = np.argwhere(big)[0]
+        raise InputError(f"{name}: entry ({i}, {j}) = {arr[i, j]:.3g} is beyond {MAX_ABS_ENTRY:.2g}, where the "
+                         f"least-squares sums overflow double precision; give the data in another unit")
     if nonnegative and (arr[~nan] < 0).any():
         i, j = np.argwhere(np.where(nan, 0.0, arr) < 0)[0]
         raise InputError(f"{name}: entry ({i}, {j}) = {arr[i, j]:g} is negative; ranges and times of flight must be >= 0")
@@ -97,8 +111,9 @@ def as_points(value: Any, name: str = "points", *, dim: int | None = None, allow
 def check_magnitude(arr: NDArray[np.float64], name: str) -> NDArray[np.float64]:
     """Refuse finite entries beyond :data:`MAX_ABS_ENTRY`, where least-squares sums overflow.
 
-    For solvers without an outlier rule that would treat one such entry as a gross error
-    (the TOA solvers flag a single 1e300 typo and fit the rest, so they do not call this).
+    For arrays of any shape (points, logs) of solvers without a gross-error model for such
+    entries; matrices use ``as_matrix(huge="entry")`` (or ``huge="scale"`` for the TOA solver,
+    whose robust fit flags a single 1e300 typo).
 
     Raises
     ------

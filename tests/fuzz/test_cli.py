@@ -516,7 +516,7 @@ _BIG_INT_JSON = '{"delays": [[0.001, 0.002]], "sound_speed_mps": ' + "9" * 5000 
 
 
 @pytest.mark.parametrize("case", [
-    "ff-json-huge-int", "heights-json-huge-int", "ff-1e308", "ff-one-1e308", "aoa-beacons-1e300",
+    "ff-json-huge-int", "heights-json-huge-int", "toa-1e308", "ff-1e308", "ff-one-1e308", "aoa-beacons-1e300",
     "wav-corrupt-header", "wav-is-dir", "setup-is-dir",
     "setup-speed-1e6", "pipeline-speed-1e308", "jitter-us-1e308", "demo-rt60-1e308", "demo-snr-minus-1e308",
     "demo-seed-negative", "farfield-runs-1e20", "toa-mds-nls-runs-1e20", "delays-runs-1e20",
@@ -542,10 +542,10 @@ def test_malformed_inputs_exit_2_with_one_line(tmp_path: Path, case: str) -> Non
         args = (["calibrate", "tdoa-farfield", d / "x.json", "-o", o] if case.startswith("ff") else
                 ["pipeline", _tiny_recording(d), "--heights", d / "x.json", "-o", o])
         match = "malformed json"
-    elif case in ("ff-1e308", "ff-one-1e308"):
+    elif case in ("toa-1e308", "ff-1e308", "ff-one-1e308"):  # toa: a whole matrix in an overflowing unit
         M = np.full((6, 8), 1e308) if case != "ff-one-1e308" else np.where(np.arange(80).reshape(8, 10) == 7, 1e308, ff)
         np.savetxt(d / "m.csv", M, delimiter=",")
-        args = ["calibrate", "tdoa-farfield", d / "m.csv", "-o", o]
+        args = ["calibrate", "toa" if case == "toa-1e308" else "tdoa-farfield", d / "m.csv", "-o", o]
         match = "another unit"
     elif case == "aoa-beacons-1e300":
         np.savetxt(d / "b.csv", 1e300 * rng.uniform(-5, 5, (5, 3)), delimiter=",")

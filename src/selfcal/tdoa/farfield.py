@@ -35,7 +35,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from .._checks import as_matrix, as_rng, check_choice, check_magnitude, check_positive, entry
+from .._checks import as_matrix, as_rng, check_choice, check_positive, entry
 from ..errors import ConvergenceWarning, DegenerateGeometryError, InputError
 from ..robust import TUNING
 from .degeneracy import (
@@ -225,7 +225,7 @@ def solve_farfield(
     if noise_std is not None and not (np.isfinite(noise_std) and noise_std >= 0):
         raise InputError(f"noise_std must be a finite non-negative number, got {noise_std!r}")
     gen = as_rng(rng)
-    D = check_magnitude(as_matrix(matrix, "matrix", allow_nan=True, min_shape=(1, 1)), "matrix")
+    D = as_matrix(matrix, "matrix", allow_nan=True, min_shape=(1, 1), huge="entry")
     m, k = D.shape
     if m < 3:
         raise DegenerateGeometryError(
