@@ -205,3 +205,21 @@ def test_written_files_respect_the_umask(tmp_path) -> None:  # type: ignore[no-u
     umask = os.umask(0)
     os.umask(umask)
     assert (p.stat().st_mode & 0o777) == (0o666 & ~umask)
+
+
+def test_as_matrix_refuses_a_matrix_in_an_overflowing_unit_but_leaves_single_absurd_entries_to_the_solver():
+    """A matrix whose typical entry is beyond MAX_ABS_ENTRY is a unit mistake: refused with one
+    line. One absurd entry in a plausible matrix is a gross outlier for the TOA solver's robust
+    fit (issue 12), so ``huge="scale"`` (default) passes it; ``huge="entry"`` refuses it."""
+    from selfcal._checks import MAX_ABS_ENTRY, as_matrix
+    from selfcal.errors import InputError
+
+    M = np.arange(1.0, 13.0).reshape(3, 4)
+    one = M.copy()
+    one[1, 2] = 1e300
+    assert as_matrix(one)[1, 2] == 1e300
+    with pytest.raises(InputError, match="another unit"):
+        as_matrix(one, huge="entry")
+    with pytest.raises(InputError, match="another unit"):
+        as_matrix(np.full((3, 4), 10 * MAX_ABS_ENTRY))
+    assert np.array_equal(as_matrix(M, huge="entry"), M)

@@ -49,11 +49,17 @@ def as_matrix(
     allow_nan: bool = True,
     nonnegative: bool = False,
     min_shape: tuple[int, int] = (1, 1),
+    huge: str = "scale",
 ) -> NDArray[np.float64]:
     """Convert ``value`` to a float (rows, cols) matrix and validate it.
 
     NaN is allowed only as "missing" (``allow_nan``); +-inf is always refused.
     With ``nonnegative`` every finite entry must be >= 0 (ranges, times of flight).
+    Magnitudes beyond :data:`MAX_ABS_ENTRY`: with ``huge="scale"`` (default) the matrix is
+    refused when its median finite magnitude is beyond it (a unit mistake or corrupt data);
+    single absurd entries in an otherwise plausible matrix are left to the solver, whose
+    robust fit flags them as gross outliers (the TOA solver, issue 12). ``huge="entry"``
+    refuses any such entry (solvers without a gross-error model for them).
     """
     arr = as_array(value, name)
     if arr.ndim != 2:
@@ -69,7 +75,10 @@ def as_matrix(
         raise InputError(f"{name}: entry ({i}, {j}) is NaN but missing values are not allowed here")
     if nan.all():
         raise InputError(f"{name}: every entry is missing (NaN)")
-    big = np.abs(np.where(nan, 0.0, arr)) > MAX_ABS_ENTRY
+    mag = np.abs(np.where(nan, 0.0, arr))
+    big = mag > MAX_ABS_ENTRY
+    if huge == "scale" and big.any() and not np.median(mag[~nan]) > MAX_ABS_ENTRY:
+        big[:] = False
     if big.any():
         i, j = np.argwhere(big)[0]
         raise InputError(f"{name}: entry ({i}, {j}) = {arr[i, j]:.3g} is beyond {MAX_ABS_ENTRY:.2g}, where the "

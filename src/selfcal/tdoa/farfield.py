@@ -225,7 +225,7 @@ def solve_farfield(
     if noise_std is not None and not (np.isfinite(noise_std) and noise_std >= 0):
         raise InputError(f"noise_std must be a finite non-negative number, got {noise_std!r}")
     gen = as_rng(rng)
-    D = as_matrix(matrix, "matrix", allow_nan=True, min_shape=(1, 1))
+    D = as_matrix(matrix, "matrix", allow_nan=True, min_shape=(1, 1), huge="entry")
     m, k = D.shape
     if m < 3:
         raise DegenerateGeometryError(
