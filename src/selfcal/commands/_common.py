@@ -208,6 +208,8 @@ def check_command_outputs(ctx: click.Context | None, kwargs: Mapping[str, Any]) 
         if value is None:
             continue
         kind = _param_kind(param)
+        if param.name == "report" and os.fspath(value) != "-" and not os.fspath(value).lower().endswith(".html"):
+            kind = "dir"  # pipeline --report: a path not ending in .html is a folder of report files
         opt = param.opts[0] if param.opts else param.name
         if os.fspath(value) == "-":
             dashes.append(value)
