@@ -207,6 +207,26 @@ def test_written_files_respect_the_umask(tmp_path) -> None:  # type: ignore[no-u
     assert (p.stat().st_mode & 0o777) == (0o666 & ~umask)
 
 
+def test_magnitude_and_run_count_guards() -> None:
+    """Entries whose sums of squares overflow float64 and run counts whose trials cannot be held
+    in memory are refused by name; the bound itself is the documented one."""
+    from selfcal._checks import MAX_ABS_ENTRY, TRIAL_BYTES, check_magnitude, check_runs
+    from selfcal.errors import InputError
+
+    assert MAX_ABS_ENTRY == pytest.approx(np.sqrt(np.finfo(float).max / 1e12))
+    ok = np.full((3, 4), MAX_ABS_ENTRY / 2)
+    assert np.isfinite(float(ok[0, 0]) ** 2 * 1e12)  # 1e12 such squares still sum to a finite number
+    check_magnitude(np.where(np.eye(3, 4) > 0, np.nan, ok), "m")  # NaN = missing, not large
+    with pytest.raises(InputError, match=r"entry \(0, 0\).*another unit"):
+        check_magnitude(np.where(np.eye(3, 4) > 0, 2 * MAX_ABS_ENTRY, 1.0), "m")
+    assert check_runs(20) == 20 and check_runs(0, minimum=0) == 0
+    with pytest.raises(InputError, match="memory"):
+        check_runs(int(1e20))
+    with pytest.raises(InputError):
+        check_runs(0)
+    assert TRIAL_BYTES >= 1024
+
+
 def test_as_matrix_refuses_a_matrix_in_an_overflowing_unit_but_leaves_single_absurd_entries_to_the_solver():
     """A matrix whose typical entry is beyond MAX_ABS_ENTRY is a unit mistake: refused with one
     line. One absurd entry in a plausible matrix is a gross outlier for the TOA solver's robust

@@ -18,6 +18,7 @@ from .geometry import n_parameters
 __all__ = [
     "as_array",
     "check_int",
+    "check_magnitude",
     "check_runs",
     "check_float",
     "entry",
@@ -36,9 +37,9 @@ __all__ = [
 ]
 
 
-#: Largest magnitude of a matrix entry the solvers accept: they form squares, products and sums
-#: of up to ~1e12 such terms, which must stay below the float64 maximum (1.8e308), so
-#: |entry| <= sqrt(1.8e308 / 1e12) ~ 1.3e148. Larger values are a unit mistake or corrupt data.
+#: Largest magnitude of an entry the least-squares solvers can process (:func:`check_magnitude`):
+#: they form squares, products and sums of up to ~1e12 such terms, which must stay below the
+#: float64 maximum (1.8e308), so |entry| <= sqrt(1.8e308 / 1e12) ~ 1.3e148.
 MAX_ABS_ENTRY = float(np.sqrt(np.finfo(np.float64).max / 1e12))
 
 
@@ -104,10 +105,28 @@ def as_points(value: Any, name: str = "points", *, dim: int | None = None, allow
         raise InputError(f"{name}: points must have 2 or 3 coordinates, got {d}")
     if np.isinf(arr).any() or (not allow_nan and np.isnan(arr).any()):
         raise InputError(f"{name}: contains NaN or inf")
-    if (np.abs(np.nan_to_num(arr)) > MAX_ABS_ENTRY).any():
-        raise InputError(f"{name}: coordinates beyond {MAX_ABS_ENTRY:.2g} overflow double precision; "
-                         f"give them in another unit")
     return arr
+
+
+def check_magnitude(arr: NDArray[np.float64], name: str) -> NDArray[np.float64]:
+    """Refuse finite entries beyond :data:`MAX_ABS_ENTRY`, where least-squares sums overflow.
+
+    For arrays of any shape (points, logs) of solvers without a gross-error model for such
+    entries; matrices use ``as_matrix(huge="entry")`` (or ``huge="scale"`` for the TOA solver,
+    whose robust fit flags a single 1e300 typo).
+
+    Raises
+    ------
+    InputError
+        Naming the first such entry and the fix (another unit).
+    """
+    a = np.asarray(arr, dtype=float)
+    big = np.abs(np.where(np.isfinite(a), a, 0.0)) > MAX_ABS_ENTRY
+    if big.any():
+        idx = tuple(int(v) for v in np.argwhere(big)[0])
+        raise InputError(f"{name}: entry {idx} = {a[idx]:.3g} is beyond {MAX_ABS_ENTRY:.2g}, where the "
+                         f"least-squares sums overflow double precision; give the data in another unit")
+    return a
 
 
 def check_dim(dim: int) -> int:

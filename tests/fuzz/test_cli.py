@@ -542,7 +542,7 @@ def test_malformed_inputs_exit_2_with_one_line(tmp_path: Path, case: str) -> Non
         args = (["calibrate", "tdoa-farfield", d / "x.json", "-o", o] if case.startswith("ff") else
                 ["pipeline", _tiny_recording(d), "--heights", d / "x.json", "-o", o])
         match = "malformed json"
-    elif case in ("toa-1e308", "ff-1e308", "ff-one-1e308"):
+    elif case in ("toa-1e308", "ff-1e308", "ff-one-1e308"):  # toa: a whole matrix in an overflowing unit
         M = np.full((6, 8), 1e308) if case != "ff-one-1e308" else np.where(np.arange(80).reshape(8, 10) == 7, 1e308, ff)
         np.savetxt(d / "m.csv", M, delimiter=",")
         args = ["calibrate", "toa" if case == "toa-1e308" else "tdoa-farfield", d / "m.csv", "-o", o]
@@ -632,3 +632,111 @@ def test_more_malformed_options(tmp_path: Path, args: list[str], match: str | No
         assert code == 1 and (d / "r.json").is_file(), err
     else:
         assert code == 2 and match in err, err
+
+
+@pytest.fixture(scope="module")
+def slac_log_arrays(tmp_path_factory) -> dict[str, np.ndarray]:  # type: ignore[no-untyped-def,type-arg]
+    """The arrays of a short simulated SLAC log (N = 8 subcarriers): mutated one field at a time."""
+    from selfcal.scenarios.rovers import make_rover_scenario
+    from selfcal.slac.run import SlacLog
+
+    p = tmp_path_factory.mktemp("slaclog") / "log.npz"
+    SlacLog.from_scenario(make_rover_scenario(0.02, n_subcarriers=8, rng=3), seed=3).to_npz(p)
+    return dict(np.load(p))
+
+
+@pytest.mark.parametrize("field,value,code", [
+    ("version", "x", 2),         # a text version: ValueError inside int() before
+    ("signals", "zeros", 1),     # nothing to range with: was TypeError (mean of None), now FAIL
+    ("controls", "huge", 1),     # an odometry step of 1e308 m: was TypeError, now FAIL
+])
+def test_slac_run_on_corrupt_logs(tmp_path: Path, slac_log_arrays, field: str, value: str, code: int) -> None:  # type: ignore[no-untyped-def]
+    z = dict(slac_log_arrays)
+    if value == "x":
+        z[field] = np.array("x")
+    elif value == "zeros":
+        z[field] = np.zeros_like(z[field])
+    else:
+        z[field] = z[field].copy()
+        z[field].flat[0] = 1e308
+    np.savez(tmp_path / "log.npz", **z)
+    before = snapshot(tmp_path)
+    c, out, err = check_contract(invoke(["slac", "run", tmp_path / "log.npz", "-o", tmp_path / "r.json"]),
+                                 before, snapshot(tmp_path))
+    assert c == code, err
+    assert code == 2 or (tmp_path / "r.json").is_file(), out + err
+    if code == 1:  # the result is written, JSON-safe, and says it failed
+        import json
+
+        doc = json.loads((tmp_path / "r.json").read_text())
+        assert doc["success"] is False and "FAIL" in out
+
+
+@pytest.mark.parametrize("field,value,match", [
+    ("speaker", 1e308, "not a pyramic"),               # OverflowError converting it to int64 before
+    ("sound_speed_mps", True, "must be a number"),     # a bool was read as 1 m/s (exit 0 with --directions sources)
+    ("mic_ref", True, "must be a number"),
+])
+def test_pyramic_json_field_types(tmp_path: Path, field: str, value: object, match: str) -> None:
+    import json
+
+    rng = np.random.default_rng(4)
+    mics = rng.normal(scale=0.1, size=(8, 3))
+    az = np.linspace(0, 2 * np.pi, 12, endpoint=False)
+    src = np.column_stack([np.cos(az), np.sin(az), np.full(12, 0.3)])
+    src /= np.linalg.norm(src, axis=1, keepdims=True)
+    delays = ((mics[1:] - mics[0]) @ -src.T) / 343.0
+    doc = {"sound_speed_mps": 343.0, "mic_ref": 0, "microphones": mics.T.tolist(), "delays": delays.tolist(),
+           "sources": src.tolist(), field: value}
+    p = tmp_path / "pyramic_tdoa_x.json"
+    p.write_text(json.dumps(doc))
+    before = snapshot(tmp_path)
+    res = invoke(["calibrate", "tdoa-farfield", p, "--directions", "sources", "-o", tmp_path / "r.json"])
+    code, _, err = check_contract(res, before, snapshot(tmp_path))
+    assert code == 2 and match in err.lower(), err
+
+
+def test_pipeline_report_folder_that_is_a_file_is_refused_up_front(tmp_path: Path) -> None:
+    """``--report PATH`` without .html is a folder: an existing file there is refused before the
+    pipeline runs (it failed only when the figures were written, after the whole calibration)."""
+    rec = _tiny_recording(tmp_path)
+    (tmp_path / "rep").write_text("keep")
+    before = snapshot(tmp_path)
+    res = invoke(["pipeline", rec, "-o", tmp_path / "r.json", "--report", tmp_path / "rep"])
+    code, _, err = check_contract(res, before, snapshot(tmp_path))
+    assert code == 2 and "not a directory" in err, err
+
+
+@pytest.mark.parametrize("kind,angles,match", [
+    ("azel", [[10.0, 95.0]] * 5, "within +-90"),        # an elevation of 95 deg was read as a direction
+    ("azel", [[10.0, 1e308]] * 5, "within +-90"),       # ... and 1e308 deg gave 'receiver on the beacon plane'
+    ("axes", [[-30.0, 60.0]] * 5, "within [0, 180]"),   # an angle to an axis is never negative
+    ("vectors", [[1e300, 1e300, 1e300]] * 5, "not a unit vector"),  # the norm overflowed and skipped the check
+])
+def test_bearing_angles_out_of_range(tmp_path: Path, kind: str, angles: list, match: str) -> None:  # type: ignore[type-arg]
+    np.savetxt(tmp_path / "b.csv", np.random.default_rng(0).uniform(-5, 5, (5, 3)), delimiter=",")
+    np.savetxt(tmp_path / "a.csv", np.array(angles), delimiter=",")
+    before = snapshot(tmp_path)
+    res = invoke(["locate", "aoa", tmp_path / "b.csv", tmp_path / "a.csv", "--angles", kind, "-o", tmp_path / "r.json"])
+    code, _, err = check_contract(res, before, snapshot(tmp_path))
+    assert code == 2 and match in err, err
+
+
+@pytest.mark.parametrize("field", ["TL", "DR"])
+def test_plaza_values_beyond_double_precision(tmp_path: Path, field: str) -> None:
+    """A beacon at 1e308 m raised ValueError inside the range solver; an odometry step of 1e308
+    gave exit 0. Every numeric variable of the log is bounded like the matrices (MAX_ABS_ENTRY)."""
+    import scipy.io as sio
+
+    t = np.arange(20.0)
+    m = {"TL": np.array([[1, 0.0, 0.0], [2, 10.0, 0.0], [3, 0.0, 10.0], [4, 10.0, 10.0]]),
+         "TD": np.column_stack([t, np.zeros(20), 1 + t % 4, np.full(20, 5.0)]),
+         "GT": np.column_stack([t, np.full(20, 5.0), np.full(20, 5.0), np.zeros(20)]),
+         "DR": np.column_stack([t, np.full(20, 0.1), np.zeros(20)]), "init_heading_offset": np.array([[0]])}
+    m[field] = m[field].astype(float)
+    m[field][-1, -1] = 1e308
+    sio.savemat(tmp_path / "p.mat", m)
+    before = snapshot(tmp_path)
+    res = invoke(["slac", "plaza", tmp_path / "p.mat", "-o", tmp_path / "r.json"])
+    code, _, err = check_contract(res, before, snapshot(tmp_path))
+    assert code == 2 and f"{field} row" in err and "beyond" in err, err

@@ -70,6 +70,11 @@ def test_set_scale_is_invariant_and_robust():
     Q[:3] += [1e3, 0, 0]
     assert set_scale(Q) < 1.5 * rho
     assert np.isnan(set_scale(P[:1]))
+    # the definition, computed the slow way: median over nodes of the median distance to the others
+    for n in (2, 3, 4, 7, 10, 25):
+        D = np.linalg.norm(P[:n, None] - P[None, :n], axis=-1)
+        np.fill_diagonal(D, np.nan)
+        assert set_scale(P[:n]) == pytest.approx(np.median(np.nanmedian(D, axis=1)) / np.sqrt(2), rel=1e-12)
 
 
 # --------------------------------------------------------------------------- the rule

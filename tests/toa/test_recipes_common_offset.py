@@ -112,6 +112,8 @@ def test_kept_common_offset_is_reported_and_kept_by_frame_refits():
     res, info = choose_common_offset(base, Y)
     assert info["adopted"] and res.offsets == "common"
     assert np.ptp(res.receiver_offsets) == 0.0
+    # the noise estimate is the new fit's (the 0.17 m bias no longer inflates it)
+    assert res.sigma == res.noise_estimate < base.noise_estimate
     nodes = parse_known({f"r{i}": sim["anchors"][i] for i in range(6)}, 6, Y.shape[1], 3)
     framed = fit_known(Y, res, nodes, offsets="common")
     assert framed.result.offsets == "common"

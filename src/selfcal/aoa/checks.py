@@ -9,7 +9,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from .._checks import as_points
+from .._checks import as_points, check_magnitude
 from ..errors import DegenerateGeometryError, InputError
 from ..geometry import gauge_freedoms
 from .ml import residuals_2d, residuals_3d
@@ -33,7 +33,7 @@ RESIDUAL_TEST_LEVEL = 0.999
 
 
 def _validate(beacons: ArrayLike, bearings: ArrayLike) -> tuple[Array, Array, bool]:
-    b = as_points(beacons, "beacons")
+    b = check_magnitude(as_points(beacons, "beacons"), "beacons")
     N, d = b.shape
     try:
         U = np.array(bearings, dtype=float)

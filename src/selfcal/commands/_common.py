@@ -208,6 +208,8 @@ def check_command_outputs(ctx: click.Context | None, kwargs: Mapping[str, Any]) 
         if value is None:
             continue
         kind = _param_kind(param)
+        if param.name == "report" and os.fspath(value) != "-" and not os.fspath(value).lower().endswith(".html"):
+            kind = "dir"  # pipeline --report: a path not ending in .html is a folder of report files
         opt = param.opts[0] if param.opts else param.name
         if os.fspath(value) == "-":
             dashes.append(value)
@@ -285,6 +287,10 @@ def to_metres(matrix: Any, unit: str | None, speed: float | None, sample_rate: f
         raise InputError(f"--speed must be a finite positive number in m/s, got {speed:g}")
     if sample_rate is not None and not (math.isfinite(sample_rate) and sample_rate > 0):
         raise InputError(f"--sample-rate must be a finite positive number in Hz, got {sample_rate:g}")
+    # no timing hardware samples faster than ~1e11 Hz (UWB timestamps: 15.65 ps ticks, 64 GHz);
+    # 1e13 Hz (100 fs) leaves two decades and catches a rate in the wrong unit (a network of 1e-17 m)
+    if sample_rate is not None and sample_rate > 1e13:
+        raise InputError(f"--sample-rate {sample_rate:g} Hz is beyond any timing hardware (1e13 Hz); give it in Hz")
     if unit is None:
         if sample_rate is not None:
             raise InputError("--sample-rate is only used with --unit samples")

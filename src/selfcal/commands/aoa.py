@@ -74,16 +74,26 @@ def locate_aoa(
         if u.shape[1] != d:
             raise InputError(f"bearings: {u.shape[1]} columns for {d}-D beacons: unit vectors need {d} "
                              f"(angles? use --angles azel or axes with --units deg / rad)")
-        norms = np.linalg.norm(u, axis=1)
-        fin = np.isfinite(norms)
-        if fin.any() and np.max(np.abs(norms[fin] - 1.0)) > 1e-2:
-            i = int(np.flatnonzero(fin)[np.argmax(np.abs(norms[fin] - 1.0))])
+        with np.errstate(over="ignore"):
+            norms = np.linalg.norm(u, axis=1)  # inf for rows of 1e300s: not unit vectors either
+        fin = np.isfinite(u).all(axis=1)
+        dev = np.where(np.isfinite(norms), np.abs(norms - 1.0), np.inf)
+        if fin.any() and np.max(dev[fin]) > 1e-2:
+            i = int(np.flatnonzero(fin)[np.argmax(dev[fin])])
             raise InputError(f"bearings: row {i + 1} has length {norms[i]:.4g}, not a unit vector (1 within 1 %): "
                              "angles in degrees or radians? use --angles azel (or axes) with --units deg / rad")
     else:
         plausible_angles(u, units)
         a = np.radians(u) if units == "deg" else u
         miss = np.isnan(a).any(axis=1)
+        # the ranges of the angles themselves: an elevation beyond +-90 deg or an angle to an axis
+        # outside [0, 180] deg is no direction (a sign or unit mistake), never a measurement
+        if angles == "azel" and d == 3 and a.shape[1] == 2 and (np.abs(a[~miss, 1]) > np.pi / 2 + 1e-9).any():
+            raise InputError(f"bearings: elevations must lie within +-90 deg, got up to "
+                             f"{np.degrees(np.nanmax(np.abs(a[:, 1]))):.4g} deg (column 2 is the elevation)")
+        if angles == "axes" and d == 3 and a.shape[1] == 2 and ((a[~miss] < -1e-9) | (a[~miss] > np.pi + 1e-9)).any():
+            raise InputError("bearings: --angles axes holds the angles to the receiver's x and y axes, each "
+                             "within [0, 180] deg")
         if angles == "azel":
             a0 = np.where(np.isnan(a), 0.0, a)
             if d == 3 and a.shape[1] == 2:

@@ -51,7 +51,7 @@ def simulate_cmd(minutes: float, subcarriers: int, snr_db: float, seed: int, out
 @handle_errors
 @all_or_nothing
 def run_cmd(log_path: Path, mode: str, prior: str, out: Path, plot: Path | None, init: str,
-            smoother_lag: int) -> None:
+            smoother_lag: int) -> int:
     """Run the SLAC or localization-only filter (or fixed-lag smoother) over an NPZ log."""
     import numpy as np
 
@@ -75,8 +75,9 @@ def run_cmd(log_path: Path, mode: str, prior: str, out: Path, plot: Path | None,
             for agent in m.get(key, {}).values():
                 for v in agent.values():
                     v.pop("errors_deg", None)
-        m["ranging_rmse_uncorrected_mean"] = float(np.mean(m.pop("ranging_rmse_uncorrected")))
-        m["ranging_rmse_corrected_mean"] = float(np.mean(m.pop("ranging_rmse_corrected")))
+        # jsonable wrote NaN (no usable ranging) as None: back to NaN for the mean, null in the JSON
+        m["ranging_rmse_uncorrected_mean"] = float(np.mean(np.asarray(m.pop("ranging_rmse_uncorrected"), float)))
+        m["ranging_rmse_corrected_mean"] = float(np.mean(np.asarray(m.pop("ranging_rmse_corrected"), float)))
     if plot is not None:
         from ..plotting.slac import plot_trajectories
 
@@ -84,6 +85,10 @@ def run_cmd(log_path: Path, mode: str, prior: str, out: Path, plot: Path | None,
                           truth=log.states)
     write_json(out, d)
     click.echo(f"wrote {out}")
+    if not res.success:  # exit 1 says it failed its own test; returning (not sys.exit) commits the files
+        click.echo(f"FAIL: {res.method}: {res.message}")
+        return 1
+    return 0
 
 
 @slac.command("plaza")
@@ -134,7 +139,7 @@ def plaza_cmd(path: Path, out: Path, method: str, csv_path: Path | None, tum_pat
                    f"scale {', '.join(f'{v:.3f}' for v in d['scale'])}, {d['seconds']:.1f} s")
     click.echo(f"wrote {out}")
     if not main.success:
-        click.echo(f"FAIL: {main.method}: {main.message}", err=True)
+        click.echo(f"FAIL: {main.method}: {main.message}")  # stdout, like every FAIL line (-q keeps it)
         sys.exit(1)
 
 

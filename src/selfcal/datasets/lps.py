@@ -131,6 +131,8 @@ def lps_files(path: str | os.PathLike[str]) -> list[Path]:
     if p.is_file():
         return [p]
     if not p.is_dir():
+        if p.exists():  # /dev/null, a FIFO, a socket
+            raise InputError(f"{p}: not a regular file or a folder of data*.mat files")
         raise FileNotFoundError(2, "No such file or directory", str(p))
     files = sorted(p.glob("data*.mat"))
     if not files:
@@ -168,6 +170,8 @@ def load_lps(path: str | os.PathLike[str]) -> LpsData:
 
     p = Path(path)
     if not p.is_file():
+        if p.exists():
+            raise InputError(f"{p}: not a regular file (a .mat flight of the LPS set)")
         raise FileNotFoundError(2, "No such file or directory", str(p))
     try:
         mat = scipy.io.loadmat(p)

@@ -44,6 +44,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from .._checks import MAX_ABS_ENTRY
 from ..errors import InputError
 from ..geometry import wrap_angle
 
@@ -155,6 +156,11 @@ def _field(m: dict[str, Any], key: str, width: int, p: Path) -> FArray:
     if bad.any():
         r, c = np.argwhere(bad)[0]
         raise InputError(f"{p}: {key} has a non-finite value at row {r + 1}, column {c + 1}")
+    big = np.abs(a) > MAX_ABS_ENTRY  # squares and sums of such values overflow float64
+    if big.any():
+        r, c = np.argwhere(big)[0]
+        raise InputError(f"{p}: {key} row {r + 1}, column {c + 1} = {a[r, c]:.3g} is beyond {MAX_ABS_ENTRY:.2g}, "
+                         f"which double precision cannot process; is the file corrupt?")
     return a
 
 

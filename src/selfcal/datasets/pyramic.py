@@ -291,14 +291,17 @@ def pyramic_from_dict(obj: object, *, label: str = "Pyramic JSON", speed: float 
         sources = None if obj.get("sources") is None else _numeric(obj["sources"], p, "sources")
         mics = None if obj.get("microphones") is None else _numeric(obj["microphones"], p, "microphones")
         raw_speed = obj.get("sound_speed_mps")
-        file_speed = float(raw_speed) if raw_speed is not None else float("nan")
         ref_raw = obj.get("mic_ref", 0)
+        for key, v in (("sound_speed_mps", raw_speed), ("mic_ref", ref_raw)):
+            if isinstance(v, bool) or not (v is None or isinstance(v, (int, float))):
+                raise InputError(f"{p}: '{key}' must be a number, got {v!r}")
+        file_speed = float(raw_speed) if raw_speed is not None else float("nan")
         ref = int(ref_raw)
         spk_raw = obj.get("speaker", None)
         spk = None if spk_raw is None else np.asarray(spk_raw, dtype=np.int64)
     except InputError:
         raise
-    except (KeyError, TypeError, ValueError) as exc:
+    except (KeyError, TypeError, ValueError, OverflowError) as exc:
         raise InputError(f"{p}: not a Pyramic TDOA file ({exc})") from None
     if ref != ref_raw:
         raise InputError(f"{p}: mic_ref must be an integer, got {ref_raw!r}")

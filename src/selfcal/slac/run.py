@@ -144,8 +144,12 @@ class SlacLog:
                "bandwidth", "sigma_v", "sigma_omega", "init_poses", "init_cov", "signals")
         z = load_npz(path, req)
         validate_log_arrays(z, str(path))  # one named field per error (selfcal.slac.validate)
-        if int(z["version"]) != LOG_VERSION:
-            raise InputError(f"{path}: log version {int(z['version'])} is not supported (expected {LOG_VERSION})")
+        try:
+            version = int(z["version"])
+        except (TypeError, ValueError):
+            raise InputError(f"{path}: field 'version' is not an integer (got {z['version']!r})") from None
+        if version != LOG_VERSION:
+            raise InputError(f"{path}: log version {version} is not supported (expected {LOG_VERSION})")
         ports = z["ports"].astype(int)
         n = ports.size
         S = z["controls"].shape[0]

@@ -239,6 +239,8 @@ def _with_common(base: Any, com: Any, sub: Array, scale: float, kr: NDArray[np.b
                  used: NDArray[np.bool_], offs: Array) -> Any:
     """``base`` with the common-offset fit ``com`` (on the rows ``kr``, columns ``ks``) written in."""
     from .nls import toa_model
+    from .result import n_parameters
+    from .robust import noise_scale
 
     I, J = base.receivers.shape[0], base.sources.shape[0]
     d = base.receivers.shape[1]
@@ -253,12 +255,18 @@ def _with_common(base: Any, com: Any, sub: Array, scale: float, kr: NDArray[np.b
     blk = sub[np.ix_(kr, ks)]
     R[np.ix_(kr, ks)] = np.where(np.isfinite(blk), blk - model, np.nan)
     inl = used & np.isfinite(R)
+    # the noise estimate of the new residuals, as the solver computes it (robust scale of the
+    # fitted residuals times sqrt(m / dof)), one parameter more than the offsets-free fit
+    m = int(inl.sum())
+    dof = m - n_parameters(int(kr.sum()), int(ks.sum()), d, "none") - 1
+    noise = noise_scale(R[inl]) * float(np.sqrt(m / dof)) if dof > 0 else float("nan")
     names = {f.name for f in dataclasses.fields(base)}
     kw = {
         "receivers": put(com.receivers, kr, (d,)), "sources": put(com.sources, ks, (d,)),
         "receiver_offsets": put(offs / scale, kr, ()), "offsets": "common",
         "receiver_cov": put(com.receiver_cov, kr, (d, d)), "source_cov": put(com.source_cov, ks, (d, d)),
         "residual_rms": float(np.sqrt(np.mean(R[inl] ** 2))) if inl.any() else float("nan"),
+        "sigma": noise, "noise_estimate": noise,
         "converged": com.converged, "iterations": int(base.iterations) + int(com.iterations),
         "method": f"{base.method}+common-offset", "residuals": R,
         "receiver_offset_std": None if com.receiver_offset_std is None

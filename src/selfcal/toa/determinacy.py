@@ -190,10 +190,13 @@ def set_scale(points: Any) -> float:
     if n < 2:
         return float("nan")
     med = np.empty(n)
+    # each row's smallest distance is the node to itself (0): the median of the n - 1 others
+    # is taken at sorted positions 1 + (n - 2) // 2 and 1 + (n - 1) // 2 (equal when n - 1 is odd)
+    k1, k2 = 1 + (n - 2) // 2, 1 + (n - 1) // 2
     for a in range(0, n, _SCALE_CHUNK):
         D = np.linalg.norm(P[a:a + _SCALE_CHUNK, None, :] - P[None, :, :], axis=-1)
-        D[np.arange(D.shape[0]), np.arange(a, a + D.shape[0])] = np.nan  # not the node itself
-        med[a:a + D.shape[0]] = np.nanmedian(D, axis=1)
+        D = np.partition(D, sorted({0, k1, k2}), axis=1)
+        med[a:a + D.shape[0]] = 0.5 * (D[:, k1] + D[:, k2])
     return float(np.median(med) / math.sqrt(2.0))
 
 

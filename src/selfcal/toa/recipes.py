@@ -69,7 +69,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from .._checks import as_matrix, check_choice
+from .._checks import as_matrix, check_choice, check_toa_counts
 from ..errors import InputError
 from ..robust import mad_std
 
@@ -418,6 +418,11 @@ def apply_recipe(name: str, matrix: Any, *, common_offset: str = "test", **kw: A
     check_choice(name, "recipe", RECIPES)
     if name == "auto":
         M = as_matrix(matrix, "matrix")
+        # a matrix neither recipe can solve (too few rows / columns / entries even for the
+        # least demanding model: the smallest dimension, no offsets) is refused before the
+        # time-order test, whose cost grows with the columns (1 x 200000: 12 s for nothing)
+        dim = kw.get("dim", 3)
+        check_toa_counts(M.shape, int(np.isfinite(M).sum()), 2 if dim == "auto" else int(dim), "none")
         test = detect_time_order(M)
         if test.detected:
             out = moving_tag(M, common_offset=common_offset, **kw)

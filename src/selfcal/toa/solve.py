@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 
 from .._checks import (
+    MAX_ABS_ENTRY,
     as_matrix,
     as_points,
     as_rng,
@@ -133,6 +134,8 @@ def solve_toa(
         dim = check_dim(dim)  # type: ignore[arg-type]
     spd = check_positive(speed, "speed")
     sd = check_positive(noise, "noise")
+    if sd is not None and sd > MAX_ABS_ENTRY:  # its square overflows every chi-square sum
+        raise InputError(f"noise: {sd:.3g} is beyond {MAX_ABS_ENTRY:.2g}; give the noise std in the matrix's units")
     fs = check_positive(f_scale, "f_scale")
     M = as_matrix(matrix, "matrix")
     gen = as_rng(rng)
