@@ -34,6 +34,7 @@ from numpy.typing import NDArray
 
 from ..errors import DegenerateGeometryError
 from ..robust import loss_rho
+from .dense_lm import _solve as _direct_solve  # Cholesky (posv), least squares if not PD
 from .dense_lm import damping_after_success
 
 Array = NDArray[np.float64]
@@ -314,22 +315,6 @@ class _Reduced:
         for p in range(mK):
             S[(idx * mK + p)[:, None], (idx * mK)[:, None] + np.arange(mK)] += self.A[:, p, :]
         return 0.5 * (S + S.T)
-
-
-def _direct_solve(S: Array, rhs: Array) -> Array | None:
-    """``S^-1 rhs`` by Cholesky; least squares when S is not numerically positive definite;
-    None when not even that is finite (the caller raises the damping)."""
-    import scipy.linalg
-
-    try:
-        c = scipy.linalg.cho_factor(S, lower=True, check_finite=False)
-        x = scipy.linalg.cho_solve(c, rhs, check_finite=False)
-    except (np.linalg.LinAlgError, ValueError):
-        try:
-            x = scipy.linalg.lstsq(S, rhs, check_finite=False)[0]
-        except (np.linalg.LinAlgError, ValueError):
-            return None
-    return np.asarray(x, float) if np.isfinite(x).all() else None
 
 
 def solve_schur_lm(
