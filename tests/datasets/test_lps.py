@@ -262,3 +262,26 @@ def test_spike_threshold_has_its_stated_false_alarm_rate():
     assert hits1 <= 12 and hits2 <= 12
     assert OUTLIER_ALPHA == 0.01
 
+
+
+@pytest.mark.slow
+def test_moving_tag_warnings_name_undetermined_positions_in_the_callers_numbering(shared_data):
+    """The recipe fits the kept columns only; the solver's warning about undetermined tag
+    positions must use the caller's column numbers, as the result's message and JSON do
+    (before: data4 warned 511 / 553 for positions 512 / 555)."""
+    import warnings
+
+    from selfcal.errors import ConvergenceWarning
+    from selfcal.toa.recipes import moving_tag
+
+    Y = load_lps(shared_data / "lps" / "data4.mat").ranges.copy()
+    Y[:, :3] = np.nan  # three unusable positions first: every later column number shifts by 3
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        rec = moving_tag(Y, common_offset="free")
+    det = rec.result.determinacy
+    assert det is not None and det.n_undetermined > 0 and {0, 1, 2} <= set(rec.dropped_sources)
+    texts = [str(w.message) for w in caught if issubclass(w.category, ConvergenceWarning)]
+    assert any(det.names() in t for t in texts), texts
+    for j in np.flatnonzero(det.undetermined_sources):
+        assert np.isfinite(rec.result.sources[j]).all()  # a kept column, named by its own number

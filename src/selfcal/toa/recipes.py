@@ -63,6 +63,7 @@ stated false-alarm rate); every variant is in
 from __future__ import annotations
 
 import dataclasses
+import warnings
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -345,16 +346,35 @@ def moving_tag(
         details["common_offset_value"] = float(prof.common / scale)
         details["profile"] = {"grid": (prof.grid / scale).tolist(), "scale": prof.profile.tolist()}
     else:
-        res = solve_toa(sub, dim=dim, speed=speed, **solve_kw)
-        if common_offset == "test" and res.offsets == "none":
-            from .common_offset import choose_common_offset
+        # the solver's warnings name nodes in the kept columns' numbering: held, then re-issued
+        # in the caller's numbering once the result is embedded (as its message is)
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            res = solve_toa(sub, dim=dim, speed=speed, **solve_kw)
+            if common_offset == "test" and res.offsets == "none":
+                from .common_offset import choose_common_offset
 
-            res, test = choose_common_offset(res, sub, scale)
-            details["common_offset_test"] = test
-            details["common_offset_value"] = test.get("value") if test["adopted"] else 0.0
-            details["offsets"] = res.offsets
+                res, test = choose_common_offset(res, sub, scale)
+                details["common_offset_test"] = test
+                details["common_offset_value"] = test.get("value") if test["adopted"] else 0.0
+                details["offsets"] = res.offsets
+        inner = getattr(res, "determinacy", None)
+        res = _embed_columns(res, keep, J, M)
+        _reissue(caught, inner, getattr(res, "determinacy", None))
+        return RecipeResult(res, "moving-tag", rej.outliers, dropped, (), details)
     res = _embed_columns(res, keep, J, M)
     return RecipeResult(res, "moving-tag", rej.outliers, dropped, (), details)
+
+
+def _reissue(caught: list[warnings.WarningMessage], inner: Any, outer: Any) -> None:
+    """Re-issue held warnings, the undetermined nodes' names mapped to the caller's numbering."""
+    old = inner.names() if inner is not None and inner.n_undetermined else ""
+    new = outer.names() if outer is not None and old else ""
+    for w in caught:
+        text = str(w.message)
+        if old and old in text:
+            text = text.replace(old, new)
+        warnings.warn_explicit(text, w.category, w.filename, w.lineno)
 
 
 def spike_threshold(matrix: Any, one_sided: bool = False, alpha: float | None = None) -> float:
