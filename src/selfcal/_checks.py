@@ -76,14 +76,9 @@ def as_matrix(
         raise InputError(f"{name}: entry ({i}, {j}) is NaN but missing values are not allowed here")
     if nan.all():
         raise InputError(f"{name}: every entry is missing (NaN)")
-    mag = np.abs(np.where(nan, 0.0, arr))
-    big = mag > MAX_ABS_ENTRY
-    if huge == "scale" and big.any() and not np.median(mag[~nan]) > MAX_ABS_ENTRY:
-        big[:] = False
-    if big.any():
-        i, j = np.argwhere(big)[0]
-        raise InputError(f"{name}: entry ({i}, {j}) = {arr[i, j]:.3g} is beyond {MAX_ABS_ENTRY:.2g}, where the "
-                         f"least-squares sums overflow double precision; give the data in another unit")
+    mag = np.abs(arr[~nan])
+    if (mag > MAX_ABS_ENTRY).any() and (huge == "entry" or np.median(mag) > MAX_ABS_ENTRY):
+        check_magnitude(arr, name)  # names the first such entry
     if nonnegative and (arr[~nan] < 0).any():
         i, j = np.argwhere(np.where(nan, 0.0, arr) < 0)[0]
         raise InputError(f"{name}: entry ({i}, {j}) = {arr[i, j]:g} is negative; ranges and times of flight must be >= 0")
