@@ -44,7 +44,19 @@ import numpy as np
 
 from .errors import Status
 
-__all__ = ["Result", "Status", "jsonable"]
+__all__ = ["Result", "Status", "json_float", "jsonable"]
+
+
+def json_float(x: float) -> float | None:
+    """A float for JSON: ``float(x)``, or None for NaN / inf.
+
+    Examples
+    --------
+    >>> json_float(2), json_float(float("nan"))
+    (2.0, None)
+    """
+    x = float(x)
+    return x if math.isfinite(x) else None
 
 
 def jsonable(obj: Any, *, strict: bool = False) -> Any:

@@ -23,6 +23,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from .._result import json_float as _num
+
 __all__ = [
     "DENSE_MAX_UNKNOWNS",
     "DETERMINED_LEVEL",
@@ -34,12 +36,6 @@ __all__ = [
 ]
 
 Array = NDArray[np.float64]
-
-
-def _num(x: float) -> float | None:
-    """A float for JSON (None for NaN / inf)."""
-    x = float(x)
-    return x if math.isfinite(x) else None
 
 
 #: confidence level of the determinacy test's per-node region

@@ -18,7 +18,6 @@
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -27,6 +26,7 @@ from numpy.typing import NDArray
 
 from .._checks import check_positive
 from .._result import Result, jsonable
+from .._result import json_float as _num
 from ..errors import Status
 from ..geometry import n_parameters
 from .determinacy import DeterminacyTest, determinacy_test
@@ -149,12 +149,6 @@ def residual_test(residuals: Any, noise: float, n_params: int, *, alpha: float =
     dof = int(e.size - int(n_params))
     p = float(chi2_dist.sf(chi2, dof)) if dof > 0 else float("nan")
     return ResidualTest(chi2, dof, p, float(sd), float(alpha), passed=not p < alpha)
-
-
-def _num(x: float) -> float | None:
-    """A float for JSON (None for NaN / inf)."""
-    x = float(x)
-    return x if math.isfinite(x) else None
 
 
 _jsonable = jsonable  # arrays -> nested lists, NaN / inf -> None: the one converter (selfcal._result)

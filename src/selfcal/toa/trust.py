@@ -17,7 +17,6 @@ below ~600 lines.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from typing import Any
 
@@ -25,6 +24,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .._checks import check_choice
+from .._result import json_float as _num
 from ..geometry import n_parameters
 from .determinacy import (  # noqa: F401 (re-exported: the trust tests are named here)
     DENSE_MAX_UNKNOWNS,
@@ -441,7 +441,3 @@ def geometry_test(ranges: Any, residuals: Any, leverages: Any, dim: int, offsets
                         cv_ok and (perm is None or perm.passed), perm)
 
 
-def _num(x: float) -> float | None:
-    """A float for JSON (None for NaN / inf)."""
-    x = float(x)
-    return x if math.isfinite(x) else None
