@@ -42,7 +42,7 @@ from ..robust import loss_rho
 
 Array = NDArray[np.float64]
 
-__all__ = ["GaugeProjector", "damping_after_success", "solve_dense_lm"]
+__all__ = ["VARPRO_DEFAULT", "GaugeProjector", "damping_after_success", "full_lm", "solve_dense_lm"]
 
 #: relative cost decrease that stops the iteration (SciPy's default ftol; as schur_lm)
 FTOL = 1e-8
@@ -74,6 +74,12 @@ def _rotation_generators(d: int) -> list[tuple[int, int]]:
     return [(0, 1)] if d == 2 else [(0, 1), (0, 2), (1, 2)]
 
 
+_ROTATIONS = {2: np.array(_rotation_generators(2)), 3: np.array(_rotation_generators(3))}
+#: a rotation direction whose Gram eigenvalue is below this fraction of the largest is
+#: dependent (collinear points: round-off of the eigensolver is ~1e-16 of the largest)
+_DEPENDENT = 1e-14
+
+
 class GaugeProjector:
     """The orthogonal projector off the gauge directions at one point (formed once per iteration).
 
@@ -87,7 +93,7 @@ class GaugeProjector:
     -----
     Translations (one unit vector per coordinate), rotations about the centroid (centred, so
     orthogonal to the translations) and the shift (on the offsets only) are mutually
-    orthogonal; only the d(d-1)/2 rotation vectors need orthonormalising (Gram-Schmidt). ``apply`` gives ``(I - Q Q^T) dx`` with Q the orthonormal basis of
+    orthogonal; only the d(d-1)/2 rotation vectors need orthonormalising (by the eigenvectors of their Gram matrix). ``apply`` gives ``(I - Q Q^T) dx`` with Q the orthonormal basis of
     :func:`selfcal.toa.nls.gauge_basis`, to round-off.
     """
 
@@ -95,22 +101,19 @@ class GaugeProjector:
         self.N, self.d, self.I, self.both = N, d, I, both
         P = theta[: N * d].reshape(N, d)
         P = P - P.sum(axis=0) * (1.0 / N)
-        rows: list[Array] = []
-        big = 0.0
-        for a, b in _rotation_generators(d):  # rotation a -> b: (-x_b, x_a) on coordinates (a, b)
-            v2 = np.zeros((N, d))
-            v2[:, a] = -P[:, b]
-            v2[:, b] = P[:, a]
-            v: Array = v2.ravel()
-            big = max(big, math.sqrt(float(v @ v)))
-            for q in rows:  # Gram-Schmidt (twice is enough for three vectors)
-                v = v - float(q @ v) * q
-            for q in rows:
-                v = v - float(q @ v) * q
-            nv = math.sqrt(float(v @ v))
-            if nv > 1e-10 * big:  # a dependent rotation (points on a line) adds no direction
-                rows.append(v / nv)
-        self.Qr = np.array(rows).reshape(len(rows), N * d)
+        gens = _ROTATIONS[d]
+        V = np.zeros((len(gens), N, d))
+        ia, ib = gens[:, 0], gens[:, 1]
+        k = np.arange(len(gens))
+        V[k, :, ia] = -P[:, ib].T  # rotation a -> b: (-x_b, x_a) on coordinates (a, b)
+        V[k, :, ib] = P[:, ia].T
+        Vf = V.reshape(len(gens), N * d)
+        # orthonormal basis of their span from the Gram matrix (d(d-1)/2 square): the
+        # eigenvectors scaled by 1/sqrt(eigenvalue); a dependent rotation (points on a line)
+        # has a zero eigenvalue and adds no direction
+        ev, E = np.linalg.eigh(Vf @ Vf.T)
+        keep = ev > _DEPENDENT * max(float(ev[-1]), 1e-300)
+        self.Qr = (E[:, keep] / np.sqrt(ev[keep])).T @ Vf
 
     def apply(self, dx: Array) -> Array:
         """``dx`` minus its projection on the gauge directions (in place); returns dx."""
@@ -139,10 +142,15 @@ def _solve(H: Array, rhs: Array) -> Array | None:
     return np.asarray(x, float) if np.isfinite(x).all() else None
 
 
+#: default of ``solve_dense_lm(varpro=None)``: whether full fits of offset-bearing models
+#: eliminate the offsets (:mod:`selfcal.toa.varpro`); see that module's notes for the measurements
+VARPRO_DEFAULT = False
+
+
 def solve_dense_lm(
     theta0: Array, y: Array, ii: NDArray[np.intp], jj: NDArray[np.intp], I: int, J: int, d: int,
     offsets: str, loss: str, f_scale: float, max_nfev: int | None, xtol: float,
-    free: NDArray[np.bool_] | None = None, max_it: int = 100,
+    free: NDArray[np.bool_] | None = None, max_it: int = 100, varpro: bool | None = None,
 ) -> tuple[Array, bool, int]:
     """Levenberg-Marquardt with dense normal equations on the observed entries ``y``.
 
@@ -156,11 +164,44 @@ def solve_dense_lm(
     max_nfev : iteration cap (default ``max_it``); xtol : relative step tolerance.
     free : (n,) bool, the parameters to fit (default all, and then the gauge is projected out
         of every step); the others are held at ``theta0`` and no gauge is projected.
+    max_it : iteration cap when ``max_nfev`` is None.
+    varpro : eliminate the offsets by variable projection
+        (:func:`selfcal.toa.varpro.solve_varpro_lm`: LM on the positions, the offsets re-solved
+        at every trial) instead of damping them with the positions; default
+        :data:`VARPRO_DEFAULT`. Only full fits of models with offsets are affected.
 
     Returns
     -------
     (theta, converged, iterations) as :func:`selfcal.toa.schur_lm.solve_schur_lm`.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from selfcal.toa import nls
+    >>> g = np.random.default_rng(0)
+    >>> r, s = g.uniform(0, 1.5, (12, 3)), g.normal(0, 2, (6, 3))
+    >>> Y = nls.toa_model(r, s)
+    >>> ii, jj = np.nonzero(np.isfinite(Y))
+    >>> th, ok, nit = solve_dense_lm(nls._pack(r + 0.02, s, None, None), Y[ii, jj], ii, jj, 12, 6, 3,
+    ...                              "none", "linear", 1.0, None, 1e-12)
+    >>> bool(ok) and float(np.abs(nls.toa_residuals(th, Y, 3, "none")).max()) < 1e-6
+    True
     """
+    if VARPRO_DEFAULT if varpro is None else varpro:
+        from .varpro import solve_varpro_lm
+
+        return solve_varpro_lm(theta0, y, ii, jj, I, J, d, offsets, loss, f_scale, max_nfev, xtol,
+                               free=free, max_it=max_it)
+    return full_lm(theta0, y, ii, jj, I, J, d, offsets, loss, f_scale, max_nfev, xtol, free=free, max_it=max_it)
+
+
+def full_lm(
+    theta0: Array, y: Array, ii: NDArray[np.intp], jj: NDArray[np.intp], I: int, J: int, d: int,
+    offsets: str, loss: str, f_scale: float, max_nfev: int | None, xtol: float,
+    free: NDArray[np.bool_] | None = None, max_it: int = 100,
+) -> tuple[Array, bool, int]:
+    """The joint LM of :func:`solve_dense_lm` (positions and offsets damped together); same
+    parameters (without ``varpro``) and return."""
     has_r, has_s = offsets in ("receivers", "both"), offsets in ("sources", "both")
     both = has_r and has_s
     theta = np.array(theta0, dtype=float)
