@@ -140,48 +140,45 @@ class RowPattern:
         self.blocks, self.glob, self.valid, self.p, self.nE, self.mE, self.ng = blocks, glob, valid, p, nE, mE, ng
         self.loc = np.nonzero(loc)[0]
         self.je_at = rows[loc] * mE + sl % mE  # flat index into JE (n_rows, mE)
-        self.has = np.nonzero(own >= 0)[0]
-        self.own_has = own[self.has]
-        # global entries as a per-row table (n_rows, cmax), -1 padded
+        # JG: the global entries as a CSR matrix of fixed structure (rows sorted)
         gi = np.nonzero(~loc)[0]
         gi = gi[np.argsort(rows[gi], kind="stable")]
-        cnt = np.bincount(rows[gi], minlength=n_rows)
-        cmax = max(int(cnt.max(initial=0)), 1)
+        self.g_ent = gi
+        self.g_indices = glob_pos[cols[gi]]
+        self.g_indptr = np.concatenate([[0], np.cumsum(np.bincount(rows[gi], minlength=n_rows))])
+        # Cs: row (e * mE + a) holds w JE[row, a] on the rows of node e, so that
+        # Cs @ JG = C, Cs @ JE = D and Cs @ f = g_E (fixed structure)
+        has = np.nonzero(own >= 0)[0]
+        hs = has[np.argsort(own[has], kind="stable")]
+        cnt = np.bincount(own[has], minlength=nE)
         start = np.concatenate([[0], np.cumsum(cnt)[:-1]])
-        pos = np.arange(gi.size) - np.repeat(start, cnt)
-        self.gtab = -np.ones((n_rows, cmax), np.intp)
-        self.gtab[rows[gi], pos] = gi
-        self.gmask = self.gtab >= 0
-        self.ktab = np.where(self.gmask, glob_pos[cols[np.maximum(self.gtab, 0)]], 0)
-        self.r_idx = (self.ktab[:, :, None] * ng + self.ktab[:, None, :]).ravel()
-        kh = self.ktab[self.has]
-        self.c_idx = ((self.own_has * mE)[:, None, None] * ng + np.arange(mE)[None, :, None] * ng
-                      + kh[:, None, :]).ravel()
-        self.d_idx = ((self.own_has * mE * mE)[:, None, None] + np.arange(mE)[None, :, None] * mE
-                      + np.arange(mE)[None, None, :]).ravel()
-        self.e_idx = ((self.own_has * mE)[:, None] + np.arange(mE)[None, :]).ravel()
+        seg = np.repeat(cnt, mE)
+        self.c_indptr = np.concatenate([[0], np.cumsum(seg)])
+        e_of = np.repeat(np.repeat(np.arange(nE), mE), seg)
+        self.c_a = np.repeat(np.tile(np.arange(mE), nE), seg)
+        j = np.arange(e_of.size) - np.repeat(self.c_indptr[:-1], seg)
+        self.c_indices = hs[start[e_of] + j]
 
-    def systems(self, vals: Array, w: Array, wf: Array) -> tuple[Array, Array, Array, Array, Array]:
+    def systems(self, vals: Array, w: Array, f: Array) -> tuple[Array, Array, Array, Array, Array]:
         """Normal-equation pieces: D (nE, mE, mE), C (nE, mE, n_g), R (n_g, n_g), g_E (nE, mE), g_G (n_g,).
 
-        ``w`` (n_rows,) row weights, ``wf`` (n_rows,) weighted residuals (0 on curvature rows).
+        ``w`` (n_rows,) row weights, ``f`` (n_rows,) residuals (0 on curvature rows).
         """
-        nE, mE, ng = self.nE, self.mE, self.ng
-        JE = np.zeros(self.n_rows * mE)
+        nE, mE, ng, n = self.nE, self.mE, self.ng, self.n_rows
+        JE = np.zeros(n * mE)
         JE[self.je_at] = vals[self.loc]
-        JE = JE.reshape(self.n_rows, mE)
-        VG = np.where(self.gmask, vals[np.maximum(self.gtab, 0)], 0.0)
-        gG = np.bincount(self.ktab.ravel(), (VG * wf[:, None]).ravel(), minlength=ng)[:ng]
-        R = np.bincount(self.r_idx, (w[:, None, None] * VG[:, :, None] * VG[:, None, :]).ravel(),
-                        minlength=ng * ng)[: ng * ng].reshape(ng, ng)
-        h = self.has
-        JEh = JE[h]
-        JEw = JEh * w[h, None]
-        D = np.bincount(self.d_idx, (JEw[:, :, None] * JEh[:, None, :]).ravel(),
-                        minlength=nE * mE * mE).reshape(nE, mE, mE)
-        C = np.bincount(self.c_idx, (JEw[:, :, None] * VG[h][:, None, :]).ravel(),
-                        minlength=nE * mE * ng)[: nE * mE * ng].reshape(nE, mE, ng)
-        gE = np.bincount(self.e_idx, (JEh * wf[h, None]).ravel(), minlength=nE * mE).reshape(nE, mE)
+        JE = JE.reshape(n, mE)
+        JG = scipy.sparse.csr_matrix((vals[self.g_ent], self.g_indices, self.g_indptr), shape=(n, ng))
+        wJG = scipy.sparse.csr_matrix((vals[self.g_ent] * np.repeat(w, np.diff(self.g_indptr)),
+                                       self.g_indices, self.g_indptr), shape=(n, ng))
+        gG = np.asarray(JG.T @ (w * f)).ravel()
+        R = np.asarray((JG.T @ wJG).toarray())
+        ci = self.c_indices
+        Cs = scipy.sparse.csr_matrix((JE[ci, self.c_a] * w[ci], ci, self.c_indptr), shape=(nE * mE, n))
+        C = np.asarray((Cs @ JG).toarray()).reshape(nE, mE, ng)
+        D = np.asarray(Cs @ JE).reshape(nE, mE, mE)
+        D = 0.5 * (D + np.swapaxes(D, 1, 2))
+        gE = np.asarray(Cs @ f).reshape(nE, mE)
         return D, C, R, gE, gG
 
     def matvec(self, vals: Array, dx: Array) -> Array:
@@ -265,8 +262,9 @@ def solve_affine_lm(
         it += 1
         vals, wc = values(x, f, w)
         wall = np.concatenate([w, np.asarray(wc, float)])
-        wf = np.concatenate([w * f, zeros_c])
-        D, C, R, gE, gG = pat.systems(vals, wall, wf)
+        fall = np.concatenate([f, zeros_c])
+        wf = wall * fall
+        D, C, R, gE, gG = pat.systems(vals, wall, fall)
         dD = _floor(np.abs(np.einsum("eaa->ea", D)))
         dR = _floor(np.abs(np.diag(R)).copy())
         gnorm = float(np.sqrt(gG @ gG + np.sum(gE * gE)))
