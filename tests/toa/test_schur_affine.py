@@ -120,7 +120,7 @@ def test_linear_least_squares_solved_exactly(seed):
     np.testing.assert_allclose(x, ref, atol=1e-8)
 
 
-def _flight(seed: int, kind: str, n: int = 130):
+def _flight(seed: int, kind: str, n: int = 130, start: str = "truth"):
     from selfcal.experiments.lps import simulate_uwb_flight
 
     sim = simulate_uwb_flight(seed, n, layout="lps", bias_std=0.0, spike_rate=0.0, noise=0.03,
@@ -129,6 +129,11 @@ def _flight(seed: int, kind: str, n: int = 130):
     rng = np.random.default_rng(seed)
     r0 = A + rng.normal(0, 0.05, A.shape)
     s0 = T + rng.normal(0, 0.05, T.shape)
+    if start == "free":  # as the recipe's test: from the offsets-free fit (c = 0, scale shrunk)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            free = refine_toa(Y, r0, s0, covariance=False)
+        r0, s0 = free.receivers, free.sources
     kw: dict = dict(offsets="receivers", common_offsets="receivers")
     if kind == "known":  # three anchors at known positions (--known)
         fr = np.zeros(6, bool)
@@ -147,8 +152,8 @@ def _flight(seed: int, kind: str, n: int = 130):
     return Y, r0, s0, kw
 
 
-def _compare(seed: int, kind: str):
-    Y, r0, s0, kw = _flight(seed, kind)
+def _compare(seed: int, kind: str, start: str = "truth"):
+    Y, r0, s0, kw = _flight(seed, kind, start=start)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         a = refine_toa(Y, r0, s0, solver="auto", **kw)
@@ -176,11 +181,22 @@ def test_constrained_flight_matches_trf(kind):
     _compare(0, kind)
 
 
+def test_common_offset_from_the_offsets_free_fit_matches_trf():
+    """The recipe's case: the common-offset refit started from the offsets-free minimum (the
+    offset moves from 0 to ~-0.17 m and the geometry rescales). A Newton step from there can
+    land in another basin (measured on data5 before the Gauss-Newton-first rule: cost 8.4951
+    against trf's 8.4671, c 0.4 se away); the engine must reach trf's minimum or a lower one."""
+    _compare(1, "common", start="free")
+
+
 @pytest.mark.slow
-@pytest.mark.parametrize("kind", ["common", "known", "heights", "prior"])
+@pytest.mark.parametrize("kind", ["common", "known", "heights", "prior", "free-start"])
 @pytest.mark.parametrize("seed", range(1, 13))
 def test_constrained_flight_matches_trf_many_seeds(kind, seed):
-    _compare(seed, kind)
+    if kind == "free-start":
+        _compare(seed + 100, "common", start="free")
+    else:
+        _compare(seed, kind)
 
 
 def test_huber_flight_reaches_a_minimum():

@@ -58,7 +58,8 @@ MAX_GLOBAL = 1200
 FTOL = 1e-12
 #: damping trials per iteration before giving up (as schur_lm)
 TRIALS = 12
-_DEBUG = False
+#: relative cost decrease of a Gauss-Newton step below which the curvature rows are switched on
+SWITCH = 1e-5
 
 
 def local_blocks(T: scipy.sparse.spmatrix, node_of_theta: IntArray) -> tuple[IntArray, IntArray]:
@@ -258,9 +259,12 @@ def solve_affine_lm(
     converged = False
     it = 0
     zeros_c = np.zeros(n_cur)
+    newton = False
     while it < max_it:
         it += 1
         vals, wc = values(x, f, w)
+        if not newton:
+            wc = np.zeros_like(wc)
         wall = np.concatenate([w, np.asarray(wc, float)])
         fall = np.concatenate([f, zeros_c])
         wf = wall * fall
@@ -296,9 +300,10 @@ def solve_affine_lm(
                 pred = -(float(wf @ Jd) + 0.5 * float(np.sum(wall * Jd * Jd)))
                 small = np.linalg.norm(dx) <= xtol * (xtol + np.linalg.norm(x))
                 rel = (cost - c2) <= ftol * max(cost, 1e-300)
-                if _DEBUG:
-                    print(f"it {it} cost {c2:.10f} lam {lam:.2e} rho {(cost - c2) / pred if pred else 0:.3f} "
-                          f"|dx| {np.linalg.norm(dx):.2e} |dxg| {np.linalg.norm(xg):.2e}")
+                # Gauss-Newton while its model holds; the residuals' curvature once it fails
+                # (gain ratio below 1/4) or its progress has become the linear tail
+                if not newton and ((cost - c2) <= SWITCH * cost or (cost - c2) < 0.25 * pred):
+                    newton = True
                 lam = damping_after_success(lam, cost - c2, pred)
                 nu = 2.0
                 x, cost, f, w, rho = trial, c2, f2, w2, r2
