@@ -176,7 +176,9 @@ def load_pyramic(path: PathLike | Sequence[PathLike], *, speed: float | None = N
 def join_pyramic(parts: Sequence[PyramicData], *, labels: Sequence[str] | None = None) -> PyramicData:
     """Join Pyramic data sets of the same array column-wise (all their speakers together).
 
-    The microphones (hand-measured positions) and the reference microphone must agree;
+    The microphones (hand-measured positions) must agree; a part recorded against another
+    reference microphone is re-referenced to the first part's ``mic_ref`` (a constant per
+    column, absorbed by the column offset of the far-field model; see :func:`_rereference`);
     each part keeps its own speed of sound (``column_speed``). Speaker ids that repeat
     across parts (e.g. two files both labelled 0) are renumbered so that every part's
     speakers stay distinct.
@@ -189,7 +191,7 @@ def join_pyramic(parts: Sequence[PyramicData], *, labels: Sequence[str] | None =
     Raises
     ------
     InputError
-        The parts disagree on the microphones or on ``mic_ref``.
+        The parts disagree on the microphones.
     """
     if not parts:
         raise InputError("join_pyramic: nothing to join")
@@ -208,8 +210,6 @@ def join_pyramic(parts: Sequence[PyramicData], *, labels: Sequence[str] | None =
                 p.microphones, first.microphones, atol=1e-9, rtol=0.0):
             raise InputError(f"{name}: its microphones differ from those of {names[0]}; only recordings of the "
                              "same array can be calibrated together")
-        if p.mic_ref != first.mic_ref:
-            raise InputError(f"{name}: mic_ref = {p.mic_ref} but {names[0]} has mic_ref = {first.mic_ref}")
         sp = np.zeros(p.D.shape[1], dtype=np.int64) if p.speaker is None else p.speaker.copy()
         if used & set(sp.tolist()):
             shift = max(used) + 1 - int(sp.min())
@@ -218,9 +218,11 @@ def join_pyramic(parts: Sequence[PyramicData], *, labels: Sequence[str] | None =
         ids.append(sp)
     speeds = [np.full(p.D.shape[1], p.speed) if p.column_speed is None else p.column_speed for p in parts]
     mics = next((p.microphones for p in parts if p.has_microphones), first.microphones)
+    ref = first.mic_ref
+    Ds = [_rereference(p.D, ref) if p.mic_ref != ref else p.D for p in parts]
     return PyramicData(
-        D=np.concatenate([p.D for p in parts], axis=1),
-        delays=np.concatenate([p.delays for p in parts], axis=1),
+        D=np.concatenate(Ds, axis=1),
+        delays=np.concatenate([np.delete(Dp, ref, axis=0) / sp for Dp, sp in zip(Ds, speeds, strict=True)], axis=1),
         sources=np.concatenate([p.sources for p in parts], axis=0),
         microphones=mics.copy(),
         speed=first.speed,
@@ -229,6 +231,19 @@ def join_pyramic(parts: Sequence[PyramicData], *, labels: Sequence[str] | None =
         column_speed=np.concatenate(speeds),
         skipped=sum(p.skipped for p in parts),
     )
+
+
+def _rereference(D: Array, ref: int) -> Array:
+    """Columns of ``D`` against microphone ``ref``: ``D_ij - D_ref,j`` where that delay is observed.
+
+    A recording against another reference microphone differs from one against ``ref`` by one
+    constant per column, which the far-field model's column offset ``C_j`` absorbs; so files
+    with different ``mic_ref`` can be joined. A column whose delay at ``ref`` is missing keeps
+    its own reference (still the same model, with another ``C_j``)."""
+    out = D.copy()
+    ok = np.isfinite(D[ref])
+    out[:, ok] = D[:, ok] - D[ref, ok]
+    return out
 
 
 def _flatten_speakers(p: str, delays: Array, sources: Array | None) -> tuple[Array, Array, int]:
