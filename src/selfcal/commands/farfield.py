@@ -128,6 +128,8 @@ def farfield_command(matrix: tuple[Path, ...], out: Path, speed: float | None, d
         known = read_table(Path(directions), name=str(directions)).values
     D_all = D
     keep_r, keep_c = _determinable(D)
+    if keep_r.sum() < 4 or keep_c.sum() < 3:  # too little left: the solver's own refusal names the problem
+        keep_r, keep_c = np.ones(D.shape[0], dtype=bool), np.ones(D.shape[1], dtype=bool)
     if not (keep_r.all() and keep_c.all()):
         gone_r, gone_c = np.flatnonzero(~keep_r), np.flatnonzero(~keep_c)
         what = "microphone" if pyramic is not None else "row"

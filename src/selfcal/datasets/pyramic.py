@@ -49,6 +49,8 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
+from .._checks import MAX_ABS_ENTRY, check_magnitude
+from ..acoustics.recording import MAX_SPEED_OF_SOUND
 from ..errors import InputError
 from ..io import read_json
 
@@ -313,6 +315,12 @@ def pyramic_from_dict(obj: object, *, label: str = "Pyramic JSON", speed: float 
         file_speed = float(raw_speed) if raw_speed is not None else float("nan")
         ref = int(ref_raw)
         spk_raw = obj.get("speaker", None)
+        if spk_raw is not None:
+            bad = _leaf_type_error(spk_raw)
+            ints = np.asarray(spk_raw, dtype=float) if bad is None else None
+            if ints is None or not np.all(np.isfinite(ints)) or np.any(ints != np.round(ints)) \
+                    or np.any(np.abs(ints) > 2**53):
+                raise InputError(f"{p}: 'speaker' must be integer ids, got {bad or repr(spk_raw)[:40]}")
         spk = None if spk_raw is None else np.asarray(spk_raw, dtype=np.int64)
     except InputError:
         raise
@@ -353,8 +361,12 @@ def pyramic_from_dict(obj: object, *, label: str = "Pyramic JSON", speed: float 
         raise InputError(f"{p}: the speed of sound must be a positive number (sound_speed_mps or --speed), got {c}")
     if np.isinf(delays).any():
         raise InputError(f"{p}: 'delays' must be finite or null / NaN (missing)")
-    if np.isnan(mics).any() and not np.isnan(mics).all():
+    if (~np.isfinite(mics)).any() and not np.isnan(mics).all():
         raise InputError(f"{p}: 'microphones' must be finite (or absent)")
+    check_magnitude(mics, f"{p}: 'microphones'")
+    if c > MAX_SPEED_OF_SOUND:
+        raise InputError(f"{p}: the speed of sound {c:g} m/s exceeds the physical bound {MAX_SPEED_OF_SOUND:g} m/s "
+                         "of any medium; is it in m/s?")
     per = n_src // n_spk
     if spk is None:
         speaker = np.repeat(np.arange(n_spk, dtype=np.int64), per)
@@ -376,13 +388,35 @@ def pyramic_from_dict(obj: object, *, label: str = "Pyramic JSON", speed: float 
         raise InputError(f"{p}: source {j} has delays but no finite direction in 'sources'")
     delays, sources, speaker = delays[:, keep], sources[keep], speaker[keep]
     D = np.insert(delays * c, ref, 0.0, axis=0)
+    top = float(np.nanmax(np.abs(D)))
+    if 0 < top < 1.0 / MAX_ABS_ENTRY:  # squares underflow: the least-squares sums lose every digit
+        raise InputError(f"{p}: the relative distances (speed x delays) are at most {top:.3g} m, where the "
+                         "least-squares sums underflow double precision; are the delays or the speed in the wrong unit?")
     return PyramicData(D=D, delays=delays, sources=sources, microphones=mics, speed=c,
                        mic_ref=ref, speaker=speaker, column_speed=np.full(delays.shape[1], c),
                        skipped=int((~keep).sum()))
 
 
+def _leaf_type_error(value: object) -> str | None:
+    """The first leaf of a nested JSON list that is not a number or ``null`` (strings and
+    booleans are not numbers: numpy would read ``"1e-3"`` as 0.001 and ``true`` as 1)."""
+    stack = [value]
+    while stack:
+        v = stack.pop()
+        if isinstance(v, list):
+            stack.extend(v)
+        elif v is None or (isinstance(v, (int, float)) and not isinstance(v, bool)):
+            continue
+        else:
+            return repr(v)[:40]
+    return None
+
+
 def _numeric(value: object, p: str, key: str) -> Array:
     """A nested list of numbers (``null`` = NaN) as a float array; ragged or non-numeric: InputError."""
+    bad = _leaf_type_error(value)
+    if bad is not None:
+        raise InputError(f"{p}: '{key}' must hold numbers (or null), found {bad}")
     try:
         arr = np.asarray(value, dtype=float)
     except ValueError as exc:
