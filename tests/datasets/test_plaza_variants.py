@@ -161,3 +161,19 @@ def test_cli_on_a_generated_log_writes_every_output(tmp_path: Path) -> None:
     assert s["init_heading_offset"] == pytest.approx(np.pi)
     assert s["methods"]["smoother"]["position_rmse"] < s["dead_reckoning"]["position_rmse"]
     assert (o / "t.csv").stat().st_size > 0 and (o / "t.tum").stat().st_size > 0
+
+
+def test_sparse_matrices_are_read_and_ranges_outside_the_odometry_refused(tmp_path: Path) -> None:
+    """A MATLAB sparse TD is the same numbers (before: "must be a (rows, 4) array, got shape ()");
+    ranges that all lie outside the odometry span (another clock) leave nothing to calibrate
+    (before: exit 0 with every scale at its prior 1.000, dead reckoning reported as a result)."""
+    from scipy import sparse
+
+    m, _ = cmu_log(1, duration=30.0)
+    dense = load_plaza(_save(tmp_path, m, "a.mat"))
+    sp = load_plaza(_save(tmp_path, {**m, "TD": sparse.csc_matrix(m["TD"])}, "b.mat"))
+    assert np.array_equal(dense.ranges, sp.ranges) and np.array_equal(dense.range_times, sp.range_times)
+    td = m["TD"].copy()
+    td[:, 0] -= 1e4
+    with pytest.raises(InputError, match="no TD range falls in the span of the odometry"):
+        load_plaza(_save(tmp_path, {**m, "TD": td}, "c.mat"))

@@ -146,7 +146,10 @@ class PlazaData:
 def _field(m: dict[str, Any], key: str, width: int, p: Path) -> FArray:
     if key not in m:
         raise InputError(f"{p}: missing variable {key!r} (a CMU range log has TL, TD, GT, DR, init_heading_offset)")
-    a = np.asarray(m[key])
+    a = m[key]
+    if hasattr(a, "toarray"):  # a MATLAB sparse matrix (scipy.sparse): the same numbers
+        a = a.toarray()
+    a = np.asarray(a)
     if a.ndim != 2 or a.shape[0] < 1 or a.shape[1] < width:
         raise InputError(f"{p}: {key} must be a (rows, {width}) array, got shape {a.shape}")
     if not np.issubdtype(a.dtype, np.number) or np.iscomplexobj(a):
@@ -256,6 +259,11 @@ def load_plaza(path: str | os.PathLike[str], *, init_heading_offset: float | Non
     DR = DR[DR[:, 0] > t0]  # convention 4: increments after the start pose
     if DR.shape[0] < 1:
         raise InputError(f"{p}: DR has no odometry after the first GT time {t0}")
+    inside = (TD[:, 0] > t0) & (TD[:, 0] <= DR[-1, 0])
+    if not inside.any():  # nothing to calibrate with: the run would be dead reckoning reported as a result
+        raise InputError(f"{p}: no TD range falls in the span of the odometry (first GT time {t0:.6g} s to the last "
+                         f"DR time {DR[-1, 0]:.6g} s; ranges span {TD[:, 0].min():.6g} .. {TD[:, 0].max():.6g} s); "
+                         "are the time columns in the same clock?")
     gt = GT[:, 1:4].copy()
     gt[:, 2] = wrap_angle(gt[:, 2] + offset)  # convention 1
     return PlazaData(
