@@ -177,3 +177,19 @@ def test_simulate_conference_into_a_symlinked_folder_keeps_the_link(tmp_path: Pa
     assert check_contract(res)[0] == 0
     assert link.is_symlink() and (target / "setup.json").is_file()
     assert sorted(q.name for q in tmp_path.iterdir()) == ["out", "target"]
+
+
+@pytest.mark.parametrize("heights,match", [
+    ({"receivers": ["1", "1"], "senders": [1, 1]}, "found '1'"),     # before: read as numbers
+    ({"receivers": [True, 1.2], "senders": [1, 1]}, "found True"),   # before: true read as 1 m
+    ({"receivers": [1e300, 1.2], "senders": [1, 1]}, "overflow"),
+])
+def test_pipeline_heights_json_leaf_types(tmp_path: Path, heights: dict, match: str) -> None:  # type: ignore[type-arg]
+    from .test_cli import _tiny_recording
+
+    rec = _tiny_recording(tmp_path)
+    (tmp_path / "h.json").write_text(json.dumps(heights))
+    before = snapshot(tmp_path)
+    res = invoke(["pipeline", rec, "-o", tmp_path / "r.json", "--heights", tmp_path / "h.json"])
+    code, _, err = check_contract(res, before, snapshot(tmp_path))
+    assert code == 2 and match in err, err
