@@ -193,3 +193,27 @@ def test_pipeline_heights_json_leaf_types(tmp_path: Path, heights: dict, match: 
     res = invoke(["pipeline", rec, "-o", tmp_path / "r.json", "--heights", tmp_path / "h.json"])
     code, _, err = check_contract(res, before, snapshot(tmp_path))
     assert code == 2 and match in err, err
+
+
+_TRUTH = {"receivers": [[0, 0, 1], [1, 0, 1]], "senders": [[0, 0, 0.8], [1, 0, 0.8]],
+          "receiver_delays": [0.0, 1e-4], "sender_onsets": [0.0, 2e-4]}
+
+
+@pytest.mark.parametrize("truth,match", [
+    ({k: v for k, v in _TRUTH.items() if k != "receivers"}, "'receivers' is missing"),  # before: KeyError
+    ({**_TRUTH, "sender_onsets": ["x", "y"]}, "must hold numbers"),                   # before: ValueError
+    ([1, 2], "expected an object"),                                                   # before: TypeError
+    ({**_TRUTH, "receivers": [[0, 0, 1]]}, "one receiver_delay per receiver"),        # before: align's message
+    ({**_TRUTH, "receivers": [[0, 0, 1], [1, 0]]}, "ragged"),
+])
+def test_pipeline_truth_json_validated_before_the_run(tmp_path: Path, truth: object, match: str) -> None:
+    """A recording folder's truth.json (scores only) is checked before the calibration runs:
+    one line, exit 2, nothing written (before: an internal error after the whole run)."""
+    from .test_cli import _tiny_recording
+
+    rec = _tiny_recording(tmp_path)
+    (rec / "truth.json").write_text(json.dumps(truth))
+    before = snapshot(tmp_path)
+    res = invoke(["pipeline", rec, "-o", tmp_path / "r.json"])
+    code, _, err = check_contract(res, before, snapshot(tmp_path))
+    assert code == 2 and match in err, err
