@@ -124,6 +124,28 @@ def check_magnitude(arr: NDArray[np.float64], name: str) -> NDArray[np.float64]:
     return a
 
 
+def non_number_leaf(value: Any) -> str | None:
+    """The first leaf of a nested JSON list that is not a number or ``null``, as a short repr
+    (None when every leaf is one). Strings and booleans are not numbers, although numpy reads
+    ``"1e-3"`` as 0.001 and ``true`` as 1 when it converts the list.
+
+    Examples
+    --------
+    >>> non_number_leaf([[1, 2.5], [None, 3]]) is None, non_number_leaf([[1, "2"]])
+    (True, "'2'")
+    """
+    stack = [value]
+    while stack:
+        v = stack.pop()
+        if isinstance(v, (list, tuple)):
+            stack.extend(v)
+        elif v is None or (isinstance(v, (int, float)) and not isinstance(v, bool)):
+            continue
+        else:
+            return repr(v)[:40]
+    return None
+
+
 def check_dim(dim: int) -> int:
     """Return ``dim`` if it is 2 or 3, else raise :class:`InputError`."""
     if dim not in (2, 3):

@@ -177,3 +177,43 @@ def test_simulate_conference_into_a_symlinked_folder_keeps_the_link(tmp_path: Pa
     assert check_contract(res)[0] == 0
     assert link.is_symlink() and (target / "setup.json").is_file()
     assert sorted(q.name for q in tmp_path.iterdir()) == ["out", "target"]
+
+
+@pytest.mark.parametrize("heights,match", [
+    ({"receivers": ["1", "1"], "senders": [1, 1]}, "found '1'"),     # before: read as numbers
+    ({"receivers": [True, 1.2], "senders": [1, 1]}, "found True"),   # before: true read as 1 m
+    ({"receivers": [1e300, 1.2], "senders": [1, 1]}, "overflow"),
+])
+def test_pipeline_heights_json_leaf_types(tmp_path: Path, heights: dict, match: str) -> None:  # type: ignore[type-arg]
+    from .test_cli import _tiny_recording
+
+    rec = _tiny_recording(tmp_path)
+    (tmp_path / "h.json").write_text(json.dumps(heights))
+    before = snapshot(tmp_path)
+    res = invoke(["pipeline", rec, "-o", tmp_path / "r.json", "--heights", tmp_path / "h.json"])
+    code, _, err = check_contract(res, before, snapshot(tmp_path))
+    assert code == 2 and match in err, err
+
+
+_TRUTH = {"receivers": [[0, 0, 1], [1, 0, 1]], "senders": [[0, 0, 0.8], [1, 0, 0.8]],
+          "receiver_delays": [0.0, 1e-4], "sender_onsets": [0.0, 2e-4]}
+
+
+@pytest.mark.parametrize("truth,match", [
+    ({k: v for k, v in _TRUTH.items() if k != "receivers"}, "'receivers' is missing"),  # before: KeyError
+    ({**_TRUTH, "sender_onsets": ["x", "y"]}, "must hold numbers"),                   # before: ValueError
+    ([1, 2], "expected an object"),                                                   # before: TypeError
+    ({**_TRUTH, "receivers": [[0, 0, 1]]}, "one receiver_delay per receiver"),        # before: align's message
+    ({**_TRUTH, "receivers": [[0, 0, 1], [1, 0]]}, "ragged"),
+])
+def test_pipeline_truth_json_validated_before_the_run(tmp_path: Path, truth: object, match: str) -> None:
+    """A recording folder's truth.json (scores only) is checked before the calibration runs:
+    one line, exit 2, nothing written (before: an internal error after the whole run)."""
+    from .test_cli import _tiny_recording
+
+    rec = _tiny_recording(tmp_path)
+    (rec / "truth.json").write_text(json.dumps(truth))
+    before = snapshot(tmp_path)
+    res = invoke(["pipeline", rec, "-o", tmp_path / "r.json"])
+    code, _, err = check_contract(res, before, snapshot(tmp_path))
+    assert code == 2 and match in err, err

@@ -23,6 +23,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from .._checks import check_magnitude, non_number_leaf
 from ..errors import InputError
 from ..toa.select import (  # one implementation: the TOA package's model choice (dim="auto")
     PLANAR_ALPHA,
@@ -103,10 +104,14 @@ def read_heights(path: str | Path, receivers: tuple[str, ...], senders: tuple[st
             if missing:
                 raise InputError(f"{p.name}: field '{key}' lacks {missing[0]!r}")
             val = [val[n] for n in names]
+        bad = non_number_leaf(val)
+        if bad is not None:
+            raise InputError(f"{p.name}: field '{key}' must be numbers (metres), found {bad}")
         try:
             z = np.asarray(val, dtype=float)
         except (TypeError, ValueError):
             raise InputError(f"{p.name}: field '{key}' must be numbers (metres)") from None
+        check_magnitude(z, f"{p.name}: field '{key}'")
         if z.shape != (len(names),) or not np.isfinite(z).all():
             raise InputError(f"{p.name}: field '{key}' must hold {len(names)} finite heights, got shape {z.shape}")
         out.append(z)

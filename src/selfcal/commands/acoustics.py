@@ -182,15 +182,58 @@ def summarise(result: Any, errors: dict[str, Any] | None) -> list[str]:
     return lines
 
 
-def pipeline_errors(result: Any, directory: Path) -> dict[str, Any] | None:
-    """Errors against ``directory/truth.json`` when it exists (with the truth attached)."""
-    from ..acoustics.pipeline import truth_errors
+def read_truth(directory: Path) -> dict[str, Any] | None:
+    """``directory/truth.json`` (a simulation's ground truth) validated, or None when absent.
+
+    Raises
+    ------
+    InputError
+        Not an object, a key of the scoring missing, non-numeric / non-finite / overflowing
+        values, positions that are not (n, 2) or (n, 3), offsets not one per unit.
+    """
+    import numpy as np
+
+    from .._checks import check_magnitude, non_number_leaf
+    from ..errors import InputError
     from ..io import read_json
 
     path = directory / "truth.json"
     if not path.is_file():
         return None
     truth = read_json(path, "truth.json")
+    if not isinstance(truth, dict):
+        raise InputError("truth.json: expected an object with receivers, senders, receiver_delays, sender_onsets")
+    shapes = {"receivers": 2, "senders": 2, "receiver_delays": 1, "sender_onsets": 1}
+    for key, ndim in shapes.items():
+        if key not in truth:
+            raise InputError(f"truth.json: field '{key}' is missing")
+        bad = non_number_leaf(truth[key])
+        if bad is not None:
+            raise InputError(f"truth.json: field '{key}' must hold numbers, found {bad}")
+        try:
+            a = np.asarray(truth[key], dtype=float)
+        except (TypeError, ValueError):
+            raise InputError(f"truth.json: field '{key}' is ragged or not numeric") from None
+        if a.ndim != ndim or (ndim == 2 and a.shape[1] not in (2, 3)) or not np.isfinite(a).all():
+            raise InputError(f"truth.json: field '{key}' must be {'n x 3 positions' if ndim == 2 else 'n numbers'}"
+                             f", finite; got shape {a.shape}")
+        check_magnitude(a, f"truth.json: field '{key}'")
+    if len(truth["receivers"]) != len(truth["receiver_delays"]) or len(truth["senders"]) != len(truth["sender_onsets"]):
+        raise InputError("truth.json: one receiver_delay per receiver and one sender_onset per sender are needed")
+    return truth
+
+
+def pipeline_errors(result: Any, directory: Path, truth: dict[str, Any] | None = None) -> dict[str, Any] | None:
+    """Errors against ``directory/truth.json`` when it exists (with the truth attached)."""
+    from ..acoustics.pipeline import truth_errors
+    from ..errors import InputError
+
+    truth = read_truth(directory) if truth is None else truth
+    if truth is None:
+        return None
+    if (len(truth["receivers"]), len(truth["senders"])) != (len(result.receivers), len(result.sources)):
+        raise InputError(f"truth.json: {len(truth['receivers'])} receivers and {len(truth['senders'])} senders, "
+                         f"but the recording has {len(result.receivers)} and {len(result.sources)}")
     err = truth_errors(result, truth)
     err["true_receivers"] = truth["receivers"]
     err["true_senders"] = truth["senders"]
@@ -254,9 +297,10 @@ def _pipeline_outputs(directory: Path, out: Path, plot: Path | None, report: Pat
         speed = speed_from_air(temperature, humidity or 0.0)
     elif humidity is not None:
         raise InputError("--humidity needs --temperature")
+    truth = read_truth(directory) if directory.is_dir() else None  # validated before the (slow) run
     result = run_pipeline(directory, dim=dim if dim == "auto" else int(dim), heights=heights, rng=seed,
                           jitter=jitter, speed_of_sound=speed)
-    errors = pipeline_errors(result, directory)
+    errors = pipeline_errors(result, directory, truth)
     payload = enrich_payload(result.to_dict(), units={"positions": "m", "offsets": "s", "residual_rms": "s",
                                                       "toa_matrix": "s", "covariances": "m^2"})
     if errors is not None:

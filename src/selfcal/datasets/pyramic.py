@@ -49,7 +49,7 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from .._checks import MAX_ABS_ENTRY, check_magnitude
+from .._checks import MAX_ABS_ENTRY, check_magnitude, non_number_leaf
 from ..acoustics.recording import MAX_SPEED_OF_SOUND
 from ..errors import InputError
 from ..io import read_json
@@ -316,7 +316,7 @@ def pyramic_from_dict(obj: object, *, label: str = "Pyramic JSON", speed: float 
         ref = int(ref_raw)
         spk_raw = obj.get("speaker", None)
         if spk_raw is not None:
-            bad = _leaf_type_error(spk_raw)
+            bad = non_number_leaf(spk_raw)
             ints = np.asarray(spk_raw, dtype=float) if bad is None else None
             if ints is None or not np.all(np.isfinite(ints)) or np.any(ints != np.round(ints)) \
                     or np.any(np.abs(ints) > 2**53):
@@ -397,24 +397,9 @@ def pyramic_from_dict(obj: object, *, label: str = "Pyramic JSON", speed: float 
                        skipped=int((~keep).sum()))
 
 
-def _leaf_type_error(value: object) -> str | None:
-    """The first leaf of a nested JSON list that is not a number or ``null`` (strings and
-    booleans are not numbers: numpy would read ``"1e-3"`` as 0.001 and ``true`` as 1)."""
-    stack = [value]
-    while stack:
-        v = stack.pop()
-        if isinstance(v, list):
-            stack.extend(v)
-        elif v is None or (isinstance(v, (int, float)) and not isinstance(v, bool)):
-            continue
-        else:
-            return repr(v)[:40]
-    return None
-
-
 def _numeric(value: object, p: str, key: str) -> Array:
     """A nested list of numbers (``null`` = NaN) as a float array; ragged or non-numeric: InputError."""
-    bad = _leaf_type_error(value)
+    bad = non_number_leaf(value)
     if bad is not None:
         raise InputError(f"{p}: '{key}' must hold numbers (or null), found {bad}")
     try:

@@ -30,6 +30,10 @@ in the log also corrects the early poses.
 Ranges are applied at their own times: an odometry row whose interval contains range times
 is split there (each piece a fraction of the row proportional to its duration), so no range
 is moved to the nearest odometry time.
+
+Length (~630 lines, above the package's ~600): the filter, the smoother, the calibration
+refit and the noise re-estimation are one engine over one private chain structure
+(``_Chain``, ``_Pass``); split into modules they would share every private type.
 """
 
 from __future__ import annotations
