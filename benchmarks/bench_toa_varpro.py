@@ -33,8 +33,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-
-from bench_toa_minimal import C, NOISE, _rmse, scene
+from bench_toa_minimal import NOISE, C, _rmse, scene
 
 
 def per_start(seed: int, cap: int) -> dict[str, Any]:
