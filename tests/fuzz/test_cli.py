@@ -673,7 +673,7 @@ def test_slac_run_on_corrupt_logs(tmp_path: Path, slac_log_arrays, field: str, v
 
 
 @pytest.mark.parametrize("field,value,match", [
-    ("speaker", 1e308, "not a pyramic"),               # OverflowError converting it to int64 before
+    ("speaker", 1e308, "integer ids"),                 # OverflowError converting it to int64 before
     ("sound_speed_mps", True, "must be a number"),     # a bool was read as 1 m/s (exit 0 with --directions sources)
     ("mic_ref", True, "must be a number"),
 ])

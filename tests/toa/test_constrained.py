@@ -9,6 +9,7 @@ pseudo-inverse (the Moore-Penrose inverse removes whatever gauge the constraints
 from __future__ import annotations
 
 from collections.abc import Callable
+from functools import partial
 
 import numpy as np
 import pytest
@@ -18,6 +19,14 @@ from selfcal.errors import DegenerateGeometryError, InputError
 from selfcal.toa.nls import refine_toa, toa_model
 
 NOISE = 0.01  # m; small against the 4 m network so the fit is in its linear regime
+
+
+@pytest.fixture(params=["auto", "schur"])
+def solver(request):
+    """Each dense-reference test runs on both constrained engines: "auto" (SciPy trf on
+    these small problems) and "schur" (the Schur-reduced Newton-LM of toa/schur_affine.py,
+    forced), so the new engine is checked against the independent dense computation."""
+    return request.param
 
 
 def _network(seed: int, I: int = 6, J: int = 8, d: int = 3):
@@ -120,8 +129,9 @@ def _assert_same_fit(sol, dense: _Dense, ref, Y, atol: float = 2e-7):
 
 
 @pytest.mark.parametrize("seed", range(2))
-def test_fixed_heights_match_dense(seed):
+def test_fixed_heights_match_dense(seed, solver):
     """Known heights (z columns fixed), both offsets: same minimum and covariance as dense."""
+    fit = partial(refine_toa, solver=solver)
     rng, r, s, dr, os_ = _network(seed)
     I, J, d = 6, 8, 3
     Y = toa_model(r, s, dr, os_) + rng.normal(0, NOISE, (I, J))
@@ -132,8 +142,8 @@ def test_fixed_heights_match_dense(seed):
     r0 = r + rng.normal(0, 0.05, r.shape)
     s0 = s + rng.normal(0, 0.05, s.shape)
     r0[:, 2], s0[:, 2] = r[:, 2], s[:, 2]
-    sol = refine_toa(Y, r0, s0, offsets="both", fixed_receivers=fr, fixed_sources=fs)
-    assert sol.solver == "trf-constrained" and sol.converged
+    sol = fit(Y, r0, s0, offsets="both", fixed_receivers=fr, fixed_sources=fs)
+    assert sol.solver == ("trf-constrained" if solver == "auto" else "schur-lm-constrained") and sol.converged
     np.testing.assert_array_equal(sol.receivers[:, 2], r[:, 2])  # heights stay exact
     np.testing.assert_array_equal(sol.sources[:, 2], s[:, 2])
     dense = _Dense(Y, r0, s0, fr, fs, np.eye(I), np.eye(J), np.zeros(I), np.zeros(J))
@@ -155,8 +165,9 @@ def test_fixed_heights_match_dense(seed):
 
 
 @pytest.mark.parametrize("seed", range(2))
-def test_fixed_anchor_rows_match_dense(seed):
+def test_fixed_anchor_rows_match_dense(seed, solver):
     """Three known anchors (rows fixed, no gauge left), receiver offsets."""
+    fit = partial(refine_toa, solver=solver)
     rng, r, s, dr, _ = _network(seed + 10, I=6, J=9)
     I, J, d = 6, 9, 3
     Y = toa_model(r, s, dr, None) + rng.normal(0, NOISE, (I, J))
@@ -166,7 +177,7 @@ def test_fixed_anchor_rows_match_dense(seed):
     r0 = r + rng.normal(0, 0.05, r.shape)
     r0[:3] = r[:3]
     s0 = s + rng.normal(0, 0.05, s.shape)
-    sol = refine_toa(Y, r0, s0, offsets="receivers", fixed_receivers=fr)
+    sol = fit(Y, r0, s0, offsets="receivers", fixed_receivers=fr)
     np.testing.assert_array_equal(sol.receivers[:3], r[:3])
     dense = _Dense(Y, r0, s0, np.repeat(fr[:, None], d, 1), np.repeat(fs[:, None], d, 1),
                    np.eye(I), None, np.zeros(I), None)
@@ -182,14 +193,15 @@ def test_fixed_anchor_rows_match_dense(seed):
 
 
 @pytest.mark.parametrize("seed", range(2))
-def test_common_receiver_offset_matches_dense(seed):
+def test_common_receiver_offset_matches_dense(seed, solver):
     """All receivers share one offset; the rigid gauge stays (canonical gauge output)."""
+    fit = partial(refine_toa, solver=solver)
     rng, r, s, _, _ = _network(seed + 20)
     I, J, d = 6, 8, 3
     Y = toa_model(r, s, np.full(I, -0.15), None) + rng.normal(0, NOISE, (I, J))
     r0 = r + rng.normal(0, 0.05, r.shape)
     s0 = s + rng.normal(0, 0.05, s.shape)
-    sol = refine_toa(Y, r0, s0, offsets="receivers", common_offsets="receivers")
+    sol = fit(Y, r0, s0, offsets="receivers", common_offsets="receivers")
     assert np.ptp(sol.receiver_offsets) == 0
     z = np.zeros((I, d), bool)
     dense = _Dense(Y, r0, s0, z, np.zeros((J, d), bool), np.ones((I, 1)), None, np.zeros(I), None)
@@ -203,8 +215,9 @@ def test_common_receiver_offset_matches_dense(seed):
 
 
 @pytest.mark.parametrize("seed", range(2))
-def test_priors_with_given_noise_match_dense(seed):
+def test_priors_with_given_noise_match_dense(seed, solver):
     """Gaussian priors on four receivers (std 2 cm) with the noise given: the weighted LS."""
+    fit = partial(refine_toa, solver=solver)
     rng, r, s, _, _ = _network(seed + 30)
     I, J, d = 6, 8, 3
     Y = toa_model(r, s) + rng.normal(0, NOISE, (I, J))
@@ -213,7 +226,7 @@ def test_priors_with_given_noise_match_dense(seed):
     mu[:4] = r[:4] + rng.normal(0, 0.02, (4, d))
     r0 = r + rng.normal(0, 0.05, r.shape)
     s0 = s + rng.normal(0, 0.05, s.shape)
-    sol = refine_toa(Y, r0, s0, receiver_prior=(mu, std), noise=NOISE)
+    sol = fit(Y, r0, s0, receiver_prior=(mu, std), noise=NOISE)
     z = np.zeros((I, d), bool)
     dense = _Dense(Y, r0, s0, z, np.zeros((J, d), bool), None, None, None, None,
                    prior_idx=np.arange(4 * d), prior_mu=mu[:4].ravel(),
@@ -225,20 +238,22 @@ def test_priors_with_given_noise_match_dense(seed):
     np.testing.assert_allclose(sol.cost, ref.cost, rtol=1e-5)
 
 
-def test_priors_estimated_noise_converges_to_self_consistent_weight():
+def test_priors_estimated_noise_converges_to_self_consistent_weight(solver):
     """Without ``noise`` the prior weight uses the fit's own sigma estimate (fixed point)."""
+    fit = partial(refine_toa, solver=solver)
     rng, r, s, _, _ = _network(40, I=8, J=12)
     Y = toa_model(r, s) + rng.normal(0, NOISE, (8, 12))
     mu = np.full((8, 3), np.nan)
     mu[:4] = r[:4]
-    sol = refine_toa(Y, r + 0.03, s - 0.03, receiver_prior=(mu, np.full(8, 0.01)))
+    sol = fit(Y, r + 0.03, s - 0.03, receiver_prior=(mu, np.full(8, 0.01)))
     # sigma from 96 ranges, ~50 dof: within a factor 1.6 of the truth (chi2 0.1% tails)
     assert 0.6 * NOISE < sol.sigma < 1.6 * NOISE
     np.testing.assert_allclose(sol.receivers[:4], r[:4], atol=0.05)
 
 
-def test_fixed_source_offsets_and_huber_match_dense():
+def test_fixed_source_offsets_and_huber_match_dense(solver):
     """Some source offsets fixed, both kinds, Huber loss with a given scale."""
+    fit = partial(refine_toa, solver=solver)
     rng, r, s, dr, os_ = _network(50, I=6, J=9)
     I, J, d = 6, 9, 3
     Y = toa_model(r, s, dr, os_) + rng.normal(0, NOISE, (I, J))
@@ -248,7 +263,7 @@ def test_fixed_source_offsets_and_huber_match_dense():
     os0 = np.where(fso, os_, 0.0)
     r0 = r + rng.normal(0, 0.05, r.shape)
     s0 = s + rng.normal(0, 0.05, s.shape)
-    sol = refine_toa(Y, r0, s0, offsets="both", source_offsets0=os0, fixed_source_offsets=fso,
+    sol = fit(Y, r0, s0, offsets="both", source_offsets0=os0, fixed_source_offsets=fso,
                      loss="huber", f_scale=0.02)
     np.testing.assert_allclose(sol.source_offsets[:2], os_[:2], atol=0)  # held exactly
     z = np.zeros((I, d), bool)
@@ -259,8 +274,9 @@ def test_fixed_source_offsets_and_huber_match_dense():
     _assert_same_fit(sol, dense, ref, Y, atol=1e-5)
 
 
-def test_2d_fixed_row_and_offset_basis():
+def test_2d_fixed_row_and_offset_basis(solver):
     """2-D, one fixed receiver, receiver offsets with a fixed mean (zero-sum deviations)."""
+    fit = partial(refine_toa, solver=solver)
     rng, r, s, _, _ = _network(60, I=5, J=8, d=2)
     I, J, d = 5, 8, 2
     dr = rng.normal(0, 0.1, I)
@@ -271,7 +287,7 @@ def test_2d_fixed_row_and_offset_basis():
     fr[0] = True
     r0 = r.copy()
     r0[1:] += rng.normal(0, 0.05, (I - 1, d))
-    sol = refine_toa(Y, r0, s + 0.03, offsets="receivers", receiver_offsets0=np.full(I, 0.2),
+    sol = fit(Y, r0, s + 0.03, offsets="receivers", receiver_offsets0=np.full(I, 0.2),
                      receiver_offset_basis=B, fixed_receivers=fr)
     np.testing.assert_allclose(sol.receiver_offsets.mean(), 0.2, atol=1e-12)
     np.testing.assert_array_equal(sol.receivers[0], r[0])
@@ -316,13 +332,14 @@ def test_constraint_errors():
 
 
 @pytest.mark.parametrize("seed", range(3))
-def test_covariance_subset_equals_full_blocks(seed):
+def test_covariance_subset_equals_full_blocks(seed, solver):
     """A covariance request on the constrained path computes exactly the requested blocks.
 
     Same fit, same sparse factorization: the requested blocks must equal the full
     computation's to round-off and every block not asked for is NaN (as on the
     unconstrained path of toa/covariance.py).
     """
+    fit = partial(refine_toa, solver=solver)
     rng, r, s, dr, os_ = _network(seed + 30, I=7, J=9)
     I, J, d = 7, 9, 3
     Y = toa_model(r, s, dr, os_) + rng.normal(0, NOISE, (I, J))
@@ -333,11 +350,11 @@ def test_covariance_subset_equals_full_blocks(seed):
     s0 = s + rng.normal(0, 0.05, s.shape)
     r0[:, 2] = r[:, 2]
     kw = dict(offsets="both", fixed_receivers=fr)
-    full = refine_toa(Y, r0, s0, covariance="all", **kw)
+    full = fit(Y, r0, s0, covariance="all", **kw)
     ri, si = np.array([0, 3, 6]), np.array([1, 8])
     for spec, want_r, want_s in (("receivers", np.arange(I), []), ("sources", [], np.arange(J)),
                                  ({"receivers": ri, "sources": si}, ri, si), ((None, si), [], si)):
-        sub = refine_toa(Y, r0, s0, covariance=spec, **kw)
+        sub = fit(Y, r0, s0, covariance=spec, **kw)
         np.testing.assert_allclose(sub.receivers, full.receivers, atol=1e-12)
         mr = np.zeros(I, bool)
         mr[want_r] = True
@@ -348,7 +365,7 @@ def test_covariance_subset_equals_full_blocks(seed):
         assert np.isnan(sub.receiver_cov[~mr]).all() and np.isnan(sub.source_cov[~ms]).all()
         if ms.any():
             np.testing.assert_allclose(sub.source_offset_std[ms], full.source_offset_std[ms], rtol=1e-9)
-    none = refine_toa(Y, r0, s0, covariance="none", **kw)
+    none = fit(Y, r0, s0, covariance="none", **kw)
     assert np.isnan(none.receiver_cov).all() and np.isnan(none.source_cov).all()
     with pytest.raises(InputError):
-        refine_toa(Y, r0, s0, covariance={"receivers": [I]}, **kw)
+        fit(Y, r0, s0, covariance={"receivers": [I]}, **kw)

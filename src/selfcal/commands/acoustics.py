@@ -54,6 +54,8 @@ def write_simulation(out: Path, *, units: int, room: tuple[float, float, float],
 
     if out.exists() and (not out.is_dir() or (any(out.iterdir()) and not (out / "setup.json").is_file())):
         raise InputError(f"{out}: exists and is not a recording directory; choose another --out")
+    if out.is_symlink():  # a link to a folder: the folder it points to is the output (the link stays)
+        out = out.resolve()
     rng = np.random.default_rng(check_int(seed, "--seed", minimum=0))
     scene = conference_scene(units, room, layout=layout, rng=rng)
     setup, signals, truth = simulate_conference(scene, rt60=rt60, snr_db=snr, sample_rate=sample_rate,

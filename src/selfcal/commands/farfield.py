@@ -126,20 +126,39 @@ def farfield_command(matrix: tuple[Path, ...], out: Path, speed: float | None, d
         if directions == "sources":
             raise InputError("--directions sources needs a Pyramic JSON matrix (with 'sources'); give a file")
         known = read_table(Path(directions), name=str(directions)).values
+    D_all = D
+    keep_r, keep_c = _determinable(D)
+    if keep_r.sum() < 4 or keep_c.sum() < 3:  # too little left: the solver's own refusal names the problem
+        keep_r, keep_c = np.ones(D.shape[0], dtype=bool), np.ones(D.shape[1], dtype=bool)
+    if not (keep_r.all() and keep_c.all()):
+        gone_r, gone_c = np.flatnonzero(~keep_r), np.flatnonzero(~keep_c)
+        what = "microphone" if pyramic is not None else "row"
+        if gone_r.size:
+            click.echo(f"  left out {what}(s) {', '.join(str(i) for i in gone_r[:20])}"
+                       f"{' ...' if gone_r.size > 20 else ''}: fewer than 3 observed entries, position "
+                       "undetermined (null in the JSON)")
+        if gone_c.size:
+            click.echo(f"  left out {gone_c.size} column(s) with fewer than 2 observed entries in the rows kept")
+        D = D[np.ix_(keep_r, keep_c)]
+        if known is not None:
+            known = np.asarray(known, dtype=float)[keep_c] if np.ndim(known) == 2 and len(known) == keep_c.size \
+                else known
+        if reference is not None:
+            reference = reference[keep_r]
     try:
         res = solve_farfield(D, method=method, loss=loss, directions=known,
                              noise_std=None if noise_std is None else noise_std * float(np.mean(scale)),
                              allow_degenerate=allow_degenerate, ransac=ransac, rng=seed,
                              dim="auto" if dim == "auto" else int(dim))
     except DegenerateGeometryError as exc:
-        transposed_hint(exc, D.shape, min_rows=4, min_cols=6)
+        transposed_hint(exc, D_all.shape, min_rows=4, min_cols=6)
         if pyramic is not None and exc.kind == "cone":
             _pyramic_cone_hint(exc, pyramic)
         raise
     out_dict = res.to_dict()
     tunit = "s" if seconds else "m"
     if seconds:
-        speed_col = np.broadcast_to(np.asarray(scale, dtype=float), (D.shape[1],))
+        speed_col = np.broadcast_to(np.asarray(scale, dtype=float), (D_all.shape[1],))[keep_c]
         out_dict["offsets"] = (np.asarray(res.offsets) / speed_col).tolist()
         out_dict["residual_rms"] = float(res.residual_rms / float(np.mean(speed_col)))
         out_dict["speed"] = float(np.mean(speed_col))
@@ -147,6 +166,8 @@ def farfield_command(matrix: tuple[Path, ...], out: Path, speed: float | None, d
         out_dict["speaker"] = [int(s) for s in pyramic.speaker] if pyramic.speaker is not None else None
         out_dict["speaker_elevation_deg"] = {str(s): (e if np.isfinite(e) else None)
                                              for s, e in pyramic.elevations().items()}
+    if not (keep_r.all() and keep_c.all()):
+        _expand(out_dict, keep_r, keep_c)
     ref_rmse = None
     if reference is not None and res.positions.shape[1] == 3:
         ref_rmse = _aligned_rmse(res.positions, reference)
@@ -163,7 +184,7 @@ def farfield_command(matrix: tuple[Path, ...], out: Path, speed: float | None, d
         write_json(out, payload)
         if csv_out is not None:
             write_nodes_csv(csv_out, payload, [("position", "positions", "position_names")])
-    m, k = D.shape
+    m, k = D_all.shape
     click.echo(f"selfcal calibrate tdoa-farfield: {m} positions x {k} transmitters, {res.dim}-D ({res.case}), "
                f"method {res.method}, loss {res.loss}")
     click.echo(f"  determined: {res.determined}")
@@ -187,6 +208,45 @@ def farfield_command(matrix: tuple[Path, ...], out: Path, speed: float | None, d
     if failure is not None:
         click.echo(f"FAIL: calibration not trustworthy ({failure})")
         raise SystemExit(1)
+
+
+def _determinable(D: Any) -> tuple[Any, Any]:
+    """Rows with >= 3 and columns with >= 2 observed entries among each other (iterated to a fixed
+    point): a receiver seen by fewer than 3 transmitters has an undetermined position (a dead
+    microphone, a row of NaN), a column seen by one receiver carries nothing. The rest is solvable."""
+    import numpy as np
+
+    f = np.isfinite(D)
+    r = np.ones(D.shape[0], dtype=bool)
+    c = np.ones(D.shape[1], dtype=bool)
+    while True:
+        r2 = r & ((f & c).sum(axis=1) >= 3)
+        c2 = c & ((f & r2[:, None]).sum(axis=0) >= 2)
+        if r2.sum() == r.sum() and c2.sum() == c.sum():
+            return r, c
+        r, c = r2, c2
+        if not r.any() or not c.any():
+            return r, c
+
+
+def _expand(d: dict[str, Any], keep_r: Any, keep_c: Any) -> None:
+    """Put the result of the kept rows / columns back in the input's numbering (null for those left out)."""
+    import numpy as np
+
+    ri, ci = np.flatnonzero(keep_r), np.flatnonzero(keep_c)
+    for keys, idx, n in ((("positions", "position_cov", "position_std", "position_ellipse95"), ri, keep_r.size),
+                         (("directions", "offsets"), ci, keep_c.size)):
+        for key in keys:
+            v = d.get(key)
+            if not isinstance(v, list) or len(v) != idx.size:
+                continue
+            shape = np.shape(v[0]) if v else ()
+            full: list[Any] = [np.full(shape, None, dtype=object).tolist() if shape else None] * n
+            for i, x in zip(idx, v, strict=True):
+                full[int(i)] = x
+            d[key] = full
+    if isinstance(d.get("rejected"), list):
+        d["rejected"] = [[int(ri[i]), int(ci[j])] for i, j in d["rejected"]]
 
 
 def _pyramic_cone_hint(exc: Any, data: Any) -> None:

@@ -146,7 +146,10 @@ class PlazaData:
 def _field(m: dict[str, Any], key: str, width: int, p: Path) -> FArray:
     if key not in m:
         raise InputError(f"{p}: missing variable {key!r} (a CMU range log has TL, TD, GT, DR, init_heading_offset)")
-    a = np.asarray(m[key])
+    a = m[key]
+    if hasattr(a, "toarray"):  # a MATLAB sparse matrix (scipy.sparse): the same numbers
+        a = a.toarray()
+    a = np.asarray(a)
     if a.ndim != 2 or a.shape[0] < 1 or a.shape[1] < width:
         raise InputError(f"{p}: {key} must be a (rows, {width}) array, got shape {a.shape}")
     if not np.issubdtype(a.dtype, np.number) or np.iscomplexobj(a):
@@ -162,6 +165,17 @@ def _field(m: dict[str, Any], key: str, width: int, p: Path) -> FArray:
         raise InputError(f"{p}: {key} row {r + 1}, column {c + 1} = {a[r, c]:.3g} is beyond {MAX_ABS_ENTRY:.2g}, "
                          f"which double precision cannot process; is the file corrupt?")
     return a
+
+
+def _heading_offset(value: float, name: str) -> float:
+    """A heading offset in radians: finite and within one turn (beyond 2 pi it is most likely
+    degrees, e.g. 180 for pi; 1e308 rad has no meaningful angle since its ulp exceeds 2 pi)."""
+    if not np.isfinite(value):
+        raise InputError(f"{name} is not finite")
+    if abs(value) > 2 * np.pi + 1e-9:
+        hint = f" (180 deg = pi rad; {value:g} deg = {np.deg2rad(value):.4g} rad)" if abs(value) <= 360 else ""
+        raise InputError(f"{name} = {value:.4g} rad exceeds one turn (2 pi); give radians, not degrees{hint}")
+    return value
 
 
 def load_plaza(path: str | os.PathLike[str], *, init_heading_offset: float | None = None) -> PlazaData:
@@ -209,19 +223,17 @@ def load_plaza(path: str | os.PathLike[str], *, init_heading_offset: float | Non
     TD = _field(m, "TD", 4, p)
     GT = _field(m, "GT", 4, p)
     DR = _field(m, "DR", 3, p)
+    if init_heading_offset is not None:
+        init_heading_offset = _heading_offset(float(init_heading_offset), "--init-heading-offset")
     if "init_heading_offset" in m:
         o = np.asarray(m["init_heading_offset"])
         if o.size != 1 or not np.issubdtype(o.dtype, np.number) or np.iscomplexobj(o):
             raise InputError(f"{p}: init_heading_offset must be one real number, got shape {o.shape} dtype {o.dtype}")
-        offset = float(o.astype(float).ravel()[0])  # convention 1: may be stored as uint8 / int
-        if not np.isfinite(offset):
-            raise InputError(f"{p}: init_heading_offset is not finite")
-        if init_heading_offset is not None and not np.isclose(float(init_heading_offset), offset):
+        offset = _heading_offset(float(o.astype(float).ravel()[0]), f"{p}: init_heading_offset")  # convention 1
+        if init_heading_offset is not None and not np.isclose(float(wrap_angle(init_heading_offset - offset)), 0.0):
             raise InputError(f"{p}: init_heading_offset={init_heading_offset} disagrees with the file's {offset}")
     elif init_heading_offset is not None:
-        offset = float(init_heading_offset)
-        if not np.isfinite(offset):
-            raise InputError("init_heading_offset must be finite")
+        offset = init_heading_offset
     else:
         raise InputError(f"{p}: missing variable 'init_heading_offset' (pass init_heading_offset= if the log has none)")
     if np.any(TL[:, 0] != np.round(TL[:, 0])):
@@ -247,6 +259,11 @@ def load_plaza(path: str | os.PathLike[str], *, init_heading_offset: float | Non
     DR = DR[DR[:, 0] > t0]  # convention 4: increments after the start pose
     if DR.shape[0] < 1:
         raise InputError(f"{p}: DR has no odometry after the first GT time {t0}")
+    inside = (TD[:, 0] > t0) & (TD[:, 0] <= DR[-1, 0])
+    if not inside.any():  # nothing to calibrate with: the run would be dead reckoning reported as a result
+        raise InputError(f"{p}: no TD range falls in the span of the odometry (first GT time {t0:.6g} s to the last "
+                         f"DR time {DR[-1, 0]:.6g} s; ranges span {TD[:, 0].min():.6g} .. {TD[:, 0].max():.6g} s); "
+                         "are the time columns in the same clock?")
     gt = GT[:, 1:4].copy()
     gt[:, 2] = wrap_angle(gt[:, 2] + offset)  # convention 1
     return PlazaData(

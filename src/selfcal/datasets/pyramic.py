@@ -49,6 +49,8 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
+from .._checks import MAX_ABS_ENTRY, check_magnitude
+from ..acoustics.recording import MAX_SPEED_OF_SOUND
 from ..errors import InputError
 from ..io import read_json
 
@@ -176,7 +178,9 @@ def load_pyramic(path: PathLike | Sequence[PathLike], *, speed: float | None = N
 def join_pyramic(parts: Sequence[PyramicData], *, labels: Sequence[str] | None = None) -> PyramicData:
     """Join Pyramic data sets of the same array column-wise (all their speakers together).
 
-    The microphones (hand-measured positions) and the reference microphone must agree;
+    The microphones (hand-measured positions) must agree; a part recorded against another
+    reference microphone is re-referenced to the first part's ``mic_ref`` (a constant per
+    column, absorbed by the column offset of the far-field model; see :func:`_rereference`);
     each part keeps its own speed of sound (``column_speed``). Speaker ids that repeat
     across parts (e.g. two files both labelled 0) are renumbered so that every part's
     speakers stay distinct.
@@ -189,7 +193,7 @@ def join_pyramic(parts: Sequence[PyramicData], *, labels: Sequence[str] | None =
     Raises
     ------
     InputError
-        The parts disagree on the microphones or on ``mic_ref``.
+        The parts disagree on the microphones.
     """
     if not parts:
         raise InputError("join_pyramic: nothing to join")
@@ -208,8 +212,6 @@ def join_pyramic(parts: Sequence[PyramicData], *, labels: Sequence[str] | None =
                 p.microphones, first.microphones, atol=1e-9, rtol=0.0):
             raise InputError(f"{name}: its microphones differ from those of {names[0]}; only recordings of the "
                              "same array can be calibrated together")
-        if p.mic_ref != first.mic_ref:
-            raise InputError(f"{name}: mic_ref = {p.mic_ref} but {names[0]} has mic_ref = {first.mic_ref}")
         sp = np.zeros(p.D.shape[1], dtype=np.int64) if p.speaker is None else p.speaker.copy()
         if used & set(sp.tolist()):
             shift = max(used) + 1 - int(sp.min())
@@ -218,9 +220,11 @@ def join_pyramic(parts: Sequence[PyramicData], *, labels: Sequence[str] | None =
         ids.append(sp)
     speeds = [np.full(p.D.shape[1], p.speed) if p.column_speed is None else p.column_speed for p in parts]
     mics = next((p.microphones for p in parts if p.has_microphones), first.microphones)
+    ref = first.mic_ref
+    Ds = [_rereference(p.D, ref) if p.mic_ref != ref else p.D for p in parts]
     return PyramicData(
-        D=np.concatenate([p.D for p in parts], axis=1),
-        delays=np.concatenate([p.delays for p in parts], axis=1),
+        D=np.concatenate(Ds, axis=1),
+        delays=np.concatenate([np.delete(Dp, ref, axis=0) / sp for Dp, sp in zip(Ds, speeds, strict=True)], axis=1),
         sources=np.concatenate([p.sources for p in parts], axis=0),
         microphones=mics.copy(),
         speed=first.speed,
@@ -229,6 +233,19 @@ def join_pyramic(parts: Sequence[PyramicData], *, labels: Sequence[str] | None =
         column_speed=np.concatenate(speeds),
         skipped=sum(p.skipped for p in parts),
     )
+
+
+def _rereference(D: Array, ref: int) -> Array:
+    """Columns of ``D`` against microphone ``ref``: ``D_ij - D_ref,j`` where that delay is observed.
+
+    A recording against another reference microphone differs from one against ``ref`` by one
+    constant per column, which the far-field model's column offset ``C_j`` absorbs; so files
+    with different ``mic_ref`` can be joined. A column whose delay at ``ref`` is missing keeps
+    its own reference (still the same model, with another ``C_j``)."""
+    out = D.copy()
+    ok = np.isfinite(D[ref])
+    out[:, ok] = D[:, ok] - D[ref, ok]
+    return out
 
 
 def _flatten_speakers(p: str, delays: Array, sources: Array | None) -> tuple[Array, Array, int]:
@@ -298,6 +315,12 @@ def pyramic_from_dict(obj: object, *, label: str = "Pyramic JSON", speed: float 
         file_speed = float(raw_speed) if raw_speed is not None else float("nan")
         ref = int(ref_raw)
         spk_raw = obj.get("speaker", None)
+        if spk_raw is not None:
+            bad = _leaf_type_error(spk_raw)
+            ints = np.asarray(spk_raw, dtype=float) if bad is None else None
+            if ints is None or not np.all(np.isfinite(ints)) or np.any(ints != np.round(ints)) \
+                    or np.any(np.abs(ints) > 2**53):
+                raise InputError(f"{p}: 'speaker' must be integer ids, got {bad or repr(spk_raw)[:40]}")
         spk = None if spk_raw is None else np.asarray(spk_raw, dtype=np.int64)
     except InputError:
         raise
@@ -338,8 +361,12 @@ def pyramic_from_dict(obj: object, *, label: str = "Pyramic JSON", speed: float 
         raise InputError(f"{p}: the speed of sound must be a positive number (sound_speed_mps or --speed), got {c}")
     if np.isinf(delays).any():
         raise InputError(f"{p}: 'delays' must be finite or null / NaN (missing)")
-    if np.isnan(mics).any() and not np.isnan(mics).all():
+    if (~np.isfinite(mics)).any() and not np.isnan(mics).all():
         raise InputError(f"{p}: 'microphones' must be finite (or absent)")
+    check_magnitude(mics, f"{p}: 'microphones'")
+    if c > MAX_SPEED_OF_SOUND:
+        raise InputError(f"{p}: the speed of sound {c:g} m/s exceeds the physical bound {MAX_SPEED_OF_SOUND:g} m/s "
+                         "of any medium; is it in m/s?")
     per = n_src // n_spk
     if spk is None:
         speaker = np.repeat(np.arange(n_spk, dtype=np.int64), per)
@@ -361,13 +388,35 @@ def pyramic_from_dict(obj: object, *, label: str = "Pyramic JSON", speed: float 
         raise InputError(f"{p}: source {j} has delays but no finite direction in 'sources'")
     delays, sources, speaker = delays[:, keep], sources[keep], speaker[keep]
     D = np.insert(delays * c, ref, 0.0, axis=0)
+    top = float(np.nanmax(np.abs(D)))
+    if 0 < top < 1.0 / MAX_ABS_ENTRY:  # squares underflow: the least-squares sums lose every digit
+        raise InputError(f"{p}: the relative distances (speed x delays) are at most {top:.3g} m, where the "
+                         "least-squares sums underflow double precision; are the delays or the speed in the wrong unit?")
     return PyramicData(D=D, delays=delays, sources=sources, microphones=mics, speed=c,
                        mic_ref=ref, speaker=speaker, column_speed=np.full(delays.shape[1], c),
                        skipped=int((~keep).sum()))
 
 
+def _leaf_type_error(value: object) -> str | None:
+    """The first leaf of a nested JSON list that is not a number or ``null`` (strings and
+    booleans are not numbers: numpy would read ``"1e-3"`` as 0.001 and ``true`` as 1)."""
+    stack = [value]
+    while stack:
+        v = stack.pop()
+        if isinstance(v, list):
+            stack.extend(v)
+        elif v is None or (isinstance(v, (int, float)) and not isinstance(v, bool)):
+            continue
+        else:
+            return repr(v)[:40]
+    return None
+
+
 def _numeric(value: object, p: str, key: str) -> Array:
     """A nested list of numbers (``null`` = NaN) as a float array; ragged or non-numeric: InputError."""
+    bad = _leaf_type_error(value)
+    if bad is not None:
+        raise InputError(f"{p}: '{key}' must hold numbers (or null), found {bad}")
     try:
         arr = np.asarray(value, dtype=float)
     except ValueError as exc:

@@ -212,7 +212,8 @@ class RangeSlacResult(Result):
     beacon_ids : (B,); scale, scale_std, offset, offset_std : (B,) range calibration (R1)
         (filter: at the end of the log).
     noise : float the prior range noise (m); noise_estimate : float the robust estimate from
-        the innovations (m; NaN with fewer than 10 ranges, None in ``to_dict``).
+        the filter's innovations, for the smoother from its own final residuals (m; NaN with
+        fewer than 10 ranges, None in ``to_dict``).
     heading_noise_factor : float the grid factor selected by maximum likelihood;
         heading_noise_loglik : (G,) the robust log-likelihood of each grid factor.
     ranges_used, ranges_rejected, ranges_outside : int (used in the final pass, gated, outside
@@ -458,6 +459,38 @@ def _residuals(x: FArray, ch: _Chain, log: RangeLog) -> FArray:
     return ch.r_value - h
 
 
+def _refit_calibration(x: FArray, ch: _Chain, log: RangeLog, cfg: RangeModelConfig, sigma: float) -> FArray:
+    """The reference trajectory ``x`` (N, D) with each beacon's (scale, offset) refitted to its
+    ranges at the reference positions.
+
+    Given the positions, (R1) is a linear regression ``r = s d + o`` per beacon; it is solved
+    robustly (Huber at ``cfg.huber`` sigma, the priors of ``s`` and ``o`` as two pseudo-
+    observations). The causal filter's calibration can be far off for a beacon seen only
+    from far away (``s`` and ``o`` nearly collinear) and its first ranges then set a wrong
+    combination that gates out all the later ones; the smoother's gate is a test of single
+    ranges, so it must start from a calibration that fits the beacon's ranges as a whole.
+    """
+    from scipy.optimize import least_squares
+
+    B = log.beacons.shape[0]
+    out = x.copy()
+    node = np.repeat(np.arange(ch.times.size), np.diff(ch.r_start))
+    for b in range(B):
+        k = ch.r_beacon == b
+        if k.sum() < 3:
+            continue
+        d = np.linalg.norm(x[node[k], :2] - log.beacons[b], axis=1)
+        r = ch.r_value[k]
+
+        def f(p: FArray, d: FArray = d, r: FArray = r) -> FArray:
+            return np.concatenate([(r - p[0] * d - p[1]) / sigma, [(p[0] - 1.0) / cfg.scale_std, p[1] / cfg.offset_std]])
+
+        p0 = np.array([x[-1, 3 + b], x[-1, 3 + B + b]])
+        sol = least_squares(f, p0, loss="huber", f_scale=cfg.huber, x_scale=np.array([cfg.scale_std, cfg.offset_std]))
+        out[:, 3 + b], out[:, 3 + B + b] = sol.x
+    return out
+
+
 def solve_range_slac(log: RangeLog | Any, *, method: str = "smoother", config: RangeModelConfig | None = None,
                      progress: bool = False) -> RangeSlacResult:
     """Localize a robot from odometry + beacon ranges and calibrate each beacon's scale and offset.
@@ -547,22 +580,32 @@ def solve_range_slac(log: RangeLog | Any, *, method: str = "smoother", config: R
     else:
         sigma = sigma_hat if (cfg.estimate_noise and np.isfinite(sigma_hat) and sigma_hat > 0) else cfg.range_noise
         var = np.column_stack([cfg.odo_distance**2 * z_d, g_best**2 * (cfg.odo_turn**2 * z_t + cfg.odo_drift**2 * z_d)])
-        ref = fw.mf
+        ref = _refit_calibration(fw.mf, ch, log, cfg, sigma)
         weights = np.ones(K)
         status = 1
         iterations = 0
         ms, Ps = ref, fw.Pf
-        for it in range(cfg.max_iter):
-            e = _residuals(ref, ch, log) / sigma
-            weights = np.where(e**2 > gate2, 0.0, huber_weight(e, cfg.huber))
-            ps = _forward(ch, log, cfg, sigma, ref=ref, weights=weights, store=True, progress=progress, var=var)
-            ms, Ps = _rts(ps)
-            iterations = it + 1
-            step = np.max(np.abs(ms[:, :3] - ref[:, :3]))
-            ref = ms
-            if step < cfg.tol:
-                status = 0
-                break
+        # the filter's innovations carry its own misfit (a beacon learnt late inflates them): with
+        # estimate_noise the range noise is re-estimated once from the smoother's residuals (the
+        # same robust median estimator) and the smoother refined at it (one fixed-point step)
+        for rnd in range(2 if cfg.estimate_noise else 1):
+            status = 1
+            for it in range(cfg.max_iter):
+                e = _residuals(ref, ch, log) / sigma
+                weights = np.where(e**2 > gate2, 0.0, huber_weight(e, cfg.huber))
+                ps = _forward(ch, log, cfg, sigma, ref=ref, weights=weights, store=True, progress=progress, var=var)
+                ms, Ps = _rts(ps)
+                iterations += 1
+                step = np.max(np.abs(ms[:, :3] - ref[:, :3]))
+                ref = ms
+                if step < cfg.tol:
+                    status = 0
+                    break
+            if rnd == 0 and cfg.estimate_noise:
+                s_res = _noise_from_innovations(_residuals(ref, ch, log), np.zeros(K))
+                if not (np.isfinite(s_res) and s_res > 0):
+                    break
+                sigma = sigma_hat = s_res
         x_nodes, P_nodes = ms, Ps
         cal_x, cal_P = ms[0], Ps[0]
         used = int((weights > 0).sum())

@@ -118,7 +118,7 @@ def block_edges(n: int, length: int) -> NDArray[np.intp]:
     return np.linspace(0, n, max(B, 1) + 1).round().astype(np.intp)
 
 
-def choose_common_offset(base: Any, sub: Array, scale: float = 1.0) -> tuple[Any, dict[str, Any]]:
+def choose_common_offset(base: Any, sub: Array, scale: float = 1.0, solver: str = "auto") -> tuple[Any, dict[str, Any]]:
     """Fit one range offset common to every entry and keep it if the block t test finds it.
 
     Parameters
@@ -127,6 +127,9 @@ def choose_common_offset(base: Any, sub: Array, scale: float = 1.0) -> tuple[Any
     sub: (I, J) the matrix it was fitted on (columns = tag positions in time order),
         matrix units (metres, or seconds with ``scale`` = speed).
     scale: metres per matrix unit.
+    solver: the engine of the constrained refits, as :func:`selfcal.toa.nls.refine_toa`'s
+        ``solver`` ("auto": the Schur-reduced engine of :mod:`selfcal.toa.schur_affine` on
+        flights above 120 unknowns; "trf": SciPy's trust region, the reference).
 
     Returns
     -------
@@ -141,7 +144,8 @@ def choose_common_offset(base: Any, sub: Array, scale: float = 1.0) -> tuple[Any
     Notes
     -----
     Cost: one refit of the whole flight plus one per block (each started from the full
-    fit), ~1-3 s each on a 6 x 600 flight (17 / 40 s CPU in all on data4 / data5).
+    fit). On the Schur engine a refit of a 6 x 600 flight takes 5-20 Newton-LM iterations,
+    0.05-0.2 s; ``benchmarks/bench_lps.py`` measures the test against the trf reference.
 
     Examples
     --------
@@ -156,14 +160,14 @@ def choose_common_offset(base: Any, sub: Array, scale: float = 1.0) -> tuple[Any
     kr = np.isfinite(base.receivers).all(axis=1)
     ks = np.isfinite(base.sources).all(axis=1)
     used = np.isfinite(base.residuals) & ~np.asarray(base.outliers, bool)
-    com, info = block_offset_test(base, sub, scale)
+    com, info = block_offset_test(base, sub, scale, solver)
     if not info["adopted"]:
         return base, info
     assert com is not None and com.receiver_offsets is not None
     return _with_common(base, com, sub, scale, kr, ks, used, np.asarray(com.receiver_offsets, float)), info
 
 
-def block_offset_test(base: Any, sub: Array, scale: float = 1.0) -> tuple[Any, dict[str, Any]]:
+def block_offset_test(base: Any, sub: Array, scale: float = 1.0, solver: str = "auto") -> tuple[Any, dict[str, Any]]:
     """The fit and test of :func:`choose_common_offset` without writing the result.
 
     Returns ``(com, info)``: ``com`` the :class:`selfcal.toa.nls.NlsSolution` of the
@@ -187,7 +191,7 @@ def block_offset_test(base: Any, sub: Array, scale: float = 1.0) -> tuple[Any, d
     fails = (DegenerateGeometryError, InputError, np.linalg.LinAlgError, ValueError)
     try:
         com = refine_toa(Z, base.receivers[kr], base.sources[ks], offsets="receivers",
-                         common_offsets="receivers", covariance=True)
+                         common_offsets="receivers", covariance=True, solver=solver)
     except fails as exc:
         info["error"] = str(exc)
         return None, info
@@ -219,7 +223,8 @@ def block_offset_test(base: Any, sub: Array, scale: float = 1.0) -> tuple[Any, d
         keep[edges[b]:edges[b + 1]] = False
         try:
             sol = refine_toa(Z[:, keep], com.receivers, com.sources[keep], offsets="receivers",
-                             common_offsets="receivers", receiver_offsets0=offs, covariance=False)
+                             common_offsets="receivers", receiver_offsets0=offs, covariance=False,
+                             solver=solver)
         except fails as exc:
             info["error"] = f"block {b}: {exc}"
             return com, info

@@ -532,7 +532,7 @@ def refine_toa(
                                             source_offsets0=os0, **cons)
         return _constrained.refine_constrained(  # type: ignore[no-any-return]
             Y, r0, s0, offsets, con, loss=loss, f_scale=f_scale, max_nfev=max_nfev, xtol=xtol,
-            covariance=covariance, noise=check_positive(noise, "noise"))
+            covariance=covariance, noise=check_positive(noise, "noise"), engine=solver)
 
     cov_r, cov_s = resolve_covariance(covariance, I, J)
     theta0 = _pack(r0, s0, dr0, os0)

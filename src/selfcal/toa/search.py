@@ -40,6 +40,7 @@ from numpy.typing import NDArray
 from ..errors import DegenerateGeometryError, InputError
 from ..robust import TUNING
 from .dense_lm import solve_dense_lm
+from .schur_lm import DENSE_MAX_UNKNOWNS
 from .moves import Move, Start, moves
 from .nls import NlsSolution, _pack, _rho, _unpack, refine_toa, toa_model
 from .rank3_model import rank_identifiable
@@ -101,6 +102,11 @@ def least_squares_offsets(Y: Array, r: Array, s: Array, offsets: str) -> tuple[A
     n_c = np.maximum(obs.sum(axis=0), 1)
     a = np.zeros(Y.shape[0])
     b = np.zeros(Y.shape[1])
+    if has_r and has_s and obs.all():
+        # complete two-way table: the closed form of the alternation's limit below
+        a = Z.mean(axis=1)
+        b = Z.mean(axis=0) - a.mean()
+        return a, b
     for _ in range(100 if has_r and has_s else 1):
         if has_r:
             a = ((Z - b[None, :]) * obs).sum(axis=1) / n_r
@@ -148,6 +154,8 @@ def _mds(method: str) -> _Init:
     def init(Y: Array, dim: int, offsets: str, rng: np.random.Generator) -> list[Start]:
         from . import mds
 
+        if _offsets_unidentified(Y, dim, offsets):
+            return []  # MDS of offset-free ranges knows nothing of offsets of metres: the scaled starts' case
         shift = min(0.0, float(np.nanmin(Y)))  # negative ranges: shift for the initialiser only
         r, s = mds.initialize_toa(Y - shift, dim, method=method, rng=rng)
         r, s = np.asarray(r, float), np.asarray(s, float)
@@ -163,11 +171,22 @@ def _scaled(Y: Array, dim: int, offsets: str, rng: np.random.Generator) -> list[
     other initialiser has information on the offsets: both kinds, rank-d method not identifiable."""
     from .scaled_starts import scaled_random_starts
 
-    if offsets != "both":
-        return []
-    if rank_identifiable(Y.shape[0], Y.shape[1], dim):
+    if not _offsets_unidentified(Y, dim, offsets):
         return []
     return scaled_random_starts(Y, dim, offsets, rng, n=SCALED_STARTS)
+
+
+def _offsets_unidentified(Y: Array, dim: int, offsets: str) -> bool:
+    """Both offset kinds and the rank-d method not identifiable (12 x 6 in 3-D): no initialiser
+    but the scaled starts has information on the offsets.
+
+    There the 003 starts (MDS of the ranges as if offset-free, with least-squares offsets for
+    their geometry) are not tried: measured on the 12 x 6 scene (seeds 0-199, every start
+    refined to convergence, seeds 0-188) an MDS start reached the truth-started basin in 60 of
+    189 draws, never in one where no scaled start did, at a median 600 iterations each (the
+    measurement's cap: 27 % of them had converged by then).
+    """
+    return offsets == "both" and not rank_identifiable(Y.shape[0], Y.shape[1], dim)
 
 
 #: random starts of the "scaled" initialiser (a share of the search's one budget): three cycles
@@ -290,6 +309,41 @@ def _combine(base: Start, found: list[tuple[Move, Start]]) -> tuple[str, Start]:
         if o is not None and st[3] is not None:
             o[js] = st[3][js]
     return "+".join(names), (r, s, d, o)
+
+
+#: a start of the race: (cost, start, converged, the full refinement when it ran through refine_toa)
+_State = tuple[float, Start, bool, "NlsSolution | None"]
+#: an entry of the race: (cost, index of the start, name, state, cost before the last rung)
+_Entry = tuple[float, int, str, _State, float]
+#: iteration cap of a rung without an explicit cap (the dense engine's default, schur_lm.DEFAULT_MAX_IT)
+DENSE_MAX_IT = 100
+#: rungs a start may run in the race, the start allowance of the default budget: its
+#: iterations double from MOVE_NFEV, so 8 rungs are 10 (2^8 - 1) = 2550 iterations, more than
+#: any start needs (measured at 12 x 6 with both offsets: at most 5.2 rungs per start on average)
+RACE_RUNGS = 8
+
+#: the race's bound (module docstring, 6.): a start still descending may go on to lose as much
+#: as it lost over its last rung (the rungs double its iterations; for an O(1/k) descent,
+#: c_k = c* + b / k, the rest after k iterations, b / k, is what the last doubling removed)
+RACE_FACTOR = 1.0
+
+
+def _race_survivors(pool: list[_Entry], best_only: bool = False) -> list[_Entry]:
+    """The starts of the race that may still beat the best one (its lowest cost ``U``).
+
+    Entries ``(cost, index, name, state, cost before the last rung)``, ``state[2]`` whether the
+    start converged. A converged start survives only as the leader (converged starts at a
+    higher cost, and duplicates of a converged minimum behind the first, are out); a start
+    still descending when ``cost - RACE_FACTOR (previous - cost) <= U``: its optimistic limit
+    under an O(1/k) descent can still reach the best. ``best_only`` (the budget is spent):
+    the leader alone. Sorted by (cost, index), so the order depends on the canonical
+    numbering only.
+    """
+    pool = sorted(pool, key=lambda e: (e[0], e[1]))
+    if best_only:
+        return pool[:1]
+    U = pool[0][0]
+    return pool[:1] + [e for e in pool[1:] if not e[3][2] and e[0] - RACE_FACTOR * max(e[4] - e[0], 0.0) <= U]
 
 
 def search(
@@ -430,18 +484,53 @@ def search(
                 break
         if first is not None:
             starts.insert(0, first)
-    # the default budget: the moves' allowance plus what successive halving over the starts
-    # costs at most (n + n/2 + n/4 + ... < 2n refinements)
-    nb = nb_given if nb_given is not None else default_budget(I, J) + (0 if large else 2 * len(starts))
+    # the default budget: the moves' allowance plus the race's (RACE_RUNGS rungs per start)
+    nb = nb_given if nb_given is not None else default_budget(I, J) + (0 if large else RACE_RUNGS * len(starts))
     best: NlsSolution | None = None
     best_cost = np.inf
     best_name = ""
     stopped = "exhausted"
-    # successive halving over the starts: each refined MOVE_NFEV iterations, then the better
-    # half continued with twice the iterations, until one is left; it is refined to the end.
-    # A lone start, and the first one when the robust scale is still unknown (it sets the
-    # scale), are refined to the end at once.
-    pool: list[tuple[float, int, str, NlsSolution]] = []
+    # the race over the starts (module docstring, 6.): each refined MOVE_NFEV iterations, then
+    # in rungs of twice the iterations every start that may still beat the best one; the
+    # winner is refined to the end. A lone start, and the first one when the robust scale is
+    # still unknown (it sets the scale), are refined to the end at once.
+    n_unknowns = (I + J) * dim + (I if has_r else 0) + (J if has_s else 0)
+    # the rungs run the engine's dense step directly (what refine_toa runs at this size, without
+    # its layout, gauge and covariance round trip per call) unless a stopping rule needs each
+    # rung's full solution
+    fast = solver == "auto" and stop is None and n_unknowns <= DENSE_MAX_UNKNOWNS and len(starts) > 1
+    ii_obs, jj_obs = np.nonzero(observed)
+    y_obs = Y[ii_obs, jj_obs]
+
+    def advance(st: Start, nfev: int | None) -> _State | None:
+        """One rung of a start: (cost, start, converged, full solution or None)."""
+        nonlocal count, iters
+        if not fast or fs is None:
+            sol = refine(st, nfev)
+            return None if sol is None else (_cost(sol, loss, fs or 1.0), _as_start(sol), bool(sol.converged), sol)
+        count += 1
+        try:
+            theta, conv, nit = solve_dense_lm(_pack_start(st), y_obs, ii_obs, jj_obs, I, J, dim, offsets, loss,
+                                              fs if loss != "linear" else 1.0, nfev, 1e-10, max_it=DENSE_MAX_IT)
+        except (np.linalg.LinAlgError, ValueError):
+            return None
+        iters += nit
+        if not np.isfinite(theta).all():
+            return None
+        nxt = _unpack_start(theta, I, J, dim, offsets)
+        with np.errstate(all="ignore"):
+            c = _cost_of(np.where(observed, Y - toa_model(*nxt), np.nan), loss, fs or 1.0)
+        return (c, nxt, bool(conv), None) if np.isfinite(c) else None
+
+    def state_done(state: _State) -> str | None:
+        if state[3] is not None:
+            return done(state[3])
+        with np.errstate(all="ignore"):
+            R = np.where(observed, Y - toa_model(*state[1]), np.nan)
+        f = R[np.isfinite(R)]
+        return "exact" if f.size and float(np.max(np.abs(f))) <= exact_level else None
+
+    pool: list[_Entry] = []
     nfev = MOVE_NFEV if len(starts) > 1 else max_nfev
 
     def cap(n: int | None) -> int | None:
@@ -451,48 +540,52 @@ def search(
         if count >= nb and pool:
             stopped = "budget"
             break
-        sol = refine(st, max_nfev if fs is None else cap(nfev))
-        if sol is None:
+        state = advance(st, max_nfev if fs is None else cap(nfev))
+        if state is None:
             continue
-        c = _cost(sol, loss, fs or 1.0)
-        history.append((name, c))
-        pool.append((c, k, name, sol))
-        why = done(sol)
+        history.append((name, state[0]))
+        with np.errstate(all="ignore"):
+            c_start = _cost_of(np.where(observed, Y - toa_model(*st), np.nan), loss, fs or 1.0)
+        pool.append((state[0], k, name, state, c_start if np.isfinite(c_start) else np.inf))
+        why = state_done(state)
         if why is not None:
             pool = [pool[-1]]
             stopped = why
             break
     while len(pool) > 1 and stopped == "exhausted":
-        pool.sort(key=lambda t: (t[0], t[1]))
-        pool = pool[: (len(pool) + 1) // 2]
+        if count >= nb:
+            stopped = "budget"
+        pool = _race_survivors(pool, best_only=count >= nb)
+        if all(e[3][2] for e in pool):
+            break
         nfev = None if nfev is None else 2 * nfev
-        for idx, (_, k, name, sol) in enumerate(pool):
-            if sol.converged:
+        for idx, (c_old, k, name, state, _) in enumerate(pool):
+            if state[2]:
                 continue
-            if count >= nb:
-                stopped = "budget"
-                break
-            more = refine(_as_start(sol), cap(nfev))
-            if more is None:
+            more = advance(state[1], cap(nfev))
+            if more is None:  # no further progress: judged as it is
+                pool[idx] = (c_old, k, name, (state[0], state[1], True, state[3]), c_old)
                 continue
-            pool[idx] = (_cost(more, loss, fs or 1.0), k, name, more)
-            why = done(more)
+            pool[idx] = (more[0], k, name, more, c_old)
+            why = state_done(more)
             if why is not None:
                 pool = [pool[idx]]
                 stopped = why
                 break
-    if pool:
-        c, _, best_name, best = min(pool, key=lambda t: (t[0], t[1]))
-        best_cost = c
-        if not best.converged and stopped not in ("test", "exact"):
-            full = refine(_as_start(best), max_nfev)
-            if full is not None:
-                best, best_cost = full, _cost(full, loss, fs or 1.0)
-                why = done(best)
-                if why is not None:
-                    stopped = why
-                elif stopped == "budget":
-                    stopped = "exhausted" if count < nb else "budget"
+    # the winner (lowest cost; the next ones if its full refinement degenerates) refined to the end
+    for c, _, name, state, _ in sorted(pool, key=lambda e: (e[0], e[1])):
+        sol = state[3]
+        if sol is None or (not sol.converged and stopped not in ("test", "exact")):
+            sol = refine(state[1], max_nfev)
+        if sol is None:
+            continue
+        best, best_cost, best_name = sol, _cost(sol, loss, fs or 1.0), name
+        why = done(best)
+        if why is not None:
+            stopped = why
+        elif stopped == "budget":
+            stopped = "exhausted" if count < nb else "budget"
+        break
     if best is None:
         msg = str(last_err.args[0]) if last_err is not None else "no initialiser applies"
         kind = getattr(last_err, "kind", "init-failed")

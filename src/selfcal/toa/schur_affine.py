@@ -1,0 +1,320 @@
+"""Schur-reduced Levenberg-Marquardt for a constrained (affinely parametrised) range model.
+
+The constrained fits of :mod:`selfcal.toa.constrained` write the parameters of the range
+model ``y_ij = |r_i - s_j| + d_i + o_j`` as ``theta = base + T x``: fixed coordinates drop
+columns of the identity, a common offset is one column of ones, a general linear offset
+constraint is any basis ``B`` (``offsets = d_0 + B x``). This module solves that problem
+at the speed of the unconstrained engine (:mod:`selfcal.toa.schur_lm`), for any ``T``.
+
+Partition. Every column of the reduced Jacobian ``J T`` is either *local* to one node of
+the eliminated set E (the larger node set: its free coordinates and an offset of its own)
+or *global*: the kept set K's coordinates and offsets, and every offset parameter that
+spans several nodes (a common offset, a basis column). Each residual row (one range, or one
+prior row ``(sigma / std)(x_k - mu_k)``) touches at most one E node, so the normal matrix
+is
+
+    [ R   C^T ]      R = N_gg (global, dense, small)
+    [ C   D   ]      D = blockdiag(D_e) (one small block per E node)
+
+and each damped system is solved on the global unknowns only, ``S = R - C^T D^-1 C``
+(dense, Cholesky by LAPACK posv, least squares when not positive definite), then
+back-substituted node by node. A moving UWB tag (6 anchors x 600 positions, a common range
+offset) has 1800 local unknowns in 600 blocks of 3 and 19 global ones; an iteration costs
+O(m n_g^2), not the O(n^3) of a dense trust region (Agarwal et al., "Bundle adjustment in
+the large", 2010, for the Schur scheme; Triggs et al., "Bundle adjustment - a modern
+synthesis", 2000, sec. 6 for the elimination order).
+
+The residual gauge the constraints leave is pinned by the caller (the pinned coordinates
+are not in ``x``), so the system is non-singular beyond the Marquardt damping. The LM loop
+is the engine's: Marquardt diagonal damping, Nielsen's gain-ratio update
+(:func:`selfcal.toa.dense_lm.damping_after_success`), robust losses as iteratively
+reweighted normal equations with weights rho'(z) over every residual row (the prior rows
+included, as ``scipy.optimize.least_squares`` applies its loss to them), whose fixed points
+are the stationary points of the robust cost.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+import scipy.sparse
+from numpy.typing import NDArray
+
+from ..robust import loss_rho
+from .dense_lm import _solve as _direct_solve  # Cholesky (posv), least squares if not PD
+from .dense_lm import damping_after_success
+
+Array = NDArray[np.float64]
+IntArray = NDArray[np.intp]
+
+__all__ = ["MAX_GLOBAL", "FTOL", "local_blocks", "solve_affine_lm"]
+
+#: most global unknowns of the dense reduced system (a (n_g, n_g) Cholesky per damping trial)
+MAX_GLOBAL = 1200
+#: relative cost decrease that stops the iteration; tighter than the unconstrained engine's
+#: 1e-8 because the constrained fits are refits from near the optimum whose parameters (a
+#: common offset, its jackknife replicates) are compared at a fraction of their error
+FTOL = 1e-12
+#: damping trials per iteration before giving up (as schur_lm)
+TRIALS = 12
+#: relative cost decrease of a Gauss-Newton step below which the curvature rows are switched on
+SWITCH = 1e-5
+
+
+def local_blocks(T: scipy.sparse.spmatrix, node_of_theta: IntArray) -> tuple[IntArray, IntArray]:
+    """Split the columns of ``T`` into node-local blocks and global columns.
+
+    Parameters
+    ----------
+    T : (n, p) sparse map from the reduced vector x to theta.
+    node_of_theta : (n,) the E node each entry of theta belongs to, -1 for entries of
+        the kept side or of no node.
+
+    Returns
+    -------
+    blocks : (nE, mE) column indices of x local to each E node, -1 padded (mE >= 1).
+    glob : (n_g,) the other columns, in increasing order.
+
+    Examples
+    --------
+    >>> T = scipy.sparse.eye(4, format="csc")
+    >>> b, g = local_blocks(T, np.array([-1, 0, 0, 1]))
+    >>> b.tolist(), g.tolist()
+    ([[1, 2], [3, -1]], [0])
+    """
+    C = scipy.sparse.csc_matrix(T)
+    p = C.shape[1]
+    nE = int(node_of_theta.max()) + 1 if node_of_theta.size else 0
+    owner = np.full(p, -1, np.intp)
+    nz = np.diff(C.indptr) > 0
+    if C.indices.size:
+        nodes = node_of_theta[C.indices]
+        starts = C.indptr[:-1][nz]
+        lo = np.minimum.reduceat(nodes, starts)
+        hi = np.maximum.reduceat(nodes, starts)
+        owner[nz] = np.where((lo == hi) & (lo >= 0), lo, -1)
+    loc = np.nonzero(owner >= 0)[0]
+    counts = np.bincount(owner[loc], minlength=nE) if nE else np.zeros(0, np.intp)
+    mE = max(int(counts.max()) if counts.size else 0, 1)
+    blocks = np.full((nE, mE), -1, np.intp)
+    order = loc[np.argsort(owner[loc], kind="stable")]
+    start = np.concatenate([[0], np.cumsum(counts)[:-1]]) if nE else np.zeros(0, np.intp)
+    slot = np.arange(order.size) - np.repeat(start, counts)
+    blocks[owner[order], slot] = order
+    return blocks, np.nonzero(owner < 0)[0]
+
+
+class RowPattern:
+    """The fixed sparsity of a Jacobian and its split into node-local and global entries.
+
+    Parameters
+    ----------
+    rows, cols : (nnz,) row and column (x index) of every structural non-zero; no pair
+        repeated. Rows ``0 .. n_res - 1`` are the residual rows, rows ``n_res .. n_rows - 1``
+        curvature rows (see :func:`solve_affine_lm`).
+    n_rows, n_res : number of rows in all, of residual rows.
+    blocks, glob : the partition of :func:`local_blocks`.
+
+    Raises
+    ------
+    ValueError : a row touches two E nodes (the partition does not separate the nodes).
+    """
+
+    def __init__(self, rows: IntArray, cols: IntArray, n_rows: int, n_res: int,
+                 blocks: IntArray, glob: IntArray) -> None:
+        p = int(blocks[blocks >= 0].size + glob.size)
+        nE, mE = blocks.shape
+        valid = blocks >= 0
+        slot_of = -np.ones(p, np.intp)
+        slot_of[blocks[valid]] = np.nonzero(valid.ravel())[0]
+        ng = glob.size
+        glob_pos = -np.ones(p, np.intp)
+        glob_pos[glob] = np.arange(ng)
+        loc = slot_of[cols] >= 0
+        sl = slot_of[cols[loc]]
+        own = -np.ones(n_rows, np.intp)
+        own[rows[loc]] = sl // mE
+        if (own[rows[loc]] != sl // mE).any():
+            raise ValueError("a Jacobian row touches two eliminated nodes")
+        self.rows, self.cols, self.n_rows, self.n_res = rows, cols, n_rows, n_res
+        self.blocks, self.glob, self.valid, self.p, self.nE, self.mE, self.ng = blocks, glob, valid, p, nE, mE, ng
+        self.loc = np.nonzero(loc)[0]
+        self.je_at = rows[loc] * mE + sl % mE  # flat index into JE (n_rows, mE)
+        # JG: the global entries as a CSR matrix of fixed structure (rows sorted)
+        gi = np.nonzero(~loc)[0]
+        gi = gi[np.argsort(rows[gi], kind="stable")]
+        self.g_ent = gi
+        self.g_indices = glob_pos[cols[gi]]
+        self.g_indptr = np.concatenate([[0], np.cumsum(np.bincount(rows[gi], minlength=n_rows))])
+        # Cs: row (e * mE + a) holds w JE[row, a] on the rows of node e, so that
+        # Cs @ JG = C, Cs @ JE = D and Cs @ f = g_E (fixed structure)
+        has = np.nonzero(own >= 0)[0]
+        hs = has[np.argsort(own[has], kind="stable")]
+        cnt = np.bincount(own[has], minlength=nE)
+        start = np.concatenate([[0], np.cumsum(cnt)[:-1]])
+        seg = np.repeat(cnt, mE)
+        self.c_indptr = np.concatenate([[0], np.cumsum(seg)])
+        e_of = np.repeat(np.repeat(np.arange(nE), mE), seg)
+        self.c_a = np.repeat(np.tile(np.arange(mE), nE), seg)
+        j = np.arange(e_of.size) - np.repeat(self.c_indptr[:-1], seg)
+        self.c_indices = hs[start[e_of] + j]
+
+    def systems(self, vals: Array, w: Array, f: Array) -> tuple[Array, Array, Array, Array, Array]:
+        """Normal-equation pieces: D (nE, mE, mE), C (nE, mE, n_g), R (n_g, n_g), g_E (nE, mE), g_G (n_g,).
+
+        ``w`` (n_rows,) row weights, ``f`` (n_rows,) residuals (0 on curvature rows).
+        """
+        nE, mE, ng, n = self.nE, self.mE, self.ng, self.n_rows
+        JE = np.zeros(n * mE)
+        JE[self.je_at] = vals[self.loc]
+        JE = JE.reshape(n, mE)
+        JG = scipy.sparse.csr_matrix((vals[self.g_ent], self.g_indices, self.g_indptr), shape=(n, ng))
+        wJG = scipy.sparse.csr_matrix((vals[self.g_ent] * np.repeat(w, np.diff(self.g_indptr)),
+                                       self.g_indices, self.g_indptr), shape=(n, ng))
+        gG = np.asarray(JG.T @ (w * f)).ravel()
+        R = np.asarray((JG.T @ wJG).toarray())
+        ci = self.c_indices
+        Cs = scipy.sparse.csr_matrix((JE[ci, self.c_a] * w[ci], ci, self.c_indptr), shape=(nE * mE, n))
+        C = np.asarray((Cs @ JG).toarray()).reshape(nE, mE, ng)
+        D = np.asarray(Cs @ JE).reshape(nE, mE, mE)
+        D = 0.5 * (D + np.swapaxes(D, 1, 2))
+        gE = np.asarray(Cs @ f).reshape(nE, mE)
+        return D, C, R, gE, gG
+
+    def matvec(self, vals: Array, dx: Array) -> Array:
+        """``J dx`` over every row (n_rows,)."""
+        return np.bincount(self.rows, vals * dx[self.cols], minlength=self.n_rows)
+
+
+def _damped(D: Array, dD: Array, lam: float, valid: NDArray[np.bool_]) -> Array | None:
+    """Inverses of the Marquardt-damped node blocks ``D_e + lam diag(D_e)`` (padding: identity)."""
+    idx = np.arange(D.shape[1])
+    Dd = D.copy()
+    Dd[:, idx, idx] = np.where(valid, D[:, idx, idx] + lam * dD, 1.0)
+    try:
+        inv = np.linalg.inv(Dd)
+    except np.linalg.LinAlgError:
+        return None
+    return np.asarray(inv, float) if np.isfinite(inv).all() else None
+
+
+def _floor(v: Array) -> Array:
+    """Diagonal entries floored at 1e-12 of the largest (Marquardt scaling of a zero column)."""
+    return np.maximum(v, 1e-12 * max(float(v.max(initial=0.0)), 1.0))
+
+
+def solve_affine_lm(
+    x0: Array, fun: Callable[[Array], Array],
+    values: Callable[[Array, Array, Array], tuple[Array, Array]], pattern: RowPattern,
+    loss: str, f_scale: float, xtol: float, max_it: int = 200, ftol: float = FTOL,
+) -> tuple[Array, bool, int]:
+    """Levenberg-Marquardt with the node-local unknowns eliminated by a Schur complement.
+
+    Parameters
+    ----------
+    x0 : (p,) start of the reduced vector.
+    fun : ``x -> f`` (n_res,) residuals (model - data, then any prior rows).
+    values : ``(x, f, w) -> (vals, wc)``: the Jacobian of ``fun`` on the residual rows of
+        ``pattern`` and the curvature rows' vectors (``vals`` (nnz,)), and the curvature
+        rows' weights ``wc`` (n_rows - n_res,), so that ``sum_c wc_c j_c j_c^T`` is the
+        second-order part ``sum_i w_i f_i d^2 f_i`` of the Hessian (none: no curvature rows).
+    pattern : the fixed sparsity (:class:`RowPattern`).
+    loss, f_scale : robust loss (:func:`selfcal.robust.loss_rho`) and its scale.
+    xtol : relative step tolerance; ftol : relative cost decrease that stops.
+    max_it : iteration cap.
+
+    Returns
+    -------
+    (x, converged, iterations).
+
+    Notes
+    -----
+    Each damped step solves ``(H + lam diag|H|) dx = -g`` with ``H = J^T W J + sum wc j j^T``:
+    the Gauss-Newton matrix plus the residuals' curvature, i.e. Newton's method with
+    Marquardt damping. The curvature matters on range data: a tag position 0.2 m from an
+    anchor with a 0.1 m residual has a second-order term half the size of its Gauss-Newton
+    block, the Gauss-Newton model is then wrong for it and, through its coupling, for the
+    global unknowns (measured on the LPS flights: 50 Gauss-Newton iterations for a
+    common-offset refit, linear convergence at the end; 20 with the curvature, quadratic).
+    The damping is relative to ``|diag H|``, a trial that does not lower the cost is refused
+    and the damping raised, so an indefinite ``H`` far from the minimum costs trials, not
+    descent. Per iteration O(nnz (mE + c^2)) for the pieces (c the global entries per row),
+    a batched inverse of the node blocks and one dense (n_g, n_g) solve per trial.
+    """
+    pat = pattern
+    p, valid, blocks, glob = pat.p, pat.valid, pat.blocks, pat.glob
+    loc_x = blocks[valid]
+    n_res, n_cur = pat.n_res, pat.n_rows - pat.n_res
+
+    def evaluate(x: Array) -> tuple[float, Array, Array, Array]:
+        f = fun(x)
+        rho, w = loss_rho((f / f_scale) ** 2, loss)
+        rho = np.asarray(rho, float)
+        return 0.5 * f_scale**2 * float(np.sum(rho)), f, np.asarray(w, float), rho
+
+    x = np.array(x0, float)
+    cost, f, w, rho = evaluate(x)
+    lam, nu = 1e-4, 2.0
+    converged = False
+    it = 0
+    zeros_c = np.zeros(n_cur)
+    newton = False
+    while it < max_it:
+        it += 1
+        vals, wc = values(x, f, w)
+        if not newton:
+            wc = np.zeros_like(wc)
+        wall = np.concatenate([w, np.asarray(wc, float)])
+        fall = np.concatenate([f, zeros_c])
+        wf = wall * fall
+        D, C, R, gE, gG = pat.systems(vals, wall, fall)
+        dD = _floor(np.abs(np.einsum("eaa->ea", D)))
+        dR = _floor(np.abs(np.diag(R)).copy())
+        gnorm = float(np.sqrt(gG @ gG + np.sum(gE * gE)))
+        improved = False
+        for _ in range(TRIALS):
+            Dinv = _damped(D, dD, lam, valid)
+            if Dinv is None:
+                lam, nu = lam * nu, 2.0 * nu
+                continue
+            DiC = np.einsum("eab,ebk->eak", Dinv, C)
+            S = R + np.diag(lam * dR) - np.einsum("eak,eal->kl", C, DiC)
+            DigE = np.einsum("eab,eb->ea", Dinv, gE)
+            rhs = -gG + np.einsum("eak,ea->k", C, DigE)
+            xg = _direct_solve(0.5 * (S + S.T), rhs) if pat.ng else np.zeros(0)
+            if xg is None:
+                lam, nu = lam * nu, 2.0 * nu
+                continue
+            xe = -DigE - np.einsum("eak,k->ea", DiC, xg)
+            dx = np.zeros(p)
+            dx[glob] = xg
+            dx[loc_x] = xe[valid]
+            if not np.isfinite(dx).all():
+                lam, nu = lam * nu, 2.0 * nu
+                continue
+            trial = x + dx
+            c2, f2, w2, r2 = evaluate(trial)
+            if np.isfinite(c2) and c2 <= cost:
+                Jd = pat.matvec(vals, dx)
+                pred = -(float(wf @ Jd) + 0.5 * float(np.sum(wall * Jd * Jd)))
+                small = np.linalg.norm(dx) <= xtol * (xtol + np.linalg.norm(x))
+                rel = (cost - c2) <= ftol * max(cost, 1e-300)
+                # Gauss-Newton while its model holds; the residuals' curvature once it fails
+                # (gain ratio below 1/4) or its progress has become the linear tail
+                if not newton and ((cost - c2) <= SWITCH * cost or (cost - c2) < 0.25 * pred):
+                    newton = True
+                lam = damping_after_success(lam, cost - c2, pred)
+                nu = 2.0
+                x, cost, f, w, rho = trial, c2, f2, w2, r2
+                improved = True
+                converged = bool(small or rel)
+                break
+            lam, nu = lam * nu, 2.0 * nu
+        if not improved:
+            # no damped step descends: a minimum up to round-off if the gradient is tiny
+            converged = gnorm <= 1e-6 * max(1.0, np.sqrt(2 * cost))
+            break
+        if converged:
+            break
+    return x, converged, it
