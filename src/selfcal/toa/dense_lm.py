@@ -74,12 +74,6 @@ def _rotation_generators(d: int) -> list[tuple[int, int]]:
     return [(0, 1)] if d == 2 else [(0, 1), (0, 2), (1, 2)]
 
 
-_ROTATIONS = {2: np.array(_rotation_generators(2)), 3: np.array(_rotation_generators(3))}
-#: a rotation direction whose Gram eigenvalue is below this fraction of the largest is
-#: dependent (collinear points: round-off of the eigensolver is ~1e-16 of the largest)
-_DEPENDENT = 1e-14
-
-
 class GaugeProjector:
     """The orthogonal projector off the gauge directions at one point (formed once per iteration).
 
@@ -93,7 +87,7 @@ class GaugeProjector:
     -----
     Translations (one unit vector per coordinate), rotations about the centroid (centred, so
     orthogonal to the translations) and the shift (on the offsets only) are mutually
-    orthogonal; only the d(d-1)/2 rotation vectors need orthonormalising (by the eigenvectors of their Gram matrix). ``apply`` gives ``(I - Q Q^T) dx`` with Q the orthonormal basis of
+    orthogonal; only the d(d-1)/2 rotation vectors need orthonormalising (Gram-Schmidt). ``apply`` gives ``(I - Q Q^T) dx`` with Q the orthonormal basis of
     :func:`selfcal.toa.nls.gauge_basis`, to round-off.
     """
 
@@ -101,19 +95,22 @@ class GaugeProjector:
         self.N, self.d, self.I, self.both = N, d, I, both
         P = theta[: N * d].reshape(N, d)
         P = P - P.sum(axis=0) * (1.0 / N)
-        gens = _ROTATIONS[d]
-        V = np.zeros((len(gens), N, d))
-        ia, ib = gens[:, 0], gens[:, 1]
-        k = np.arange(len(gens))
-        V[k, :, ia] = -P[:, ib].T  # rotation a -> b: (-x_b, x_a) on coordinates (a, b)
-        V[k, :, ib] = P[:, ia].T
-        Vf = V.reshape(len(gens), N * d)
-        # orthonormal basis of their span from the Gram matrix (d(d-1)/2 square): the
-        # eigenvectors scaled by 1/sqrt(eigenvalue); a dependent rotation (points on a line)
-        # has a zero eigenvalue and adds no direction
-        ev, E = np.linalg.eigh(Vf @ Vf.T)
-        keep = ev > _DEPENDENT * max(float(ev[-1]), 1e-300)
-        self.Qr = (E[:, keep] / np.sqrt(ev[keep])).T @ Vf
+        rows: list[Array] = []
+        big = 0.0
+        for a, b in _rotation_generators(d):  # rotation a -> b: (-x_b, x_a) on coordinates (a, b)
+            v2 = np.zeros((N, d))
+            v2[:, a] = -P[:, b]
+            v2[:, b] = P[:, a]
+            v: Array = v2.ravel()
+            big = max(big, math.sqrt(float(v @ v)))
+            for q in rows:  # Gram-Schmidt (twice is enough for three vectors)
+                v = v - float(q @ v) * q
+            for q in rows:
+                v = v - float(q @ v) * q
+            nv = math.sqrt(float(v @ v))
+            if nv > 1e-10 * big:  # a dependent rotation (points on a line) adds no direction
+                rows.append(v / nv)
+        self.Qr = np.array(rows).reshape(len(rows), N * d)
 
     def apply(self, dx: Array) -> Array:
         """``dx`` minus its projection on the gauge directions (in place); returns dx."""
