@@ -72,9 +72,29 @@ class LpsFormatWarning(UserWarning):
 
 def _field(rec: Any, key: str, path: Path) -> Array:
     try:
-        return np.asarray(rec[key], dtype=float)
+        raw = np.asarray(rec[key])
     except (KeyError, ValueError, IndexError, TypeError):
         raise InputError(f"{path}: field {key!r} missing from the 'data' struct; is this an LPS file?") from None
+    if np.iscomplexobj(raw):
+        raise InputError(f"{path}: field {key!r} is complex; ranges and positions must be real numbers")
+    try:
+        return np.asarray(raw, dtype=float)
+    except (ValueError, TypeError):
+        raise InputError(f"{path}: field {key!r} is not numeric") from None
+
+
+def _has(rec: Any, key: str) -> bool:
+    names = getattr(getattr(rec, "dtype", None), "names", None)
+    return key in names if names is not None else key in rec
+
+
+def _optional(rec: Any, key: str, shape: tuple[int, int], path: Path, what: str) -> Array:
+    """A comparison-only field, or NaN of ``shape`` with a :class:`LpsFormatWarning` if absent."""
+    if _has(rec, key):
+        return _field(rec, key, path)
+    warnings.warn(f"{path}: no {key!r} ({what}); it is NaN in the result and not scored",
+                  LpsFormatWarning, stacklevel=3)
+    return np.full(shape, np.nan)
 
 
 def _fit_columns(a: Array, n: int, key: str, path: Path) -> Array:
@@ -146,7 +166,8 @@ def load_lps(path: str | os.PathLike[str]) -> LpsData:
     Parameters
     ----------
     path: the ``.mat`` file (MATLAB v5, struct ``data`` with fields ``d`` 6 x N,
-        ``Gtr`` 3 x 6, ``GTs_resamp`` 3 x N, ``GTs_resamp_ok``, ``ropt``, ``sopt``).
+        ``Gtr`` 3 x 6, ``GTs_resamp`` 3 x N, ``GTs_resamp_ok``, ``ropt``, ``sopt``; the same
+        fields as top-level variables are read too). Required: ``d`` and ``Gtr``.
 
     Returns
     -------
@@ -159,8 +180,10 @@ def load_lps(path: str | os.PathLike[str]) -> LpsData:
 
     Warns
     -----
-    LpsFormatWarning: a per-position field (``GTs_resamp``, ``GTs_resamp_ok``, ``sopt``)
-        whose length differs from the columns of ``d``. Only ground truth and the
+    LpsFormatWarning: a comparison field absent (``GTs_resamp``, ``ropt``, ``sopt``: NaN in
+        the result, not scored; the ranges are what is calibrated), or a per-position field
+        (``GTs_resamp``, ``GTs_resamp_ok``, ``sopt``) whose length differs from the columns
+        of ``d``. Only ground truth and the
         authors' estimate are affected, never the ranges: the loader keeps every range,
         marks positions without a validity flag (or ground truth) as NaN ground truth and
         ignores extra entries (decision: a shorter flag array is common in exported
@@ -177,21 +200,28 @@ def load_lps(path: str | os.PathLike[str]) -> LpsData:
         mat = scipy.io.loadmat(p)
     except Exception as exc:  # scipy raises several types for non-MAT content
         raise InputError(f"{p}: cannot be read as a MATLAB v5 file ({exc})") from None
-    if "data" not in mat:
-        raise InputError(f"{p}: no 'data' struct; is this an LPS file?")
-    try:
-        rec = mat["data"][0, 0]
-        rec.dtype.names[0]  # a MATLAB struct (record array)
-    except (IndexError, TypeError, AttributeError):
-        raise InputError(f"{p}: 'data' is not a 1 x 1 MATLAB struct; is this an LPS file?") from None
+    rec: Any
+    if "data" in mat:
+        try:
+            rec = mat["data"][0, 0]
+            rec.dtype.names[0]  # a MATLAB struct (record array)
+        except (IndexError, TypeError, AttributeError):
+            raise InputError(f"{p}: 'data' is not a 1 x 1 MATLAB struct; is this an LPS file?") from None
+    elif "d" in mat and "Gtr" in mat:
+        rec = mat  # the same fields saved as top-level variables (save(f, 'd', 'Gtr', ...))
+    else:
+        raise InputError(f"{p}: no 'data' struct (nor top-level 'd' and 'Gtr'); is this an LPS file?")
     d = _field(rec, "d", p)
     G = _field(rec, "Gtr", p)
-    T = _field(rec, "GTs_resamp", p)
-    ropt = _field(rec, "ropt", p)
-    sopt = _field(rec, "sopt", p)
     if d.ndim != 2 or d.shape[0] < 1 or d.shape[1] < 1:
         raise InputError(f"{p}: field 'd' must be a (anchors x positions) matrix, got shape {d.shape}")
     m, n = d.shape
+    if G.ndim == 2 and G.shape[0] == 3 and G.shape[1] == n and n != m:
+        raise InputError(f"{p}: 'd' is {d.shape} but Gtr has {n} anchors: 'd' looks transposed "
+                         f"(it must be anchors x positions, {n} x {m})")
+    T = _optional(rec, "GTs_resamp", (3, n), p, "ground-truth tag positions")
+    ropt = _optional(rec, "ropt", (3, m), p, "the authors' anchor estimate")
+    sopt = _optional(rec, "sopt", (3, n), p, "the authors' tag estimate")
     if G.shape != (3, m) or ropt.shape != (3, m):
         raise InputError(
             f"{p}: inconsistent shapes d {d.shape}, Gtr {G.shape}, ropt {ropt.shape} "
