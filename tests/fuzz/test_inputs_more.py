@@ -217,3 +217,13 @@ def test_pipeline_truth_json_validated_before_the_run(tmp_path: Path, truth: obj
     res = invoke(["pipeline", rec, "-o", tmp_path / "r.json"])
     code, _, err = check_contract(res, before, snapshot(tmp_path))
     assert code == 2 and match in err, err
+
+
+def test_boolean_npy_matrix_is_refused(tmp_path: Path) -> None:
+    """A saved mask is not a range matrix: True / False were read as ranges of 1 m / 0 m."""
+    f = tmp_path / "mask.npy"
+    np.save(f, np.random.default_rng(0).random((8, 10)) > 0.5)
+    res = invoke(["calibrate", "toa", str(f), "-o", str(tmp_path / "r.json")])
+    code, _, err = check_contract(res)
+    assert code == 2 and "boolean" in err
+    assert not (tmp_path / "r.json").exists()

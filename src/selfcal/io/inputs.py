@@ -248,7 +248,9 @@ def _read_npy(src: Any, label: str) -> NDArray[np.float64]:
         raise InputError(f"{label}: not a single .npy array")
     if arr.dtype.kind == "c":
         raise InputError(f"{label}: complex values; give real numbers")
-    if arr.dtype.kind not in "fiub":
+    if arr.dtype.kind == "b":  # a mask saved by mistake: True / False are not measurements
+        raise InputError(f"{label}: .npy array is boolean (a mask?); give the measured values")
+    if arr.dtype.kind not in "fiu":
         raise InputError(f"{label}: .npy dtype {arr.dtype} is not numeric")
     arr = np.asarray(arr, dtype=float)
     if arr.ndim == 0:
