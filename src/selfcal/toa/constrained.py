@@ -374,6 +374,20 @@ class _SchurModel:
         wc = np.where(pos, w[:m] * f[:m] / np.where(pos, dist, 1.0), 0.0)
         return vals, np.tile(wc, d - 1)
 
+    def inverse(self, theta: Array, drho: Array, wprior: Array) -> Any:
+        """The pinned inverse of the Gauss-Newton normal matrix at ``theta`` (weights rho')."""
+        from .schur_affine import SchurInverse
+
+        f0 = np.zeros(self.pattern.n_res)
+        vals, _ = self.values(theta, f0, f0, wprior)
+        w = np.concatenate([np.asarray(drho, float), np.zeros(self.pattern.n_rows - self.pattern.n_res)])
+        try:
+            return SchurInverse(self.pattern, vals, w)
+        except np.linalg.LinAlgError:
+            raise DegenerateGeometryError(
+                "the normal equations are numerically singular beyond the gauge: the constrained "
+                "geometry is degenerate", kind="degenerate-geometry") from None
+
     def solve(self, x0: Array, fun: Any, theta_of: Any, wprior: Array, loss: str, fs: float, xtol: float,
               max_it: int) -> tuple[Array, bool, int]:
         from .schur_affine import solve_affine_lm
@@ -569,8 +583,11 @@ def refine_constrained(
     nr, ns = d + has_r, d + has_s
     if (want_r.size or want_s.size) and np.isfinite(sigma):
         Gsol = _residual_gauge(par, con, r, s, offsets)  # the gauge at the solution
+        inv = None
+        if schur is not None:
+            inv = schur.inverse(th, drho, wprior)
         Cr, Cs = _node_covariances(th, Y, d, offsets, par, F, Gsol, TF, prior_pos, wprior, drho,
-                                   m, I, J, has_r, has_s, want_r, want_s)
+                                   m, I, J, has_r, has_s, want_r, want_s, inverse=inv)
         Cr, Cs = Cr * sigma**2, Cs * sigma**2
     else:
         Cr = np.full((I, nr, nr), np.nan)
@@ -634,35 +651,59 @@ def _check_counts(obs: BoolArray, con: Constraints, d: int) -> None:
                 "drop it, fix some of its coordinates or add measurements", kind="unobservable-node")
 
 
+class _LuInverse:
+    """The pinned inverse of the constrained normal matrix by one sparse LU (``solve``, ``block``)."""
+
+    def __init__(self, th: Array, Y: Array, d: int, offsets: str, TF: scipy.sparse.csc_matrix,
+                 prior_pos: NDArray[np.intp], wprior: Array, drho: Array, m: int) -> None:
+        from .nls import toa_jacobian
+
+        Jm = toa_jacobian(th, Y, d, offsets) @ TF
+        W = scipy.sparse.diags(drho[:m])
+        N = (Jm.T @ W @ Jm).tocsc()
+        if prior_pos.size:
+            N = N + scipy.sparse.csc_matrix((drho[m:] * wprior**2, (prior_pos, prior_pos)), shape=N.shape)
+        try:
+            self.lu = scipy.sparse.linalg.splu(N.tocsc())
+        except RuntimeError:
+            raise DegenerateGeometryError(
+                "the normal equations are singular beyond the gauge: the constrained geometry is "
+                "degenerate (too few ranges per node, or coplanar points in 3-D)", kind="degenerate-geometry") from None
+        du = np.abs(self.lu.U.diagonal())
+        if du.min() <= 1e-12 * du.max():
+            raise DegenerateGeometryError(
+                "the normal equations are numerically singular beyond the gauge: the constrained "
+                "geometry is degenerate", kind="degenerate-geometry")
+        self.n = N.shape[0]
+
+    def solve(self, B: Array) -> Array:
+        return np.asarray(self.lu.solve(B))
+
+    def block(self, cols: NDArray[np.intp]) -> Array:
+        E = np.zeros((self.n, cols.size))
+        E[cols, np.arange(cols.size)] = 1.0
+        return np.asarray(self.lu.solve(E))[cols]
+
+
 def _node_covariances(
     th: Array, Y: Array, d: int, offsets: str, par: _Param, F: NDArray[np.intp], Gx: Array,
     TF: scipy.sparse.csc_matrix, prior_pos: NDArray[np.intp], wprior: Array, drho: Array,
     m: int, I: int, J: int, has_r: bool, has_s: bool,
     want_r: NDArray[np.intp] | None = None, want_s: NDArray[np.intp] | None = None,
+    inverse: Any = None,
 ) -> tuple[Array, Array]:
     """Node blocks of ``T P (J^T W J)_pinned^-1 P T^T`` (unit noise), (I, nr, nr), (J, ns, ns).
 
     Only the nodes in ``want_r`` / ``want_s`` (None = all) are solved for (one sparse LU,
-    then the columns each requested node touches); the other blocks are NaN.
+    then the columns each requested node touches); the other blocks are NaN. ``inverse``:
+    the pinned inverse as an object with ``solve(B)`` and ``block(cols)`` (default a sparse
+    LU of the normal matrix, :class:`_LuInverse`; the Schur engine's
+    :class:`selfcal.toa.schur_affine.SchurInverse` on its path).
     """
-    from .nls import _node_indices, toa_jacobian
+    from .nls import _node_indices
 
-    Jm = toa_jacobian(th, Y, d, offsets) @ TF
-    W = scipy.sparse.diags(drho[:m])
-    N = (Jm.T @ W @ Jm).tocsc()
-    if prior_pos.size:
-        N = N + scipy.sparse.csc_matrix((drho[m:] * wprior**2, (prior_pos, prior_pos)), shape=N.shape)
-    try:
-        lu = scipy.sparse.linalg.splu(N.tocsc())
-    except RuntimeError:
-        raise DegenerateGeometryError(
-            "the normal equations are singular beyond the gauge: the constrained geometry is "
-            "degenerate (too few ranges per node, or coplanar points in 3-D)", kind="degenerate-geometry") from None
-    du = np.abs(lu.U.diagonal())
-    if du.min() <= 1e-12 * du.max():
-        raise DegenerateGeometryError(
-            "the normal equations are numerically singular beyond the gauge: the constrained "
-            "geometry is degenerate", kind="degenerate-geometry")
+    if inverse is None:
+        inverse = _LuInverse(th, Y, d, offsets, TF, prior_pos, wprior, drho, m)
     p = par.x0.size
     pos_of = -np.ones(p, np.intp)
     pos_of[F] = np.arange(F.size)
@@ -670,7 +711,7 @@ def _node_covariances(
     # C = pinned inverse (zero rows / columns at the pins); Y = C G, Z = G^T C G
     Yg = np.zeros((p, gp))
     if gp:
-        Yg[F] = lu.solve(np.ascontiguousarray(Gx[F]))
+        Yg[F] = inverse.solve(np.ascontiguousarray(Gx[F]))
     Z = Gx.T @ Yg
     r_idx, s_idx, _ = _node_indices(I, J, d, offsets)
     T = par.T.tocsr()
@@ -692,9 +733,7 @@ def _node_covariances(
             fc = pos_of[cols[free]]
             Css = np.zeros((cols.size, cols.size))
             if fc.size:
-                E = np.zeros((F.size, fc.size))
-                E[fc, np.arange(fc.size)] = 1.0
-                Css[np.ix_(free, free)] = lu.solve(E)[fc]  # pinned inverse on the free columns
+                Css[np.ix_(free, free)] = inverse.block(fc)  # pinned inverse on the free columns
             if gp:
                 Gs, Ys = Gx[cols], Yg[cols]
                 Css = Css - Gs @ Ys.T - Ys @ Gs.T + Gs @ Z @ Gs.T

@@ -138,6 +138,7 @@ class RowPattern:
         if (own[rows[loc]] != sl // mE).any():
             raise ValueError("a Jacobian row touches two eliminated nodes")
         self.rows, self.cols, self.n_rows, self.n_res = rows, cols, n_rows, n_res
+        self.slot_of, self.glob_pos = slot_of, glob_pos
         self.blocks, self.glob, self.valid, self.p, self.nE, self.mE, self.ng = blocks, glob, valid, p, nE, mE, ng
         self.loc = np.nonzero(loc)[0]
         self.je_at = rows[loc] * mE + sl % mE  # flat index into JE (n_rows, mE)
@@ -185,6 +186,70 @@ class RowPattern:
     def matvec(self, vals: Array, dx: Array) -> Array:
         """``J dx`` over every row (n_rows,)."""
         return np.bincount(self.rows, vals * dx[self.cols], minlength=self.n_rows)
+
+
+class SchurInverse:
+    """The inverse of the (undamped) normal matrix ``[[R, C^T], [C, D]]`` through its Schur complement.
+
+    With ``K_e = D_e^-1 C_e`` and ``S = R - sum_e C_e^T K_e``, the inverse is
+    ``Delta + L S^-1 L^T``: ``Delta`` the block diagonal of the ``D_e^-1`` on the local
+    columns, ``L`` the identity on the global ones and ``-K`` on the local ones. Any block
+    of it costs O(k^2 n_g) for k columns; no sparse factorisation of the whole matrix.
+
+    Raises
+    ------
+    numpy.linalg.LinAlgError : a node block or S is singular to working precision
+        (condition number above 1e12).
+    """
+
+    def __init__(self, pattern: RowPattern, vals: Array, w: Array) -> None:
+        pat = pattern
+        D, C, R, _, _ = pat.systems(vals, w, np.zeros(pat.n_rows))
+        idx = np.arange(pat.mE)
+        D[:, idx, idx] = np.where(pat.valid, D[:, idx, idx], 1.0)
+        if D.size and not (np.linalg.cond(D) < 1e12).all():
+            raise np.linalg.LinAlgError("a node block is singular")
+        self.Dinv = np.linalg.inv(D)
+        self.K = np.einsum("eab,ebk->eak", self.Dinv, C)
+        S = R - np.einsum("eak,eal->kl", C, self.K)
+        S = 0.5 * (S + S.T)
+        if S.size and not np.linalg.cond(S) < 1e12:
+            raise np.linalg.LinAlgError("the reduced matrix is singular")
+        self.Sinv = np.linalg.inv(S) if S.size else S
+        self.pat = pat
+
+    def _L(self, cols: IntArray) -> tuple[Array, IntArray, IntArray]:
+        pat = self.pat
+        L = np.zeros((cols.size, pat.ng))
+        g = pat.glob_pos[cols]
+        isg = g >= 0
+        L[np.nonzero(isg)[0], g[isg]] = 1.0
+        sl = pat.slot_of[cols]
+        e, a = np.where(isg, -1, sl // pat.mE), np.where(isg, 0, sl % pat.mE)
+        loc = ~isg
+        L[loc] = -self.K[e[loc], a[loc]]
+        return L, e, a
+
+    def block(self, cols: IntArray) -> Array:
+        """``N^-1[cols][:, cols]``."""
+        L, e, a = self._L(np.asarray(cols, np.intp))
+        same = (e[:, None] == e[None, :]) & (e[:, None] >= 0)
+        ee = np.maximum(e, 0)
+        Delta = np.where(same, self.Dinv[ee[:, None], a[:, None], a[None, :]], 0.0)
+        return Delta + L @ self.Sinv @ L.T
+
+    def solve(self, B: Array) -> Array:
+        """``N^-1 B`` for a dense (p, k) B."""
+        pat = self.pat
+        B = np.asarray(B, float).reshape(pat.p, -1)
+        BE = np.zeros((pat.nE, pat.mE, B.shape[1]))
+        BE[pat.valid] = B[pat.blocks[pat.valid]]
+        yG = self.Sinv @ (B[pat.glob] - np.einsum("eak,eaj->kj", self.K, BE))
+        yE = np.einsum("eab,ebj->eaj", self.Dinv, BE) - np.einsum("eak,kj->eaj", self.K, yG)
+        out = np.zeros_like(B)
+        out[pat.glob] = yG
+        out[pat.blocks[pat.valid]] = yE[pat.valid]
+        return out
 
 
 def _damped(D: Array, dD: Array, lam: float, valid: NDArray[np.bool_]) -> Array | None:
