@@ -13,8 +13,10 @@ each engine the test's CPU seconds, c, its block jackknife se, t, and the differ
 the new engine's c and replicates from the baseline's in units of se; the ratio of the
 medians over ``--repeat`` runs.
 
-Measured (2026-12-02, branch ``constrained``, ``--repeat 3``): see the closing note of
-issue 12 (data4: 16 blocks, data5: 12 blocks).
+Measured (2026-12-02, branch ``constrained``, ``--repeat 2``, loaded 2-core machine):
+data4 (16 blocks) trf 13.91 s, auto 1.54 s, ratio 9.0; c -0.3943 / -0.3944 m, se 0.0522,
+t -7.553 / -7.550, |dc| / se 3.4e-4. data5 (12 blocks) trf 24.83 s, auto 2.03 s, ratio
+12.2; c -0.3315 m both, se 0.0308, t -10.774 / -10.773, |dc| / se 2.5e-5.
 
 Run: ``PYTHONPATH=src python benchmarks/bench_lps.py [--flights data4,data5] [--repeat 3]
 [--data ../shared/data/lps]``; a flight file that is missing is skipped with a line saying so.

@@ -31,6 +31,15 @@ reduced coordinates (column-pivoted QR), and the covariance is reported free of 
 ``sigma^2 P (J^T W J)_pinned^-1 P`` with ``P`` the projector off the residual gauge
 (the Moore-Penrose inverse, 003 eq. 17). Its node blocks come from a sparse LU of the
 reduced normal matrix, solved for the columns each node needs (no dense inverse).
+
+Engines. Above 120 free unknowns with the linear loss the fit runs on the Schur-reduced
+Newton-LM of :mod:`selfcal.toa.schur_affine` (:func:`_engine_partition`), whose covariance
+blocks come from the same partition; SciPy trf stays the path of small problems, robust
+losses and ``solver="trf"`` (the reference of the tests).
+
+Length (about 640 lines, above the ~600 guideline): validation of the constraint keywords,
+the parametrisation, the residual gauge, the fit and its covariance are one job (the
+constrained engine's interface); the iteration itself lives in :mod:`selfcal.toa.schur_affine`.
 """
 
 from __future__ import annotations
@@ -46,6 +55,7 @@ from numpy.typing import NDArray
 from scipy.optimize import least_squares
 
 from ..errors import DegenerateGeometryError, InputError
+from .schur_affine import RangeSchurModel
 
 Array = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
@@ -291,97 +301,6 @@ def _rho(z: Array, loss: str) -> tuple[Array, Array]:
     return rho(z, loss)
 
 
-class _SchurModel:
-    """The constrained range model on the fixed sparsity of :mod:`selfcal.toa.schur_affine`.
-
-    Rows: the m observed ranges (row-major, as :func:`selfcal.toa.nls.toa_residuals`), the
-    prior rows, then ``(d - 1) m`` curvature rows: the second-order part of the Hessian of a
-    range residual ``f = |r_i - s_j| + ...`` is ``f (I - u u^T) / |r_i - s_j|`` on
-    ``(r_i, -s_j)``, written as one row per direction ``v`` normal to ``u`` (entries ``v``
-    at ``r_i``, ``-v`` at ``s_j``) with weight ``w f / |r_i - s_j|``. Every theta-space
-    entry is mapped through ``T`` once; per iteration only the values change.
-    """
-
-    def __init__(self, obs: BoolArray, I: int, J: int, d: int, offsets: str, TF: scipy.sparse.csc_matrix,
-                 prior_pos: NDArray[np.intp], blocks: NDArray[np.intp], glob: NDArray[np.intp]) -> None:
-        from .schur_affine import RowPattern
-
-        ii, jj = np.nonzero(obs)
-        m = ii.size
-        npri = prior_pos.size
-        self.ii, self.jj, self.I, self.J, self.d, self.offsets, self.m = ii, jj, I, J, d, offsets, m
-        self.has_r, self.has_s = offsets in ("receivers", "both"), offsets in ("sources", "both")
-        ar = np.arange(m)
-        rc = (ii[:, None] * d + np.arange(d)).ravel()
-        sc = (I * d + jj[:, None] * d + np.arange(d)).ravel()
-        rows_t = [np.repeat(ar, d), np.repeat(ar, d)]
-        cols_t = [rc, sc]
-        k = (I + J) * d
-        if self.has_r:
-            rows_t.append(ar)
-            cols_t.append(k + ii)
-            k += I
-        if self.has_s:
-            rows_t.append(ar)
-            cols_t.append(k + jj)
-        for q in range(d - 1):
-            rq = np.repeat(m + npri + q * m + ar, d)
-            rows_t += [rq, rq]
-            cols_t += [rc, sc]
-        rt, ct = np.concatenate(rows_t), np.concatenate(cols_t)
-        # through T: theta entry (row, t) -> x entries (row, c) with coefficient T[t, c]
-        Tr = scipy.sparse.csr_matrix(TF)
-        lens = np.diff(Tr.indptr)[ct]
-        src = np.repeat(np.arange(ct.size), lens)
-        first = np.repeat(Tr.indptr[ct] - np.concatenate([[0], np.cumsum(lens)[:-1]]), lens)
-        at = first + np.arange(src.size)
-        xr, xc, coef = rt[src], Tr.indices[at], Tr.data[at]
-        nV = ct.size
-        # prior rows live in x directly; their values follow the theta entries in V
-        xr = np.concatenate([xr, m + np.arange(npri)])
-        xc = np.concatenate([xc, prior_pos])
-        coef = np.concatenate([coef, np.ones(npri)])
-        src = np.concatenate([src, nV + np.arange(npri)])
-        p = TF.shape[1]
-        uniq, inv = np.unique(xr * p + xc, return_inverse=True)
-        self.inv, self.coef, self.src, self.nnz = inv.ravel(), coef, src, uniq.size
-        self.pattern = RowPattern(uniq // p, uniq % p, m + npri + (d - 1) * m, m + npri, blocks, glob)
-
-    def values(self, theta: Array, f: Array, w: Array, wprior: Array) -> tuple[Array, Array]:
-        """Jacobian values on the pattern, curvature weights (see the class docstring)."""
-        from .nls import _unpack
-
-        d, m = self.d, self.m
-        r, s, _, _ = _unpack(theta, self.I, self.J, d, self.offsets)
-        diff = r[self.ii] - s[self.jj]
-        dist = np.linalg.norm(diff, axis=1)
-        pos = dist > 0
-        u = np.where(pos[:, None], diff / np.where(pos, dist, 1.0)[:, None], 0.0)
-        parts = [u.ravel(), -u.ravel()] + [np.ones(m)] * (int(self.has_r) + int(self.has_s))
-        if d == 2:
-            normals = [np.c_[-u[:, 1], u[:, 0]]]
-        else:
-            a = np.where((np.abs(u[:, 0]) < 0.9)[:, None], np.eye(3)[0], np.eye(3)[1])
-            v1 = np.cross(u, a)
-            n1 = np.linalg.norm(v1, axis=1)
-            v1 = np.where((n1 > 0)[:, None], v1 / np.where(n1 > 0, n1, 1.0)[:, None], 0.0)
-            normals = [v1, np.cross(u, v1)]
-        curv: list[Array] = []
-        for v in normals:
-            curv += [v.ravel(), -v.ravel()]
-        V = np.concatenate(parts + curv + [np.asarray(wprior, float).ravel()])
-        vals = np.bincount(self.inv, self.coef * V[self.src], minlength=self.nnz)
-        wc = np.where(pos, w[:m] * f[:m] / np.where(pos, dist, 1.0), 0.0)
-        return vals, np.tile(wc, d - 1)
-
-    def solve(self, x0: Array, fun: Any, theta_of: Any, wprior: Array, loss: str, fs: float, xtol: float,
-              max_it: int) -> tuple[Array, bool, int]:
-        from .schur_affine import solve_affine_lm
-
-        return solve_affine_lm(x0, fun, lambda x, f, w: self.values(theta_of(x), f, w, wprior),
-                               self.pattern, loss, fs, xtol, max_it=max_it)
-
-
 def _engine_partition(
     TF: scipy.sparse.csc_matrix, I: int, J: int, d: int, offsets: str, engine: str, loss: str
 ) -> tuple[NDArray[np.intp], NDArray[np.intp]] | None:
@@ -466,7 +385,7 @@ def refine_constrained(
     prior_pos = np.searchsorted(F, par.prior_x)
     xbase = par.x0.copy()
     part = _engine_partition(TF, I, J, d, offsets, engine, loss)
-    schur = None if part is None else _SchurModel(obs, I, J, d, offsets, TF, prior_pos, *part)
+    schur = None if part is None else RangeSchurModel(obs, I, J, d, offsets, TF, prior_pos, *part)
 
     def theta_of(xf: Array) -> Array:
         x = xbase.copy()
@@ -569,8 +488,11 @@ def refine_constrained(
     nr, ns = d + has_r, d + has_s
     if (want_r.size or want_s.size) and np.isfinite(sigma):
         Gsol = _residual_gauge(par, con, r, s, offsets)  # the gauge at the solution
+        inv = None
+        if schur is not None:
+            inv = schur.inverse(th, drho, wprior)
         Cr, Cs = _node_covariances(th, Y, d, offsets, par, F, Gsol, TF, prior_pos, wprior, drho,
-                                   m, I, J, has_r, has_s, want_r, want_s)
+                                   m, I, J, has_r, has_s, want_r, want_s, inverse=inv)
         Cr, Cs = Cr * sigma**2, Cs * sigma**2
     else:
         Cr = np.full((I, nr, nr), np.nan)
@@ -634,35 +556,59 @@ def _check_counts(obs: BoolArray, con: Constraints, d: int) -> None:
                 "drop it, fix some of its coordinates or add measurements", kind="unobservable-node")
 
 
+class _LuInverse:
+    """The pinned inverse of the constrained normal matrix by one sparse LU (``solve``, ``block``)."""
+
+    def __init__(self, th: Array, Y: Array, d: int, offsets: str, TF: scipy.sparse.csc_matrix,
+                 prior_pos: NDArray[np.intp], wprior: Array, drho: Array, m: int) -> None:
+        from .nls import toa_jacobian
+
+        Jm = toa_jacobian(th, Y, d, offsets) @ TF
+        W = scipy.sparse.diags(drho[:m])
+        N = (Jm.T @ W @ Jm).tocsc()
+        if prior_pos.size:
+            N = N + scipy.sparse.csc_matrix((drho[m:] * wprior**2, (prior_pos, prior_pos)), shape=N.shape)
+        try:
+            self.lu = scipy.sparse.linalg.splu(N.tocsc())
+        except RuntimeError:
+            raise DegenerateGeometryError(
+                "the normal equations are singular beyond the gauge: the constrained geometry is "
+                "degenerate (too few ranges per node, or coplanar points in 3-D)", kind="degenerate-geometry") from None
+        du = np.abs(self.lu.U.diagonal())
+        if du.min() <= 1e-12 * du.max():
+            raise DegenerateGeometryError(
+                "the normal equations are numerically singular beyond the gauge: the constrained "
+                "geometry is degenerate", kind="degenerate-geometry")
+        self.n = N.shape[0]
+
+    def solve(self, B: Array) -> Array:
+        return np.asarray(self.lu.solve(B))
+
+    def block(self, cols: NDArray[np.intp]) -> Array:
+        E = np.zeros((self.n, cols.size))
+        E[cols, np.arange(cols.size)] = 1.0
+        return np.asarray(self.lu.solve(E))[cols]
+
+
 def _node_covariances(
     th: Array, Y: Array, d: int, offsets: str, par: _Param, F: NDArray[np.intp], Gx: Array,
     TF: scipy.sparse.csc_matrix, prior_pos: NDArray[np.intp], wprior: Array, drho: Array,
     m: int, I: int, J: int, has_r: bool, has_s: bool,
     want_r: NDArray[np.intp] | None = None, want_s: NDArray[np.intp] | None = None,
+    inverse: Any = None,
 ) -> tuple[Array, Array]:
     """Node blocks of ``T P (J^T W J)_pinned^-1 P T^T`` (unit noise), (I, nr, nr), (J, ns, ns).
 
     Only the nodes in ``want_r`` / ``want_s`` (None = all) are solved for (one sparse LU,
-    then the columns each requested node touches); the other blocks are NaN.
+    then the columns each requested node touches); the other blocks are NaN. ``inverse``:
+    the pinned inverse as an object with ``solve(B)`` and ``block(cols)`` (default a sparse
+    LU of the normal matrix, :class:`_LuInverse`; the Schur engine's
+    :class:`selfcal.toa.schur_affine.SchurInverse` on its path).
     """
-    from .nls import _node_indices, toa_jacobian
+    from .nls import _node_indices
 
-    Jm = toa_jacobian(th, Y, d, offsets) @ TF
-    W = scipy.sparse.diags(drho[:m])
-    N = (Jm.T @ W @ Jm).tocsc()
-    if prior_pos.size:
-        N = N + scipy.sparse.csc_matrix((drho[m:] * wprior**2, (prior_pos, prior_pos)), shape=N.shape)
-    try:
-        lu = scipy.sparse.linalg.splu(N.tocsc())
-    except RuntimeError:
-        raise DegenerateGeometryError(
-            "the normal equations are singular beyond the gauge: the constrained geometry is "
-            "degenerate (too few ranges per node, or coplanar points in 3-D)", kind="degenerate-geometry") from None
-    du = np.abs(lu.U.diagonal())
-    if du.min() <= 1e-12 * du.max():
-        raise DegenerateGeometryError(
-            "the normal equations are numerically singular beyond the gauge: the constrained "
-            "geometry is degenerate", kind="degenerate-geometry")
+    if inverse is None:
+        inverse = _LuInverse(th, Y, d, offsets, TF, prior_pos, wprior, drho, m)
     p = par.x0.size
     pos_of = -np.ones(p, np.intp)
     pos_of[F] = np.arange(F.size)
@@ -670,7 +616,7 @@ def _node_covariances(
     # C = pinned inverse (zero rows / columns at the pins); Y = C G, Z = G^T C G
     Yg = np.zeros((p, gp))
     if gp:
-        Yg[F] = lu.solve(np.ascontiguousarray(Gx[F]))
+        Yg[F] = inverse.solve(np.ascontiguousarray(Gx[F]))
     Z = Gx.T @ Yg
     r_idx, s_idx, _ = _node_indices(I, J, d, offsets)
     T = par.T.tocsr()
@@ -692,9 +638,7 @@ def _node_covariances(
             fc = pos_of[cols[free]]
             Css = np.zeros((cols.size, cols.size))
             if fc.size:
-                E = np.zeros((F.size, fc.size))
-                E[fc, np.arange(fc.size)] = 1.0
-                Css[np.ix_(free, free)] = lu.solve(E)[fc]  # pinned inverse on the free columns
+                Css[np.ix_(free, free)] = inverse.block(fc)  # pinned inverse on the free columns
             if gp:
                 Gs, Ys = Gx[cols], Yg[cols]
                 Css = Css - Gs @ Ys.T - Ys @ Gs.T + Gs @ Z @ Gs.T

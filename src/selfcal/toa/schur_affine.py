@@ -24,6 +24,9 @@ O(m n_g^2), not the O(n^3) of a dense trust region (Agarwal et al., "Bundle adju
 the large", 2010, for the Schur scheme; Triggs et al., "Bundle adjustment - a modern
 synthesis", 2000, sec. 6 for the elimination order).
 
+:class:`RangeSchurModel` is the range model on this engine (the Jacobian's fixed sparsity
+through ``T``, the residuals' curvature rows), used by :mod:`selfcal.toa.constrained`.
+
 The residual gauge the constraints leave is pinned by the caller (the pinned coordinates
 are not in ``x``), so the system is non-singular beyond the Marquardt damping. The LM loop
 is the engine's: Marquardt diagonal damping, Nielsen's gain-ratio update
@@ -36,19 +39,22 @@ are the stationary points of the robust cost.
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 import scipy.sparse
 from numpy.typing import NDArray
 
+from ..errors import DegenerateGeometryError
 from ..robust import loss_rho
 from .dense_lm import _solve as _direct_solve  # Cholesky (posv), least squares if not PD
 from .dense_lm import damping_after_success
 
 Array = NDArray[np.float64]
 IntArray = NDArray[np.intp]
+BoolArray = NDArray[np.bool_]
 
-__all__ = ["MAX_GLOBAL", "FTOL", "local_blocks", "solve_affine_lm"]
+__all__ = ["MAX_GLOBAL", "FTOL", "RangeSchurModel", "RowPattern", "SchurInverse", "local_blocks", "solve_affine_lm"]
 
 #: most global unknowns of the dense reduced system (a (n_g, n_g) Cholesky per damping trial)
 MAX_GLOBAL = 1200
@@ -138,6 +144,7 @@ class RowPattern:
         if (own[rows[loc]] != sl // mE).any():
             raise ValueError("a Jacobian row touches two eliminated nodes")
         self.rows, self.cols, self.n_rows, self.n_res = rows, cols, n_rows, n_res
+        self.slot_of, self.glob_pos = slot_of, glob_pos
         self.blocks, self.glob, self.valid, self.p, self.nE, self.mE, self.ng = blocks, glob, valid, p, nE, mE, ng
         self.loc = np.nonzero(loc)[0]
         self.je_at = rows[loc] * mE + sl % mE  # flat index into JE (n_rows, mE)
@@ -184,7 +191,71 @@ class RowPattern:
 
     def matvec(self, vals: Array, dx: Array) -> Array:
         """``J dx`` over every row (n_rows,)."""
-        return np.bincount(self.rows, vals * dx[self.cols], minlength=self.n_rows)
+        return np.asarray(np.bincount(self.rows, vals * dx[self.cols], minlength=self.n_rows), float)
+
+
+class SchurInverse:
+    """The inverse of the (undamped) normal matrix ``[[R, C^T], [C, D]]`` through its Schur complement.
+
+    With ``K_e = D_e^-1 C_e`` and ``S = R - sum_e C_e^T K_e``, the inverse is
+    ``Delta + L S^-1 L^T``: ``Delta`` the block diagonal of the ``D_e^-1`` on the local
+    columns, ``L`` the identity on the global ones and ``-K`` on the local ones. Any block
+    of it costs O(k^2 n_g) for k columns; no sparse factorisation of the whole matrix.
+
+    Raises
+    ------
+    numpy.linalg.LinAlgError : a node block or S is singular to working precision
+        (condition number above 1e12).
+    """
+
+    def __init__(self, pattern: RowPattern, vals: Array, w: Array) -> None:
+        pat = pattern
+        D, C, R, _, _ = pat.systems(vals, w, np.zeros(pat.n_rows))
+        idx = np.arange(pat.mE)
+        D[:, idx, idx] = np.where(pat.valid, D[:, idx, idx], 1.0)
+        if D.size and not (np.linalg.cond(D) < 1e12).all():
+            raise np.linalg.LinAlgError("a node block is singular")
+        self.Dinv = np.linalg.inv(D)
+        self.K = np.einsum("eab,ebk->eak", self.Dinv, C)
+        S = R - np.einsum("eak,eal->kl", C, self.K)
+        S = 0.5 * (S + S.T)
+        if S.size and not np.linalg.cond(S) < 1e12:
+            raise np.linalg.LinAlgError("the reduced matrix is singular")
+        self.Sinv = np.linalg.inv(S) if S.size else S
+        self.pat = pat
+
+    def _L(self, cols: IntArray) -> tuple[Array, IntArray, IntArray]:
+        pat = self.pat
+        L = np.zeros((cols.size, pat.ng))
+        g = pat.glob_pos[cols]
+        isg = g >= 0
+        L[np.nonzero(isg)[0], g[isg]] = 1.0
+        sl = pat.slot_of[cols]
+        e, a = np.where(isg, -1, sl // pat.mE), np.where(isg, 0, sl % pat.mE)
+        loc = ~isg
+        L[loc] = -self.K[e[loc], a[loc]]
+        return L, e, a
+
+    def block(self, cols: IntArray) -> Array:
+        """``N^-1[cols][:, cols]``."""
+        L, e, a = self._L(np.asarray(cols, np.intp))
+        same = (e[:, None] == e[None, :]) & (e[:, None] >= 0)
+        ee = np.maximum(e, 0)
+        Delta = np.where(same, self.Dinv[ee[:, None], a[:, None], a[None, :]], 0.0)
+        return Delta + L @ self.Sinv @ L.T
+
+    def solve(self, B: Array) -> Array:
+        """``N^-1 B`` for a dense (p, k) B."""
+        pat = self.pat
+        B = np.asarray(B, float).reshape(pat.p, -1)
+        BE = np.zeros((pat.nE, pat.mE, B.shape[1]))
+        BE[pat.valid] = B[pat.blocks[pat.valid]]
+        yG = self.Sinv @ (B[pat.glob] - np.einsum("eak,eaj->kj", self.K, BE))
+        yE = np.einsum("eab,ebj->eaj", self.Dinv, BE) - np.einsum("eak,kj->eaj", self.K, yG)
+        out = np.zeros_like(B)
+        out[pat.glob] = yG
+        out[pat.blocks[pat.valid]] = yE[pat.valid]
+        return out
 
 
 def _damped(D: Array, dD: Array, lam: float, valid: NDArray[np.bool_]) -> Array | None:
@@ -245,7 +316,7 @@ def solve_affine_lm(
     pat = pattern
     p, valid, blocks, glob = pat.p, pat.valid, pat.blocks, pat.glob
     loc_x = blocks[valid]
-    n_res, n_cur = pat.n_res, pat.n_rows - pat.n_res
+    n_cur = pat.n_rows - pat.n_res
 
     def evaluate(x: Array) -> tuple[float, Array, Array, Array]:
         f = fun(x)
@@ -254,7 +325,7 @@ def solve_affine_lm(
         return 0.5 * f_scale**2 * float(np.sum(rho)), f, np.asarray(w, float), rho
 
     x = np.array(x0, float)
-    cost, f, w, rho = evaluate(x)
+    cost, f, w, _ = evaluate(x)
     lam, nu = 1e-4, 2.0
     converged = False
     it = 0
@@ -306,7 +377,7 @@ def solve_affine_lm(
                     newton = True
                 lam = damping_after_success(lam, cost - c2, pred)
                 nu = 2.0
-                x, cost, f, w, rho = trial, c2, f2, w2, r2
+                x, cost, f, w = trial, c2, f2, w2
                 improved = True
                 converged = bool(small or rel)
                 break
@@ -318,3 +389,102 @@ def solve_affine_lm(
         if converged:
             break
     return x, converged, it
+
+
+class RangeSchurModel:
+    """The constrained range model on the fixed sparsity of :mod:`selfcal.toa.schur_affine`.
+
+    Rows: the m observed ranges (row-major, as :func:`selfcal.toa.nls.toa_residuals`), the
+    prior rows, then ``(d - 1) m`` curvature rows: the second-order part of the Hessian of a
+    range residual ``f = |r_i - s_j| + ...`` is ``f (I - u u^T) / |r_i - s_j|`` on
+    ``(r_i, -s_j)``, written as one row per direction ``v`` normal to ``u`` (entries ``v``
+    at ``r_i``, ``-v`` at ``s_j``) with weight ``w f / |r_i - s_j|``. Every theta-space
+    entry is mapped through ``T`` once; per iteration only the values change.
+    """
+
+    def __init__(self, obs: BoolArray, I: int, J: int, d: int, offsets: str, TF: scipy.sparse.csc_matrix,
+                 prior_pos: NDArray[np.intp], blocks: NDArray[np.intp], glob: NDArray[np.intp]) -> None:
+        ii, jj = np.nonzero(obs)
+        m = ii.size
+        npri = prior_pos.size
+        self.ii, self.jj, self.I, self.J, self.d, self.offsets, self.m = ii, jj, I, J, d, offsets, m
+        self.has_r, self.has_s = offsets in ("receivers", "both"), offsets in ("sources", "both")
+        ar = np.arange(m)
+        rc = (ii[:, None] * d + np.arange(d)).ravel()
+        sc = (I * d + jj[:, None] * d + np.arange(d)).ravel()
+        rows_t = [np.repeat(ar, d), np.repeat(ar, d)]
+        cols_t = [rc, sc]
+        k = (I + J) * d
+        if self.has_r:
+            rows_t.append(ar)
+            cols_t.append(k + ii)
+            k += I
+        if self.has_s:
+            rows_t.append(ar)
+            cols_t.append(k + jj)
+        for q in range(d - 1):
+            rq = np.repeat(m + npri + q * m + ar, d)
+            rows_t += [rq, rq]
+            cols_t += [rc, sc]
+        rt, ct = np.concatenate(rows_t), np.concatenate(cols_t)
+        # through T: theta entry (row, t) -> x entries (row, c) with coefficient T[t, c]
+        Tr = scipy.sparse.csr_matrix(TF)
+        lens = np.diff(Tr.indptr)[ct]
+        src = np.repeat(np.arange(ct.size), lens)
+        first = np.repeat(Tr.indptr[ct] - np.concatenate([[0], np.cumsum(lens)[:-1]]), lens)
+        at = first + np.arange(src.size)
+        xr, xc, coef = rt[src], Tr.indices[at], Tr.data[at]
+        nV = ct.size
+        # prior rows live in x directly; their values follow the theta entries in V
+        xr = np.concatenate([xr, m + np.arange(npri)])
+        xc = np.concatenate([xc, prior_pos])
+        coef = np.concatenate([coef, np.ones(npri)])
+        src = np.concatenate([src, nV + np.arange(npri)])
+        p = TF.shape[1]
+        uniq, inv = np.unique(xr * p + xc, return_inverse=True)
+        self.inv, self.coef, self.src, self.nnz = inv.ravel(), coef, src, uniq.size
+        self.pattern = RowPattern(uniq // p, uniq % p, m + npri + (d - 1) * m, m + npri, blocks, glob)
+
+    def values(self, theta: Array, f: Array, w: Array, wprior: Array) -> tuple[Array, Array]:
+        """Jacobian values on the pattern, curvature weights (see the class docstring)."""
+        from .nls import _unpack
+
+        d, m = self.d, self.m
+        r, s, _, _ = _unpack(theta, self.I, self.J, d, self.offsets)
+        diff = r[self.ii] - s[self.jj]
+        dist = np.linalg.norm(diff, axis=1)
+        pos = dist > 0
+        u = np.where(pos[:, None], diff / np.where(pos, dist, 1.0)[:, None], 0.0)
+        parts = [u.ravel(), -u.ravel()] + [np.ones(m)] * (int(self.has_r) + int(self.has_s))
+        if d == 2:
+            normals = [np.c_[-u[:, 1], u[:, 0]]]
+        else:
+            a = np.where((np.abs(u[:, 0]) < 0.9)[:, None], np.eye(3)[0], np.eye(3)[1])
+            v1 = np.cross(u, a)
+            n1 = np.linalg.norm(v1, axis=1)
+            v1 = np.where((n1 > 0)[:, None], v1 / np.where(n1 > 0, n1, 1.0)[:, None], 0.0)
+            normals = [v1, np.cross(u, v1)]
+        curv: list[Array] = []
+        for v in normals:
+            curv += [v.ravel(), -v.ravel()]
+        V = np.concatenate(parts + curv + [np.asarray(wprior, float).ravel()])
+        vals = np.asarray(np.bincount(self.inv, self.coef * V[self.src], minlength=self.nnz), float)
+        wc = np.where(pos, w[:m] * f[:m] / np.where(pos, dist, 1.0), 0.0)
+        return vals, np.tile(wc, d - 1)
+
+    def inverse(self, theta: Array, drho: Array, wprior: Array) -> Any:
+        """The pinned inverse of the Gauss-Newton normal matrix at ``theta`` (weights rho')."""
+        f0 = np.zeros(self.pattern.n_res)
+        vals, _ = self.values(theta, f0, f0, wprior)
+        w = np.concatenate([np.asarray(drho, float), np.zeros(self.pattern.n_rows - self.pattern.n_res)])
+        try:
+            return SchurInverse(self.pattern, vals, w)
+        except np.linalg.LinAlgError:
+            raise DegenerateGeometryError(
+                "the normal equations are numerically singular beyond the gauge: the constrained "
+                "geometry is degenerate", kind="degenerate-geometry") from None
+
+    def solve(self, x0: Array, fun: Any, theta_of: Any, wprior: Array, loss: str, fs: float, xtol: float,
+              max_it: int) -> tuple[Array, bool, int]:
+        return solve_affine_lm(x0, fun, lambda x, f, w: self.values(theta_of(x), f, w, wprior),
+                               self.pattern, loss, fs, xtol, max_it=max_it)
