@@ -88,9 +88,7 @@ def test_reproduce_scores_a_flight_without_the_authors_estimate(tmp_path: Path) 
     from click.testing import CliRunner
 
     from selfcal.cli import main
-    from selfcal.experiments.lps import RECOMMENDED
-
-    from selfcal.experiments.lps import simulate_uwb_flight
+    from selfcal.experiments.lps import RECOMMENDED, simulate_uwb_flight
 
     sim = simulate_uwb_flight(4, n_positions=150)  # smooth trajectory, biases, spikes
     f = {"d": sim["ranges"], "Gtr": sim["anchors"].T, "GTs_resamp": sim["tag"].T}
