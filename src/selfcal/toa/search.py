@@ -56,12 +56,12 @@ from numpy.typing import NDArray
 from ..errors import DegenerateGeometryError, InputError
 from ..robust import TUNING
 from .dense_lm import solve_dense_lm
-from .schur_lm import DENSE_MAX_UNKNOWNS
 from .moves import Move, Start, moves
 from .nls import NlsSolution, _pack, _rho, _unpack, refine_toa, toa_model
 from .rank3_model import rank_identifiable
 from .result import _additive_fit
 from .robust import _nanmedian_rows
+from .schur_lm import DENSE_MAX_UNKNOWNS
 
 __all__ = ["INITIALISERS", "MOVES_MAX_NODES", "SearchOutcome", "canonical_order", "default_budget",
            "least_squares_offsets", "search"]
@@ -591,7 +591,7 @@ def search(
                 stopped = why
                 break
     # the winner (lowest cost; the next ones if its full refinement degenerates) refined to the end
-    for c, _, name, state, _ in sorted(pool, key=lambda e: (e[0], e[1])):
+    for _c, _, name, state, _ in sorted(pool, key=lambda e: (e[0], e[1])):
         sol = state[3]
         if sol is None or (not sol.converged and stopped not in ("test", "exact")):
             sol = refine(state[1], max_nfev)
