@@ -497,15 +497,17 @@ def _minimal_draw(seed):
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=False, reason="measured 165 of 200 draws in the basin, 82.5 % (exact 95 % CI 76.5-87.5 %), "
-                   "benchmarks/bench_toa_minimal.py seeds 0-199; the issue's 95 % is not reached by the current search")
+@pytest.mark.xfail(strict=False, reason="measured 169 of 200 held-out draws (seeds 360-559) in the basin, 84.5 % (exact "
+                   "95 % CI 78.7-89.2 %), benchmarks/bench_toa_minimal.py; the issue's 95 % is not reached: the outlier "
+                   "rule flags clean entries at 7 residual dof (fit._flag, normal quantile; Student's t gives 180 of "
+                   "200), the rest are distinct minima and far-field valleys the engine does not finish")
 def test_minimal_12x6_blind_solves_land_in_the_basin_of_the_truth():
     """12 mics x 6 sources, both offsets, 20 us: >= 95 % of 200 seeded draws in the truth's basin.
 
     Binomial: with a true rate of 97 %, 190 / 200 is passed with probability 0.9; a rate of
     90 % passes it with probability < 0.01. "In the basin": a sum of squares at most the
     truth-started fit's + 0.01 sigma^2 (the benchmark's docstring). No reduced default version:
-    one blind solve of this ill-conditioned problem takes ~0.5-1.5 s CPU here (median 0.87 s).
+    one blind solve of this ill-conditioned problem takes ~0.5-2 s CPU here (median 0.88 s).
     """
     hits = sum(_minimal_draw(seed)["in_basin"] for seed in range(200))
     assert hits >= 190
