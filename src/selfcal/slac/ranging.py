@@ -594,7 +594,7 @@ def solve_range_slac(log: RangeLog | Any, *, method: str = "smoother", config: R
         # same robust median estimator) and the smoother refined at it (one fixed-point step)
         for rnd in range(2 if cfg.estimate_noise else 1):
             status = 1
-            for it in range(cfg.max_iter):
+            for _ in range(cfg.max_iter):
                 e = _residuals(ref, ch, log) / sigma
                 weights = np.where(e**2 > gate2, 0.0, huber_weight(e, cfg.huber))
                 ps = _forward(ch, log, cfg, sigma, ref=ref, weights=weights, store=True, progress=progress, var=var)

@@ -467,12 +467,14 @@ def _flag(Yc: Array, sol: NlsSolution, kr: NDArray[np.bool_], ks: NDArray[np.boo
     Yfit = np.where(fitted, Ysub, np.nan)
     H = leverages(Yfit, *_start(sol), offsets, held_out=held)
     T = studentized(R_all, H, held)
+    dof = None
     if sd is not None:
         s_noise = sd
     else:
         floor = np.sqrt(np.finfo(float).eps) * float(np.nanmedian(np.abs(Ysub)))
         s_noise = noise_scale(T[fitted], floor)
-    return outlier_mask(T, s_noise) & obs
+        dof = int(fitted.sum()) - n_parameters(int(kr.sum()), int(ks.sum()), sol.receivers.shape[1], offsets)
+    return outlier_mask(T, s_noise, dof=dof) & obs
 
 
 def _noise_estimate(R: Array, dof: int) -> float:

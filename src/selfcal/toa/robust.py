@@ -118,18 +118,24 @@ def noise_scale(residuals: Array, floor: float = 0.0) -> float:
     return max(float(median_abs_deviation(f, scale="normal")), float(floor))
 
 
-def outlier_threshold(m: int, alpha: float = OUTLIER_ALPHA) -> float:
-    """``k = Phi^-1(1 - alpha / (2 m))``: Bonferroni two-sided normal quantile for m measurements."""
-    from scipy.stats import norm
+def outlier_threshold(m: int, alpha: float = OUTLIER_ALPHA, dof: int | None = None) -> float:
+    """``k = Phi^-1(1 - alpha / (2 m))``: Bonferroni two-sided normal quantile for m measurements.
 
-    return float(norm.isf(alpha / (2.0 * max(int(m), 1))))
+    With ``dof`` (the scale was estimated from residuals with that many degrees of freedom)
+    Student's t quantile with ``dof`` degrees of freedom instead: a studentized residual over
+    an estimated scale is t-distributed under Gaussian noise (the normal quantile for dof -> oo).
+    """
+    from scipy.stats import norm, t
+
+    a = alpha / (2.0 * max(int(m), 1))
+    return float(norm.isf(a) if dof is None else t.isf(a, max(int(dof), 1)))
 
 
-def outlier_mask(residuals: Array, scale: float, alpha: float = OUTLIER_ALPHA) -> Mask:
+def outlier_mask(residuals: Array, scale: float, alpha: float = OUTLIER_ALPHA, dof: int | None = None) -> Mask:
     """Entries with ``|r_ij| > k scale``, ``k`` from :func:`outlier_threshold` (NaN -> False)."""
     R = np.asarray(residuals, float)
     fin = np.isfinite(R)
-    k = outlier_threshold(int(fin.sum()), alpha)
+    k = outlier_threshold(int(fin.sum()), alpha, dof)
     with np.errstate(invalid="ignore"):
         return fin & (np.abs(np.where(fin, R, 0.0)) > k * scale)
 
