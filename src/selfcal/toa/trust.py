@@ -250,7 +250,7 @@ def geometry_statistic(ranges: Any, dim: int, offsets: str) -> float:
     """
     from ..errors import DegenerateGeometryError, InputError
     from .mds import mds_alg2, mds_multilateration
-    from .nls import toa_model
+    from .nls import refine_toa, toa_model
 
     inits = {"mds-multilat": lambda Z: mds_multilateration(Z, dim, rng=0), "alg2": lambda Z: mds_alg2(Z, dim)}
 
@@ -276,8 +276,6 @@ def geometry_statistic(ranges: Any, dim: int, offsets: str) -> float:
         if np.isfinite(e).all() and float(e @ e) / rss0 < best:
             best, start = float(e @ e) / rss0, (r, s)
     if start is not None and PERMUTATION_REFINE > 0:
-        from .nls import refine_toa
-
         try:
             with np.errstate(all="ignore"), warnings.catch_warnings():
                 warnings.simplefilter("ignore")
