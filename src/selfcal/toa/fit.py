@@ -42,6 +42,7 @@ from .robust import (
     leverages,
     noise_scale,
     outlier_mask,
+    outlier_rule_has_power,
     studentized,
 )
 from .search import canonical_order, search
@@ -277,7 +278,15 @@ def finish(M: Array, dim: int, offsets: str, *, init: Any, speed: float | None, 
             inv_r, inv_c = np.argsort(pr), np.argsort(pc)
             blocks = tuple(_embed_rows(B, k, inv, dim) for B, k, inv in ((sb[0], keep_r, inv_r),
                                                                           (sb[1], keep_s, inv_c)))
-    return _judge_determinacy(res, sd, float(final.sigma), covariance, key, singular, blocks)
+    res = _judge_determinacy(res, sd, float(final.sigma), covariance, key, singular, blocks)
+    if sd is None and not degenerate and dof > 0 and not outlier_rule_has_power(Yf, *_start(final), offsets, dof):
+        # the estimated-scale cut cannot flag a gross error of any size here: say so, not "0 outliers"
+        import dataclasses
+
+        res = dataclasses.replace(res, verdict_message=(
+            f"{res.verdict_message}; outlier detection has no power at {dof} residual dof (a gross error on any "
+            "one entry inflates the noise scale it is judged against; give the noise, or more measurements)"))
+    return res
 
 
 def _embed_rows(B: Array, keep: NDArray[np.bool_], inv: NDArray[np.intp], dim: int) -> Array:

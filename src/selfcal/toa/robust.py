@@ -209,6 +209,75 @@ def leverages(ranges: Array, receivers: Array, sources: Array, receiver_offsets:
     return H
 
 
+#: Largest number of fitted entries for which :func:`outlier_rule_has_power` forms the
+#: (m, m) residual projector; beyond it the rule is taken to have power (dof is then large).
+POWER_MAX_ENTRIES = 3000
+
+
+def outlier_rule_has_power(ranges: Array, receivers: Array, sources: Array, receiver_offsets: Array | None,
+                           source_offsets: Array | None, offsets: str, dof: int,
+                           alpha: float = OUTLIER_ALPHA) -> bool:
+    """Can the estimated-scale outlier rule flag a single gross error of any size on any entry?
+
+    A gross error ``g`` on fitted entry ``i`` leaves (to first order) the residuals
+    ``g P e_i``, ``P = I - J (J^T J)^+ J^T`` the residual projector of the fit (rank
+    ``dof``). Studentized (:func:`studentized`) and divided by their MAD
+    (:func:`noise_scale`), entry ``i`` stands at a ratio that does not depend on ``g``: the
+    error inflates the scale it is judged against. The rule (:func:`outlier_mask` with
+    Student's t at ``dof``) can flag it only when that ratio exceeds
+    :func:`outlier_threshold`. Returns False when no entry can be flagged: at 1-3 residual
+    dof the t quantile is 8.9-300 while the ratio is of order ``sqrt(dof)``.
+
+    Parameters
+    ----------
+    ranges:
+        (I, J) fitted entries (NaN elsewhere), metres.
+    receivers, sources:
+        (I, d), (J, d) fitted positions; ``receiver_offsets``, ``source_offsets`` as fitted.
+    offsets:
+        ``'none' | 'receivers' | 'sources' | 'both'``.
+    dof:
+        Residual degrees of freedom of the fit (fitted entries minus parameters).
+    alpha:
+        Family-wise false-alarm probability of the rule.
+
+    Returns
+    -------
+    bool
+        True when some entry could be flagged (or the problem is too large to check).
+
+    Notes
+    -----
+    Internally studentized residuals over the RMS scale obey ``|t_i| <= sqrt(dof)`` (Cook and
+    Weisberg, *Residuals and Influence in Regression*, 1982, sec. 2.2.1); the MAD scale is
+    not bounded that way, so the ratio is computed from the projector itself.
+    """
+    from .nls import _pack, toa_jacobian
+
+    if dof <= 0:
+        return False
+    Y = np.asarray(ranges, float)
+    obs = np.isfinite(Y)
+    m = int(obs.sum())
+    theta = _pack(receivers, sources, receiver_offsets, source_offsets)
+    if theta.size > LEVERAGE_MAX_UNKNOWNS or m > POWER_MAX_ENTRIES:
+        return True
+    J = toa_jacobian(theta, Y, receivers.shape[1], offsets).tocsr()
+    Jd = np.asarray(J.todense())
+    P = np.eye(m) - Jd @ _normal_pinv(J) @ Jd.T
+    d = np.diag(P)
+    ok = d > 1e-8
+    if not ok.any():
+        return False
+    T = P[np.ix_(ok, ok)] / np.sqrt(d[ok])[:, None]  # column i: studentized residuals of an error on i
+    k = outlier_threshold(m, alpha, dof)
+    for c in range(T.shape[1]):
+        s = noise_scale(T[:, c])
+        if not s > 0 or abs(T[c, c]) > k * s:
+            return True
+    return False
+
+
 def _normal_pinv(J: Any) -> Array:
     """``(J^T J)^+`` of a sparse Jacobian from the eigendecomposition of the (n, n) normal matrix.
 
