@@ -39,7 +39,10 @@ class CmuTruth:
 def cmu_log(seed: int, *, n_beacons: int = 4, heading_offset: float = 0.0, duration: float = 240.0,
             ids: list[int] | None = None, silent: int = 0, unsorted: bool = True, duplicates: bool = True,
             gaps: int = 0, gap_seconds: float = 8.0, outliers: float = 0.03, range_noise: float = 0.15,
-            heading_offset_dtype: Any = float) -> tuple[dict[str, Any], CmuTruth]:
+            heading_offset_dtype: Any = float, far_beacon: float = 0.0, brief: int = 0, brief_seconds: float = 15.0,
+            dropouts: int = 0, dropout_seconds: float = 30.0, odo_scale: float = 1.0, stand: int = 0,
+            stand_seconds: float = 30.0, dr_duplicates: float = 0.0, time_scale: float = 1.0,
+            heading_degrees: bool = False, zero_odometry: bool = False) -> tuple[dict[str, Any], CmuTruth]:
     """A CMU-style log (``TL``, ``TD``, ``GT``, ``DR``, ``DRp``, ``init_heading_offset``) and its truth.
 
     Parameters
@@ -55,6 +58,20 @@ def cmu_log(seed: int, *, n_beacons: int = 4, heading_offset: float = 0.0, durat
         whole gap's increment, as an encoder counter does).
     outliers : fraction of ranges lengthened by multipath (2-10 m, one-sided).
     range_noise : Gaussian range noise (m).
+    far_beacon : > 0 moves the last beacon this far (m) outside the path's extent.
+    brief : how many beacons (the first ``brief`` heard TL rows) answer only during one
+        window of ``brief_seconds``.
+    dropouts : windows of ``dropout_seconds`` without any range (radio outage).
+    odo_scale : the odometry's distances are this factor times the true ones (wheel radius).
+    stand : stretches of ``stand_seconds`` where the robot stands still (zero increments,
+        ranges keep coming).
+    dr_duplicates : fraction of ``DR`` rows the logger wrote twice (identical rows).
+    time_scale : every time column is multiplied by it (1000: milliseconds).
+    heading_degrees : ``GT(:, 4)`` and ``DR(:, 3)`` are written in degrees.
+    zero_odometry : ``DR``'s increments are all zero (a log without working encoders).
+
+    The options after ``heading_offset_dtype`` draw from a second generator, so a log drawn
+    without them is the same as before they existed.
     """
     g = np.random.default_rng(seed)
     dt = 0.2
@@ -62,6 +79,12 @@ def cmu_log(seed: int, *, n_beacons: int = 4, heading_offset: float = 0.0, durat
     # smooth random drive inside the beacons' area: speed ~1 m/s, a slowly varying turn rate
     v = 1.0 + 0.2 * np.sin(np.arange(n) / 40.0 + g.uniform(0, 6))
     w = np.convolve(g.normal(0, 0.15, n), np.ones(25) / 25, mode="same")
+    g2 = np.random.default_rng([seed, 1])
+    if stand:
+        span = int(stand_seconds / dt)
+        for s0 in np.sort(g2.choice(np.arange(20, max(21, n - span - 20)), stand, replace=False)):
+            v[s0:s0 + span] = 0.0
+            w[s0:s0 + span] = 0.0
     odo_true = np.column_stack([v * dt, w * dt])
     start = np.array([g.uniform(-5, 5), g.uniform(-5, 5), g.uniform(-np.pi, np.pi)])
     poses = compose_odometry(start, odo_true)
@@ -71,6 +94,10 @@ def cmu_log(seed: int, *, n_beacons: int = 4, heading_offset: float = 0.0, durat
     lo, hi = poses[:, :2].min(0) - 15, poses[:, :2].max(0) + 15
     B = n_beacons
     beacons = g.uniform(lo, hi, (B, 2))
+    if far_beacon > 0:
+        ang = g2.uniform(0, 2 * np.pi)
+        centre, half = (lo + hi) / 2, np.max(hi - lo) / 2
+        beacons[B - 1] = centre + (half + far_beacon) * np.array([np.cos(ang), np.sin(ang)])
     bid = np.asarray(ids if ids is not None else g.choice(100, B, replace=False), dtype=np.int64)
     scale = 1.0 + g.uniform(0.02, 0.09, B)  # several percent long, as on Plaza 1
     offset = g.uniform(-0.8, 0.8, B)
@@ -80,6 +107,8 @@ def cmu_log(seed: int, *, n_beacons: int = 4, heading_offset: float = 0.0, durat
     # odometry: multiplicative distance error + heading noise per row
     odo_meas = odo_true * np.column_stack([1 + g.normal(0, 0.01, n), np.ones(n)])
     odo_meas[:, 1] += g.normal(0, 0.002, n)
+    odo_meas[:, 0] *= odo_scale
+    odo_meas[v == 0] = 0.0  # a standing robot's encoders do not move
     keep = np.ones(n, dtype=bool)
     if gaps:
         span = int(gap_seconds / dt)
@@ -103,6 +132,14 @@ def cmu_log(seed: int, *, n_beacons: int = 4, heading_offset: float = 0.0, durat
         k = np.arange(0, rt.size, 7)
         rt = np.concatenate([rt, rt[k]])
         rb = np.concatenate([rb, heard_idx[(np.arange(k.size) + 1) % heard_idx.size]])
+    keep_r = np.ones(rt.size, dtype=bool)
+    for b in heard_idx[:brief]:
+        a = g2.uniform(times[0], times[-1] - brief_seconds)
+        keep_r &= (rb != b) | ((rt >= a) & (rt < a + brief_seconds))
+    for _ in range(dropouts):
+        a = g2.uniform(times[0] + 10, times[-1] - dropout_seconds - 10)
+        keep_r &= (rt < a) | (rt >= a + dropout_seconds)
+    rt, rb = rt[keep_r], rb[keep_r]
     px = np.interp(rt, times, poses[:, 0])
     py = np.interp(rt, times, poses[:, 1])
     d = np.hypot(px - beacons[rb, 0], py - beacons[rb, 1])
@@ -116,12 +153,25 @@ def cmu_log(seed: int, *, n_beacons: int = 4, heading_offset: float = 0.0, durat
         blocks = np.array_split(np.arange(TD.shape[0]), max(2, TD.shape[0] // 200))
         order = np.concatenate([blocks[i] for i in g.permutation(len(blocks))])
         TD = TD[order]
+    if dr_duplicates > 0:
+        rep = g2.random(DR.shape[0]) < dr_duplicates
+        DR = np.concatenate([DR, DR[rep]])
+        DR = DR[np.argsort(DR[:, 0], kind="stable")]
+    if zero_odometry:
+        DR[:, 1:] = 0.0
     GT = np.column_stack([times, poses[:, 0], poses[:, 1], poses[:, 2] - heading_offset])
+    if heading_degrees:
+        GT[:, 3] = np.rad2deg(np.mod(GT[:, 3], 2 * np.pi))  # a compass-style 0..360 column
+        DR[:, 2] = np.rad2deg(DR[:, 2])
+    if time_scale != 1.0:
+        GT[:, 0] *= time_scale
+        DR[:, 0] *= time_scale
+        TD[:, 0] *= time_scale
     tl_order = g.permutation(B)
     TL = np.column_stack([bid[tl_order].astype(float), beacons[tl_order]])
     drp = compose_odometry(start, odo_meas)
     m = {"TL": TL, "TD": TD, "GT": GT, "DR": DR, "DRp": np.column_stack([times, drp]),
          "init_heading_offset": np.array([[heading_offset]], dtype=heading_offset_dtype)}
-    truth = CmuTruth(times=times, poses=poses, beacon_ids=bid[tl_order], beacons=beacons[tl_order],
+    truth = CmuTruth(times=times * time_scale, poses=poses, beacon_ids=bid[tl_order], beacons=beacons[tl_order],
                      scale=scale[tl_order], offset=offset[tl_order], heard=heard[tl_order], range_noise=range_noise)
     return m, truth

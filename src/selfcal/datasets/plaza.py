@@ -27,7 +27,16 @@ examples; each has a test on a small synthetic file that breaks it):
    ``(t_{k-1}, t_k]`` with ``t_{-1}`` the first ground-truth time (rows at or before it are
    dropped). ``DRp`` is not always the integral of ``DR`` (on Plaza 1 they part by 37 m), so
    the dead-reckoned path is integrated from ``DR`` (:meth:`PlazaData.dead_reckoning`).
-5. **Ranges are raw.** The loader does not correct them: they are several percent long
+5. **Units.** Headings in radians (``GT(:, 4)``, ``DR(:, 3)``); a column found to be in
+   degrees by the tests of :func:`heading_units` is converted with a
+   :class:`PlazaFormatWarning`, and a heading column that fits neither unit is refused.
+   Times may be in any unit (the model depends on distances and angles only, not on rates).
+6. **Rows logged twice.** ``DR`` or ``TD`` rows that repeat the previous row exactly (time
+   and values) are dropped with a :class:`PlazaFormatWarning`: an increment counted twice
+   doubles the distance, a range counted twice halves its variance.
+7. **No odometry.** A log whose ``DR`` distances are all zero is refused: the model has then
+   no motion information and the track would stay at the first pose.
+8. **Ranges are raw.** The loader does not correct them: they are several percent long
    (Plaza 1: about 7 %, a per-beacon scale plus an offset), which the range model of
    :mod:`selfcal.slac.ranging` estimates.
 
@@ -48,7 +57,7 @@ from .._checks import MAX_ABS_ENTRY
 from ..errors import InputError
 from ..geometry import wrap_angle
 
-__all__ = ["PlazaData", "load_plaza", "compose_odometry"]
+__all__ = ["PlazaData", "PlazaFormatWarning", "load_plaza", "compose_odometry"]
 
 FArray = NDArray[np.float64]
 
@@ -143,6 +152,90 @@ class PlazaData:
         return out
 
 
+class PlazaFormatWarning(UserWarning):
+    """A CMU range log deviates from the documented layout in a way the loader can repair."""
+
+
+DEG = float(np.rad2deg(1.0))  # 57.3: a degree column read as radians is this factor too large
+R_FIT, R_MARGIN = 0.7, 0.3  # mean resultant length that "explains the motion", and the margin over the other unit
+
+
+def _resultant(a: FArray) -> float:
+    return float(np.abs(np.mean(np.exp(1j * a)))) if a.size else 0.0
+
+
+def heading_units(GT: FArray, DR: FArray, step: float = 0.5) -> tuple[str, str, dict[str, float]]:
+    """Decide whether the heading columns of a CMU log are in radians or degrees.
+
+    Parameters
+    ----------
+    GT : (G, 4) ``[time, x, y, heading]`` sorted by time; DR : (M, 3) ``[time, dd, dpsi]``.
+    step : metres of ground-truth travel per direction sample.
+
+    Returns
+    -------
+    (gt_unit, dr_unit, stats) : each unit "rad", "deg" or "?" (undecided), and the statistics.
+
+    Notes
+    -----
+    *Ground-truth heading.* The robot drives along its heading (convention 4), so the
+    direction of motion ``phi`` of the ground-truth track (sampled every ``step`` metres)
+    minus the heading is a constant (the ``init_heading_offset``) plus noise. Its mean
+    resultant length ``R = |mean exp(i (phi - h))|`` is near 1 for the right unit whatever
+    the constant. Read in the wrong unit a degree column turns 57 times too fast (``R`` near
+    the Rayleigh level ``1 / sqrt(n)``), while a radian column read as degrees turns 57 times
+    too slowly (nearly constant: ``R`` stays high on a straight drive). So the evidence for
+    degrees is ``R_deg`` high *and* well above ``R_rad``: degrees when ``R_deg >= 0.7`` and
+    ``R_deg - R_rad >= 0.3``, radians when ``R_rad >= 0.7`` otherwise, undecided else (a
+    radian column fits with ``R_rad`` near 1: 0.997 on Plaza 1, 1.00 on simulated logs).
+
+    *Odometry heading.* The odometry's total turn ``sum |Delta psi_DR|`` between the direction
+    samples against the ground truth's ``sum |wrap(Delta h)|``: about 1 in radians (the
+    odometry's heading error is a few percent), 57.3 in degrees. Degrees are decided when the
+    ratio is within a factor 2 of 57.3 and the ground truth turned more than half a radian in
+    total (radians within a factor 2 of 1; undecided otherwise).
+    """
+    t, xy = GT[:, 0], GT[:, 1:3]
+    seg = np.linalg.norm(np.diff(xy, axis=0), axis=1)
+    s = np.concatenate([[0.0], np.cumsum(seg)])
+    out: dict[str, float] = {"travel_m": float(s[-1])}
+    if s[-1] < 2 * step:
+        return "?", "?", out
+    idx = np.unique(np.searchsorted(s, np.arange(0.0, s[-1], step)))
+    idx = idx[idx < t.size]
+    d = np.diff(xy[idx], axis=0)
+    phi = np.arctan2(d[:, 1], d[:, 0])
+    h = GT[idx[:-1], 3]
+    r_rad, r_deg = _resultant(phi - h), _resultant(phi - np.deg2rad(h))
+    out.update(r_rad=r_rad, r_deg=r_deg, n=float(phi.size))
+    gt_unit = "deg" if (r_deg >= R_FIT and r_deg - r_rad >= R_MARGIN) else ("rad" if r_rad >= R_FIT else "?")
+    hh = GT[idx, 3] if gt_unit != "deg" else np.deg2rad(GT[idx, 3])
+    turn_gt = float(np.sum(np.abs(np.angle(np.exp(1j * np.diff(hh))))))
+    cum = np.concatenate([[0.0], np.cumsum(DR[:, 2])])
+    at = np.searchsorted(DR[:, 0], t[idx], side="right")  # DR rows up to each sample's time
+    turn_dr = float(np.sum(np.abs(np.diff(cum[at]))))
+    out.update(turn_gt=turn_gt, turn_dr=turn_dr)
+    dr_unit = "?"
+    if turn_gt > 0.5 and gt_unit != "?" and turn_dr > 0:
+        ratio = turn_dr / turn_gt
+        out["turn_ratio"] = ratio
+        dr_unit = "deg" if abs(np.log(ratio / DEG)) < np.log(2) else ("rad" if abs(np.log(ratio)) < np.log(2) else "?")
+    return gt_unit, dr_unit, out
+
+
+def _drop_repeated_rows(a: FArray, name: str, p: Path) -> FArray:
+    """Rows equal to the previous row in every column (after the stable time sort) are dropped."""
+    if a.shape[0] < 2:
+        return a
+    rep = np.concatenate([[False], np.all(a[1:] == a[:-1], axis=1)])
+    if rep.any():
+        import warnings
+
+        warnings.warn(f"{p}: {name} has {int(rep.sum())} rows that repeat the previous row exactly (time and "
+                      "values); they are taken as logged twice and dropped", PlazaFormatWarning, stacklevel=3)
+    return a[~rep]
+
+
 def _field(m: dict[str, Any], key: str, width: int, p: Path) -> FArray:
     if key not in m:
         raise InputError(f"{p}: missing variable {key!r} (a CMU range log has TL, TD, GT, DR, init_heading_offset)")
@@ -176,6 +269,29 @@ def _heading_offset(value: float, name: str) -> float:
         hint = f" (180 deg = pi rad; {value:g} deg = {np.deg2rad(value):.4g} rad)" if abs(value) <= 360 else ""
         raise InputError(f"{name} = {value:.4g} rad exceeds one turn (2 pi); give radians, not degrees{hint}")
     return value
+
+
+def _heading_columns(GT: FArray, DR: FArray, p: Path) -> tuple[FArray, FArray]:
+    import warnings
+
+    gt_u, dr_u, st = heading_units(GT, DR)
+    beyond = float(np.max(np.abs(GT[:, 3])))
+    if gt_u == "deg":
+        warnings.warn(f"{p}: GT heading column is in degrees (it fits the direction of motion as degrees, mean "
+                      f"resultant {st['r_deg']:.2f}, not as radians, {st['r_rad']:.2f}); converted to radians",
+                      PlazaFormatWarning, stacklevel=3)
+        GT = GT.copy()
+        GT[:, 3] = np.deg2rad(GT[:, 3])
+    elif gt_u == "?" and beyond > 2 * np.pi + 1e-9 and "r_rad" in st:
+        raise InputError(f"{p}: GT heading column reaches {beyond:.4g}, beyond one turn, and fits the direction of "
+                         f"motion neither as radians (mean resultant {st['r_rad']:.2f}) nor as degrees "
+                         f"({st['r_deg']:.2f}); give headings in radians")
+    if dr_u == "deg":
+        warnings.warn(f"{p}: DR heading increments are in degrees (their total turn is {st['turn_ratio']:.1f} x the "
+                      "ground truth's); converted to radians", PlazaFormatWarning, stacklevel=3)
+        DR = DR.copy()
+        DR[:, 2] = np.deg2rad(DR[:, 2])
+    return GT, DR
 
 
 def load_plaza(path: str | os.PathLike[str], *, init_heading_offset: float | None = None) -> PlazaData:
@@ -255,6 +371,12 @@ def load_plaza(path: str | os.PathLike[str], *, init_heading_offset: float | Non
     TD = TD[np.argsort(TD[:, 0], kind="stable")]  # convention 3
     GT = GT[np.argsort(GT[:, 0], kind="stable")]
     DR = DR[np.argsort(DR[:, 0], kind="stable")]
+    DR = _drop_repeated_rows(DR, "DR", p)  # convention 6
+    TD = _drop_repeated_rows(TD, "TD", p)
+    if not np.any(DR[:, 1] != 0):  # convention 7
+        raise InputError(f"{p}: DR distances are all zero (no odometry): the model has no motion information and "
+                         "would keep the robot at its first pose; a range-only track is not supported")
+    GT, DR = _heading_columns(GT, DR, p)  # convention 5
     t0 = GT[0, 0]
     DR = DR[DR[:, 0] > t0]  # convention 4: increments after the start pose
     if DR.shape[0] < 1:

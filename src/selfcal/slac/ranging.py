@@ -52,6 +52,7 @@ from .._result import Result
 from ..errors import InputError, Status
 from ..geometry import wrap_angle
 from ..robust import TUNING, loss_rho
+from .odometry_em import odometry_noise_factors
 
 __all__ = ["RangeLog", "RangeModelConfig", "RangeSlacResult", "solve_range_slac", "huber_weight"]
 
@@ -135,6 +136,8 @@ class RangeModelConfig:
     estimate_noise: bool = True
     noise_window: int = 400
     heading_noise_grid: tuple[float, ...] = (1.0, 0.3, 0.1, 0.03)
+    noise_rounds: int = 8
+    noise_tol: float = 0.05
 
     def __post_init__(self) -> None:
         for name in ("range_noise", "scale_std", "offset_std", "init_position_std", "init_heading_std", "huber", "tol"):
@@ -223,6 +226,11 @@ class RangeSlacResult(Result):
     ranges_used, ranges_rejected, ranges_outside : int (used in the final pass, gated, outside
         the odometry span).
     iterations : int (smoother Gauss-Newton iterations; 1 for the filter); converged : bool.
+    pose_cov : (P, 2, 2) position covariance of each pose (m^2; the 95 % ellipse is
+        ``e^T C^-1 e <= chi2_2(0.95)``); not in ``to_dict`` (use ``pose_std`` there).
+    odometry_noise_factor : (2,) the smoother's EM factors on the distance and heading noise
+        variances (1, 1 for the filter); ``heading_noise_factor`` already includes the square
+        root of the second.
     ``status`` / ``message`` / ``success`` come from :class:`~selfcal._result.Result`.
     """
 
@@ -246,6 +254,8 @@ class RangeSlacResult(Result):
     ranges_outside: int
     iterations: int
     converged: bool
+    pose_cov: FArray = field(default_factory=lambda: np.zeros((0, 2, 2)))
+    odometry_noise_factor: FArray = field(default_factory=lambda: np.ones(2))
 
     def _diagnose(self) -> tuple[Status, str]:
         if not self.converged:
@@ -256,7 +266,7 @@ class RangeSlacResult(Result):
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-safe dict of every field (arrays as lists, NaN as None) + status / message / success."""
-        d = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
+        d = {f.name: getattr(self, f.name) for f in dataclasses.fields(self) if f.name != "pose_cov"}
         d["units"] = {"position": "m", "heading": "rad", "offset": "m", "time": "s"}
         return d
 
@@ -323,12 +333,13 @@ class _Pass:
     innov_var0: FArray  # (K,) H P H^T (prediction part of the innovation variance)
     used: NDArray[np.bool_]
     noise_final: float = float("nan")
+    noise_used: FArray = field(default_factory=lambda: np.zeros(0))  # (K,) range noise std applied at each range
     loglik: FArray = field(default_factory=lambda: np.zeros(0))  # (N,) robust predictive log-likelihood of the ranges up to node n
 
 
 def _forward(ch: _Chain, log: RangeLog, cfg: RangeModelConfig, noise: float, *, ref: FArray | None,
              weights: FArray | None, store: bool, progress: bool, var: FArray | None = None,
-             adapt: bool = False) -> _Pass:
+             adapt: bool = False, noise_seq: FArray | None = None) -> _Pass:
     """One Kalman pass; ``ref`` None = EKF about the running estimate (gate + Huber on the
     innovations), else linearised about ``ref`` (N, D) with the given range ``weights`` (0 = out)."""
     B = log.beacons.shape[0]
@@ -345,6 +356,7 @@ def _forward(ch: _Chain, log: RangeLog, cfg: RangeModelConfig, noise: float, *, 
     Fs = np.empty((N, 3, 3)) if store else None
     innov = np.zeros(K)
     innov_var0 = np.zeros(K)
+    noise_used = np.zeros(K)
     used = np.zeros(K, dtype=bool)
     gate2 = float(stats.chi2.ppf(cfg.gate_quantile, 1)) if cfg.gate_quantile < 1 else np.inf
     r2 = noise**2
@@ -394,6 +406,9 @@ def _forward(ch: _Chain, log: RangeLog, cfg: RangeModelConfig, noise: float, *, 
                 s_hat = _noise_from_innovations(innov[lo : k + 1], innov_var0[lo : k + 1])
                 if np.isfinite(s_hat) and s_hat > 0:
                     r2 = s_hat**2
+            if noise_seq is not None:
+                r2 = float(noise_seq[k]) ** 2
+            noise_used[k] = np.sqrt(r2)
             if ref is None:
                 e2 = y * y / (c0 + r2)
                 ae = np.sqrt(e2)  # Huber density of the standardised innovation (model selection)
@@ -415,25 +430,28 @@ def _forward(ch: _Chain, log: RangeLog, cfg: RangeModelConfig, noise: float, *, 
         Pf[n] = P
         ll_nodes[n] = ll
     return _Pass(mf=mf, Pf=Pf, mp=mp, Pp=Pp, F=Fs, innov=innov, innov_var0=innov_var0, used=used,
-                 noise_final=float(np.sqrt(r2)), loglik=ll_nodes)
+                 noise_final=float(np.sqrt(r2)), loglik=ll_nodes, noise_used=noise_used)
 
 
-def _rts(ps: _Pass) -> tuple[FArray, FArray]:
+def _rts(ps: _Pass) -> tuple[FArray, FArray, FArray]:
     """Rauch-Tung-Striebel backward pass over a stored forward pass.
 
-    Returns smoothed means (N, D) and covariances (N, D, D).
+    Returns smoothed means (N, D), covariances (N, D, D) and the pose blocks (N, 3, 3) of the
+    lag-one cross-covariances ``Cov(x_n, x_{n-1}) = P_n C_{n-1}^T`` (row 0 zero).
     """
     assert ps.mp is not None and ps.Pp is not None and ps.F is not None
     N = ps.mf.shape[0]
     ms = ps.mf.copy()
     Ps = ps.Pf.copy()
+    X = np.zeros((N, 3, 3))
     for n in range(N - 2, -1, -1):
         AP = ps.Pf[n].copy()
         AP[:3] = ps.F[n + 1] @ AP[:3]  # A P_f with A = blockdiag(F, I)
         C = np.linalg.solve(ps.Pp[n + 1], AP).T
         ms[n] = ps.mf[n] + C @ (ms[n + 1] - ps.mp[n + 1])
         Ps[n] = ps.Pf[n] + C @ (Ps[n + 1] - ps.Pp[n + 1]) @ C.T
-    return ms, Ps
+        X[n + 1] = Ps[n + 1][:3] @ C[:3].T
+    return ms, Ps, X
 
 
 def _noise_from_innovations(y: FArray, c0: FArray) -> float:
@@ -558,17 +576,27 @@ def solve_range_slac(log: RangeLog | Any, *, method: str = "smoother", config: R
     gate2 = float(stats.chi2.ppf(cfg.gate_quantile, 1)) if cfg.gate_quantile < 1 else np.inf
     z_d, z_t = np.abs(ch.inc[:, 0]), np.abs(ch.inc[:, 1])
     grid = tuple(cfg.heading_noise_grid) or (1.0,)
-    passes = []
-    for g in grid:
-        var = np.column_stack([cfg.odo_distance**2 * z_d, g**2 * (cfg.odo_turn**2 * z_t + cfg.odo_drift**2 * z_d)])
-        passes.append(_forward(ch, log, cfg, cfg.range_noise, ref=None, weights=None, store=False,
-                               progress=progress, var=var, adapt=cfg.estimate_noise))
+    # the candidates are compared at one range-noise sequence: the causal estimate of the
+    # widest candidate (whose innovations carry the least model misfit). Each candidate
+    # adapting its own noise lets a too-stiff heading model hide its misfit in an inflated
+    # range noise, and its likelihood then wins (a smoother 10x too confident in heading)
+    def _var(g: float) -> FArray:
+        return np.column_stack([cfg.odo_distance**2 * z_d, g**2 * (cfg.odo_turn**2 * z_t + cfg.odo_drift**2 * z_d)])
+
+    wide = int(np.argmax(grid))
+    ref_pass = _forward(ch, log, cfg, cfg.range_noise, ref=None, weights=None, store=False, progress=progress,
+                        var=_var(grid[wide]), adapt=cfg.estimate_noise)
+    passes = [ref_pass if i == wide else
+              _forward(ch, log, cfg, cfg.range_noise, ref=None, weights=None, store=False, progress=progress,
+                       var=_var(g), noise_seq=ref_pass.noise_used)
+              for i, g in enumerate(grid)]
     LL = np.stack([np.asarray(p.loglik) for p in passes])  # (G, N)
     best = int(np.argmax(LL[:, -1]))
     fw = passes[best]
     g_best = grid[best]
     sigma_hat = _noise_from_innovations(fw.innov, fw.innov_var0)
     iterations, status = 1, 0
+    lam = np.ones(2)
     if method == "filter":
         # multiple-model mixture with the causal weights p(model | ranges up to node n)
         W = np.exp(LL - LL.max(axis=0))
@@ -589,27 +617,36 @@ def solve_range_slac(log: RangeLog | Any, *, method: str = "smoother", config: R
         status = 1
         iterations = 0
         ms, Ps = ref, fw.Pf
-        # the filter's innovations carry its own misfit (a beacon learnt late inflates them): with
-        # estimate_noise the range noise is re-estimated once from the smoother's residuals (the
-        # same robust median estimator) and the smoother refined at it (one fixed-point step)
-        for rnd in range(2 if cfg.estimate_noise else 1):
+        # noise levels by expectation-maximisation at the smoother's solution (ECM: each round
+        # a Gauss-Newton solve at fixed noise, then the range noise re-estimated from the
+        # residuals (robust median estimator) and the two odometry variance factors by EM,
+        # odometry_em): the grid's factor and the prior densities are only the start
+        for rnd in range(cfg.noise_rounds + 1 if cfg.estimate_noise else 1):
             status = 1
             for _ in range(cfg.max_iter):
                 e = _residuals(ref, ch, log) / sigma
                 weights = np.where(e**2 > gate2, 0.0, huber_weight(e, cfg.huber))
                 ps = _forward(ch, log, cfg, sigma, ref=ref, weights=weights, store=True, progress=progress, var=var)
-                ms, Ps = _rts(ps)
+                ms, Ps, Xs = _rts(ps)
                 iterations += 1
                 step = np.max(np.abs(ms[:, :3] - ref[:, :3]))
                 ref = ms
                 if step < cfg.tol:
                     status = 0
                     break
-            if rnd == 0 and cfg.estimate_noise:
-                s_res = _noise_from_innovations(_residuals(ref, ch, log), np.zeros(K))
-                if not (np.isfinite(s_res) and s_res > 0):
-                    break
+            if rnd == cfg.noise_rounds or not cfg.estimate_noise:
+                break
+            s_res = _noise_from_innovations(_residuals(ref, ch, log), np.zeros(K))
+            f_d, f_p = odometry_noise_factors(ms[:, :3], Ps[:, :3, :3], Xs, ch.inc, var)
+            f = np.array([f_d, f_p])
+            f = np.where(np.isfinite(f) & (f > 0), f, 1.0)
+            ds = abs(np.log(s_res / sigma)) if (np.isfinite(s_res) and s_res > 0) else 0.0
+            if np.isfinite(s_res) and s_res > 0:
                 sigma = sigma_hat = s_res
+            var = var * f[None, :]
+            lam *= f
+            if max(ds, float(np.max(np.abs(np.log(f))))) < cfg.noise_tol:
+                break
         x_nodes, P_nodes = ms, Ps
         cal_x, cal_P = ms[0], Ps[0]
         used = int((weights > 0).sum())
@@ -625,7 +662,7 @@ def solve_range_slac(log: RangeLog | Any, *, method: str = "smoother", config: R
         scale=cal_x[3 : 3 + B].copy(), scale_std=cal_sd[3 : 3 + B].copy(),
         offset=cal_x[3 + B :].copy(), offset_std=cal_sd[3 + B :].copy(),
         noise=float(cfg.range_noise), noise_estimate=float(sigma_hat),
-        heading_noise_factor=float(g_best), heading_noise_loglik=LL[:, -1].copy(),
+        heading_noise_factor=float(g_best * np.sqrt(lam[1])), odometry_noise_factor=lam.copy(), heading_noise_loglik=LL[:, -1].copy(),
         ranges_used=used, ranges_rejected=rejected, ranges_outside=ch.outside, iterations=iterations,
-        converged=status == 0,
+        converged=status == 0, pose_cov=P_nodes[pn, :2, :2].copy(),
     )
