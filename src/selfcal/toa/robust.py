@@ -263,17 +263,20 @@ def outlier_rule_has_power(ranges: Array, receivers: Array, sources: Array, rece
     if theta.size > LEVERAGE_MAX_UNKNOWNS or m > POWER_MAX_ENTRIES:
         return True
     J = toa_jacobian(theta, Y, receivers.shape[1], offsets).tocsr()
-    Jd = np.asarray(J.todense())
-    P = np.eye(m) - Jd @ _normal_pinv(J) @ Jd.T
-    d = np.diag(P)
-    ok = d > 1e-8
-    if not ok.any():
+    Pinv = _normal_pinv(J)
+    d = 1.0 - _hat_rows(J, Pinv)  # diagonal of P (the leverages' complement)
+    ok = np.flatnonzero(d > 1e-8)
+    if not ok.size:
         return False
-    T = P[np.ix_(ok, ok)] / np.sqrt(d[ok])[:, None]  # column i: studentized residuals of an error on i
+    Jd = np.asarray(J.todense())
+    root_d = np.sqrt(d[ok])
     k = outlier_threshold(m, alpha, dof)
-    for c in range(T.shape[1]):
-        s = noise_scale(T[:, c])
-        if not s > 0 or abs(T[c, c]) > k * s:
+    for c, i in enumerate(ok):  # column i of P formed on demand: the first entry with power ends the check
+        col = -(Jd @ (Pinv @ Jd[i]))
+        col[i] += 1.0
+        t = col[ok] / root_d  # studentized residuals of an error on entry i
+        s = noise_scale(t)
+        if not s > 0 or abs(t[c]) > k * s:
             return True
     return False
 
