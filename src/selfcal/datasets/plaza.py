@@ -46,6 +46,7 @@ Ground truth is used by the estimators only for the first pose; the rest is for 
 from __future__ import annotations
 
 import os
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -229,8 +230,6 @@ def _drop_repeated_rows(a: FArray, name: str, p: Path) -> FArray:
         return a
     rep = np.concatenate([[False], np.all(a[1:] == a[:-1], axis=1)])
     if rep.any():
-        import warnings
-
         warnings.warn(f"{p}: {name} has {int(rep.sum())} rows that repeat the previous row exactly (time and "
                       "values); they are taken as logged twice and dropped", PlazaFormatWarning, stacklevel=3)
     return a[~rep]
@@ -272,8 +271,6 @@ def _heading_offset(value: float, name: str) -> float:
 
 
 def _heading_columns(GT: FArray, DR: FArray, p: Path) -> tuple[FArray, FArray]:
-    import warnings
-
     gt_u, dr_u, st = heading_units(GT, DR)
     beyond = float(np.max(np.abs(GT[:, 3])))
     if gt_u == "deg":

@@ -640,8 +640,9 @@ def solve_range_slac(log: RangeLog | Any, *, method: str = "smoother", config: R
             f_d, f_p = odometry_noise_factors(ms[:, :3], Ps[:, :3, :3], Xs, ch.inc, var)
             f = np.array([f_d, f_p])
             f = np.where(np.isfinite(f) & (f > 0), f, 1.0)
-            ds = abs(np.log(s_res / sigma)) if (np.isfinite(s_res) and s_res > 0) else 0.0
+            ds = 0.0
             if np.isfinite(s_res) and s_res > 0:
+                ds = abs(np.log(s_res / sigma))
                 sigma = sigma_hat = s_res
             var = var * f[None, :]
             lam *= f
