@@ -55,6 +55,7 @@ from numpy.typing import NDArray
 
 from ..errors import DegenerateGeometryError, InputError
 from ..robust import TUNING
+from .batch_lm import solve_batch_lm
 from .dense_lm import solve_dense_lm
 from .moves import Move, Start, moves
 from .nls import NlsSolution, _pack, _rho, _unpack, refine_toa, toa_model
@@ -214,6 +215,9 @@ def _offsets_unidentified(Y: Array, dim: int, offsets: str) -> bool:
 #: replay reached the truth-started basin in 171 / 176 / 177 / 180 of the 189 draws (the
 #: halving over the same 24 + 1: 168)
 SCALED_STARTS = 8
+#: whether the race advances its starts in lockstep (:mod:`selfcal.toa.batch_lm`); False runs
+#: them one at a time through the dense LM (the same iterates, the baseline of the benchmark)
+BATCH_RACE = True
 #: the initialisers, in the order the search runs them (small networks run all of them)
 INITIALISERS: dict[str, _Init] = {
     "rank3": _rank3,
@@ -540,6 +544,27 @@ def search(
             c = _cost_of(np.where(observed, Y - toa_model(*nxt), np.nan), loss, fs or 1.0)
         return (c, nxt, bool(conv), None) if np.isfinite(c) else None
 
+    def advance_many(sts: list[Start], nfev: int | None) -> list[_State | None]:
+        """One rung of several starts, in lockstep (:func:`selfcal.toa.batch_lm.solve_batch_lm`:
+        each start's iterates are those of its own dense LM, to round-off)."""
+        nonlocal count, iters
+        if not (fast and BATCH_RACE) or fs is None or len(sts) < 2:
+            return [advance(st, nfev) for st in sts]
+        count += len(sts)
+        Th, conv, nit, fin = solve_batch_lm(np.stack([_pack_start(st) for st in sts]), Y, dim, offsets, loss,
+                                            fs if loss != "linear" else 1.0, nfev, 1e-10, max_it=DENSE_MAX_IT)
+        iters += int(nit.sum())
+        out: list[_State | None] = []
+        for k in range(len(sts)):
+            if not (fin[k] and np.isfinite(Th[k]).all()):
+                out.append(None)
+                continue
+            nxt = _unpack_start(Th[k], I, J, dim, offsets)
+            with np.errstate(all="ignore"):
+                c = _cost_of(np.where(observed, Y - toa_model(*nxt), np.nan), loss, fs or 1.0)
+            out.append((c, nxt, bool(conv[k]), None) if np.isfinite(c) else None)
+        return out
+
     def state_done(state: _State) -> str | None:
         if state[3] is not None:
             return done(state[3])
@@ -554,11 +579,16 @@ def search(
     def cap(n: int | None) -> int | None:
         return n if max_nfev is None or n is None else min(n, max_nfev)
 
+    # the first rung of every start (in one batch when the scale is known; the first robust
+    # refinement alone, since it sets the scale)
+    states: list[_State | None] = []
+    if fast and fs is not None:
+        states = advance_many([st for _, st in starts], cap(nfev))
     for k, (name, st) in enumerate(starts):
-        if count >= nb and pool:
+        if count >= nb and pool and not states:
             stopped = "budget"
             break
-        state = advance(st, max_nfev if fs is None else cap(nfev))
+        state = states[k] if states else advance(st, max_nfev if fs is None else cap(nfev))
         if state is None:
             continue
         history.append((name, state[0]))
@@ -577,10 +607,10 @@ def search(
         if all(e[3][2] for e in pool):
             break
         nfev = None if nfev is None else 2 * nfev
-        for idx, (c_old, k, name, state, _) in enumerate(pool):
-            if state[2]:
-                continue
-            more = advance(state[1], cap(nfev))
+        todo = [idx for idx, e in enumerate(pool) if not e[3][2]]
+        rung = advance_many([pool[idx][3][1] for idx in todo], cap(nfev))
+        for idx, more in zip(todo, rung, strict=True):
+            c_old, k, name, state, _ = pool[idx]
             if more is None:  # no further progress: judged as it is
                 pool[idx] = (c_old, k, name, (state[0], state[1], True, state[3]), c_old)
                 continue
