@@ -50,9 +50,14 @@ The merged main (7bef864: the race, 8 scaled starts, the t quantile, the permuta
 refined procedure), same seeds 360-559, one process at nice 5 on an otherwise idle machine:
 180 of 200 (90.0 %, CI 85.0-93.8 %), blind CPU median 0.84 s against 0.31 s for the
 truth-started ``trf`` refinement (ratio 2.7).
-What is left: far-field valleys where no start converges within the iterations given
-(chi-square gaps 0.01-0.1) and distinct minima; running the race over 24 starts would reach
-~95 % at the search level (180 of 189 replayed) at 2.7x its iterations.
+Then the race in lockstep (toa/batch_lm.py) over 24 scaled starts, the count chosen on seeds
+0-199 (182 / 190 / 194 / 194 of 200 for 8 / 16 / 24 / 32), held-out seeds 560-759 run once
+beside the 8 starts raced one at a time (``benchmarks/compare_toa_race.py --first 560
+--draws 200 --configs 0:8,1:24``, 2026-12-02, load 4-5 on 2 cores): 192 of 200 (96.0 %, exact
+95 % CI 92.3-98.3 %) against 170 (85.0 %, CI 79.3-89.6 %), 22 gained, none lost (McNemar
+p = 5e-7), median CPU 0.75 vs 0.48 s (paired ratio 1.52). What is left: 8 draws of 200 where
+no start reaches the truth-started basin (distinct minima within a chi-square of a few units,
+far-field valleys), which more starts do not fix (32 starts: the same 194 on seeds 0-199).
 
 Before (seeds 0-199, 20 us, 2026-12-02, load 3-5 on 2 shared cores, in slices of
 ``--draws 20 --first K``): 165 of 200 in the basin, 82.5 % (exact 95 % CI 76.5-87.5 %; strict

@@ -25,8 +25,11 @@ Cost per iteration O(m n^2) flops for ``J^T W J`` plus O(n^3 / 3) for the factor
 at 12 x 6 with both offsets 0.42-0.48 ms per iteration against 0.95-1.05 ms for the general
 engine's dense step with its QR gauge basis and layout round trips (same run, same iterates,
 a loaded 2-core machine); with the gain-ratio damping, 0.23 ms against 0.67 ms (same run,
-six draws from perturbed truths, 1443 vs 1440 iterations). Stacking many starts into one batched solve was tried and measured
-no faster here (the stacked LU solves and products are flop-bound at n = 72).
+six draws from perturbed truths, 1443 vs 1440 iterations). Stacking many starts into one
+batched dense solve was tried and measured no faster (the stacked (n, n) products and LU
+solves are flop-bound at n = 72); what pays is the bipartite block structure of the normal
+equations, which :mod:`selfcal.toa.batch_lm` uses to run the search's race (the same
+iterates, start by start).
 """
 
 from __future__ import annotations
