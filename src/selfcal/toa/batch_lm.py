@@ -184,14 +184,17 @@ def solve_batch_lm(
 
     Examples
     --------
+    Three starts of one 2-D network with receiver delays, refined together to the exact fit:
+
     >>> import numpy as np
     >>> from selfcal.toa import nls
-    >>> g = np.random.default_rng(0)
-    >>> r, s = g.uniform(0, 1.5, (12, 3)), g.normal(0, 2, (6, 3))
-    >>> Y = nls.toa_model(r, s)
-    >>> starts = np.stack([nls._pack(r + e, s, None, None) for e in (0.01, -0.02, 0.03)])
-    >>> Th, ok, nit, fin = solve_batch_lm(starts, Y, 3, "none", "linear", 1.0, None, 1e-12)
-    >>> bool(ok.all()) and max(float(np.abs(nls.toa_residuals(t, Y, 3, "none")).max()) for t in Th) < 1e-6
+    >>> rx, tx = np.random.default_rng(1).uniform(-2, 2, (8, 2)), np.random.default_rng(2).uniform(-3, 3, (5, 2))
+    >>> delays = np.linspace(0.1, 0.8, 8)
+    >>> Y = nls.toa_model(rx, tx, delays)
+    >>> starts = np.stack([nls._pack(rx + e, tx - e, delays, None) for e in (0.02, -0.01, 0.05)])
+    >>> Th, ok, nit, fin = solve_batch_lm(starts, Y, 2, "receivers", "linear", 1.0, None, 1e-12)
+    >>> res = [float(np.abs(nls.toa_residuals(t, Y, 2, "receivers")).max()) for t in Th]
+    >>> bool(ok.all()) and max(res) < 1e-6
     True
     """
     has_r, has_s = offsets in ("receivers", "both"), offsets in ("sources", "both")
