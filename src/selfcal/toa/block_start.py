@@ -42,6 +42,7 @@ from numpy.typing import NDArray
 from .._checks import check_toa_counts
 from ..errors import DegenerateGeometryError, InputError
 from .mds_core import multilaterate
+from .nls import refine_toa
 from .search import INITIALISERS, RACE_RUNGS, canonical_order, search
 
 __all__ = ["block_start", "needs_block_start"]
@@ -88,27 +89,44 @@ def needs_block_start(observed: NDArray[np.bool_], dim: int) -> bool:
     return bool(C.min() < dim + 1)
 
 
-def _core_block(obs: NDArray[np.bool_], dim: int) -> tuple[NDArray[np.bool_], NDArray[np.bool_]] | None:
-    """Rows and columns of the greedy largest identifiable complete block (module docstring, 1.)."""
+def _cores(obs: NDArray[np.bool_], dim: int) -> list[tuple[NDArray[np.bool_], NDArray[np.bool_]]]:
+    """One core block per row: the greedy largest identifiable complete block that keeps it.
+
+    From every row, the row whose removal completes the most columns is removed (the first
+    in canonical order on ties; never the kept row), down to ``dim + 1`` rows; of the blocks
+    visited, the one with the most entries whose counts identify a geometry. Distinct
+    blocks only, in the order of their first row.
+    """
     I, J = obs.shape
-    rows = np.ones(I, bool)
-    best: tuple[int, NDArray[np.bool_], NDArray[np.bool_]] | None = None
-    while rows.sum() >= dim + 1:
-        cols = obs[rows].all(axis=0)
-        n_r, n_c = int(rows.sum()), int(cols.sum())
-        try:
-            check_toa_counts((n_r, n_c), n_r * n_c, dim, "none")
-            if best is None or n_r * n_c > best[0]:
-                best = (n_r * n_c, rows.copy(), cols)
-        except DegenerateGeometryError:
-            pass
-        if n_r == dim + 1:
-            break
-        # remove the row whose removal completes the most columns (first in canonical order on ties)
-        idx = np.nonzero(rows)[0]
-        gains = [int(obs[np.setdiff1d(idx, [i])].all(axis=0).sum()) for i in idx]
-        rows[idx[int(np.argmax(gains))]] = False
-    return None if best is None else (best[1], best[2])
+    miss = (~obs).astype(np.int64)
+    out: list[tuple[NDArray[np.bool_], NDArray[np.bool_]]] = []
+    seen: set[bytes] = set()
+    for keep in range(I):
+        rows = np.ones(I, bool)
+        n_miss = miss.sum(axis=0)  # per column: rows of the current set that miss it
+        best: tuple[int, NDArray[np.bool_], NDArray[np.bool_]] | None = None
+        while True:
+            cols = n_miss == 0
+            n_r, n_c = int(rows.sum()), int(cols.sum())
+            try:
+                check_toa_counts((n_r, n_c), n_r * n_c, dim, "none")
+                if best is None or n_r * n_c > best[0]:
+                    best = (n_r * n_c, rows.copy(), cols)
+            except DegenerateGeometryError:
+                pass
+            if n_r <= dim + 1:
+                break
+            # columns completed by removing row i: those whose one missing row of the set is i
+            gains = ((n_miss == 1)[None, :] & (miss == 1)).sum(axis=1)
+            gains[~rows] = -1
+            gains[keep] = -1
+            i = int(np.argmax(gains))
+            rows[i] = False
+            n_miss = n_miss - miss[i]
+        if best is not None and best[1].tobytes() not in seen:
+            seen.add(best[1].tobytes())
+            out.append((best[1], best[2]))
+    return out
 
 
 def _place(anchors: Array, ranges: Array) -> Array:
@@ -145,46 +163,41 @@ def _place(anchors: Array, ranges: Array) -> Array:
     return X
 
 
+def _refit(Y: Array, r: Array, s: Array, pr: NDArray[np.bool_], pc: NDArray[np.bool_]) -> None:
+    """The engine on the placed nodes, in place (skipped where it degenerates)."""
+    try:
+        sol = refine_toa(Y[np.ix_(pr, pc)], r[pr], s[pc], offsets="none", covariance=False)
+    except DegenerateGeometryError:
+        return
+    if np.isfinite(sol.receivers).all() and np.isfinite(sol.sources).all():
+        r[pr], s[pc] = sol.receivers, sol.sources
+
+
 def _grow(Y: Array, dim: int, r: Array, s: Array, pr: NDArray[np.bool_], pc: NDArray[np.bool_]) -> None:
     """Place every row and column from the placed ones, in place (module docstring, 2. and 3.)."""
     obs = np.isfinite(Y)
     while not (pr.all() and pc.all()):
-        progress = False
-        for side in (0, 1):  # columns from placed rows, then rows from placed columns
-            if side == 0:
-                links = obs[pr].sum(axis=0) * ~pc
-                new = links >= dim + 1
-                if new.any():
-                    s[new] = _place(r[pr], Y[np.ix_(pr, new)].T)
-                    pc |= new
-                    progress = True
-            else:
-                links = obs[:, pc].sum(axis=1) * ~pr
-                new = links >= dim + 1
-                if new.any():
-                    r[new] = _place(s[pc], Y[np.ix_(new, pc)])
-                    pr |= new
-                    progress = True
-        if progress:
-            continue
-        # stalled: the nodes with the most links to placed ones, from what links they have
-        lc = obs[pr].sum(axis=0) * ~pc
-        lr = obs[:, pc].sum(axis=1) * ~pr
-        top = max(int(lc.max(initial=0)), int(lr.max(initial=0)))
-        if top == 0:
-            s[~pc] = r[pr].mean(axis=0)
-            r[~pr] = s[pc].mean(axis=0)
-            pc[:] = True
-            pr[:] = True
-            break
-        if int(lc.max(initial=0)) == top:
-            new = lc == top
+        lc = obs[pr].sum(axis=0) * ~pc  # links of the unplaced columns to placed rows
+        lr = obs[:, pc].sum(axis=1) * ~pr  # ... of the unplaced rows to placed columns
+        need = dim + 1
+        if lc.max(initial=0) < need and lr.max(initial=0) < need:
+            # stalled: the nodes with the most links, from what links they have
+            need = max(int(lc.max(initial=0)), int(lr.max(initial=0)))
+            if need == 0:  # unlinked to anything placed: at the centroid of the other kind
+                s[~pc] = r[pr].mean(axis=0)
+                r[~pr] = s[pc].mean(axis=0)
+                pc[:] = True
+                pr[:] = True
+                break
+        if lc.max(initial=0) >= need:
+            new = lc >= need
             s[new] = _place(r[pr], Y[np.ix_(pr, new)].T)
             pc |= new
         else:
-            new = lr == top
+            new = lr >= need
             r[new] = _place(s[pc], Y[np.ix_(new, pc)])
             pr |= new
+        _refit(Y, r, s, pr, pc)
 
 
 def _core_starts(Y: Array, dim: int, rng: np.random.Generator) -> list[tuple[str, Start]]:
@@ -244,24 +257,33 @@ def block_start(Y: Array, dim: int, *, rng: np.random.Generator) -> Start | None
     if flip:
         Yc = Yc.T
     obs = np.isfinite(Yc)
-    core = _core_block(obs, dim)
-    if core is None:
+    grown: list[tuple[str, Start]] = []
+    for k, (kr, kc) in enumerate(_cores(obs, dim)):
+        Yb = Yc[np.ix_(kr, kc)]
+        starts = _core_starts(Yb, dim, rng)
+        if not starts:
+            continue
+        try:
+            out = search(Yb, dim, "none", rng=rng, starts=starts, budget=len(starts) * (1 + RACE_RUNGS),
+                         use_moves=False)
+        except (DegenerateGeometryError, InputError):
+            continue
+        n, m = Yc.shape
+        r, s = np.zeros((n, dim)), np.zeros((m, dim))
+        r[kr], s[kc] = out.solution.receivers, out.solution.sources
+        _grow(Yc, dim, r, s, kr.copy(), kc.copy())
+        if np.isfinite(r).all() and np.isfinite(s).all():
+            grown.append((f"block{k}", (r, s, None, None)))
+    if not grown:
         return None
-    kr, kc = core
-    Yb = Yc[np.ix_(kr, kc)]
-    starts = _core_starts(Yb, dim, rng)
-    if not starts:
-        return None
-    try:
-        out = search(Yb, dim, "none", rng=rng, starts=starts, budget=len(starts) * (1 + RACE_RUNGS),
-                     use_moves=False)
-    except (DegenerateGeometryError, InputError):
-        return None
-    n, m = Yc.shape
-    r, s = np.zeros((n, dim)), np.zeros((m, dim))
-    r[kr], s[kc] = out.solution.receivers, out.solution.sources
-    pr, pc = kr.copy(), kc.copy()
-    _grow(Yc, dim, r, s, pr, pc)
+    r, s = grown[0][1][0], grown[0][1][1]
+    if len(grown) > 1:  # the grown starts raced on the whole matrix
+        try:
+            win = search(Yc, dim, "none", rng=rng, starts=grown, budget=len(grown) * (1 + RACE_RUNGS),
+                         use_moves=False).solution
+            r, s = win.receivers, win.sources
+        except (DegenerateGeometryError, InputError):
+            pass
     if flip:
         r, s = s, r
     if not (np.isfinite(r).all() and np.isfinite(s).all()):
