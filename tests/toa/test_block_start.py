@@ -15,7 +15,7 @@ import pytest
 
 from selfcal.toa import solve_toa
 from selfcal.toa.block_start import block_start, needs_block_start
-from selfcal.toa.nls import refine_toa
+from selfcal.toa.nls import refine_toa, toa_model
 
 CORNERS = np.array([[0, 0, 0], [1, 0, 1], [1, 1, 0], [0, 1, 1], [0.5, 0, 0.9], [0.5, 1, 0.1]], float)
 BOX = np.array([2.4, 2.0, 1.2])
@@ -92,12 +92,13 @@ def test_start_is_permutation_equivariant():
     np.testing.assert_allclose(sp, s[pc], rtol=0, atol=1e-9)
 
 
-def test_transposed_matrix_gives_the_transposed_start():
+def test_transposed_matrix_gives_the_same_geometry():
+    # receivers and sources swap roles; the start's frame (gauge) may differ, its distances not
+    # (up to the engine's convergence tolerance, far below the 2 cm noise)
     Y, _, _ = flight(4, 120)
     r, s, _, _ = block_start(Y, 3, rng=np.random.default_rng(0))
     rt, st, _, _ = block_start(Y.T, 3, rng=np.random.default_rng(0))
-    np.testing.assert_allclose(rt, s, rtol=0, atol=1e-9)
-    np.testing.assert_allclose(st, r, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(toa_model(rt, st), toa_model(r, s).T, rtol=0, atol=1e-4)
 
 
 def test_no_identifiable_block_gives_none():

@@ -45,7 +45,7 @@ from .mds_core import multilaterate
 from .nls import refine_toa
 from .search import INITIALISERS, RACE_RUNGS, canonical_order, search
 
-__all__ = ["block_start", "needs_block_start"]
+__all__ = ["block_start", "grown_starts", "needs_block_start"]
 
 Array = NDArray[np.float64]
 Start = tuple[Array, Array, "Array | None", "Array | None"]
@@ -218,36 +218,19 @@ def _core_starts(Y: Array, dim: int, rng: np.random.Generator) -> list[tuple[str
     return out
 
 
-def block_start(Y: Array, dim: int, *, rng: np.random.Generator) -> Start | None:
-    """A start of the offsets-free model grown from the largest complete block (module docstring).
+def grown_starts(Y: Array, dim: int, *, rng: np.random.Generator) -> list[tuple[str, Start]]:
+    """Every core block's grown start (module docstring, 1.-3.), in the caller's numbering.
 
     Parameters
     ----------
     Y: (I, J) ranges in metres, NaN = missing.
     dim: 2 or 3.
-    rng: Generator for the core block's search (its randomised initialisers).
+    rng: Generator for the core blocks' searches.
 
     Returns
     -------
-    (receivers (I, dim), sources (J, dim), None, None), or None when no complete block
-    identifies a geometry (or its search fails).
-
-    Notes
-    -----
-    Intended for matrices where :func:`needs_block_start` holds; on any matrix it returns
-    a finite start. Cost: one search of the core block plus ``O(I J dim^2)`` per growth
-    round.
-
-    Examples
-    --------
-    >>> import numpy as np
-    >>> g = np.random.default_rng(0)
-    >>> R, S = g.uniform(0, 3, (6, 3)), g.uniform(0, 3, (80, 3))
-    >>> Y = np.linalg.norm(R[:, None] - S[None], axis=2)
-    >>> Y[0, :40] = np.nan; Y[1, 40:] = np.nan
-    >>> r, s, _, _ = block_start(Y, 3, rng=np.random.default_rng(1))
-    >>> bool(np.nanmax(np.abs(np.linalg.norm(r[:, None] - s[None], axis=2) - Y)) < 1e-6)
-    True
+    list of (name, (receivers (I, dim), sources (J, dim), None, None)), one per distinct core
+    block whose search succeeded (possibly empty). Each is refined on the whole matrix.
     """
     Y = np.asarray(Y, float)
     I, J = Y.shape
@@ -272,22 +255,65 @@ def block_start(Y: Array, dim: int, *, rng: np.random.Generator) -> Start | None
         r, s = np.zeros((n, dim)), np.zeros((m, dim))
         r[kr], s[kc] = out.solution.receivers, out.solution.sources
         _grow(Yc, dim, r, s, kr.copy(), kc.copy())
-        if np.isfinite(r).all() and np.isfinite(s).all():
-            grown.append((f"block{k}", (r, s, None, None)))
+        if not (np.isfinite(r).all() and np.isfinite(s).all()):
+            continue
+        if flip:
+            r, s = s, r
+        rec, src = np.empty_like(r), np.empty_like(s)
+        rec[p_r], src[p_c] = r, s
+        grown.append((f"block{k}", (rec, src, None, None)))
+    return grown
+
+
+def block_start(Y: Array, dim: int, *, rng: np.random.Generator) -> Start | None:
+    """A start of the offsets-free model grown from the largest complete blocks (module docstring).
+
+    The grown starts of :func:`grown_starts` (one per core block), raced on the whole matrix
+    by :func:`selfcal.toa.search.search` when there are several.
+
+    Parameters
+    ----------
+    Y: (I, J) ranges in metres, NaN = missing.
+    dim: 2 or 3.
+    rng: Generator for the core blocks' searches (their randomised initialisers).
+
+    Returns
+    -------
+    (receivers (I, dim), sources (J, dim), None, None), or None when no complete block
+    identifies a geometry (or every core's search fails).
+
+    Notes
+    -----
+    Intended for matrices where :func:`needs_block_start` holds; on any matrix it returns
+    a finite start or None. Cost: per core block (at most one per row of the shorter side),
+    one race of the registry initialisers on it and one refinement per growth step.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> g = np.random.default_rng(0)
+    >>> R, S = g.uniform(0, 3, (6, 3)), g.uniform(0, 3, (80, 3))
+    >>> Y = np.linalg.norm(R[:, None] - S[None], axis=2)
+    >>> Y[0, :40] = np.nan; Y[1, 40:] = np.nan
+    >>> r, s, _, _ = block_start(Y, 3, rng=np.random.default_rng(1))
+    >>> bool(np.nanmax(np.abs(np.linalg.norm(r[:, None] - s[None], axis=2) - Y)) < 1e-6)
+    True
+    """
+    Y = np.asarray(Y, float)
+    grown = grown_starts(Y, dim, rng=rng)
     if not grown:
         return None
-    r, s = grown[0][1][0], grown[0][1][1]
-    if len(grown) > 1:  # the grown starts raced on the whole matrix
-        try:
-            win = search(Yc, dim, "none", rng=rng, starts=grown, budget=len(grown) * (1 + RACE_RUNGS),
-                         use_moves=False).solution
-            r, s = win.receivers, win.sources
-        except (DegenerateGeometryError, InputError):
-            pass
-    if flip:
-        r, s = s, r
-    if not (np.isfinite(r).all() and np.isfinite(s).all()):
-        return None
-    rec, src = np.empty_like(r), np.empty_like(s)
-    rec[p_r], src[p_c] = r, s
-    return rec, src, None, None
+    if len(grown) == 1:
+        return grown[0][1]
+    # the race on the whole matrix in canonical order (the order of the candidates too)
+    p_r, p_c = canonical_order(Y)
+    inv_r, inv_c = np.argsort(p_r), np.argsort(p_c)
+    cands: list[tuple[str, Start]] = [(name, (st[0][p_r], st[1][p_c], None, None)) for name, st in grown]
+    try:
+        win = search(Y[np.ix_(p_r, p_c)], dim, "none", rng=rng, starts=cands,
+                     budget=len(cands) * (1 + RACE_RUNGS), use_moves=False).solution
+    except (DegenerateGeometryError, InputError):
+        return grown[0][1]
+    if not (np.isfinite(win.receivers).all() and np.isfinite(win.sources).all()):
+        return grown[0][1]
+    return win.receivers[inv_r], win.sources[inv_c], None, None
