@@ -141,7 +141,7 @@ def finish(M: Array, dim: int, offsets: str, *, init: Any, speed: float | None, 
     degenerate = False  # the best fit collapsed to a line / point (data that fit no dim-D geometry)
     # 4. the search (ML cost on the entries in use), 5. the outlier rule; a changed set of
     # inliers runs the search again from the winner (at most twice: the rule converges fast)
-    if given is None and not one:
+    if given is None and not one:  # the nested fit's start, and the block start of structured gaps
         given = _nested_start(sub(used, keep_r, keep_s), dim, offsets, rng, loss, fs, max_nfev)
     for rnd in range(3):
         Ys = sub(used, keep_r, keep_s)
@@ -351,22 +351,46 @@ def _nested_start(Y: Array, dim: int, offsets: str, rng: np.random.Generator, lo
     (before, ``offsets="receivers"`` ended at RSS 28.1 vs 24.0 for the offsets-free fit on the
     LPS flight data4). The nested model is found by the search's starts without moves (on
     large networks its one start, :func:`selfcal.toa.search.default_budget`).
+
+    Where the missing pattern leaves a pair of receivers with fewer than ``dim + 1`` common
+    sources (:func:`selfcal.toa.block_start.needs_block_start`), the incremental
+    :func:`~selfcal.toa.block_start.block_start` joins the offsets-free search's starts (first,
+    raced against the registry's, the lower cost wins), and ``offsets="none"`` gets that
+    search's winner (large networks, whose search refines one start) or the block start itself
+    (small ones, whose search races it with the registry) as its start.
     """
-    if offsets == "none":
-        return None
-    if offsets == "both" and rank_identifiable(Y.shape[0], Y.shape[1], dim):
+    from .block_start import block_start, needs_block_start
+    from .search import MOVES_MAX_NODES, RACE_RUNGS
+
+    I, J = Y.shape
+    block = None
+    if needs_block_start(np.isfinite(Y), dim):
+        try:
+            st = block_start(Y, dim, rng=rng)
+        except (DegenerateGeometryError, InputError, np.linalg.LinAlgError, ValueError):
+            st = None
+        block = None if st is None else ("block", st)
+    large = I + J > MOVES_MAX_NODES
+    if offsets == "none" and (block is None or not large):
+        return block
+    if offsets == "both" and block is None and rank_identifiable(Y.shape[0], Y.shape[1], dim):
         # the 004 rank-3 initialiser estimates both offset kinds consistently here, so its start
         # is already near the larger model's minimum; an offsets-free search would only cost
         # (500 units: 4 s of a 6 s solve, same final RSS). offsets="auto" still chains the
         # nested fits explicitly (select.choose_offsets)
         return None
+    # a large network's search refines its first start only: with the block start, a race of
+    # two (the block start and the registry's one), each its rungs
+    budget = 2 * (1 + RACE_RUNGS) if block is not None and large else None
     try:
         out = search(Y, dim, "none", rng=rng, loss="linear" if loss == "auto" else loss, f_scale=fs,
-                     max_nfev=max_nfev, use_moves=False, solver=_solver(Y, dim, "none"))
+                     max_nfev=max_nfev, use_moves=False, solver=_solver(Y, dim, "none"), first=block,
+                     budget=budget)
     except (DegenerateGeometryError, InputError):
-        return None
+        return block if offsets == "none" else None
     sol = out.solution
-    I, J = Y.shape
+    if offsets == "none":
+        return (out.start, (sol.receivers, sol.sources, None, None))
     has_r, has_s = offsets in ("receivers", "both"), offsets in ("sources", "both")
     return ("nested", (sol.receivers, sol.sources, np.zeros(I) if has_r else None, np.zeros(J) if has_s else None))
 
