@@ -487,8 +487,13 @@ def _forward(ch: _Chain, log: RangeLog, cfg: RangeModelConfig, noise: float, *, 
             noise_used[k] = np.sqrt(r2)
             if ref is None:
                 e2 = y * y / (c0 + r2)
-                ae = np.sqrt(e2)  # Huber density of the standardised innovation (model selection)
-                ll -= 0.5 * np.log(c0 + r2) + (0.5 * e2 if ae <= hk else hk * ae - 0.5 * hk * hk)
+                # Huber density of the standardised innovation (model selection), flat beyond
+                # the gate: a gated range is an outlier whichever model is right, and scoring
+                # it by its distance let the model with the widest prediction win on outliers
+                # alone (the odometry-scale candidates won 0.5-1.0 of the weight on logs
+                # without a scale error: filter RMSE 0.249 m against 0.226 m, 20 seeds)
+                ae = np.sqrt(min(e2, gate2))
+                ll -= 0.5 * np.log(c0 + r2) + (0.5 * ae * ae if ae <= hk else hk * ae - 0.5 * hk * hk)
                 gated = e2 > gate2
                 gated_hist[b, n_seen[b] % RECOVER_N] = gated
                 n_seen[b] += 1
