@@ -110,8 +110,11 @@ def test_innovation_tests_level_and_power() -> None:
     v = g.standard_normal(4000)
     t = innovation_tests(v[v**2 <= gate2], np.arange(4000)[v**2 <= gate2] % 4, gate2)
     assert t["passed"] and t["nis_lo"] < 0.988 < t["nis_hi"]
-    # reported variance 2x too small: the level test fails
+    # reported variance 2x too small: the level test fails; 2x too large: passes, but is
+    # reported as conservative
     assert not innovation_tests(np.sqrt(2) * g.standard_normal(1000), b, np.inf)["passed"]
+    t = innovation_tests(np.sqrt(0.5) * g.standard_normal(1000), b, np.inf)
+    assert t["passed"] and t["conservative"]
     # a persistent error: AR(1) innovations of correlation 0.5 per beacon at unit variance
     x = np.zeros(1000)
     e = g.standard_normal(1000)

@@ -306,17 +306,17 @@ class RangeSlacResult(Result):
         if self.method == "filter":
             t = self.innovation_test
             if t and not t.get("passed", 1.0):
-                what = "overconfident"
-                if t["nis_p"] < CONSISTENCY_ALPHA:
-                    why = (f"time-averaged NIS {t['nis_mean']:.3f} outside [{t['nis_lo']:.3f}, {t['nis_hi']:.3f}] "
-                           "(the noise model does not fit)")
-                    if t["nis_mean"] < t["nis_lo"]:
-                        what = "too large (conservative)"
+                if t["nis_mean"] > t["nis_hi"]:
+                    why = (f"time-averaged NIS {t['nis_mean']:.3f} above its bound {t['nis_hi']:.3f} "
+                           "(the innovations are larger than the filter predicts)")
                 else:
                     why = (f"innovations correlated from one range to the next (lag-one rho {t['whiteness_rho']:.2f}, "
                            f"z = {t['whiteness_z']:.1f}: a persistent state error)")
                 return Status.FAILED_TEST, (f"causal filter failed its innovation test: {why}; "
-                                            f"the reported covariances are {what}")
+                                            "the reported covariances are overconfident")
+            if t and t.get("conservative", 0.0):
+                return Status.SUCCESS, (f"causal filter pass finished; time-averaged NIS {t['nis_mean']:.3f} below "
+                                        f"{t['nis_lo']:.3f}: the reported covariances are conservative (too large)")
             return Status.SUCCESS, "causal filter pass finished; its innovations pass the NIS and whiteness tests"
         return Status.SUCCESS, f"Gauss-Newton converged in {self.iterations} iterations"
 
@@ -637,7 +637,10 @@ def innovation_tests(nu: FArray, beacon: IArray, gate2: float, *, tolerance: flo
         violated side, 1 inside); ``whiteness_rho`` (the lag-one autocorrelation of each
         beacon's innovations, pooled over ``pairs`` pairs), ``whiteness_z``
         (``sqrt(pairs) rho``) and ``whiteness_p`` (p-value of ``rho <= rho_max`` with
-        ``(1 + rho_max) / (1 - rho_max) = tolerance``); ``passed`` (1.0 or 0.0).
+        ``(1 + rho_max) / (1 - rho_max) = tolerance``); ``passed`` (0.0 when the NIS is
+        above ``nis_hi`` or the whiteness test rejects: the covariances are overconfident)
+        and ``conservative`` (1.0 when the NIS is below ``nis_lo``: the covariances are too
+        large, which does not fail the run).
 
     Notes
     -----
@@ -683,7 +686,7 @@ def innovation_tests(nu: FArray, beacon: IArray, gate2: float, *, tolerance: flo
     K = nu.size
     out = {"nis_mean": float("nan"), "nis_lo": float("nan"), "nis_hi": float("nan"), "nis_p": float("nan"),
            "whiteness_rho": float("nan"), "whiteness_z": float("nan"), "whiteness_p": float("nan"),
-           "pairs": 0.0, "passed": 1.0}
+           "pairs": 0.0, "passed": 1.0, "conservative": 0.0}
     if K < 2:
         return out
     c = float(gate2)
@@ -713,8 +716,9 @@ def innovation_tests(nu: FArray, beacon: IArray, gate2: float, *, tolerance: flo
         rho = float(num / np.sqrt(a2 * b2))
         out.update(whiteness_rho=rho, whiteness_z=float(np.sqrt(n) * rho),
                    whiteness_p=float(stats.norm.sf(np.sqrt(n) * (rho - rho_max))), pairs=float(n))
-    bad = (out["nis_p"] < alpha) or (np.isfinite(out["whiteness_p"]) and out["whiteness_p"] < alpha)
-    out["passed"] = 0.0 if bad else 1.0
+    over = nis > out["nis_hi"] or (np.isfinite(out["whiteness_p"]) and out["whiteness_p"] < alpha)
+    out["passed"] = 0.0 if over else 1.0
+    out["conservative"] = 1.0 if nis < out["nis_lo"] else 0.0
     return out
 
 
@@ -793,11 +797,18 @@ def solve_range_slac(log: RangeLog | Any, *, method: str = "smoother", config: R
     # state (ODO_SCALE_STD), mixed by their predictive likelihoods like the heading factors
     # (the extra state costs accuracy where the odometry has no scale error: the product of a
     # beacon's range scale and the odometry scale is all a far beacon's range rate sees)
-    kappa = (True, False) if method == "filter" else (False,)
+    # The range-noise sequence is the one of the widest candidate without the scale state:
+    # with it, the prediction variance early on includes the scale's prior spread, which a
+    # log without a scale error does not show, so its median-based noise estimate comes out
+    # low and every candidate compared at it is overconfident (20 seeds: far-beacon coverage
+    # 0.92, gaps 0.94, RMSE +10-30 %); without it, a scale error inflates the estimate and
+    # the scale candidates end conservative (odometry-scale fault: coverage 0.99) -- the
+    # side a filter that must not be silently wrong should err on.
+    kappa = (False, True) if method == "filter" else (False,)
     ref_pass = _forward(ch, log, cfg, cfg.range_noise, ref=None, weights=None, store=False, progress=progress,
-                        var=_var(grid[wide]), adapt=cfg.estimate_noise, odo_scale=kappa[0])
+                        var=_var(grid[wide]), adapt=cfg.estimate_noise, odo_scale=False)
     cands = [(i, ks) for ks in kappa for i in range(len(grid))]
-    passes = [ref_pass if (i, ks) == (wide, kappa[0]) else
+    passes = [ref_pass if (i, ks) == (wide, False) else
               _forward(ch, log, cfg, cfg.range_noise, ref=None, weights=None, store=False, progress=progress,
                        var=_var(grid[i]), noise_seq=ref_pass.noise_used, odo_scale=ks)
               for i, ks in cands]
