@@ -11,7 +11,7 @@ not an error the task cares about, but the interval is stated two-sided all the 
 
 Before the fix (commit 666670a, benchmarks/slac_consistency.py, 20 seeds of 240 s): the
 plain log had 10 % of its logs above NEES chi2_2(0.99), the odometry-scale fault 95 % (95 %
-ellipses covering 18 % of the poses).
+ellipses covering 18 % of the poses); after: none in any case, coverage 0.925-0.993.
 """
 
 from __future__ import annotations
@@ -140,9 +140,9 @@ def test_filter_flags_a_deliberate_model_error() -> None:
                 r = solve_range_slac(data, method="filter", config=cfg)
         assert r.status == Status.FAILED_TEST and not r.success
         assert "overconfident" in r.message
-    # heading noise 100x below the prior's (a gyro assumed perfect): NEES 20-80 on seeds
-    # 0-3; the whiteness test (lag-one rho 0.31-0.40 against its bound 0.13) flags 3 of
-    # them, seed 1 (rho 0.18, NEES 66) is beyond its power at 150 s -- the test is a
+    # heading noise 100x below the prior's (a gyro assumed perfect): NEES 19-87 on seeds
+    # 0-3; the whiteness test (lag-one rho 0.23-0.47 against its bound 0.13) flags all 4,
+    # seed 1 narrowly (p = 0.008 at the 1 % level), so one miss is allowed -- the test is a
     # necessary condition of consistency, not a sufficient one
     cfg = RangeModelConfig(heading_noise_grid=(0.01,))
     flagged = sum(not _run(seed, config=cfg, duration=150.0)[0].success for seed in range(4))
