@@ -22,6 +22,7 @@ from typing import Any
 import click
 
 from ..errors import SelfcalError
+from ._options import JITTER_S, JITTER_US, SAMPLE_RATE_HZ
 
 __all__ = [
     "SelfcalGroup",
@@ -254,7 +255,7 @@ UNITS = {"m": ("length", 1.0), "mm": ("length", 1e-3), "cm": ("length", 1e-2), "
 def unit_options(func: Callable[..., Any]) -> Callable[..., Any]:
     """``--unit`` and ``--sample-rate`` options of a matrix input (see :func:`to_metres`)."""
     func = click.option(
-        "--sample-rate", "sample_rate", type=float, default=None, metavar="HZ",
+        "--sample-rate", "sample_rate", type=SAMPLE_RATE_HZ, default=None, metavar="HZ",
         help="Sampling rate in Hz, for --unit samples.")(func)
     func = click.option(
         "--unit", "unit", type=click.Choice(list(UNITS)), default=None,
@@ -446,10 +447,10 @@ def jitter_options(default: float | None, what: str = "") -> Callable[[Callable[
 
     def deco(func: Callable[..., Any]) -> Callable[..., Any]:
         func = click.option(
-            "--jitter-us", "jitter_us", type=float, default=None, metavar="US",
+            "--jitter-us", "jitter_us", type=JITTER_US, default=None, metavar="US",
             help="The clock jitter in microseconds instead of --jitter seconds.")(func)
         func = click.option(
-            "--jitter", "jitter", type=float, default=default, show_default=default is not None, metavar="S",
+            "--jitter", "jitter", type=JITTER_S, default=default, show_default=default is not None, metavar="S",
             help=f"Clock jitter per (receiver, event), standard deviation in SECONDS {what}".strip() + ".")(func)
         return func
 

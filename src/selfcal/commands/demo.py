@@ -16,6 +16,7 @@ import click
 
 from ._base import handle_errors, main
 from ._common import check_simulation_size, jitter_options, resolve_jitter
+from ._options import RT60_S, SNR_DB
 
 
 @main.command("demo")
@@ -27,8 +28,8 @@ from ._common import check_simulation_size, jitter_options, resolve_jitter
 @click.option("--layout", type=click.Choice(["flat", "boundary", "tiered", "stem", "hall"]), default="flat",
               show_default=True,
               help="flat / boundary desks use their known heights (near-planar); tiered / stem are solved in 3-D.")
-@click.option("--rt60", type=float, default=0.4, show_default=True, help="Reverberation time, s.")
-@click.option("--snr", type=float, default=30.0, show_default=True, help="Direct sound at 1 m over noise, dB.")
+@click.option("--rt60", type=RT60_S, default=0.4, show_default=True, help="Reverberation time, s.")
+@click.option("--snr", type=SNR_DB, default=30.0, show_default=True, help="Direct sound at 1 m over noise, dB.")
 @jitter_options(5e-6, what="(004: units synchronised within 100 us)")
 @handle_errors
 def demo_cmd(out: Path, seed: int, units: int, room_text: str, layout: str, rt60: float, snr: float,

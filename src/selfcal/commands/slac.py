@@ -10,13 +10,14 @@ import click
 
 from ._base import backend_option, handle_errors, reproduce, scheduler_option, seed_option, slac
 from ._common import all_or_nothing
+from ._options import ANGLE_RAD, MINUTES, SLAC_SNR_DB
 
 
 @slac.command("simulate")
-@click.option("--minutes", type=float, default=1.0, show_default=True, help="Length of the replica run.")
+@click.option("--minutes", type=MINUTES, default=1.0, show_default=True, help="Length of the replica run.")
 @click.option("--subcarriers", type=int, default=128, show_default=True,
               help="N (1024 in the paper; the log stores every snapshot, size ~ 0.34 MB x N x minutes).")
-@click.option("--snr-db", type=float, default=30.0, show_default=True, help="Post-integration SNR at 10 m.")
+@click.option("--snr-db", type=SLAC_SNR_DB, default=30.0, show_default=True, help="Post-integration SNR at 10 m.")
 @seed_option
 @click.option("--out", "out", type=click.Path(dir_okay=False, path_type=Path), required=True, help="LOG.npz")
 @handle_errors
@@ -103,7 +104,7 @@ def run_cmd(log_path: Path, mode: str, prior: str, out: Path, plot: Path | None,
               help="Same trajectory in the TUM format (timestamp tx ty tz qx qy qz qw).")
 @click.option("--plot", "plot", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="PNG: tracks, ground truth, beacons with the estimated scale / offset.")
-@click.option("--init-heading-offset", type=float, default=None,
+@click.option("--init-heading-offset", type=ANGLE_RAD, default=None,
               help="Radians, only for a log without the init_heading_offset variable.")
 @handle_errors
 def plaza_cmd(path: Path, out: Path, method: str, csv_path: Path | None, tum_path: Path | None,
@@ -144,7 +145,7 @@ def plaza_cmd(path: Path, out: Path, method: str, csv_path: Path | None, tum_pat
 
 
 @reproduce.command("slac")
-@click.option("--minutes", type=float, default=12.5, show_default=True)
+@click.option("--minutes", type=MINUTES, default=12.5, show_default=True)
 @click.option("--subcarriers", type=int, default=1024, show_default=True)
 @click.option("--runs", type=int, default=1, show_default=True)
 @click.option("--out", "out", type=click.Path(file_okay=False, path_type=Path), default=Path("slac_out"), show_default=True)
