@@ -115,14 +115,15 @@ SPEED = Quantity("m/s", gt=0, le=3.0e8, why="a propagation speed; nothing is fas
 SPEED_OF_SOUND = Quantity("m/s", gt=0, le=36_100.0,
                           why="the physical bound of the speed of sound in any medium, 36.1 km/s")
 
-#: ``--noise`` / ``--noise-std``: a standard deviation (>= 0) whose square stays finite in the
-#: chi-square sums (:data:`selfcal._checks.MAX_ABS_ENTRY`, ~1.3e148).
-NOISE_STD = Quantity("", ge=0, le=1.3e148,
-                     why="a standard deviation in the matrix's unit; its square must stay finite")
+#: ``--noise`` / ``--noise-std``: a standard deviation, > 0 (the chi-square test divides by it:
+#: exact data have no such test) and finite. The solvers refuse one
+#: whose square overflows their chi-square sums (beyond :data:`selfcal._checks.MAX_ABS_ENTRY`,
+#: ~1.3e148, in the matrix's unit) with their own message.
+NOISE_STD = Quantity("", gt=0, why="a standard deviation in the matrix's unit, for the chi-square test")
 
 #: ``--sample-rate`` of a matrix in samples: > 0 and at most 1e13 Hz (100 fs ticks); timing
 #: hardware samples at most ~1e11 Hz (UWB: 64 GHz), so more is a rate in the wrong unit.
-SAMPLE_RATE_HZ = Quantity("Hz", gt=0, le=1e13, why="no timing hardware samples faster than ~1e11 Hz")
+SAMPLE_RATE_HZ = Quantity("Hz", gt=0, le=1e13, why="beyond any timing hardware (1e13 Hz); give it in Hz")
 
 #: ``--jitter`` (s): a clock jitter std >= 0 and below 10 ms (detection windows are milliseconds);
 #: 10 ms or more is microseconds given as seconds (``--jitter-us``), named by the command.
