@@ -106,9 +106,11 @@ def run_cmd(log_path: Path, mode: str, prior: str, out: Path, plot: Path | None,
               help="PNG: tracks, ground truth, beacons with the estimated scale / offset.")
 @click.option("--init-heading-offset", type=ANGLE_RAD, default=None,
               help="Radians, only for a log without the init_heading_offset variable.")
+@click.option("--heading-units", type=click.Choice(["auto", "rad", "deg"]), default="auto", show_default=True,
+              help="Unit of the log's heading columns (GT(:, 4), DR(:, 3)); auto = decided from the motion.")
 @handle_errors
 def plaza_cmd(path: Path, out: Path, method: str, csv_path: Path | None, tum_path: Path | None,
-              plot: Path | None, init_heading_offset: float | None) -> None:
+              plot: Path | None, init_heading_offset: float | None, heading_units: str = "auto") -> None:
     """Range-only SLAC (per-beacon range scale + offset) on a CMU range log (e.g. Plaza1.mat).
 
     Ground truth is used for the first pose and for the scores only. Exit 1 with a FAIL line
@@ -122,7 +124,7 @@ def plaza_cmd(path: Path, out: Path, method: str, csv_path: Path | None, tum_pat
     from ..plotting.slac import plot_plaza
     from ..slac.export import write_trajectory_csv, write_trajectory_tum
 
-    data = load_plaza(path, init_heading_offset=init_heading_offset)
+    data = load_plaza(path, init_heading_offset=init_heading_offset, heading_units=heading_units)
     methods = ("filter", "smoother") if method == "both" else (method,)
     s = plaza_summary(data, methods=methods, progress=True)
     results = s.pop("_results")
