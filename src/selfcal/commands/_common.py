@@ -477,12 +477,13 @@ def resolve_jitter(jitter: float | None, jitter_us: float | None) -> Any:
 # --------------------------------------------------------------------------------------
 
 def check_simulation_size(*, units: int, sample_rate: float, room: tuple[float, float, float],
-                          rt60: float) -> None:
+                          rt60: float, rounds: int = 1) -> None:
     """Refuse conference simulations whose signals would not fit in memory (named up front).
 
     Memory: the recordings are ``units x n_total`` float32 samples with ``n_total =
-    (0.1 s + units * event_spacing) * sample_rate`` (:func:`selfcal.acoustics.room.event_spacing`),
-    plus ``units^2`` impulse responses of about ``rt60 * sample_rate`` float64 taps.
+    (0.1 s + (units * rounds + 1) * event_spacing) * sample_rate``
+    (:func:`selfcal.acoustics.room.event_spacing`; one event per loudspeaker and round), plus
+    ``units^2`` impulse responses of about ``rt60 * sample_rate`` float64 taps.
     """
     import numpy as np
 
@@ -492,10 +493,12 @@ def check_simulation_size(*, units: int, sample_rate: float, room: tuple[float, 
     check_int(units, "--units", minimum=5)  # conference_scene needs 5
     check_float(sample_rate, "--sample-rate", positive=True)
     check_float(rt60, "--rt60", nonnegative=True)
+    check_int(rounds, "--rounds", minimum=1)
     spacing = event_spacing(np.asarray(room, dtype=float), float(DEFAULT_PROBE["duration"]), 343.0)
-    n_total = (0.1 + spacing * (units + 1)) * sample_rate
+    n_total = (0.1 + spacing * (float(units) * float(rounds) + 1)) * sample_rate
     need = units * n_total * 4.0 + units**2 * (float(rt60) + spacing) * sample_rate * 8.0
-    guard_size(need, f"a {units}-unit recording at {sample_rate:g} Hz, rt60 {rt60:g} s "
+    guard_size(need, f"a {units}-unit recording{f' of {rounds} rounds' if rounds != 1 else ''} at "
+                     f"{sample_rate:g} Hz, rt60 {rt60:g} s "
                      f"({n_total / sample_rate:.3g} s per receiver)")
 
 

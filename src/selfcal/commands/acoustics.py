@@ -110,7 +110,7 @@ def simulate_conference_cmd(units: int, room_text: str, rt60: float, snr: float,
     """Simulate a conference network's calibration recordings (pyroomacoustics, paper 004)."""
     room = parse_room(room_text)
     jitter = resolve_jitter(jitter, jitter_us)
-    check_simulation_size(units=units, sample_rate=sample_rate, room=room, rt60=rt60)
+    check_simulation_size(units=units, sample_rate=sample_rate, room=room, rt60=rt60, rounds=rounds)
     truth = write_simulation(out, units=units, room=room, rt60=rt60, snr=snr, seed=seed, layout=layout,
                              sample_rate=sample_rate, max_order=max_order, jitter=jitter, rounds=rounds)
     click.echo(f"wrote {out} ({units} units, {rounds} round(s), {layout}, room {room_text}, RT60 {rt60:g} s, "

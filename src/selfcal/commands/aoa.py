@@ -188,6 +188,13 @@ def reproduce_aoa(
     if not (np.isfinite(sigma_deg) and 0 < sigma_deg < 180):
         raise InputError(f"--sigma-deg must be a positive number of degrees below 180, got {sigma_deg}")
     check_runs(runs)
+    # the grid has (5 / step + 1)^2 points, each run at each point one trial held in memory
+    # (TRIAL_BYTES): a step of 1e-4 m would be 2.5e9 points (was a hang; 1e-300 an internal error)
+    from .._checks import TRIAL_BYTES, guard_size
+
+    n_side = 5.0 / step + 1.0
+    guard_size(float(runs) * n_side * n_side * TRIAL_BYTES,
+               f"--step {step:g} m ({n_side * n_side:.3g} grid points) x --runs {runs}")
     grid = [{**p, "sigma_deg": sigma_deg} for p in paper_grid(step)]
     rows = run_sweep(aoa_trial, grid, runs=runs, seed=seed, backend=backend, scheduler=scheduler, desc="aoa")
     outdir = Path(out)

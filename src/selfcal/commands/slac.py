@@ -146,6 +146,10 @@ def plaza_cmd(path: Path, out: Path, method: str, csv_path: Path | None, tum_pat
         sys.exit(1)
 
 
+#: Steps of the moving average in Fig. 4 of ``reproduce slac`` (``experiments.slac``, window=50).
+FIG4_WINDOW_STEPS = 50
+
+
 @reproduce.command("slac")
 @click.option("--minutes", type=MINUTES, default=12.5, show_default=True)
 @click.option("--subcarriers", type=int, default=1024, show_default=True)
@@ -171,6 +175,13 @@ def reproduce_slac_cmd(minutes: float, subcarriers: int, runs: int, out: Path, b
 
     if minutes <= 0 or runs < 1 or subcarriers < 8:
         raise InputError("--minutes must be > 0, --runs >= 1 and --subcarriers >= 8")
+    from ..slac.validate import STEP_SECONDS
+
+    # Fig. 4 plots a 50-step (5 s) moving average of the ranging RMSE (experiments.slac): a
+    # shorter run has no point of it (was an internal error of the plot)
+    if minutes * 60.0 / STEP_SECONDS < FIG4_WINDOW_STEPS:
+        raise InputError(f"--minutes {minutes:g} is shorter than Fig. 4's {FIG4_WINDOW_STEPS}-step moving average "
+                         f"({FIG4_WINDOW_STEPS * STEP_SECONDS:g} s = {FIG4_WINDOW_STEPS * STEP_SECONDS / 60:.4f} min)")
     check_runs(runs)
     check_simulation_request(minutes, subcarriers, 30.0)  # each run simulates such a log
     s = reproduce_slac(out, minutes=minutes, subcarriers=subcarriers, runs=runs, seed=seed, backend=backend,
