@@ -135,3 +135,24 @@ def test_range_model_config_refuses_by_name(field: str, value: object) -> None:
                                          ("noise_tol", 1.0), ("heading_noise_grid", ()), ("max_iter", 1)])
 def test_range_model_config_accepts_the_edges(field: str, value: object) -> None:
     assert getattr(RangeModelConfig(**{field: value}), field) == value  # type: ignore[arg-type]
+
+
+SEED_OPTIONS = [(path, p) for path, cmd in COMMANDS for p in cmd.params if p.name == "seed"]
+
+
+def test_every_seed_option_is_a_non_negative_int64() -> None:
+    from selfcal.commands._options import SEED
+
+    assert len(SEED_OPTIONS) >= 10
+    assert all(p.type is SEED for _, p in SEED_OPTIONS), [" ".join(path) for path, p in SEED_OPTIONS
+                                                          if p.type is not SEED]
+
+
+@pytest.mark.parametrize("path", [path for path, _ in SEED_OPTIONS], ids=[" ".join(p) for p, _ in SEED_OPTIONS])
+@pytest.mark.parametrize("value", ["-1", str(2**63), "99999999999999999999", "1.5", "nan", ""])
+def test_seed_refused_while_parsing(tmp_path: Path, monkeypatch, path: tuple[str, ...], value: str) -> None:  # type: ignore[no-untyped-def]
+    """A negative seed was an internal error of numpy's SeedSequence (reproduce aoa)."""
+    monkeypatch.chdir(tmp_path)
+    res = CliRunner().invoke(main, [*path, f"--seed={value}"], catch_exceptions=True)
+    code, _, err = check_contract(res, {}, snapshot(tmp_path))
+    assert code == 2 and "--seed" in err, err

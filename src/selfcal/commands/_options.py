@@ -20,7 +20,7 @@ import click
 
 __all__ = ["Quantity", "SPEED", "SPEED_OF_SOUND", "NOISE_STD", "SAMPLE_RATE_HZ", "JITTER_S", "JITTER_US",
            "RT60_S", "SNR_DB", "SLAC_SNR_DB", "TEMPERATURE_C", "HUMIDITY_PCT", "MINUTES", "ANGLE_RAD",
-           "SIGMA_DEG", "GRID_STEP_M", "MAX_RT60_S", "SPEED_OF_LIGHT"]
+           "SIGMA_DEG", "GRID_STEP_M", "MAX_RT60_S", "SPEED_OF_LIGHT", "SEED"]
 
 # strict decimal (no "1_0", "0x10", "infinity"); nan / inf are matched to be named as such
 _NUMBER = re.compile(r"\s*[+-]?(?:\d+(?:\.\d*)?|\.\d+)(?:[eE][+-]?\d+)?\s*\Z", re.ASCII)
@@ -167,3 +167,8 @@ SIGMA_DEG = Quantity("deg", gt=0, lt=180.0, why="an angular noise std: a positiv
 
 #: ``--step`` of paper 001's grid (m): (0, 5]; the grid spans 10 m (a coarser step has < 3 points).
 GRID_STEP_M = Quantity("m", gt=0, le=5.0, why="the grid step on the 10 m wide plane")
+
+#: ``--seed`` of every command: an integer in [0, 2**63 - 1]. numpy's ``SeedSequence`` takes only
+#: non-negative entropy (a negative seed was an internal error), and a seed beyond int64 is no
+#: more random than a smaller one while parts of the experiment runners store seeds as int64.
+SEED = click.IntRange(0, 2**63 - 1)

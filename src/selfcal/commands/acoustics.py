@@ -22,7 +22,7 @@ from ._common import (
     jitter_options,
     resolve_jitter,
 )
-from ._options import HUMIDITY_PCT, RT60_S, SNR_DB, SPEED_OF_SOUND, TEMPERATURE_C
+from ._options import HUMIDITY_PCT, RT60_S, SEED, SNR_DB, SPEED_OF_SOUND, TEMPERATURE_C
 
 
 def parse_room(text: str) -> tuple[float, float, float]:
@@ -90,7 +90,7 @@ def write_simulation(out: Path, *, units: int, room: tuple[float, float, float],
 @click.option("--room", "room_text", default="12x12x3", show_default=True, help="Room L x W x H in metres.")
 @click.option("--rt60", type=RT60_S, default=0.4, show_default=True, help="Reverberation time, s.")
 @click.option("--snr", type=SNR_DB, default=30.0, show_default=True, help="Direct sound at 1 m over noise, dB.")
-@click.option("--seed", type=int, default=0, show_default=True, help="Random seed.")
+@click.option("--seed", type=SEED, default=0, show_default=True, help="Random seed.")
 @click.option("--layout", type=click.Choice(["flat", "boundary", "tiered", "stem", "hall"]), default="flat",
               show_default=True,
               help="flat desks (near-planar), amphitheatre tiers, stem microphones above desk loudspeakers, "
@@ -254,7 +254,7 @@ def pipeline_errors(result: Any, directory: Path, truth: dict[str, Any] | None =
               help='Known heights JSON {"receivers": [...], "senders": [...]} (m): 2-D + heights.')
 @click.option("--dim", "dim", type=click.Choice(["auto", "2", "3"]), default="auto", show_default=True,
               help="auto: 3-D unless the layout is near-planar (then 2-D).")
-@click.option("--seed", type=int, default=0, show_default=True, help="Seed of the solver's random starts.")
+@click.option("--seed", type=SEED, default=0, show_default=True, help="Seed of the solver's random starts.")
 @jitter_options(None, what="in the residual test's timing noise (default: setup.json's declared "
                            "clock_jitter, else 0)")
 @click.option("--temperature", type=TEMPERATURE_C, default=None,

@@ -16,13 +16,13 @@ import click
 
 from ._base import handle_errors, main
 from ._common import check_simulation_size, jitter_options, resolve_jitter
-from ._options import RT60_S, SNR_DB
+from ._options import RT60_S, SEED, SNR_DB
 
 
 @main.command("demo")
 @click.option("--out", "out", default="demo-output", show_default=True,
               type=click.Path(file_okay=False, path_type=Path), help="Output folder.")
-@click.option("--seed", type=int, default=0, show_default=True, help="Random seed of the simulated room.")
+@click.option("--seed", type=SEED, default=0, show_default=True, help="Random seed of the simulated room.")
 @click.option("--units", type=int, default=20, show_default=True, help="Units (microphone + loudspeaker).")
 @click.option("--room", "room_text", default="12x12x3", show_default=True, help="Room L x W x H, m.")
 @click.option("--layout", type=click.Choice(["flat", "boundary", "tiered", "stem", "hall"]), default="flat",

@@ -16,7 +16,7 @@ from ._base import (
     seed_option,
 )
 from ._common import csv_option, unit_options
-from ._options import NOISE_STD, SPEED
+from ._options import NOISE_STD, SEED, SPEED
 
 if TYPE_CHECKING:
     from ..tdoa import FarfieldResult
@@ -45,7 +45,7 @@ if TYPE_CHECKING:
 @click.option("--noise-std", type=NOISE_STD, default=None,
               help="Known noise standard deviation (matrix units) for the degeneracy thresholds.")
 @click.option("--ransac", is_flag=True, help="Screen outliers with RANSAC over the minimal solver first.")
-@click.option("--seed", type=int, default=0, show_default=True, help="Random seed (RANSAC).")
+@click.option("--seed", type=SEED, default=0, show_default=True, help="Random seed (RANSAC).")
 @click.option("--allow-degenerate", is_flag=True,
               help="On a degenerate geometry write the partial reconstruction instead of failing.")
 @click.option("--plot", "plot", type=click.Path(dir_okay=False, path_type=Path), default=None,

@@ -14,7 +14,7 @@ import click
 
 from ._base import calibrate, handle_errors
 from ._common import csv_option, unit_options
-from ._options import NOISE_STD, SPEED
+from ._options import NOISE_STD, SEED, SPEED
 
 
 def _auto_available() -> bool:
@@ -54,7 +54,7 @@ def _auto_available() -> bool:
 @click.option("--frame", "frame", default=None, metavar="origin=A,x=B,xy=C[,z=D]",
               help="Frame by reference nodes: A at the origin, B on +x, C in the xy half-plane (y>0), "
                    "D above (z>0).")
-@click.option("--seed", type=int, default=0, show_default=True, help="Random seed (initialisers, restarts).")
+@click.option("--seed", type=SEED, default=0, show_default=True, help="Random seed (initialisers, restarts).")
 @click.option("--out", "out", type=click.Path(dir_okay=False, path_type=Path), required=True,
               help="Result JSON (keys per DESIGN.md).")
 @click.option("--plot", "plot", type=click.Path(dir_okay=False, path_type=Path), default=None,
