@@ -12,7 +12,7 @@ Format (see ``docs/recording_format.md``)::
         senders          list of names
         probe            {"type": "chirp", "f0": Hz, "f1": Hz, "duration": s} or {"wav": "probe.wav"}
         events           list of {"sender": name, "time": s}: nominal emission times
-    DIR/rx_<name>.wav    mono, 16/32-bit integer or float, all on one clock (t = 0 at sample 0)
+    DIR/rx_<name>.wav    mono, 8/16/24/32-bit integer PCM or 32/64-bit float, all on one clock (t = 0 at sample 0)
 
 The true emission of an event happens at ``time + onset(sender)`` and receiver ``i``
 time-stamps the sound ``delay(i)`` late, so the direct path of event ``e`` from sender
@@ -276,8 +276,10 @@ def read_setup(directory: str | Path) -> Setup:
 def read_wav(path: str | Path) -> tuple[NDArray[np.float64], float]:
     """Read a mono WAV as float (full scale = 1) and refuse clipped or malformed files.
 
-    Integer files are scaled by ``2**(bits-1)``; float files are taken as is. A run of
-    :data:`CLIP_RUN` or more consecutive samples at full scale means clipping.
+    Integer PCM of any depth (8-bit unsigned, 16, 24, 32-bit signed) is scaled by
+    ``2**(bits-1)`` of its container, to [-1, 1); float files (32 / 64 bit) are taken as is
+    (:func:`selfcal.io.wav.read_wav_file`). A run of :data:`CLIP_RUN` or more consecutive
+    samples at full scale means clipping.
 
     Returns
     -------
@@ -287,37 +289,21 @@ def read_wav(path: str | Path) -> tuple[NDArray[np.float64], float]:
     Raises
     ------
     InputError
-        Missing, unreadable, multi-channel, empty or clipped file (the message starts
-        with the file name).
+        Missing, unreadable, not a WAV file, truncated (the header declares more samples than
+        the file holds), a compressed format, multi-channel, empty or clipped file (the message
+        starts with the file name).
     """
-    from scipy.io import wavfile
+    from ..io.wav import read_wav_file
 
     p = Path(path)
-    if not p.exists():
-        raise InputError(f"{p.name}: missing (expected in {p.parent})")
-    if not p.is_file():
-        raise InputError(f"{p.name}: not a regular file (in {p.parent})")
-    try:
-        fs, data = wavfile.read(p, mmap=False)
-    except (ValueError, OSError, EOFError) as exc:
-        raise InputError(f"{p.name}: not a readable WAV file ({exc})") from None
-    except Exception as exc:  # scipy's parser fails on some corrupt headers with other types (UnboundLocalError)
-        raise InputError(f"{p.name}: not a readable WAV file (corrupt header: {type(exc).__name__})") from None
-    if data.ndim != 1:
-        raise InputError(f"{p.name}: has {data.shape[1]} channels; each receiver needs a mono file")
-    if data.size == 0:
-        raise InputError(f"{p.name}: contains no samples")
-    if data.dtype.kind == "i":
-        full = float(2 ** (8 * data.dtype.itemsize - 1))
-        x = data.astype(np.float64) / full
-        at_full = (data >= full - 1) | (data <= -full)
-    elif data.dtype.kind == "f":
-        x = data.astype(np.float64)
-        if not np.isfinite(x).all():
-            raise InputError(f"{p.name}: contains NaN or inf samples")
-        at_full = np.abs(x) >= 1.0
+    w = read_wav_file(p, p.name)
+    if w.channels != 1:
+        raise InputError(f"{p.name}: has {w.channels} channels; each receiver needs a mono file")
+    x, fs = w.samples, w.sample_rate
+    if w.kind == "int":
+        at_full = (x >= 1.0 - w.step) | (x <= -1.0)
     else:
-        raise InputError(f"{p.name}: sample format {data.dtype} not supported (use 16/32-bit integer or float)")
+        at_full = np.abs(x) >= 1.0
     run = _longest_run(at_full)
     if run >= CLIP_RUN:
         first = int(np.argmax(at_full))

@@ -16,6 +16,7 @@ import click
 
 from ..errors import SelfcalError
 from ._common import SelfcalGroup, command_context
+from ._options import SEED
 
 F = TypeVar("F", bound=Callable[..., Any])
 
@@ -88,4 +89,4 @@ scheduler_option = click.option(
     "--scheduler", default=None, metavar="tcp://HOST:PORT",
     help="With --backend dask: an existing Dask scheduler (default: start a LocalCluster).",
 )
-seed_option = click.option("--seed", type=int, default=0, show_default=True, help="Master random seed.")
+seed_option = click.option("--seed", type=SEED, default=0, show_default=True, help="Master random seed.")

@@ -22,6 +22,7 @@ from typing import Any
 import click
 
 from ..errors import SelfcalError
+from ._options import JITTER_S, JITTER_US, SAMPLE_RATE_HZ
 
 __all__ = [
     "SelfcalGroup",
@@ -36,7 +37,7 @@ __all__ = [
 ]
 
 #: Parameter names that are outputs of a command (checked before the command runs).
-OUTPUT_PARAMS = ("out", "out_dir", "plot", "report", "csv", "csv_out")
+OUTPUT_PARAMS = ("out", "out_dir", "plot", "report", "csv", "csv_out", "csv_path", "tum_path")
 
 #: Figure formats matplotlib writes (``--plot FILE.pdf`` writes a PDF); no suffix = PNG.
 IMAGE_FORMATS = ("png", "pdf", "svg", "svgz", "eps", "ps", "jpg", "jpeg", "tif", "tiff", "webp")
@@ -254,7 +255,7 @@ UNITS = {"m": ("length", 1.0), "mm": ("length", 1e-3), "cm": ("length", 1e-2), "
 def unit_options(func: Callable[..., Any]) -> Callable[..., Any]:
     """``--unit`` and ``--sample-rate`` options of a matrix input (see :func:`to_metres`)."""
     func = click.option(
-        "--sample-rate", "sample_rate", type=float, default=None, metavar="HZ",
+        "--sample-rate", "sample_rate", type=SAMPLE_RATE_HZ, default=None, metavar="HZ",
         help="Sampling rate in Hz, for --unit samples.")(func)
     func = click.option(
         "--unit", "unit", type=click.Choice(list(UNITS)), default=None,
@@ -446,10 +447,10 @@ def jitter_options(default: float | None, what: str = "") -> Callable[[Callable[
 
     def deco(func: Callable[..., Any]) -> Callable[..., Any]:
         func = click.option(
-            "--jitter-us", "jitter_us", type=float, default=None, metavar="US",
+            "--jitter-us", "jitter_us", type=JITTER_US, default=None, metavar="US",
             help="The clock jitter in microseconds instead of --jitter seconds.")(func)
         func = click.option(
-            "--jitter", "jitter", type=float, default=default, show_default=default is not None, metavar="S",
+            "--jitter", "jitter", type=JITTER_S, default=default, show_default=default is not None, metavar="S",
             help=f"Clock jitter per (receiver, event), standard deviation in SECONDS {what}".strip() + ".")(func)
         return func
 
@@ -476,12 +477,13 @@ def resolve_jitter(jitter: float | None, jitter_us: float | None) -> Any:
 # --------------------------------------------------------------------------------------
 
 def check_simulation_size(*, units: int, sample_rate: float, room: tuple[float, float, float],
-                          rt60: float) -> None:
+                          rt60: float, rounds: int = 1) -> None:
     """Refuse conference simulations whose signals would not fit in memory (named up front).
 
     Memory: the recordings are ``units x n_total`` float32 samples with ``n_total =
-    (0.1 s + units * event_spacing) * sample_rate`` (:func:`selfcal.acoustics.room.event_spacing`),
-    plus ``units^2`` impulse responses of about ``rt60 * sample_rate`` float64 taps.
+    (0.1 s + (units * rounds + 1) * event_spacing) * sample_rate``
+    (:func:`selfcal.acoustics.room.event_spacing`; one event per loudspeaker and round), plus
+    ``units^2`` impulse responses of about ``rt60 * sample_rate`` float64 taps.
     """
     import numpy as np
 
@@ -491,10 +493,12 @@ def check_simulation_size(*, units: int, sample_rate: float, room: tuple[float, 
     check_int(units, "--units", minimum=5)  # conference_scene needs 5
     check_float(sample_rate, "--sample-rate", positive=True)
     check_float(rt60, "--rt60", nonnegative=True)
+    check_int(rounds, "--rounds", minimum=1)
     spacing = event_spacing(np.asarray(room, dtype=float), float(DEFAULT_PROBE["duration"]), 343.0)
-    n_total = (0.1 + spacing * (units + 1)) * sample_rate
+    n_total = (0.1 + spacing * (float(units) * float(rounds) + 1)) * sample_rate
     need = units * n_total * 4.0 + units**2 * (float(rt60) + spacing) * sample_rate * 8.0
-    guard_size(need, f"a {units}-unit recording at {sample_rate:g} Hz, rt60 {rt60:g} s "
+    guard_size(need, f"a {units}-unit recording{f' of {rounds} rounds' if rounds != 1 else ''} at "
+                     f"{sample_rate:g} Hz, rt60 {rt60:g} s "
                      f"({n_total / sample_rate:.3g} s per receiver)")
 
 

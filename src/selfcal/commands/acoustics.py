@@ -5,6 +5,7 @@ Heavy imports (numpy work, pyroomacoustics, matplotlib) happen inside the comman
 
 from __future__ import annotations
 
+import math
 import os
 import shutil
 import tempfile
@@ -21,6 +22,7 @@ from ._common import (
     jitter_options,
     resolve_jitter,
 )
+from ._options import HUMIDITY_PCT, RT60_S, SEED, SNR_DB, SPEED_OF_SOUND, TEMPERATURE_C
 
 
 def parse_room(text: str) -> tuple[float, float, float]:
@@ -30,7 +32,7 @@ def parse_room(text: str) -> tuple[float, float, float]:
         vals = tuple(float(p) for p in parts)
     except ValueError:
         vals = ()
-    if len(vals) != 3 or min(vals) <= 0:
+    if len(vals) != 3 or not all(math.isfinite(v) and v > 0 for v in vals):
         raise click.BadParameter(f"expected L x W x H in metres like 12x12x3, got {text!r}")
     return vals[0], vals[1], vals[2]
 
@@ -86,9 +88,9 @@ def write_simulation(out: Path, *, units: int, room: tuple[float, float, float],
 @simulate.command("conference")
 @click.option("--units", type=int, default=20, show_default=True, help="Units (microphone + loudspeaker).")
 @click.option("--room", "room_text", default="12x12x3", show_default=True, help="Room L x W x H in metres.")
-@click.option("--rt60", type=float, default=0.4, show_default=True, help="Reverberation time, s.")
-@click.option("--snr", type=float, default=30.0, show_default=True, help="Direct sound at 1 m over noise, dB.")
-@click.option("--seed", type=int, default=0, show_default=True, help="Random seed.")
+@click.option("--rt60", type=RT60_S, default=0.4, show_default=True, help="Reverberation time, s.")
+@click.option("--snr", type=SNR_DB, default=30.0, show_default=True, help="Direct sound at 1 m over noise, dB.")
+@click.option("--seed", type=SEED, default=0, show_default=True, help="Random seed.")
 @click.option("--layout", type=click.Choice(["flat", "boundary", "tiered", "stem", "hall"]), default="flat",
               show_default=True,
               help="flat desks (near-planar), amphitheatre tiers, stem microphones above desk loudspeakers, "
@@ -108,7 +110,7 @@ def simulate_conference_cmd(units: int, room_text: str, rt60: float, snr: float,
     """Simulate a conference network's calibration recordings (pyroomacoustics, paper 004)."""
     room = parse_room(room_text)
     jitter = resolve_jitter(jitter, jitter_us)
-    check_simulation_size(units=units, sample_rate=sample_rate, room=room, rt60=rt60)
+    check_simulation_size(units=units, sample_rate=sample_rate, room=room, rt60=rt60, rounds=rounds)
     truth = write_simulation(out, units=units, room=room, rt60=rt60, snr=snr, seed=seed, layout=layout,
                              sample_rate=sample_rate, max_order=max_order, jitter=jitter, rounds=rounds)
     click.echo(f"wrote {out} ({units} units, {rounds} round(s), {layout}, room {room_text}, RT60 {rt60:g} s, "
@@ -252,13 +254,13 @@ def pipeline_errors(result: Any, directory: Path, truth: dict[str, Any] | None =
               help='Known heights JSON {"receivers": [...], "senders": [...]} (m): 2-D + heights.')
 @click.option("--dim", "dim", type=click.Choice(["auto", "2", "3"]), default="auto", show_default=True,
               help="auto: 3-D unless the layout is near-planar (then 2-D).")
-@click.option("--seed", type=int, default=0, show_default=True, help="Seed of the solver's random starts.")
+@click.option("--seed", type=SEED, default=0, show_default=True, help="Seed of the solver's random starts.")
 @jitter_options(None, what="in the residual test's timing noise (default: setup.json's declared "
                            "clock_jitter, else 0)")
-@click.option("--temperature", type=float, default=None,
+@click.option("--temperature", type=TEMPERATURE_C, default=None,
               help="Air temperature, degrees C: speed of sound c = 331.4 + 0.6 T + 0.0124 RH (overrides setup.json).")
-@click.option("--humidity", type=float, default=None, help="Relative humidity, % (with --temperature; default 0).")
-@click.option("--speed-of-sound", "speed", type=float, default=None, help="m/s (overrides setup.json).")
+@click.option("--humidity", type=HUMIDITY_PCT, default=None, help="Relative humidity, % (with --temperature; default 0).")
+@click.option("--speed-of-sound", "speed", type=SPEED_OF_SOUND, default=None, help="m/s (overrides setup.json).")
 @csv_option
 @handle_errors
 def pipeline_cmd(directory: Path, out: Path, plot: Path | None, report: Path | None, heights: Path | None,

@@ -7,6 +7,7 @@ from pathlib import Path
 import click
 
 from ._base import backend_option, handle_errors, locate, reproduce, scheduler_option, seed_option
+from ._options import GRID_STEP_M, SIGMA_DEG
 
 
 @locate.command("aoa")
@@ -28,7 +29,7 @@ from ._base import backend_option, handle_errors, locate, reproduce, scheduler_o
 )
 @click.option("--units", "units", type=click.Choice(["deg", "rad"]), default="deg", show_default=True,
               help="Unit of the angles with --angles azel / axes.")
-@click.option("--sigma-deg", type=float, default=None,
+@click.option("--sigma-deg", type=SIGMA_DEG, default=None,
               help="Angular noise std (degrees) for the ML covariance and the residual test (default: the "
                    "test assumes at most 5 degrees).")
 @click.option(
@@ -155,8 +156,8 @@ def locate_aoa(
 
 @reproduce.command("aoa")
 @click.option("--runs", type=int, default=20, show_default=True, help="Noise runs per grid point.")
-@click.option("--step", type=float, default=0.2, show_default=True, help="Grid step on the z = -3 plane (m).")
-@click.option("--sigma-deg", type=float, default=1.0, show_default=True, help="AOA noise std (deg).")
+@click.option("--step", type=GRID_STEP_M, default=0.2, show_default=True, help="Grid step on the z = -3 plane (m).")
+@click.option("--sigma-deg", type=SIGMA_DEG, default=1.0, show_default=True, help="AOA noise std (deg).")
 @backend_option
 @scheduler_option
 @seed_option
@@ -187,6 +188,13 @@ def reproduce_aoa(
     if not (np.isfinite(sigma_deg) and 0 < sigma_deg < 180):
         raise InputError(f"--sigma-deg must be a positive number of degrees below 180, got {sigma_deg}")
     check_runs(runs)
+    # the grid has (5 / step + 1)^2 points, each run at each point one trial held in memory
+    # (TRIAL_BYTES): a step of 1e-4 m would be 2.5e9 points (was a hang; 1e-300 an internal error)
+    from .._checks import TRIAL_BYTES, guard_size
+
+    n_side = 5.0 / step + 1.0
+    guard_size(float(runs) * n_side * n_side * TRIAL_BYTES,
+               f"--step {step:g} m ({n_side * n_side:.3g} grid points) x --runs {runs}")
     grid = [{**p, "sigma_deg": sigma_deg} for p in paper_grid(step)]
     rows = run_sweep(aoa_trial, grid, runs=runs, seed=seed, backend=backend, scheduler=scheduler, desc="aoa")
     outdir = Path(out)

@@ -8,6 +8,9 @@ import click
 
 from ._base import backend_option, handle_errors, reproduce, scheduler_option, seed_option
 
+#: Largest iteration cap of the thesis iteration (its protocol, ``--full``).
+MAX_THESIS_ITER = 1_000_000
+
 
 @reproduce.command("delays")
 @click.option("--runs", type=int, default=20, show_default=True,
@@ -40,6 +43,12 @@ def reproduce_delays(runs: int, faithful_runs: int, max_iter: int, cap_120: int,
                              ("max-iter", max_iter, 1), ("cap-120", cap_120, 1)):
         if value < low:
             raise InputError(f"--{name} must be >= {low}, got {value}")
+    # the thesis iteration's own cap is 1e6 (--full); a larger cap changes no figure (the runs that
+    # reach it are extrapolated) and would run for days: refused rather than started
+    for name, value in (("max-iter", max_iter), ("cap-120", cap_120)):
+        if value > MAX_THESIS_ITER:
+            raise InputError(f"--{name} {value} is beyond the thesis protocol's cap of {MAX_THESIS_ITER:,} "
+                             "iterations (--full uses it)")
     for name, value in (("runs", runs), ("faithful-runs", faithful_runs), ("noise-runs", noise_runs)):
         check_runs(value, f"--{name}", minimum=0)
     kwargs: dict[str, object] = {}

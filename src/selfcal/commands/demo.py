@@ -16,19 +16,20 @@ import click
 
 from ._base import handle_errors, main
 from ._common import check_simulation_size, jitter_options, resolve_jitter
+from ._options import RT60_S, SEED, SNR_DB
 
 
 @main.command("demo")
 @click.option("--out", "out", default="demo-output", show_default=True,
               type=click.Path(file_okay=False, path_type=Path), help="Output folder.")
-@click.option("--seed", type=int, default=0, show_default=True, help="Random seed of the simulated room.")
+@click.option("--seed", type=SEED, default=0, show_default=True, help="Random seed of the simulated room.")
 @click.option("--units", type=int, default=20, show_default=True, help="Units (microphone + loudspeaker).")
 @click.option("--room", "room_text", default="12x12x3", show_default=True, help="Room L x W x H, m.")
 @click.option("--layout", type=click.Choice(["flat", "boundary", "tiered", "stem", "hall"]), default="flat",
               show_default=True,
               help="flat / boundary desks use their known heights (near-planar); tiered / stem are solved in 3-D.")
-@click.option("--rt60", type=float, default=0.4, show_default=True, help="Reverberation time, s.")
-@click.option("--snr", type=float, default=30.0, show_default=True, help="Direct sound at 1 m over noise, dB.")
+@click.option("--rt60", type=RT60_S, default=0.4, show_default=True, help="Reverberation time, s.")
+@click.option("--snr", type=SNR_DB, default=30.0, show_default=True, help="Direct sound at 1 m over noise, dB.")
 @jitter_options(5e-6, what="(004: units synchronised within 100 us)")
 @handle_errors
 def demo_cmd(out: Path, seed: int, units: int, room_text: str, layout: str, rt60: float, snr: float,

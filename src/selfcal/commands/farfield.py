@@ -16,6 +16,7 @@ from ._base import (
     seed_option,
 )
 from ._common import csv_option, unit_options
+from ._options import NOISE_STD, SEED, SPEED
 
 if TYPE_CHECKING:
     from ..tdoa import FarfieldResult
@@ -25,7 +26,7 @@ if TYPE_CHECKING:
 @click.argument("matrix", nargs=-1, required=True, type=click.Path(path_type=Path))
 @click.option("--out", "out", type=click.Path(dir_okay=False, path_type=Path), required=True,
               help="Result JSON (positions, directions, offsets, residual_rms, degeneracy, ...).")
-@click.option("--speed", type=float, default=None, metavar="C",
+@click.option("--speed", type=SPEED, default=None, metavar="C",
               help="Propagation speed in m/s: the matrix holds seconds (TDOA); positions are reported in "
                    "metres, offsets and the residual in seconds. A Pyramic JSON holds seconds and its own "
                    "sound_speed_mps, which --speed overrides.")
@@ -41,10 +42,10 @@ if TYPE_CHECKING:
               show_default=True, help="Refinement: LM on the spheres (Alg. 3), alternating (Alg. 2), or none.")
 @click.option("--loss", type=click.Choice(["linear", "huber", "soft_l1", "cauchy"]), default="linear",
               show_default=True, help="Robust loss for outliers (rejected entries are listed in the JSON).")
-@click.option("--noise-std", type=float, default=None,
+@click.option("--noise-std", type=NOISE_STD, default=None,
               help="Known noise standard deviation (matrix units) for the degeneracy thresholds.")
 @click.option("--ransac", is_flag=True, help="Screen outliers with RANSAC over the minimal solver first.")
-@click.option("--seed", type=int, default=0, show_default=True, help="Random seed (RANSAC).")
+@click.option("--seed", type=SEED, default=0, show_default=True, help="Random seed (RANSAC).")
 @click.option("--allow-degenerate", is_flag=True,
               help="On a degenerate geometry write the partial reconstruction instead of failing.")
 @click.option("--plot", "plot", type=click.Path(dir_okay=False, path_type=Path), default=None,

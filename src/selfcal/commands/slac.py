@@ -10,13 +10,14 @@ import click
 
 from ._base import backend_option, handle_errors, reproduce, scheduler_option, seed_option, slac
 from ._common import all_or_nothing
+from ._options import ANGLE_RAD, MINUTES, SLAC_SNR_DB
 
 
 @slac.command("simulate")
-@click.option("--minutes", type=float, default=1.0, show_default=True, help="Length of the replica run.")
+@click.option("--minutes", type=MINUTES, default=1.0, show_default=True, help="Length of the replica run.")
 @click.option("--subcarriers", type=int, default=128, show_default=True,
               help="N (1024 in the paper; the log stores every snapshot, size ~ 0.34 MB x N x minutes).")
-@click.option("--snr-db", type=float, default=30.0, show_default=True, help="Post-integration SNR at 10 m.")
+@click.option("--snr-db", type=SLAC_SNR_DB, default=30.0, show_default=True, help="Post-integration SNR at 10 m.")
 @seed_option
 @click.option("--out", "out", type=click.Path(dir_okay=False, path_type=Path), required=True, help="LOG.npz")
 @handle_errors
@@ -103,11 +104,13 @@ def run_cmd(log_path: Path, mode: str, prior: str, out: Path, plot: Path | None,
               help="Same trajectory in the TUM format (timestamp tx ty tz qx qy qz qw).")
 @click.option("--plot", "plot", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="PNG: tracks, ground truth, beacons with the estimated scale / offset.")
-@click.option("--init-heading-offset", type=float, default=None,
+@click.option("--init-heading-offset", type=ANGLE_RAD, default=None,
               help="Radians, only for a log without the init_heading_offset variable.")
+@click.option("--heading-units", type=click.Choice(["auto", "rad", "deg"]), default="auto", show_default=True,
+              help="Unit of the log's heading columns (GT(:, 4), DR(:, 3)); auto = decided from the motion.")
 @handle_errors
 def plaza_cmd(path: Path, out: Path, method: str, csv_path: Path | None, tum_path: Path | None,
-              plot: Path | None, init_heading_offset: float | None) -> None:
+              plot: Path | None, init_heading_offset: float | None, heading_units: str = "auto") -> None:
     """Range-only SLAC (per-beacon range scale + offset) on a CMU range log (e.g. Plaza1.mat).
 
     Ground truth is used for the first pose and for the scores only. Exit 1 with a FAIL line
@@ -121,7 +124,7 @@ def plaza_cmd(path: Path, out: Path, method: str, csv_path: Path | None, tum_pat
     from ..plotting.slac import plot_plaza
     from ..slac.export import write_trajectory_csv, write_trajectory_tum
 
-    data = load_plaza(path, init_heading_offset=init_heading_offset)
+    data = load_plaza(path, init_heading_offset=init_heading_offset, heading_units=heading_units)
     methods = ("filter", "smoother") if method == "both" else (method,)
     s = plaza_summary(data, methods=methods, progress=True)
     results = s.pop("_results")
@@ -143,8 +146,12 @@ def plaza_cmd(path: Path, out: Path, method: str, csv_path: Path | None, tum_pat
         sys.exit(1)
 
 
+#: Steps of the moving average in Fig. 4 of ``reproduce slac`` (``experiments.slac``, window=50).
+FIG4_WINDOW_STEPS = 50
+
+
 @reproduce.command("slac")
-@click.option("--minutes", type=float, default=12.5, show_default=True)
+@click.option("--minutes", type=MINUTES, default=12.5, show_default=True)
 @click.option("--subcarriers", type=int, default=1024, show_default=True)
 @click.option("--runs", type=int, default=1, show_default=True)
 @click.option("--out", "out", type=click.Path(file_okay=False, path_type=Path), default=Path("slac_out"), show_default=True)
@@ -168,6 +175,13 @@ def reproduce_slac_cmd(minutes: float, subcarriers: int, runs: int, out: Path, b
 
     if minutes <= 0 or runs < 1 or subcarriers < 8:
         raise InputError("--minutes must be > 0, --runs >= 1 and --subcarriers >= 8")
+    from ..slac.validate import STEP_SECONDS
+
+    # Fig. 4 plots a 50-step (5 s) moving average of the ranging RMSE (experiments.slac): a
+    # shorter run has no point of it (was an internal error of the plot)
+    if minutes * 60.0 / STEP_SECONDS < FIG4_WINDOW_STEPS:
+        raise InputError(f"--minutes {minutes:g} is shorter than Fig. 4's {FIG4_WINDOW_STEPS}-step moving average "
+                         f"({FIG4_WINDOW_STEPS * STEP_SECONDS:g} s = {FIG4_WINDOW_STEPS * STEP_SECONDS / 60:.4f} min)")
     check_runs(runs)
     check_simulation_request(minutes, subcarriers, 30.0)  # each run simulates such a log
     s = reproduce_slac(out, minutes=minutes, subcarriers=subcarriers, runs=runs, seed=seed, backend=backend,

@@ -14,6 +14,7 @@ import click
 
 from ._base import calibrate, handle_errors
 from ._common import csv_option, unit_options
+from ._options import NOISE_STD, SEED, SPEED
 
 
 def _auto_available() -> bool:
@@ -23,7 +24,7 @@ def _auto_available() -> bool:
 
 @calibrate.command("toa")
 @click.argument("matrix", type=click.Path(dir_okay=False, path_type=Path))
-@click.option("--speed", type=float, default=None, metavar="C",
+@click.option("--speed", type=SPEED, default=None, metavar="C",
               help="Propagation speed in m/s: the matrix holds seconds; offsets are reported in seconds.")
 @click.option("--offsets", type=click.Choice(["none", "receivers", "sources", "both", "auto"]), default=None,
               help="Unknown per-receiver (d_i) and/or per-source (o_j) offsets; auto = chosen by a "
@@ -36,7 +37,7 @@ def _auto_available() -> bool:
                    "least squares on the inliers).")
 @click.option("--method", type=click.Choice(["auto", "nls", "rank3"]), default="auto", show_default=True,
               help="auto: initialise + NLS + search; nls: one refinement; rank3: 004 initialiser only.")
-@click.option("--noise", type=float, default=None, metavar="SIGMA",
+@click.option("--noise", type=NOISE_STD, default=None, metavar="SIGMA",
               help="Measurement noise std in the matrix's units: enables the chi-square residual test.")
 @click.option("--recipe", type=click.Choice(["auto", "none", "moving-tag"]), default="auto", show_default=True,
               help="Preprocessing recipe: moving-tag = columns are one moving device in time order "
@@ -53,7 +54,7 @@ def _auto_available() -> bool:
 @click.option("--frame", "frame", default=None, metavar="origin=A,x=B,xy=C[,z=D]",
               help="Frame by reference nodes: A at the origin, B on +x, C in the xy half-plane (y>0), "
                    "D above (z>0).")
-@click.option("--seed", type=int, default=0, show_default=True, help="Random seed (initialisers, restarts).")
+@click.option("--seed", type=SEED, default=0, show_default=True, help="Random seed (initialisers, restarts).")
 @click.option("--out", "out", type=click.Path(dir_okay=False, path_type=Path), required=True,
               help="Result JSON (keys per DESIGN.md).")
 @click.option("--plot", "plot", type=click.Path(dir_okay=False, path_type=Path), default=None,

@@ -29,7 +29,8 @@ examples; each has a test on a small synthetic file that breaks it):
    the dead-reckoned path is integrated from ``DR`` (:meth:`PlazaData.dead_reckoning`).
 5. **Units.** Headings in radians (``GT(:, 4)``, ``DR(:, 3)``); a column found to be in
    degrees by the tests of :func:`heading_units` is converted with a
-   :class:`PlazaFormatWarning`, and a heading column that fits neither unit is refused.
+   :class:`PlazaFormatWarning`, and a heading column that fits neither unit is refused
+   (``load_plaza(heading_units="rad" | "deg")`` states the unit instead).
    Times may be in any unit (the model depends on distances and angles only, not on rates).
 6. **Rows logged twice.** ``DR`` or ``TD`` rows that repeat the previous row exactly (time
    and values) are dropped with a :class:`PlazaFormatWarning`: an increment counted twice
@@ -270,7 +271,17 @@ def _heading_offset(value: float, name: str) -> float:
     return value
 
 
-def _heading_columns(GT: FArray, DR: FArray, p: Path) -> tuple[FArray, FArray]:
+#: Values of ``load_plaza(heading_units=...)``: detect (default), or the unit of both heading columns.
+HEADING_UNITS = ("auto", "rad", "deg")
+
+
+def _heading_columns(GT: FArray, DR: FArray, p: Path, units: str = "auto") -> tuple[FArray, FArray]:
+    if units != "auto":  # the caller's word wins over the detection (no test, no warning)
+        if units == "deg":
+            GT, DR = GT.copy(), DR.copy()
+            GT[:, 3] = np.deg2rad(GT[:, 3])
+            DR[:, 2] = np.deg2rad(DR[:, 2])
+        return GT, DR
     gt_u, dr_u, st = heading_units(GT, DR)
     beyond = float(np.max(np.abs(GT[:, 3])))
     if gt_u == "deg":
@@ -291,7 +302,8 @@ def _heading_columns(GT: FArray, DR: FArray, p: Path) -> tuple[FArray, FArray]:
     return GT, DR
 
 
-def load_plaza(path: str | os.PathLike[str], *, init_heading_offset: float | None = None) -> PlazaData:
+def load_plaza(path: str | os.PathLike[str], *, init_heading_offset: float | None = None,
+               heading_units: str | None = None) -> PlazaData:
     """Load a CMU range-only log (``Plaza1.mat`` and others of the collection) and validate it.
 
     Parameters
@@ -301,6 +313,11 @@ def load_plaza(path: str | os.PathLike[str], *, init_heading_offset: float | Non
     init_heading_offset : float, optional
         Radians; required only when the file lacks ``init_heading_offset`` (a value in the
         file wins over nothing, and giving both raises unless they agree).
+    heading_units : {"auto", "rad", "deg"}, optional
+        Unit of the heading columns ``GT(:, 4)`` and ``DR(:, 3)``. ``"auto"`` (default, or
+        None) decides it per column with :func:`heading_units` (a degree column is converted
+        with a :class:`PlazaFormatWarning`); ``"rad"`` or ``"deg"`` is taken as given for both
+        columns, without the test or the warning.
 
     Returns
     -------
@@ -322,6 +339,9 @@ def load_plaza(path: str | os.PathLike[str], *, init_heading_offset: float | Non
     ((4, 2), 0.0)
     """
     p = Path(path)
+    units = "auto" if heading_units is None else heading_units
+    if not isinstance(units, str) or units not in HEADING_UNITS:
+        raise InputError(f"heading_units must be one of {', '.join(map(repr, HEADING_UNITS))}, got {heading_units!r}")
     if not p.exists():
         raise InputError(f"{p}: file not found")
     if not p.is_file():
@@ -373,7 +393,7 @@ def load_plaza(path: str | os.PathLike[str], *, init_heading_offset: float | Non
     if not np.any(DR[:, 1] != 0):  # convention 7
         raise InputError(f"{p}: DR distances are all zero (no odometry): the model has no motion information and "
                          "would keep the robot at its first pose; a range-only track is not supported")
-    GT, DR = _heading_columns(GT, DR, p)  # convention 5
+    GT, DR = _heading_columns(GT, DR, p, units)  # convention 5
     t0 = GT[0, 0]
     DR = DR[DR[:, 0] > t0]  # convention 4: increments after the start pose
     if DR.shape[0] < 1:

@@ -170,7 +170,7 @@ def read_table(path: str | os.PathLike[str], name: str | None = None) -> Table:
         return Table(_read_npy(path, label))
     data = _read_input_bytes(path, label)
     if data[:6] == b"\x93NUMPY":
-        return Table(_read_npy(_io.BytesIO(data), label))
+        return Table(_read_npy(data, label))
     if data[:2] == b"PK":
         raise InputError(f"{label}: looks like an .npz archive; give a .csv or .npy matrix")
     if b"\x00" in data[:65536]:
@@ -233,32 +233,102 @@ def read_table(path: str | os.PathLike[str], name: str | None = None) -> Table:
     return Table(values, row_names, col_names)
 
 
+#: Longest .npy header parsed (bytes): numpy's own limit (``max_header_size``), so that a hostile
+#: header cannot make the literal parser work for long.
+_NPY_MAX_HEADER = 10_000
+
+
+def _npy_header(data: bytes, label: str) -> tuple[np.dtype[Any], tuple[int, ...], bool, int]:
+    """Parse an .npy header without loading anything: (dtype, shape, fortran order, data offset).
+
+    Raises
+    ------
+    InputError
+        Not an .npy file, an unknown version, a malformed or over-long header.
+    """
+    import ast
+
+    if data[:6] != b"\x93NUMPY":
+        if data[:2] == b"PK":
+            raise InputError(f"{label}: is an .npz archive (zip), not a single .npy array; give one .npy matrix")
+        if data[:1] == b"\x80":
+            raise InputError(f"{label}: is a Python pickle, not an .npy array; refused (pickles are never loaded)")
+        raise InputError(f"{label}: not an .npy file (no NUMPY header; starts with {data[:8]!r}); "
+                         f"a text matrix needs a .csv or .txt name")
+    if len(data) < 10:
+        raise InputError(f"{label}: truncated .npy header")
+    major = data[6]
+    if major == 1:
+        n, start = int.from_bytes(data[8:10], "little"), 10
+    elif major in (2, 3):
+        n, start = int.from_bytes(data[8:12], "little"), 12
+    else:
+        raise InputError(f"{label}: .npy format version {major}.{data[7]} is not supported (1.0-3.0)")
+    if n > _NPY_MAX_HEADER or start + n > len(data):
+        raise InputError(f"{label}: malformed .npy header ({n} bytes declared, {len(data) - start} present)")
+    try:
+        text = data[start:start + n].decode("latin1" if major < 3 else "utf8")
+        hdr = ast.literal_eval(text)
+    except (ValueError, SyntaxError, TypeError, MemoryError, RecursionError, UnicodeDecodeError):
+        raise InputError(f"{label}: malformed .npy header (not a Python literal)") from None
+    if not isinstance(hdr, dict) or set(hdr) != {"descr", "fortran_order", "shape"}:
+        raise InputError(f"{label}: malformed .npy header (keys descr, fortran_order, shape expected)")
+    shape, fortran = hdr["shape"], hdr["fortran_order"]
+    if not isinstance(shape, tuple) or not all(isinstance(k, int) and not isinstance(k, bool) and k >= 0
+                                               for k in shape) or not isinstance(fortran, bool):
+        raise InputError(f"{label}: malformed .npy header (shape {shape!r}, fortran_order {fortran!r})")
+    try:
+        dtype = np.lib.format.descr_to_dtype(hdr["descr"])
+    except (ValueError, TypeError, KeyError, IndexError):
+        raise InputError(f"{label}: malformed .npy header (descr {str(hdr['descr'])[:40]!r})") from None
+    return dtype, shape, fortran, start + n
+
+
 def _read_npy(src: Any, label: str) -> NDArray[np.float64]:
+    """An .npy matrix as float64 (C order): the header checked before any data is touched.
+
+    Fortran order, float16 / longdouble, integer and big-endian dtypes are read (cast to
+    float64); object (pickled) arrays are refused from the header alone, so nothing is ever
+    unpickled; structured, complex, boolean, text and date dtypes, 0-d scalars, empty arrays,
+    more than 2 dimensions and data shorter than the shape are refused by name.
+    """
     if isinstance(src, (str, os.PathLike)):
         p = Path(src)
         if p.suffix.lower() == ".npz":
             raise InputError(f"{label}: an .npz archive is not a matrix; give a .csv or .npy file")
-        if not p.is_file():
-            _read_input_bytes(p, label)  # raises the not-found / not-a-file message
-    try:
-        arr = np.load(src, allow_pickle=False)
-    except (ValueError, OSError, EOFError) as exc:
-        raise InputError(f"{label}: not a readable .npy array without pickle ({exc})") from None
-    if not isinstance(arr, np.ndarray):
-        raise InputError(f"{label}: not a single .npy array")
-    if arr.dtype.kind == "c":
+        data = _read_input_bytes(p, label)
+    else:
+        data = src.getvalue() if isinstance(src, _io.BytesIO) else bytes(src)
+    if not data:
+        raise InputError(f"{label}: the file is empty")
+    dtype, shape, fortran, offset = _npy_header(data, label)
+    if dtype.hasobject:
+        raise InputError(f"{label}: .npy array of Python objects (pickled data): refused without loading; "
+                         f"save plain numbers (np.save with a float array)")
+    if dtype.fields is not None or dtype.subdtype is not None or dtype.kind == "V":
+        raise InputError(f"{label}: .npy array has a structured dtype {dtype}; give a plain numeric matrix")
+    if dtype.kind == "c":
         raise InputError(f"{label}: complex values; give real numbers")
-    if arr.dtype.kind == "b":  # a mask saved by mistake: True / False are not measurements
+    if dtype.kind == "b":  # a mask saved by mistake: True / False are not measurements
         raise InputError(f"{label}: .npy array is boolean (a mask?); give the measured values")
-    if arr.dtype.kind not in "fiu":
-        raise InputError(f"{label}: .npy dtype {arr.dtype} is not numeric")
-    arr = np.asarray(arr, dtype=float)
-    if arr.ndim == 0:
-        arr = arr.reshape(1, 1)
+    if dtype.kind not in "fiu":
+        raise InputError(f"{label}: .npy dtype {dtype} is not numeric")
+    if len(shape) == 0:
+        raise InputError(f"{label}: .npy holds a single number (0-d), not a matrix")
+    if len(shape) > 2:
+        raise InputError(f"{label}: expected a 2-D matrix, got shape {shape}")
+    count = math.prod(shape)
+    if count == 0:
+        raise InputError(f"{label}: .npy array is empty (shape {shape})")
+    need = count * dtype.itemsize
+    if len(data) - offset < need:
+        raise InputError(f"{label}: truncated .npy: shape {shape} needs {need} bytes of data, "
+                         f"the file holds {len(data) - offset}")
+    flat = np.frombuffer(data, dtype=dtype, count=count, offset=offset)
+    with np.errstate(over="ignore"):  # float128 beyond float64's range -> inf (refused downstream)
+        arr = np.array(flat.reshape(shape, order="F" if fortran else "C"), dtype=np.float64, order="C")
     if arr.ndim == 1:
         arr = arr[:, None]
-    if arr.ndim != 2:
-        raise InputError(f"{label}: expected a 2-D matrix, got shape {arr.shape}")
     return arr
 
 

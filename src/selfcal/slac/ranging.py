@@ -145,6 +145,17 @@ class RangeModelConfig:
     noise_window : int
         Ranges in the filter's noise window: the median's relative standard error is about
         ``1.25 / sqrt(window)`` (~6 % at 400) while a change of the radio environment is followed.
+    noise_rounds : int
+        Smoother with ``estimate_noise``: at most this many expectation-maximisation rounds of
+        the noise levels after the first solve (0 = keep the first estimate); an integer >= 0.
+    noise_tol : float
+        The EM rounds stop when no noise level changes by more than this relative amount
+        (``|log(new / old)|``); a finite number > 0.
+
+    Raises
+    ------
+    InputError
+        A field of the wrong type or outside its range (named, with the value).
     """
 
     range_noise: float = 0.3
@@ -166,18 +177,37 @@ class RangeModelConfig:
     noise_tol: float = 0.05
 
     def __post_init__(self) -> None:
-        for name in ("range_noise", "scale_std", "offset_std", "init_position_std", "init_heading_std", "huber", "tol"):
+        for name in ("range_noise", "scale_std", "offset_std", "init_position_std", "init_heading_std", "huber", "tol",
+                     "noise_tol"):
             v = getattr(self, name)
+            if isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, float, np.integer, np.floating)):
+                raise InputError(f"RangeModelConfig.{name} must be a positive number, got {type(v).__name__} {v!r}")
             if not (np.isfinite(v) and v > 0):
                 raise InputError(f"RangeModelConfig.{name} must be a positive number, got {v!r}")
         for name in ("odo_distance", "odo_turn", "odo_drift"):
             v = getattr(self, name)
-            if not (np.isfinite(v) and v >= 0):
+            if isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, float, np.integer, np.floating)) \
+                    or not (np.isfinite(v) and v >= 0):
                 raise InputError(f"RangeModelConfig.{name} must be >= 0, got {v!r}")
-        if not 0.5 < self.gate_quantile <= 1.0:
+        q = self.gate_quantile
+        if isinstance(q, (bool, np.bool_)) or not isinstance(q, (int, float, np.integer, np.floating)) \
+                or not 0.5 < q <= 1.0:
             raise InputError(f"RangeModelConfig.gate_quantile must be in (0.5, 1], got {self.gate_quantile!r}")
-        if self.max_iter < 1:
-            raise InputError("RangeModelConfig.max_iter must be >= 1")
+        for name, low in (("max_iter", 1), ("noise_window", 1), ("noise_rounds", 0)):
+            v = getattr(self, name)
+            if isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, np.integer)):
+                raise InputError(f"RangeModelConfig.{name} must be an integer >= {low}, got {type(v).__name__} {v!r}")
+            if v < low:
+                raise InputError(f"RangeModelConfig.{name} must be >= {low}, got {v!r}")
+        if not isinstance(self.estimate_noise, (bool, np.bool_)):
+            raise InputError(f"RangeModelConfig.estimate_noise must be True or False, got {self.estimate_noise!r}")
+        try:
+            grid = np.asarray(self.heading_noise_grid, dtype=float)
+        except (TypeError, ValueError):
+            grid = np.array([np.nan])
+        if grid.ndim != 1 or not (np.isfinite(grid).all() and (grid > 0).all()):
+            raise InputError("RangeModelConfig.heading_noise_grid must be a sequence of positive factors, got "
+                             f"{self.heading_noise_grid!r}")
 
 
 @dataclass(frozen=True)
