@@ -51,3 +51,20 @@ def test_slac_plaza_trajectory_outputs_checked_before_the_run(tmp_path: Path, op
     res = CliRunner().invoke(main, ["slac", "plaza", str(missing), opt, str(target), "-o", str(tmp_path / "r.json")])
     code, _, err = check_contract(res, before, snapshot(tmp_path))
     assert code == 2 and opt in err and "no-such" not in err, err
+
+
+@pytest.mark.parametrize("hint,match", [("1_0,1,1", "decimal"), ("0x1,1,1", "decimal"), ("nan,1,1", "decimal"),
+                                        ("1e308,1,1", "another unit"), ("1e400,1,1", "finite")])
+def test_aoa_hint_strict_numbers(tmp_path: Path, hint: str, match: str) -> None:
+    """--hint took Python's float(): 1_0 read as 10, and a hint of 1e308 gave a (failed) pose."""
+    import numpy as np
+
+    g = np.random.default_rng(0)
+    np.savetxt(tmp_path / "b.csv", g.uniform(-5, 5, (5, 3)), delimiter=",")
+    u = g.normal(size=(5, 3))
+    np.savetxt(tmp_path / "u.csv", u / np.linalg.norm(u, axis=1, keepdims=True), delimiter=",")
+    before = snapshot(tmp_path)
+    res = CliRunner().invoke(main, ["locate", "aoa", str(tmp_path / "b.csv"), str(tmp_path / "u.csv"), "--hint", hint,
+                                    "-o", str(tmp_path / "r.json")])
+    code, _, err = check_contract(res, before, snapshot(tmp_path))
+    assert code == 2 and match in err, err
