@@ -70,3 +70,16 @@ def test_aoa_hint_strict_numbers(tmp_path: Path, hint: str, match: str) -> None:
                                     "-o", str(tmp_path / "r.json")])
     code, _, err = check_contract(res, before, snapshot(tmp_path))
     assert code == 2 and match in err, err
+
+
+@pytest.mark.parametrize("max_order", [-1, 1.5, True])
+def test_simulate_conference_api_refuses_bad_max_order(max_order: object) -> None:
+    import numpy as np
+
+    from selfcal.acoustics.room import simulate_conference
+    from selfcal.errors import InputError
+    from selfcal.scenarios.conference import conference_scene
+
+    scene = conference_scene(5, (6.0, 6.0, 3.0), rng=np.random.default_rng(0))
+    with pytest.raises(InputError, match="max_order"):
+        simulate_conference(scene, max_order=max_order, sample_rate=8000, progress=False)  # type: ignore[arg-type]
