@@ -23,6 +23,8 @@ from .test_cli import check_contract, snapshot
     (["simulate", "conference", "--rounds", "99999999999999999999", "--units", "5", "--out", "{d}/rec"], "rounds"),
     (["simulate", "conference", "--rounds", "100000", "--units", "5", "--sample-rate", "8000", "--out", "{d}/rec"],
      "rounds"),
+    # 1e20 simulated LPS flights: never ended
+    (["reproduce", "lps", "--data", "{d}", "--simulate", "99999999999999999999", "--out", "{d}/o"], "--simulate"),
     # a negative image-source order: pyroomacoustics' ValueError (internal error)
     (["simulate", "conference", "--max-order", "-1", "--units", "5", "--out", "{d}/rec"], "--max-order"),
     # a grid step of 1e-4 m: 2.5e9 grid points (a hang); 1e-300: an internal error
