@@ -156,3 +156,27 @@ def test_seed_refused_while_parsing(tmp_path: Path, monkeypatch, path: tuple[str
     res = CliRunner().invoke(main, [*path, f"--seed={value}"], catch_exceptions=True)
     code, _, err = check_contract(res, {}, snapshot(tmp_path))
     assert code == 2 and "--seed" in err, err
+
+
+# ----------------------------------------------------------------------------- SlacConfig
+
+@pytest.mark.parametrize("field,value", [
+    ("T", 0.0), ("T", -0.1), ("T", math.nan), ("T", "0.1"), ("bandwidth", math.inf), ("gtol", 0), ("bias_std", 0.0),
+    ("g_rel_std", -1.0), ("sigma_v", -1e-3), ("sigma_omega", math.nan), ("g_order_decay", -1), ("max_iter", 0),
+    ("max_iter", 2.5), ("smoother_lag", -1), ("smoother_lag", True), ("anchor_biases", 1), ("first_estimates", "no"),
+    ("covariance", "exact"), ("optimizer", "lbfgs"),
+])
+def test_slac_config_refuses_by_name(field: str, value: object) -> None:
+    from selfcal.errors import InputError
+    from selfcal.slac.filter import SlacConfig
+
+    with pytest.raises(InputError, match=f"SlacConfig.{field}"):
+        SlacConfig(**{field: value})  # type: ignore[arg-type]
+
+
+def test_slac_config_edges_accepted() -> None:
+    from selfcal.slac.filter import SlacConfig
+
+    c = SlacConfig(sigma_v=0.0, sigma_omega=0.0, g_order_decay=0.0, smoother_lag=0, max_iter=1, covariance="fd",
+                   optimizer="bfgs")
+    assert c.sigma_v == 0.0 and c.max_iter == 1

@@ -135,6 +135,9 @@ def simulate_conference(
     gen = as_rng(rng)
     check_positive(rt60, "rt60", allow_none=False)
     check_positive(speed, "speed", allow_none=False)
+    if max_order is not None and (isinstance(max_order, bool) or not isinstance(max_order, (int, np.integer))
+                                  or max_order < 0):
+        raise InputError(f"max_order must be None or an integer >= 0 (0 = anechoic), got {max_order!r}")
     if not np.isfinite(snr_db):
         raise InputError(f"snr must be finite dB, got {snr_db!r}")
     if snr_db < MIN_SNR_DB:

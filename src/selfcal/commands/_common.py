@@ -81,7 +81,7 @@ class SelfcalGroup(click.Group):
         quiet = any(a in ("-q", "--quiet") for a in flags)
         verbose = any(a in ("-v", "--verbose") for a in flags)
         argv = [a for a in flags if a not in ("-q", "--quiet", "-v", "--verbose")] + rest
-        if prog_name is None:
+        if prog_name is None or prog_name == self.name:  # click's test runner passes the function's name
             prog_name = "selfcal"
         _add_short_out(self)
         _STATE.update(quiet=quiet, verbose=verbose)

@@ -96,7 +96,7 @@ def write_simulation(out: Path, *, units: int, room: tuple[float, float, float],
               help="flat desks (near-planar), amphitheatre tiers, stem microphones above desk loudspeakers, "
                    "or a hall (tiers, goosenecks 5-40 cm).")
 @click.option("--sample-rate", type=int, default=48000, show_default=True, help="Hz.")
-@click.option("--max-order", type=int, default=3, show_default=True,
+@click.option("--max-order", type=click.IntRange(min=0), default=3, show_default=True,
               help="Image-source order cap (speed); 0 = anechoic.")
 @jitter_options(0.0)
 @click.option("--rounds", type=click.IntRange(min=1), default=1, show_default=True,

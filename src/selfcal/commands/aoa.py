@@ -125,9 +125,17 @@ def locate_aoa(
     position_hint = None
     if hint is not None:
         try:
-            position_hint = [float(v) for v in hint.split(",")]
+            from ._options import _NUMBER
+
+            parts = hint.split(",")
+            if not all(_NUMBER.match(v) for v in parts):  # strict decimals: no 1_0, nan, inf
+                raise ValueError(hint)
+            position_hint = [float(v) for v in parts]
         except ValueError:
-            raise InputError(f"--hint: expected comma-separated numbers, got {hint!r}") from None
+            raise InputError(f"--hint: expected comma-separated decimal numbers, got {hint!r}") from None
+        from .._checks import check_magnitude
+
+        check_magnitude(np.asarray(position_hint), "--hint")
     if sign_unknown:
         keep = ~np.isnan(u).any(axis=1)
         res = solve_aoa(b[keep], u[keep], method=method, sigma=sigma, position_hint=position_hint,

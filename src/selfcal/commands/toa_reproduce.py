@@ -61,6 +61,10 @@ def toa_mds_nls(runs: int, backend: str, scheduler: str | None, seed: int, out_d
                f"{at['nls_rmse']:.3f} m, sqrt(CRLB) {at['crlb_rmse']:.3f} m  -> {out}")
 
 
+#: Memory one simulated LPS flight holds until it is scored (bytes, ``--simulate``).
+SIM_FLIGHT_BYTES = 30e3
+
+
 @reproduce.command("lps")
 @click.option("--data", "data_path", required=True, type=click.Path(exists=True),
               help="The LPS folder (data4.mat, data5.mat) or one .mat file.")
@@ -99,6 +103,11 @@ def lps(data_path: str, out_dir: str, n_sim: int, variants_opt: str | None, seed
 
     if n_sim < 0:
         raise InputError(f"--simulate must be >= 0, got {n_sim}")
+    # every simulated flight is held until it is scored: (6, 400) ranges, (400, 3) tag positions
+    # and its anchors, ~30 kB (1e20 flights never ended)
+    from .._checks import guard_size
+
+    guard_size(float(n_sim) * SIM_FLIGHT_BYTES, f"--simulate {n_sim} simulated flights")
     variants = lps_variants()
     if variants_opt is not None:
         variants = tuple(v.strip() for v in variants_opt.split(",") if v.strip())

@@ -148,8 +148,14 @@ def _decode(f: BinaryIO, size: int, label: str) -> WavData:
         raise _fail(label, f"not a readable WAV file ({size} bytes, shorter than a RIFF header)")
     magic, form = head[:4], head[8:12]
     if magic not in (b"RIFF", b"RIFX", b"RF64") or form != b"WAVE":
-        what = "an .npy array" if head[:6] == b"\x93NUMPY" else "a zip / .npz archive" if head[:2] == b"PK" else \
-            f"starts with {head[:4]!r}"
+        if magic in (b"RIFF", b"RIFX", b"RF64"):
+            what = f"a RIFF file of form {form!r}, not 'WAVE'"
+        elif head[:6] == b"\x93NUMPY":
+            what = "an .npy array"
+        elif head[:2] == b"PK":
+            what = "a zip / .npz archive"
+        else:
+            what = f"starts with {head[:4]!r}"
         raise _fail(label, f"not a readable WAV file ({what}; expected a RIFF/WAVE header)")
     end = ">" if magic == b"RIFX" else "<"
     chunks = _chunks(f, size, end, label)

@@ -98,6 +98,34 @@ class SlacConfig:
     delay_series: bool = True
     smoother_lag: int = 0
 
+    def __post_init__(self) -> None:
+        """Refuse a field of the wrong type or outside its range (named, with the value).
+
+        Positive: ``T``, ``bandwidth``, ``gtol`` and the prior stds ``bias_std`` / ``g_rel_std``
+        (a zero std makes the prior covariance singular); non-negative: the control-noise
+        densities and ``g_order_decay``; integers: ``max_iter >= 1``, ``smoother_lag >= 0``.
+        """
+        def number(name: str, *, positive: bool) -> None:
+            v = getattr(self, name)
+            if isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, float, np.integer, np.floating)) \
+                    or not np.isfinite(v) or (v <= 0 if positive else v < 0):
+                raise InputError(f"SlacConfig.{name} must be a finite number {'> 0' if positive else '>= 0'}, "
+                                 f"got {v!r}")
+
+        for name in ("T", "bandwidth", "gtol", "bias_std", "g_rel_std"):
+            number(name, positive=True)
+        for name in ("sigma_v", "sigma_omega", "g_order_decay"):
+            number(name, positive=False)
+        for name, low in (("max_iter", 1), ("smoother_lag", 0)):
+            v = getattr(self, name)
+            if isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, np.integer)) or v < low:
+                raise InputError(f"SlacConfig.{name} must be an integer >= {low}, got {v!r}")
+        for name in ("anchor_biases", "first_estimates", "delay_series"):
+            if not isinstance(getattr(self, name), (bool, np.bool_)):
+                raise InputError(f"SlacConfig.{name} must be True or False, got {getattr(self, name)!r}")
+        check_choice(self.covariance, "SlacConfig.covariance", ("fisher", "fd"))
+        check_choice(self.optimizer, "SlacConfig.optimizer", ("quasi-newton", "bfgs"))
+
 
 class SlacFilter:
     """Stateful cooperative SLAC / localization filter on raw OFDM snapshots.
