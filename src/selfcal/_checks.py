@@ -25,6 +25,7 @@ __all__ = [
     "plausible_matrix_scale",
     "plausible_jitter",
     "plausible_angles",
+    "plausible_angle_unit",
     "guard_size",
     "as_matrix",
     "as_points",
@@ -443,6 +444,30 @@ MAX_PLAUSIBLE_SPAN_M = 1000.0
 #: Largest clock jitter (s) that is not a unit mistake: detection windows are milliseconds, 004's
 #: units are synchronised within 100 us; a jitter >= 10 ms is microseconds given as seconds.
 MAX_PLAUSIBLE_JITTER_S = 0.01
+#: Largest distance (m) of an indoor network (rooms, halls, UWB in a building): a range matrix
+#: spanning more (without ``--unit``) gets a warning naming centimetres / millimetres; one
+#: spanning more than :data:`MAX_PLAUSIBLE_SPAN_M` is refused (no ranging hardware selfcal
+#: calibrates -- acoustic, UWB -- measures a kilometre; 8000 "m" is an 8 m room in millimetres).
+ROOM_SPAN_M = 100.0
+
+
+def _length_unit_mistake(top: float, name: str) -> None:
+    """Refuse (beyond :data:`MAX_PLAUSIBLE_SPAN_M`) or warn (beyond :data:`ROOM_SPAN_M`) about
+    a range matrix in metres whose scale only makes sense in millimetres or centimetres."""
+    import warnings
+
+    alts = [f"{w} (--unit {u}: {top * f:.3g} m)" for w, u, f in (("millimetres", "mm", 1e-3),
+                                                                    ("centimetres", "cm", 1e-2))
+            if TIMES_AS_METRES_MAX <= top * f <= ROOM_SPAN_M]
+    guess = " or ".join(alts) if alts else "millimetres (--unit mm) or centimetres (--unit cm)"
+    if top > MAX_PLAUSIBLE_SPAN_M:
+        raise InputError(
+            f"{name}: the largest range is {top:.4g}, {top / 1000:.3g} km if these are metres -- beyond any "
+            f"ranging network ({MAX_PLAUSIBLE_SPAN_M / 1000:g} km); are they {guess}? "
+            f"Confirm metres with --unit m")
+    warnings.warn(
+        f"{name}: the largest range is {top:.4g} m, beyond a room or hall ({ROOM_SPAN_M:g} m); if these are "
+        f"{guess} say so, or confirm metres with --unit m", UserWarning, stacklevel=3)
 
 
 def plausible_matrix_scale(matrix: NDArray[np.float64], *, speed: float | None, explicit_unit: bool,
@@ -455,7 +480,14 @@ def plausible_matrix_scale(matrix: NDArray[np.float64], *, speed: float | None, 
     InputError
         Ranges whose largest entry is below :data:`TIMES_AS_METRES_MAX` without ``--speed``
         (times in seconds), or distances ``speed * t`` beyond :data:`MAX_PLAUSIBLE_SPAN_M`
-        (milliseconds or samples read as seconds).
+        (milliseconds or samples read as seconds), or ranges in metres beyond
+        :data:`MAX_PLAUSIBLE_SPAN_M` (millimetres / centimetres read as metres).
+
+    Warns
+    -----
+    UserWarning
+        Ranges in metres beyond :data:`ROOM_SPAN_M` (likely centimetres), printed by the CLI
+        as a ``selfcal: warning:`` line after the result.
     """
     if explicit_unit:
         return
@@ -470,6 +502,8 @@ def plausible_matrix_scale(matrix: NDArray[np.float64], *, speed: float | None, 
                 f"{name}: the largest entry is {top:.3g}, a network under {min_span * 100:g} cm "
                 f"if these are metres; if they are times in seconds give {option} (343 for sound in air), "
                 f"or confirm metres with --unit m")
+        if top > ROOM_SPAN_M:
+            _length_unit_mistake(top, name)
         return
     span = top * speed
     if span > MAX_PLAUSIBLE_SPAN_M:
@@ -498,6 +532,61 @@ def plausible_angles(values: NDArray[np.float64], unit: str, option: str = "--an
     if unit == "rad" and finite.size and finite.max() > 2 * np.pi + 1e-9:
         raise InputError(f"{option} rad: values up to {finite.max():.4g} exceed 2 pi; are they degrees "
                          f"({option} deg)?")
+
+
+#: A receiver located from bearings stands among its beacons (in the room they span). Read as
+#: degrees, radians (every value within 2 pi) squeeze every bearing into a cone of ~12 deg, which
+#: the fit explains by a receiver far outside: more than this many beacon extents (largest
+#: beacon-beacon distance) from the beacons' centre is "outside" ...
+AOA_OUTSIDE_EXTENTS = 2.0
+#: ... and within this many extents is "among the beacons" (the radians reading's position).
+AOA_INSIDE_EXTENTS = 1.0
+
+
+def plausible_angle_unit(values: NDArray[np.float64], beacons: NDArray[np.float64],
+                         position_deg: NDArray[np.float64], position_rad: NDArray[np.float64] | None,
+                         *, rad_fits: bool, option: str = "--units") -> None:
+    """Refuse / warn about bearing angles read as degrees whose spread only makes sense in radians.
+
+    Called only when the degrees were the default (not given). Every value within 2 pi and the
+    degrees reading putting the receiver more than :data:`AOA_OUTSIDE_EXTENTS` beacon
+    extents from the beacons' centroid: when the radians reading fits (``rad_fits``) and puts
+    the receiver within that distance the evidence is strong (refused, exit 2); otherwise a
+    warning.
+
+    Raises
+    ------
+    InputError
+        Naming ``--units rad`` (and ``--units deg`` to confirm).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> b = np.array([[0.0, 0, 0], [8, 0, 0], [8, 6, 0], [0, 6, 3]])
+    >>> plausible_angle_unit(np.zeros((4, 2)), b, np.array([4.0, 3, 1]), None, rad_fits=False)
+    """
+    import warnings
+
+    v = np.abs(np.asarray(values, dtype=float))
+    v = v[np.isfinite(v)]
+    B = np.asarray(beacons, dtype=float)
+    B = B[np.isfinite(B).all(axis=1)]
+    if v.size == 0 or v.max() > 2 * np.pi or len(B) < 2:
+        return
+    centre = B.mean(axis=0)
+    extent = float(np.max(np.linalg.norm(B[:, None] - B[None], axis=2)))
+    far_deg = float(np.linalg.norm(np.asarray(position_deg, float) - centre))
+    if not extent > 0 or not far_deg > AOA_OUTSIDE_EXTENTS * extent:
+        return
+    far_rad = np.inf if position_rad is None else float(np.linalg.norm(np.asarray(position_rad, float) - centre))
+    what = (f"bearings: every angle is within 2 pi ({v.max():.3g}); read as degrees they put the receiver "
+            f"{far_deg:.3g} m from the beacons' centre ({far_deg / extent:.0f} x the beacons' extent of "
+            f"{extent:.3g} m)")
+    if rad_fits and far_rad <= AOA_INSIDE_EXTENTS * extent:
+        raise InputError(f"{what}, read as radians {far_rad:.3g} m; are they radians ({option} rad)? "
+                         f"Confirm degrees with {option} deg")
+    warnings.warn(f"{what}; if they are radians give {option} rad (or confirm degrees with {option} deg)",
+                  UserWarning, stacklevel=2)
 
 
 def guard_size(n_bytes: float, what: str, *, limit: float | None = None) -> None:

@@ -3,8 +3,12 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import click
+from click.core import ParameterSource
+
+from ..errors import SelfcalError
 
 from ._base import backend_option, handle_errors, locate, reproduce, scheduler_option, seed_option
 from ._options import GRID_STEP_M, SIGMA_DEG
@@ -53,8 +57,8 @@ def locate_aoa(
     """
     import numpy as np
 
-    from .._checks import as_points, plausible_angles
-    from ..aoa import angles_to_bearings, azel_to_bearings, solve_aoa
+    from .._checks import as_points, plausible_angle_unit, plausible_angles
+    from ..aoa import solve_aoa
     from ..errors import InputError, Status
     from ..io import read_table, staged_outputs, write_json
     from ._common import enrich_payload
@@ -69,6 +73,9 @@ def locate_aoa(
     if u.shape[0] != b.shape[0]:
         raise InputError(f"bearings: {u.shape[0]} rows for {b.shape[0]} beacons (one row per beacon)")
     sign_unknown = False
+    ctx = click.get_current_context(silent=True)
+    units_given = angles in ("deg", "rad") or (
+        ctx is not None and ctx.get_parameter_source("units") not in (None, ParameterSource.DEFAULT))
     if angles in ("deg", "rad"):
         angles, units = "axes", angles
     if angles == "vectors":
@@ -85,35 +92,8 @@ def locate_aoa(
                              "angles in degrees or radians? use --angles azel (or axes) with --units deg / rad")
     else:
         plausible_angles(u, units)
-        a = np.radians(u) if units == "deg" else u
-        miss = np.isnan(a).any(axis=1)
-        # the ranges of the angles themselves: an elevation beyond +-90 deg or an angle to an axis
-        # outside [0, 180] deg is no direction (a sign or unit mistake), never a measurement
-        if angles == "azel" and d == 3 and a.shape[1] == 2 and (np.abs(a[~miss, 1]) > np.pi / 2 + 1e-9).any():
-            raise InputError(f"bearings: elevations must lie within +-90 deg, got up to "
-                             f"{np.degrees(np.nanmax(np.abs(a[:, 1]))):.4g} deg (column 2 is the elevation)")
-        if angles == "axes" and d == 3 and a.shape[1] == 2 and ((a[~miss] < -1e-9) | (a[~miss] > np.pi + 1e-9)).any():
-            raise InputError("bearings: --angles axes holds the angles to the receiver's x and y axes, each "
-                             "within [0, 180] deg")
-        if angles == "azel":
-            a0 = np.where(np.isnan(a), 0.0, a)
-            if d == 3 and a.shape[1] == 2:
-                u = azel_to_bearings(a0[:, 0], a0[:, 1])
-            elif d == 2 and a.shape[1] == 1:
-                u = azel_to_bearings(a0[:, 0])
-            else:
-                raise InputError(f"--angles azel: expected N x 2 (azimuth, elevation) for 3-D beacons or N x 1 "
-                                 f"(azimuth) for 2-D, got {a.shape} with beacons {b.shape}")
-        else:
-            if d == 3 and a.shape[1] == 2:
-                u = angles_to_bearings(np.where(miss, 0.0, a[:, 0]), np.where(miss, 0.0, a[:, 1])).vectors
-                sign_unknown = True
-            elif d == 2 and a.shape[1] == 1:
-                u = np.column_stack([np.cos(a[:, 0]), np.sin(a[:, 0])])
-            else:
-                raise InputError(f"--angles axes: expected N x 2 (alpha, beta) for 3-D beacons or N x 1 for 2-D, "
-                                 f"got {a.shape} with beacons {b.shape}")
-        u[miss] = np.nan
+        u_raw = u
+        u, sign_unknown = _angles_to_bearings(u_raw, b, angles, units)
     if method == "linear" and d == 3:
         raise InputError("--method linear is the 2-D closed form; use p3p/sol1/sol2/ml in 3-D")
     if method in ("sol1", "sol2", "p3p") and d == 2:
@@ -136,12 +116,20 @@ def locate_aoa(
         from .._checks import check_magnitude
 
         check_magnitude(np.asarray(position_hint), "--hint")
-    if sign_unknown:
-        keep = ~np.isnan(u).any(axis=1)
-        res = solve_aoa(b[keep], u[keep], method=method, sigma=sigma, position_hint=position_hint,
-                        sign_z_unknown=True)
-    else:
-        res = solve_aoa(b, u, method=method, sigma=sigma, position_hint=position_hint)
+    def solve(u: Any, sign_unknown: bool) -> Any:
+        keep = ~np.isnan(u).any(axis=1) if sign_unknown else np.ones(len(u), bool)
+        return solve_aoa(b[keep], u[keep], method=method, sigma=sigma, position_hint=position_hint,
+                         **({"sign_z_unknown": True} if sign_unknown else {}))
+
+    res = solve(u, sign_unknown)
+    if angles != "vectors" and units == "deg" and not units_given and np.nanmax(np.abs(u_raw)) <= 2 * np.pi:
+        try:  # the same angles read as radians: where do they put the receiver?
+            res_rad = solve(*_angles_to_bearings(u_raw, b, angles, "rad"))
+        except SelfcalError:
+            res_rad = None
+        plausible_angle_unit(u_raw, b, res.position, None if res_rad is None else res_rad.position,
+                             rad_fits=res_rad is not None and res_rad.status not in (
+                                 Status.NOT_CONVERGED, Status.FAILED_TEST))
     with staged_outputs():  # the figure and the result together, or neither
         if plot is not None:
             from ..plotting.aoa import plot_pose
@@ -160,6 +148,48 @@ def locate_aoa(
     if res.status in (Status.NOT_CONVERGED, Status.FAILED_TEST):
         click.echo(f"FAIL: pose not trustworthy ({res.message})")
         raise SystemExit(1)
+
+
+def _angles_to_bearings(u: Any, b: Any, angles: str, units: str) -> tuple[Any, bool]:
+    """Bearings (N x d unit vectors, NaN rows missing) from --angles azel / axes in ``units``;
+    and whether the side of the xy plane is unknown (axes)."""
+    import numpy as np
+
+    from ..aoa import angles_to_bearings, azel_to_bearings
+    from ..errors import InputError
+
+    d = b.shape[1]
+    sign_unknown = False
+    a = np.radians(u) if units == "deg" else u
+    miss = np.isnan(a).any(axis=1)
+    # the ranges of the angles themselves: an elevation beyond +-90 deg or an angle to an axis
+    # outside [0, 180] deg is no direction (a sign or unit mistake), never a measurement
+    if angles == "azel" and d == 3 and a.shape[1] == 2 and (np.abs(a[~miss, 1]) > np.pi / 2 + 1e-9).any():
+        raise InputError(f"bearings: elevations must lie within +-90 deg, got up to "
+                         f"{np.degrees(np.nanmax(np.abs(a[:, 1]))):.4g} deg (column 2 is the elevation)")
+    if angles == "axes" and d == 3 and a.shape[1] == 2 and ((a[~miss] < -1e-9) | (a[~miss] > np.pi + 1e-9)).any():
+        raise InputError("bearings: --angles axes holds the angles to the receiver's x and y axes, each "
+                         "within [0, 180] deg")
+    if angles == "azel":
+        a0 = np.where(np.isnan(a), 0.0, a)
+        if d == 3 and a.shape[1] == 2:
+            u = azel_to_bearings(a0[:, 0], a0[:, 1])
+        elif d == 2 and a.shape[1] == 1:
+            u = azel_to_bearings(a0[:, 0])
+        else:
+            raise InputError(f"--angles azel: expected N x 2 (azimuth, elevation) for 3-D beacons or N x 1 "
+                             f"(azimuth) for 2-D, got {a.shape} with beacons {b.shape}")
+    else:
+        if d == 3 and a.shape[1] == 2:
+            u = angles_to_bearings(np.where(miss, 0.0, a[:, 0]), np.where(miss, 0.0, a[:, 1])).vectors
+            sign_unknown = True
+        elif d == 2 and a.shape[1] == 1:
+            u = np.column_stack([np.cos(a[:, 0]), np.sin(a[:, 0])])
+        else:
+            raise InputError(f"--angles axes: expected N x 2 (alpha, beta) for 3-D beacons or N x 1 for 2-D, "
+                             f"got {a.shape} with beacons {b.shape}")
+    u[miss] = np.nan
+    return u, sign_unknown
 
 
 @reproduce.command("aoa")
