@@ -463,7 +463,7 @@ def _length_unit_mistake(top: float, name: str) -> None:
     if top > MAX_PLAUSIBLE_SPAN_M:
         raise InputError(
             f"{name}: the largest range is {top:.4g}, {top / 1000:.3g} km if these are metres -- beyond any "
-            f"ranging network ({MAX_PLAUSIBLE_SPAN_M / 1000:g} km); are they {guess}? "
+            f"ranging network ({MAX_PLAUSIBLE_SPAN_M / 1000:g} km); are they in another unit, {guess}? "
             f"Confirm metres with --unit m")
     warnings.warn(
         f"{name}: the largest range is {top:.4g} m, beyond a room or hall ({ROOM_SPAN_M:g} m); if these are "

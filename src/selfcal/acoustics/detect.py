@@ -311,7 +311,7 @@ def detect_arrivals(
     -------
     Detections
     """
-    from tqdm import tqdm
+    from ..progress import stage
 
     sig = np.asarray(signals)
     if sig.ndim != 2:
@@ -348,7 +348,7 @@ def detect_arrivals(
     noise = np.zeros(I)
     rows = np.arange(E)
     P = np.conj(np.fft.rfft(probe.samples, n=n_fft)) * _band_weight(n_fft, fs, probe.band)
-    for i in tqdm(range(I), desc="detect", unit="rx", disable=None if progress else True, leave=False):
+    for i in stage.iterate(range(I), "detect", unit="receivers", show=None if progress else False):
         if lens[i] <= 0 or not np.any(sig[i, : lens[i]]):
             continue  # a dead input: nothing to detect
         valid = (idx >= 0) & (idx < lens[i])

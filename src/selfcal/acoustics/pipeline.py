@@ -283,6 +283,7 @@ def run_pipeline(
     >>> res.success, res.receivers.shape  # doctest: +SKIP
     (True, (20, 3))
     """
+    from ..progress import stage
     from .detect import detect_recording, redetect_arrivals
     from .recording import MAX_SPEED_OF_SOUND, load_recording
 
@@ -332,9 +333,11 @@ def run_pipeline(
         return t, s
 
     t0, c0 = time.perf_counter(), time.process_time()
-    robust = robust_calibrate(det.toa, std_e, es, J, speed=speed, dim=dim, heights=hz, rng=rng,
-                              noise=noise if np.isfinite(noise) else None, redetect=redetect,
-                              names=(setup.receivers, setup.senders), units=unit_pairs(setup.receivers, setup.senders))
+    with stage(f"calibrate {len(setup.receivers)} x {J}", show=None if progress else False):
+        robust = robust_calibrate(det.toa, std_e, es, J, speed=speed, dim=dim, heights=hz, rng=rng,
+                                  noise=noise if np.isfinite(noise) else None, redetect=redetect,
+                                  names=(setup.receivers, setup.senders),
+                                  units=unit_pairs(setup.receivers, setup.senders))
     sol, plan, notes = robust.solution, robust.planarity, list(robust.notes)
     timings["calibrate"] = time.perf_counter() - t0
     cpu["calibrate"] = time.process_time() - c0

@@ -130,7 +130,8 @@ def simulate_conference(
         path, jitter included) and ``rounds``.
     """
     import pyroomacoustics as pra
-    from tqdm import tqdm
+
+    from ..progress import stage
 
     gen = as_rng(rng)
     check_positive(rt60, "rt60", allow_none=False)
@@ -191,7 +192,7 @@ def simulate_conference(
     n_total = int(np.ceil((times[-1] + spacing) * fs))
     signals = np.zeros((U, n_total), dtype=np.float32)
     x = prb.samples
-    for j in tqdm(range(U), desc="simulate", unit="sender", disable=None if progress else True, leave=False):
+    for j in stage.iterate(range(U), "simulate", unit="senders", show=None if progress else False):
         rirs = [room_rir[i][j] for i in range(U)]
         lh = max(len(h) for h in rirs)
         h = np.zeros((U, lh))

@@ -9,7 +9,6 @@ import click
 from click.core import ParameterSource
 
 from ..errors import SelfcalError
-
 from ._base import backend_option, handle_errors, locate, reproduce, scheduler_option, seed_option
 from ._options import GRID_STEP_M, SIGMA_DEG
 

@@ -77,6 +77,7 @@ def toa_command(matrix: Path, speed: float | None, offsets: str | None, dim: str
     from .._checks import plausible_matrix_scale
     from ..errors import InputError
     from ..io import read_table, staged_outputs, write_json
+    from ..progress import stage
     from ..toa.frame import FramedToaResult, apply_frame, fit_known, parse_known, read_known_csv
     from ..toa.recipes import apply_recipe
     from ._common import enrich_payload, to_metres, write_nodes_csv
@@ -98,7 +99,8 @@ def toa_command(matrix: Path, speed: float | None, offsets: str | None, dim: str
     known_table = None
     if known is not None:
         known_table = read_known_csv(known, 2 if dim == "2" else 3)  # validated before the solve
-    rec = apply_recipe(recipe, M, common_offset=common_offset, **kw)
+    with stage(f"fit {M.shape[0]} x {M.shape[1]}"):
+        rec = apply_recipe(recipe, M, common_offset=common_offset, **kw)
     res: Any = rec.result
     framed: FramedToaResult | None = None
     d_out = np.asarray(res.receivers).shape[1]
@@ -112,9 +114,11 @@ def toa_command(matrix: Path, speed: float | None, offsets: str | None, dim: str
     if known_table is not None and known is not None:
         I, J = M.shape
         nodes = parse_known(_redim(known_table, known, d_out), I, J, d_out)
-        framed = fit_known(M_fit, res, nodes, offsets=off_used, loss=loss_used, noise=noise)
+        with stage(f"fit with {len(nodes)} known nodes"):
+            framed = fit_known(M_fit, res, nodes, offsets=off_used, loss=loss_used, noise=noise)
     elif frame is not None:
-        framed = apply_frame(res, frame, matrix=M_fit, offsets=off_used, loss=loss_used)
+        with stage("fit in the --frame"):
+            framed = apply_frame(res, frame, matrix=M_fit, offsets=off_used, loss=loss_used)
     if framed is not None:
         res = framed.result
     payload = enrich_payload(dict(res.to_dict()), names={"receiver_names": table.row_names,

@@ -29,7 +29,6 @@ import io
 import math
 import os
 import re
-import sys
 from collections.abc import Callable, Iterable, Sequence
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
@@ -42,6 +41,7 @@ from .._checks import TRIAL_BYTES, check_choice, guard_size
 from .._result import jsonable
 from ..errors import InputError
 from ..io import atomic_write_bytes, write_json
+from ..progress import enabled as progress_enabled
 
 __all__ = ["run_sweep", "write_rows", "BACKENDS", "CONNECT_TIMEOUT_S", "check_scheduler_address"]
 
@@ -185,7 +185,7 @@ def run_sweep(
     guard_size(float(runs) * max(len(grid), 1) * TRIAL_BYTES, f"{runs} runs x {len(grid)} settings")
     tasks = _tasks(grid, int(runs), int(seed))
     rows: list[dict[str, Any] | None] = [None] * len(tasks)
-    show = bool(progress) and sys.stderr.isatty()
+    show = bool(progress) and progress_enabled()
     bar = tqdm(total=len(tasks), desc=desc, disable=not show, leave=False)
 
     def store(k0: int, out: list[dict[str, Any]]) -> None:

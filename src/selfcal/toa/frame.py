@@ -44,7 +44,7 @@ from numpy.typing import NDArray
 
 from ..errors import DegenerateGeometryError, InputError
 from ..geometry import rotate_covariances
-from .known import fit_known
+from .known import align_known, fit_known
 from .nodes import (
     FramedToaResult,
     FrameInfo,
@@ -62,6 +62,7 @@ __all__ = [
     "FrameInfo",
     "FramedToaResult",
     "KnownNode",
+    "align_known",
     "apply_frame",
     "calibrate_in_frame",
     "fit_known",

@@ -20,7 +20,7 @@ from numpy.typing import NDArray
 from ..errors import DegenerateGeometryError
 from .nodes import FramedToaResult, FrameInfo, KnownNode, node_positions, refit_data, replace_fields
 
-__all__ = ["fit_known"]
+__all__ = ["fit_known", "align_known"]
 
 Array = NDArray[np.float64]
 
@@ -128,6 +128,64 @@ def fit_known(
     after = float(np.sqrt(np.mean(np.sum((fitted - ref) ** 2, axis=1))))
     info = _known_info(usable, rank, d, before, after, dropped)
     return FramedToaResult(out, info)
+
+
+def align_known(result: Any, known: Sequence[KnownNode]) -> FramedToaResult:
+    """Move a calibration onto known node positions by a rigid motion only (no refit).
+
+    Step 1 of :func:`fit_known` on its own, for results without a range matrix to refit
+    (the acoustic pipeline, whose model is the event times): the weighted least-squares
+    rigid motion (Kabsch; weights ``1 / std^2``; a mirror image only when the known nodes
+    span the space) applied to every position, the covariances rotated with it. The fit
+    itself is unchanged; :class:`FrameInfo` says what the known nodes leave undetermined.
+
+    Parameters
+    ----------
+    result : any result with ``receivers``, ``sources`` and their covariances (dataclass).
+    known : from :func:`selfcal.toa.frame.parse_known`.
+
+    Returns
+    -------
+    :class:`FramedToaResult` in the known nodes' frame (``known_rms`` = ``known_rms_fit``:
+    the RMS distance, m, of the moved estimates from the known positions).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from selfcal.toa import solve_toa
+    >>> from selfcal.toa.frame import parse_known
+    >>> from selfcal.toa.nls import toa_model
+    >>> rng = np.random.default_rng(0)
+    >>> r, s = rng.uniform(0, 5, (6, 3)), rng.uniform(0, 5, (8, 3))
+    >>> res = solve_toa(toa_model(r, s), rng=0)
+    >>> out = align_known(res, parse_known({f"r{i}": r[i] for i in range(4)}, 6, 8, 3))
+    >>> bool(np.allclose(out.receivers, r, atol=1e-6))
+    True
+    """
+    from ..geometry import rotate_covariances
+
+    R0 = np.asarray(result.receivers, float)
+    S0 = np.asarray(result.sources, float)
+    d = R0.shape[1]
+    usable = [k for k in known if np.isfinite(node_positions(result, k.kind)[k.index]).all()]
+    dropped = [k.name for k in known if k not in usable]
+    if not usable:
+        raise DegenerateGeometryError("none of the known nodes has an estimated position", kind="degenerate-frame")
+    est = np.array([node_positions(result, k.kind)[k.index] for k in usable])
+    ref = np.array([k.position for k in usable], float)
+    stds = np.array([k.std if k.std is not None else 0.0 for k in usable])
+    rank, spread = _affine_rank(ref)
+    tiny = max(1e-3 * spread, 1e-9) if spread > 0 else 1e-3
+    Rm, t = _rigid(est, ref, 1.0 / np.maximum(stds, tiny * 1e-3) ** 2, allow_reflection=rank == d)
+    rms = float(np.sqrt(np.mean(np.sum((est @ Rm.T + t - ref) ** 2, axis=1))))
+    fields: dict[str, Any] = {"receivers": R0 @ Rm.T + t, "sources": S0 @ Rm.T + t,
+                              "method": f"{result.method}+aligned({len(usable)} known)"}
+    for key in ("receiver_cov", "source_cov"):
+        cov = getattr(result, key, None)
+        if cov is not None:
+            fields[key] = rotate_covariances(np.asarray(cov, float), Rm)
+    out = replace_fields(result, **fields)
+    return FramedToaResult(out, _known_info(usable, rank, d, rms, rms, dropped))
 
 
 def _known_info(usable: Sequence[KnownNode], rank: int, d: int, before: float, after: float,
