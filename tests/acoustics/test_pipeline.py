@@ -139,6 +139,7 @@ def test_pipeline_refuses_confident_z_on_flat_desks(tmp_path):
     out = tmp_path / "result.json"
     res = CliRunner().invoke(main, ["pipeline", str(rec), "--out", str(out), "--dim", "3"])
     assert res.exit_code == 2 and "near-planar" in res.output and not out.exists()
+    (rec / "heights.json").unlink()  # (with --dim auto the pipeline would use the recording's heights)
     res = CliRunner().invoke(main, ["pipeline", str(rec), "--out", str(out)])  # auto: falls back to 2-D
     assert res.exit_code == 0, res.output
     data = json.loads(out.read_text())

@@ -165,10 +165,10 @@ def test_plot_and_out_are_committed_together(tmp_path: Path, matrix_file: Path, 
     monkeypatch.setattr(sio.os, "fsync", fsync)
     d = tmp_path / "o"
     d.mkdir()
-    res = invoke(["calibrate", "toa", matrix_file, "--out", d / "r.json", "--plot", d / "new" / "r.png"])
+    res = invoke(["calibrate", "toa", matrix_file, "--out", d / "r.json", "--plot", d / "r.png"])
     code, _, err = check_contract(res, {}, {})
     assert code == 2 and "no space left" in err
-    assert list(d.iterdir()) == []  # no JSON, no PNG, no temporary, not even the new folder
+    assert list(d.iterdir()) == []  # no JSON, no PNG, no temporary (a missing folder is refused up front)
 
 
 def test_plot_format_from_suffix_and_unknown_suffix(tmp_path: Path, matrix_file: Path) -> None:

@@ -88,6 +88,9 @@ class SelfcalGroup(click.Group):
         from ..progress import set_quiet
 
         set_quiet(quiet)  # progress lines (selfcal.progress) only on a terminal, never under -q
+        from ..io.outputs import written_files
+
+        written_files(reset=True)
         code: int = 0
         real_stdout = sys.stdout
         captured = io.StringIO()
@@ -143,11 +146,53 @@ class SelfcalGroup(click.Group):
             fails = [ln for ln in captured.getvalue().splitlines() if ln.startswith("FAIL")]
             for ln in fails:
                 real_stdout.write(ln + "\n")
+        if code in (0, 1) and not quiet:
+            _report_written(written_files(reset=True))
         if code in (0, 1):
             _report_warnings(caught, verbose=verbose, quiet=quiet)
         if standalone_mode:
             sys.exit(code)
         return code
+
+
+def wrote_line(paths: list[str], *, max_per_folder: int = 4) -> str:
+    """``wrote a.json, a.csv, map.png`` naming every file written; a folder holding more than
+    ``max_per_folder`` of them is named once with its count (``rec/ (22 files)``).
+
+    Examples
+    --------
+    >>> wrote_line(["out/r.json", "out/r.csv", "-"])
+    'wrote out/r.json, out/r.csv, standard output'
+    >>> wrote_line([f"rec/rx_{i}.wav" for i in range(9)] + ["r.json"])
+    'wrote rec/ (9 files), r.json'
+    """
+    seen: list[str] = []
+    for p in paths:
+        if p not in seen:
+            seen.append(p)
+    per: dict[str, int] = {}
+    for p in seen:
+        if p != "-":
+            per[os.path.dirname(p)] = per.get(os.path.dirname(p), 0) + 1
+    out: list[str] = []
+    for p in seen:
+        if p == "-":
+            out.append("standard output")
+            continue
+        d = os.path.dirname(p)
+        if per[d] > max_per_folder:
+            item = f"{d}{os.sep} ({per[d]} files)"
+            if item not in out:
+                out.append(item)
+        else:
+            out.append(p)
+    return "wrote " + ", ".join(out)
+
+
+def _report_written(paths: list[str]) -> None:
+    """The console's last line: every file the command wrote (stderr when stdout held one)."""
+    if paths:
+        click.echo(wrote_line(paths), err="-" in paths)
 
 
 def _add_short_out(group: click.Group) -> None:
@@ -218,6 +263,10 @@ def check_command_outputs(ctx: click.Context | None, kwargs: Mapping[str, Any]) 
         if os.fspath(value) == "-":
             dashes.append(value)
         real = check_output_path(value, kind=kind, label=f"{opt} {os.fspath(value)}")
+        parent = Path(os.fspath(value)).parent
+        if kind == "file" and os.fspath(value) != "-" and not parent.exists():
+            # a file in a folder that is not there is a typo far more often than a wish for new folders
+            raise InputError(f"{opt} {os.fspath(value)}: the folder {parent} does not exist (create it first)")
         if param.name == "plot" and kind == "file" and os.fspath(value) != "-":
             suffix = Path(os.fspath(value)).suffix.lower().lstrip(".")
             if suffix and suffix not in IMAGE_FORMATS:
@@ -428,7 +477,7 @@ def write_nodes_csv(path: Any, payload: Mapping[str, Any],
         S = np.full(P.shape, np.nan) if S is None else np.atleast_2d(np.asarray(S, dtype=float))
         names = payload.get(names_key) if names_key else None
         for i in range(P.shape[0]):
-            name = names[i] if names is not None and i < len(names) else f"{kind}{i + 1}"
+            name = names[i] if names is not None and i < len(names) else f"{kind}{i}"  # 0-based, as --known / --frame (r0) and the JSON
             coords = list(P[i]) + [np.nan] * (d - P.shape[1])
             stds = list(S[i]) if S.shape == P.shape else [np.nan] * P.shape[1]
             rows.append([kind, name, *coords, *(stds + [np.nan] * (d - len(stds)))])

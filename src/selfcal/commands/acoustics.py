@@ -118,7 +118,7 @@ def simulate_conference_cmd(units: int, room_text: str, rt60: float, snr: float,
                f"image order {truth['max_order']})")
 
 
-def summarise(result: Any, errors: dict[str, Any] | None) -> list[str]:
+def summarise(result: Any, errors: dict[str, Any] | None, framed: Any = None) -> list[str]:
     """Lines of the summary table printed by ``selfcal pipeline`` / ``selfcal demo``.
 
     The calibration's own verdict (``PASS`` / ``FAIL``, from its error bars and residual test)
@@ -156,6 +156,11 @@ def summarise(result: Any, errors: dict[str, Any] | None) -> list[str]:
                      f"delay+onset std max {np.nanmax(bars.pair_std) * 1e6:.3g} us (1 sigma)")
     for note in result.notes:
         lines.append(f"note               {note}")
+    if framed is not None:
+        lines.append(f"frame              {framed.frame.message}")
+        if framed.frame.known_rms is not None:
+            lines.append(f"known units        RMS {framed.frame.known_rms * 100:.3g} cm between the known and the "
+                         "moved positions")
     if errors is not None:
         tag = " (horizontal)" if errors["horizontal_only"] else ""
         lines += [
@@ -251,9 +256,17 @@ def pipeline_errors(result: Any, directory: Path, truth: dict[str, Any] | None =
               help="report.html: one self-contained HTML report (map, per-unit table, residuals, outliers, verdict); "
                    "a path not ending in .html is a folder for report.html, map.png, timing.png, report.json.")
 @click.option("--heights", "heights", type=click.Path(dir_okay=False, path_type=Path), default=None,
-              help='Known heights JSON {"receivers": [...], "senders": [...]} (m): 2-D + heights.')
+              help='Known heights JSON {"receivers": [...], "senders": [...]} (m): 2-D + heights. '
+                   "Default with --dim auto: the recording's own heights.json when it has one.")
 @click.option("--dim", "dim", type=click.Choice(["auto", "2", "3"]), default="auto", show_default=True,
               help="auto: 3-D unless the layout is near-planar (then 2-D).")
+@click.option("--known", "known", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="CSV name,x,y,z[,std] of units with known positions (a unit name = its microphone; "
+                   "r<i> / s<j> = microphone i / loudspeaker j, 0-based): the result, map and report are "
+                   "moved onto them (rigid motion; the fit is unchanged).")
+@click.option("--frame", "frame", default=None, metavar="origin=A,x=B,xy=C[,z=D]",
+              help="Frame by reference units: A at the origin, B on +x, C in the xy half-plane (y>0), "
+                   "D above (z>0).")
 @click.option("--seed", type=SEED, default=0, show_default=True, help="Seed of the solver's random starts.")
 @jitter_options(None, what="in the residual test's timing noise (default: setup.json's declared "
                            "clock_jitter, else 0)")
@@ -266,7 +279,7 @@ def pipeline_errors(result: Any, directory: Path, truth: dict[str, Any] | None =
 def pipeline_cmd(directory: Path, out: Path, plot: Path | None, report: Path | None, heights: Path | None,
                  dim: str, seed: int, jitter: float | None, temperature: float | None = None,
                  humidity: float | None = None, speed: float | None = None, jitter_us: float | None = None,
-                 csv_out: Path | None = None) -> None:
+                 csv_out: Path | None = None, known: Path | None = None, frame: str | None = None) -> None:
     """Recordings -> arrival times -> delays -> positions (paper 004's three stages).
 
     Exits with status 1 and ``FAIL:`` lines when the calibration fails its residual test or
@@ -274,14 +287,15 @@ def pipeline_cmd(directory: Path, out: Path, plot: Path | None, report: Path | N
     written all the same (committed together, before the exit).
     """
     if _pipeline_outputs(directory, out, plot, report, heights, dim, seed, jitter, temperature, humidity, speed,
-                         jitter_us, csv_out):
+                         jitter_us, csv_out, known, frame):
         raise SystemExit(1)
 
 
 @all_or_nothing
 def _pipeline_outputs(directory: Path, out: Path, plot: Path | None, report: Path | None, heights: Path | None,
                       dim: str, seed: int, jitter: float | None, temperature: float | None, humidity: float | None,
-                      speed: float | None, jitter_us: float | None, csv_out: Path | None) -> bool:
+                      speed: float | None, jitter_us: float | None, csv_out: Path | None,
+                      known: Path | None = None, frame: str | None = None) -> bool:
     """Run the pipeline and stage every output; True when the calibration failed (exit 1)."""
     from ..acoustics.pipeline import run_pipeline
     from ..acoustics.recording import speed_from_air
@@ -300,11 +314,35 @@ def _pipeline_outputs(directory: Path, out: Path, plot: Path | None, report: Pat
     elif humidity is not None:
         raise InputError("--humidity needs --temperature")
     truth = read_truth(directory) if directory.is_dir() else None  # validated before the (slow) run
+    if known is not None and frame is not None:
+        raise InputError("--known and --frame are exclusive (known positions already define the frame)")
+    if known is not None:
+        from ..toa.frame import read_known_csv
+
+        read_known_csv(known, 2 if dim == "2" else 3)  # validated before the (slow) run
+    if frame is not None:
+        from ..toa.frame import parse_frame
+
+        parse_frame(frame)
+    own = directory / "heights.json" if directory.is_dir() else None
+    if heights is None and own is not None and own.is_file():
+        if dim == "auto":  # an explicit --dim asks for the blind model
+            heights = own
+            click.echo(f"heights            {own} (the recording's own known heights: horizontal positions "
+                       "solved, z given; --heights FILE for others, --dim 2 / 3 for a blind fit)")
+        else:
+            click.echo(f"heights            {own} not used: --dim {dim} asks for the blind {dim}-D fit")
     result = run_pipeline(directory, dim=dim if dim == "auto" else int(dim), heights=heights, rng=seed,
                           jitter=jitter, speed_of_sound=speed)
+    framed = _room_frame(result, known, frame) if (known is not None or frame is not None) else None
+    if framed is not None:
+        result = framed.result
     errors = pipeline_errors(result, directory, truth)
+    room = truth.get("room") if truth is not None else None  # the simulation's room: the map's outline
     payload = enrich_payload(result.to_dict(), units={"positions": "m", "offsets": "s", "residual_rms": "s",
                                                       "toa_matrix": "s", "covariances": "m^2"})
+    if framed is not None:
+        payload["frame"] = framed.frame.to_dict()
     if errors is not None:
         payload["errors"] = {k: v for k, v in errors.items() if not k.startswith(("aligned_", "true_"))}
     if csv_out is not None:
@@ -313,20 +351,40 @@ def _pipeline_outputs(directory: Path, out: Path, plot: Path | None, report: Pat
     if report is not None:
         from ..acoustics.report import write_html_report
 
-        lines = summarise(result, errors)
+        lines = summarise(result, errors, framed)
         if report.suffix.lower() in (".html", ".htm"):
             if report.exists() and not report.is_file():
                 raise InputError(f"{report}: exists and is not a regular file; choose another --report")
             write_html_report(result, report, errors, summary=lines)
         else:
-            plot_map(result, report / "map.png", errors)
+            plot_map(result, report / "map.png", errors, room=room)
             plot_timing(result, report / "timing.png", errors)
             write_json(report / "report.json", {"summary": lines, **payload})
             write_html_report(result, report / "report.html", errors, summary=lines)
     if plot is not None:
-        plot_map(result, plot, errors)
+        plot_map(result, plot, errors, room=room)
     write_json(out, payload)
-    for line in summarise(result, errors):
+    for line in summarise(result, errors, framed):
         click.echo(line)
     return bool(result.failed)
+
+
+def _room_frame(result: Any, known: Path | None, frame: str | None) -> Any:
+    """The pipeline's result moved into the room's frame (``--known`` / ``--frame``).
+
+    Unit names name microphones (a unit's microphone and loudspeaker share its name);
+    ``r<i>`` / ``s<j>`` name microphone i / loudspeaker j (0-based).
+    """
+    import numpy as np
+
+    from ..toa.frame import align_known, apply_frame, parse_known, read_known_csv
+
+    rn = tuple(result.receiver_names)
+    sn = tuple(n if n not in rn else f"\0{n}" for n in result.sender_names)  # shared names: the microphone
+    I, d = np.asarray(result.receivers).shape
+    J = np.asarray(result.sources).shape[0]
+    if known is not None:
+        nodes = parse_known(read_known_csv(known, d), I, J, d, receiver_names=rn, source_names=sn)
+        return align_known(result, nodes)
+    return apply_frame(result, str(frame), receiver_names=rn, source_names=sn)
 

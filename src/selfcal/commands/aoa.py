@@ -133,7 +133,7 @@ def locate_aoa(
         if plot is not None:
             from ..plotting.aoa import plot_pose
 
-            plot_pose(b, u, res, plot)
+            plot_pose(b, u, res, plot, names=btab.row_names)
         write_json(out, enrich_payload(res.to_dict(), names={"beacon_names": btab.row_names},
                                        units={"position": "m",
                                               "rotation": "columns = receiver axes in the global frame",
@@ -264,4 +264,3 @@ def reproduce_aoa(
             + "".join(f"{table[m][key]:9.2f}" for m in METHODS)
         )
     click.echo("solved        " + " " * 22 + "".join(f"{table[m]['solved_fraction']:9.2f}" for m in METHODS))
-    click.echo(f"wrote {outdir}/aoa_reproduction.json and figures")

@@ -62,4 +62,3 @@ def reproduce_delays(runs: int, faithful_runs: int, max_iter: int, cap_120: int,
     for row in summary["timing"]:
         click.echo(f"{row['units']:4d} units {row['method']:9s}: median {row['seconds']['median']:.3g} s "
                    f"(to convergence, extrapolated: {row['extrapolated_seconds']['median']:.3g} s)")
-    click.echo(f"wrote {out / 'delays.json'} and figures in {out}")

@@ -70,13 +70,13 @@ def demo_cmd(out: Path, seed: int, units: int, room_text: str, layout: str, rt60
     payload["demo"] = {"units": units, "room": list(room), "layout": layout, "rt60": rt60, "snr_db": snr,
                        "clock_jitter_us": jitter, "seed": seed, "image_order": truth["max_order"]}
     with staged_outputs():
-        plot_map(result, out / "map.png", errors, title=f"demo: {units} units, {layout}, seed {seed}")
+        plot_map(result, out / "map.png", errors, title=f"demo: {units} units, {layout}, seed {seed}",
+                 room=truth.get("room"))
         plot_timing(result, out / "timing.png", errors)
         write_json(out / "result.json", payload)
     click.echo("-" * 78)
     for line in summarise(result, errors):
         click.echo(line)
     click.echo("-" * 78)
-    click.echo(f"wrote {out / 'result.json'}, {out / 'map.png'}, {out / 'timing.png'}")
     if result.failed or (errors is not None and not errors["passed"]):
         raise SystemExit(1)

@@ -181,7 +181,7 @@ def farfield_command(matrix: tuple[Path, ...], out: Path, speed: float | None, d
         if plot is not None:
             from ..plotting.farfield import plot_farfield
 
-            plot_farfield(res, plot)
+            plot_farfield(res, plot, speed=out_dict.get("speed"), names=row_names)
         write_json(out, payload)
         if csv_out is not None:
             write_nodes_csv(csv_out, payload, [("position", "positions", "position_names")])

@@ -85,7 +85,6 @@ def run_cmd(log_path: Path, mode: str, prior: str, out: Path, plot: Path | None,
         plot_trajectories(res.poses, log.anchors, plot / f"trajectories_{mode}.png", names=log.names,
                           truth=log.states)
     write_json(out, d)
-    click.echo(f"wrote {out}")
     if not res.success:  # exit 1 says it failed its own test; returning (not sys.exit) commits the files
         click.echo(f"FAIL: {res.method}: {res.message}")
         return 1
@@ -140,7 +139,6 @@ def plaza_cmd(path: Path, out: Path, method: str, csv_path: Path | None, tum_pat
     for m, d in s["methods"].items():
         click.echo(f"{m}: position RMSE {d['position_rmse']:.3f} m, heading RMSE {d['heading_rmse_deg']:.2f} deg, "
                    f"scale {', '.join(f'{v:.3f}' for v in d['scale'])}, {d['seconds']:.1f} s")
-    click.echo(f"wrote {out}")
     if not main.success:
         click.echo(f"FAIL: {main.method}: {main.message}")  # stdout, like every FAIL line (-q keeps it)
         sys.exit(1)

@@ -47,7 +47,7 @@ def _auto_available() -> bool:
               show_default=True,
               help="moving-tag recipe with offsets none: 'test' adds one range offset common to every "
                    "entry (a UWB antenna delay) when a block jackknife t test over time blocks finds it "
-                   "(p < 1e-3); 'free' = never.")
+                   "(p < 0.05); 'free' = never.")
 @click.option("--known", "known", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="CSV name,x,y,z[,std] of nodes with known positions (r<i>, s<j> or a receiver "
                    "index); they constrain the fit and set the frame.")
@@ -134,7 +134,7 @@ def toa_command(matrix: Path, speed: float | None, offsets: str | None, dim: str
         if plot is not None:
             from ..plotting.toa import plot_toa
 
-            plot_toa(res, plot, user_frame=framed is not None)
+            plot_toa(res, plot, user_frame=framed is not None, names=(table.row_names, table.col_names))
         write_json(out, payload)
         if csv_out is not None:
             write_nodes_csv(csv_out, payload, [("receiver", "receivers", "receiver_names"),
@@ -177,7 +177,6 @@ def toa_command(matrix: Path, speed: float | None, offsets: str | None, dim: str
     if det is not None and det.n_undetermined:
         lines.append(f"  undetermined: {det.n_undetermined} of {det.tested} nodes have a 95 % confidence region "
                      f"larger than their node set ({det.names()})")
-    lines.append(f"  wrote {out}" + (f" and {plot}" if plot is not None else ""))
     click.echo("\n".join(lines))
     if not ok:
         click.echo(f"FAIL: calibration not trustworthy ({why})")

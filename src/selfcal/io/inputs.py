@@ -27,7 +27,7 @@ from ..errors import InputError
 from ._paths import _is_dash, _kind_name, _oserror_text
 
 #: Cell texts read as a missing value (case-insensitive), besides the empty field.
-MISSING_TOKENS = frozenset({"", "na", "nan", "n/a", "null", "none", "-nan", "+nan"})
+MISSING_TOKENS = frozenset({"", "na", "nan", "n/a", "#n/a", "null", "none", "-nan", "+nan"})  # #N/A: Excel
 
 # strict decimal number: no underscores, no hex, no "infinity" spelled out
 _NUMBER = re.compile(r"[+-]?(?:\d+(?:\.\d*)?|\.\d+)(?:[eE][+-]?\d+)?\Z", re.ASCII)  # linear time
@@ -127,6 +127,12 @@ def _split(lines: list[str], delim: str | None) -> list[list[str]]:
         csv.field_size_limit(old)
 
 
+
+def _is_comment(line: str) -> bool:
+    """A ``#`` comment line -- but not a data row whose first cell is Excel's ``#N/A``."""
+    t = line.lstrip()
+    return t.startswith("#") and not t[:4].upper() == "#N/A"
+
 def read_table(path: str | os.PathLike[str], name: str | None = None) -> Table:
     """Read a numeric matrix from ``.npy`` or delimited text, keeping row/column names.
 
@@ -146,7 +152,8 @@ def read_table(path: str | os.PathLike[str], name: str | None = None) -> Table:
     -----
     Text dialects: comma, semicolon (with decimal commas), tab, ``|`` or whitespace separated
     (sniffed; ``np.savetxt`` output loads), UTF-8 with or without BOM, LF or CRLF, blank and
-    ``#`` comment lines skipped. Missing: empty, ``NA``, ``NaN``, ``nan``, ``N/A``, ``null``.
+    ``#`` comment lines skipped (not a line starting with Excel's ``#N/A``). Missing: empty,
+    ``NA``, ``NaN``, ``nan``, ``N/A``, ``#N/A`` (Excel), ``null``.
     A first row with a non-numeric value column is a header; a first column whose cells are
     not numbers is a column of row names. Numbers are strict decimals: ``1_0``, ``0x10`` and
     the like are refused with the row and column named. A 1-D input becomes one column.
@@ -180,7 +187,7 @@ def read_table(path: str | os.PathLike[str], name: str | None = None) -> Table:
     except UnicodeDecodeError as exc:
         raise InputError(f"{label}: not UTF-8 text (byte {exc.start})") from None
     numbered = [(i + 1, ln) for i, ln in enumerate(text.splitlines())]
-    numbered = [(i, ln) for i, ln in numbered if ln.strip() and not ln.lstrip().startswith("#")]
+    numbered = [(i, ln) for i, ln in numbered if ln.strip() and not _is_comment(ln)]
     if not numbered:
         raise InputError(f"{label}: the file is empty")
     lines = [ln for _, ln in numbered]

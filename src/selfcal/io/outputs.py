@@ -36,6 +36,29 @@ from .._result import jsonable
 from ..errors import InputError, SelfcalError
 from ._paths import _is_dash, _kind_name, _oserror_text
 
+#: Every path committed since the last ``written_files(reset=True)`` (``"-"`` = standard output), in
+#: order: the CLI's last line lists them (:class:`selfcal.commands._common.SelfcalGroup`).
+_WRITTEN: list[str] = []
+
+
+def written_files(*, reset: bool = False) -> list[str]:
+    """The paths written (committed) so far, as given; ``reset`` empties the record afterwards.
+
+    Examples
+    --------
+    >>> import tempfile, pathlib
+    >>> _ = written_files(reset=True)
+    >>> p = pathlib.Path(tempfile.mkdtemp()) / "a.json"
+    >>> write_json(p, {"x": 1})
+    >>> written_files() == [str(p)]
+    True
+    """
+    out = list(_WRITTEN)
+    if reset:
+        _WRITTEN.clear()
+    return out
+
+
 _TMP_PREFIX = ".selfcal-"  # constant-length temporary names: a long target name still fits
 
 
@@ -221,8 +244,11 @@ def _commit(items: Sequence[tuple[str, bytes]]) -> None:
     except BaseException:
         _cleanup(temps, created)
         raise
+    _WRITTEN.extend(raw for raw, _ in files.values())
     for data in to_stdout:
         _write_stdout(data)
+    if to_stdout:
+        _WRITTEN.append("-")
 
 
 def _cleanup(temps: list[tuple[str, Path]], created: list[Path]) -> None:

@@ -15,7 +15,7 @@ from matplotlib.figure import Figure
 from numpy.typing import NDArray
 
 from ._common import finish, new_figure
-from .elements import plot_heatmap
+from .elements import plot_heatmap, tidy_3d_ticks
 
 __all__ = ["plot_pose", "plot_error_surfaces"]
 
@@ -23,7 +23,7 @@ Path = str | os.PathLike[str]
 
 
 def plot_pose(beacons: NDArray[np.float64], bearings: NDArray[np.float64], res: Any,
-              path: Path | None = None) -> Figure:
+              path: Path | None = None, *, names: Sequence[str] | None = None) -> Figure:
     """Beacons, the receiver position, its axes (columns of R) and the measured bearing rays.
 
     A 3-D problem is drawn on 3-D axes; a 2-D one in the plane.
@@ -37,6 +37,8 @@ def plot_pose(beacons: NDArray[np.float64], bearings: NDArray[np.float64], res: 
     res : AoaResult
         ``position`` (d,), m; ``rotation`` (d, d), columns = receiver axes in the global frame.
     path : path, optional
+    names : sequence of str, optional
+        Beacon names (the beacons file's row names; default ``beacon 0``, ``beacon 1``, ...).
 
     Returns
     -------
@@ -60,6 +62,10 @@ def plot_pose(beacons: NDArray[np.float64], bearings: NDArray[np.float64], res: 
         return (v[..., 0], v[..., 1], v[..., 2]) if d == 3 else (v[..., 0], v[..., 1])
 
     ax.scatter(*coords(P), c="C3", marker="s", s=40, label="beacons")
+    labels = list(names) if names else [f"beacon {k}" for k in range(len(P))]
+    for k, name in enumerate(labels[: len(P)]):
+        if np.isfinite(P[k]).all():
+            ax.text(*coords(P[k]), f" {name}", fontsize=7, color="C3")
     ax.scatter(*coords(mm[None]), c="k", s=50, label="receiver")
     for a, (col, name) in enumerate(zip(("r", "g", "b"), "xyz", strict=True)):
         if d == 2 and a == 2:
@@ -76,6 +82,7 @@ def plot_pose(beacons: NDArray[np.float64], bearings: NDArray[np.float64], res: 
     ax.set_ylabel("y [m]")
     if d == 3:
         ax.set_zlabel("z [m]")
+        tidy_3d_ticks(ax)
     else:
         ax.set_aspect("equal")
     ok = res.status.name.lower()

@@ -16,7 +16,14 @@ from numpy.typing import NDArray
 
 from ..acoustics.requirements import TIMING_REQUIREMENT
 from ._common import finish, new_figure
-from .elements import confidence_ellipse, plot_positions, position_views
+from .elements import (
+    confidence_ellipse,
+    draw_room,
+    integer_ticks,
+    note_small_ellipses,
+    plot_positions,
+    position_views,
+)
 
 __all__ = ["plot_map", "plot_timing", "plot_report_map", "plot_residuals", "ellipse_magnification"]
 
@@ -25,8 +32,9 @@ Path = str | os.PathLike[str]
 CHI2_2D_95 = 5.991  # chi-square quantile, 2 dof, 95 %: the ellipse radius in sigmas is its square root
 
 
-def plot_map(result: Any, path: Path | None = None, errors: dict[str, Any] | None = None, title: str = "") -> Figure:
-    """Estimated (and, when known, true) microphones and loudspeakers with 95 % ellipses.
+def plot_map(result: Any, path: Path | None = None, errors: dict[str, Any] | None = None, title: str = "",
+             *, room: Any = None) -> Figure:
+    """Estimated (and, when known, true) microphones and loudspeakers with 95 % ellipses and names.
 
     With ``errors`` the estimate is drawn aligned on the truth, its covariances rotated alike.
     One x-y panel in 2-D (or for ``2d+heights``, where z is given), three views in 3-D.
@@ -39,6 +47,9 @@ def plot_map(result: Any, path: Path | None = None, errors: dict[str, Any] | Non
     errors : dict, optional
         :func:`selfcal.acoustics.scoring.truth_errors` (``aligned_*`` and ``true_*`` arrays).
     title : str
+    room : (L, W, H), optional
+        The room's outline (m), drawn in the frame of the positions (the truth's, or the
+        room's own frame after ``--known`` / ``--frame``).
 
     Returns
     -------
@@ -59,8 +70,12 @@ def plot_map(result: Any, path: Path | None = None, errors: dict[str, Any] | Non
     views = 2 if planar else er.shape[1]
     fig = Figure(figsize=(7.0, 6.5) if views < 3 else (16.0, 5.5))
     for n, (ax, dims) in enumerate(position_views(fig, views)):
-        plot_positions(ax, er, truth=tr, cov=rc, label="microphones", color="C0", marker="o", dims=dims)
+        if room is not None:
+            draw_room(ax, room, dims)
+        plot_positions(ax, er, truth=tr, cov=rc, label="microphones", color="C0", marker="o", dims=dims,
+                       names=result.receiver_names)
         plot_positions(ax, es, truth=ts, cov=sc, label="loudspeakers", color="C3", marker="s", dims=dims)
+        note_small_ellipses(ax, [rc, sc], np.vstack([er, es]), dims)
         if n == 0:
             ax.legend(loc="best", fontsize=8)
             ax.set_title(title or f"{result.method}: positions (95 % ellipses)")
@@ -100,6 +115,7 @@ def plot_timing(result: Any, path: Path | None = None, errors: dict[str, Any] | 
         ax1.plot(result.source_offsets * 1e3, "s", label="onset time (first = 0)")
         ax1.set_ylabel("estimate [ms]")
     ax1.set_xlabel("unit [index]")
+    integer_ticks(ax1.xaxis)
     ax1.legend(fontsize=8)
     names = list(result.timings)
     ax2.bar(names, [result.timings[n] for n in names], color="C2")
@@ -201,6 +217,8 @@ def plot_residuals(z: NDArray[np.float64], path: Path | None = None) -> Figure:
     fig.colorbar(im, ax=ax, label="residual / noise std [-] (grey: missed or excluded)")
     ax.set_xlabel("loudspeaker (sender) [index]")
     ax.set_ylabel("microphone (receiver) [index]")
+    integer_ticks(ax.xaxis)
+    integer_ticks(ax.yaxis)
     ax.set_title("TOA residuals, detected minus modelled")
     ax.set_facecolor("0.8")
     return finish(fig, path)

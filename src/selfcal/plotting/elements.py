@@ -5,6 +5,7 @@ Every element draws on a given Axes and labels the axes it owns with their units
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
@@ -13,7 +14,8 @@ from matplotlib.figure import Figure
 from matplotlib.patches import Ellipse
 from numpy.typing import NDArray
 
-__all__ = ["confidence_ellipse", "plot_positions", "position_views", "plot_cdf", "plot_heatmap", "AXIS_NAMES"]
+__all__ = ["confidence_ellipse", "plot_positions", "position_views", "plot_cdf", "plot_heatmap", "AXIS_NAMES",
+           "draw_room", "note_small_ellipses", "integer_ticks", "tidy_3d_ticks"]
 
 AXIS_NAMES = "xyz"
 
@@ -60,8 +62,9 @@ def plot_positions(
     color: str = "C0",
     marker: str = "o",
     dims: tuple[int, int] = (0, 1),
+    names: Sequence[str] | None = None,
 ) -> None:
-    """Scatter (n, d) points in the plane of coordinates ``dims``, with truth and 95 % ellipses.
+    """Scatter (n, d) points in the plane of coordinates ``dims``, with truth, 95 % ellipses and names.
 
     Parameters
     ----------
@@ -76,6 +79,8 @@ def plot_positions(
         Legend label and style.
     dims : (int, int)
         The two coordinates drawn (``(0, 2)`` is the x-z view).
+    names : sequence of str, optional
+        A name beside each point (the names of the JSON / CSV / ``--known``).
     """
     a, b = dims
     est = np.asarray(estimate, float)
@@ -93,9 +98,104 @@ def plot_positions(
             c2 = c[idx]
             if np.all(np.isfinite(c2)) and np.all(np.isfinite(m[[a, b]])):
                 ax.add_patch(confidence_ellipse(m[[a, b]], c2, edgecolor=color, lw=0.8, alpha=0.8))
+    if names is not None:
+        for m, name in zip(est, names, strict=False):
+            if np.all(np.isfinite(m[[a, b]])):
+                ax.annotate(str(name), (m[a], m[b]), fontsize=6, color=color, xytext=(3, 3),
+                            textcoords="offset points", zorder=4)
     ax.set_aspect("equal", adjustable="datalim")
     ax.set_xlabel(f"{AXIS_NAMES[a]} [m]")
     ax.set_ylabel(f"{AXIS_NAMES[b]} [m]")
+
+
+#: A 95 % ellipse whose largest semi-axis is below this fraction of the panel's extent is hidden
+#: under a marker (a 22 pt^2 marker is ~2.5 pt across a ~350 pt panel, i.e. ~0.7 %).
+HIDDEN_ELLIPSE_FRACTION = 0.01
+
+
+def draw_room(ax: Axes, room: Sequence[float], dims: tuple[int, int] = (0, 1)) -> None:
+    """The room's outline ``[0, L] x [0, W] (x [0, H])`` in the plane of ``dims`` (grey rectangle).
+
+    Parameters
+    ----------
+    ax : Axes
+    room : (L, W[, H]) in metres, the frame of the positions drawn (a simulation's truth).
+    dims : (int, int)
+        The coordinates of the panel.
+    """
+    from matplotlib.patches import Rectangle
+
+    a, b = dims
+    try:
+        L = np.asarray(room, dtype=float).ravel()
+    except (TypeError, ValueError):
+        return  # not a room (a malformed truth.json): no outline
+    if max(a, b) >= L.size or not (np.isfinite(L).all() and (L > 0).all()):
+        return
+    room = L
+    ax.add_patch(Rectangle((0.0, 0.0), float(room[a]), float(room[b]), fill=False, edgecolor="0.5", lw=1.0,
+                           ls="-", label="room", zorder=1))
+    ax.update_datalim([(0.0, 0.0), (float(room[a]), float(room[b]))])
+    ax.autoscale_view()
+
+
+def note_small_ellipses(ax: Axes, covs: Sequence[NDArray[np.float64]], points: NDArray[np.float64],
+                        dims: tuple[int, int] = (0, 1)) -> str | None:
+    """Say on the panel when every 95 % ellipse is smaller than the markers (so none is visible).
+
+    Parameters
+    ----------
+    ax : Axes
+    covs : sequence of (n, d, d) arrays
+        The covariances drawn, m^2.
+    points : (n, d) array
+        Every point drawn (for the panel's extent), m.
+    dims : (int, int)
+
+    Returns
+    -------
+    str or None
+        The note written, or None when the ellipses are visible (or there are none).
+    """
+    from scipy.stats import chi2
+
+    semi = []
+    for C in covs:
+        C = np.asarray(C, float)
+        if C.ndim != 3 or C.shape[0] == 0:
+            continue
+        blk = C[:, list(dims)][:, :, list(dims)]
+        ok = np.isfinite(blk).all(axis=(1, 2))
+        if ok.any():
+            semi.append(np.sqrt(chi2.ppf(0.95, 2) * np.linalg.eigvalsh(blk[ok])[:, -1].clip(min=0)))
+    P = np.asarray(points, float)[:, list(dims)]
+    P = P[np.isfinite(P).all(axis=1)]
+    if not semi or len(P) < 2:
+        return None
+    largest = float(np.max(np.concatenate(semi)))
+    extent = float(np.ptp(P, axis=0).max())
+    if not extent > 0 or largest >= HIDDEN_ELLIPSE_FRACTION * extent:
+        return None
+    size = f"{largest * 1000:.2g} mm" if largest < 0.01 else f"{largest * 100:.2g} cm"
+    note = f"95 % ellipses (largest semi-axis {size}) are smaller than the markers"
+    ax.text(0.01, 0.01, note, transform=ax.transAxes, fontsize=7, color="0.3", va="bottom", ha="left")
+    return note
+
+
+def tidy_3d_ticks(ax: Any, n: int = 4) -> None:
+    """At most ``n`` ticks per axis of a 3-D Axes, in a smaller font (dense 3-D tick labels overlap)."""
+    from matplotlib.ticker import MaxNLocator
+
+    for axis in (ax.xaxis, ax.yaxis, ax.zaxis):
+        axis.set_major_locator(MaxNLocator(n))
+    ax.tick_params(labelsize=7)
+
+
+def integer_ticks(axis: Any) -> None:
+    """Ticks at integers only (unit / receiver indices), e.g. ``integer_ticks(ax.xaxis)``."""
+    from matplotlib.ticker import MaxNLocator
+
+    axis.set_major_locator(MaxNLocator(integer=True))
 
 
 def position_views(fig: Figure, dim: int) -> list[tuple[Axes, tuple[int, int]]]:

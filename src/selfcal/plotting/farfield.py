@@ -14,14 +14,15 @@ import numpy as np
 from matplotlib.figure import Figure
 
 from ._common import finish
-from .elements import plot_positions
+from .elements import plot_positions, tidy_3d_ticks
 
 __all__ = ["plot_farfield", "plot_minimal_solver", "plot_initialisation", "plot_convergence", "plot_noise"]
 
 Path = str | os.PathLike[str]
 
 
-def plot_farfield(res: Any, path: Path | None = None) -> Figure:
+def plot_farfield(res: Any, path: Path | None = None, *, speed: float | None = None,
+                  names: Any = None) -> Figure:
     """Positions and transmitter directions of a :class:`~selfcal.tdoa.FarfieldResult`.
 
     Left: the receiver positions (95 % ellipses in 2-D; in 3-D the x-y view coloured by z).
@@ -35,12 +36,21 @@ def plot_farfield(res: Any, path: Path | None = None) -> Figure:
         metres, ``dim``, ``case``, ``degeneracy``, ``position_cov``.
     path : path, optional
         Output file; the format comes from the suffix.
+    speed : float, optional
+        m/s when the matrix held times: the offsets are then drawn in seconds (as the JSON
+        reports them), else in metres.
+    names : sequence of str, optional
+        Receiver names beside the positions (default ``0, 1, ...``, the JSON's order).
 
     Returns
     -------
     Figure
     """
     fig = Figure(figsize=(12.0, 5.2))
+    offsets, off_unit = (np.asarray(res.offsets, float), "m") if speed is None else (
+        np.asarray(res.offsets, float) / float(speed), "s")
+    if names is None or len(names) != len(res.positions):
+        names = [str(i) for i in range(len(res.positions))]
     P, n, d = res.positions, res.directions, res.dim
     ax0 = fig.add_subplot(1, 2, 1)
     if d == 1:
@@ -49,7 +59,7 @@ def plot_farfield(res: Any, path: Path | None = None) -> Figure:
         ax0.set_ylabel("(none) [m]")
         ax0.set_yticks([])
     else:
-        plot_positions(ax0, P, cov=res.position_cov if d == 2 else None, label="positions")
+        plot_positions(ax0, P, cov=res.position_cov if d == 2 else None, label="positions", names=names)
         if d == 3:
             sc = ax0.scatter(P[:, 0], P[:, 1], c=P[:, 2], cmap="viridis", s=25, zorder=4)
             fig.colorbar(sc, ax=ax0, label="z [m]")
@@ -59,23 +69,24 @@ def plot_farfield(res: Any, path: Path | None = None) -> Figure:
     if d == 3:
         u, v = np.mgrid[0 : 2 * np.pi : 37j, 0 : np.pi : 19j]
         ax1.plot_wireframe(np.cos(u) * np.sin(v), np.sin(u) * np.sin(v), np.cos(v), color="0.85", lw=0.4)
-        sc = ax1.scatter(n[:, 0], n[:, 1], n[:, 2], c=res.offsets, cmap="plasma", s=14, depthshade=False)
+        sc = ax1.scatter(n[:, 0], n[:, 1], n[:, 2], c=offsets, cmap="plasma", s=14, depthshade=False)
         ax1.set_xlabel("n_x [unit]")
         ax1.set_ylabel("n_y [unit]")
         ax1.set_zlabel("n_z [unit]")
         ax1.set_box_aspect((1, 1, 1))
+        tidy_3d_ticks(ax1)
     elif d == 2:
         t = np.linspace(0, 2 * np.pi, 200)
         ax1.plot(np.cos(t), np.sin(t), color="0.8", lw=0.8)
-        sc = ax1.scatter(n[:, 0], n[:, 1], c=res.offsets, cmap="plasma", s=18)
+        sc = ax1.scatter(n[:, 0], n[:, 1], c=offsets, cmap="plasma", s=18)
         ax1.set_aspect("equal")
         ax1.set_xlabel("n_x [unit]")
         ax1.set_ylabel("n_y [unit]")
     else:
-        sc = ax1.scatter(n[:, 0], np.arange(len(n)), c=res.offsets, cmap="plasma", s=14)
+        sc = ax1.scatter(n[:, 0], np.arange(len(n)), c=offsets, cmap="plasma", s=14)
         ax1.set_xlabel("projection of the direction on the line [unit] (cos of the angle)")
         ax1.set_ylabel("transmitter index [-]")
-    fig.colorbar(sc, ax=ax1, label="offset C_j [m]", shrink=0.8)
+    fig.colorbar(sc, ax=ax1, label=f"offset C_j [{off_unit}]", shrink=0.8)
     ax1.set_title("transmitter directions" + (f" [{res.degeneracy}]" if res.degeneracy else ""))
     return finish(fig, path)
 

@@ -13,7 +13,7 @@ from matplotlib.figure import Figure
 from numpy.typing import NDArray
 
 from ._common import finish, new_figure
-from .elements import plot_positions, position_views
+from .elements import note_small_ellipses, plot_positions, position_views
 
 __all__ = ["plot_network", "plot_toa", "plot_rmse_curves", "plot_lps_flight"]
 
@@ -32,6 +32,7 @@ def plot_network(
     labels: tuple[str, str] = ("receivers", "sources"),
     markers: tuple[str, str] = ("x", "s"),
     title: str = "",
+    names: tuple[Any, Any] | None = None,
 ) -> Figure:
     """Receivers and sources with 95 % ellipses; one panel in 2-D, three views in 3-D.
 
@@ -50,26 +51,35 @@ def plot_network(
     labels, markers : (str, str)
         Legend labels and markers of the two kinds.
     title : str
+    names : (receiver names, source names), optional
+        Drawn beside each point (default ``r0, r1, ...`` / ``s0, s1, ...``, the names of
+        ``--known`` / ``--frame``).
 
     Returns
     -------
     Figure
     """
     r = np.asarray(receivers, float)
+    S = np.asarray(sources, float)
+    rn, sn = names if names is not None else (None, None)
+    rn = list(rn) if rn else [f"r{i}" for i in range(len(r))]
+    sn = list(sn) if sn else [f"s{j}" for j in range(len(S))]
     d = r.shape[1]
     fig = Figure(figsize=(6.0, 5.0) if d < 3 else (15.0, 5.0))
     for k, (ax, dims) in enumerate(position_views(fig, d)):
         plot_positions(ax, r, truth=true_receivers, cov=receiver_cov, label=labels[0], color="C0",
-                       marker=markers[0], dims=dims)
-        plot_positions(ax, sources, truth=true_sources, cov=source_cov, label=labels[1], color="C3",
-                       marker=markers[1], dims=dims)
+                       marker=markers[0], dims=dims, names=rn)
+        plot_positions(ax, S, truth=true_sources, cov=source_cov, label=labels[1], color="C3",
+                       marker=markers[1], dims=dims, names=sn)
+        note_small_ellipses(ax, [c for c in (receiver_cov, source_cov) if c is not None], np.vstack([r, S]), dims)
         if k == 0:
             ax.legend(loc="best", fontsize=8)
             ax.set_title(title)
     return finish(fig, path)
 
 
-def plot_toa(result: Any, path: Path | None = None, *, user_frame: bool = False) -> Figure:
+def plot_toa(result: Any, path: Path | None = None, *, user_frame: bool = False,
+             names: tuple[Any, Any] | None = None) -> Figure:
     """The figure of ``selfcal calibrate toa --plot``: a :class:`~selfcal.toa.ToaResult`'s network.
 
     Parameters
@@ -80,6 +90,8 @@ def plot_toa(result: Any, path: Path | None = None, *, user_frame: bool = False)
         Output file (``.png``, ``.pdf``, ``.svg``, ...).
     user_frame : bool
         Whether the result is in the user's frame (else the canonical gauge); shown in the title.
+    names : (receiver names, source names), optional
+        The matrix's row / column names (default ``r<i>`` / ``s<j>``).
 
     Returns
     -------
@@ -87,7 +99,8 @@ def plot_toa(result: Any, path: Path | None = None, *, user_frame: bool = False)
     """
     gauge = "user frame" if user_frame else "canonical gauge"
     return plot_network(result.receivers, result.sources, path, receiver_cov=result.receiver_cov,
-                        source_cov=result.source_cov, title=f"TOA self-calibration (95% ellipses, {gauge})")
+                        source_cov=result.source_cov, title=f"TOA self-calibration (95% ellipses, {gauge})",
+                        names=names)
 
 
 def plot_rmse_curves(summary: list[dict[str, Any]], key: str, xlabel: str, title: str,
