@@ -38,7 +38,7 @@ nitpicky = False
 suppress_warnings = [
     "myst.header",  # the format pages start at ## under their # title
     "misc.highlighting_failure",  # abbreviated JSON examples ("...") in the format pages
-    "myst.xref_missing",  # README links (included on the results page) are relative to the repo
+    "myst.xref_missing",  # links to repository files (examples/, benchmarks/) outside the site
 ]
 
 # autodoc: documented members only, in source order, with type hints in the signature
@@ -59,7 +59,10 @@ myst_heading_anchors = 3
 
 html_theme = "alabaster"
 html_title = "selfcal"
-html_static_path: list[str] = []
+html_static_path = ["_static"]
+html_css_files = ["selfcal.css"]  # code blocks scroll within their column (no overflow)
+# no "smart" quotes / dashes: the CLI reference must show --speed, not an en dash (copy-paste)
+smartquotes = False
 html_theme_options = {"description": "Self-calibration of sensor networks", "fixed_sidebar": True}
 
 
