@@ -200,7 +200,6 @@ def farfield_command(matrix: tuple[Path, ...], out: Path, speed: float | None, d
     if res.degeneracy is not None:
         click.echo(f"selfcal: warning: degenerate geometry [{res.degeneracy}]: wrote a partial reconstruction",
                    err=True)
-    click.echo(f"  wrote {out}")
     failure = None
     if res.degeneracy is None and not res.converged:
         failure = f"the refinement did not converge in {res.iterations} iterations"

@@ -68,7 +68,7 @@ def plot_map(result: Any, path: Path | None = None, errors: dict[str, Any] | Non
         al = align(np.vstack([result.receivers, result.sources])[:, :k], np.vstack([tr, ts])[:, :k])
         rc, sc = rotate_covariances(rc, al.rotation), rotate_covariances(sc, al.rotation)
     views = 2 if planar else er.shape[1]
-    fig = Figure(figsize=(7.0, 6.5) if views < 3 else (16.0, 5.5))
+    fig = Figure(figsize=(8.5, 6.5) if views < 3 else (17.0, 5.5))
     for n, (ax, dims) in enumerate(position_views(fig, views)):
         if room is not None:
             draw_room(ax, room, dims)
@@ -76,9 +76,9 @@ def plot_map(result: Any, path: Path | None = None, errors: dict[str, Any] | Non
                        names=result.receiver_names)
         plot_positions(ax, es, truth=ts, cov=sc, label="loudspeakers", color="C3", marker="s", dims=dims)
         note_small_ellipses(ax, [rc, sc], np.vstack([er, es]), dims)
-        if n == 0:
-            ax.legend(loc="best", fontsize=8)
-            ax.set_title(title or f"{result.method}: positions (95 % ellipses)")
+        if n == 0:  # the legend beside the map, never over a unit; a long method name wraps
+            ax.legend(loc="upper left", bbox_to_anchor=(1.02, 1.0), fontsize=8, borderaxespad=0.0)
+            ax.set_title(title or f"positions (95 % ellipses)\n{result.method}", fontsize=9)
     return finish(fig, path)
 
 
