@@ -544,15 +544,18 @@ AOA_INSIDE_EXTENTS = 1.0
 
 
 def plausible_angle_unit(values: NDArray[np.float64], beacons: NDArray[np.float64],
-                         position_deg: NDArray[np.float64], position_rad: NDArray[np.float64] | None,
-                         *, rad_fits: bool, option: str = "--units") -> None:
+                         position_deg: NDArray[np.float64] | None, position_rad: NDArray[np.float64] | None,
+                         *, rad_fits: bool, option: str = "--units", degrees_error: str | None = None) -> None:
     """Refuse / warn about bearing angles read as degrees whose spread only makes sense in radians.
 
     Called only when the degrees were the default (not given). Every value within 2 pi and the
     degrees reading putting the receiver more than :data:`AOA_OUTSIDE_EXTENTS` beacon
-    extents from the beacons' centroid: when the radians reading fits (``rad_fits``) and puts
-    the receiver within that distance the evidence is strong (refused, exit 2); otherwise a
-    warning.
+    extents from the beacons' centre: when the radians reading fits (``rad_fits``) and puts
+    the receiver among the beacons (:data:`AOA_INSIDE_EXTENTS`) the evidence is strong
+    (refused, exit 2); otherwise a warning. ``position_deg`` None: the degrees reading gave
+    no pose (``degrees_error``, e.g. an angle pair no direction makes); refused when the
+    radians reading fits among the beacons, else nothing is said here (the caller reports
+    the degrees reading's error).
 
     Raises
     ------
@@ -575,14 +578,23 @@ def plausible_angle_unit(values: NDArray[np.float64], beacons: NDArray[np.float6
         return
     centre = B.mean(axis=0)
     extent = float(np.max(np.linalg.norm(B[:, None] - B[None], axis=2)))
-    far_deg = float(np.linalg.norm(np.asarray(position_deg, float) - centre))
+    far_deg = np.inf if position_deg is None else float(np.linalg.norm(np.asarray(position_deg, float) - centre))
     if not extent > 0 or not far_deg > AOA_OUTSIDE_EXTENTS * extent:
         return
     far_rad = np.inf if position_rad is None else float(np.linalg.norm(np.asarray(position_rad, float) - centre))
+    among = rad_fits and far_rad <= AOA_INSIDE_EXTENTS * extent
+    if position_deg is None:
+        if among:
+            why = " ".join(str(degrees_error).split())[:120]
+            raise InputError(f"bearings: are they radians ({option} rad)? Every angle is within 2 pi "
+                             f"({v.max():.3g}); read as radians they fit with the receiver {far_rad:.3g} m from the "
+                             f"beacons' centre, read as degrees they give no pose ({why}). Confirm degrees with "
+                             f"{option} deg")
+        return
     what = (f"bearings: every angle is within 2 pi ({v.max():.3g}); read as degrees they put the receiver "
             f"{far_deg:.3g} m from the beacons' centre ({far_deg / extent:.0f} x the beacons' extent of "
             f"{extent:.3g} m)")
-    if rad_fits and far_rad <= AOA_INSIDE_EXTENTS * extent:
+    if among:
         raise InputError(f"{what}, read as radians {far_rad:.3g} m; are they radians ({option} rad)? "
                          f"Confirm degrees with {option} deg")
     warnings.warn(f"{what}; if they are radians give {option} rad (or confirm degrees with {option} deg)",

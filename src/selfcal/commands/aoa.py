@@ -120,15 +120,22 @@ def locate_aoa(
         return solve_aoa(b[keep], u[keep], method=method, sigma=sigma, position_hint=position_hint,
                          **({"sign_z_unknown": True} if sign_unknown else {}))
 
-    res = solve(u, sign_unknown)
+    try:
+        res, deg_error = solve(u, sign_unknown), None
+    except SelfcalError as exc:  # e.g. radians read as degrees: no pose (or a degenerate one)
+        res, deg_error = None, exc
     if angles != "vectors" and units == "deg" and not units_given and np.nanmax(np.abs(u_raw)) <= 2 * np.pi:
         try:  # the same angles read as radians: where do they put the receiver?
             res_rad = solve(*_angles_to_bearings(u_raw, b, angles, "rad"))
         except SelfcalError:
             res_rad = None
-        plausible_angle_unit(u_raw, b, res.position, None if res_rad is None else res_rad.position,
+        plausible_angle_unit(u_raw, b, None if res is None else res.position,
+                             None if res_rad is None else res_rad.position,
                              rad_fits=res_rad is not None and res_rad.status not in (
-                                 Status.NOT_CONVERGED, Status.FAILED_TEST))
+                                 Status.NOT_CONVERGED, Status.FAILED_TEST),
+                             degrees_error=None if deg_error is None else str(deg_error))
+    if deg_error is not None:
+        raise deg_error
     with staged_outputs():  # the figure and the result together, or neither
         if plot is not None:
             from ..plotting.aoa import plot_pose
