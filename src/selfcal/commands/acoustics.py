@@ -82,6 +82,9 @@ def write_simulation(out: Path, *, units: int, room: tuple[float, float, float],
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
+    from ..io.outputs import moved_written
+
+    moved_written(tmp, out)  # the files written are named where they now are (the last line)
     return truth
 
 
@@ -113,7 +116,7 @@ def simulate_conference_cmd(units: int, room_text: str, rt60: float, snr: float,
     check_simulation_size(units=units, sample_rate=sample_rate, room=room, rt60=rt60, rounds=rounds)
     truth = write_simulation(out, units=units, room=room, rt60=rt60, snr=snr, seed=seed, layout=layout,
                              sample_rate=sample_rate, max_order=max_order, jitter=jitter, rounds=rounds)
-    click.echo(f"wrote {out} ({units} units, {rounds} round(s), {layout}, room {room_text}, RT60 {rt60:g} s, "
+    click.echo(f"simulated {out} ({units} units, {rounds} round(s), {layout}, room {room_text}, RT60 {rt60:g} s, "
                f"SNR {snr:g} dB, "
                f"image order {truth['max_order']})")
 

@@ -337,4 +337,3 @@ def reproduce_farfield(runs: int | None, full: bool, backend: str, scheduler: st
     summary = reproduce_all(out, runs=runs, full=full, backend=backend, scheduler=scheduler, seed=seed)
     for line in summary["report"]:
         click.echo(line)
-    click.echo(f"  wrote {out}/farfield.json and fig1..fig4 PNGs")

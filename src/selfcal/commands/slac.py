@@ -33,7 +33,7 @@ def simulate_cmd(minutes: float, subcarriers: int, snr_db: float, seed: int, out
     check_simulation_request(minutes, subcarriers, snr_db)  # before anything is allocated
     sc = make_rover_scenario(minutes, n_subcarriers=subcarriers, snr_db=snr_db, rng=seed)
     SlacLog.from_scenario(sc, seed=seed).to_npz(out)
-    click.echo(f"wrote {out}: {sc.n_steps} steps, {sc.rx.size} links, N = {subcarriers}")
+    click.echo(f"replica log {out}: {sc.n_steps} steps, {sc.rx.size} links, N = {subcarriers}")
 
 
 @slac.command("run")

@@ -183,4 +183,3 @@ def lps(data_path: str, out_dir: str, n_sim: int, variants_opt: str | None, seed
         "all_cases": leave_one_flight_out(scores, variants) if len(scores) > 1 else None,
     }
     write_json(out / "lps.json", report)
-    click.echo(f"wrote {out / 'lps.json'}")

@@ -59,6 +59,24 @@ def written_files(*, reset: bool = False) -> list[str]:
     return out
 
 
+def moved_written(old: str | os.PathLike[str], new: str | os.PathLike[str]) -> None:
+    """Rename the recorded written paths under folder ``old`` to folder ``new`` (a folder
+    staged under a temporary name and then moved into place).
+
+    Examples
+    --------
+    >>> _ = written_files(reset=True)
+    >>> _WRITTEN.append("/tmp/.rec.x1/a.wav")
+    >>> moved_written("/tmp/.rec.x1", "/tmp/rec")
+    >>> written_files(reset=True)
+    ['/tmp/rec/a.wav']
+    """
+    o, n = os.fspath(old).rstrip(os.sep), os.fspath(new).rstrip(os.sep)
+    for k, p in enumerate(_WRITTEN):
+        if p == o or p.startswith(o + os.sep):
+            _WRITTEN[k] = n + p[len(o):]
+
+
 _TMP_PREFIX = ".selfcal-"  # constant-length temporary names: a long target name still fits
 
 

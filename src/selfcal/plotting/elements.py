@@ -132,10 +132,9 @@ def draw_room(ax: Axes, room: Sequence[float], dims: tuple[int, int] = (0, 1)) -
         return  # not a room (a malformed truth.json): no outline
     if max(a, b) >= L.size or not (np.isfinite(L).all() and (L > 0).all()):
         return
-    room = L
-    ax.add_patch(Rectangle((0.0, 0.0), float(room[a]), float(room[b]), fill=False, edgecolor="0.5", lw=1.0,
+    ax.add_patch(Rectangle((0.0, 0.0), float(L[a]), float(L[b]), fill=False, edgecolor="0.5", lw=1.0,
                            ls="-", label="room", zorder=1))
-    ax.update_datalim([(0.0, 0.0), (float(room[a]), float(room[b]))])
+    ax.update_datalim([(0.0, 0.0), (float(L[a]), float(L[b]))])
     ax.autoscale_view()
 
 

@@ -47,8 +47,8 @@ refit and the noise re-estimation are one engine over one private chain structur
 from __future__ import annotations
 
 import dataclasses
-import sys
 import warnings
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
@@ -462,12 +462,11 @@ def _forward(ch: _Chain, log: RangeLog, cfg: RangeModelConfig, noise: float, *, 
     ll = 0.0
     ll_nodes = np.zeros(N)
     hk = cfg.huber
-    it = range(N)
+    it: Iterable[int] = range(N)
     if progress:
-        from tqdm.auto import tqdm
+        from ..progress import stage
 
-        it = tqdm(it, desc="ranges" if ref is None else "smoother pass", unit="node", leave=False,
-                  disable=None if sys.stderr.isatty() else True)
+        it = stage.iterate(it, "ranges" if ref is None else "smoother pass", unit="steps")
     for n in it:
         if n > 0:
             lin = m[:3] if ref is None else ref[n - 1, :3]

@@ -295,9 +295,9 @@ def _solve_slac(log: SlacLog, mode: str, prior: str, config: SlacConfig | None, 
     iters = np.zeros(S, dtype=int)
     conv = np.zeros(S, dtype=bool)
     pred_res = []
-    from tqdm.auto import tqdm
+    from ..progress import stage
 
-    for s in tqdm(range(1, S + 1), disable=None if progress else True, desc=f"slac {mode}", leave=False):
+    for s in stage.iterate(range(1, S + 1), f"slac {mode}", unit="steps", show=None if progress else False):
         snaps = log.snapshot_fn(s)
         tau, ys, var = batch_delay_search(snaps, log.probe, log.bandwidth)
         ml[s - 1] = SPEED_OF_LIGHT * tau / 2
