@@ -69,3 +69,9 @@ def test_help_states_the_levels_the_tests_use() -> None:
     text = " ".join(invoke("calibrate", "toa", "--help").stdout.split())
     assert f"finds it (p < {COMMON_OFFSET_ALPHA:g})" in text
     assert f"in time order (p < {TIME_ORDER_ALPHA:.0e})".replace("e-03", "e-3") in text
+
+
+def test_output_folder_in_a_missing_folder_is_refused(tmp_path: Path) -> None:
+    """One new output folder is made (``demo --out DIR``), never a chain of them (a typo)."""
+    res = invoke("demo", "--out", tmp_path / "no" / "such" / "demo")
+    assert res.exit_code == 2 and "does not exist" in res.stderr and not (tmp_path / "no").exists()

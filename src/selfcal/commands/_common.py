@@ -264,8 +264,9 @@ def check_command_outputs(ctx: click.Context | None, kwargs: Mapping[str, Any]) 
             dashes.append(value)
         real = check_output_path(value, kind=kind, label=f"{opt} {os.fspath(value)}")
         parent = Path(os.fspath(value)).parent
-        if kind == "file" and os.fspath(value) != "-" and not parent.exists():
-            # a file in a folder that is not there is a typo far more often than a wish for new folders
+        if os.fspath(value) != "-" and not parent.exists():
+            # a file (or an output folder) in a folder that is not there is a typo far more often
+            # than a wish for new folders: one new output folder is made, never a chain of them
             raise InputError(f"{opt} {os.fspath(value)}: the folder {parent} does not exist (create it first)")
         if param.name == "plot" and kind == "file" and os.fspath(value) != "-":
             suffix = Path(os.fspath(value)).suffix.lower().lstrip(".")
