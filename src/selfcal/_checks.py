@@ -501,7 +501,7 @@ def plausible_matrix_scale(matrix: NDArray[np.float64], *, speed: float | None, 
             raise InputError(
                 f"{name}: the largest entry is {top:.3g}, a network under {min_span * 100:g} cm "
                 f"if these are metres; if they are times in seconds give {option} (343 for sound in air), "
-                f"or confirm metres with --unit m")
+                f"if kilometres --unit km, or confirm metres with --unit m")
         if top > ROOM_SPAN_M:
             _length_unit_mistake(top, name)
         return

@@ -151,3 +151,14 @@ def test_metres_of_a_room_pass_silently(tmp_path: Path, seed: int) -> None:
     np.savetxt(tmp_path / "m.csv", _ranges(seed), delimiter=",")
     res = invoke("calibrate", "toa", tmp_path / "m.csv", "--dim", 3, "-o", tmp_path / "r.json")
     assert res.exit_code == 0 and "warning" not in res.stderr, res.output
+
+
+@pytest.mark.parametrize("seed", SEEDS)
+def test_kilometres_read_as_metres_are_refused(tmp_path: Path, seed: int) -> None:
+    D = _ranges(seed)
+    np.savetxt(tmp_path / "km.csv", D / 1000, delimiter=",", fmt="%.6f")
+    out = tmp_path / "r.json"
+    res = invoke("calibrate", "toa", tmp_path / "km.csv", "--dim", 3, "-o", out)
+    assert res.exit_code == 2 and "--unit km" in res.stderr and not out.exists(), res.output
+    res = invoke("calibrate", "toa", tmp_path / "km.csv", "--dim", 3, "--unit", "km", "-o", out)
+    assert res.exit_code == 0, res.output
