@@ -42,7 +42,11 @@ def test_an_opaque_stage_keeps_its_elapsed_time_ticking(monkeypatch: pytest.Monk
     monkeypatch.setattr(progress, "REFRESH_S", 0.05)
     with progress.stage("calibrate"):
         time.sleep(0.3)  # no update(): only the refresh thread redraws
+        progress.note("outlier round 2")  # from code that does not hold the bar
+        time.sleep(0.1)
     assert fake_tty.getvalue().count("calibrate") >= 3
+    assert "outlier round 2" in fake_tty.getvalue()
+    progress.note("no stage running")  # nothing to write on: ignored
 
 
 def test_quiet_and_non_terminals_draw_nothing(monkeypatch: pytest.MonkeyPatch) -> None:

@@ -24,12 +24,14 @@ from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
 from typing import Any, TypeVar
 
-__all__ = ["stage", "set_quiet", "enabled", "Stage"]
+__all__ = ["stage", "set_quiet", "enabled", "note", "Stage"]
 
 T = TypeVar("T")
 
 #: Set by ``selfcal -q`` (and by library users who want silence).
 _QUIET = {"quiet": False}
+#: The stages running now, innermost last (:func:`note` writes on the innermost).
+_ACTIVE: list[Stage] = []
 #: Seconds between redraws of a stage whose count does not move (elapsed time keeps ticking).
 REFRESH_S = 1.0
 
@@ -43,6 +45,20 @@ def set_quiet(quiet: bool) -> None:
         ``selfcal -q`` sets it.
     """
     _QUIET["quiet"] = bool(quiet)
+
+
+def note(text: str) -> None:
+    """Show ``text`` on the innermost running stage's line (nothing when none is drawn).
+
+    For code deep inside a stage (a solver's rounds) that does not hold the bar.
+
+    Parameters
+    ----------
+    text : str
+        A few words, e.g. ``"outlier round 2"``.
+    """
+    if _ACTIVE:
+        _ACTIVE[-1].note(text)
 
 
 def enabled(stream: Any = None) -> bool:
@@ -129,9 +145,11 @@ class _StageFactory:
     def __call__(self, name: str, total: int | None = None, *, unit: str = "",
                  show: bool | None = None) -> Iterator[Stage]:
         bar = Stage(name, total, unit, show)
+        _ACTIVE.append(bar)
         try:
             yield bar
         finally:
+            _ACTIVE.remove(bar)
             bar.close()
 
     def iterate(self, items: Iterable[T], name: str, total: int | None = None, *, unit: str = "",

@@ -305,7 +305,10 @@ def robust_calibrate(
             sol = refit(Tk, sol, speed, hz, weights=wts())
         except DegenerateGeometryError:
             pass
-    for _ in range(MAX_OUTLIER_ROUNDS + 1):
+    from ..progress import note
+
+    for k_round in range(MAX_OUTLIER_ROUNDS + 1):
+        note(f"outlier round {k_round + 1}")  # on the running stage's progress line, if any
         pred, res, z, scale, lev = standardised(sol)
         az = np.where(np.isfinite(z), np.abs(z), 0.0)
         # the largest of its receiver and of its sender: one bad entry does not take its neighbours along
