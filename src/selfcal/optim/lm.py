@@ -272,8 +272,10 @@ def levenberg_marquardt_batch(
     Each start keeps its own damping, iterate, iteration count and stopping decisions; each
     call of the model serves every start still running. The model works on stacks:
 
-    ``model.evaluate(X) -> (cost (s,), state)``
-        ``state`` a tuple of arrays whose leading axis is the start;
+    ``model.evaluate(X, rows) -> (cost (s,), state)``
+        at the points ``X`` (s, n) of the starts ``rows`` (s,) (several problems of one shape
+        may be batched: ``rows`` says whose data to use); ``state`` a tuple of arrays whose
+        leading axis is the start;
     ``model.linearize(X, state) -> lin``
         at the running starts: ``lin.gnorm`` (a,), ``lin.step(lam, t) -> dx`` (t, n) for the
         subset ``t`` (indices into the running starts) still trying, non-finite rows for a
@@ -294,7 +296,7 @@ def levenberg_marquardt_batch(
     converged = np.zeros(S, bool)
     finite = np.isfinite(X).all(axis=1)
     with np.errstate(all="ignore"):
-        cost, state = model.evaluate(X)
+        cost, state = model.evaluate(X, np.arange(S))
     state = tuple(np.array(s) for s in state)  # writable copies (a broadcast view is not)
     finite &= np.isfinite(cost)
     active = finite.copy()
@@ -316,7 +318,7 @@ def levenberg_marquardt_batch(
                 ok = np.isfinite(dx).all(axis=1)
                 dx[~ok] = 0.0
                 trial = X[a[t]] + dx if retract is None else retract(X[a[t]], dx)
-                c2, s2 = model.evaluate(trial)
+                c2, s2 = model.evaluate(trial, a[t])
                 c_old = cost[a[t]]
                 acc = ok & np.isfinite(c2) & (c2 <= c_old)
                 ka = np.nonzero(acc)[0]
