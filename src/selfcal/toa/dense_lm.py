@@ -42,6 +42,7 @@ from numpy.typing import NDArray
 from scipy.linalg import lapack
 
 from ..optim.lm import FTOL, LAM_MIN, TRIALS, Model, damping_after_success, levenberg_marquardt
+from ..optim.steps import cholesky_solve as _solve
 
 # FTOL (the relative cost decrease that stops) is read from this module at each call
 from ..robust import loss_rho
@@ -106,18 +107,6 @@ class GaugeProjector:
             off[: self.I] -= shift
             off[self.I:] += shift
         return dx
-
-
-def _solve(H: Array, rhs: Array) -> Array | None:
-    """``H^-1 rhs`` by Cholesky (LAPACK posv); least squares when H is not numerically positive
-    definite; None when not even that is finite."""
-    _, x, info = lapack.dposv(H, rhs, lower=1, overwrite_a=0, overwrite_b=0)
-    if info != 0:
-        try:
-            x = scipy.linalg.lstsq(H, rhs, check_finite=False)[0]
-        except (np.linalg.LinAlgError, ValueError):
-            return None
-    return np.asarray(x, float) if np.isfinite(x).all() else None
 
 
 #: default of ``solve_dense_lm(varpro=None)``: whether full fits of offset-bearing models
