@@ -20,7 +20,8 @@ and optional hooks with defaults on :class:`Model`: ``retract(x, dx)`` (``x + dx
 manifold update for rotations and unit vectors), ``small_step(x, dx, xtol)`` (the step test,
 ``|dx| <= xtol (xtol + |x|)``), ``stationary(lin, cost)`` (after no damped trial
 descends: ``|g| <= 1e-6 max(1, sqrt(2 cost))``) and ``accepted(lin, cost, new, predicted)``
-(called after each accepted step; the constrained engine switches to Newton there).
+(called after each accepted step, before the step test; the constrained engine switches
+to Newton there; a true return stops the run unconverged, the rank-d early abort).
 
 The damping rule (one for every model): Marquardt's diagonal damping ``lam diag(H)``,
 ``lam`` starting at ``lam0`` (``1e-4``); a trial is accepted when the cost does not rise; after
@@ -47,6 +48,7 @@ points are the stationary points of the robust cost.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, Protocol
 
@@ -142,7 +144,7 @@ class Model:
     def stationary(self, lin: Any, cost: float) -> bool:
         return bool(lin.gnorm <= 1e-6 * max(1.0, math.sqrt(2 * cost)))
 
-    def accepted(self, lin: Any, cost: float, new: float, predicted: float) -> None:
+    def accepted(self, lin: Any, cost: float, new: float, predicted: float) -> bool | None:
         return None
 
 
@@ -178,7 +180,8 @@ class LeastSquaresResult(Result):
 
 def levenberg_marquardt(
     model: Model, x0: Array, *, max_iter: int = 100, xtol: float = 1e-12, ftol: float = FTOL,
-    lam0: float = LAM0, trials: int = TRIALS, adaptive: bool = True, history: bool = False,
+    lam0: float | Callable[[Any], float] = LAM0, trials: int = TRIALS, adaptive: bool = True,
+    history: bool = False,
 ) -> LeastSquaresResult:
     """Minimise ``model``'s cost from ``x0`` (module docstring: damping rule and stopping).
 
@@ -188,7 +191,8 @@ def levenberg_marquardt(
     x0 : (n,) start.
     max_iter : iteration cap; xtol : step tolerance (``model.small_step``); ftol : relative
         cost decrease that stops.
-    lam0 : initial damping factor; trials : refused trials in a row that end the run.
+    lam0 : initial damping factor, or a function of the first linearisation giving it;
+        trials : refused trials in a row that end the run.
     adaptive : False keeps ``lam0`` and takes every step (paper 000's constant damping).
     history : keep the cost and the point of every accepted iterate.
 
@@ -220,14 +224,16 @@ def levenberg_marquardt(
     """
     x = np.array(x0, dtype=float)
     cost, state = model.evaluate(x)
-    lam, nu = lam0, 2.0
-    converged = False
+    lam, nu = (lam0 if not callable(lam0) else 0.0), 2.0
+    converged = stop = False
     it = 0
     hist = [cost] if history else []
     path = [x] if history else []
     while it < max_iter:
         it += 1
         lin = model.linearize(x, state)
+        if it == 1 and callable(lam0):
+            lam = lam0(lin)
         improved = False
         for _ in range(trials):
             dx = lin.step(lam)
@@ -237,15 +243,16 @@ def levenberg_marquardt(
             trial = model.retract(x, dx)
             c2, s2 = model.evaluate(trial)
             if not adaptive or c2 <= cost:
-                small = model.small_step(x, dx, xtol)
                 rel = (cost - c2) <= ftol * max(cost, 1e-300)
+                abort = False
                 if adaptive:
                     pred = lin.predicted(dx)
-                    model.accepted(lin, cost, c2, pred)
+                    abort = bool(model.accepted(lin, cost, c2, pred))
                     lam = damping_after_success(lam, cost - c2, pred)
                     nu = 2.0
                 else:
                     rel = abs(cost - c2) <= ftol * max(cost, 1e-300)
+                small = model.small_step(x, dx, xtol)
                 rel = rel or c2 == 0.0
                 x, cost, state = trial, c2, s2
                 if history:
@@ -253,10 +260,14 @@ def levenberg_marquardt(
                     path.append(x)
                 improved = True
                 converged = bool(small or rel)
+                stop = abort
                 break
             lam, nu = lam * nu, 2.0 * nu
         if not improved:  # no damped step descends: a minimum up to round-off if stationary
             converged = model.stationary(lin, cost)
+            break
+        if stop:
+            converged = False
             break
         if converged:
             break
