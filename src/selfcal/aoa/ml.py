@@ -22,7 +22,6 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..optim.lm import levenberg_marquardt_batch
-
 from .orientation import rotvec_to_matrix, tangent_basis
 
 Array = NDArray[np.float64]

@@ -82,8 +82,8 @@ def damping_after_success(lam: Any, actual: Any, predicted: Any) -> Any:
 
     Examples
     --------
-    >>> damping_after_success(1e-2, 1.0, 1.0)  # the model was exact: lam / 3
-    0.0033333333333333335
+    >>> round(damping_after_success(1e-2, 1.0, 1.0), 12)  # the model was exact: lam / 3
+    0.003333333333
     """
     if np.ndim(lam) == 0 and np.ndim(predicted) == 0:
         rho = actual / predicted if predicted > 0 else 0.0

@@ -32,7 +32,7 @@ def cholesky_solve(H: Array, rhs: Array) -> Array | None:
     Examples
     --------
     >>> import numpy as np
-    >>> cholesky_solve(np.array([[2.0, 0.0], [0.0, 4.0]]), np.array([2.0, 2.0])).tolist()
+    >>> np.round(cholesky_solve(np.array([[2.0, 0.0], [0.0, 4.0]]), np.array([2.0, 2.0])), 12).tolist()
     [1.0, 0.5]
     """
     _, x, info = lapack.dposv(H, rhs, lower=1, overwrite_a=0, overwrite_b=0)

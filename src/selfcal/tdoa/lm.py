@@ -10,6 +10,7 @@ from numpy.typing import NDArray
 from .._checks import check_choice
 from ..geometry import sphere_exp
 from ..optim.lm import Model, levenberg_marquardt
+from ..optim.structure import FARFIELD_COV_MAX, FARFIELD_DIRECT_MAX
 from ..robust import LOSSES
 from .covariance import position_covariance
 from .model import (
@@ -81,16 +82,10 @@ def _lm_step(
     return dz, dn.reshape(k, p)
 
 
-#: largest reduced (Schur) system solved directly; above it the LM step uses preconditioned
-#: conjugate gradients with O(m k) matrix-vector products instead. Forming the reduced system
-#: costs O(n^2 p k) (n its size, p k the other side's unknowns) and factoring it O(n^3);
-#: measured in bench_farfield (CPU seconds, same start, same final cost): 500 x 1000 (n = 1497)
-#: 4.4 s direct against 1.9 s CG, 2000 x 200 (n = 600) 2.1 s against 1.3 s, so the direct
-#: solve is kept only for small reduced systems (48 x 540: n = 141)
-DIRECT_MAX = 500
-#: largest reduced system for which :func:`refine_lm` computes the covariance by default
-#: (n = 2000: 32 MB and a few seconds of one core for the O(n^3) inverse)
-COV_DIRECT_MAX = 2000
+#: the far-field step's thresholds (reduced system solved directly / covariance by default):
+#: :mod:`selfcal.optim.structure`, with the measurements behind them
+DIRECT_MAX = FARFIELD_DIRECT_MAX
+COV_DIRECT_MAX = FARFIELD_COV_MAX
 
 
 def _block_jacobi_cg(matvec: Any, diag: Array, rhs: Array, *, rtol: float, max_iter: int) -> Array:

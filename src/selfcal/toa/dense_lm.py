@@ -37,11 +37,9 @@ from __future__ import annotations
 import math
 
 import numpy as np
-import scipy.linalg
 from numpy.typing import NDArray
-from scipy.linalg import lapack
 
-from ..optim.lm import FTOL, LAM_MIN, TRIALS, Model, damping_after_success, levenberg_marquardt
+from ..optim.lm import FTOL, Model, damping_after_success, levenberg_marquardt
 from ..optim.steps import cholesky_solve as _solve
 
 # FTOL (the relative cost decrease that stops) is read from this module at each call

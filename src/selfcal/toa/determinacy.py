@@ -24,6 +24,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .._result import json_float as _num
+from ..optim.structure import DENSE_COVARIANCE_MAX
 
 __all__ = [
     "DENSE_MAX_UNKNOWNS",
@@ -282,10 +283,10 @@ def determinacy_test(receivers: Any, sources: Any, receiver_cov: Any, source_cov
                            failed, skipped, core)
 
 
-#: unknowns up to which :func:`fisher_blocks` forms and inverts the dense normal matrix
-#: (O(n^3): ~0.1 s at 1000 on one core, against solves of several seconds there); larger
-#: networks use the fit's own covariance blocks (minimum-norm gauge)
-DENSE_MAX_UNKNOWNS = 1000
+#: unknowns up to which :func:`fisher_blocks` forms and inverts the dense normal matrix;
+#: larger networks use the fit's own covariance blocks (minimum-norm gauge); the value and its
+#: reason are in :mod:`selfcal.optim.structure`
+DENSE_MAX_UNKNOWNS = DENSE_COVARIANCE_MAX
 #: eigenvalues of the gauge-lifted normal matrix below this fraction of the largest are
 #: directions the data do not determine at all (the relative cut of ``robust._normal_pinv``)
 SINGULAR_RCOND = 1e-12

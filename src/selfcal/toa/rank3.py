@@ -18,8 +18,8 @@ from scipy.linalg import cho_factor, cho_solve
 
 from .._checks import as_matrix, as_rng, check_choice, check_dim
 from ..errors import ConvergenceWarning, DegenerateGeometryError, InputError
-from .rank3_joint import _rank3_lm_joint
 from ..optim.lm import levenberg_marquardt
+from .rank3_joint import _rank3_lm_joint
 from .rank3_model import (
     THESIS_ACCEPT,
     THESIS_TOL,

@@ -46,8 +46,8 @@ import scipy.sparse
 from numpy.typing import NDArray
 
 from ..errors import DegenerateGeometryError
-from ..robust import loss_rho
 from ..optim.lm import Model, levenberg_marquardt
+from ..robust import loss_rho
 from .dense_lm import _solve as _direct_solve  # Cholesky (posv), least squares if not PD
 
 Array = NDArray[np.float64]

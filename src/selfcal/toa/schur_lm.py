@@ -33,23 +33,15 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..errors import DegenerateGeometryError
-from ..robust import loss_rho
 from ..optim.lm import Model, levenberg_marquardt
+from ..optim.structure import DENSE_MAX_UNKNOWNS, DIRECT_MAX_UNKNOWNS, lm_step
+from ..robust import loss_rho
 from .dense_lm import _solve as _direct_solve  # Cholesky (posv), least squares if not PD
 
 Array = NDArray[np.float64]
 
 __all__ = ["DENSE_MAX_UNKNOWNS", "DIRECT_MAX_UNKNOWNS", "solve_schur_lm"]
 
-#: problems of at most this many unknowns in all form the full normal matrix (step "dense")
-DENSE_MAX_UNKNOWNS = 120
-#: reduced systems of at most this many unknowns (nK mK) are solved directly (dense Cholesky
-#: of S) instead of by preconditioned conjugate gradients: measured crossover, see solve_schur_lm
-DIRECT_MAX_UNKNOWNS = 200
-#: ... and only while forming S stays cheap: (nK mK)^2 (nE mE) multiply-adds and (nK mK) (nE mE)
-#: doubles for the dense ``W`` (32 MB)
-DIRECT_MAX_FLOPS = 1e8
-DIRECT_MAX_ENTRIES = 4e6
 #: default iteration cap per step kind (the same for all: a larger cap for the cheap dense
 #: step was tried, 400, and made the robust stages of solve_toa at 12 x 6 crawl along flat
 #: valleys towards far-field minima without converging, for no gain in the basin rate)
@@ -339,9 +331,8 @@ def solve_schur_lm(
         formed once per iteration and Cholesky-factorised per damping trial, in
         :func:`selfcal.toa.dense_lm.solve_dense_lm`), "reduced" (the
         Schur-reduced matrix formed and factorised), "cg" (matrix-free preconditioned CG) or
-        "auto" (default): "dense" up to :data:`DENSE_MAX_UNKNOWNS` unknowns, else "reduced"
-        while forming S is cheap (:data:`DIRECT_MAX_UNKNOWNS`, :data:`DIRECT_MAX_FLOPS`,
-        :data:`DIRECT_MAX_ENTRIES`), else "cg".
+        "auto" (default): :func:`selfcal.optim.structure.lm_step`, the one rule (dense up to
+        120 unknowns, else the formed reduced system while forming it is cheap, else CG).
 
     Returns
     -------
@@ -412,11 +403,7 @@ def solve_schur_lm(
     ne = e_flat.size
     if step not in ("auto", "dense", "reduced", "cg"):
         raise ValueError(f"step must be 'auto', 'dense', 'reduced' or 'cg', got {step!r}")
-    mode = step
-    if mode == "auto":
-        mode = ("dense" if n <= DENSE_MAX_UNKNOWNS else
-                "reduced" if nk <= DIRECT_MAX_UNKNOWNS and nk * nk * ne <= DIRECT_MAX_FLOPS
-                and nk * ne <= DIRECT_MAX_ENTRIES else "cg")
+    mode = lm_step(n, nk, ne) if step == "auto" else step
     max_it = max_nfev or DEFAULT_MAX_IT[mode]
     if mode == "dense":
         from .dense_lm import solve_dense_lm

@@ -54,6 +54,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..errors import DegenerateGeometryError, InputError
+from ..optim.structure import lm_step
 from ..robust import TUNING
 from .batch_lm import solve_batch_lm
 from .dense_lm import solve_dense_lm
@@ -62,7 +63,6 @@ from .nls import NlsSolution, _pack, _rho, _unpack, refine_toa, toa_model
 from .rank3_model import rank_identifiable
 from .result import _additive_fit
 from .robust import _nanmedian_rows
-from .schur_lm import DENSE_MAX_UNKNOWNS
 
 __all__ = ["INITIALISERS", "MOVES_MAX_NODES", "SearchOutcome", "canonical_order", "default_budget",
            "least_squares_offsets", "search"]
@@ -521,7 +521,7 @@ def search(
     # the rungs run the engine's dense step directly (what refine_toa runs at this size, without
     # its layout, gauge and covariance round trip per call) unless a stopping rule needs each
     # rung's full solution
-    fast = solver == "auto" and stop is None and n_unknowns <= DENSE_MAX_UNKNOWNS and len(starts) > 1
+    fast = solver == "auto" and stop is None and lm_step(n_unknowns) == "dense" and len(starts) > 1
     ii_obs, jj_obs = np.nonzero(observed)
     y_obs = Y[ii_obs, jj_obs]
 
