@@ -153,7 +153,7 @@ def finish(M: Array, dim: int, offsets: str, *, init: Any, speed: float | None, 
                      starts=[first] if (one or again) and first is not None else None,
                      first=None if one or again else first,
                      stop=stop_rule(keep_r, keep_s), budget=1 if one or again else budget, max_nfev=max_nfev,
-                     use_moves=sweep and not one and not again, solver=_solver(Ys, dim, offsets))
+                     use_moves=sweep and not one and not again)
         best, prev_keep = out.solution, (keep_r.copy(), keep_s.copy())
         iters += out.iterations
         n_runs += out.refinements
@@ -384,7 +384,7 @@ def _nested_start(Y: Array, dim: int, offsets: str, rng: np.random.Generator, lo
     budget = 2 * (1 + RACE_RUNGS) if block is not None and large else None
     try:
         out = search(Y, dim, "none", rng=rng, loss="linear" if loss == "auto" else loss, f_scale=fs,
-                     max_nfev=max_nfev, use_moves=False, solver=_solver(Y, dim, "none"), first=block,
+                     max_nfev=max_nfev, use_moves=False, first=block,
                      budget=budget)
     except (DegenerateGeometryError, InputError):
         return block if offsets == "none" else None
@@ -408,24 +408,11 @@ def _without_covariance(sol: NlsSolution) -> NlsSolution:
                                source_offset_std=nan(sol.source_offset_std))
 
 
-def _solver(Y: Array, dim: int, offsets: str) -> str:
-    """The engine's solver: its default ("auto", the Schur LM) at every size.
-
-    Small problems take its dense step (:mod:`selfcal.toa.schur_lm`, ~1 ms per iteration at
-    12 x 6 with both offsets, where the CG step cost 15 ms and ``trf`` was chosen here for
-    them); measured equal or faster than ``trf`` with the same costs on 8 x 10 (2-D and 3-D),
-    10 x 14, 12 x 14, 20 x 20 with both offsets and 30 x 40 (``benchmarks/bench_toa_minimal.py``
-    notes in issue 12).
-    """
-    return "auto"
-
-
 def _refine(Y: Array, start: Start, dim: int, offsets: str, loss: str, fs: float | None, max_nfev: int | None,
             covariance: Any) -> NlsSolution:
     r0, s0, d0, o0 = start
     return refine_toa(Y, r0, s0, offsets=offsets, receiver_offsets0=d0, source_offsets0=o0, loss=loss,
-                      f_scale=fs if loss != "linear" else None, max_nfev=max_nfev, covariance=covariance,
-                      solver=_solver(Y, dim, offsets))
+                      f_scale=fs if loss != "linear" else None, max_nfev=max_nfev, covariance=covariance)
 
 
 def _cov_spec(cov: Any, pr: NDArray[np.intp], pc: NDArray[np.intp], kr: NDArray[np.bool_],

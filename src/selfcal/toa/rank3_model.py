@@ -61,7 +61,7 @@ also weakly conditioned (smallest non-zero singular value ~1e-3 of the largest),
 20 us timing noise it passes metres away from the true offsets. ``solve_toa`` then relies on
 the other initialisers (:mod:`selfcal.toa.scaled_starts`).
 
-Files of the 004 method (one job each; :mod:`selfcal.toa.offsets` re-exports them all):
+Files of the 004 method (one job each):
 this module (the model), :mod:`.rank3_thesis` (the thesis iteration, the tests'
 reference), :mod:`.rank3` (the fast variable-projection LM and the acceptance/restarts),
 :mod:`.rank3_joint` (the dense joint LM: small cases and the reference of the scalable

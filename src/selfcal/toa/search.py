@@ -6,7 +6,7 @@
    sort, so its answer is equivariant under permutations of receivers and of sources
    (exactly: the sorted matrix, and so every later step, is the same bit for bit).
 2. **Starts** from a registry of initialisers (:data:`INITIALISERS`, in that order): the
-   004 rank-3 iteration (:mod:`selfcal.toa.offsets`, with offsets and when it identifies
+   004 rank-3 iteration (:mod:`selfcal.toa.offsets_init`, with offsets and when it identifies
    them) and the 003 family (:mod:`selfcal.toa.mds`: rank factorisation, MDS +
    multilateration, Algorithm 2). Starting offsets are the least-squares offsets of the
    start geometry.
@@ -138,8 +138,8 @@ _Init = Callable[[Array, int, str, np.random.Generator], list[Start]]
 
 
 def _rank3(Y: Array, dim: int, offsets: str, rng: np.random.Generator) -> list[Start]:
-    """004 rank-3 iteration (selfcal.toa.offsets): up to 4 distinct starts, offsets collapsed."""
-    from . import offsets as off
+    """004 rank-3 iteration (selfcal.toa.offsets_init): up to 4 distinct starts, offsets collapsed."""
+    from .offsets_init import initialize_offsets_candidates
 
     if offsets == "none":
         return []
@@ -148,13 +148,13 @@ def _rank3(Y: Array, dim: int, offsets: str, rng: np.random.Generator) -> list[S
         return []
     k = 4 if I + J <= MOVES_MAX_NODES else 1
     try:
-        found = off.initialize_offsets_candidates(Y, dim, rng=rng, max_candidates=k)
+        found = initialize_offsets_candidates(Y, dim, rng=rng, max_candidates=k)
     except (DegenerateGeometryError, InputError):
         if not np.isnan(Y).any():
             raise
         # missing entries: complete them by the two-way additive fit for the initialiser only
         Z = np.where(np.isfinite(Y), Y, _additive_fit(Y, True, True))
-        found = off.initialize_offsets_candidates(Z, dim, rng=rng, max_candidates=k)
+        found = initialize_offsets_candidates(Z, dim, rng=rng, max_candidates=k)
     out: list[Start] = []
     for r, s, d0, o0 in found:
         r, s = np.asarray(r, float), np.asarray(s, float)
