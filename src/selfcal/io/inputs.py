@@ -24,7 +24,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..errors import InputError
-from ._paths import _is_dash, _kind_name, _oserror_text
+from ._paths import _is_dash, _kind_name, _oserror_text, note_input
 
 #: Cell texts read as a missing value (case-insensitive), besides the empty field.
 MISSING_TOKENS = frozenset({"", "na", "nan", "n/a", "null", "none", "-nan", "+nan"})
@@ -57,6 +57,7 @@ def _read_input_bytes(path: str | os.PathLike[str], label: str) -> bytes:
         raise InputError(f"{label}: is a directory, not a file")
     if not stat.S_ISREG(st.st_mode):
         raise InputError(f"{label}: is {_kind_name(st.st_mode)}; give a regular file (or '-' for standard input)")
+    note_input(p, label)
     try:
         return p.read_bytes()
     except OSError as exc:

@@ -34,7 +34,7 @@ from numpy.typing import NDArray
 
 from .._result import jsonable
 from ..errors import InputError, SelfcalError
-from ._paths import _is_dash, _kind_name, _oserror_text
+from ._paths import _is_dash, _kind_name, _oserror_text, input_named_by
 
 _TMP_PREFIX = ".selfcal-"  # constant-length temporary names: a long target name still fits
 
@@ -156,8 +156,36 @@ def stdout_target(stream: IO[Any] | None) -> Iterator[None]:
         _STDOUT.reset(tok)
 
 
+def stream_problem(stream: IO[Any] | None) -> str | None:
+    """Why ``stream`` (standard output) cannot take a result (None = closed), or None when it can."""
+    if stream is None:
+        return "standard output is closed"
+    if getattr(stream, "closed", False):
+        return "standard output is closed"
+    try:
+        fd = stream.fileno()
+    except (OSError, ValueError, AttributeError):  # an in-memory stream (tests, redirection)
+        return None
+    try:
+        os.fstat(fd)
+    except OSError as exc:
+        return f"standard output is not open ({_oserror_text(exc)})"
+    return None
+
+
+def _refuse_input(raw: str, real: Path | None = None) -> None:
+    """Refuse a write whose target is a file the running command reads."""
+    label = input_named_by(real if real is not None else raw)
+    if label is not None:
+        raise OutputError(f"{raw}: is the input {label} (the same file); refusing to overwrite it, "
+                          f"choose another output")
+
+
 def _write_stdout(data: bytes) -> None:
     stream = _STDOUT.get() or sys.stdout
+    why = stream_problem(stream)
+    if why is not None:
+        raise OutputError(f"-: cannot write the result: {why}")
     buf = getattr(stream, "buffer", None)
     try:
         if buf is not None:
@@ -180,7 +208,13 @@ def _commit(items: Sequence[tuple[str, bytes]]) -> None:
         if _is_dash(raw):
             to_stdout.append(data)
         else:
-            files[check_output_path(raw)] = (raw, data)  # the last write of a path wins
+            real = check_output_path(raw)
+            _refuse_input(raw, real)
+            files[real] = (raw, data)  # the last write of a path wins
+    if to_stdout:
+        why = stream_problem(_STDOUT.get() or sys.stdout)
+        if why is not None:
+            raise OutputError(f"-: cannot write the result: {why}; nothing was written")
     created: list[Path] = []
     temps: list[tuple[str, Path]] = []
     current = ""
@@ -255,7 +289,9 @@ def atomic_write_bytes(path: str | os.PathLike[str], data: bytes) -> None:
     """
     stage = _STAGE.get()
     if stage is not None:
-        check_output_path(path)  # fail early, before more work is done
+        real = check_output_path(path)  # fail early, before more work is done
+        if not _is_dash(path):
+            _refuse_input(os.fspath(path), real)
         stage.items.append((os.fspath(path), bytes(data)))
         return
     _commit([(os.fspath(path), bytes(data))])
