@@ -13,7 +13,6 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .errors import DegenerateGeometryError, InputError
-from .geometry import n_parameters
 
 __all__ = [
     "as_array",
@@ -34,6 +33,9 @@ __all__ = [
     "as_rng",
     "min_counts_toa",
     "check_toa_counts",
+    "check_path",
+    "instance_of",
+    "has_attributes",
 ]
 
 
@@ -222,6 +224,8 @@ def check_toa_counts(shape: tuple[int, int], n_observed: int, dim: int, offsets:
             f"(they must span {dim}-D space)",
             kind="too-few-sources",
         )
+    from .geometry import n_parameters
+
     unknowns = n_parameters(I, J, dim, offsets)
     if n_observed < unknowns + 1 and offsets != "none":
         raise DegenerateGeometryError(
@@ -271,6 +275,8 @@ def as_array(value: Any, name: str = "array") -> NDArray[np.float64]:
     kind = raw.dtype.kind
     if kind == "c":
         raise InputError(f"{name}: complex values; give real numbers")
+    if kind == "b":  # a mask passed by mistake: True / False are not ranges, times or angles
+        raise InputError(f"{name}: holds booleans (True / False), not measurements; give the measured numbers")
     if kind in "USaV":
         raise InputError(f"{name}: holds text ({raw.dtype}); give numbers (read files with selfcal.io.read_matrix)")
     if kind in "mM":
@@ -278,7 +284,8 @@ def as_array(value: Any, name: str = "array") -> NDArray[np.float64]:
     if kind == "O":
         flat = raw.ravel()
         for v in flat[: 10_000]:
-            if v is None or isinstance(v, (str, bytes, complex, np.complexfloating)) or not np.isscalar(v):
+            if v is None or isinstance(v, (str, bytes, complex, np.complexfloating, bool, np.bool_)) \
+                    or not np.isscalar(v):
                 raise InputError(f"{name}: holds {type(v).__name__} values; give a rectangular array of numbers")
     try:
         return np.array(raw, dtype=np.float64)
@@ -335,8 +342,87 @@ _SPECS: dict[str, Any] = {
     "rng": lambda v, n: as_rng(v) and None,
     "bool": lambda v, n: _check_bool(v, n),
     "str": lambda v, n: _check_str(v, n),
+    "str?": lambda v, n: None if v is None else _check_str(v, n),
+    "path": lambda v, n: check_path(v, n),
+    "path?": lambda v, n: check_path(v, n, allow_none=True),
+    "paths": lambda v, n: _check_paths(v, n),
+    "indices": lambda v, n: _check_indices(v, n),
+    "callable": lambda v, n: _check_callable(v, n),
     "array": lambda v, n: None,
 }
+
+
+def check_path(value: Any, name: str, *, allow_none: bool = False) -> None:
+    """Refuse anything but a ``str`` / ``os.PathLike`` path (bytes, numbers, arrays, '' and NUL)."""
+    import os
+
+    if value is None and allow_none:
+        return
+    if isinstance(value, (bytes, bytearray)):
+        raise InputError(f"{name} must be a path (str or pathlib.Path), got bytes {bytes(value)[:40]!r}; "
+                         f"decode it first")
+    if not isinstance(value, (str, os.PathLike)):
+        raise InputError(f"{name} must be a path (str or pathlib.Path), got {type(value).__name__}")
+    raw = os.fspath(value)
+    if not isinstance(raw, str):
+        raise InputError(f"{name} must be a path (str or pathlib.Path), got a bytes path")
+    if raw == "" or "\x00" in raw:
+        raise InputError(f"{name} {raw!r} is not a usable path")
+
+
+def _check_paths(value: Any, name: str) -> None:
+    if isinstance(value, (list, tuple)):
+        if not value:
+            raise InputError(f"{name} is an empty list; give at least one path")
+        for k, v in enumerate(value):
+            check_path(v, f"{name}[{k}]")
+        return
+    check_path(value, name)
+
+
+def _check_indices(value: Any, name: str) -> None:
+    """A non-empty 1-D array of integer indices >= 0 (booleans and floats refused)."""
+    if isinstance(value, (str, bytes)) or value is None or isinstance(value, (dict, set)):
+        raise InputError(f"{name} must be a 1-D array of integer indices, got {type(value).__name__}")
+    try:
+        arr = np.asarray(value)
+    except (TypeError, ValueError) as exc:
+        raise InputError(f"{name} must be a 1-D array of integer indices ({str(exc).splitlines()[0]})") from None
+    if arr.ndim != 1:
+        raise InputError(f"{name} must be a 1-D array of integer indices, got shape {arr.shape}")
+    if arr.size == 0:
+        raise InputError(f"{name} is empty: give at least one observed pair")
+    if arr.dtype.kind not in "iu":
+        raise InputError(f"{name} must hold integer indices, got dtype {arr.dtype}")
+    if arr.min() < 0:
+        raise InputError(f"{name}: indices must be >= 0, got {int(arr.min())}")
+
+
+def _check_callable(v: Any, n: str) -> None:
+    if not callable(v):
+        raise InputError(f"{n} must be a callable, got {type(v).__name__}")
+
+
+def instance_of(get_class: Any, what: str) -> Any:
+    """An :func:`entry` spec: the argument is an instance of ``get_class()`` (imported lazily)."""
+
+    def check(v: Any, n: str) -> None:
+        cls = get_class()
+        if not isinstance(v, cls):
+            raise InputError(f"{n} must be a {what}, got {type(v).__name__}")
+
+    return check
+
+
+def has_attributes(*names: str, what: str) -> Any:
+    """An :func:`entry` spec: the argument carries every attribute in ``names`` (duck typing)."""
+
+    def check(v: Any, n: str) -> None:
+        missing = [a for a in names if not hasattr(v, a)]
+        if missing:
+            raise InputError(f"{n} must be a {what}, got {type(v).__name__} (no attribute {missing[0]!r})")
+
+    return check
 
 
 def _check_bool(v: Any, n: str) -> None:
@@ -361,8 +447,11 @@ def entry(**specs: str) -> Any:
     **specs:
         ``argument="spec"`` with spec one of ``positive``, ``positive?`` (None allowed),
         ``nonnegative?``, ``count`` (int >= 1), ``count?``, ``count0`` (int >= 0), ``count0?``,
-        ``rng`` (Generator / seed >= 0 / None), ``bool``, ``str``, ``array`` (masked entries ->
-        NaN, complex / text refused).
+        ``rng`` (Generator / seed >= 0 / None), ``bool``, ``str``, ``str?``, ``path`` / ``path?``
+        (str or os.PathLike; bytes refused), ``paths`` (a path or a non-empty list of them),
+        ``indices`` (non-empty 1-D integer array >= 0), ``callable``, ``array`` (masked entries ->
+        NaN; complex, text, booleans and non-arrays refused), or a callable ``(value, name)``
+        raising :class:`~selfcal.errors.InputError` (:func:`instance_of`, :func:`has_attributes`).
 
     Notes
     -----
@@ -390,7 +479,7 @@ def entry(**specs: str) -> Any:
     def deco(func: Any) -> Any:
         sig = inspect.signature(func)
         for k, spec in specs.items():
-            if k not in sig.parameters or spec not in _SPECS:
+            if k not in sig.parameters or not (callable(spec) or spec in _SPECS):
                 raise TypeError(f"entry(): {func.__name__} has no argument {k!r} or spec {spec!r} is unknown")
 
         @functools.wraps(func)
@@ -403,9 +492,16 @@ def entry(**specs: str) -> Any:
                 if k not in bound.arguments:
                     continue
                 v = bound.arguments[k]
+                if callable(spec):
+                    spec(v, k)
+                    continue
                 if spec == "array":
-                    if v is not None and not isinstance(v, (str, bytes)) and (
-                            np.ma.isMaskedArray(v) or isinstance(v, (list, tuple, np.ndarray))):
+                    if v is None and sig.parameters[k].default is inspect.Parameter.empty:
+                        raise InputError(f"{k} is required: give an array of numbers")
+                    if isinstance(v, (str, bytes, bytearray, dict, set)) or (v is not None and not (
+                            np.isscalar(v) or hasattr(v, "__array__") or hasattr(v, "__len__"))):
+                        raise InputError(f"{k}: expected an array of numbers, got {type(v).__name__}")
+                    if v is not None and not np.isscalar(v):
                         bound.arguments[k] = as_array(v, k)
                     continue
                 _SPECS[spec](v, k)
@@ -421,6 +517,7 @@ def entry(**specs: str) -> Any:
                 msg = " ".join(str(exc).split())[:200]
                 raise InputError(f"{func.__name__}: could not use the input ({type(exc).__name__}: {msg})") from None
 
+        wrapper.__selfcal_entry__ = True  # type: ignore[attr-defined]  (tests: every public function)
         return wrapper
 
     return deco

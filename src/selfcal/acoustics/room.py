@@ -26,7 +26,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from .._checks import as_rng, check_positive
+from .._checks import as_rng, check_positive, entry, instance_of
 from ..errors import InputError
 from ..scenarios.conference import ConferenceScene
 from .probe import probe_from_spec
@@ -64,6 +64,8 @@ def _fractional_shift(x: NDArray[np.float64], shift: NDArray[np.float64], n_fft:
     return np.fft.irfft(spec, n=n_fft, axis=-1)
 
 
+@entry(scene=instance_of(lambda: ConferenceScene, "ConferenceScene (selfcal.scenarios.conference.conference_scene)"),
+       rng="rng", progress="bool")
 def simulate_conference(
     scene: ConferenceScene,
     *,

@@ -23,6 +23,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from .._checks import entry
 from ..errors import InputError
 from ._paths import _is_dash, _kind_name, _oserror_text, note_input
 
@@ -158,6 +159,7 @@ def _split(lines: list[str], delim: str | None) -> list[list[str]]:
         csv.field_size_limit(old)
 
 
+@entry(path="path", name="str?")
 def read_table(path: str | os.PathLike[str], name: str | None = None) -> Table:
     """Read a numeric matrix from ``.npy`` or delimited text, keeping row/column names.
 
@@ -357,6 +359,7 @@ def _read_npy(src: Any, label: str) -> NDArray[np.float64]:
     return arr
 
 
+@entry(path="path", name="str?")
 def read_matrix(path: str | os.PathLike[str], name: str | None = None) -> NDArray[np.float64]:
     """Read a numeric matrix from delimited text or ``.npy`` (see :func:`read_table`).
 

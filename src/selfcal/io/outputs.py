@@ -32,6 +32,7 @@ from typing import IO, Any
 import numpy as np
 from numpy.typing import NDArray
 
+from .._checks import entry
 from .._result import jsonable
 from ..errors import InputError, SelfcalError
 from ._paths import _is_dash, _kind_name, _oserror_text, input_named_by
@@ -43,8 +44,8 @@ class OutputError(InputError):
     """An output path cannot be written (a directory, device, FIFO, read-only, disk full, ...)."""
 
 
-class SerializationError(SelfcalError, TypeError):
-    """An object handed to a writer has no JSON form (a programming error, not bad input)."""
+class SerializationError(InputError, TypeError):
+    """An object handed to a writer has no JSON form (an InputError naming it; also a TypeError)."""
 
 
 # --------------------------------------------------------------------------------------
@@ -326,6 +327,33 @@ def staged_outputs() -> Iterator[None]:
     _commit(stage.items)
 
 
+#: Deepest nesting of containers :func:`write_json` writes (JSON readers, Python's among them,
+#: stop near 1000 levels; a result is a few levels deep).
+MAX_JSON_DEPTH = 500
+
+
+def _unserialisable_nesting(obj: Any) -> str | None:
+    """Why ``obj`` cannot be written as JSON by its shape (a container holding itself, or nesting
+    deeper than :data:`MAX_JSON_DEPTH`), found iteratively (no recursion), else None."""
+    stack: list[tuple[Any, int, frozenset[int]]] = [(obj, 0, frozenset())]
+    while stack:
+        o, depth, path = stack.pop()
+        if isinstance(o, dict):
+            kids: Any = o.values()
+        elif isinstance(o, (list, tuple)):
+            kids = o
+        else:
+            continue
+        if id(o) in path:
+            return "a container holds itself (a reference cycle)"
+        if depth >= MAX_JSON_DEPTH:
+            return f"nested deeper than {MAX_JSON_DEPTH} levels"
+        inner = path | {id(o)}
+        stack.extend((k, depth + 1, inner) for k in kids)
+    return None
+
+
+@entry(path="path", indent="count0")
 def write_json(path: str | os.PathLike[str], obj: Any, *, indent: int = 2) -> None:
     """Serialise ``obj`` with :func:`selfcal._result.jsonable` (strict) and write it atomically as strict JSON.
 
@@ -336,10 +364,15 @@ def write_json(path: str | os.PathLike[str], obj: Any, *, indent: int = 2) -> No
     OutputError
         The path cannot be written (see :func:`atomic_write_bytes`).
     """
+    why = _unserialisable_nesting(obj)
+    if why is not None:
+        raise SerializationError(f"obj has no JSON form: {why}")
     try:
         text = json.dumps(jsonable(obj, strict=True), indent=indent, allow_nan=False)
     except (TypeError, ValueError) as exc:
         raise SerializationError(f"result has no strict-JSON form ({exc})") from None
+    except RecursionError:
+        raise SerializationError(f"obj has no JSON form: nested deeper than {MAX_JSON_DEPTH} levels") from None
     atomic_write_bytes(path, (text + "\n").encode())
 
 
