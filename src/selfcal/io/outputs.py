@@ -364,15 +364,13 @@ def write_json(path: str | os.PathLike[str], obj: Any, *, indent: int = 2) -> No
     OutputError
         The path cannot be written (see :func:`atomic_write_bytes`).
     """
-    why = _unserialisable_nesting(obj)
-    if why is not None:
-        raise SerializationError(f"obj has no JSON form: {why}")
     try:
         text = json.dumps(jsonable(obj, strict=True), indent=indent, allow_nan=False)
     except (TypeError, ValueError) as exc:
         raise SerializationError(f"result has no strict-JSON form ({exc})") from None
-    except RecursionError:
-        raise SerializationError(f"obj has no JSON form: nested deeper than {MAX_JSON_DEPTH} levels") from None
+    except RecursionError:  # only then is the shape walked (iteratively) to say why
+        why = _unserialisable_nesting(obj) or "nested too deeply for JSON"
+        raise SerializationError(f"obj has no JSON form: {why}") from None
     atomic_write_bytes(path, (text + "\n").encode())
 
 
