@@ -316,6 +316,8 @@ def as_array(value: Any, name: str = "array") -> NDArray[np.float64]:
         data = np.ma.getdata(value)
         if data.dtype.kind == "c":
             raise InputError(f"{name}: complex values; give real numbers")
+        if data.dtype.kind == "b":
+            raise InputError(f"{name}: holds booleans (True / False), not measurements; give the measured numbers")
         try:
             arr = np.array(data, dtype=np.float64)
         except (TypeError, ValueError) as exc:

@@ -284,12 +284,12 @@ def check_command_outputs(ctx: click.Context | None, kwargs: Mapping[str, Any],
         opt = _opt_name(param)
         if os.fspath(value) == "-":
             dashes.append(value)
-        real = check_output_path(value, kind=kind, label=f"{opt} {os.fspath(value)}")
-        if os.fspath(value) != "-":
-            ident = file_identity(real)
+        if os.fspath(value) not in ("-", ""):  # first: the clash is the message, whatever else is wrong
+            ident = file_identity(value)
             if ident is not None and ident in inputs:
                 raise OutputError(f"{_param_label(param, value)} is the input {inputs[ident]} (the same file); "
                                   f"an output never replaces an input, choose another {opt}")
+        real = check_output_path(value, kind=kind, label=f"{opt} {os.fspath(value)}")
         if param.name == "plot" and kind == "file" and os.fspath(value) != "-":
             suffix = Path(os.fspath(value)).suffix.lower().lstrip(".")
             if suffix and suffix not in IMAGE_FORMATS:

@@ -133,7 +133,7 @@ def _layout_hint(kinds: list[list[str]], r: int, c: int) -> str:
 def _sniff_delimiter(lines: list[str]) -> str | None:
     """Pick ',', ';' or tab when every line has the same positive count; None = whitespace."""
     best = None
-    for d in (",", ";", "\t", "|"):
+    for d in (";", ",", "\t", "|"):  # ";" first: a semicolon file with decimal commas has both
         counts = {ln.count(d) for ln in lines}
         if min(counts) > 0 and (best is None or len(counts) == 1):
             if best is None or len(counts) == 1 and best[1] > 1:
