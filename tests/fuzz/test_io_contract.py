@@ -71,11 +71,11 @@ def _label(p: click.Parameter) -> str:
     return _flag(p) if isinstance(p, click.Option) else (p.name or "").upper()
 
 
-MODES = ("same", "symlink", "hardlink", "inside")
+MODES = ("same", "symlink", "hardlink", "inside", "folder")
 CLASH_CASES = [
     (path, o.name, i.name, mode)
     for path, cmd in COMMANDS for o in _outputs(cmd) for i in _inputs(cmd) for mode in MODES
-    if (mode != "inside" or _dir_ok(i)) and (mode != "hardlink" or _file_ok(i))
+    if (mode not in ("inside", "folder") or _dir_ok(i)) and (mode != "hardlink" or _file_ok(i))
 ]
 
 
@@ -111,16 +111,16 @@ def _build(tmp: Path, path: tuple[str, ...], out_name: str, in_name: str, mode: 
     o = next(p for p in cmd.params if p.name == out_name)
     i = next(p for p in cmd.params if p.name == in_name)
     # the input under test: a small file, or a folder with a file in it
-    if mode == "inside":
+    if mode in ("inside", "folder"):
         target_in = tmp / "in_folder"
         target_in.mkdir()
         (target_in / "setup.json").write_text('{"x": 1}\n')
-        victim = target_in / "setup.json"
+        victim = target_in / "setup.json" if mode == "inside" else target_in
     else:
         target_in = tmp / "in_file.csv"
         target_in.write_text("1,2,3\n4,5,6\n")
         victim = target_in
-    if mode in ("same", "inside"):
+    if mode in ("same", "inside", "folder"):
         target_out = victim
     elif mode == "symlink":
         target_out = tmp / "link_out"
@@ -157,8 +157,8 @@ def test_an_output_never_names_an_input(tmp_path: Path, monkeypatch, path: tuple
     res = CliRunner().invoke(main, args, catch_exceptions=True)
     code, _, err = check_contract(res, before, snapshot(tmp_path))
     assert code == 2, (args, err)
-    if _dir_only(o):  # a folder output aimed at a file: click refuses the kind first (nothing touched)
-        assert ("is the input" in err and _label(i) in err) or "is a file" in err, err
+    if _dir_only(o) != (mode == "folder"):  # a kind mismatch: click may refuse it first (nothing touched)
+        assert ("is the input" in err and _label(i) in err) or "is a file" in err or "is a directory" in err, err
         assert _label(o) in err, err
         return
     assert "is the input" in err and _label(o) in err and _label(i) in err, err
