@@ -252,53 +252,29 @@ def check_toa_observable(matrix: NDArray[np.float64], dim: int, offsets: str = "
                          name: str = "matrix") -> None:
     """Refuse, in time linear in the entries, a TOA matrix whose pattern cannot be solved.
 
-    Two structural tests on the pattern of observed entries alone (no value is used):
-
-    * Nodes with no observed entry at all (empty rows / columns) say nothing about the
-      network. When they are more than half of the nodes the result would fail its
-      determinacy test anyway (more than half of the nodes undetermined,
-      :mod:`selfcal.toa.determinacy`): refused up front, before work that grows with the
-      matrix (3000 x 3000 with 6 observed rows ran past 120 s).
-    * A node with at most ``dim`` ranges is not located (``dim + 1`` spheres fix a point);
-      removing such nodes until none is left (their ranges then constrain nothing) leaves
-      the observable core, which must pass :func:`check_toa_counts`.
+    :func:`check_toa_counts` on the whole matrix, then the empty nodes: rows / columns with
+    no observed entry say nothing about the network. When they are more than half of the
+    nodes the result would fail its determinacy test anyway (more than half of the nodes
+    undetermined, :mod:`selfcal.toa.determinacy`), so the matrix is refused up front, before
+    work that grows with its size. (Pruning the nodes with at most ``dim`` ranges adds
+    nothing here: the entries such nodes carry are at most ``dim`` per node, fewer than
+    their unknowns, so a matrix that passes the whole count leaves a core that passes it.)
 
     Raises
     ------
     DegenerateGeometryError
-        ``unobservable-node``, naming the counts, or the core's count failure.
+        The count's kinds, or ``unobservable-node`` naming the empty rows and columns.
     """
-    M = np.asarray(matrix)
-    obs = np.isfinite(M)
+    obs = np.isfinite(np.asarray(matrix))
     I, J = obs.shape
-    rows = obs.sum(axis=1)
-    cols = obs.sum(axis=0)
-    empty_r, empty_c = int((rows == 0).sum()), int((cols == 0).sum())
+    check_toa_counts((I, J), int(obs.sum()), dim, offsets)
+    empty_r = int((~obs.any(axis=1)).sum())
+    empty_c = int((~obs.any(axis=0)).sum())
     if 2 * (empty_r + empty_c) > I + J:
         raise DegenerateGeometryError(
             f"{name}: {empty_r} of {I} rows (receivers) and {empty_c} of {J} columns (transmitters) have no "
             f"observed entry: more than half of the nodes say nothing; remove the empty rows / columns",
             kind="unobservable-node")
-    keep_r, keep_c = rows > dim, cols > dim
-    while True:  # each pass removes at least one node or stops: at most I + J passes, usually 1-2
-        sub = obs[np.ix_(keep_r, keep_c)]
-        r2 = np.zeros(I, bool)
-        c2 = np.zeros(J, bool)
-        r2[keep_r] = sub.sum(axis=1) > dim
-        c2[keep_c] = sub.sum(axis=0) > dim
-        if (r2 == keep_r).all() and (c2 == keep_c).all():
-            break
-        keep_r, keep_c = r2, c2
-    n_r, n_c = int(keep_r.sum()), int(keep_c.sum())
-    if n_r < I or n_c < J:
-        try:
-            check_toa_counts((n_r, n_c), int(obs[np.ix_(keep_r, keep_c)].sum()), dim, offsets)
-        except DegenerateGeometryError as exc:
-            raise DegenerateGeometryError(
-                f"{name}: {I - n_r} receivers and {J - n_c} transmitters have at most {dim} ranges to nodes "
-                f"that can be located, and the {n_r} x {n_c} rest cannot determine a geometry ({exc.args[0]})",
-                kind=exc.kind) from None
-    check_toa_counts((I, J), int(obs.sum()), dim, offsets)
 
 
 def as_array(value: Any, name: str = "array") -> NDArray[np.float64]:
