@@ -151,8 +151,9 @@ def non_number_leaf(value: Any) -> str | None:
 
 def check_dim(dim: int) -> int:
     """Return ``dim`` if it is 2 or 3, else raise :class:`InputError`."""
-    if dim not in (2, 3):
-        raise InputError(f"dim must be 2 or 3, got {dim!r}")
+    if isinstance(dim, (bool, np.bool_)) or not isinstance(dim, (int, np.integer, float, np.floating)) \
+            or dim not in (2, 3):
+        raise InputError(f"dim must be 2 or 3, got {type(dim).__name__} {dim!r}"[:120])
     return int(dim)
 
 
@@ -375,6 +376,7 @@ _SPECS: dict[str, Any] = {
     "bool": lambda v, n: _check_bool(v, n),
     "str": lambda v, n: _check_str(v, n),
     "str?": lambda v, n: None if v is None else _check_str(v, n),
+    "dim": lambda v, n: check_dim(v),
     "path": lambda v, n: check_path(v, n),
     "path?": lambda v, n: check_path(v, n, allow_none=True),
     "paths": lambda v, n: _check_paths(v, n),

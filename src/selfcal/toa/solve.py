@@ -39,7 +39,7 @@ METHODS = ("auto", "nls", "rank3")
 
 
 @entry(matrix="array", speed="positive?", rng="rng", f_scale="positive?", max_nfev="count?", noise="positive?",
-       budget="count?")
+       budget="count?", sweep="bool")
 def solve_toa(
     matrix: Any,
     *,

@@ -547,7 +547,7 @@ def _refine_located(i: Index, j: Index, y: Array, r: Array, s: Array, d: int) ->
 
 
 @entry(i="indices", j="indices", ranges="array", n_receivers="count?", n_sources="count?", rng="rng",
-       max_nfev="count?", tries="count")
+       max_nfev="count?", tries="count", dim="dim")
 def solve_toa_sparse(
     i: NDArray[np.integer], j: NDArray[np.integer], ranges: Array, n_receivers: int | None = None,
     n_sources: int | None = None, *, dim: int = 3, rng: int | np.random.Generator | None = 0,
