@@ -415,3 +415,31 @@ def test_a_matrix_mostly_of_empty_nodes_is_refused(seed: int) -> None:
         check_toa_observable(M, 3)
     with pytest.raises(DegenerateGeometryError, match="no observed entry"):
         selfcal.solve_toa(M)
+
+
+def _cheap_calls() -> dict[str, tuple[object, ...]]:
+    g = np.random.default_rng(0)
+    R, S = g.uniform(0, 10, (8, 3)), g.uniform(0, 10, (10, 3))
+    P = g.uniform(-1, 1, (8, 3))
+    N = g.normal(size=(10, 3))
+    N /= np.linalg.norm(N, axis=1, keepdims=True)
+    return {"solve_toa": (np.linalg.norm(R[:, None] - S[None], axis=2),),
+            "solve_farfield": (-(P @ N.T) + g.uniform(-1, 1, 10),),
+            "solve_aoa": (g.normal(size=(6, 3)), g.normal(size=(6, 3))),
+            "align": (R, R), "aligned_rmse": (R, R),
+            "solve_toa_sparse": (np.array([0, 1]), np.array([0, 1]), np.array([1.0, 2.0]))}
+
+
+KEYWORD_CASES = [(n, p) for n in _cheap_calls() for p, par in inspect.signature(getattr(selfcal, n)).parameters.items()
+                 if par.default is not inspect.Parameter.empty]
+
+
+@pytest.mark.parametrize("name,param", KEYWORD_CASES, ids=[f"{n}:{p}" for n, p in KEYWORD_CASES])
+def test_wrong_keyword_types_name_the_argument(name: str, param: str) -> None:
+    """A dict, bytes or a bare object for any keyword: an InputError naming that keyword."""
+    f = getattr(selfcal, name)
+    args = _cheap_calls()[name]
+    for bad in ({"a": 1}, b"x", object()):
+        with pytest.raises(SelfcalError) as exc:
+            f(*args, **{param: bad})
+        assert param in str(exc.value) and "\n" not in str(exc.value), (name, param, str(exc.value))
