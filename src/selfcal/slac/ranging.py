@@ -57,6 +57,7 @@ from numpy.typing import NDArray
 from scipy import stats
 from scipy.optimize import brentq
 
+from .._checks import entry, has_attributes
 from .._result import Result
 from ..errors import ConvergenceWarning, InputError, Status
 from ..geometry import wrap_angle
@@ -752,6 +753,8 @@ def innovation_tests(nu: FArray, beacon: IArray, gate2: float, *, tolerance: flo
     return out
 
 
+@entry(log=has_attributes("beacons", "odo", "ranges", "range_times", "range_beacon",
+                          what="RangeLog (or PlazaData)"), method="str", progress="bool")
 def solve_range_slac(log: RangeLog | Any, *, method: str = "smoother", config: RangeModelConfig | None = None,
                      progress: bool = False) -> RangeSlacResult:
     """Localize a robot from odometry + beacon ranges and calibrate each beacon's scale and offset.

@@ -103,7 +103,8 @@ def _raise_or_return(
 
 
 @entry(matrix="array", f_scale="positive?", noise_std="positive?", max_iter="count?", tol="positive?",
-       rng="rng", reject_k="positive", cone_tol="positive")
+       rng="rng", reject_k="positive", cone_tol="positive", allow_degenerate="bool", screen="bool",
+       check_degeneracy="bool", ransac="bool")
 def solve_farfield(
     matrix: Any,
     *,
