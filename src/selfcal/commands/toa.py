@@ -100,6 +100,7 @@ def toa_command(matrix: Path, speed: float | None, offsets: str | None, dim: str
         known_table = read_known_csv(known, 2 if dim == "2" else 3)  # validated before the solve
     rec = apply_recipe(recipe, M, common_offset=common_offset, **kw)
     res: Any = rec.result
+    forced = _forced_model(rec.result, M, rec.rejected, speed, noise, dim, offsets)
     framed: FramedToaResult | None = None
     d_out = np.asarray(res.receivers).shape[1]
     # a kept common range offset (moving-tag recipe) is its own model: the refits keep it
@@ -124,6 +125,8 @@ def toa_command(matrix: Path, speed: float | None, offsets: str | None, dim: str
         payload["recipe"] = rec.to_dict()["recipe"]
     if framed is not None:
         payload["frame"] = framed.frame.to_dict()
+    if forced is not None:
+        payload["model_test"] = forced.to_dict()
     ok, why = _trustworthy(res)
     # all artefacts staged and committed together; a FAIL (exit 1) still writes its result
     with staged_outputs():
@@ -175,9 +178,57 @@ def toa_command(matrix: Path, speed: float | None, offsets: str | None, dim: str
                      f"larger than their node set ({det.names()})")
     lines.append(f"  wrote {out}" + (f" and {plot}" if plot is not None else ""))
     click.echo("\n".join(lines))
+    fails = _verdict_lines(res, forced, table.row_names, table.col_names)
+    for line in fails:
+        click.echo(line)
     if not ok:
         click.echo(f"FAIL: calibration not trustworthy ({why})")
+    if fails or not ok:
         raise SystemExit(1)
+
+
+def _forced_model(res: Any, M: Any, rejected: Any, speed: float | None, noise: float | None, dim: str | None,
+                  offsets: str | None) -> Any:
+    """The model the user fixed (not "auto") tested against the larger one (:mod:`selfcal.toa.model_test`)."""
+    import numpy as np
+
+    from ..toa.model_test import forced_model_test
+
+    off = getattr(res, "offsets", None)
+    test_dim = dim == "2"
+    test_off = offsets != "auto" and off in ("none", "receivers", "sources")
+    if not (test_dim or test_off) or getattr(res, "residuals", None) is None:
+        return None
+    c = speed if speed is not None else 1.0
+    Mf = _fitted_entries(M, rejected, getattr(res, "outliers", None))
+    R, S = np.asarray(res.receivers, float), np.asarray(res.sources, float)
+    ok_r, ok_s = np.isfinite(R).all(1), np.isfinite(S).all(1)
+
+    def sub(a: Any, ok: Any) -> Any:
+        return None if a is None else np.asarray(a, float)[ok] * c
+
+    return forced_model_test(Mf[np.ix_(ok_r, ok_s)] * c, R[ok_r], S[ok_s], sub(res.receiver_offsets, ok_r),
+                             sub(res.source_offsets, ok_s), offsets=off, noise=None if noise is None else noise * c,
+                             test_dim=test_dim, test_offsets=test_off)
+
+
+def _verdict_lines(res: Any, forced: Any, row_names: Any, col_names: Any) -> list[str]:
+    """``FAIL:`` lines of the uniqueness test (ambiguous nodes, a minimal problem) and the forced-model test."""
+    out = []
+    u = getattr(res, "uniqueness", None)
+    if u is not None and not u.passed:
+        if u.ambiguous_receivers.any() or u.ambiguous_sources.any():
+            kinds = sorted({a.kind for a in u.alternatives})
+            out.append(f"FAIL: ambiguous: {u.names(row_names or None, col_names or None)} have alternative "
+                       f"positions that fit the ranges as well ({', '.join(kinds)}; likelihood-ratio test, level "
+                       f"{u.alpha:g}; alternatives in the JSON under 'uniqueness'); remedy: a tag position off the "
+                       "plane of their partners, a known height, or a known node off the plane")
+        if u.minimal:
+            out.append("FAIL: minimal problem: no spare measurement, so no other solution can be ruled out; "
+                       "add measurements (or give --noise)")
+    if forced is not None and not forced.passed:
+        out.append(f"FAIL: {forced.message()}")
+    return out
 
 
 def _fitted_entries(M: Any, rejected: Any, outliers: Any) -> Any:

@@ -127,6 +127,10 @@ def fit_known(
     fitted = np.array([node_positions(out, k.kind)[k.index] for k in usable])
     after = float(np.sqrt(np.mean(np.sum((fitted - ref) ** 2, axis=1))))
     info = _known_info(usable, rank, d, before, after, dropped)
+    # the known positions tested against the ranges, the frame's mirror against the data
+    from .known_test import judge_known
+
+    out, info = judge_known(out, info, result, sol, data, usable, est @ Rm.T + t, Rm, rank, fr, fs, off, noise)
     return FramedToaResult(out, info)
 
 

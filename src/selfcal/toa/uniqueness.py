@@ -110,6 +110,8 @@ class UniquenessTest:
     note: what was not examined, or why not.
     near_minimal: at most ``d`` spare measurements (fewer than one node's coordinates and
         its offset): the test is run but has little power.
+    base_verdict: the result's (status, message) before this test (:func:`judge_fit`), so a
+        later constrained fit (known nodes) can judge again; None elsewhere.
     """
 
     alpha: float
@@ -126,6 +128,7 @@ class UniquenessTest:
     source_alternatives: Array
     note: str = ""
     near_minimal: bool = field(default=False)
+    base_verdict: tuple[int, str] | None = None
 
     @property
     def passed(self) -> bool:
@@ -492,7 +495,8 @@ def judge_fit(res: Any, Yf: Array, sol: Any, offsets: str, noise: float | None, 
     u = uniqueness_test(Yf, sol.receivers, sol.sources, sol.receiver_offsets, sol.source_offsets,
                         n_params=n_params, noise=noise, receiver_cov=Cr, source_cov=Cs, minima=minima,
                         refine=refine)
-    u = u.relabel(keep[0], keep[1], perm[0], perm[1])
+    u = dataclasses.replace(u.relabel(keep[0], keep[1], perm[0], perm[1]),
+                            base_verdict=(int(res.verdict), str(res.verdict_message)))
     status, message = Status(res.verdict), res.verdict_message
     if not u.passed:
         if status != Status.FAILED_TEST:
