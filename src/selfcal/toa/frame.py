@@ -186,6 +186,8 @@ def apply_frame(result: Any, frame: str | Mapping[str, Any], *, matrix: Any = No
     scv = rotate_covariances(np.asarray(result.source_cov, float), Rm)
     out = replace_fields(result, receivers=Rn, sources=Sn, receiver_cov=rc, source_cov=scv,
                    method=f"{result.method}+frame")
+    if getattr(result, "uniqueness", None) is not None:  # the alternatives in the same frame
+        out = replace_fields(out, uniqueness=result.uniqueness.moved(Rm, t))
     if matrix is not None and np.isfinite(rc).all() and np.isfinite(scv).all():
         out = _frame_covariance(out, matrix, refs, offsets, loss)
     if mirror:

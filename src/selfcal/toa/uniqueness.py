@@ -178,6 +178,20 @@ class UniquenessTest:
                 "source_alternatives": jsonable(self.source_alternatives),
                 "alternatives": [a.to_dict() for a in self.alternatives], "note": self.note}
 
+    def moved(self, rotation: Array, translation: Array) -> UniquenessTest:
+        """The test with every alternative position moved by ``p -> rotation p + translation`` (a new frame)."""
+        import dataclasses
+
+        Rm, t = np.asarray(rotation, float), np.asarray(translation, float)
+
+        def mv(P: Array) -> Array:
+            return np.asarray(P, float) @ Rm.T + t
+
+        alts = tuple(dataclasses.replace(a, receiver_positions=mv(a.receiver_positions),
+                                         source_positions=mv(a.source_positions)) for a in self.alternatives)
+        return dataclasses.replace(self, receiver_alternatives=mv(self.receiver_alternatives),
+                                   source_alternatives=mv(self.source_alternatives), alternatives=alts)
+
     def relabel(self, keep_r: NDArray[np.bool_], keep_s: NDArray[np.bool_], perm_r: NDArray[np.intp],
                 perm_c: NDArray[np.intp]) -> UniquenessTest:
         """The test in the caller's numbering: kept nodes ``keep_*`` of the canonical order ``perm_*``."""
