@@ -250,3 +250,8 @@ def test_cli_contradicting_known_nodes_and_forced_dim_exit_1(tmp_path):
     known.write_text("".join(f"r{i},{float(r[i, 0])!r},{float(r[i, 1])!r},{float(r[i, 2])!r}\n" for i in range(6)))
     res = _cli(path, "--known", known, "--out", tmp_path / "o3.json")
     assert res.exit_code == 0, res.output
+    # the four ceiling anchors alone: the mirror through the ceiling is reported, never chosen
+    known.write_text("".join(f"r{i},{float(r[i, 0])!r},{float(r[i, 1])!r},{float(r[i, 2])!r}\n" for i in range(4)))
+    res = _cli(path, "--known", known, "--offsets", "receivers", "--out", tmp_path / "o4.json")
+    assert res.exit_code == 1 and "FAIL: ambiguous" in res.output and "mirror" in res.output
+    assert json.loads((tmp_path / "o4.json").read_text())["ambiguous_sources"] == list(range(30))
