@@ -255,3 +255,8 @@ def test_cli_contradicting_known_nodes_and_forced_dim_exit_1(tmp_path):
     res = _cli(path, "--known", known, "--offsets", "receivers", "--out", tmp_path / "o4.json")
     assert res.exit_code == 1 and "FAIL: ambiguous" in res.output and "mirror" in res.output
     assert json.loads((tmp_path / "o4.json").read_text())["ambiguous_sources"] == list(range(30))
+    # ... and resolved by the user's statement: the tags are below the ceiling
+    res = _cli(path, "--known", known, "--offsets", "receivers", "--side", "below", "--out", tmp_path / "o5.json")
+    assert res.exit_code == 0, res.output
+    got = np.array(json.loads((tmp_path / "o5.json").read_text())["sources"], float)
+    assert np.abs(got - s).max() < 0.1

@@ -51,6 +51,10 @@ def _auto_available() -> bool:
 @click.option("--known", "known", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="CSV name,x,y,z[,std] of nodes with known positions (r<i>, s<j> or a receiver "
                    "index); they constrain the fit and set the frame.")
+@click.option("--side", type=click.Choice(["below", "above"]), default=None,
+              help="With --known nodes in one plane (ceiling anchors): the other nodes lie below / above "
+                   "it (along z of the known frame). Resolves the mirror image that plane leaves; without "
+                   "it the mirror is reported (exit 1).")
 @click.option("--frame", "frame", default=None, metavar="origin=A,x=B,xy=C[,z=D]",
               help="Frame by reference nodes: A at the origin, B on +x, C in the xy half-plane (y>0), "
                    "D above (z>0).")
@@ -64,7 +68,7 @@ def _auto_available() -> bool:
 @handle_errors
 def toa_command(matrix: Path, speed: float | None, offsets: str | None, dim: str | None,
                 loss: str | None, method: str, noise: float | None, recipe: str, common_offset: str,
-                known: Path | None,
+                known: Path | None, side: str | None,
                 frame: str | None, seed: int, out: Path, plot: Path | None, csv_out: Path | None = None,
                 unit: str | None = None, sample_rate: float | None = None) -> None:
     """Calibrate receivers and sources from an I x J TOA/range MATRIX (CSV or .npy, NaN = missing).
@@ -83,6 +87,8 @@ def toa_command(matrix: Path, speed: float | None, offsets: str | None, dim: str
 
     if known is not None and frame is not None:
         raise InputError("--known and --frame are exclusive (known positions already define the frame)")
+    if side is not None and known is None:
+        raise InputError("--side says where the other nodes lie relative to the --known nodes' plane: give --known")
     if ("auto" in (offsets, dim)) and not _auto_available():
         raise InputError("--offsets auto / --dim auto need the model selection (selfcal.toa.select), "
                          "which this build does not have yet; give the value explicitly")
@@ -113,7 +119,7 @@ def toa_command(matrix: Path, speed: float | None, offsets: str | None, dim: str
     if known_table is not None and known is not None:
         I, J = M.shape
         nodes = parse_known(_redim(known_table, known, d_out), I, J, d_out)
-        framed = fit_known(M_fit, res, nodes, offsets=off_used, loss=loss_used, noise=noise)
+        framed = fit_known(M_fit, res, nodes, offsets=off_used, loss=loss_used, noise=noise, side=side)
     elif frame is not None:
         framed = apply_frame(res, frame, matrix=M_fit, offsets=off_used, loss=loss_used)
     if framed is not None:

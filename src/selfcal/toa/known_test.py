@@ -34,7 +34,7 @@ from numpy.typing import NDArray
 
 from .._result import json_float as _num
 
-__all__ = ["KNOWN_ALPHA", "KnownTest", "frame_mirror", "judge_known", "known_test"]
+__all__ = ["KNOWN_ALPHA", "KnownTest", "choose_side", "frame_mirror", "judge_known", "known_test"]
 
 Array = NDArray[np.float64]
 
@@ -165,7 +165,7 @@ def frame_mirror(points: Array, rank: int) -> tuple[Array, Array] | None:
 
 def judge_known(out: Any, info: Any, blind: Any, sol: Any, data: Any, usable: Sequence[Any], aligned: Array,
                 rotation: Array, rank: int, fixed_r: NDArray[np.bool_], fixed_s: NDArray[np.bool_], offsets: str,
-                noise: float | None) -> tuple[Any, Any]:
+                noise: float | None, mirror_stated: bool = False) -> tuple[Any, Any]:
     """Test a constrained fit of :func:`selfcal.toa.known.fit_known` and apply the rule.
 
     The known test (:func:`known_test`) and the uniqueness test
@@ -232,7 +232,7 @@ def judge_known(out: Any, info: Any, blind: Any, sol: Any, data: Any, usable: Se
     u = uniqueness_test(Ysub, sol.receivers, sol.sources, sol.receiver_offsets, sol.source_offsets,
                         n_params=n_par, noise=None if noise is None else float(noise) * c,
                         receiver_cov=sol.receiver_cov, source_cov=sol.source_cov,
-                        fixed_receivers=exact_r[ok_r], fixed_sources=exact_s[ok_s], mirror=frame_mirror(ref, rank))
+                        fixed_receivers=exact_r[ok_r], fixed_sources=exact_s[ok_s], mirror=None if mirror_stated and rank == d - 1 else frame_mirror(ref, rank))
     u = u.relabel(ok_r, ok_s, np.arange(I), np.arange(J))
     bu = getattr(blind, "uniqueness", None)
     base = bu.base_verdict if bu is not None and bu.base_verdict is not None else (int(blind.verdict),
@@ -248,3 +248,45 @@ def judge_known(out: Any, info: Any, blind: Any, sol: Any, data: Any, usable: Se
     out = replace_fields(out, uniqueness=u, verdict=int(status), verdict_message=message)
     info = dataclasses.replace(info, known_test=None if kt is None else kt.to_dict())
     return out, info
+
+
+def choose_side(receivers: Array, sources: Array, known: Sequence[Any], ref: Array, rank: int,
+                side: str) -> tuple[Array, Array]:
+    """Put the free nodes on the ``side`` ("below" / "above", along z) of the coplanar known nodes' plane.
+
+    The mirror through the plane of coplanar known nodes fits every range exactly (only the
+    user can choose it): the free nodes (all but the known ones) are reflected through that
+    plane when most of them lie on the other side. Applies in 3-D to known nodes of affine
+    rank 2 whose plane is not vertical (its normal within 60 degrees of z); known nodes that
+    span the space have no mirror (``side`` is then ignored).
+
+    Raises
+    ------
+    InputError: ``side`` not "below" / "above"; a 2-D fit; a vertical plane (say which side
+        along z is meaningless there).
+    """
+    from ..errors import InputError
+
+    if side not in ("below", "above"):
+        raise InputError(f"side must be 'below' or 'above', got {side!r}")
+    R, S = np.array(receivers, float), np.array(sources, float)
+    d = R.shape[1]
+    if d != 3:
+        raise InputError("side (below / above the known nodes' plane) applies to 3-D fits only")
+    if rank != d - 1:
+        return R, S
+    c, Q = frame_mirror(ref, rank)  # type: ignore[misc]
+    n = np.linalg.eigh(np.eye(d) - Q)[1][:, -1]  # the plane's normal (Q = I - 2 n n^T)
+    if abs(n[2]) < 0.5:
+        raise InputError("the known nodes' plane is not horizontal (normal > 60 degrees from z): "
+                         "'below' / 'above' does not say which mirror image; add a known node off the plane")
+    n = n if n[2] > 0 else -n
+    free_r = np.ones(len(R), bool)
+    free_s = np.ones(len(S), bool)
+    for k in known:
+        (free_r if k.kind == "receiver" else free_s)[k.index] = False
+    h = np.concatenate([(R[free_r] - c) @ n, (S[free_s] - c) @ n])
+    if h.size and (np.median(h) > 0) == (side == "below"):
+        R[free_r] = R[free_r] - 2.0 * np.outer((R[free_r] - c) @ n, n)
+        S[free_s] = S[free_s] - 2.0 * np.outer((S[free_s] - c) @ n, n)
+    return R, S

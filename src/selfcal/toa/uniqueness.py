@@ -506,9 +506,13 @@ def judge_fit(res: Any, Yf: Array, sol: Any, offsets: str, noise: float | None, 
     if noise is not None and np.isfinite(sig) and sig > 0:  # the fit's blocks are at its own estimate
         k = (noise / sig) ** 2
         Cr, Cs = np.asarray(Cr) * k, np.asarray(Cs) * k
-    u = uniqueness_test(Yf, sol.receivers, sol.sources, sol.receiver_offsets, sol.source_offsets,
-                        n_params=n_params, noise=noise, receiver_cov=Cr, source_cov=Cs, minima=minima,
-                        refine=refine)
+    try:
+        u = uniqueness_test(Yf, sol.receivers, sol.sources, sol.receiver_offsets, sol.source_offsets,
+                            n_params=n_params, noise=noise, receiver_cov=Cr, source_cov=Cs, minima=minima,
+                            refine=refine)
+    except (np.linalg.LinAlgError, ValueError, FloatingPointError) as exc:  # said, never silently passed
+        return dataclasses.replace(res, verdict_message=f"{res.verdict_message}; uniqueness test not run "
+                                                        f"({type(exc).__name__}: {exc})")
     u = dataclasses.replace(u.relabel(keep[0], keep[1], perm[0], perm[1]),
                             base_verdict=(int(res.verdict), str(res.verdict_message)))
     status, message = Status(res.verdict), res.verdict_message
