@@ -225,10 +225,14 @@ def _verdict_lines(res: Any, forced: Any, row_names: Any, col_names: Any) -> lis
     if u is not None and not u.passed:
         if u.ambiguous_receivers.any() or u.ambiguous_sources.any():
             kinds = sorted({a.kind for a in u.alternatives})
-            out.append(f"FAIL: ambiguous: {u.names(row_names or None, col_names or None)} have alternative "
-                       f"positions that fit the ranges as well ({', '.join(kinds)}; likelihood-ratio test, level "
-                       f"{u.alpha:g}; alternatives in the JSON under 'uniqueness'); remedy: a tag position off the "
-                       "plane of their partners, a known height, or a known node off the plane")
+            what = (f"{u.names(row_names or None, col_names or None)} have alternative positions that fit the "
+                    f"ranges as well ({', '.join(kinds)}; likelihood-ratio test, level {u.alpha:g}; alternatives "
+                    "in the JSON under 'uniqueness')")
+            if u.failed:
+                out.append(f"FAIL: ambiguous: {what}; remedy: a tag position off the plane of their partners, "
+                           "a known height, a known node off the plane (or --side with coplanar --known nodes)")
+            else:  # a few nodes: named, their error bars widened to cover the alternative (as 'undetermined')
+                click.echo(f"  ambiguous: {what}; their error bars cover the alternative")
         if u.minimal:
             out.append("FAIL: minimal problem: no spare measurement, so no other solution can be ruled out; "
                        "add measurements (or give --noise)")

@@ -180,7 +180,7 @@ def judge_known(out: Any, info: Any, blind: Any, sol: Any, data: Any, usable: Se
     from ..errors import Status
     from ..geometry import n_parameters, rotate_covariances
     from .nodes import replace_fields
-    from .uniqueness import uniqueness_test
+    from .uniqueness import apply_rule, uniqueness_test
 
     c, ok_r, ok_s = data.c, data.ok_r, data.ok_s
     Ysub = data.Y[np.ix_(ok_r, ok_s)]
@@ -238,14 +238,13 @@ def judge_known(out: Any, info: Any, blind: Any, sol: Any, data: Any, usable: Se
     base = bu.base_verdict if bu is not None and bu.base_verdict is not None else (int(blind.verdict),
                                                                                    str(blind.verdict_message))
     status, message = Status(base[0]), base[1]
-    why = [t for t in ((kt.message() if kt is not None else ""), u.message()) if t]
-    if why:
+    if kt is not None and not kt.passed:
         if status != Status.FAILED_TEST:
-            status, message = Status.FAILED_TEST, "; ".join(why)
+            status, message = Status.FAILED_TEST, kt.message()
         else:
-            message = "; ".join([message, *why])
-    u = dataclasses.replace(u, base_verdict=base)
-    out = replace_fields(out, uniqueness=u, verdict=int(status), verdict_message=message)
+            message = f"{message}; {kt.message()}"
+    out = replace_fields(out, verdict=int(status), verdict_message=message)
+    out = apply_rule(out, dataclasses.replace(u, base_verdict=base), base_off)
     info = dataclasses.replace(info, known_test=None if kt is None else kt.to_dict())
     return out, info
 

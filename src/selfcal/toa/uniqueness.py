@@ -43,7 +43,7 @@ from .._result import jsonable
 from .._result import json_float as _num
 from .flips import flip_candidates, refit_nodes
 
-__all__ = ["UNIQUE_ALPHA", "Alternative", "UniquenessTest", "judge_fit", "uniqueness_test"]
+__all__ = ["UNIQUE_ALPHA", "Alternative", "UniquenessTest", "apply_rule", "judge_fit", "uniqueness_test"]
 
 Array = NDArray[np.float64]
 Start = tuple[Array, Array, "Array | None", "Array | None"]
@@ -112,6 +112,8 @@ class UniquenessTest:
         its offset): the test is run but has little power.
     base_verdict: the result's (status, message) before this test (:func:`judge_fit`), so a
         later constrained fit (known nodes) can judge again; None elsewhere.
+    failed: the rule of :func:`apply_rule` failed the result (minimal, or too many nodes
+        ambiguous); a test that did not pass but did not fail it names its nodes only.
     """
 
     alpha: float
@@ -129,6 +131,7 @@ class UniquenessTest:
     note: str = ""
     near_minimal: bool = field(default=False)
     base_verdict: tuple[int, str] | None = None
+    failed: bool = False
 
     @property
     def passed(self) -> bool:
@@ -515,12 +518,60 @@ def judge_fit(res: Any, Yf: Array, sol: Any, offsets: str, noise: float | None, 
                                                         f"({type(exc).__name__}: {exc})")
     u = dataclasses.replace(u.relabel(keep[0], keep[1], perm[0], perm[1]),
                             base_verdict=(int(res.verdict), str(res.verdict_message)))
+    return apply_rule(res, u, offsets)
+
+
+def apply_rule(res: Any, u: UniquenessTest, offsets: str) -> Any:
+    """The verdict of a uniqueness test on a result (caller's numbering), as the determinacy rule.
+
+    Ambiguous nodes are nodes the data do not determine: their covariance is widened by
+    ``delta delta^T`` (``delta`` the way to their alternative), so their error bar covers it.
+    The result fails (FAILED_TEST) when the problem is minimal, when more than half of the
+    nodes are ambiguous or undetermined, or when the other nodes alone are not an identifiable
+    network (their placement rests on the ambiguous ones) -- :data:`~selfcal.toa.determinacy.
+    UNDETERMINED_FAIL_FRACTION`, ``check_toa_counts`` as the determinacy test. Otherwise the
+    status stays and the message names the ambiguous nodes.
+    """
+    import dataclasses
+
+    from .._checks import check_toa_counts
+    from ..errors import DegenerateGeometryError, Status
+    from .determinacy import UNDETERMINED_FAIL_FRACTION
+
+    amb_r, amb_s = u.ambiguous_receivers, u.ambiguous_sources
+    R, S = np.asarray(res.receivers, float), np.asarray(res.sources, float)
+    ok_r, ok_s = np.isfinite(R).all(1), np.isfinite(S).all(1)
+    Cr, Cs = np.array(res.receiver_cov, float), np.array(res.source_cov, float)
+    for C, amb, P, alt in ((Cr, amb_r, R, u.receiver_alternatives), (Cs, amb_s, S, u.source_alternatives)):
+        for i in np.flatnonzero(amb):
+            dlt = alt[i] - P[i]
+            C[i] = C[i] + np.outer(dlt, dlt)
+    open_r = amb_r | np.asarray(res.undetermined_receivers, bool)
+    open_s = amb_s | np.asarray(res.undetermined_sources, bool)
+    n_nodes = int(ok_r.sum() + ok_s.sum())
+    n_open = int((open_r & ok_r).sum() + (open_s & ok_s).sum())
+    n_amb = int(amb_r.sum() + amb_s.sum())
+    core = None
+    if n_amb and res.residuals is not None:
+        kr, ks = ok_r & ~open_r, ok_s & ~open_s
+        used = np.isfinite(res.residuals) & (~res.outliers if res.outliers is not None else True)
+        try:
+            check_toa_counts((int(kr.sum()), int(ks.sum())), int(used[np.ix_(kr, ks)].sum()), R.shape[1], offsets)
+        except DegenerateGeometryError as exc:
+            core = f"the other nodes alone are not identifiable: {exc.args[0]}"
+    fails = u.minimal or (n_amb and (n_open > UNDETERMINED_FAIL_FRACTION * n_nodes or core is not None))
     status, message = Status(res.verdict), res.verdict_message
-    if not u.passed:
+    if fails:
+        why = u.message() + (f"; {core}" if core else "")
         if status != Status.FAILED_TEST:
-            status, message = Status.FAILED_TEST, u.message()
+            status, message = Status.FAILED_TEST, why
         else:
-            message = f"{message}; {u.message()}"
+            message = f"{message}; {why}"
+    elif n_amb:
+        message += (f"; but {n_amb} of {n_nodes} nodes are ambiguous ({u.names()}: an alternative position fits "
+                    f"as well, likelihood-ratio test at {u.alpha:g}; their error bars cover it)")
     elif u.near_minimal:
         message += f"; only {u.spare} spare measurement(s): the uniqueness test has little power"
-    return dataclasses.replace(res, uniqueness=u, verdict=int(status), verdict_message=message)
+    u = dataclasses.replace(u, failed=bool(fails))
+    return dataclasses.replace(res, uniqueness=u, verdict=int(status), verdict_message=message,
+                               receiver_cov=Cr, source_cov=Cs)
