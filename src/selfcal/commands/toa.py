@@ -214,7 +214,7 @@ def _forced_model(res: Any, M: Any, rejected: Any, speed: float | None, noise: f
         return None if a is None else np.asarray(a, float)[ok] * c
 
     return forced_model_test(Mf[np.ix_(ok_r, ok_s)] * c, R[ok_r], S[ok_s], sub(res.receiver_offsets, ok_r),
-                             sub(res.source_offsets, ok_s), offsets=off, noise=None if noise is None else noise * c,
+                             sub(res.source_offsets, ok_s), offsets=str(off), noise=None if noise is None else noise * c,
                              test_dim=test_dim, test_offsets=test_off)
 
 

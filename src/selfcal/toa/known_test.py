@@ -113,7 +113,8 @@ def known_test(rss_known: float, rss_blind: float, prior_misfit: float, *, n_kno
     >>> t.dof, t.passed
     (6, True)
     """
-    from scipy.stats import chi2, f as fdist
+    from scipy.stats import chi2
+    from scipy.stats import f as fdist
 
     q = d * int(n_known) - gauge_fixed(d, rank)
     if q <= 0:

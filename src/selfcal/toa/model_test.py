@@ -87,7 +87,8 @@ def _n_par(I: int, J: int, dim: int, offsets: str) -> int:
 
 
 def _ftest(rss0: float, rss1: float, k: int, dof1: int, noise2: float | None, floor2: float) -> tuple[float, float, int]:
-    from scipy.stats import chi2, f as fdist
+    from scipy.stats import chi2
+    from scipy.stats import f as fdist
 
     drop = max(rss0 - rss1, 0.0)
     if noise2 is not None:

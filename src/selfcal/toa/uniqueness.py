@@ -39,8 +39,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from .._result import jsonable
 from .._result import json_float as _num
+from .._result import jsonable
 from .flips import flip_candidates, refit_nodes
 
 __all__ = ["UNIQUE_ALPHA", "Alternative", "UniquenessTest", "apply_rule", "judge_fit", "uniqueness_test"]
@@ -141,8 +141,8 @@ class UniquenessTest:
     def names(self, receiver_names: Sequence[str] | None = None, source_names: Sequence[str] | None = None,
               limit: int = 12) -> str:
         """The ambiguous nodes, e.g. ``"r3, s0, s5"`` (at most ``limit``, then a count)."""
-        rn = [receiver_names[i] if receiver_names else f"r{i}" for i in np.flatnonzero(self.ambiguous_receivers)]
-        sn = [source_names[j] if source_names else f"s{j}" for j in np.flatnonzero(self.ambiguous_sources)]
+        rn = [receiver_names[int(i)] if receiver_names else f"r{i}" for i in np.flatnonzero(self.ambiguous_receivers)]
+        sn = [source_names[int(j)] if source_names else f"s{j}" for j in np.flatnonzero(self.ambiguous_sources)]
         allv = rn + sn
         more = f" and {len(allv) - limit} more" if len(allv) > limit else ""
         return ", ".join(allv[:limit]) + more
@@ -295,7 +295,8 @@ def uniqueness_test(
     >>> u.passed, int(u.ambiguous_sources.sum())
     (False, 6)
     """
-    from scipy.stats import chi2, f as fdist
+    from scipy.stats import chi2
+    from scipy.stats import f as fdist
 
     Y = np.asarray(ranges, float)
     R0 = np.asarray(receivers, float)
@@ -405,7 +406,7 @@ def uniqueness_test(
 
     bound = crit(d)
     quantile = float(chi2.ppf(1.0 - alpha, 1))
-    queue: list[tuple[float, str, int, Array, Array | None]] = []
+    queue: list[tuple[float, str, int, Array, float | None]] = []
     for kind_r, P, Q, W, off_self, off_part, cov_part, std_self, fixed in (
             (True, R0, S0, obs, d0, o0, source_cov, std_r, fix_r),
             (False, S0, R0, obs.T, o0, d0, receiver_cov, std_s, fix_s)):
@@ -493,7 +494,7 @@ def judge_fit(res: Any, Yf: Array, sol: Any, offsets: str, noise: float | None, 
     """
     import dataclasses
 
-    from ..errors import DegenerateGeometryError, Status
+    from ..errors import DegenerateGeometryError
     from .nls import refine_toa
 
     def refine(st: Start) -> Start | None:
