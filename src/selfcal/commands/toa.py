@@ -51,6 +51,10 @@ def _auto_available() -> bool:
 @click.option("--known", "known", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="CSV name,x,y,z[,std] of nodes with known positions (r<i>, s<j> or a receiver "
                    "index); they constrain the fit and set the frame.")
+@click.option("--side", type=click.Choice(["below", "above"]), default=None,
+              help="With --known nodes in one plane (ceiling anchors): the other nodes lie below / above "
+                   "it (along z of the known frame). Resolves the mirror image that plane leaves; without "
+                   "it the mirror is reported (exit 1).")
 @click.option("--frame", "frame", default=None, metavar="origin=A,x=B,xy=C[,z=D]",
               help="Frame by reference nodes: A at the origin, B on +x, C in the xy half-plane (y>0), "
                    "D above (z>0).")
@@ -64,7 +68,7 @@ def _auto_available() -> bool:
 @handle_errors
 def toa_command(matrix: Path, speed: float | None, offsets: str | None, dim: str | None,
                 loss: str | None, method: str, noise: float | None, recipe: str, common_offset: str,
-                known: Path | None,
+                known: Path | None, side: str | None,
                 frame: str | None, seed: int, out: Path, plot: Path | None, csv_out: Path | None = None,
                 unit: str | None = None, sample_rate: float | None = None) -> None:
     """Calibrate receivers and sources from an I x J TOA/range MATRIX (CSV or .npy, NaN = missing).
@@ -83,6 +87,8 @@ def toa_command(matrix: Path, speed: float | None, offsets: str | None, dim: str
 
     if known is not None and frame is not None:
         raise InputError("--known and --frame are exclusive (known positions already define the frame)")
+    if side is not None and known is None:
+        raise InputError("--side says where the other nodes lie relative to the --known nodes' plane: give --known")
     if ("auto" in (offsets, dim)) and not _auto_available():
         raise InputError("--offsets auto / --dim auto need the model selection (selfcal.toa.select), "
                          "which this build does not have yet; give the value explicitly")
@@ -100,6 +106,7 @@ def toa_command(matrix: Path, speed: float | None, offsets: str | None, dim: str
         known_table = read_known_csv(known, 2 if dim == "2" else 3)  # validated before the solve
     rec = apply_recipe(recipe, M, common_offset=common_offset, **kw)
     res: Any = rec.result
+    forced = _forced_model(rec.result, M, rec.rejected, speed, noise, dim, offsets)
     framed: FramedToaResult | None = None
     d_out = np.asarray(res.receivers).shape[1]
     # a kept common range offset (moving-tag recipe) is its own model: the refits keep it
@@ -112,7 +119,7 @@ def toa_command(matrix: Path, speed: float | None, offsets: str | None, dim: str
     if known_table is not None and known is not None:
         I, J = M.shape
         nodes = parse_known(_redim(known_table, known, d_out), I, J, d_out)
-        framed = fit_known(M_fit, res, nodes, offsets=off_used, loss=loss_used, noise=noise)
+        framed = fit_known(M_fit, res, nodes, offsets=off_used, loss=loss_used, noise=noise, side=side)
     elif frame is not None:
         framed = apply_frame(res, frame, matrix=M_fit, offsets=off_used, loss=loss_used)
     if framed is not None:
@@ -124,6 +131,8 @@ def toa_command(matrix: Path, speed: float | None, offsets: str | None, dim: str
         payload["recipe"] = rec.to_dict()["recipe"]
     if framed is not None:
         payload["frame"] = framed.frame.to_dict()
+    if forced is not None:
+        payload["model_test"] = forced.to_dict()
     ok, why = _trustworthy(res)
     # all artefacts staged and committed together; a FAIL (exit 1) still writes its result
     with staged_outputs():
@@ -175,9 +184,61 @@ def toa_command(matrix: Path, speed: float | None, offsets: str | None, dim: str
                      f"larger than their node set ({det.names()})")
     lines.append(f"  wrote {out}" + (f" and {plot}" if plot is not None else ""))
     click.echo("\n".join(lines))
+    fails = _verdict_lines(res, forced, table.row_names, table.col_names)
+    for line in fails:
+        click.echo(line)
     if not ok:
         click.echo(f"FAIL: calibration not trustworthy ({why})")
+    if fails or not ok:
         raise SystemExit(1)
+
+
+def _forced_model(res: Any, M: Any, rejected: Any, speed: float | None, noise: float | None, dim: str | None,
+                  offsets: str | None) -> Any:
+    """The model the user fixed (not "auto") tested against the larger one (:mod:`selfcal.toa.model_test`)."""
+    import numpy as np
+
+    from ..toa.model_test import forced_model_test
+
+    off = getattr(res, "offsets", None)
+    test_dim = dim == "2"
+    test_off = offsets != "auto" and off in ("none", "receivers", "sources")
+    if not (test_dim or test_off) or getattr(res, "residuals", None) is None:
+        return None
+    c = speed if speed is not None else 1.0
+    Mf = _fitted_entries(M, rejected, getattr(res, "outliers", None))
+    R, S = np.asarray(res.receivers, float), np.asarray(res.sources, float)
+    ok_r, ok_s = np.isfinite(R).all(1), np.isfinite(S).all(1)
+
+    def sub(a: Any, ok: Any) -> Any:
+        return None if a is None else np.asarray(a, float)[ok] * c
+
+    return forced_model_test(Mf[np.ix_(ok_r, ok_s)] * c, R[ok_r], S[ok_s], sub(res.receiver_offsets, ok_r),
+                             sub(res.source_offsets, ok_s), offsets=str(off), noise=None if noise is None else noise * c,
+                             test_dim=test_dim, test_offsets=test_off)
+
+
+def _verdict_lines(res: Any, forced: Any, row_names: Any, col_names: Any) -> list[str]:
+    """``FAIL:`` lines of the uniqueness test (ambiguous nodes, a minimal problem) and the forced-model test."""
+    out = []
+    u = getattr(res, "uniqueness", None)
+    if u is not None and not u.passed:
+        if u.ambiguous_receivers.any() or u.ambiguous_sources.any():
+            kinds = sorted({a.kind for a in u.alternatives})
+            what = (f"{u.names(row_names or None, col_names or None)} have alternative positions that fit the "
+                    f"ranges as well ({', '.join(kinds)}; likelihood-ratio test, level {u.alpha:g}; alternatives "
+                    "in the JSON under 'uniqueness')")
+            if u.failed:
+                out.append(f"FAIL: ambiguous: {what}; remedy: a tag position off the plane of their partners, "
+                           "a known height, a known node off the plane (or --side with coplanar --known nodes)")
+            else:  # a few nodes: named, their error bars widened to cover the alternative (as 'undetermined')
+                click.echo(f"  ambiguous: {what}; their error bars cover the alternative")
+        if u.minimal:
+            out.append("FAIL: minimal problem: no spare measurement, so no other solution can be ruled out; "
+                       "add measurements (or give --noise)")
+    if forced is not None and not forced.passed:
+        out.append(f"FAIL: {forced.message()}")
+    return out
 
 
 def _fitted_entries(M: Any, rejected: Any, outliers: Any) -> Any:

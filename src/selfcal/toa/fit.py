@@ -13,7 +13,10 @@ Steps (every rule stated in :mod:`selfcal.toa.robust`):
    :func:`~selfcal.toa.result.geometry_test` without) -> ``status`` / ``message``;
 7. the result in the caller's numbering, dropped nodes as NaN rows;
 8. the determinacy test (:func:`~selfcal.toa.trust.determinacy_test`) on the result's own
-   covariances: more than half of the nodes undetermined fails the result, fewer are named.
+   covariances: more than half of the nodes undetermined fails the result, fewer are named;
+9. the uniqueness test (:func:`~selfcal.toa.uniqueness.judge_fit`): an alternative solution
+   the data do not reject (a flip, another minimum of the search), or no spare measurement
+   at all, fails the result and names the ambiguous nodes.
 """
 
 from __future__ import annotations
@@ -46,6 +49,7 @@ from .robust import (
     studentized,
 )
 from .search import canonical_order, search
+from .uniqueness import judge_fit
 
 __all__ = ["finish", "given_start", "unrefined"]
 
@@ -138,6 +142,7 @@ def finish(M: Array, dim: int, offsets: str, *, init: Any, speed: float | None, 
     outliers = np.zeros((I, J), bool)
     best: NlsSolution | None = None
     prev_keep = (keep_r.copy(), keep_s.copy())
+    minima: Any = ([], prev_keep)
     degenerate = False  # the best fit collapsed to a line / point (data that fit no dim-D geometry)
     # 4. the search (ML cost on the entries in use), 5. the outlier rule; a changed set of
     # inliers runs the search again from the winner (at most twice: the rule converges fast)
@@ -155,6 +160,8 @@ def finish(M: Array, dim: int, offsets: str, *, init: Any, speed: float | None, 
                      stop=stop_rule(keep_r, keep_s), budget=1 if one or again else budget, max_nfev=max_nfev,
                      use_moves=sweep and not one and not again)
         best, prev_keep = out.solution, (keep_r.copy(), keep_s.copy())
+        if rnd == 0:  # the race's other minima, on these nodes (the uniqueness test's candidates)
+            minima = (out.minima, prev_keep)
         iters += out.iterations
         n_runs += out.refinements
         if not label:
@@ -279,6 +286,10 @@ def finish(M: Array, dim: int, offsets: str, *, init: Any, speed: float | None, 
             blocks = tuple(_embed_rows(B, k, inv, dim) for B, k, inv in ((sb[0], keep_r, inv_r),
                                                                           (sb[1], keep_s, inv_c)))
     res = _judge_determinacy(res, sd, float(final.sigma), covariance, key, singular, blocks)
+    if not degenerate:  # 9. is it the only solution the data allow? (selfcal.toa.uniqueness)
+        same = all(np.array_equal(a, b) for a, b in zip(minima[1], (keep_r, keep_s), strict=True))
+        res = judge_fit(res, Yf, final, offsets, sd, n_par, (keep_r, keep_s), (pr, pc),
+                        minima[0] if same else ())
     if sd is None and not degenerate and dof > 0 and not outlier_rule_has_power(Yf, *_start(final), offsets, dof):
         # the estimated-scale cut cannot flag a gross error of any size here: say so, not "0 outliers"
         import dataclasses

@@ -70,6 +70,8 @@ class FrameInfo:
         rigid alignment of the blind solution (before the constrained fit): a check of
         the known coordinates against the ranges; None for kind != "known".
     known_rms_fit: the same after the constrained fit (0 for exact nodes).
+    known_test: the test of the known positions against the ranges
+        (:class:`selfcal.toa.known_test.KnownTest` as a dict), None for kind != "known".
     """
 
     kind: str
@@ -81,6 +83,7 @@ class FrameInfo:
     message: str = ""
     known_rms: float | None = None
     known_rms_fit: float | None = None
+    known_test: dict[str, Any] | None = None
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-safe dictionary."""

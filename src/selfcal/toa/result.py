@@ -196,6 +196,11 @@ class ToaResult(Result):
         robust radius of its node set), or None (``method="rank3"``).
     undetermined_receivers, undetermined_sources: (I,), (J,) bool masks of the nodes the data
         do not determine (properties, from ``determinacy``; JSON: their indices).
+    uniqueness: the uniqueness test (:class:`selfcal.toa.uniqueness.UniquenessTest`: alternative
+        solutions -- flips, other minima -- against the fit by a likelihood-ratio test), or None.
+    ambiguous_receivers, ambiguous_sources: (I,), (J,) bool masks of the nodes an
+        indistinguishable alternative moves (properties; JSON: their indices, and their
+        alternative positions under ``uniqueness``).
 
     Verdict (``status``): FAILED_TEST when the residual / geometry test fails, when the best
     fit is degenerate, when more than half of the tested nodes are undetermined (the data
@@ -237,6 +242,21 @@ class ToaResult(Result):
     selection: dict[str, Any] = field(default_factory=dict)
     n_negative: int = 0
     determinacy: DeterminacyTest | None = None
+    uniqueness: Any = None
+
+    @property
+    def ambiguous_receivers(self) -> NDArray[np.bool_]:
+        """(I,) bool: receivers with an alternative position the data do not reject (:class:`~selfcal.toa.uniqueness.UniquenessTest`)."""
+        if self.uniqueness is None:
+            return np.zeros(np.shape(self.receivers)[0], bool)
+        return np.asarray(self.uniqueness.ambiguous_receivers, bool)
+
+    @property
+    def ambiguous_sources(self) -> NDArray[np.bool_]:
+        """(J,) bool: sources with an alternative position the data do not reject."""
+        if self.uniqueness is None:
+            return np.zeros(np.shape(self.sources)[0], bool)
+        return np.asarray(self.uniqueness.ambiguous_sources, bool)
 
     @property
     def undetermined_receivers(self) -> NDArray[np.bool_]:
@@ -296,6 +316,9 @@ class ToaResult(Result):
             "determinacy": None if self.determinacy is None else self.determinacy.to_dict(),
             "undetermined_receivers": [int(i) for i in np.flatnonzero(self.undetermined_receivers)],
             "undetermined_sources": [int(j) for j in np.flatnonzero(self.undetermined_sources)],
+            "uniqueness": None if self.uniqueness is None else self.uniqueness.to_dict(),
+            "ambiguous_receivers": [int(i) for i in np.flatnonzero(self.ambiguous_receivers)],
+            "ambiguous_sources": [int(j) for j in np.flatnonzero(self.ambiguous_sources)],
             "units": {"positions": "m", "covariances": "m^2", "offsets": unit, "residual_rms": unit,
                       "noise": unit},
         }

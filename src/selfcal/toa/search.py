@@ -262,6 +262,8 @@ class SearchOutcome:
         the solver's precision: no candidate can do better), "budget", "exhausted".
     history: (candidate name, cost) of every start and accepted move.
     partial_refits: partial refits run to rank the moves of a few nodes (not in ``refinements``).
+    minima: converged starts the race dropped behind the winner (lowest cost first, at most
+        :data:`MINIMA_KEPT`): other minima, for :func:`selfcal.toa.uniqueness.uniqueness_test`.
     """
 
     solution: NlsSolution
@@ -273,6 +275,7 @@ class SearchOutcome:
     stopped: str
     history: list[tuple[str, float]] = field(default_factory=list)
     partial_refits: int = 0
+    minima: list[Start] = field(default_factory=list)
 
 
 def _cost(sol: NlsSolution, loss: str, fs: float) -> float:
@@ -349,6 +352,8 @@ RACE_RUNGS = 8
 #: as it lost over its last rung (the rungs double its iterations; for an O(1/k) descent,
 #: c_k = c* + b / k, the rest after k iterations, b / k, is what the last doubling removed)
 RACE_FACTOR = 1.0
+#: converged losers of the race kept as other minima (SearchOutcome.minima)
+MINIMA_KEPT = 4
 
 
 def _race_survivors(pool: list[_Entry], best_only: bool = False) -> list[_Entry]:
@@ -601,10 +606,13 @@ def search(
             pool = [pool[-1]]
             stopped = why
             break
+    settled: list[tuple[float, int, Start]] = []  # converged starts the race dropped: other minima
     while len(pool) > 1 and stopped == "exhausted":
         if count >= nb:
             stopped = "budget"
-        pool = _race_survivors(pool, best_only=count >= nb)
+        kept = _race_survivors(pool, best_only=count >= nb)
+        settled += [(e[0], e[1], e[3][1]) for e in pool if e[3][2] and all(e[1] != k[1] for k in kept)]
+        pool = kept
         if all(e[3][2] for e in pool):
             break
         nfev = None if nfev is None else 2 * nfev
@@ -709,5 +717,6 @@ def search(
                     why = done(best)
                     if why is not None:
                         stopped = why
+    settled.sort(key=lambda e: (e[0], e[1]))
     return SearchOutcome(best, best_name, tuple(accepted), count, iters, float(fs or 1.0), stopped, history,
-                         partial_count)
+                         partial_count, [st for _, _, st in settled[:MINIMA_KEPT]])
