@@ -264,8 +264,10 @@ def _counts(res: Any) -> list[str]:
         if v is not None and len(v):
             out.append(f"{len(v)} {label}")
     mask = getattr(res, "outliers", None)
+    broke = getattr(res, "outlier_breakdown", None)
     if mask is not None:
-        out.append(f"{int(np.asarray(mask).sum())} outliers flagged")
+        out.append(f"{broke} ({int(np.asarray(mask).sum())} flagged)" if broke
+                   else f"{int(np.asarray(mask).sum())} outliers flagged")
     return out
 
 

@@ -181,7 +181,8 @@ class ToaResult(Result):
     status, message, success: the trust verdict (properties; ``status`` a
         :class:`selfcal.errors.Status`: SUCCESS, NOT_CONVERGED or FAILED_TEST), stored in the
         fields ``verdict`` (the Status value) and ``verdict_message``.
-    outliers: (I, J) bool, entries the outlier rule rejected (excluded from the final fit).
+    outliers: (I, J) bool, entries the outlier rule rejected (excluded from the final fit), and
+        the entries the gross-error screen or the rule removed on nodes dropped since.
     dropped_receivers, dropped_sources: indices of nodes with too few measurements to be
         identified, left out of the fit (their rows are NaN).
     noise: the noise std given by the caller (matrix units) or None.
@@ -194,6 +195,9 @@ class ToaResult(Result):
     determinacy: the determinacy test (:class:`DeterminacyTest`: each node's 95 % confidence
         region from the covariances above, at the given noise when there is one, against the
         robust radius of its node set), or None (``method="rank3"``).
+    outlier_breakdown: None, or why the outlier rule's answer cannot be trusted (``"outlier
+        breakdown: ..."``: more flagged than the MAD scale or a node can hold, or the robust and
+        least-squares fits disagreeing beyond their error bars); the verdict is then FAILED_TEST.
     undetermined_receivers, undetermined_sources: (I,), (J,) bool masks of the nodes the data
         do not determine (properties, from ``determinacy``; JSON: their indices).
 
@@ -237,6 +241,7 @@ class ToaResult(Result):
     selection: dict[str, Any] = field(default_factory=dict)
     n_negative: int = 0
     determinacy: DeterminacyTest | None = None
+    outlier_breakdown: str | None = None
 
     @property
     def undetermined_receivers(self) -> NDArray[np.bool_]:
@@ -294,6 +299,7 @@ class ToaResult(Result):
             "geometry": None if self.geometry is None else self.geometry.to_dict(),
             "selection": _select_json(self.selection),
             "determinacy": None if self.determinacy is None else self.determinacy.to_dict(),
+            "outlier_breakdown": self.outlier_breakdown,
             "undetermined_receivers": [int(i) for i in np.flatnonzero(self.undetermined_receivers)],
             "undetermined_sources": [int(j) for j in np.flatnonzero(self.undetermined_sources)],
             "units": {"positions": "m", "covariances": "m^2", "offsets": unit, "residual_rms": unit,
