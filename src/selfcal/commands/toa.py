@@ -16,7 +16,6 @@ from ._base import calibrate, handle_errors
 from ._common import csv_option, unit_options
 from ._options import NOISE_STD, SEED, SPEED
 
-
 #: ``--entries auto`` keeps per-entry arrays in the JSON up to this many matrix entries: about
 #: 2 MB of text and ~1 s of conversion; a 1000 x 1000 matrix took 17 s to convert and 10 s to write
 ENTRIES_JSON_MAX = 100_000

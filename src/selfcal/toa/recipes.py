@@ -176,8 +176,8 @@ def detect_time_order(matrix: Any, *, alpha: float = TIME_ORDER_ALPHA,
         if hits >= stop:
             break
     p = float(hits / len(perm)) if hits >= stop and len(perm) < n else float((1 + hits) / (n + 1))
-    med = float(np.median(perm)) if perm else 0.0
-    ratio = float(tv / med) if med > 0 else 1.0
+    mid = float(np.median(perm)) if perm else 0.0
+    ratio = float(tv / mid) if mid > 0 else 1.0
     return TimeOrderTest(bool(p <= alpha), p, ratio, float(alpha), len(perm))
 
 

@@ -289,7 +289,7 @@ _LIFT_MARGIN = 1e3
 
 def _power_norm(A: Array, iterations: int = 30) -> float:
     """Largest eigenvalue of a symmetric positive semi-definite matrix (power iteration, from below)."""
-    v = np.random.default_rng(0).standard_normal(A.shape[0])
+    v: Array = np.asarray(np.random.default_rng(0).standard_normal(A.shape[0]), float)
     lam = 0.0
     for _ in range(iterations):
         w = A @ v
