@@ -23,9 +23,13 @@ units in the 30 x 30 x 12 m room, complete, both offsets, 1 mm) and 1000 x 1000 
 missing, no offsets). Budget (issue 27): checks <= solve up to 1,000 measurements, <= 0.3 x
 the solve at 1000 x 1000.
 
+``cli``: ``calibrate toa`` on the 1000 x 1000 matrix (in this process) against ``solve_toa`` on
+it: what the command adds around the solve (the recipe's time-order test, serialising and
+writing the result), as a fraction of the solve.
+
 Run::
 
-    PYTHONPATH=src python benchmarks/bench_postsolve.py [--cases 12x6,120u,1000x1000] [--repeats 5]
+    PYTHONPATH=src python benchmarks/bench_postsolve.py [--cases 12x6,120u,1000x1000] [--repeats 5] [--cli 1000x1000]
 
 ``make bench`` (benchmarks/run_all.py) runs every case (1000 x 1000: 2 repeats).
 """
@@ -146,7 +150,39 @@ def run_case(name: str, repeats: int) -> dict[str, Any]:
             "verdict": res.verdict_message, "outliers": int(res.outliers.sum()) if res.outliers is not None else 0}
 
 
-def main(out_dir: Path | None = None, cases: str = "12x6,120u,1000x1000", repeats: int = 5) -> dict[str, Any]:
+def run_cli(name: str) -> dict[str, Any]:
+    """``calibrate toa`` in this process against ``solve_toa`` on the same matrix (once each).
+
+    ``around_over_solve`` is what the command adds to the solve (reading, the time-order
+    test of the recipe, serialising and writing the result) over the solve itself.
+    """
+    import contextlib
+    import io
+    import tempfile
+
+    from selfcal.cli import main as cli
+    from selfcal.toa import solve_toa
+
+    Y, dim, offsets = _case(name)
+    warnings.simplefilter("ignore")
+    with tempfile.TemporaryDirectory() as tmp:
+        src = Path(tmp) / "m.npy"
+        np.save(src, Y)
+        t = time.perf_counter()
+        solve_toa(Y, dim=dim, offsets=offsets, rng=0)
+        solve = time.perf_counter() - t
+        t = time.perf_counter()
+        with contextlib.redirect_stdout(io.StringIO()), contextlib.suppress(SystemExit):
+            cli(["calibrate", "toa", str(src), "--offsets", offsets, "--dim", str(dim), "--out",
+                 str(Path(tmp) / "r.json")], standalone_mode=False)
+        total = time.perf_counter() - t
+        size = sum(f.stat().st_size for f in Path(tmp).iterdir() if f.name.startswith("r."))
+    return {"case": f"cli {name}", "solve_s": solve, "cli_s": total, "around_over_solve": (total - solve) / solve,
+            "output_bytes": size}
+
+
+def main(out_dir: Path | None = None, cases: str = "12x6,120u,1000x1000", repeats: int = 5,
+         cli: str = "1000x1000") -> dict[str, Any]:
     """Run the cases, print one line each, write ``postsolve.json`` under ``out_dir``."""
     report: dict[str, Any] = {"name": "postsolve", "load_average_at_start": list(os.getloadavg()),
                               "OPENBLAS_NUM_THREADS": os.environ.get("OPENBLAS_NUM_THREADS"), "cases": []}
@@ -157,6 +193,11 @@ def main(out_dir: Path | None = None, cases: str = "12x6,120u,1000x1000", repeat
         parts = ", ".join(f"{k} {v:.3f}" for k, v in sorted(row["over_solve"].items()))
         print(f"[postsolve] {name} ({row['measurements']} measurements): solve {row['median_s']['solve']:.3f} s; "
               f"over the solve: {parts}")
+    for name in filter(None, (c.strip() for c in cli.split(","))):
+        row = run_cli(name)
+        report.setdefault("cli", []).append(row)
+        print(f"[postsolve] calibrate toa {name}: {row['cli_s']:.2f} s against solve_toa {row['solve_s']:.2f} s "
+              f"(around the solve {row['around_over_solve']:.2f} x the solve; output {row['output_bytes'] / 1e6:.1f} MB)")
     report["load_average_at_end"] = list(os.getloadavg())
     if out_dir is not None:
         Path(out_dir).mkdir(parents=True, exist_ok=True)
@@ -168,6 +209,7 @@ if __name__ == "__main__":
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--cases", default="12x6,120u,1000x1000")
     ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--cli", default="1000x1000", help="cases of the calibrate toa row ('' = none)")
     ap.add_argument("--out", type=Path, default=None)
     a = ap.parse_args()
-    main(a.out, a.cases, a.repeats)
+    main(a.out, a.cases, a.repeats, a.cli)
