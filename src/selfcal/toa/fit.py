@@ -140,7 +140,8 @@ def finish(M: Array, dim: int, offsets: str, *, init: Any, speed: float | None, 
     prev_keep = (keep_r.copy(), keep_s.copy())
     degenerate = False  # the best fit collapsed to a line / point (data that fit no dim-D geometry)
     ever = gross.copy()  # every entry screened or flagged in some round (outliers if its node is dropped)
-    breakdown: list[str] = []  # why the outlier rule cannot be trusted here (_outlier_breakdown)
+    breakdown: list[str] = []  # why the outlier rule cannot be trusted here (reported, FAILED_TEST)
+    overflagged: list[str] = []  # nodes dropped: more flagged ranges than their position can hold
     # 4. the search (ML cost on the entries in use), 5. the outlier rule; a changed set of
     # inliers runs the search again from the winner (at most twice: the rule converges fast)
     if given is None and not one:  # the nested fit's start, and the block start of structured gaps
@@ -205,9 +206,10 @@ def finish(M: Array, dim: int, offsets: str, *, init: Any, speed: float | None, 
         new_out[np.ix_(keep_r, keep_s)] = flags
         new_used = obs & ~new_out
         ever |= new_out
-        kr2, ks2 = drop_unidentifiable(new_used, dim, offsets)
-        kr2 &= keep_r
-        ks2 &= keep_s
+        br, bs = _overflagged(obs, flags, keep_r, keep_s, dim, offsets)
+        kr2, ks2 = drop_unidentifiable(new_used & ~br[:, None] & ~bs[None, :], dim, offsets)
+        kr2 &= keep_r & ~br
+        ks2 &= keep_s & ~bs
         try:
             _check_kept(new_used, kr2, ks2, dim, offsets)
         except DegenerateGeometryError:
@@ -216,6 +218,7 @@ def finish(M: Array, dim: int, offsets: str, *, init: Any, speed: float | None, 
             outliers = gross.copy()  # removing the flagged entries would leave too little: keep them
             used = obs & ~gross
             break
+        overflagged += [f"r{int(pr[i])}" for i in np.flatnonzero(br)] + [f"s{int(pc[j])}" for j in np.flatnonzero(bs)]
         changed = not (np.array_equal(new_used, used) and kr2.sum() == keep_r.sum() and ks2.sum() == keep_s.sum())
         outliers, used, keep_r, keep_s = new_out, new_used, kr2, ks2
         if not changed:
@@ -288,8 +291,12 @@ def finish(M: Array, dim: int, offsets: str, *, init: Any, speed: float | None, 
             blocks = tuple(_embed_rows(B, k, inv, dim) for B, k, inv in ((sb[0], keep_r, inv_r),
                                                                           (sb[1], keep_s, inv_c)))
     res = _judge_determinacy(res, sd, float(final.sigma), covariance, key, singular, blocks)
-    if not degenerate and dof > 0:
-        breakdown += _outlier_breakdown(Yc, final, keep_r, keep_s, outliers, pr, pc, offsets)
+    if overflagged:  # dropped: their position rests on fewer inliers than its flagged ranges
+        import dataclasses
+
+        res = dataclasses.replace(res, verdict_message=(
+            f"{res.verdict_message}; {len(overflagged)} nodes dropped, more ranges flagged than a position can "
+            f"hold (floor((n - unknowns) / 2)): {', '.join(overflagged[:8])}{' ...' if len(overflagged) > 8 else ''}"))
     if breakdown:
         import dataclasses
 
@@ -307,38 +314,26 @@ def finish(M: Array, dim: int, offsets: str, *, init: Any, speed: float | None, 
     return res
 
 
-def _outlier_breakdown(Yc: Array, final: NlsSolution, kr: NDArray[np.bool_], ks: NDArray[np.bool_],
-                       outliers: NDArray[np.bool_], pr: NDArray[np.intp], pc: NDArray[np.intp],
-                       offsets: str) -> list[str]:
-    """Where the outlier rule's answer cannot be trusted (the reasons, empty when none).
+def _overflagged(obs: NDArray[np.bool_], flags: NDArray[np.bool_], kr: NDArray[np.bool_], ks: NDArray[np.bool_],
+                 dim: int, offsets: str) -> tuple[NDArray[np.bool_], NDArray[np.bool_]]:
+    """Kept nodes with more flagged ranges than their position can hold, (I,), (J,) bool.
 
-    - A node whose flagged ranges exceed ``floor((n - p) / 2)`` (``n`` its observed ranges,
-      ``p`` its unknowns: the dimension, plus its offset): the most any regression estimator
-      of its ``p`` unknowns can hold (the maximal breakdown point, Rousseeuw & Leroy,
-      *Robust Regression and Outlier Detection*, 1987, sec. 3.4): its inliers no longer
-      outvote what was removed.
-
-    (The global rule, more than half of the entries flagged, is applied in the rounds of
-    :func:`finish`.) A comparison of the robust (soft-L1) fit with the final least-squares
-    fit on the inliers was tried and left out: soft-L1 has bounded but not vanishing
-    influence, so with 5 % gross errors that the rule removed correctly it stood 7-11 bands
-    ``k sigma sqrt(h)`` from the right least-squares fit (12 x 40, 3 of 3 draws).
+    A node with ``n`` observed ranges and ``p`` unknowns (the dimension, plus its offset)
+    can hold at most ``floor((n - p) / 2)`` outliers: the maximal breakdown point of any
+    regression-equivariant estimator of its position (Rousseeuw & Leroy, *Robust
+    Regression and Outlier Detection*, 1987, sec. 3.4). Beyond it its remaining ranges no
+    longer outvote the flagged ones (which set may be the wrong one cannot be told), so the
+    node is dropped, as a node with too few ranges is (:func:`drop_unidentifiable`).
+    ``flags`` is the rule's mask on the kept block (kept I x kept J).
     """
-    d = final.receivers.shape[1]
-    reasons: list[str] = []
-    sub_o = outliers[np.ix_(kr, ks)]
-    sub_obs = np.isfinite(Yc[np.ix_(kr, ks)])
-    names = []
-    for axis, own, perm, keep, tag in ((1, offsets in ("receivers", "both"), pr, kr, "r"),
-                                       (0, offsets in ("sources", "both"), pc, ks, "s")):
-        n, f = sub_obs.sum(axis=axis), sub_o.sum(axis=axis)
-        hold = (n - (d + int(own))) // 2
-        for k in np.flatnonzero(f > np.maximum(hold, 0)):
-            names.append(f"{tag}{int(perm[np.flatnonzero(keep)[k]])} {int(f[k])} of {int(n[k])}")
-    if names:
-        reasons.append(f"more ranges flagged than a node's position can hold (floor((n - unknowns) / 2)): "
-                       f"{', '.join(names[:8])}{' ...' if len(names) > 8 else ''}")
-    return reasons
+    sub_obs = obs[np.ix_(kr, ks)]
+    out = []
+    for axis, own, keep in ((1, offsets in ("receivers", "both"), kr), (0, offsets in ("sources", "both"), ks)):
+        n, f = sub_obs.sum(axis=axis), flags.sum(axis=axis)
+        bad = np.zeros(keep.size, bool)
+        bad[np.flatnonzero(keep)[f > np.maximum((n - (dim + int(own))) // 2, 0)]] = True
+        out.append(bad)
+    return out[0], out[1]
 
 
 def _embed_rows(B: Array, keep: NDArray[np.bool_], inv: NDArray[np.intp], dim: int) -> Array:

@@ -184,7 +184,8 @@ class ToaResult(Result):
     outliers: (I, J) bool, entries the outlier rule rejected (excluded from the final fit), and
         the entries the gross-error screen or the rule removed on nodes dropped since.
     dropped_receivers, dropped_sources: indices of nodes with too few measurements to be
-        identified, left out of the fit (their rows are NaN).
+        identified, or with more outliers than their position can hold, left out of the fit
+        (their rows are NaN).
     noise: the noise std given by the caller (matrix units) or None.
     noise_estimate: robust estimate of the noise std from the final residuals (matrix units).
     geometry: the geometry test (noise unknown: permutation test + median PRESS against the model
@@ -196,8 +197,10 @@ class ToaResult(Result):
         region from the covariances above, at the given noise when there is one, against the
         robust radius of its node set), or None (``method="rank3"``).
     outlier_breakdown: None, or why the outlier rule's answer cannot be trusted (``"outlier
-        breakdown: ..."``: more flagged than the MAD scale or a node can hold, or the robust and
-        least-squares fits disagreeing beyond their error bars); the verdict is then FAILED_TEST.
+        breakdown: ..."``: more than half of the entries flagged, beyond what the MAD scale can
+        hold, or a removal that would leave the network unidentifiable); the verdict is then
+        FAILED_TEST. (A node with more flagged ranges than its position can hold is dropped
+        and named in ``message`` instead.)
     undetermined_receivers, undetermined_sources: (I,), (J,) bool masks of the nodes the data
         do not determine (properties, from ``determinacy``; JSON: their indices).
 
