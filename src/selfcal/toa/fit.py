@@ -144,6 +144,9 @@ def finish(M: Array, dim: int, offsets: str, *, init: Any, speed: float | None, 
     prev_keep = (keep_r.copy(), keep_s.copy())
     minima: Any = ([], prev_keep)
     degenerate = False  # the best fit collapsed to a line / point (data that fit no dim-D geometry)
+    ever = gross.copy()  # every entry screened or flagged in some round (outliers if its node is dropped)
+    breakdown: list[str] = []  # why the outlier rule cannot be trusted here (reported, FAILED_TEST)
+    overflagged: list[str] = []  # nodes dropped: more flagged ranges than their position can hold
     # 4. the search (ML cost on the entries in use), 5. the outlier rule; a changed set of
     # inliers runs the search again from the winner (at most twice: the rule converges fast)
     if given is None and not one:  # the nested fit's start, and the block start of structured gaps
@@ -201,21 +204,28 @@ def finish(M: Array, dim: int, offsets: str, *, init: Any, speed: float | None, 
         if flags.sum() > 0.5 * sub_obs.sum():
             # beyond the MAD's breakdown point the "outliers" are the model (a wrong basin, a wrong
             # noise level, data of no geometry): remove nothing and let the trust test say so
+            breakdown.append(f"{int(flags.sum())} of {int(sub_obs.sum())} entries flagged, more than the half "
+                             "the MAD noise scale can hold (none removed)")
             outliers = gross.copy()
             used = obs & ~gross
             break
         new_out = np.zeros((I, J), bool)
         new_out[np.ix_(keep_r, keep_s)] = flags
         new_used = obs & ~new_out
-        kr2, ks2 = drop_unidentifiable(new_used, dim, offsets)
-        kr2 &= keep_r
-        ks2 &= keep_s
+        ever |= new_out
+        br, bs = _overflagged(obs, flags, keep_r, keep_s, dim, offsets)
+        kr2, ks2 = drop_unidentifiable(new_used & ~br[:, None] & ~bs[None, :], dim, offsets)
+        kr2 &= keep_r & ~br
+        ks2 &= keep_s & ~bs
         try:
             _check_kept(new_used, kr2, ks2, dim, offsets)
         except DegenerateGeometryError:
+            breakdown.append(f"removing the {int(flags.sum())} flagged entries would leave the network "
+                             "unidentifiable (none removed)")
             outliers = gross.copy()  # removing the flagged entries would leave too little: keep them
             used = obs & ~gross
             break
+        overflagged += [f"r{int(pr[i])}" for i in np.flatnonzero(br)] + [f"s{int(pc[j])}" for j in np.flatnonzero(bs)]
         changed = not (np.array_equal(new_used, used) and kr2.sum() == keep_r.sum() and ks2.sum() == keep_s.sum())
         outliers, used, keep_r, keep_s = new_out, new_used, kr2, ks2
         if not changed:
@@ -245,6 +255,8 @@ def finish(M: Array, dim: int, offsets: str, *, init: Any, speed: float | None, 
     if not robust and not degenerate:  # flagged for the reader, not removed
         outliers = np.zeros((I, J), bool)
         outliers[np.ix_(keep_r, keep_s)] = _flag(Yc, final, keep_r, keep_s, offsets, sd, np.isfinite(Yf))
+    # entries screened or flagged on nodes dropped since stay outliers (they had NaN residuals and a clean mask)
+    outliers |= ever & obs & ~(keep_r[:, None] & keep_s[None, :])
 
     # 6. trust
     n_par = n_par_of(keep_r, keep_s)
@@ -290,6 +302,19 @@ def finish(M: Array, dim: int, offsets: str, *, init: Any, speed: float | None, 
         same = all(np.array_equal(a, b) for a, b in zip(minima[1], (keep_r, keep_s), strict=True))
         res = judge_fit(res, Yf, final, offsets, sd, n_par, (keep_r, keep_s), (pr, pc),
                         minima[0] if same else ())
+    if overflagged:  # dropped: their position rests on fewer inliers than its flagged ranges
+        import dataclasses
+
+        res = dataclasses.replace(res, verdict_message=(
+            f"{res.verdict_message}; {len(overflagged)} nodes dropped, more ranges flagged than a position can "
+            f"hold (floor((n - unknowns) / 2)): {', '.join(overflagged[:8])}{' ...' if len(overflagged) > 8 else ''}"))
+    if breakdown:
+        import dataclasses
+
+        text = "outlier breakdown: " + "; ".join(breakdown)
+        failed = res.verdict == int(Status.FAILED_TEST)
+        res = dataclasses.replace(res, outlier_breakdown=text, verdict=int(Status.FAILED_TEST),
+                                  verdict_message=f"{res.verdict_message}; {text}" if failed else text)
     if sd is None and not degenerate and dof > 0 and not outlier_rule_has_power(Yf, *_start(final), offsets, dof):
         # the estimated-scale cut cannot flag a gross error of any size here: say so, not "0 outliers"
         import dataclasses
@@ -298,6 +323,28 @@ def finish(M: Array, dim: int, offsets: str, *, init: Any, speed: float | None, 
             f"{res.verdict_message}; outlier detection has no power at {dof} residual dof (a gross error on any "
             "one entry inflates the noise scale it is judged against; give the noise, or more measurements)"))
     return res
+
+
+def _overflagged(obs: NDArray[np.bool_], flags: NDArray[np.bool_], kr: NDArray[np.bool_], ks: NDArray[np.bool_],
+                 dim: int, offsets: str) -> tuple[NDArray[np.bool_], NDArray[np.bool_]]:
+    """Kept nodes with more flagged ranges than their position can hold, (I,), (J,) bool.
+
+    A node with ``n`` observed ranges and ``p`` unknowns (the dimension, plus its offset)
+    can hold at most ``floor((n - p) / 2)`` outliers: the maximal breakdown point of any
+    regression-equivariant estimator of its position (Rousseeuw & Leroy, *Robust
+    Regression and Outlier Detection*, 1987, sec. 3.4). Beyond it its remaining ranges no
+    longer outvote the flagged ones (which set may be the wrong one cannot be told), so the
+    node is dropped, as a node with too few ranges is (:func:`drop_unidentifiable`).
+    ``flags`` is the rule's mask on the kept block (kept I x kept J).
+    """
+    sub_obs = obs[np.ix_(kr, ks)]
+    out = []
+    for axis, own, keep in ((1, offsets in ("receivers", "both"), kr), (0, offsets in ("sources", "both"), ks)):
+        n, f = sub_obs.sum(axis=axis), flags.sum(axis=axis)
+        bad = np.zeros(keep.size, bool)
+        bad[np.flatnonzero(keep)[f > np.maximum((n - (dim + int(own))) // 2, 0)]] = True
+        out.append(bad)
+    return out[0], out[1]
 
 
 def _embed_rows(B: Array, keep: NDArray[np.bool_], inv: NDArray[np.intp], dim: int) -> Array:
