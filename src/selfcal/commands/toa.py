@@ -78,6 +78,7 @@ def toa_command(matrix: Path, speed: float | None, offsets: str | None, dim: str
     from ..errors import InputError
     from ..io import read_table, staged_outputs, write_json
     from ..toa.frame import FramedToaResult, apply_frame, fit_known, parse_known, read_known_csv
+    from ..toa.nodes import check_frame, node_names
     from ..toa.recipes import apply_recipe
     from ._common import enrich_payload, to_metres, write_nodes_csv
 
@@ -95,9 +96,16 @@ def toa_command(matrix: Path, speed: float | None, offsets: str | None, dim: str
             kw[key] = val
     if dim is not None:
         kw["dim"] = dim if dim == "auto" else int(dim)
+    # node names: the matrix's own (header row / first column) or 0-based r<i> / s<j>;
+    # --known and --frame are read and resolved against them before any work
+    I, J = M.shape
+    names = node_names(table.row_names, table.col_names, I, J)
     known_table = None
     if known is not None:
-        known_table = read_known_csv(known, 2 if dim == "2" else 3)  # validated before the solve
+        known_table = read_known_csv(known, 2 if dim == "2" else 3)
+        parse_known(known_table, I, J, 2 if dim == "2" else 3, **names)
+    if frame is not None:
+        check_frame(frame, I, J, **names)
     rec = apply_recipe(recipe, M, common_offset=common_offset, **kw)
     res: Any = rec.result
     framed: FramedToaResult | None = None
@@ -110,15 +118,13 @@ def toa_command(matrix: Path, speed: float | None, offsets: str | None, dim: str
     loss_used = loss if loss is not None else "linear"
     M_fit = _fitted_entries(M, rec.rejected, getattr(res, "outliers", None))
     if known_table is not None and known is not None:
-        I, J = M.shape
-        nodes = parse_known(_redim(known_table, known, d_out), I, J, d_out)
+        nodes = parse_known(_redim(known_table, known, d_out), I, J, d_out, **names)
         framed = fit_known(M_fit, res, nodes, offsets=off_used, loss=loss_used, noise=noise)
     elif frame is not None:
-        framed = apply_frame(res, frame, matrix=M_fit, offsets=off_used, loss=loss_used)
+        framed = apply_frame(res, frame, matrix=M_fit, offsets=off_used, loss=loss_used, **names)
     if framed is not None:
         res = framed.result
-    payload = enrich_payload(dict(res.to_dict()), names={"receiver_names": table.row_names,
-                                                         "source_names": table.col_names})
+    payload = enrich_payload(dict(res.to_dict()), names=names)
     used = rec.recipe
     if recipe != "none":
         payload["recipe"] = rec.to_dict()["recipe"]
@@ -136,7 +142,6 @@ def toa_command(matrix: Path, speed: float | None, offsets: str | None, dim: str
             write_nodes_csv(csv_out, payload, [("receiver", "receivers", "receiver_names"),
                                                ("source", "sources", "source_names")])
     unit = "s" if speed is not None else "m"
-    I, J = M.shape
     tr = np.trace(res.receiver_cov, axis1=1, axis2=2)
     ts = np.trace(res.source_cov, axis1=1, axis2=2)
     lines = [
