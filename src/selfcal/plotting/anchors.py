@@ -77,10 +77,26 @@ def plot_anchors(
     Figure
         One panel (x-y) in 2-D; three (plan x-y, elevations x-z and y-z) in 3-D.
     """
+    from scipy.stats import chi2
+
+    from .elements import confidence_ellipse
+
     A = np.asarray(anchors, float)
     d = A.shape[1]
     views = _VIEWS if d == 3 else _VIEWS[:1]
-    fig = Figure(figsize=(5.5 * len(views), 5.0), layout="constrained")
+    # ellipses of millimetres are invisible on a room: magnified to ~3 % of the extent, stated
+    mag = 1.0
+    if cov is not None:
+        C = np.asarray(cov, float)
+        ok = np.isfinite(C).all(axis=(1, 2))
+        semi = float(np.sqrt(chi2.ppf(0.95, 2) * np.max(np.linalg.eigvalsh(C[ok]), initial=0.0))) if ok.any() else 0.0
+        extent = float(np.nanmax(np.ptp(A, axis=0))) if A.shape[0] > 1 else 1.0
+        if semi > 0 and semi < 0.03 * extent:
+            want = 0.03 * extent / semi
+            base = 10 ** np.floor(np.log10(want))
+            mag = float(max(m * base for m in (1, 2, 5) if m * base <= want))
+    ell = "95 % ellipses" + (f" x{mag:g}" if mag > 1 else "")
+    fig = Figure(figsize=(5.5 * len(views), 5.0))
     for k, ((a, b), label) in enumerate(views):
         ax = fig.add_subplot(1, len(views), k + 1)
         if room is not None:
@@ -89,7 +105,13 @@ def plot_anchors(
         if tag is not None and len(tag):
             T = np.asarray(tag, float)
             ax.plot(T[:, a], T[:, b], color="C1", lw=0.7, alpha=0.7, label="tag path")
-        plot_positions(ax, A, cov=cov, label="anchors (95 % ellipses)", color="C0", marker="^", dims=(a, b))
+        plot_positions(ax, A, label=f"anchors ({ell})" if cov is not None else "anchors", color="C0", marker="^",
+                       dims=(a, b))
+        if cov is not None:
+            for p, c in zip(A, np.asarray(cov, float), strict=False):
+                c2 = c[np.ix_([a, b], [a, b])]
+                if np.isfinite(c2).all() and np.isfinite(p[[a, b]]).all():
+                    ax.add_patch(confidence_ellipse(p[[a, b]], c2, scale=mag, edgecolor="C0", lw=0.8))
         for p, name in zip(A, names, strict=False):
             if np.isfinite(p[[a, b]]).all():
                 ax.annotate(str(name), (p[a], p[b]), textcoords="offset points", xytext=(4, 4), fontsize=8)

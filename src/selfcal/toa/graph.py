@@ -89,13 +89,15 @@ class GraphResult(Result):
     residuals : (m,) array
         Measured minus fitted range of every measurement.
     residual_rms, noise_estimate : float
-        RMS of the residuals; ``sqrt(weighted RSS / dof)`` with ``dof = m - n d + g``.
+        RMS of the residuals (m); ``sqrt(weighted RSS / dof)`` with ``dof = m - n d + g``: metres
+        without ``std``, in units of the given std (1 = as stated) with it.
     dof : int
         Residual degrees of freedom of the measurements (``g`` = gauge the frame leaves).
     n_measurements, n_pairs : int
         Measurements and distinct node pairs.
     pure_error_sigma : float or None
-        Noise estimated from the spread of repeated measurements (None without repeats).
+        Noise estimated from the spread of repeated measurements (None without repeats); the
+        unit of ``noise_estimate``.
     pure_error_dof : int
         Degrees of freedom of that estimate (``m - pairs``).
     lack_of_fit_F, lack_of_fit_p : float or None
