@@ -109,3 +109,22 @@ def test_unknown_names_refused_before_any_work(tmp_path, monkeypatch, opt, value
     assert res.exit_code == 2
     assert f"'{word}'" in res.output and "A0, A1" in res.output
     assert not out.exists()
+
+
+def test_anchor_file_and_installer_figure_from_a_matrix(tmp_path):
+    """--anchors (CSV and JSON) holds the receivers by the matrix's names in the known frame;
+    --anchor-plot draws them with names and units, the tag path and the --room box."""
+    m, _ = _scene(tmp_path, 4)
+    known = _known(tmp_path, [(f"A{i}", i) for i in range(4)])
+    out, anchors, fig = tmp_path / "r.json", tmp_path / "anchors.json", tmp_path / "anchors.png"
+    res = run(m, "--known", known, "--out", out, "--anchors", anchors, "--anchor-plot", fig, "--room", "5,4,3")
+    assert res.exit_code == 0, res.output
+    doc = json.loads(anchors.read_text())
+    assert [a["name"] for a in doc["anchors"]] == [f"A{i}" for i in range(7)]
+    P = np.array([a["position"] for a in doc["anchors"]])
+    S = np.array([a["std"] for a in doc["anchors"]])
+    assert np.all(np.abs(P - ANCHORS) <= 6 * S + 1e-9)
+    assert fig.read_bytes()[:4] == b"\x89PNG"
+    res = run(m, "--out", out, "--anchors", tmp_path / "a.csv")
+    assert res.exit_code == 0
+    assert (tmp_path / "a.csv").read_text().splitlines()[0] == "name,x,y,z,std_x,std_y,std_z"

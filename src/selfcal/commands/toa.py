@@ -14,6 +14,7 @@ import click
 
 from ._base import calibrate, handle_errors
 from ._common import csv_option, unit_options
+from .graph import parse_room, room_option
 from ._options import NOISE_STD, SEED, SPEED
 
 
@@ -60,13 +61,21 @@ def _auto_available() -> bool:
 @click.option("--plot", "plot", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="Figure of receivers and sources with 95% confidence ellipses (format from the suffix: .png, .pdf, .svg).")
 @csv_option
+@click.option("--anchors", "anchors_out", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              metavar="FILE", help="The receivers (anchors) as CSV name,x,y,z,std_x,std_y,std_z, or JSON for a "
+                                   "configuration tool (suffix .json), in the output frame.")
+@click.option("--anchor-plot", "anchor_plot", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              metavar="FILE", help="Installer figure: named anchors, the tag path (sources in column order), "
+                                   "the --room box; plan and two elevations.")
+@room_option
 @unit_options
 @handle_errors
 def toa_command(matrix: Path, speed: float | None, offsets: str | None, dim: str | None,
                 loss: str | None, method: str, noise: float | None, recipe: str, common_offset: str,
                 known: Path | None,
                 frame: str | None, seed: int, out: Path, plot: Path | None, csv_out: Path | None = None,
-                unit: str | None = None, sample_rate: float | None = None) -> None:
+                unit: str | None = None, sample_rate: float | None = None, anchors_out: Path | None = None,
+                anchor_plot: Path | None = None, room: str | None = None) -> None:
     """Calibrate receivers and sources from an I x J TOA/range MATRIX (CSV or .npy, NaN = missing).
 
     Rows are receivers, columns are sources (a header row and a first column of names are
@@ -87,6 +96,7 @@ def toa_command(matrix: Path, speed: float | None, offsets: str | None, dim: str
     if ("auto" in (offsets, dim)) and not _auto_available():
         raise InputError("--offsets auto / --dim auto need the model selection (selfcal.toa.select), "
                          "which this build does not have yet; give the value explicitly")
+    box = parse_room(room)
     table = read_table(matrix, name=str(matrix))
     M, speed, _ = to_metres(table.values, unit, speed, sample_rate, name=str(matrix))
     plausible_matrix_scale(M, speed=speed, explicit_unit=unit is not None, name=str(matrix))
@@ -141,6 +151,8 @@ def toa_command(matrix: Path, speed: float | None, offsets: str | None, dim: str
         if csv_out is not None:
             write_nodes_csv(csv_out, payload, [("receiver", "receivers", "receiver_names"),
                                                ("source", "sources", "source_names")])
+        _installer_outputs(res, names["receiver_names"], anchors_out, anchor_plot, box,
+                           framed.frame.message if framed is not None else "canonical gauge (no frame given)")
     unit = "s" if speed is not None else "m"
     tr = np.trace(res.receiver_cov, axis1=1, axis2=2)
     ts = np.trace(res.source_cov, axis1=1, axis2=2)
@@ -177,12 +189,27 @@ def toa_command(matrix: Path, speed: float | None, offsets: str | None, dim: str
     det = getattr(res, "determinacy", None)
     if det is not None and det.n_undetermined:
         lines.append(f"  undetermined: {det.n_undetermined} of {det.tested} nodes have a 95 % confidence region "
-                     f"larger than their node set ({det.names()})")
-    lines.append(f"  wrote {out}" + (f" and {plot}" if plot is not None else ""))
+                     f"larger than their node set ({det.names(**names)})")
+    lines.append("  wrote " + ", ".join(str(p) for p in (out, plot, csv_out, anchors_out, anchor_plot) if p is not None))
     click.echo("\n".join(lines))
     if not ok:
         click.echo(f"FAIL: calibration not trustworthy ({why})")
         raise SystemExit(1)
+
+
+def _installer_outputs(res: Any, names: Any, anchors_out: Path | None, anchor_plot: Path | None, box: Any,
+                       frame: str) -> None:
+    """``--anchors`` (the receivers as the anchor file) and ``--anchor-plot`` (the installer figure)."""
+    if anchors_out is not None:
+        from ..io.anchors import write_anchors
+
+        write_anchors(anchors_out, list(names), res.receivers, res.receiver_cov, frame=frame)
+    if anchor_plot is not None:
+        from ..plotting.anchors import plot_anchors
+
+        gauge = "canonical gauge" if frame.startswith("canonical") else "room frame"
+        plot_anchors(res.receivers, list(names), anchor_plot, cov=res.receiver_cov, tag=res.sources, room=box,
+                     title=f"anchors ({gauge})")
 
 
 def _fitted_entries(M: Any, rejected: Any, outliers: Any) -> Any:
