@@ -145,9 +145,19 @@ def graph_command(ranges: Path, dim: str, unit: str, known: Path | None, frame: 
     if ok.any():
         lines.append(f"  anchor std (RMS over anchors): " + ", ".join(
             f"{ax} {np.sqrt(np.mean(sa[ok, i] ** 2)):.3g} m" for i, ax in enumerate("xyz"[:d])))
+    loose = set(res.poorly_determined_nodes)
+    loose_anchors = [n for n, t in zip(names, A, strict=True) if t and n in loose]
+    if loose:
+        shown = sorted(loose, key=names.index)
+        lines.append(f"  poorly determined: {len(loose)} node(s) with a 95 % region larger than the node set "
+                     f"({', '.join(shown[:10])}{', ...' if len(shown) > 10 else ''})")
     wrote = [str(p) for p in (out, anchors_out, csv_out, plot) if p is not None]
     lines.append("  wrote " + ", ".join(wrote))
     click.echo("\n".join(lines))
     if not res.success:
         click.echo(f"FAIL: calibration not trustworthy ({res.message})")
+        raise SystemExit(1)
+    if loose_anchors:
+        click.echo(f"FAIL: anchor(s) {', '.join(loose_anchors)} not determined (95 % region larger than the "
+                   "node set); add ranges to them")
         raise SystemExit(1)

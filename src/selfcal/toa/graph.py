@@ -106,7 +106,13 @@ class GraphResult(Result):
         With per-measurement ``std``: the weighted RSS and its chi-square p value on ``dof``.
     undetermined_nodes : tuple of str
         Nodes that move in a direction the ranges do not see (null space of the information
-        matrix beyond the gauge the frame leaves): not determined to first order.
+        matrix beyond the gauge the frame leaves, or a 3-D node set flat within its error
+        bars): not determined to first order. The result's status is then DEGENERATE.
+    poorly_determined_nodes : tuple of str
+        Nodes whose 95 % confidence region is larger than the whole node set (the rule of
+        :mod:`selfcal.toa.determinacy`): reported, the status is not changed (a tag
+        position seen by few anchors); a caller for whom such a node matters (an anchor)
+        decides.
     converged : bool
     iterations : int
     method : str
@@ -130,6 +136,7 @@ class GraphResult(Result):
     chi2: float | None
     chi2_p: float | None
     undetermined_nodes: tuple[str, ...]
+    poorly_determined_nodes: tuple[str, ...]
     converged: bool
     iterations: int
     method: str
@@ -262,13 +269,16 @@ def _initial(P: _Pairs, n: int, d: int, rng: Any) -> tuple[Array, str]:
 
 def _bipartite_start(P: _Pairs, n: int, d: int, K: Index, rng: Any) -> tuple[Array, str]:
     """Start from the bipartite part: the clique (or one colour class) x the other nodes."""
-    from .solve import solve_toa
-
     colour = _two_colouring(P, n)
     if colour is not None:
         from .sparse import solve_toa_sparse
 
         R, S = np.flatnonzero(colour == 0), np.flatnonzero(colour == 1)
+        if R.size > S.size:
+            R, S = S, R
+        if P.mean.size >= 0.5 * R.size * S.size:
+            # a dense bipartite graph is a range matrix: the dense blind solver (its search)
+            return _matrix_start(P, n, d, R, S, rng)
         ri, si = -np.ones(n, np.intp), -np.ones(n, np.intp)
         ri[R], si[S] = np.arange(R.size), np.arange(S.size)
         a_is_r = colour[P.a] == 0
@@ -282,7 +292,13 @@ def _bipartite_start(P: _Pairs, n: int, d: int, K: Index, rng: Any) -> tuple[Arr
         raise DegenerateGeometryError(
             f"no group of {d + 1} nodes with all their mutual ranges and the graph is not bipartite: no "
             "blind start for it; measure the ranges among a few anchors", kind="too-few-measurements")
-    E = np.setdiff1d(np.arange(n), K)
+    return _matrix_start(P, n, d, K, np.setdiff1d(np.arange(n), K), rng)
+
+
+def _matrix_start(P: _Pairs, n: int, d: int, K: Index, E: Index, rng: Any) -> tuple[Array, str]:
+    """Blind start from the K x E range matrix (rows K) by :func:`selfcal.toa.solve.solve_toa`."""
+    from .solve import solve_toa
+
     kpos, epos = -np.ones(n, np.intp), -np.ones(n, np.intp)
     kpos[K], epos[E] = np.arange(K.size), np.arange(E.size)
     M = np.full((K.size, E.size), np.nan)
@@ -398,8 +414,11 @@ def _fit(X0: Array, P: _Pairs, free: NDArray[np.bool_], prior: tuple[Array, Arra
             J = vstack([J, Jp], format="csr")
         return J
 
-    sol = least_squares(fun, theta0, jac=jac, method="trf", tr_solver="lsmr", xtol=1e-12, ftol=1e-12,
-                        gtol=1e-12, max_nfev=200 + 10 * theta0.size // 100)
+    # exact trust-region steps (dense SVD of J) while J is small; LSMR on the sparse J beyond
+    dense = theta0.size <= 1500
+    sol = least_squares(fun, theta0, jac=(lambda t: jac(t).toarray()) if dense else jac, method="trf",
+                        tr_solver="exact" if dense else "lsmr", xtol=1e-10, ftol=1e-12, gtol=1e-10,
+                        max_nfev=500)
     return unpack(sol.x), bool(sol.status > 0), int(sol.nfev)
 
 
@@ -441,26 +460,41 @@ def _region_larger_than_set(X: Array, cov: Array) -> NDArray[np.bool_]:
     return np.sqrt(chi2.ppf(0.95, d) * np.clip(lam, 0.0, None)) > radius
 
 
-def _flat_within_errors(X: Array, cov: Array) -> NDArray[np.bool_]:
-    """Every node, when a 3-D node set lies in a plane within its own error bars.
+def _flat_within_errors(X: Array, P: _Pairs, n_meas: int) -> tuple[bool, float | None]:
+    """Whether a 3-D node set is flat within its errors: ``(flat, p value)``.
 
     At a planar configuration the ranges determine no out-of-plane coordinate to first
-    order (module docstring); a noisy fit bends the set off the plane by about the noise,
-    where the linearised covariance is finite but says nothing. The set is called flat
-    when its RMS distance to its least-squares plane is at most 3 x the RMS of the nodes'
-    std along the plane's normal (a plane spread that the error bars explain).
+    order (module docstring); a noisy fit bends the set off the plane by about
+    ``sqrt(noise x size)`` (second order), where the linearised covariance is finite but
+    says nothing. The nested models are compared instead: the best planar (2-D) fit against
+    the 3-D fit, blind both, by the F test of the extra ``n - 3`` coordinates against the
+    3-D noise estimate; the set is called flat when the plane is not rejected (p >= 1e-3).
+    A set whose thinnest principal spread exceeds a quarter of the middle one is never
+    flat at any noise that leaves a usable fit (its heights are far beyond
+    ``sqrt(noise x size)``), so the two fits are spared there.
     """
+    from scipy.stats import f as f_dist
+
     n, d = X.shape
     if d < 3 or n < 4:
-        return np.zeros(n, bool)
-    from ..geometry import fit_plane
-
-    pl = fit_plane(X)
-    normal = np.asarray(pl.normal, float)
-    h = (X - X.mean(0)) @ normal
-    var_n = np.einsum("a,kab,b->k", normal, np.nan_to_num(cov), normal)
-    flat = np.sqrt(np.mean(h**2)) <= 3.0 * np.sqrt(np.mean(np.clip(var_n, 0.0, None)))
-    return np.full(n, bool(flat))
+        return False, None
+    c = X.mean(0)
+    _, sv, Vt = np.linalg.svd(X - c, full_matrices=False)
+    if sv[2] > 0.25 * sv[1]:
+        return False, None
+    all3, all2 = np.ones((n, 3), bool), np.ones((n, 2), bool)
+    X3, _, _ = _fit(X, P, all3, None)
+    X2, _, _ = _fit((X - c) @ Vt[:2].T, P, all2, None)
+    rss3, rss2 = (float(np.sum(P.weight * (np.linalg.norm(Z[P.a] - Z[P.b], axis=1) - P.mean) ** 2))
+                  for Z in (X3, X2))
+    q = n - 3
+    dof = n_meas - (3 * n - 6)
+    if dof <= 0:
+        return True, None
+    s2 = (rss3 + P.pe_ss) / dof
+    F = max(rss2 - rss3, 0.0) / q / max(s2, 1e-300)
+    p = float(f_dist.sf(F, q, dof))
+    return p >= TEST_LEVEL, p
 
 
 def _gauge_modes(X: Array, free: NDArray[np.bool_]) -> int:
@@ -627,9 +661,10 @@ def solve_range_graph(
     cov, moved, n_null = _covariance(X, P, free, None if prior is None else prior[1], scale)
     # undetermined: moved by a null direction beyond the gauge, or a 95 % region larger than
     # the whole node set (the rule of selfcal.toa.determinacy: such a position says nothing)
-    big = _region_larger_than_set(X, cov) | _flat_within_errors(X, cov)
-    bad = (moved if n_null > gauge else np.zeros(n, bool)) | big
+    flat, _ = _flat_within_errors(X, P, int(y.size))
+    bad = (moved if n_null > gauge else np.zeros(n, bool)) | np.full(n, flat)
     undetermined = tuple(nm[k] for k in np.flatnonzero(bad))
+    loose = tuple(nm[k] for k in np.flatnonzero(_region_larger_than_set(X, cov) & ~bad))
     cov[moved & (n_null > gauge)] = np.nan
     pe_sigma = float(np.sqrt(P.pe_ss / P.pe_dof)) if P.pe_dof > 0 else None
     lof_F = lof_p = None
@@ -653,7 +688,7 @@ def solve_range_graph(
         residual_rms=float(np.sqrt(np.mean((y - np.linalg.norm(X[aa] - X[bb], axis=1)) ** 2))),
         noise_estimate=sigma, dof=dof, n_measurements=int(y.size), n_pairs=int(P.mean.size),
         pure_error_sigma=pe_sigma, pure_error_dof=P.pe_dof, lack_of_fit_F=lof_F, lack_of_fit_p=lof_p,
-        chi2=chi2, chi2_p=chi2_p, undetermined_nodes=undetermined, converged=conv, iterations=nfev,
+        chi2=chi2, chi2_p=chi2_p, undetermined_nodes=undetermined, poorly_determined_nodes=loose, converged=conv, iterations=nfev,
         method=f"graph:{route}+lsq", frame=info)
 
 
