@@ -244,3 +244,25 @@ def test_unknown_known_node_is_refused_before_the_solve(monkeypatch):
     a, b, y = simulate_range_graph(ANCHORS, None, rng=0)
     with pytest.raises(InputError, match="'B3'.*A0, A1"):
         solve_range_graph(a, b, y, names=[f"A{i}" for i in range(7)], known={"B3": (0, 0, 0)})
+
+
+@pytest.mark.slow
+def test_coverage_over_many_draws():
+    """The long version (~2 CPU-minutes): 200 anchor-only draws with known nodes and 30 mixed
+    draws (7 anchors + 25 tags, anchor-anchor ranges), 95 % inside-rate in [0.91, 0.98] and
+    mean normalised error in [0.9, 1.15] (binomial sd ~0.008 at 800 nodes, widened for the
+    correlation within a draw; measured 0.931 / 1.01 and 0.937 / 1.05)."""
+    samples = []
+    for seed in range(200):
+        a, b, y = simulate_range_graph(ANCHORS, None, noise=0.03, repeats=5, rng=seed)
+        res = solve_range_graph(a, b, y, known={str(i): ANCHORS[i] for i in range(3)} | {"3": (*ANCHORS[3], 0.05)})
+        samples += _normalised_errors(res.positions, ANCHORS, res.position_cov)
+    for seed in range(30):
+        rng = np.random.default_rng(seed)
+        T = _tags(rng, 25)
+        a, b, y = simulate_range_graph(ANCHORS, T, noise=0.02, repeats=2, rng=seed)
+        res = solve_range_graph(a, b, y, known={str(i): ANCHORS[i] for i in range(4)})
+        samples += _normalised_errors(res.positions, np.vstack([ANCHORS, T]), res.position_cov)
+    rate, mean = _coverage(samples)
+    assert 0.91 <= rate <= 0.98, rate
+    assert 0.9 <= mean <= 1.15, mean
