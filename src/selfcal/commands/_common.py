@@ -39,7 +39,8 @@ __all__ = [
 ]
 
 #: Parameter names that are outputs of a command (checked before the command runs).
-OUTPUT_PARAMS = ("out", "out_dir", "plot", "report", "csv", "csv_out", "csv_path", "tum_path")
+OUTPUT_PARAMS = ("out", "out_dir", "plot", "report", "csv", "csv_out", "csv_path", "tum_path", "anchors_out",
+                 "anchor_plot")
 
 #: Figure formats matplotlib writes (``--plot FILE.pdf`` writes a PDF); no suffix = PNG.
 IMAGE_FORMATS = ("png", "pdf", "svg", "svgz", "eps", "ps", "jpg", "jpeg", "tif", "tiff", "webp")

@@ -14,6 +14,7 @@ import click
 
 from ._base import calibrate, handle_errors
 from ._common import csv_option, unit_options
+from .graph import parse_room, room_option
 from ._options import NOISE_STD, SEED, SPEED
 
 #: ``--entries auto`` keeps per-entry arrays in the JSON up to this many matrix entries: about
@@ -72,13 +73,21 @@ def _auto_available() -> bool:
 @click.option("--plot", "plot", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="Figure of receivers and sources with 95% confidence ellipses (format from the suffix: .png, .pdf, .svg).")
 @csv_option
+@click.option("--anchors", "anchors_out", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              metavar="FILE", help="The receivers (anchors) as CSV name,x,y,z,std_x,std_y,std_z, or JSON for a "
+                                   "configuration tool (suffix .json), in the output frame.")
+@click.option("--anchor-plot", "anchor_plot", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              metavar="FILE", help="Installer figure: named anchors, the tag path (sources in column order), "
+                                   "the --room box; plan and two elevations.")
+@room_option
 @unit_options
 @handle_errors
 def toa_command(matrix: Path, speed: float | None, offsets: str | None, dim: str | None,
                 loss: str | None, method: str, noise: float | None, recipe: str, common_offset: str,
                 known: Path | None, side: str | None,
                 frame: str | None, entries: str, seed: int, out: Path, plot: Path | None, csv_out: Path | None = None,
-                unit: str | None = None, sample_rate: float | None = None) -> None:
+                unit: str | None = None, sample_rate: float | None = None, anchors_out: Path | None = None,
+                anchor_plot: Path | None = None, room: str | None = None) -> None:
     """Calibrate receivers and sources from an I x J TOA/range MATRIX (CSV or .npy, NaN = missing).
 
     Rows are receivers, columns are sources (a header row and a first column of names are
@@ -90,6 +99,7 @@ def toa_command(matrix: Path, speed: float | None, offsets: str | None, dim: str
     from ..errors import InputError
     from ..io import read_table, staged_outputs, write_json
     from ..toa.frame import FramedToaResult, apply_frame, fit_known, parse_known, read_known_csv
+    from ..toa.nodes import check_frame, node_names
     from ..toa.recipes import apply_recipe
     from ._common import enrich_payload, to_metres, write_nodes_csv
 
@@ -100,6 +110,7 @@ def toa_command(matrix: Path, speed: float | None, offsets: str | None, dim: str
     if ("auto" in (offsets, dim)) and not _auto_available():
         raise InputError("--offsets auto / --dim auto need the model selection (selfcal.toa.select), "
                          "which this build does not have yet; give the value explicitly")
+    box = parse_room(room)
     table = read_table(matrix, name=str(matrix))
     M, speed, _ = to_metres(table.values, unit, speed, sample_rate, name=str(matrix))
     plausible_matrix_scale(M, speed=speed, explicit_unit=unit is not None, name=str(matrix))
@@ -109,9 +120,16 @@ def toa_command(matrix: Path, speed: float | None, offsets: str | None, dim: str
             kw[key] = val
     if dim is not None:
         kw["dim"] = dim if dim == "auto" else int(dim)
+    # node names: the matrix's own (header row / first column) or 0-based r<i> / s<j>;
+    # --known and --frame are read and resolved against them before any work
+    I, J = M.shape
+    names = node_names(table.row_names, table.col_names, I, J)
     known_table = None
     if known is not None:
         known_table = read_known_csv(known, 2 if dim == "2" else 3)  # validated before the solve
+        parse_known(known_table, I, J, 2 if dim == "2" else 3, **names)
+    if frame is not None:
+        check_frame(frame, I, J, **names)
     sidecar = _sidecar(entries, M.shape, out, [matrix, known])  # refused before the solve
     rec = apply_recipe(recipe, M, common_offset=common_offset, **kw)
     res: Any = rec.result
@@ -126,17 +144,15 @@ def toa_command(matrix: Path, speed: float | None, offsets: str | None, dim: str
     loss_used = loss if loss is not None else "linear"
     M_fit = _fitted_entries(M, rec.rejected, getattr(res, "outliers", None))
     if known_table is not None and known is not None:
-        I, J = M.shape
-        nodes = parse_known(_redim(known_table, known, d_out), I, J, d_out)
+        nodes = parse_known(_redim(known_table, known, d_out), I, J, d_out, **names)
         framed = fit_known(M_fit, res, nodes, offsets=off_used, loss=loss_used, noise=noise, side=side)
     elif frame is not None:
-        framed = apply_frame(res, frame, matrix=M_fit, offsets=off_used, loss=loss_used)
+        framed = apply_frame(res, frame, matrix=M_fit, offsets=off_used, loss=loss_used, **names)
     if framed is not None:
         res = framed.result
     if getattr(res, "residuals", None) is None or getattr(res, "outliers", None) is None:
         sidecar = None
-    payload = enrich_payload(dict(_without_entries(res).to_dict() if sidecar else res.to_dict()),
-                             names={"receiver_names": table.row_names, "source_names": table.col_names})
+    payload = enrich_payload(dict(_without_entries(res).to_dict() if sidecar else res.to_dict()), names=names)
     if sidecar is not None:
         payload["n_outliers"] = int(np.sum(res.outliers)) if res.outliers is not None else 0
         payload["entries"] = {"file": sidecar.name, "arrays": ["residuals", "outliers"], "shape": [*M.shape],
@@ -165,8 +181,9 @@ def toa_command(matrix: Path, speed: float | None, offsets: str | None, dim: str
         if csv_out is not None:
             write_nodes_csv(csv_out, payload, [("receiver", "receivers", "receiver_names"),
                                                ("source", "sources", "source_names")])
+        _installer_outputs(res, names["receiver_names"], anchors_out, anchor_plot, box,
+                           framed.frame.message if framed is not None else "canonical gauge (no frame given)")
     unit = "s" if speed is not None else "m"
-    I, J = M.shape
     tr = np.trace(res.receiver_cov, axis1=1, axis2=2)
     ts = np.trace(res.source_cov, axis1=1, axis2=2)
     lines = [
@@ -202,11 +219,11 @@ def toa_command(matrix: Path, speed: float | None, offsets: str | None, dim: str
     det = getattr(res, "determinacy", None)
     if det is not None and det.n_undetermined:
         lines.append(f"  undetermined: {det.n_undetermined} of {det.tested} nodes have a 95 % confidence region "
-                     f"larger than their node set ({det.names()})")
-    lines.append(f"  wrote {out}" + (f" and {plot}" if plot is not None else "")
-                 + (f" (residuals, outliers in {sidecar})" if sidecar is not None else ""))
+                     f"larger than their node set ({det.names(**names)})")
+    lines.append("  wrote " + ", ".join(str(p) for p in (out, plot, csv_out, anchors_out, anchor_plot, sidecar)
+                                        if p is not None))
     click.echo("\n".join(lines))
-    fails = _verdict_lines(res, forced, table.row_names, table.col_names)
+    fails = _verdict_lines(res, forced, names["receiver_names"], names["source_names"])
     for line in fails:
         click.echo(line)
     if not ok:
@@ -261,6 +278,8 @@ def _verdict_lines(res: Any, forced: Any, row_names: Any, col_names: Any) -> lis
     if forced is not None and not forced.passed:
         out.append(f"FAIL: {forced.message()}")
     return out
+
+
 def _sidecar(entries: str, shape: tuple[int, ...], out: Path, inputs: list[Path | None]) -> Path | None:
     """The ``.npz`` next to ``out`` that takes the per-entry arrays, or None (kept in the JSON)."""
     import math
@@ -285,6 +304,21 @@ def _without_entries(res: Any) -> Any:
     import dataclasses
 
     return dataclasses.replace(res, residuals=None, outliers=None)
+
+
+def _installer_outputs(res: Any, names: Any, anchors_out: Path | None, anchor_plot: Path | None, box: Any,
+                       frame: str) -> None:
+    """``--anchors`` (the receivers as the anchor file) and ``--anchor-plot`` (the installer figure)."""
+    if anchors_out is not None:
+        from ..io.anchors import write_anchors
+
+        write_anchors(anchors_out, list(names), res.receivers, res.receiver_cov, frame=frame)
+    if anchor_plot is not None:
+        from ..plotting.anchors import plot_anchors
+
+        gauge = "canonical gauge" if frame.startswith("canonical") else "room frame"
+        plot_anchors(res.receivers, list(names), anchor_plot, cov=res.receiver_cov, tag=res.sources, room=box,
+                     title=f"anchors ({gauge})")
 
 
 def _fitted_entries(M: Any, rejected: Any, outliers: Any) -> Any:

@@ -104,13 +104,18 @@ class DeterminacyTest:
         """Number of undetermined nodes (receivers + sources)."""
         return int(self.undetermined_receivers.sum() + self.undetermined_sources.sum())
 
-    def names(self) -> str:
-        """``"receivers 0, 3; sources 5"``: the undetermined nodes (caller's numbering)."""
+    def names(self, receiver_names: Any = None, source_names: Any = None) -> str:
+        """``"receivers 0, 3; sources 5"``: the undetermined nodes (caller's numbering, or the
+        given node names, e.g. the matrix's own)."""
         parts = []
-        for label, mask in (("receivers", self.undetermined_receivers), ("sources", self.undetermined_sources)):
+        for label, mask, nm in (("receivers", self.undetermined_receivers, receiver_names),
+                                ("sources", self.undetermined_sources, source_names)):
             idx = np.flatnonzero(mask)
             if idx.size:
-                shown = ", ".join(str(int(i)) for i in idx[:12]) + (f", ... ({idx.size})" if idx.size > 12 else "")
+                def show(i: int, nm: Any = nm) -> str:
+                    return str(nm[i]) if nm is not None and i < len(nm) else str(i)
+
+                shown = ", ".join(show(int(i)) for i in idx[:12]) + (f", ... ({idx.size})" if idx.size > 12 else "")
                 parts.append(f"{label} {shown}")
         return "; ".join(parts)
 
