@@ -224,31 +224,8 @@ class _FarfieldModel(Model):
         W = _weights(self.D0, Z, N, C, self.obs, self.loss, self.delta)
         Hzz, Hzn, Hnn, gz, gn, T, _ = _normal_equations(self.D0, Z, N, C, W, self.free,
                                                         coupling=self.side != "cg-factored")
-        side = "cg" if self.side == "cg-factored" else self.side
-        model = self
-
-        dzz, dnn = np.einsum("iaa->ia", Hzz), np.einsum("jaa->ja", Hnn)
-        ridge_z = 1e-12 * np.maximum(dzz.max(axis=0), np.finfo(float).tiny)
-        ridge_n = 1e-12 * np.maximum(dnn.max(axis=0), np.finfo(float).tiny)
-
-        class Lin:
-            gnorm = 0.0  # a refused step at any damping is convergence (no descent left)
-            lam = 0.0
-
-            def step(self, lam: float) -> Array:
-                self.lam = lam
-                dz, dn = _lm_step(Hzz, Hzn, Hnn, gz, gn, lam, side=side)
-                return np.concatenate([dz.ravel(), dn.ravel()])
-
-            def predicted(self, dx: Array) -> float:
-                # cost = sum rho ~ |r - J dx|_W^2: decrease 2 g.dx - dx.H dx, where
-                # (H + damping) dx = g gives dx.H dx = g.dx - dx.damping.dx
-                dz, dn = model.split(dx)
-                damp = (np.sum((self.lam * dzz + ridge_z) * dz**2) + np.sum((self.lam * dnn + ridge_n) * dn**2))
-                return float(np.sum(gz * dz) + np.sum(gn * dn) + damp)
-
         self._T = T
-        return Lin()
+        return _FarfieldStep(self, Hzz, Hzn, Hnn, gz, gn, "cg" if self.side == "cg-factored" else self.side)
 
     def split(self, dx: Array) -> tuple[Array, Array]:
         n = (self.m - 1) * self.d
@@ -272,6 +249,34 @@ class _FarfieldModel(Model):
     def stationary(self, lin: Any, cost: float) -> bool:
         return True
 
+
+
+class _FarfieldStep:
+    """The far-field step solver (:func:`_lm_step`, Schur over the smaller side or CG) at one
+    linearisation; ``gnorm`` 0: a refused step at any damping is convergence (no descent left)."""
+
+    gnorm = 0.0
+
+    def __init__(self, model: _FarfieldModel, Hzz: Array, Hzn: Any, Hnn: Array, gz: Array, gn: Array,
+                 side: str) -> None:
+        self.model, self.Hzz, self.Hzn, self.Hnn, self.gz, self.gn, self.side = model, Hzz, Hzn, Hnn, gz, gn, side
+        self.dzz, self.dnn = np.einsum("iaa->ia", Hzz), np.einsum("jaa->ja", Hnn)
+        self.ridge_z = 1e-12 * np.maximum(self.dzz.max(axis=0), np.finfo(float).tiny)
+        self.ridge_n = 1e-12 * np.maximum(self.dnn.max(axis=0), np.finfo(float).tiny)
+        self.lam = 0.0
+
+    def step(self, lam: float) -> Array:
+        self.lam = lam
+        dz, dn = _lm_step(self.Hzz, self.Hzn, self.Hnn, self.gz, self.gn, lam, side=self.side)
+        return np.concatenate([dz.ravel(), dn.ravel()])
+
+    def predicted(self, dx: Array) -> float:
+        # cost = sum rho ~ |r - J dx|_W^2: decrease 2 g.dx - dx.H dx, where
+        # (H + damping) dx = g gives dx.H dx = g.dx - dx.damping.dx
+        dz, dn = self.model.split(dx)
+        damp = (np.sum((self.lam * self.dzz + self.ridge_z) * dz**2)
+                + np.sum((self.lam * self.dnn + self.ridge_n) * dn**2))
+        return float(np.sum(self.gz * dz) + np.sum(self.gn * dn) + damp)
 
 
 def refine_lm(
