@@ -128,23 +128,26 @@ class _PoseModel:
         JtJ = np.swapaxes(J, 1, 2) @ J
         g = np.einsum("bra,br->ba", J, e)
         dg = np.maximum(np.diagonal(JtJ, axis1=1, axis2=2), 1e-12)
-        eye = np.eye(self.q)
+        return _PoseStep(JtJ, g, dg, np.eye(self.q))
 
-        class Lin:
-            # cost = sum e^2: the driver's test |g| <= 1e-6 max(1, sqrt(2 cost)) on J^T e
-            gnorm = np.linalg.norm(g, axis=1)
 
-            def step(self, lam: Array, t: NDArray[np.intp]) -> Array:
-                Hm = JtJ[t] + lam[:, None, None] * (eye * dg[t][:, None, :])
-                with np.errstate(all="ignore"):
-                    return np.asarray(-np.linalg.solve(Hm, g[t][..., None])[..., 0])
+class _PoseStep:
+    """The stacked damped normal equations of the poses (``q`` x ``q`` each)."""
 
-            def predicted(self, dx: Array, t: NDArray[np.intp]) -> Array:
-                # decrease of |e + J dx|^2: -(2 g.dx + dx.JtJ.dx)
-                return np.asarray(-(2 * np.einsum("ba,ba->b", g[t], dx)
-                                    + np.einsum("ba,bac,bc->b", dx, JtJ[t], dx)))
+    def __init__(self, JtJ: Array, g: Array, dg: Array, eye: Array) -> None:
+        self.JtJ, self.g, self.dg, self.eye = JtJ, g, dg, eye
+        # cost = sum e^2: the driver's test |g| <= 1e-6 max(1, sqrt(2 cost)) on J^T e
+        self.gnorm = np.linalg.norm(g, axis=1)
 
-        return Lin()
+    def step(self, lam: Array, t: NDArray[np.intp]) -> Array:
+        Hm = self.JtJ[t] + lam[:, None, None] * (self.eye * self.dg[t][:, None, :])
+        with np.errstate(all="ignore"):
+            return np.asarray(-np.linalg.solve(Hm, self.g[t][..., None])[..., 0])
+
+    def predicted(self, dx: Array, t: NDArray[np.intp]) -> Array:
+        # decrease of |e + J dx|^2: -(2 g.dx + dx.JtJ.dx)
+        return np.asarray(-(2 * np.einsum("ba,ba->b", self.g[t], dx)
+                            + np.einsum("ba,bac,bc->b", dx, self.JtJ[t], dx)))
 
 
 def refine_ml(

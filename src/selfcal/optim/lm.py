@@ -85,7 +85,7 @@ def damping_after_success(lam: Any, actual: Any, predicted: Any) -> Any:
     >>> round(damping_after_success(1e-2, 1.0, 1.0), 12)  # the model was exact: lam / 3
     0.003333333333
     """
-    if np.ndim(lam) == 0 and np.ndim(predicted) == 0:
+    if isinstance(lam, float) and isinstance(predicted, float):
         rho = actual / predicted if predicted > 0 else 0.0
         return max(lam * max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3), LAM_MIN)
     rho = np.divide(actual, predicted, out=np.zeros(np.shape(actual)), where=np.asarray(predicted) > 0)

@@ -168,7 +168,6 @@ def full_lm(
     """The joint LM of :func:`solve_dense_lm` (positions and offsets damped together); same
     parameters (without ``varpro``) and return."""
     has_r, has_s = offsets in ("receivers", "both"), offsets in ("sources", "both")
-    both = has_r and has_s
     theta = np.array(theta0, dtype=float)
     n = theta.size
     N = I + J
@@ -184,53 +183,66 @@ def full_lm(
     if has_s:
         Jf[ar, k + jj] = 1.0
     fidx = None if free is None or bool(np.all(free)) else np.nonzero(free)[0]
-    project = fidx is None
-    i_off = N * d
-    j_off = N * d + (I if has_r else 0)
-    linear = loss == "linear"
-    sj, ri, oj = I + jj, i_off + ii, j_off + jj
-    ones = np.ones(m)
-    Jflat = Jf.reshape(-1)
-    pos_r = (ar[:, None] * n + rcol).ravel()  # flat positions of the unit-vector entries
-    pos_s = (ar[:, None] * n + scol).ravel()
-    nf = n if fidx is None else fidx.size
-    dstep = np.arange(nf) * (nf + 1)  # flat positions of the diagonal
-
-    class Ranges(Model):
-        def evaluate(self, t: Array) -> tuple[float, tuple[Array, Array, Array]]:
-            P = t[: N * d].reshape(N, d)
-            u = P[ii] - P[sj]
-            dist = np.sqrt(np.einsum("mp,mp->m", u, u))
-            f = dist - y
-            if has_r:
-                f += t[ri]
-            if has_s:
-                f += t[oj]
-            u *= np.divide(1.0, dist, out=np.zeros_like(dist), where=dist > 0)[:, None]  # 0 where points coincide
-            if linear:
-                return 0.5 * float(f @ f), (f, ones, u)
-            rho, w = loss_rho((f / f_scale) ** 2, loss)
-            return 0.5 * f_scale**2 * float(np.sum(rho)), (f, np.asarray(w, float), u)
-
-        def linearize(self, theta: Array, state: tuple[Array, Array, Array]) -> DenseStep:
-            f, w, u = state
-            uf = u.ravel()
-            Jflat[pos_r] = uf
-            Jflat[pos_s] = -uf
-            Jm = Jf if fidx is None else Jf[:, fidx]
-            if linear:
-                H = np.dot(Jm.T, Jm)
-                g = np.dot(Jm.T, f)
-            else:
-                Jw = Jm * w[:, None]
-                H = np.dot(Jm.T, Jw)
-                g = np.dot(Jw.T, f)
-            proj = GaugeProjector(theta, N, d, I, both) if project else None
-            return DenseStep(H, g, dstep, proj, fidx, n)
-
-    out = levenberg_marquardt(Ranges(), np.array(theta0, dtype=float), max_iter=max_nfev or max_it, xtol=xtol,
-                              ftol=FTOL)
+    model = _DenseRanges(y, ii, jj, I, J, d, has_r, has_s, loss, f_scale, Jf, fidx, n, rcol, scol)
+    out = levenberg_marquardt(model, theta, max_iter=max_nfev or max_it, xtol=xtol, ftol=FTOL)
     return out.x, out.converged, out.iterations
+
+
+class _DenseRanges(Model):
+    """The range model of :func:`full_lm` on the driver: residuals, IRLS weights and unit
+    vectors per evaluation; the preallocated Jacobian's unit-vector columns rewritten per
+    linearisation; the dense step (:class:`DenseStep`) with the gauge projected when every
+    parameter is free."""
+
+    def __init__(self, y: Array, ii: NDArray[np.intp], jj: NDArray[np.intp], I: int, J: int, d: int,
+                 has_r: bool, has_s: bool, loss: str, f_scale: float, Jf: Array,
+                 fidx: NDArray[np.intp] | None, n: int, rcol: NDArray[np.intp], scol: NDArray[np.intp]) -> None:
+        N = I + J
+        m = y.size
+        ar = np.arange(m)
+        self.y, self.ii, self.I, self.d, self.N = y, ii, I, d, N
+        self.has_r, self.has_s, self.both = has_r, has_s, has_r and has_s
+        self.loss, self.f_scale, self.linear = loss, f_scale, loss == "linear"
+        self.Jf, self.fidx, self.n = Jf, fidx, n
+        self.sj, self.ri, self.oj = I + jj, N * d + ii, N * d + (I if has_r else 0) + jj
+        self.ones = np.ones(m)
+        self.Jflat = Jf.reshape(-1)
+        self.pos_r = (ar[:, None] * n + rcol).ravel()  # flat positions of the unit-vector entries
+        self.pos_s = (ar[:, None] * n + scol).ravel()
+        nf = n if fidx is None else fidx.size
+        self.dstep = np.arange(nf) * (nf + 1)  # flat positions of the diagonal
+
+    def evaluate(self, t: Array) -> tuple[float, tuple[Array, Array, Array]]:
+        P = t[: self.N * self.d].reshape(self.N, self.d)
+        u = P[self.ii] - P[self.sj]
+        dist = np.sqrt(np.einsum("mp,mp->m", u, u))
+        f = dist - self.y
+        if self.has_r:
+            f += t[self.ri]
+        if self.has_s:
+            f += t[self.oj]
+        u *= np.divide(1.0, dist, out=np.zeros_like(dist), where=dist > 0)[:, None]  # 0 where points coincide
+        if self.linear:
+            return 0.5 * float(f @ f), (f, self.ones, u)
+        rho, w = loss_rho((f / self.f_scale) ** 2, self.loss)
+        return 0.5 * self.f_scale**2 * float(np.sum(rho)), (f, np.asarray(w, float), u)
+
+    def linearize(self, theta: Array, state: tuple[Array, Array, Array]) -> DenseStep:
+        f, w, u = state
+        uf = u.ravel()
+        self.Jflat[self.pos_r] = uf
+        self.Jflat[self.pos_s] = -uf
+        fidx = self.fidx
+        Jm = self.Jf if fidx is None else self.Jf[:, fidx]
+        if self.linear:
+            H = np.dot(Jm.T, Jm)
+            g = np.dot(Jm.T, f)
+        else:
+            Jw = Jm * w[:, None]
+            H = np.dot(Jm.T, Jw)
+            g = np.dot(Jw.T, f)
+        proj = GaugeProjector(theta, self.N, self.d, self.I, self.both) if fidx is None else None
+        return DenseStep(H, g, self.dstep, proj, fidx, self.n)
 
 
 class DenseStep:

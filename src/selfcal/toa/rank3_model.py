@@ -78,6 +78,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .._checks import as_matrix, check_dim
+from .._result import Result
 from ..errors import DegenerateGeometryError, InputError
 from ..optim.lm import Model
 
@@ -243,8 +244,8 @@ def _subsample(h: Array, n: int = 400) -> list[list[float]]:
     return [[int(i), float(h[i])] for i in idx]
 
 
-@dataclass(frozen=True)
-class Rank3Result:
+@dataclass(frozen=True, repr=False)
+class Rank3Result(Result):
     """Offsets estimated by the rank-d method (004), in the units of the input (metres).
 
     Attributes

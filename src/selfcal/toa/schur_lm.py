@@ -365,6 +365,7 @@ def solve_schur_lm(
         YK, obs = np.asarray(Y, float), None
         pat = Pairs(np.asarray(ki, np.intp), np.asarray(ei, np.intp), nK, nE)
     n = lay.n  # type: ignore[attr-defined]
+    g0, it = 1.0, 0  # first gradient norm (the CG forcing term's reference), linearisations
 
     class Ranges(Model):
         def evaluate(self, theta: Array) -> tuple[float, tuple[Array, Array, list[Array]]]:
@@ -415,7 +416,6 @@ def solve_schur_lm(
             ii, jj, yv = np.asarray(pairs[0], np.intp), np.asarray(pairs[1], np.intp), np.asarray(Y, float)
         return solve_dense_lm(theta0, yv, ii, jj, lay.I, lay.J, d, lay.offsets, loss,  # type: ignore[attr-defined]
                               f_scale, max_nfev, xtol, max_it=DEFAULT_MAX_IT["dense"])
-    g0, it = 1.0, 0
     out = levenberg_marquardt(Ranges(), theta0, max_iter=max_it, xtol=xtol)
     return out.x, out.converged, out.iterations
 
