@@ -225,11 +225,13 @@ def _matrix_file(tmp: Path, seed: int) -> Path:
 @pytest.mark.parametrize("argv", [["calibrate", "toa", "{m}", "--out", "-"],
                                   ["-q", "calibrate", "toa", "{m}", "--out", "-"],
                                   ["calibrate", "toa", "{m}", "--out", "{d}/r.json", "--csv", "-"]])
-def test_closed_stdout_is_exit_2(tmp_path: Path, argv: list[str]) -> None:
+@pytest.mark.parametrize("redirect", ["1>&-", "1<{m}"])
+def test_closed_stdout_is_exit_2(tmp_path: Path, argv: list[str], redirect: str) -> None:
+    """Standard output closed, or open for reading only: refused before any work."""
     m = _matrix_file(tmp_path, 0)
     args = [a.format(m=m, d=tmp_path) for a in argv]
     before = snapshot(tmp_path)
-    cmd = " ".join([sys.executable, "-m", "selfcal", *args]) + " 1>&-"
+    cmd = " ".join([sys.executable, "-m", "selfcal", *args]) + " " + redirect.format(m=m)
     proc = subprocess.run(["bash", "-c", cmd], capture_output=False, stderr=subprocess.PIPE, timeout=120,
                           env={**os.environ, "PYTHONPATH": SRC, "OPENBLAS_NUM_THREADS": "1"}, text=True)
     assert proc.returncode == 2, proc.stderr

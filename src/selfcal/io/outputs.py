@@ -171,6 +171,13 @@ def stream_problem(stream: IO[Any] | None) -> str | None:
         os.fstat(fd)
     except OSError as exc:
         return f"standard output is not open ({_oserror_text(exc)})"
+    try:
+        import fcntl
+
+        if fcntl.fcntl(fd, fcntl.F_GETFL) & os.O_ACCMODE == os.O_RDONLY:
+            return "standard output is open for reading only"
+    except (ImportError, OSError):  # no fcntl (Windows): the write itself will tell
+        pass
     return None
 
 
