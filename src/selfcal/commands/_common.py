@@ -272,6 +272,7 @@ def check_command_outputs(ctx: click.Context | None, kwargs: Mapping[str, Any],
         return dashes
     inputs = {} if inputs is None else inputs
     seen: dict[str, str] = {}
+    dash_opt = "--out"
     for param in ctx.command.params:
         if param.name not in OUTPUT_PARAMS:
             continue
@@ -284,6 +285,7 @@ def check_command_outputs(ctx: click.Context | None, kwargs: Mapping[str, Any],
         opt = _opt_name(param)
         if os.fspath(value) == "-":
             dashes.append(value)
+            dash_opt = opt
         if os.fspath(value) not in ("-", ""):  # first: the clash is the message, whatever else is wrong
             ident = file_identity(value)
             if ident is not None and ident in inputs:
@@ -304,7 +306,7 @@ def check_command_outputs(ctx: click.Context | None, kwargs: Mapping[str, Any],
     if dashes:
         why = stream_problem(_REAL_STDOUT.get("stream", sys.stdout))
         if why is not None:
-            raise OutputError(f"--out -: {why}; give a file name")
+            raise OutputError(f"{dash_opt} -: {why}; give a file name")
     return dashes
 
 

@@ -34,7 +34,7 @@ from numpy.typing import NDArray
 
 from .._checks import entry
 from .._result import jsonable
-from ..errors import InputError, SelfcalError
+from ..errors import InputError
 from ._paths import _is_dash, _kind_name, _oserror_text, input_named_by
 
 _TMP_PREFIX = ".selfcal-"  # constant-length temporary names: a long target name still fits
