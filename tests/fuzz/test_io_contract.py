@@ -445,3 +445,38 @@ def test_wrong_keyword_types_name_the_argument(name: str, param: str) -> None:
         with pytest.raises(SelfcalError) as exc:
             f(*args, **{param: bad})
         assert param in str(exc.value) and "\n" not in str(exc.value), (name, param, str(exc.value))
+
+
+PAIR_CASES = [(path, a.name, b.name, mode) for path, cmd in COMMANDS
+              for k, a in enumerate(_outputs(cmd)) for b in _outputs(cmd)[k + 1:]
+              if _file_ok(a) and _file_ok(b) and a.name != "report" and b.name != "report"
+              for mode in ("same", "symlink", "hardlink")]
+
+
+@pytest.mark.parametrize("path,a_name,b_name,mode", PAIR_CASES,
+                         ids=[f"{' '.join(c[0])}:{c[1]}={c[2]}:{c[3]}" for c in PAIR_CASES])
+def test_two_outputs_never_name_one_file(tmp_path: Path, path: tuple[str, ...], a_name: str, b_name: str,
+                                         mode: str) -> None:
+    """Two file outputs of one run on one file (by path, symlink or hard link): exit 2, nothing written."""
+    cmd = dict(COMMANDS)[path]
+    first = tmp_path / "out.png"
+    first.write_bytes(b"old")
+    second = {"same": first, "symlink": tmp_path / "link.png", "hardlink": tmp_path / "hard.png"}[mode]
+    if mode == "symlink":
+        second.symlink_to(first)
+    elif mode == "hardlink":
+        os.link(first, second)
+    values: dict[str, Path] = {a_name: first, b_name: second}
+    for p in cmd.params:
+        if p.required and p.name not in values:
+            f = tmp_path / f"in_{p.name}.csv"
+            f.write_text("1,2\n3,4\n")
+            values[p.name or ""] = f
+    args = list(path) + [str(values[p.name]) for p in cmd.params if isinstance(p, click.Argument) and p.name in values]
+    for p in cmd.params:
+        if isinstance(p, click.Option) and p.name in values:
+            args += [_flag(p), str(values[p.name])]
+    before = snapshot(tmp_path)
+    res = CliRunner().invoke(main, args, catch_exceptions=True)
+    code, _, err = check_contract(res, before, snapshot(tmp_path))
+    assert code == 2 and "same file" in err, err

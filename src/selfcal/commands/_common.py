@@ -297,7 +297,8 @@ def check_command_outputs(ctx: click.Context | None, kwargs: Mapping[str, Any],
             if suffix and suffix not in IMAGE_FORMATS:
                 raise InputError(f"{opt} {os.fspath(value)}: unknown figure format '.{suffix}' "
                                  f"(use one of {', '.join(IMAGE_FORMATS[:4])}, ...)")
-        key = os.fspath(real)
+        ident_out = file_identity(real) if os.fspath(real) != "-" else None
+        key = os.fspath(real) if ident_out is None else f"{ident_out[0]}:{ident_out[1]}"  # hard links too
         if key != "-" and key in seen:
             raise InputError(f"{opt} and {seen[key]} name the same file {os.fspath(value)}")
         seen[key] = opt
