@@ -480,3 +480,20 @@ def test_two_outputs_never_name_one_file(tmp_path: Path, path: tuple[str, ...], 
     res = CliRunner().invoke(main, args, catch_exceptions=True)
     code, _, err = check_contract(res, before, snapshot(tmp_path))
     assert code == 2 and "same file" in err, err
+
+
+@pytest.mark.parametrize("shell", ["{py} calibrate toa - --out {m} < {m}",
+                                   "{py} calibrate toa {m} --out - >> {m}",
+                                   "{py} calibrate toa - --out - < {m} >> {m}",
+                                   "{py} calibrate toa - --out {d}/link.csv < {m}"])
+def test_standard_streams_behind_an_input(tmp_path: Path, shell: str) -> None:
+    """The file behind `< file` is an input, and `--out - >> file` an output: they never meet."""
+    m = _matrix_file(tmp_path, 1)
+    (tmp_path / "link.csv").symlink_to(m)
+    before = snapshot(tmp_path)
+    cmd = shell.format(py=f"{sys.executable} -m selfcal", m=m, d=tmp_path)
+    proc = subprocess.run(["bash", "-c", cmd], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, timeout=120,
+                          env={**os.environ, "PYTHONPATH": SRC, "OPENBLAS_NUM_THREADS": "1"}, text=True)
+    assert proc.returncode == 2 and "standard" in proc.stderr and "is the input" in proc.stderr, proc.stderr
+    assert len([ln for ln in proc.stderr.splitlines() if ln.strip()]) == 1
+    assert snapshot(tmp_path) == before

@@ -226,6 +226,17 @@ def _values(value: Any) -> list[Any]:
     return [value]
 
 
+def _stream_identity(stream: Any) -> tuple[int, int] | None:
+    """(device, inode) of the regular file behind a standard stream, or None (a terminal, a pipe)."""
+    import stat as _stat
+
+    try:
+        st = os.fstat(stream.fileno())
+    except (OSError, ValueError, AttributeError):
+        return None
+    return (st.st_dev, st.st_ino) if _stat.S_ISREG(st.st_mode) else None
+
+
 def command_inputs(ctx: click.Context | None, kwargs: Mapping[str, Any]) -> dict[tuple[int, int], str]:
     """(device, inode) -> label of every file and folder the command reads (folders walked).
 
@@ -241,7 +252,12 @@ def command_inputs(ctx: click.Context | None, kwargs: Mapping[str, Any]) -> dict
         if not is_input_param(param):
             continue
         for v in _values(kwargs.get(param.name or "")):
-            if not isinstance(v, (str, os.PathLike)) or os.fspath(v) in ("-", ""):
+            if isinstance(v, (str, os.PathLike)) and os.fspath(v) == "-":  # the file behind a `< file`
+                ident = _stream_identity(sys.stdin)
+                if ident is not None:
+                    found.setdefault(ident, f"{_opt_name(param)} - (standard input)")
+                continue
+            if not isinstance(v, (str, os.PathLike)) or os.fspath(v) == "":
                 continue
             for ident, label in input_identities(v, _param_label(param, v)).items():
                 found.setdefault(ident, label)
@@ -305,9 +321,14 @@ def check_command_outputs(ctx: click.Context | None, kwargs: Mapping[str, Any],
     if len(dashes) > 1:
         raise InputError("only one output can be '-' (standard output)")
     if dashes:
-        why = stream_problem(_REAL_STDOUT.get("stream", sys.stdout))
+        real_stdout = _REAL_STDOUT.get("stream", sys.stdout)
+        why = stream_problem(real_stdout)
         if why is not None:
             raise OutputError(f"{dash_opt} -: {why}; give a file name")
+        ident = _stream_identity(real_stdout)  # `--out - >> input.csv`
+        if ident is not None and ident in inputs:
+            raise OutputError(f"{dash_opt} -: standard output is the input {inputs[ident]} (the same file); "
+                              f"an output never replaces an input")
     return dashes
 
 
