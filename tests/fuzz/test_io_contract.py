@@ -497,3 +497,13 @@ def test_standard_streams_behind_an_input(tmp_path: Path, shell: str) -> None:
     assert proc.returncode == 2 and "standard" in proc.stderr and "is the input" in proc.stderr, proc.stderr
     assert len([ln for ln in proc.stderr.splitlines() if ln.strip()]) == 1
     assert snapshot(tmp_path) == before
+
+
+def test_a_text_table_beyond_memory_is_refused_before_parsing(tmp_path: Path, monkeypatch) -> None:  # type: ignore[no-untyped-def]
+    """The reader's memory guard, on a machine made small (8 kB 'RAM'): a 2 kB CSV would need 64 kB."""
+    p = tmp_path / "m.csv"
+    p.write_text("\n".join(",".join(["1.5"] * 25) for _ in range(20)) + "\n")
+    assert read_table(p).values.shape == (20, 25)
+    monkeypatch.setattr(os, "sysconf", lambda name: 4096 if name == "SC_PAGE_SIZE" else 4)
+    with pytest.raises(InputError, match="text table"):
+        read_table(p)
