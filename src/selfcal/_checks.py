@@ -551,7 +551,7 @@ def entry(**specs: str) -> Any:
                 msg = " ".join(str(exc).split())[:200]
                 raise InputError(f"{func.__name__}: could not use the input ({type(exc).__name__}: {msg})") from None
 
-        wrapper.__selfcal_entry__ = True  # type: ignore[attr-defined]  (tests: every public function)
+        wrapper.__selfcal_entry__ = True  # type: ignore[attr-defined]  # tests: every public function has it
         return wrapper
 
     return deco

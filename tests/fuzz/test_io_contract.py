@@ -225,11 +225,13 @@ def _matrix_file(tmp: Path, seed: int) -> Path:
 @pytest.mark.parametrize("argv", [["calibrate", "toa", "{m}", "--out", "-"],
                                   ["-q", "calibrate", "toa", "{m}", "--out", "-"],
                                   ["calibrate", "toa", "{m}", "--out", "{d}/r.json", "--csv", "-"]])
-def test_closed_stdout_is_exit_2(tmp_path: Path, argv: list[str]) -> None:
+@pytest.mark.parametrize("redirect", ["1>&-", "1<{m}"])
+def test_closed_stdout_is_exit_2(tmp_path: Path, argv: list[str], redirect: str) -> None:
+    """Standard output closed, or open for reading only: refused before any work."""
     m = _matrix_file(tmp_path, 0)
     args = [a.format(m=m, d=tmp_path) for a in argv]
     before = snapshot(tmp_path)
-    cmd = " ".join([sys.executable, "-m", "selfcal", *args]) + " 1>&-"
+    cmd = " ".join([sys.executable, "-m", "selfcal", *args]) + " " + redirect.format(m=m)
     proc = subprocess.run(["bash", "-c", cmd], capture_output=False, stderr=subprocess.PIPE, timeout=120,
                           env={**os.environ, "PYTHONPATH": SRC, "OPENBLAS_NUM_THREADS": "1"}, text=True)
     assert proc.returncode == 2, proc.stderr
@@ -443,3 +445,65 @@ def test_wrong_keyword_types_name_the_argument(name: str, param: str) -> None:
         with pytest.raises(SelfcalError) as exc:
             f(*args, **{param: bad})
         assert param in str(exc.value) and "\n" not in str(exc.value), (name, param, str(exc.value))
+
+
+PAIR_CASES = [(path, a.name, b.name, mode) for path, cmd in COMMANDS
+              for k, a in enumerate(_outputs(cmd)) for b in _outputs(cmd)[k + 1:]
+              if _file_ok(a) and _file_ok(b) and a.name != "report" and b.name != "report"
+              for mode in ("same", "symlink", "hardlink")]
+
+
+@pytest.mark.parametrize("path,a_name,b_name,mode", PAIR_CASES,
+                         ids=[f"{' '.join(c[0])}:{c[1]}={c[2]}:{c[3]}" for c in PAIR_CASES])
+def test_two_outputs_never_name_one_file(tmp_path: Path, path: tuple[str, ...], a_name: str, b_name: str,
+                                         mode: str) -> None:
+    """Two file outputs of one run on one file (by path, symlink or hard link): exit 2, nothing written."""
+    cmd = dict(COMMANDS)[path]
+    first = tmp_path / "out.png"
+    first.write_bytes(b"old")
+    second = {"same": first, "symlink": tmp_path / "link.png", "hardlink": tmp_path / "hard.png"}[mode]
+    if mode == "symlink":
+        second.symlink_to(first)
+    elif mode == "hardlink":
+        os.link(first, second)
+    values: dict[str, Path] = {a_name: first, b_name: second}
+    for p in cmd.params:
+        if p.required and p.name not in values:
+            f = tmp_path / f"in_{p.name}.csv"
+            f.write_text("1,2\n3,4\n")
+            values[p.name or ""] = f
+    args = list(path) + [str(values[p.name]) for p in cmd.params if isinstance(p, click.Argument) and p.name in values]
+    for p in cmd.params:
+        if isinstance(p, click.Option) and p.name in values:
+            args += [_flag(p), str(values[p.name])]
+    before = snapshot(tmp_path)
+    res = CliRunner().invoke(main, args, catch_exceptions=True)
+    code, _, err = check_contract(res, before, snapshot(tmp_path))
+    assert code == 2 and "same file" in err, err
+
+
+@pytest.mark.parametrize("shell", ["{py} calibrate toa - --out {m} < {m}",
+                                   "{py} calibrate toa {m} --out - >> {m}",
+                                   "{py} calibrate toa - --out - < {m} >> {m}",
+                                   "{py} calibrate toa - --out {d}/link.csv < {m}"])
+def test_standard_streams_behind_an_input(tmp_path: Path, shell: str) -> None:
+    """The file behind `< file` is an input, and `--out - >> file` an output: they never meet."""
+    m = _matrix_file(tmp_path, 1)
+    (tmp_path / "link.csv").symlink_to(m)
+    before = snapshot(tmp_path)
+    cmd = shell.format(py=f"{sys.executable} -m selfcal", m=m, d=tmp_path)
+    proc = subprocess.run(["bash", "-c", cmd], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, timeout=120,
+                          env={**os.environ, "PYTHONPATH": SRC, "OPENBLAS_NUM_THREADS": "1"}, text=True)
+    assert proc.returncode == 2 and "standard" in proc.stderr and "is the input" in proc.stderr, proc.stderr
+    assert len([ln for ln in proc.stderr.splitlines() if ln.strip()]) == 1
+    assert snapshot(tmp_path) == before
+
+
+def test_a_text_table_beyond_memory_is_refused_before_parsing(tmp_path: Path, monkeypatch) -> None:  # type: ignore[no-untyped-def]
+    """The reader's memory guard, on a machine made small (8 kB 'RAM'): a 2 kB CSV would need 64 kB."""
+    p = tmp_path / "m.csv"
+    p.write_text("\n".join(",".join(["1.5"] * 25) for _ in range(20)) + "\n")
+    assert read_table(p).values.shape == (20, 25)
+    monkeypatch.setattr(os, "sysconf", lambda name: 4096 if name == "SC_PAGE_SIZE" else 4)
+    with pytest.raises(InputError, match="text table"):
+        read_table(p)

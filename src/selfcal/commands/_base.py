@@ -82,7 +82,7 @@ def handle_errors(func: F) -> F:
         except (FileNotFoundError, IsADirectoryError, PermissionError) as exc:
             fail(f"{exc.filename}: {exc.strerror}")
 
-    wrapper.__selfcal_contract__ = True  # type: ignore[attr-defined]  (tests: every command has it)
+    wrapper.__selfcal_contract__ = True  # type: ignore[attr-defined]  # tests: every command has it
     return wrapper  # type: ignore[return-value]
 
 

@@ -227,6 +227,17 @@ def _values(value: Any) -> list[Any]:
     return [value]
 
 
+def _stream_identity(stream: Any) -> tuple[int, int] | None:
+    """(device, inode) of the regular file behind a standard stream, or None (a terminal, a pipe)."""
+    import stat as _stat
+
+    try:
+        st = os.fstat(stream.fileno())
+    except (OSError, ValueError, AttributeError):
+        return None
+    return (st.st_dev, st.st_ino) if _stat.S_ISREG(st.st_mode) else None
+
+
 def command_inputs(ctx: click.Context | None, kwargs: Mapping[str, Any]) -> dict[tuple[int, int], str]:
     """(device, inode) -> label of every file and folder the command reads (folders walked).
 
@@ -242,7 +253,12 @@ def command_inputs(ctx: click.Context | None, kwargs: Mapping[str, Any]) -> dict
         if not is_input_param(param):
             continue
         for v in _values(kwargs.get(param.name or "")):
-            if not isinstance(v, (str, os.PathLike)) or os.fspath(v) in ("-", ""):
+            if isinstance(v, (str, os.PathLike)) and os.fspath(v) == "-":  # the file behind a `< file`
+                ident = _stream_identity(sys.stdin)
+                if ident is not None:
+                    found.setdefault(ident, f"{_opt_name(param)} - (standard input)")
+                continue
+            if not isinstance(v, (str, os.PathLike)) or os.fspath(v) == "":
                 continue
             for ident, label in input_identities(v, _param_label(param, v)).items():
                 found.setdefault(ident, label)
@@ -273,6 +289,7 @@ def check_command_outputs(ctx: click.Context | None, kwargs: Mapping[str, Any],
         return dashes
     inputs = {} if inputs is None else inputs
     seen: dict[str, str] = {}
+    dash_opt = "--out"
     for param in ctx.command.params:
         if param.name not in OUTPUT_PARAMS:
             continue
@@ -285,6 +302,7 @@ def check_command_outputs(ctx: click.Context | None, kwargs: Mapping[str, Any],
         opt = _opt_name(param)
         if os.fspath(value) == "-":
             dashes.append(value)
+            dash_opt = opt
         if os.fspath(value) not in ("-", ""):  # first: the clash is the message, whatever else is wrong
             ident = file_identity(value)
             if ident is not None and ident in inputs:
@@ -296,16 +314,22 @@ def check_command_outputs(ctx: click.Context | None, kwargs: Mapping[str, Any],
             if suffix and suffix not in IMAGE_FORMATS:
                 raise InputError(f"{opt} {os.fspath(value)}: unknown figure format '.{suffix}' "
                                  f"(use one of {', '.join(IMAGE_FORMATS[:4])}, ...)")
-        key = os.fspath(real)
+        ident_out = file_identity(real) if os.fspath(real) != "-" else None
+        key = os.fspath(real) if ident_out is None else f"{ident_out[0]}:{ident_out[1]}"  # hard links too
         if key != "-" and key in seen:
             raise InputError(f"{opt} and {seen[key]} name the same file {os.fspath(value)}")
         seen[key] = opt
     if len(dashes) > 1:
         raise InputError("only one output can be '-' (standard output)")
     if dashes:
-        why = stream_problem(_REAL_STDOUT.get("stream", sys.stdout))
+        real_stdout = _REAL_STDOUT.get("stream", sys.stdout)
+        why = stream_problem(real_stdout)
         if why is not None:
-            raise OutputError(f"--out -: {why}; give a file name")
+            raise OutputError(f"{dash_opt} -: {why}; give a file name")
+        ident = _stream_identity(real_stdout)  # `--out - >> input.csv`
+        if ident is not None and ident in inputs:
+            raise OutputError(f"{dash_opt} -: standard output is the input {inputs[ident]} (the same file); "
+                              f"an output never replaces an input")
     return dashes
 
 

@@ -34,7 +34,7 @@ from numpy.typing import NDArray
 
 from .._checks import entry
 from .._result import jsonable
-from ..errors import InputError, SelfcalError
+from ..errors import InputError
 from ._paths import _is_dash, _kind_name, _oserror_text, input_named_by
 
 _TMP_PREFIX = ".selfcal-"  # constant-length temporary names: a long target name still fits
@@ -171,6 +171,13 @@ def stream_problem(stream: IO[Any] | None) -> str | None:
         os.fstat(fd)
     except OSError as exc:
         return f"standard output is not open ({_oserror_text(exc)})"
+    try:
+        import fcntl
+
+        if fcntl.fcntl(fd, fcntl.F_GETFL) & os.O_ACCMODE == os.O_RDONLY:
+            return "standard output is open for reading only"
+    except (ImportError, OSError):  # no fcntl (Windows): the write itself will tell
+        pass
     return None
 
 

@@ -70,7 +70,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from .._checks import as_matrix, check_choice, check_toa_counts, check_toa_observable
+from .._checks import as_matrix, check_choice, check_toa_observable
 from ..errors import InputError
 from ..robust import mad_std
 

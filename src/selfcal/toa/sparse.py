@@ -50,8 +50,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from .._result import Result
 from .._checks import entry
+from .._result import Result
 from ..errors import DegenerateGeometryError, InputError
 
 __all__ = ["SparseToaResult", "refine_toa_sparse", "initialize_toa_sparse", "solve_toa_sparse",
