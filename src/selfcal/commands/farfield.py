@@ -30,10 +30,12 @@ if TYPE_CHECKING:
               help="Propagation speed in m/s: the matrix holds seconds (TDOA); positions are reported in "
                    "metres, offsets and the residual in seconds. A Pyramic JSON holds seconds and its own "
                    "sound_speed_mps, which --speed overrides.")
-@click.option("--dim", type=click.Choice(["1", "2", "3", "auto"]), default="3", show_default=True,
-              help="3: spatial array; 2: planar array with sources in its plane (in-plane geometry); 1: linear "
-                   "array (positions along the line, up to scale); auto: decided by a rank test of the data "
-                   "against the noise. The JSON's 'case' and 'determined' say what the data fix.")
+@click.option("--dim", type=click.Choice(["1", "2", "3", "auto"]), default="auto", show_default=True,
+              help="auto: decided by nested rank tests of the data against the noise (false-alarm rate 0.001 "
+                   "per test; rank 2 with a consistent planar quadric -> 2, rank 1 -> 1, else 3); 3: spatial "
+                   "array; 2: planar array with sources in its plane (in-plane geometry); 1: linear array "
+                   "(positions along the line, up to scale). The JSON's 'dim', 'dim_rule', 'case' and "
+                   "'determined' say what was chosen and what the data fix.")
 @click.option("--directions", "directions", default=None, metavar="FILE|sources",
               help="Known unit directions (k x 3 or k x 2 CSV / .npy, one row per column of MATRIX), or 'sources' "
                    "for a Pyramic JSON's own (n_j = -source_j): semi-blind least squares for the positions, the "
@@ -189,6 +191,7 @@ def farfield_command(matrix: tuple[Path, ...], out: Path, speed: float | None, d
     click.echo(f"selfcal calibrate tdoa-farfield: {m} positions x {k} transmitters, {res.dim}-D ({res.case}), "
                f"method {res.method}, loss {res.loss}")
     click.echo(f"  determined: {res.determined}")
+    click.echo(f"  dimension: {res.dim_rule}")
     click.echo(f"  residual RMS {out_dict['residual_rms']:.4g} {tunit}, converged={res.converged}, "
                f"iterations={res.iterations}, rejected entries {int(res.rejected.sum())}")
     if ref_rmse is not None:

@@ -41,6 +41,7 @@ from ..robust import TUNING
 from .degeneracy import (
     DETERMINED,
     MESSAGES,
+    RANK_ALPHA,
     analyse_degeneracy,
     partial_collinear_motion,
     partial_coplanar_directions,
@@ -74,6 +75,7 @@ __all__ = [
     "lowrank_fit",
     "ransac_farfield",
     "METHODS",
+    "dimension_rule",
 ]
 
 Array = NDArray[np.float64]
@@ -246,6 +248,7 @@ def solve_farfield(
     if method == "minimal" and ((m, k) != (4, 6) or not finite.all()):
         raise InputError(f"method='minimal' needs a complete 4 x 6 matrix, got {m} x {k}")
     check_orientation(D, noise_std=noise_std, rank=3)
+    dim_rule = dimension_rule(dim)
     scr = gross_error_screen(D) if screen else None
     gross = scr.mask if scr is not None else np.zeros_like(finite)
     untestable = int(scr.untestable.sum()) if scr is not None else 0
@@ -256,7 +259,7 @@ def solve_farfield(
     complete = bool(used.all())
     if directions is not None:
         res0 = _solve_known_directions(D, used, gross, directions, loss=loss)
-        return replace(res0, untestable=untestable, warnings=screen_note + res0.warnings)
+        return replace(res0, untestable=untestable, warnings=screen_note + res0.warnings, dim_rule=dim_rule)
     if offsets == "auto":
         offsets = "reference" if (complete and loss == "linear") else "free"
     if offsets == "reference" and not np.all(used[0]):
@@ -306,7 +309,7 @@ def solve_farfield(
         r = farfield_residuals(np.where(used & ~rej, D, np.nan), pos, dirs, C)
         rms = float(np.sqrt(np.nanmean(r**2))) if np.isfinite(r).any() else float("nan")
         return FarfieldResult(pos, dirs, C, kind, rms, conv, its, meth, loss, rej | gross, pd, report, hist,
-                              cov, warnings=screen_note, untestable=untestable)
+                              cov, warnings=screen_note, untestable=untestable, dim_rule=dim_rule)
 
     no_rej = np.zeros_like(finite)
     kind_found = report.kind if check_degeneracy else None
@@ -423,6 +426,21 @@ def solve_farfield(
             warnings.warn(cautions[0], ConvergenceWarning, stacklevel=2)
         res = replace(res, warnings=res.warnings + cautions)
     return res
+
+
+def dimension_rule(dim: int | str) -> str:
+    """How the dimension of a far-field solution is chosen, in words (``FarfieldResult.dim_rule``).
+
+    Examples
+    --------
+    >>> dimension_rule(2)
+    'given: dim=2 (no test)'
+    """
+    if dim != "auto":
+        return f"given: dim={dim} (no test)"
+    return (f"auto: nested rank tests of the column-centred matrix against the noise (rank r - 1 against r, "
+            f"false-alarm rate {RANK_ALPHA:g} each, Tracy-Widom quantiles); rank 2 is solved as planar when "
+            "its 2-D quadric is consistent, rank 1 as linear, else 3-D")
 
 
 def _direction_spread(N: Array) -> float:

@@ -54,6 +54,8 @@ class FarfieldResult(Result):
         spare measurements: their redundancy ``1 - h_ij`` is ~0, e.g. every entry of the
         minimal 4 x 6 problem; :func:`~selfcal.tdoa.screen.gross_error_screen`); a line in
         ``warnings`` says so when it is not 0.
+    dim_rule : how ``dim`` was chosen: given, or ``"auto: ..."`` with the rank test's level
+        (:func:`~selfcal.tdoa.farfield.dimension_rule`).
     """
 
     positions: Array
@@ -75,6 +77,7 @@ class FarfieldResult(Result):
     case: str = "spatial"
     determined: str = ""
     untestable: int = 0
+    dim_rule: str = ""
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-safe dictionary with the DESIGN.md keys (``rejected`` as [i, j] pairs)."""
@@ -97,6 +100,7 @@ class FarfieldResult(Result):
             "case": self.case,
             "determined": self.determined,
             "untestable": int(self.untestable),
+            "dim_rule": self.dim_rule,
         }
 
 
