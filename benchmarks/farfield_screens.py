@@ -133,7 +133,7 @@ def section_b(seeds: int, step: float) -> dict[str, Any]:
                 err = aligned_rmse(res.positions, truth).rmse_receivers
             except Exception as exc:  # noqa: BLE001 - a refusal is a result here
                 err, n = float("nan"), -1
-                print(f"  seed {seed} {name}: {type(exc).__name__}: {exc}")
+                print(f"  seed {seed} {name}: {type(exc).__name__}: {str(exc)[:70]}")
             out[name].append(1e3 * float(err))
             flags[name].append(n)
     return {n: {"error_mm": out[n], "median_mm": float(np.nanmedian(out[n])), "mean_mm": float(np.nanmean(out[n])),

@@ -178,7 +178,8 @@ def farfield_command(matrix: tuple[Path, ...], out: Path, speed: float | None, d
     payload = enrich_payload(
         out_dict, names={"position_names": row_names, "transmitter_names": col_names},
         units={"positions": "m", "directions": "unit vectors", "offsets": tunit, "residual_rms": tunit,
-               "position_cov": "m^2"})
+               "position_cov": "m^2", "direction_covariance": "unit vector^2 (rad^2 for small errors)",
+               "direction_std_deg": "deg", "azimuth_std_deg": "deg", "elevation_std_deg": "deg"})
     with staged_outputs():  # the figure, the JSON and the CSV together, or none
         if plot is not None:
             from ..plotting.farfield import plot_farfield
@@ -239,7 +240,8 @@ def _expand(d: dict[str, Any], keep_r: Any, keep_c: Any) -> None:
 
     ri, ci = np.flatnonzero(keep_r), np.flatnonzero(keep_c)
     for keys, idx, n in ((("positions", "position_cov", "position_std", "position_ellipse95"), ri, keep_r.size),
-                         (("directions", "offsets"), ci, keep_c.size)):
+                         (("directions", "offsets", "direction_covariance", "direction_std_deg", "azimuth_std_deg",
+                           "elevation_std_deg"), ci, keep_c.size)):
         for key in keys:
             v = d.get(key)
             if not isinstance(v, list) or len(v) != idx.size:

@@ -38,6 +38,7 @@ from numpy.typing import NDArray
 from .._checks import as_matrix, as_rng, check_choice, check_positive, entry
 from ..errors import ConvergenceWarning, DegenerateGeometryError, InputError
 from ..robust import TUNING
+from .covariance import DIRECTION_COV_MAX, direction_covariance
 from .degeneracy import (
     DETERMINED,
     MESSAGES,
@@ -308,8 +309,15 @@ def solve_farfield(
             cov = np.einsum("ab,ibc,dc->iad", R, cov, R)
         r = farfield_residuals(np.where(used & ~rej, D, np.nan), pos, dirs, C)
         rms = float(np.sqrt(np.nanmean(r**2))) if np.isfinite(r).any() else float("nan")
+        dcov = None
+        if cov is not None and kind is None and dirs.shape[1] in (2, 3) and \
+                dirs.shape[1] * (len(pos) - 1) <= DIRECTION_COV_MAX:
+            Wd = (used & ~rej).astype(float)
+            Cf = np.sum(Wd * np.where(Wd > 0, D - pos @ dirs.T, 0.0), axis=0) / np.maximum(Wd.sum(0), 1e-300)
+            dcov = direction_covariance(D, pos, dirs, Cf, Wd, free_offsets=True)
         return FarfieldResult(pos, dirs, C, kind, rms, conv, its, meth, loss, rej | gross, pd, report, hist,
-                              cov, warnings=screen_note, untestable=untestable, dim_rule=dim_rule)
+                              cov, warnings=screen_note, untestable=untestable, dim_rule=dim_rule,
+                              direction_cov=dcov)
 
     no_rej = np.zeros_like(finite)
     kind_found = report.kind if check_degeneracy else None
