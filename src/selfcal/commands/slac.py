@@ -10,7 +10,7 @@ import click
 
 from ._base import backend_option, handle_errors, reproduce, scheduler_option, seed_option, slac
 from ._common import all_or_nothing
-from ._options import ANGLE_RAD, MINUTES, SLAC_SNR_DB
+from ._options import ANGLE_RAD, MINUTES, SLAC_SNR_DB, Quantity
 
 
 @slac.command("simulate")
@@ -101,7 +101,8 @@ def run_cmd(log_path: Path, mode: str, prior: str, out: Path, plot: Path | None,
                    "more accurate); fixed-lag: each pose smoothed by the next --lag seconds of data (online with "
                    "that delay, for logs too long or streams too open-ended to smooth whole); both: filter and "
                    "smoother.")
-@click.option("--lag", "lag_s", type=click.FloatRange(min=0.0, min_open=True, max=1e9), default=30.0,
+@click.option("--lag", "lag_s", type=Quantity("s", gt=0, le=1e7, why="a look-ahead in seconds (1e7 s is 4 months)"),
+              default=30.0,
               show_default=True, help="Seconds of look-ahead of --method fixed-lag.")
 @click.option("--csv", "csv_path", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="Trajectory CSV (time, x, y, heading, stds) of the smoother (or the one method run).")
