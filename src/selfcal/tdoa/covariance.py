@@ -259,8 +259,12 @@ def direction_covariance(D: Array, Z: Array, N: Array, C: Array, W: Array, *, fr
     S4 = S.reshape(mz, d, mz, d)
     S4[idx, :, idx, :] += Hzz
     Sp = np.linalg.pinv(S, rcond=1e-10, hermitian=True)
-    Xf = X.transpose(1, 0, 2, 3).reshape(k, mz * d, p)  # (k, mz d, p)
-    cov_v = A + np.einsum("kap,ab,kbq->kpq", Xf, Sp, Xf)
+    Y = _flat(X)  # (mz d, k p): the columns' couplings side by side
+    SY = Sp @ Y  # one BLAS product
+    # per column j: X_j^T S^+ X_j = (Y_j)^T (S^+ Y)_j, the (p, p) diagonal blocks of Y^T S^+ Y
+    Yb = Y.reshape(mz * d, k, p)
+    SYb = SY.reshape(mz * d, k, p)
+    cov_v = A + np.einsum("akp,akq->kpq", Yb, SYb)
     q = d - 1
     cov_t = cov_v[:, :q, :q]
     cov = sigma2 * np.matmul(np.matmul(T, cov_t), T.transpose(0, 2, 1))
