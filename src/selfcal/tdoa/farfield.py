@@ -152,7 +152,8 @@ def solve_farfield(
     allow_degenerate : return the partial reconstruction of a degenerate configuration
         (with ``degeneracy`` set) instead of raising.
     screen : treat gross errors (:func:`screen_gross_errors`: a residual test at family-wise
-        false-alarm rate 1 %) as missing.
+        false-alarm rate 1 % against the Student-t tail fitted to the residuals, so the rate
+        holds for heavy-tailed noise too) as missing.
     reject_k : with a robust loss, entries with ``|residual| > reject_k`` robust std are rejected.
     max_iter, tol : refinement limits (defaults 200 / 1e-12 for LM, 2000 / 1e-10 for
         alternating).
