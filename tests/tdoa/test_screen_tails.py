@@ -95,6 +95,8 @@ def test_the_real_pyramic_file_loses_only_its_two_wrong_peaks(shared_data):
     D = load_pyramic(shared_data / "pyramic" / "pyramic_tdoa_speaker0.json").D
     g = gross_error_screen(D)
     assert int(g.mask.sum()) == 2
+    # the rule that ran and its false-alarm statement travel with the result
+    assert "Student-t tail" in g.rule and "false-alarm rate <= 0.01" in g.rule
     Xc = D - np.nanmedian(D, axis=0)
     assert np.all(np.abs(Xc[g.mask]) > 1.0)  # metres: the two huge ones
     assert int(gross_error_screen(D, tail="gaussian").mask.sum()) > 10

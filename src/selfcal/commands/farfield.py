@@ -193,6 +193,7 @@ def farfield_command(matrix: tuple[Path, ...], out: Path, speed: float | None, d
                f"method {res.method}, loss {res.loss}")
     click.echo(f"  determined: {res.determined}")
     click.echo(f"  dimension: {res.dim_rule}")
+    click.echo(f"  gross errors: {res.screen_rule}")
     click.echo(f"  residual RMS {out_dict['residual_rms']:.4g} {tunit}, converged={res.converged}, "
                f"iterations={res.iterations}, rejected entries {int(res.rejected.sum())}")
     if ref_rmse is not None:

@@ -255,13 +255,15 @@ def solve_farfield(
     gross = scr.mask if scr is not None else np.zeros_like(finite)
     untestable = int(scr.untestable.sum()) if scr is not None else 0
     screen_note = (scr.message,) if scr is not None and scr.message else ()
+    screen_rule = scr.rule if scr is not None else "none (screen=False)"
     if ransac:
         gross = gross | (finite & ~ransac_farfield(np.where(gross, np.nan, D), rng=gen))
     used = finite & ~gross
     complete = bool(used.all())
     if directions is not None:
         res0 = _solve_known_directions(D, used, gross, directions, loss=loss)
-        return replace(res0, untestable=untestable, warnings=screen_note + res0.warnings, dim_rule=dim_rule)
+        return replace(res0, untestable=untestable, warnings=screen_note + res0.warnings, dim_rule=dim_rule,
+                       screen_rule=screen_rule)
     if offsets == "auto":
         offsets = "reference" if (complete and loss == "linear") else "free"
     if offsets == "reference" and not np.all(used[0]):
@@ -318,7 +320,7 @@ def solve_farfield(
             dcov = direction_covariance(D, pos, dirs, Cf, Wd, free_offsets=True)
         return FarfieldResult(pos, dirs, C, kind, rms, conv, its, meth, loss, rej | gross, pd, report, hist,
                               cov, warnings=screen_note, untestable=untestable, dim_rule=dim_rule,
-                              direction_cov=dcov)
+                              direction_cov=dcov, screen_rule=screen_rule)
 
     no_rej = np.zeros_like(finite)
     kind_found = report.kind if check_degeneracy else None

@@ -61,6 +61,8 @@ class FarfieldResult(Result):
         ``direction_std_deg`` (RMS angular error, the one-sigma cone half-angle) and in 3-D
         ``azimuth_std_deg`` / ``elevation_std_deg`` (azimuth ``atan2(n_y, n_x)``, elevation
         ``asin(n_z)`` in the result's frame).
+    screen_rule : the gross-error test that ran and its false-alarm rate, in words (with the
+        fitted tail: its dof and scale; :attr:`~selfcal.tdoa.screen.GrossScreen.rule`).
     dim_rule : how ``dim`` was chosen: given, or ``"auto: ..."`` with the rank test's level
         (:func:`~selfcal.tdoa.farfield.dimension_rule`).
     """
@@ -86,6 +88,7 @@ class FarfieldResult(Result):
     untestable: int = 0
     dim_rule: str = ""
     direction_cov: Array | None = None
+    screen_rule: str = ""
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-safe dictionary with the DESIGN.md keys (``rejected`` as [i, j] pairs)."""
@@ -109,6 +112,7 @@ class FarfieldResult(Result):
             "determined": self.determined,
             "untestable": int(self.untestable),
             "dim_rule": self.dim_rule,
+            "screen_rule": self.screen_rule,
             "direction_covariance": None if self.direction_cov is None else self.direction_cov.tolist(),
             **self._direction_stds(),
         }

@@ -62,8 +62,15 @@ class TailModel:
 
     def describe(self) -> str:
         """One line: the tail model in words."""
-        return (f"Student-t tail with {self.dof:g} dof (ML {self.dof_ml:g}), scale {self.scale:.3g}, "
+        shape = "a Gaussian tail" if self.dof >= TAIL_DOF_GRID[-1] else f"a Student-t tail of {self.dof:g} dof"
+        return (f"{shape} (lower 95 % bound; ML {self.dof_ml:g} dof), scale {self.scale:.3g} (data units), "
                 f"{100 * self.outliers:.2g} % gross")
+
+    def tails_covered(self) -> str:
+        """The noise for which a test at this tail keeps its false-alarm rate, in words."""
+        if self.dof >= TAIL_DOF_GRID[-1]:
+            return "Gaussian noise"
+        return f"noise tails of {self.dof:g} dof or lighter (Student-t, Laplace, Gaussian)"
 
 
 def fit_tail_model(z: Any, *, span: float | None = None, grid: tuple[float, ...] = TAIL_DOF_GRID,
@@ -243,12 +250,13 @@ class GrossScreen:
     checked (too few spare measurements: an error as large as the array could pass, see
     :mod:`~selfcal.tdoa.deletion`); method : ``"structure"`` (the residual test below),
     ``"model"`` (the far-field model's deletion test of small matrices) or ``"pre-screen"``
-    (only the model-free stage ran).
+    (only the model-free stage ran); rule : the test and its false-alarm rate, in words.
     """
 
     mask: NDArray[np.bool_]
     untestable: NDArray[np.bool_]
     method: str
+    rule: str = ""
 
     @property
     def message(self) -> str:
@@ -376,7 +384,7 @@ def gross_error_screen(
     n_all = int(finite.sum())
     none = np.zeros((m, k), dtype=bool)
     if n_all == 0:
-        return GrossScreen(pre, none, "pre-screen")
+        return GrossScreen(pre, none, "pre-screen", "model-free pre-screen only (errors far beyond the array; too few spare measurements for a residual test)")
     t = float(norm.isf(alpha / (2.0 * n_all)))
     used = finite & ~pre
     n = int(used.sum())
@@ -390,9 +398,12 @@ def gross_error_screen(
 
         dele = deletion_screen(D, used, alpha=alpha, noise_std=noise_std, tail=tail)
         if dele.tested or not _redundant(used, n_fit, rank):
-            return GrossScreen(pre | dele.flags, dele.untestable, "model" if dele.tested else "pre-screen")
+            rule = (f"far-field model deletion test, Bonferroni at {alpha:g} family-wise against "
+                    + ("a Gaussian null" if gaussian else "a unit-variance t_3 null (false-alarm rate <= "
+                       f"{alpha:g} for noise tails of 3 dof or lighter)") if dele.tested else "model-free pre-screen only (errors far beyond the array; too few spare measurements for a residual test)")
+            return GrossScreen(pre | dele.flags, dele.untestable, "model" if dele.tested else "pre-screen", rule)
     if not _redundant(used, n_fit, rank):
-        return GrossScreen(pre, used, "pre-screen")
+        return GrossScreen(pre, used, "pre-screen", "model-free pre-screen only (errors far beyond the array; too few spare measurements for a residual test)")
     flags = pre.copy()
     untestable = none
     extent = float(np.max(np.abs(np.where(finite, D - np.nanmean(D, axis=0, keepdims=True), 0.0)))) + 1e-300
@@ -406,6 +417,7 @@ def gross_error_screen(
     # With the fitted tail the first round is always robust: a least-squares fit smeared by a large
     # error has heavy-tailed residuals, and the tail fitted to them would hide the error itself.
     robust_round = not gaussian
+    model: TailModel | None = None
     for _ in range(max(int(rounds), 1) + 1):
         used = finite & ~flags
         n = int(used.sum())
@@ -454,8 +466,14 @@ def gross_error_screen(
             break
         flags = new
     if not verified:
-        return GrossScreen(pre, used, "pre-screen")
-    return GrossScreen(np.asarray(flags), untestable & ~flags, "structure")
+        return GrossScreen(pre, used, "pre-screen", "model-free pre-screen only (errors far beyond the array; too few spare measurements for a residual test)")
+    if gaussian or model is None:
+        rule = (f"structure residual test, Bonferroni at {alpha:g} family-wise, Gaussian quantile (false-alarm "
+                "rate holds for Gaussian noise only)")
+    else:
+        rule = (f"structure residual test, Bonferroni at {alpha:g} family-wise against the fitted tail: "
+                f"{model.describe()}; false-alarm rate <= {alpha:g} for {model.tails_covered()}")
+    return GrossScreen(np.asarray(flags), untestable & ~flags, "structure", rule)
 
 
 def lowrank_fit(
