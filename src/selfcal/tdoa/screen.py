@@ -396,7 +396,7 @@ def gross_error_screen(
         # fit of its 6 columns is easily pulled by one large error)
         from .deletion import deletion_screen
 
-        dele = deletion_screen(D, used, alpha=alpha, noise_std=noise_std, tail=tail)
+        dele = deletion_screen(D, used, alpha=alpha, noise_std=noise_std, tail="gaussian" if gaussian else tail)
         if dele.tested or not _redundant(used, n_fit, rank):
             rule = (f"far-field model deletion test, Bonferroni at {alpha:g} family-wise against "
                     + ("a Gaussian null" if gaussian else "a unit-variance t_3 null (false-alarm rate <= "
