@@ -18,9 +18,10 @@ same process by wrapping the function that runs it:
 
 ``solve`` is the rest of the same call (initialisation, search, outlier refits, final fit,
 covariance): every ratio is a stage over it, same call, medians over repeats. ``checks`` is the
-sum of the stages. Cases: 12 x 6 3-D with both offsets (1 cm), the paper-004 workload (120
-units in the 30 x 30 x 12 m room, complete, both offsets, 1 mm) and 1000 x 1000 3-D (1 cm, 5 %
-missing, no offsets). Budget (issue 27): checks <= solve up to 1,000 measurements, <= 0.3 x
+sum of the stages. Cases: ``12x6`` 3-D with both offsets (1 cm); the paper-004 workload, 120
+units in the 30 x 30 x 12 m room, complete, both offsets: ``120t`` the thesis's simulation
+(noise-free, one internal delay, ``benchmarks/bench_delays.py``'s setup) and ``120u`` with 1 mm
+noise and a delay per unit; ``1000x1000`` 3-D (1 cm, 5 % missing, no offsets). Budget (issue 27): checks <= solve up to 1,000 measurements, <= 0.3 x
 the solve at 1000 x 1000.
 
 ``cli``: ``calibrate toa`` on the 1000 x 1000 matrix (in this process) against ``solve_toa`` on
@@ -29,7 +30,7 @@ writing the result), as a fraction of the solve.
 
 Run::
 
-    PYTHONPATH=src python benchmarks/bench_postsolve.py [--cases 12x6,120u,1000x1000] [--repeats 5] [--cli 1000x1000]
+    PYTHONPATH=src python benchmarks/bench_postsolve.py [--cases 12x6,120t,120u,1000x1000] [--repeats 5] [--cli 1000x1000]
 
 ``make bench`` (benchmarks/run_all.py) runs every case (1000 x 1000: 2 repeats).
 """
@@ -72,6 +73,10 @@ def _case(name: str, seed: int = 0) -> tuple[np.ndarray, int, str]:
         r, s = g.uniform(0, 10, (12, 3)), g.uniform(0, 10, (6, 3))
         Y = toa_model(r, s, g.uniform(0, 3, 12), g.uniform(0, 3, 6)) + g.normal(0, 0.01, (12, 6))
         return Y, 3, "both"
+    if name == "120t":  # the thesis's own simulation (bench_delays): noise-free, equal internal delays
+        from selfcal.scenarios.units import make_units
+
+        return make_units(120, room="large", rng=seed).ranges, 3, "both"
     if name == "120u":
         from selfcal.scenarios.units import make_units
 
@@ -181,7 +186,7 @@ def run_cli(name: str) -> dict[str, Any]:
             "output_bytes": size}
 
 
-def main(out_dir: Path | None = None, cases: str = "12x6,120u,1000x1000", repeats: int = 5,
+def main(out_dir: Path | None = None, cases: str = "12x6,120t,120u,1000x1000", repeats: int = 5,
          cli: str = "1000x1000") -> dict[str, Any]:
     """Run the cases, print one line each, write ``postsolve.json`` under ``out_dir``."""
     report: dict[str, Any] = {"name": "postsolve", "load_average_at_start": list(os.getloadavg()),
@@ -207,7 +212,7 @@ def main(out_dir: Path | None = None, cases: str = "12x6,120u,1000x1000", repeat
 
 if __name__ == "__main__":
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--cases", default="12x6,120u,1000x1000")
+    ap.add_argument("--cases", default="12x6,120t,120u,1000x1000")
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--cli", default="1000x1000", help="cases of the calibrate toa row ('' = none)")
     ap.add_argument("--out", type=Path, default=None)

@@ -282,23 +282,56 @@ def outlier_rule_has_power(ranges: Array, receivers: Array, sources: Array, rece
 
 
 #: the lifted normal matrix is inverted by Cholesky while its smallest eigenvalue stays this
-#: many times above the eigenvalue cut of the fallback (1e-12 of the largest): a margin for
-#: the power-iteration estimates of both
+#: many times above the eigenvalue cut of the fallback (1e-12 of the largest), both bounded
+#: by the matrices' largest absolute row sums (>= their largest eigenvalues)
 _LIFT_MARGIN = 1e3
 
 
-def _power_norm(A: Array, iterations: int = 30) -> float:
-    """Largest eigenvalue of a symmetric positive semi-definite matrix (power iteration, from below)."""
-    v: Array = np.asarray(np.random.default_rng(0).standard_normal(A.shape[0]), float)
-    lam = 0.0
-    for _ in range(iterations):
-        w = A @ v
-        nrm = float(np.linalg.norm(w))
-        if not nrm > 0:
-            return 0.0
-        lam = float(v @ w) / float(v @ v)
-        v = w / nrm
-    return lam
+_LIFTED: dict[str, Any] = {}  # the last lifted inverse (its key, the result): fisher_blocks reuses it
+
+
+def lifted_inverse(N: Array, gauge: Array) -> tuple[Array | None, Array | None, float]:
+    """``M^-1`` of the gauge-lifted normal matrix ``M = N + c Q Q^T``, ``c`` N's largest diagonal entry.
+
+    Parameters
+    ----------
+    N: (n, n) normal (Fisher) matrix ``J^T J`` of a TOA fit.
+    gauge: (n, g) orthonormal gauge basis Q (:func:`selfcal.toa.nls.gauge_basis`).
+
+    Returns
+    -------
+    (C, diag_L, c): the symmetric inverse (n, n) and the diagonal of M's Cholesky factor, or
+    ``(None, diag_L or None, c)`` when M is not numerically positive definite (the callers'
+    own tests on ``C`` / ``diag_L`` decide whether to use it).
+
+    Notes
+    -----
+    One LAPACK ``potrf`` + ``potri``. The last result is kept (keyed by the bytes of N and
+    Q): the leverages of the final fit (:func:`leverages`, the cross-validation) and the
+    determinacy test's Fisher blocks (:func:`selfcal.toa.determinacy.fisher_blocks`) invert
+    the same matrix, once.
+    """
+    import hashlib
+
+    import scipy.linalg
+
+    c = float(np.max(np.diag(N))) if N.size else 0.0
+    key = hashlib.blake2b(np.ascontiguousarray(N).tobytes() + np.ascontiguousarray(gauge).tobytes(),
+                          digest_size=16).hexdigest() + str(N.shape)
+    if _LIFTED.get("key") == key:
+        return _LIFTED["C"], _LIFTED["dl"], c
+    C_out: Array | None = None
+    dl: Array | None = None
+    if c > 0:
+        L, info = scipy.linalg.lapack.dpotrf(N + c * (gauge @ gauge.T), lower=1, clean=1)
+        if info == 0:
+            dl = np.abs(np.diag(L))
+            C, info = scipy.linalg.lapack.dpotri(L, lower=1)  # lower triangle of M^-1, upper zero
+            if info == 0:
+                C_out = C + C.T - np.diag(np.diag(C))
+    _LIFTED.clear()
+    _LIFTED.update(key=key, C=C_out, dl=dl)
+    return C_out, dl, c
 
 
 def _normal_pinv(J: Any, gauge: Array | None = None) -> Array:
@@ -309,26 +342,21 @@ def _normal_pinv(J: Any, gauge: Array | None = None) -> Array:
     (``c`` the largest diagonal entry of N) is positive definite and ``N^+ = M^-1 - Q Q^T / c``
     exactly: one Cholesky factorization and its inverse (LAPACK ``potrf`` + ``potri``, ~n^3
     flops), ~5x cheaper than the eigendecomposition. Where M is singular or its smallest
-    eigenvalue is within :data:`_LIFT_MARGIN` of the cut (directions the data do not
-    determine beyond the gauge), and without ``gauge``, the eigendecomposition of N with the
+    eigenvalue may be within :data:`_LIFT_MARGIN` of the cut (directions the data do not
+    determine beyond the gauge; bounded by row sums, a conservative test), and without
+    ``gauge``, the eigendecomposition of N with the
     relative cut, as a singular-value cut of 1e-6 on J would (O(nnz n + n^3) instead of the
     O(m n^2) SVD of the dense (m, n) Jacobian: 4.7 s at 14,400 x 960, 0.2 s this way, 0.04 s
     by the lifted Cholesky).
     """
-    import scipy.linalg
-
     N = np.asarray((J.T @ J).todense())
     if gauge is not None and N.size and gauge.shape[0] == N.shape[0]:
-        c = float(np.max(np.diag(N)))
-        if c > 0:
-            L, info = scipy.linalg.lapack.dpotrf(N + c * (gauge @ gauge.T), lower=1, clean=1)
-            if info == 0:
-                C, info = scipy.linalg.lapack.dpotri(L, lower=1)  # lower triangle of M^-1, upper zero
-                if info == 0:
-                    C = C + C.T - np.diag(np.diag(C))
-                    top = _power_norm(C)
-                    if np.isfinite(top) and top > 0 and 1.0 / top > _LIFT_MARGIN * 1e-12 * _power_norm(N):
-                        return C - (gauge / c) @ gauge.T
+        C, _, c = lifted_inverse(N, gauge)
+        if C is not None:
+            # lambda_min(M) >= 1 / max row sum |C|, lambda_max(N) <= max row sum |N|
+            top = float(np.max(np.abs(C).sum(axis=1)))
+            if np.isfinite(top) and top > 0 and 1.0 / top > _LIFT_MARGIN * 1e-12 * float(np.max(np.abs(N).sum(axis=1))):
+                return C - (gauge / c) @ gauge.T
     lam, V = np.linalg.eigh(N)
     if lam.size == 0 or lam[-1] <= 0:
         return np.zeros_like(N)
