@@ -127,6 +127,9 @@ def graph_command(ranges: Path, dim: str, unit: str, known: Path | None, frame: 
         f"  method {res.method}, converged={res.converged}, evaluations={res.iterations}",
         f"  residual RMS {res.residual_rms:.4g} m, noise estimate {res.noise_estimate:.4g} {su} on {res.dof} dof",
     ]
+    if res.outlier_pairs:
+        lines.append(f"  {res.outlier_pairs} pair(s) flagged as outliers ({int(res.outliers.sum())} measurements, "
+                     "Bonferroni rule on a soft-L1 fit), left out of the fit")
     if res.pure_error_sigma is not None:
         line = (f"  repeats: noise {res.pure_error_sigma:.4g} {su} from their spread ({res.pure_error_dof} dof)")
         if res.lack_of_fit_p is not None:
