@@ -12,6 +12,7 @@ from typing import Any
 import click
 
 from ._base import calibrate, handle_errors
+from ._options import SEED
 
 _LENGTH_UNITS = {"m": 1.0, "cm": 1e-2, "mm": 1e-3}
 
@@ -54,7 +55,7 @@ def parse_room(text: str | None) -> Any:
               help="Names of tag positions (a shell pattern, e.g. 't*'): drawn as the tag path, left out "
                    "of --anchors. Default: every node is an anchor.")
 @room_option
-@click.option("--seed", type=click.IntRange(0, 2**63 - 1), default=0, show_default=True,
+@click.option("--seed", type=SEED, default=0, show_default=True,
               help="Random seed (blind start).")
 @click.option("--out", "out", type=click.Path(dir_okay=False, path_type=Path), required=True,
               help="Result JSON: every node's position, covariance and std, the tests.")
