@@ -12,6 +12,7 @@ from typing import Any
 import click
 
 from ._base import calibrate, handle_errors
+from ._options import SEED
 
 _LENGTH_UNITS = {"m": 1.0, "cm": 1e-2, "mm": 1e-3}
 
@@ -54,7 +55,7 @@ def parse_room(text: str | None) -> Any:
               help="Names of tag positions (a shell pattern, e.g. 't*'): drawn as the tag path, left out "
                    "of --anchors. Default: every node is an anchor.")
 @room_option
-@click.option("--seed", type=click.IntRange(0, 2**63 - 1), default=0, show_default=True,
+@click.option("--seed", type=SEED, default=0, show_default=True,
               help="Random seed (blind start).")
 @click.option("--out", "out", type=click.Path(dir_okay=False, path_type=Path), required=True,
               help="Result JSON: every node's position, covariance and std, the tests.")
@@ -127,6 +128,9 @@ def graph_command(ranges: Path, dim: str, unit: str, known: Path | None, frame: 
         f"  method {res.method}, converged={res.converged}, evaluations={res.iterations}",
         f"  residual RMS {res.residual_rms:.4g} m, noise estimate {res.noise_estimate:.4g} {su} on {res.dof} dof",
     ]
+    if res.outlier_pairs:
+        lines.append(f"  {res.outlier_pairs} pair(s) flagged as outliers ({int(res.outliers.sum())} measurements, "
+                     "Bonferroni rule on a soft-L1 fit), left out of the fit")
     if res.pure_error_sigma is not None:
         line = (f"  repeats: noise {res.pure_error_sigma:.4g} {su} from their spread ({res.pure_error_dof} dof)")
         if res.lack_of_fit_p is not None:

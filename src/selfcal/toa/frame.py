@@ -188,7 +188,9 @@ def apply_frame(result: Any, frame: str | Mapping[str, Any], *, matrix: Any = No
                    method=f"{result.method}+frame")
     if getattr(result, "uniqueness", None) is not None:  # the alternatives in the same frame
         out = replace_fields(out, uniqueness=result.uniqueness.moved(Rm, t))
-    if matrix is not None and np.isfinite(rc).all() and np.isfinite(scv).all():
+    # (dropped nodes have NaN positions and covariances: the refit is over the located ones)
+    loc_r, loc_s = np.isfinite(Rn).all(1), np.isfinite(Sn).all(1)
+    if matrix is not None and np.isfinite(rc[loc_r]).all() and np.isfinite(scv[loc_s]).all():
         out = _frame_covariance(out, matrix, refs, offsets, loss)
     if mirror:
         msg.insert(0, "frame fully determined by " + ", ".join(f"{k}={v}" for k, v in roles.items()))

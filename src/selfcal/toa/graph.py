@@ -113,6 +113,10 @@ class GraphResult(Result):
         :mod:`selfcal.toa.determinacy`): reported, the status is not changed (a tag
         position seen by few anchors); a caller for whom such a node matters (an anchor)
         decides.
+    outliers : (m,) bool array
+        Measurements of the pairs flagged as outliers (left out of the fit).
+    outlier_pairs : int
+        Number of such pairs.
     converged : bool
     iterations : int
     method : str
@@ -137,6 +141,8 @@ class GraphResult(Result):
     chi2_p: float | None
     undetermined_nodes: tuple[str, ...]
     poorly_determined_nodes: tuple[str, ...]
+    outliers: NDArray[np.bool_]
+    outlier_pairs: int
     converged: bool
     iterations: int
     method: str
@@ -212,6 +218,42 @@ def _pairs(a: Index, b: Index, y: Array, std: Array | None) -> _Pairs:
     w = np.ones_like(y) if std is None else 1.0 / std**2
     pe = float(np.sum(w * (y - mean[k]) ** 2))
     return _Pairs(pa, pb, mean, W, k, pe, int(y.size - mean.size))
+
+
+def _subset(P: _Pairs, keep: NDArray[np.bool_], a: Index, b: Index, y: Array, std: Array | None) -> _Pairs:
+    """The pairs ``keep`` (their measurements' pure error recomputed)."""
+    m = keep[P.pair_of]
+    return _pairs(a[m], b[m], y[m], None if std is None else std[m])
+
+
+def _flag_pairs(X: Array, P: _Pairs, d: int, free: NDArray[np.bool_], *, scale: float) -> NDArray[np.bool_]:
+    """Pairs whose studentized residual exceeds the Bonferroni bound over ``scale``; a node keeps d + 1 partners.
+
+    ``t_p = e_p / sqrt(1 - h_p)`` with the leverage ``h_p`` of the pair in the fit. A pair
+    with ``h_p > 1/2`` is not judged: the fit absorbs more than half of its error, so its
+    residual cannot tell it from its neighbours' (an anchor-only graph of 7 anchors has
+    ``h = 5/7`` everywhere: a biased pair is then seen by the lack-of-fit test, not located).
+    Leverages need the dense information matrix: above 1500 free coordinates ``h = 0``.
+    """
+    from .robust import outlier_threshold
+
+    e = np.sqrt(P.weight) * (P.mean - np.linalg.norm(X[P.a] - X[P.b], axis=1))
+    h = np.zeros(e.size)
+    if int(free.sum()) <= 1500:
+        J = _jacobian(X, P, free, np.sqrt(P.weight)).toarray()
+        h = np.clip(np.einsum("pi,pi->p", J @ np.linalg.pinv(J.T @ J, hermitian=True), J), 0.0, 1.0)
+    judged = h <= 0.5
+    t = np.where(judged, e / np.sqrt(np.clip(1.0 - h, 1e-12, None)), 0.0)
+    flag = judged & (np.abs(t) > outlier_threshold(int(judged.sum())) * scale)
+    e = t
+    n = X.shape[0]
+    for k in np.argsort(-np.abs(e)):  # largest first; unflag where a node would drop below d + 1
+        if not flag[k]:
+            break
+        deg = np.bincount(np.concatenate([P.a[~flag], P.b[~flag]]), minlength=n)
+        if deg[P.a[k]] < d + 1 or deg[P.b[k]] < d + 1:
+            flag[k] = False
+    return flag
 
 
 # ---------------------------------------------------------------------------------------
@@ -382,8 +424,8 @@ def _jacobian(X: Array, P: _Pairs, free: NDArray[np.bool_], sw: Array) -> Any:
                       shape=(P.a.size, int(free.sum())))
 
 
-def _fit(X0: Array, P: _Pairs, free: NDArray[np.bool_], prior: tuple[Array, Array] | None
-         ) -> tuple[Array, bool, int]:
+def _fit(X0: Array, P: _Pairs, free: NDArray[np.bool_], prior: tuple[Array, Array] | None,
+         loss: str = "linear", f_scale: float = 1.0) -> tuple[Array, bool, int]:
     """Weighted least squares over the free coordinates (priors: ``(mu, 1/std)`` rows per coordinate)."""
     from scipy.optimize import least_squares
     from scipy.sparse import diags, vstack
@@ -418,7 +460,7 @@ def _fit(X0: Array, P: _Pairs, free: NDArray[np.bool_], prior: tuple[Array, Arra
     dense = theta0.size <= 1500
     sol = least_squares(fun, theta0, jac=(lambda t: jac(t).toarray()) if dense else jac, method="trf",
                         tr_solver="exact" if dense else "lsmr", xtol=1e-10, ftol=1e-12, gtol=1e-10,
-                        max_nfev=500)
+                        max_nfev=500, loss=loss, f_scale=f_scale)
     return unpack(sol.x), bool(sol.status > 0), int(sol.nfev)
 
 
@@ -520,7 +562,7 @@ def _gauge_modes(X: Array, free: NDArray[np.bool_]) -> int:
 def solve_range_graph(
     a: Any, b: Any, ranges: Any, n_nodes: int | None = None, *, std: Any = None, dim: int = 3,
     names: Sequence[str] | None = None, known: Any = None, frame: str | Mapping[str, Any] | None = None,
-    rng: int | np.random.Generator | None = 0,
+    rng: int | np.random.Generator | None = 0, outliers: bool = True,
 ) -> GraphResult:
     """Positions of every node of a range graph, with covariances, in the user's frame.
 
@@ -543,6 +585,14 @@ def solve_range_graph(
     frame : ``"origin=A,x=B,xy=C[,z=D]"``, optional
         Frame by reference nodes (:func:`selfcal.toa.frame.apply_frame`); exclusive with ``known``.
     rng : seed of the blind start.
+    outliers : bool
+        One soft-L1 fit at the noise scale (the given std; else the repeats' spread when it
+        has 10 dof or more, else the residuals' MAD), then pairs whose studentized residual
+        exceeds the Bonferroni bound (:func:`selfcal.toa.robust.outlier_threshold`,
+        family-wise level :data:`selfcal.toa.robust.OUTLIER_ALPHA`; pairs of leverage above
+        1/2 are not judged, a node keeps ``d + 1`` partners) are left out of a least-squares
+        refit (one pass: re-judging on the refit swamped the other ranges of a spiked tag in
+        simulations); False = plain least squares.
 
     Returns
     -------
@@ -646,11 +696,32 @@ def solve_range_graph(
         prior = (prior[0], prior[1] * s1)
         X0 = X1
     X, conv, nfev = _fit(X0, P, free, prior)
+    n_pairs_all = P.mean.size
+    flagged = np.zeros(n_pairs_all, bool)
+    if outliers:
+        # a soft-L1 fit at the noise scale (the repeats' spread when they have the dof, else
+        # the residuals' MAD), flags on it, least squares on the inliers (fit.py's rule)
+        from .robust import noise_scale
+
+        P_all = P
+        e = np.sqrt(P.weight) * (P.mean - np.linalg.norm(X[P.a] - X[P.b], axis=1))
+        scale = 1.0 if sd is not None else (np.sqrt(P.pe_ss / P.pe_dof) if P.pe_dof >= 10 and P.pe_ss > 0
+                                            else noise_scale(e))
+        Xr, _, it = _fit(X, P, free, prior, loss="soft_l1", f_scale=max(float(scale), 1e-12))
+        nfev += it
+        flagged = _flag_pairs(Xr, P_all, d, free, scale=float(scale))
+        if flagged.any():
+            P = _subset(P_all, ~flagged, aa.astype(np.intp), bb.astype(np.intp), y, sd)
+            X, conv, it = _fit(Xr, P, free, prior)
+            nfev += it
+        y_in = ~flagged[P_all.pair_of]
+    else:
+        y_in = np.ones(y.size, bool)
     rp = np.linalg.norm(X[P.a] - X[P.b], axis=1) - P.mean
     lof_ss = float(np.sum(P.weight * rp**2))
     gauge = _gauge_modes(X, free) if prior is None else 0
     n_free = int(free.sum())
-    dof = int(y.size - n_free + gauge + (0 if prior is None else int(np.isfinite(prior[0][free]).sum())))
+    dof = int(y_in.sum() - n_free + gauge + (0 if prior is None else int(np.isfinite(prior[0][free]).sum())))
     rss = lof_ss + P.pe_ss
     sigma = float(np.sqrt(rss / dof)) if dof > 0 else float("nan")
     chi2 = chi2_p = None
@@ -661,7 +732,7 @@ def solve_range_graph(
     cov, moved, n_null = _covariance(X, P, free, None if prior is None else prior[1], scale)
     # undetermined: moved by a null direction beyond the gauge, or a 95 % region larger than
     # the whole node set (the rule of selfcal.toa.determinacy: such a position says nothing)
-    flat, _ = _flat_within_errors(X, P, int(y.size))
+    flat, _ = _flat_within_errors(X, P, int(y_in.sum()))
     bad = (moved if n_null > gauge else np.zeros(n, bool)) | np.full(n, flat)
     undetermined = tuple(nm[k] for k in np.flatnonzero(bad))
     loose = tuple(nm[k] for k in np.flatnonzero(_region_larger_than_set(X, cov) & ~bad))
@@ -686,9 +757,10 @@ def solve_range_graph(
     return GraphResult(
         names=nm, positions=X, position_cov=cov, residuals=y - np.linalg.norm(X[aa] - X[bb], axis=1),
         residual_rms=float(np.sqrt(np.mean((y - np.linalg.norm(X[aa] - X[bb], axis=1)) ** 2))),
-        noise_estimate=sigma, dof=dof, n_measurements=int(y.size), n_pairs=int(P.mean.size),
+        noise_estimate=sigma, dof=dof, n_measurements=int(y.size), n_pairs=int(n_pairs_all),
         pure_error_sigma=pe_sigma, pure_error_dof=P.pe_dof, lack_of_fit_F=lof_F, lack_of_fit_p=lof_p,
-        chi2=chi2, chi2_p=chi2_p, undetermined_nodes=undetermined, poorly_determined_nodes=loose, converged=conv, iterations=nfev,
+        chi2=chi2, chi2_p=chi2_p, undetermined_nodes=undetermined, poorly_determined_nodes=loose,
+        outliers=~y_in, outlier_pairs=int(flagged.sum()), converged=conv, iterations=nfev,
         method=f"graph:{route}+lsq", frame=info)
 
 
