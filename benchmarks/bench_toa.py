@@ -408,7 +408,7 @@ def _units_case(U: int, seed: int = 0) -> dict[str, Any]:
     # 2026-12-01, the full-size multistart with the missing entries as unknowns (max_candidates=2
     # keeps that path), against the one start solve_toa now takes (max_candidates=1)
     if U <= OLD_INIT_MAX:
-        from selfcal.toa.offsets import initialize_offsets_candidates
+        from selfcal.toa.offsets_init import initialize_offsets_candidates
 
         for key, k in (("init_now", 1), ("init_before", 2)):
             cpu = time.process_time()

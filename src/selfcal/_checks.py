@@ -13,7 +13,6 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .errors import DegenerateGeometryError, InputError
-from .geometry import n_parameters
 
 __all__ = [
     "as_array",
@@ -35,6 +34,10 @@ __all__ = [
     "as_rng",
     "min_counts_toa",
     "check_toa_counts",
+    "check_toa_observable",
+    "check_path",
+    "instance_of",
+    "has_attributes",
 ]
 
 
@@ -149,8 +152,9 @@ def non_number_leaf(value: Any) -> str | None:
 
 def check_dim(dim: int) -> int:
     """Return ``dim`` if it is 2 or 3, else raise :class:`InputError`."""
-    if dim not in (2, 3):
-        raise InputError(f"dim must be 2 or 3, got {dim!r}")
+    if isinstance(dim, (bool, np.bool_)) or not isinstance(dim, (int, np.integer, float, np.floating)) \
+            or dim not in (2, 3):
+        raise InputError(f"dim must be 2 or 3, got {type(dim).__name__} {dim!r}"[:120])
     return int(dim)
 
 
@@ -223,6 +227,8 @@ def check_toa_counts(shape: tuple[int, int], n_observed: int, dim: int, offsets:
             f"(they must span {dim}-D space)",
             kind="too-few-sources",
         )
+    from .geometry import n_parameters
+
     unknowns = n_parameters(I, J, dim, offsets)
     if n_observed < unknowns + 1 and offsets != "none":
         raise DegenerateGeometryError(
@@ -244,6 +250,35 @@ def check_toa_counts(shape: tuple[int, int], n_observed: int, dim: int, offsets:
 # scalar and array validators shared by the entry points
 # --------------------------------------------------------------------------------------
 
+def check_toa_observable(matrix: NDArray[np.float64], dim: int, offsets: str = "none",
+                         name: str = "matrix") -> None:
+    """Refuse, in time linear in the entries, a TOA matrix whose pattern cannot be solved.
+
+    :func:`check_toa_counts` on the whole matrix, then the empty nodes: rows / columns with
+    no observed entry say nothing about the network. When they are more than half of the
+    nodes the result would fail its determinacy test anyway (more than half of the nodes
+    undetermined, :mod:`selfcal.toa.determinacy`), so the matrix is refused up front, before
+    work that grows with its size. (Pruning the nodes with at most ``dim`` ranges adds
+    nothing here: the entries such nodes carry are at most ``dim`` per node, fewer than
+    their unknowns, so a matrix that passes the whole count leaves a core that passes it.)
+
+    Raises
+    ------
+    DegenerateGeometryError
+        The count's kinds, or ``unobservable-node`` naming the empty rows and columns.
+    """
+    obs = np.isfinite(np.asarray(matrix))
+    I, J = obs.shape
+    check_toa_counts((I, J), int(obs.sum()), dim, offsets)
+    empty_r = int((~obs.any(axis=1)).sum())
+    empty_c = int((~obs.any(axis=0)).sum())
+    if 2 * (empty_r + empty_c) > I + J:
+        raise DegenerateGeometryError(
+            f"{name}: {empty_r} of {I} rows (receivers) and {empty_c} of {J} columns (transmitters) have no "
+            f"observed entry: more than half of the nodes say nothing; remove the empty rows / columns",
+            kind="unobservable-node")
+
+
 def as_array(value: Any, name: str = "array") -> NDArray[np.float64]:
     """Convert ``value`` to a float array: masked entries -> NaN; complex, text, objects refused.
 
@@ -259,6 +294,8 @@ def as_array(value: Any, name: str = "array") -> NDArray[np.float64]:
         data = np.ma.getdata(value)
         if data.dtype.kind == "c":
             raise InputError(f"{name}: complex values; give real numbers")
+        if data.dtype.kind == "b":
+            raise InputError(f"{name}: holds booleans (True / False), not measurements; give the measured numbers")
         try:
             arr = np.array(data, dtype=np.float64)
         except (TypeError, ValueError) as exc:
@@ -272,6 +309,8 @@ def as_array(value: Any, name: str = "array") -> NDArray[np.float64]:
     kind = raw.dtype.kind
     if kind == "c":
         raise InputError(f"{name}: complex values; give real numbers")
+    if kind == "b":  # a mask passed by mistake: True / False are not ranges, times or angles
+        raise InputError(f"{name}: holds booleans (True / False), not measurements; give the measured numbers")
     if kind in "USaV":
         raise InputError(f"{name}: holds text ({raw.dtype}); give numbers (read files with selfcal.io.read_matrix)")
     if kind in "mM":
@@ -279,7 +318,8 @@ def as_array(value: Any, name: str = "array") -> NDArray[np.float64]:
     if kind == "O":
         flat = raw.ravel()
         for v in flat[: 10_000]:
-            if v is None or isinstance(v, (str, bytes, complex, np.complexfloating)) or not np.isscalar(v):
+            if v is None or isinstance(v, (str, bytes, complex, np.complexfloating, bool, np.bool_)) \
+                    or not np.isscalar(v):
                 raise InputError(f"{name}: holds {type(v).__name__} values; give a rectangular array of numbers")
     try:
         return np.array(raw, dtype=np.float64)
@@ -336,8 +376,88 @@ _SPECS: dict[str, Any] = {
     "rng": lambda v, n: as_rng(v) and None,
     "bool": lambda v, n: _check_bool(v, n),
     "str": lambda v, n: _check_str(v, n),
+    "str?": lambda v, n: None if v is None else _check_str(v, n),
+    "dim": lambda v, n: check_dim(v),
+    "path": lambda v, n: check_path(v, n),
+    "path?": lambda v, n: check_path(v, n, allow_none=True),
+    "paths": lambda v, n: _check_paths(v, n),
+    "indices": lambda v, n: _check_indices(v, n),
+    "callable": lambda v, n: _check_callable(v, n),
     "array": lambda v, n: None,
 }
+
+
+def check_path(value: Any, name: str, *, allow_none: bool = False) -> None:
+    """Refuse anything but a ``str`` / ``os.PathLike`` path (bytes, numbers, arrays, '' and NUL)."""
+    import os
+
+    if value is None and allow_none:
+        return
+    if isinstance(value, (bytes, bytearray)):
+        raise InputError(f"{name} must be a path (str or pathlib.Path), got bytes {bytes(value)[:40]!r}; "
+                         f"decode it first")
+    if not isinstance(value, (str, os.PathLike)):
+        raise InputError(f"{name} must be a path (str or pathlib.Path), got {type(value).__name__}")
+    raw = os.fspath(value)
+    if not isinstance(raw, str):
+        raise InputError(f"{name} must be a path (str or pathlib.Path), got a bytes path")
+    if raw == "" or "\x00" in raw:
+        raise InputError(f"{name} {raw!r} is not a usable path")
+
+
+def _check_paths(value: Any, name: str) -> None:
+    if isinstance(value, (list, tuple)):
+        if not value:
+            raise InputError(f"{name} is an empty list; give at least one path")
+        for k, v in enumerate(value):
+            check_path(v, f"{name}[{k}]")
+        return
+    check_path(value, name)
+
+
+def _check_indices(value: Any, name: str) -> None:
+    """A non-empty 1-D array of integer indices >= 0 (booleans and floats refused)."""
+    if isinstance(value, (str, bytes)) or value is None or isinstance(value, (dict, set)):
+        raise InputError(f"{name} must be a 1-D array of integer indices, got {type(value).__name__}")
+    try:
+        arr = np.asarray(value)
+    except (TypeError, ValueError) as exc:
+        raise InputError(f"{name} must be a 1-D array of integer indices ({str(exc).splitlines()[0]})") from None
+    if arr.ndim != 1:
+        raise InputError(f"{name} must be a 1-D array of integer indices, got shape {arr.shape}")
+    if arr.size == 0:
+        raise InputError(f"{name} is empty: give at least one observed pair")
+    if arr.dtype.kind not in "iu":
+        raise InputError(f"{name} must hold integer indices, got dtype {arr.dtype}")
+    if arr.min() < 0:
+        raise InputError(f"{name}: indices must be >= 0, got {int(arr.min())}")
+
+
+def _check_callable(v: Any, n: str) -> None:
+    if not callable(v):
+        raise InputError(f"{n} must be a callable, got {type(v).__name__}")
+
+
+def instance_of(get_class: Any, what: str) -> Any:
+    """An :func:`entry` spec: the argument is an instance of ``get_class()`` (imported lazily)."""
+
+    def check(v: Any, n: str) -> None:
+        cls = get_class()
+        if not isinstance(v, cls):
+            raise InputError(f"{n} must be a {what}, got {type(v).__name__}")
+
+    return check
+
+
+def has_attributes(*names: str, what: str) -> Any:
+    """An :func:`entry` spec: the argument carries every attribute in ``names`` (duck typing)."""
+
+    def check(v: Any, n: str) -> None:
+        missing = [a for a in names if not hasattr(v, a)]
+        if missing:
+            raise InputError(f"{n} must be a {what}, got {type(v).__name__} (no attribute {missing[0]!r})")
+
+    return check
 
 
 def _check_bool(v: Any, n: str) -> None:
@@ -362,8 +482,11 @@ def entry(**specs: str) -> Any:
     **specs:
         ``argument="spec"`` with spec one of ``positive``, ``positive?`` (None allowed),
         ``nonnegative?``, ``count`` (int >= 1), ``count?``, ``count0`` (int >= 0), ``count0?``,
-        ``rng`` (Generator / seed >= 0 / None), ``bool``, ``str``, ``array`` (masked entries ->
-        NaN, complex / text refused).
+        ``rng`` (Generator / seed >= 0 / None), ``bool``, ``str``, ``str?``, ``path`` / ``path?``
+        (str or os.PathLike; bytes refused), ``paths`` (a path or a non-empty list of them),
+        ``indices`` (non-empty 1-D integer array >= 0), ``callable``, ``array`` (masked entries ->
+        NaN; complex, text, booleans and non-arrays refused), or a callable ``(value, name)``
+        raising :class:`~selfcal.errors.InputError` (:func:`instance_of`, :func:`has_attributes`).
 
     Notes
     -----
@@ -391,7 +514,7 @@ def entry(**specs: str) -> Any:
     def deco(func: Any) -> Any:
         sig = inspect.signature(func)
         for k, spec in specs.items():
-            if k not in sig.parameters or spec not in _SPECS:
+            if k not in sig.parameters or not (callable(spec) or spec in _SPECS):
                 raise TypeError(f"entry(): {func.__name__} has no argument {k!r} or spec {spec!r} is unknown")
 
         @functools.wraps(func)
@@ -404,9 +527,16 @@ def entry(**specs: str) -> Any:
                 if k not in bound.arguments:
                     continue
                 v = bound.arguments[k]
+                if callable(spec):
+                    spec(v, k)
+                    continue
                 if spec == "array":
-                    if v is not None and not isinstance(v, (str, bytes)) and (
-                            np.ma.isMaskedArray(v) or isinstance(v, (list, tuple, np.ndarray))):
+                    if v is None and sig.parameters[k].default is inspect.Parameter.empty:
+                        raise InputError(f"{k} is required: give an array of numbers")
+                    if isinstance(v, (str, bytes, bytearray, dict, set)) or (v is not None and not (
+                            np.isscalar(v) or hasattr(v, "__array__") or hasattr(v, "__len__"))):
+                        raise InputError(f"{k}: expected an array of numbers, got {type(v).__name__}")
+                    if v is not None and not np.isscalar(v):
                         bound.arguments[k] = as_array(v, k)
                     continue
                 _SPECS[spec](v, k)
@@ -422,6 +552,7 @@ def entry(**specs: str) -> Any:
                 msg = " ".join(str(exc).split())[:200]
                 raise InputError(f"{func.__name__}: could not use the input ({type(exc).__name__}: {msg})") from None
 
+        wrapper.__selfcal_entry__ = True  # type: ignore[attr-defined]  # tests: every public function has it
         return wrapper
 
     return deco
@@ -545,7 +676,7 @@ AOA_INSIDE_EXTENTS = 1.0
 
 def plausible_angle_unit(values: NDArray[np.float64], beacons: NDArray[np.float64],
                          position_deg: NDArray[np.float64] | None, position_rad: NDArray[np.float64] | None,
-                         *, rad_fits: bool, option: str = "--units", degrees_error: str | None = None) -> None:
+                         *, rad_fits: bool, option: str = "--unit", degrees_error: str | None = None) -> None:
     """Refuse / warn about bearing angles read as degrees whose spread only makes sense in radians.
 
     Called only when the degrees were the default (not given). Every value within 2 pi and the
@@ -560,7 +691,7 @@ def plausible_angle_unit(values: NDArray[np.float64], beacons: NDArray[np.float6
     Raises
     ------
     InputError
-        Naming ``--units rad`` (and ``--units deg`` to confirm).
+        Naming ``--unit rad`` (and ``--unit deg`` to confirm).
 
     Examples
     --------

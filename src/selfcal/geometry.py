@@ -13,6 +13,7 @@ from typing import NamedTuple
 import numpy as np
 from numpy.typing import NDArray
 
+from ._checks import entry
 from .errors import InputError
 
 __all__ = [
@@ -59,6 +60,7 @@ class Alignment:
         return out[0] if P.ndim == 2 and self.rotation.ndim == 3 else out
 
 
+@entry(estimate="array", reference="array", reflection="bool", scale="bool", weights="array")
 def align(
     estimate: Array,
     reference: Array,

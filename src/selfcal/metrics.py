@@ -7,6 +7,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from ._checks import entry
 from .geometry import Alignment, align, wrap_angle
 
 __all__ = ["AlignedError", "aligned_rmse", "per_point_errors", "percentiles", "angle_error", "rotation_angle_error",
@@ -32,6 +33,8 @@ class AlignedError:
     alignment: Alignment
 
 
+@entry(est_receivers="array", true_receivers="array", est_sources="array", true_sources="array",
+       fit_on="str", reflection="bool")
 def aligned_rmse(
     est_receivers: Array,
     true_receivers: Array,

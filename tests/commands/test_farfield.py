@@ -157,7 +157,7 @@ def test_fig4_good_far_field_with_small_noise_is_accurate():
     assert row["lm_error_sum"] / row["n"] < 0.01
 
 
-@pytest.mark.parametrize("dim,case", [("auto", "planar"), ("2", "planar")])
+@pytest.mark.parametrize("dim,case", [("auto", "planar"), ("2", "planar"), (None, "planar")])
 def test_cli_planar_array_with_dim(tmp_path, dim, case):
     rng = np.random.default_rng(5)
     th = 2 * np.pi * np.arange(16) / 16
@@ -167,15 +167,63 @@ def test_cli_planar_array_with_dim(tmp_path, dim, case):
     path = tmp_path / "ring.csv"
     np.savetxt(path, D, delimiter=",")
     out, fig = tmp_path / "r.json", tmp_path / "r.png"
-    r = CliRunner().invoke(main, ["calibrate", "tdoa-farfield", str(path), "--dim", dim, "--out", str(out),
+    dim_opt = [] if dim is None else ["--dim", dim]  # None: the default (auto)
+    r = CliRunner().invoke(main, ["calibrate", "tdoa-farfield", str(path), *dim_opt, "--out", str(out),
                                   "--plot", str(fig)])
     assert r.exit_code == 0, r.output
     res = json.loads(out.read_text())
     assert res["case"] == case and res["dim"] == 2 and np.array(res["positions"]).shape == (16, 2)
     assert fig.stat().st_size > 0
-    # the default (3-D) names the degeneracy and points at --dim 2
-    r = CliRunner().invoke(main, ["calibrate", "tdoa-farfield", str(path), "--out", str(out)])
+    assert res["dim_rule"].startswith("auto" if dim in (None, "auto") else "given")
+    # asking for 3-D names the degeneracy and points at --dim 2
+    r = CliRunner().invoke(main, ["calibrate", "tdoa-farfield", str(path), "--dim", "3", "--out", str(out)])
     assert r.exit_code == 2 and "coplanar-directions" in r.output and "--dim 2" in r.output
+
+
+def test_help_states_the_dimension_test_and_its_level():
+    r = CliRunner().invoke(main, ["calibrate", "tdoa-farfield", "--help"])
+    assert r.exit_code == 0
+    text = " ".join(r.output.split())
+    assert "default: auto" in text and "false-alarm rate 0.001" in text
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_cli_circular_and_linear_arrays_with_defaults(tmp_path, seed):
+    # issue 31: with the defaults a circular 16-microphone array with far sources in its plane is
+    # calibrated in 2-D and a linear one along its line; errors against the truth after the best
+    # rotation / reflection (planar) or the best scale (linear: the data fix positions up to scale),
+    # bounded by 20 x the noise (CRLB-level errors are about the noise over sqrt(k))
+    from selfcal.geometry import align
+
+    rng = np.random.default_rng(40 + seed)
+    sigma = 1e-5
+    th = 2 * np.pi * np.arange(16) / 16
+    Z = 0.05 * np.column_stack([np.cos(th), np.sin(th)])
+    az = rng.uniform(0, 2 * np.pi, 24)
+    D = Z @ np.column_stack([np.cos(az), np.sin(az)]).T + rng.normal(size=24) + sigma * rng.normal(size=(16, 24))
+    path, out = tmp_path / "ring.csv", tmp_path / "ring.json"
+    np.savetxt(path, D, delimiter=",")
+    r = CliRunner().invoke(main, ["calibrate", "tdoa-farfield", str(path), "--out", str(out)])
+    assert r.exit_code == 0, r.output
+    res = json.loads(out.read_text())
+    assert res["case"] == "planar" and res["dim"] == 2 and "false-alarm rate 0.001" in res["dim_rule"]
+    P = np.array(res["positions"])
+    al = align(P, Z - Z[0], reflection=True)
+    assert np.sqrt(np.mean(np.sum((al.apply(P) - (Z - Z[0])) ** 2, axis=1))) < 20 * sigma
+
+    x = np.linspace(0.0, 0.3, 10)
+    N = rng.normal(size=(20, 3))
+    N /= np.linalg.norm(N, axis=1, keepdims=True)
+    D = np.outer(x, N[:, 0]) + rng.normal(size=20) + sigma * rng.normal(size=(10, 20))
+    path, out = tmp_path / "line.csv", tmp_path / "line.json"
+    np.savetxt(path, D, delimiter=",")
+    r = CliRunner().invoke(main, ["calibrate", "tdoa-farfield", str(path), "--out", str(out)])
+    assert r.exit_code == 0, r.output
+    res = json.loads(out.read_text())
+    assert res["case"] == "linear" and res["dim"] == 1
+    p = np.array(res["positions"]).reshape(-1)
+    a = float(p @ x / (p @ p))  # the best scale (reported with the largest |projection| = 1)
+    assert np.max(np.abs(a * p - x)) < 20 * sigma / min(1.0, float(np.max(np.abs(N[:, 0]))))
 
 
 def test_cli_pyramic_with_its_own_directions(tmp_path, shared_data):

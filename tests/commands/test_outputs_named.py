@@ -36,8 +36,9 @@ def test_last_line_lists_every_file_and_csv_names_are_0_based(tmp_path: Path, se
     assert last.startswith("wrote ") and all(str(f) in last for f in files) and all(f.is_file() for f in files)
     rows = list(csv.reader(files[1].open()))
     names = [r[1] for r in rows[1:]]
-    assert names[:7] == [f"receiver{i}" for i in range(7)] and names[7] == "source0"
-    # the JSON's index i is the CSV's receiver<i> and --known's r<i>
+    # one numbering everywhere: the CSV's names are --known / --frame's r<i> / s<j> and the JSON's
+    assert names[:7] == [f"r{i}" for i in range(7)] and names[7] == "s0"
+    assert json.loads(files[0].read_text())["receiver_names"][:2] == ["r0", "r1"]
     P = json.loads(files[0].read_text())["receivers"]
     assert np.allclose([float(v) for v in rows[1][2:5]], P[0])
 

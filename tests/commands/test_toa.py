@@ -254,3 +254,46 @@ def test_negative_ranges_are_measurements_not_bad_input(tmp_path, scene):
     res = run(path, "--dim", 2, "--out", out)
     assert res.exit_code in (0, 1), res.output
     assert out.exists()
+
+
+@pytest.mark.parametrize("entries", ["npz", "auto-small-limit"])
+def test_per_entry_arrays_go_to_a_binary_sidecar(tmp_path, scene, monkeypatch, entries):
+    """Above ENTRIES_JSON_MAX entries (or with --entries npz) residuals and the outliers mask go
+    to OUT.npz, not into the JSON (a 1000 x 1000 matrix took 27 s to convert and write)."""
+    import selfcal.commands.toa as cmd
+
+    r, s, Y = scene
+    path = tmp_path / "m.npy"
+    np.save(path, Y)
+    out = tmp_path / "res.json"
+    if entries == "npz":
+        res = run(path, "--dim", 2, "--entries", "npz", "--out", out)
+    else:
+        monkeypatch.setattr(cmd, "ENTRIES_JSON_MAX", Y.size - 1)
+        res = run(path, "--dim", 2, "--out", out)
+    assert res.exit_code == 0, res.output
+    data = json.loads(out.read_text())
+    assert data["residuals"] is None and data["outliers"] is None
+    assert data["entries"]["file"] == "res.npz" and data["entries"]["shape"] == list(Y.shape)
+    with np.load(tmp_path / "res.npz") as z:
+        R, O = z["residuals"], z["outliers"]
+    assert R.shape == Y.shape and O.dtype == bool and O.shape == Y.shape
+    assert data["n_outliers"] == int(O.sum())
+    # the same numbers as the JSON route
+    out2 = tmp_path / "res2.json"
+    assert run(path, "--dim", 2, "--entries", "json", "--out", out2).exit_code == 0
+    inline = json.loads(out2.read_text())
+    assert np.allclose(np.array(inline["residuals"], float), R, equal_nan=True, atol=1e-12)
+    assert not (tmp_path / "res2.npz").exists()
+
+
+def test_sidecar_never_overwrites_the_input(tmp_path, scene):
+    r, s, Y = scene
+    path = tmp_path / "m.npz"  # a known-nodes CSV that happens to be named like the sidecar
+    text = "name,x,y\nr0,0,0\nr1,1,0\nr2,0,1\n"
+    path.write_text(text)
+    src = tmp_path / "m.npy"
+    np.save(src, Y)
+    res = run(src, "--dim", 2, "--entries", "npz", "--known", path, "--out", tmp_path / "m.json")
+    assert res.exit_code == 2 and "would overwrite the input" in res.output, res.output
+    assert path.read_text() == text

@@ -53,17 +53,17 @@ def test_aoa_radians_read_as_degrees_is_refused(tmp_path: Path, seed: int, dim: 
     out = tmp_path / "r.json"
     res = invoke("locate", "aoa", tmp_path / "b.csv", tmp_path / "a.csv", "--angles", "azel", "-o", out)
     assert res.exit_code == 2, res.output
-    assert "--units rad" in res.stderr and res.stderr.count("\n") == 1
+    assert "--unit rad" in res.stderr and res.stderr.count("\n") == 1
     assert not out.exists()
     # the fix named works: radians put the receiver where it is (1 deg noise over a few metres:
     # well within 0.5 m)
     res = invoke("locate", "aoa", tmp_path / "b.csv", tmp_path / "a.csv", "--angles", "azel",
-                 "--units", "rad", "-o", out)
+                 "--unit", "rad", "-o", out)
     assert res.exit_code == 0, res.output
     assert np.linalg.norm(np.array(json.loads(out.read_text())["position"]) - m) < 0.5
     # degrees said explicitly: the user is trusted (no refusal)
     res = invoke("locate", "aoa", tmp_path / "b.csv", tmp_path / "a.csv", "--angles", "azel",
-                 "--units", "deg", "-o", out)
+                 "--unit", "deg", "-o", out)
     assert res.exit_code in (0, 1), res.output
 
 
@@ -78,8 +78,8 @@ def test_aoa_axis_angles_in_radians_are_refused(tmp_path: Path, seed: int) -> No
     np.savetxt(tmp_path / "a.csv", np.arccos(np.clip(v[:, :2], -1, 1)), delimiter=",")
     out = tmp_path / "r.json"
     res = invoke("locate", "aoa", tmp_path / "b.csv", tmp_path / "a.csv", "--angles", "axes", "-o", out)
-    assert res.exit_code == 2 and "--units rad" in res.stderr, res.output
-    res = invoke("locate", "aoa", tmp_path / "b.csv", tmp_path / "a.csv", "--angles", "axes", "--units", "rad",
+    assert res.exit_code == 2 and "--unit rad" in res.stderr, res.output
+    res = invoke("locate", "aoa", tmp_path / "b.csv", tmp_path / "a.csv", "--angles", "axes", "--unit", "rad",
                  "-o", out)
     assert res.exit_code in (0, 1), res.output  # (the side of the xy plane is unknown with axes angles)
 

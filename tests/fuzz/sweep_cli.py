@@ -3,7 +3,9 @@
 ``PYTHONPATH=src OPENBLAS_NUM_THREADS=1 python tests/fuzz/sweep_cli.py SEED N_PER_COMMAND`` (env
 ``ONLY=sweep_toa`` or ``SKIP_CHEAP=1``) prints the exit codes per command and every contract
 breach (traceback, exit code other than 0/1/2, more than one stderr line, an internal error,
-a run longer than 20 s or killed at 60 s, a FIFO / link at an output path changed). Each run is
+a run longer than 20 s or killed at 60 s, a FIFO / link at an output path changed, an input
+file changed, an output aimed at an input (``CLASH`` share of the runs, default 0.1: the
+input itself, a symlink to it or a file in an input folder) not refused with exit 2). Each run is
 logged to ``$SWEEP_LOG`` (default: a file in the temporary folder). The defects it found are
 reproduced in ``test_sweep_findings.py``.
 """
@@ -49,8 +51,43 @@ def _alarm(*_):  # type: ignore[no-untyped-def]
 signal.signal(signal.SIGALRM, _alarm)
 
 
+OUT_FLAGS = {"-o", "--out", "--csv", "--plot", "--report", "--tum"}
+CLASH = float(os.environ.get("CLASH", "0.1"))  # share of runs whose output is aimed at one of their inputs
+
+
+def _input_bytes(paths: list[Path]) -> dict[str, bytes]:
+    """The bytes of every regular file among ``paths`` and under the folders among them."""
+    out: dict[str, bytes] = {}
+    for p in paths:
+        files = [Path(r) / n for r, _, fs in os.walk(p) for n in fs] if p.is_dir() else [p]
+        for f in files[:200]:
+            try:
+                if f.is_file():
+                    out[str(f)] = f.read_bytes()
+            except OSError:
+                pass
+    return out
+
+
 def run(cmd: str, args: list, kind: str, limit: int = 60) -> int:
     t0 = time.time()
+    args = list(args)
+    outs = [k + 1 for k, a in enumerate(args[:-1]) if str(a) in OUT_FLAGS]
+    ins = [Path(a) for k, a in enumerate(args) if k not in outs and str(a) not in ("-", "")
+           and isinstance(a, (str, Path)) and os.path.sep in str(a) and os.path.exists(a)]
+    clash = bool(outs and ins and rng.random() < CLASH)
+    if clash:  # the output names an input: itself, a symlink to it, or a file inside an input folder
+        victim = ins[int(rng.integers(len(ins)))]
+        if victim.is_dir():
+            inner = [Path(r) / n for r, _, fs in os.walk(victim) for n in fs]
+            victim = inner[0] if inner and rng.random() < 0.7 else victim
+        if rng.random() < 0.5:
+            link = ROOT / f"clash-{len(list(ROOT.iterdir()))}"
+            os.symlink(victim.resolve(), link)
+            victim = link
+        args[outs[int(rng.integers(len(outs)))]] = victim
+        kind += "/clash"
+    before = _input_bytes(ins)
     with open(LOG + ".last", "a") as fh:
         fh.write(f"{cmd} {kind} {[str(a) for a in args]}\n")
     signal.alarm(limit)
@@ -81,6 +118,11 @@ def run(cmd: str, args: list, kind: str, limit: int = 60) -> int:
             bad = lines[0][:300]
     elif res.exit_code == 1 and not any(ln.startswith("FAIL") for ln in out.splitlines()):
         bad = "exit 1 without FAIL line"
+    changed = [f for f, data in before.items() if not os.path.exists(f) or Path(f).read_bytes() != data]
+    if changed and not bad:
+        bad = f"an input changed: {changed[:3]}"
+    if clash and res.exit_code != 2 and not bad:
+        bad = f"an output named an input, exit {res.exit_code}"
     with open(LOG, "a") as fh:
         fh.write(f"{res.exit_code} | {cmd} | {kind} | {(err.strip().splitlines() or [''])[0][:250]}\n")
     counts[cmd][res.exit_code] += 1

@@ -189,4 +189,6 @@ def test_solver_flags_every_collapsed_high_noise_solution_and_no_low_noise_one()
         Z = rng.uniform(0, 1, (10, 3))
         N = unit(rng.normal(size=(10, 3)))
         r = solve_farfield(Z @ N.T + 0.01 * rng.normal(size=(10, 10)), method="lm")
-        assert r.warnings == ()
+        # (a few low-redundancy entries may be reported as uncheckable for gross errors: the
+        # small-matrix screen assumes t_3 tails, issue 31; that is not a collapse warning)
+        assert not any(w.startswith("directions-collapsed") for w in r.warnings)

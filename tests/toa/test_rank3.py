@@ -10,8 +10,22 @@ import pytest
 from selfcal.errors import ConvergenceWarning, DegenerateGeometryError, InputError
 from selfcal.geometry import align
 from selfcal.scenarios.units import ROOMS, make_units, true_offset_vector
-from selfcal.toa import offsets as off
 from selfcal.toa import rank3
+from selfcal.toa.offsets_init import complete_core, initialize_offsets
+from selfcal.toa.rank3 import estimate_offsets, fast_offsets, rank3_lm
+from selfcal.toa.rank3_joint import _rank1_factors, _rank3_lm_joint, _tail
+from selfcal.toa.rank3_model import (
+    THESIS_ACCEPT,
+    apply_A,
+    apply_Wt,
+    check_rank_identifiable,
+    gamma_term,
+    offset_matrix,
+    thesis_lambda,
+    thesis_T,
+    thesis_W,
+)
+from selfcal.toa.rank3_thesis import rank3_iteration
 
 C = 343.0
 US = 1e-6 * C  # one microsecond, in metres
@@ -28,15 +42,15 @@ def _setup(n: int, room: str, seed: int, **kw: object) -> tuple[np.ndarray, np.n
 def test_W_and_A_match_the_expanded_model(rng: np.random.Generator) -> None:
     R, p, _ = _setup(10, "small", 3, equal_delays=False)
     I, J = R.shape
-    W = off.thesis_W(R)
+    W = thesis_W(R)
     # independent: the linear part of (3.4) written out entry by entry
     delta, tau = p[:I], np.r_[0.0, p[I:]]
     A_ref = np.array([[2 * delta[0] * (R[0, j] - R[0, 0]) - 2 * delta[i] * (R[i, j] - R[i, 0])
                        - 2 * tau[j] * (R[i, j] - R[0, j]) for j in range(1, J)] for i in range(1, I)])
     np.testing.assert_allclose((W @ p).reshape(I - 1, J - 1, order="F"), A_ref, atol=1e-9)
-    np.testing.assert_allclose(off.apply_A(R, p), A_ref, atol=1e-9)
+    np.testing.assert_allclose(apply_A(R, p), A_ref, atol=1e-9)
     E = rng.normal(size=(I - 1, J - 1))
-    np.testing.assert_allclose(off.apply_Wt(R, E), W.T @ E.ravel(order="F"), atol=1e-9)
+    np.testing.assert_allclose(apply_Wt(R, E), W.T @ E.ravel(order="F"), atol=1e-9)
 
 
 def test_corrected_matrix_is_minus_twice_the_centred_gram_at_the_true_offsets() -> None:
@@ -46,15 +60,15 @@ def test_corrected_matrix_is_minus_twice_the_centred_gram_at_the_true_offsets() 
     r = sc.microphones - sc.microphones[0]
     s = sc.speakers - sc.speakers[0]
     gram = -2 * r[1:] @ s[1:].T
-    exact = off.offset_matrix(R, p, model="exact")
+    exact = offset_matrix(R, p, model="exact")
     np.testing.assert_allclose(exact, gram, atol=1e-8)
-    np.testing.assert_allclose(off.thesis_T(R) + off.apply_A(R, p) + off.gamma_term(p, I, J), gram, atol=1e-8)
+    np.testing.assert_allclose(thesis_T(R) + apply_A(R, p) + gamma_term(p, I, J), gram, atol=1e-8)
     # the thesis's Gamma = 0 model is exact only when the delays are equal
-    assert np.linalg.norm(off.offset_matrix(R, p, model="linear") - gram) > 1.0
+    assert np.linalg.norm(offset_matrix(R, p, model="linear") - gram) > 1.0
     R2, p2, sc2 = _setup(12, "large", 1, equal_delays=True)
     r2 = sc2.microphones - sc2.microphones[0]
     s2 = sc2.speakers - sc2.speakers[0]
-    np.testing.assert_allclose(off.offset_matrix(R2, p2, model="linear"), -2 * r2[1:] @ s2[1:].T, atol=1e-8)
+    np.testing.assert_allclose(offset_matrix(R2, p2, model="linear"), -2 * r2[1:] @ s2[1:].T, atol=1e-8)
 
 
 def test_lm_gradient_matches_finite_differences(rng: np.random.Generator) -> None:
@@ -63,12 +77,12 @@ def test_lm_gradient_matches_finite_differences(rng: np.random.Generator) -> Non
     x = p + rng.normal(0.0, 0.5, p.size)
 
     def half_cost(v: np.ndarray) -> float:
-        sv = np.linalg.svd(off.offset_matrix(R, v), compute_uv=False)
+        sv = np.linalg.svd(offset_matrix(R, v), compute_uv=False)
         return 0.5 * float(np.sum(sv[3:] ** 2))
 
-    M = off.offset_matrix(R, x)
-    _, Ud, Vd, resid = off._tail(M, 3)
-    Uf, Vf = off._rank1_factors(R, x, "exact", (np.array([], int), np.array([], int)))
+    M = offset_matrix(R, x)
+    _, Ud, Vd, resid = _tail(M, 3)
+    Uf, Vf = _rank1_factors(R, x, "exact", (np.array([], int), np.array([], int)))
     g = np.einsum("ik,ik->k", Uf, resid @ Vf)
     h = 1e-5
     fd = np.array([(half_cost(x + h * e) - half_cost(x - h * e)) / (2 * h) for e in np.eye(x.size)])
@@ -81,35 +95,35 @@ def test_lm_gradient_matches_finite_differences(rng: np.random.Generator) -> Non
 @pytest.mark.parametrize(("units", "dim"), [(7, 3), (5, 3), (6, 2), (3, 2)])
 def test_too_few_units_raise_by_name(units: int, dim: int) -> None:
     R = np.random.default_rng(0).uniform(1, 10, (units, units))
-    for call in (off.estimate_offsets, off.rank3_iteration, off.rank3_lm):
+    for call in (estimate_offsets, rank3_iteration, rank3_lm):
         with pytest.raises(DegenerateGeometryError) as exc:
             call(R, dim=dim)
         assert exc.value.kind == "too-few-units"
     with pytest.raises(DegenerateGeometryError, match="too-few-units"):
-        off.initialize_offsets(R, dim)
+        initialize_offsets(R, dim)
 
 
 def test_identifiability_condition_for_unequal_sides() -> None:
     # (I-1-d)(J-1-d) >= I+J-1
-    off.check_rank_identifiable(8, 8, 3)
-    off.check_rank_identifiable(7, 7, 2)
-    off.check_rank_identifiable(6, 19, 3)  # 2 * 15 = 30 >= 24
+    check_rank_identifiable(8, 8, 3)
+    check_rank_identifiable(7, 7, 2)
+    check_rank_identifiable(6, 19, 3)  # 2 * 15 = 30 >= 24
     with pytest.raises(DegenerateGeometryError):
-        off.check_rank_identifiable(6, 12, 3)  # 2 * 8 = 16 < 17
+        check_rank_identifiable(6, 12, 3)  # 2 * 8 = 16 < 17
     with pytest.raises(DegenerateGeometryError):
-        off.check_rank_identifiable(5, 100, 3)  # a side below d + 2
+        check_rank_identifiable(5, 100, 3)  # a side below d + 2
 
 
 def test_bad_input_is_refused() -> None:
     R, _, _ = _setup(12, "small", 0)
     with pytest.raises(InputError, match="method"):
-        off.estimate_offsets(R, method="magic")
+        estimate_offsets(R, method="magic")
     with pytest.raises(InputError, match="p0"):
-        off.rank3_iteration(R, p0=np.zeros(3))
+        rank3_iteration(R, p0=np.zeros(3))
     with pytest.raises(InputError):
-        off.rank3_iteration(R, lam=-1.0)
+        rank3_iteration(R, lam=-1.0)
     with pytest.raises(InputError, match="linear"):
-        off.estimate_offsets(R, method="faithful", model="exact")
+        estimate_offsets(R, method="faithful", model="exact")
 
 
 # ----------------------------------------------------------------------------- recovery, noise-free
@@ -121,7 +135,7 @@ def test_fast_solver_recovers_the_offsets_of_thesis_setups(room: str, units: int
     # every seed tried: the returned (accepted) estimate is within 1 us of the truth
     for seed in range(6):
         R, p, _ = _setup(units, room, seed)
-        res = off.estimate_offsets(R, rng=seed)
+        res = estimate_offsets(R, rng=seed)
         assert res.accepted, (seed, res.frobenius)
         assert np.max(np.abs(res.p - p)) < US, (seed, res.restarts)
         assert res.source_offsets[0] == 0.0
@@ -132,29 +146,29 @@ def test_fast_solver_recovers_distinct_internal_delays() -> None:
     # beyond the thesis: one delay per microphone (Gamma != 0) with the exact model
     for seed in range(4):
         R, p, _ = _setup(16, "small", seed, equal_delays=False)
-        res = off.estimate_offsets(R, rng=seed)
+        res = estimate_offsets(R, rng=seed)
         assert np.max(np.abs(res.p - p)) < 1e-3 * US
 
 
 def test_linear_model_is_biased_when_delays_differ() -> None:
     # the thesis's Gamma = 0 model cannot fit distinct delays: the rank-3 fit stays far from 0
     R, p, _ = _setup(16, "small", 0, equal_delays=False)
-    lin = off.rank3_lm(R, model="linear", p0=p)
-    assert lin.frobenius > 1e3 * off.rank3_lm(R, model="exact", p0=p).frobenius
+    lin = rank3_lm(R, model="linear", p0=p)
+    assert lin.frobenius > 1e3 * rank3_lm(R, model="exact", p0=p).frobenius
 
 
 def test_two_dimensional_rank_two_variant() -> None:
     for seed in range(3):
         R, p, _ = _setup(12, (20.0, 15.0), seed, equal_delays=False)
-        res = off.estimate_offsets(R, dim=2, rng=seed)
+        res = estimate_offsets(R, dim=2, rng=seed)
         assert np.max(np.abs(res.p - p)) < US
 
 
 def test_faithful_iteration_recovers_p_and_converges_slowly() -> None:
     R, p, _ = _setup(12, "large", 0)
-    res = off.rank3_iteration(R, rng=0)
+    res = rank3_iteration(R, rng=0)
     assert res.converged and res.method == "faithful"
-    assert res.frobenius < off.THESIS_ACCEPT
+    assert res.frobenius < THESIS_ACCEPT
     assert np.max(np.abs(res.p - p)) < US  # thesis: errors below 1 us
     assert res.iterations > 1000  # the linear convergence the issue wants to beat
     # F (3.17) decreases overall along the run
@@ -164,9 +178,9 @@ def test_faithful_iteration_recovers_p_and_converges_slowly() -> None:
 def test_acceptance_test_restarts_the_fast_solver_from_a_new_start() -> None:
     # seed 17 of this setup: the start from p = 0 and two random starts end in local minima
     R, p, _ = _setup(12, "small", 17)
-    first = off.fast_offsets(R, p0=np.zeros(23))
-    assert first.frobenius > off.THESIS_ACCEPT
-    res = off.estimate_offsets(R, rng=17)
+    first = fast_offsets(R, p0=np.zeros(23))
+    assert first.frobenius > THESIS_ACCEPT
+    res = estimate_offsets(R, rng=17)
     assert res.accepted and res.restarts >= 1
     assert res.total_iterations > res.iterations
     assert np.max(np.abs(res.p - p)) < US
@@ -176,29 +190,29 @@ def test_acceptance_test_restarts_the_fast_solver_from_a_new_start() -> None:
 def test_acceptance_test_restarts_the_faithful_iteration() -> None:
     # the thesis iteration on 12 units in the 12 x 12 x 2 m room: two aborted runs, then accepted
     R, p, _ = _setup(12, "small", 0)
-    res = off.estimate_offsets(R, method="faithful", rng=np.random.default_rng(0), max_restarts=4)
+    res = estimate_offsets(R, method="faithful", rng=np.random.default_rng(0), max_restarts=4)
     assert res.accepted and res.restarts >= 1
     assert np.max(np.abs(res.p - p)) < US
 
 
 def test_early_abort_stops_a_faithful_run_heading_for_a_local_minimum() -> None:
     R, _, _ = _setup(12, "small", 2)
-    run = off.rank3_iteration(R, rng=np.random.default_rng(2), abort_above=off.THESIS_ACCEPT)
+    run = rank3_iteration(R, rng=np.random.default_rng(2), abort_above=THESIS_ACCEPT)
     assert run.extra["aborted"] and not run.converged
-    assert run.frobenius > off.THESIS_ACCEPT
+    assert run.frobenius > THESIS_ACCEPT
 
 
 def test_without_acceptance_the_best_run_is_returned_with_a_warning() -> None:
     R, _, _ = _setup(12, "small", 0, noise_std=50e-6)
     with pytest.warns(ConvergenceWarning):
-        res = off.estimate_offsets(R, accept=1e-12, max_restarts=1, rng=0)
+        res = estimate_offsets(R, accept=1e-12, max_restarts=1, rng=0)
     assert res.accepted is False
 
 
 def test_regularised_variant_switches_lambda_off_and_reaches_the_same_p() -> None:
     R, p, _ = _setup(12, "large", 0)
-    plain = off.rank3_iteration(R, rng=0)
-    reg = off.rank3_iteration(R, rng=0, lam=off.thesis_lambda(1e-3, 12, 12))
+    plain = rank3_iteration(R, rng=0)
+    reg = rank3_iteration(R, rng=0, lam=thesis_lambda(1e-3, 12, 12))
     assert reg.lam > 0 and reg.extra["lam_switch_iteration"] is not None
     assert np.max(np.abs(reg.p - p)) < US
     assert np.max(np.abs(reg.p - plain.p)) < US
@@ -208,8 +222,8 @@ def test_faithful_and_fast_agree_on_noisy_data() -> None:
     # same objective (*), same basin: the fixed points coincide, far below the noise error
     R, p, _ = _setup(14, "large", 0, noise_std=10e-6)
     p0 = p + np.random.default_rng(0).normal(0.0, 0.3, p.size)
-    faithful = off.rank3_iteration(R, p0=p0, tol=1e-13)
-    fast = off.rank3_lm(R, p0=p0, model="linear", centring="reference")
+    faithful = rank3_iteration(R, p0=p0, tol=1e-13)
+    fast = rank3_lm(R, p0=p0, model="linear", centring="reference")
     assert fast.iterations < 50
     assert np.max(np.abs(faithful.p - fast.p)) < 0.05 * US
     assert np.max(np.abs(fast.p - p)) > 1.0 * US  # the noise effect both share
@@ -226,17 +240,17 @@ def test_missing_entries_are_completed_by_the_fast_solver() -> None:
     R = R.copy()
     R[np.random.default_rng(0).random(R.shape) < 0.1] = np.nan
     R[0, 3] = R[4, 0] = np.nan  # also in the reference row and column
-    res = off.estimate_offsets(R, rng=0)
+    res = estimate_offsets(R, rng=0)
     assert np.max(np.abs(res.p - p)) < US
     np.testing.assert_allclose(res.extra["completed"], full, atol=1e-6)
     with pytest.raises(InputError, match="nls"):
-        off.estimate_offsets(R, method="faithful")
+        estimate_offsets(R, method="faithful")
 
 
 def test_initializer_gives_positions_and_offsets_in_the_solve_toa_convention() -> None:
     for seed in range(3):
         R, p, sc = _setup(14, "small", seed, equal_delays=False)
-        r, s, d, tau = off.initialize_offsets(R, 3, rng=seed)
+        r, s, d, tau = initialize_offsets(R, 3, rng=seed)
         assert r.shape == (14, 3) and s.shape == (14, 3) and tau[0] == 0.0
         np.testing.assert_allclose(np.r_[d, tau[1:]], p, atol=1e-3 * US)
         truth = np.vstack([sc.microphones, sc.speakers])
@@ -248,7 +262,7 @@ def test_initializer_with_missing_entries_and_noise() -> None:
     R, p, sc = _setup(20, "small", 2, noise_std=10e-6, equal_delays=False)
     R = R.copy()
     R[np.random.default_rng(1).random(R.shape) < 0.05] = np.nan
-    r, s, d, tau = off.initialize_offsets(R, 3, rng=0)
+    r, s, d, tau = initialize_offsets(R, 3, rng=0)
     truth = np.vstack([sc.microphones, sc.speakers])
     est = np.vstack([r, s])
     # a starting point for NLS: decimetre level at 10 us (3.4 mm) timing noise
@@ -274,7 +288,7 @@ def test_fast_solver_on_the_full_thesis_protocol(room: str) -> None:
     for units in range(12, 33, 4):
         for seed in range(20):
             R, p, _ = _setup(units, room, 1000 + seed)
-            res = off.estimate_offsets(R, rng=seed)
+            res = estimate_offsets(R, rng=seed)
             assert res.accepted and np.max(np.abs(res.p - p)) < US, (units, seed)
 
 
@@ -298,8 +312,8 @@ def test_scalable_lm_reaches_the_minimum_of_the_joint_reference(seed: int, monke
     R[rng.random(R.shape) < frac] = np.nan
     p0 = p + rng.normal(0.0, 2 * US, p.size)
     monkeypatch.setattr(rank3, "_DENSE_JOINT_MAX", 0)  # the scalable path even at this size
-    new = off.rank3_lm(R, p0=p0)
-    ref = off._rank3_lm_joint(R, p0=p0)
+    new = rank3_lm(R, p0=p0)
+    ref = _rank3_lm_joint(R, p0=p0)
     # never a worse stationary point than the reference (with missing entries the two take
     # different steps - CG vs a dense solve - and may stop at different points of a flat valley)
     # with missing entries the steps differ (CG vs dense), so the two may stop at different
@@ -336,7 +350,7 @@ def test_complete_core_equals_the_plain_greedy() -> None:
     for seed in range(20):
         rng = np.random.default_rng(seed)
         miss = rng.random((rng.integers(8, 40), rng.integers(8, 40))) < rng.uniform(0.0, 0.1)
-        a, b = off.complete_core(miss, 3), plain(miss, 3)
+        a, b = complete_core(miss, 3), plain(miss, 3)
         assert (a is None) == (b is None)
         if a is not None and b is not None:
             np.testing.assert_array_equal(a[0], b[0])
@@ -360,12 +374,12 @@ def _minimal_scene(seed: int, I: int = 12, J: int = 6) -> tuple[np.ndarray, ...]
 
 def _rank_equation_jacobian(R: np.ndarray, p: np.ndarray, dim: int = 3) -> np.ndarray:
     """Finite-difference Jacobian of the rank-d equations U_perp^T M(p) V_perp at p (bases fixed at p)."""
-    M0 = off.offset_matrix(R, p, model="exact", centring="reference")
+    M0 = offset_matrix(R, p, model="exact", centring="reference")
     U, _, Vt = np.linalg.svd(M0)
     Up, Vp = U[:, dim:], Vt[dim:].T
     h = 1e-6 * (1.0 + np.abs(p).max())
-    cols = [(Up.T @ (off.offset_matrix(R, p + h * e, model="exact", centring="reference")
-                     - off.offset_matrix(R, p - h * e, model="exact", centring="reference")) @ Vp).ravel() / (2 * h)
+    cols = [(Up.T @ (offset_matrix(R, p + h * e, model="exact", centring="reference")
+                     - offset_matrix(R, p - h * e, model="exact", centring="reference")) @ Vp).ravel() / (2 * h)
             for e in np.eye(p.size)]
     return np.array(cols).T
 
@@ -385,7 +399,7 @@ def test_at_12x6_the_rank3_offsets_form_exactly_a_one_parameter_family(seed: int
     for J, null in ((6, 1), (7, 0)):
         r, s, d, o, R = _minimal_scene(seed, J=J)
         p = np.concatenate([d + o[0], o[1:] - o[0]])
-        M = off.offset_matrix(R, p, model="exact", centring="reference")
+        M = offset_matrix(R, p, model="exact", centring="reference")
         sv_M = np.linalg.svd(M, compute_uv=False)
         assert sv_M[3] <= 1e-9 * sv_M[0]  # rank 3 at the truth
         sv = np.linalg.svd(_rank_equation_jacobian(R, p), compute_uv=False)

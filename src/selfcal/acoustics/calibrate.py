@@ -52,10 +52,7 @@ def _solve(T: Array, dim: int, speed: float, rng: int, init: Any = "auto", noise
     (:func:`selfcal.acoustics.units.unit_start`) when ``units`` pairs every receiver with
     a sender, else blind. An explicit ``init``: one refinement from it (``f_scale``: Cauchy).
     """
-    try:
-        from ..toa import solve_toa
-    except ImportError:  # the package re-export may lag behind the module
-        from ..toa.solve import solve_toa
+    from ..toa.solve import solve_toa
 
     if isinstance(init, str):
         from .units import unit_start

@@ -25,6 +25,8 @@ from numpy.typing import NDArray
 
 from .._checks import check_magnitude, non_number_leaf
 from ..errors import InputError
+from ..optim.lm import levenberg_marquardt
+from ..optim.steps import ResidualModel
 from ..toa.select import (  # one implementation: the TOA package's model choice (dim="auto")
     PLANAR_ALPHA,
     PLANAR_RATIO,
@@ -139,50 +141,11 @@ def _heights_jacobian(xy_r: Array, xy_s: Array, dz: Array, rows: NDArray[np.intp
 
 def _levenberg_marquardt(resid: Any, jac: Any, theta0: Array, max_iterations: int,
                          tol: float = 1e-12) -> tuple[Array, Array, Any, int, bool]:
-    """Minimise ``|resid(theta)|^2`` by Levenberg-Marquardt on the sparse normal equations.
-
-    Marquardt's scaling ``A + mu diag(A)`` keeps the gauge null space (rigid motions) from
-    making the step singular; the problems here have a few hundred unknowns, so the
-    normal matrix is solved densely.
-    """
-    theta = theta0.copy()
-    r = resid(theta)
-    cost = float(r @ r)
-    mu = 1e-3
-    converged = False
-    it = 0
-    Jm = jac(theta)
-    while it < max_iterations:
-        it += 1
-        A = (Jm.T @ Jm).toarray()
-        g = Jm.T @ r
-        diag = np.diag(A).copy()
-        diag[diag <= 0] = 1.0
-        improved = False
-        for _ in range(30):
-            try:
-                step = -np.linalg.solve(A + mu * np.diag(diag), g)
-            except np.linalg.LinAlgError:
-                mu *= 10.0
-                continue
-            trial = theta + step
-            r_new = resid(trial)
-            c_new = float(r_new @ r_new)
-            if c_new < cost:
-                improved = True
-                break
-            mu *= 10.0
-        if not improved:
-            converged = True  # no descent direction left: a stationary point
-            break
-        done = cost - c_new <= tol * max(cost, 1e-300) or np.linalg.norm(step) <= tol * (1 + np.linalg.norm(theta))
-        theta, r, cost = trial, r_new, c_new
-        mu = max(mu / 10.0, 1e-12)
-        Jm = jac(theta)
-        if done:
-            converged = True
-            break
-    return theta, r, Jm, it, converged
+    """Minimise ``|resid(theta)|^2`` with :func:`selfcal.optim.levenberg_marquardt` (dense
+    normal equations: the problems here have a few hundred unknowns; Marquardt's scaling keeps
+    the gauge null space, the rigid motions, from making the step singular)."""
+    out = levenberg_marquardt(ResidualModel(resid, jac), theta0, max_iter=max_iterations, xtol=tol, ftol=tol)
+    return out.x, out.state, jac(out.x), out.iterations, out.converged
 
 
 def _gauge_pinv(N: Array, xr: Array, xs: Array) -> Array:

@@ -33,7 +33,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from .._checks import guard_recording_setup
+from .._checks import entry, guard_recording_setup
 from ..errors import InputError
 from ..io import atomic_write_bytes, write_json
 from .probe import Probe, probe_from_spec
@@ -340,6 +340,7 @@ def write_wav(path: str | Path, x: NDArray[np.floating[Any]], sample_rate: float
     atomic_write_bytes(path, buf.getvalue())
 
 
+@entry(directory="path")
 def load_recording(directory: str | Path) -> Recording:
     """Read ``setup.json``, the probe and every ``rx_<name>.wav`` of a recording directory.
 

@@ -26,7 +26,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from .._checks import as_rng, check_positive
+from .._checks import as_rng, check_positive, entry, instance_of
 from ..errors import InputError
 from ..scenarios.conference import ConferenceScene
 from .probe import probe_from_spec
@@ -64,6 +64,8 @@ def _fractional_shift(x: NDArray[np.float64], shift: NDArray[np.float64], n_fft:
     return np.fft.irfft(spec, n=n_fft, axis=-1)
 
 
+@entry(scene=instance_of(lambda: ConferenceScene, "ConferenceScene (selfcal.scenarios.conference.conference_scene)"),
+       rng="rng", progress="bool")
 def simulate_conference(
     scene: ConferenceScene,
     *,
@@ -144,7 +146,17 @@ def simulate_conference(
     if snr_db < MIN_SNR_DB:
         raise InputError(f"snr {snr_db:g} dB is below {MIN_SNR_DB:g} dB: the direct sound would lie under the "
                          f"float32 samples' resolution of the noise (24-bit mantissa, ~144 dB)")
+    from .._checks import check_int, guard_size
+
+    check_int(sample_rate, "sample_rate", minimum=1)
+    check_int(rounds, "rounds", minimum=1)
     fs = int(sample_rate)
+    # the memory of the signals, refused before any is made (as the CLI does: same formula)
+    n_units = max(len(scene.receivers), len(scene.senders))
+    spacing = event_spacing(np.asarray(scene.room, dtype=float), float(DEFAULT_PROBE["duration"]), float(speed))
+    n_total = (0.1 + spacing * (float(n_units) * float(rounds) + 1)) * fs
+    guard_size(n_units * n_total * 4.0 + n_units**2 * (float(rt60) + spacing) * fs * 8.0,
+               f"simulate_conference: {n_units} units at {fs} Hz, {int(rounds)} round(s), rt60 {float(rt60):g} s")
     spec = dict(probe) if probe is not None else dict(DEFAULT_PROBE)
     if probe is None:
         spec["f1"] = min(float(spec["f1"]), 0.45 * fs)

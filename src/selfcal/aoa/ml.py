@@ -16,9 +16,12 @@ perturbation, so ``w`` is in the receiver frame), analytic Jacobians, batched. C
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 from numpy.typing import NDArray
 
+from ..optim.lm import levenberg_marquardt_batch
 from .orientation import rotvec_to_matrix, tangent_basis
 
 Array = NDArray[np.float64]
@@ -98,6 +101,55 @@ def residuals_2d(
     return e, J
 
 
+class _PoseModel:
+    """The pose model for :func:`selfcal.optim.levenberg_marquardt_batch`: a point is
+    ``[m (d), R (d d)]`` per start (2-D: R holds theta), a step ``(m, w)`` or ``(m, theta)``."""
+
+    def __init__(self, evaluate: Any, update: Any, q: int, d: int, rshape: tuple[int, ...]) -> None:
+        self._evaluate, self._update, self.q, self.d, self.rshape = evaluate, update, q, d, rshape
+
+    def split(self, X: Array) -> tuple[Array, Array]:
+        return X[:, :self.d], X[:, self.d:].reshape(X.shape[0], *self.rshape)
+
+    def evaluate(self, X: Array, rows: NDArray[np.intp]) -> tuple[Array, tuple[Array, Array]]:
+        e, J = self._evaluate(*self.split(X), True, rows)
+        return np.sum(e**2, axis=1), (e, J)
+
+    def retract(self, X: Array, dX: Array) -> Array:
+        m_, R_ = self._update(*self.split(X), dX)
+        return np.concatenate([m_, R_.reshape(X.shape[0], -1)], axis=1)
+
+    def small_step(self, X: Array, dX: Array, xtol: float) -> NDArray[np.bool_]:
+        out: NDArray[np.bool_] = np.linalg.norm(dX, axis=1) <= xtol * (1 + np.linalg.norm(X[:, :self.d], axis=1))
+        return out
+
+    def linearize(self, X: Array, state: tuple[Array, Array]) -> Any:
+        e, J = state
+        JtJ = np.swapaxes(J, 1, 2) @ J
+        g = np.einsum("bra,br->ba", J, e)
+        dg = np.maximum(np.diagonal(JtJ, axis1=1, axis2=2), 1e-12)
+        return _PoseStep(JtJ, g, dg, np.eye(self.q))
+
+
+class _PoseStep:
+    """The stacked damped normal equations of the poses (``q`` x ``q`` each)."""
+
+    def __init__(self, JtJ: Array, g: Array, dg: Array, eye: Array) -> None:
+        self.JtJ, self.g, self.dg, self.eye = JtJ, g, dg, eye
+        # cost = sum e^2: the driver's test |g| <= 1e-6 max(1, sqrt(2 cost)) on J^T e
+        self.gnorm = np.linalg.norm(g, axis=1)
+
+    def step(self, lam: Array, t: NDArray[np.intp]) -> Array:
+        Hm = self.JtJ[t] + lam[:, None, None] * (self.eye * self.dg[t][:, None, :])
+        with np.errstate(all="ignore"):
+            return np.asarray(-np.linalg.solve(Hm, self.g[t][..., None])[..., 0])
+
+    def predicted(self, dx: Array, t: NDArray[np.intp]) -> Array:
+        # decrease of |e + J dx|^2: -(2 g.dx + dx.JtJ.dx)
+        return np.asarray(-(2 * np.einsum("ba,ba->b", self.g[t], dx)
+                            + np.einsum("ba,bac,bc->b", dx, self.JtJ[t], dx)))
+
+
 def refine_ml(
     beacons: Array,
     bearings: Array,
@@ -133,8 +185,8 @@ def refine_ml(
     if d == 3:
         q = 6
 
-        def evaluate(m_: Array, R_: Array, jac: bool) -> tuple[Array, Array | None]:
-            return residuals_3d(b, U, m_, R_, noise=noise, jacobian=jac)
+        def evaluate(m_: Array, R_: Array, jac: bool, rows: Any = slice(None)) -> tuple[Array, Array | None]:
+            return residuals_3d(b, U[rows], m_, R_, noise=noise, jacobian=jac)
 
         def update(m_: Array, R_: Array, s: Array) -> tuple[Array, Array]:
             return m_ + s[:, :3], R_ @ rotvec_to_matrix(s[:, 3:])
@@ -143,46 +195,24 @@ def refine_ml(
         theta0 = np.arctan2(R[:, 1, 0], R[:, 0, 0])
         R = theta0[:, None, None] * np.ones((1, 1, 1))  # 2-D: carry theta in a (B,1,1) array
 
-        def evaluate(m_: Array, R_: Array, jac: bool) -> tuple[Array, Array | None]:
-            return residuals_2d(b, U, m_, R_[:, 0, 0], jacobian=jac)
+        def evaluate(m_: Array, R_: Array, jac: bool, rows: Any = slice(None)) -> tuple[Array, Array | None]:
+            return residuals_2d(b, U[rows], m_, R_[:, 0, 0], jacobian=jac)
 
         def update(m_: Array, R_: Array, s: Array) -> tuple[Array, Array]:
             return m_ + s[:, :2], R_ + s[:, 2][:, None, None]
 
-    lam = np.full(B, 1e-6)
+    model = _PoseModel(evaluate, update, q, m.shape[1], R.shape[1:])
+    out = levenberg_marquardt_batch(model, np.concatenate([m, R.reshape(B, -1)], axis=1), max_iter=max_iter,
+                                    xtol=tol, ftol=tol, lam0=1e-6)
+    m, R = model.split(out.x)
     e, J = evaluate(m, R, True)
     assert J is not None
-    cost = np.sum(e**2, axis=1)
-    iters = np.zeros(B, int)
-    done = np.zeros(B, bool)
-    eye = np.eye(q)
-    for _ in range(max_iter):
-        act = ~done
-        if not act.any():
-            break
-        JtJ = np.swapaxes(J, 1, 2) @ J
-        g = np.einsum("bra,br->ba", J, e)
-        Hm = JtJ + lam[:, None, None] * (eye * np.maximum(np.diagonal(JtJ, axis1=1, axis2=2), 1e-12)[:, None, :])
-        with np.errstate(all="ignore"):
-            step = -np.linalg.solve(Hm, g[..., None])[..., 0]
-        step[~act | ~np.isfinite(step).all(axis=1)] = 0.0
-        m_new, R_new = update(m, R, step)
-        e_new, J_new = evaluate(m_new, R_new, True)
-        assert J_new is not None
-        cost_new = np.sum(e_new**2, axis=1)
-        better = act & np.isfinite(cost_new) & (cost_new <= cost)
-        m[better], R[better], e[better], J[better] = m_new[better], R_new[better], e_new[better], J_new[better]
-        gain = cost - cost_new
-        cost = np.where(better, cost_new, cost)
-        iters[act] += 1
-        lam = np.where(better, np.maximum(lam / 10, 1e-12), lam * 10)
-        small = np.linalg.norm(step, axis=1) <= tol * (1 + np.linalg.norm(m, axis=1))
-        done |= act & ((better & (small | (gain <= tol * (cost + 1e-30)))) | (lam > 1e8))
+    cost, iters = np.sum(e**2, axis=1), out.iterations
     JtJ = np.swapaxes(J, 1, 2) @ J
     # a rejected step at a stationary point (e.g. zero residual) is convergence, not failure
     grad = np.linalg.norm(np.einsum("bra,br->ba", J, e), axis=1)
     stationary = grad <= 1e-10 * np.sqrt(np.trace(JtJ, axis1=1, axis2=2))
-    converged = done & ((lam <= 1e8) | stationary)
+    converged = out.converged | stationary
     dof = e.shape[1] - q
     if sigma is not None:
         s2 = np.full(B, float(sigma) ** 2)

@@ -63,7 +63,8 @@ TIE_TOL = 1e-6
 # ----------------------------------------------------------------------------- solver
 
 
-@entry(beacons="array", bearings="array", sigma="positive?", max_iter="count", position_hint="array")
+@entry(beacons="array", bearings="array", sigma="positive?", max_iter="count", position_hint="array",
+       orthonormalize="bool", sign_z_unknown="bool")
 def solve_aoa(
     beacons: ArrayLike,
     bearings: ArrayLike,

@@ -14,7 +14,7 @@ from ..errors import Status
 
 Array = NDArray[Any]
 
-__all__ = ["AoaCandidate", "AoaFit", "AoaResult"]
+__all__ = ["AoaCandidate", "AoaFit", "AoaResult", "COVARIANCE_PARAMETERS", "COVARIANCE_UNITS", "pose_summary"]
 
 
 @dataclass(frozen=True)
@@ -99,7 +99,10 @@ class AoaResult(Result):
     iterations : int or (B,) (Newton / LM iterations; 0 for closed forms).
     covariance : (q, q) or (B, q, q) or None: covariance of ``(m, w)`` (3-D, ``w`` a rotation
         vector in the receiver frame, ``R_true = R exp([w]x)``, q = 6) or ``(m, theta)``
-        (2-D, q = 3), in m and rad; from ML only.
+        (2-D, q = 3), in m and rad; from ML only. ``to_dict`` names the order and units
+        (``covariance_parameters``, ``covariance_units``: :data:`COVARIANCE_PARAMETERS`) and adds
+        ``position_std`` (m) and the rotation as a quaternion and yaw / pitch / roll with their
+        standard deviations (:func:`pose_summary`).
     candidates : tuple of :class:`AoaCandidate` (unbatched only): every pose that explains
         the bearings (about) equally well. More than one means the data are ambiguous.
     n_candidates : int or (B,): number of distinct proper candidates found.
@@ -165,15 +168,109 @@ class AoaResult(Result):
         def j(x: Any) -> Any:
             return np.asarray(x).tolist() if x is not None else None
 
+        d = int(self.position.shape[-1])
+        if self.position.ndim == 1:
+            extra = pose_summary(self.rotation, self.covariance)
+        else:
+            per = [pose_summary(self.rotation[b], None if self.covariance is None else self.covariance[b])
+                   for b in range(self.position.shape[0])]
+            extra = {key: [p[key] for p in per] for key in per[0]} if per else {}
+        pstd = None
+        if self.covariance is not None:
+            var = np.diagonal(np.asarray(self.covariance, float), axis1=-2, axis2=-1)[..., :d]
+            pstd = np.sqrt(np.maximum(var, 0.0)).tolist()
         return {
             "position": j(self.position),
+            "position_std": pstd,
             "rotation": j(self.rotation),
+            **extra,
             "residual_rms": j(self.residual_rms),
             "method": self.method,
             "converged": j(self.converged),
             "iterations": j(self.iterations),
             "covariance": j(self.covariance),
+            "covariance_parameters": list(COVARIANCE_PARAMETERS[d]) if self.covariance is not None else None,
+            "covariance_units": list(COVARIANCE_UNITS[d]) if self.covariance is not None else None,
             "candidates": [c.to_dict() for c in self.candidates] if len(self.candidates) > 1 else None,
             "n_candidates": j(self.n_candidates),
             "fit": None if self.fit is None else self.fit.to_dict(),
         }
+
+
+#: parameter order of ``AoaResult.covariance`` by dimension: the position, then the rotation vector
+#: ``w`` in the receiver frame (``R_true = R exp([w]x)``) in 3-D or the heading angle in 2-D
+COVARIANCE_PARAMETERS = {3: ("x", "y", "z", "wx", "wy", "wz"), 2: ("x", "y", "theta")}
+#: units of the covariance's parameters (its entries are the products of their units)
+COVARIANCE_UNITS = {3: ("m", "m", "m", "rad", "rad", "rad"), 2: ("m", "m", "rad")}
+
+
+def _wrap_deg(a: Array) -> Array:
+    return np.asarray((np.asarray(a) + 180.0) % 360.0 - 180.0)
+
+
+def pose_summary(rotation: Any, covariance: Any = None) -> dict[str, Any]:
+    """The rotation of one pose in the conventions users have, with standard deviations.
+
+    3-D: ``quaternion`` ``[w, x, y, z]`` (scalar first, Hamilton, the active rotation of
+    ``v_global = R v_receiver``, ``w >= 0``), ``yaw_pitch_roll_deg`` (intrinsic z-y'-x'':
+    ``R = Rz(yaw) Ry(pitch) Rx(roll)``, the aerospace convention), ``rotation_std_deg`` (the
+    standard deviation of the small rotation about each receiver axis, ``sqrt diag`` of the
+    rotation block of the covariance) and ``yaw_pitch_roll_std_deg`` (the covariance propagated
+    through the Euler angles by central differences; they grow without bound near pitch = +-90
+    deg, gimbal lock). 2-D: ``heading_deg`` (``atan2(R_10, R_00)``) and ``heading_std_deg``.
+    The stds are None without a covariance.
+
+    Parameters
+    ----------
+    rotation : (3, 3) or (2, 2) rotation matrix (columns = receiver axes in the global frame).
+    covariance : (6, 6) / (3, 3) pose covariance in the order of :data:`COVARIANCE_PARAMETERS`,
+        or None.
+
+    Returns
+    -------
+    dict of JSON-safe lists / floats.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> c, s = np.cos(np.radians(30)), np.sin(np.radians(30))
+    >>> R = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])   # yaw 30 deg
+    >>> out = pose_summary(R, np.diag([0.0, 0.0, 0.0, 0.0, 0.0, np.radians(2.0) ** 2]))
+    >>> np.round(out["yaw_pitch_roll_deg"], 6).tolist(), np.round(out["yaw_pitch_roll_std_deg"], 6).tolist()
+    ([30.0, 0.0, 0.0], [2.0, 0.0, 0.0])
+    >>> np.round(out["quaternion"], 6).tolist()
+    [0.965926, 0.0, 0.0, 0.258819]
+    """
+    from scipy.spatial.transform import Rotation
+
+    R = np.asarray(rotation, dtype=float)
+    cov = None if covariance is None else np.asarray(covariance, dtype=float)
+    if R.shape == (2, 2):
+        heading = float(np.degrees(np.arctan2(R[1, 0], R[0, 0])))
+        hstd = None if cov is None else float(np.degrees(np.sqrt(max(cov[2, 2], 0.0))))
+        return {"heading_deg": heading, "heading_std_deg": hstd}
+    if not np.isfinite(R).all():
+        return {"quaternion": None, "yaw_pitch_roll_deg": None, "rotation_std_deg": None,
+                "yaw_pitch_roll_std_deg": None}
+    rot = Rotation.from_matrix(R)
+    q = rot.as_quat()  # (x, y, z, w)
+    q = np.r_[q[3], q[:3]]
+    q = q if q[0] >= 0 else -q
+    ypr = rot.as_euler("ZYX", degrees=True)
+    out: dict[str, Any] = {"quaternion": q.tolist(), "yaw_pitch_roll_deg": ypr.tolist(),
+                           "rotation_std_deg": None, "yaw_pitch_roll_std_deg": None}
+    if cov is None or not np.isfinite(cov).all():
+        return out
+    Sw = cov[3:6, 3:6]
+    out["rotation_std_deg"] = np.degrees(np.sqrt(np.maximum(np.diag(Sw), 0.0))).tolist()
+    h = 1e-6
+    J = np.empty((3, 3))
+    for a in range(3):
+        e = np.zeros(3)
+        e[a] = h
+        plus = (rot * Rotation.from_rotvec(e)).as_euler("ZYX", degrees=True)
+        minus = (rot * Rotation.from_rotvec(-e)).as_euler("ZYX", degrees=True)
+        J[:, a] = _wrap_deg(plus - minus) / (2.0 * h)  # degrees per radian
+    var = np.einsum("ia,ab,ib->i", J, Sw, J)
+    out["yaw_pitch_roll_std_deg"] = np.sqrt(np.maximum(var, 0.0)).tolist()
+    return out

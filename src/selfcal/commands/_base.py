@@ -66,7 +66,11 @@ def fail(message: str) -> None:
 
 
 def handle_errors(func: F) -> F:
-    """Turn selfcal's named errors (and unreadable files) into the one-line / exit-2 contract."""
+    """Turn selfcal's named errors (and unreadable files) into the one-line / exit-2 contract.
+
+    Every command has it: its outputs are checked against its inputs before it runs
+    (:func:`selfcal.commands._common.command_context`).
+    """
 
     @functools.wraps(func)
     def wrapper(*args: Any, **kwargs: Any) -> Any:
@@ -78,6 +82,7 @@ def handle_errors(func: F) -> F:
         except (FileNotFoundError, IsADirectoryError, PermissionError) as exc:
             fail(f"{exc.filename}: {exc.strerror}")
 
+    wrapper.__selfcal_contract__ = True  # type: ignore[attr-defined]  # tests: every command has it
     return wrapper  # type: ignore[return-value]
 
 

@@ -29,6 +29,8 @@ __all__ = [
     "OUTPUT_PARAMS",
     "IMAGE_FORMATS",
     "check_command_outputs",
+    "command_inputs",
+    "is_input_param",
     "command_context",
     "error_line",
     "UNITS",
@@ -37,12 +39,16 @@ __all__ = [
 ]
 
 #: Parameter names that are outputs of a command (checked before the command runs).
-OUTPUT_PARAMS = ("out", "out_dir", "plot", "report", "csv", "csv_out", "csv_path", "tum_path")
+OUTPUT_PARAMS = ("out", "out_dir", "plot", "report", "csv", "csv_out", "csv_path", "tum_path", "anchors_out",
+                 "anchor_plot")
 
 #: Figure formats matplotlib writes (``--plot FILE.pdf`` writes a PDF); no suffix = PNG.
 IMAGE_FORMATS = ("png", "pdf", "svg", "svgz", "eps", "ps", "jpg", "jpeg", "tif", "tiff", "webp")
 
 _STATE: dict[str, bool] = {"quiet": False, "verbose": False}
+#: The process's standard output as the group found it (None when it was closed at start-up),
+#: before ``--quiet`` or ``--out -`` redirect ``sys.stdout``.
+_REAL_STDOUT: dict[str, Any] = {}
 
 
 def error_line(message: object) -> str:
@@ -93,6 +99,7 @@ class SelfcalGroup(click.Group):
         written_files(reset=True)
         code: int = 0
         real_stdout = sys.stdout
+        _REAL_STDOUT["stream"] = real_stdout
         captured = io.StringIO()
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
@@ -233,7 +240,81 @@ def _param_kind(param: click.Parameter) -> str:
     return "file"
 
 
-def check_command_outputs(ctx: click.Context | None, kwargs: Mapping[str, Any]) -> list[Any]:
+def _opt_name(param: click.Parameter) -> str:
+    """``--out`` for an option (its long form), ``MATRIX`` for an argument."""
+    if isinstance(param, click.Option) and param.opts:
+        return next((o for o in param.opts if o.startswith("--")), param.opts[0])
+    return (param.name or "ARG").upper()
+
+
+def _param_label(param: click.Parameter, value: Any) -> str:
+    return f"{_opt_name(param)} {os.fspath(value)}"
+
+
+def is_input_param(param: click.Parameter) -> bool:
+    """Whether ``param`` names something the command reads.
+
+    Every :class:`click.Path` parameter that is not an output (:data:`OUTPUT_PARAMS`) is an
+    input, and so is a text option whose metavar says ``FILE`` (``--directions FILE|sources``):
+    a new command's path parameters are inputs unless they are named as outputs, so none
+    can be forgotten.
+    """
+    if param.name in OUTPUT_PARAMS:
+        return False
+    if isinstance(param.type, click.Path):
+        return True
+    metavar = getattr(param, "metavar", None) or ""
+    return isinstance(param.type, click.types.StringParamType) and "FILE" in metavar.upper()
+
+
+def _values(value: Any) -> list[Any]:
+    if value is None:
+        return []
+    if isinstance(value, (tuple, list)):
+        return [v for v in value if v is not None]
+    return [value]
+
+
+def _stream_identity(stream: Any) -> tuple[int, int] | None:
+    """(device, inode) of the regular file behind a standard stream, or None (a terminal, a pipe)."""
+    import stat as _stat
+
+    try:
+        st = os.fstat(stream.fileno())
+    except (OSError, ValueError, AttributeError):
+        return None
+    return (st.st_dev, st.st_ino) if _stat.S_ISREG(st.st_mode) else None
+
+
+def command_inputs(ctx: click.Context | None, kwargs: Mapping[str, Any]) -> dict[tuple[int, int], str]:
+    """(device, inode) -> label of every file and folder the command reads (folders walked).
+
+    Inputs are the command's parameters selected by :func:`is_input_param`; a folder counts
+    with every entry under it (a recording folder: setup.json, the WAV files, ...).
+    """
+    from ..io._paths import input_identities
+
+    found: dict[tuple[int, int], str] = {}
+    if ctx is None:
+        return found
+    for param in ctx.command.params:
+        if not is_input_param(param):
+            continue
+        for v in _values(kwargs.get(param.name or "")):
+            if isinstance(v, (str, os.PathLike)) and os.fspath(v) == "-":  # the file behind a `< file`
+                ident = _stream_identity(sys.stdin)
+                if ident is not None:
+                    found.setdefault(ident, f"{_opt_name(param)} - (standard input)")
+                continue
+            if not isinstance(v, (str, os.PathLike)) or os.fspath(v) == "":
+                continue
+            for ident, label in input_identities(v, _param_label(param, v)).items():
+                found.setdefault(ident, label)
+    return found
+
+
+def check_command_outputs(ctx: click.Context | None, kwargs: Mapping[str, Any],
+                          inputs: Mapping[tuple[int, int], str] | None = None) -> list[Any]:
     """Check every output parameter of the running command before it does any work.
 
     Returns the output values that are ``"-"`` (standard output).
@@ -241,15 +322,22 @@ def check_command_outputs(ctx: click.Context | None, kwargs: Mapping[str, Any]) 
     Raises
     ------
     selfcal.io.OutputError
-        An output is a directory, device, FIFO, socket, read-only, or under a file.
+        An output is a directory, device, FIFO, socket, read-only, or under a file; it is one
+        of the run's inputs (``inputs``: the same device and inode, symlinks followed, so a
+        link or a hard link to the input is found too); two outputs name one file; ``-``
+        (standard output) is closed.
     """
     from ..errors import InputError
-    from ..io import check_output_path
+    from ..io import OutputError, check_output_path
+    from ..io._paths import file_identity
+    from ..io.outputs import stream_problem
 
     dashes: list[Any] = []
     if ctx is None:
         return dashes
+    inputs = {} if inputs is None else inputs
     seen: dict[str, str] = {}
+    dash_opt = "--out"
     for param in ctx.command.params:
         if param.name not in OUTPUT_PARAMS:
             continue
@@ -259,9 +347,15 @@ def check_command_outputs(ctx: click.Context | None, kwargs: Mapping[str, Any]) 
         kind = _param_kind(param)
         if param.name == "report" and os.fspath(value) != "-" and not os.fspath(value).lower().endswith(".html"):
             kind = "dir"  # pipeline --report: a path not ending in .html is a folder of report files
-        opt = param.opts[0] if param.opts else param.name
+        opt = _opt_name(param)
         if os.fspath(value) == "-":
             dashes.append(value)
+            dash_opt = opt
+        if os.fspath(value) not in ("-", ""):  # first: the clash is the message, whatever else is wrong
+            ident = file_identity(value)
+            if ident is not None and ident in inputs:
+                raise OutputError(f"{_param_label(param, value)} is the input {inputs[ident]} (the same file); "
+                                  f"an output never replaces an input, choose another {opt}")
         real = check_output_path(value, kind=kind, label=f"{opt} {os.fspath(value)}")
         parent = Path(os.fspath(value)).parent
         if os.fspath(value) != "-" and not parent.exists():
@@ -273,23 +367,41 @@ def check_command_outputs(ctx: click.Context | None, kwargs: Mapping[str, Any]) 
             if suffix and suffix not in IMAGE_FORMATS:
                 raise InputError(f"{opt} {os.fspath(value)}: unknown figure format '.{suffix}' "
                                  f"(use one of {', '.join(IMAGE_FORMATS[:4])}, ...)")
-        key = os.fspath(real)
+        ident_out = file_identity(real) if os.fspath(real) != "-" else None
+        key = os.fspath(real) if ident_out is None else f"{ident_out[0]}:{ident_out[1]}"  # hard links too
         if key != "-" and key in seen:
             raise InputError(f"{opt} and {seen[key]} name the same file {os.fspath(value)}")
         seen[key] = opt
     if len(dashes) > 1:
         raise InputError("only one output can be '-' (standard output)")
+    if dashes:
+        real_stdout = _REAL_STDOUT.get("stream", sys.stdout)
+        why = stream_problem(real_stdout)
+        if why is not None:
+            raise OutputError(f"{dash_opt} -: {why}; give a file name")
+        ident = _stream_identity(real_stdout)  # `--out - >> input.csv`
+        if ident is not None and ident in inputs:
+            raise OutputError(f"{dash_opt} -: standard output is the input {inputs[ident]} (the same file); "
+                              f"an output never replaces an input")
     return dashes
 
 
 @contextlib.contextmanager
 def command_context(kwargs: Mapping[str, Any]) -> Iterator[None]:
-    """Check outputs, and with ``--out -`` send the human summary to stderr (stdout = JSON)."""
+    """Check outputs against the run's inputs; with ``--out -`` send the summary to stderr.
+
+    Inside the block every file the command reads through :mod:`selfcal.io` joins the inputs
+    and every write refuses a target among them (:func:`selfcal.io._paths.run_inputs`): a
+    folder output whose files are only named while the command runs is checked there.
+    """
     from ..io import stdout_target
+    from ..io._paths import run_inputs
 
     ctx = click.get_current_context(silent=True)
-    dashes = check_command_outputs(ctx, kwargs)
+    inputs = command_inputs(ctx, kwargs)
+    dashes = check_command_outputs(ctx, kwargs, inputs)
     with contextlib.ExitStack() as stack:
+        stack.enter_context(run_inputs(inputs))
         if dashes and not _STATE["quiet"]:  # (with --quiet the group already routes '-' to stdout)
             stack.enter_context(stdout_target(sys.stdout))
             stack.enter_context(contextlib.redirect_stdout(sys.stderr))

@@ -37,6 +37,77 @@ def parse_room(text: str) -> tuple[float, float, float]:
     return vals[0], vals[1], vals[2]
 
 
+#: The file ``simulate`` writes into its folder listing every file it wrote (name, size,
+#: SHA-256): a later ``simulate`` into the same folder replaces it only when the folder
+#: holds these files alone, unchanged, so nothing it did not write is ever deleted.
+SIMULATE_MANIFEST = "simulate-manifest.json"
+
+
+def _sha256(path: Path) -> str:
+    import hashlib
+
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def check_simulation_folder(out: Path) -> None:
+    """Refuse an ``--out`` folder that holds anything an earlier ``simulate`` did not write.
+
+    An absent or empty folder is taken. A non-empty one must hold :data:`SIMULATE_MANIFEST`
+    and, besides it, only the regular files it lists, each with the size and SHA-256 it
+    lists (a file edited since is the user's now).
+
+    Raises
+    ------
+    InputError
+        Naming the folder and the first entry that is not a file ``simulate`` wrote.
+    """
+    import json
+    import stat
+
+    from ..errors import InputError
+
+    if not out.exists() and not out.is_symlink():
+        return
+    if not out.is_dir():
+        raise InputError(f"--out {out}: exists and is not a folder; choose another --out")
+    entries = sorted(out.iterdir())
+    if not entries:
+        return
+    manifest = out / SIMULATE_MANIFEST
+    why = f"--out {out}: the folder is not empty and was not written by 'selfcal simulate'"
+    try:
+        listed = json.loads(manifest.read_text())["files"]
+        assert isinstance(listed, dict)
+    except FileNotFoundError:
+        raise InputError(f"{why} (no {SIMULATE_MANIFEST}; it holds {entries[0].name}); "
+                         f"choose an empty or new --out") from None
+    except (OSError, ValueError, KeyError, TypeError, AssertionError):
+        raise InputError(f"{why} ({SIMULATE_MANIFEST} is unreadable); choose an empty or new --out") from None
+    for e in entries:
+        if e.name == SIMULATE_MANIFEST:
+            continue
+        info = listed.get(e.name)
+        mode = os.lstat(e).st_mode
+        if not isinstance(info, dict) or not stat.S_ISREG(mode):
+            raise InputError(f"--out {out}: holds {e.name}, which 'selfcal simulate' did not write; "
+                             f"refusing to replace the folder (choose an empty or new --out)")
+        if os.lstat(e).st_size != info.get("size") or _sha256(e) != info.get("sha256"):
+            raise InputError(f"--out {out}: {e.name} changed since 'selfcal simulate' wrote it; "
+                             f"refusing to replace the folder (choose an empty or new --out)")
+
+
+def _write_manifest(folder: Path) -> None:
+    from ..io import write_json
+
+    files = {p.name: {"size": p.stat().st_size, "sha256": _sha256(p)}
+             for p in sorted(folder.iterdir()) if p.is_file() and p.name != SIMULATE_MANIFEST}
+    write_json(folder / SIMULATE_MANIFEST, {"written_by": "selfcal simulate", "files": files})
+
+
 def write_simulation(out: Path, *, units: int, room: tuple[float, float, float], rt60: float, snr: float,
                      seed: int, layout: str, sample_rate: int, max_order: int | None,
                      jitter: float = 0.0, rounds: int = 1, progress: bool = True) -> dict[str, Any]:
@@ -44,18 +115,17 @@ def write_simulation(out: Path, *, units: int, room: tuple[float, float, float],
 
     The directory is built next to ``out`` and renamed into place, so ``out`` is either the
     old content or the complete new recording. An existing ``out`` is replaced only when it
-    is empty or a recording directory (has ``setup.json``).
+    is empty or holds only the files an earlier ``simulate`` wrote
+    (:func:`check_simulation_folder`, :data:`SIMULATE_MANIFEST`).
     """
     import numpy as np
 
     from .._checks import check_int
     from ..acoustics.recording import write_recording
     from ..acoustics.room import simulate_conference
-    from ..errors import InputError
     from ..scenarios.conference import conference_scene
 
-    if out.exists() and (not out.is_dir() or (any(out.iterdir()) and not (out / "setup.json").is_file())):
-        raise InputError(f"{out}: exists and is not a recording directory; choose another --out")
+    check_simulation_folder(out)
     if out.is_symlink():  # a link to a folder: the folder it points to is the output (the link stays)
         out = out.resolve()
     rng = np.random.default_rng(check_int(seed, "--seed", minimum=0))
@@ -72,7 +142,9 @@ def write_simulation(out: Path, *, units: int, room: tuple[float, float, float],
     os.chmod(tmp, 0o777 & ~umask)  # mkdtemp makes it private; the result is an ordinary folder
     try:
         write_recording(tmp, setup, signals, truth=truth, extra={"heights.json": heights})
+        _write_manifest(tmp)
         if out.exists():
+            check_simulation_folder(out)  # again: a file may have arrived while the simulation ran
             old = out.with_name(f".{out.name}.old-{os.getpid()}")
             os.replace(out, old)
             os.replace(tmp, out)
@@ -105,7 +177,8 @@ def write_simulation(out: Path, *, units: int, room: tuple[float, float, float],
 @click.option("--rounds", type=click.IntRange(min=1), default=1, show_default=True,
               help="Events per loudspeaker (probe repetitions; their arrival times are averaged).")
 @click.option("--out", "out", required=True, type=click.Path(file_okay=False, path_type=Path),
-              help="Recording directory to write (setup.json, rx_*.wav, truth.json, heights.json).")
+              help="Recording directory to write (setup.json, rx_*.wav, truth.json, heights.json, simulate-manifest.json); "
+                   "an existing one must be empty or hold only what an earlier simulate wrote.")
 @handle_errors
 def simulate_conference_cmd(units: int, room_text: str, rt60: float, snr: float, seed: int, layout: str,
                             sample_rate: int, max_order: int, jitter: float, rounds: int, out: Path,
@@ -114,6 +187,7 @@ def simulate_conference_cmd(units: int, room_text: str, rt60: float, snr: float,
     room = parse_room(room_text)
     jitter = resolve_jitter(jitter, jitter_us)
     check_simulation_size(units=units, sample_rate=sample_rate, room=room, rt60=rt60, rounds=rounds)
+    check_simulation_folder(out)
     truth = write_simulation(out, units=units, room=room, rt60=rt60, snr=snr, seed=seed, layout=layout,
                              sample_rate=sample_rate, max_order=max_order, jitter=jitter, rounds=rounds)
     click.echo(f"simulated {out} ({units} units, {rounds} round(s), {layout}, room {room_text}, RT60 {rt60:g} s, "

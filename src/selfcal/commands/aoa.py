@@ -6,7 +6,6 @@ from pathlib import Path
 from typing import Any
 
 import click
-from click.core import ParameterSource
 
 from ..errors import SelfcalError
 from ._base import backend_option, handle_errors, locate, reproduce, scheduler_option, seed_option
@@ -30,8 +29,11 @@ from ._options import GRID_STEP_M, SIGMA_DEG
          "they do not say on which side of the xy plane a beacon is, so every method is followed by the "
          "ML refinement over both sides. deg / rad: old spelling of 'axes' in that unit.",
 )
-@click.option("--units", "units", type=click.Choice(["deg", "rad"]), default="deg", show_default=True,
-              help="Unit of the angles with --angles azel / axes.")
+@click.option("--unit", "unit", type=click.Choice(["deg", "rad"]), default=None,
+              help="Unit of the angles with --angles azel / axes (default deg); the option every command "
+                   "uses for the unit of its input values.")
+@click.option("--units", "units", type=click.Choice(["deg", "rad"]), default=None,
+              help="Deprecated alias of --unit (kept for old scripts; says so on stderr).")
 @click.option("--sigma-deg", type=SIGMA_DEG, default=None,
               help="Angular noise std (degrees) for the ML covariance and the residual test (default: the "
                    "test assumes at most 5 degrees).")
@@ -43,15 +45,18 @@ from ._options import GRID_STEP_M, SIGMA_DEG
               help="PNG of the beacons, the receiver with its x/y/z axes and the measured bearing rays.")
 @handle_errors
 def locate_aoa(
-    beacons: str, bearings: str, out: str, method: str, angles: str, units: str, sigma_deg: float | None,
-    hint: str | None, plot: str | None,
+    beacons: str, bearings: str, out: str, method: str, angles: str, unit: str | None, units: str | None,
+    sigma_deg: float | None, hint: str | None, plot: str | None,
 ) -> None:
     """Receiver position and orientation from bearings to known BEACONS (N x d, d = 2 or 3).
 
     BEARINGS: N x d unit vectors in the receiver frame (a NaN row = beacon not received), or
-    angles with --angles azel / axes (--units deg or rad). Writes position, rotation (columns
-    = receiver axes in the global frame), residual_rms (rad), method, covariance, candidates
-    (when ambiguous) and success. Exit 1 with a FAIL line when the bearings do not fit the
+    angles with --angles azel / axes (--unit deg or rad; --units is a deprecated alias).
+    Writes position (and position_std, m), rotation (columns = receiver axes in the global
+    frame; also quaternion [w, x, y, z] and yaw / pitch / roll in degrees, intrinsic z-y'-x'',
+    with their stds), residual_rms (rad), method, covariance (its parameter order and units in
+    covariance_parameters / covariance_units), candidates (when ambiguous) and success.
+    Exit 1 with a FAIL line when the bearings do not fit the
     pose at the noise level (chi-square test; not a pose).
     """
     import numpy as np
@@ -62,6 +67,13 @@ def locate_aoa(
     from ..io import read_table, staged_outputs, write_json
     from ._common import enrich_payload
 
+    if units is not None:
+        if unit is not None and unit != units:
+            raise InputError(f"--unit {unit} and --units {units} disagree; give --unit only (--units is deprecated)")
+        click.echo("selfcal: warning: --units is deprecated, use --unit (the same option as every other command)",
+                   err=True)
+    units_given = unit is not None or units is not None  # degrees said, not assumed
+    units = unit or units or "deg"
     btab = read_table(beacons, "beacons")
     b = btab.values
     u = read_table(bearings, "bearings").values
@@ -72,15 +84,13 @@ def locate_aoa(
     if u.shape[0] != b.shape[0]:
         raise InputError(f"bearings: {u.shape[0]} rows for {b.shape[0]} beacons (one row per beacon)")
     sign_unknown = False
-    ctx = click.get_current_context(silent=True)
-    units_given = angles in ("deg", "rad") or (
-        ctx is not None and ctx.get_parameter_source("units") not in (None, ParameterSource.DEFAULT))
+    units_given = units_given or angles in ("deg", "rad")
     if angles in ("deg", "rad"):
         angles, units = "axes", angles
     if angles == "vectors":
         if u.shape[1] != d:
             raise InputError(f"bearings: {u.shape[1]} columns for {d}-D beacons: unit vectors need {d} "
-                             f"(angles? use --angles azel or axes with --units deg / rad)")
+                             f"(angles? use --angles azel or axes with --unit deg / rad)")
         with np.errstate(over="ignore"):
             norms = np.linalg.norm(u, axis=1)  # inf for rows of 1e300s: not unit vectors either
         fin = np.isfinite(u).all(axis=1)
@@ -88,7 +98,7 @@ def locate_aoa(
         if fin.any() and np.max(dev[fin]) > 1e-2:
             i = int(np.flatnonzero(fin)[np.argmax(dev[fin])])
             raise InputError(f"bearings: row {i + 1} has length {norms[i]:.4g}, not a unit vector (1 within 1 %): "
-                             "angles in degrees or radians? use --angles azel (or axes) with --units deg / rad")
+                             "angles in degrees or radians? use --angles azel (or axes) with --unit deg / rad")
     else:
         plausible_angles(u, units)
         u_raw = u
@@ -144,7 +154,11 @@ def locate_aoa(
         write_json(out, enrich_payload(res.to_dict(), names={"beacon_names": btab.row_names},
                                        units={"position": "m",
                                               "rotation": "columns = receiver axes in the global frame",
-                                              "residual_rms": "rad", "covariance": "m^2 and rad^2"}))
+                                              "residual_rms": "rad", "covariance": "m^2 and rad^2",
+                                              "position_std": "m", "quaternion": "unitless, [w, x, y, z]",
+                                              "yaw_pitch_roll_deg": "deg", "yaw_pitch_roll_std_deg": "deg",
+                                              "rotation_std_deg": "deg", "heading_deg": "deg",
+                                              "heading_std_deg": "deg"}))
     click.echo(
         f"position {np.array2string(res.position, precision=4)}  residual {np.degrees(res.residual_rms):.3g} deg"
         f"  method {res.method}" + (f"  ({len(res.candidates)} candidates)" if res.ambiguous else "")

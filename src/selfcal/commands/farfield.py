@@ -30,10 +30,12 @@ if TYPE_CHECKING:
               help="Propagation speed in m/s: the matrix holds seconds (TDOA); positions are reported in "
                    "metres, offsets and the residual in seconds. A Pyramic JSON holds seconds and its own "
                    "sound_speed_mps, which --speed overrides.")
-@click.option("--dim", type=click.Choice(["1", "2", "3", "auto"]), default="3", show_default=True,
-              help="3: spatial array; 2: planar array with sources in its plane (in-plane geometry); 1: linear "
-                   "array (positions along the line, up to scale); auto: decided by a rank test of the data "
-                   "against the noise. The JSON's 'case' and 'determined' say what the data fix.")
+@click.option("--dim", type=click.Choice(["1", "2", "3", "auto"]), default="auto", show_default=True,
+              help="auto: decided by nested rank tests of the data against the noise (false-alarm rate 0.001 "
+                   "per test; rank 2 with a consistent planar quadric -> 2, rank 1 -> 1, else 3); 3: spatial "
+                   "array; 2: planar array with sources in its plane (in-plane geometry); 1: linear array "
+                   "(positions along the line, up to scale). The JSON's 'dim', 'dim_rule', 'case' and "
+                   "'determined' say what was chosen and what the data fix.")
 @click.option("--directions", "directions", default=None, metavar="FILE|sources",
               help="Known unit directions (k x 3 or k x 2 CSV / .npy, one row per column of MATRIX), or 'sources' "
                    "for a Pyramic JSON's own (n_j = -source_j): semi-blind least squares for the positions, the "
@@ -176,7 +178,8 @@ def farfield_command(matrix: tuple[Path, ...], out: Path, speed: float | None, d
     payload = enrich_payload(
         out_dict, names={"position_names": row_names, "transmitter_names": col_names},
         units={"positions": "m", "directions": "unit vectors", "offsets": tunit, "residual_rms": tunit,
-               "position_cov": "m^2"})
+               "position_cov": "m^2", "direction_covariance": "unit vector^2 (rad^2 for small errors)",
+               "direction_std_deg": "deg", "azimuth_std_deg": "deg", "elevation_std_deg": "deg"})
     with staged_outputs():  # the figure, the JSON and the CSV together, or none
         if plot is not None:
             from ..plotting.farfield import plot_farfield
@@ -189,6 +192,8 @@ def farfield_command(matrix: tuple[Path, ...], out: Path, speed: float | None, d
     click.echo(f"selfcal calibrate tdoa-farfield: {m} positions x {k} transmitters, {res.dim}-D ({res.case}), "
                f"method {res.method}, loss {res.loss}")
     click.echo(f"  determined: {res.determined}")
+    click.echo(f"  dimension: {res.dim_rule}")
+    click.echo(f"  gross errors: {res.screen_rule}")
     click.echo(f"  residual RMS {out_dict['residual_rms']:.4g} {tunit}, converged={res.converged}, "
                f"iterations={res.iterations}, rejected entries {int(res.rejected.sum())}")
     if ref_rmse is not None:
@@ -235,7 +240,8 @@ def _expand(d: dict[str, Any], keep_r: Any, keep_c: Any) -> None:
 
     ri, ci = np.flatnonzero(keep_r), np.flatnonzero(keep_c)
     for keys, idx, n in ((("positions", "position_cov", "position_std", "position_ellipse95"), ri, keep_r.size),
-                         (("directions", "offsets"), ci, keep_c.size)):
+                         (("directions", "offsets", "direction_covariance", "direction_std_deg", "azimuth_std_deg",
+                           "elevation_std_deg"), ci, keep_c.size)):
         for key in keys:
             v = d.get(key)
             if not isinstance(v, list) or len(v) != idx.size:

@@ -10,7 +10,7 @@ import click
 
 from ._base import backend_option, handle_errors, reproduce, scheduler_option, seed_option, slac
 from ._common import all_or_nothing
-from ._options import ANGLE_RAD, MINUTES, SLAC_SNR_DB
+from ._options import ANGLE_RAD, MINUTES, SLAC_SNR_DB, Quantity
 
 
 @slac.command("simulate")
@@ -94,9 +94,15 @@ def run_cmd(log_path: Path, mode: str, prior: str, out: Path, plot: Path | None,
 @slac.command("plaza")
 @click.argument("path", type=click.Path(path_type=Path))
 @click.option("--out", "out", type=click.Path(dir_okay=False, path_type=Path), required=True, help="RESULT.json")
-@click.option("--method", type=click.Choice(["filter", "smoother", "both"]), default="both", show_default=True,
+@click.option("--method", type=click.Choice(["filter", "smoother", "fixed-lag", "both"]), default="both",
+              show_default=True,
               help="filter: causal robust EKF (online use); smoother: batch MAP over the whole log (offline, "
-                   "more accurate); both: run the two.")
+                   "more accurate); fixed-lag: each pose smoothed by the next --lag seconds of data (online with "
+                   "that delay, for logs too long or streams too open-ended to smooth whole); both: filter and "
+                   "smoother.")
+@click.option("--lag", "lag_s", type=Quantity("s", gt=0, le=1e7, why="a look-ahead in seconds (1e7 s is 4 months)"),
+              default=30.0,
+              show_default=True, help="Seconds of look-ahead of --method fixed-lag.")
 @click.option("--csv", "csv_path", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="Trajectory CSV (time, x, y, heading, stds) of the smoother (or the one method run).")
 @click.option("--tum", "tum_path", type=click.Path(dir_okay=False, path_type=Path), default=None,
@@ -109,7 +115,8 @@ def run_cmd(log_path: Path, mode: str, prior: str, out: Path, plot: Path | None,
               help="Unit of the log's heading columns (GT(:, 4), DR(:, 3)); auto = decided from the motion.")
 @handle_errors
 def plaza_cmd(path: Path, out: Path, method: str, csv_path: Path | None, tum_path: Path | None,
-              plot: Path | None, init_heading_offset: float | None, heading_units: str = "auto") -> None:
+              plot: Path | None, init_heading_offset: float | None, heading_units: str = "auto",
+              lag_s: float = 30.0) -> None:
     """Range-only SLAC (per-beacon range scale + offset) on a CMU range log (e.g. Plaza1.mat).
 
     Ground truth is used for the first pose and for the scores only. Exit 1 with a FAIL line
@@ -125,7 +132,9 @@ def plaza_cmd(path: Path, out: Path, method: str, csv_path: Path | None, tum_pat
 
     data = load_plaza(path, init_heading_offset=init_heading_offset, heading_units=heading_units)
     methods = ("filter", "smoother") if method == "both" else (method,)
-    s = plaza_summary(data, methods=methods, progress=True)
+    from ..slac.ranging import RangeModelConfig
+
+    s = plaza_summary(data, methods=methods, progress=True, config=RangeModelConfig(lag_s=float(lag_s)))
     results = s.pop("_results")
     main = results["smoother" if "smoother" in results else methods[0]]
     with staged_outputs():  # every artefact of the run together, or none

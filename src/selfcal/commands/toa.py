@@ -15,6 +15,11 @@ import click
 from ._base import calibrate, handle_errors
 from ._common import csv_option, unit_options
 from ._options import NOISE_STD, SEED, SPEED
+from .graph import parse_room, room_option
+
+#: ``--entries auto`` keeps per-entry arrays in the JSON up to this many matrix entries: about
+#: 2 MB of text and ~1 s of conversion; a 1000 x 1000 matrix took 17 s to convert and 10 s to write
+ENTRIES_JSON_MAX = 100_000
 
 
 def _auto_available() -> bool:
@@ -51,22 +56,38 @@ def _auto_available() -> bool:
 @click.option("--known", "known", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="CSV name,x,y,z[,std] of nodes with known positions (r<i>, s<j> or a receiver "
                    "index); they constrain the fit and set the frame.")
+@click.option("--side", type=click.Choice(["below", "above"]), default=None,
+              help="With --known nodes in one plane (ceiling anchors): the other nodes lie below / above "
+                   "it (along z of the known frame). Resolves the mirror image that plane leaves; without "
+                   "it the mirror is reported (exit 1).")
 @click.option("--frame", "frame", default=None, metavar="origin=A,x=B,xy=C[,z=D]",
               help="Frame by reference nodes: A at the origin, B on +x, C in the xy half-plane (y>0), "
                    "D above (z>0).")
+@click.option("--entries", type=click.Choice(["auto", "json", "npz"]), default="auto", show_default=True,
+              help="Where the per-entry arrays (residuals, outliers mask) go: json = in the result; npz = "
+                   "a binary sidecar OUT with suffix .npz (keys residuals, outliers); auto = npz above "
+                   f"{ENTRIES_JSON_MAX:,} entries.")
 @click.option("--seed", type=SEED, default=0, show_default=True, help="Random seed (initialisers, restarts).")
 @click.option("--out", "out", type=click.Path(dir_okay=False, path_type=Path), required=True,
               help="Result JSON (keys per DESIGN.md).")
 @click.option("--plot", "plot", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="Figure of receivers and sources with 95% confidence ellipses (format from the suffix: .png, .pdf, .svg).")
 @csv_option
+@click.option("--anchors", "anchors_out", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              metavar="FILE", help="The receivers (anchors) as CSV name,x,y,z,std_x,std_y,std_z, or JSON for a "
+                                   "configuration tool (suffix .json), in the output frame.")
+@click.option("--anchor-plot", "anchor_plot", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              metavar="FILE", help="Installer figure: named anchors, the tag path (sources in column order), "
+                                   "the --room box; plan and two elevations.")
+@room_option
 @unit_options
 @handle_errors
 def toa_command(matrix: Path, speed: float | None, offsets: str | None, dim: str | None,
                 loss: str | None, method: str, noise: float | None, recipe: str, common_offset: str,
-                known: Path | None,
-                frame: str | None, seed: int, out: Path, plot: Path | None, csv_out: Path | None = None,
-                unit: str | None = None, sample_rate: float | None = None) -> None:
+                known: Path | None, side: str | None,
+                frame: str | None, entries: str, seed: int, out: Path, plot: Path | None, csv_out: Path | None = None,
+                unit: str | None = None, sample_rate: float | None = None, anchors_out: Path | None = None,
+                anchor_plot: Path | None = None, room: str | None = None) -> None:
     """Calibrate receivers and sources from an I x J TOA/range MATRIX (CSV or .npy, NaN = missing).
 
     Rows are receivers, columns are sources (a header row and a first column of names are
@@ -79,14 +100,18 @@ def toa_command(matrix: Path, speed: float | None, offsets: str | None, dim: str
     from ..io import read_table, staged_outputs, write_json
     from ..progress import stage
     from ..toa.frame import FramedToaResult, apply_frame, fit_known, parse_known, read_known_csv
+    from ..toa.nodes import check_frame, node_names
     from ..toa.recipes import apply_recipe
     from ._common import enrich_payload, to_metres, write_nodes_csv
 
     if known is not None and frame is not None:
         raise InputError("--known and --frame are exclusive (known positions already define the frame)")
+    if side is not None and known is None:
+        raise InputError("--side says where the other nodes lie relative to the --known nodes' plane: give --known")
     if ("auto" in (offsets, dim)) and not _auto_available():
         raise InputError("--offsets auto / --dim auto need the model selection (selfcal.toa.select), "
                          "which this build does not have yet; give the value explicitly")
+    box = parse_room(room)
     table = read_table(matrix, name=str(matrix))
     M, speed, _ = to_metres(table.values, unit, speed, sample_rate, name=str(matrix))
     plausible_matrix_scale(M, speed=speed, explicit_unit=unit is not None, name=str(matrix))
@@ -96,12 +121,21 @@ def toa_command(matrix: Path, speed: float | None, offsets: str | None, dim: str
             kw[key] = val
     if dim is not None:
         kw["dim"] = dim if dim == "auto" else int(dim)
+    # node names: the matrix's own (header row / first column) or 0-based r<i> / s<j>;
+    # --known and --frame are read and resolved against them before any work
+    I, J = M.shape
+    names = node_names(table.row_names, table.col_names, I, J)
     known_table = None
     if known is not None:
         known_table = read_known_csv(known, 2 if dim == "2" else 3)  # validated before the solve
+        parse_known(known_table, I, J, 2 if dim == "2" else 3, **names)
+    if frame is not None:
+        check_frame(frame, I, J, **names)
+    sidecar = _sidecar(entries, M.shape, out, [matrix, known])  # refused before the solve
     with stage(f"fit {M.shape[0]} x {M.shape[1]}"):
         rec = apply_recipe(recipe, M, common_offset=common_offset, **kw)
     res: Any = rec.result
+    forced = _forced_model(rec.result, M, rec.rejected, speed, noise, dim, offsets)
     framed: FramedToaResult | None = None
     d_out = np.asarray(res.receivers).shape[1]
     # a kept common range offset (moving-tag recipe) is its own model: the refits keep it
@@ -112,22 +146,29 @@ def toa_command(matrix: Path, speed: float | None, offsets: str | None, dim: str
     loss_used = loss if loss is not None else "linear"
     M_fit = _fitted_entries(M, rec.rejected, getattr(res, "outliers", None))
     if known_table is not None and known is not None:
-        I, J = M.shape
-        nodes = parse_known(_redim(known_table, known, d_out), I, J, d_out)
+        nodes = parse_known(_redim(known_table, known, d_out), I, J, d_out, **names)
         with stage(f"fit with {len(nodes)} known nodes"):
-            framed = fit_known(M_fit, res, nodes, offsets=off_used, loss=loss_used, noise=noise)
+            framed = fit_known(M_fit, res, nodes, offsets=off_used, loss=loss_used, noise=noise, side=side)
     elif frame is not None:
         with stage("fit in the --frame"):
-            framed = apply_frame(res, frame, matrix=M_fit, offsets=off_used, loss=loss_used)
+            framed = apply_frame(res, frame, matrix=M_fit, offsets=off_used, loss=loss_used, **names)
     if framed is not None:
         res = framed.result
-    payload = enrich_payload(dict(res.to_dict()), names={"receiver_names": table.row_names,
-                                                         "source_names": table.col_names})
+    if getattr(res, "residuals", None) is None or getattr(res, "outliers", None) is None:
+        sidecar = None
+    payload = enrich_payload(dict(_without_entries(res).to_dict() if sidecar else res.to_dict()), names=names)
+    if sidecar is not None:
+        payload["n_outliers"] = int(np.sum(res.outliers)) if res.outliers is not None else 0
+        payload["entries"] = {"file": sidecar.name, "arrays": ["residuals", "outliers"], "shape": [*M.shape],
+                              "note": "per-entry arrays in the binary sidecar (numpy.load); --entries json keeps "
+                                      "them in this file"}
     used = rec.recipe
     if recipe != "none":
-        payload["recipe"] = rec.to_dict()["recipe"]
+        payload["recipe"] = rec.recipe_dict()
     if framed is not None:
         payload["frame"] = framed.frame.to_dict()
+    if forced is not None:
+        payload["model_test"] = forced.to_dict()
     ok, why = _trustworthy(res)
     # all artefacts staged and committed together; a FAIL (exit 1) still writes its result
     with staged_outputs():
@@ -136,11 +177,17 @@ def toa_command(matrix: Path, speed: float | None, offsets: str | None, dim: str
 
             plot_toa(res, plot, user_frame=framed is not None, names=(table.row_names, table.col_names))
         write_json(out, payload)
+        if sidecar is not None:
+            from ..io.outputs import write_npz
+
+            write_npz(sidecar, {"residuals": np.asarray(res.residuals, float),
+                                "outliers": np.asarray(res.outliers, bool)})
         if csv_out is not None:
             write_nodes_csv(csv_out, payload, [("receiver", "receivers", "receiver_names"),
                                                ("source", "sources", "source_names")])
+        _installer_outputs(res, names["receiver_names"], anchors_out, anchor_plot, box,
+                           framed.frame.message if framed is not None else "canonical gauge (no frame given)")
     unit = "s" if speed is not None else "m"
-    I, J = M.shape
     tr = np.trace(res.receiver_cov, axis1=1, axis2=2)
     ts = np.trace(res.source_cov, axis1=1, axis2=2)
     lines = [
@@ -176,11 +223,104 @@ def toa_command(matrix: Path, speed: float | None, offsets: str | None, dim: str
     det = getattr(res, "determinacy", None)
     if det is not None and det.n_undetermined:
         lines.append(f"  undetermined: {det.n_undetermined} of {det.tested} nodes have a 95 % confidence region "
-                     f"larger than their node set ({det.names()})")
+                     f"larger than their node set ({det.names(**names)})")
     click.echo("\n".join(lines))
+    fails = _verdict_lines(res, forced, names["receiver_names"], names["source_names"])
+    for line in fails:
+        click.echo(line)
     if not ok:
         click.echo(f"FAIL: calibration not trustworthy ({why})")
+    if fails or not ok:
         raise SystemExit(1)
+
+
+def _forced_model(res: Any, M: Any, rejected: Any, speed: float | None, noise: float | None, dim: str | None,
+                  offsets: str | None) -> Any:
+    """The model the user fixed (not "auto") tested against the larger one (:mod:`selfcal.toa.model_test`)."""
+    import numpy as np
+
+    from ..toa.model_test import forced_model_test
+
+    off = getattr(res, "offsets", None)
+    test_dim = dim == "2"
+    test_off = offsets != "auto" and off in ("none", "receivers", "sources")
+    if not (test_dim or test_off) or getattr(res, "residuals", None) is None:
+        return None
+    c = speed if speed is not None else 1.0
+    Mf = _fitted_entries(M, rejected, getattr(res, "outliers", None))
+    R, S = np.asarray(res.receivers, float), np.asarray(res.sources, float)
+    ok_r, ok_s = np.isfinite(R).all(1), np.isfinite(S).all(1)
+
+    def sub(a: Any, ok: Any) -> Any:
+        return None if a is None else np.asarray(a, float)[ok] * c
+
+    return forced_model_test(Mf[np.ix_(ok_r, ok_s)] * c, R[ok_r], S[ok_s], sub(res.receiver_offsets, ok_r),
+                             sub(res.source_offsets, ok_s), offsets=str(off), noise=None if noise is None else noise * c,
+                             test_dim=test_dim, test_offsets=test_off)
+
+
+def _verdict_lines(res: Any, forced: Any, row_names: Any, col_names: Any) -> list[str]:
+    """``FAIL:`` lines of the uniqueness test (ambiguous nodes, a minimal problem) and the forced-model test."""
+    out = []
+    u = getattr(res, "uniqueness", None)
+    if u is not None and not u.passed:
+        if u.ambiguous_receivers.any() or u.ambiguous_sources.any():
+            kinds = sorted({a.kind for a in u.alternatives})
+            what = (f"{u.names(row_names or None, col_names or None)} have alternative positions that fit the "
+                    f"ranges as well ({', '.join(kinds)}; likelihood-ratio test, level {u.alpha:g}; alternatives "
+                    "in the JSON under 'uniqueness')")
+            if u.failed:
+                out.append(f"FAIL: ambiguous: {what}; remedy: a tag position off the plane of their partners, "
+                           "a known height, a known node off the plane (or --side with coplanar --known nodes)")
+            else:  # a few nodes: named, their error bars widened to cover the alternative (as 'undetermined')
+                click.echo(f"  ambiguous: {what}; their error bars cover the alternative")
+        if u.minimal:
+            out.append("FAIL: minimal problem: no spare measurement, so no other solution can be ruled out; "
+                       "add measurements (or give --noise)")
+    if forced is not None and not forced.passed:
+        out.append(f"FAIL: {forced.message()}")
+    return out
+
+
+def _sidecar(entries: str, shape: tuple[int, ...], out: Path, inputs: list[Path | None]) -> Path | None:
+    """The ``.npz`` next to ``out`` that takes the per-entry arrays, or None (kept in the JSON)."""
+    import math
+    import os
+
+    from ..errors import InputError
+
+    if str(out) == "-" or entries == "json":
+        return None
+    if entries == "auto" and math.prod(shape) <= ENTRIES_JSON_MAX:
+        return None
+    path = out.with_suffix(".npz") if out.suffix.lower() != ".npz" else out.with_name(out.name + ".npz")
+    real = os.path.realpath(path)
+    for p in inputs:
+        if p is not None and os.path.realpath(p) == real:
+            raise InputError(f"the per-entry sidecar {path} would overwrite the input {p}; choose another --out")
+    return path
+
+
+def _without_entries(res: Any) -> Any:
+    """``res`` with its per-entry arrays left out (they go to the sidecar, not through JSON)."""
+    import dataclasses
+
+    return dataclasses.replace(res, residuals=None, outliers=None)
+
+
+def _installer_outputs(res: Any, names: Any, anchors_out: Path | None, anchor_plot: Path | None, box: Any,
+                       frame: str) -> None:
+    """``--anchors`` (the receivers as the anchor file) and ``--anchor-plot`` (the installer figure)."""
+    if anchors_out is not None:
+        from ..io.anchors import write_anchors
+
+        write_anchors(anchors_out, list(names), res.receivers, res.receiver_cov, frame=frame)
+    if anchor_plot is not None:
+        from ..plotting.anchors import plot_anchors
+
+        gauge = "canonical gauge" if frame.startswith("canonical") else "room frame"
+        plot_anchors(res.receivers, list(names), anchor_plot, cov=res.receiver_cov, tag=res.sources, room=box,
+                     title=f"anchors ({gauge})")
 
 
 def _fitted_entries(M: Any, rejected: Any, outliers: Any) -> Any:
@@ -218,8 +358,10 @@ def _counts(res: Any) -> list[str]:
         if v is not None and len(v):
             out.append(f"{len(v)} {label}")
     mask = getattr(res, "outliers", None)
+    broke = getattr(res, "outlier_breakdown", None)
     if mask is not None:
-        out.append(f"{int(np.asarray(mask).sum())} outliers flagged")
+        out.append(f"{broke} ({int(np.asarray(mask).sum())} flagged)" if broke
+                   else f"{int(np.asarray(mask).sum())} outliers flagged")
     return out
 
 

@@ -17,6 +17,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from .._checks import entry
 from ..errors import InputError
 
 __all__ = ["LpsData", "LpsFormatWarning", "load_lps", "lps_files"]
@@ -160,6 +161,7 @@ def lps_files(path: str | os.PathLike[str]) -> list[Path]:
     return files
 
 
+@entry(path="path")
 def load_lps(path: str | os.PathLike[str]) -> LpsData:
     """Read one LPS flight (``data4.mat``, ``data5.mat``, ...).
 

@@ -55,7 +55,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from .._checks import MAX_ABS_ENTRY
+from .._checks import MAX_ABS_ENTRY, entry
 from ..errors import InputError
 from ..geometry import wrap_angle
 
@@ -302,6 +302,7 @@ def _heading_columns(GT: FArray, DR: FArray, p: Path, units: str = "auto") -> tu
     return GT, DR
 
 
+@entry(path="path", heading_units="str?")
 def load_plaza(path: str | os.PathLike[str], *, init_heading_offset: float | None = None,
                heading_units: str | None = None) -> PlazaData:
     """Load a CMU range-only log (``Plaza1.mat`` and others of the collection) and validate it.

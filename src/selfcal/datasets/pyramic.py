@@ -49,7 +49,7 @@ from pathlib import Path
 import numpy as np
 from numpy.typing import NDArray
 
-from .._checks import MAX_ABS_ENTRY, check_magnitude, non_number_leaf
+from .._checks import MAX_ABS_ENTRY, check_magnitude, entry, non_number_leaf
 from ..acoustics.recording import MAX_SPEED_OF_SOUND
 from ..errors import InputError
 from ..io import read_json
@@ -128,6 +128,7 @@ class PyramicData:
         return {s: float(np.mean(el[ids == s])) for s in self.speakers}
 
 
+@entry(path="paths", speed="positive?")
 def load_pyramic(path: PathLike | Sequence[PathLike], *, speed: float | None = None) -> PyramicData:
     """Read Pyramic TDOA data: a JSON file, a folder of them, or several files, joined.
 

@@ -33,7 +33,9 @@ from numpy.typing import NDArray
 from ..errors import ConvergenceWarning
 from ..io import write_json
 from ..scenarios.units import SPEED_OF_SOUND, make_units, true_offset_vector
-from ..toa import offsets as off
+from ..toa.rank3 import estimate_offsets, fast_offsets
+from ..toa.rank3_model import DELAY_MAX, ONSET_MAX, THESIS_TOL, Rank3Result, thesis_lambda
+from ..toa.rank3_thesis import rank3_iteration
 from .runner import run_sweep, write_rows
 
 __all__ = [
@@ -74,11 +76,11 @@ def _p_true(sc: Any) -> Array:
     return true_offset_vector(sc.delays, sc.onsets)
 
 
-def _single_run(R: Array, method: str, max_iter: int, rng: np.random.Generator) -> off.Rank3Result:
+def _single_run(R: Array, method: str, max_iter: int, rng: np.random.Generator) -> Rank3Result:
     """One run from the thesis random initialisation (no acceptance test): the thesis's protocol."""
     if method == "faithful":
-        return off.rank3_iteration(R, rng=rng, max_iter=max_iter)
-    return off.fast_offsets(R, rng=rng)
+        return rank3_iteration(R, rng=rng, max_iter=max_iter)
+    return fast_offsets(R, rng=rng)
 
 
 # ----------------------------------------------------------------------------- Fig. 4.1-4.3
@@ -101,7 +103,7 @@ def accuracy_trial(params: dict[str, Any], seed: int) -> dict[str, Any]:
     if params["method"] == "fast":
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", ConvergenceWarning)
-            rr = off.estimate_offsets(R, rng=gen)
+            rr = estimate_offsets(R, rng=gen)
         out.update(
             restarted_p_error_s=float(np.linalg.norm(rr.p / C - p)),
             restarted_accepted=bool(rr.accepted),
@@ -113,7 +115,7 @@ def accuracy_trial(params: dict[str, Any], seed: int) -> dict[str, Any]:
 
 
 # ----------------------------------------------------------------------------- Fig. 4.4
-def _extrapolate(res: off.Rank3Result, tol: float) -> float:
+def _extrapolate(res: Rank3Result, tol: float) -> float:
     """Iterations a capped faithful run still needs, from its observed linear rate of dF."""
     if res.converged:
         return 0.0
@@ -142,13 +144,13 @@ def timing_trial(params: dict[str, Any], seed: int) -> dict[str, Any]:
     R = sc.ranges
     t0 = time.perf_counter()
     if params["method"] == "faithful":
-        res = off.rank3_iteration(R, rng=gen, max_iter=int(params["max_iter"]))
+        res = rank3_iteration(R, rng=gen, max_iter=int(params["max_iter"]))
     else:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", ConvergenceWarning)
-            res = off.estimate_offsets(R, rng=gen)
+            res = estimate_offsets(R, rng=gen)
     seconds = time.perf_counter() - t0
-    extra_iters = _extrapolate(res, off.THESIS_TOL) if params["method"] == "faithful" else 0.0
+    extra_iters = _extrapolate(res, THESIS_TOL) if params["method"] == "faithful" else 0.0
     per_iter = seconds / max(res.iterations, 1)
     return {
         "seconds": seconds,
@@ -173,9 +175,9 @@ def lambda_trial(params: dict[str, Any], seed: int) -> dict[str, Any]:
     gen = np.random.default_rng(int(params["setup_seed"]))
     U = int(params["units"])
     sc = make_units(U, room=params["room"], rng=gen)
-    p0 = np.concatenate([gen.uniform(0, off.DELAY_MAX, U), gen.uniform(0, off.ONSET_MAX, U - 1)])
-    lam = off.thesis_lambda(float(params["lam_s"]), U, U)
-    res = off.rank3_iteration(sc.ranges, p0=p0, lam=lam, max_iter=int(params["max_iter"]))
+    p0 = np.concatenate([gen.uniform(0, DELAY_MAX, U), gen.uniform(0, ONSET_MAX, U - 1)])
+    lam = thesis_lambda(float(params["lam_s"]), U, U)
+    res = rank3_iteration(sc.ranges, p0=p0, lam=lam, max_iter=int(params["max_iter"]))
     h = res.history / C**2
     idx = np.unique(np.round(np.geomspace(1, h.size, 300)).astype(int) - 1)
     return {
@@ -207,7 +209,7 @@ def noise_trial(params: dict[str, Any], seed: int) -> dict[str, Any]:
     sc = make_units(int(params["units"]), room=params["room"], rng=gen, noise_std=sigma, equal_delays=False)
     p = _p_true(sc)
     U = sc.delays.size
-    rank3 = off.estimate_offsets(sc.ranges, accept=None, rng=gen)
+    rank3 = estimate_offsets(sc.ranges, accept=None, rng=gen)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", ConvergenceWarning)
         res = solve_toa(sc.times, dim=3, offsets="both", speed=C, rng=gen)

@@ -37,7 +37,7 @@ from typing import Any
 import numpy as np
 from tqdm.auto import tqdm
 
-from .._checks import TRIAL_BYTES, check_choice, guard_size
+from .._checks import TRIAL_BYTES, check_choice, entry, guard_size
 from .._result import jsonable
 from ..errors import InputError
 from ..io import atomic_write_bytes, write_json
@@ -130,6 +130,8 @@ def _connect(address: str, timeout: float) -> Any:
         ) from None
 
 
+@entry(trial="callable", runs="count", seed="count0", progress="bool", desc="str", chunk_size="count?",
+       workers="count?")
 def run_sweep(
     trial: Trial,
     grid: Iterable[dict[str, Any]],

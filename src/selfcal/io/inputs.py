@@ -23,8 +23,9 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from .._checks import entry
 from ..errors import InputError
-from ._paths import _is_dash, _kind_name, _oserror_text
+from ._paths import _is_dash, _kind_name, _oserror_text, note_input
 
 #: Cell texts read as a missing value (case-insensitive), besides the empty field.
 MISSING_TOKENS = frozenset({"", "na", "nan", "n/a", "#n/a", "null", "none", "-nan", "+nan"})  # #N/A: Excel
@@ -57,6 +58,7 @@ def _read_input_bytes(path: str | os.PathLike[str], label: str) -> bytes:
         raise InputError(f"{label}: is a directory, not a file")
     if not stat.S_ISREG(st.st_mode):
         raise InputError(f"{label}: is {_kind_name(st.st_mode)}; give a regular file (or '-' for standard input)")
+    note_input(p, label)
     try:
         return p.read_bytes()
     except OSError as exc:
@@ -98,10 +100,40 @@ def _short(cell: str) -> str:
     return repr(c if len(c) <= 24 else c[:20] + "...")
 
 
+def _layout(kinds: list[list[str]]) -> tuple[bool, bool]:
+    """(header row?, names column?) decided from the whole first row and the whole first column.
+
+    The first row is a header when no cell of it is a number (at least one text, the others
+    empty: a blank corner above the names) and more rows follow. The first column is names
+    when more columns follow and every cell of it below the header is text. A single text
+    cell among numbers (``1_0``, ``0x1A``, a stray word) makes neither, so no row or column of
+    numbers is ever taken for names; the reader then names that cell.
+    """
+    nrow, ncol = len(kinds), len(kinds[0])
+    first = kinds[0]
+    header = nrow > 1 and "number" not in first and "text" in first
+    body = kinds[1:] if header else kinds
+    names_col = ncol > 1 and bool(body) and all(r[0] == "text" for r in body)
+    return header, names_col
+
+
+def _layout_hint(kinds: list[list[str]], r: int, c: int) -> str:
+    """Why a text cell was not read as a name or a header (a typo is the likelier cause)."""
+    if c == 0 and len(kinds[0]) > 1:
+        n = sum(k[0] == "number" for k in kinds)
+        if n:
+            return f" (not a names column: {n} other cells of column 1 are numbers)"
+    if r == 0 and len(kinds) > 1:
+        n = sum(k == "number" for k in kinds[0])
+        if n:
+            return f" (not a header: {n} other cells of the first row are numbers)"
+    return ""
+
+
 def _sniff_delimiter(lines: list[str]) -> str | None:
     """Pick ',', ';' or tab when every line has the same positive count; None = whitespace."""
     best = None
-    for d in (",", ";", "\t", "|"):
+    for d in (";", ",", "\t", "|"):  # ";" first: a semicolon file with decimal commas has both
         counts = {ln.count(d) for ln in lines}
         if min(counts) > 0 and (best is None or len(counts) == 1):
             if best is None or len(counts) == 1 and best[1] > 1:
@@ -127,12 +159,13 @@ def _split(lines: list[str], delim: str | None) -> list[list[str]]:
         csv.field_size_limit(old)
 
 
-
 def _is_comment(line: str) -> bool:
     """A ``#`` comment line -- but not a data row whose first cell is Excel's ``#N/A``."""
     t = line.lstrip()
     return t.startswith("#") and not t[:4].upper() == "#N/A"
 
+
+@entry(path="path", name="str?")
 def read_table(path: str | os.PathLike[str], name: str | None = None) -> Table:
     """Read a numeric matrix from ``.npy`` or delimited text, keeping row/column names.
 
@@ -154,8 +187,11 @@ def read_table(path: str | os.PathLike[str], name: str | None = None) -> Table:
     (sniffed; ``np.savetxt`` output loads), UTF-8 with or without BOM, LF or CRLF, blank and
     ``#`` comment lines skipped (not a line starting with Excel's ``#N/A``). Missing: empty,
     ``NA``, ``NaN``, ``nan``, ``N/A``, ``#N/A`` (Excel), ``null``.
-    A first row with a non-numeric value column is a header; a first column whose cells are
-    not numbers is a column of row names. Numbers are strict decimals: ``1_0``, ``0x10`` and
+    The layout is decided from whole rows and columns: the first row is a header when none of
+    its cells is a number; the first column is names when every cell of it (below a header) is
+    text. A single non-number among numbers (``1_0``, ``0x1A``, a stray word in the corner) is
+    refused by its line and column, never taken as a sign of names, so no numeric row or column
+    is ever dropped. Numbers are strict decimals: ``1_0``, ``0x10`` and
     the like are refused with the row and column named. A 1-D input becomes one column.
 
     Raises
@@ -182,6 +218,12 @@ def read_table(path: str | os.PathLike[str], name: str | None = None) -> Table:
         raise InputError(f"{label}: looks like an .npz archive; give a .csv or .npy matrix")
     if b"\x00" in data[:65536]:
         raise InputError(f"{label}: not a text file (binary data)")
+    # parsing holds each cell as a Python string and its kind: ~28 bytes per byte of text for
+    # one-character cells (a 9.1 MB 3000 x 3000 CSV peaks at 250 MB), so refuse what cannot fit
+    from .._checks import guard_size
+
+    guard_size(32.0 * len(data), f"{label}: parsing a {len(data) / 1e6:.3g} MB text table "
+                                 f"(save large matrices as .npy)")
     try:
         text = data.decode("utf-8-sig")
     except UnicodeDecodeError as exc:
@@ -209,18 +251,8 @@ def read_table(path: str | os.PathLike[str], name: str | None = None) -> Table:
         )
     ncol = widths.pop()
     kinds = [[_cell_kind(c) for c in r] for r in rows]
-    # header: the first row has a text value cell and a later row has none there
-    header = False
-    if len(rows) > 1:
-        first_cols = range(1, ncol) if ncol > 1 else range(0, 1)
-        if any(kinds[0][c] == "text" for c in first_cols) and any(
-            all(kinds[r][c] != "text" for c in first_cols) for r in range(1, len(rows))
-        ):
-            header = True
+    header, names_col = _layout(kinds)
     body = range(1 if header else 0, len(rows))
-    names_col = ncol > 1 and any(kinds[r][0] == "text" for r in body) and any(
-        all(k != "text" for k in kinds[r][1:]) for r in body
-    )
     c0 = 1 if names_col else 0
     values = np.empty((len(body), ncol - c0), dtype=float)
     for out_r, r in enumerate(body):
@@ -232,7 +264,8 @@ def read_table(path: str | os.PathLike[str], name: str | None = None) -> Table:
             elif kind == "number":
                 values[out_r, c - c0] = float(cell)
             else:
-                raise InputError(f"{label}: row {numbered[r][0]}, column {c + 1}: {_short(cell)} is not a number")
+                raise InputError(f"{label}: row {numbered[r][0]}, column {c + 1}: {_short(cell)} is not a "
+                                 f"number{_layout_hint(kinds, r, c)}")
     if values.size == 0:
         raise InputError(f"{label}: no numeric values (only a header or names)")
     row_names = tuple(rows[r][0].strip().strip('"') for r in body) if names_col else None
@@ -339,6 +372,7 @@ def _read_npy(src: Any, label: str) -> NDArray[np.float64]:
     return arr
 
 
+@entry(path="path", name="str?")
 def read_matrix(path: str | os.PathLike[str], name: str | None = None) -> NDArray[np.float64]:
     """Read a numeric matrix from delimited text or ``.npy`` (see :func:`read_table`).
 

@@ -32,9 +32,10 @@ from typing import IO, Any
 import numpy as np
 from numpy.typing import NDArray
 
+from .._checks import entry
 from .._result import jsonable
-from ..errors import InputError, SelfcalError
-from ._paths import _is_dash, _kind_name, _oserror_text
+from ..errors import InputError
+from ._paths import _is_dash, _kind_name, _oserror_text, input_named_by
 
 #: Every path committed since the last ``written_files(reset=True)`` (``"-"`` = standard output), in
 #: order: the CLI's last line lists them (:class:`selfcal.commands._common.SelfcalGroup`).
@@ -84,8 +85,8 @@ class OutputError(InputError):
     """An output path cannot be written (a directory, device, FIFO, read-only, disk full, ...)."""
 
 
-class SerializationError(SelfcalError, TypeError):
-    """An object handed to a writer has no JSON form (a programming error, not bad input)."""
+class SerializationError(InputError, TypeError):
+    """An object handed to a writer has no JSON form (an InputError naming it; also a TypeError)."""
 
 
 # --------------------------------------------------------------------------------------
@@ -197,8 +198,43 @@ def stdout_target(stream: IO[Any] | None) -> Iterator[None]:
         _STDOUT.reset(tok)
 
 
+def stream_problem(stream: IO[Any] | None) -> str | None:
+    """Why ``stream`` (standard output) cannot take a result (None = closed), or None when it can."""
+    if stream is None:
+        return "standard output is closed"
+    if getattr(stream, "closed", False):
+        return "standard output is closed"
+    try:
+        fd = stream.fileno()
+    except (OSError, ValueError, AttributeError):  # an in-memory stream (tests, redirection)
+        return None
+    try:
+        os.fstat(fd)
+    except OSError as exc:
+        return f"standard output is not open ({_oserror_text(exc)})"
+    try:
+        import fcntl
+
+        if fcntl.fcntl(fd, fcntl.F_GETFL) & os.O_ACCMODE == os.O_RDONLY:
+            return "standard output is open for reading only"
+    except (ImportError, OSError):  # no fcntl (Windows): the write itself will tell
+        pass
+    return None
+
+
+def _refuse_input(raw: str, real: Path | None = None) -> None:
+    """Refuse a write whose target is a file the running command reads."""
+    label = input_named_by(real if real is not None else raw)
+    if label is not None:
+        raise OutputError(f"{raw}: is the input {label} (the same file); refusing to overwrite it, "
+                          f"choose another output")
+
+
 def _write_stdout(data: bytes) -> None:
     stream = _STDOUT.get() or sys.stdout
+    why = stream_problem(stream)
+    if why is not None:
+        raise OutputError(f"-: cannot write the result: {why}")
     buf = getattr(stream, "buffer", None)
     try:
         if buf is not None:
@@ -221,7 +257,13 @@ def _commit(items: Sequence[tuple[str, bytes]]) -> None:
         if _is_dash(raw):
             to_stdout.append(data)
         else:
-            files[check_output_path(raw)] = (raw, data)  # the last write of a path wins
+            real = check_output_path(raw)
+            _refuse_input(raw, real)
+            files[real] = (raw, data)  # the last write of a path wins
+    if to_stdout:
+        why = stream_problem(_STDOUT.get() or sys.stdout)
+        if why is not None:
+            raise OutputError(f"-: cannot write the result: {why}; nothing was written")
     created: list[Path] = []
     temps: list[tuple[str, Path]] = []
     current = ""
@@ -299,7 +341,9 @@ def atomic_write_bytes(path: str | os.PathLike[str], data: bytes) -> None:
     """
     stage = _STAGE.get()
     if stage is not None:
-        check_output_path(path)  # fail early, before more work is done
+        real = check_output_path(path)  # fail early, before more work is done
+        if not _is_dash(path):
+            _refuse_input(os.fspath(path), real)
         stage.items.append((os.fspath(path), bytes(data)))
         return
     _commit([(os.fspath(path), bytes(data))])
@@ -334,6 +378,33 @@ def staged_outputs() -> Iterator[None]:
     _commit(stage.items)
 
 
+#: Deepest nesting of containers :func:`write_json` writes (JSON readers, Python's among them,
+#: stop near 1000 levels; a result is a few levels deep).
+MAX_JSON_DEPTH = 500
+
+
+def _unserialisable_nesting(obj: Any) -> str | None:
+    """Why ``obj`` cannot be written as JSON by its shape (a container holding itself, or nesting
+    deeper than :data:`MAX_JSON_DEPTH`), found iteratively (no recursion), else None."""
+    stack: list[tuple[Any, int, frozenset[int]]] = [(obj, 0, frozenset())]
+    while stack:
+        o, depth, path = stack.pop()
+        if isinstance(o, dict):
+            kids: Any = o.values()
+        elif isinstance(o, (list, tuple)):
+            kids = o
+        else:
+            continue
+        if id(o) in path:
+            return "a container holds itself (a reference cycle)"
+        if depth >= MAX_JSON_DEPTH:
+            return f"nested deeper than {MAX_JSON_DEPTH} levels"
+        inner = path | {id(o)}
+        stack.extend((k, depth + 1, inner) for k in kids)
+    return None
+
+
+@entry(path="path", indent="count0")
 def write_json(path: str | os.PathLike[str], obj: Any, *, indent: int = 2) -> None:
     """Serialise ``obj`` with :func:`selfcal._result.jsonable` (strict) and write it atomically as strict JSON.
 
@@ -348,7 +419,21 @@ def write_json(path: str | os.PathLike[str], obj: Any, *, indent: int = 2) -> No
         text = json.dumps(jsonable(obj, strict=True), indent=indent, allow_nan=False)
     except (TypeError, ValueError) as exc:
         raise SerializationError(f"result has no strict-JSON form ({exc})") from None
+    except RecursionError:  # only then is the shape walked (iteratively) to say why
+        why = _unserialisable_nesting(obj) or "nested too deeply for JSON"
+        raise SerializationError(f"obj has no JSON form: {why}") from None
     atomic_write_bytes(path, (text + "\n").encode())
+
+
+def write_npz(path: str | os.PathLike[str], arrays: dict[str, NDArray[Any]]) -> None:
+    """Write named arrays as one uncompressed ``.npz`` (``numpy.load`` reads it), atomically.
+
+    The binary sidecar of a JSON result whose per-entry arrays are too large for JSON text
+    (``calibrate toa --entries``): 8 bytes a float instead of ~20 characters, no conversion.
+    """
+    buf = _io.BytesIO()
+    np.savez(buf, **{k: np.asarray(v) for k, v in arrays.items()})  # type: ignore[arg-type]
+    atomic_write_bytes(path, buf.getvalue())
 
 
 def write_matrix(path: str | os.PathLike[str], matrix: NDArray[Any]) -> None:

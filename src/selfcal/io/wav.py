@@ -30,7 +30,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..errors import InputError
-from ._paths import _kind_name
+from ._paths import _kind_name, note_input
 
 __all__ = ["WavData", "read_wav_file"]
 
@@ -133,6 +133,7 @@ def read_wav_file(path: str | os.PathLike[str], label: str | None = None) -> Wav
     if not stat.S_ISREG(st.st_mode):
         raise _fail(label, f"not a regular file ({_kind_name(st.st_mode)}, in {p.parent})")
     size = st.st_size
+    note_input(p, label)
     try:
         with open(p, "rb") as f:
             return _decode(f, size, label)

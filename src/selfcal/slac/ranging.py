@@ -57,6 +57,7 @@ from numpy.typing import NDArray
 from scipy import stats
 from scipy.optimize import brentq
 
+from .._checks import entry, has_attributes
 from .._result import Result
 from ..errors import ConvergenceWarning, InputError, Status
 from ..geometry import wrap_angle
@@ -151,6 +152,9 @@ class RangeModelConfig:
     noise_tol : float
         The EM rounds stop when no noise level changes by more than this relative amount
         (``|log(new / old)|``); a finite number > 0.
+    lag_s : float
+        ``method="fixed-lag"``: seconds of data after a pose that its estimate uses (the
+        delay of the estimate when run online); a finite number > 0.
 
     Raises
     ------
@@ -175,10 +179,11 @@ class RangeModelConfig:
     heading_noise_grid: tuple[float, ...] = (1.0, 0.3, 0.1, 0.03)
     noise_rounds: int = 8
     noise_tol: float = 0.05
+    lag_s: float = 30.0
 
     def __post_init__(self) -> None:
         for name in ("range_noise", "scale_std", "offset_std", "init_position_std", "init_heading_std", "huber", "tol",
-                     "noise_tol"):
+                     "noise_tol", "lag_s"):
             v = getattr(self, name)
             if isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, float, np.integer, np.floating)):
                 raise InputError(f"RangeModelConfig.{name} must be a positive number, got {type(v).__name__} {v!r}")
@@ -582,6 +587,33 @@ def _rts(ps: _Pass) -> tuple[FArray, FArray, FArray]:
     return ms, Ps, X
 
 
+def _fixed_lag(ps: _Pass, times: FArray, lag_s: float) -> tuple[FArray, FArray]:
+    """Fixed-lag RTS over a stored forward pass: the estimate of node n from the data up to
+    ``times[n] + lag_s`` (the RTS recursion run back from the last node within the lag).
+
+    Returns means (N, D) and covariances (N, D, D). Cost O(N L D^3) for L nodes per lag; online
+    only the last L nodes' filter quantities are needed (here the pass is stored whole).
+    """
+    assert ps.mp is not None and ps.Pp is not None and ps.F is not None
+    N = ps.mf.shape[0]
+    gains = np.empty((max(N - 1, 0),) + ps.Pf.shape[1:])
+    for n in range(N - 1):
+        AP = ps.Pf[n].copy()
+        AP[:3] = ps.F[n + 1] @ AP[:3]  # A P_f with A = blockdiag(F, I)
+        gains[n] = np.linalg.solve(ps.Pp[n + 1], AP).T
+    end = np.searchsorted(times, times + lag_s, side="right") - 1
+    ms = np.empty_like(ps.mf)
+    Ps = np.empty_like(ps.Pf)
+    for n in range(N):
+        m, P = ps.mf[end[n]], ps.Pf[end[n]]
+        for j in range(end[n] - 1, n - 1, -1):
+            C = gains[j]
+            m = ps.mf[j] + C @ (m - ps.mp[j + 1])
+            P = ps.Pf[j] + C @ (P - ps.Pp[j + 1]) @ C.T
+        ms[n], Ps[n] = m, P
+    return ms, Ps
+
+
 def _noise_from_innovations(y: FArray, c0: FArray) -> float:
     """Robust range-noise std from predictive innovations: the sigma at which the median of
     ``y^2 / (c0 + sigma^2)`` equals the chi2(1) median (a robust moment estimator)."""
@@ -751,6 +783,8 @@ def innovation_tests(nu: FArray, beacon: IArray, gate2: float, *, tolerance: flo
     return out
 
 
+@entry(log=has_attributes("beacons", "odo", "ranges", "range_times", "range_beacon",
+                          what="RangeLog (or PlazaData)"), method="str", progress="bool")
 def solve_range_slac(log: RangeLog | Any, *, method: str = "smoother", config: RangeModelConfig | None = None,
                      progress: bool = False) -> RangeSlacResult:
     """Localize a robot from odometry + beacon ranges and calibrate each beacon's scale and offset.
@@ -758,8 +792,9 @@ def solve_range_slac(log: RangeLog | Any, *, method: str = "smoother", config: R
     Parameters
     ----------
     log : RangeLog or an object with :class:`~selfcal.datasets.plaza.PlazaData`'s attributes.
-    method : "filter" (causal robust EKF) or "smoother" (batch MAP by the iterated extended
-        Kalman smoother); see the module docstring for when to use which.
+    method : "filter" (causal robust EKF), "smoother" (batch MAP by the iterated extended
+        Kalman smoother) or "fixed-lag" (the filter's poses each smoothed by the next
+        ``config.lag_s`` seconds of data); see the module docstring for when to use which.
     config : RangeModelConfig (priors, robust loss, gate).
     progress : a tqdm bar on a terminal (stderr) only.
 
@@ -803,8 +838,8 @@ def solve_range_slac(log: RangeLog | Any, *, method: str = "smoother", config: R
     >>> bool(np.max(np.linalg.norm(res.poses[:, :2] - truth[:, :2], axis=1)) < 0.1)
     True
     """
-    if method not in ("filter", "smoother"):
-        raise InputError(f"method must be 'filter' or 'smoother', got {method!r}")
+    if method not in ("filter", "smoother", "fixed-lag"):
+        raise InputError(f"method must be 'filter', 'smoother' or 'fixed-lag', got {method!r}")
     if not isinstance(log, RangeLog):
         log = RangeLog.from_dataset(log)
     cfg = config or RangeModelConfig()
@@ -871,6 +906,16 @@ def solve_range_slac(log: RangeLog | Any, *, method: str = "smoother", config: R
         scale_weight = float(sum(W[c, -1] for c, (_, ks) in enumerate(cands) if ks))
         nu = fw.innov / np.sqrt(fw.innov_var0 + fw.noise_used**2)
         tests = innovation_tests(nu[fw.used], ch.r_beacon[fw.used], gate2, alpha=CONSISTENCY_ALPHA)
+    elif method == "fixed-lag":
+        # the causal robust EKF of the best heading candidate (no scale state: the RTS recursion
+        # assumes A = blockdiag(F, I)), each pose then smoothed by the ranges of the next lag_s
+        # seconds; the calibration is the filter's at the end of the log
+        ps = _forward(ch, log, cfg, cfg.range_noise, ref=None, weights=None, store=True, progress=progress,
+                      var=_var(g_best), noise_seq=ref_pass.noise_used, odo_scale=False)
+        x_nodes, P_nodes = _fixed_lag(ps, ch.times, float(cfg.lag_s))
+        cal_x, cal_P = ps.mf[-1], ps.Pf[-1]
+        used = int(ps.used.sum())
+        rejected = int((~ps.used).sum())
     else:
         sigma = sigma_hat if (cfg.estimate_noise and np.isfinite(sigma_hat) and sigma_hat > 0) else cfg.range_noise
         var = np.column_stack([cfg.odo_distance**2 * z_d, g_best**2 * (cfg.odo_turn**2 * z_t + cfg.odo_drift**2 * z_d)])

@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from .._checks import as_rng, check_choice, entry
+from .._checks import as_rng, check_choice, entry, has_attributes
 from .._result import Result
 from ..errors import InputError
 from ..io import atomic_write_bytes, load_npz
@@ -216,7 +216,7 @@ class SlacResult(Result):
         }
 
 
-@entry(steps="count?")
+@entry(log=has_attributes("anchors", "T", "snapshot_fn", what="SlacLog (selfcal.slac.SlacLog)"), steps="count?", progress="bool")
 def solve_slac(
     log: SlacLog,
     *,

@@ -203,3 +203,101 @@ def linear_position_covariance(D: Array, x: Array, u: Array, C: Array, W: Array,
     out = np.zeros((m, 1, 1))
     out[1:, 0, 0] = sigma2 * np.diag(cov)
     return out
+
+
+#: largest ``d (m - 1)`` for which :func:`direction_covariance` forms the positions' dense Schur
+#: complement (its pseudo-inverse is O((d m)^3))
+DIRECTION_COV_MAX = 1500
+
+
+def direction_covariance(D: Array, Z: Array, N: Array, C: Array, W: Array, *, free_offsets: bool = True) -> Array:
+    """Gauss-Newton covariance of each unit direction at a least-squares solution: (k, d, d).
+
+    Block inverse of ``J^T W J`` with the positions profiled in: for column j,
+    ``A_j + A_j X_j^T S^+ X_j A_j`` with ``A_j = Hnn_j^-1`` (its tangent coordinates and offset),
+    ``X_j`` its coupling to the positions and ``S^+`` the pseudo-inverse of the positions' Schur
+    complement (the gauge of :func:`position_covariance`: the best rotation about the first
+    position); the tangent block mapped to the ambient frame (``T Sigma_v T^T``, T the tangent
+    basis of the sphere / circle) and scaled by ``sigma^2 = RSS / (observations - parameters +
+    rotations)``.
+
+    Parameters
+    ----------
+    D, Z, N, C, W : data (m, k), positions (m, d) with ``Z[0] = 0``, unit directions (k, d), offsets
+        (k,), weights (m, k) (0 = unused entry).
+    free_offsets : whether the C_j are estimated.
+
+    Returns
+    -------
+    (k, d, d) covariance of each direction (unitless^2 = rad^2 for small errors), in the frame of
+    ``N``; its null direction is ``n_j`` itself.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> rng = np.random.default_rng(0)
+    >>> Z = rng.uniform(-0.1, 0.1, (8, 3)); Z[0] = 0
+    >>> N = rng.normal(size=(12, 3)); N /= np.linalg.norm(N, axis=1, keepdims=True)
+    >>> D = Z @ N.T + 1e-4 * rng.standard_normal((8, 12))
+    >>> cov = direction_covariance(D, Z, N, np.zeros(12), np.ones((8, 12)))
+    >>> cov.shape, bool(np.allclose(np.einsum("ja,jab->jb", N, cov), 0.0, atol=1e-15))
+    ((12, 3, 3), True)
+    """
+    D0 = np.where(W > 0, D, 0.0)
+    Hzz, Hzn, Hnn, _, _, T, r = _normal_equations(D0, Z, N, C, W, free_offsets)
+    mz, k, d, p = Hzn.shape
+    Q = _rotation_generators(Z)
+    g = Q.shape[1]
+    n_obs = int((W > 0).sum())
+    n_par = d * mz + p * k - g
+    sigma2 = float(np.sum(W * r**2)) / max(n_obs - n_par, 1)
+    A = np.linalg.pinv(Hnn, hermitian=True)  # (k, p, p)
+    X = np.matmul(Hzn, A[None])  # (mz, k, d, p): H_zn A, per column
+    Hr = _flat(Hzn)
+    S = -(_flat(X) @ Hr.T)
+    idx = np.arange(mz)
+    S4 = S.reshape(mz, d, mz, d)
+    S4[idx, :, idx, :] += Hzz
+    Sp = np.linalg.pinv(S, rcond=1e-10, hermitian=True)
+    Y = _flat(X)  # (mz d, k p): the columns' couplings side by side
+    SY = Sp @ Y  # one BLAS product
+    # per column j: X_j^T S^+ X_j = (Y_j)^T (S^+ Y)_j, the (p, p) diagonal blocks of Y^T S^+ Y
+    Yb = Y.reshape(mz * d, k, p)
+    SYb = SY.reshape(mz * d, k, p)
+    cov_v = A + np.einsum("akp,akq->kpq", Yb, SYb)
+    q = d - 1
+    cov_t = cov_v[:, :q, :q]
+    cov = sigma2 * np.matmul(np.matmul(T, cov_t), T.transpose(0, 2, 1))
+    return np.asarray(0.5 * (cov + cov.transpose(0, 2, 1)))
+
+
+def direction_angle_std(N: Array, cov: Array) -> dict[str, Array]:
+    """Angle standard deviations (degrees) of unit directions from their (k, d, d) covariance.
+
+    ``angle``: the RMS angle between the estimated and the true direction, ``sqrt(trace cov)``
+    (the small-angle cone half-angle of one standard deviation); in 3-D also ``azimuth``
+    (``atan2(n_y, n_x)``) and ``elevation`` (``asin(n_z)``) in the frame of ``N``. Azimuth is
+    undefined at the poles (inf there).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> N = np.array([[1.0, 0.0, 0.0]])
+    >>> cov = np.diag([0.0, 1e-4, 4e-4])[None]
+    >>> {key: np.round(v, 3).tolist() for key, v in direction_angle_std(N, cov).items()}
+    {'angle': [1.281], 'azimuth': [0.573], 'elevation': [1.146]}
+    """
+    N = np.asarray(N, dtype=float)
+    cov = np.asarray(cov, dtype=float)
+    deg = 180.0 / np.pi
+    out = {"angle": deg * np.sqrt(np.maximum(np.trace(cov, axis1=1, axis2=2), 0.0))}
+    if N.shape[1] == 3:
+        rho2 = N[:, 0] ** 2 + N[:, 1] ** 2
+        with np.errstate(divide="ignore", invalid="ignore"):
+            g_az = np.column_stack([-N[:, 1], N[:, 0], np.zeros(len(N))]) / rho2[:, None]
+            g_el = np.column_stack([np.zeros((len(N), 2)), 1.0 / np.sqrt(rho2)])
+            v_az = np.einsum("ja,jab,jb->j", g_az, cov, g_az)
+            v_el = np.einsum("ja,jab,jb->j", g_el, cov, g_el)
+        out["azimuth"] = np.where(rho2 > 1e-24, deg * np.sqrt(np.maximum(v_az, 0.0)), np.inf)
+        out["elevation"] = np.where(rho2 > 1e-24, deg * np.sqrt(np.maximum(v_el, 0.0)), np.inf)
+    return out

@@ -44,13 +44,17 @@ from .degeneracy import fit_quadric, rank_threshold, top_svd
 from .model import farfield_jacobian, farfield_residuals
 from .screen import far_field_parameters
 
-__all__ = ["DeletionScreen", "farfield_leverages", "deletion_screen", "POWER_Z"]
+__all__ = ["DeletionScreen", "farfield_leverages", "deletion_screen", "POWER_Z", "SMALL_TAIL_DOF"]
 
 Array = NDArray[np.float64]
 Mask = NDArray[np.bool_]
 
 #: normal quantile of the 80 % power of Baarda's minimal detectable bias
 POWER_Z = 0.8416
+#: degrees of freedom of the tail assumed by the small-matrix test (``tail="fitted"``): real
+#: delay residuals have ML tails of about 5 dof (GCC-PHAT, the Pyramic file), 3 is the heaviest
+#: tail the stated false-alarm rate is claimed for
+SMALL_TAIL_DOF = 3.0
 
 
 @dataclass(frozen=True)
@@ -233,6 +237,7 @@ def deletion_screen(
     noise_std: float | None = None,
     rounds: int | None = None,
     rng: np.random.Generator | int | None = 0,
+    tail: str = "fitted",
 ) -> DeletionScreen:
     """Test the ``used`` entries of a small 3-D far-field matrix one at a time (module docstring).
 
@@ -245,6 +250,12 @@ def deletion_screen(
         measurements).
     rounds : most entries flagged (default: half the spare measurements).
     rng : seed of the minimal-sample search (deterministic by default).
+    tail : ``"fitted"`` (default): the null distribution of the studentised residual has the tail
+        of a unit-variance Student-t with :data:`SMALL_TAIL_DOF` degrees of freedom (a small
+        matrix has too few spare measurements to estimate its tail; the heaviest tail the stated
+        rate is claimed for is assumed), widened by the Student-t factor of the estimated sigma;
+        ``"gaussian"``: the Gaussian rule (Student-t on the spare measurements), whose false-alarm
+        rate holds for Gaussian noise only.
 
     Returns
     -------
@@ -263,9 +274,15 @@ def deletion_screen(
     known = noise_std is not None and noise_std > 0
     sig_known = float(noise_std) if noise_std is not None else 0.0
 
+    nu = SMALL_TAIL_DOF
+    heavy = tail != "gaussian"
+
     def quantile(n_test: int, dof: int) -> float:
         a = alpha / (2.0 * max(n_test, 1))
-        return float(norm.isf(a)) if known else float(student.isf(a, max(dof, 1)))
+        q = float(norm.isf(a)) if known else float(student.isf(a, max(dof, 1)))
+        if heavy:  # the unit-variance t_nu quantile in place of the normal one
+            q *= float(student.isf(a, nu)) / np.sqrt(nu / (nu - 2.0)) / float(norm.isf(a))
+        return q
 
     # quick pass, enough for clean data: the least-squares fit of every entry and the
     # externally studentised residuals, in closed form (the deletion statistic of a linear

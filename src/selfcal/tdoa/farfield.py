@@ -38,9 +38,11 @@ from numpy.typing import NDArray
 from .._checks import as_matrix, as_rng, check_choice, check_positive, entry
 from ..errors import ConvergenceWarning, DegenerateGeometryError, InputError
 from ..robust import TUNING
+from .covariance import DIRECTION_COV_MAX, direction_covariance
 from .degeneracy import (
     DETERMINED,
     MESSAGES,
+    RANK_ALPHA,
     analyse_degeneracy,
     partial_collinear_motion,
     partial_coplanar_directions,
@@ -74,6 +76,7 @@ __all__ = [
     "lowrank_fit",
     "ransac_farfield",
     "METHODS",
+    "dimension_rule",
 ]
 
 Array = NDArray[np.float64]
@@ -103,7 +106,8 @@ def _raise_or_return(
 
 
 @entry(matrix="array", f_scale="positive?", noise_std="positive?", max_iter="count?", tol="positive?",
-       rng="rng", reject_k="positive", cone_tol="positive")
+       rng="rng", reject_k="positive", cone_tol="positive", allow_degenerate="bool", screen="bool",
+       check_degeneracy="bool", ransac="bool")
 def solve_farfield(
     matrix: Any,
     *,
@@ -149,7 +153,8 @@ def solve_farfield(
     allow_degenerate : return the partial reconstruction of a degenerate configuration
         (with ``degeneracy`` set) instead of raising.
     screen : treat gross errors (:func:`screen_gross_errors`: a residual test at family-wise
-        false-alarm rate 1 %) as missing.
+        false-alarm rate 1 % against the Student-t tail fitted to the residuals, so the rate
+        holds for heavy-tailed noise too) as missing.
     reject_k : with a robust loss, entries with ``|residual| > reject_k`` robust std are rejected.
     max_iter, tol : refinement limits (defaults 200 / 1e-12 for LM, 2000 / 1e-10 for
         alternating).
@@ -246,17 +251,20 @@ def solve_farfield(
     if method == "minimal" and ((m, k) != (4, 6) or not finite.all()):
         raise InputError(f"method='minimal' needs a complete 4 x 6 matrix, got {m} x {k}")
     check_orientation(D, noise_std=noise_std, rank=3)
+    dim_rule = dimension_rule(dim)
     scr = gross_error_screen(D) if screen else None
     gross = scr.mask if scr is not None else np.zeros_like(finite)
     untestable = int(scr.untestable.sum()) if scr is not None else 0
     screen_note = (scr.message,) if scr is not None and scr.message else ()
+    screen_rule = scr.rule if scr is not None else "none (screen=False)"
     if ransac:
         gross = gross | (finite & ~ransac_farfield(np.where(gross, np.nan, D), rng=gen))
     used = finite & ~gross
     complete = bool(used.all())
     if directions is not None:
         res0 = _solve_known_directions(D, used, gross, directions, loss=loss)
-        return replace(res0, untestable=untestable, warnings=screen_note + res0.warnings)
+        return replace(res0, untestable=untestable, warnings=screen_note + res0.warnings, dim_rule=dim_rule,
+                       screen_rule=screen_rule)
     if offsets == "auto":
         offsets = "reference" if (complete and loss == "linear") else "free"
     if offsets == "reference" and not np.all(used[0]):
@@ -305,8 +313,15 @@ def solve_farfield(
             cov = np.einsum("ab,ibc,dc->iad", R, cov, R)
         r = farfield_residuals(np.where(used & ~rej, D, np.nan), pos, dirs, C)
         rms = float(np.sqrt(np.nanmean(r**2))) if np.isfinite(r).any() else float("nan")
+        dcov = None
+        if cov is not None and kind is None and dirs.shape[1] in (2, 3) and \
+                dirs.shape[1] * (len(pos) - 1) <= DIRECTION_COV_MAX:
+            Wd = (used & ~rej).astype(float)
+            Cf = np.sum(Wd * np.where(Wd > 0, D - pos @ dirs.T, 0.0), axis=0) / np.maximum(Wd.sum(0), 1e-300)
+            dcov = direction_covariance(D, pos, dirs, Cf, Wd, free_offsets=True)
         return FarfieldResult(pos, dirs, C, kind, rms, conv, its, meth, loss, rej | gross, pd, report, hist,
-                              cov, warnings=screen_note, untestable=untestable)
+                              cov, warnings=screen_note, untestable=untestable, dim_rule=dim_rule,
+                              direction_cov=dcov, screen_rule=screen_rule)
 
     no_rej = np.zeros_like(finite)
     kind_found = report.kind if check_degeneracy else None
@@ -423,6 +438,21 @@ def solve_farfield(
             warnings.warn(cautions[0], ConvergenceWarning, stacklevel=2)
         res = replace(res, warnings=res.warnings + cautions)
     return res
+
+
+def dimension_rule(dim: int | str) -> str:
+    """How the dimension of a far-field solution is chosen, in words (``FarfieldResult.dim_rule``).
+
+    Examples
+    --------
+    >>> dimension_rule(2)
+    'given: dim=2 (no test)'
+    """
+    if dim != "auto":
+        return f"given: dim={dim} (no test)"
+    return (f"auto: nested rank tests of the column-centred matrix against the noise (rank r - 1 against r, "
+            f"false-alarm rate {RANK_ALPHA:g} each, Tracy-Widom quantiles); rank 2 is solved as planar when "
+            "its 2-D quadric is consistent, rank 1 as linear, else 3-D")
 
 
 def _direction_spread(N: Array) -> float:

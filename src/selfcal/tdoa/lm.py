@@ -9,6 +9,8 @@ from numpy.typing import NDArray
 
 from .._checks import check_choice
 from ..geometry import sphere_exp
+from ..optim.lm import Model, levenberg_marquardt
+from ..optim.structure import FARFIELD_COV_MAX, FARFIELD_DIRECT_MAX
 from ..robust import LOSSES
 from .covariance import position_covariance
 from .model import (
@@ -80,16 +82,10 @@ def _lm_step(
     return dz, dn.reshape(k, p)
 
 
-#: largest reduced (Schur) system solved directly; above it the LM step uses preconditioned
-#: conjugate gradients with O(m k) matrix-vector products instead. Forming the reduced system
-#: costs O(n^2 p k) (n its size, p k the other side's unknowns) and factoring it O(n^3);
-#: measured in bench_farfield (CPU seconds, same start, same final cost): 500 x 1000 (n = 1497)
-#: 4.4 s direct against 1.9 s CG, 2000 x 200 (n = 600) 2.1 s against 1.3 s, so the direct
-#: solve is kept only for small reduced systems (48 x 540: n = 141)
-DIRECT_MAX = 500
-#: largest reduced system for which :func:`refine_lm` computes the covariance by default
-#: (n = 2000: 32 MB and a few seconds of one core for the O(n^3) inverse)
-COV_DIRECT_MAX = 2000
+#: the far-field step's thresholds (reduced system solved directly / covariance by default):
+#: :mod:`selfcal.optim.structure`, with the measurements behind them
+DIRECT_MAX = FARFIELD_DIRECT_MAX
+COV_DIRECT_MAX = FARFIELD_COV_MAX
 
 
 def _block_jacobi_cg(matvec: Any, diag: Array, rhs: Array, *, rtol: float, max_iter: int) -> Array:
@@ -193,6 +189,96 @@ def _small_step(dz: Array, dn: Array, Z: Array, C: Array, q: int, tol: float) ->
     return moved <= tol * length and turned <= tol * np.sqrt(k)
 
 
+#: damping trials per iteration: the Marquardt factor grows by 2, 4, 8, ... per refused trial,
+#: so 24 trials span a factor 2^300 (the former x10 rule stopped past 1e12)
+_TRIALS = 24
+
+
+class _FarfieldModel(Model):
+    """The far-field model for :func:`selfcal.optim.levenberg_marquardt`.
+
+    The point is ``[Z (m d), N (k d), C (k)]`` flat; a step is ``[dz ((m-1) d), dn (k p)]``
+    (``Z_0 = 0`` fixed, tangent coordinates of the directions, offsets last when free),
+    retracted by the exponential map.
+    """
+
+    def __init__(self, D0: Array, obs: Any, zshape: tuple[int, ...], nshape: tuple[int, ...], loss: str,
+                 delta: float, free_offsets: bool, side: str) -> None:
+        self.D0, self.obs, self.loss, self.delta = D0, obs, loss, delta
+        self.free, self.side = free_offsets, side
+        (self.m, self.d), self.k = zshape, nshape[0]
+
+    def pack(self, Z: Array, N: Array, C: Array) -> Array:
+        return np.concatenate([Z.ravel(), N.ravel(), C])
+
+    def unpack(self, x: Array) -> tuple[Array, Array, Array]:
+        md, kd = self.m * self.d, self.k * self.d
+        return x[:md].reshape(self.m, self.d), x[md:md + kd].reshape(self.k, self.d), x[md + kd:]
+
+    def evaluate(self, x: Array) -> tuple[float, None]:
+        Z, N, C = self.unpack(x)
+        return _cost(farfield_residuals(self.D0, Z, N, C), self.obs, self.loss, self.delta), None
+
+    def linearize(self, x: Array, state: None) -> Any:
+        Z, N, C = self.unpack(x)
+        W = _weights(self.D0, Z, N, C, self.obs, self.loss, self.delta)
+        Hzz, Hzn, Hnn, gz, gn, T, _ = _normal_equations(self.D0, Z, N, C, W, self.free,
+                                                        coupling=self.side != "cg-factored")
+        self._T = T
+        return _FarfieldStep(self, Hzz, Hzn, Hnn, gz, gn, "cg" if self.side == "cg-factored" else self.side)
+
+    def split(self, dx: Array) -> tuple[Array, Array]:
+        n = (self.m - 1) * self.d
+        return dx[:n].reshape(self.m - 1, self.d), dx[n:].reshape(self.k, -1)
+
+    def retract(self, x: Array, dx: Array) -> Array:
+        Z, N, C = self.unpack(x)
+        dz, dn = self.split(dx)
+        q = self._T.shape[2]
+        Zc = Z.copy()
+        Zc[1:] += dz
+        Nc = sphere_exp(N, np.einsum("jab,jb->ja", self._T, dn[:, :q]))
+        Cc = C + dn[:, q] if self.free else C
+        return self.pack(Zc, Nc, Cc)
+
+    def small_step(self, x: Array, dx: Array, xtol: float) -> bool:
+        Z, _, C = self.unpack(x)
+        dz, dn = self.split(dx)
+        return _small_step(dz, dn, Z, C, self._T.shape[2], xtol)
+
+    def stationary(self, lin: Any, cost: float) -> bool:
+        return True
+
+
+
+class _FarfieldStep:
+    """The far-field step solver (:func:`_lm_step`, Schur over the smaller side or CG) at one
+    linearisation; ``gnorm`` 0: a refused step at any damping is convergence (no descent left)."""
+
+    gnorm = 0.0
+
+    def __init__(self, model: _FarfieldModel, Hzz: Array, Hzn: Any, Hnn: Array, gz: Array, gn: Array,
+                 side: str) -> None:
+        self.model, self.Hzz, self.Hzn, self.Hnn, self.gz, self.gn, self.side = model, Hzz, Hzn, Hnn, gz, gn, side
+        self.dzz, self.dnn = np.einsum("iaa->ia", Hzz), np.einsum("jaa->ja", Hnn)
+        self.ridge_z = 1e-12 * np.maximum(self.dzz.max(axis=0), np.finfo(float).tiny)
+        self.ridge_n = 1e-12 * np.maximum(self.dnn.max(axis=0), np.finfo(float).tiny)
+        self.lam = 0.0
+
+    def step(self, lam: float) -> Array:
+        self.lam = lam
+        dz, dn = _lm_step(self.Hzz, self.Hzn, self.Hnn, self.gz, self.gn, lam, side=self.side)
+        return np.concatenate([dz.ravel(), dn.ravel()])
+
+    def predicted(self, dx: Array) -> float:
+        # cost = sum rho ~ |r - J dx|_W^2: decrease 2 g.dx - dx.H dx, where
+        # (H + damping) dx = g gives dx.H dx = g.dx - dx.damping.dx
+        dz, dn = self.model.split(dx)
+        damp = (np.sum((self.lam * self.dzz + self.ridge_z) * dz**2)
+                + np.sum((self.lam * self.dnn + self.ridge_n) * dn**2))
+        return float(np.sum(self.gz * dz) + np.sum(self.gn * dn) + damp)
+
+
 def refine_lm(
     D: Array,
     positions: Array,
@@ -203,7 +289,7 @@ def refine_lm(
     free_offsets: bool = False,
     loss: str = "linear",
     delta: float = 1.0,
-    lam: float = 1.0,
+    lam: float | None = None,
     adaptive: bool = True,
     max_iter: int = 200,
     tol: float = 1e-12,
@@ -219,16 +305,19 @@ def refine_lm(
     ``(J^T W J + lambda diag(J^T W J)) dy = J^T W r`` (step 2; W = IRLS weights of the loss)
     and retracts ``n_j <- exp_{n_j}(T_j dv_j)``.
 
-    Lambda schedule: starts at ``lam`` (the paper uses a constant 1). With ``adaptive`` a step
-    that lowers the cost is accepted and lambda divided by 10; one that does not is rejected
-    and lambda multiplied by 10 (so the cost never increases). Without it, lambda stays
-    constant and every step is taken, as in the paper.
+    Lambda schedule: with ``adaptive`` the driver's (:mod:`selfcal.optim.lm`: a step that
+    does not lower the cost is refused and lambda raised, Nielsen's gain-ratio update after an
+    accepted one), starting at ``lam`` (default 1e-4, as every model of the driver; from the
+    paper's 1 the gain-ratio rule, at most /3 per step, took 7 -> 10 iterations on a 20 x 40
+    network). Without ``adaptive``, lambda stays ``lam`` (default 1, the paper's constant)
+    and every step is taken, as in the paper.
 
     Convergence: the relative cost decrease of an accepted step is below ``tol``, or the
     step is below ``tol`` relative to the parameters (lengths against the array's extent,
-    direction angles against ``sqrt(k)``: the test is unit-free), or lambda exceeds 1e12.
+    direction angles against ``sqrt(k)``: the test is unit-free), or no damped trial lowers
+    the cost.
 
-    Parameters are as in :func:`refine_alternating`; ``lam`` > 0. Positions (m, d) and
+    Parameters are as in :func:`refine_alternating`; ``lam`` > 0 or None. Positions (m, d) and
     directions (k, d) may be 3-D (spheres) or 2-D (circles, the planar far-field problem).
     ``covariance``: also compute ``position_cov`` (:func:`position_covariance`); None =
     when its reduced system has at most :data:`COV_DIRECT_MAX` unknowns (above, it costs
@@ -245,48 +334,19 @@ def refine_lm(
     check_choice(linear_solver, "linear_solver", ("auto", "directions", "positions", "cg"))
     check_choice(covariance_method, "covariance_method", ("auto", "dense", "schur"))
     D0, obs, Z, N, C = _start(D, mask, positions, directions, offsets)
-    cost = _cost(farfield_residuals(D0, Z, N, C), obs, loss, delta)
-    hist, phist = [cost], ([Z.copy()] if record_positions else [])
-    converged = False
-    it = 0
     side = linear_solver
     if side == "auto":
         d_, p_ = Z.shape[1], Z.shape[1] - 1 + int(free_offsets)
         if min(d_ * (Z.shape[0] - 1), p_ * N.shape[0]) > DIRECT_MAX:
             side = "cg-factored"
-    for it in range(1, max_iter + 1):  # noqa: B007 (it is reported after the loop)
-        W = _weights(D0, Z, N, C, obs, loss, delta)
-        Hzz, Hzn, Hnn, gz, gn, T, _ = _normal_equations(D0, Z, N, C, W, free_offsets,
-                                                        coupling=side != "cg-factored")
-        q = T.shape[2]
-        while True:
-            dz, dn = _lm_step(Hzz, Hzn, Hnn, gz, gn, lam, side="cg" if side == "cg-factored" else side)
-            Zc = Z.copy()
-            Zc[1:] += dz
-            Nc = sphere_exp(N, np.einsum("jab,jb->ja", T, dn[:, :q]))
-            Cc = C + dn[:, q] if free_offsets else C
-            new = _cost(farfield_residuals(D0, Zc, Nc, Cc), obs, loss, delta)
-            if not adaptive or new <= cost:
-                break
-            lam *= 10.0
-            if lam > 1e12:
-                break
-        if adaptive and new > cost:
-            converged = True  # no descent direction left at machine precision
-            break
-        small_step = _small_step(dz, dn, Z, C, q, tol)
-        rel = (cost - new) / max(cost, 1e-300)
-        Z, N, C = Zc, Nc, Cc
-        if adaptive:
-            lam = max(lam / 10.0, 1e-12)
-        hist.append(new)
-        if record_positions:
-            phist.append(Z.copy())
-        done = abs(rel) <= tol or small_step or new == 0.0
-        cost = new
-        if done:
-            converged = True
-            break
+    model = _FarfieldModel(D0, obs, Z.shape, N.shape, loss, delta, free_offsets, side)
+    out = levenberg_marquardt(model, model.pack(Z, N, C), max_iter=max_iter, xtol=tol, ftol=tol,
+                              lam0=lam if lam is not None else (1e-4 if adaptive else 1.0), trials=_TRIALS,
+                              adaptive=adaptive, history=True)
+    Z, N, C = model.unpack(out.x)
+    cost, hist = out.cost, list(out.history)
+    phist = [model.unpack(x)[0].copy() for x in out.path] if record_positions else []
+    converged, it = out.converged, out.iterations
     W = _weights(D0, Z, N, C, obs, loss, delta)
     if covariance is None:
         d_, p_ = Z.shape[1], Z.shape[1] - 1 + int(free_offsets)

@@ -9,14 +9,15 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from .._result import Result
 from ..geometry import sphere_tangent_basis
 from ..robust import loss_rho as _loss_table
 
 Array = NDArray[np.float64]
 
 
-@dataclass(frozen=True)
-class RefineResult:
+@dataclass(frozen=True, repr=False)
+class RefineResult(Result):
     """Output of :func:`refine_lm` / :func:`refine_alternating`.
 
     positions (m, 3) with row 0 = 0, directions (k, 3) unit, offsets (k,), cost (final

@@ -54,6 +54,17 @@ class FarfieldResult(Result):
         spare measurements: their redundancy ``1 - h_ij`` is ~0, e.g. every entry of the
         minimal 4 x 6 problem; :func:`~selfcal.tdoa.screen.gross_error_screen`); a line in
         ``warnings`` says so when it is not 0.
+    direction_cov : (k, d, d) Gauss-Newton covariance of each unit direction (unitless^2, i.e.
+        rad^2 for small errors) in the frame of ``directions``, positions profiled in
+        (:func:`~selfcal.tdoa.covariance.direction_covariance`); None where ``position_cov`` is
+        None, for partial reconstructions, linear arrays and known directions. ``to_dict`` adds
+        ``direction_std_deg`` (RMS angular error, the one-sigma cone half-angle) and in 3-D
+        ``azimuth_std_deg`` / ``elevation_std_deg`` (azimuth ``atan2(n_y, n_x)``, elevation
+        ``asin(n_z)`` in the result's frame).
+    screen_rule : the gross-error test that ran and its false-alarm rate, in words (with the
+        fitted tail: its dof and scale; :attr:`~selfcal.tdoa.screen.GrossScreen.rule`).
+    dim_rule : how ``dim`` was chosen: given, or ``"auto: ..."`` with the rank test's level
+        (:func:`~selfcal.tdoa.farfield.dimension_rule`).
     """
 
     positions: Array
@@ -75,6 +86,9 @@ class FarfieldResult(Result):
     case: str = "spatial"
     determined: str = ""
     untestable: int = 0
+    dim_rule: str = ""
+    direction_cov: Array | None = None
+    screen_rule: str = ""
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-safe dictionary with the DESIGN.md keys (``rejected`` as [i, j] pairs)."""
@@ -97,7 +111,26 @@ class FarfieldResult(Result):
             "case": self.case,
             "determined": self.determined,
             "untestable": int(self.untestable),
+            "dim_rule": self.dim_rule,
+            "screen_rule": self.screen_rule,
+            "direction_covariance": None if self.direction_cov is None else self.direction_cov.tolist(),
+            **self._direction_stds(),
         }
+
+    def _direction_stds(self) -> dict[str, Any]:
+        from .covariance import direction_angle_std
+
+        keys = ("direction_std_deg", "azimuth_std_deg", "elevation_std_deg")
+        if self.direction_cov is None:
+            return dict.fromkeys(keys)
+        std = direction_angle_std(self.directions, self.direction_cov)
+
+        def clean(v: Array) -> list[float | None]:
+            return [float(x) if np.isfinite(x) else None for x in v]
+
+        return {"direction_std_deg": clean(std["angle"]),
+                "azimuth_std_deg": clean(std["azimuth"]) if "azimuth" in std else None,
+                "elevation_std_deg": clean(std["elevation"]) if "elevation" in std else None}
 
 
 @dataclass(frozen=True)

@@ -44,8 +44,8 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
+from ..optim.lm import FTOL, TRIALS, levenberg_marquardt_batch
 from ..robust import loss_rho
-from .dense_lm import FTOL, LAM_MIN, TRIALS
 
 __all__ = ["solve_batch_lm"]
 
@@ -92,11 +92,15 @@ class _Problem:
             js.append((k + np.arange(J))[:, None])
         self.idx_r = np.concatenate(ir, axis=1)  # (I, pr): a receiver block's places in theta
         self.idx_s = np.concatenate(js, axis=1)  # (J, ps)
-        self.pr, self.ps = self.idx_r.shape[1], self.idx_s.shape[1]
+        self.pr, self.ps = pr, ps = self.idx_r.shape[1], self.idx_s.shape[1]
+        self.eye_r, self.eye_s = np.eye(pr, dtype=bool), np.eye(ps, dtype=bool)
+        K = J * ps
+        jb, pb_, qb = np.meshgrid(np.arange(J), np.arange(ps), np.arange(ps), indexing="ij")
+        self.bdiag = ((jb * ps + pb_) * K + jb * ps + qb).ravel()  # flat places of the source blocks in (K, K)
 
-    def evaluate(self, Th: Array) -> tuple[Array, Array, Array, Array]:
-        """(cost (a,), residuals (a, I, J), weights (a, I, J), unit vectors (a, I, J, d)); zero
-        residual and weight where unobserved."""
+    def evaluate(self, Th: Array, rows: object = None) -> tuple[Array, tuple[Array, Array, Array]]:
+        """(cost (a,), (residuals (a, I, J), weights (a, I, J), unit vectors (a, I, J, d))); zero
+        residual and weight where unobserved (``rows``: the driver's start indices, unused)."""
         I, J, d = self.I, self.J, self.d
         P = Th[:, :(I + J) * d].reshape(-1, I + J, d)
         u = P[:, :I, None, :] - P[:, None, I:, :]
@@ -109,10 +113,13 @@ class _Problem:
         f *= self.obsf  # 0 where unobserved (the entries of Y there are 0, never NaN)
         u *= np.divide(1.0, dist, out=np.zeros_like(dist), where=dist > 0)[..., None]  # 0 where points coincide
         if self.loss == "linear":
-            return 0.5 * np.einsum("aij,aij->a", f, f), f, np.broadcast_to(self.obsf, f.shape), u
+            return 0.5 * np.einsum("aij,aij->a", f, f), (f, np.broadcast_to(self.obsf, f.shape), u)
         rho, w = loss_rho((f / self.fs) ** 2, self.loss)
         cost = 0.5 * self.fs**2 * np.where(self.obs, rho, 0.0).sum(axis=(1, 2))
-        return cost, f, np.where(self.obs, w, 0.0), u
+        return cost, (f, np.where(self.obs, w, 0.0), u)
+
+    def linearize(self, Th: Array, state: tuple[Array, Array, Array]) -> _BatchStep:
+        return _BatchStep(self, Th, state)
 
     def rows(self, u: Array) -> tuple[Array, Array]:
         """The Jacobian rows' receiver and source parts, (a, I, J, pr) and (a, I, J, ps)."""
@@ -206,114 +213,76 @@ def solve_batch_lm(
         Theta = _swap_layout(Theta, I, J, d, has_r, has_s)
         Y, I, J, has_r, has_s = Y.T, J, I, has_s, has_r
     pb = _Problem(Y, d, has_r, has_s, loss, f_scale)
-    S = Theta.shape[0]
-    cap = int(max_nfev or max_it)
-    lam = np.full(S, 1e-4)
-    nu = np.full(S, 2.0)
-    it = np.zeros(S, np.intp)
-    converged = np.zeros(S, bool)
-    finite = np.isfinite(Theta).all(axis=1)
-    with np.errstate(all="ignore"):
-        cost, f, w, u = pb.evaluate(Theta)
-    w = np.array(w)  # writable (the linear loss's weights are a broadcast view)
-    finite &= np.isfinite(cost)
-    active = finite.copy()
-    pr, ps = pb.pr, pb.ps
-    eye_r, eye_s = np.eye(pr, dtype=bool), np.eye(ps, dtype=bool)
-    K = J * ps
-    jb, pb_, qb = np.meshgrid(np.arange(J), np.arange(ps), np.arange(ps), indexing="ij")
-    bdiag = ((jb * ps + pb_) * K + jb * ps + qb).ravel()  # flat places of the source blocks in (K, K)
-    with np.errstate(all="ignore"):
-        _iterate(pb, Theta, cost, f, w, u, lam, nu, it, converged, active, cap, xtol, eye_r, eye_s, bdiag)
+    out = levenberg_marquardt_batch(pb, Theta, max_iter=int(max_nfev or max_it), xtol=xtol, ftol=FTOL,
+                                    trials=TRIALS)
+    Theta = out.x
     if swap:
         Theta = _swap_layout(Theta, I, J, d, has_r, has_s)
-    return Theta, converged, it, finite
+    return Theta, out.converged, out.iterations, out.finite
 
 
-def _iterate(pb: _Problem, Theta: Array, cost: Array, f: Array, w: Array, u: Array, lam: Array, nu: Array,
-             it: NDArray[np.intp], converged: NDArray[np.bool_], active: NDArray[np.bool_], cap: int, xtol: float,
-             eye_r: NDArray[np.bool_], eye_s: NDArray[np.bool_], bdiag: NDArray[np.intp]) -> None:
-    """The iterations of :func:`solve_batch_lm`, updating its state arrays in place."""
-    I, J, pr, ps = pb.I, pb.J, pb.pr, pb.ps
-    K = J * ps
-    while active.any():
-        a = np.nonzero(active)[0]
-        it[a] += 1
-        A, B = pb.rows(u[a])
-        wa = w[a][..., None]
+class _BatchStep:
+    """The linearisation of the running starts: normal blocks and the stacked Schur step."""
+
+    def __init__(self, pb: _Problem, Theta: Array, state: tuple[Array, Array, Array]) -> None:
+        f, w, u = state
+        I, J, pr, ps = pb.I, pb.J, pb.pr, pb.ps
+        self.pb, self.K, self.w = pb, J * ps, w
+        self.eye_r, self.eye_s, self.bdiag = pb.eye_r, pb.eye_s, pb.bdiag
+        A, B = pb.rows(u)
+        self.A, self.B = A, B
+        wa = w[..., None]
         wA, wB = wa * A, wa * B
-        Hrr = np.matmul(wA.transpose(0, 1, 3, 2), A)  # (a, I, pr, pr): sum over sources
-        Hss = np.matmul(wB.transpose(0, 2, 3, 1), B.transpose(0, 2, 1, 3))  # (a, J, ps, ps)
-        na = a.size
-        C = (wA[..., :, None] * B[..., None, :]).transpose(0, 1, 3, 2, 4).reshape(na, I, pr, J * ps)
-        fa = f[a][..., None]
-        gr = (wA * fa).sum(axis=2)  # (a, I, pr)
-        gs = (wB * fa).sum(axis=1)  # (a, J, ps)
-        drr = Hrr[:, :, eye_r]  # (a, I, pr) diagonals
-        dss = Hss[:, :, eye_s]
-        Q = pb.rotations(Theta[a])
-        tnorm = np.linalg.norm(Theta[a], axis=1)
-        gnorm = np.sqrt(np.einsum("aip,aip->a", gr, gr) + np.einsum("ajp,ajp->a", gs, gs))
-        trying = np.ones(a.size, bool)
-        improved = np.zeros(a.size, bool)
-        for _ in range(TRIALS):
-            t = np.nonzero(trying)[0]
-            if t.size == 0:
-                break
-            lt = lam[a[t]][:, None, None]
-            Hr = Hrr[t].copy()
-            Hr[:, :, eye_r] += lt * drr[t]
-            Hs = Hss[t].copy()
-            Hs[:, :, eye_s] += lt * dss[t]
-            nt = t.size
-            Hr_inv = _inv(Hr)
-            Ct = C[t]
-            X = np.matmul(Hr_inv, Ct)  # Hrr^-1 Hrs, (t, I, pr, J ps)
-            zr = np.matmul(Hr_inv, gr[t][..., None])  # (t, I, pr, 1)
-            CtT = Ct.reshape(nt, I * pr, K).transpose(0, 2, 1)
-            Sred = -np.matmul(CtT, X.reshape(nt, I * pr, K))
-            Sred.reshape(nt, K * K)[:, bdiag] += Hs.reshape(nt, -1)
-            rhs = np.matmul(CtT, zr.reshape(nt, I * pr, 1)) - gs[t].reshape(nt, K, 1)
-            xs = _solve(Sred, rhs)  # (t, K, 1)
-            xr = -(zr + np.matmul(X, xs[:, None]))[..., 0]
-            xs = xs.reshape(nt, J, ps)
-            dx = np.zeros((t.size, Theta.shape[1]))
-            dx[:, pb.idx_r] = xr
-            dx[:, pb.idx_s] = xs
-            ok = np.isfinite(dx).all(axis=1)
-            dx[~ok] = 0.0
-            pb.project(dx, Q[t])
-            xr, xs = dx[:, pb.idx_r], dx[:, pb.idx_s]
-            Jx = np.matmul(A[t], xr[..., None])[..., 0] + np.matmul(B[t].transpose(0, 2, 1, 3), xs[..., None])[..., 0].transpose(0, 2, 1)
-            pred = -(np.einsum("aip,aip->a", gr[t], xr) + np.einsum("ajp,ajp->a", gs[t], xs)
-                     + 0.5 * np.einsum("aij,aij->a", w[a[t]] * Jx, Jx))
-            trial = Theta[a[t]] + dx
-            c2, f2, w2, u2 = pb.evaluate(trial)
-            c_old = cost[a[t]]
-            acc = ok & np.isfinite(c2) & (c2 <= c_old)
-            ka = np.nonzero(acc)[0]
-            sa = a[t[ka]]
-            gain = c_old[ka] - c2[ka]
-            small = np.linalg.norm(dx[ka], axis=1) <= xtol * (xtol + tnorm[t[ka]])
-            rel = gain <= FTOL * np.maximum(c_old[ka], 1e-300)
-            pa = pred[ka]
-            rho = np.divide(gain, pa, out=np.zeros_like(gain), where=pa > 0)
-            lam[sa] = np.maximum(lam[sa] * np.maximum(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3), LAM_MIN)
-            nu[sa] = 2.0
-            converged[sa] = small | rel
-            Theta[sa], cost[sa], f[sa], w[sa], u[sa] = trial[acc], c2[acc], f2[acc], w2[acc], u2[acc]
-            improved[t[acc]] = True
-            trying[t[acc]] = False
-            sr = a[t[~acc]]
-            lam[sr] *= nu[sr]
-            nu[sr] *= 2.0
-        stuck = ~improved
-        s_stuck = a[stuck]
-        # no damped step descends: a minimum up to round-off if the gradient is tiny
-        converged[s_stuck] = gnorm[stuck] <= 1e-6 * np.maximum(1.0, np.sqrt(2 * cost[s_stuck]))
-        active[s_stuck] = False
-        active[a[improved & converged[a]]] = False
-        active &= it < cap
+        self.Hrr = np.matmul(wA.transpose(0, 1, 3, 2), A)  # (a, I, pr, pr): sum over sources
+        self.Hss = np.matmul(wB.transpose(0, 2, 3, 1), B.transpose(0, 2, 1, 3))  # (a, J, ps, ps)
+        na = Theta.shape[0]
+        self.C = (wA[..., :, None] * B[..., None, :]).transpose(0, 1, 3, 2, 4).reshape(na, I, pr, J * ps)
+        fa = f[..., None]
+        self.gr = (wA * fa).sum(axis=2)  # (a, I, pr)
+        self.gs = (wB * fa).sum(axis=1)  # (a, J, ps)
+        self.drr = self.Hrr[:, :, self.eye_r]  # (a, I, pr) diagonals
+        self.dss = self.Hss[:, :, self.eye_s]
+        self.Q = pb.rotations(Theta)
+        self.n = Theta.shape[1]
+        gr, gs = self.gr, self.gs
+        self.gnorm = np.sqrt(np.einsum("aip,aip->a", gr, gr) + np.einsum("ajp,ajp->a", gs, gs))
+
+    def step(self, lam: Array, t: NDArray[np.intp]) -> Array:
+        pb, K = self.pb, self.K
+        I, J, pr, ps = pb.I, pb.J, pb.pr, pb.ps
+        lt = lam[:, None, None]
+        Hr = self.Hrr[t].copy()
+        Hr[:, :, self.eye_r] += lt * self.drr[t]
+        Hs = self.Hss[t].copy()
+        Hs[:, :, self.eye_s] += lt * self.dss[t]
+        nt = t.size
+        Hr_inv = _inv(Hr)
+        Ct = self.C[t]
+        X = np.matmul(Hr_inv, Ct)  # Hrr^-1 Hrs, (t, I, pr, J ps)
+        zr = np.matmul(Hr_inv, self.gr[t][..., None])  # (t, I, pr, 1)
+        CtT = Ct.reshape(nt, I * pr, K).transpose(0, 2, 1)
+        Sred = -np.matmul(CtT, X.reshape(nt, I * pr, K))
+        Sred.reshape(nt, K * K)[:, self.bdiag] += Hs.reshape(nt, -1)
+        rhs = np.matmul(CtT, zr.reshape(nt, I * pr, 1)) - self.gs[t].reshape(nt, K, 1)
+        xs = _solve(Sred, rhs)  # (t, K, 1)
+        xr = -(zr + np.matmul(X, xs[:, None]))[..., 0]
+        xs = xs.reshape(nt, J, ps)
+        dx = np.zeros((nt, self.n))
+        dx[:, pb.idx_r] = xr
+        dx[:, pb.idx_s] = xs
+        ok = np.isfinite(dx).all(axis=1)
+        dx[~ok] = 0.0
+        pb.project(dx, self.Q[t])
+        dx[~ok] = np.nan  # the driver refuses the trial
+        return dx
+
+    def predicted(self, dx: Array, t: NDArray[np.intp]) -> Array:
+        pb = self.pb
+        xr, xs = dx[:, pb.idx_r], dx[:, pb.idx_s]
+        Jx = (np.matmul(self.A[t], xr[..., None])[..., 0]
+              + np.matmul(self.B[t].transpose(0, 2, 1, 3), xs[..., None])[..., 0].transpose(0, 2, 1))
+        return np.asarray(-(np.einsum("aip,aip->a", self.gr[t], xr) + np.einsum("ajp,ajp->a", self.gs[t], xs)
+                            + 0.5 * np.einsum("aij,aij->a", self.w[t] * Jx, Jx)))
 
 
 def _inv(H: Array) -> Array:

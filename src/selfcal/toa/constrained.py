@@ -55,13 +55,13 @@ from numpy.typing import NDArray
 from scipy.optimize import least_squares
 
 from ..errors import DegenerateGeometryError, InputError
+from ..optim.structure import TRF_EXACT_MAX, lm_step
 from .schur_affine import RangeSchurModel
 
 Array = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
 
 # least_squares "exact" trust-region solves (dense SVD) up to this many unknowns
-_DENSE_MAX = 600
 # most entries of the Schur engine's dense coupling array (local slots x global unknowns)
 _COUPLING_MAX = 4_000_000
 
@@ -318,9 +318,7 @@ def _engine_partition(
     """
     from .nls import _node_indices
     from .schur_affine import MAX_GLOBAL, local_blocks
-    from .schur_lm import DENSE_MAX_UNKNOWNS
-
-    if engine == "trf" or (engine == "auto" and (TF.shape[1] <= DENSE_MAX_UNKNOWNS or loss != "linear")):
+    if engine == "trf" or (engine == "auto" and (lm_step(TF.shape[1]) == "dense" or loss != "linear")):
         return None
     r_idx, s_idx, n = _node_indices(I, J, d, offsets)
     e_idx = s_idx if I <= J else r_idx  # eliminate the larger node set
@@ -400,7 +398,7 @@ def refine_constrained(
                 f = np.concatenate([f, wprior * (xf[prior_pos] - par.prior_mu)])
             return f
 
-        dense = F.size <= _DENSE_MAX
+        dense = F.size <= TRF_EXACT_MAX
 
         def jac(xf: Array) -> Any:
             Jm = toa_jacobian(theta_of(xf), Y, d, offsets) @ TF

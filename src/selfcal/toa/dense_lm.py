@@ -37,40 +37,17 @@ from __future__ import annotations
 import math
 
 import numpy as np
-import scipy.linalg
 from numpy.typing import NDArray
-from scipy.linalg import lapack
 
+from ..optim.lm import FTOL, Model, damping_after_success, levenberg_marquardt
+from ..optim.steps import cholesky_solve as _solve
+
+# FTOL (the relative cost decrease that stops) is read from this module at each call
 from ..robust import loss_rho
 
 Array = NDArray[np.float64]
 
 __all__ = ["VARPRO_DEFAULT", "GaugeProjector", "damping_after_success", "full_lm", "solve_dense_lm"]
-
-#: relative cost decrease that stops the iteration (SciPy's default ftol; as schur_lm)
-FTOL = 1e-8
-#: damping trials per iteration before giving up (as schur_lm)
-TRIALS = 12
-
-
-#: floor of the damping factor (relative to the diagonal)
-LAM_MIN = 1e-8
-
-
-def damping_after_success(lam: float, actual: float, predicted: float) -> float:
-    """Marquardt factor after an accepted step: Nielsen's gain-ratio update.
-
-    ``lam * max(1/3, 1 - (2 rho - 1)^3)`` with ``rho = actual / predicted`` the ratio of the
-    cost decrease to the decrease the quadratic model ``g^T dx + dx^T H dx / 2`` predicted
-    (H the undamped normal matrix); after a rejected trial the factor is multiplied by
-    ``nu`` = 2, 4, 8, ... (``nu`` back to 2 after each accepted step). Madsen, Nielsen &
-    Tingleff, "Methods for non-linear least squares problems" (2004), eq. 3.16. Against the
-    fixed x10 / /10 rule this takes about one damping trial per iteration instead of two
-    (measured at 12 x 6 with both offsets: 1.08 vs 1.85 trials, 29 % fewer iterations).
-    """
-    rho = actual / predicted if predicted > 0 else 0.0
-    return max(lam * max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3), LAM_MIN)
-
 
 def _rotation_generators(d: int) -> list[tuple[int, int]]:
     """(a, b) of the infinitesimal rotations ``x_a -> -x_b, x_b -> x_a`` (one in 2-D, three in 3-D)."""
@@ -128,18 +105,6 @@ class GaugeProjector:
             off[: self.I] -= shift
             off[self.I:] += shift
         return dx
-
-
-def _solve(H: Array, rhs: Array) -> Array | None:
-    """``H^-1 rhs`` by Cholesky (LAPACK posv); least squares when H is not numerically positive
-    definite; None when not even that is finite."""
-    _, x, info = lapack.dposv(H, rhs, lower=1, overwrite_a=0, overwrite_b=0)
-    if info != 0:
-        try:
-            x = scipy.linalg.lstsq(H, rhs, check_finite=False)[0]
-        except (np.linalg.LinAlgError, ValueError):
-            return None
-    return np.asarray(x, float) if np.isfinite(x).all() else None
 
 
 #: default of ``solve_dense_lm(varpro=None)``: whether full fits of offset-bearing models
@@ -203,7 +168,6 @@ def full_lm(
     """The joint LM of :func:`solve_dense_lm` (positions and offsets damped together); same
     parameters (without ``varpro``) and return."""
     has_r, has_s = offsets in ("receivers", "both"), offsets in ("sources", "both")
-    both = has_r and has_s
     theta = np.array(theta0, dtype=float)
     n = theta.size
     N = I + J
@@ -219,89 +183,101 @@ def full_lm(
     if has_s:
         Jf[ar, k + jj] = 1.0
     fidx = None if free is None or bool(np.all(free)) else np.nonzero(free)[0]
-    project = fidx is None
-    i_off = N * d
-    j_off = N * d + (I if has_r else 0)
-    linear = loss == "linear"
-    sj, ri, oj = I + jj, i_off + ii, j_off + jj
-    ones = np.ones(m)
+    model = _DenseRanges(y, ii, jj, I, J, d, has_r, has_s, loss, f_scale, Jf, fidx, n, rcol, scol)
+    out = levenberg_marquardt(model, theta, max_iter=max_nfev or max_it, xtol=xtol, ftol=FTOL)
+    return out.x, out.converged, out.iterations
 
-    def evaluate(t: Array) -> tuple[float, Array, Array, Array]:
-        P = t[: N * d].reshape(N, d)
-        u = P[ii] - P[sj]
+
+class _DenseRanges(Model):
+    """The range model of :func:`full_lm` on the driver: residuals, IRLS weights and unit
+    vectors per evaluation; the preallocated Jacobian's unit-vector columns rewritten per
+    linearisation; the dense step (:class:`DenseStep`) with the gauge projected when every
+    parameter is free."""
+
+    def __init__(self, y: Array, ii: NDArray[np.intp], jj: NDArray[np.intp], I: int, J: int, d: int,
+                 has_r: bool, has_s: bool, loss: str, f_scale: float, Jf: Array,
+                 fidx: NDArray[np.intp] | None, n: int, rcol: NDArray[np.intp], scol: NDArray[np.intp]) -> None:
+        N = I + J
+        m = y.size
+        ar = np.arange(m)
+        self.y, self.ii, self.I, self.d, self.N = y, ii, I, d, N
+        self.has_r, self.has_s, self.both = has_r, has_s, has_r and has_s
+        self.loss, self.f_scale, self.linear = loss, f_scale, loss == "linear"
+        self.Jf, self.fidx, self.n = Jf, fidx, n
+        self.sj, self.ri, self.oj = I + jj, N * d + ii, N * d + (I if has_r else 0) + jj
+        self.ones = np.ones(m)
+        self.Jflat = Jf.reshape(-1)
+        self.pos_r = (ar[:, None] * n + rcol).ravel()  # flat positions of the unit-vector entries
+        self.pos_s = (ar[:, None] * n + scol).ravel()
+        nf = n if fidx is None else fidx.size
+        self.dstep = np.arange(nf) * (nf + 1)  # flat positions of the diagonal
+
+    def evaluate(self, t: Array) -> tuple[float, tuple[Array, Array, Array]]:
+        P = t[: self.N * self.d].reshape(self.N, self.d)
+        u = P[self.ii] - P[self.sj]
         dist = np.sqrt(np.einsum("mp,mp->m", u, u))
-        f = dist - y
-        if has_r:
-            f += t[ri]
-        if has_s:
-            f += t[oj]
+        f = dist - self.y
+        if self.has_r:
+            f += t[self.ri]
+        if self.has_s:
+            f += t[self.oj]
         u *= np.divide(1.0, dist, out=np.zeros_like(dist), where=dist > 0)[:, None]  # 0 where points coincide
-        if linear:
-            return 0.5 * float(f @ f), f, ones, u
-        rho, w = loss_rho((f / f_scale) ** 2, loss)
-        return 0.5 * f_scale**2 * float(np.sum(rho)), f, np.asarray(w, float), u
+        if self.linear:
+            return 0.5 * float(f @ f), (f, self.ones, u)
+        rho, w = loss_rho((f / self.f_scale) ** 2, self.loss)
+        return 0.5 * self.f_scale**2 * float(np.sum(rho)), (f, np.asarray(w, float), u)
 
-    cost, f, w, u = evaluate(theta)
-    lam = 1e-4
-    nu = 2.0
-    converged = False
-    it = 0
-    cap = max_nfev or max_it
-    Jflat = Jf.reshape(-1)
-    pos_r = (ar[:, None] * n + rcol).ravel()  # flat positions of the unit-vector entries
-    pos_s = (ar[:, None] * n + scol).ravel()
-    nf = n if fidx is None else fidx.size
-    dstep = np.arange(nf) * (nf + 1)  # flat positions of the diagonal
-    while it < cap:
-        it += 1
+    def linearize(self, theta: Array, state: tuple[Array, Array, Array]) -> DenseStep:
+        f, w, u = state
         uf = u.ravel()
-        Jflat[pos_r] = uf
-        Jflat[pos_s] = -uf
-        Jm = Jf if fidx is None else Jf[:, fidx]
-        if linear:
+        self.Jflat[self.pos_r] = uf
+        self.Jflat[self.pos_s] = -uf
+        fidx = self.fidx
+        Jm = self.Jf if fidx is None else self.Jf[:, fidx]
+        if self.linear:
             H = np.dot(Jm.T, Jm)
             g = np.dot(Jm.T, f)
         else:
             Jw = Jm * w[:, None]
             H = np.dot(Jm.T, Jw)
             g = np.dot(Jw.T, f)
-        hdiag = H.ravel()[dstep]
-        proj = GaugeProjector(theta, N, d, I, both) if project else None
-        gnorm = math.sqrt(float(g @ g))
-        tnorm = math.sqrt(float(theta @ theta))
-        mg = -g
-        improved = False
-        for _ in range(TRIALS):
-            Hd = H.copy()
-            Hd.ravel()[dstep] += lam * hdiag  # Marquardt: diag * (1 + lam)
-            x = _solve(Hd, mg)
-            if x is None:
-                lam, nu = lam * nu, 2.0 * nu
-                continue
-            if fidx is None:
-                dx = x
-            else:
-                dx = np.zeros(n)
-                dx[fidx] = x
-            if proj is not None:
-                proj.apply(dx)  # no rigid drift (and no common offset shift)
-            trial = theta + dx
-            c2, f2, w2, u2 = evaluate(trial)
-            if c2 <= cost:
-                small = math.sqrt(float(dx @ dx)) <= xtol * (xtol + tnorm)
-                rel = (cost - c2) <= FTOL * max(cost, 1e-300)
-                xv = dx if fidx is None else dx[fidx]
-                lam = damping_after_success(lam, cost - c2, -(float(g @ xv) + 0.5 * float(xv @ (H @ xv))))
-                nu = 2.0
-                theta, cost, f, w, u = trial, c2, f2, w2, u2
-                improved = True
-                converged = bool(small or rel)
-                break
-            lam, nu = lam * nu, 2.0 * nu
-        if not improved:
-            # no damped step descends: a minimum up to round-off if the gradient is tiny
-            converged = gnorm <= 1e-6 * max(1.0, math.sqrt(2 * cost))
-            break
-        if converged:
-            break
-    return theta, converged, it
+        proj = GaugeProjector(theta, self.N, self.d, self.I, self.both) if fidx is None else None
+        return DenseStep(H, g, self.dstep, proj, fidx, self.n)
+
+
+class DenseStep:
+    """The dense step solver: ``(H + lam diag H) x = -g`` by Cholesky (least squares if H is not
+    numerically positive definite), scattered into the free parameters and projected off the gauge.
+
+    Parameters
+    ----------
+    H, g : (nf, nf), (nf,) the normal matrix and gradient on the free parameters.
+    dstep : flat positions of H's diagonal; proj : :class:`GaugeProjector` or None;
+    fidx : indices of the free parameters in the (n,) point (None: all).
+    """
+
+    def __init__(self, H: Array, g: Array, dstep: NDArray[np.intp], proj: GaugeProjector | None,
+                 fidx: NDArray[np.intp] | None, n: int) -> None:
+        self.H, self.g, self.dstep, self.proj, self.fidx, self.n = H, g, dstep, proj, fidx, n
+        self.hdiag = H.ravel()[dstep]
+        self.gnorm = math.sqrt(float(g @ g))
+        self.mg = -g
+
+    def step(self, lam: float) -> Array | None:
+        Hd = self.H.copy()
+        Hd.ravel()[self.dstep] += lam * self.hdiag  # Marquardt: diag * (1 + lam)
+        x = _solve(Hd, self.mg)
+        if x is None:
+            return None
+        if self.fidx is None:
+            dx = x
+        else:
+            dx = np.zeros(self.n)
+            dx[self.fidx] = x
+        if self.proj is not None:
+            self.proj.apply(dx)  # no rigid drift (and no common offset shift)
+        return dx
+
+    def predicted(self, dx: Array) -> float:
+        xv = dx if self.fidx is None else dx[self.fidx]
+        return -(float(self.g @ xv) + 0.5 * float(xv @ (self.H @ xv)))

@@ -24,6 +24,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .._result import json_float as _num
+from ..optim.structure import DENSE_COVARIANCE_MAX
 
 __all__ = [
     "DENSE_MAX_UNKNOWNS",
@@ -103,13 +104,18 @@ class DeterminacyTest:
         """Number of undetermined nodes (receivers + sources)."""
         return int(self.undetermined_receivers.sum() + self.undetermined_sources.sum())
 
-    def names(self) -> str:
-        """``"receivers 0, 3; sources 5"``: the undetermined nodes (caller's numbering)."""
+    def names(self, receiver_names: Any = None, source_names: Any = None) -> str:
+        """``"receivers 0, 3; sources 5"``: the undetermined nodes (caller's numbering, or the
+        given node names, e.g. the matrix's own)."""
         parts = []
-        for label, mask in (("receivers", self.undetermined_receivers), ("sources", self.undetermined_sources)):
+        for label, mask, nm in (("receivers", self.undetermined_receivers, receiver_names),
+                                ("sources", self.undetermined_sources, source_names)):
             idx = np.flatnonzero(mask)
             if idx.size:
-                shown = ", ".join(str(int(i)) for i in idx[:12]) + (f", ... ({idx.size})" if idx.size > 12 else "")
+                def show(i: int, nm: Any = nm) -> str:
+                    return str(nm[i]) if nm is not None and i < len(nm) else str(i)
+
+                shown = ", ".join(show(int(i)) for i in idx[:12]) + (f", ... ({idx.size})" if idx.size > 12 else "")
                 parts.append(f"{label} {shown}")
         return "; ".join(parts)
 
@@ -282,10 +288,10 @@ def determinacy_test(receivers: Any, sources: Any, receiver_cov: Any, source_cov
                            failed, skipped, core)
 
 
-#: unknowns up to which :func:`fisher_blocks` forms and inverts the dense normal matrix
-#: (O(n^3): ~0.1 s at 1000 on one core, against solves of several seconds there); larger
-#: networks use the fit's own covariance blocks (minimum-norm gauge)
-DENSE_MAX_UNKNOWNS = 1000
+#: unknowns up to which :func:`fisher_blocks` forms and inverts the dense normal matrix;
+#: larger networks use the fit's own covariance blocks (minimum-norm gauge); the value and its
+#: reason are in :mod:`selfcal.optim.structure`
+DENSE_MAX_UNKNOWNS = DENSE_COVARIANCE_MAX
 #: eigenvalues of the gauge-lifted normal matrix below this fraction of the largest are
 #: directions the data do not determine at all (the relative cut of ``robust._normal_pinv``)
 SINGULAR_RCOND = 1e-12
@@ -328,8 +334,6 @@ def fisher_blocks(ranges: Any, receivers: Any, sources: Any, receiver_offsets: A
     (Cr, Cs): (I, d, d), (J, d, d) blocks (m^2; ``inf`` diagonal for nodes moved by an
     undetermined direction), or None above :data:`DENSE_MAX_UNKNOWNS` unknowns.
     """
-    import scipy.linalg
-
     from .nls import _pack, gauge_basis, toa_jacobian
 
     r, s = np.asarray(receivers, float), np.asarray(sources, float)
@@ -347,26 +351,35 @@ def fisher_blocks(ranges: Any, receivers: Any, sources: Any, receiver_offsets: A
     node = np.concatenate([np.repeat(np.arange(I), d), I + np.repeat(np.arange(J), d),
                            np.arange(I) if has_r else np.zeros(0, int),
                            I + np.arange(J) if has_s else np.zeros(0, int)]).astype(np.intp)
+    from .robust import lifted_inverse
+
     w = np.zeros(I + J)
-    for k in range(I + J):
-        idx = np.flatnonzero(node == k)
+    # each node's information block inverted (its conditional covariance), one side at a time
+    # (the blocks of a side have one size); a singular block falls back to the node-by-node loop
+    for first, count in ((0, I), (I, J)):
+        if not count:
+            continue
+        idx = np.stack([np.flatnonzero(node == k) for k in range(first, first + count)])
         try:
-            Ck = np.linalg.inv(N[np.ix_(idx, idx)])[:d, :d]
-            tr = float(np.trace(Ck))
-            w[k] = 1.0 / tr if np.isfinite(tr) and tr > 0 else 0.0
+            tr = np.trace(np.linalg.inv(N[idx[:, :, None], idx[:, None, :]])[:, :d, :d], axis1=1, axis2=2)
+            w[first:first + count] = np.where(np.isfinite(tr) & (tr > 0), 1.0 / np.where(tr > 0, tr, 1.0), 0.0)
         except np.linalg.LinAlgError:
-            w[k] = 0.0
-    c = float(np.max(np.diag(N))) or 1.0  # any c > 0 lifts the gauge; N's scale keeps M well-conditioned
-    Mx = N + c * (Q @ Q.T)
+            for k in range(first, first + count):
+                try:
+                    t = float(np.trace(np.linalg.inv(N[np.ix_(idx[k - first], idx[k - first])])[:d, :d]))
+                    w[k] = 1.0 / t if np.isfinite(t) and t > 0 else 0.0
+                except np.linalg.LinAlgError:
+                    w[k] = 0.0
     Wd = w[node]
     GW = Q.T * Wd  # (g, n)
     K = np.linalg.lstsq(GW @ Q, GW, rcond=None)[0]  # (G^T W G)^-1 G^T W
     bad = np.zeros(n, bool)
-    L, info = scipy.linalg.lapack.dpotrf(Mx, lower=1, clean=1)
-    dl = np.abs(np.diag(L))
-    if info == 0 and dl.min() > np.sqrt(SINGULAR_RCOND) * dl.max():
-        C, info = scipy.linalg.lapack.dpotri(L, lower=1)  # M^-1 from the factor (lower triangle)
-        C = np.tril(C) + np.tril(C, -1).T
+    # M = N + c Q Q^T, c N's largest diagonal entry (any c > 0 lifts the gauge; N's scale keeps M
+    # well-conditioned), inverted once and shared with the final fit's leverages (robust.lifted_inverse)
+    Cl, dl, c = lifted_inverse(N, Q)
+    Mx = N + (c or 1.0) * (Q @ Q.T)
+    if Cl is not None and dl is not None and dl.min() > np.sqrt(SINGULAR_RCOND) * dl.max():
+        C = Cl
     else:
         lam, V = np.linalg.eigh(Mx)
         ok = lam > SINGULAR_RCOND * lam[-1]

@@ -13,7 +13,10 @@ Steps (every rule stated in :mod:`selfcal.toa.robust`):
    :func:`~selfcal.toa.result.geometry_test` without) -> ``status`` / ``message``;
 7. the result in the caller's numbering, dropped nodes as NaN rows;
 8. the determinacy test (:func:`~selfcal.toa.trust.determinacy_test`) on the result's own
-   covariances: more than half of the nodes undetermined fails the result, fewer are named.
+   covariances: more than half of the nodes undetermined fails the result, fewer are named;
+9. the uniqueness test (:func:`~selfcal.toa.uniqueness.judge_fit`): an alternative solution
+   the data do not reject (a flip, another minimum of the search), or no spare measurement
+   at all, fails the result and names the ambiguous nodes.
 """
 
 from __future__ import annotations
@@ -46,6 +49,7 @@ from .robust import (
     studentized,
 )
 from .search import canonical_order, search
+from .uniqueness import judge_fit
 
 __all__ = ["finish", "given_start", "unrefined"]
 
@@ -138,7 +142,11 @@ def finish(M: Array, dim: int, offsets: str, *, init: Any, speed: float | None, 
     outliers = np.zeros((I, J), bool)
     best: NlsSolution | None = None
     prev_keep = (keep_r.copy(), keep_s.copy())
+    minima: Any = ([], prev_keep)
     degenerate = False  # the best fit collapsed to a line / point (data that fit no dim-D geometry)
+    ever = gross.copy()  # every entry screened or flagged in some round (outliers if its node is dropped)
+    breakdown: list[str] = []  # why the outlier rule cannot be trusted here (reported, FAILED_TEST)
+    overflagged: list[str] = []  # nodes dropped: more flagged ranges than their position can hold
     # 4. the search (ML cost on the entries in use), 5. the outlier rule; a changed set of
     # inliers runs the search again from the winner (at most twice: the rule converges fast)
     if given is None and not one:  # the nested fit's start, and the block start of structured gaps
@@ -153,8 +161,10 @@ def finish(M: Array, dim: int, offsets: str, *, init: Any, speed: float | None, 
                      starts=[first] if (one or again) and first is not None else None,
                      first=None if one or again else first,
                      stop=stop_rule(keep_r, keep_s), budget=1 if one or again else budget, max_nfev=max_nfev,
-                     use_moves=sweep and not one and not again, solver=_solver(Ys, dim, offsets))
+                     use_moves=sweep and not one and not again)
         best, prev_keep = out.solution, (keep_r.copy(), keep_s.copy())
+        if rnd == 0:  # the race's other minima, on these nodes (the uniqueness test's candidates)
+            minima = (out.minima, prev_keep)
         iters += out.iterations
         n_runs += out.refinements
         if not label:
@@ -194,21 +204,28 @@ def finish(M: Array, dim: int, offsets: str, *, init: Any, speed: float | None, 
         if flags.sum() > 0.5 * sub_obs.sum():
             # beyond the MAD's breakdown point the "outliers" are the model (a wrong basin, a wrong
             # noise level, data of no geometry): remove nothing and let the trust test say so
+            breakdown.append(f"{int(flags.sum())} of {int(sub_obs.sum())} entries flagged, more than the half "
+                             "the MAD noise scale can hold (none removed)")
             outliers = gross.copy()
             used = obs & ~gross
             break
         new_out = np.zeros((I, J), bool)
         new_out[np.ix_(keep_r, keep_s)] = flags
         new_used = obs & ~new_out
-        kr2, ks2 = drop_unidentifiable(new_used, dim, offsets)
-        kr2 &= keep_r
-        ks2 &= keep_s
+        ever |= new_out
+        br, bs = _overflagged(obs, flags, keep_r, keep_s, dim, offsets)
+        kr2, ks2 = drop_unidentifiable(new_used & ~br[:, None] & ~bs[None, :], dim, offsets)
+        kr2 &= keep_r & ~br
+        ks2 &= keep_s & ~bs
         try:
             _check_kept(new_used, kr2, ks2, dim, offsets)
         except DegenerateGeometryError:
+            breakdown.append(f"removing the {int(flags.sum())} flagged entries would leave the network "
+                             "unidentifiable (none removed)")
             outliers = gross.copy()  # removing the flagged entries would leave too little: keep them
             used = obs & ~gross
             break
+        overflagged += [f"r{int(pr[i])}" for i in np.flatnonzero(br)] + [f"s{int(pc[j])}" for j in np.flatnonzero(bs)]
         changed = not (np.array_equal(new_used, used) and kr2.sum() == keep_r.sum() and ks2.sum() == keep_s.sum())
         outliers, used, keep_r, keep_s = new_out, new_used, kr2, ks2
         if not changed:
@@ -238,6 +255,8 @@ def finish(M: Array, dim: int, offsets: str, *, init: Any, speed: float | None, 
     if not robust and not degenerate:  # flagged for the reader, not removed
         outliers = np.zeros((I, J), bool)
         outliers[np.ix_(keep_r, keep_s)] = _flag(Yc, final, keep_r, keep_s, offsets, sd, np.isfinite(Yf))
+    # entries screened or flagged on nodes dropped since stay outliers (they had NaN residuals and a clean mask)
+    outliers |= ever & obs & ~(keep_r[:, None] & keep_s[None, :])
 
     # 6. trust
     n_par = n_par_of(keep_r, keep_s)
@@ -279,6 +298,23 @@ def finish(M: Array, dim: int, offsets: str, *, init: Any, speed: float | None, 
             blocks = tuple(_embed_rows(B, k, inv, dim) for B, k, inv in ((sb[0], keep_r, inv_r),
                                                                           (sb[1], keep_s, inv_c)))
     res = _judge_determinacy(res, sd, float(final.sigma), covariance, key, singular, blocks)
+    if not degenerate:  # 9. is it the only solution the data allow? (selfcal.toa.uniqueness)
+        same = all(np.array_equal(a, b) for a, b in zip(minima[1], (keep_r, keep_s), strict=True))
+        res = judge_fit(res, Yf, final, offsets, sd, n_par, (keep_r, keep_s), (pr, pc),
+                        minima[0] if same else ())
+    if overflagged:  # dropped: their position rests on fewer inliers than its flagged ranges
+        import dataclasses
+
+        res = dataclasses.replace(res, verdict_message=(
+            f"{res.verdict_message}; {len(overflagged)} nodes dropped, more ranges flagged than a position can "
+            f"hold (floor((n - unknowns) / 2)): {', '.join(overflagged[:8])}{' ...' if len(overflagged) > 8 else ''}"))
+    if breakdown:
+        import dataclasses
+
+        text = "outlier breakdown: " + "; ".join(breakdown)
+        failed = res.verdict == int(Status.FAILED_TEST)
+        res = dataclasses.replace(res, outlier_breakdown=text, verdict=int(Status.FAILED_TEST),
+                                  verdict_message=f"{res.verdict_message}; {text}" if failed else text)
     if sd is None and not degenerate and dof > 0 and not outlier_rule_has_power(Yf, *_start(final), offsets, dof):
         # the estimated-scale cut cannot flag a gross error of any size here: say so, not "0 outliers"
         import dataclasses
@@ -287,6 +323,28 @@ def finish(M: Array, dim: int, offsets: str, *, init: Any, speed: float | None, 
             f"{res.verdict_message}; outlier detection has no power at {dof} residual dof (a gross error on any "
             "one entry inflates the noise scale it is judged against; give the noise, or more measurements)"))
     return res
+
+
+def _overflagged(obs: NDArray[np.bool_], flags: NDArray[np.bool_], kr: NDArray[np.bool_], ks: NDArray[np.bool_],
+                 dim: int, offsets: str) -> tuple[NDArray[np.bool_], NDArray[np.bool_]]:
+    """Kept nodes with more flagged ranges than their position can hold, (I,), (J,) bool.
+
+    A node with ``n`` observed ranges and ``p`` unknowns (the dimension, plus its offset)
+    can hold at most ``floor((n - p) / 2)`` outliers: the maximal breakdown point of any
+    regression-equivariant estimator of its position (Rousseeuw & Leroy, *Robust
+    Regression and Outlier Detection*, 1987, sec. 3.4). Beyond it its remaining ranges no
+    longer outvote the flagged ones (which set may be the wrong one cannot be told), so the
+    node is dropped, as a node with too few ranges is (:func:`drop_unidentifiable`).
+    ``flags`` is the rule's mask on the kept block (kept I x kept J).
+    """
+    sub_obs = obs[np.ix_(kr, ks)]
+    out = []
+    for axis, own, keep in ((1, offsets in ("receivers", "both"), kr), (0, offsets in ("sources", "both"), ks)):
+        n, f = sub_obs.sum(axis=axis), flags.sum(axis=axis)
+        bad = np.zeros(keep.size, bool)
+        bad[np.flatnonzero(keep)[f > np.maximum((n - (dim + int(own))) // 2, 0)]] = True
+        out.append(bad)
+    return out[0], out[1]
 
 
 def _embed_rows(B: Array, keep: NDArray[np.bool_], inv: NDArray[np.intp], dim: int) -> Array:
@@ -384,7 +442,7 @@ def _nested_start(Y: Array, dim: int, offsets: str, rng: np.random.Generator, lo
     budget = 2 * (1 + RACE_RUNGS) if block is not None and large else None
     try:
         out = search(Y, dim, "none", rng=rng, loss="linear" if loss == "auto" else loss, f_scale=fs,
-                     max_nfev=max_nfev, use_moves=False, solver=_solver(Y, dim, "none"), first=block,
+                     max_nfev=max_nfev, use_moves=False, first=block,
                      budget=budget)
     except (DegenerateGeometryError, InputError):
         return block if offsets == "none" else None
@@ -408,24 +466,11 @@ def _without_covariance(sol: NlsSolution) -> NlsSolution:
                                source_offset_std=nan(sol.source_offset_std))
 
 
-def _solver(Y: Array, dim: int, offsets: str) -> str:
-    """The engine's solver: its default ("auto", the Schur LM) at every size.
-
-    Small problems take its dense step (:mod:`selfcal.toa.schur_lm`, ~1 ms per iteration at
-    12 x 6 with both offsets, where the CG step cost 15 ms and ``trf`` was chosen here for
-    them); measured equal or faster than ``trf`` with the same costs on 8 x 10 (2-D and 3-D),
-    10 x 14, 12 x 14, 20 x 20 with both offsets and 30 x 40 (``benchmarks/bench_toa_minimal.py``
-    notes in issue 12).
-    """
-    return "auto"
-
-
 def _refine(Y: Array, start: Start, dim: int, offsets: str, loss: str, fs: float | None, max_nfev: int | None,
             covariance: Any) -> NlsSolution:
     r0, s0, d0, o0 = start
     return refine_toa(Y, r0, s0, offsets=offsets, receiver_offsets0=d0, source_offsets0=o0, loss=loss,
-                      f_scale=fs if loss != "linear" else None, max_nfev=max_nfev, covariance=covariance,
-                      solver=_solver(Y, dim, offsets))
+                      f_scale=fs if loss != "linear" else None, max_nfev=max_nfev, covariance=covariance)
 
 
 def _cov_spec(cov: Any, pr: NDArray[np.intp], pc: NDArray[np.intp], kr: NDArray[np.bool_],

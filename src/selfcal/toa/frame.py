@@ -187,7 +187,11 @@ def apply_frame(result: Any, frame: str | Mapping[str, Any], *, matrix: Any = No
     scv = rotate_covariances(np.asarray(result.source_cov, float), Rm)
     out = replace_fields(result, receivers=Rn, sources=Sn, receiver_cov=rc, source_cov=scv,
                    method=f"{result.method}+frame")
-    if matrix is not None and np.isfinite(rc).all() and np.isfinite(scv).all():
+    if getattr(result, "uniqueness", None) is not None:  # the alternatives in the same frame
+        out = replace_fields(out, uniqueness=result.uniqueness.moved(Rm, t))
+    # (dropped nodes have NaN positions and covariances: the refit is over the located ones)
+    loc_r, loc_s = np.isfinite(Rn).all(1), np.isfinite(Sn).all(1)
+    if matrix is not None and np.isfinite(rc[loc_r]).all() and np.isfinite(scv[loc_s]).all():
         out = _frame_covariance(out, matrix, refs, offsets, loss)
     if mirror:
         msg.insert(0, "frame fully determined by " + ", ".join(f"{k}={v}" for k, v in roles.items()))
@@ -231,6 +235,7 @@ def calibrate_in_frame(
     frame: str | Mapping[str, Any] | None = None,
     receiver_names: Sequence[str] | None = None,
     source_names: Sequence[str] | None = None,
+    side: str | None = None,
     **solve_kw: Any,
 ) -> FramedToaResult:
     """Calibrate with :func:`selfcal.toa.solve_toa` and return the result in the user's frame.
@@ -244,6 +249,8 @@ def calibrate_in_frame(
     frame: ``"origin=A,x=B,xy=C[,z=D]"``: a frame by reference nodes (:func:`apply_frame`);
         exclusive with ``known``.
     receiver_names, source_names: optional names for the rows / columns.
+    side: with ``known``: "below" / "above" -- the other nodes lie below / above the plane of
+        coplanar known nodes (3-D), which resolves the mirror they leave (:func:`fit_known`).
     **solve_kw: passed to :func:`selfcal.toa.solve_toa` (``dim``, ``offsets``, ``loss``,
         ``speed``, ``noise``, ``rng``, ...).
 
@@ -292,7 +299,7 @@ def calibrate_in_frame(
     nodes = parse_known(known, I, J, dim, receiver_names=receiver_names, source_names=source_names)
     return fit_known(M, blind, nodes, offsets=offsets, loss=loss, f_scale=solve_kw.get("f_scale"),
                      noise=solve_kw.get("noise"), max_nfev=solve_kw.get("max_nfev"),
-                     covariance=solve_kw.get("covariance", True))
+                     covariance=solve_kw.get("covariance", True), side=side)
 
 
 def _offsets_of(result: Any) -> str:

@@ -47,7 +47,7 @@ def _rigid(X: Array, Y: Array, w: Array, allow_reflection: bool) -> tuple[Array,
 def fit_known(
     matrix: Any, result: Any, known: Sequence[KnownNode], *, offsets: str = "none",
     loss: str = "linear", f_scale: float | None = None, noise: float | None = None,
-    max_nfev: int | None = None, covariance: bool = True,
+    max_nfev: int | None = None, covariance: bool = True, side: str | None = None,
 ) -> FramedToaResult:
     """Constrain a calibration by known node positions and express it in their frame.
 
@@ -68,6 +68,9 @@ def fit_known(
         shared by every receiver (``common_offsets="receivers"``), the model the moving-tag
         recipe keeps (:func:`selfcal.toa.common_offset.choose_common_offset`).
     noise: range noise std in the matrix's units, weighting the priors.
+    side: "below" | "above": in 3-D, the other nodes lie below / above the plane of coplanar
+        known nodes (along the known frame's z): resolves the mirror they leave
+        (:func:`selfcal.toa.known_test.choose_side`); None = the mirror is tested and reported.
 
     Returns
     -------
@@ -95,6 +98,10 @@ def fit_known(
     Rm, t = _rigid(est, ref, w, allow_reflection=full)
     before = float(np.sqrt(np.mean(np.sum((est @ Rm.T + t - ref) ** 2, axis=1))))
     Ra, Sa = R0 @ Rm.T + t, S0 @ Rm.T + t
+    if side is not None:  # the user's statement picks the mirror image coplanar known nodes leave
+        from .known_test import choose_side
+
+        Ra, Sa = choose_side(Ra, Sa, usable, ref, rank, side)
     # (b) the constrained refit
     fr = np.zeros((I, d), bool)
     fs = np.zeros((J, d), bool)
@@ -127,6 +134,11 @@ def fit_known(
     fitted = np.array([node_positions(out, k.kind)[k.index] for k in usable])
     after = float(np.sqrt(np.mean(np.sum((fitted - ref) ** 2, axis=1))))
     info = _known_info(usable, rank, d, before, after, dropped)
+    # the known positions tested against the ranges, the frame's mirror against the data
+    from .known_test import judge_known
+
+    out, info = judge_known(out, info, result, sol, data, usable, est @ Rm.T + t, Rm, rank, fr, fs, off, noise,
+                            mirror_stated=side is not None)
     return FramedToaResult(out, info)
 
 

@@ -65,6 +65,7 @@ from scipy.optimize import least_squares
 
 from .._checks import as_matrix, as_points, check_choice, check_positive
 from ..errors import DegenerateGeometryError, InputError
+from ..optim.structure import TRF_EXACT_MAX
 from ..robust import LOSSES, TUNING, loss_rho, mad_std
 from . import constrained as _constrained
 
@@ -85,7 +86,6 @@ OFFSET_MODES = ("none", "receivers", "sources", "both")
 
 # solver="trf": above this many unknowns least_squares uses tr_solver="lsmr" (sparse)
 # instead of "exact" (a dense SVD per iteration)
-_DENSE_MAX_UNKNOWNS = 600
 
 
 @dataclass(frozen=True)
@@ -363,7 +363,7 @@ def _solve_trf(
     def fun(x: Array) -> Array:
         return toa_residuals(full(x), Y, d, offsets)
 
-    dense = len(free) <= _DENSE_MAX_UNKNOWNS
+    dense = len(free) <= TRF_EXACT_MAX
 
     def jac(x: Array) -> Any:
         Jm = toa_jacobian(full(x), Y, d, offsets)[:, free]

@@ -26,7 +26,8 @@ from numpy.typing import NDArray
 
 from ..errors import InputError
 
-__all__ = ["FrameInfo", "FramedToaResult", "KnownNode", "node_positions", "parse_frame", "parse_known",
+__all__ = ["FrameInfo", "FramedToaResult", "KnownNode", "check_frame", "node_names", "node_positions",
+           "parse_frame", "parse_known",
            "read_known_csv", "RefitData", "refit_data", "replace_fields", "resolve_node", "units"]
 
 Array = NDArray[np.float64]
@@ -70,6 +71,8 @@ class FrameInfo:
         rigid alignment of the blind solution (before the constrained fit): a check of
         the known coordinates against the ranges; None for kind != "known".
     known_rms_fit: the same after the constrained fit (0 for exact nodes).
+    known_test: the test of the known positions against the ranges
+        (:class:`selfcal.toa.known_test.KnownTest` as a dict), None for kind != "known".
     """
 
     kind: str
@@ -81,6 +84,7 @@ class FrameInfo:
     message: str = ""
     known_rms: float | None = None
     known_rms_fit: float | None = None
+    known_test: dict[str, Any] | None = None
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-safe dictionary."""
@@ -118,6 +122,10 @@ def resolve_node(token: Any, I: int, J: int, receiver_names: Sequence[str] | Non
     (0-based); a bare integer (receiver index).
     """
     t = str(token).strip()
+    for names in (receiver_names, source_names):
+        if names is not None and list(names).count(t) > 1:
+            raise InputError(f"node name {t!r} names {list(names).count(t)} nodes of the input; "
+                             "names must be unique to be used")
     if receiver_names is not None and t in receiver_names:
         if source_names is not None and t in source_names:
             raise InputError(f"node name {t!r} is both a receiver and a source name")
@@ -126,14 +134,55 @@ def resolve_node(token: Any, I: int, J: int, receiver_names: Sequence[str] | Non
         return "source", list(source_names).index(t)
     m = re.fullmatch(r"([rs]?)(\d+)", t, flags=re.IGNORECASE)
     if m is None:
+        given = [n for names in (receiver_names, source_names) if names is not None for n in names]
+        shown = ", ".join(given[:8]) + (", ..." if len(given) > 8 else "")
         raise InputError(f"unknown node {t!r}: use r<i> (receiver i), s<j> (source j), a receiver "
-                         "index, or a name from the node names")
+                         "index" + (f", or a node name of the input ({shown})" if given else
+                                    " (the input names no nodes)"))
     kind = "source" if m.group(1).lower() == "s" else "receiver"
     k = int(m.group(2))
     n = J if kind == "source" else I
     if k >= n:
         raise InputError(f"node {t!r}: {kind} index {k} out of range (there are {n} {kind}s, 0-based)")
     return kind, k
+
+
+def node_names(row_names: Sequence[str] | None, col_names: Sequence[str] | None, I: int, J: int
+               ) -> dict[str, tuple[str, ...]]:
+    """The names of a range matrix's nodes: its own, else 0-based ``r<i>`` / ``s<j>``.
+
+    Parameters
+    ----------
+    row_names, col_names : names read with the matrix (first column / header row), or None.
+    I, J : number of receivers (rows) and sources (columns).
+
+    Returns
+    -------
+    ``{"receiver_names": (...), "source_names": (...)}``, the keyword arguments of
+    :func:`parse_known`, :func:`resolve_node` and :func:`selfcal.toa.frame.apply_frame`,
+    and the keys the result JSON and CSV carry, so that a node has one name everywhere.
+
+    Examples
+    --------
+    >>> node_names(("A0", "A1"), None, 2, 3)["source_names"]
+    ('s0', 's1', 's2')
+    """
+    rn = tuple(row_names) if row_names is not None and len(row_names) == I else tuple(f"r{i}" for i in range(I))
+    cn = tuple(col_names) if col_names is not None and len(col_names) == J else tuple(f"s{j}" for j in range(J))
+    return {"receiver_names": rn, "source_names": cn}
+
+
+def check_frame(frame: str | Mapping[str, Any], I: int, J: int, *, receiver_names: Sequence[str] | None = None,
+                source_names: Sequence[str] | None = None) -> dict[str, tuple[str, int]]:
+    """Parse ``--frame`` and resolve its nodes before any work: ``{role: (kind, index)}``.
+
+    Raises
+    ------
+    InputError
+        A malformed frame or a node the input does not have (named in the message).
+    """
+    roles = parse_frame(frame)
+    return {k: resolve_node(v, I, J, receiver_names, source_names) for k, v in roles.items()}
 
 
 def read_known_csv(path: str | os.PathLike[str], dim: int = 3) -> dict[str, tuple[float, ...]]:

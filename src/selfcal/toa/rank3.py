@@ -18,11 +18,13 @@ from scipy.linalg import cho_factor, cho_solve
 
 from .._checks import as_matrix, as_rng, check_choice, check_dim
 from ..errors import ConvergenceWarning, DegenerateGeometryError, InputError
+from ..optim.lm import levenberg_marquardt
 from .rank3_joint import _rank3_lm_joint
 from .rank3_model import (
     THESIS_ACCEPT,
     THESIS_TOL,
     Array,
+    Rank3Model,
     Rank3Result,
     _centre,
     _feasible,
@@ -280,69 +282,25 @@ def rank3_lm(
         hz = 4.0 * ez[missing] ** 2 * Ad[missing[0]] * Bd[missing[1]]
         return Hu, g, (jtj, hz)
 
+    class Scalable(Rank3Model):
+        Q: Array | None = None  # the subspace basis of the accepted point (warm start)
+
+        def evaluate(self, xv: Array) -> tuple[float, tuple[Array, Array, Array, Array]]:
+            cost, Ud, Vd, resid, Q, _ = evaluate(xv, self.Q)
+            return cost, (Ud, Vd, resid, Q)
+
+        def linearize(self, xv: Array, state: tuple[Array, Array, Array, Array]) -> _ScalableStep:
+            Ud, Vd, resid, self.Q = state
+            return _ScalableStep(xv, *gauss_newton(xv, Ud, Vd, resid), K, self.bound)
+
     x = np.concatenate([p, R[missing]])
-    cost, Ud, Vd, resid, Q, M = evaluate(x, None)
-    hist = [np.sqrt(cost)]
-    steps: list[float] = []
-    mu: float | None = None
-    nu = 2.0
-    converged = False
-    it = 0
-    scale = float(np.linalg.norm(M))
-    diag = np.diag_indices(K)
-    aborted = False
-    for it in range(1, int(max_iter) + 1):  # noqa: B007 (it is the iteration count after the loop)
-        H, g, coupled = gauss_newton(x, Ud, Vd, resid)
-        dg = np.diag(H).copy()
-        if coupled is not None:
-            dg = np.concatenate([dg, coupled[1]])
-        dg[dg <= 0] = 1.0
-        if mu is None:
-            mu = 1e-6 * float(dg.max())
-        accepted = False
-        dx = np.zeros_like(x)
-        while mu <= 1e30:
-            Hm = H.copy()
-            Hm[diag] += mu * dg[:K]
-            try:
-                cf = cho_factor(Hm, check_finite=False)
-            except np.linalg.LinAlgError:
-                mu *= 10.0
-                continue
-            if coupled is None:
-                dx = -cho_solve(cf, g, check_finite=False)
-            else:
-                dx = _damped_pcg(coupled[0], cf, dg[K:] * (1.0 + mu), dg * mu, g, K)
-            x_try = x + dx
-            if not _feasible(x_try, bound):
-                mu *= nu
-                nu *= 2.0
-                continue
-            trial = evaluate(x_try, Q)
-            cost_try = trial[0]
-            if cost_try < cost or cost_try == 0.0:
-                Hdx = H @ dx[:K] if coupled is None else coupled[0](dx)
-                pred = float(-(g @ dx) - 0.5 * dx @ Hdx)
-                rho = (cost - cost_try) / (2 * pred) if pred > 0 else 0.0
-                cost, Ud, Vd, resid, Q, M = trial
-                x = x_try
-                mu *= max(1.0 / 3.0, 1.0 - (2 * rho - 1) ** 3) if rho > 0 else 1.0
-                nu = 2.0
-                accepted = True
-                break
-            mu *= nu
-            nu *= 2.0
-        step = float(np.linalg.norm(dx)) if accepted else 0.0
-        steps.append(step)
-        slow = hist[-1] ** 2 - cost < 0.01 * cost
-        hist.append(np.sqrt(cost))
-        if abort_above is not None and it >= 3 and slow and np.sqrt(cost) > abort_above * (1 + 1e-3):
-            aborted = True
-            break
-        if not accepted or step <= xtol * (np.linalg.norm(x) + xtol) or np.sqrt(cost) <= xtol * scale:
-            # (no decrease even with huge damping: a stationary point of (*))
-            converged = True
-            break
+    cost, _, _, _, Q, M = evaluate(x, None)
+    rm = Scalable(bound, float(np.linalg.norm(M)), abort_above)
+    rm.Q = Q
+    rm.hist.append(float(np.sqrt(cost)))
+    out = levenberg_marquardt(rm, x, max_iter=int(max_iter), xtol=xtol, ftol=0.0, lam0=rm.first_damping)
+    x, it, converged, cost = out.x, out.iterations, out.converged, out.cost
+    hist, steps, aborted = rm.hist, rm.steps, rm.aborted
     p = x[:K]
     Rx = times(x)
     # report the thesis's quantity: the distance to rank d of the reference-centred matrix, the
@@ -355,6 +313,43 @@ def rank3_lm(
     extra["objective"] = float(np.sqrt(cost))
     extra["aborted"] = aborted
     return _replace(res, seconds=time.perf_counter() - t0, extra=extra)
+
+
+class _ScalableStep:
+    """The damped step of :func:`rank3_lm`: the p-block by Cholesky, with missing times by
+    preconditioned CG (:func:`_damped_pcg`); a step leaving the feasible box is refused."""
+
+    def __init__(self, x: Array, H: Array, g: Array, coupled: Any, K: int, bound: float) -> None:
+        self.x, self.H, self.g, self.coupled, self.K, self.bound = x, H, g, coupled, K, bound
+        dg = np.diag(H).copy()
+        if coupled is not None:
+            dg = np.concatenate([dg, coupled[1]])
+        dg[dg <= 0] = 1.0
+        self.dg = dg
+        self.last = np.zeros_like(x)
+        self.gnorm = float(np.linalg.norm(g))
+
+    def step(self, lam: float) -> Array | None:
+        K, dg = self.K, self.dg
+        Hm = self.H.copy()
+        Hm[np.diag_indices(K)] += lam * dg[:K]
+        try:
+            cf = cho_factor(Hm, check_finite=False)
+        except np.linalg.LinAlgError:
+            return None
+        if self.coupled is None:
+            dx = -cho_solve(cf, self.g, check_finite=False)
+        else:
+            dx = _damped_pcg(self.coupled[0], cf, dg[K:] * (1.0 + lam), dg * lam, self.g, K)
+        if not _feasible(self.x + dx, self.bound):
+            return None
+        self.last = dx
+        return np.asarray(dx)
+
+    def predicted(self, dx: Array) -> float:
+        Hdx = self.H @ dx[:self.K] if self.coupled is None else self.coupled[0](dx)
+        # (*) is a sum of squares: twice the decrease of the model of its half
+        return float(2 * (-(self.g @ dx) - 0.5 * dx @ Hdx))
 
 
 def fast_offsets(

@@ -15,8 +15,10 @@ from scipy.linalg import cho_factor, cho_solve
 
 from .._checks import as_matrix, as_rng, check_choice, check_dim
 from ..errors import DegenerateGeometryError, InputError
+from ..optim.lm import levenberg_marquardt
 from .rank3_model import (
     Array,
+    Rank3Model,
     Rank3Result,
     _centre,
     _feasible,
@@ -161,63 +163,23 @@ def _rank3_lm_joint(
         Rx[missing] = xv[K:]
         return Rx, xv[:K]
 
+    class Joint(Rank3Model):
+        def evaluate(self, xv: Array) -> tuple[float, tuple[Array, Array, Array, Array, Array]]:
+            Rt, pt = unpack(xv)
+            cost, Ud, Vd, resid = _tail(offset_matrix(Rt, pt, model=model, centring=centring), dim)
+            return cost, (Rt, pt, Ud, Vd, resid)
+
+        def linearize(self, xv: Array, state: tuple[Array, Array, Array, Array, Array]) -> _JointStep:
+            return _JointStep(xv, state, model, missing, centring, self.bound)
+
     Rx, p = unpack(x)
     M = offset_matrix(Rx, p, model=model, centring=centring)
-    cost, Ud, Vd, resid = _tail(M, dim)
-    hist = [np.sqrt(cost)]
-    steps: list[float] = []
-    mu: float | None = None
-    nu = 2.0
-    converged = False
-    aborted = False
-    it = 0
-    scale = float(np.linalg.norm(M))
-    for it in range(1, int(max_iter) + 1):  # noqa: B007 (it is the iteration count after the loop)
-        Uf, Vf = _rank1_factors(Rx, p, model, missing, centring)
-        Pu = Uf - Ud @ (Ud.T @ Uf)
-        Pv = Vf - Vd @ (Vd.T @ Vf)
-        H = (Pu.T @ Pu) * (Pv.T @ Pv)
-        g = np.einsum("ik,ik->k", Uf, resid @ Vf)
-        dg = np.diag(H).copy()
-        dg[dg <= 0] = 1.0
-        if mu is None:
-            mu = 1e-6 * float(dg.max())
-        accepted = False
-        dx = np.zeros_like(x)
-        while mu <= 1e30:
-            try:
-                dx = -cho_solve(cho_factor(H + mu * np.diag(dg)), g)
-            except np.linalg.LinAlgError:
-                mu *= 10.0
-                continue
-            x_try = x + dx
-            Rt, p_try = unpack(x_try)
-            if not _feasible(x_try, bound):
-                mu *= nu
-                nu *= 2.0
-                continue
-            cost_try, Ud_t, Vd_t, resid_t = _tail(offset_matrix(Rt, p_try, model=model, centring=centring), dim)
-            if cost_try < cost or cost_try == 0.0:
-                pred = -(g @ dx) - 0.5 * dx @ (H @ dx)
-                rho = (cost - cost_try) / (2 * pred) if pred > 0 else 0.0
-                x, Rx, p, cost, Ud, Vd, resid = x_try, Rt, p_try, cost_try, Ud_t, Vd_t, resid_t
-                mu *= max(1.0 / 3.0, 1.0 - (2 * rho - 1) ** 3) if rho > 0 else 1.0
-                nu = 2.0
-                accepted = True
-                break
-            mu *= nu
-            nu *= 2.0
-        step = float(np.linalg.norm(dx)) if accepted else 0.0
-        steps.append(step)
-        slow = hist[-1] ** 2 - cost < 0.01 * cost
-        hist.append(np.sqrt(cost))
-        if abort_above is not None and it >= 3 and slow and np.sqrt(cost) > abort_above * (1 + 1e-3):
-            aborted = True
-            break
-        if not accepted or step <= xtol * (np.linalg.norm(x) + xtol) or np.sqrt(cost) <= xtol * scale:
-            # (no decrease even with huge damping: a stationary point of (*))
-            converged = True
-            break
+    rm = Joint(bound, float(np.linalg.norm(M)), abort_above)
+    rm.hist.append(float(np.sqrt(_tail(M, dim)[0])))
+    out = levenberg_marquardt(rm, x, max_iter=int(max_iter), xtol=xtol, ftol=0.0, lam0=rm.first_damping)
+    Rx, p = out.state[0], out.state[1]
+    it, converged, cost = out.iterations, out.converged, out.cost
+    hist, steps, aborted = rm.hist, rm.steps, rm.aborted
     # report the thesis's quantity: the distance to rank d of the reference-centred matrix, the
     # value F (3.17) converges to, so that the acceptance threshold means the same for both methods
     F_ref = np.sqrt(_tail(offset_matrix(Rx, p, model=model, centring="reference"), dim)[0])
@@ -227,3 +189,35 @@ def _rank3_lm_joint(
     extra["aborted"] = aborted
     return _replace(res, seconds=time.perf_counter() - t0, extra=extra)
 
+
+
+class _JointStep:
+    """The dense joint Gauss-Newton matrix of offsets and missing times (Hadamard form)."""
+
+    def __init__(self, x: Array, state: tuple[Array, Array, Array, Array, Array], model: str,
+                 missing: tuple[Any, ...], centring: str, bound: float) -> None:
+        Rx, p, Ud, Vd, resid = state
+        Uf, Vf = _rank1_factors(Rx, p, model, missing, centring)
+        Pu = Uf - Ud @ (Ud.T @ Uf)
+        Pv = Vf - Vd @ (Vd.T @ Vf)
+        self.H = (Pu.T @ Pu) * (Pv.T @ Pv)
+        self.g = np.einsum("ik,ik->k", Uf, resid @ Vf)
+        self.dg = np.diag(self.H).copy()
+        self.dg[self.dg <= 0] = 1.0
+        self.x, self.bound = x, bound
+        self.last = np.zeros_like(x)
+        self.gnorm = float(np.linalg.norm(self.g))
+
+    def step(self, lam: float) -> Array | None:
+        try:
+            dx = -cho_solve(cho_factor(self.H + lam * np.diag(self.dg)), self.g)
+        except np.linalg.LinAlgError:
+            return None
+        if not _feasible(self.x + dx, self.bound):
+            return None
+        self.last = dx
+        return np.asarray(dx)
+
+    def predicted(self, dx: Array) -> float:
+        # (*) is a sum of squares: twice the decrease of the model of its half
+        return float(2 * (-(self.g @ dx) - 0.5 * dx @ (self.H @ dx)))

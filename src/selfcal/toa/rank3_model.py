@@ -61,7 +61,7 @@ also weakly conditioned (smallest non-zero singular value ~1e-3 of the largest),
 20 us timing noise it passes metres away from the true offsets. ``solve_toa`` then relies on
 the other initialisers (:mod:`selfcal.toa.scaled_starts`).
 
-Files of the 004 method (one job each; :mod:`selfcal.toa.offsets` re-exports them all):
+Files of the 004 method (one job each):
 this module (the model), :mod:`.rank3_thesis` (the thesis iteration, the tests'
 reference), :mod:`.rank3` (the fast variable-projection LM and the acceptance/restarts),
 :mod:`.rank3_joint` (the dense joint LM: small cases and the reference of the scalable
@@ -78,7 +78,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .._checks import as_matrix, check_dim
+from .._result import Result
 from ..errors import DegenerateGeometryError, InputError
+from ..optim.lm import Model
 
 Array = NDArray[np.float64]
 
@@ -242,8 +244,8 @@ def _subsample(h: Array, n: int = 400) -> list[list[float]]:
     return [[int(i), float(h[i])] for i in idx]
 
 
-@dataclass(frozen=True)
-class Rank3Result:
+@dataclass(frozen=True, repr=False)
+class Rank3Result(Result):
     """Offsets estimated by the rank-d method (004), in the units of the input (metres).
 
     Attributes
@@ -355,3 +357,50 @@ def _impute(R: Array) -> Array:
     return np.where(mask, row + col, R)
 
 
+
+
+class Rank3Model(Model):
+    """What both linearisations of the rank-d LM share on :func:`selfcal.optim.levenberg_marquardt`:
+    the cost ``(*)`` (the squared tail of the corrected matrix), its history, the feasibility
+    bound (:func:`_feasible`: a trial outside it is refused like a failed solve), the stopping
+    test (step below ``xtol (|x| + xtol)`` or ``sqrt(cost) <= xtol |M|_F``) and the thesis's
+    early abort (sec. 6.2: once an iteration lowers (*) by less than 1 % while its square root
+    is still 0.1 % above ``abort_above``, the run stops unconverged).
+
+    Subclasses give ``evaluate`` and ``linearize``; a linearisation carries ``dg`` (the
+    damped diagonal, whose largest entry times 1e-6 is the first damping) and keeps the last
+    step it solved in ``last``.
+    """
+
+    def __init__(self, bound: float, scale: float, abort_above: float | None) -> None:
+        self.bound, self.scale, self.abort_above = bound, scale, abort_above
+        self.hist: list[float] = []
+        self.steps: list[float] = []
+        self.aborted = False
+        self._new = 0.0
+
+    @staticmethod
+    def first_damping(lin: Any) -> float:
+        return 1e-6 * float(lin.dg.max())
+
+    def _record(self, cost: float, step: float) -> bool:
+        """Append one iteration; True when the early abort fires."""
+        self.steps.append(step)
+        slow = self.hist[-1] ** 2 - cost < 0.01 * cost
+        self.hist.append(float(np.sqrt(cost)))
+        if (self.abort_above is not None and len(self.steps) >= 3 and slow
+                and np.sqrt(cost) > self.abort_above * (1 + 1e-3)):
+            self.aborted = True
+        return self.aborted
+
+    def accepted(self, lin: Any, cost: float, new: float, predicted: float) -> bool:
+        self._new = new
+        return self._record(new, float(np.linalg.norm(lin.last)))
+
+    def small_step(self, x: Array, dx: Array, xtol: float) -> bool:
+        return bool(np.linalg.norm(dx) <= xtol * (np.linalg.norm(x + dx) + xtol)
+                    or np.sqrt(self._new) <= xtol * self.scale)
+
+    def stationary(self, lin: Any, cost: float) -> bool:
+        # no decrease even with huge damping: a stationary point of (*), unless the abort fires
+        return not self._record(cost, 0.0)

@@ -1,7 +1,10 @@
 """The thesis iteration of paper 004 (sec. 3.5.1 / 3.7): alternating projection, Gamma = 0.
 
 Kept faithful to the thesis (its thresholds in :mod:`.rank3_model`) as the reference of the
-fast solver (:mod:`.rank3`) in the tests and in ``benchmarks/bench_delays.py``.
+fast solver (:mod:`.rank3`) in the tests and in ``benchmarks/bench_delays.py``. Paper
+reference code: the one iterative refinement of the package that does not run on the driver
+(:mod:`selfcal.optim.lm`), on purpose -- its regularised update (3.23) with the lambda switch
+is the thesis's algorithm, reproduced as published, not a damped least-squares loop.
 """
 
 from __future__ import annotations

@@ -70,7 +70,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from .._checks import as_matrix, check_choice, check_toa_counts
+from .._checks import as_matrix, check_choice, check_toa_observable
 from ..errors import InputError
 from ..robust import mad_std
 
@@ -85,6 +85,9 @@ RECIPES = ("auto", "none", "moving-tag")
 # p-value is 1 / (n + 1), so n = 999 resolves the 1e-3 level)
 TIME_ORDER_ALPHA = 1e-3
 TIME_ORDER_PERMUTATIONS = 999
+# random orders at least as smooth as the given one after which the test stops (its
+# decision is then certain: not a time series); sets the precision of the reported p-value
+TIME_ORDER_HITS = 10
 # the spike detector's local quadratic needs a window of samples on each side
 _MIN_SAMPLES = 20
 
@@ -99,7 +102,9 @@ class TimeOrderTest:
     p_value: permutation p-value of the observed total variation.
     ratio: observed total variation over the median of the permuted ones (about 1 for
         exchangeable columns, << 1 for a densely sampled trajectory).
-    alpha, permutations: the test's level and number of random orders.
+    alpha, permutations: the test's level and number of random orders drawn (fewer than
+        asked when the test stopped early with its decision certain, see
+        :func:`detect_time_order`).
     """
 
     detected: bool
@@ -128,7 +133,9 @@ def detect_time_order(matrix: Any, *, alpha: float = TIME_ORDER_ALPHA,
     every column order has the same distribution, so the p-value is the rank of the
     observed statistic among ``permutations`` random orders, ``(1 + #{TV_perm <= TV}) /
     (permutations + 1)``. Rows are standardised by their robust scale first so that no
-    receiver dominates.
+    receiver dominates. The orders are drawn until :data:`TIME_ORDER_HITS` of them are as
+    smooth as the given one (then the full test cannot reject: the same decision, the
+    sequential p-value ``hits / drawn`` of Besag & Clifford 1991) or all are drawn.
 
     Parameters
     ----------
@@ -144,8 +151,11 @@ def detect_time_order(matrix: Any, *, alpha: float = TIME_ORDER_ALPHA,
     from .._checks import as_rng
 
     Y = as_matrix(matrix, "matrix")
+    # rows with fewer than two entries add no consecutive pair to any order's statistic:
+    # dropping them changes nothing but the cost (3000 rows of which 6 observed: 500x)
+    Y = Y[np.isfinite(Y).sum(axis=1) >= 2]
     I, J = Y.shape
-    if J < _MIN_SAMPLES:
+    if J < _MIN_SAMPLES or I == 0:
         return TimeOrderTest(False, 1.0, 1.0, float(alpha), 0)
     with np.errstate(all="ignore"):
         med = np.nanmedian(Y, axis=1, keepdims=True)
@@ -154,10 +164,24 @@ def detect_time_order(matrix: Any, *, alpha: float = TIME_ORDER_ALPHA,
     Z = (Y - med) / sc
     gen = as_rng(rng)
     tv = _total_variation(Z, np.arange(J))
-    perm = np.array([_total_variation(Z, gen.permutation(J)) for _ in range(int(permutations))])
-    p = float((1 + np.sum(perm <= tv)) / (permutations + 1))
-    ratio = float(tv / np.median(perm)) if np.median(perm) > 0 else 1.0
-    return TimeOrderTest(bool(p <= alpha), p, ratio, float(alpha), int(permutations))
+    n = int(permutations)
+    # sequential stop (Besag & Clifford 1991): once ``stop`` random orders are as smooth as
+    # the given one, the full test's p-value exceeds alpha whatever the rest would give, so
+    # the decision is that of all n orders; the p-value reported is then the sequential
+    # one, stop / (orders drawn), itself valid. Independent sources stop after ~2 stop orders
+    # (1000 x 1000: 20 orders, 0.3 s, instead of 999, 15 s)
+    stop = max(TIME_ORDER_HITS, int(np.floor(alpha * (n + 1))))
+    perm: list[float] = []
+    hits = 0
+    for _ in range(n):
+        perm.append(_total_variation(Z, gen.permutation(J)))
+        hits += perm[-1] <= tv
+        if hits >= stop:
+            break
+    p = float(hits / len(perm)) if hits >= stop and len(perm) < n else float((1 + hits) / (n + 1))
+    mid = float(np.median(perm)) if perm else 0.0
+    ratio = float(tv / mid) if mid > 0 else 1.0
+    return TimeOrderTest(bool(p <= alpha), p, ratio, float(alpha), len(perm))
 
 
 @dataclass(frozen=True)
@@ -196,7 +220,12 @@ class RecipeResult:
     def to_dict(self) -> dict[str, Any]:
         """The wrapped result's dictionary with ``"recipe"`` added."""
         out = dict(self.result.to_dict())
-        out["recipe"] = {
+        out["recipe"] = self.recipe_dict()
+        return out
+
+    def recipe_dict(self) -> dict[str, Any]:
+        """What the recipe did (the ``"recipe"`` entry of :meth:`to_dict`), without the result."""
+        return {
             "name": self.recipe,
             "n_rejected": self.n_rejected,
             "rejected_fraction": float(self.rejected.sum() / max(self.rejected.size, 1)),
@@ -204,7 +233,6 @@ class RecipeResult:
             "dropped_receivers": list(self.dropped_receivers),
             **{k: v for k, v in self.details.items()},
         }
-        return out
 
 
 def _embed_columns(result: Any, keep: NDArray[np.bool_], J: int, M: Array) -> Any:
@@ -442,7 +470,7 @@ def apply_recipe(name: str, matrix: Any, *, common_offset: str = "test", **kw: A
         # least demanding model: the smallest dimension, no offsets) is refused before the
         # time-order test, whose cost grows with the columns (1 x 200000: 12 s for nothing)
         dim = kw.get("dim", 3)
-        check_toa_counts(M.shape, int(np.isfinite(M).sum()), 2 if dim == "auto" else int(dim), "none")
+        check_toa_observable(M, 2 if dim == "auto" else int(dim), "none")
         test = detect_time_order(M)
         if test.detected:
             out = moving_tag(M, common_offset=common_offset, **kw)

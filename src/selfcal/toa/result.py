@@ -181,9 +181,11 @@ class ToaResult(Result):
     status, message, success: the trust verdict (properties; ``status`` a
         :class:`selfcal.errors.Status`: SUCCESS, NOT_CONVERGED or FAILED_TEST), stored in the
         fields ``verdict`` (the Status value) and ``verdict_message``.
-    outliers: (I, J) bool, entries the outlier rule rejected (excluded from the final fit).
+    outliers: (I, J) bool, entries the outlier rule rejected (excluded from the final fit), and
+        the entries the gross-error screen or the rule removed on nodes dropped since.
     dropped_receivers, dropped_sources: indices of nodes with too few measurements to be
-        identified, left out of the fit (their rows are NaN).
+        identified, or with more outliers than their position can hold, left out of the fit
+        (their rows are NaN).
     noise: the noise std given by the caller (matrix units) or None.
     noise_estimate: robust estimate of the noise std from the final residuals (matrix units).
     geometry: the geometry test (noise unknown: permutation test + median PRESS against the model
@@ -194,8 +196,18 @@ class ToaResult(Result):
     determinacy: the determinacy test (:class:`DeterminacyTest`: each node's 95 % confidence
         region from the covariances above, at the given noise when there is one, against the
         robust radius of its node set), or None (``method="rank3"``).
+    outlier_breakdown: None, or why the outlier rule's answer cannot be trusted (``"outlier
+        breakdown: ..."``: more than half of the entries flagged, beyond what the MAD scale can
+        hold, or a removal that would leave the network unidentifiable); the verdict is then
+        FAILED_TEST. (A node with more flagged ranges than its position can hold is dropped
+        and named in ``message`` instead.)
     undetermined_receivers, undetermined_sources: (I,), (J,) bool masks of the nodes the data
         do not determine (properties, from ``determinacy``; JSON: their indices).
+    uniqueness: the uniqueness test (:class:`selfcal.toa.uniqueness.UniquenessTest`: alternative
+        solutions -- flips, other minima -- against the fit by a likelihood-ratio test), or None.
+    ambiguous_receivers, ambiguous_sources: (I,), (J,) bool masks of the nodes an
+        indistinguishable alternative moves (properties; JSON: their indices, and their
+        alternative positions under ``uniqueness``).
 
     Verdict (``status``): FAILED_TEST when the residual / geometry test fails, when the best
     fit is degenerate, when more than half of the tested nodes are undetermined (the data
@@ -237,6 +249,22 @@ class ToaResult(Result):
     selection: dict[str, Any] = field(default_factory=dict)
     n_negative: int = 0
     determinacy: DeterminacyTest | None = None
+    outlier_breakdown: str | None = None
+    uniqueness: Any = None
+
+    @property
+    def ambiguous_receivers(self) -> NDArray[np.bool_]:
+        """(I,) bool: receivers with an alternative position the data do not reject (:class:`~selfcal.toa.uniqueness.UniquenessTest`)."""
+        if self.uniqueness is None:
+            return np.zeros(np.shape(self.receivers)[0], bool)
+        return np.asarray(self.uniqueness.ambiguous_receivers, bool)
+
+    @property
+    def ambiguous_sources(self) -> NDArray[np.bool_]:
+        """(J,) bool: sources with an alternative position the data do not reject."""
+        if self.uniqueness is None:
+            return np.zeros(np.shape(self.sources)[0], bool)
+        return np.asarray(self.uniqueness.ambiguous_sources, bool)
 
     @property
     def undetermined_receivers(self) -> NDArray[np.bool_]:
@@ -294,8 +322,12 @@ class ToaResult(Result):
             "geometry": None if self.geometry is None else self.geometry.to_dict(),
             "selection": _select_json(self.selection),
             "determinacy": None if self.determinacy is None else self.determinacy.to_dict(),
+            "outlier_breakdown": self.outlier_breakdown,
             "undetermined_receivers": [int(i) for i in np.flatnonzero(self.undetermined_receivers)],
             "undetermined_sources": [int(j) for j in np.flatnonzero(self.undetermined_sources)],
+            "uniqueness": None if self.uniqueness is None else self.uniqueness.to_dict(),
+            "ambiguous_receivers": [int(i) for i in np.flatnonzero(self.ambiguous_receivers)],
+            "ambiguous_sources": [int(j) for j in np.flatnonzero(self.ambiguous_sources)],
             "units": {"positions": "m", "covariances": "m^2", "offsets": unit, "residual_rms": unit,
                       "noise": unit},
         }

@@ -46,9 +46,9 @@ import scipy.sparse
 from numpy.typing import NDArray
 
 from ..errors import DegenerateGeometryError
+from ..optim.lm import Model, levenberg_marquardt
 from ..robust import loss_rho
 from .dense_lm import _solve as _direct_solve  # Cholesky (posv), least squares if not PD
-from .dense_lm import damping_after_success
 
 Array = NDArray[np.float64]
 IntArray = NDArray[np.intp]
@@ -313,82 +313,75 @@ def solve_affine_lm(
     descent. Per iteration O(nnz (mE + c^2)) for the pieces (c the global entries per row),
     a batched inverse of the node blocks and one dense (n_g, n_g) solve per trial.
     """
-    pat = pattern
-    p, valid, blocks, glob = pat.p, pat.valid, pat.blocks, pat.glob
-    loc_x = blocks[valid]
-    n_cur = pat.n_rows - pat.n_res
+    model = _AffineModel(fun, values, pattern, loss, f_scale)
+    out = levenberg_marquardt(model, np.array(x0, float), max_iter=max_it, xtol=xtol, ftol=ftol, trials=TRIALS)
+    return out.x, out.converged, out.iterations
 
-    def evaluate(x: Array) -> tuple[float, Array, Array, Array]:
-        f = fun(x)
-        rho, w = loss_rho((f / f_scale) ** 2, loss)
-        rho = np.asarray(rho, float)
-        return 0.5 * f_scale**2 * float(np.sum(rho)), f, np.asarray(w, float), rho
 
-    x = np.array(x0, float)
-    cost, f, w, _ = evaluate(x)
-    lam, nu = 1e-4, 2.0
-    converged = False
-    it = 0
-    zeros_c = np.zeros(n_cur)
-    newton = False
-    while it < max_it:
-        it += 1
-        vals, wc = values(x, f, w)
-        if not newton:
+class _AffineModel(Model):
+    """:func:`solve_affine_lm`'s model: the Gauss-Newton matrix, plus the residuals' curvature
+    once the Gauss-Newton model fails (``newton``), and the node-block Schur step solver."""
+
+    def __init__(self, fun: Callable[[Array], Array], values: Callable[[Array, Array, Array], tuple[Array, Array]],
+                 pattern: RowPattern, loss: str, f_scale: float) -> None:
+        self.fun, self.values, self.pat, self.loss, self.f_scale = fun, values, pattern, loss, f_scale
+        self.newton = False
+        self.zeros_c = np.zeros(pattern.n_rows - pattern.n_res)
+
+    def evaluate(self, x: Array) -> tuple[float, tuple[Array, Array]]:
+        f = self.fun(x)
+        rho, w = loss_rho((f / self.f_scale) ** 2, self.loss)
+        return 0.5 * self.f_scale**2 * float(np.sum(np.asarray(rho, float))), (f, np.asarray(w, float))
+
+    def linearize(self, x: Array, state: tuple[Array, Array]) -> _AffineStep:
+        f, w = state
+        vals, wc = self.values(x, f, w)
+        if not self.newton:
             wc = np.zeros_like(wc)
         wall = np.concatenate([w, np.asarray(wc, float)])
-        fall = np.concatenate([f, zeros_c])
-        wf = wall * fall
-        D, C, R, gE, gG = pat.systems(vals, wall, fall)
-        dD = _floor(np.abs(np.einsum("eaa->ea", D)))
-        dR = _floor(np.abs(np.diag(R)).copy())
-        gnorm = float(np.sqrt(gG @ gG + np.sum(gE * gE)))
-        improved = False
-        for _ in range(TRIALS):
-            Dinv = _damped(D, dD, lam, valid)
-            if Dinv is None:
-                lam, nu = lam * nu, 2.0 * nu
-                continue
-            DiC = np.einsum("eab,ebk->eak", Dinv, C)
-            S = R + np.diag(lam * dR) - np.einsum("eak,eal->kl", C, DiC)
-            DigE = np.einsum("eab,eb->ea", Dinv, gE)
-            rhs = -gG + np.einsum("eak,ea->k", C, DigE)
-            xg = _direct_solve(0.5 * (S + S.T), rhs) if pat.ng else np.zeros(0)
-            if xg is None:
-                lam, nu = lam * nu, 2.0 * nu
-                continue
-            xe = -DigE - np.einsum("eak,k->ea", DiC, xg)
-            dx = np.zeros(p)
-            dx[glob] = xg
-            dx[loc_x] = xe[valid]
-            if not np.isfinite(dx).all():
-                lam, nu = lam * nu, 2.0 * nu
-                continue
-            trial = x + dx
-            c2, f2, w2, r2 = evaluate(trial)
-            if np.isfinite(c2) and c2 <= cost:
-                Jd = pat.matvec(vals, dx)
-                pred = -(float(wf @ Jd) + 0.5 * float(np.sum(wall * Jd * Jd)))
-                small = np.linalg.norm(dx) <= xtol * (xtol + np.linalg.norm(x))
-                rel = (cost - c2) <= ftol * max(cost, 1e-300)
-                # Gauss-Newton while its model holds; the residuals' curvature once it fails
-                # (gain ratio below 1/4) or its progress has become the linear tail
-                if not newton and ((cost - c2) <= SWITCH * cost or (cost - c2) < 0.25 * pred):
-                    newton = True
-                lam = damping_after_success(lam, cost - c2, pred)
-                nu = 2.0
-                x, cost, f, w = trial, c2, f2, w2
-                improved = True
-                converged = bool(small or rel)
-                break
-            lam, nu = lam * nu, 2.0 * nu
-        if not improved:
-            # no damped step descends: a minimum up to round-off if the gradient is tiny
-            converged = gnorm <= 1e-6 * max(1.0, np.sqrt(2 * cost))
-            break
-        if converged:
-            break
-    return x, converged, it
+        fall = np.concatenate([f, self.zeros_c])
+        return _AffineStep(self.pat, vals, wall, fall)
+
+    def accepted(self, lin: Any, cost: float, new: float, predicted: float) -> None:
+        # Gauss-Newton while its model holds; the residuals' curvature once it fails
+        # (gain ratio below 1/4) or its progress has become the linear tail
+        if not self.newton and ((cost - new) <= SWITCH * cost or (cost - new) < 0.25 * predicted):
+            self.newton = True
+
+
+class _AffineStep:
+    """The damped step ``(H + lam diag|H|) dx = -g`` with the node blocks eliminated (Schur
+    complement on the global unknowns, dense Cholesky)."""
+
+    def __init__(self, pat: RowPattern, vals: Array, wall: Array, fall: Array) -> None:
+        self.pat, self.vals, self.wall = pat, vals, wall
+        self.wf = wall * fall
+        self.D, self.C, self.R, self.gE, self.gG = pat.systems(vals, wall, fall)
+        self.dD = _floor(np.abs(np.einsum("eaa->ea", self.D)))
+        self.dR = _floor(np.abs(np.diag(self.R)).copy())
+        self.gnorm = float(np.sqrt(self.gG @ self.gG + np.sum(self.gE * self.gE)))
+
+    def step(self, lam: float) -> Array | None:
+        pat, C = self.pat, self.C
+        Dinv = _damped(self.D, self.dD, lam, pat.valid)
+        if Dinv is None:
+            return None
+        DiC = np.einsum("eab,ebk->eak", Dinv, C)
+        S = self.R + np.diag(lam * self.dR) - np.einsum("eak,eal->kl", C, DiC)
+        DigE = np.einsum("eab,eb->ea", Dinv, self.gE)
+        rhs = -self.gG + np.einsum("eak,ea->k", C, DigE)
+        xg = _direct_solve(0.5 * (S + S.T), rhs) if pat.ng else np.zeros(0)
+        if xg is None:
+            return None
+        xe = -DigE - np.einsum("eak,k->ea", DiC, xg)
+        dx = np.zeros(pat.p)
+        dx[pat.glob] = xg
+        dx[pat.blocks[pat.valid]] = xe[pat.valid]
+        return dx if np.isfinite(dx).all() else None
+
+    def predicted(self, dx: Array) -> float:
+        Jd = self.pat.matvec(self.vals, dx)
+        return -(float(self.wf @ Jd) + 0.5 * float(np.sum(self.wall * Jd * Jd)))
 
 
 class RangeSchurModel:

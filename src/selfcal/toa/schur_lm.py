@@ -33,23 +33,15 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..errors import DegenerateGeometryError
+from ..optim.lm import Model, levenberg_marquardt
+from ..optim.structure import DENSE_MAX_UNKNOWNS, DIRECT_MAX_UNKNOWNS, lm_step
 from ..robust import loss_rho
 from .dense_lm import _solve as _direct_solve  # Cholesky (posv), least squares if not PD
-from .dense_lm import damping_after_success
 
 Array = NDArray[np.float64]
 
 __all__ = ["DENSE_MAX_UNKNOWNS", "DIRECT_MAX_UNKNOWNS", "solve_schur_lm"]
 
-#: problems of at most this many unknowns in all form the full normal matrix (step "dense")
-DENSE_MAX_UNKNOWNS = 120
-#: reduced systems of at most this many unknowns (nK mK) are solved directly (dense Cholesky
-#: of S) instead of by preconditioned conjugate gradients: measured crossover, see solve_schur_lm
-DIRECT_MAX_UNKNOWNS = 200
-#: ... and only while forming S stays cheap: (nK mK)^2 (nE mE) multiply-adds and (nK mK) (nE mE)
-#: doubles for the dense ``W`` (32 MB)
-DIRECT_MAX_FLOPS = 1e8
-DIRECT_MAX_ENTRIES = 4e6
 #: default iteration cap per step kind (the same for all: a larger cap for the cheap dense
 #: step was tried, 400, and made the robust stages of solve_toa at 12 x 6 crawl along flat
 #: valleys towards far-field minima without converging, for no gain in the basin rate)
@@ -339,9 +331,8 @@ def solve_schur_lm(
         formed once per iteration and Cholesky-factorised per damping trial, in
         :func:`selfcal.toa.dense_lm.solve_dense_lm`), "reduced" (the
         Schur-reduced matrix formed and factorised), "cg" (matrix-free preconditioned CG) or
-        "auto" (default): "dense" up to :data:`DENSE_MAX_UNKNOWNS` unknowns, else "reduced"
-        while forming S is cheap (:data:`DIRECT_MAX_UNKNOWNS`, :data:`DIRECT_MAX_FLOPS`,
-        :data:`DIRECT_MAX_ENTRIES`), else "cg".
+        "auto" (default): :func:`selfcal.optim.structure.lm_step`, the one rule (dense up to
+        120 unknowns, else the formed reduced system while forming it is cheap, else CG).
 
     Returns
     -------
@@ -360,8 +351,6 @@ def solve_schur_lm(
     equations with weights rho'(z), whose fixed points are the stationary points of the robust
     cost.
     """
-    from scipy.sparse.linalg import LinearOperator, cg
-
     ori = _Oriented(lay)
     k_is_r = lay.k_is_receivers  # type: ignore[attr-defined]
     nK, nE = lay.k_idx.shape[0], lay.e_idx.shape[0]  # type: ignore[attr-defined]
@@ -376,58 +365,46 @@ def solve_schur_lm(
         YK, obs = np.asarray(Y, float), None
         pat = Pairs(np.asarray(ki, np.intp), np.asarray(ei, np.intp), nK, nE)
     n = lay.n  # type: ignore[attr-defined]
+    g0, it = 1.0, 0  # first gradient norm (the CG forcing term's reference), linearisations
+
+    class Ranges(Model):
+        def evaluate(self, theta: Array) -> tuple[float, tuple[Array, Array, list[Array]]]:
+            xK, xE, oK, oE = ori.split(theta)
+            U, f = directions(xK, xE, pat)
+            if oK is not None:
+                f += pat.kx(oK)
+            if oE is not None:
+                f += pat.ex(oE)
+            f -= YK
+            if obs is None:
+                rho, w = loss_rho((f / f_scale) ** 2, loss)
+                cost = 0.5 * f_scale**2 * float(rho.sum())
+                return cost, (f, np.array(w, float), U)
+            f[~obs] = 0.0
+            rho, drho = loss_rho((f / f_scale) ** 2, loss)
+            cost = 0.5 * f_scale**2 * float(rho[obs].sum())
+            w = np.where(obs, drho, 0.0)
+            return cost, (f, w, U)
+
+        def linearize(self, theta: Array, state: tuple[Array, Array, list[Array]]) -> _SchurStep:
+            nonlocal g0, it
+            it += 1
+            f, w, U = state
+            step = _SchurStep(U, w, f, ori, pat, gauge(theta), k_flat, e_flat, n, mode)
+            g0 = step.gnorm if it == 1 else g0
+            # inexact Newton forcing term (Eisenstat-Walker style): loose CG solves far from
+            # the minimum, tight ones once the gradient has dropped (keeps the fast local rate)
+            step.cg_rtol = float(np.clip(step.gnorm / max(g0, 1e-300), *CG_RTOL))
+            return step
+
     k_flat = lay.k_idx.ravel()  # type: ignore[attr-defined]
     e_flat = lay.e_idx.ravel()  # type: ignore[attr-defined]
-
-    def evaluate(theta: Array) -> tuple[float, Array, Array, list[Array]]:
-        xK, xE, oK, oE = ori.split(theta)
-        U, f = directions(xK, xE, pat)
-        if oK is not None:
-            f += pat.kx(oK)
-        if oE is not None:
-            f += pat.ex(oE)
-        f -= YK
-        if obs is None:
-            rho, w = loss_rho((f / f_scale) ** 2, loss)
-            cost = 0.5 * f_scale**2 * float(rho.sum())
-            return cost, f, np.array(w, float), U
-        f[~obs] = 0.0
-        rho, drho = loss_rho((f / f_scale) ** 2, loss)
-        cost = 0.5 * f_scale**2 * float(rho[obs].sum())
-        w = np.where(obs, drho, 0.0)
-        return cost, f, w, U
-
-    ftol = 1e-8  # relative cost decrease that stops the iteration (scipy's default)
-    theta = theta0.copy()
-    cost, f, w, U = evaluate(theta)
-    g0 = 1.0
-    lam = 1e-4
-    nu = 2.0
-
-    def predicted_decrease(dx: Array) -> float:
-        """``-(g^T dx + |J dx|_W^2 / 2)``: the cost decrease the Gauss-Newton model predicts."""
-        xK, xE, oK, oE = ori.split(dx)
-        t = U[0] * (pat.kx(xK[:, 0]) - pat.ex(xE[:, 0]))
-        for p in range(1, xK.shape[1]):
-            t += U[p] * (pat.kx(xK[:, p]) - pat.ex(xE[:, p]))
-        if oK is not None:
-            t += pat.kx(oK)
-        if oE is not None:
-            t += pat.ex(oE)
-        gd = float(gK @ dx[k_flat] + gE @ dx[e_flat])
-        return -(gd + 0.5 * float(np.sum(w * t * t)))
-    converged = False
-    it = 0
     nk = k_flat.size
     d = lay.d  # type: ignore[attr-defined]
     ne = e_flat.size
     if step not in ("auto", "dense", "reduced", "cg"):
         raise ValueError(f"step must be 'auto', 'dense', 'reduced' or 'cg', got {step!r}")
-    mode = step
-    if mode == "auto":
-        mode = ("dense" if n <= DENSE_MAX_UNKNOWNS else
-                "reduced" if nk <= DIRECT_MAX_UNKNOWNS and nk * nk * ne <= DIRECT_MAX_FLOPS
-                and nk * ne <= DIRECT_MAX_ENTRIES else "cg")
+    mode = lm_step(n, nk, ne) if step == "auto" else step
     max_it = max_nfev or DEFAULT_MAX_IT[mode]
     if mode == "dense":
         from .dense_lm import solve_dense_lm
@@ -439,12 +416,25 @@ def solve_schur_lm(
             ii, jj, yv = np.asarray(pairs[0], np.intp), np.asarray(pairs[1], np.intp), np.asarray(Y, float)
         return solve_dense_lm(theta0, yv, ii, jj, lay.I, lay.J, d, lay.offsets, loss,  # type: ignore[attr-defined]
                               f_scale, max_nfev, xtol, max_it=DEFAULT_MAX_IT["dense"])
-    while it < max_it:
-        it += 1
-        Qg = gauge(theta)
+    out = levenberg_marquardt(Ranges(), theta0, max_iter=max_it, xtol=xtol)
+    return out.x, out.converged, out.iterations
+
+
+class _SchurStep:
+    """The Schur step solver of :func:`solve_schur_lm`: the damped system reduced to the kept
+    nodes, solved directly (``mode="reduced"``) or by Schur-Jacobi preconditioned CG, the
+    eliminated nodes back-substituted and the step projected off the gauge basis ``Qg``."""
+
+    cg_rtol = CG_RTOL[1]
+
+    def __init__(self, U: list[Array], w: Array, f: Array, ori: _Oriented, pat: Grid, Qg: Array,
+                 k_flat: NDArray[np.intp], e_flat: NDArray[np.intp], n: int, mode: str) -> None:
+        self.U, self.w, self.ori, self.pat, self.Qg = U, w, ori, pat, Qg
+        self.k_flat, self.e_flat, self.n, self.mode = k_flat, e_flat, n, mode
+        d = len(U)
         wf = w * f
-        gK = np.empty((nK, d + ori.hasK))
-        gE = np.empty((nE, d + ori.hasE))
+        gK = np.empty((pat.nK, d + ori.hasK))
+        gE = np.empty((pat.nE, d + ori.hasE))
         for p in range(d):
             gK[:, p] = pat.ksum(wf, U[p])
             gE[:, p] = -pat.esum(wf, U[p])
@@ -453,53 +443,47 @@ def solve_schur_lm(
         if ori.hasE:
             gE[:, d] = pat.esum(wf)
         del wf
-        gK, gE = gK.ravel(), gE.ravel()
-        gnorm = float(np.sqrt(gK @ gK + gE @ gE))
-        g0 = gnorm if it == 1 else g0
-        # inexact Newton forcing term (Eisenstat-Walker style): loose CG solves far from
-        # the minimum, tight ones once the gradient has dropped (keeps the fast local rate)
-        cg_rtol = float(np.clip(gnorm / max(g0, 1e-300), *CG_RTOL))
-        improved = False
-        for _ in range(12):
-            try:
-                red = _Reduced(U, w, ori.hasK, ori.hasE, lam, pat, precondition=mode == "cg")
-            except DegenerateGeometryError:
-                lam, nu = lam * nu, 2.0 * nu
-                continue
-            rhs = -gK + red.b(red.dinv(gE))
-            if mode == "reduced":
-                xr = _direct_solve(red.dense(), rhs)
-                if xr is None:
-                    lam, nu = lam * nu, 2.0 * nu
-                    continue
-                x = xr
-            else:
-                op = LinearOperator((nk, nk), matvec=red.smul, dtype=float)
-                pc = LinearOperator((nk, nk), matvec=red.prec, dtype=float)
-                x, _ = cg(op, rhs, rtol=cg_rtol, maxiter=500, M=pc)
-            y = red.dinv(-gE - red.bt(x))
-            del red
-            dx = np.zeros(n)
-            dx[k_flat] = x
-            dx[e_flat] = y
-            dx -= Qg @ (Qg.T @ dx)  # no rigid drift (and no common offset shift)
-            trial = theta + dx
-            c2, f2, w2, U2 = evaluate(trial)
-            if c2 <= cost:
-                small = np.linalg.norm(dx) <= xtol * (xtol + np.linalg.norm(theta))
-                rel = (cost - c2) <= ftol * max(cost, 1e-300)
-                lam = damping_after_success(lam, cost - c2, predicted_decrease(dx))
-                nu = 2.0
-                theta, cost, f, w, U = trial, c2, f2, w2, U2
-                improved = True
-                converged = bool(small or rel)
-                break
-            del f2, w2, U2
-            lam, nu = lam * nu, 2.0 * nu
-        if not improved:
-            # no damped step descends: a minimum up to round-off if the gradient is tiny
-            converged = gnorm <= 1e-6 * max(1.0, np.sqrt(2 * cost))
-            break
-        if converged:
-            break
-    return theta, converged, it
+        self.gK, self.gE = gK.ravel(), gE.ravel()
+        self.gnorm = float(np.sqrt(self.gK @ self.gK + self.gE @ self.gE))
+
+    def step(self, lam: float) -> Array | None:
+        from scipy.sparse.linalg import LinearOperator, cg
+
+        try:
+            red = _Reduced(self.U, self.w, self.ori.hasK, self.ori.hasE, lam, self.pat,
+                           precondition=self.mode == "cg")
+        except DegenerateGeometryError:
+            return None
+        gK, gE = self.gK, self.gE
+        rhs = -gK + red.b(red.dinv(gE))
+        nk = self.k_flat.size
+        if self.mode == "reduced":
+            xr = _direct_solve(red.dense(), rhs)
+            if xr is None:
+                return None
+            x = xr
+        else:
+            op = LinearOperator((nk, nk), matvec=red.smul, dtype=float)
+            pc = LinearOperator((nk, nk), matvec=red.prec, dtype=float)
+            x, _ = cg(op, rhs, rtol=self.cg_rtol, maxiter=500, M=pc)
+        y = red.dinv(-gE - red.bt(x))
+        del red
+        dx = np.zeros(self.n)
+        dx[self.k_flat] = x
+        dx[self.e_flat] = y
+        dx -= self.Qg @ (self.Qg.T @ dx)  # no rigid drift (and no common offset shift)
+        return dx
+
+    def predicted(self, dx: Array) -> float:
+        """``-(g^T dx + |J dx|_W^2 / 2)``: the cost decrease the Gauss-Newton model predicts."""
+        U, pat = self.U, self.pat
+        xK, xE, oK, oE = self.ori.split(dx)
+        t = U[0] * (pat.kx(xK[:, 0]) - pat.ex(xE[:, 0]))
+        for p in range(1, xK.shape[1]):
+            t += U[p] * (pat.kx(xK[:, p]) - pat.ex(xE[:, p]))
+        if oK is not None:
+            t += pat.kx(oK)
+        if oE is not None:
+            t += pat.ex(oE)
+        gd = float(self.gK @ dx[self.k_flat] + self.gE @ dx[self.e_flat])
+        return -(gd + 0.5 * float(np.sum(self.w * t * t)))

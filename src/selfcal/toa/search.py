@@ -6,7 +6,7 @@
    sort, so its answer is equivariant under permutations of receivers and of sources
    (exactly: the sorted matrix, and so every later step, is the same bit for bit).
 2. **Starts** from a registry of initialisers (:data:`INITIALISERS`, in that order): the
-   004 rank-3 iteration (:mod:`selfcal.toa.offsets`, with offsets and when it identifies
+   004 rank-3 iteration (:mod:`selfcal.toa.offsets_init`, with offsets and when it identifies
    them) and the 003 family (:mod:`selfcal.toa.mds`: rank factorisation, MDS +
    multilateration, Algorithm 2). Starting offsets are the least-squares offsets of the
    start geometry.
@@ -54,6 +54,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..errors import DegenerateGeometryError, InputError
+from ..optim.structure import lm_step
 from ..robust import TUNING
 from .batch_lm import solve_batch_lm
 from .dense_lm import solve_dense_lm
@@ -62,7 +63,6 @@ from .nls import NlsSolution, _pack, _rho, _unpack, refine_toa, toa_model
 from .rank3_model import rank_identifiable
 from .result import _additive_fit
 from .robust import _nanmedian_rows
-from .schur_lm import DENSE_MAX_UNKNOWNS
 
 __all__ = ["INITIALISERS", "MOVES_MAX_NODES", "SearchOutcome", "canonical_order", "default_budget",
            "least_squares_offsets", "search"]
@@ -138,8 +138,8 @@ _Init = Callable[[Array, int, str, np.random.Generator], list[Start]]
 
 
 def _rank3(Y: Array, dim: int, offsets: str, rng: np.random.Generator) -> list[Start]:
-    """004 rank-3 iteration (selfcal.toa.offsets): up to 4 distinct starts, offsets collapsed."""
-    from . import offsets as off
+    """004 rank-3 iteration (selfcal.toa.offsets_init): up to 4 distinct starts, offsets collapsed."""
+    from .offsets_init import initialize_offsets_candidates
 
     if offsets == "none":
         return []
@@ -148,13 +148,13 @@ def _rank3(Y: Array, dim: int, offsets: str, rng: np.random.Generator) -> list[S
         return []
     k = 4 if I + J <= MOVES_MAX_NODES else 1
     try:
-        found = off.initialize_offsets_candidates(Y, dim, rng=rng, max_candidates=k)
+        found = initialize_offsets_candidates(Y, dim, rng=rng, max_candidates=k)
     except (DegenerateGeometryError, InputError):
         if not np.isnan(Y).any():
             raise
         # missing entries: complete them by the two-way additive fit for the initialiser only
         Z = np.where(np.isfinite(Y), Y, _additive_fit(Y, True, True))
-        found = off.initialize_offsets_candidates(Z, dim, rng=rng, max_candidates=k)
+        found = initialize_offsets_candidates(Z, dim, rng=rng, max_candidates=k)
     out: list[Start] = []
     for r, s, d0, o0 in found:
         r, s = np.asarray(r, float), np.asarray(s, float)
@@ -262,6 +262,8 @@ class SearchOutcome:
         the solver's precision: no candidate can do better), "budget", "exhausted".
     history: (candidate name, cost) of every start and accepted move.
     partial_refits: partial refits run to rank the moves of a few nodes (not in ``refinements``).
+    minima: converged starts the race dropped behind the winner (lowest cost first, at most
+        :data:`MINIMA_KEPT`): other minima, for :func:`selfcal.toa.uniqueness.uniqueness_test`.
     """
 
     solution: NlsSolution
@@ -273,6 +275,7 @@ class SearchOutcome:
     stopped: str
     history: list[tuple[str, float]] = field(default_factory=list)
     partial_refits: int = 0
+    minima: list[Start] = field(default_factory=list)
 
 
 def _cost(sol: NlsSolution, loss: str, fs: float) -> float:
@@ -349,6 +352,8 @@ RACE_RUNGS = 8
 #: as it lost over its last rung (the rungs double its iterations; for an O(1/k) descent,
 #: c_k = c* + b / k, the rest after k iterations, b / k, is what the last doubling removed)
 RACE_FACTOR = 1.0
+#: converged losers of the race kept as other minima (SearchOutcome.minima)
+MINIMA_KEPT = 4
 
 
 def _race_survivors(pool: list[_Entry], best_only: bool = False) -> list[_Entry]:
@@ -521,7 +526,7 @@ def search(
     # the rungs run the engine's dense step directly (what refine_toa runs at this size, without
     # its layout, gauge and covariance round trip per call) unless a stopping rule needs each
     # rung's full solution
-    fast = solver == "auto" and stop is None and n_unknowns <= DENSE_MAX_UNKNOWNS and len(starts) > 1
+    fast = solver == "auto" and stop is None and lm_step(n_unknowns) == "dense" and len(starts) > 1
     ii_obs, jj_obs = np.nonzero(observed)
     y_obs = Y[ii_obs, jj_obs]
 
@@ -601,10 +606,13 @@ def search(
             pool = [pool[-1]]
             stopped = why
             break
+    settled: list[tuple[float, int, Start]] = []  # converged starts the race dropped: other minima
     while len(pool) > 1 and stopped == "exhausted":
         if count >= nb:
             stopped = "budget"
-        pool = _race_survivors(pool, best_only=count >= nb)
+        kept = _race_survivors(pool, best_only=count >= nb)
+        settled += [(e[0], e[1], e[3][1]) for e in pool if e[3][2] and all(e[1] != k[1] for k in kept)]
+        pool = kept
         if all(e[3][2] for e in pool):
             break
         nfev = None if nfev is None else 2 * nfev
@@ -709,5 +717,6 @@ def search(
                     why = done(best)
                     if why is not None:
                         stopped = why
+    settled.sort(key=lambda e: (e[0], e[1]))
     return SearchOutcome(best, best_name, tuple(accepted), count, iters, float(fs or 1.0), stopped, history,
-                         partial_count)
+                         partial_count, [st for _, _, st in settled[:MINIMA_KEPT]])

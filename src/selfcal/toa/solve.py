@@ -24,6 +24,7 @@ from .._checks import (
     check_dim,
     check_positive,
     check_toa_counts,
+    check_toa_observable,
     entry,
 )
 from ..errors import ConvergenceWarning, InputError
@@ -38,7 +39,7 @@ METHODS = ("auto", "nls", "rank3")
 
 
 @entry(matrix="array", speed="positive?", rng="rng", f_scale="positive?", max_nfev="count?", noise="positive?",
-       budget="count?")
+       budget="count?", sweep="bool")
 def solve_toa(
     matrix: Any,
     *,
@@ -138,6 +139,8 @@ def solve_toa(
         raise InputError(f"noise: {sd:.3g} is beyond {MAX_ABS_ENTRY:.2g}; give the noise std in the matrix's units")
     fs = check_positive(f_scale, "f_scale")
     M = as_matrix(matrix, "matrix")
+    # the pattern alone, for the least demanding model tried: linear in the entries, before any work
+    check_toa_observable(M, 2 if dim == "auto" else int(dim), "none" if offsets == "auto" else offsets)
     gen = as_rng(rng)
     if method == "rank3" and offsets == "none":
         raise InputError("method='rank3' estimates offsets: use offsets='both' (or 'receivers'/'sources'), "

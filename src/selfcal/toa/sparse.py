@@ -50,6 +50,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from .._checks import entry
 from .._result import Result
 from ..errors import DegenerateGeometryError, InputError
 
@@ -120,10 +121,25 @@ def _check_pairs(i: object, j: object, ranges: object, I: int | None, J: int | N
         raise InputError("ranges must be finite (list only the observed pairs)")
     if ii.size and (ii.min() < 0 or jj.min() < 0):
         raise InputError("node indices must be >= 0")
+    if ii.size == 0:
+        raise InputError("i, j and ranges are empty: give the observed pairs")
+    if y.dtype.kind == "b" or np.asarray(ranges).dtype.kind == "b":
+        raise InputError("ranges holds booleans (True / False), not measured ranges")
     I = int(ii.max()) + 1 if I is None else int(I)
     J = int(jj.max()) + 1 if J is None else int(J)
     if ii.size and (ii.max() >= I or jj.max() >= J):
         raise InputError(f"node index out of range for {I} receivers and {J} sources")
+    from .._checks import guard_size
+
+    # ~64 float64 per node: positions, offsets, the growth's bookkeeping and the normal blocks
+    guard_size(float(I + J) * 8.0 * 64, f"a sparse network of {I} receivers and {J} sources")
+    # nodes without a range are never located, and a fit reaching less than half of the
+    # nodes is refused (solve_toa_sparse): refuse it before anything the size of I + J is made
+    seen = np.unique(ii).size + np.unique(jj).size
+    if I + J > 2 * seen:
+        raise DegenerateGeometryError(
+            f"{I} receivers and {J} sources, but only {seen} of them appear in the {ii.size} pairs: less than "
+            f"half of the nodes could be located (check n_receivers / n_sources)", kind="unobservable-node")
     key = ii.astype(np.int64) * J + jj
     if np.unique(key).size != key.size:
         raise InputError("a (receiver, source) pair is listed twice; average repeated ranges first")
@@ -530,6 +546,8 @@ def _refine_located(i: Index, j: Index, y: Array, r: Array, s: Array, d: int) ->
     return r, s
 
 
+@entry(i="indices", j="indices", ranges="array", n_receivers="count?", n_sources="count?", rng="rng",
+       max_nfev="count?", tries="count", dim="dim")
 def solve_toa_sparse(
     i: NDArray[np.integer], j: NDArray[np.integer], ranges: Array, n_receivers: int | None = None,
     n_sources: int | None = None, *, dim: int = 3, rng: int | np.random.Generator | None = 0,

@@ -212,7 +212,19 @@ def _additive_fit(Y: Array, rows: bool, cols: bool, iterations: int = 100) -> Ar
 
 
 def _additive_leverages(obs: NDArray[np.bool_], rows: bool, cols: bool, max_unknowns: int = 2000) -> Array:
-    """Leverages of the additive model's design at the observed entries (mean n / m when large)."""
+    """Leverages of the additive model's design at the observed entries (mean n / m when large).
+
+    The design ``X`` (intercept, row and column indicators less one each) has at most three
+    non-zeros a row, so ``h_k = x_k (X^T X)^+ x_k^T`` comes from the small (n, n) normal
+    matrix (eigenvalues below 1e-12 of the largest cut: a singular value of X below 1e-6 of
+    the largest, a disconnected pattern's extra null direction) and three entries of its
+    inverse per entry: O(m + n^3) instead of the SVD of the dense (m, n) design (0.2 s at
+    14,400 x 239). Above ``max_unknowns`` columns or 5e7 design entries (the former
+    memory guard of the dense design, kept so the choice between the exact and the mean
+    leverages is unchanged) the mean ``n / m``.
+    """
+    import scipy.sparse
+
     I, J = obs.shape
     ii, jj = np.nonzero(obs)
     n = 1 + (I - 1 if rows else 0) + (J - 1 if cols else 0)
@@ -220,15 +232,23 @@ def _additive_leverages(obs: NDArray[np.bool_], rows: bool, cols: bool, max_unkn
     if n > max_unknowns or ii.size * n > 5e7:  # decided before any (entries x n) array is built
         H[obs] = min(n / max(ii.size, 1), 1.0)
         return H
-    cols_ = [np.ones((ii.size, 1))]
-    if rows:
-        cols_.append(np.eye(I)[ii][:, 1:])
-    if cols:
-        cols_.append(np.eye(J)[jj][:, 1:])
-    X = np.hstack(cols_)
-    U, sv, _ = np.linalg.svd(X, full_matrices=False)
-    rank = int(np.sum(sv > sv[0] * 1e-10))
-    H[obs] = np.sum(U[:, :rank] ** 2, axis=1)
+    if ii.size == 0:
+        return H
+    cidx = [np.zeros((ii.size, 1), np.intp)]
+    vals = [np.ones((ii.size, 1))]
+    k = 1
+    for on, idx, size in ((rows, ii, I), (cols, jj, J)):
+        if on:  # indicator of row / column idx, the first one dropped (a zero entry in column 0)
+            cidx.append(np.where(idx > 0, k + idx - 1, 0)[:, None])
+            vals.append((idx > 0).astype(float)[:, None])
+            k += size - 1
+    C, V = np.hstack(cidx), np.hstack(vals)
+    X = scipy.sparse.csr_matrix((V.ravel(), C.ravel(), np.arange(0, C.size + 1, C.shape[1])), shape=(ii.size, n))
+    N = np.asarray((X.T @ X).todense())
+    lam, W = np.linalg.eigh(N)
+    keep = lam > lam[-1] * 1e-12
+    P = (W[:, keep] / lam[keep]) @ W[:, keep].T
+    H[obs] = np.einsum("ka,kab,kb->k", V, P[C[:, :, None], C[:, None, :]], V)
     return H
 
 

@@ -77,8 +77,9 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.linalg import lapack
 
+from ..optim.lm import Model, levenberg_marquardt
 from . import dense_lm
-from .dense_lm import TRIALS, GaugeProjector, _solve, damping_after_success, full_lm
+from .dense_lm import DenseStep, GaugeProjector, full_lm
 
 Array = NDArray[np.float64]
 
@@ -164,61 +165,41 @@ def solve_varpro_lm(
         u *= np.divide(1.0, dist, out=np.zeros_like(dist), where=dist > 0)[:, None]
         return dist, u
 
-    dist, u = geometry(theta)
-    f = Pm @ (dist - y)
-    cost = 0.5 * float(f @ f)
-    lam = 1e-4
-    nu = 2.0
-    converged = False
-    it = 0
-    cap = max_nfev or max_it
+    dstep = np.arange(k) * (k + 1)
     Jx = np.zeros((m, k))
     Jflat = Jx.reshape(-1)
     pos_r = (ar[:, None] * k + ii[:, None] * d + np.arange(d)).ravel()
     pos_s = (ar[:, None] * k + (I + jj)[:, None] * d + np.arange(d)).ravel()
-    dstep = np.arange(k) * (k + 1)
-    while it < cap:
-        it += 1
-        uf = u.ravel()
-        Jflat[pos_r] = uf
-        Jflat[pos_s] = -uf
-        Jr = Pm @ Jx  # the reduced Jacobian (exact: A does not depend on the positions)
-        Hr = np.dot(Jr.T, Jr)
-        gr = np.dot(Jx.T, f)  # = Jr^T f, since P f = f
-        hdiag = Hr.ravel()[dstep].copy()
-        proj = GaugeProjector(theta, N, d, I, False)
-        gnorm = math.sqrt(float(gr @ gr))
-        tnorm = math.sqrt(float(theta[:k] @ theta[:k]))
-        mg = -gr
-        improved = False
-        for _ in range(TRIALS):
-            Hd = Hr.copy()
-            Hd.ravel()[dstep] += lam * hdiag
-            x = _solve(Hd, mg)
-            if x is None:
-                lam, nu = lam * nu, 2.0 * nu
-                continue
-            proj.apply(x)
-            trial = theta.copy()
-            trial[:k] += x
-            dist2, u2 = geometry(trial)
-            f2 = Pm @ (dist2 - y)
-            c2 = 0.5 * float(f2 @ f2)
-            if c2 <= cost:
-                small = math.sqrt(float(x @ x)) <= xtol * (xtol + tnorm)
-                rel = (cost - c2) <= dense_lm.FTOL * max(cost, 1e-300)
-                lam = damping_after_success(lam, cost - c2, -(float(gr @ x) + 0.5 * float(x @ (Hr @ x))))
-                nu = 2.0
-                theta, cost, f, dist, u = trial, c2, f2, dist2, u2
-                improved = True
-                converged = bool(small or rel)
-                break
-            lam, nu = lam * nu, 2.0 * nu
-        if not improved:
-            converged = gnorm <= 1e-6 * max(1.0, math.sqrt(2 * cost))
-            break
-        if converged:
-            break
+
+    class Projected(Model):
+        """The positions' cost with the offsets projected out; a step moves the positions only."""
+
+        def evaluate(self, t: Array) -> tuple[float, tuple[Array, Array, Array]]:
+            dist, u = geometry(t)
+            f = Pm @ (dist - y)
+            return 0.5 * float(f @ f), (f, dist, u)
+
+        def linearize(self, t: Array, state: tuple[Array, Array, Array]) -> DenseStep:
+            f, _, u = state
+            uf = u.ravel()
+            Jflat[pos_r] = uf
+            Jflat[pos_s] = -uf
+            Jr = Pm @ Jx  # the reduced Jacobian (exact: A does not depend on the positions)
+            Hr = np.dot(Jr.T, Jr)
+            gr = np.dot(Jx.T, f)  # = Jr^T f, since P f = f
+            return DenseStep(Hr, gr, dstep, GaugeProjector(t, N, d, I, False), None, k)
+
+        def retract(self, t: Array, dx: Array) -> Array:
+            trial = t.copy()
+            trial[:k] += dx
+            return trial
+
+        def small_step(self, t: Array, dx: Array, xtol: float) -> bool:
+            return math.sqrt(float(dx @ dx)) <= xtol * (xtol + math.sqrt(float(t[:k] @ t[:k])))
+
+    out = levenberg_marquardt(Projected(), theta, max_iter=max_nfev or max_it, xtol=xtol, ftol=dense_lm.FTOL)
+    theta, converged, it = out.x, out.converged, out.iterations
+    dist = out.state[1]
     # the offsets of the final geometry, in the gauge of the start (sum d - sum o kept)
     z = AG @ (y - dist)
     if v is not None:

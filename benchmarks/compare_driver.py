@@ -1,0 +1,305 @@
+"""Old engines against the one Levenberg-Marquardt driver (issue 30): equal minima, no slower.
+
+Loads the tree of an old commit (default ``e790be1``, the last one before the driver) as the
+package ``selfcal_old`` next to the working tree's ``selfcal`` in this one process, runs every
+case on both (old and new alternately, the better of ``--repeat`` CPU times each) and prints
+one row per case:
+
+* ``rel_cost``: ``|c_new - c_old| / c_old`` of the final cost (each engine's own cost: 0.5 sum
+  rho for TOA, sum rho for far-field, sum of squared angles for AOA, the rank-d objective);
+  target <= 1e-8;
+* ``pos_diff``: largest distance between the two solutions' positions after a rigid alignment
+  (reflection allowed), relative to the extent of the old solution;
+* ``t_ratio``: new / old CPU seconds (``time.process_time``).
+
+Cases: the test and benchmark networks of the engines -- TOA with every offsets model, 2-D and
+3-D, the dense (12 x 6), Schur-reduced (30 x 40) and Schur-CG (150 x 200) steps, missing
+entries, robust losses (Huber, soft-L1, Cauchy), known nodes (fixed anchor rows and fixed
+heights: the constrained engine), the search's lockstep race (25 starts), ``solve_toa`` end to
+end, the rank-d offsets LM (dense joint and scalable), far-field TDOA (LM, robust, planar),
+AOA ML poses (3-D / 2-D, batched) and a pipeline room (a conference scene's TOA matrix through
+``calibrate_matrix`` with and without known heights).
+
+Usage::
+
+    PYTHONPATH=src python benchmarks/compare_driver.py [--old e790be1] [--repeat 2] [--json out.json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import importlib.util
+import json
+import subprocess
+import sys
+import tempfile
+import time
+import types
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+C = 343.0
+
+
+def load_old(commit: str, where: Path) -> str:
+    """Extract ``src/`` of ``commit`` under ``where`` and import it as the package ``selfcal_old``."""
+    subprocess.run(f"git -C {ROOT} archive {commit} src | tar -x -C {where}", shell=True, check=True)
+    pkg = where / "src" / "selfcal"
+    spec = importlib.util.spec_from_file_location("selfcal_old", pkg / "__init__.py",
+                                                  submodule_search_locations=[str(pkg)])
+    assert spec is not None and spec.loader is not None
+    mod = importlib.util.module_from_spec(spec)
+    sys.modules["selfcal_old"] = mod
+    spec.loader.exec_module(mod)
+    return "selfcal_old"
+
+
+def tree(name: str) -> Callable[[str], types.ModuleType]:
+    return lambda sub: importlib.import_module(f"{name}.{sub}")
+
+
+# ------------------------------------------------------------------ problems (data only)
+def toa_problem(I: int, J: int, d: int, offsets: str, seed: int, miss: float = 0.0, noise: float = 0.01,
+                gross: int = 0) -> dict[str, Any]:
+    g = np.random.default_rng(seed)
+    r, s = g.uniform(0, 3, (I, d)), g.normal(0, 4, (J, d))
+    dd = g.uniform(0, 1, I) if offsets in ("receivers", "both") else np.zeros(I)
+    oo = g.uniform(0, 3, J) if offsets in ("sources", "both") else np.zeros(J)
+    Y = np.linalg.norm(r[:, None] - s[None], axis=-1) + dd[:, None] + oo[None] + g.normal(0, noise, (I, J))
+    if gross:
+        Y.flat[g.choice(I * J, gross, replace=False)] += g.uniform(0.5, 2.0, gross)
+    Y[g.random((I, J)) < miss] = np.nan
+    return dict(Y=Y, r=r, s=s, r0=r + g.normal(0, 0.1, r.shape), s0=s + g.normal(0, 0.1, s.shape), offsets=offsets,
+                d=d, seed=seed)
+
+
+def case_refine(P: dict[str, Any], loss: str = "linear", fixed: str = "") -> Callable[[Any], tuple[float, Any]]:
+    def run(m: Any) -> tuple[float, Any]:
+        kw: dict[str, Any] = {}
+        r0, s0 = P["r0"].copy(), P["s0"].copy()
+        if fixed == "anchors":  # the first d + 1 receivers known
+            fr = np.zeros(r0.shape, bool)
+            fr[: P["d"] + 1] = True
+            r0[fr] = P["r"][fr]
+            kw["fixed_receivers"] = fr
+        elif fixed == "heights":
+            fr, fs = np.zeros(r0.shape, bool), np.zeros(s0.shape, bool)
+            fr[:, -1] = fs[:, -1] = True
+            r0[fr], s0[fs] = P["r"][fr], P["s"][fs]
+            kw.update(fixed_receivers=fr, fixed_sources=fs)
+        sol = m("toa.nls").refine_toa(P["Y"], r0, s0, offsets=P["offsets"], loss=loss, covariance=False, **kw)
+        return float(sol.cost), np.vstack([sol.receivers, sol.sources])
+    return run
+
+
+def case_batch(P: dict[str, Any]) -> Callable[[Any], tuple[float, Any]]:
+    g = np.random.default_rng(P["seed"] + 100)
+    I, J, d, off = P["Y"].shape[0], P["Y"].shape[1], P["d"], P["offsets"]
+    has_r, has_s = off in ("receivers", "both"), off in ("sources", "both")
+    starts = np.stack([np.concatenate([(P["r"] + g.normal(0, 0.3, P["r"].shape)).ravel(),
+                                       (P["s"] + g.normal(0, 0.3, P["s"].shape)).ravel(),
+                                       np.zeros(I if has_r else 0), np.zeros(J if has_s else 0)])
+                       for _ in range(25)])
+
+    def run(m: Any) -> tuple[float, Any]:
+        Th, ok, it, fin = m("toa.batch_lm").solve_batch_lm(starts, P["Y"], d, off, "linear", 1.0, None, 1e-12)
+        costs = [0.5 * float(np.nansum(m("toa.nls").toa_residuals(t, P["Y"], d, off) ** 2)) for t in Th]
+        return float(np.sum(costs)), Th[int(np.argmin(costs)), :(I + J) * d].reshape(-1, d)
+    return run
+
+
+def case_solve_toa(P: dict[str, Any], **kw: Any) -> Callable[[Any], tuple[float, Any]]:
+    def run(m: Any) -> tuple[float, Any]:
+        res = m("toa.solve").solve_toa(P["Y"], dim=P["d"], offsets=P["offsets"], rng=P["seed"], **kw)
+        return float(np.nansum(res.residuals ** 2)) / 2, np.vstack([res.receivers, res.sources])
+    return run
+
+
+def case_rank3(I: int, J: int, miss: float, seed: int, model: str) -> Callable[[Any], tuple[float, Any]]:
+    g = np.random.default_rng(seed)
+    r, s = g.uniform(0, 3, (I, 3)), g.uniform(-4, 4, (J, 3))
+    R = np.linalg.norm(r[:, None] - s[None], axis=-1) + g.uniform(0, 1, I)[:, None] + g.uniform(0, 3, J)[None]
+    R += g.normal(0, 1e-3, R.shape)
+    R[g.random(R.shape) < miss] = np.nan
+
+    def run(m: Any) -> tuple[float, Any]:
+        # run to convergence (the default cap of 100 iterations stops the large cases early,
+        # where the old and new damping have taken different paths)
+        res = m("toa.rank3").rank3_lm(R, model=model, rng=seed, max_iter=2000)
+        return float(res.extra["objective"]) ** 2, None
+    return run
+
+
+def case_farfield(m_: int, k: int, d: int, seed: int, loss: str = "linear", free: bool = False,
+                  direct: bool = True) -> Callable[[Any], tuple[float, Any]]:
+    g = np.random.default_rng(seed)
+    Z = g.normal(0, 1, (m_, d))
+    Z[0] = 0
+    N = g.normal(0, 1, (k, d))
+    N /= np.linalg.norm(N, axis=1, keepdims=True)
+    Cv = g.normal(0, 3, k)
+    D = Z @ N.T + Cv + g.normal(0, 0.01, (m_, k))
+    if loss != "linear":
+        D.flat[g.choice(m_ * k, max(1, m_ * k // 50), replace=False)] += 1.0
+    Z0 = Z + g.normal(0, 0.05, Z.shape)
+    N0 = N + g.normal(0, 0.05, N.shape)
+    C0 = Cv + g.normal(0, 0.05, k) if free else D[0].copy()
+
+    def run(m: Any) -> tuple[float, Any]:
+        out = m("tdoa.lm").refine_lm(D, Z0, N0, C0, free_offsets=free, loss=loss, delta=0.02, max_iter=500,
+                                     covariance=False)
+        run.iterations = out.iterations  # type: ignore[attr-defined]
+        return float(out.cost), out.positions
+    return run
+
+
+def case_solve_farfield(seed: int) -> Callable[[Any], tuple[float, Any]]:
+    g = np.random.default_rng(seed)
+    Z = g.normal(0, 1, (20, 3))
+    N = g.normal(0, 1, (40, 3))
+    N /= np.linalg.norm(N, axis=1, keepdims=True)
+    D = Z @ N.T + g.normal(0, 3, 40) + g.normal(0, 0.01, (20, 40))
+
+    def run(m: Any) -> tuple[float, Any]:
+        res = m("tdoa.farfield").solve_farfield(D, rng=seed)
+        return float(res.residual_rms) ** 2, res.positions
+    return run
+
+
+def case_aoa(d: int, B: int, seed: int) -> Callable[[Any], tuple[float, Any]]:
+    g = np.random.default_rng(seed)
+    beacons = g.uniform(-5, 5, (8, d))
+    ms = g.uniform(-1, 1, (B, d))
+    if d == 3:
+        from scipy.spatial.transform import Rotation
+
+        Rs = Rotation.random(B, random_state=seed).as_matrix()
+    else:
+        th = g.uniform(-np.pi, np.pi, B)
+        Rs = np.stack([np.stack([np.cos(th), -np.sin(th)], -1), np.stack([np.sin(th), np.cos(th)], -1)], -2)
+    v = np.einsum("bji,bkj->bki", Rs, beacons[None] - ms[:, None])
+    v += g.normal(0, 0.01, v.shape) * np.linalg.norm(v, axis=-1, keepdims=True)
+    U = v / np.linalg.norm(v, axis=-1, keepdims=True)
+    m0, R0 = ms + g.normal(0, 0.1, ms.shape), Rs
+
+    def run(m: Any) -> tuple[float, Any]:
+        out = m("aoa.ml").refine_ml(beacons, U, m0, R0)
+        return float(np.sum(out["residual_rms"] ** 2)), out["position"]
+    return run
+
+
+def case_room(units: int, seed: int, heights: bool, layout: str = "flat") -> Callable[[Any], tuple[float, Any]]:
+    def run(m: Any) -> tuple[float, Any]:
+        sc = m("scenarios.conference").conference_scene(units, (10.0, 8.0, 3.0), layout=layout, rng=seed)
+        dist = np.linalg.norm(sc.receivers[:, None] - sc.senders[None], axis=-1)
+        T = dist / C + sc.sender_onsets[None] + sc.receiver_delays[:, None]
+        T = T + np.random.default_rng(seed).normal(0, 2e-5, T.shape)
+        h = (sc.receivers[:, 2], sc.senders[:, 2]) if heights else None
+        sol, _, _ = m("acoustics.calibrate").calibrate_matrix(T, speed=C, dim=3, heights=h, rng=seed, noise=2e-5)
+        pts = np.vstack([sol["receivers"], sol["sources"]])
+        model = (np.linalg.norm(sol["receivers"][:, None] - sol["sources"][None], axis=-1) / C
+                 + np.asarray(sol["receiver_offsets"])[:, None] + np.asarray(sol["source_offsets"])[None])
+        return 0.5 * float(np.sum((C * (T - model)) ** 2)), pts
+    return run
+
+
+def cases() -> list[tuple[str, Callable[[Any], tuple[float, Any]]]]:
+    out: list[tuple[str, Callable[[Any], tuple[float, Any]]]] = []
+    for off in ("none", "receivers", "sources", "both"):
+        out.append((f"refine 12x6 3d {off} (dense)", case_refine(toa_problem(12, 6, 3, off, 1))))
+    out.append(("refine 10x8 2d both (dense)", case_refine(toa_problem(10, 8, 2, "both", 2))))
+    for off in ("none", "both"):
+        out.append((f"refine 30x40 3d {off} miss10% (reduced)", case_refine(toa_problem(30, 40, 3, off, 3, 0.1))))
+    out.append(("refine 25x30 2d receivers (reduced)", case_refine(toa_problem(25, 30, 2, "receivers", 4))))
+    out.append(("refine 150x200 3d sources miss5% (cg)", case_refine(toa_problem(150, 200, 3, "sources", 5, 0.05))))
+    for loss in ("huber", "soft_l1", "cauchy"):
+        out.append((f"refine 12x6 3d both {loss} 3 gross", case_refine(toa_problem(12, 6, 3, "both", 6, gross=3), loss)))
+    out.append(("refine 30x40 3d none cauchy 20 gross", case_refine(toa_problem(30, 40, 3, "none", 7, gross=20), "cauchy")))
+    out.append(("known anchors 12x8 3d none (trf)", case_refine(toa_problem(12, 8, 3, "none", 8), fixed="anchors")))
+    out.append(("known heights 30x40 3d both (schur-affine)", case_refine(toa_problem(30, 40, 3, "both", 9),
+                                                                          fixed="heights")))
+    out.append(("known heights 60x80 3d receivers (schur-affine)", case_refine(toa_problem(60, 80, 3, "receivers", 10),
+                                                                               fixed="heights")))
+    for off in ("none", "both"):
+        out.append((f"race 25 starts 12x6 3d {off} (batch)", case_batch(toa_problem(12, 6, 3, off, 11))))
+    out.append(("solve_toa 12x6 3d both", case_solve_toa(toa_problem(12, 6, 3, "both", 12, noise=1e-3))))
+    out.append(("solve_toa 8x10 2d none", case_solve_toa(toa_problem(8, 10, 2, "none", 13, noise=1e-3))))
+    out.append(("rank3 12x14 exact (joint)", case_rank3(12, 14, 0.0, 14, "exact")))
+    out.append(("rank3 12x14 linear miss5% (joint)", case_rank3(12, 14, 0.05, 15, "linear")))
+    out.append(("rank3 40x50 exact (scalable)", case_rank3(40, 50, 0.0, 16, "exact")))
+    out.append(("rank3 60x80 exact miss3% (scalable+cg)", case_rank3(60, 80, 0.03, 17, "exact")))
+    out.append(("farfield LM 20x40 3d", case_farfield(20, 40, 3, 18)))
+    out.append(("farfield LM 20x40 3d free offsets", case_farfield(20, 40, 3, 19, free=True)))
+    out.append(("farfield LM 15x30 2d (planar)", case_farfield(15, 30, 2, 20)))
+    out.append(("farfield LM 20x40 3d cauchy", case_farfield(20, 40, 3, 21, loss="cauchy", free=True)))
+    out.append(("farfield LM 300x200 3d (cg)", case_farfield(300, 200, 3, 22)))
+    out.append(("solve_farfield 20x40", case_solve_farfield(23)))
+    out.append(("aoa ML 3d x20", case_aoa(3, 20, 24)))
+    out.append(("aoa ML 2d x20", case_aoa(2, 20, 25)))
+    out.append(("room 12 units, known heights", case_room(12, 5, True)))
+    out.append(("room 10 units tiered, 3-D", case_room(10, 8, False, "tiered")))
+    return out
+
+
+def align_diff(a: Any, b: Any) -> float:
+    """Largest distance between rigidly aligned (reflection allowed) point sets, / extent of b."""
+    if a is None or b is None:
+        return float("nan")
+    a, b = np.asarray(a, float), np.asarray(b, float)
+    A, B = a - a.mean(0), b - b.mean(0)
+    U, _, Vt = np.linalg.svd(A.T @ B)
+    Ra = A @ (U @ Vt)
+    return float(np.linalg.norm(Ra - B, axis=1).max() / max(np.linalg.norm(B, axis=1).max(), 1e-300))
+
+
+def timed(f: Callable[[Any], tuple[float, Any]], m: Any, repeat: int) -> tuple[float, Any, float]:
+    best = np.inf
+    out: tuple[float, Any] = (np.nan, None)
+    for _ in range(repeat):
+        t = time.process_time()
+        out = f(m)
+        best = min(best, time.process_time() - t)
+    return out[0], out[1], best
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--old", default="e790be1", help="commit of the old engines")
+    ap.add_argument("--repeat", type=int, default=2, help="runs per case and tree (the best CPU time counts)")
+    ap.add_argument("--only", default="", help="run the cases whose name contains this text")
+    ap.add_argument("--json", default="", help="also write the rows here")
+    a = ap.parse_args()
+    import warnings
+
+    warnings.simplefilter("ignore")
+    sys.path.insert(0, str(ROOT / "src"))
+    with tempfile.TemporaryDirectory() as tmp:
+        old, new = tree(load_old(a.old, Path(tmp))), tree("selfcal")
+        rows = []
+        print(f"{'case':50s} {'cost_old':>12s} {'rel_cost':>9s} {'pos_diff':>9s} {'t_old s':>8s} {'t_ratio':>7s}")
+        for name, f in cases():
+            if a.only not in name:
+                continue
+            c_old, p_old, t_old = timed(f, old, a.repeat)
+            c_new, p_new, t_new = timed(f, new, a.repeat)
+            rel = abs(c_new - c_old) / max(abs(c_old), 1e-300)
+            row = dict(case=name, cost_old=c_old, cost_new=c_new, rel_cost=rel, pos_diff=align_diff(p_new, p_old),
+                       t_old=t_old, t_new=t_new, t_ratio=t_new / max(t_old, 1e-9))
+            rows.append(row)
+            print(f"{name:50s} {c_old:12.6g} {rel:9.2e} {row['pos_diff']:9.2e} {t_old:8.3f} {row['t_ratio']:7.2f}",
+                  flush=True)
+        ok = sum(r["rel_cost"] <= 1e-8 for r in rows)
+        ratios = np.array([r["t_ratio"] for r in rows])
+        print(f"\n{ok} of {len(rows)} rows with rel_cost <= 1e-8; time ratio median {np.median(ratios):.2f}, "
+              f"geometric mean {np.exp(np.mean(np.log(ratios))):.2f}, max {ratios.max():.2f}")
+        if a.json:
+            Path(a.json).write_text(json.dumps(rows, indent=1))
+
+
+if __name__ == "__main__":
+    main()

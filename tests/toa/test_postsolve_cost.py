@@ -1,0 +1,120 @@
+"""The cheaper post-solve computations of issue 27 give the same numbers / decisions.
+
+- leverages from the lifted normal matrix (Cholesky with the gauge basis) against the
+  eigendecomposition of ``J^T J`` with the relative cut (the former computation);
+- the additive model's leverages from its small normal matrix against the SVD of the dense
+  design (the former computation);
+- the time-order test's sequential stop: the same decision as all 999 random orders.
+
+Speed itself is measured in ``benchmarks/bench_postsolve.py``, never asserted here.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from selfcal.robust import mad_std
+from selfcal.toa import toa_model
+from selfcal.toa.nls import _pack, toa_jacobian
+from selfcal.toa.recipes import TIME_ORDER_PERMUTATIONS, _total_variation, detect_time_order
+from selfcal.toa.robust import leverages
+from selfcal.toa.trust import _additive_leverages
+
+
+def _eigh_leverages(Y, r, s, d, o, offsets):
+    J = toa_jacobian(_pack(r, s, d, o), Y, r.shape[1], offsets).tocsr()
+    N = (J.T @ J).toarray()
+    lam, V = np.linalg.eigh(N)
+    keep = lam > lam[-1] * 1e-12
+    P = (V[:, keep] / lam[keep]) @ V[:, keep].T
+    return np.asarray(J.multiply(J @ P).sum(axis=1)).ravel()
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_leverages_equal_the_eigendecomposition(seed):
+    """Random networks, every offsets mode, 2-D and 3-D, 0-30 % missing, 60 draws a seed: the
+    lifted Cholesky leverages equal the cut eigendecomposition's to 1e-8 on generic networks,
+    and sum to the rank (trace of the hat matrix). Near-degenerate draws (coplanar receivers,
+    collinear sources) fall back to the eigendecomposition or agree to its own noise, 1e-5."""
+    g = np.random.default_rng(seed)
+    for k in range(60):
+        dim = int(g.choice([2, 3]))
+        I, J = (int(v) for v in g.integers(dim + 3, 16, 2))
+        off = str(g.choice(["none", "receivers", "sources", "both"]))
+        r, s = g.uniform(0, 10, (I, dim)), g.uniform(0, 10, (J, dim))
+        degenerate = k % 5 == 0
+        if degenerate:
+            r[:, -1] = 0.0
+        d = g.uniform(0, 3, I) if off in ("receivers", "both") else None
+        o = g.uniform(0, 3, J) if off in ("sources", "both") else None
+        Y = toa_model(r, s, d, o)
+        Y[g.random(Y.shape) < g.uniform(0, 0.3)] = np.nan
+        h = leverages(Y, r, s, d, o, off)[np.isfinite(Y)]
+        h0 = _eigh_leverages(Y, r, s, d, o, off)
+        assert np.max(np.abs(h - h0)) < (1e-5 if degenerate else 1e-8), (seed, k, off, dim)
+        if not degenerate:  # the trace of the hat matrix is the rank of the Jacobian
+            rank = np.linalg.matrix_rank(toa_jacobian(_pack(r, s, d, o), Y, dim, off).toarray())
+            assert abs(h.sum() - rank) < 1e-6 * rank
+
+
+def _svd_additive(obs, rows, cols):
+    I, J = obs.shape
+    ii, jj = np.nonzero(obs)
+    H = np.full(obs.shape, np.nan)
+    X = [np.ones((ii.size, 1))]
+    if rows:
+        X.append(np.eye(I)[ii][:, 1:])
+    if cols:
+        X.append(np.eye(J)[jj][:, 1:])
+    U, sv, _ = np.linalg.svd(np.hstack(X), full_matrices=False)
+    H[obs] = np.sum(U[:, : int(np.sum(sv > sv[0] * 1e-10))] ** 2, axis=1)
+    return H
+
+
+def test_additive_leverages_equal_the_svd():
+    """400 random masks (some split in two blocks: a disconnected design), every model."""
+    g = np.random.default_rng(0)
+    for k in range(400):
+        I, J = (int(v) for v in g.integers(1, 30, 2))
+        obs = g.random((I, J)) < g.uniform(0.05, 1)
+        if k % 10 == 0:
+            obs[: I // 2, J // 2:] = False
+            obs[I // 2:, : J // 2] = False
+        if not obs.any():
+            continue
+        for rows in (False, True):
+            for cols in (False, True):
+                a, b = _additive_leverages(obs, rows, cols), _svd_additive(obs, rows, cols)
+                assert np.nanmax(np.abs(a - b)) < 1e-10, (k, rows, cols)
+
+
+def _full_time_order(Y, rng):
+    """The test with all 999 orders (the former computation): its decision."""
+    med = np.nanmedian(Y, axis=1, keepdims=True)
+    sc = mad_std(Y, axis=1, keepdims=True)
+    sc = np.where(np.isfinite(sc) & (sc > 0), sc, 1.0)
+    Z = (Y - med) / sc
+    gen = np.random.default_rng(rng)
+    tv = _total_variation(Z, np.arange(Y.shape[1]))
+    perm = np.array([_total_variation(Z, gen.permutation(Y.shape[1])) for _ in range(TIME_ORDER_PERMUTATIONS)])
+    return bool((1 + np.sum(perm <= tv)) / (TIME_ORDER_PERMUTATIONS + 1) <= 1e-3)
+
+
+def test_time_order_stop_keeps_the_decision():
+    """Independent sources, a moving tag and borderline (weakly smooth) matrices, 30 draws: the
+    sequential stop decides as the full test does, with a valid p-value in (0, 1]."""
+    g = np.random.default_rng(0)
+    for k in range(30):
+        I, J = int(g.integers(3, 8)), int(g.integers(20, 80))
+        anchors = g.uniform(0, 10, (I, 3))
+        kind = k % 3
+        if kind == 0:  # independent sources
+            Y = toa_model(anchors, g.uniform(0, 10, (J, 3))) + g.normal(0, 0.05, (I, J))
+        else:  # a walk, smooth (kind 1) or drowned in noise (kind 2, near the test's limit)
+            tag = np.cumsum(g.normal(0, 0.3, (J, 3)), axis=0) + 5
+            Y = toa_model(anchors, tag) + g.normal(0, 0.05 if kind == 1 else 1.5, (I, J))
+        Y[g.random(Y.shape) < 0.1] = np.nan
+        test = detect_time_order(Y, rng=k)
+        assert test.detected == _full_time_order(Y, k), k
+        assert 0 < test.p_value <= 1 and 1 <= test.permutations <= TIME_ORDER_PERMUTATIONS
