@@ -148,11 +148,14 @@ def farfield_command(matrix: tuple[Path, ...], out: Path, speed: float | None, d
                 else known
         if reference is not None:
             reference = reference[keep_r]
+    from ..progress import stage
+
     try:
-        res = solve_farfield(D, method=method, loss=loss, directions=known,
-                             noise_std=None if noise_std is None else noise_std * float(np.mean(scale)),
-                             allow_degenerate=allow_degenerate, ransac=ransac, rng=seed,
-                             dim="auto" if dim == "auto" else int(dim))
+        with stage(f"fit {D.shape[0]} x {D.shape[1]}"):
+            res = solve_farfield(D, method=method, loss=loss, directions=known,
+                                 noise_std=None if noise_std is None else noise_std * float(np.mean(scale)),
+                                 allow_degenerate=allow_degenerate, ransac=ransac, rng=seed,
+                                 dim="auto" if dim == "auto" else int(dim))
     except DegenerateGeometryError as exc:
         transposed_hint(exc, D_all.shape, min_rows=4, min_cols=6)
         if pyramic is not None and exc.kind == "cone":
