@@ -302,7 +302,7 @@ def _heading_columns(GT: FArray, DR: FArray, p: Path, units: str = "auto") -> tu
     return GT, DR
 
 
-@entry(path="path", heading_units="str?")
+@entry(path="path")  # heading_units: checked in the body against its choices
 def load_plaza(path: str | os.PathLike[str], *, init_heading_offset: float | None = None,
                heading_units: str | None = None) -> PlazaData:
     """Load a CMU range-only log (``Plaza1.mat`` and others of the collection) and validate it.
