@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from ..optim.lm import levenberg_marquardt_batch
+from ..optim.lm import BatchModel, levenberg_marquardt_batch
 from .orientation import rotvec_to_matrix, tangent_basis
 
 Array = NDArray[np.float64]
@@ -101,7 +101,7 @@ def residuals_2d(
     return e, J
 
 
-class _PoseModel:
+class _PoseModel(BatchModel):
     """The pose model for :func:`selfcal.optim.levenberg_marquardt_batch`: a point is
     ``[m (d), R (d d)]`` per start (2-D: R holds theta), a step ``(m, w)`` or ``(m, theta)``."""
 

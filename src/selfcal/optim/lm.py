@@ -60,7 +60,7 @@ from ..robust import loss_rho
 
 Array = NDArray[np.float64]
 
-__all__ = ["FTOL", "LAM_MIN", "TRIALS", "LeastSquaresResult", "Model", "damping_after_success", "irls",
+__all__ = ["FTOL", "LAM_MIN", "TRIALS", "BatchModel", "LeastSquaresResult", "Model", "damping_after_success", "irls",
            "levenberg_marquardt", "levenberg_marquardt_batch"]
 
 #: relative cost decrease that stops the iteration (SciPy's default ftol)
@@ -146,6 +146,21 @@ class Model:
 
     def accepted(self, lin: Any, cost: float, new: float, predicted: float) -> bool | None:
         return None
+
+
+class BatchModel:
+    """Base of the batched driver's models (:func:`levenberg_marquardt_batch`): override
+    ``evaluate`` and ``linearize``; ``small_step`` / ``retract`` left None take the defaults
+    ``|dx| <= xtol (xtol + |x|)`` and ``x + dx``."""
+
+    small_step: Callable[[Array, Array, float], NDArray[np.bool_]] | None = None
+    retract: Callable[[Array, Array], Array] | None = None
+
+    def evaluate(self, X: Array, rows: Any) -> tuple[Array, Any]:
+        raise NotImplementedError
+
+    def linearize(self, X: Array, state: Any) -> Any:
+        raise NotImplementedError
 
 
 @dataclass(frozen=True, repr=False)
@@ -275,7 +290,7 @@ def levenberg_marquardt(
 
 
 def levenberg_marquardt_batch(
-    model: Any, X0: Array, *, max_iter: int = 100, xtol: float = 1e-12, ftol: float = FTOL,
+    model: BatchModel, X0: Array, *, max_iter: int = 100, xtol: float = 1e-12, ftol: float = FTOL,
     lam0: float = LAM0, trials: int = TRIALS,
 ) -> LeastSquaresResult:
     """:func:`levenberg_marquardt` from every row of ``X0`` in lockstep.
@@ -311,8 +326,7 @@ def levenberg_marquardt_batch(
     state = tuple(np.array(s) for s in state)  # writable copies (a broadcast view is not)
     finite &= np.isfinite(cost)
     active = finite.copy()
-    small_step = getattr(model, "small_step", None)
-    retract = getattr(model, "retract", None)
+    small_step, retract = model.small_step, model.retract
     with np.errstate(all="ignore"):
         while active.any():
             a = np.nonzero(active)[0]

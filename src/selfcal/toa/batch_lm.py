@@ -44,7 +44,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-from ..optim.lm import FTOL, TRIALS, levenberg_marquardt_batch
+from ..optim.lm import FTOL, TRIALS, BatchModel, levenberg_marquardt_batch
 from ..robust import loss_rho
 
 __all__ = ["solve_batch_lm"]
@@ -71,7 +71,7 @@ def _swap_layout(Theta: Array, I: int, J: int, d: int, has_r: bool, has_s: bool)
     return np.concatenate(parts, axis=1)
 
 
-class _Problem:
+class _Problem(BatchModel):
     """The stacked model of one range matrix: evaluation, normal blocks, damped solve, gauge."""
 
     def __init__(self, Y: Array, d: int, has_r: bool, has_s: bool, loss: str, f_scale: float) -> None:

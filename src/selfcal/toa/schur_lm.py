@@ -365,6 +365,25 @@ def solve_schur_lm(
         YK, obs = np.asarray(Y, float), None
         pat = Pairs(np.asarray(ki, np.intp), np.asarray(ei, np.intp), nK, nE)
     n = lay.n  # type: ignore[attr-defined]
+    k_flat = lay.k_idx.ravel()  # type: ignore[attr-defined]
+    e_flat = lay.e_idx.ravel()  # type: ignore[attr-defined]
+    nk = k_flat.size
+    d = lay.d  # type: ignore[attr-defined]
+    ne = e_flat.size
+    if step not in ("auto", "dense", "reduced", "cg"):
+        raise ValueError(f"step must be 'auto', 'dense', 'reduced' or 'cg', got {step!r}")
+    mode = lm_step(n, nk, ne) if step == "auto" else step
+    max_it = max_nfev or DEFAULT_MAX_IT[mode]
+    if mode == "dense":
+        from .dense_lm import solve_dense_lm
+
+        if pairs is None:
+            ii, jj = np.nonzero(np.isfinite(Y))
+            yv = np.asarray(Y, float)[ii, jj]
+        else:
+            ii, jj, yv = np.asarray(pairs[0], np.intp), np.asarray(pairs[1], np.intp), np.asarray(Y, float)
+        return solve_dense_lm(theta0, yv, ii, jj, lay.I, lay.J, d, lay.offsets, loss,  # type: ignore[attr-defined]
+                              f_scale, max_nfev, xtol, max_it=DEFAULT_MAX_IT["dense"])
     g0, it = 1.0, 0  # first gradient norm (the CG forcing term's reference), linearisations
 
     class Ranges(Model):
@@ -397,25 +416,6 @@ def solve_schur_lm(
             step.cg_rtol = float(np.clip(step.gnorm / max(g0, 1e-300), *CG_RTOL))
             return step
 
-    k_flat = lay.k_idx.ravel()  # type: ignore[attr-defined]
-    e_flat = lay.e_idx.ravel()  # type: ignore[attr-defined]
-    nk = k_flat.size
-    d = lay.d  # type: ignore[attr-defined]
-    ne = e_flat.size
-    if step not in ("auto", "dense", "reduced", "cg"):
-        raise ValueError(f"step must be 'auto', 'dense', 'reduced' or 'cg', got {step!r}")
-    mode = lm_step(n, nk, ne) if step == "auto" else step
-    max_it = max_nfev or DEFAULT_MAX_IT[mode]
-    if mode == "dense":
-        from .dense_lm import solve_dense_lm
-
-        if pairs is None:
-            ii, jj = np.nonzero(np.isfinite(Y))
-            yv = np.asarray(Y, float)[ii, jj]
-        else:
-            ii, jj, yv = np.asarray(pairs[0], np.intp), np.asarray(pairs[1], np.intp), np.asarray(Y, float)
-        return solve_dense_lm(theta0, yv, ii, jj, lay.I, lay.J, d, lay.offsets, loss,  # type: ignore[attr-defined]
-                              f_scale, max_nfev, xtol, max_it=DEFAULT_MAX_IT["dense"])
     out = levenberg_marquardt(Ranges(), theta0, max_iter=max_it, xtol=xtol)
     return out.x, out.converged, out.iterations
 
