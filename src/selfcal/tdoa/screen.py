@@ -327,7 +327,8 @@ def gross_error_screen(
     noise is i.i.d. Student-t with the fitted dof or more, or lighter-tailed (Laplace,
     Gaussian); checked with t_3, t_5, Laplace and Gaussian noise over many seeds in
     ``tests/tdoa/test_screen_tails.py`` (measured 0 of 25 clean draws per case in
-    ``benchmarks/farfield_screens.py``, where the Gaussian rule flags 35-100 %). A gross error
+    ``benchmarks/farfield_screens.py``, where the Gaussian rule flags 40-100 % of heavy-tailed
+    12 x 24 and 30 x 60 matrices). A gross error
     is caught when it exceeds about ``s t`` plus what the fit absorbs of it. The residual
     test needs redundancy: it runs when at least a third of the entries are residual degrees
     of freedom of the fit (``n - rank (m + k - rank) - k >= n / 3``, e.g. 12 x 12 or 10 x 30
