@@ -126,6 +126,12 @@ def test_minimal_problem_is_never_a_success():
             out = draw(FAMILIES[fam], seed)
             assert out["flagged"], (fam, seed)
             assert out["result"].uniqueness.minimal
+            # a given noise does not make a minimal problem testable
+            Y, r, s, kw = FAMILIES[fam](seed)
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                res = solve_toa(Y, rng=seed, noise=0.01, **kw)
+            assert not res.success and res.uniqueness.minimal
 
 
 # ----------------------------------------------------------------------------- the families

@@ -21,8 +21,8 @@ result that passes is right within its error bars, or wrong with probability <= 
 candidate. Alternatives not rejected are *indistinguishable*; the nodes they move are
 ``ambiguous`` and carry their alternative positions.
 
-With no spare measurement (``dof <= 0``) and no given noise nothing can be rejected: the
-test says ``minimal`` (never a pass) and lists what it found at the solver's precision.
+With no spare measurement (``dof <= 0``) the test says ``minimal`` (never a pass) and lists
+what it found (at the solver's precision when the noise is not given).
 
 Cost: the candidate screen is one product of the observation mask with the partners'
 moments (O(I J d^2)); flipped nodes are refitted alone, vectorised; at most
@@ -104,7 +104,8 @@ class UniquenessTest:
     noise: the range noise std the test used (metres); noise_source: "given" | "estimated" |
         "precision" (no spare measurement: the solver's precision).
     spare: residual degrees of freedom ``m - n`` of the fit.
-    minimal: no spare measurement and no given noise: nothing can be rejected.
+    minimal: no spare measurement (``dof <= 0``): the fit is exact whatever the geometry, so
+        nothing can be rejected (a given noise still judges the alternatives found).
     candidates: alternatives examined; refits: full refits run.
     alternatives: those not rejected (at most :data:`MAX_LISTED`).
     ambiguous_receivers, ambiguous_sources: (I,), (J,) bool, nodes moved by some alternative.
@@ -168,7 +169,7 @@ class UniquenessTest:
             out = ""
         if self.minimal:
             out = ("no spare measurement: the fit is exact whatever the geometry, so no alternative solution "
-                   "can be rejected (a minimal problem is not a determined one); add measurements or give the noise"
+                   "can be rejected (a minimal problem is not a determined one); add measurements"
                    + ("; " + out if out else ""))
         return out
 
@@ -315,14 +316,14 @@ def uniqueness_test(
     rss = float(np.sum(E**2))
     dof = m - int(n_params)
     floor2 = (np.sqrt(np.finfo(float).eps) * float(np.nanmedian(np.abs(Y)) if m else 1.0)) ** 2
-    minimal = False
     if noise is not None:
         s2, src = float(noise) ** 2, "given"
     elif dof > 0:
         s2, src = max(rss / dof, floor2), "estimated"
     else:
-        s2, src, minimal = floor2, "precision", True
+        s2, src = floor2, "precision"
     s2 = max(s2, floor2)
+    minimal = dof <= 0  # a given noise judges the alternatives, but cannot test the fit itself
 
     def crit(k: int) -> float:
         """The critical RSS increase for an alternative moving k / d nodes."""
@@ -477,7 +478,7 @@ def uniqueness_test(
         r = np.where(fix_r[:, None], R0, c + (R0 - c) @ Qm.T)
         s = np.where(fix_s[:, None], S0, c + (S0 - c) @ Qm.T)
         compare("mirror", (r, s, d0, o0), align=False)
-    if minimal:
+    if minimal and src == "precision":
         notes.append("no spare measurement: alternatives are judged at the solver's precision only")
     return UniquenessTest(float(alpha), float(np.sqrt(s2)), src, int(dof), minimal, n_cand, n_refit, tuple(found),
                           amb_r, amb_s, alt_r, alt_s, "; ".join(notes),
