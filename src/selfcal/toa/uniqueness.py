@@ -529,14 +529,14 @@ def judge_fit(res: Any, Yf: Array, sol: Any, offsets: str, noise: float | None, 
 def apply_rule(res: Any, u: UniquenessTest, offsets: str) -> Any:
     """The verdict of a uniqueness test on a result (caller's numbering), as the determinacy rule.
 
-    Ambiguous nodes are nodes the data do not determine: their covariance is widened by
-    ``delta delta^T`` (``delta`` the way to their alternative), so their error bar covers it.
     The result fails (FAILED_TEST) when the problem is minimal, or when any node is ambiguous
     unless the ambiguity is *isolated*: every alternative a flip of one node alone, at most
     :data:`ISOLATED_FRACTION` of the nodes, the other nodes an identifiable network
     (``check_toa_counts``) and at most half of the nodes ambiguous or undetermined (the
     determinacy rule). Only then does the status stay, the message naming the nodes (a long
-    flight with a few tag positions of four or five ranges). Why so strict: where several
+    flight with a few tag positions of four or five ranges), whose covariance is widened by
+    ``delta delta^T`` (``delta`` the way to their alternative) so their error bar covers it; a
+    failed result keeps its local covariances (the alternatives are in the test). Why so strict: where several
     nodes flip (receivers on a line or a plane), the truth may be a *combination* of flips
     that moves every node, and the nodes no single flip moves are then metres off too
     (measured on 2-D collinear and 3-D coplanar receivers, 200 draws each: 3 and 1 draws exit 0
@@ -552,10 +552,6 @@ def apply_rule(res: Any, u: UniquenessTest, offsets: str) -> Any:
     R, S = np.asarray(res.receivers, float), np.asarray(res.sources, float)
     ok_r, ok_s = np.isfinite(R).all(1), np.isfinite(S).all(1)
     Cr, Cs = np.array(res.receiver_cov, float), np.array(res.source_cov, float)
-    for C, amb, P, alt in ((Cr, amb_r, R, u.receiver_alternatives), (Cs, amb_s, S, u.source_alternatives)):
-        for i in np.flatnonzero(amb):
-            dlt = alt[i] - P[i]
-            C[i] = C[i] + np.outer(dlt, dlt)
     open_r = amb_r | np.asarray(res.undetermined_receivers, bool)
     open_s = amb_s | np.asarray(res.undetermined_sources, bool)
     n_nodes = int(ok_r.sum() + ok_s.sum())
@@ -579,7 +575,11 @@ def apply_rule(res: Any, u: UniquenessTest, offsets: str) -> Any:
             status, message = Status.FAILED_TEST, why
         else:
             message = f"{message}; {why}"
-    elif n_amb:
+    elif n_amb:  # isolated: named, their error bars widened to cover the alternative
+        for C, amb, P, alt in ((Cr, amb_r, R, u.receiver_alternatives), (Cs, amb_s, S, u.source_alternatives)):
+            for i in np.flatnonzero(amb):
+                dlt = alt[i] - P[i]
+                C[i] = C[i] + np.outer(dlt, dlt)
         message += (f"; but {n_amb} of {n_nodes} nodes are ambiguous ({u.names()}: an alternative position fits "
                     f"as well, likelihood-ratio test at {u.alpha:g}; their error bars cover it)")
     elif u.near_minimal:
