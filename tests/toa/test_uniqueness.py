@@ -19,6 +19,31 @@ Specification, over many random draws per family (``uniqueness_families.py``):
 
 The default run takes a reduced number of draws (deterministic seeds); the ``slow`` ones
 take 200 per family (``pytest -m slow``).
+
+Measured (200 draws a family, ``solve_toa`` defaults, noise unknown unless stated; "wrong" =
+exit 0 with a node outside 3 of its error bars; loaded 2-core machine, CPU s):
+
+=====================  =======  =====  ====
+family                 flagged  wrong  s
+=====================  =======  =====  ====
+collinear-2d           200      0      85
+coplanar-3d            200      0      92
+parallel-planes        200      0      83
+collinear-3d           199      0      101
+tag-one-height         200      0      80
+minimal-2d (3 x 3)     200      0      10
+minimal-3d (4 x 6)     200      0      21
+generic-2d (8 x 10)    0        3      54
+generic-3d (8 x 10)    0        5      67
+generic-3d, noise      2        1      15
+generic-3d, offsets    0        5      162
+=====================  =======  =====  ====
+
+The 2 flags of "generic-3d, noise" are the chi-square test's (p = 1.6e-4, 8.2e-4), none the
+uniqueness test's. The "wrong" draws of the generic families are nodes at 3.1-3.7 of their
+error bars (generic-2d: 3.2-3.3 with the noise estimated 13-20 % low; generic-3d: 3.1-3.7,
+the noise estimated 0.64-1.04 cm for 1 cm): the tails of the local error bars, not a second
+solution (no alternative within the test's reach); they are not asserted here.
 """
 
 from __future__ import annotations
@@ -101,6 +126,12 @@ def test_minimal_problem_is_never_a_success():
             out = draw(FAMILIES[fam], seed)
             assert out["flagged"], (fam, seed)
             assert out["result"].uniqueness.minimal
+            # a given noise does not make a minimal problem testable
+            Y, r, s, kw = FAMILIES[fam](seed)
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                res = solve_toa(Y, rng=seed, noise=0.01, **kw)
+            assert not res.success and res.uniqueness.minimal
 
 
 # ----------------------------------------------------------------------------- the families

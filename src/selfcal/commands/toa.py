@@ -276,7 +276,7 @@ def _verdict_lines(res: Any, forced: Any, row_names: Any, col_names: Any) -> lis
                 click.echo(f"  ambiguous: {what}; their error bars cover the alternative")
         if u.minimal:
             out.append("FAIL: minimal problem: no spare measurement, so no other solution can be ruled out; "
-                       "add measurements (or give --noise)")
+                       "add measurements")
     if forced is not None and not forced.passed:
         out.append(f"FAIL: {forced.message()}")
     return out

@@ -137,6 +137,9 @@ def forced_model_test(ranges: Any, receivers: Any, sources: Any, receiver_offset
     Y = np.asarray(ranges, float)
     R = np.asarray(receivers, float)
     S = np.asarray(sources, float)
+    label = f"dim={R.shape[1]}, offsets={offsets}"
+    if not ((test_dim and R.shape[1] == 2) or (test_offsets and offsets != "both")):
+        return ModelTest(label, None, 0.0, 0, 0, 1.0, alpha, True)  # nothing larger to test against
     d0 = None if receiver_offsets is None else np.asarray(receiver_offsets, float)
     o0 = None if source_offsets is None else np.asarray(source_offsets, float)
     sub = Y.shape[0] > SUBSAMPLE_SIDE or Y.shape[1] > SUBSAMPLE_SIDE
@@ -167,7 +170,6 @@ def forced_model_test(ranges: Any, receivers: Any, sources: Any, receiver_offset
             pass
     floor2 = (np.sqrt(np.finfo(float).eps) * float(np.nanmedian(np.abs(Y)))) ** 2
     noise2 = None if noise is None else float(noise) ** 2
-    label = f"dim={dim}, offsets={offsets}"
 
     def fit(r: Array, s: Array, off: str) -> float | None:
         has_r, has_s = off in ("receivers", "both"), off in ("sources", "both")

@@ -21,8 +21,8 @@ result that passes is right within its error bars, or wrong with probability <= 
 candidate. Alternatives not rejected are *indistinguishable*; the nodes they move are
 ``ambiguous`` and carry their alternative positions.
 
-With no spare measurement (``dof <= 0``) and no given noise nothing can be rejected: the
-test says ``minimal`` (never a pass) and lists what it found at the solver's precision.
+With no spare measurement (``dof <= 0``) the test says ``minimal`` (never a pass) and lists
+what it found (at the solver's precision when the noise is not given).
 
 Cost: the candidate screen is one product of the observation mask with the partners'
 moments (O(I J d^2)); flipped nodes are refitted alone, vectorised; at most
@@ -104,7 +104,8 @@ class UniquenessTest:
     noise: the range noise std the test used (metres); noise_source: "given" | "estimated" |
         "precision" (no spare measurement: the solver's precision).
     spare: residual degrees of freedom ``m - n`` of the fit.
-    minimal: no spare measurement and no given noise: nothing can be rejected.
+    minimal: no spare measurement (``dof <= 0``): the fit is exact whatever the geometry, so
+        nothing can be rejected (a given noise still judges the alternatives found).
     candidates: alternatives examined; refits: full refits run.
     alternatives: those not rejected (at most :data:`MAX_LISTED`).
     ambiguous_receivers, ambiguous_sources: (I,), (J,) bool, nodes moved by some alternative.
@@ -168,7 +169,7 @@ class UniquenessTest:
             out = ""
         if self.minimal:
             out = ("no spare measurement: the fit is exact whatever the geometry, so no alternative solution "
-                   "can be rejected (a minimal problem is not a determined one); add measurements or give the noise"
+                   "can be rejected (a minimal problem is not a determined one); add measurements"
                    + ("; " + out if out else ""))
         return out
 
@@ -315,14 +316,14 @@ def uniqueness_test(
     rss = float(np.sum(E**2))
     dof = m - int(n_params)
     floor2 = (np.sqrt(np.finfo(float).eps) * float(np.nanmedian(np.abs(Y)) if m else 1.0)) ** 2
-    minimal = False
     if noise is not None:
         s2, src = float(noise) ** 2, "given"
     elif dof > 0:
         s2, src = max(rss / dof, floor2), "estimated"
     else:
-        s2, src, minimal = floor2, "precision", True
+        s2, src = floor2, "precision"
     s2 = max(s2, floor2)
+    minimal = dof <= 0  # a given noise judges the alternatives, but cannot test the fit itself
 
     def crit(k: int) -> float:
         """The critical RSS increase for an alternative moving k / d nodes."""
@@ -477,7 +478,7 @@ def uniqueness_test(
         r = np.where(fix_r[:, None], R0, c + (R0 - c) @ Qm.T)
         s = np.where(fix_s[:, None], S0, c + (S0 - c) @ Qm.T)
         compare("mirror", (r, s, d0, o0), align=False)
-    if minimal:
+    if minimal and src == "precision":
         notes.append("no spare measurement: alternatives are judged at the solver's precision only")
     return UniquenessTest(float(alpha), float(np.sqrt(s2)), src, int(dof), minimal, n_cand, n_refit, tuple(found),
                           amb_r, amb_s, alt_r, alt_s, "; ".join(notes),
@@ -528,14 +529,14 @@ def judge_fit(res: Any, Yf: Array, sol: Any, offsets: str, noise: float | None, 
 def apply_rule(res: Any, u: UniquenessTest, offsets: str) -> Any:
     """The verdict of a uniqueness test on a result (caller's numbering), as the determinacy rule.
 
-    Ambiguous nodes are nodes the data do not determine: their covariance is widened by
-    ``delta delta^T`` (``delta`` the way to their alternative), so their error bar covers it.
     The result fails (FAILED_TEST) when the problem is minimal, or when any node is ambiguous
     unless the ambiguity is *isolated*: every alternative a flip of one node alone, at most
     :data:`ISOLATED_FRACTION` of the nodes, the other nodes an identifiable network
     (``check_toa_counts``) and at most half of the nodes ambiguous or undetermined (the
     determinacy rule). Only then does the status stay, the message naming the nodes (a long
-    flight with a few tag positions of four or five ranges). Why so strict: where several
+    flight with a few tag positions of four or five ranges), whose covariance is widened by
+    ``delta delta^T`` (``delta`` the way to their alternative) so their error bar covers it; a
+    failed result keeps its local covariances (the alternatives are in the test). Why so strict: where several
     nodes flip (receivers on a line or a plane), the truth may be a *combination* of flips
     that moves every node, and the nodes no single flip moves are then metres off too
     (measured on 2-D collinear and 3-D coplanar receivers, 200 draws each: 3 and 1 draws exit 0
@@ -551,10 +552,6 @@ def apply_rule(res: Any, u: UniquenessTest, offsets: str) -> Any:
     R, S = np.asarray(res.receivers, float), np.asarray(res.sources, float)
     ok_r, ok_s = np.isfinite(R).all(1), np.isfinite(S).all(1)
     Cr, Cs = np.array(res.receiver_cov, float), np.array(res.source_cov, float)
-    for C, amb, P, alt in ((Cr, amb_r, R, u.receiver_alternatives), (Cs, amb_s, S, u.source_alternatives)):
-        for i in np.flatnonzero(amb):
-            dlt = alt[i] - P[i]
-            C[i] = C[i] + np.outer(dlt, dlt)
     open_r = amb_r | np.asarray(res.undetermined_receivers, bool)
     open_s = amb_s | np.asarray(res.undetermined_sources, bool)
     n_nodes = int(ok_r.sum() + ok_s.sum())
@@ -578,7 +575,11 @@ def apply_rule(res: Any, u: UniquenessTest, offsets: str) -> Any:
             status, message = Status.FAILED_TEST, why
         else:
             message = f"{message}; {why}"
-    elif n_amb:
+    elif n_amb:  # isolated: named, their error bars widened to cover the alternative
+        for C, amb, P, alt in ((Cr, amb_r, R, u.receiver_alternatives), (Cs, amb_s, S, u.source_alternatives)):
+            for i in np.flatnonzero(amb):
+                dlt = alt[i] - P[i]
+                C[i] = C[i] + np.outer(dlt, dlt)
         message += (f"; but {n_amb} of {n_nodes} nodes are ambiguous ({u.names()}: an alternative position fits "
                     f"as well, likelihood-ratio test at {u.alpha:g}; their error bars cover it)")
     elif u.near_minimal:
