@@ -5,6 +5,9 @@ noise-free, equal internal delays (the thesis's simulation). For each seed:
 
 * default method: ``estimate_offsets(ranges)`` (fast variable-projection LM, exact model,
   acceptance test + restarts), wall time and max |p_hat - p| in seconds;
+* ``solve_toa``: the whole TOA solve with both offsets (positions too, every check after the
+  solve), median of 3 seeds: ``speedup_solve_toa`` (the thesis iteration over it, same run) and
+  ``matlab_over_solve_toa`` (the thesis's reported MATLAB time over it; issue 27: >= 1000x);
 * thesis iteration: ``rank3_iteration`` from the thesis random initialisation, run to its
   convergence threshold (1e-12 s^2 on the change of F), capped at ``CAP_120`` iterations
   for 120 units (by default no effective cap: ~2-3e3 iterations); the time to convergence
@@ -65,6 +68,23 @@ def _fast(units: int, room: str) -> dict[str, Any]:
             "median_iterations": float(np.median(iters)), "max_restarts": int(np.max(restarts))}
 
 
+def _solve_toa(units: int, room: str, runs: int = 3) -> dict[str, Any]:
+    """``solve_toa(offsets="both")`` end to end (search, outlier rule, covariances and every check
+    after the solve, issue 27) on the same setups: median wall and CPU seconds over ``runs`` seeds."""
+    from selfcal.toa import solve_toa
+
+    times, cpus = [], []
+    for seed in range(runs):
+        R, _ = _case(units, room, seed)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            t0, c0 = time.perf_counter(), time.process_time()
+            solve_toa(R, dim=3, offsets="both", rng=seed)
+            times.append(time.perf_counter() - t0)
+            cpus.append(time.process_time() - c0)
+    return {"runs": runs, "median_seconds": float(np.median(times)), "median_cpu_seconds": float(np.median(cpus))}
+
+
 def _faithful(units: int, room: str, runs: int, cap: int) -> dict[str, Any]:
     from selfcal.experiments.delays import _extrapolate
     from selfcal.toa.rank3_model import THESIS_ACCEPT, THESIS_TOL
@@ -106,9 +126,12 @@ def main(out_dir: Path) -> dict[str, Any]:
                                          (120, "large", SEEDS_FAITHFUL[1], CAP_120)):
         fast = _fast(units, room)
         faithful = _faithful(units, room, n_faithful, cap)
+        full = _solve_toa(units, room)
         result["cases"][str(units)] = {
-            "room": room, "default": fast, "faithful": faithful,
+            "room": room, "default": fast, "faithful": faithful, "solve_toa": full,
             "speedup_median": faithful["median_seconds_to_convergence"] / fast["median_seconds"],
+            "speedup_solve_toa": faithful["median_seconds_to_convergence"] / full["median_seconds"],
+            "matlab_over_solve_toa": result["thesis_matlab_mean_seconds"][str(units)] / full["median_seconds"],
         }
     c120 = result["cases"]["120"]["default"]
     result["target_met"] = bool(c120["median_seconds"] < 0.3 and c120["max_error_s"] < 1e-7)

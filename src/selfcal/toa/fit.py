@@ -145,6 +145,7 @@ def finish(M: Array, dim: int, offsets: str, *, init: Any, speed: float | None, 
     minima: Any = ([], prev_keep)
     degenerate = False  # the best fit collapsed to a line / point (data that fit no dim-D geometry)
     ever = gross.copy()  # every entry screened or flagged in some round (outliers if its node is dropped)
+    memo: dict[str, Any] = {}  # the last leverages of the outlier rule (robust.leverages)
     breakdown: list[str] = []  # why the outlier rule cannot be trusted here (reported, FAILED_TEST)
     overflagged: list[str] = []  # nodes dropped: more flagged ranges than their position can hold
     # 4. the search (ML cost on the entries in use), 5. the outlier rule; a changed set of
@@ -185,7 +186,11 @@ def finish(M: Array, dim: int, offsets: str, *, init: Any, speed: float | None, 
                 break
             iters += rob.iterations
             n_runs += 1
-            cand = _flag(Yc, rob, keep_r, keep_s, offsets, sd, np.isfinite(Yr)) | gross[np.ix_(keep_r, keep_s)]
+            # studentized by the leverages of the least-squares fit rob started from (a function of
+            # the geometry alone, within the noise of rob's): computed once, and reused when that
+            # fit is the one the rule then judges on the same entries (no candidate changed it)
+            cand = _flag(Yc, rob, keep_r, keep_s, offsets, sd, np.isfinite(Yr), memo, at=best) \
+                | gross[np.ix_(keep_r, keep_s)]
             if not np.array_equal(cand, sub_obs & ~used[np.ix_(keep_r, keep_s)]):
                 trial = np.where(cand, np.nan, Yc[np.ix_(keep_r, keep_s)])
                 kr_t, ks_t = drop_unidentifiable(np.isfinite(trial), dim, offsets)
@@ -200,7 +205,7 @@ def finish(M: Array, dim: int, offsets: str, *, init: Any, speed: float | None, 
                     except DegenerateGeometryError:
                         pass
         fitted = used[np.ix_(keep_r, keep_s)]
-        flags = _flag(Yc, best, keep_r, keep_s, offsets, sd, fitted)
+        flags = _flag(Yc, best, keep_r, keep_s, offsets, sd, fitted, memo)
         if flags.sum() > 0.5 * sub_obs.sum():
             # beyond the MAD's breakdown point the "outliers" are the model (a wrong basin, a wrong
             # noise level, data of no geometry): remove nothing and let the trust test say so
@@ -529,21 +534,29 @@ def _residuals(Yc: Array, sol: NlsSolution, kr: NDArray[np.bool_], ks: NDArray[n
 
 
 def _flag(Yc: Array, sol: NlsSolution, kr: NDArray[np.bool_], ks: NDArray[np.bool_], offsets: str,
-          sd: float | None, fitted: NDArray[np.bool_]) -> NDArray[np.bool_]:
+          sd: float | None, fitted: NDArray[np.bool_], memo: dict[str, Any] | None = None,
+          at: NlsSolution | None = None) -> NDArray[np.bool_]:
     """The outlier rule (:mod:`selfcal.toa.robust`) on every observed entry of the kept nodes.
 
     ``fitted`` (kept I x kept J) marks the entries the fit ``sol`` used; their residuals are
     studentized by ``sqrt(1 - h)``, the others' (held out: suspected outliers, gross
     entries) by ``sqrt(1 + h)`` (prediction error). The scale is the given noise, else the
     MAD of the fitted entries' studentized residuals, floored at sqrt(machine eps) times the
-    median range (the solver's precision).
+    median range (the solver's precision). The leverages are those of the geometry ``at``
+    (default ``sol``); ``memo`` keeps the last ones (same geometry object, same entries).
     """
     Ysub = Yc[np.ix_(kr, ks)]
     obs = np.isfinite(Ysub)
     held = obs & ~fitted
     R_all = _residuals(Yc, sol, kr, ks)
-    Yfit = np.where(fitted, Ysub, np.nan)
-    H = leverages(Yfit, *_start(sol), offsets, held_out=held)
+    geo = sol if at is None else at
+    key = (id(geo), fitted.tobytes(), held.tobytes(), fitted.shape)
+    if memo is not None and memo.get("key") == key and memo.get("geo") is geo:
+        H = memo["H"]
+    else:
+        H = leverages(np.where(fitted, Ysub, np.nan), *_start(geo), offsets, held_out=held)
+        if memo is not None:
+            memo.update(key=key, geo=geo, H=H)
     T = studentized(R_all, H, held)
     dof = None
     if sd is not None:
