@@ -94,7 +94,7 @@ def graph_command(ranges: Path, dim: str, unit: str, known: Path | None, frame: 
     g = read_range_graph(ranges, name=str(ranges))
     k = _LENGTH_UNITS[unit]
     known_table = read_known_csv(known, d) if known is not None else None
-    is_tag = np.array([bool(tags) and fnmatch.fnmatchcase(n, tags) for n in g.names])
+    is_tag = np.array([tags is not None and fnmatch.fnmatchcase(n, tags) for n in g.names], dtype=bool)
     if tags and not is_tag.any():
         raise InputError(f"--tags {tags!r} matches none of the {g.n_nodes} node names (e.g. {g.names[0]!r})")
     res = solve_range_graph(g.a, g.b, g.ranges * k, g.n_nodes, std=None if g.std is None else g.std * k, dim=d,
@@ -147,7 +147,7 @@ def graph_command(ranges: Path, dim: str, unit: str, known: Path | None, frame: 
     sa = std[A]
     ok = np.isfinite(sa).all(1)
     if ok.any():
-        lines.append(f"  anchor std (RMS over anchors): " + ", ".join(
+        lines.append("  anchor std (RMS over anchors): " + ", ".join(
             f"{ax} {np.sqrt(np.mean(sa[ok, i] ** 2)):.3g} m" for i, ax in enumerate("xyz"[:d])))
     loose = set(res.poorly_determined_nodes)
     loose_anchors = [n for n, t in zip(names, A, strict=True) if t and n in loose]

@@ -14,8 +14,8 @@ import click
 
 from ._base import calibrate, handle_errors
 from ._common import csv_option, unit_options
-from .graph import parse_room, room_option
 from ._options import NOISE_STD, SEED, SPEED
+from .graph import parse_room, room_option
 
 
 def _auto_available() -> bool:

@@ -205,12 +205,13 @@ def collapse_repeats(a: Any, b: Any, ranges: Any, std: Any = None) -> tuple[Inde
     a, b = np.asarray(a, np.intp), np.asarray(b, np.intp)
     y = np.asarray(ranges, float)
     w = np.ones_like(y) if std is None else 1.0 / np.asarray(std, float) ** 2
-    lo, hi = np.minimum(a, b), np.maximum(a, b)
+    lo: Index = np.minimum(a, b)
+    hi: Index = np.maximum(a, b)
     key = lo.astype(np.int64) * (int(max(a.max(initial=0), b.max(initial=0))) + 1) + hi
     uniq, first, pair_of = np.unique(key, return_index=True, return_inverse=True)
     W = np.bincount(pair_of, w, minlength=uniq.size)
     mean = np.bincount(pair_of, w * y, minlength=uniq.size) / W
-    return lo[first], hi[first], mean, W, pair_of.astype(np.intp)
+    return lo[first], hi[first], np.asarray(mean, float), np.asarray(W, float), pair_of.astype(np.intp)
 
 
 def _pairs(a: Index, b: Index, y: Array, std: Array | None) -> _Pairs:
@@ -386,7 +387,7 @@ def _grow(P: _Pairs, X: Array, d: int) -> Array:
     b = np.concatenate([P.b, P.a])
     y = np.concatenate([P.mean, P.mean])
     while True:
-        placed = np.isfinite(X).all(1)
+        placed = np.asarray(np.isfinite(X).all(axis=1), dtype=bool)
         m = ~placed[a] & placed[b]
         cnt = np.bincount(a[m], minlength=X.shape[0])
         cand = np.flatnonzero(cnt >= d + 1)
@@ -820,9 +821,9 @@ def simulate_range_graph(anchors: Any, tags: Any = None, *, noise: float = 0.02,
     T = np.zeros((0, A.shape[1])) if tags is None else np.asarray(tags, float)
     X = np.vstack([A, T])
     k = A.shape[0]
-    pairs = []
+    pairs: list[tuple[int, int]] = []
     if anchor_pairs:
-        pairs += list(zip(*np.triu_indices(k, 1), strict=True))
+        pairs += [(int(u), int(v)) for u, v in zip(*np.triu_indices(k, 1), strict=True)]
     if tag_ranges:
         pairs += [(i, k + j) for j in range(T.shape[0]) for i in range(k)]
     if not pairs:
