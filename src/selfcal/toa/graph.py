@@ -113,6 +113,11 @@ class GraphResult(Result):
         :mod:`selfcal.toa.determinacy`): reported, the status is not changed (a tag
         position seen by few anchors); a caller for whom such a node matters (an anchor)
         decides.
+    mirror_ambiguous_nodes : tuple of str
+        Nodes whose reflection through the (hyper)plane of their partners, re-fitted with
+        the partners fixed, fits their ranges as well (weighted RSS increase below the
+        chi-square(1) bound at 1e-3 times the noise variance): a tag ranging only to
+        coplanar anchors is on either side of their plane. Status AMBIGUOUS.
     outliers : (m,) bool array
         Measurements of the pairs flagged as outliers (left out of the fit).
     outlier_pairs : int
@@ -141,6 +146,7 @@ class GraphResult(Result):
     chi2_p: float | None
     undetermined_nodes: tuple[str, ...]
     poorly_determined_nodes: tuple[str, ...]
+    mirror_ambiguous_nodes: tuple[str, ...]
     outliers: NDArray[np.bool_]
     outlier_pairs: int
     converged: bool
@@ -159,6 +165,12 @@ class GraphResult(Result):
             return Status.DEGENERATE, ("the ranges do not determine node(s) " + ", ".join(self.undetermined_nodes[:8])
                                        + more + " (a direction the ranges do not see: too few ranges, or a node set "
                                        "flat within its error bars in 3-D, whose out-of-plane coordinates are free)")
+        if self.mirror_ambiguous_nodes:
+            more = ", ..." if len(self.mirror_ambiguous_nodes) > 8 else ""
+            return Status.AMBIGUOUS, (f"{len(self.mirror_ambiguous_nodes)} node(s) fit their ranges as well mirrored "
+                                      "through the plane of their partners (" + ", ".join(self.mirror_ambiguous_nodes[:8])
+                                      + more + "): their partners are coplanar within the noise; an anchor off that "
+                                      "plane resolves it")
         if not self.converged:
             return Status.NOT_CONVERGED, "the least-squares fit stopped before convergence"
         if self.chi2_p is not None and self.chi2_p < TEST_LEVEL:
@@ -458,7 +470,7 @@ def _fit(X0: Array, P: _Pairs, free: NDArray[np.bool_], prior: tuple[Array, Arra
         return J
 
     # exact trust-region steps (dense SVD of J) while J is small; LSMR on the sparse J beyond
-    dense = theta0.size <= 1500
+    dense = theta0.size <= 300
     sol = least_squares(fun, theta0, jac=(lambda t: jac(t).toarray()) if dense else jac, method="trf",
                         tr_solver="exact" if dense else "lsmr", xtol=1e-10, ftol=1e-12, gtol=1e-10,
                         max_nfev=500, loss=loss, f_scale=f_scale)
@@ -491,6 +503,37 @@ def _covariance(X: Array, P: _Pairs, free: NDArray[np.bool_], prior_isd: Array |
         Vn[idx] = V[:, null]
         moved = np.linalg.norm(Vn.reshape(n, d, -1), axis=(1, 2)) > 1e-3
     return blocks, moved, int(null.sum())
+
+
+def _mirror_ambiguous(X: Array, P: _Pairs, scale: float) -> NDArray[np.bool_]:
+    """Nodes whose mirror placement through their partners' hyperplane fits as well (see GraphResult)."""
+    from scipy.stats import chi2
+
+    from .sparse import _gauss_newton
+
+    n, d = X.shape
+    node = np.concatenate([P.a, P.b])
+    other = np.concatenate([P.b, P.a])
+    dist = np.concatenate([P.mean, P.mean])
+    w = np.concatenate([P.weight, P.weight])
+    order = np.argsort(node, kind="stable")
+    node, other, dist, w = node[order], other[order], dist[order], w[order]
+    starts = np.searchsorted(node, np.arange(n + 1))
+    xm = X.copy()
+    for k in range(n):
+        Q = X[other[starts[k]:starts[k + 1]]]
+        if Q.shape[0] < d:
+            continue
+        c = Q.mean(0)
+        nv = np.linalg.svd(Q - c, full_matrices=False)[2][-1]
+        xm[k] = X[k] - 2.0 * ((X[k] - c) @ nv) * nv
+    anc = X[other]
+    x0, _ = _gauss_newton(node, anc, dist, X.copy(), n, d, 5)
+    x1, _ = _gauss_newton(node, anc, dist, xm, n, d, 5)
+    rss = [np.bincount(node, w * (np.linalg.norm(z[node] - anc, axis=1) - dist) ** 2, minlength=n) for z in (x0, x1)]
+    apart = np.linalg.norm(x1 - x0, axis=1) > 10.0 * max(scale, 1e-9) / np.sqrt(np.maximum(
+        np.bincount(node, w, minlength=n), 1e-300))
+    return np.asarray(apart & (rss[1] - rss[0] < chi2.ppf(1 - TEST_LEVEL, 1) * scale**2), dtype=bool)
 
 
 def _region_larger_than_set(X: Array, cov: Array) -> NDArray[np.bool_]:
@@ -737,6 +780,7 @@ def solve_range_graph(
     bad = (moved if n_null > gauge else np.zeros(n, bool)) | np.full(n, flat)
     undetermined = tuple(nm[k] for k in np.flatnonzero(bad))
     loose = tuple(nm[k] for k in np.flatnonzero(_region_larger_than_set(X, cov) & ~bad))
+    mirrored = tuple(nm[k] for k in np.flatnonzero(_mirror_ambiguous(X, P, scale) & ~bad))
     cov[moved & (n_null > gauge)] = np.nan
     pe_sigma = float(np.sqrt(P.pe_ss / P.pe_dof)) if P.pe_dof > 0 else None
     lof_F = lof_p = None
@@ -761,6 +805,7 @@ def solve_range_graph(
         noise_estimate=sigma, dof=dof, n_measurements=int(y.size), n_pairs=int(n_pairs_all),
         pure_error_sigma=pe_sigma, pure_error_dof=P.pe_dof, lack_of_fit_F=lof_F, lack_of_fit_p=lof_p,
         chi2=chi2, chi2_p=chi2_p, undetermined_nodes=undetermined, poorly_determined_nodes=loose,
+        mirror_ambiguous_nodes=mirrored,
         outliers=~y_in, outlier_pairs=int(flagged.sum()), converged=conv, iterations=nfev,
         method=f"graph:{route}+lsq", frame=info)
 
