@@ -129,3 +129,21 @@ def test_tags_mirrored_under_coplanar_anchors_do_not_fail_the_anchor_file(tmp_pa
     assert res.exit_code == 0 and "ambiguous tag positions" in res.output
     res = run(log, "--known", known, "--out", out)
     assert res.exit_code == 1 and "mirrored" in res.output
+
+
+def test_centimetres_give_the_same_anchors_in_metres(tmp_path):
+    """The same log in cm with --unit cm: the anchor file (metres) agrees with the metre run to
+    round-off of the 5-decimal log (the fit is scale-equivariant)."""
+    log, _ = _log(tmp_path, 3, tags=10)
+    cm = tmp_path / "log_cm.csv"
+    lines = log.read_text().splitlines()
+    cm.write_text("\n".join([lines[0]] + [",".join(p[:2] + [f"{float(p[2]) * 100:.3f}"])
+                                          for p in (ln.split(",") for ln in lines[1:])]) + "\n")
+    known = _known(tmp_path, range(4))
+    outs = []
+    for path, extra in ((log, []), (cm, ["--unit", "cm"])):
+        anchors = tmp_path / f"a_{path.stem}.csv"
+        res = run(path, *extra, "--known", known, "--tags", "t*", "--out", tmp_path / "r.json", "--anchors", anchors)
+        assert res.exit_code == 0, res.output
+        outs.append(np.array([[float(r[k]) for k in "xyz"] for r in csv.DictReader(anchors.open())]))
+    assert np.max(np.abs(outs[0] - outs[1])) < 1e-3
