@@ -108,3 +108,42 @@ def test_bad_room_and_unmatched_tags_are_bad_input(tmp_path):
     assert run(log, "--room", "5,4", "--out", out).exit_code == 2
     res = run(log, "--tags", "x*", "--out", out)
     assert res.exit_code == 2 and "matches none" in res.output
+
+
+def test_tags_mirrored_under_coplanar_anchors_do_not_fail_the_anchor_file(tmp_path):
+    """Ceiling anchors (one plane) and a tag log: the tags are mirror-ambiguous, the anchors
+    are not; with --tags the command says so and exits 0, without it (every node an anchor)
+    it fails."""
+    flat = ANCHORS.copy()
+    flat[:, 2] = 2.8
+    rng = np.random.default_rng(0)
+    T = np.column_stack([rng.uniform(0.5, 4.5, 15), rng.uniform(0.5, 3.5, 15), rng.uniform(0.3, 2.0, 15)])
+    a, b, y = simulate_range_graph(flat, T, noise=0.02, anchor_pairs=False, rng=0)
+    names = [f"A{i}" for i in range(7)] + [f"t{j:02d}" for j in range(15)]
+    log = tmp_path / "log.csv"
+    log.write_text("from,to,range\n" + "".join(f"{names[u]},{names[v]},{r:.5f}\n" for u, v, r in zip(a, b, y, strict=True)))
+    known = tmp_path / "known.csv"
+    known.write_text("name,x,y,z\n" + "".join(f"A{i},{flat[i, 0]},{flat[i, 1]},{flat[i, 2]}\n" for i in range(4)))
+    out = tmp_path / "r.json"
+    res = run(log, "--known", known, "--tags", "t*", "--out", out)
+    assert res.exit_code == 0 and "ambiguous tag positions" in res.output
+    res = run(log, "--known", known, "--out", out)
+    assert res.exit_code == 1 and "mirrored" in res.output
+
+
+def test_centimetres_give_the_same_anchors_in_metres(tmp_path):
+    """The same log in cm with --unit cm: the anchor file (metres) agrees with the metre run to
+    round-off of the 5-decimal log (the fit is scale-equivariant)."""
+    log, _ = _log(tmp_path, 3, tags=10)
+    cm = tmp_path / "log_cm.csv"
+    lines = log.read_text().splitlines()
+    cm.write_text("\n".join([lines[0]] + [",".join(p[:2] + [f"{float(p[2]) * 100:.3f}"])
+                                          for p in (ln.split(",") for ln in lines[1:])]) + "\n")
+    known = _known(tmp_path, range(4))
+    outs = []
+    for path, extra in ((log, []), (cm, ["--unit", "cm"])):
+        anchors = tmp_path / f"a_{path.stem}.csv"
+        res = run(path, *extra, "--known", known, "--tags", "t*", "--out", tmp_path / "r.json", "--anchors", anchors)
+        assert res.exit_code == 0, res.output
+        outs.append(np.array([[float(r[k]) for k in "xyz"] for r in csv.DictReader(anchors.open())]))
+    assert np.max(np.abs(outs[0] - outs[1])) < 1e-3

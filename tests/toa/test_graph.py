@@ -283,7 +283,8 @@ def test_coverage_over_many_draws():
     """The long version (~2 CPU-minutes): 200 anchor-only draws with known nodes and 30 mixed
     draws (7 anchors + 25 tags, anchor-anchor ranges), 95 % inside-rate in [0.91, 0.98] and
     mean normalised error in [0.9, 1.15] (binomial sd ~0.008 at 800 nodes, widened for the
-    correlation within a draw; measured 0.931 / 1.01 and 0.937 / 1.05)."""
+    correlation within a draw; measured with outlier flagging on: 0.930 / 1.03 over the 200
+    anchor-only draws, 0.933 / 1.07 over the 30 mixed ones)."""
     samples = []
     for seed in range(200):
         a, b, y = simulate_range_graph(ANCHORS, None, noise=0.03, repeats=5, rng=seed)
@@ -298,3 +299,25 @@ def test_coverage_over_many_draws():
     rate, mean = _coverage(samples)
     assert 0.91 <= rate <= 0.98, rate
     assert 0.9 <= mean <= 1.15, mean
+
+
+def test_tags_under_coplanar_anchors_are_named_ambiguous():
+    """7 anchors all at 2.8 m, tags below ranging only to them: each tag fits its ranges as
+    well mirrored above the ceiling (its partners are coplanar), whatever the frame: status
+    AMBIGUOUS naming tags, never the anchors. With A6 lowered to 1.5 m the same tags
+    are unique (success) in every draw."""
+    flat = ANCHORS.copy()
+    flat[:, 2] = 2.8
+    for seed in range(3):
+        rng = np.random.default_rng(seed)
+        T = _tags(rng, 15)
+        a, b, y = simulate_range_graph(flat, T, noise=0.02, anchor_pairs=False, rng=seed)
+        res = solve_range_graph(a, b, y, known={str(i): flat[i] for i in range(4)}, rng=seed)
+        assert res.status == Status.AMBIGUOUS
+        assert set(res.mirror_ambiguous_nodes) <= {str(k) for k in range(7, 22)}
+        # the fitted anchors A4-A6 leave the plane by the noise, and the mirror is compared with
+        # them held there: a conservative test, so not every tag is named (9-15 of 15 here)
+        assert len(res.mirror_ambiguous_nodes) >= 5
+        a, b, y = simulate_range_graph(ANCHORS, T, noise=0.02, anchor_pairs=False, rng=seed)
+        ok = solve_range_graph(a, b, y, known={str(i): ANCHORS[i] for i in range(4)}, rng=seed)
+        assert ok.success and not ok.mirror_ambiguous_nodes

@@ -94,7 +94,7 @@ def graph_command(ranges: Path, dim: str, unit: str, known: Path | None, frame: 
     g = read_range_graph(ranges, name=str(ranges))
     k = _LENGTH_UNITS[unit]
     known_table = read_known_csv(known, d) if known is not None else None
-    is_tag = np.array([bool(tags) and fnmatch.fnmatchcase(n, tags) for n in g.names])
+    is_tag = np.array([tags is not None and fnmatch.fnmatchcase(n, tags) for n in g.names], dtype=bool)
     if tags and not is_tag.any():
         raise InputError(f"--tags {tags!r} matches none of the {g.n_nodes} node names (e.g. {g.names[0]!r})")
     from ..progress import stage
@@ -161,7 +161,15 @@ def graph_command(ranges: Path, dim: str, unit: str, known: Path | None, frame: 
     wrote = [str(p) for p in (out, anchors_out, csv_out, plot) if p is not None]
     lines.append("  wrote " + ", ".join(wrote))
     click.echo("\n".join(lines))
-    if not res.success:
+    from ..errors import Status
+
+    amb = set(res.mirror_ambiguous_nodes)
+    tag_names = {n for n, t in zip(names, is_tag, strict=True) if t}
+    if res.status == Status.AMBIGUOUS and amb <= tag_names:
+        # the anchors are determined: a tag's mirror through coplanar anchors leaves their ranges unchanged
+        click.echo(f"  ambiguous tag positions: {len(amb)} fit as well mirrored through their anchors' plane "
+                   "(coplanar anchors); the anchor set is not affected")
+    elif not res.success:
         click.echo(f"FAIL: calibration not trustworthy ({res.message})")
         raise SystemExit(1)
     if loose_anchors:

@@ -60,17 +60,29 @@ from numpy.typing import NDArray
 
 from .._result import Result
 from ..errors import DegenerateGeometryError, InputError, Status
+from .graph_checks import (
+    _flat_within_errors,
+    _gauge_modes,
+    _mirror_ambiguous,
+    _region_larger_than_set,
+)
+from .graph_fit import (
+    NULL_TOL,
+    TEST_LEVEL,
+    _covariance,
+    _fit,
+    _flag_pairs,
+    _pairs,
+    _subset,
+    collapse_repeats,
+)
+from .graph_start import _initial
 from .nodes import FrameInfo
 
-__all__ = ["GraphResult", "solve_range_graph", "collapse_repeats", "simulate_range_graph"]
+__all__ = ["GraphResult", "NULL_TOL", "TEST_LEVEL", "solve_range_graph", "collapse_repeats", "simulate_range_graph"]
 
 Array = NDArray[np.float64]
 Index = NDArray[np.intp]
-
-#: level of the residual tests (chi-square with a given std, lack of fit against the repeats)
-TEST_LEVEL = 1e-3
-#: an information-matrix eigenvalue below this fraction of the largest is a null direction
-NULL_TOL = 1e-9
 
 
 @dataclass(frozen=True, repr=False)
@@ -113,6 +125,11 @@ class GraphResult(Result):
         :mod:`selfcal.toa.determinacy`): reported, the status is not changed (a tag
         position seen by few anchors); a caller for whom such a node matters (an anchor)
         decides.
+    mirror_ambiguous_nodes : tuple of str
+        Nodes whose reflection through the (hyper)plane of their partners, re-fitted with
+        the partners fixed, fits their ranges as well (weighted RSS increase below the
+        chi-square(1) bound at 1e-3 times the noise variance): a tag ranging only to
+        coplanar anchors is on either side of their plane. Status AMBIGUOUS.
     outliers : (m,) bool array
         Measurements of the pairs flagged as outliers (left out of the fit).
     outlier_pairs : int
@@ -141,6 +158,7 @@ class GraphResult(Result):
     chi2_p: float | None
     undetermined_nodes: tuple[str, ...]
     poorly_determined_nodes: tuple[str, ...]
+    mirror_ambiguous_nodes: tuple[str, ...]
     outliers: NDArray[np.bool_]
     outlier_pairs: int
     converged: bool
@@ -159,6 +177,12 @@ class GraphResult(Result):
             return Status.DEGENERATE, ("the ranges do not determine node(s) " + ", ".join(self.undetermined_nodes[:8])
                                        + more + " (a direction the ranges do not see: too few ranges, or a node set "
                                        "flat within its error bars in 3-D, whose out-of-plane coordinates are free)")
+        if self.mirror_ambiguous_nodes:
+            more = ", ..." if len(self.mirror_ambiguous_nodes) > 8 else ""
+            return Status.AMBIGUOUS, (f"{len(self.mirror_ambiguous_nodes)} node(s) fit their ranges as well mirrored "
+                                      "through the plane of their partners (" + ", ".join(self.mirror_ambiguous_nodes[:8])
+                                      + more + "): their partners are coplanar within the noise; an anchor off that "
+                                      "plane resolves it")
         if not self.converged:
             return Status.NOT_CONVERGED, "the least-squares fit stopped before convergence"
         if self.chi2_p is not None and self.chi2_p < TEST_LEVEL:
@@ -166,397 +190,6 @@ class GraphResult(Result):
                                         f"{self.dof} dof, p = {self.chi2_p:.3g}")
         return Status.SUCCESS, "converged" + ("" if self.chi2_p is None else
                                               f"; residual test passed (p = {self.chi2_p:.3g})")
-
-
-@dataclass(frozen=True)
-class _Pairs:
-    a: Index
-    b: Index
-    mean: Array
-    weight: Array
-    pair_of: Index
-    pe_ss: float
-    pe_dof: int
-
-
-def collapse_repeats(a: Any, b: Any, ranges: Any, std: Any = None) -> tuple[Index, Index, Array, Array, Index]:
-    """Pair means of repeated measurements (an unordered pair is one pair).
-
-    Parameters
-    ----------
-    a, b : (m,) int
-        Nodes of each measurement.
-    ranges : (m,) float
-    std : (m,) float, optional
-        Per-measurement std (weights ``1 / std^2``); unit weights when None.
-
-    Returns
-    -------
-    (pa, pb, mean, weight, pair_of)
-        Per pair the nodes (``pa < pb``), the weighted mean range and the summed weight;
-        ``pair_of[m]`` is the pair of measurement ``m``.
-
-    Examples
-    --------
-    >>> pa, pb, mu, w, k = collapse_repeats([0, 1, 0], [1, 0, 2], [4.0, 4.2, 3.0])
-    >>> pa.tolist(), pb.tolist(), mu.round(6).tolist(), w.tolist(), k.tolist()
-    ([0, 0], [1, 2], [4.1, 3.0], [2.0, 1.0], [0, 0, 1])
-    """
-    a, b = np.asarray(a, np.intp), np.asarray(b, np.intp)
-    y = np.asarray(ranges, float)
-    w = np.ones_like(y) if std is None else 1.0 / np.asarray(std, float) ** 2
-    lo, hi = np.minimum(a, b), np.maximum(a, b)
-    key = lo.astype(np.int64) * (int(max(a.max(initial=0), b.max(initial=0))) + 1) + hi
-    uniq, first, pair_of = np.unique(key, return_index=True, return_inverse=True)
-    W = np.bincount(pair_of, w, minlength=uniq.size)
-    mean = np.bincount(pair_of, w * y, minlength=uniq.size) / W
-    return lo[first], hi[first], mean, W, pair_of.astype(np.intp)
-
-
-def _pairs(a: Index, b: Index, y: Array, std: Array | None) -> _Pairs:
-    pa, pb, mean, W, k = collapse_repeats(a, b, y, std)
-    w = np.ones_like(y) if std is None else 1.0 / std**2
-    pe = float(np.sum(w * (y - mean[k]) ** 2))
-    return _Pairs(pa, pb, mean, W, k, pe, int(y.size - mean.size))
-
-
-def _subset(P: _Pairs, keep: NDArray[np.bool_], a: Index, b: Index, y: Array, std: Array | None) -> _Pairs:
-    """The pairs ``keep`` (their measurements' pure error recomputed)."""
-    m = keep[P.pair_of]
-    return _pairs(a[m], b[m], y[m], None if std is None else std[m])
-
-
-def _flag_pairs(X: Array, P: _Pairs, d: int, free: NDArray[np.bool_], *, scale: float) -> NDArray[np.bool_]:
-    """Pairs whose studentized residual exceeds the Bonferroni bound over ``scale``; a node keeps d + 1 partners.
-
-    ``t_p = e_p / sqrt(1 - h_p)`` with the leverage ``h_p`` of the pair in the fit. A pair
-    with ``h_p > 1/2`` is not judged: the fit absorbs more than half of its error, so its
-    residual cannot tell it from its neighbours' (an anchor-only graph of 7 anchors has
-    ``h = 5/7`` everywhere: a biased pair is then seen by the lack-of-fit test, not located).
-    Leverages need the dense information matrix: above 1500 free coordinates ``h = 0``.
-    """
-    from .robust import outlier_threshold
-
-    e = np.sqrt(P.weight) * (P.mean - np.linalg.norm(X[P.a] - X[P.b], axis=1))
-    h = np.zeros(e.size)
-    if int(free.sum()) <= 1500:
-        J = _jacobian(X, P, free, np.sqrt(P.weight)).toarray()
-        h = np.clip(np.einsum("pi,pi->p", J @ np.linalg.pinv(J.T @ J, hermitian=True), J), 0.0, 1.0)
-    judged = h <= 0.5
-    t = np.where(judged, e / np.sqrt(np.clip(1.0 - h, 1e-12, None)), 0.0)
-    flag = judged & (np.abs(t) > outlier_threshold(int(judged.sum())) * scale)
-    e = t
-    n = X.shape[0]
-    for k in np.argsort(-np.abs(e)):  # largest first; unflag where a node would drop below d + 1
-        if not flag[k]:
-            break
-        deg = np.bincount(np.concatenate([P.a[~flag], P.b[~flag]]), minlength=n)
-        if deg[P.a[k]] < d + 1 or deg[P.b[k]] < d + 1:
-            flag[k] = False
-    return flag
-
-
-# ---------------------------------------------------------------------------------------
-# initial positions
-# ---------------------------------------------------------------------------------------
-
-def _clique(P: _Pairs, n: int) -> Index:
-    """A greedy complete group of nodes (all mutual ranges measured), best connected first."""
-    adj = np.zeros((n, n), bool)
-    adj[P.a, P.b] = adj[P.b, P.a] = True
-    order = np.argsort(-adj.sum(1), kind="stable")
-    best: list[int] = []
-    for start in order[: min(n, 8)]:
-        group = [int(start)]
-        for v in order:
-            if v != start and adj[v, group].all():
-                group.append(int(v))
-        if len(group) > len(best):
-            best = group
-    return np.array(sorted(best), np.intp)
-
-
-def _initial(P: _Pairs, n: int, d: int, rng: Any) -> tuple[Array, str]:
-    """Start positions of every node (canonical-ish gauge) and the route taken."""
-    from .mds_core import classical_mds
-
-    K = _clique(P, n)
-    inK = np.zeros(n, bool)
-    inK[K] = True
-    X = np.full((n, d), np.nan)
-    route = ""
-    if K.size >= d + 2:
-        D = np.zeros((K.size, K.size))
-        pos = -np.ones(n, np.intp)
-        pos[K] = np.arange(K.size)
-        m = inK[P.a] & inK[P.b]
-        D[pos[P.a[m]], pos[P.b[m]]] = D[pos[P.b[m]], pos[P.a[m]]] = np.maximum(P.mean[m], 0.0)
-        XK = classical_mds(D, d)
-        sv = np.linalg.svd(XK - XK.mean(0), compute_uv=False)
-        if K.size == n:
-            return XK, f"mds({K.size})"
-        if sv[-1] > 0.05 * sv[0]:  # the clique spans the space: multilaterate the rest from it
-            X[K] = XK
-            route = f"mds({K.size})+multilateration"
-    if not route:
-        X, route = _bipartite_start(P, n, d, K, rng)
-    X = _grow(P, X, d)
-    lost = np.flatnonzero(~np.isfinite(X).all(1))
-    if lost.size:
-        raise DegenerateGeometryError(
-            f"{lost.size} node(s) have fewer than {d + 1} ranges to the nodes placed so far and cannot be placed "
-            f"(first: node {int(lost[0])}); add ranges to them", kind="unobservable-node")
-    return X, route
-
-
-def _bipartite_start(P: _Pairs, n: int, d: int, K: Index, rng: Any) -> tuple[Array, str]:
-    """Start from the bipartite part: the clique (or one colour class) x the other nodes."""
-    colour = _two_colouring(P, n)
-    if colour is not None:
-        from .sparse import solve_toa_sparse
-
-        R, S = np.flatnonzero(colour == 0), np.flatnonzero(colour == 1)
-        if R.size > S.size:
-            R, S = S, R
-        if P.mean.size >= 0.5 * R.size * S.size:
-            # a dense bipartite graph is a range matrix: the dense blind solver (its search)
-            return _matrix_start(P, n, d, R, S, rng)
-        ri, si = -np.ones(n, np.intp), -np.ones(n, np.intp)
-        ri[R], si[S] = np.arange(R.size), np.arange(S.size)
-        a_is_r = colour[P.a] == 0
-        i = np.where(a_is_r, ri[P.a], ri[P.b])
-        j = np.where(a_is_r, si[P.b], si[P.a])
-        sol = solve_toa_sparse(i, j, P.mean, R.size, S.size, dim=d, rng=rng)
-        X = np.full((n, d), np.nan)
-        X[R], X[S] = sol.receivers, sol.sources
-        return X, "sparse-bipartite"
-    if K.size < d + 1:
-        raise DegenerateGeometryError(
-            f"no group of {d + 1} nodes with all their mutual ranges and the graph is not bipartite: no "
-            "blind start for it; measure the ranges among a few anchors", kind="too-few-measurements")
-    return _matrix_start(P, n, d, K, np.setdiff1d(np.arange(n), K), rng)
-
-
-def _matrix_start(P: _Pairs, n: int, d: int, K: Index, E: Index, rng: Any) -> tuple[Array, str]:
-    """Blind start from the K x E range matrix (rows K) by :func:`selfcal.toa.solve.solve_toa`."""
-    from .solve import solve_toa
-
-    kpos, epos = -np.ones(n, np.intp), -np.ones(n, np.intp)
-    kpos[K], epos[E] = np.arange(K.size), np.arange(E.size)
-    M = np.full((K.size, E.size), np.nan)
-    for u, v, y in zip(P.a, P.b, P.mean, strict=True):
-        if kpos[u] >= 0 and epos[v] >= 0:
-            M[kpos[u], epos[v]] = y
-        elif kpos[v] >= 0 and epos[u] >= 0:
-            M[kpos[v], epos[u]] = y
-    ok = np.isfinite(M).sum(0) >= d + 1
-    res = solve_toa(np.maximum(M[:, ok], 0.0), dim=d, rng=rng, covariance="none")
-    X = np.full((n, d), np.nan)
-    X[K] = res.receivers
-    X[E[ok]] = res.sources
-    return X, f"toa({K.size}x{int(ok.sum())})"
-
-
-def _two_colouring(P: _Pairs, n: int) -> NDArray[np.int8] | None:
-    """0/1 colours when the graph is bipartite (every edge joins the two classes), else None."""
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import breadth_first_order
-
-    A = coo_matrix((np.ones(P.a.size), (P.a, P.b)), shape=(n, n)).tocsr()
-    A = A + A.T
-    colour = -np.ones(n, np.int8)
-    for s in range(n):
-        if colour[s] >= 0:
-            continue
-        order, pred = breadth_first_order(A, s, directed=False, return_predecessors=True)
-        colour[s] = 0
-        for v in order[1:]:
-            colour[v] = 1 - colour[pred[v]]
-    if np.any(colour[P.a] == colour[P.b]):
-        return None
-    return colour
-
-
-def _grow(P: _Pairs, X: Array, d: int) -> Array:
-    """Multilaterate unplaced nodes with >= d + 1 ranges to placed ones (batched, repeated)."""
-    from .sparse import _multilaterate
-
-    X = X.copy()
-    a = np.concatenate([P.a, P.b])
-    b = np.concatenate([P.b, P.a])
-    y = np.concatenate([P.mean, P.mean])
-    while True:
-        placed = np.isfinite(X).all(1)
-        m = ~placed[a] & placed[b]
-        cnt = np.bincount(a[m], minlength=X.shape[0])
-        cand = np.flatnonzero(cnt >= d + 1)
-        if not cand.size:
-            return X
-        loc = -np.ones(X.shape[0], np.intp)
-        loc[cand] = np.arange(cand.size)
-        k = m & (loc[a] >= 0)
-        x, _ = _multilaterate(loc[a[k]], X[b[k]], y[k], cand.size, d)
-        X[cand] = x
-
-
-# ---------------------------------------------------------------------------------------
-# the fit
-# ---------------------------------------------------------------------------------------
-
-def _jacobian(X: Array, P: _Pairs, free: NDArray[np.bool_], sw: Array) -> Any:
-    from scipy.sparse import csr_matrix
-
-    n, d = X.shape
-    col = -np.ones((n, d), np.intp)
-    col[free] = np.arange(int(free.sum()))
-    diff = X[P.a] - X[P.b]
-    u = diff / np.maximum(np.linalg.norm(diff, axis=1), 1e-12)[:, None]
-    rows, cols, vals = [], [], []
-    p = np.arange(P.a.size)
-    for node, sign in ((P.a, 1.0), (P.b, -1.0)):
-        for k in range(d):
-            c = col[node, k]
-            ok = c >= 0
-            rows.append(p[ok])
-            cols.append(c[ok])
-            vals.append(sign * sw[ok] * u[ok, k])
-    return csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
-                      shape=(P.a.size, int(free.sum())))
-
-
-def _fit(X0: Array, P: _Pairs, free: NDArray[np.bool_], prior: tuple[Array, Array] | None,
-         loss: str = "linear", f_scale: float = 1.0) -> tuple[Array, bool, int]:
-    """Weighted least squares over the free coordinates (priors: ``(mu, 1/std)`` rows per coordinate)."""
-    from scipy.optimize import least_squares
-    from scipy.sparse import diags, vstack
-
-    sw = np.sqrt(P.weight)
-    theta0 = X0[free]
-    pm = None
-    if prior is not None:
-        mu, isd = prior
-        pm = np.isfinite(mu[free])
-
-    def unpack(theta: Array) -> Array:
-        X = X0.copy()
-        X[free] = theta
-        return X
-
-    def fun(theta: Array) -> Array:
-        X = unpack(theta)
-        r = sw * (np.linalg.norm(X[P.a] - X[P.b], axis=1) - P.mean)
-        if pm is not None:
-            r = np.concatenate([r, (theta[pm] - prior[0][free][pm]) * prior[1][free][pm]])  # type: ignore[index]
-        return r
-
-    def jac(theta: Array) -> Any:
-        J = _jacobian(unpack(theta), P, free, sw)
-        if pm is not None:
-            Jp = diags(prior[1][free] * pm, format="csr")[np.flatnonzero(pm)]  # type: ignore[index]
-            J = vstack([J, Jp], format="csr")
-        return J
-
-    # exact trust-region steps (dense SVD of J) while J is small; LSMR on the sparse J beyond
-    dense = theta0.size <= 1500
-    sol = least_squares(fun, theta0, jac=(lambda t: jac(t).toarray()) if dense else jac, method="trf",
-                        tr_solver="exact" if dense else "lsmr", xtol=1e-10, ftol=1e-12, gtol=1e-10,
-                        max_nfev=500, loss=loss, f_scale=f_scale)
-    return unpack(sol.x), bool(sol.status > 0), int(sol.nfev)
-
-
-def _covariance(X: Array, P: _Pairs, free: NDArray[np.bool_], prior_isd: Array | None, scale: float
-                ) -> tuple[Array, NDArray[np.bool_], int]:
-    """Per-node covariance blocks (pseudo-inverse of the information) and the null directions.
-
-    Returns the (n, d, d) blocks, the (n,) mask of nodes moved by a null direction beyond
-    the expected gauge, and the number of null directions.
-    """
-    n, d = X.shape
-    J = _jacobian(X, P, free, np.sqrt(P.weight)).toarray()
-    F = J.T @ J
-    if prior_isd is not None:
-        F[np.diag_indices_from(F)] += np.where(np.isfinite(prior_isd[free]), prior_isd[free], 0.0) ** 2
-    lam, V = np.linalg.eigh(F)
-    null = lam <= NULL_TOL * max(lam[-1], 1e-300)
-    inv = np.where(null, 0.0, 1.0 / np.where(null, 1.0, lam))
-    C = (V * inv) @ V.T * scale**2
-    full = np.zeros((n * d, n * d))
-    idx = np.flatnonzero(free.ravel())
-    full[np.ix_(idx, idx)] = C
-    blocks = np.stack([full[k * d:(k + 1) * d, k * d:(k + 1) * d] for k in range(n)])
-    moved = np.zeros(n, bool)
-    if null.any():
-        Vn = np.zeros((n * d, int(null.sum())))
-        Vn[idx] = V[:, null]
-        moved = np.linalg.norm(Vn.reshape(n, d, -1), axis=(1, 2)) > 1e-3
-    return blocks, moved, int(null.sum())
-
-
-def _region_larger_than_set(X: Array, cov: Array) -> NDArray[np.bool_]:
-    """Nodes whose 95 % confidence ellipsoid's largest semi-axis exceeds the node set's radius."""
-    from scipy.stats import chi2
-
-    d = X.shape[1]
-    radius = float(np.max(np.linalg.norm(X - X.mean(0), axis=1)))
-    lam = np.linalg.eigvalsh(0.5 * (cov + np.swapaxes(cov, 1, 2)))[:, -1]
-    return np.sqrt(chi2.ppf(0.95, d) * np.clip(lam, 0.0, None)) > radius
-
-
-def _flat_within_errors(X: Array, P: _Pairs, n_meas: int) -> tuple[bool, float | None]:
-    """Whether a 3-D node set is flat within its errors: ``(flat, p value)``.
-
-    At a planar configuration the ranges determine no out-of-plane coordinate to first
-    order (module docstring); a noisy fit bends the set off the plane by about
-    ``sqrt(noise x size)`` (second order), where the linearised covariance is finite but
-    says nothing. The nested models are compared instead: the best planar (2-D) fit against
-    the 3-D fit, blind both, by the F test of the extra ``n - 3`` coordinates against the
-    3-D noise estimate; the set is called flat when the plane is not rejected (p >= 1e-3).
-    A set whose thinnest principal spread exceeds a quarter of the middle one is never
-    flat at any noise that leaves a usable fit (its heights are far beyond
-    ``sqrt(noise x size)``), so the two fits are spared there.
-    """
-    from scipy.stats import f as f_dist
-
-    n, d = X.shape
-    if d < 3 or n < 4:
-        return False, None
-    c = X.mean(0)
-    _, sv, Vt = np.linalg.svd(X - c, full_matrices=False)
-    if sv[2] > 0.25 * sv[1]:
-        return False, None
-    all3, all2 = np.ones((n, 3), bool), np.ones((n, 2), bool)
-    X3, _, _ = _fit(X, P, all3, None)
-    X2, _, _ = _fit((X - c) @ Vt[:2].T, P, all2, None)
-    rss3, rss2 = (float(np.sum(P.weight * (np.linalg.norm(Z[P.a] - Z[P.b], axis=1) - P.mean) ** 2))
-                  for Z in (X3, X2))
-    q = n - 3
-    dof = n_meas - (3 * n - 6)
-    if dof <= 0:
-        return True, None
-    s2 = (rss3 + P.pe_ss) / dof
-    F = max(rss2 - rss3, 0.0) / q / max(s2, 1e-300)
-    p = float(f_dist.sf(F, q, dof))
-    return p >= TEST_LEVEL, p
-
-
-def _gauge_modes(X: Array, free: NDArray[np.bool_]) -> int:
-    """Dimension of the rigid motions that leave every fixed coordinate unchanged (the residual gauge)."""
-    n, d = X.shape
-    modes = [np.tile(np.eye(d)[k], n) for k in range(d)]
-    c = X.mean(0)
-    for p in range(d):
-        for q in range(p + 1, d):
-            G = np.zeros((d, d))
-            G[p, q], G[q, p] = -1.0, 1.0
-            modes.append(((X - c) @ G.T).ravel())
-    B = np.array(modes).T  # (n d, g)
-    fixed = ~free.ravel()
-    if not fixed.any():
-        return B.shape[1]
-    # motions whose fixed coordinates stay: the null space of B's fixed rows
-    sv = np.linalg.svd(B[fixed], compute_uv=False)
-    tol = 1e-9 * max(float(np.abs(X).max()), 1.0)
-    return int(B.shape[1] - (sv > tol).sum())
 
 
 def solve_range_graph(
@@ -736,6 +369,7 @@ def solve_range_graph(
     bad = (moved if n_null > gauge else np.zeros(n, bool)) | np.full(n, flat)
     undetermined = tuple(nm[k] for k in np.flatnonzero(bad))
     loose = tuple(nm[k] for k in np.flatnonzero(_region_larger_than_set(X, cov) & ~bad))
+    mirrored = tuple(nm[k] for k in np.flatnonzero(_mirror_ambiguous(X, P, scale) & ~bad))
     cov[moved & (n_null > gauge)] = np.nan
     pe_sigma = float(np.sqrt(P.pe_ss / P.pe_dof)) if P.pe_dof > 0 else None
     lof_F = lof_p = None
@@ -760,6 +394,7 @@ def solve_range_graph(
         noise_estimate=sigma, dof=dof, n_measurements=int(y.size), n_pairs=int(n_pairs_all),
         pure_error_sigma=pe_sigma, pure_error_dof=P.pe_dof, lack_of_fit_F=lof_F, lack_of_fit_p=lof_p,
         chi2=chi2, chi2_p=chi2_p, undetermined_nodes=undetermined, poorly_determined_nodes=loose,
+        mirror_ambiguous_nodes=mirrored,
         outliers=~y_in, outlier_pairs=int(flagged.sum()), converged=conv, iterations=nfev,
         method=f"graph:{route}+lsq", frame=info)
 
@@ -820,9 +455,9 @@ def simulate_range_graph(anchors: Any, tags: Any = None, *, noise: float = 0.02,
     T = np.zeros((0, A.shape[1])) if tags is None else np.asarray(tags, float)
     X = np.vstack([A, T])
     k = A.shape[0]
-    pairs = []
+    pairs: list[tuple[int, int]] = []
     if anchor_pairs:
-        pairs += list(zip(*np.triu_indices(k, 1), strict=True))
+        pairs += [(int(u), int(v)) for u, v in zip(*np.triu_indices(k, 1), strict=True)]
     if tag_ranges:
         pairs += [(i, k + j) for j in range(T.shape[0]) for i in range(k)]
     if not pairs:
