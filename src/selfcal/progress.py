@@ -24,7 +24,7 @@ from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
 from typing import Any, TypeVar
 
-__all__ = ["stage", "set_quiet", "enabled", "note", "Stage"]
+__all__ = ["stage", "set_quiet", "enabled", "note", "report", "Stage"]
 
 T = TypeVar("T")
 
@@ -59,6 +59,23 @@ def note(text: str) -> None:
     """
     if _ACTIVE:
         _ACTIVE[-1].note(text)
+
+
+def report(done: int, total: int | None = None) -> None:
+    """Tell the innermost running stage how far it is, in absolute counts (nothing when none).
+
+    For code deep inside a stage that counts its own work (the search's refinements, the
+    held-out folds) without holding the bar.
+
+    Parameters
+    ----------
+    done : int
+        Items done so far.
+    total : int, optional
+        The stage's number of items, when it is known only now.
+    """
+    if _ACTIVE:
+        _ACTIVE[-1](done, total)
 
 
 def enabled(stream: Any = None) -> bool:
@@ -122,6 +139,14 @@ class Stage:
             self._bar.total = total
             self._bar.bar_format = "{desc}: {n_fmt}/{total_fmt} {unit} [{elapsed}]{postfix}"
             self._bar.refresh()
+
+    def __call__(self, done: int, total: int | None = None) -> None:
+        """Set the count to ``done`` (absolute), and the number of items to ``total`` if given."""
+        if self._bar is None:
+            return
+        if total is not None and total != self._bar.total:
+            self.set_total(int(total))
+        self._bar.update(max(int(done) - self._bar.n, 0))
 
     def note(self, text: str) -> None:
         """Show ``text`` after the count (e.g. ``round 2``)."""
