@@ -357,6 +357,15 @@ def moving_tag(
                 res, test = choose_common_offset(res, sub, scale)
                 details["common_offset_test"] = test
                 details["common_offset_value"] = test.get("value") if test["adopted"] else 0.0
+                # per-anchor ranging biases: kept when they predict held-out tag positions better
+                from .crossval import choose_receiver_offsets
+
+                from ..progress import stage
+
+                with stage("per-anchor bias model: held-out prediction", 1, "refit") as progress:
+                    res, cv = choose_receiver_offsets(res, sub, scale, progress=progress)
+                if cv is not None:
+                    details["offsets_choice"] = cv.to_dict()
                 details["offsets"] = res.offsets
         inner = getattr(res, "determinacy", None)
         res = _embed_columns(res, keep, J, M)
