@@ -344,7 +344,9 @@ def cross_validate(
         for k in range(K):
             test = np.zeros(J, bool)
             test[edges[k]:edges[k + 1]] = True
-            train = ~test & np.isfinite(np.asarray(S, float)).all(axis=1)
+            # training sources the model can locate (d + 1 ranges, one more with a source offset)
+            need = np.asarray(R).shape[1] + 1 + int(m in ("sources", "both"))
+            train = ~test & np.isfinite(np.asarray(S, float)).all(axis=1) & (np.isfinite(Y).sum(axis=0) >= need)
             kw: dict[str, Any] = dict(_REFIT[m])
             if d is not None:
                 kw["receiver_offsets0"] = np.nan_to_num(np.asarray(d, float))
@@ -367,6 +369,9 @@ def cross_validate(
                 progress(done, total)
         if m not in failed:
             press[m] = P
+    for m in [m for m, P in press.items() if not np.isfinite(P).any()]:
+        failed[m] = "no held-out range can be predicted (each is fitted exactly by its own column's location)"
+        del press[m]
     if not press:
         raise DegenerateGeometryError("no offsets model could be cross-validated: " + "; ".join(failed.values()),
                                       kind="too-few-measurements")
