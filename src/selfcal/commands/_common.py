@@ -85,6 +85,9 @@ class SelfcalGroup(click.Group):
             prog_name = "selfcal"
         _add_short_out(self)
         _STATE.update(quiet=quiet, verbose=verbose)
+        from ..progress import set_quiet
+
+        set_quiet(quiet)  # progress bars on stderr: a terminal only, never under -q
         code: int = 0
         real_stdout = sys.stdout
         captured = io.StringIO()

@@ -155,6 +155,7 @@ def toa_command(matrix: Path, speed: float | None, offsets: str | None, dim: str
             lines.append(f"  common range offset {co['value']:.4g} {'s' if speed is not None else 'm'} "
                          f"{'kept' if co['adopted'] else 'not kept'} (block jackknife t = {co['t_statistic']:.3g}, "
                          f"{co['blocks']} blocks, p = {co['p_value']:.2g}, level {co['alpha']:g})")
+    lines += _offsets_choice_lines(rec.details, res, unit)
     counts = _counts(res)
     if counts:
         lines.append("  " + ", ".join(counts))
@@ -178,6 +179,16 @@ def toa_command(matrix: Path, speed: float | None, offsets: str | None, dim: str
     if not ok:
         click.echo(f"FAIL: calibration not trustworthy ({why})")
         raise SystemExit(1)
+
+
+def _offsets_choice_lines(details: dict[str, Any], res: Any, unit: str) -> list[str]:
+    """The held-out prediction choice of the offsets model (recipe or ``--offsets auto``), one line."""
+    sel = details.get("offsets_choice") or (getattr(res, "selection", None) or {}).get("offsets")
+    if not sel or "cv_rmse" not in sel:
+        return []
+    scores = ", ".join(f"{k} {v:.4g}" for k, v in sel["cv_rmse"].items())
+    return [f"  offsets model {sel['chosen']} by held-out prediction ({sel['folds']}-fold over tag positions, "
+            f"one-SE rule; best {sel['best']}): RMS prediction error {scores} {unit}"]
 
 
 def _fitted_entries(M: Any, rejected: Any, outliers: Any) -> Any:

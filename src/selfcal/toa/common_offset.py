@@ -218,7 +218,10 @@ def block_offset_test(base: Any, sub: Array, scale: float = 1.0, solver: str = "
                           f"{L}: fewer than {MIN_BLOCKS}, no test")
         return com, info
     reps = []
+    from ..progress import report
+
     for b in range(B):
+        report(b, B)
         keep = np.ones(J, bool)
         keep[edges[b]:edges[b + 1]] = False
         try:
