@@ -27,8 +27,9 @@ def _auto_available() -> bool:
 @click.option("--speed", type=SPEED, default=None, metavar="C",
               help="Propagation speed in m/s: the matrix holds seconds; offsets are reported in seconds.")
 @click.option("--offsets", type=click.Choice(["none", "receivers", "sources", "both", "auto"]), default=None,
-              help="Unknown per-receiver (d_i) and/or per-source (o_j) offsets; auto = chosen by a "
-                   "statistical test. Default: the solver's default.")
+              help="Unknown per-receiver (d_i) and/or per-source (o_j) offsets; auto = chosen by held-out "
+                   "prediction (K-fold over sources). Default: the solver's default; with the moving-tag "
+                   "recipe a common offset (block test), then per-anchor biases kept by held-out prediction.")
 @click.option("--dim", type=click.Choice(["2", "3", "auto"]), default=None,
               help="Dimension (auto = near-planar test). Default: the solver's default (3).")
 @click.option("--loss", type=click.Choice(["linear", "huber", "soft_l1", "cauchy"]), default=None,
@@ -45,9 +46,10 @@ def _auto_available() -> bool:
                    "moving-tag when a permutation test finds the columns in time order (p < 1e-3).")
 @click.option("--common-offset", "common_offset", type=click.Choice(["free", "test"]), default="test",
               show_default=True,
-              help="moving-tag recipe with offsets none: 'test' adds one range offset common to every "
+              help="moving-tag recipe with offsets none/auto: 'test' adds one range offset common to every "
                    "entry (a UWB antenna delay) when a block jackknife t test over time blocks finds it "
-                   "(p < 1e-3); 'free' = never.")
+                   "(p < 0.05), then per-anchor offsets when they predict held-out tag positions better; "
+                   "'free' = neither.")
 @click.option("--known", "known", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="CSV name,x,y,z[,std] of nodes with known positions (r<i>, s<j> or a receiver "
                    "index); they constrain the fit and set the frame.")
