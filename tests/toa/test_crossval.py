@@ -113,3 +113,33 @@ def test_progress_is_silent_off_a_terminal_and_under_quiet(capsys):
     assert not progress.enabled()
     progress.set_quiet(False)
     assert capsys.readouterr().err == ""  # pytest's stderr is not a terminal
+
+
+def test_cli_default_adopts_per_anchor_biases_reports_the_evidence_and_keeps_them_with_known(tmp_path):
+    """``calibrate toa`` with its defaults on a simulated LPS flight with per-anchor biases
+    of 0.2 m std: the JSON says offsets "receivers" with the held-out evidence in the recipe
+    block, the summary has the choice line, and ``--known`` refits the same model."""
+    import json
+
+    from click.testing import CliRunner
+
+    from selfcal.cli import main
+
+    sim = simulate_uwb_flight(4, 400, layout="lps", bias_std=0.2)
+    csv = tmp_path / "f.csv"
+    np.savetxt(csv, sim["ranges"], delimiter=",")
+    out = tmp_path / "r.json"
+    res = CliRunner().invoke(main, ["calibrate", "toa", str(csv), "--out", str(out)])
+    assert res.exit_code in (0, 1), res.output
+    data = json.loads(out.read_text())
+    ch = data["recipe"]["offsets_choice"]
+    assert data["offsets"] == "receivers" and ch["chosen"] == "receivers"
+    assert ch["cv_mse"]["receivers"] < ch["cv_mse"]["common"] and ch["folds"] >= 4
+    assert "by held-out prediction" in res.output
+    known = tmp_path / "k.csv"
+    known.write_text("".join(f"r{i},{x},{y},{z}\n" for i, (x, y, z) in enumerate(sim["anchors"][:4])))
+    out2 = tmp_path / "k.json"
+    res2 = CliRunner().invoke(main, ["calibrate", "toa", str(csv), "--known", str(known), "--out", str(out2)])
+    assert res2.exit_code in (0, 1), res2.output
+    d2 = json.loads(out2.read_text())
+    assert d2["offsets"] == "receivers" and np.ptp(d2["receiver_offsets"]) > 0.05
