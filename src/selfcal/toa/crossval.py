@@ -176,7 +176,7 @@ def locate_sources(Y: Array, receivers: Array, receiver_offsets: Array | None = 
     >>> Y = np.linalg.norm(R[:, None] - S[None], axis=2)
     >>> X, o, e, h = locate_sources(Y, R)
     >>> bool(np.allclose(X, S, atol=1e-6)), bool(np.allclose(h.sum(0), 3))
-    True True
+    (True, True)
     """
     Y = np.asarray(Y, float)
     R = np.asarray(receivers, float)
@@ -274,7 +274,6 @@ def cross_validate(
     matrix: Array,
     starts: Mapping[str, tuple[Array, Array, Array | None, Array | None]],
     *,
-    dim: int | None = None,
     solver: str = "auto",
     folds: int | None = None,
     progress: Any = None,
@@ -290,8 +289,6 @@ def cross_validate(
         Model name (one of :data:`MODELS`) -> its fit on all columns ``(receivers (I, d),
         sources (J, d), receiver_offsets (I,) or None, source_offsets (J,) or None)``
         in metres: the warm start of every fold's refit.
-    dim : int, optional
-        Unused (the dimension is that of the starts); kept for symmetry with the solver.
     solver : str
         Engine of the refits (:func:`selfcal.toa.nls.refine_toa`).
     folds : int, optional
@@ -311,12 +308,14 @@ def cross_validate(
     Examples
     --------
     >>> from selfcal.experiments.lps import simulate_uwb_flight
-    >>> sim = simulate_uwb_flight(3, 300, spike_rate=0.0, sparse_positions=0, bias_std=0.1)
-    >>> from selfcal.toa import solve_toa
-    >>> base = solve_toa(sim["ranges"], offsets="receivers", rng=0)
-    >>> st = {"none": (base.receivers, base.sources, None, None),
-    ...       "receivers": (base.receivers, base.sources, base.receiver_offsets, None)}
-    >>> cross_validate(sim["ranges"], st).chosen
+    >>> from selfcal.toa.nls import refine_toa
+    >>> sim = simulate_uwb_flight(0, 300, layout="lps", bias_std=0.2, spike_rate=0.0, sparse_positions=0)
+    >>> Y = sim["ranges"]
+    >>> com = refine_toa(Y, sim["anchors"], sim["tag"], offsets="receivers", common_offsets="receivers")
+    >>> rec = refine_toa(Y, com.receivers, com.sources, offsets="receivers", receiver_offsets0=com.receiver_offsets)
+    >>> st = {"common": (com.receivers, com.sources, com.receiver_offsets, None),
+    ...       "receivers": (rec.receivers, rec.sources, rec.receiver_offsets, None)}
+    >>> cross_validate(Y, st).chosen
     'receivers'
     """
     from .common_offset import residual_correlation_length
