@@ -11,6 +11,11 @@ from pathlib import Path
 import click
 
 from ._base import handle_errors, main
+from ._options import Quantity
+
+RANGE_NOISE_M = Quantity("m", gt=0, le=10.0, why="a range noise std in metres (UWB: 0.03-0.1)")
+HEIGHT_M = Quantity("m", ge=-1000.0, le=1000.0, why="a height in metres")
+MAX_RANGE_M = Quantity("m", gt=0, le=1e4, why="a radio range in metres")
 
 
 @main.command("plan")
@@ -18,12 +23,12 @@ from ._base import handle_errors, main
 @click.argument("path", type=click.Path(dir_okay=False, path_type=Path))
 @click.option("--room", "room_text", default=None, metavar="LxWxH",
               help="Room size in metres (origin at a corner), e.g. 8x6x3: the map covers its floor plan.")
-@click.option("--noise", type=float, default=0.05, show_default=True, metavar="SIGMA",
+@click.option("--noise", type=RANGE_NOISE_M, default=0.05, show_default=True, metavar="SIGMA",
               help="Range noise std in metres (UWB two-way ranging: 0.03-0.1).")
 @click.option("--offsets", type=click.Choice(["none", "receivers", "both"]), default="receivers",
               show_default=True, help="Offset model of the calibration: receivers = a bias per anchor.")
-@click.option("--height", type=float, default=None, help="Height of the map (default: the path's median).")
-@click.option("--max-range", "max_range", type=float, default=None, help="Ranges beyond this (m) are not measured.")
+@click.option("--height", type=HEIGHT_M, default=None, help="Height of the map (default: the path's median).")
+@click.option("--max-range", "max_range", type=MAX_RANGE_M, default=None, help="Ranges beyond this (m) are not measured.")
 @click.option("--out", "out", type=click.Path(dir_okay=False, path_type=Path), required=True, help="Result JSON.")
 @click.option("--plot", "plot", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="Map of the tag positioning error with anchors and path (.png, .pdf, .svg).")
