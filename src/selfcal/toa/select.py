@@ -266,8 +266,10 @@ def _nested_init(res: ToaResult, mode: str, speed: float | None) -> tuple[Any, .
 def choose_offsets(M: Array, dim: int, solve: Solver, **kw: Any) -> tuple[ToaResult, dict[str, Any]]:
     """Fit every offsets mode and keep the one chosen by held-out prediction; (result, statistics).
 
-    Every mode is fitted by ``solve`` (each started also from the best fit of the modes it
-    nests), then :func:`selfcal.toa.crossval.cross_validate` refits each on K - 1 blocks of
+    The offsets-free mode is fitted by ``solve``'s search; each larger mode by one
+    refinement (``method="nls"``) started from the best fit of the modes it nests, its new
+    offsets at zero (so it never ends above them; a search per mode cost 4x the blind
+    solve), then :func:`selfcal.toa.crossval.cross_validate` refits each on K - 1 blocks of
     the sources, locates the held-out sources with the fitted receivers (and offsets) and
     scores their leave-one-range-out prediction residuals; the one-standard-error rule
     keeps the simplest mode within one paired standard error of the best. Every mode is
