@@ -20,7 +20,7 @@ receivers``, ``--offsets auto``.
 Measured (2026-12-03, branch ``uwbmodel``, loaded 2-core machine, ``--repeat 1``), ratios
 --known / --offsets receivers / --known --offsets receivers / --offsets auto: room 1.08 /
 1.54 / 1.61 / 1.03 (blind 1.18 s); room-shuffled 1.01 / 1.83 / 2.07 / 5.62 (blind 0.82 s);
-data4 0.95 / 1.70 / 1.65 / 0.95 (blind 9.17 s); data5 see the JSON of a run.
+data4 0.95 / 1.70 / 1.65 / 0.95 (blind 9.17 s); data5 1.01 / 1.36 / 1.33 / 1.15 (blind 9.14 s).
 
 Run: ``OPENBLAS_NUM_THREADS=1 PYTHONPATH=src python benchmarks/bench_uwb_known.py
 [--cases room,room-shuffled,data4,data5] [--repeat 1] [--out FILE]``.
