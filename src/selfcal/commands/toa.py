@@ -189,7 +189,7 @@ def _offsets_choice_lines(details: dict[str, Any], res: Any, unit: str) -> list[
     if not sel or "cv_rmse" not in sel:
         return []
     scores = ", ".join(f"{k} {v:.4g}" for k, v in sel["cv_rmse"].items())
-    return [f"  offsets model {sel['chosen']} by held-out prediction ({sel['folds']}-fold over tag positions, "
+    return [f"  offsets model {sel['chosen']} by held-out prediction ({sel['folds']}-fold over sources (tag positions), "
             f"one-SE rule; best {sel['best']}): RMS prediction error {scores} {unit}"]
 
 
