@@ -11,7 +11,8 @@ import importlib
 
 from .commands._base import main
 
-_COMMAND_MODULES = ("toa", "graph", "toa_reproduce", "delays", "farfield", "aoa", "slac", "acoustics", "demo")
+_COMMAND_MODULES = ("toa", "graph", "toa_reproduce", "delays", "farfield", "aoa", "slac", "acoustics", "demo",
+                    "plan")
 
 for _name in _COMMAND_MODULES:
     importlib.import_module(f"selfcal.commands.{_name}")

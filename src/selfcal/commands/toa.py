@@ -32,8 +32,9 @@ def _auto_available() -> bool:
 @click.option("--speed", type=SPEED, default=None, metavar="C",
               help="Propagation speed in m/s: the matrix holds seconds; offsets are reported in seconds.")
 @click.option("--offsets", type=click.Choice(["none", "receivers", "sources", "both", "auto"]), default=None,
-              help="Unknown per-receiver (d_i) and/or per-source (o_j) offsets; auto = chosen by a "
-                   "statistical test. Default: the solver's default.")
+              help="Unknown per-receiver (d_i) and/or per-source (o_j) offsets; auto = chosen by held-out "
+                   "prediction (K-fold over sources). Default: the solver's default; with the moving-tag "
+                   "recipe a common offset (block test), then per-anchor biases kept by held-out prediction.")
 @click.option("--dim", type=click.Choice(["2", "3", "auto"]), default=None,
               help="Dimension (auto = near-planar test). Default: the solver's default (3).")
 @click.option("--loss", type=click.Choice(["linear", "huber", "soft_l1", "cauchy"]), default=None,
@@ -50,9 +51,10 @@ def _auto_available() -> bool:
                    "moving-tag when a permutation test finds the columns in time order (p < 1e-3).")
 @click.option("--common-offset", "common_offset", type=click.Choice(["free", "test"]), default="test",
               show_default=True,
-              help="moving-tag recipe with offsets none: 'test' adds one range offset common to every "
+              help="moving-tag recipe with offsets none/auto: 'test' adds one range offset common to every "
                    "entry (a UWB antenna delay) when a block jackknife t test over time blocks finds it "
-                   "(p < 0.05); 'free' = never.")
+                   "(p < 0.05), then per-anchor offsets when they predict held-out tag positions better; "
+                   "'free' = neither.")
 @click.option("--known", "known", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="CSV name,x,y,z[,std] of nodes with known positions (r<i>, s<j> or a receiver "
                    "index); they constrain the fit and set the frame.")
@@ -206,6 +208,7 @@ def toa_command(matrix: Path, speed: float | None, offsets: str | None, dim: str
             lines.append(f"  common range offset {co['value']:.4g} {'s' if speed is not None else 'm'} "
                          f"{'kept' if co['adopted'] else 'not kept'} (block jackknife t = {co['t_statistic']:.3g}, "
                          f"{co['blocks']} blocks, p = {co['p_value']:.2g}, level {co['alpha']:g})")
+    lines += _offsets_choice_lines(rec.details, res, unit)
     counts = _counts(res)
     if counts:
         lines.append("  " + ", ".join(counts))
@@ -321,6 +324,16 @@ def _installer_outputs(res: Any, names: Any, anchors_out: Path | None, anchor_pl
         gauge = "canonical gauge" if frame.startswith("canonical") else "room frame"
         plot_anchors(res.receivers, list(names), anchor_plot, cov=res.receiver_cov, tag=res.sources, room=box,
                      title=f"anchors ({gauge})")
+
+
+def _offsets_choice_lines(details: dict[str, Any], res: Any, unit: str) -> list[str]:
+    """The held-out prediction choice of the offsets model (recipe or ``--offsets auto``), one line."""
+    sel = details.get("offsets_choice") or (getattr(res, "selection", None) or {}).get("offsets")
+    if not sel or "cv_rmse" not in sel:
+        return []
+    scores = ", ".join(f"{k} {v:.4g}" for k, v in sel["cv_rmse"].items())
+    return [f"  offsets model {sel['chosen']} by held-out prediction ({sel['folds']}-fold over sources (tag positions), "
+            f"one-SE rule; best {sel['best']}): RMS prediction error {scores} {unit}"]
 
 
 def _fitted_entries(M: Any, rejected: Any, outliers: Any) -> Any:

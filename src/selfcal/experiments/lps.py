@@ -368,3 +368,56 @@ if __name__ == "__main__":  # pragma: no cover - the experiment of the issue-12 
         raise SystemExit(0)
     score_recipe_variants(a.data, a.simulate, [v for v in a.variants.split(",") if v] or None,
                           [c for c in a.cases.split(",") if c] or None)
+
+
+#: the bias-model trial's simulated faults (issue 29; keyword arguments of simulate_uwb_flight)
+BIAS_MODEL_FAULTS: dict[str, dict[str, Any]] = {
+    "lps-pa10": {"layout": "lps", "n_positions": 500, "bias_std": 0.1},
+    "lps-pa15": {"layout": "lps", "n_positions": 500, "bias_std": 0.15},
+    "lps-none": {"layout": "lps", "n_positions": 500, "bias_std": 0.0, "bias_mean": 0.0},
+    "lps-common": {"layout": "lps", "n_positions": 500, "bias_std": 0.0},
+    "lps-none_nlos": {"layout": "lps", "n_positions": 500, "bias_std": 0.0, "bias_mean": 0.0, "nlos_rate": 0.002},
+    "lps-pa10_ar_nlos": {"layout": "lps", "n_positions": 500, "bias_std": 0.1, "noise_corr": 0.8,
+                         "nlos_rate": 0.002},
+    "room-pa15": {"n_positions": 400, "bias_std": 0.15},
+    "room-none": {"n_positions": 400, "bias_std": 0.0, "bias_mean": 0.0},
+}
+
+
+def score_bias_model(ranges: Array, anchors: Array, *, rng: int = 0) -> dict[str, Any]:
+    """The moving-tag recipe's offsets chain with both anchor models scored against the truth.
+
+    The offsets-free fit, the common-offset block test, then the held-out choice of
+    per-anchor offsets (:func:`selfcal.toa.crossval.choose_receiver_offsets`); returns the
+    choice, its CV RMS prediction errors and the anchor RMSE (m, after rigid alignment) of
+    the kept simple model and of the per-anchor refit whatever the choice.
+    """
+    import dataclasses
+    import warnings
+
+    from ..metrics import aligned_rmse
+    from ..toa.common_offset import choose_common_offset
+    from ..toa.crossval import choose_receiver_offsets
+    from ..toa.nls import refine_toa
+    from ..toa.recipes import moving_tag
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        rr = moving_tag(ranges, common_offset="free", rng=rng)
+        keep = np.isfinite(rr.result.sources).all(axis=1)
+        sub = np.where(rr.rejected, np.nan, np.asarray(ranges, float))[:, keep]
+        base = dataclasses.replace(rr.result, sources=rr.result.sources[keep],
+                                   residuals=rr.result.residuals[:, keep],
+                                   outliers=np.asarray(rr.result.outliers)[:, keep],
+                                   source_cov=rr.result.source_cov[keep])
+        simple, test = choose_common_offset(base, sub)
+        out, cv = choose_receiver_offsets(simple, sub)
+        used = np.isfinite(simple.residuals) & ~np.asarray(simple.outliers, bool)
+        d0 = None if simple.receiver_offsets is None else np.asarray(simple.receiver_offsets, float)
+        alt = refine_toa(np.where(used, sub, np.nan), simple.receivers, simple.sources, offsets="receivers",
+                         receiver_offsets0=d0, covariance=False)
+    return {"common_adopted": bool(test["adopted"]), "chosen": out.offsets,
+            "best_cv": None if cv is None else cv.best,
+            "cv_rmse": {} if cv is None else cv.to_dict()["cv_rmse"],
+            "rmse_simple": float(aligned_rmse(simple.receivers, anchors).rmse_receivers),
+            "rmse_receivers": float(aligned_rmse(alt.receivers, anchors).rmse_receivers)}

@@ -218,7 +218,10 @@ def block_offset_test(base: Any, sub: Array, scale: float = 1.0, solver: str = "
                           f"{L}: fewer than {MIN_BLOCKS}, no test")
         return com, info
     reps = []
+    from ..progress import report
+
     for b in range(B):
+        report(b, B)
         keep = np.ones(J, bool)
         keep[edges[b]:edges[b + 1]] = False
         try:
@@ -241,8 +244,12 @@ def block_offset_test(base: Any, sub: Array, scale: float = 1.0, solver: str = "
 
 
 def _with_common(base: Any, com: Any, sub: Array, scale: float, kr: NDArray[np.bool_], ks: NDArray[np.bool_],
-                 used: NDArray[np.bool_], offs: Array) -> Any:
-    """``base`` with the common-offset fit ``com`` (on the rows ``kr``, columns ``ks``) written in."""
+                 used: NDArray[np.bool_], offs: Array, mode: str = "common") -> Any:
+    """``base`` with the receiver-offset fit ``com`` (on the rows ``kr``, columns ``ks``) written in.
+
+    ``mode``: "common" (one offset shared by every receiver, one parameter more than the
+    offsets-free fit) or "receivers" (one per receiver).
+    """
     from .nls import toa_model
     from .result import n_parameters
     from .robust import noise_scale
@@ -263,17 +270,19 @@ def _with_common(base: Any, com: Any, sub: Array, scale: float, kr: NDArray[np.b
     # the noise estimate of the new residuals, as the solver computes it (robust scale of the
     # fitted residuals times sqrt(m / dof)), one parameter more than the offsets-free fit
     m = int(inl.sum())
-    dof = m - n_parameters(int(kr.sum()), int(ks.sum()), d, "none") - 1
+    n_extra = 1 if mode == "common" else int(kr.sum())
+    dof = m - n_parameters(int(kr.sum()), int(ks.sum()), d, "none") - n_extra
     noise = noise_scale(R[inl]) * float(np.sqrt(m / dof)) if dof > 0 else float("nan")
     names = {f.name for f in dataclasses.fields(base)}
     kw = {
         "receivers": put(com.receivers, kr, (d,)), "sources": put(com.sources, ks, (d,)),
-        "receiver_offsets": put(offs / scale, kr, ()), "offsets": "common",
+        "receiver_offsets": put(offs / scale, kr, ()), "offsets": mode,
         "receiver_cov": put(com.receiver_cov, kr, (d, d)), "source_cov": put(com.source_cov, ks, (d, d)),
         "residual_rms": float(np.sqrt(np.mean(R[inl] ** 2))) if inl.any() else float("nan"),
         "sigma": noise, "noise_estimate": noise,
         "converged": com.converged, "iterations": int(base.iterations) + int(com.iterations),
-        "method": f"{base.method}+common-offset", "residuals": R,
+        "method": f"{base.method}+{mode}-offset" if mode == "common" else f"{base.method}+receiver-offsets",
+        "residuals": R,
         "receiver_offset_std": None if com.receiver_offset_std is None
         else put(np.asarray(com.receiver_offset_std) / scale, kr, ()),
     }

@@ -55,6 +55,7 @@ from numpy.typing import NDArray
 
 from ..errors import DegenerateGeometryError, InputError
 from ..optim.structure import lm_step
+from ..progress import report
 from ..robust import TUNING
 from .batch_lm import solve_batch_lm
 from .dense_lm import solve_dense_lm
@@ -440,6 +441,7 @@ def search(
     def refine(start: Start, nfev: int | None) -> NlsSolution | None:
         nonlocal count, iters, fs, last_err
         count += 1
+        report(count)
         r0, s0, d0, o0 = start
         try:
             sol = refine_toa(Y, r0, s0, offsets=offsets, receiver_offsets0=d0, source_offsets0=o0, loss=loss,
@@ -514,6 +516,7 @@ def search(
             starts.insert(0, first)
     # the default budget: the moves' allowance plus the race's (RACE_RUNGS rungs per start)
     nb = nb_given if nb_given is not None else default_budget(I, J) + (0 if large else RACE_RUNGS * len(starts))
+    report(count, nb)  # progress on a terminal: refinements run / the budget
     best: NlsSolution | None = None
     best_cost = np.inf
     best_name = ""
@@ -537,6 +540,7 @@ def search(
             sol = refine(st, nfev)
             return None if sol is None else (_cost(sol, loss, fs or 1.0), _as_start(sol), bool(sol.converged), sol)
         count += 1
+        report(count)
         try:
             theta, conv, nit = solve_dense_lm(_pack_start(st), y_obs, ii_obs, jj_obs, I, J, dim, offsets, loss,
                                               fs if loss != "linear" else 1.0, nfev, 1e-10, max_it=DENSE_MAX_IT)

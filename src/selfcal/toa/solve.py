@@ -179,6 +179,9 @@ def _solve_fixed(M: np.ndarray, dim: int, offsets: str, *, init: Any = "auto", s
     check_toa_counts((I, J), int(np.isfinite(M).sum()), dim, offsets)
     if method == "rank3":
         return unrefined(M, dim, offsets, speed, rng, n_negative)
-    return finish(M, dim, offsets, init=init, speed=speed, loss=loss, method=method, rng=rng,
-                  f_scale=f_scale, max_nfev=max_nfev, covariance=covariance, sweep=sweep, noise=noise,
-                  budget=budget, n_negative=n_negative)
+    from ..progress import stage
+
+    with stage(f"solve {I}x{J} ({dim}-D, offsets {offsets}): search", unit="refinements"):
+        return finish(M, dim, offsets, init=init, speed=speed, loss=loss, method=method, rng=rng,
+                      f_scale=f_scale, max_nfev=max_nfev, covariance=covariance, sweep=sweep, noise=noise,
+                      budget=budget, n_negative=n_negative)

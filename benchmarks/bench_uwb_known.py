@@ -1,0 +1,140 @@
+"""Benchmark "uwb_known": cost of known anchors and bias models relative to the blind solve, same run.
+
+``selfcal calibrate toa`` is run in this process (click's CliRunner, as a user runs it)
+on one UWB matrix with several option sets, interleaved, ``--repeat`` times each; CPU
+seconds (``time.process_time``, OPENBLAS_NUM_THREADS=1 advised; the machine is shared, so
+wall time is inflated by others). The baseline is the blind default run on the same matrix
+in the same process; every other variant is reported as a ratio of medians to it. Target
+(issue 29): known anchors and bias models at most 3x the blind solve.
+
+Matrices: a simulated room (7 anchors, 4 of them under an 8 x 6 x 3 m ceiling, one tag
+carried through 220 positions, per-anchor biases N(-0.1, 0.1^2) m, noise 3 cm, 3 %
+multipath spikes), once in time order (the moving-tag recipe applies) and once with the
+columns shuffled (recipe none: the solver's search alone); the shared LPS flights
+(``--data``, skipped with a line when missing). Known file: 4 anchors at their true
+positions.
+
+Variants: blind (defaults), ``--known``, ``--offsets receivers``, ``--known --offsets
+receivers``, ``--offsets auto``.
+
+Measured (2026-12-03, branch ``uwbmodel``, loaded 2-core machine, ``--repeat 1``), ratios
+--known / --offsets receivers / --known --offsets receivers / --offsets auto: room 1.08 /
+1.54 / 1.61 / 1.03 (blind 1.18 s); room-shuffled 1.01 / 1.83 / 2.07 / 5.62 (blind 0.82 s);
+data4 0.95 / 1.70 / 1.65 / 0.95 (blind 9.17 s); data5 1.01 / 1.36 / 1.33 / 1.15 (blind 9.14 s).
+
+Run: ``OPENBLAS_NUM_THREADS=1 PYTHONPATH=src python benchmarks/bench_uwb_known.py
+[--cases room,room-shuffled,data4,data5] [--repeat 1] [--out FILE]``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import tempfile
+import time
+import warnings
+
+import numpy as np
+
+VARIANTS = {
+    "blind": [],
+    "known": ["--known", "{known}"],
+    "receivers": ["--offsets", "receivers"],
+    "known+receivers": ["--known", "{known}", "--offsets", "receivers"],
+    "auto": ["--offsets", "auto"],
+}
+
+
+def room(shuffle: bool) -> tuple[np.ndarray, np.ndarray]:
+    """(7, 220) ranges and the (7, 3) anchors of the simulated room (fixed seed)."""
+    g = np.random.default_rng(7)
+    A = np.array([[0.2, 0.2, 2.8], [7.8, 0.3, 2.7], [7.7, 5.8, 2.85], [0.3, 5.7, 2.75], [4.0, 0.2, 2.9],
+                  [4.1, 5.8, 1.2], [0.2, 3.0, 0.4]])
+    t = np.linspace(0, 1, 220)
+    tag = np.c_[4 + 3 * np.sin(2 * np.pi * 1.3 * t), 3 + 2.3 * np.sin(2 * np.pi * 2.1 * t + 1),
+                1.2 + 0.6 * np.sin(2 * np.pi * 3.1 * t)]
+    D = np.linalg.norm(A[:, None] - tag[None], axis=2)
+    Y = D + g.normal(-0.1, 0.1, 7)[:, None] + 0.03 * g.standard_normal(D.shape)
+    sp = g.random(D.shape) < 0.03
+    Y[sp] += g.exponential(0.4, int(sp.sum()))
+    if shuffle:
+        Y = Y[:, np.random.default_rng(1).permutation(Y.shape[1])]
+    return Y, A
+
+
+def cases(names: list[str], data: str) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    out = {}
+    for n in names:
+        if n in ("room", "room-shuffled"):
+            out[n] = room(n == "room-shuffled")
+        else:
+            path = os.path.join(data, f"{n}.mat")
+            if not os.path.isfile(path):
+                print(f"{n}: {path} not found, skipped")
+                continue
+            from selfcal.datasets.lps import load_lps
+
+            fl = load_lps(path)
+            out[n] = (fl.ranges, fl.anchors_true)
+    return out
+
+
+def run_case(Y: np.ndarray, A: np.ndarray, repeat: int, tmp: str) -> dict[str, dict[str, float]]:
+    from click.testing import CliRunner
+
+    from selfcal.cli import main
+    from selfcal.metrics import aligned_rmse
+
+    mat = os.path.join(tmp, "m.csv")
+    np.savetxt(mat, Y, delimiter=",")
+    known = os.path.join(tmp, "known.csv")
+    with open(known, "w") as fh:
+        fh.writelines(f"r{i},{A[i, 0]},{A[i, 1]},{A[i, 2]}\n" for i in range(4))
+    cpu: dict[str, list[float]] = {v: [] for v in VARIANTS}
+    rows: dict[str, dict[str, float]] = {}
+    runner = CliRunner()
+    runner.invoke(main, ["calibrate", "toa", mat, "--out", os.path.join(tmp, "warm.json")])  # imports, untimed
+    for _ in range(repeat):
+        for v, extra in VARIANTS.items():
+            out = os.path.join(tmp, f"{v}.json")
+            args = ["calibrate", "toa", mat, "--out", out, *[a.format(known=known) for a in extra]]
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                t0 = time.process_time()
+                res = runner.invoke(main, args)
+                cpu[v].append(time.process_time() - t0)
+            data = json.loads(open(out).read()) if os.path.isfile(out) else {}
+            rec = np.array(data.get("receivers", np.full_like(A, np.nan)), float)
+            rows[v] = {"exit": res.exit_code, "offsets": data.get("offsets"),
+                       "rmse": float(aligned_rmse(rec, A).rmse_receivers) if np.isfinite(rec).all() else float("nan")}
+    base = statistics.median(cpu["blind"])
+    for v in VARIANTS:
+        rows[v]["cpu_s"] = statistics.median(cpu[v])
+        rows[v]["ratio"] = rows[v]["cpu_s"] / base
+    return rows
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--cases", default="room,room-shuffled,data4,data5")
+    ap.add_argument("--data", default=os.path.join(os.path.dirname(__file__), "..", "..", "shared", "data", "lps"))
+    ap.add_argument("--repeat", type=int, default=1)
+    ap.add_argument("--out", default=None)
+    args = ap.parse_args()
+    table = {}
+    with tempfile.TemporaryDirectory() as tmp:
+        for name, (Y, A) in cases(args.cases.split(","), args.data).items():
+            rows = run_case(Y, A, args.repeat, tmp)
+            table[name] = rows
+            for v, r in rows.items():
+                print(f"{name:14s} {v:16s} CPU {r['cpu_s']:6.2f} s  ratio {r['ratio']:4.2f}  exit {r['exit']}  "
+                      f"offsets {r['offsets']}  anchor RMSE {r['rmse']:.4f} m", flush=True)
+    if args.out:
+        with open(args.out, "w") as fh:
+            json.dump(table, fh, indent=1)
+
+
+if __name__ == "__main__":
+    main()
