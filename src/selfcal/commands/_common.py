@@ -358,10 +358,11 @@ def check_command_outputs(ctx: click.Context | None, kwargs: Mapping[str, Any],
                                   f"an output never replaces an input, choose another {opt}")
         real = check_output_path(value, kind=kind, label=f"{opt} {os.fspath(value)}")
         parent = Path(os.fspath(value)).parent
-        if os.fspath(value) != "-" and not parent.exists():
-            # a file (or an output folder) in a folder that is not there is a typo far more often
-            # than a wish for new folders: one new output folder is made, never a chain of them
-            raise InputError(f"{opt} {os.fspath(value)}: the folder {parent} does not exist (create it first)")
+        missing = parent if kind != "file" else parent.parent  # a folder output is itself the new folder
+        if os.fspath(value) != "-" and not parent.exists() and not missing.exists():
+            # a chain of missing folders is a typo far more often than a wish for new folders:
+            # one new output folder is made (``-o out/r.json`` next to the data), never a chain
+            raise InputError(f"{opt} {os.fspath(value)}: the folder {missing} does not exist (create it first)")
         if param.name == "plot" and kind == "file" and os.fspath(value) != "-":
             suffix = Path(os.fspath(value)).suffix.lower().lstrip(".")
             if suffix and suffix not in IMAGE_FORMATS:
