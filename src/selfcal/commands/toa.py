@@ -12,6 +12,7 @@ from typing import Any
 
 import click
 
+from ..toa.select import PLANAR_ALPHA, PLANAR_RATIO, PLANAR_SIGMAS
 from ._base import calibrate, handle_errors
 from ._common import csv_option, unit_options
 from ._options import NOISE_STD, SEED, SPEED
@@ -35,8 +36,11 @@ def _auto_available() -> bool:
               help="Unknown per-receiver (d_i) and/or per-source (o_j) offsets; auto = chosen by held-out "
                    "prediction (K-fold over sources). Default: the solver's default; with the moving-tag "
                    "recipe a common offset (block test), then per-anchor biases kept by held-out prediction.")
-@click.option("--dim", type=click.Choice(["2", "3", "auto"]), default=None,
-              help="Dimension (auto = near-planar test). Default: the solver's default (3).")
+@click.option("--dim", type=click.Choice(["2", "3", "auto"]), default="auto", show_default=True,
+              help="Dimension. auto: 3-D unless z is not determined by the data (an F test of the 3-D "
+                   f"fit against the 2-D one at level {PLANAR_ALPHA:g}, and the 3-D layout's thickness must "
+                   f"exceed {PLANAR_RATIO:.0%} of its extent and {PLANAR_SIGMAS:g} standard deviations along "
+                   "its normal); the choice and its statistics are printed and in the JSON ('selection').")
 @click.option("--loss", type=click.Choice(["linear", "huber", "soft_l1", "cauchy"]), default=None,
               help="Loss of the fit. Default: the solver's robust default (outliers found on a "
                    "soft-L1 fit with a data-estimated scale, flagged by a Bonferroni rule, then "
@@ -209,6 +213,7 @@ def toa_command(matrix: Path, speed: float | None, offsets: str | None, dim: str
                          f"{'kept' if co['adopted'] else 'not kept'} (block jackknife t = {co['t_statistic']:.3g}, "
                          f"{co['blocks']} blocks, p = {co['p_value']:.2g}, level {co['alpha']:g})")
     lines += _offsets_choice_lines(rec.details, res, unit)
+    lines += _dim_choice_lines(res)
     counts = _counts(res)
     if counts:
         lines.append("  " + ", ".join(counts))
@@ -324,6 +329,18 @@ def _installer_outputs(res: Any, names: Any, anchors_out: Path | None, anchor_pl
         gauge = "canonical gauge" if frame.startswith("canonical") else "room frame"
         plot_anchors(res.receivers, list(names), anchor_plot, cov=res.receiver_cov, tag=res.sources, room=box,
                      title=f"anchors ({gauge})")
+
+
+def _dim_choice_lines(res: Any) -> list[str]:
+    """The ``--dim auto`` choice (:func:`selfcal.toa.select.choose_dim`), one line."""
+    sel = (res.selection or {}).get("dim") if isinstance(res.selection, dict) else None
+    if not sel or "chosen" not in sel:
+        return []
+    if "f_statistic" not in sel:
+        return [f"  dim {sel['chosen']} (auto: {sel.get('reason', 'the only fit')})"]
+    return [f"  dim {sel['chosen']} (auto: 3-D vs 2-D F = {sel['f_statistic']:.3g}, p = {sel['p_value']:.2g}, "
+            f"level {PLANAR_ALPHA:g}; 3-D thickness {sel['thickness']:.3g} m"
+            + (", not resolved: near-planar)" if sel.get("near_planar") else ")")]
 
 
 def _offsets_choice_lines(details: dict[str, Any], res: Any, unit: str) -> list[str]:

@@ -293,7 +293,7 @@ def moving_tag(
     matrix: Any,
     *,
     times: Any = None,
-    dim: int = 3,
+    dim: int | str = 3,
     threshold: float | str = "bonferroni",
     half_window: int = 7,
     degree: int = 2,
@@ -309,7 +309,7 @@ def moving_tag(
     matrix: (I, J) ranges in metres (seconds with ``speed``); rows = fixed anchors,
         columns = tag positions **in time order**; NaN = missing.
     times: (J,) increasing sample times (any unit); default equally spaced.
-    dim: 2 or 3.
+    dim: 2, 3 or "auto" (chosen by :func:`selfcal.toa.select.choose_dim`).
     threshold, half_window, degree, one_sided: of the spike detector
         (:func:`selfcal.toa.preprocess.reject_range_outliers`). ``threshold`` in robust
         standard deviations, or ``"bonferroni"``: the normal quantile that flags any
@@ -371,10 +371,13 @@ def moving_tag(
     rej = reject_range_outliers(M * scale, times, half_window=half_window, degree=degree,
                                 threshold=k, one_sided=one_sided)
     cleaned = rej.ranges / scale
-    keep = np.isfinite(cleaned).sum(axis=0) >= dim + 1
+    # dim="auto": a tag position is kept when it can be located in the largest dimension the
+    # anchors can span (3-D needs 4 anchors off a plane); the solver then chooses the dimension
+    d_keep = (3 if M.shape[0] >= 4 else 2) if dim == "auto" else int(dim)
+    keep = np.isfinite(cleaned).sum(axis=0) >= d_keep + 1
     dropped = tuple(int(j) for j in np.nonzero(~keep)[0])
-    if keep.sum() < dim + 1:
-        raise InputError(f"after spike rejection only {int(keep.sum())} tag positions keep {dim + 1} "
+    if keep.sum() < d_keep + 1:
+        raise InputError(f"after spike rejection only {int(keep.sum())} tag positions keep {d_keep + 1} "
                          "ranges; the recording is too short or too sparse for this recipe")
     sub = cleaned[:, keep]
     details: dict[str, Any] = {"threshold": float(k), "half_window": int(half_window),
