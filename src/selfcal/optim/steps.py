@@ -132,6 +132,23 @@ class ResidualModel(Model):
     -----
     The state of an evaluation is the residual vector (the IRLS weights are recomputed from
     it at the linearisation).
+
+    Examples
+    --------
+    A robust line fit with one gross error, 200 unknowns of which only 2 matter (the sparse
+    step):
+
+    >>> import numpy as np, scipy.sparse as sp
+    >>> from selfcal.optim.lm import levenberg_marquardt
+    >>> t = np.arange(10.0)
+    >>> y = 2 * t + 1
+    >>> y[3] += 50.0
+    >>> fun = lambda x: np.concatenate([x[0] * t + x[1] - y, x[2:]])
+    >>> jac = lambda x: sp.vstack([sp.csr_matrix(np.column_stack([t, np.ones(10), np.zeros((10, 198))])),
+    ...                            sp.hstack([sp.csr_matrix((198, 2)), sp.identity(198)])]).tocsr()
+    >>> res = levenberg_marquardt(ResidualModel(fun, jac, loss="cauchy", step="auto"), np.ones(200))
+    >>> np.round(res.x[:2], 2).tolist()  # least squares: [1.09, 10.09]
+    [2.0, 1.0]
     """
 
     def __init__(self, fun: Callable[[Array], Array], jac: Callable[[Array], Any], *, loss: str = "linear",
@@ -152,6 +169,8 @@ class ResidualModel(Model):
         w = None if self.loss == "linear" else irls(state, self.loss, self.f_scale)[1]
         proj = None if self.project is None else self.project(x)
         Jm = self.jac(x)
-        if self.step == "dense" or lm_step(x.size) == "dense":
+        if self.step == "dense":
             return _DenseNormalStep(Jm, state, w, proj)
+        if lm_step(x.size) == "dense":  # a few columns: dense products beat sparse bookkeeping
+            return _DenseNormalStep(Jm.toarray() if scipy.sparse.issparse(Jm) else Jm, state, w, proj)
         return _SparseNormalStep(Jm, state, w, proj)
