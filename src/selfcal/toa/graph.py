@@ -139,6 +139,7 @@ class GraphResult(Result):
         Number of such pairs.
     converged : bool
     iterations : int
+        Linearisations of the least-squares driver, summed over the fits run.
     method : str
     frame : FrameInfo
         What the references fixed and what they left open.
