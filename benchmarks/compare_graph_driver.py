@@ -18,8 +18,11 @@ alternately, the better of ``--repeat`` CPU times each) and prints one row per c
 Cases: the graphs of ``tests/toa/test_graph.py`` -- 7 anchors alone (known nodes, one of them
 with a std; a reference frame; blind), 7 anchors + 25 tags with and without anchor-anchor
 ranges, 2-D, the soft-L1 fit of a graph with spikes -- fitted from the same start and the same
-pair means by the two ``_fit``; then ``solve_range_graph`` end to end on some of them, and a
-large graph (8 anchors + 300 tags, 924 unknowns: the sparse step).
+pair means by the two ``_fit``; then ``solve_range_graph`` end to end on some of them, a
+large graph (8 anchors + 300 / 3000 tags, 924 / 9012 unknowns: the sparse step), and the LPS flight
+``data4`` in long form when the shared data are there (its start differs: the new tree's
+multilateration keeps grossly wrong tags inside their ranges' bound, see
+:mod:`selfcal.toa.graph_start`; the minimum must not).
 
 Usage::
 
@@ -128,6 +131,27 @@ def solve_case(anchors: Any, tags: Any, *, noise: float, repeats: int, seed: int
     return run
 
 
+def lps_case(path: Path) -> Callable[[Any], tuple[float, Any]]:
+    """The LPS flight's anchor-tag log in long form (6 anchors x 626 positions, 3739 ranges),
+    A0-A3 known at their motion-capture positions (the UWB page's ``calibrate graph`` row)."""
+    from selfcal.datasets import load_lps
+
+    f = load_lps(str(path))
+    R, A = f.ranges, f.anchors_true
+    i, j = np.nonzero(np.isfinite(R))
+    a, b, y = i, R.shape[0] + j, np.round(R[i, j], 4)
+    names = [f"A{k}" for k in range(R.shape[0])] + [f"t{k:04d}" for k in range(R.shape[1])]
+    kn = {f"A{k}": np.round(A[k], 3) for k in range(4)}
+
+    def run(m: Any) -> tuple[float, Any]:
+        res = m("toa.graph").solve_range_graph(a, b, y, len(names), names=names, known=kn)
+        e = y - np.linalg.norm(res.positions[a] - res.positions[b], axis=1)
+        e = e[~res.outliers]
+        return 0.5 * float(e @ e), (res.positions, res.position_std)
+
+    return run
+
+
 def cases() -> list[tuple[str, Callable[[Any], tuple[float, Any]]]]:
     g = np.random.default_rng(7)
     T25, T300 = _tags(g, 25), _tags(g, 300)
@@ -153,12 +177,19 @@ def cases() -> list[tuple[str, Callable[[Any], tuple[float, Any]]]]:
     out += [
         ("fit 8 + 300 tags, known 4 (sparse)", fit_case(A8, T300, noise=0.02, repeats=1, seed=0, known=4)),
         ("fit 8 + 300 tags, blind (sparse)", fit_case(A8, T300, noise=0.02, repeats=1, seed=0)),
+        ("fit 8 + 3000 tags, known 4 (sparse)", fit_case(A8, _tags(g, 3000), noise=0.02, repeats=1, seed=0,
+                                                         known=4)),
         ("solve anchors 7, known 4", solve_case(ANCHORS, None, noise=0.03, repeats=5, seed=0)),
         ("solve 7 + 25 tags, known 4", solve_case(ANCHORS, T25, noise=0.02, repeats=2, seed=0)),
         ("solve 7 + 25 tags, no anchor pairs", solve_case(ANCHORS, T25, noise=0.02, repeats=2, seed=1,
                                                           anchor_pairs=False)),
         ("solve 8 + 300 tags, known 4 (sparse)", solve_case(A8, T300, noise=0.02, repeats=1, seed=0)),
     ]
+    lps = ROOT.parent / "shared" / "data" / "lps" / "data4.mat"
+    for where in (ROOT / "shared" / "data" / "lps" / "data4.mat", lps, Path("/work/shared/data/lps/data4.mat")):
+        if where.exists():
+            out.append(("solve LPS data4 long form, A0-A3 known", lps_case(where)))
+            break
     return out
 
 
