@@ -185,8 +185,7 @@ def cases() -> list[tuple[str, Callable[[Any], tuple[float, Any]]]]:
                                                           anchor_pairs=False)),
         ("solve 8 + 300 tags, known 4 (sparse)", solve_case(A8, T300, noise=0.02, repeats=1, seed=0)),
     ]
-    lps = ROOT.parent / "shared" / "data" / "lps" / "data4.mat"
-    for where in (ROOT / "shared" / "data" / "lps" / "data4.mat", lps, Path("/work/shared/data/lps/data4.mat")):
+    for where in (base / "shared" / "data" / "lps" / "data4.mat" for base in (ROOT, ROOT.parent)):
         if where.exists():
             out.append(("solve LPS data4 long form, A0-A3 known", lps_case(where)))
             break
