@@ -128,7 +128,7 @@ def graph_command(ranges: Path, dim: str, unit: str, known: Path | None, frame: 
     lines = [
         f"selfcal calibrate graph: {g.n_nodes} nodes ({int(A.sum())} anchors, {int(is_tag.sum())} tag positions), "
         f"{m} measurements of {n_pairs} pairs, {d}-D",
-        f"  method {res.method}, converged={res.converged}, evaluations={res.iterations}",
+        f"  method {res.method}, converged={res.converged}, iterations={res.iterations}",
         f"  residual RMS {res.residual_rms:.4g} m, noise estimate {res.noise_estimate:.4g} {su} on {res.dof} dof",
     ]
     if res.outlier_pairs:

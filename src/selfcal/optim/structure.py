@@ -8,7 +8,10 @@ Every size threshold of the refinements is here, each with the measurement behin
   ``"reduced"`` (formed, Cholesky) while forming it is cheap, else ``"cg"`` (matrix-free,
   Schur-Jacobi preconditioned). The TOA engine (:mod:`selfcal.toa.schur_lm`), the search's
   rungs (:mod:`selfcal.toa.search`) and the constrained engine's choice between SciPy's dense
-  trust region and the Schur engine (:mod:`selfcal.toa.constrained`) all ask it.
+  trust region and the Schur engine (:mod:`selfcal.toa.constrained`) all ask it; so does
+  :class:`selfcal.optim.steps.ResidualModel` with ``step="auto"`` (the range-graph fit),
+  whose non-dense answer is the sparse normal equations factored by SuperLU (a graph has no
+  bipartite split to take a Schur complement over).
 * :data:`TRF_EXACT_MAX` -- SciPy ``least_squares(method="trf")`` (the reference path and the
   robust constrained fits): its dense ``tr_solver="exact"`` (an SVD of the Jacobian per
   iteration) up to this many unknowns, ``"lsmr"`` above. Not a dense-vs-Schur choice (trf has

@@ -40,9 +40,12 @@ gauge, Asimow & Roth 1978): a generically rigid graph with a full-rank informati
 still has a discrete ambiguity (flip of a node across its partners' hyperplane) when it
 is rigid but not globally rigid (e.g. a node with only ``d`` ranges).
 
-Engine. The fit is a sparse nonlinear least-squares problem over the free coordinates
-(SciPy's trust-region reflective :func:`scipy.optimize.least_squares`, with the sparse
-Jacobian of the edge residuals); the bipartite Schur engine of :mod:`selfcal.toa.sparse`
+Engine. The fit is a sparse nonlinear least-squares problem over the free coordinates,
+run by the package's one Levenberg-Marquardt driver
+(:func:`selfcal.optim.lm.levenberg_marquardt`) with the range-graph model of
+:func:`selfcal.toa.graph_fit._fit` (sparse Jacobian of the edge residuals, fixed coordinates
+left out, the rigid motions projected off a blind fit's steps, dense or sparse normal
+equations as :func:`selfcal.optim.structure.lm_step` decides); the bipartite Schur engine of :mod:`selfcal.toa.sparse`
 serves a graph that is bipartite (receivers x sources) as its initialiser
 (:func:`selfcal.toa.sparse.solve_toa_sparse`), the dense blind solver
 (:func:`selfcal.toa.solve.solve_toa`) the anchor x tag block of a mixed graph.
@@ -136,6 +139,7 @@ class GraphResult(Result):
         Number of such pairs.
     converged : bool
     iterations : int
+        Linearisations of the least-squares driver, summed over the fits run.
     method : str
     frame : FrameInfo
         What the references fixed and what they left open.

@@ -1,6 +1,7 @@
 """The fit of a range graph: pair means of repeats, the weighted least squares on the free
-coordinates (SciPy's TRF), its covariance, and the outlier flags (used by
-:mod:`selfcal.toa.graph`; see its docstring for the model)."""
+coordinates (a model of the one driver :func:`selfcal.optim.lm.levenberg_marquardt`), its
+covariance, and the outlier flags (used by :mod:`selfcal.toa.graph`; see its docstring for
+the model)."""
 
 from __future__ import annotations
 
@@ -138,16 +139,34 @@ def _jacobian(X: Array, P: _Pairs, free: NDArray[np.bool_], sw: Array) -> Any:
 
 def _fit(X0: Array, P: _Pairs, free: NDArray[np.bool_], prior: tuple[Array, Array] | None,
          loss: str = "linear", f_scale: float = 1.0) -> tuple[Array, bool, int]:
-    """Weighted least squares over the free coordinates (priors: ``(mu, 1/std)`` rows per coordinate)."""
-    from scipy.optimize import least_squares
+    """Weighted least squares over the free coordinates (priors: ``(mu, 1/std)`` rows per coordinate).
+
+    The range-graph model on the driver (:class:`selfcal.optim.steps.ResidualModel`):
+    residuals ``sqrt(W_p) (|x_a - x_b| - ybar_p)`` and the prior rows, the sparse Jacobian of
+    :func:`_jacobian` (two ``d``-blocks per pair), the robust loss by the driver's IRLS; the
+    parametrisation keeps the fixed coordinates (known nodes, frame references) out of the
+    unknowns, and a blind fit (every coordinate free, no prior) has the rigid motions
+    projected off each step (:class:`selfcal.toa.dense_lm.GaugeProjector`, as the TOA
+    engines). The step: dense Cholesky or the sparse normal equations by SuperLU, as
+    :func:`selfcal.optim.structure.lm_step` decides from the number of unknowns.
+
+    Returns the positions, whether a stopping rule was met, and the driver's iterations.
+    """
     from scipy.sparse import diags, vstack
 
+    from ..optim.lm import levenberg_marquardt
+    from ..optim.steps import ResidualModel
+    from .dense_lm import GaugeProjector
+
+    n, d = X0.shape
     sw = np.sqrt(P.weight)
     theta0 = X0[free]
     pm = None
     if prior is not None:
         mu, isd = prior
         pm = np.isfinite(mu[free])
+        if not pm.any():
+            pm = None
 
     def unpack(theta: Array) -> Array:
         X = X0.copy()
@@ -168,12 +187,14 @@ def _fit(X0: Array, P: _Pairs, free: NDArray[np.bool_], prior: tuple[Array, Arra
             J = vstack([J, Jp], format="csr")
         return J
 
-    # exact trust-region steps (dense SVD of J) while J is small; LSMR on the sparse J beyond
-    dense = theta0.size <= 300
-    sol = least_squares(fun, theta0, jac=(lambda t: jac(t).toarray()) if dense else jac, method="trf",
-                        tr_solver="exact" if dense else "lsmr", xtol=1e-10, ftol=1e-12, gtol=1e-10,
-                        max_nfev=500, loss=loss, f_scale=f_scale)
-    return unpack(sol.x), bool(sol.status > 0), int(sol.nfev)
+    project = None
+    if free.all() and pm is None:  # blind: the rigid motions are the gauge (node-major theta)
+        def project(theta: Array) -> Any:
+            return GaugeProjector(theta, n, d, n, False).apply
+
+    model = ResidualModel(fun, jac, loss=loss, f_scale=f_scale, step="auto", project=project)
+    sol = levenberg_marquardt(model, theta0, max_iter=500, xtol=1e-10, ftol=1e-12)
+    return unpack(sol.x), bool(sol.converged), int(sol.iterations)
 
 
 def _covariance(X: Array, P: _Pairs, free: NDArray[np.bool_], prior_isd: Array | None, scale: float

@@ -157,7 +157,19 @@ def _grow(P: _Pairs, X: Array, d: int) -> Array:
         loc = -np.ones(X.shape[0], np.intp)
         loc[cand] = np.arange(cand.size)
         k = m & (loc[a] >= 0)
-        x, _ = _multilaterate(loc[a[k]], X[b[k]], y[k], cand.size, d)
+        node, part = loc[a[k]], X[b[k]]
+        x, _ = _multilaterate(node, part, y[k], cand.size, d)
+        # the triangle inequality bounds a node's distance from its partners' centroid c by
+        # min_k |c - p_k| + y_k; a point beyond it contradicts its own ranges (gross errors
+        # sent the Gauss-Newton steps there, hundreds of metres out on a real flight, where
+        # the refinement's single damping factor then crawls): pulled back onto the bound
+        cnt_k = np.bincount(node, minlength=cand.size)[:, None]
+        c = np.stack([np.bincount(node, part[:, j], minlength=cand.size) for j in range(d)], 1) / cnt_k
+        bound = np.full(cand.size, np.inf)
+        np.minimum.at(bound, node, np.linalg.norm(part - c[node], axis=1) + np.abs(y[k]))
+        r = np.linalg.norm(x - c, axis=1)
+        out = r > bound
+        x[out] = c[out] + (x[out] - c[out]) * (bound[out] / r[out])[:, None]
         X[cand] = x
 
 
