@@ -84,6 +84,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .._checks import as_matrix, check_choice, check_toa_observable
+from .._result import WrappedResult
 from ..errors import InputError
 from ..robust import mad_std
 
@@ -197,12 +198,13 @@ def detect_time_order(matrix: Any, *, alpha: float = TIME_ORDER_ALPHA,
     return TimeOrderTest(bool(p <= alpha), p, ratio, float(alpha), len(perm))
 
 
-@dataclass(frozen=True)
-class RecipeResult:
+@dataclass(frozen=True, repr=False)
+class RecipeResult(WrappedResult):
     """A :class:`selfcal.toa.solve.ToaResult` plus what the recipe did to the data.
 
     Every attribute of the wrapped result is available directly; ``to_dict()`` adds the
-    key ``"recipe"``.
+    key ``"recipe"``; status, summary and dict follow the :class:`~selfcal._result.Result`
+    convention (:class:`~selfcal._result.WrappedResult`).
 
     Attributes
     ----------
@@ -213,17 +215,11 @@ class RecipeResult:
     details: recipe-specific numbers (e.g. the profiled common offset).
     """
 
-    result: Any
     recipe: str
     rejected: NDArray[np.bool_]
     dropped_sources: tuple[int, ...] = ()
     dropped_receivers: tuple[int, ...] = ()
     details: dict[str, Any] = field(default_factory=dict)
-
-    def __getattr__(self, name: str) -> Any:
-        if name in ("result", "recipe", "rejected", "details") or name.startswith("__"):
-            raise AttributeError(name)
-        return getattr(self.result, name)
 
     @property
     def n_rejected(self) -> int:
