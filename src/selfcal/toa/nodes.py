@@ -325,7 +325,7 @@ def parse_frame(spec: str | Mapping[str, Any]) -> dict[str, str]:
 
 def units(result: Any) -> float:
     """Metres per matrix unit of a result (its ``speed``, else 1)."""
-    spd = getattr(result, "speed", None)
+    spd = result.speed
     return 1.0 if spd is None else float(spd)
 
 
