@@ -30,7 +30,8 @@ from numpy.typing import NDArray
 from ..errors import DegenerateGeometryError
 from ..robust import TUNING, loss_rho, mad_std
 
-__all__ = ["OFFSET_MODES", "NlsSolution", "gauge_basis", "toa_jacobian", "toa_model", "toa_residuals"]
+__all__ = ["OFFSET_MODES", "NlsSolution", "gauge_basis", "least_squares_offsets", "toa_jacobian", "toa_model",
+           "toa_residuals"]
 
 Array = NDArray[np.float64]
 
@@ -131,6 +132,31 @@ def toa_model(
     if source_offsets is not None:
         D = D + np.asarray(source_offsets, float)[None, :]
     return D
+
+
+def least_squares_offsets(Y: Array, r: Array, s: Array, offsets: str) -> tuple[Array | None, Array | None]:
+    """Offsets that best fit ``Y - |r_i - s_j|`` for a given geometry (two-way means)."""
+    has_r, has_s = offsets in ("receivers", "both"), offsets in ("sources", "both")
+    if not (has_r or has_s):
+        return None, None
+    E = np.where(np.isfinite(Y), Y - toa_model(r, s), np.nan)
+    obs = np.isfinite(E)
+    Z = np.where(obs, E, 0.0)
+    n_r = np.maximum(obs.sum(axis=1), 1)
+    n_c = np.maximum(obs.sum(axis=0), 1)
+    a = np.zeros(Y.shape[0])
+    b = np.zeros(Y.shape[1])
+    if has_r and has_s and obs.all():
+        # complete two-way table: the closed form of the alternation's limit below
+        a = Z.mean(axis=1)
+        b = Z.mean(axis=0) - a.mean()
+        return a, b
+    for _ in range(100 if has_r and has_s else 1):
+        if has_r:
+            a = ((Z - b[None, :]) * obs).sum(axis=1) / n_r
+        if has_s:
+            b = ((Z - a[:, None]) * obs).sum(axis=0) / n_c
+    return (a if has_r else None), (b if has_s else None)
 
 
 def toa_residuals(theta: Array, ranges: Array, dim: int, offsets: str = "none") -> Array:

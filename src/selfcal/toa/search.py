@@ -59,11 +59,13 @@ from ..progress import report
 from ..robust import TUNING
 from .batch_lm import solve_batch_lm
 from .dense_lm import solve_dense_lm
+from .model import least_squares_offsets
 from .moves import Move, Start, moves
 from .nls import NlsSolution, _pack, _rho, _unpack, refine_toa, toa_model
 from .rank3_model import rank_identifiable
 from .result import _additive_fit
 from .robust import _nanmedian_rows
+from .scaled_starts import scaled_random_starts
 
 __all__ = ["INITIALISERS", "MOVES_MAX_NODES", "SearchOutcome", "canonical_order", "default_budget",
            "least_squares_offsets", "search"]
@@ -106,31 +108,6 @@ def canonical_order(Y: Array) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
         return np.lexsort(keys + [np.where(np.isfinite(med), med, np.inf)]).astype(np.intp)
 
     return order(Y), order(Y.T)
-
-
-def least_squares_offsets(Y: Array, r: Array, s: Array, offsets: str) -> tuple[Array | None, Array | None]:
-    """Offsets that best fit ``Y - |r_i - s_j|`` for a given geometry (two-way means)."""
-    has_r, has_s = offsets in ("receivers", "both"), offsets in ("sources", "both")
-    if not (has_r or has_s):
-        return None, None
-    E = np.where(np.isfinite(Y), Y - toa_model(r, s), np.nan)
-    obs = np.isfinite(E)
-    Z = np.where(obs, E, 0.0)
-    n_r = np.maximum(obs.sum(axis=1), 1)
-    n_c = np.maximum(obs.sum(axis=0), 1)
-    a = np.zeros(Y.shape[0])
-    b = np.zeros(Y.shape[1])
-    if has_r and has_s and obs.all():
-        # complete two-way table: the closed form of the alternation's limit below
-        a = Z.mean(axis=1)
-        b = Z.mean(axis=0) - a.mean()
-        return a, b
-    for _ in range(100 if has_r and has_s else 1):
-        if has_r:
-            a = ((Z - b[None, :]) * obs).sum(axis=1) / n_r
-        if has_s:
-            b = ((Z - a[:, None]) * obs).sum(axis=0) / n_c
-    return (a if has_r else None), (b if has_s else None)
 
 
 # ------------------------------------------------------------------ initialisers (registry)
@@ -187,8 +164,6 @@ def _mds(method: str) -> _Init:
 def _scaled(Y: Array, dim: int, offsets: str, rng: np.random.Generator) -> list[Start]:
     """Random starts at the data's distance bounds (selfcal.toa.scaled_starts), only where no
     other initialiser has information on the offsets: both kinds, rank-d method not identifiable."""
-    from .scaled_starts import scaled_random_starts
-
     if not _offsets_unidentified(Y, dim, offsets):
         return []
     return scaled_random_starts(Y, dim, offsets, rng, n=SCALED_STARTS)
