@@ -38,6 +38,7 @@ __all__ = [
     "check_path",
     "instance_of",
     "has_attributes",
+    "check_pairs",
     "gauge_freedoms",
     "n_parameters",
 ]
@@ -837,3 +838,47 @@ def n_parameters(n_receivers: int, n_sources: int, dim: int, offsets: str = "non
     if n_off is None:
         raise InputError(f"offsets must be one of none, receivers, sources, both; got {offsets!r}")
     return int(dim) * (I + J) - gauge_freedoms(dim) + n_off
+
+
+def check_pairs(i: object, j: object, ranges: object, I: int | None, J: int | None
+                ) -> tuple[NDArray[np.intp], NDArray[np.intp], NDArray[np.float64], int, int]:
+    """Validate observed pairs ``(i[k], j[k], ranges[k])`` of a sparse range network.
+
+    Returns ``(i, j, ranges, I, J)`` (indices as ``intp``; ``I`` / ``J`` from the largest
+    index when None). Raises :class:`~selfcal.errors.InputError` for malformed, duplicate or
+    out-of-range pairs, :class:`~selfcal.errors.DegenerateGeometryError` when fewer than
+    half of the nodes appear in any pair (they could not be located).
+    """
+    ii = np.asarray(i)
+    jj = np.asarray(j)
+    y = np.asarray(ranges, dtype=float)
+    if ii.ndim != 1 or jj.shape != ii.shape or y.shape != ii.shape:
+        raise InputError(f"i, j and ranges must be 1-D arrays of one length, got shapes "
+                         f"{ii.shape}, {jj.shape}, {y.shape}")
+    if ii.size and not (np.issubdtype(ii.dtype, np.integer) and np.issubdtype(jj.dtype, np.integer)):
+        raise InputError("i and j must be integer node indices")
+    if not np.isfinite(y).all():
+        raise InputError("ranges must be finite (list only the observed pairs)")
+    if ii.size and (ii.min() < 0 or jj.min() < 0):
+        raise InputError("node indices must be >= 0")
+    if ii.size == 0:
+        raise InputError("i, j and ranges are empty: give the observed pairs")
+    if y.dtype.kind == "b" or np.asarray(ranges).dtype.kind == "b":
+        raise InputError("ranges holds booleans (True / False), not measured ranges")
+    I = int(ii.max()) + 1 if I is None else int(I)
+    J = int(jj.max()) + 1 if J is None else int(J)
+    if ii.size and (ii.max() >= I or jj.max() >= J):
+        raise InputError(f"node index out of range for {I} receivers and {J} sources")
+    # ~64 float64 per node: positions, offsets, the growth's bookkeeping and the normal blocks
+    guard_size(float(I + J) * 8.0 * 64, f"a sparse network of {I} receivers and {J} sources")
+    # nodes without a range are never located, and a fit reaching less than half of the
+    # nodes is refused (solve_toa_sparse): refuse it before anything the size of I + J is made
+    seen = np.unique(ii).size + np.unique(jj).size
+    if I + J > 2 * seen:
+        raise DegenerateGeometryError(
+            f"{I} receivers and {J} sources, but only {seen} of them appear in the {ii.size} pairs: less than "
+            f"half of the nodes could be located (check n_receivers / n_sources)", kind="unobservable-node")
+    key = ii.astype(np.int64) * J + jj
+    if np.unique(key).size != key.size:
+        raise InputError("a (receiver, source) pair is listed twice; average repeated ranges first")
+    return ii.astype(np.intp), jj.astype(np.intp), y, I, J
