@@ -3,6 +3,13 @@
 These helpers raise :class:`~selfcal.errors.InputError` (malformed data) or
 :class:`~selfcal.errors.DegenerateGeometryError` (data that cannot determine the
 unknowns) with messages that name the argument and the fix.
+
+Why this file is long (~880 lines): it is the one place every entry point takes its input
+checks from, so a rule and its message are written once; its sections (arrays and scalars,
+identifiability counts, the :func:`entry` decorator, plausibility of units, size guards) are
+independent of each other. Split, each importer's one line would become several or the
+pieces would come back through re-export shims (the plausibility checks need
+:func:`check_float`, the counts :func:`guard_size`).
 """
 
 from __future__ import annotations
