@@ -126,12 +126,6 @@ class Constraints:
             or np.isfinite(self.prior_r_mean).any() or np.isfinite(self.prior_s_mean).any()
         )
 
-    @property
-    def has_priors(self) -> bool:
-        """True when any position prior is active (on a coordinate that is not fixed)."""
-        return bool((np.isfinite(self.prior_r_mean) & ~self.fixed_r).any()
-                    or (np.isfinite(self.prior_s_mean) & ~self.fixed_s).any())
-
 
 def _mask(value: Any, n: int, d: int, name: str) -> BoolArray:
     """(n, d) bool mask from None, an (n,) row mask or an (n, d) mask."""
