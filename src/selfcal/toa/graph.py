@@ -408,8 +408,6 @@ class _Nodes:
     receiver_cov: Array
     source_cov: Array
     method: str = "graph"
-    speed: float | None = None
-    uniqueness: Any = None
 
 
 def _to_frame(X: Array, frame: Any, names: tuple[str, ...]) -> Array:
