@@ -3,6 +3,13 @@
 These helpers raise :class:`~selfcal.errors.InputError` (malformed data) or
 :class:`~selfcal.errors.DegenerateGeometryError` (data that cannot determine the
 unknowns) with messages that name the argument and the fix.
+
+Why this file is long (~880 lines): it is the one place every entry point takes its input
+checks from, so a rule and its message are written once; its sections (arrays and scalars,
+identifiability counts, the :func:`entry` decorator, plausibility of units, size guards) are
+independent of each other. Split, each importer's one line would become several or the
+pieces would come back through re-export shims (the plausibility checks need
+:func:`check_float`, the counts :func:`guard_size`).
 """
 
 from __future__ import annotations
@@ -38,6 +45,9 @@ __all__ = [
     "check_path",
     "instance_of",
     "has_attributes",
+    "check_pairs",
+    "gauge_freedoms",
+    "n_parameters",
 ]
 
 
@@ -227,8 +237,6 @@ def check_toa_counts(shape: tuple[int, int], n_observed: int, dim: int, offsets:
             f"(they must span {dim}-D space)",
             kind="too-few-sources",
         )
-    from .geometry import n_parameters
-
     unknowns = n_parameters(I, J, dim, offsets)
     if n_observed < unknowns + 1 and offsets != "none":
         raise DegenerateGeometryError(
@@ -796,3 +804,88 @@ def guard_recording_setup(sample_rate: float, event_times: Any, probe: Any, n_re
         if isinstance(d, bool) or not isinstance(d, (int, float)) or not np.isfinite(d) or d <= 0:
             raise InputError(f"{where}: field 'probe.duration' must be a positive number of seconds, got {d!r}")
         guard_size(float(d) * fs * 8.0 * 4, f"{where}: field 'probe.duration' ({float(d):g} s at {fs:g} Hz)")
+
+
+def gauge_freedoms(dim: int) -> int:
+    """Degrees of freedom of a rigid motion in ``dim`` dimensions: ``dim (dim + 1) / 2`` (3 in 2-D, 6 in 3-D)."""
+    return int(dim) * (int(dim) + 1) // 2
+
+
+def n_parameters(n_receivers: int, n_sources: int, dim: int, offsets: str = "none") -> int:
+    """Free parameters of the TOA / range model up to the gauge (003 eq. 2, 004 eq. 3.1).
+
+    The one parameter count of the package (residual chi-square tests, the identifiability
+    check of the entry points, the pipeline's noise test, the 2-D / 3-D model comparison).
+
+    Parameters
+    ----------
+    n_receivers, n_sources : int
+        I and J (``n_sources = 0`` counts the coordinates of ``n_receivers`` points only).
+    dim : int
+        2 or 3.
+    offsets : {"none", "receivers", "sources", "both"}
+        Unknown offsets: none; one per receiver (I); one per source (J); both (``I + J - 1``:
+        a common shift between delays and onsets is not observable).
+
+    Returns
+    -------
+    int
+        ``dim (I + J) - dim (dim + 1) / 2`` coordinates (a rigid motion removed) plus the offsets;
+        ``4 (I + J) - 7`` in 3-D with both offsets.
+
+    Examples
+    --------
+    >>> n_parameters(12, 6, 3, "both")   # 3 * 18 - 6 + 12 + 6 - 1
+    65
+    >>> n_parameters(8, 10, 2)           # 2 * 18 - 3
+    33
+    """
+    I, J = int(n_receivers), int(n_sources)
+    n_off = {"none": 0, "receivers": I, "sources": J, "both": I + J - 1}.get(offsets)
+    if n_off is None:
+        raise InputError(f"offsets must be one of none, receivers, sources, both; got {offsets!r}")
+    return int(dim) * (I + J) - gauge_freedoms(dim) + n_off
+
+
+def check_pairs(i: object, j: object, ranges: object, I: int | None, J: int | None
+                ) -> tuple[NDArray[np.intp], NDArray[np.intp], NDArray[np.float64], int, int]:
+    """Validate observed pairs ``(i[k], j[k], ranges[k])`` of a sparse range network.
+
+    Returns ``(i, j, ranges, I, J)`` (indices as ``intp``; ``I`` / ``J`` from the largest
+    index when None). Raises :class:`~selfcal.errors.InputError` for malformed, duplicate or
+    out-of-range pairs, :class:`~selfcal.errors.DegenerateGeometryError` when fewer than
+    half of the nodes appear in any pair (they could not be located).
+    """
+    ii = np.asarray(i)
+    jj = np.asarray(j)
+    y = np.asarray(ranges, dtype=float)
+    if ii.ndim != 1 or jj.shape != ii.shape or y.shape != ii.shape:
+        raise InputError(f"i, j and ranges must be 1-D arrays of one length, got shapes "
+                         f"{ii.shape}, {jj.shape}, {y.shape}")
+    if ii.size and not (np.issubdtype(ii.dtype, np.integer) and np.issubdtype(jj.dtype, np.integer)):
+        raise InputError("i and j must be integer node indices")
+    if not np.isfinite(y).all():
+        raise InputError("ranges must be finite (list only the observed pairs)")
+    if ii.size and (ii.min() < 0 or jj.min() < 0):
+        raise InputError("node indices must be >= 0")
+    if ii.size == 0:
+        raise InputError("i, j and ranges are empty: give the observed pairs")
+    if y.dtype.kind == "b" or np.asarray(ranges).dtype.kind == "b":
+        raise InputError("ranges holds booleans (True / False), not measured ranges")
+    I = int(ii.max()) + 1 if I is None else int(I)
+    J = int(jj.max()) + 1 if J is None else int(J)
+    if ii.size and (ii.max() >= I or jj.max() >= J):
+        raise InputError(f"node index out of range for {I} receivers and {J} sources")
+    # ~64 float64 per node: positions, offsets, the growth's bookkeeping and the normal blocks
+    guard_size(float(I + J) * 8.0 * 64, f"a sparse network of {I} receivers and {J} sources")
+    # nodes without a range are never located, and a fit reaching less than half of the
+    # nodes is refused (solve_toa_sparse): refuse it before anything the size of I + J is made
+    seen = np.unique(ii).size + np.unique(jj).size
+    if I + J > 2 * seen:
+        raise DegenerateGeometryError(
+            f"{I} receivers and {J} sources, but only {seen} of them appear in the {ii.size} pairs: less than "
+            f"half of the nodes could be located (check n_receivers / n_sources)", kind="unobservable-node")
+    key = ii.astype(np.int64) * J + jj
+    if np.unique(key).size != key.size:
+        raise InputError("a (receiver, source) pair is listed twice; average repeated ranges first")
+    return ii.astype(np.intp), jj.astype(np.intp), y, I, J

@@ -26,6 +26,10 @@ and gets, without further code,
   serialises all its fields. The returned dict is always a fresh copy, so editing it
   never mutates the (frozen) result.
 
+A step that adds to another method's result (the user frame, a recipe) returns a
+:class:`WrappedResult`: the wrapped ``result`` plus its own fields, every attribute of the
+wrapped result readable directly, and the wrapped result's status.
+
 Names: covariances end in ``_cov``, standard deviations in ``_std``; a noise level the
 user gave is ``noise``, one the method estimated ``noise_estimate``.
 """
@@ -33,6 +37,7 @@ user gave is ``noise``, one the method estimated ``noise_estimate``.
 from __future__ import annotations
 
 import dataclasses
+from dataclasses import dataclass
 import functools
 import math
 from collections.abc import Callable, Mapping
@@ -44,7 +49,7 @@ import numpy as np
 
 from .errors import Status
 
-__all__ = ["Result", "Status", "json_float", "jsonable"]
+__all__ = ["Result", "Status", "WrappedResult", "json_float", "jsonable"]
 
 
 def json_float(x: float) -> float | None:
@@ -300,3 +305,52 @@ class Result:
         title = type(self).__name__
         body = [f"  {k.ljust(width)}  {v}" for k, v in rows]
         return "\n".join([title, "-" * len(title), *body])
+
+
+@dataclass(frozen=True, repr=False)
+class WrappedResult(Result):
+    """A result plus what a later step added to it (base of the frame and recipe results).
+
+    Every attribute of the wrapped ``result`` is readable directly on the wrapper (the
+    wrapper's own fields win); ``status`` / ``success`` / ``message`` are the wrapped
+    result's, ``summary()`` shows the wrapper's fields then the wrapped result's table.
+    Subclasses are ``@dataclass(frozen=True, repr=False)`` and add fields after ``result``.
+    """
+
+    result: Any
+    _repr_fields: ClassVar[tuple[str, ...]] = ("result",)
+
+    def __getattr__(self, name: str) -> Any:
+        # only called when normal lookup fails; own fields (and dunders, e.g. while unpickling
+        # before the fields are set) must not recurse into the wrapped result
+        if name.startswith("__") or name in type(self).__dataclass_fields__:  # type: ignore[attr-defined]
+            raise AttributeError(name)
+        return getattr(self.result, name)
+
+    def _diagnose(self) -> tuple[Status, str]:
+        inner = self.result
+        if isinstance(inner, Result):
+            status, message = inner._state()
+            return status, message
+        return Status.SUCCESS, "ok"
+
+    @property
+    def status(self) -> Any:
+        """The wrapped result's ``status``."""
+        return self.result.status if isinstance(self.result, Result) else Status.SUCCESS
+
+    @property
+    def message(self) -> str:
+        """The wrapped result's ``message``."""
+        return str(self.result.message) if isinstance(self.result, Result) else "ok"
+
+    @property
+    def success(self) -> Any:
+        """The wrapped result's ``success``."""
+        return self.result.success if isinstance(self.result, Result) else True
+
+    def summary(self) -> str:
+        """The wrapper's table, then the wrapped result's :meth:`Result.summary`."""
+        own = super().summary()
+        inner = self.result.summary() if isinstance(self.result, Result) else repr(self.result)
+        return own + "\n\n" + inner

@@ -13,7 +13,11 @@ from typing import NamedTuple
 import numpy as np
 from numpy.typing import NDArray
 
-from ._checks import entry
+from ._checks import (  # the counts live with the check that uses them
+    entry,
+    gauge_freedoms,
+    n_parameters,
+)
 from .errors import InputError
 
 __all__ = [
@@ -354,44 +358,3 @@ def pairwise_distances(a: Array, b: Array) -> Array:
     a = np.asarray(a, dtype=float)
     b = np.asarray(b, dtype=float)
     return np.sqrt(np.maximum(((a[:, None, :] - b[None, :, :]) ** 2).sum(-1), 0.0))
-
-
-def gauge_freedoms(dim: int) -> int:
-    """Degrees of freedom of a rigid motion in ``dim`` dimensions: ``dim (dim + 1) / 2`` (3 in 2-D, 6 in 3-D)."""
-    return int(dim) * (int(dim) + 1) // 2
-
-
-def n_parameters(n_receivers: int, n_sources: int, dim: int, offsets: str = "none") -> int:
-    """Free parameters of the TOA / range model up to the gauge (003 eq. 2, 004 eq. 3.1).
-
-    The one parameter count of the package (residual chi-square tests, the identifiability
-    check of the entry points, the pipeline's noise test, the 2-D / 3-D model comparison).
-
-    Parameters
-    ----------
-    n_receivers, n_sources : int
-        I and J (``n_sources = 0`` counts the coordinates of ``n_receivers`` points only).
-    dim : int
-        2 or 3.
-    offsets : {"none", "receivers", "sources", "both"}
-        Unknown offsets: none; one per receiver (I); one per source (J); both (``I + J - 1``:
-        a common shift between delays and onsets is not observable).
-
-    Returns
-    -------
-    int
-        ``dim (I + J) - dim (dim + 1) / 2`` coordinates (a rigid motion removed) plus the offsets;
-        ``4 (I + J) - 7`` in 3-D with both offsets.
-
-    Examples
-    --------
-    >>> n_parameters(12, 6, 3, "both")   # 3 * 18 - 6 + 12 + 6 - 1
-    65
-    >>> n_parameters(8, 10, 2)           # 2 * 18 - 3
-    33
-    """
-    I, J = int(n_receivers), int(n_sources)
-    n_off = {"none": 0, "receivers": I, "sources": J, "both": I + J - 1}.get(offsets)
-    if n_off is None:
-        raise InputError(f"offsets must be one of none, receivers, sources, both; got {offsets!r}")
-    return int(dim) * (I + J) - gauge_freedoms(dim) + n_off

@@ -369,7 +369,7 @@ def _try_solve(T: Array, dim: int, speed: float, rng: int, noise: float | None =
 
 def _toa_outliers(res: Any, shape: tuple[int, int]) -> NDArray[np.bool_]:
     """The (I, J) mask of entries :func:`selfcal.toa.solve_toa`'s outlier rule excluded."""
-    mask = getattr(res, "outliers", None)
+    mask = res.outliers
     if mask is None or np.shape(mask) != tuple(shape):
         return np.zeros(shape, bool)
     return np.asarray(mask, bool)

@@ -22,6 +22,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..errors import InputError
+from ..io.wav import read_wav
 
 __all__ = ["Probe", "linear_chirp", "probe_from_spec", "TAPER"]
 
@@ -103,8 +104,6 @@ def probe_from_spec(spec: Any, sample_rate: float, *, base_dir: Path | None = No
         raise InputError(f"{where}: field 'probe' must be an object, got {type(spec).__name__}")
     nyq = sample_rate / 2.0
     if "wav" in spec:
-        from .recording import read_wav
-
         name = spec["wav"]
         if not isinstance(name, str) or not name:
             raise InputError(f"{where}: field 'probe.wav' must be a file name")

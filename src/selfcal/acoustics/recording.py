@@ -36,6 +36,10 @@ from numpy.typing import NDArray
 from .._checks import entry, guard_recording_setup
 from ..errors import InputError
 from ..io import atomic_write_bytes, write_json
+from ..io.wav import (  # re-exported: the recording format reads its WAVs with them
+    CLIP_RUN,
+    read_wav,
+)
 from .probe import Probe, probe_from_spec
 
 __all__ = [
@@ -50,7 +54,6 @@ __all__ = [
     "speed_from_air",
 ]
 
-CLIP_RUN = 3  # this many consecutive full-scale samples mean the converter clipped
 #: Upper bound on the speed of sound in any condensed phase, c_max = alpha (m_e / 2 m_p)^(1/2) c
 #: ~ 36.1 km/s (Trachenko et al., Sci. Adv. 6, eabc8662, 2020); a larger value is a unit mistake.
 MAX_SPEED_OF_SOUND = 36_100.0
@@ -271,53 +274,6 @@ def read_setup(directory: str | Path) -> Setup:
     from ..io import read_json  # refuses directories / FIFOs / devices; JSON errors named
 
     return parse_setup(read_json(path, name="setup.json"))
-
-
-def read_wav(path: str | Path) -> tuple[NDArray[np.float64], float]:
-    """Read a mono WAV as float (full scale = 1) and refuse clipped or malformed files.
-
-    Integer PCM of any depth (8-bit unsigned, 16, 24, 32-bit signed) is scaled by
-    ``2**(bits-1)`` of its container, to [-1, 1); float files (32 / 64 bit) are taken as is
-    (:func:`selfcal.io.wav.read_wav_file`). A run of :data:`CLIP_RUN` or more consecutive
-    samples at full scale means clipping.
-
-    Returns
-    -------
-    x : (N,) float64 array
-    sample_rate : float, Hz
-
-    Raises
-    ------
-    InputError
-        Missing, unreadable, not a WAV file, truncated (the header declares more samples than
-        the file holds), a compressed format, multi-channel, empty or clipped file (the message
-        starts with the file name).
-    """
-    from ..io.wav import read_wav_file
-
-    p = Path(path)
-    w = read_wav_file(p, p.name)
-    if w.channels != 1:
-        raise InputError(f"{p.name}: has {w.channels} channels; each receiver needs a mono file")
-    x, fs = w.samples, w.sample_rate
-    if w.kind == "int":
-        at_full = (x >= 1.0 - w.step) | (x <= -1.0)
-    else:
-        at_full = np.abs(x) >= 1.0
-    run = _longest_run(at_full)
-    if run >= CLIP_RUN:
-        first = int(np.argmax(at_full))
-        raise InputError(f"{p.name}: clipped ({run} consecutive samples at full scale, first at "
-                         f"{first / fs:.3f} s); record at a lower level")
-    return x, float(fs)
-
-
-def _longest_run(mask: NDArray[np.bool_]) -> int:
-    if not mask.any():
-        return 0
-    padded = np.concatenate(([0], mask.astype(np.int8), [0]))
-    edges = np.flatnonzero(np.diff(padded))
-    return int((edges[1::2] - edges[::2]).max())
 
 
 def write_wav(path: str | Path, x: NDArray[np.floating[Any]], sample_rate: float, *, bits: int = 16) -> None:

@@ -56,7 +56,7 @@ def render_html(result: Any, errors: dict[str, Any] | None = None, *, summary: l
     I, J = len(result.receiver_names), len(result.sender_names)
     # residuals per receiver and sender (events of one sender averaged)
     pred = _predict(sol, speed)
-    senders = getattr(result, "event_senders", None)
+    senders = result.event_senders
     if senders is None or len(senders) != T.shape[1]:
         senders = es % J
     R = np.full((I, J), np.nan)
@@ -66,7 +66,7 @@ def render_html(result: Any, errors: dict[str, Any] | None = None, *, summary: l
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore", RuntimeWarning)  # rows without a detection stay NaN
                 R[:, j] = np.nanmean(cols, axis=1) - pred[:, j]
-    noise = np.asarray(getattr(result, "matrix_std", None) if getattr(result, "matrix_std", None) is not None
+    noise = np.asarray(result.matrix_std if result.matrix_std is not None
                        else np.full((I, J), result.timing_noise), float)
     z = R / noise
     map_fig, mag = plot_report_map(result)

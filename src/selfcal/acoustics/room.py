@@ -56,14 +56,6 @@ def event_spacing(room: NDArray[np.float64], probe_duration: float, speed: float
     return float(probe_duration + MAX_OFFSET + 1.2 * np.linalg.norm(room) / speed + 0.03)
 
 
-def _fractional_shift(x: NDArray[np.float64], shift: NDArray[np.float64], n_fft: int) -> NDArray[np.float64]:
-    """Delay each row of ``x`` (K, L) by ``shift`` (K,) samples in [0, 1) (band-limited)."""
-    spec = np.fft.rfft(x, n=n_fft, axis=-1)
-    k = np.arange(spec.shape[-1])
-    spec *= np.exp(-2j * np.pi * k[None, :] * shift[:, None] / n_fft)
-    return np.fft.irfft(spec, n=n_fft, axis=-1)
-
-
 @entry(scene=instance_of(lambda: ConferenceScene, "ConferenceScene (selfcal.scenarios.conference.conference_scene)"),
        rng="rng", progress="bool")
 def simulate_conference(

@@ -14,7 +14,7 @@ offsets (two-way ranging),
 a few centimetres). Classical MDS of these distances
 (:func:`selfcal.toa.mds.classical_mds`) places the units up to a rigid motion and a
 reflection, both gauge freedoms of the TOA model; the offsets follow by least squares
-(:func:`selfcal.toa.search.least_squares_offsets`). The start is wrong by about the unit
+(:func:`selfcal.toa.model.least_squares_offsets`). The start is wrong by about the unit
 size, far inside the basin of the truth, and goes to :func:`selfcal.toa.solve_toa` as the
 first start of its search (which keeps the lowest cost of all its starts).
 """
@@ -83,7 +83,7 @@ def unit_start(T: Array, pairs: NDArray[np.intp], speed: float, dim: int, *,
     ((8, 3), (8, 3))
     """
     from ..toa.mds import classical_mds, complete_distances
-    from ..toa.search import least_squares_offsets
+    from ..toa.model import least_squares_offsets
 
     T = np.asarray(T, float)
     I, J = T.shape

@@ -207,7 +207,7 @@ def summarise(result: Any, errors: dict[str, Any] | None, framed: Any = None) ->
     lines = [f"method             {result.method}",
              f"detections missed  {result.detections_missed} of {result.toa_matrix.size}",
              f"residual rms       {result.residual_rms * 1e6:.2f} us"]
-    fit = getattr(result, "fit", None)
+    fit = result.fit
     if fit is not None:
         scale = getattr(fit, "scale", None)
         detail = (f"residual scale {scale:.3g} of the noise model (limit {fit.scale_limit:.3g}), "
@@ -227,7 +227,7 @@ def summarise(result: Any, errors: dict[str, Any] | None, framed: Any = None) ->
     lines.append("dropped units      " + ("none" if not (dr or ds) else
                                           "; ".join(x for x in (f"microphones {', '.join(dr)}" if dr else "",
                                                                 f"loudspeakers {', '.join(ds)}" if ds else "") if x)))
-    bars = getattr(result, "error_bars", None)
+    bars = result.error_bars
     if bars is not None:
         lines.append(f"error bars         position std max {np.nanmax(bars.position_std) * 100:.3g} cm, "
                      f"delay+onset std max {np.nanmax(bars.pair_std) * 1e6:.3g} us (1 sigma)")
@@ -254,7 +254,7 @@ def summarise(result: Any, errors: dict[str, Any] | None, framed: Any = None) ->
                      f"{errors['position_max'] * 100:.2f} cm (<= 10 cm: {'yes' if errors['pass_position'] else 'no'}), "
                      f"timing max {errors['timing_max'] * 1e6:.2f} us "
                      f"(<= 58 us: {'yes' if errors['pass_timing'] else 'no'})")
-    verdict = getattr(result, "verdict", None)
+    verdict = result.verdict
     if verdict is not None:
         if verdict.passed:
             lines.append(f"PASS: 004 requirements met by the calibration's own error bars (position std max "

@@ -145,12 +145,12 @@ def toa_command(matrix: Path, speed: float | None, offsets: str | None, dim: str
     framed: FramedToaResult | None = None
     d_out = np.asarray(res.receivers).shape[1]
     # a kept common range offset (moving-tag recipe) is its own model: the refits keep it
-    off_used = "common" if getattr(res, "offsets", None) == "common" else _offsets_of(res)
+    off_used = "common" if res.offsets == "common" else _offsets_of(res)
     # the constrained / frame refits see what the blind fit used: the recipe's spikes and
     # the outliers the solver removed are left out; the default ("auto") fits the inliers
     # by least squares, as the blind fit's last step does
     loss_used = loss if loss is not None else "linear"
-    M_fit = _fitted_entries(M, rec.rejected, getattr(res, "outliers", None))
+    M_fit = _fitted_entries(M, rec.rejected, res.outliers)
     if known_table is not None and known is not None:
         nodes = parse_known(_redim(known_table, known, d_out), I, J, d_out, **names)
         with stage(f"fit with {len(nodes)} known nodes"):
@@ -160,7 +160,7 @@ def toa_command(matrix: Path, speed: float | None, offsets: str | None, dim: str
             framed = apply_frame(res, frame, matrix=M_fit, offsets=off_used, loss=loss_used, **names)
     if framed is not None:
         res = framed.result
-    if getattr(res, "residuals", None) is None or getattr(res, "outliers", None) is None:
+    if res.residuals is None or res.outliers is None:
         sidecar = None
     payload = enrich_payload(dict(_without_entries(res).to_dict() if sidecar else res.to_dict()), names=names)
     if sidecar is not None:
@@ -228,7 +228,7 @@ def toa_command(matrix: Path, speed: float | None, offsets: str | None, dim: str
             f"  predicted position std (RMS over points): receivers {np.sqrt(tr[ok_tr].mean()):.4g} m, "
             f"sources {np.sqrt(ts[ok_ts].mean()):.4g} m"
         )
-    det = getattr(res, "determinacy", None)
+    det = res.determinacy
     if det is not None and det.n_undetermined:
         lines.append(f"  undetermined: {det.n_undetermined} of {det.tested} nodes have a 95 % confidence region "
                      f"larger than their node set ({det.names(**names)})")
@@ -249,13 +249,13 @@ def _forced_model(res: Any, M: Any, rejected: Any, speed: float | None, noise: f
 
     from ..toa.model_test import forced_model_test
 
-    off = getattr(res, "offsets", None)
+    off = res.offsets
     test_dim = dim == "2"
     test_off = offsets != "auto" and off in ("none", "receivers", "sources")
-    if not (test_dim or test_off) or getattr(res, "residuals", None) is None:
+    if not (test_dim or test_off) or res.residuals is None:
         return None
     c = speed if speed is not None else 1.0
-    Mf = _fitted_entries(M, rejected, getattr(res, "outliers", None))
+    Mf = _fitted_entries(M, rejected, res.outliers)
     R, S = np.asarray(res.receivers, float), np.asarray(res.sources, float)
     ok_r, ok_s = np.isfinite(R).all(1), np.isfinite(S).all(1)
 
@@ -270,7 +270,7 @@ def _forced_model(res: Any, M: Any, rejected: Any, speed: float | None, noise: f
 def _verdict_lines(res: Any, forced: Any, row_names: Any, col_names: Any) -> list[str]:
     """``FAIL:`` lines of the uniqueness test (ambiguous nodes, a minimal problem) and the forced-model test."""
     out = []
-    u = getattr(res, "uniqueness", None)
+    u = res.uniqueness
     if u is not None and not u.passed:
         if u.ambiguous_receivers.any() or u.ambiguous_sources.any():
             kinds = sorted({a.kind for a in u.alternatives})
@@ -345,7 +345,7 @@ def _dim_choice_lines(res: Any) -> list[str]:
 
 def _offsets_choice_lines(details: dict[str, Any], res: Any, unit: str) -> list[str]:
     """The held-out prediction choice of the offsets model (recipe or ``--offsets auto``), one line."""
-    sel = details.get("offsets_choice") or (getattr(res, "selection", None) or {}).get("offsets")
+    sel = details.get("offsets_choice") or (res.selection or {}).get("offsets")
     if not sel or "cv_rmse" not in sel:
         return []
     scores = ", ".join(f"{k} {v:.4g}" for k, v in sel["cv_rmse"].items())
@@ -384,11 +384,10 @@ def _counts(res: Any) -> list[str]:
 
     out = []
     for key, label in (("dropped_receivers", "receivers dropped"), ("dropped_sources", "sources dropped")):
-        v = getattr(res, key, None)
-        if v is not None and len(v):
+        v = getattr(res, key)
+        if len(v):
             out.append(f"{len(v)} {label}")
-    mask = getattr(res, "outliers", None)
-    broke = getattr(res, "outlier_breakdown", None)
+    mask, broke = res.outliers, res.outlier_breakdown
     if mask is not None:
         out.append(f"{broke} ({int(np.asarray(mask).sum())} flagged)" if broke
                    else f"{int(np.asarray(mask).sum())} outliers flagged")
@@ -396,13 +395,5 @@ def _counts(res: Any) -> list[str]:
 
 
 def _trustworthy(res: Any) -> tuple[bool, str]:
-    """The result's own verdict: ``success`` when it has one, else its residual test."""
-    succ = getattr(res, "success", None)
-    if succ is not None:
-        return bool(succ), str(getattr(res, "message", "") or "the fit failed its residual test")
-    fit = getattr(res, "fit", None)
-    if fit is not None and not bool(getattr(fit, "passed", True)):
-        return False, "the residual test against the given noise rejected the fit"
-    if not bool(res.converged):
-        return False, "the solver did not converge"
-    return True, ""
+    """The result's own verdict (:class:`selfcal.toa.ToaResult` ``success`` / ``message``)."""
+    return bool(res.success), str(res.message or "the fit failed its residual test")

@@ -32,7 +32,9 @@ from numpy.typing import NDArray
 from ..errors import InputError
 from ._paths import _kind_name, note_input
 
-__all__ = ["WavData", "read_wav_file"]
+__all__ = ["CLIP_RUN", "WavData", "read_wav", "read_wav_file"]
+
+CLIP_RUN = 3  # this many consecutive full-scale samples mean the converter clipped
 
 _PCM, _FLOAT, _EXTENSIBLE = 0x0001, 0x0003, 0xFFFE
 _KNOWN = {0x0002: "MS ADPCM", 0x0006: "A-law", 0x0007: "mu-law", 0x0011: "IMA ADPCM", 0x0055: "MP3",
@@ -243,3 +245,48 @@ def _samples(raw: bytes, tag: int, container: int, end: str, frames: int, channe
         wide[:, 8 - container:] = b  # left-justified in 64 bits: the sign bit lands on bit 63
         n = (wide.view("<i8")[:, 0] >> (8 * (8 - container))).astype(np.float64)
     return (n / math.ldexp(1.0, 8 * container - 1)).reshape(frames, channels)
+
+
+def read_wav(path: str | Path) -> tuple[NDArray[np.float64], float]:
+    """Read a mono WAV as float (full scale = 1) and refuse clipped or malformed files.
+
+    Integer PCM of any depth (8-bit unsigned, 16, 24, 32-bit signed) is scaled by
+    ``2**(bits-1)`` of its container, to [-1, 1); float files (32 / 64 bit) are taken as is
+    (:func:`selfcal.io.wav.read_wav_file`). A run of :data:`CLIP_RUN` or more consecutive
+    samples at full scale means clipping.
+
+    Returns
+    -------
+    x : (N,) float64 array
+    sample_rate : float, Hz
+
+    Raises
+    ------
+    InputError
+        Missing, unreadable, not a WAV file, truncated (the header declares more samples than
+        the file holds), a compressed format, multi-channel, empty or clipped file (the message
+        starts with the file name).
+    """
+    p = Path(path)
+    w = read_wav_file(p, p.name)
+    if w.channels != 1:
+        raise InputError(f"{p.name}: has {w.channels} channels; each receiver needs a mono file")
+    x, fs = w.samples, w.sample_rate
+    if w.kind == "int":
+        at_full = (x >= 1.0 - w.step) | (x <= -1.0)
+    else:
+        at_full = np.abs(x) >= 1.0
+    run = _longest_run(at_full)
+    if run >= CLIP_RUN:
+        first = int(np.argmax(at_full))
+        raise InputError(f"{p.name}: clipped ({run} consecutive samples at full scale, first at "
+                         f"{first / fs:.3f} s); record at a lower level")
+    return x, float(fs)
+
+
+def _longest_run(mask: NDArray[np.bool_]) -> int:
+    if not mask.any():
+        return 0
+    padded = np.concatenate(([0], mask.astype(np.int8), [0]))
+    edges = np.flatnonzero(np.diff(padded))
+    return int((edges[1::2] - edges[::2]).max())

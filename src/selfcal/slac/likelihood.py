@@ -28,7 +28,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .antenna import basis_orders, fourier_basis
-from .signals import SPEED_OF_LIGHT, delayed_spectrum, phasors, range_wavenumber
+from .signals import delayed_spectrum, phasors, range_wavenumber
 
 __all__ = [
     "concentrated_loglik",
@@ -388,11 +388,6 @@ def fisher_blocks(
     pg *= w[:, None]
     bb = b.conj()[:, :, None] * b[:, None, :]
     return FisherBlocks(rr, pp, pg, w, bb, hg, int(M))
-
-
-def rho_from_tau(tau: float | FArray) -> float | FArray:
-    """Round-trip range ``c tau / 2`` in metres for delays in seconds."""
-    return SPEED_OF_LIGHT * np.asarray(tau) / 2.0
 
 
 _ = range_wavenumber  # re-exported for callers building X and k together

@@ -39,18 +39,19 @@ Ranges are applied at their own times: an odometry row whose interval contains r
 is split there (each piece a fraction of the row proportional to its duration), so no range
 is moved to the nearest odometry time.
 
-Length (~890 lines, above the package's ~600): the filter, the smoother, the calibration
-refit and the noise re-estimation are one engine over one private chain structure
-(``_Chain``, ``_Pass``); split into modules they would share every private type.
+Why this file is long (~600 lines, at the package's limit): the filter, the smoother, the
+calibration refit and the noise re-estimation are one engine over one private chain
+structure (``_Chain``, ``_Pass``); split into modules they would share every private type.
+What has a seam lives elsewhere: the inputs and the result in :mod:`selfcal.slac.range_model`,
+the filter's innovation tests in :mod:`selfcal.slac.consistency` (both re-exported here).
 """
 
 from __future__ import annotations
 
-import dataclasses
 import warnings
 from collections.abc import Iterable
 from dataclasses import dataclass, field
-from typing import Any, ClassVar
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -58,11 +59,12 @@ from scipy import stats
 from scipy.optimize import brentq
 
 from .._checks import entry, has_attributes
-from .._result import Result
-from ..errors import ConvergenceWarning, InputError, Status
+from ..errors import ConvergenceWarning, InputError
 from ..geometry import wrap_angle
-from ..robust import TUNING, loss_rho
+from ..robust import loss_rho
+from .consistency import innovation_tests
 from .odometry_em import odometry_noise_factors
+from .range_model import RangeLog, RangeModelConfig, RangeSlacResult
 
 __all__ = ["RangeLog", "RangeModelConfig", "RangeSlacResult", "solve_range_slac", "huber_weight", "innovation_tests"]
 
@@ -91,275 +93,6 @@ def huber_weight(e: FArray, k: float) -> FArray:
     """IRLS weight ``min(1, k / |e|)`` of the Huber loss for standardised residuals ``e``
     (``rho'`` of :func:`selfcal.robust.loss_rho` at ``z = (e / k)^2``)."""
     return loss_rho((np.asarray(e, dtype=float) / k) ** 2, "huber")[1]
-
-
-@dataclass(frozen=True)
-class RangeModelConfig:
-    """Priors and robustness settings of :func:`solve_range_slac` (each default by principle).
-
-    Attributes
-    ----------
-    range_noise : float
-        Prior std of one range (m), used by the causal filter. 0.3 m: the ranging error of
-        narrow-band radio / UWB time-of-flight ranging outdoors (decimetres; multipath is
-        left to the robust loss). The smoother re-estimates it from the data.
-    scale_std : float
-        Prior std of each scale ``s_b`` around 1. Clock-rate mismatch, propagation-speed and
-        calibration errors of time-of-flight radios give scale errors of a few percent;
-        0.1 keeps the prior weak over that range (a 7 % error is 0.7 sigma).
-    offset_std : float
-        Prior std (m) of each offset ``o_b`` around 0: antenna / electronics delays of
-        ranging radios are up to about a metre.
-    odo_distance : float
-        Odometry distance noise density (m^0.5): ``var(dd) = odo_distance^2 |dd|``, a random
-        walk in the distance travelled (wheel slip / radius errors of a few percent: 5 % of
-        one metre). Variances are additive over pieces, so splitting a row does not change them.
-    odo_turn : float
-        Heading noise per turned angle (rad^0.5): ``var(dpsi) += odo_turn^2 |dpsi|`` (5 %).
-    odo_drift : float
-        Heading noise per distance (rad / m^0.5): ``var(dpsi) += odo_drift^2 |dd|``; 1 deg
-        per square-root metre, the drift of a wheel-odometry / low-cost gyro heading.
-    init_position_std, init_heading_std : float
-        Std of the given first pose (m, rad): it is known (ground truth of the first row), so
-        the numbers only keep the first linearisation honest; beacons fix the frame anyway.
-    huber : float
-        Huber threshold in standard deviations; 1.345 gives 95 % efficiency at the Gaussian.
-    gate_quantile : float
-        A range whose squared standardised innovation (filter) or residual (smoother) exceeds
-        the chi2(1) quantile at this level is rejected (0.999: one good range in 1000 lost).
-    max_iter, tol : int, float
-        Smoother: at most ``max_iter`` Gauss-Newton iterations, stopped when no pose moves
-        more than ``tol`` metres (and no heading more than ``tol`` rad).
-    estimate_noise : bool
-        Learn the noise levels from the log instead of keeping the priors: the causal filter
-        re-estimates the range noise from its own past innovations (a robust median estimator
-        over the last ``noise_window`` ranges, so it stays causal); the smoother estimates the
-        range noise and the three odometry densities by expectation-maximisation (ML, Shumway &
-        Stoffer 1982) inside its Gauss-Newton iterations.
-    heading_noise_grid : tuple of float
-        Candidate factors on ``odo_turn`` and ``odo_drift``: the heading noise is chosen by
-        (robust) maximum likelihood over this grid, since a gyro-aided heading is far better
-        than the wheel-only prior (the largest, 1.0). The filter runs one robust EKF per
-        candidate and reports their mixture weighted by the predictive likelihood of the ranges
-        so far (multiple-model adaptive estimation, Magill 1965: causal); the smoother uses the
-        candidate of largest likelihood over the whole log. Log-spaced over 1.5 decades.
-    noise_window : int
-        Ranges in the filter's noise window: the median's relative standard error is about
-        ``1.25 / sqrt(window)`` (~6 % at 400) while a change of the radio environment is followed.
-    noise_rounds : int
-        Smoother with ``estimate_noise``: at most this many expectation-maximisation rounds of
-        the noise levels after the first solve (0 = keep the first estimate); an integer >= 0.
-    noise_tol : float
-        The EM rounds stop when no noise level changes by more than this relative amount
-        (``|log(new / old)|``); a finite number > 0.
-    lag_s : float
-        ``method="fixed-lag"``: seconds of data after a pose that its estimate uses (the
-        delay of the estimate when run online); a finite number > 0.
-
-    Raises
-    ------
-    InputError
-        A field of the wrong type or outside its range (named, with the value).
-    """
-
-    range_noise: float = 0.3
-    scale_std: float = 0.1
-    offset_std: float = 1.0
-    odo_distance: float = 0.05
-    odo_turn: float = 0.05
-    odo_drift: float = float(np.deg2rad(1.0))
-    init_position_std: float = 0.1
-    init_heading_std: float = float(np.deg2rad(2.0))
-    huber: float = TUNING["huber"]
-    gate_quantile: float = 0.999
-    max_iter: int = 30
-    tol: float = 1e-4
-    estimate_noise: bool = True
-    noise_window: int = 400
-    heading_noise_grid: tuple[float, ...] = (1.0, 0.3, 0.1, 0.03)
-    noise_rounds: int = 8
-    noise_tol: float = 0.05
-    lag_s: float = 30.0
-
-    def __post_init__(self) -> None:
-        for name in ("range_noise", "scale_std", "offset_std", "init_position_std", "init_heading_std", "huber", "tol",
-                     "noise_tol", "lag_s"):
-            v = getattr(self, name)
-            if isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, float, np.integer, np.floating)):
-                raise InputError(f"RangeModelConfig.{name} must be a positive number, got {type(v).__name__} {v!r}")
-            if not (np.isfinite(v) and v > 0):
-                raise InputError(f"RangeModelConfig.{name} must be a positive number, got {v!r}")
-        for name in ("odo_distance", "odo_turn", "odo_drift"):
-            v = getattr(self, name)
-            if isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, float, np.integer, np.floating)) \
-                    or not (np.isfinite(v) and v >= 0):
-                raise InputError(f"RangeModelConfig.{name} must be >= 0, got {v!r}")
-        q = self.gate_quantile
-        if isinstance(q, (bool, np.bool_)) or not isinstance(q, (int, float, np.integer, np.floating)) \
-                or not 0.5 < q <= 1.0:
-            raise InputError(f"RangeModelConfig.gate_quantile must be in (0.5, 1], got {self.gate_quantile!r}")
-        for name, low in (("max_iter", 1), ("noise_window", 1), ("noise_rounds", 0)):
-            v = getattr(self, name)
-            if isinstance(v, (bool, np.bool_)) or not isinstance(v, (int, np.integer)):
-                raise InputError(f"RangeModelConfig.{name} must be an integer >= {low}, got {type(v).__name__} {v!r}")
-            if v < low:
-                raise InputError(f"RangeModelConfig.{name} must be >= {low}, got {v!r}")
-        if not isinstance(self.estimate_noise, (bool, np.bool_)):
-            raise InputError(f"RangeModelConfig.estimate_noise must be True or False, got {self.estimate_noise!r}")
-        try:
-            grid = np.asarray(self.heading_noise_grid, dtype=float)
-        except (TypeError, ValueError):
-            grid = np.array([np.nan])
-        if grid.ndim != 1 or not (np.isfinite(grid).all() and (grid > 0).all()):
-            raise InputError("RangeModelConfig.heading_noise_grid must be a sequence of positive factors, got "
-                             f"{self.heading_noise_grid!r}")
-
-
-@dataclass(frozen=True)
-class RangeLog:
-    """The inputs of :func:`solve_range_slac` (seconds, metres, radians).
-
-    Attributes
-    ----------
-    beacons : (B, 2); beacon_ids : (B,) int (labels only)
-    start_time : float; start_pose : (3,) the given first pose
-    odo_times : (M,) increasing end times of the odometry rows; odo : (M, 2) ``[dd, dpsi]``
-    range_times, range_beacon, ranges : (K,) time, index into ``beacons``, measured range (m)
-    """
-
-    beacons: FArray
-    beacon_ids: IArray
-    start_time: float
-    start_pose: FArray
-    odo_times: FArray
-    odo: FArray
-    range_times: FArray
-    range_beacon: IArray
-    ranges: FArray
-
-    @classmethod
-    def from_dataset(cls, data: Any) -> RangeLog:
-        """From any object with the attributes of :class:`~selfcal.datasets.plaza.PlazaData`."""
-        return cls(beacons=np.asarray(data.beacons, dtype=float), beacon_ids=np.asarray(data.beacon_ids),
-                   start_time=float(data.start_time), start_pose=np.asarray(data.start_pose, dtype=float),
-                   odo_times=np.asarray(data.odo_times, dtype=float), odo=np.asarray(data.odo, dtype=float),
-                   range_times=np.asarray(data.range_times, dtype=float),
-                   range_beacon=np.asarray(data.range_beacon), ranges=np.asarray(data.ranges, dtype=float))
-
-    def __post_init__(self) -> None:
-        B = np.asarray(self.beacons).shape
-        if len(B) != 2 or B[1] != 2 or B[0] < 1:
-            raise InputError(f"beacons must be (B, 2), got {B}")
-        if np.asarray(self.start_pose).shape != (3,):
-            raise InputError("start_pose must be (3,) [x, y, psi]")
-        M = np.asarray(self.odo_times).shape
-        if len(M) != 1 or M[0] < 1 or np.asarray(self.odo).shape != (M[0], 2):
-            raise InputError("odo_times must be (M,) and odo (M, 2) with M >= 1")
-        K = np.asarray(self.ranges).shape
-        if len(K) != 1 or np.asarray(self.range_times).shape != K or np.asarray(self.range_beacon).shape != K:
-            raise InputError("range_times, range_beacon and ranges must be (K,) arrays of one length")
-        for name in ("beacons", "start_pose", "odo_times", "odo", "range_times", "ranges"):
-            if not np.all(np.isfinite(getattr(self, name))):
-                raise InputError(f"{name} must be finite")
-        rb = np.asarray(self.range_beacon)
-        if rb.size and (rb.min() < 0 or rb.max() >= B[0]):
-            raise InputError("range_beacon must index beacons")
-        if np.any(np.diff(self.odo_times) < 0) or self.odo_times[0] <= self.start_time:
-            raise InputError("odo_times must be non-decreasing and after start_time")
-
-
-@dataclass(frozen=True, repr=False)
-class RangeSlacResult(Result):
-    """Outcome of :func:`solve_range_slac` (the :class:`~selfcal._result.Result` convention).
-
-    Attributes
-    ----------
-    method : "filter" or "smoother".
-    times : (P,) pose times (the start, then each odometry row's end).
-    poses : (P, 3) ``[x, y, psi]``; pose_std : (P, 3) their standard deviations.
-    beacon_ids : (B,); scale, scale_std, offset, offset_std : (B,) range calibration (R1)
-        (filter: at the end of the log).
-    noise : float the prior range noise (m); noise_estimate : float the robust estimate from
-        the filter's innovations, for the smoother from its own final residuals (m; NaN with
-        fewer than 10 ranges, None in ``to_dict``).
-    heading_noise_factor : float the grid factor selected by maximum likelihood;
-        heading_noise_loglik : (G,) the robust log-likelihood of each grid factor.
-    ranges_used, ranges_rejected, ranges_outside : int (used in the final pass, gated, outside
-        the odometry span).
-    iterations : int (smoother Gauss-Newton iterations; 1 for the filter); converged : bool.
-    pose_cov : (P, 2, 2) position covariance of each pose (m^2; the 95 % ellipse is
-        ``e^T C^-1 e <= chi2_2(0.95)``); not in ``to_dict`` (use ``pose_std`` there).
-    odometry_noise_factor : (2,) the smoother's EM factors on the distance and heading noise
-        variances (1, 1 for the filter); ``heading_noise_factor`` already includes the square
-        root of the second.
-    calibration_cov : (B, 2, 2) covariance of each beacon's (scale, offset) at the end.
-    odometry_scale, odometry_scale_std : float; odometry_scale_weight : float
-        Filter: the estimated distance scale of the odometry (``dd_true = k dd``) mixed over
-        the candidates, its std, and the mixture weight of the candidates that estimate it
-        (the rest take it as exactly 1); smoother: 1, 0, 0.
-    innovation_test : dict
-        Filter: :func:`innovation_tests` on the innovations of the candidate of largest
-        weight (NIS level and whiteness); a failure sets ``status`` to ``FAILED_TEST`` and
-        warns (:class:`~selfcal.errors.ConvergenceWarning`). Empty for the smoother.
-    calibration_resets : int
-        Filter: beacon calibrations re-initialised by the M-of-N gate test (:data:`RECOVER_M`).
-    ``status`` / ``message`` / ``success`` come from :class:`~selfcal._result.Result`.
-    """
-
-    _repr_fields: ClassVar[tuple[str, ...]] = ("method", "scale", "offset", "noise_estimate", "iterations")
-
-    method: str
-    times: FArray
-    poses: FArray
-    pose_std: FArray
-    beacon_ids: IArray
-    scale: FArray
-    scale_std: FArray
-    offset: FArray
-    offset_std: FArray
-    noise: float
-    noise_estimate: float
-    heading_noise_factor: float
-    heading_noise_loglik: FArray
-    ranges_used: int
-    ranges_rejected: int
-    ranges_outside: int
-    iterations: int
-    converged: bool
-    pose_cov: FArray = field(default_factory=lambda: np.zeros((0, 2, 2)))
-    odometry_noise_factor: FArray = field(default_factory=lambda: np.ones(2))
-    calibration_cov: FArray = field(default_factory=lambda: np.zeros((0, 2, 2)))
-    odometry_scale: float = 1.0
-    odometry_scale_std: float = 0.0
-    odometry_scale_weight: float = 0.0
-    innovation_test: dict[str, float] = field(default_factory=dict)
-    calibration_resets: int = 0
-
-    def _diagnose(self) -> tuple[Status, str]:
-        if not self.converged:
-            return Status.NOT_CONVERGED, f"smoother stopped at its iteration limit ({self.iterations} iterations)"
-        if self.method == "filter":
-            t = self.innovation_test
-            if t and not t.get("passed", 1.0):
-                if t["nis_mean"] > t["nis_hi"]:
-                    why = (f"time-averaged NIS {t['nis_mean']:.3f} above its bound {t['nis_hi']:.3f} "
-                           "(the innovations are larger than the filter predicts)")
-                else:
-                    why = (f"innovations correlated from one range to the next (lag-one rho {t['whiteness_rho']:.2f}, "
-                           f"z = {t['whiteness_z']:.1f}: a persistent state error)")
-                return Status.FAILED_TEST, (f"causal filter failed its innovation test: {why}; "
-                                            "the reported covariances are overconfident")
-            if t and t.get("conservative", 0.0):
-                return Status.SUCCESS, (f"causal filter pass finished; time-averaged NIS {t['nis_mean']:.3f} below "
-                                        f"{t['nis_lo']:.3f}: the reported covariances are conservative (too large)")
-            return Status.SUCCESS, "causal filter pass finished; its innovations pass the NIS and whiteness tests"
-        return Status.SUCCESS, f"Gauss-Newton converged in {self.iterations} iterations"
-
-    def to_dict(self) -> dict[str, Any]:
-        """JSON-safe dict of every field (arrays as lists, NaN as None) + status / message / success."""
-        d = {f.name: getattr(self, f.name) for f in dataclasses.fields(self) if f.name != "pose_cov"}
-        d["units"] = {"position": "m", "heading": "rad", "offset": "m", "time": "s"}
-        return d
 
 
 @dataclass
@@ -670,116 +403,6 @@ def _refit_calibration(x: FArray, ch: _Chain, log: RangeLog, cfg: RangeModelConf
         p0 = np.array([x[-1, 3 + b], x[-1, 3 + B + b]])
         sol = least_squares(f, p0, loss="huber", f_scale=cfg.huber, x_scale=np.array([cfg.scale_std, cfg.offset_std]))
         out[:, 3 + b], out[:, 3 + B + b] = sol.x
-    return out
-
-
-def innovation_tests(nu: FArray, beacon: IArray, gate2: float, *, tolerance: float = 1.3,
-                     alpha: float = 0.01) -> dict[str, float]:
-    """Consistency tests of a Kalman filter on its normalised innovations (Bar-Shalom et al. 2001, 5.4).
-
-    Parameters
-    ----------
-    nu : (K,) normalised innovations ``y_k / sqrt(S_k)`` of the ranges the filter applied,
-        in time order (``S_k = H P H^T + sigma^2``, before any robust down-weighting).
-    beacon : (K,) the beacon of each range (the whiteness test pairs consecutive ranges of
-        one beacon).
-    gate2 : the gate on ``nu^2`` the applied ranges passed (``inf``: none).
-    tolerance : the variance ratio ``lambda`` (true / reported) tolerated before a run counts
-        as inconsistent; 1.3 is where a reported 95 % ellipse (2-D) still covers 90 %
-        (``P(chi2_2 < chi2_2(0.95) / 1.3) = 0.90``).
-    alpha : level of each test.
-
-    Returns
-    -------
-    dict
-        ``nis_mean`` (the time-averaged NIS) and ``nis_lo`` / ``nis_hi``, the interval it
-        must lie in (``mu / tolerance`` and ``tolerance mu`` widened by the two-sided
-        ``1 - alpha`` normal quantile of its sampling error), ``nis_p`` (the p-value of the
-        violated side, 1 inside); ``whiteness_rho`` (the lag-one autocorrelation of each
-        beacon's innovations, pooled over ``pairs`` pairs), ``whiteness_z``
-        (``sqrt(pairs) rho``) and ``whiteness_p`` (p-value of ``rho <= rho_max`` with
-        ``(1 + rho_max) / (1 - rho_max) = tolerance``); ``passed`` (0.0 when the NIS is
-        above ``nis_hi`` or the whiteness test rejects: the covariances are overconfident)
-        and ``conservative`` (1.0 when the NIS is below ``nis_lo``: the covariances are too
-        large, which does not fail the run).
-
-    Notes
-    -----
-    Under a consistent filter the normalised innovations are independent N(0, 1) (the
-    innovations of a Kalman filter are white, Kailath 1968), so the time-averaged NIS of
-    ``K`` of them estimates the variance ratio ``lambda`` with the sampling error of
-    ``chi2_K / K``. The applied ranges passed the gate, so their NIS is the chi2(1)
-    truncated at ``gate2``, whose mean ``mu = P(chi2_3 < c) / P(chi2_1 < c)`` and second
-    moment ``3 P(chi2_5 < c) / P(chi2_1 < c)`` give the normal interval (K is in the
-    hundreds). A filter whose range noise is estimated from its own innovations matches the
-    NIS level by construction, so the level test sees a wrong noise model; an
-    overconfident state covariance shows instead as innovations that stay on one side for
-    many ranges (a state error persists), i.e. positive autocorrelation, which the
-    whiteness test (``sqrt(n) (rho - rho_max) ~ N(0, 1)`` at the boundary) detects; an
-    AR(1) error of correlation ``rho`` inflates the variance of an average by
-    ``(1 + rho) / (1 - rho)``, hence ``rho_max`` from the same tolerance.
-
-    Both are tests of practical, not only statistical, significance: with thousands of
-    ranges a test of exact consistency rejects a real log for a 5 % misfit of the noise
-    model's tails (Plaza 1: NIS 1.09, rho 0.04), while the failures it must catch have
-    variance ratios of several (NEES 10-200).
-
-    References
-    ----------
-    - Bar-Shalom, Y., Li, X. R. and Kirubarajan, T., "Estimation with Applications to
-      Tracking and Navigation", Wiley (2001), section 5.4.2 (NIS and whiteness tests).
-    - Mehra, R. K., "On the identification of variances and adaptive Kalman filtering",
-      IEEE TAC 15 (1970).
-    - Wellek, S., "Testing Statistical Hypotheses of Equivalence", Chapman & Hall (2003).
-
-    Examples
-    --------
-    >>> import numpy as np
-    >>> g = np.random.default_rng(0)
-    >>> t = innovation_tests(g.standard_normal(2000), np.arange(2000) % 4, np.inf)
-    >>> bool(t["passed"]), bool(t["nis_lo"] < t["nis_mean"] < t["nis_hi"])
-    (True, True)
-    >>> bool(innovation_tests(2 * g.standard_normal(2000), np.arange(2000) % 4, np.inf)["passed"])
-    False
-    """
-    nu = np.asarray(nu, dtype=float)
-    beacon = np.asarray(beacon)
-    K = nu.size
-    out = {"nis_mean": float("nan"), "nis_lo": float("nan"), "nis_hi": float("nan"), "nis_p": float("nan"),
-           "whiteness_rho": float("nan"), "whiteness_z": float("nan"), "whiteness_p": float("nan"),
-           "pairs": 0.0, "passed": 1.0, "conservative": 0.0}
-    if K < 2:
-        return out
-    c = float(gate2)
-    p1 = float(stats.chi2.cdf(c, 1)) if np.isfinite(c) else 1.0
-    mu = float(stats.chi2.cdf(c, 3)) / p1 if np.isfinite(c) else 1.0
-    m2 = 3.0 * float(stats.chi2.cdf(c, 5)) / p1 if np.isfinite(c) else 3.0
-    sd = float(np.sqrt((m2 - mu * mu) / K))
-    lam = float(tolerance)
-    z = float(stats.norm.ppf(1 - alpha / 2))
-    nis = float(np.mean(nu**2))
-    p_hi = float(stats.norm.sf((nis - lam * mu) / (lam * sd)))
-    p_lo = float(stats.norm.cdf((nis - mu / lam) / (sd / lam)))
-    out.update(nis_mean=nis, nis_lo=(mu - z * sd) / lam, nis_hi=lam * (mu + z * sd),
-               nis_p=min(1.0, 2 * min(p_hi, p_lo)))
-    num = a2 = b2 = 0.0
-    n = 0
-    for b in np.unique(beacon):
-        v = nu[beacon == b]
-        if v.size < 2:
-            continue
-        num += float(v[1:] @ v[:-1])
-        a2 += float(v[1:] @ v[1:])
-        b2 += float(v[:-1] @ v[:-1])
-        n += v.size - 1
-    rho_max = (lam - 1) / (lam + 1)
-    if n >= 2 and a2 > 0 and b2 > 0:
-        rho = float(num / np.sqrt(a2 * b2))
-        out.update(whiteness_rho=rho, whiteness_z=float(np.sqrt(n) * rho),
-                   whiteness_p=float(stats.norm.sf(np.sqrt(n) * (rho - rho_max))), pairs=float(n))
-    over = nis > out["nis_hi"] or (np.isfinite(out["whiteness_p"]) and out["whiteness_p"] < alpha)
-    out["passed"] = 0.0 if over else 1.0
-    out["conservative"] = 1.0 if nis < out["nis_lo"] else 0.0
     return out
 
 

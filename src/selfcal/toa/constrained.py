@@ -56,7 +56,19 @@ from scipy.optimize import least_squares
 
 from ..errors import DegenerateGeometryError, InputError
 from ..optim.structure import TRF_EXACT_MAX, lm_step
-from .schur_affine import RangeSchurModel
+from .model import (
+    _TUNING,
+    NlsSolution,
+    _node_indices,
+    _rho,
+    _robust_sigma,
+    _unpack,
+    gauge_basis,
+    toa_jacobian,
+    toa_model,
+    toa_residuals,
+)
+from .schur_affine import MAX_GLOBAL, RangeSchurModel, local_blocks
 
 Array = NDArray[np.float64]
 BoolArray = NDArray[np.bool_]
@@ -113,12 +125,6 @@ class Constraints:
             self.fixed_r.any() or self.fixed_s.any()
             or np.isfinite(self.prior_r_mean).any() or np.isfinite(self.prior_s_mean).any()
         )
-
-    @property
-    def has_priors(self) -> bool:
-        """True when any position prior is active (on a coordinate that is not fixed)."""
-        return bool((np.isfinite(self.prior_r_mean) & ~self.fixed_r).any()
-                    or (np.isfinite(self.prior_s_mean) & ~self.fixed_s).any())
 
 
 def _mask(value: Any, n: int, d: int, name: str) -> BoolArray:
@@ -261,7 +267,6 @@ def _parametrise(con: Constraints, r0: Array, s0: Array) -> _Param:
 
 def _residual_gauge(par: _Param, con: Constraints, r0: Array, s0: Array, offsets: str) -> Array:
     """Orthonormal basis (p, g') of the gauge directions that survive the constraints."""
-    from .nls import gauge_basis
 
     Q = gauge_basis(r0, s0, offsets)  # (n, g)
     I, d = r0.shape
@@ -295,12 +300,6 @@ def _residual_gauge(par: _Param, con: Constraints, r0: Array, s0: Array, offsets
     return np.asarray(q)
 
 
-def _rho(z: Array, loss: str) -> tuple[Array, Array]:
-    from .nls import _rho as rho
-
-    return rho(z, loss)
-
-
 def _engine_partition(
     TF: scipy.sparse.csc_matrix, I: int, J: int, d: int, offsets: str, engine: str, loss: str
 ) -> tuple[NDArray[np.intp], NDArray[np.intp]] | None:
@@ -316,8 +315,6 @@ def _engine_partition(
     gross 0.5 m errors, Huber at a given scale: a higher cost than trf's on 3 of 8 seeds, a
     lower one on 1; the same on 4).
     """
-    from .nls import _node_indices
-    from .schur_affine import MAX_GLOBAL, local_blocks
     if engine == "trf" or (engine == "auto" and (lm_step(TF.shape[1]) == "dense" or loss != "linear")):
         return None
     r_idx, s_idx, n = _node_indices(I, J, d, offsets)
@@ -349,7 +346,6 @@ def refine_constrained(
     """
     from ..geometry import canonical_gauge
     from .covariance import resolve_covariance
-    from .nls import _TUNING, NlsSolution, _robust_sigma, _unpack, toa_jacobian, toa_residuals
 
     I, J = Y.shape
     d = r0.shape[1]
@@ -470,7 +466,6 @@ def refine_constrained(
 
     th = theta_of(xf)
     r, s, dr, os_ = _unpack(th, I, J, d, offsets)
-    from .nls import toa_model
 
     model = toa_model(r, s, dr, os_)
     resid = np.where(obs, Y - model, np.nan)
@@ -527,7 +522,6 @@ def _sigma_fixed_point(f_meas: Array, zp: Array, m: int, n_prior: int, n_free: i
     ``RSS_meas + sigma^2 sum zp^2`` and its expectation ``sigma^2 (m + n_prior - n_free)``;
     solving for sigma gives ``sigma^2 = RSS_meas / (m - n_free + n_prior - sum zp^2)``.
     """
-    from .nls import _robust_sigma
 
     dof = m + n_prior - n_free
     if loss != "linear":
@@ -559,7 +553,6 @@ class _LuInverse:
 
     def __init__(self, th: Array, Y: Array, d: int, offsets: str, TF: scipy.sparse.csc_matrix,
                  prior_pos: NDArray[np.intp], wprior: Array, drho: Array, m: int) -> None:
-        from .nls import toa_jacobian
 
         Jm = toa_jacobian(th, Y, d, offsets) @ TF
         W = scipy.sparse.diags(drho[:m])
@@ -603,7 +596,6 @@ def _node_covariances(
     LU of the normal matrix, :class:`_LuInverse`; the Schur engine's
     :class:`selfcal.toa.schur_affine.SchurInverse` on its path).
     """
-    from .nls import _node_indices
 
     if inverse is None:
         inverse = _LuInverse(th, Y, d, offsets, TF, prior_pos, wprior, drho, m)

@@ -8,7 +8,7 @@ receivers / sources) and the *eliminated* set E::
 
 because every range touches one receiver and one source. The gauge (rigid motions and,
 with both offset kinds, the common offset shift) is fixed by pinning g coordinates on the
-K side (:func:`selfcal.toa.nls._make_layout`); pinned coordinates are decoupled (their
+K side (:func:`selfcal.toa.model._make_layout`); pinned coordinates are decoupled (their
 rows and columns of the reduced matrix replaced by the identity) instead of removed, so no
 array is re-indexed. With ``F = B D^-1`` and the Schur complement ``S = A - B D^-1 B^T``
 the pinned inverse ``C`` has the blocks
@@ -103,7 +103,7 @@ import scipy.linalg
 from numpy.typing import NDArray
 
 from ..errors import DegenerateGeometryError, InputError
-from .nls import _flags, _Layout, _make_layout, _pack, _pinned_positions, _unpack, gauge_basis
+from .model import _flags, _Layout, _make_layout, _pack, _pinned_positions, _unpack, gauge_basis
 
 __all__ = [
     "COVARIANCE_MODES",
@@ -391,7 +391,7 @@ def gauge_free_blocks(
     ----------
     theta : (n,) parameter vector, receiver-major ``[r, s, d?, o?]`` (:mod:`selfcal.toa.nls`).
     w : (I, J) weights of the ranges (``1/sigma_ij^2``, or the final IRLS weights), 0 = missing.
-    lay : layout of :func:`selfcal.toa.nls._make_layout` (kept side, pinned coordinates).
+    lay : layout of :func:`selfcal.toa.model._make_layout` (kept side, pinned coordinates).
     receivers, sources : indices of the blocks to compute (None = all); the others are NaN.
     threads : BLAS threads for the dense algebra (syrk, potrf, trsm, trtri); None =
         :func:`dense_threads` above ``_THREADS_MIN_N`` reduced coordinates, the caller's

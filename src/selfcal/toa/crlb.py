@@ -20,6 +20,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .._checks import as_points, check_choice
+from .._result import Result
 from ..errors import InputError
 from .covariance import gauge_free_blocks, is_local, normalize_covariance, resolve_covariance
 from .nls import OFFSET_MODES, _flags, _make_layout, _pack
@@ -29,9 +30,14 @@ __all__ = ["CrlbResult", "toa_crlb"]
 Array = NDArray[np.float64]
 
 
-@dataclass(frozen=True)
-class CrlbResult:
+@dataclass(frozen=True, repr=False)
+class CrlbResult(Result):
     """Gauge-free CRLB of every point and offset (metres, metres^2).
+
+    Follows the :class:`~selfcal._result.Result` convention (``status`` / ``success`` /
+    ``message``, ``summary()``, ``to_dict()``); a bound has no iteration or test, so it is
+    always a success. ``receiver_cov`` / ``source_cov`` are the convention's names for the
+    position bounds (aliases of ``receiver_bounds`` / ``source_bounds``).
 
     Attributes
     ----------
@@ -50,6 +56,16 @@ class CrlbResult:
     source_trace: Array
     rmse_receivers: float
     rmse_sources: float
+
+    @property
+    def receiver_cov(self) -> Array:
+        """(I, d, d) receiver position bounds (m^2), the convention's name for ``receiver_bounds``."""
+        return self.receiver_bounds
+
+    @property
+    def source_cov(self) -> Array:
+        """(J, d, d) source position bounds (m^2), the convention's name for ``source_bounds``."""
+        return self.source_bounds
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-safe dict (arrays as lists)."""

@@ -57,6 +57,7 @@ from .nodes import (
     replace_fields,
     resolve_node,
 )
+from .result import ToaResult
 
 __all__ = [
     "FrameInfo",
@@ -187,7 +188,7 @@ def apply_frame(result: Any, frame: str | Mapping[str, Any], *, matrix: Any = No
     scv = rotate_covariances(np.asarray(result.source_cov, float), Rm)
     out = replace_fields(result, receivers=Rn, sources=Sn, receiver_cov=rc, source_cov=scv,
                    method=f"{result.method}+frame")
-    if getattr(result, "uniqueness", None) is not None:  # the alternatives in the same frame
+    if isinstance(result, ToaResult) and result.uniqueness is not None:  # the alternatives in the same frame
         out = replace_fields(out, uniqueness=result.uniqueness.moved(Rm, t))
     # (dropped nodes have NaN positions and covariances: the refit is over the located ones)
     loc_r, loc_s = np.isfinite(Rn).all(1), np.isfinite(Sn).all(1)

@@ -193,7 +193,7 @@ def align_known(result: Any, known: Sequence[KnownNode]) -> FramedToaResult:
     fields: dict[str, Any] = {"receivers": R0 @ Rm.T + t, "sources": S0 @ Rm.T + t,
                               "method": f"{result.method}+aligned({len(usable)} known)"}
     for key in ("receiver_cov", "source_cov"):
-        cov = getattr(result, key, None)
+        cov = getattr(result, key)
         if cov is not None:
             fields[key] = rotate_covariances(np.asarray(cov, float), Rm)
     out = replace_fields(result, **fields)

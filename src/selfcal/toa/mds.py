@@ -37,6 +37,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .._checks import as_rng, check_choice, check_dim
+from .._result import Result
 from ..errors import DegenerateGeometryError
 from ..geometry import canonical_gauge
 from .mds_alg2 import mds_alg2
@@ -80,9 +81,13 @@ _ALG2_MAX_FLOPS = 3e7
 # ---------------------------------------------------------------------------------------
 
 
-@dataclass(frozen=True)
-class InitResult:
+@dataclass(frozen=True, repr=False)
+class InitResult(Result):
     """An initial guess and how it was chosen.
+
+    Follows the :class:`~selfcal._result.Result` convention (``status`` / ``success`` /
+    ``message``, ``summary()``, ``to_dict()``); an initial guess carries no test of its
+    own, so it is a success whenever it was produced.
 
     ``receivers`` (I, d) and ``sources`` (J, d) in metres, in selfcal's canonical gauge;
     ``method`` the candidate kept; ``residual_rms`` its range residual (metres);

@@ -24,6 +24,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from .._result import WrappedResult
 from ..errors import InputError
 
 __all__ = ["FrameInfo", "FramedToaResult", "KnownNode", "check_frame", "node_names", "node_positions",
@@ -91,21 +92,17 @@ class FrameInfo:
         return dataclasses.asdict(self) | {"references": list(self.references)}
 
 
-@dataclass(frozen=True)
-class FramedToaResult:
+@dataclass(frozen=True, repr=False)
+class FramedToaResult(WrappedResult):
     """A :class:`selfcal.toa.solve.ToaResult` in the user's frame plus its :class:`FrameInfo`.
 
     Every attribute of the wrapped result (``receivers``, ``sources``, covariances, ...)
-    is available directly; ``to_dict()`` adds the key ``"frame"``.
+    is available directly; ``to_dict()`` adds the key ``"frame"``. A
+    :class:`~selfcal._result.WrappedResult`: status, summary and dict follow the
+    :class:`~selfcal._result.Result` convention.
     """
 
-    result: Any
     frame: FrameInfo = field(default_factory=lambda: FrameInfo("canonical"))
-
-    def __getattr__(self, name: str) -> Any:
-        if name in ("result", "frame") or name.startswith("__"):
-            raise AttributeError(name)
-        return getattr(self.result, name)
 
     def to_dict(self) -> dict[str, Any]:
         """The wrapped result's dictionary with ``"frame"`` added."""
@@ -328,7 +325,7 @@ def parse_frame(spec: str | Mapping[str, Any]) -> dict[str, str]:
 
 def units(result: Any) -> float:
     """Metres per matrix unit of a result (its ``speed``, else 1)."""
-    spd = getattr(result, "speed", None)
+    spd = result.speed
     return 1.0 if spd is None else float(spd)
 
 

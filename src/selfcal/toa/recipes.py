@@ -84,6 +84,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .._checks import as_matrix, check_choice, check_toa_observable
+from .._result import WrappedResult
 from ..errors import InputError
 from ..robust import mad_std
 
@@ -197,12 +198,13 @@ def detect_time_order(matrix: Any, *, alpha: float = TIME_ORDER_ALPHA,
     return TimeOrderTest(bool(p <= alpha), p, ratio, float(alpha), len(perm))
 
 
-@dataclass(frozen=True)
-class RecipeResult:
+@dataclass(frozen=True, repr=False)
+class RecipeResult(WrappedResult):
     """A :class:`selfcal.toa.solve.ToaResult` plus what the recipe did to the data.
 
     Every attribute of the wrapped result is available directly; ``to_dict()`` adds the
-    key ``"recipe"``.
+    key ``"recipe"``; status, summary and dict follow the :class:`~selfcal._result.Result`
+    convention (:class:`~selfcal._result.WrappedResult`).
 
     Attributes
     ----------
@@ -213,17 +215,11 @@ class RecipeResult:
     details: recipe-specific numbers (e.g. the profiled common offset).
     """
 
-    result: Any
     recipe: str
     rejected: NDArray[np.bool_]
     dropped_sources: tuple[int, ...] = ()
     dropped_receivers: tuple[int, ...] = ()
     details: dict[str, Any] = field(default_factory=dict)
-
-    def __getattr__(self, name: str) -> Any:
-        if name in ("result", "recipe", "rejected", "details") or name.startswith("__"):
-            raise AttributeError(name)
-        return getattr(self.result, name)
 
     @property
     def n_rejected(self) -> int:
@@ -264,24 +260,24 @@ def _embed_columns(result: Any, keep: NDArray[np.bool_], J: int, M: Array) -> An
         "sources": put(result.sources, (d,)),
         "source_cov": put(result.source_cov, (d, d)),
         "source_offsets": put(result.source_offsets, ()),
-        "source_offset_std": put(getattr(result, "source_offset_std", None), ()),
+        "source_offset_std": put(result.source_offset_std, ()),
     }
-    if getattr(result, "residuals", None) is not None:
+    if result.residuals is not None:
         res = np.full((M.shape[0], J), np.nan)
         res[:, keep] = result.residuals
         kw["residuals"] = res
-    if getattr(result, "outliers", None) is not None:
+    if result.outliers is not None:
         out = np.zeros((M.shape[0], J), bool)
         out[:, keep] = result.outliers
         kw["outliers"] = out
     if "dropped_sources" in names:
         # the solver's drops are in the kept columns' numbering; every NaN row is reported
         cols = np.nonzero(keep)[0]
-        solver = {int(cols[j]) for j in getattr(result, "dropped_sources", ())}
+        solver = {int(cols[j]) for j in result.dropped_sources}
         kw["dropped_sources"] = tuple(sorted(solver | {int(j) for j in np.nonzero(~keep)[0]}))
     if "n_missing" in names:
         kw["n_missing"] = int((~np.isfinite(M)).sum())
-    det = getattr(result, "determinacy", None)
+    det = result.determinacy
     if det is not None and "determinacy" in names:  # the undetermined nodes in the caller's numbering
         kw["determinacy"] = det.embedded(None, keep)
         if det.n_undetermined:
@@ -417,9 +413,9 @@ def moving_tag(
                 if cv is not None:
                     details["offsets_choice"] = cv.to_dict()
                 details["offsets"] = res.offsets
-        inner = getattr(res, "determinacy", None)
+        inner = res.determinacy
         res = _embed_columns(res, keep, J, M)
-        _reissue(caught, inner, getattr(res, "determinacy", None))
+        _reissue(caught, inner, res.determinacy)
         return RecipeResult(res, "moving-tag", rej.outliers, dropped, (), details)
     res = _embed_columns(res, keep, J, M)
     return RecipeResult(res, "moving-tag", rej.outliers, dropped, (), details)

@@ -31,6 +31,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
+from .model import least_squares_offsets
 from .moves import Start
 
 __all__ = ["SCALE_FACTORS", "distance_lower_bounds", "scaled_random_starts"]
@@ -91,8 +92,6 @@ def scaled_random_starts(Y: Array, dim: int, offsets: str, rng: np.random.Genera
     60-80 % of the true receiver distances, 20-30 % of the source distances); every start is
     refined to a local minimum, so the scale only has to put the starts in the right region.
     """
-    from .search import least_squares_offsets  # the search imports this module's caller
-
     sr = _coordinate_std(distance_lower_bounds(Y), dim)
     ss = _coordinate_std(distance_lower_bounds(Y.T), dim)
     if not (sr > 0 or ss > 0):

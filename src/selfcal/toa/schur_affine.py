@@ -49,6 +49,7 @@ from ..errors import DegenerateGeometryError
 from ..optim.lm import Model, levenberg_marquardt
 from ..robust import loss_rho
 from .dense_lm import _solve as _direct_solve  # Cholesky (posv), least squares if not PD
+from .model import _unpack
 
 Array = NDArray[np.float64]
 IntArray = NDArray[np.intp]
@@ -440,8 +441,6 @@ class RangeSchurModel:
 
     def values(self, theta: Array, f: Array, w: Array, wprior: Array) -> tuple[Array, Array]:
         """Jacobian values on the pattern, curvature weights (see the class docstring)."""
-        from .nls import _unpack
-
         d, m = self.d, self.m
         r, s, _, _ = _unpack(theta, self.I, self.J, d, self.offsets)
         diff = r[self.ii] - s[self.jj]

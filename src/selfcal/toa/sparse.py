@@ -50,9 +50,10 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from .._checks import entry
+from .._checks import check_pairs, entry
 from .._result import Result
 from ..errors import DegenerateGeometryError, InputError
+from .sparse_covariance import sparse_covariance_blocks
 
 __all__ = ["SparseToaResult", "refine_toa_sparse", "initialize_toa_sparse", "solve_toa_sparse",
            "simulate_sparse_network"]
@@ -107,45 +108,6 @@ class SparseToaResult(Result):
     source_cov: Array | None = None
 
 
-def _check_pairs(i: object, j: object, ranges: object, I: int | None, J: int | None
-                 ) -> tuple[Index, Index, Array, int, int]:
-    ii = np.asarray(i)
-    jj = np.asarray(j)
-    y = np.asarray(ranges, dtype=float)
-    if ii.ndim != 1 or jj.shape != ii.shape or y.shape != ii.shape:
-        raise InputError(f"i, j and ranges must be 1-D arrays of one length, got shapes "
-                         f"{ii.shape}, {jj.shape}, {y.shape}")
-    if ii.size and not (np.issubdtype(ii.dtype, np.integer) and np.issubdtype(jj.dtype, np.integer)):
-        raise InputError("i and j must be integer node indices")
-    if not np.isfinite(y).all():
-        raise InputError("ranges must be finite (list only the observed pairs)")
-    if ii.size and (ii.min() < 0 or jj.min() < 0):
-        raise InputError("node indices must be >= 0")
-    if ii.size == 0:
-        raise InputError("i, j and ranges are empty: give the observed pairs")
-    if y.dtype.kind == "b" or np.asarray(ranges).dtype.kind == "b":
-        raise InputError("ranges holds booleans (True / False), not measured ranges")
-    I = int(ii.max()) + 1 if I is None else int(I)
-    J = int(jj.max()) + 1 if J is None else int(J)
-    if ii.size and (ii.max() >= I or jj.max() >= J):
-        raise InputError(f"node index out of range for {I} receivers and {J} sources")
-    from .._checks import guard_size
-
-    # ~64 float64 per node: positions, offsets, the growth's bookkeeping and the normal blocks
-    guard_size(float(I + J) * 8.0 * 64, f"a sparse network of {I} receivers and {J} sources")
-    # nodes without a range are never located, and a fit reaching less than half of the
-    # nodes is refused (solve_toa_sparse): refuse it before anything the size of I + J is made
-    seen = np.unique(ii).size + np.unique(jj).size
-    if I + J > 2 * seen:
-        raise DegenerateGeometryError(
-            f"{I} receivers and {J} sources, but only {seen} of them appear in the {ii.size} pairs: less than "
-            f"half of the nodes could be located (check n_receivers / n_sources)", kind="unobservable-node")
-    key = ii.astype(np.int64) * J + jj
-    if np.unique(key).size != key.size:
-        raise InputError("a (receiver, source) pair is listed twice; average repeated ranges first")
-    return ii.astype(np.intp), jj.astype(np.intp), y, I, J
-
-
 def _counts_ok(i: Index, j: Index, I: int, J: int, need: int) -> None:
     for kind, idx, n in (("receiver", i, I), ("source", j, J)):
         c = np.bincount(idx, minlength=n)
@@ -190,8 +152,6 @@ def _result(i: Index, j: Index, y: Array, r: Array, s: Array, conv: bool, it: in
     assert sc is not None
     Cr = Cs = None
     if cov is not None and (cov[0].size or cov[1].size):
-        from .sparse_covariance import sparse_covariance_blocks
-
         Br, Bs = sparse_covariance_blocks(i, j, r, s, covariance=cov)
         Cr, Cs = (rotate_covariances(B * noise**2, al.rotation) for B in (Br, Bs))
     return SparseToaResult(
@@ -251,7 +211,7 @@ def refine_toa_sparse(
     r0 = as_points(receivers0, "receivers0")
     d = r0.shape[1]
     s0 = as_points(sources0, "sources0", dim=d)
-    ii, jj, y, I, J = _check_pairs(i, j, ranges, r0.shape[0], s0.shape[0])
+    ii, jj, y, I, J = check_pairs(i, j, ranges, r0.shape[0], s0.shape[0])
     cov = _sparse_request(covariance, I, J)
     _counts_ok(ii, jj, I, J, d)
     r, s, conv, it = _lm(ii, jj, y, r0, s0, max_nfev, xtol)
@@ -443,7 +403,7 @@ def initialize_toa_sparse(
     """
     from .solve import solve_toa
 
-    ii, jj, y, I, J = _check_pairs(i, j, ranges, n_receivers, n_sources)
+    ii, jj, y, I, J = check_pairs(i, j, ranges, n_receivers, n_sources)
     gen = np.random.default_rng(rng)
     d = int(dim)
     best = None
@@ -590,7 +550,7 @@ def solve_toa_sparse(
     >>> bool(sol.converged), bool(sol.noise_estimate < 0.02)
     (True, True)
     """
-    ii, jj, y, I, J = _check_pairs(i, j, ranges, n_receivers, n_sources)
+    ii, jj, y, I, J = check_pairs(i, j, ranges, n_receivers, n_sources)
     want_r, want_s = _sparse_request(covariance, I, J)
     d = int(dim)
     gen = np.random.default_rng(rng)
@@ -620,8 +580,6 @@ def _with_covariance(sol: SparseToaResult, ii: Index, jj: Index, y: Array, want_
     m = np.isfinite(sol.residuals)
     ridx, sidx = np.cumsum(lr) - 1, np.cumsum(ls) - 1
     sub_r, sub_s = ridx[want_r[lr[want_r]]], sidx[want_s[ls[want_s]]]
-    from .sparse_covariance import sparse_covariance_blocks
-
     # the fit's positions are in the canonical frame already: the gauge-free blocks there are too
     Br, Bs = sparse_covariance_blocks(ridx[ii[m]], sidx[jj[m]], sol.receivers[lr], sol.sources[ls],
                                       covariance=(sub_r, sub_s))

@@ -87,16 +87,15 @@ def sparse_covariance_blocks(
     """
     from scipy.sparse.linalg import LinearOperator, cg
 
-    from .._checks import as_points
+    from .._checks import as_points, check_pairs
     from .covariance import is_local, normalize_covariance, resolve_covariance
     from .nls import gauge_basis
-    from .sparse import _check_pairs
 
     r = as_points(receivers, "receivers")
     d = r.shape[1]
     s = as_points(sources, "sources", dim=d)
     I, J = r.shape[0], s.shape[0]
-    ii, jj, _, _, _ = _check_pairs(i, j, np.zeros(np.asarray(i).shape), I, J)
+    ii, jj, _, _, _ = check_pairs(i, j, np.zeros(np.asarray(i).shape), I, J)
     w = np.ones(ii.size) if weights is None else np.asarray(weights, float)
     if w.shape != ii.shape or not np.isfinite(w).all() or (w < 0).any():
         raise InputError(f"weights must be {ii.size} finite non-negative numbers (1 / sigma^2)")
