@@ -82,16 +82,8 @@ def fit_known(
     c, R0, S0, ok_r, ok_s = data.c, data.receivers, data.sources, data.ok_r, data.ok_s
     I, d = R0.shape
     J = S0.shape[0]
-    usable = [k for k in known if (ok_r if k.kind == "receiver" else ok_s)[k.index]]
-    dropped = [k.name for k in known if k not in usable]
-    if not usable:
-        raise DegenerateGeometryError("none of the known nodes has an estimated position", kind="degenerate-frame")
-    est = np.array([node_positions(result, k.kind)[k.index] for k in usable])
-    ref = np.array([k.position for k in usable], float)
-    stds = np.array([k.std if k.std is not None else 0.0 for k in usable])
-    rank, spread = _affine_rank(ref)
-    tiny = max(1e-3 * spread, 1e-9) if spread > 0 else 1e-3
-    w = 1.0 / np.maximum(stds, tiny * 1e-3) ** 2
+    usable, dropped, est, ref, w, rank = _matched(
+        result, known, lambda k: bool((ok_r if k.kind == "receiver" else ok_s)[k.index]))
     full = rank == d
     # (a) align on the known nodes; the undetermined part stays at the canonical gauge
     # (reflection is a choice only when the references span the space)
@@ -179,16 +171,9 @@ def align_known(result: Any, known: Sequence[KnownNode]) -> FramedToaResult:
     R0 = np.asarray(result.receivers, float)
     S0 = np.asarray(result.sources, float)
     d = R0.shape[1]
-    usable = [k for k in known if np.isfinite(node_positions(result, k.kind)[k.index]).all()]
-    dropped = [k.name for k in known if k not in usable]
-    if not usable:
-        raise DegenerateGeometryError("none of the known nodes has an estimated position", kind="degenerate-frame")
-    est = np.array([node_positions(result, k.kind)[k.index] for k in usable])
-    ref = np.array([k.position for k in usable], float)
-    stds = np.array([k.std if k.std is not None else 0.0 for k in usable])
-    rank, spread = _affine_rank(ref)
-    tiny = max(1e-3 * spread, 1e-9) if spread > 0 else 1e-3
-    Rm, t = _rigid(est, ref, 1.0 / np.maximum(stds, tiny * 1e-3) ** 2, allow_reflection=rank == d)
+    usable, dropped, est, ref, w, rank = _matched(
+        result, known, lambda k: bool(np.isfinite(node_positions(result, k.kind)[k.index]).all()))
+    Rm, t = _rigid(est, ref, w, allow_reflection=rank == d)
     rms = float(np.sqrt(np.mean(np.sum((est @ Rm.T + t - ref) ** 2, axis=1))))
     fields: dict[str, Any] = {"receivers": R0 @ Rm.T + t, "sources": S0 @ Rm.T + t,
                               "method": f"{result.method}+aligned({len(usable)} known)"}
@@ -198,6 +183,24 @@ def align_known(result: Any, known: Sequence[KnownNode]) -> FramedToaResult:
             fields[key] = rotate_covariances(np.asarray(cov, float), Rm)
     out = replace_fields(result, **fields)
     return FramedToaResult(out, _known_info(usable, rank, d, rms, rms, dropped))
+
+
+def _matched(result: Any, known: Sequence[KnownNode], located: Any) -> tuple[Any, ...]:
+    """The known nodes the result located, their estimates, known positions, weights, rank.
+
+    Returns ``(usable, dropped names, est (k, d), ref (k, d), weights (k,), affine rank of ref)``;
+    a node without a std is weighted as one known to 1e-6 of the known nodes' spread.
+    """
+    usable = [k for k in known if located(k)]
+    dropped = [k.name for k in known if k not in usable]
+    if not usable:
+        raise DegenerateGeometryError("none of the known nodes has an estimated position", kind="degenerate-frame")
+    est = np.array([node_positions(result, k.kind)[k.index] for k in usable])
+    ref = np.array([k.position for k in usable], float)
+    stds = np.array([k.std if k.std is not None else 0.0 for k in usable])
+    rank, spread = _affine_rank(ref)
+    tiny = max(1e-3 * spread, 1e-9) if spread > 0 else 1e-3
+    return usable, dropped, est, ref, 1.0 / np.maximum(stds, tiny * 1e-3) ** 2, rank
 
 
 def _known_info(usable: Sequence[KnownNode], rank: int, d: int, before: float, after: float,
