@@ -127,12 +127,6 @@ class AoaResult(Result):
     fit: AoaFit | None = None
 
     @property
-    def pose_cov(self) -> Array | None:
-        """``covariance`` under the convention's name for a pose's covariance (as
-        :attr:`selfcal.slac.ranging.RangeSlacResult.pose_cov`)."""
-        return self.covariance
-
-    @property
     def ambiguous(self) -> Any:
         """True where more than one pose explains the bearings equally well."""
         if self.position.ndim == 1:
