@@ -37,10 +37,10 @@ user gave is ``noise``, one the method estimated ``noise_estimate``.
 from __future__ import annotations
 
 import dataclasses
-from dataclasses import dataclass
 import functools
 import math
 from collections.abc import Callable, Mapping
+from dataclasses import dataclass
 from enum import Enum
 from pathlib import PurePath
 from typing import Any, ClassVar
