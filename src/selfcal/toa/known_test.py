@@ -34,7 +34,7 @@ from numpy.typing import NDArray
 
 from .._result import json_float as _num
 
-__all__ = ["KNOWN_ALPHA", "KnownTest", "choose_side", "frame_mirror", "judge_known", "known_test"]
+__all__ = ["KNOWN_ALPHA", "KnownTest", "candidate_mirror", "choose_side", "frame_mirror", "judge_known", "known_test"]
 
 Array = NDArray[np.float64]
 
@@ -164,6 +164,21 @@ def frame_mirror(points: Array, rank: int) -> tuple[Array, Array] | None:
     return c, 2.0 * np.outer(u, u) - np.eye(d)
 
 
+def candidate_mirror(points: Array, rank: int) -> tuple[Array, Array] | None:
+    """The mirror the known nodes leave, or, when they span the space, the mirror through their
+    best-fitting plane (line in 2-D): the alternative to test, not to assume.
+
+    Known anchors a few centimetres off one plane (ceiling anchors) span the space numerically
+    but leave the mirror through that plane nearly open at the noise level: the likelihood-ratio
+    test of :func:`selfcal.toa.uniqueness.uniqueness_test` decides, at the cost of one refit.
+    """
+    P = np.asarray(points, float)
+    d = P.shape[1]
+    if rank < d:
+        return frame_mirror(P, rank)
+    return frame_mirror(P, d - 1) if P.shape[0] >= d else None
+
+
 def judge_known(out: Any, info: Any, blind: Any, sol: Any, data: Any, usable: Sequence[Any], aligned: Array,
                 rotation: Array, rank: int, fixed_r: NDArray[np.bool_], fixed_s: NDArray[np.bool_], offsets: str,
                 noise: float | None, mirror_stated: bool = False) -> tuple[Any, Any]:
@@ -233,7 +248,7 @@ def judge_known(out: Any, info: Any, blind: Any, sol: Any, data: Any, usable: Se
     u = uniqueness_test(Ysub, sol.receivers, sol.sources, sol.receiver_offsets, sol.source_offsets,
                         n_params=n_par, noise=None if noise is None else float(noise) * c,
                         receiver_cov=sol.receiver_cov, source_cov=sol.source_cov,
-                        fixed_receivers=exact_r[ok_r], fixed_sources=exact_s[ok_s], mirror=None if mirror_stated and rank == d - 1 else frame_mirror(ref, rank))
+                        fixed_receivers=exact_r[ok_r], fixed_sources=exact_s[ok_s], mirror=None if mirror_stated and rank >= d - 1 else candidate_mirror(ref, rank))
     u = u.relabel(ok_r, ok_s, np.arange(I), np.arange(J))
     bu = getattr(blind, "uniqueness", None)
     base = bu.base_verdict if bu is not None and bu.base_verdict is not None else (int(blind.verdict),
@@ -273,9 +288,12 @@ def choose_side(receivers: Array, sources: Array, known: Sequence[Any], ref: Arr
     d = R.shape[1]
     if d != 3:
         raise InputError("side (below / above the known nodes' plane) applies to 3-D fits only")
-    if rank != d - 1:
+    P = np.asarray(ref, float)
+    sv = np.linalg.svd(P - P.mean(0), compute_uv=False) if len(P) >= d else np.zeros(d)
+    # coplanar, or nearly: thinner than a tenth of their extent (ceiling anchors a few cm apart in z)
+    if rank < d - 1 or (rank == d and not sv[-1] < 0.1 * sv[0]):
         return R, S
-    c, Q = frame_mirror(ref, rank)  # type: ignore[misc]
+    c, Q = frame_mirror(ref, d - 1)  # type: ignore[misc]
     n = np.linalg.eigh(np.eye(d) - Q)[1][:, -1]  # the plane's normal (Q = I - 2 n n^T)
     if abs(n[2]) < 0.5:
         raise InputError("the known nodes' plane is not horizontal (normal > 60 degrees from z): "
