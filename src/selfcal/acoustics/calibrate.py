@@ -85,8 +85,12 @@ def _solve_retrying(T: Array, speed: float, rng: int, attempts: int = 3, noise: 
     raise AssertionError("unreachable")  # pragma: no cover
 
 
-def _resolve_mirrors(T: Array, res: Any, speed: float, rng: int, notes: list[str]) -> Any:
-    """Apply :func:`one_side_of_plane` when receivers or senders alone are (near-)coplanar."""
+def _resolve_mirrors(T: Array, res: Any, speed: float, rng: int, notes: list[str], sided: list[str]) -> Any:
+    """Apply :func:`one_side_of_plane` when receivers or senders alone are (near-)coplanar.
+
+    The side put in order (``"receivers"`` or ``"sources"``) is appended to ``sided``: their
+    flips through the coplanar partners' plane are resolved by this stated rule, not by the data.
+    """
     r, s = np.asarray(res.receivers, float), np.asarray(res.sources, float)
     rc, sc = np.asarray(res.receiver_cov, float), np.asarray(res.source_cov, float)
     flipped = 0
@@ -100,9 +104,10 @@ def _resolve_mirrors(T: Array, res: Any, speed: float, rng: int, notes: list[str
         return res
     notes.append(f"the {what[1]} are coplanar, so each {what[0][:-1]}'s side of their plane is not observable; "
                  f"all {what[0]} were put on one side ({flipped} reflected)")
-    if flipped == 0:
-        return res
-    return _solve(T, 3, speed, rng, init=(r, s, np.asarray(res.receiver_offsets), np.asarray(res.source_offsets)))
+    if flipped:
+        res = _solve(T, 3, speed, rng, init=(r, s, np.asarray(res.receiver_offsets), np.asarray(res.source_offsets)))
+    sided.append("receivers" if what[0] == "microphones" else "sources")
+    return res
 
 
 def _heights_fit(T: Array, heights: tuple[Array, Array], speed: float, rng: int,
@@ -323,13 +328,16 @@ def calibrate_matrix(
         msg = (f"near-planar layout: the 3-D calibration is undetermined ({exc}) while a 2-D one fits "
                f"(residual {res2.residual_rms * 1e6:.2f} us); z is not determined by the data, {advice}")
         return _planar_verdict(res2, plan, msg, dim, notes)
-    res3 = _resolve_mirrors(T, res3, speed, rng, notes)
+    sided: list[str] = []
+    res3 = _resolve_mirrors(T, res3, speed, rng, notes, sided)
     pts = np.vstack([res3.receivers, res3.sources])
     cov = np.concatenate([np.asarray(res3.receiver_cov), np.asarray(res3.source_cov)])
     plan = planarity(pts, cov)
     if not plan.near_planar:
         notes.append(_z_note(cov, None))
-        return _as_solution(res3, "3d"), plan, notes
+        sol = _as_solution(res3, "3d")
+        sol["one_side"] = sided[0] if sided else None
+        return sol, plan, notes
     msg = (f"near-planar layout (thickness {plan.extents[-1]:.3f} m vs extent {plan.extents[0]:.2f} m, "
            f"normal std {plan.normal_std:.3f} m): z is not determined by the data; {advice}")
     if dim == 3:
@@ -384,6 +392,8 @@ def _as_solution(res: Any, label: str) -> dict[str, Any]:
         "receiver_cov": np.asarray(res.receiver_cov, float), "source_cov": np.asarray(res.source_cov, float),
         "residual_rms": float(res.residual_rms), "converged": bool(res.converged),
         "iterations": int(getattr(res, "iterations", 0)), "method": f"{label} ({res.method})",
+        # the TOA solver's own tests (selfcal.toa.uniqueness, outlier breakdown) for the verdict
+        "uniqueness": getattr(res, "uniqueness", None), "outlier_breakdown": getattr(res, "outlier_breakdown", None),
     }
 
 
@@ -425,6 +435,7 @@ def refit(T: Array, sol: dict[str, Any], speed: float, heights: tuple[Array, Arr
     res = _solve(T, d, speed, 0, init=(r[:, :d], s[:, :d], dr, ds), f_scale=f_scale)
     out = _as_solution(res, "")
     out["method"] = method
+    out["one_side"] = sol.get("one_side")
     return out
 
 

@@ -36,6 +36,7 @@ from .geometry import (
     read_heights,
     refine_known_heights,
 )
+from .plausibility import extent_reason
 from .noise import MF_FACTOR, TIMING_FLOOR, detection_std, fit_test, residual_check, timing_noise
 from .requirements import POSITION_REQUIREMENT, TIMING_REQUIREMENT
 from .robust_fit import Outlier, robust_calibrate
@@ -128,6 +129,11 @@ class PipelineResult(Result):
         Noise-model std of the per-sender TOA matrix, s.
     timings_cpu : dict
         CPU seconds of this process per stage (comparable on a shared machine).
+    uniqueness : UniquenessTest or None
+        The TOA solver's uniqueness test of the final fit (:mod:`selfcal.toa.uniqueness`), in the
+        recording's numbering and the solver's frame; None for the known-heights model.
+    outlier_breakdown : str or None
+        The TOA solver's outlier-breakdown verdict of the final fit, when it fired.
     """
 
     receivers: Array
@@ -161,6 +167,8 @@ class PipelineResult(Result):
     event_senders: NDArray[np.int64] | None = None
     matrix_std: Array | None = None
     timings_cpu: dict[str, float] = field(default_factory=dict)
+    uniqueness: Any = None
+    outlier_breakdown: str | None = None
 
     @property
     def failed(self) -> bool:
@@ -224,7 +232,53 @@ class PipelineResult(Result):
             "verdict": None if self.verdict is None else self.verdict.to_dict(),
             "rounds": self.rounds,
             "event_senders": None if self.event_senders is None else [int(j) for j in self.event_senders],
+            "uniqueness": None if self.uniqueness is None else self.uniqueness.to_dict(),
+            "ambiguous_receivers": [] if self.uniqueness is None else
+            [self.receiver_names[i] for i in np.flatnonzero(self.uniqueness.ambiguous_receivers)],
+            "ambiguous_senders": [] if self.uniqueness is None else
+            [self.sender_names[j] for j in np.flatnonzero(self.uniqueness.ambiguous_sources)],
+            "outlier_breakdown": self.outlier_breakdown,
         }
+
+
+def _unique_or_plausible(sol: dict[str, Any], rn: tuple[str, ...], sn: tuple[str, ...],
+                         room: tuple[float, ...] | None) -> tuple[str, ...]:
+    """FAIL reasons from the TOA solver's own tests and the declared room (:mod:`.plausibility`).
+
+    - the uniqueness test (:mod:`selfcal.toa.uniqueness`): a minimal problem, or units with an
+      alternative position the data do not reject, named with the remedy. Flips of the units
+      that :func:`calibrate_matrix` put on one side of their coplanar partners are resolved
+      by that stated rule (its note), not by the data, and are not counted again here;
+    - the outlier breakdown of the final fit;
+    - positions spanning far more than the declared room.
+    """
+    out: list[str] = []
+    u = sol.get("uniqueness")
+    if u is not None and not u.passed:
+        amb_r, amb_s = np.array(u.ambiguous_receivers, bool), np.array(u.ambiguous_sources, bool)
+        side = sol.get("one_side")
+        if side is not None:  # the one-side rule settles these flips; other minima still count
+            (amb_r if side == "receivers" else amb_s)[:] = False
+            for a in u.alternatives:
+                if a.kind != "flip":
+                    amb_r[list(a.receivers)] = True
+                    amb_s[list(a.sources)] = True
+        who = ([f"microphone {rn[i]}" for i in np.flatnonzero(amb_r)]
+               + [f"loudspeaker {sn[j]}" for j in np.flatnonzero(amb_s)])
+        if who:
+            more = f" and {len(who) - 12} more" if len(who) > 12 else ""
+            out.append(f"not unique: {', '.join(who[:12])}{more} fit the data as well at another position "
+                       f"(likelihood-ratio test, level {u.alpha:g}; alternatives in the JSON 'uniqueness'); remedy: "
+                       "give known heights (--heights) or add a unit off the plane of their partners")
+        if u.minimal:
+            out.append("not tested: no spare measurement, the fit is exact whatever the geometry (a minimal "
+                       "problem is not a determined one); add units or detections")
+    if sol.get("outlier_breakdown"):
+        out.append(str(sol["outlier_breakdown"]) + ": positions NOT reliable")
+    why = extent_reason(np.asarray(sol["receivers"]), np.asarray(sol["sources"]), room)
+    if why is not None:
+        out.append(why)
+    return tuple(out)
 
 
 @entry(rng="rng", jitter="nonnegative?", speed_of_sound="positive?")
@@ -388,8 +442,9 @@ def run_pipeline(
     except (np.linalg.LinAlgError, ValueError):
         bars = None
     labels = tuple(f"microphone {n}" for n in setup.receivers) + tuple(f"loudspeaker {n}" for n in setup.senders)
+    extra = _unique_or_plausible(sol, setup.receivers, setup.senders, setup.room)
     verdict = judge(bars, rounds=rounds, fit_failed=fit is not None and not fit.passed, fit_reason=fit_reason,
-                    names=labels)
+                    names=labels, extra=extra, round_seconds=rec.signals.shape[1] / fs / max(rounds, 1))
     if not setup.unit_offsets:
         notes.append(SPEED_NOTE.format(c=speed))
     notes.append(BIAS_NOTE)
@@ -404,5 +459,6 @@ def run_pipeline(
         sender_names=setup.senders, speed_of_sound=speed, notes=tuple(notes), fit=fit, timing_noise=noise,
         fit_binding=True, outliers=tuple(robust.outliers), dropped_receivers=dr, dropped_senders=dsn,
         error_bars=bars, verdict=verdict, rounds=rounds, event_senders=np.asarray(es, dtype=np.int64),
-        matrix_std=S, timings_cpu=cpu,
+        matrix_std=S, timings_cpu=cpu, uniqueness=sol.get("uniqueness"),
+        outlier_breakdown=sol.get("outlier_breakdown"),
     )
