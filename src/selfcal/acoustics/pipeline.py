@@ -242,34 +242,55 @@ class PipelineResult(Result):
 
 
 def _unique_or_plausible(sol: dict[str, Any], rn: tuple[str, ...], sn: tuple[str, ...],
-                         room: tuple[float, ...] | None) -> tuple[str, ...]:
+                         room: tuple[float, ...] | None, notes: list[str]) -> tuple[str, ...]:
     """FAIL reasons from the TOA solver's own tests and the declared room (:mod:`.plausibility`).
 
     - the uniqueness test (:mod:`selfcal.toa.uniqueness`): a minimal problem, or units with an
-      alternative position the data do not reject, named with the remedy. Flips of the units
-      that :func:`calibrate_matrix` put on one side of their coplanar partners are resolved
-      by that stated rule (its note), not by the data, and are not counted again here;
+      alternative position the data do not reject *farther than the position requirement*
+      (10 cm: the truth may be there, so 004 cannot be promised), named with the remedy;
+      alternatives closer than that leave the requirement met whichever is true and are a
+      note. Flips of the units that :func:`calibrate_matrix` put on one side of their
+      coplanar partners are resolved by that stated rule (its note), not by the data, and
+      are not counted again here. ``sol`` must be in the solver's frame (before any scale);
     - the outlier breakdown of the final fit;
     - positions spanning far more than the declared room.
     """
     out: list[str] = []
     u = sol.get("uniqueness")
     if u is not None and not u.passed:
-        amb_r, amb_s = np.array(u.ambiguous_receivers, bool), np.array(u.ambiguous_sources, bool)
+        R, S = np.asarray(sol["receivers"], float), np.asarray(sol["sources"], float)
+        move_r, move_s = np.zeros(len(R)), np.zeros(len(S))
+        with np.errstate(invalid="ignore"):
+            move_r[u.ambiguous_receivers] = np.linalg.norm(u.receiver_alternatives - R, axis=1)[u.ambiguous_receivers]
+            move_s[u.ambiguous_sources] = np.linalg.norm(u.source_alternatives - S, axis=1)[u.ambiguous_sources]
+            for a in u.alternatives:  # every listed alternative: the farthest position of each unit
+                for i, p in zip(a.receivers, a.receiver_positions, strict=True):
+                    move_r[i] = max(move_r[i], float(np.linalg.norm(p - R[i])))
+                for j, p in zip(a.sources, a.source_positions, strict=True):
+                    move_s[j] = max(move_s[j], float(np.linalg.norm(p - S[j])))
         side = sol.get("one_side")
         if side is not None:  # the one-side rule settles these flips; other minima still count
-            (amb_r if side == "receivers" else amb_s)[:] = False
-            for a in u.alternatives:
-                if a.kind != "flip":
-                    amb_r[list(a.receivers)] = True
-                    amb_s[list(a.sources)] = True
-        who = ([f"microphone {rn[i]}" for i in np.flatnonzero(amb_r)]
-               + [f"loudspeaker {sn[j]}" for j in np.flatnonzero(amb_s)])
+            flips = {i for a in u.alternatives if a.kind != "flip" for i in (a.receivers if side == "receivers"
+                                                                              else a.sources)}
+            mv = move_r if side == "receivers" else move_s
+            mv[[k for k in range(len(mv)) if k not in flips]] = 0.0
+        far_r = np.nan_to_num(move_r, nan=np.inf) > POSITION_REQUIREMENT
+        far_s = np.nan_to_num(move_s, nan=np.inf) > POSITION_REQUIREMENT
+        far_r &= np.asarray(u.ambiguous_receivers, bool)
+        far_s &= np.asarray(u.ambiguous_sources, bool)
+        who = ([f"microphone {rn[i]}" for i in np.flatnonzero(far_r)]
+               + [f"loudspeaker {sn[j]}" for j in np.flatnonzero(far_s)])
         if who:
+            worst = float(max(move_r[far_r].max(initial=0.0), move_s[far_s].max(initial=0.0)))
             more = f" and {len(who) - 12} more" if len(who) > 12 else ""
-            out.append(f"not unique: {', '.join(who[:12])}{more} fit the data as well at another position "
-                       f"(likelihood-ratio test, level {u.alpha:g}; alternatives in the JSON 'uniqueness'); remedy: "
-                       "give known heights (--heights) or add a unit off the plane of their partners")
+            out.append(f"not unique: {', '.join(who[:12])}{more} fit the data as well at another position up to "
+                       f"{worst:.3g} m away (> {POSITION_REQUIREMENT * 100:.0f} cm; likelihood-ratio test, level "
+                       f"{u.alpha:g}; alternatives in the JSON 'uniqueness'); remedy: give known heights (--heights) "
+                       "or add a unit off the plane of their partners")
+        near = int((move_r > 0).sum() + (move_s > 0).sum()) - len(who)
+        if near > 0:
+            notes.append(f"uniqueness: {near} unit(s) have an alternative position the data do not reject within "
+                         f"{POSITION_REQUIREMENT * 100:.0f} cm (the requirement holds whichever is true)")
         if u.minimal:
             out.append("not tested: no spare measurement, the fit is exact whatever the geometry (a minimal "
                        "problem is not a determined one); add units or detections")
@@ -396,6 +417,7 @@ def run_pipeline(
     timings["calibrate"] = time.perf_counter() - t0
     cpu["calibrate"] = time.process_time() - c0
     T, S = robust.matrix, robust.matrix_std
+    extra = _unique_or_plausible(sol, setup.receivers, setup.senders, setup.room, notes)  # the solver's frame
     if setup.unit_offsets:
         idx = [(setup.receivers.index(n), setup.senders.index(n), d) for n, d in setup.unit_offsets.items()]
         ri = np.array([a for a, _, _ in idx])
@@ -442,7 +464,6 @@ def run_pipeline(
     except (np.linalg.LinAlgError, ValueError):
         bars = None
     labels = tuple(f"microphone {n}" for n in setup.receivers) + tuple(f"loudspeaker {n}" for n in setup.senders)
-    extra = _unique_or_plausible(sol, setup.receivers, setup.senders, setup.room)
     verdict = judge(bars, rounds=rounds, fit_failed=fit is not None and not fit.passed, fit_reason=fit_reason,
                     names=labels, extra=extra, round_seconds=rec.signals.shape[1] / fs / max(rounds, 1))
     if not setup.unit_offsets:
