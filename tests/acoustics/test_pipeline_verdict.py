@@ -178,3 +178,20 @@ def test_setup_room_field_is_validated(recording, tmp_path):
         rec = _copy(recording, tmp_path / str(abs(hash(str(bad)))), room=bad)
         r, _ = _pipeline(rec, tmp_path)
         assert r.exit_code == 2 and "field 'room'" in r.output, r.output
+
+
+def test_a_3d_blind_run_carries_the_uniqueness_test_in_its_json(tmp_path):
+    """Tiered room, blind 3-D fit: the TOA solver's uniqueness test is in the JSON (passed,
+    nothing ambiguous) and the run passes, also moved onto five units' true positions (--known)."""
+    rec = tmp_path / "rec"
+    truth = _make(rec, layout="tiered", seed=1)
+    out = tmp_path / "r.json"
+    known = tmp_path / "known.csv"
+    known.write_text("".join(f"u00{k},{','.join(str(v) for v in truth['receivers'][k])}\n" for k in range(5)))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        r = CliRunner().invoke(main, ["pipeline", str(rec), "--out", str(out), "--dim", "3", "--known", str(known)])
+    assert r.exit_code == 0, r.output
+    data = json.loads(out.read_text())
+    assert data["uniqueness"]["test"] == "likelihood-ratio" and data["uniqueness"]["passed"] is True
+    assert data["ambiguous_receivers"] == [] and data["ambiguous_senders"] == [] and data["outlier_breakdown"] is None

@@ -36,8 +36,8 @@ from .geometry import (
     read_heights,
     refine_known_heights,
 )
-from .plausibility import extent_reason
 from .noise import MF_FACTOR, TIMING_FLOOR, detection_std, fit_test, residual_check, timing_noise
+from .plausibility import extent_reason
 from .requirements import POSITION_REQUIREMENT, TIMING_REQUIREMENT
 from .robust_fit import Outlier, robust_calibrate
 from .scale import apply_scale, scale_from_distances

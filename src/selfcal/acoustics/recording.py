@@ -88,7 +88,7 @@ class Setup:
         microphone and loudspeaker), used as scale constraints.
     room : tuple of float or None
         Declared room size ``(L, W, H)``, m (optional field): a result larger than the room
-        can hold is failed (:func:`selfcal.acoustics.plausibility.plausibility_reasons`).
+        can hold is failed (:func:`selfcal.acoustics.plausibility.extent_reason`).
     """
 
     sample_rate: float
