@@ -122,11 +122,11 @@ def _copy(rec: Path, tmp_path: Path, **setup) -> Path:
     return out
 
 
-def _pipeline(rec: Path, tmp_path: Path):
+def _pipeline(rec: Path, tmp_path: Path, *args: str):
     out = tmp_path / "r.json"
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        r = CliRunner().invoke(main, ["pipeline", str(rec), "--out", str(out)])
+        r = CliRunner().invoke(main, ["pipeline", str(rec), "--out", str(out), *args])
     return r, (json.loads(out.read_text()) if out.exists() else None)
 
 
@@ -146,8 +146,10 @@ def test_truth_check_missed_is_a_fail_and_exit_1_never_a_pass(recording, tmp_pat
     truth = json.loads((rec / "truth.json").read_text())
     truth["receivers"][unit][0] += 0.5
     (rec / "truth.json").write_text(json.dumps(truth))
-    r, data = _pipeline(rec, tmp_path)
+    r, data = _pipeline(rec, tmp_path, "--report", str(tmp_path / "report.html"))
     assert r.exit_code == 1, r.output
+    html = (tmp_path / "report.html").read_text()
+    assert 'id="verdict">FAIL' in html and "MISSED" in html
     lines = r.output.splitlines()
     assert any("MISSED" in ln for ln in lines) and not any(ln.startswith("PASS:") for ln in lines)
     assert any(ln.startswith("FAIL: the truth check") for ln in lines)
