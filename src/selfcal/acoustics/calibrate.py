@@ -432,7 +432,12 @@ def refit(T: Array, sol: dict[str, Any], speed: float, heights: tuple[Array, Arr
         out["method"] = method
         return out
     d = 2 if method.startswith("2d") else 3
-    res = _solve(T, d, speed, 0, init=(r[:, :d], s[:, :d], dr, ds), f_scale=f_scale)
+    if not all(np.isfinite(a).all() for a in (r[:, :d], s[:, :d], dr, ds)):
+        # the solver dropped nodes (e.g. more flagged ranges than a position can hold): no warm
+        # start for them, so the search again on the changed matrix
+        res = _solve(T, d, speed, 0)
+    else:
+        res = _solve(T, d, speed, 0, init=(r[:, :d], s[:, :d], dr, ds), f_scale=f_scale)
     out = _as_solution(res, "")
     out["method"] = method
     out["one_side"] = sol.get("one_side")
