@@ -270,10 +270,10 @@ def _unique_or_plausible(sol: dict[str, Any], rn: tuple[str, ...], sn: tuple[str
                     move_s[j] = max(move_s[j], float(np.linalg.norm(p - S[j])))
         side = sol.get("one_side")
         if side is not None:  # the one-side rule settles these flips; other minima still count
-            flips = {i for a in u.alternatives if a.kind != "flip" for i in (a.receivers if side == "receivers"
+            other = {k for a in u.alternatives if a.kind != "flip" for k in (a.receivers if side == "receivers"
                                                                               else a.sources)}
             mv = move_r if side == "receivers" else move_s
-            mv[[k for k in range(len(mv)) if k not in flips]] = 0.0
+            mv[[k for k in range(len(mv)) if k not in other]] = 0.0
         far_r = np.nan_to_num(move_r, nan=np.inf) > POSITION_REQUIREMENT
         far_s = np.nan_to_num(move_s, nan=np.inf) > POSITION_REQUIREMENT
         far_r &= np.asarray(u.ambiguous_receivers, bool)
