@@ -104,8 +104,13 @@ def _resolve_mirrors(T: Array, res: Any, speed: float, rng: int, notes: list[str
         return res
     notes.append(f"the {what[1]} are coplanar, so each {what[0][:-1]}'s side of their plane is not observable; "
                  f"all {what[0]} were put on one side ({flipped} reflected)")
-    if flipped:
-        res = _solve(T, 3, speed, rng, init=(r, s, np.asarray(res.receiver_offsets), np.asarray(res.source_offsets)))
+    dr, ds = np.asarray(res.receiver_offsets, float), np.asarray(res.source_offsets, float)
+    if flipped and all(np.isfinite(a).all() for a in (r, s, dr, ds)):
+        res = _solve(T, 3, speed, rng, init=(r, s, dr, ds))
+    elif flipped:  # nodes the solver dropped (NaN rows): no warm start; the refits polish the flipped ones
+        from ..toa.nodes import replace_fields
+
+        res = replace_fields(res, receivers=r, sources=s, receiver_cov=rc, source_cov=sc)
     sided.append("receivers" if what[0] == "microphones" else "sources")
     return res
 
@@ -432,15 +437,37 @@ def refit(T: Array, sol: dict[str, Any], speed: float, heights: tuple[Array, Arr
         out["method"] = method
         return out
     d = 2 if method.startswith("2d") else 3
-    if not all(np.isfinite(a).all() for a in (r[:, :d], s[:, :d], dr, ds)):
-        # the solver dropped nodes (e.g. more flagged ranges than a position can hold): no warm
-        # start for them, so the search again on the changed matrix
-        res = _solve(T, d, speed, 0)
-    else:
-        res = _solve(T, d, speed, 0, init=(r[:, :d], s[:, :d], dr, ds), f_scale=f_scale)
+    kr = np.isfinite(r[:, :d]).all(axis=1) & np.isfinite(dr)
+    ks = np.isfinite(s[:, :d]).all(axis=1) & np.isfinite(ds)
+    if not (kr.all() and ks.all()):
+        # nodes the solver dropped (e.g. more flagged ranges than a position can hold) stay
+        # dropped: the others are refined from where they stand
+        sub = refit(T[np.ix_(kr, ks)], {**sol, "receivers": r[kr], "sources": s[ks], "receiver_offsets": dr[kr],
+                                        "source_offsets": ds[ks]}, speed, f_scale=f_scale)
+        return _scatter_nodes(sub, kr, ks)
+    res = _solve(T, d, speed, 0, init=(r[:, :d], s[:, :d], dr, ds), f_scale=f_scale)
     out = _as_solution(res, "")
     out["method"] = method
     out["one_side"] = sol.get("one_side")
+    return out
+
+
+def _scatter_nodes(sol: dict[str, Any], kr: NDArray[np.bool_], ks: NDArray[np.bool_]) -> dict[str, Any]:
+    """A solution on the kept nodes at full size: NaN rows (and a clean outlier mask) for the others."""
+    I, J = len(kr), len(ks)
+    out = dict(sol)
+    for key, keep, n in (("receivers", kr, I), ("sources", ks, J), ("receiver_offsets", kr, I),
+                         ("source_offsets", ks, J), ("receiver_cov", kr, I), ("source_cov", ks, J)):
+        a = np.asarray(sol[key], float)
+        full = np.full((n,) + a.shape[1:], np.nan)
+        full[keep] = a
+        out[key] = full
+    mask = np.zeros((I, J), bool)
+    mask[np.ix_(kr, ks)] = np.asarray(sol["toa_outliers"], bool)
+    out["toa_outliers"] = mask
+    u = sol.get("uniqueness")
+    if u is not None:
+        out["uniqueness"] = u.relabel(kr, ks, np.arange(I), np.arange(J))
     return out
 
 
