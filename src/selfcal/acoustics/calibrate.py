@@ -245,8 +245,12 @@ def _place_dropped(T: Array, heights: tuple[Array, Array], r: Array, s: Array, d
 
 
 def _normalise_offsets(dr: Array, ds: Array) -> tuple[Array, Array]:
-    """Shift the common offset so that the first onset is 0 (004 sec. 3.3, tau_1 = 0)."""
-    a = float(ds[0])
+    """Shift the common offset so that the first onset is 0 (004 sec. 3.3, tau_1 = 0).
+
+    The first *located* one: a loudspeaker the solver dropped has a NaN onset.
+    """
+    ok = np.flatnonzero(np.isfinite(ds))
+    a = float(ds[ok[0]]) if ok.size else 0.0
     return dr + a, ds - a
 
 
@@ -439,6 +443,9 @@ def refit(T: Array, sol: dict[str, Any], speed: float, heights: tuple[Array, Arr
     d = 2 if method.startswith("2d") else 3
     kr = np.isfinite(r[:, :d]).all(axis=1) & np.isfinite(dr)
     ks = np.isfinite(s[:, :d]).all(axis=1) & np.isfinite(ds)
+    if kr.sum() < d + 1 or ks.sum() < d + 1:
+        raise DegenerateGeometryError(f"the fit kept {int(kr.sum())} microphones and {int(ks.sum())} loudspeakers: "
+                                      f"too few for a {d}-D refinement", kind="unobservable-node")
     if not (kr.all() and ks.all()):
         # nodes the solver dropped (e.g. more flagged ranges than a position can hold) stay
         # dropped: the others are refined from where they stand

@@ -249,9 +249,10 @@ def _unique_or_plausible(sol: dict[str, Any], rn: tuple[str, ...], sn: tuple[str
       alternative position the data do not reject *farther than the position requirement*
       (10 cm: the truth may be there, so 004 cannot be promised), named with the remedy;
       alternatives closer than that leave the requirement met whichever is true and are a
-      note. Flips of the units that :func:`calibrate_matrix` put on one side of their
-      coplanar partners are resolved by that stated rule (its note), not by the data, and
-      are not counted again here. ``sol`` must be in the solver's frame (before any scale);
+      note. Alternatives that put a unit which :func:`calibrate_matrix` placed on one side of
+      its coplanar partners (its note) on the other side are excluded by that stated rule,
+      not by the data, and are not counted here. ``sol`` must be in the solver's frame
+      (before any scale);
     - the outlier breakdown of the final fit;
     - positions spanning far more than the declared room.
     """
@@ -259,23 +260,38 @@ def _unique_or_plausible(sol: dict[str, Any], rn: tuple[str, ...], sn: tuple[str
     u = sol.get("uniqueness")
     if u is not None and not u.passed:
         R, S = np.asarray(sol["receivers"], float), np.asarray(sol["sources"], float)
-        move_r, move_s = np.zeros(len(R)), np.zeros(len(S))
-        with np.errstate(invalid="ignore"):
-            move_r[u.ambiguous_receivers] = np.linalg.norm(u.receiver_alternatives - R, axis=1)[u.ambiguous_receivers]
-            move_s[u.ambiguous_sources] = np.linalg.norm(u.source_alternatives - S, axis=1)[u.ambiguous_sources]
-            for a in u.alternatives:  # every listed alternative: the farthest position of each unit
-                for i, p in zip(a.receivers, a.receiver_positions, strict=True):
-                    move_r[i] = max(move_r[i], float(np.linalg.norm(p - R[i])))
-                for j, p in zip(a.sources, a.source_positions, strict=True):
-                    move_s[j] = max(move_s[j], float(np.linalg.norm(p - S[j])))
         side = sol.get("one_side")
-        if side is not None:  # the one-side rule settles these flips; other minima still count
-            other = {k for a in u.alternatives if a.kind != "flip" for k in (a.receivers if side == "receivers"
-                                                                              else a.sources)}
-            mv = move_r if side == "receivers" else move_s
-            mv[[k for k in range(len(mv)) if k not in other]] = 0.0
-        far_r = np.nan_to_num(move_r, nan=np.inf) > POSITION_REQUIREMENT
-        far_s = np.nan_to_num(move_s, nan=np.inf) > POSITION_REQUIREMENT
+        plane = None
+        if side is not None:  # the one-side rule: these units all on one side of their partners' plane
+            P = S if side == "receivers" else R
+            P = P[np.isfinite(P).all(axis=1)]
+            plane = (P.mean(axis=0), np.linalg.svd(P - P.mean(axis=0), full_matrices=False)[2][-1])
+
+        def moves(X: Array, role: str, cands: list[tuple[int, Array]]) -> Array:
+            """The farthest alternative of every unit that the one-side rule does not exclude, m."""
+            out = np.zeros(len(X))
+            for k, p in cands:
+                p = np.asarray(p, float)
+                if not np.isfinite(X[k]).all():
+                    continue
+                if not np.isfinite(p).all():  # an alternative without a position: nothing can be promised
+                    out[k] = np.inf
+                    continue
+                if plane is not None and role == side:
+                    c, n = plane
+                    if np.sign((p - c) @ n) != np.sign((X[k] - c) @ n):
+                        continue  # on the other side of the partners' plane: excluded by the stated rule
+                out[k] = max(out[k], float(np.linalg.norm(p - X[k])))
+            return out
+
+        cand_r = [(int(i), u.receiver_alternatives[i]) for i in np.flatnonzero(u.ambiguous_receivers)]
+        cand_s = [(int(j), u.source_alternatives[j]) for j in np.flatnonzero(u.ambiguous_sources)]
+        for a in u.alternatives:  # every listed alternative, not only the first one found per unit
+            cand_r += [(int(i), p) for i, p in zip(a.receivers, a.receiver_positions, strict=True)]
+            cand_s += [(int(j), p) for j, p in zip(a.sources, a.source_positions, strict=True)]
+        move_r, move_s = moves(R, "receivers", cand_r), moves(S, "sources", cand_s)
+        far_r = move_r > POSITION_REQUIREMENT
+        far_s = move_s > POSITION_REQUIREMENT
         far_r &= np.asarray(u.ambiguous_receivers, bool)
         far_s &= np.asarray(u.ambiguous_sources, bool)
         who = ([f"microphone {rn[i]}" for i in np.flatnonzero(far_r)]
@@ -469,8 +485,16 @@ def run_pipeline(
     if not setup.unit_offsets:
         notes.append(SPEED_NOTE.format(c=speed))
     notes.append(BIAS_NOTE)
-    dr = tuple(setup.receivers[i] for i in robust.dropped_receivers)
-    dsn = tuple(setup.senders[j] for j in robust.dropped_senders)
+    # units the TOA fit itself dropped (NaN rows, e.g. more flagged ranges than a position can hold)
+    lost_r = [int(i) for i in np.flatnonzero(~np.isfinite(np.asarray(sol["receivers"])).all(axis=1))
+              if i not in robust.dropped_receivers]
+    lost_s = [int(j) for j in np.flatnonzero(~np.isfinite(np.asarray(sol["sources"])).all(axis=1))
+              if j not in robust.dropped_senders]
+    if lost_r or lost_s:
+        notes.append("dropped by the TOA fit (not located): " + ", ".join(
+            [f"microphone {setup.receivers[i]}" for i in lost_r] + [f"loudspeaker {setup.senders[j]}" for j in lost_s]))
+    dr = tuple(setup.receivers[i] for i in sorted(int(k) for k in [*robust.dropped_receivers, *lost_r]))
+    dsn = tuple(setup.senders[j] for j in sorted(int(k) for k in [*robust.dropped_senders, *lost_s]))
     return PipelineResult(
         receivers=sol["receivers"], sources=sol["sources"], receiver_offsets=sol["receiver_offsets"],
         source_offsets=sol["source_offsets"], receiver_cov=sol["receiver_cov"], source_cov=sol["source_cov"],
