@@ -29,6 +29,8 @@ DOCTESTED = [
     "selfcal.geometry.n_parameters",
     "selfcal.aoa.checks.residual_test",
     "selfcal.plotting.conference.ellipse_magnification",
+    "selfcal.acoustics.plausibility.extent_reason",
+    "selfcal.acoustics.plausibility.repeats_reason",
 ]
 
 #: the public solvers: each must show how it is called (an Examples section)

@@ -85,8 +85,12 @@ def _solve_retrying(T: Array, speed: float, rng: int, attempts: int = 3, noise: 
     raise AssertionError("unreachable")  # pragma: no cover
 
 
-def _resolve_mirrors(T: Array, res: Any, speed: float, rng: int, notes: list[str]) -> Any:
-    """Apply :func:`one_side_of_plane` when receivers or senders alone are (near-)coplanar."""
+def _resolve_mirrors(T: Array, res: Any, speed: float, rng: int, notes: list[str], sided: list[str]) -> Any:
+    """Apply :func:`one_side_of_plane` when receivers or senders alone are (near-)coplanar.
+
+    The side put in order (``"receivers"`` or ``"sources"``) is appended to ``sided``: their
+    flips through the coplanar partners' plane are resolved by this stated rule, not by the data.
+    """
     r, s = np.asarray(res.receivers, float), np.asarray(res.sources, float)
     rc, sc = np.asarray(res.receiver_cov, float), np.asarray(res.source_cov, float)
     flipped = 0
@@ -100,9 +104,15 @@ def _resolve_mirrors(T: Array, res: Any, speed: float, rng: int, notes: list[str
         return res
     notes.append(f"the {what[1]} are coplanar, so each {what[0][:-1]}'s side of their plane is not observable; "
                  f"all {what[0]} were put on one side ({flipped} reflected)")
-    if flipped == 0:
-        return res
-    return _solve(T, 3, speed, rng, init=(r, s, np.asarray(res.receiver_offsets), np.asarray(res.source_offsets)))
+    dr, ds = np.asarray(res.receiver_offsets, float), np.asarray(res.source_offsets, float)
+    if flipped and all(np.isfinite(a).all() for a in (r, s, dr, ds)):
+        res = _solve(T, 3, speed, rng, init=(r, s, dr, ds))
+    elif flipped:  # nodes the solver dropped (NaN rows): no warm start; the refits polish the flipped ones
+        from ..toa.nodes import replace_fields
+
+        res = replace_fields(res, receivers=r, sources=s, receiver_cov=rc, source_cov=sc)
+    sided.append("receivers" if what[0] == "microphones" else "sources")
+    return res
 
 
 def _heights_fit(T: Array, heights: tuple[Array, Array], speed: float, rng: int,
@@ -235,8 +245,12 @@ def _place_dropped(T: Array, heights: tuple[Array, Array], r: Array, s: Array, d
 
 
 def _normalise_offsets(dr: Array, ds: Array) -> tuple[Array, Array]:
-    """Shift the common offset so that the first onset is 0 (004 sec. 3.3, tau_1 = 0)."""
-    a = float(ds[0])
+    """Shift the common offset so that the first onset is 0 (004 sec. 3.3, tau_1 = 0).
+
+    The first *located* one: a loudspeaker the solver dropped has a NaN onset.
+    """
+    ok = np.flatnonzero(np.isfinite(ds))
+    a = float(ds[ok[0]]) if ok.size else 0.0
     return dr + a, ds - a
 
 
@@ -323,13 +337,16 @@ def calibrate_matrix(
         msg = (f"near-planar layout: the 3-D calibration is undetermined ({exc}) while a 2-D one fits "
                f"(residual {res2.residual_rms * 1e6:.2f} us); z is not determined by the data, {advice}")
         return _planar_verdict(res2, plan, msg, dim, notes)
-    res3 = _resolve_mirrors(T, res3, speed, rng, notes)
+    sided: list[str] = []
+    res3 = _resolve_mirrors(T, res3, speed, rng, notes, sided)
     pts = np.vstack([res3.receivers, res3.sources])
     cov = np.concatenate([np.asarray(res3.receiver_cov), np.asarray(res3.source_cov)])
     plan = planarity(pts, cov)
     if not plan.near_planar:
         notes.append(_z_note(cov, None))
-        return _as_solution(res3, "3d"), plan, notes
+        sol = _as_solution(res3, "3d")
+        sol["one_side"] = sided[0] if sided else None
+        return sol, plan, notes
     msg = (f"near-planar layout (thickness {plan.extents[-1]:.3f} m vs extent {plan.extents[0]:.2f} m, "
            f"normal std {plan.normal_std:.3f} m): z is not determined by the data; {advice}")
     if dim == 3:
@@ -384,6 +401,8 @@ def _as_solution(res: Any, label: str) -> dict[str, Any]:
         "receiver_cov": np.asarray(res.receiver_cov, float), "source_cov": np.asarray(res.source_cov, float),
         "residual_rms": float(res.residual_rms), "converged": bool(res.converged),
         "iterations": int(getattr(res, "iterations", 0)), "method": f"{label} ({res.method})",
+        # the TOA solver's own tests (selfcal.toa.uniqueness, outlier breakdown) for the verdict
+        "uniqueness": getattr(res, "uniqueness", None), "outlier_breakdown": getattr(res, "outlier_breakdown", None),
     }
 
 
@@ -422,9 +441,40 @@ def refit(T: Array, sol: dict[str, Any], speed: float, heights: tuple[Array, Arr
         out["method"] = method
         return out
     d = 2 if method.startswith("2d") else 3
+    kr = np.isfinite(r[:, :d]).all(axis=1) & np.isfinite(dr)
+    ks = np.isfinite(s[:, :d]).all(axis=1) & np.isfinite(ds)
+    if kr.sum() < d + 1 or ks.sum() < d + 1:
+        raise DegenerateGeometryError(f"the fit kept {int(kr.sum())} microphones and {int(ks.sum())} loudspeakers: "
+                                      f"too few for a {d}-D refinement", kind="unobservable-node")
+    if not (kr.all() and ks.all()):
+        # nodes the solver dropped (e.g. more flagged ranges than a position can hold) stay
+        # dropped: the others are refined from where they stand
+        sub = refit(T[np.ix_(kr, ks)], {**sol, "receivers": r[kr], "sources": s[ks], "receiver_offsets": dr[kr],
+                                        "source_offsets": ds[ks]}, speed, f_scale=f_scale)
+        return _scatter_nodes(sub, kr, ks)
     res = _solve(T, d, speed, 0, init=(r[:, :d], s[:, :d], dr, ds), f_scale=f_scale)
     out = _as_solution(res, "")
     out["method"] = method
+    out["one_side"] = sol.get("one_side")
+    return out
+
+
+def _scatter_nodes(sol: dict[str, Any], kr: NDArray[np.bool_], ks: NDArray[np.bool_]) -> dict[str, Any]:
+    """A solution on the kept nodes at full size: NaN rows (and a clean outlier mask) for the others."""
+    I, J = len(kr), len(ks)
+    out = dict(sol)
+    for key, keep, n in (("receivers", kr, I), ("sources", ks, J), ("receiver_offsets", kr, I),
+                         ("source_offsets", ks, J), ("receiver_cov", kr, I), ("source_cov", ks, J)):
+        a = np.asarray(sol[key], float)
+        full = np.full((n,) + a.shape[1:], np.nan)
+        full[keep] = a
+        out[key] = full
+    mask = np.zeros((I, J), bool)
+    mask[np.ix_(kr, ks)] = np.asarray(sol["toa_outliers"], bool)
+    out["toa_outliers"] = mask
+    u = sol.get("uniqueness")
+    if u is not None:
+        out["uniqueness"] = u.relabel(kr, ks, np.arange(I), np.arange(J))
     return out
 
 

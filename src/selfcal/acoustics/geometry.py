@@ -66,11 +66,12 @@ def one_side_of_plane(points: Array, cov: NDArray[np.float64], plane_points: Arr
     flipped : int
         How many points were reflected.
     """
-    centre = plane_points.mean(axis=0)
-    normal = np.linalg.svd(plane_points - centre, full_matrices=False)[2][-1]
+    pp = plane_points[np.isfinite(plane_points).all(axis=1)]  # NaN rows: nodes the solver dropped
+    centre = pp.mean(axis=0)
+    normal = np.linalg.svd(pp - centre, full_matrices=False)[2][-1]
     h = (points - centre) @ normal
-    side = 1.0 if np.sum(h) >= 0 else -1.0
-    flip = np.sign(h) == -side
+    side = 1.0 if np.nansum(h) >= 0 else -1.0
+    flip = np.isfinite(h) & (np.sign(h) == -side)
     H = np.eye(3) - 2.0 * np.outer(normal, normal)
     out = points.copy()
     out[flip] = points[flip] - 2.0 * h[flip, None] * normal[None, :]

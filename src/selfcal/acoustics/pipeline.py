@@ -37,6 +37,7 @@ from .geometry import (
     refine_known_heights,
 )
 from .noise import MF_FACTOR, TIMING_FLOOR, detection_std, fit_test, residual_check, timing_noise
+from .plausibility import extent_reason
 from .requirements import POSITION_REQUIREMENT, TIMING_REQUIREMENT
 from .robust_fit import Outlier, robust_calibrate
 from .scale import apply_scale, scale_from_distances
@@ -128,6 +129,11 @@ class PipelineResult(Result):
         Noise-model std of the per-sender TOA matrix, s.
     timings_cpu : dict
         CPU seconds of this process per stage (comparable on a shared machine).
+    uniqueness : UniquenessTest or None
+        The TOA solver's uniqueness test of the final fit (:mod:`selfcal.toa.uniqueness`), in the
+        recording's numbering and the solver's frame; None for the known-heights model.
+    outlier_breakdown : str or None
+        The TOA solver's outlier-breakdown verdict of the final fit, when it fired.
     """
 
     receivers: Array
@@ -161,6 +167,8 @@ class PipelineResult(Result):
     event_senders: NDArray[np.int64] | None = None
     matrix_std: Array | None = None
     timings_cpu: dict[str, float] = field(default_factory=dict)
+    uniqueness: Any = None
+    outlier_breakdown: str | None = None
 
     @property
     def failed(self) -> bool:
@@ -224,7 +232,90 @@ class PipelineResult(Result):
             "verdict": None if self.verdict is None else self.verdict.to_dict(),
             "rounds": self.rounds,
             "event_senders": None if self.event_senders is None else [int(j) for j in self.event_senders],
+            "uniqueness": None if self.uniqueness is None else self.uniqueness.to_dict(),
+            "ambiguous_receivers": [] if self.uniqueness is None else
+            [self.receiver_names[i] for i in np.flatnonzero(self.uniqueness.ambiguous_receivers)],
+            "ambiguous_senders": [] if self.uniqueness is None else
+            [self.sender_names[j] for j in np.flatnonzero(self.uniqueness.ambiguous_sources)],
+            "outlier_breakdown": self.outlier_breakdown,
         }
+
+
+def _unique_or_plausible(sol: dict[str, Any], rn: tuple[str, ...], sn: tuple[str, ...],
+                         room: tuple[float, ...] | None, notes: list[str]) -> tuple[str, ...]:
+    """FAIL reasons from the TOA solver's own tests and the declared room (:mod:`.plausibility`).
+
+    - the uniqueness test (:mod:`selfcal.toa.uniqueness`): a minimal problem, or units with an
+      alternative position the data do not reject *farther than the position requirement*
+      (10 cm: the truth may be there, so 004 cannot be promised), named with the remedy;
+      alternatives closer than that leave the requirement met whichever is true and are a
+      note. Alternatives that put a unit which :func:`calibrate_matrix` placed on one side of
+      its coplanar partners (its note) on the other side are excluded by that stated rule,
+      not by the data, and are not counted here. ``sol`` must be in the solver's frame
+      (before any scale);
+    - the outlier breakdown of the final fit;
+    - positions spanning far more than the declared room.
+    """
+    out: list[str] = []
+    u = sol.get("uniqueness")
+    if u is not None and not u.passed:
+        R, S = np.asarray(sol["receivers"], float), np.asarray(sol["sources"], float)
+        side = sol.get("one_side")
+        plane = None
+        if side is not None:  # the one-side rule: these units all on one side of their partners' plane
+            P = S if side == "receivers" else R
+            P = P[np.isfinite(P).all(axis=1)]
+            plane = (P.mean(axis=0), np.linalg.svd(P - P.mean(axis=0), full_matrices=False)[2][-1])
+
+        def moves(X: Array, role: str, cands: list[tuple[int, Array]]) -> Array:
+            """The farthest alternative of every unit that the one-side rule does not exclude, m."""
+            out = np.zeros(len(X))
+            for k, p in cands:
+                p = np.asarray(p, float)
+                if not np.isfinite(X[k]).all():
+                    continue
+                if not np.isfinite(p).all():  # an alternative without a position: nothing can be promised
+                    out[k] = np.inf
+                    continue
+                if plane is not None and role == side:
+                    c, n = plane
+                    if np.sign((p - c) @ n) != np.sign((X[k] - c) @ n):
+                        continue  # on the other side of the partners' plane: excluded by the stated rule
+                out[k] = max(out[k], float(np.linalg.norm(p - X[k])))
+            return out
+
+        cand_r = [(int(i), u.receiver_alternatives[i]) for i in np.flatnonzero(u.ambiguous_receivers)]
+        cand_s = [(int(j), u.source_alternatives[j]) for j in np.flatnonzero(u.ambiguous_sources)]
+        for a in u.alternatives:  # every listed alternative, not only the first one found per unit
+            cand_r += [(int(i), p) for i, p in zip(a.receivers, a.receiver_positions, strict=True)]
+            cand_s += [(int(j), p) for j, p in zip(a.sources, a.source_positions, strict=True)]
+        move_r, move_s = moves(R, "receivers", cand_r), moves(S, "sources", cand_s)
+        far_r = move_r > POSITION_REQUIREMENT
+        far_s = move_s > POSITION_REQUIREMENT
+        far_r &= np.asarray(u.ambiguous_receivers, bool)
+        far_s &= np.asarray(u.ambiguous_sources, bool)
+        who = ([f"microphone {rn[i]}" for i in np.flatnonzero(far_r)]
+               + [f"loudspeaker {sn[j]}" for j in np.flatnonzero(far_s)])
+        if who:
+            worst = float(max(move_r[far_r].max(initial=0.0), move_s[far_s].max(initial=0.0)))
+            more = f" and {len(who) - 12} more" if len(who) > 12 else ""
+            out.append(f"not unique: {', '.join(who[:12])}{more} fit the data as well at another position up to "
+                       f"{worst:.3g} m away (> {POSITION_REQUIREMENT * 100:.0f} cm; likelihood-ratio test, level "
+                       f"{u.alpha:g}; alternatives in the JSON 'uniqueness'); remedy: give known heights (--heights) "
+                       "or add a unit off the plane of their partners")
+        near = int((move_r > 0).sum() + (move_s > 0).sum()) - len(who)
+        if near > 0:
+            notes.append(f"uniqueness: {near} unit(s) have an alternative position the data do not reject within "
+                         f"{POSITION_REQUIREMENT * 100:.0f} cm (the requirement holds whichever is true)")
+        if u.minimal:
+            out.append("not tested: no spare measurement, the fit is exact whatever the geometry (a minimal "
+                       "problem is not a determined one); add units or detections")
+    if sol.get("outlier_breakdown"):
+        out.append(str(sol["outlier_breakdown"]) + ": positions NOT reliable")
+    why = extent_reason(np.asarray(sol["receivers"]), np.asarray(sol["sources"]), room)
+    if why is not None:
+        out.append(why)
+    return tuple(out)
 
 
 @entry(rng="rng", jitter="nonnegative?", speed_of_sound="positive?")
@@ -342,6 +433,7 @@ def run_pipeline(
     timings["calibrate"] = time.perf_counter() - t0
     cpu["calibrate"] = time.process_time() - c0
     T, S = robust.matrix, robust.matrix_std
+    extra = _unique_or_plausible(sol, setup.receivers, setup.senders, setup.room, notes)  # the solver's frame
     if setup.unit_offsets:
         idx = [(setup.receivers.index(n), setup.senders.index(n), d) for n, d in setup.unit_offsets.items()]
         ri = np.array([a for a, _, _ in idx])
@@ -389,12 +481,20 @@ def run_pipeline(
         bars = None
     labels = tuple(f"microphone {n}" for n in setup.receivers) + tuple(f"loudspeaker {n}" for n in setup.senders)
     verdict = judge(bars, rounds=rounds, fit_failed=fit is not None and not fit.passed, fit_reason=fit_reason,
-                    names=labels)
+                    names=labels, extra=extra, round_seconds=rec.signals.shape[1] / fs / max(rounds, 1))
     if not setup.unit_offsets:
         notes.append(SPEED_NOTE.format(c=speed))
     notes.append(BIAS_NOTE)
-    dr = tuple(setup.receivers[i] for i in robust.dropped_receivers)
-    dsn = tuple(setup.senders[j] for j in robust.dropped_senders)
+    # units the TOA fit itself dropped (NaN rows, e.g. more flagged ranges than a position can hold)
+    lost_r = [int(i) for i in np.flatnonzero(~np.isfinite(np.asarray(sol["receivers"])).all(axis=1))
+              if i not in robust.dropped_receivers]
+    lost_s = [int(j) for j in np.flatnonzero(~np.isfinite(np.asarray(sol["sources"])).all(axis=1))
+              if j not in robust.dropped_senders]
+    if lost_r or lost_s:
+        notes.append("dropped by the TOA fit (not located): " + ", ".join(
+            [f"microphone {setup.receivers[i]}" for i in lost_r] + [f"loudspeaker {setup.senders[j]}" for j in lost_s]))
+    dr = tuple(setup.receivers[i] for i in sorted(int(k) for k in [*robust.dropped_receivers, *lost_r]))
+    dsn = tuple(setup.senders[j] for j in sorted(int(k) for k in [*robust.dropped_senders, *lost_s]))
     return PipelineResult(
         receivers=sol["receivers"], sources=sol["sources"], receiver_offsets=sol["receiver_offsets"],
         source_offsets=sol["source_offsets"], receiver_cov=sol["receiver_cov"], source_cov=sol["source_cov"],
@@ -404,5 +504,6 @@ def run_pipeline(
         sender_names=setup.senders, speed_of_sound=speed, notes=tuple(notes), fit=fit, timing_noise=noise,
         fit_binding=True, outliers=tuple(robust.outliers), dropped_receivers=dr, dropped_senders=dsn,
         error_bars=bars, verdict=verdict, rounds=rounds, event_senders=np.asarray(es, dtype=np.int64),
-        matrix_std=S, timings_cpu=cpu,
+        matrix_std=S, timings_cpu=cpu, uniqueness=sol.get("uniqueness"),
+        outlier_breakdown=sol.get("outlier_breakdown"),
     )

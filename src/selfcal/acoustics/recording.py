@@ -8,6 +8,7 @@ Format (see ``docs/recording_format.md``)::
         temperature      degrees C (optional): c = 331.4 + 0.6 T + 0.0124 RH (pyroomacoustics)
         humidity         relative humidity, % (optional, with temperature; default 0)
         unit_offsets     {name: m} (optional): known distance from receiver <name> to sender <name>
+        room             [L, W, H] m (optional): the room's size, for the plausibility check of the result
         receivers        list of names; receiver i is DIR/rx_<name>.wav
         senders          list of names
         probe            {"type": "chirp", "f0": Hz, "f1": Hz, "duration": s} or {"wav": "probe.wav"}
@@ -88,6 +89,9 @@ class Setup:
     unit_offsets : dict
         ``{name: m}``: known distance between receiver ``name`` and sender ``name`` (a unit's
         microphone and loudspeaker), used as scale constraints.
+    room : tuple of float or None
+        Declared room size ``(L, W, H)``, m (optional field): a result larger than the room
+        can hold is failed (:func:`selfcal.acoustics.plausibility.extent_reason`).
     """
 
     sample_rate: float
@@ -101,6 +105,7 @@ class Setup:
     temperature: float | None = None
     humidity: float | None = None
     unit_offsets: dict[str, float] = field(default_factory=dict)
+    room: tuple[float, ...] | None = None
 
     def to_dict(self) -> dict[str, Any]:
         """The ``setup.json`` content (JSON-safe)."""
@@ -118,6 +123,7 @@ class Setup:
             **({"temperature": self.temperature} if self.temperature is not None else {}),
             **({"humidity": self.humidity} if self.humidity is not None else {}),
             **({"unit_offsets": dict(self.unit_offsets)} if self.unit_offsets else {}),
+            **({"room": list(self.room)} if self.room is not None else {}),
         }
 
 
@@ -243,8 +249,16 @@ def parse_setup(raw: Any, where: str = "setup.json") -> Setup:
             if isinstance(dist, bool) or not isinstance(dist, (int, float)) or not math.isfinite(dist) or dist <= 0:
                 raise InputError(f"{where}: field 'unit_offsets.{name}' must be a positive distance in m, got {dist!r}")
             offs[name] = float(dist)
+    room = None
+    if "room" in raw:
+        rm = raw["room"]
+        if (not isinstance(rm, list) or len(rm) not in (2, 3)
+                or not all(not isinstance(v, bool) and isinstance(v, (int, float)) and math.isfinite(v) and v > 0
+                           for v in rm)):
+            raise InputError(f"{where}: field 'room' must be [L, W, H] (or [L, W]): positive lengths in m, got {rm!r}")
+        room = tuple(float(v) for v in rm)
     return Setup(fs, c, receivers, senders, dict(probe), np.array(ev_s, dtype=np.int64), np.array(ev_t),
-                 clock_jitter=float(jit), temperature=temp, humidity=hum, unit_offsets=offs)
+                 clock_jitter=float(jit), temperature=temp, humidity=hum, unit_offsets=offs, room=room)
 
 
 def speed_from_air(temperature: float, humidity: float = 0.0, pressure: float = 101.325) -> float:

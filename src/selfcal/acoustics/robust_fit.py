@@ -143,6 +143,9 @@ def _scatter(sol: dict[str, Any], kr: NDArray[np.bool_], ks: NDArray[np.bool_]) 
         full = np.full((n,) + a.shape[1:], np.nan)
         full[keep] = a
         out[key] = full
+    u = sol.get("uniqueness")
+    if u is not None and hasattr(u, "relabel") and len(u.ambiguous_receivers) == int(kr.sum()):
+        out["uniqueness"] = u.relabel(kr, ks, np.arange(I), np.arange(J))  # in the recording's numbering
     return out
 
 

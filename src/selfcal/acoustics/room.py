@@ -232,7 +232,7 @@ def simulate_conference(
     names_r = tuple(f"u{k:03d}" for k in range(U))
     # the simulated clocks' jitter is declared in setup.json as the equipment's specification
     setup = Setup(float(fs), float(speed), names_r, names_r, prb.spec, ev_sender, times,
-                  clock_jitter=float(jitter))
+                  clock_jitter=float(jitter), room=tuple(float(v) for v in scene.room))
     truth = scene.to_dict() | {
         "speed_of_sound": speed, "rt60": rt60, "snr_db": snr_db, "absorption": float(absorption),
         "max_order": order, "sample_rate": fs, "arrival_times": arrivals.tolist(), "clock_jitter": jitter,

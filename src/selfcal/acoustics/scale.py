@@ -66,4 +66,7 @@ def apply_scale(sol: dict[str, Any], lam: float) -> dict[str, Any]:
         out[key] = np.asarray(sol[key], float) * lam
     for key in ("receiver_cov", "source_cov"):
         out[key] = np.asarray(sol[key], float) * lam**2
+    if sol.get("uniqueness") is not None:  # its alternative positions at the same scale
+        d = np.asarray(sol["receivers"]).shape[1]
+        out["uniqueness"] = sol["uniqueness"].moved(lam * np.eye(d), np.zeros(d))
     return out

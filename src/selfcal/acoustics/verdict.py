@@ -29,6 +29,7 @@ import numpy as np
 import scipy.sparse
 from numpy.typing import NDArray
 
+from .plausibility import repeats_reason
 from .requirements import POSITION_REQUIREMENT, SIGMAS, TIMING_REQUIREMENT
 
 __all__ = ["POSITION_REQUIREMENT", "TIMING_REQUIREMENT", "SIGMAS", "ErrorBars", "Verdict", "error_bars", "judge"]
@@ -174,7 +175,8 @@ class Verdict:
 
 
 def judge(bars: ErrorBars | None, *, rounds: int, fit_failed: bool, fit_reason: str = "",
-          extra: tuple[str, ...] = (), names: tuple[str, ...] | None = None) -> Verdict:
+          extra: tuple[str, ...] = (), names: tuple[str, ...] | None = None,
+          round_seconds: float | None = None) -> Verdict:
     """Judge 004's requirements from the error bars (module docstring).
 
     Parameters
@@ -191,6 +193,9 @@ def judge(bars: ErrorBars | None, *, rounds: int, fit_failed: bool, fit_reason: 
         Further reasons (e.g. units dropped).
     names : tuple of str, optional
         Labels of the receivers then the senders (for the worst unit).
+    round_seconds : float, optional
+        Duration of one round of the probes, s: rounds that would take longer than a working
+        day are no remedy (:func:`selfcal.acoustics.plausibility.repeats_reason`).
 
     Returns
     -------
@@ -217,9 +222,13 @@ def judge(bars: ErrorBars | None, *, rounds: int, fit_failed: bool, fit_reason: 
                            + (f", worst {names[k] if names is not None else f'unit #{k}'}" if k >= 0 else ""))
         if not np.isfinite(tmax) or tmax > tlim:
             need = int(math.ceil(max(rounds, 1) * (tmax / tlim) ** 2)) if np.isfinite(tmax) else None
-            reasons.append(f"requirement not met: delay std {tmax * 1e6:.3g} us > {tlim * 1e6:.3g} us "
-                           f"({TIMING_REQUIREMENT * 1e6:.0f} us at {SIGMAS:g} sigma)"
-                           + (f": repeat the probes {need} times (rounds per loudspeaker; the std falls as "
-                              f"1/sqrt(rounds))" if need is not None else ""))
+            absurd = repeats_reason(need, float("nan") if round_seconds is None else round_seconds, tmax, tlim)
+            if absurd is not None:
+                reasons.append(absurd)
+            else:
+                    reasons.append(f"requirement not met: delay std {tmax * 1e6:.3g} us > {tlim * 1e6:.3g} us "
+                               f"({TIMING_REQUIREMENT * 1e6:.0f} us at {SIGMAS:g} sigma)"
+                               + (f": repeat the probes {need} times (rounds per loudspeaker; the std falls as "
+                                  f"1/sqrt(rounds))" if need is not None else ""))
     reasons.extend(extra)
     return Verdict(not reasons, tuple(reasons), pmax, tmax, need)

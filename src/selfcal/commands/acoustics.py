@@ -200,7 +200,8 @@ def summarise(result: Any, errors: dict[str, Any] | None, framed: Any = None) ->
 
     The calibration's own verdict (``PASS`` / ``FAIL``, from its error bars and residual test)
     comes last; a comparison with ``truth.json`` is labelled ``truth check`` (met / MISSED),
-    so it is never mistaken for the calibration's verdict.
+    so it is never mistaken for the calibration's verdict. A truth check that says MISSED
+    turns a ``PASS`` into a ``FAIL`` (:func:`truth_missed`; the command then exits 1).
     """
     import numpy as np
 
@@ -255,8 +256,15 @@ def summarise(result: Any, errors: dict[str, Any] | None, framed: Any = None) ->
                      f"timing max {errors['timing_max'] * 1e6:.2f} us "
                      f"(<= 58 us: {'yes' if errors['pass_timing'] else 'no'})")
     verdict = result.verdict
+    missed = errors is not None and not errors["passed"]
     if verdict is not None:
-        if verdict.passed:
+        if verdict.passed and missed:  # never a PASS under a truth check that says MISSED
+            lines.append("FAIL: the truth check says the 004 requirements were MISSED although the calibration's "
+                         f"own error bars meet them (position std max {verdict.position_std_max * 100:.3g} cm, "
+                         f"delay+onset std max {verdict.timing_std_max * 1e6:.3g} us): the error bars are not "
+                         "trustworthy here (a wrong basin, a bias common to the detections, or a wrong speed of "
+                         "sound)")
+        elif verdict.passed:
             lines.append(f"PASS: 004 requirements met by the calibration's own error bars (position std max "
                          f"{verdict.position_std_max * 100:.3g} cm <= 5 cm, delay+onset std max "
                          f"{verdict.timing_std_max * 1e6:.3g} us <= 29 us: 10 cm / 58 us at 2 sigma)")
@@ -376,7 +384,7 @@ def _pipeline_outputs(directory: Path, out: Path, plot: Path | None, report: Pat
     """Run the pipeline and stage every output; True when the calibration failed (exit 1)."""
     from ..acoustics.pipeline import run_pipeline
     from ..acoustics.recording import speed_from_air
-    from ..errors import InputError
+    from ..errors import InputError, Status
     from ..io import write_json
     from ..plotting.conference import plot_map, plot_timing
     from ._common import enrich_payload, write_nodes_csv
@@ -440,10 +448,18 @@ def _pipeline_outputs(directory: Path, out: Path, plot: Path | None, report: Pat
             write_html_report(result, report / "report.html", errors, summary=lines)
     if plot is not None:
         plot_map(result, plot, errors, room=room)
+    if truth_missed(errors):  # the JSON's verdict agrees with the console's FAIL and the exit status
+        payload.update(failed=True, success=False, status=int(Status.FAILED_TEST),
+                       message="the truth check says the 004 requirements were MISSED")
     write_json(out, payload)
     for line in summarise(result, errors, framed):
         click.echo(line)
-    return bool(result.failed)
+    return bool(result.failed or truth_missed(errors))
+
+
+def truth_missed(errors: dict[str, Any] | None) -> bool:
+    """True when a ``truth.json`` comparison (:func:`pipeline_errors`) says 004's requirements were missed."""
+    return errors is not None and not errors["passed"]
 
 
 def _room_frame(result: Any, known: Path | None, frame: str | None) -> Any:
