@@ -17,10 +17,10 @@ from pathlib import Path
 
 import numpy as np
 from scipy.io import savemat
+from tests.datasets.cmu_logs import cmu_log
 
 from selfcal.datasets.plaza import load_plaza
 from selfcal.slac.ranging import RangeModelConfig, solve_range_slac
-from tests.datasets.cmu_logs import cmu_log
 
 
 def rmse(seed: int, range_scale: tuple[float, float], scale_std: float, method: str = "smoother") -> float:
