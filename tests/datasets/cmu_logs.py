@@ -42,7 +42,8 @@ def cmu_log(seed: int, *, n_beacons: int = 4, heading_offset: float = 0.0, durat
             heading_offset_dtype: Any = float, far_beacon: float = 0.0, brief: int = 0, brief_seconds: float = 15.0,
             dropouts: int = 0, dropout_seconds: float = 30.0, odo_scale: float = 1.0, stand: int = 0,
             stand_seconds: float = 30.0, dr_duplicates: float = 0.0, time_scale: float = 1.0,
-            heading_degrees: bool = False, zero_odometry: bool = False) -> tuple[dict[str, Any], CmuTruth]:
+            heading_degrees: bool = False, zero_odometry: bool = False,
+            range_scale: tuple[float, float] = (0.02, 0.09)) -> tuple[dict[str, Any], CmuTruth]:
     """A CMU-style log (``TL``, ``TD``, ``GT``, ``DR``, ``DRp``, ``init_heading_offset``) and its truth.
 
     Parameters
@@ -66,6 +67,8 @@ def cmu_log(seed: int, *, n_beacons: int = 4, heading_offset: float = 0.0, durat
     stand : stretches of ``stand_seconds`` where the robot stands still (zero increments,
         ranges keep coming).
     dr_duplicates : fraction of ``DR`` rows the logger wrote twice (identical rows).
+    range_scale : (low, high) of each beacon's range-scale error ``s_b - 1`` (uniform draw; the
+        draw is made in every case, so (0, 0) gives the same log with exact scales).
     time_scale : every time column is multiplied by it (1000: milliseconds).
     heading_degrees : ``GT(:, 4)`` and ``DR(:, 3)`` are written in degrees.
     zero_odometry : ``DR``'s increments are all zero (a log without working encoders).
@@ -99,7 +102,7 @@ def cmu_log(seed: int, *, n_beacons: int = 4, heading_offset: float = 0.0, durat
         centre, half = (lo + hi) / 2, np.max(hi - lo) / 2
         beacons[B - 1] = centre + (half + far_beacon) * np.array([np.cos(ang), np.sin(ang)])
     bid = np.asarray(ids if ids is not None else g.choice(100, B, replace=False), dtype=np.int64)
-    scale = 1.0 + g.uniform(0.02, 0.09, B)  # several percent long, as on Plaza 1
+    scale = 1.0 + g.uniform(range_scale[0], range_scale[1], B)  # default: several percent long, as on Plaza 1
     offset = g.uniform(-0.8, 0.8, B)
     heard = np.ones(B, dtype=bool)
     if silent:
