@@ -50,7 +50,7 @@ def _case(units: int, room: str, seed: int) -> tuple[np.ndarray, np.ndarray]:
 
 def _fast(units: int, room: str) -> dict[str, Any]:
     from selfcal.errors import ConvergenceWarning
-    from selfcal.toa.rank3 import estimate_offsets
+    from selfcal.toa.init.rank3 import estimate_offsets
 
     times, errs, iters, restarts = [], [], [], []
     for seed in range(SEEDS_FAST):
@@ -87,8 +87,8 @@ def _solve_toa(units: int, room: str, runs: int = 3) -> dict[str, Any]:
 
 def _faithful(units: int, room: str, runs: int, cap: int) -> dict[str, Any]:
     from selfcal.experiments.delays import _extrapolate
-    from selfcal.toa.rank3_model import THESIS_ACCEPT, THESIS_TOL
-    from selfcal.toa.rank3_thesis import rank3_iteration
+    from selfcal.toa.init.rank3_model import THESIS_ACCEPT, THESIS_TOL
+    from selfcal.toa.init.rank3_thesis import rank3_iteration
 
     times, extrap, errs, iters, per_it, accepted = [], [], [], [], [], 0
     for seed in range(runs):

@@ -1,9 +1,9 @@
 """Benchmark "lps": the moving-tag recipe's common-offset test on the LPS flights, by engine.
 
-The default ``common_offset="test"`` of :func:`selfcal.toa.recipes.moving_tag` refits the
+The default ``common_offset="test"`` of :func:`selfcal.toa.recipes.recipes.moving_tag` refits the
 flight with one common range offset, then once per time block (up to 16) for the block
-jackknife t test (:mod:`selfcal.toa.common_offset`). Those constrained refits run on the
-Schur-reduced Newton-LM of :mod:`selfcal.toa.schur_affine` (``solver="auto"``); the
+jackknife t test (:mod:`selfcal.toa.recipes.common_offset`). Those constrained refits run on the
+Schur-reduced Newton-LM of :mod:`selfcal.toa.engine.schur_affine` (``solver="auto"``); the
 baseline is the SciPy trust-region path they ran on before (``solver="trf"``), measured in
 the same run on the same offsets-free fit, interleaved, CPU time (``time.process_time``;
 the machine is shared, wall time is inflated by the others).
@@ -38,7 +38,7 @@ import numpy as np
 def _base(path: str):
     """The offsets-free moving-tag fit and the cleaned matrix it was fitted on."""
     from selfcal.datasets.lps import load_lps
-    from selfcal.toa.recipes import moving_tag
+    from selfcal.toa.recipes.recipes import moving_tag
 
     fl = load_lps(path)
     t0 = time.process_time()
@@ -50,7 +50,7 @@ def _base(path: str):
 
 def bench_flight(path: str, repeat: int) -> dict:
     """CPU seconds and the test's numbers per engine on one flight (interleaved runs)."""
-    from selfcal.toa.common_offset import block_offset_test
+    from selfcal.toa.recipes.common_offset import block_offset_test
 
     base, cleaned, t_base = _base(path)
     cpu: dict[str, list[float]] = {"trf": [], "auto": []}

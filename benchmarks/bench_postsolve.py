@@ -49,7 +49,7 @@ from typing import Any
 
 import numpy as np
 
-#: (module attribute in selfcal.toa.fit or selfcal.toa.trust, stage name); missing names are skipped
+#: (module attribute in selfcal.toa.fit or selfcal.toa.verdict.trust, stage name); missing names are skipped
 STAGES = [
     ("fit", "_flag", "outlier_flagging"),
     ("fit", "leverages", "leverages"),
@@ -94,7 +94,7 @@ class _Clock:
 
     def __init__(self) -> None:
         import selfcal.toa.fit as fit
-        import selfcal.toa.trust as trust
+        import selfcal.toa.verdict.trust as trust
 
         self.mods = {"fit": fit, "trust": trust}
         self.saved: list[tuple[Any, str, Any]] = []

@@ -3,11 +3,11 @@
 Part 1, no offsets: 3-D networks of I receivers x J sources uniform in a 10 x 10 x 5 m volume,
 range noise sigma = 1 cm, 5 % of the entries missing at random. For each size:
 
-- ``init``: ``selfcal.toa.mds.initialize_toa(method="rank")``, timed once; every solver below
+- ``init``: ``selfcal.toa.init.mds.initialize_toa(method="rank")``, timed once; every solver below
   starts from it (same start).
 - ``ours_solve``: ``refine_toa(Y, r0, s0, covariance="none")`` (the Schur LM engine);
   ``ours_cov``: the exact covariance alone at the solution
-  (:func:`selfcal.toa.covariance.covariance_blocks`, selected inversion, all blocks, one BLAS
+  (:func:`selfcal.toa.engine.covariance.covariance_blocks`, selected inversion, all blocks, one BLAS
   thread) with ``cov_floor``, the CPU time of its four unavoidable BLAS calls on matrices of its
   size; ``ours_cov_2threads``: the same on two BLAS threads (compare wall time: CPU time counts
   both threads); ``ours_cov_local``: ``covariance="local"`` (each node's conditional block,
@@ -38,7 +38,7 @@ Part 4, ``sparse`` (``SELFCAL_BENCH_TOA_SPARSE``, default ``2000:0.01,10000:0.01
 side : fraction of pairs observed): :func:`selfcal.toa.solve_toa_sparse` blind on a network with
 ranges only between nearby nodes (100 m cube, 1 cm), against the engine started at the truth and,
 up to 3000 nodes, the CRLB; ``cov_one_receiver``: the exact covariance block of the best
-connected receiver (:mod:`selfcal.toa.sparse_covariance`, d CG solves on the pairs), its time
+connected receiver (:mod:`selfcal.toa.engine.sparse_covariance`, d CG solves on the pairs), its time
 and predicted std; ``weakly_placed`` / ``mirrors_taken``: nodes left with <= d + 1 ranges and
 how many the mirror re-check moved.
 
@@ -218,8 +218,8 @@ def _dense_case(I: int, J: int, reps: int) -> dict[str, Any]:
     over the solve and over SciPy, CPU and wall.
     """
     from selfcal.toa import refine_toa, solve_toa, toa_crlb
-    from selfcal.toa.covariance import covariance_blocks, dense_threads
-    from selfcal.toa.mds import initialize_toa
+    from selfcal.toa.engine.covariance import covariance_blocks, dense_threads
+    from selfcal.toa.init.mds import initialize_toa
 
     want = _rows()
 
@@ -350,7 +350,7 @@ def _sparse_case(N: int, fraction: float) -> dict[str, Any]:
                      "weakly_placed": int(sol.weakly_placed_receivers.size + sol.weakly_placed_sources.size),
                      "mirrors_taken": sol.mirrors_taken}
     # exact covariance of one located receiver (the best connected), d CG solves on the pairs
-    from selfcal.toa.sparse_covariance import sparse_covariance_blocks
+    from selfcal.toa.engine.sparse_covariance import sparse_covariance_blocks
 
     used_pairs = np.isfinite(sol.residuals)
     ri_, si_ = np.cumsum(mr) - 1, np.cumsum(ms) - 1
@@ -408,7 +408,7 @@ def _units_case(U: int, seed: int = 0) -> dict[str, Any]:
     # 2026-12-01, the full-size multistart with the missing entries as unknowns (max_candidates=2
     # keeps that path), against the one start solve_toa now takes (max_candidates=1)
     if U <= OLD_INIT_MAX:
-        from selfcal.toa.offsets_init import initialize_offsets_candidates
+        from selfcal.toa.init.offsets_init import initialize_offsets_candidates
 
         for key, k in (("init_now", 1), ("init_before", 2)):
             cpu = time.process_time()

@@ -1,6 +1,6 @@
 """Benchmark "toa_determined": how often the determinacy test flags TOA results, by case.
 
-The test (:func:`selfcal.toa.trust.determinacy_test`): a node is *undetermined* when the
+The test (:func:`selfcal.toa.verdict.trust.determinacy_test`): a node is *undetermined* when the
 largest semi-axis of its 95 % confidence ellipsoid (the result's gauge-free covariance,
 at the given noise or the fit's estimate) exceeds the robust RMS radius of its node set;
 more than half of the tested nodes undetermined fails the result (exit 1 from
@@ -73,7 +73,7 @@ def network(I: int, J: int, dim: int, offsets: str, noise: float,
 def _truth_case(I: int, J: int, dim: int, offsets: str, noise: float, draws: int, first: int) -> dict[str, Any]:
     from selfcal.metrics import aligned_rmse
     from selfcal.toa import refine_toa
-    from selfcal.toa.trust import determinacy_test, fisher_blocks
+    from selfcal.toa.verdict.trust import determinacy_test, fisher_blocks
 
     out: dict[str, Any] = {"given_any": 0, "given_failed": 0, "est_any": 0, "est_failed": 0, "draws": draws,
                            "max_ratio": 0.0}
@@ -143,7 +143,7 @@ def minimal(draws: int, first: int, given: bool) -> list[dict[str, Any]]:
     from selfcal.geometry import align
     from selfcal.metrics import aligned_rmse
     from selfcal.toa import solve_toa
-    from selfcal.toa.trust import set_scale
+    from selfcal.toa.verdict.trust import set_scale
 
     rows = []
     for seed in range(first, first + draws):

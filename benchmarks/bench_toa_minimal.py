@@ -50,7 +50,7 @@ The merged main (7bef864: the race, 8 scaled starts, the t quantile, the permuta
 refined procedure), same seeds 360-559, one process at nice 5 on an otherwise idle machine:
 180 of 200 (90.0 %, CI 85.0-93.8 %), blind CPU median 0.84 s against 0.31 s for the
 truth-started ``trf`` refinement (ratio 2.7).
-Then the race in lockstep (toa/batch_lm.py) over 24 scaled starts, the count chosen on seeds
+Then the race in lockstep (toa/engine/batch_lm.py) over 24 scaled starts, the count chosen on seeds
 0-199 (182 / 190 / 194 / 194 of 200 for 8 / 16 / 24 / 32), held-out seeds 560-759 run once
 beside the 8 starts raced one at a time (``benchmarks/compare_toa_race.py --first 560
 --draws 200 --configs 0:8,1:24``, 2026-12-02, load 4-5 on 2 cores): 192 of 200 (96.0 %, exact

@@ -3,7 +3,7 @@
 For every case (size, dimension, offsets, missing fraction) and seeded draw:
 
 - ``random``: a uniform U(0, 10) matrix (no geometry) -- the permutation test
-  (:func:`selfcal.toa.trust.permutation_test`) must pass at most its level, 1 / 20;
+  (:func:`selfcal.toa.verdict.trust.permutation_test`) must pass at most its level, 1 / 20;
 - ``network``: receivers and sources uniform in a 10 m square / cube, offsets U(0, 3 m) of
   the case's kinds, Gaussian noise ``--noise`` (m) -- it must pass.
 
@@ -37,7 +37,7 @@ CASES = [(5, 5, 2, "none", 0.0), (8, 10, 2, "none", 0.0), (8, 10, 3, "none", 0.0
 def network(I: int, J: int, dim: int, offsets: str, noise: float, g: np.random.Generator,
             missing: float) -> np.ndarray:
     """A noisy range matrix of a random network (metres)."""
-    from selfcal.toa.nls import toa_model
+    from selfcal.toa.engine.nls import toa_model
 
     Y = toa_model(g.uniform(0, 10, (I, dim)), g.uniform(0, 10, (J, dim)))
     if offsets in ("receivers", "both"):
@@ -52,7 +52,7 @@ def network(I: int, J: int, dim: int, offsets: str, noise: float, g: np.random.G
 
 def main(out: Path | None = None, *, draws: int = 10, noise: float = 0.05, solve: bool = False) -> dict[str, Any]:
     """Run every case; print one line each; write ``toa_verdict.json`` under ``out``; return the rows."""
-    import selfcal.toa.trust as trust
+    import selfcal.toa.verdict.trust as trust
     from selfcal.toa import solve_toa
 
     warnings.simplefilter("ignore")

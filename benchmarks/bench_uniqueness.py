@@ -5,9 +5,9 @@ Issue 27 budget: every check after the solve together costs at most the solve it
 small part of that. Same run, same process, CPU time (``time.process_time``):
 
 - ``solve``: ``solve_toa`` end to end (noise unknown), with the uniqueness test inside it
-  (:func:`selfcal.toa.uniqueness.judge_fit`, timed by a wrapper) -- ``uniqueness_share`` is
+  (:func:`selfcal.toa.verdict.uniqueness.judge_fit`, timed by a wrapper) -- ``uniqueness_share`` is
   its time over the rest of the solve;
-- ``forced_model``: :func:`selfcal.toa.model_test.forced_model_test` on the result (what
+- ``forced_model``: :func:`selfcal.toa.verdict.model_test.forced_model_test` on the result (what
   ``calibrate toa`` runs after the solve when the model is not ``auto``: offsets "none"
   against "both"), over the same solve.
 
@@ -61,7 +61,7 @@ def main(out: Path | None = None) -> dict[str, Any]:
     """Run the cases; print one line each; write ``uniqueness.json`` under ``out``; return the rows."""
     import selfcal.toa.fit as fit
     from selfcal.toa import solve_toa
-    from selfcal.toa.model_test import forced_model_test
+    from selfcal.toa.verdict.model_test import forced_model_test
 
     warnings.simplefilter("ignore")
     spent = [0.0]

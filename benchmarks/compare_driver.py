@@ -62,7 +62,17 @@ def load_old(commit: str, where: Path) -> str:
 
 
 def tree(name: str) -> Callable[[str], types.ModuleType]:
-    return lambda sub: importlib.import_module(f"{name}.{sub}")
+    """Module ``sub`` (new layout, e.g. ``toa.engine.nls``) of tree ``name``; an old tree of the
+    flat ``toa/`` (before issue 30's move into layers) has it as ``toa.nls``."""
+
+    def get(sub: str) -> types.ModuleType:
+        try:
+            return importlib.import_module(f"{name}.{sub}")
+        except ModuleNotFoundError:
+            parts = sub.split(".")
+            return importlib.import_module(f"{name}.{'.'.join(parts[:1] + parts[2:])}")
+
+    return get
 
 
 # ------------------------------------------------------------------ problems (data only)
@@ -94,7 +104,7 @@ def case_refine(P: dict[str, Any], loss: str = "linear", fixed: str = "") -> Cal
             fr[:, -1] = fs[:, -1] = True
             r0[fr], s0[fs] = P["r"][fr], P["s"][fs]
             kw.update(fixed_receivers=fr, fixed_sources=fs)
-        sol = m("toa.nls").refine_toa(P["Y"], r0, s0, offsets=P["offsets"], loss=loss, covariance=False, **kw)
+        sol = m("toa.engine.nls").refine_toa(P["Y"], r0, s0, offsets=P["offsets"], loss=loss, covariance=False, **kw)
         return float(sol.cost), np.vstack([sol.receivers, sol.sources])
     return run
 
@@ -109,8 +119,8 @@ def case_batch(P: dict[str, Any]) -> Callable[[Any], tuple[float, Any]]:
                        for _ in range(25)])
 
     def run(m: Any) -> tuple[float, Any]:
-        Th, ok, it, fin = m("toa.batch_lm").solve_batch_lm(starts, P["Y"], d, off, "linear", 1.0, None, 1e-12)
-        costs = [0.5 * float(np.nansum(m("toa.nls").toa_residuals(t, P["Y"], d, off) ** 2)) for t in Th]
+        Th, ok, it, fin = m("toa.engine.batch_lm").solve_batch_lm(starts, P["Y"], d, off, "linear", 1.0, None, 1e-12)
+        costs = [0.5 * float(np.nansum(m("toa.engine.nls").toa_residuals(t, P["Y"], d, off) ** 2)) for t in Th]
         return float(np.sum(costs)), Th[int(np.argmin(costs)), :(I + J) * d].reshape(-1, d)
     return run
 
@@ -132,7 +142,7 @@ def case_rank3(I: int, J: int, miss: float, seed: int, model: str) -> Callable[[
     def run(m: Any) -> tuple[float, Any]:
         # run to convergence (the default cap of 100 iterations stops the large cases early,
         # where the old and new damping have taken different paths)
-        res = m("toa.rank3").rank3_lm(R, model=model, rng=seed, max_iter=2000)
+        res = m("toa.init.rank3").rank3_lm(R, model=model, rng=seed, max_iter=2000)
         return float(res.extra["objective"]) ** 2, None
     return run
 

@@ -1,7 +1,7 @@
 """The range-graph fit: SciPy's TRF (old) against the one Levenberg-Marquardt driver (issue 30).
 
 Loads the tree of an old commit (default ``b6893af``, the last one whose
-:func:`selfcal.toa.graph_fit._fit` ran ``scipy.optimize.least_squares(method="trf")``) as the
+:func:`selfcal.toa.graph.graph_fit._fit` ran ``scipy.optimize.least_squares(method="trf")``) as the
 package ``selfcal_old`` next to the working tree's ``selfcal`` (the loader of
 ``benchmarks/compare_driver.py``), runs every case on both in this one process (old and new
 alternately, the better of ``--repeat`` CPU times each) and prints one row per case:
@@ -22,7 +22,7 @@ pair means by the two ``_fit``; then ``solve_range_graph`` end to end on some of
 large graph (8 anchors + 300 / 3000 tags, 924 / 9012 unknowns: the sparse step), and the LPS flight
 ``data4`` in long form when the shared data are there (its start differs: the new tree's
 multilateration keeps grossly wrong tags inside their ranges' bound, see
-:mod:`selfcal.toa.graph_start`; the minimum must not).
+:mod:`selfcal.toa.graph.graph_start`; the minimum must not).
 
 Usage::
 
@@ -70,9 +70,9 @@ def fit_case(anchors: Any, tags: Any, *, noise: float, repeats: int, seed: int, 
              known: int = 0, prior_node: int | None = None, frame: bool = False, loss: str = "linear",
              spikes: int = 0) -> Callable[[Any], tuple[float, Any]]:
     """One ``_fit`` call from one start on one graph (the problem built once, by the new tree)."""
-    from selfcal.toa.graph import simulate_range_graph
-    from selfcal.toa.graph_fit import _pairs
-    from selfcal.toa.graph_start import _initial
+    from selfcal.toa.graph.graph import simulate_range_graph
+    from selfcal.toa.graph.graph_fit import _pairs
+    from selfcal.toa.graph.graph_start import _initial
 
     a, b, y = simulate_range_graph(
         anchors, tags, noise=noise, repeats=repeats, anchor_pairs=anchor_pairs, rng=seed)
@@ -108,7 +108,7 @@ def fit_case(anchors: Any, tags: Any, *, noise: float, repeats: int, seed: int, 
     f_scale = noise * np.sqrt(repeats) if loss != "linear" else 1.0
 
     def run(m: Any) -> tuple[float, Any]:
-        X, _, _ = m("toa.graph_fit")._fit(X0.copy(), P, free, prior, loss=loss, f_scale=f_scale)
+        X, _, _ = m("toa.graph.graph_fit")._fit(X0.copy(), P, free, prior, loss=loss, f_scale=f_scale)
         return _cost(X, P, prior, free, loss, f_scale), X
 
     return run
@@ -117,13 +117,13 @@ def fit_case(anchors: Any, tags: Any, *, noise: float, repeats: int, seed: int, 
 def solve_case(anchors: Any, tags: Any, *, noise: float, repeats: int, seed: int, known: int = 4,
                **kw: Any) -> Callable[[Any], tuple[float, Any]]:
     """``solve_range_graph`` end to end (the blind start, the fits, the outlier pass, the covariances)."""
-    from selfcal.toa.graph import simulate_range_graph
+    from selfcal.toa.graph.graph import simulate_range_graph
 
     a, b, y = simulate_range_graph(anchors, tags, noise=noise, repeats=repeats, rng=seed, **kw)
     kn = {str(i): anchors[i] for i in range(known)}
 
     def run(m: Any) -> tuple[float, Any]:
-        res = m("toa.graph").solve_range_graph(a, b, y, known=kn, dim=anchors.shape[1])
+        res = m("toa.graph.graph").solve_range_graph(a, b, y, known=kn, dim=anchors.shape[1])
         e = y - np.linalg.norm(res.positions[a] - res.positions[b], axis=1)
         e = e[~res.outliers]
         return 0.5 * float(e @ e), (res.positions, res.position_std)
@@ -144,7 +144,7 @@ def lps_case(path: Path) -> Callable[[Any], tuple[float, Any]]:
     kn = {f"A{k}": np.round(A[k], 3) for k in range(4)}
 
     def run(m: Any) -> tuple[float, Any]:
-        res = m("toa.graph").solve_range_graph(a, b, y, len(names), names=names, known=kn)
+        res = m("toa.graph.graph").solve_range_graph(a, b, y, len(names), names=names, known=kn)
         e = y - np.linalg.norm(res.positions[a] - res.positions[b], axis=1)
         e = e[~res.outliers]
         return 0.5 * float(e @ e), (res.positions, res.position_std)

@@ -1,7 +1,7 @@
 """Same-run comparison of search configurations on the minimal 12 x 6 scene (issue 12).
 
 Each configuration is ``BATCH:STARTS``: ``BATCH`` 1 races the starts in lockstep
-(:mod:`selfcal.toa.batch_lm`), 0 one at a time through the dense LM (the iterates are the
+(:mod:`selfcal.toa.engine.batch_lm`), 0 one at a time through the dense LM (the iterates are the
 same, only the cost differs); ``STARTS`` is :data:`selfcal.toa.search.SCALED_STARTS`. Every
 configuration solves the same draw in turn (the scene, the truth-started reference and the
 "in the basin" rule of ``benchmarks/bench_toa_minimal.py``), so the CPU ratios are paired and

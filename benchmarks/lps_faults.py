@@ -128,7 +128,7 @@ def run_case(fl: dict[str, Any], seed: int = 0, truth: bool = False) -> dict[str
     """
     from selfcal.commands.toa import _trustworthy
     from selfcal.errors import SelfcalError
-    from selfcal.toa.recipes import apply_recipe
+    from selfcal.toa.recipes.recipes import apply_recipe
 
     t0 = time.process_time()
     try:
@@ -154,7 +154,7 @@ def truth_gap(fl: dict[str, Any], res: Any) -> float:
     ``common``), both ends refined to convergence: below zero, the data prefer the blind
     answer (its error is the estimator's); far above, the search missed the truth's basin.
     """
-    from selfcal.toa.nls import refine_toa
+    from selfcal.toa.engine.nls import refine_toa
 
     used = np.isfinite(res.residuals) & ~np.asarray(res.outliers, bool)
     kr, ks = np.isfinite(res.receivers).all(axis=1), np.isfinite(res.sources).all(axis=1)

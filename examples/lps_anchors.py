@@ -15,7 +15,7 @@ import numpy as np
 from selfcal import solve_toa
 from selfcal.datasets import load_lps
 from selfcal.metrics import aligned_rmse
-from selfcal.toa.preprocess import (
+from selfcal.toa.recipes.preprocess import (
     fit_offsets_profile_common,
     observed_columns,
     reject_range_outliers,

@@ -265,7 +265,7 @@ def check_toa_observable(matrix: NDArray[np.float64], dim: int, offsets: str = "
     :func:`check_toa_counts` on the whole matrix, then the empty nodes: rows / columns with
     no observed entry say nothing about the network. When they are more than half of the
     nodes the result would fail its determinacy test anyway (more than half of the nodes
-    undetermined, :mod:`selfcal.toa.determinacy`), so the matrix is refused up front, before
+    undetermined, :mod:`selfcal.toa.verdict.determinacy`), so the matrix is refused up front, before
     work that grows with its size. (Pruning the nodes with at most ``dim`` ranges adds
     nothing here: the entries such nodes carry are at most ``dim`` per node, fewer than
     their unknowns, so a matrix that passes the whole count leaves a core that passes it.)

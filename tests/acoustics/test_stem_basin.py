@@ -16,7 +16,7 @@ from selfcal.cli import main
 from selfcal.geometry import align
 from selfcal.scenarios.conference import conference_scene
 from selfcal.toa import n_parameters, residual_test, solve_toa, toa_model
-from selfcal.toa.offsets_init import initialize_offsets_candidates
+from selfcal.toa.init.offsets_init import initialize_offsets_candidates
 
 C = 343.0
 ROOM = (12.0, 12.0, 3.0)

@@ -11,7 +11,7 @@ import pytest
 from click.testing import CliRunner
 
 from selfcal.cli import main
-from selfcal.toa.graph import simulate_range_graph
+from selfcal.toa.graph.graph import simulate_range_graph
 
 ANCHORS = np.array([[0, 0, 2.8], [5, 0, 2.9], [5, 4, 2.7], [0, 4, 2.9], [2.5, 0, 0.3], [2.5, 4, 0.4],
                     [0, 2, 1.5]])
@@ -77,7 +77,7 @@ def test_anchor_json_for_a_configuration_tool_and_frame_by_names(tmp_path):
 
 
 def test_unknown_known_name_exit_2_before_work(tmp_path, monkeypatch):
-    import selfcal.toa.graph as graph
+    import selfcal.toa.graph.graph as graph
 
     monkeypatch.setattr(graph, "_initial", lambda *a, **k: (_ for _ in ()).throw(AssertionError("solved")))
     log, _ = _log(tmp_path, 1, tags=0)

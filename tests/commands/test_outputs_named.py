@@ -64,8 +64,8 @@ def test_excel_na_cells_are_missing_entries(tmp_path: Path) -> None:
 
 
 def test_help_states_the_levels_the_tests_use() -> None:
-    from selfcal.toa.common_offset import COMMON_OFFSET_ALPHA
-    from selfcal.toa.recipes import TIME_ORDER_ALPHA
+    from selfcal.toa.recipes.common_offset import COMMON_OFFSET_ALPHA
+    from selfcal.toa.recipes.recipes import TIME_ORDER_ALPHA
 
     text = " ".join(invoke("calibrate", "toa", "--help").stdout.split())
     assert f"finds it (p < {COMMON_OFFSET_ALPHA:g})" in text

@@ -168,7 +168,7 @@ def test_auto_modes_pass_through_or_refuse_clearly(tmp_path):
     if _auto_available():
         assert res.exit_code in (0, 1), res.output
     else:
-        assert res.exit_code == 2 and "selfcal.toa.select" in res.output
+        assert res.exit_code == 2 and "selfcal.toa.verdict.select" in res.output
 
 
 def test_moving_tag_recipe_rejects_spikes_and_drops_positions(tmp_path):
@@ -228,7 +228,7 @@ def test_known_refit_leaves_out_the_rejected_spikes(tmp_path):
 def test_time_order_test_false_alarm_rate_and_power():
     """Independent sources: p-values are uniform, so detection at 1e-3 is rare (0 of 30
     here; P(any) = 3%); a sampled trajectory is detected every time."""
-    from selfcal.toa.recipes import detect_time_order
+    from selfcal.toa.recipes.recipes import detect_time_order
 
     hits = 0
     for seed in range(30):

@@ -94,7 +94,7 @@ def test_frame_by_names(tmp_path):
     ("--known", None, "A9"), ("--frame", "origin=A0,x=B7,xy=A2", "B7")])
 def test_unknown_names_refused_before_any_work(tmp_path, monkeypatch, opt, value, word):
     """An unknown node: exit 2, one line naming it and the input's names, and no solve ran."""
-    import selfcal.toa.recipes as recipes
+    import selfcal.toa.recipes.recipes as recipes
 
     def boom(*a, **k):
         raise AssertionError("the solve ran before the names were checked")

@@ -165,7 +165,7 @@ def test_default_recipe_detects_the_moving_tag(flight):
     """Reduced version of the acceptance run: on the raw ``d`` matrix the default recipe
     (``auto``) recognises the columns as one tag in time order, so ``calibrate toa``
     rejects the multipath spikes in time before the fit."""
-    from selfcal.toa.recipes import detect_time_order
+    from selfcal.toa.recipes.recipes import detect_time_order
 
     test = detect_time_order(flight.ranges)
     assert test.detected and test.p_value <= 1e-3
@@ -179,7 +179,7 @@ def test_calibrate_toa_defaults_on_the_raw_flights(tmp_path, flight):
     anchor RMSE after rigid alignment below the authors' stored estimate. The defaults are
     chosen by principle (recipe auto -> moving-tag: one-sided Bonferroni spike rejection;
     offsets none; one common range offset, a UWB antenna delay, kept by the block jackknife
-    t test over time blocks, selfcal.toa.common_offset). Measured: c = -0.395 / -0.332 m,
+    t test over time blocks, selfcal.toa.recipes.common_offset). Measured: c = -0.395 / -0.332 m,
     t = -7.6 (16 blocks of 38 positions) / -10.8 (12 blocks of 50), anchor RMSE 0.184 /
     0.155 m against the authors' 0.235 / 0.170 m (0.236 / 0.176 m without the offset)."""
     rmse, data, res = _cli_default_anchor_rmse(tmp_path, flight)
@@ -249,8 +249,8 @@ def test_spike_threshold_has_its_stated_false_alarm_rate():
     the probability that any entry of a 6 x 600 matrix exceeds it is at most alpha = 1 %.
     Over 400 matrices the count of matrices with a false alarm is Binomial(400, <= 0.01):
     mean <= 4, and P(X >= 13) < 3e-4 (Poisson(4) tail), the bound asserted."""
-    from selfcal.toa.recipes import spike_threshold
-    from selfcal.toa.robust import OUTLIER_ALPHA
+    from selfcal.toa.recipes.recipes import spike_threshold
+    from selfcal.toa.verdict.robust import OUTLIER_ALPHA
 
     rng = np.random.default_rng(0)
     Z = rng.standard_normal((400, 6, 600))
@@ -272,7 +272,7 @@ def test_moving_tag_warnings_name_undetermined_positions_in_the_callers_numberin
     import warnings
 
     from selfcal.errors import ConvergenceWarning
-    from selfcal.toa.recipes import moving_tag
+    from selfcal.toa.recipes.recipes import moving_tag
 
     Y = load_lps(shared_data / "lps" / "data4.mat").ranges.copy()
     Y[:, :3] = np.nan  # three unusable positions first: every later column number shifts by 3

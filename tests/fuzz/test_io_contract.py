@@ -389,7 +389,7 @@ def test_readers_take_paths_only(path: object) -> None:
 @pytest.mark.parametrize("seed", range(5))
 def test_time_order_test_ignores_rows_without_pairs(seed: int) -> None:
     """Rows with fewer than two entries add nothing to the statistic: the same test, with or without them."""
-    from selfcal.toa.recipes import detect_time_order
+    from selfcal.toa.recipes.recipes import detect_time_order
 
     g = np.random.default_rng(seed)
     t = np.linspace(0, 1, 60)

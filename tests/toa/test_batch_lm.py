@@ -1,4 +1,4 @@
-"""The lockstep LM of the search's race (selfcal.toa.batch_lm): the iterates of the one-start
+"""The lockstep LM of the search's race (selfcal.toa.engine.batch_lm): the iterates of the one-start
 dense LM, every start on its own, for every offset model, loss and missing pattern."""
 
 from __future__ import annotations
@@ -6,9 +6,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from selfcal.toa import nls
-from selfcal.toa.batch_lm import solve_batch_lm
-from selfcal.toa.dense_lm import full_lm
+from selfcal.toa.engine import nls
+from selfcal.toa.engine.batch_lm import solve_batch_lm
+from selfcal.toa.engine.dense_lm import full_lm
 
 OFFSETS = ("none", "receivers", "sources", "both")
 

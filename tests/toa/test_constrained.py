@@ -16,7 +16,7 @@ import pytest
 from scipy.optimize import least_squares
 
 from selfcal.errors import DegenerateGeometryError, InputError
-from selfcal.toa.nls import refine_toa, toa_model
+from selfcal.toa.engine.nls import refine_toa, toa_model
 
 NOISE = 0.01  # m; small against the 4 m network so the fit is in its linear regime
 
@@ -24,7 +24,7 @@ NOISE = 0.01  # m; small against the 4 m network so the fit is in its linear reg
 @pytest.fixture(params=["auto", "schur"])
 def solver(request):
     """Each dense-reference test runs on both constrained engines: "auto" (SciPy trf on
-    these small problems) and "schur" (the Schur-reduced Newton-LM of toa/schur_affine.py,
+    these small problems) and "schur" (the Schur-reduced Newton-LM of toa/engine/schur_affine.py,
     forced), so the new engine is checked against the independent dense computation."""
     return request.param
 
@@ -337,7 +337,7 @@ def test_covariance_subset_equals_full_blocks(seed, solver):
 
     Same fit, same sparse factorization: the requested blocks must equal the full
     computation's to round-off and every block not asked for is NaN (as on the
-    unconstrained path of toa/covariance.py).
+    unconstrained path of toa/engine/covariance.py).
     """
     fit = partial(refine_toa, solver=solver)
     rng, r, s, dr, os_ = _network(seed + 30, I=7, J=9)

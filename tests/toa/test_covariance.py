@@ -1,4 +1,4 @@
-"""Spec of the selected-inversion covariance (toa/covariance.py) against a dense computation."""
+"""Spec of the selected-inversion covariance (toa/engine/covariance.py) against a dense computation."""
 
 from __future__ import annotations
 
@@ -6,10 +6,14 @@ import numpy as np
 import pytest
 
 from selfcal.errors import InputError
-from selfcal.toa import covariance as cv
 from selfcal.toa import refine_toa, solve_toa, toa_crlb, toa_jacobian, toa_model
-from selfcal.toa.covariance import covariance_blocks, normalize_covariance, resolve_covariance
-from selfcal.toa.nls import _flags, _pack
+from selfcal.toa.engine import covariance as cv
+from selfcal.toa.engine.covariance import (
+    covariance_blocks,
+    normalize_covariance,
+    resolve_covariance,
+)
+from selfcal.toa.engine.nls import _flags, _pack
 
 MODES = ["none", "receivers", "sources", "both"]
 

@@ -1,4 +1,4 @@
-"""Offset (ranging-bias) models chosen by held-out prediction (selfcal.toa.crossval), issue 29."""
+"""Offset (ranging-bias) models chosen by held-out prediction (selfcal.toa.verdict.crossval), issue 29."""
 
 from __future__ import annotations
 
@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from selfcal.experiments.lps import simulate_uwb_flight
-from selfcal.toa.crossval import cross_validate, locate_sources, one_se_choice
-from selfcal.toa.nls import refine_toa
+from selfcal.toa.engine.nls import refine_toa
+from selfcal.toa.verdict.crossval import cross_validate, locate_sources, one_se_choice
 
 
 def test_locate_sources_recovers_exact_positions_and_offsets():

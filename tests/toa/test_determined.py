@@ -1,9 +1,9 @@
 """The determinacy test: does every TOA result say whether the data determine its geometry?
 
-Rule under test (:func:`selfcal.toa.trust.determinacy_test`): a node is undetermined when
+Rule under test (:func:`selfcal.toa.verdict.trust.determinacy_test`): a node is undetermined when
 the largest semi-axis of its 95 % confidence ellipsoid (``sqrt(chi2_d(0.95) lambda_max)``,
 the covariance at the estimate in the gauge of the well-placed nodes,
-:func:`selfcal.toa.trust.fisher_blocks`) exceeds the robust RMS radius of its node set;
+:func:`selfcal.toa.verdict.trust.fisher_blocks`) exceeds the robust RMS radius of its node set;
 the result fails (exit 1) when more than half of the nodes are undetermined or the
 determined ones alone are not identifiable; fewer are named in a ConvergenceWarning.
 
@@ -29,7 +29,7 @@ import pytest
 from selfcal.errors import ConvergenceWarning, Status
 from selfcal.geometry import align
 from selfcal.toa import refine_toa, solve_toa, toa_model
-from selfcal.toa.trust import DeterminacyTest, determinacy_test, fisher_blocks, set_scale
+from selfcal.toa.verdict.trust import DeterminacyTest, determinacy_test, fisher_blocks, set_scale
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
 from bench_toa_minimal import NOISE, C, scene  # noqa: E402
@@ -299,7 +299,7 @@ def test_cli_good_scene_prints_no_undetermined_line(tmp_path):
 
 def test_fisher_blocks_equal_the_explicit_s_transformation():
     # independent computation: N^+ by SVD, the weighted S-transformation as a dense matrix
-    from selfcal.toa.nls import _pack, gauge_basis, toa_jacobian
+    from selfcal.toa.engine.nls import _pack, gauge_basis, toa_jacobian
 
     r, s, d, o, Y = _network(7, 8, 3, "both", 0.02, 2)
     sol = refine_toa(Y, r, s, offsets="both", receiver_offsets0=d, source_offsets0=o, covariance=False)

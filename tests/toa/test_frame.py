@@ -11,14 +11,14 @@ from scipy.stats import chi2
 from selfcal.errors import DegenerateGeometryError, InputError
 from selfcal.metrics import aligned_rmse
 from selfcal.toa import solve_toa
-from selfcal.toa.frame import (
+from selfcal.toa.engine.nls import toa_model
+from selfcal.toa.frame.frame import (
     apply_frame,
     calibrate_in_frame,
     parse_frame,
     parse_known,
     read_known_csv,
 )
-from selfcal.toa.nls import toa_model
 
 NOISE = 0.01  # m
 

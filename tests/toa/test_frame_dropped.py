@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from selfcal.toa import solve_toa
-from selfcal.toa.frame import apply_frame
-from selfcal.toa.nls import toa_model
+from selfcal.toa.engine.nls import toa_model
+from selfcal.toa.frame.frame import apply_frame
 
 
 @pytest.mark.parametrize("seed", range(3))

@@ -16,7 +16,7 @@ from scipy.stats import chi2
 
 from selfcal.errors import DegenerateGeometryError, InputError, Status
 from selfcal.io.graph import read_range_graph
-from selfcal.toa.graph import collapse_repeats, simulate_range_graph, solve_range_graph
+from selfcal.toa.graph.graph import collapse_repeats, simulate_range_graph, solve_range_graph
 
 ANCHORS = np.array([[0, 0, 2.8], [5, 0, 2.9], [5, 4, 2.7], [0, 4, 2.9], [2.5, 0, 0.3], [2.5, 4, 0.4],
                     [0, 2, 1.5]])
@@ -270,7 +270,7 @@ def test_std_column_gives_a_chi_square_test():
 
 
 def test_unknown_known_node_is_refused_before_the_solve(monkeypatch):
-    import selfcal.toa.graph as graph
+    import selfcal.toa.graph.graph as graph
 
     monkeypatch.setattr(graph, "_initial", lambda *a, **k: (_ for _ in ()).throw(AssertionError("solved")))
     a, b, y = simulate_range_graph(ANCHORS, None, rng=0)
@@ -330,8 +330,8 @@ def test_grown_start_stays_within_the_bound_its_ranges_set():
     the refinement stalled). Checked on 50 draws of 6 anchors and 40 tags whose ranges carry
     errors of up to 20 m on a third of them (the bound holds whatever the ranges); and that
     clean ranges keep the exact position (the bound is never active at the truth)."""
-    from selfcal.toa.graph_fit import _pairs
-    from selfcal.toa.graph_start import _grow
+    from selfcal.toa.graph.graph_fit import _pairs
+    from selfcal.toa.graph.graph_start import _grow
 
     A = ANCHORS[:6]
     for seed in range(50):

@@ -1,4 +1,4 @@
-"""003 initialisers (selfcal.toa.mds): Algorithm 1, eq. 11, Algorithm 2, the rank method."""
+"""003 initialisers (selfcal.toa.init.mds): Algorithm 1, eq. 11, Algorithm 2, the rank method."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ from selfcal.errors import DegenerateGeometryError, InputError
 from selfcal.geometry import pairwise_distances
 from selfcal.metrics import aligned_rmse
 from selfcal.scenarios.toa import paper003_network, paper003_source_angles, random_room
-from selfcal.toa import mds
+from selfcal.toa.init import mds
 
 
 def _exact(I: int, J: int, dim: int, rng: np.random.Generator) -> tuple[np.ndarray, ...]:
@@ -165,7 +165,7 @@ def test_3d_paper_variant_blind_start_converges():
 def test_an_absurd_entry_is_a_clear_error_not_a_linalg_crash():
     """One 1e300 entry used to escape as LinAlgError ("SVD did not converge")."""
     from selfcal.errors import SelfcalError
-    from selfcal.toa.mds import initialize_toa
+    from selfcal.toa.init.mds import initialize_toa
 
     g = np.random.default_rng(0)
     r, s = g.uniform(-5, 5, (8, 3)), g.uniform(-5, 5, (10, 3))

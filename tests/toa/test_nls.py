@@ -1,4 +1,4 @@
-"""Spec of the sparse TOA NLS engine (toa/nls.py) and the gauge-free CRLB (toa/crlb.py)."""
+"""Spec of the sparse TOA NLS engine (toa/engine/nls.py) and the gauge-free CRLB (toa/engine/crlb.py)."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ from selfcal.errors import DegenerateGeometryError, InputError
 from selfcal.geometry import align
 from selfcal.metrics import aligned_rmse
 from selfcal.toa import refine_toa, toa_crlb, toa_jacobian, toa_model, toa_residuals
-from selfcal.toa.nls import _pack, gauge_basis
+from selfcal.toa.engine.nls import _pack, gauge_basis
 
 MODES = ["none", "receivers", "sources", "both"]
 

@@ -24,7 +24,7 @@ from selfcal.cli import main
 from selfcal.errors import Status
 from selfcal.geometry import align
 from selfcal.toa import solve_toa, toa_model
-from selfcal.toa.robust import gross_entries
+from selfcal.toa.verdict.robust import gross_entries
 
 
 def _network(seed: int, I: int = 12, J: int = 40, noise: float = 0.01):

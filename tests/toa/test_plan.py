@@ -55,7 +55,7 @@ def test_positioning_bound_matches_monte_carlo_least_squares():
     """The map's bound against the spread of least-squares positions over 400 noisy draws
     (Gauss-Newton from the truth): within 10 % (the Monte Carlo std of a std estimate from
     400 draws is ~3.5 %)."""
-    from selfcal.toa.crossval import locate_sources
+    from selfcal.toa.verdict.crossval import locate_sources
 
     A, _ = _layout(1)
     g = np.random.default_rng(0)
@@ -73,7 +73,7 @@ def test_anchor_error_bars_match_the_solvers_covariance():
     of simulated ranges of that plan (refined from the truth, per-anchor offsets) reports
     the same error bars to within 15 % (its noise estimate and the fitted geometry differ
     from the truth by the noise)."""
-    from selfcal.toa.nls import refine_toa
+    from selfcal.toa.engine.nls import refine_toa
 
     A, P = _layout(2)
     plan = plan_layout(A, P, noise=0.05, offsets="receivers", room=ROOM)

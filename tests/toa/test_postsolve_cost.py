@@ -16,10 +16,10 @@ import pytest
 
 from selfcal.robust import mad_std
 from selfcal.toa import toa_model
-from selfcal.toa.nls import _pack, toa_jacobian
-from selfcal.toa.recipes import TIME_ORDER_PERMUTATIONS, _total_variation, detect_time_order
-from selfcal.toa.robust import leverages
-from selfcal.toa.trust import _additive_leverages
+from selfcal.toa.engine.nls import _pack, toa_jacobian
+from selfcal.toa.recipes.recipes import TIME_ORDER_PERMUTATIONS, _total_variation, detect_time_order
+from selfcal.toa.verdict.robust import leverages
+from selfcal.toa.verdict.trust import _additive_leverages
 
 
 def _eigh_leverages(Y, r, s, d, o, offsets):

@@ -1,4 +1,4 @@
-"""Blind preprocessing of range series along a smooth trajectory (selfcal.toa.preprocess)."""
+"""Blind preprocessing of range series along a smooth trajectory (selfcal.toa.recipes.preprocess)."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import pytest
 
 from selfcal.errors import InputError
 from selfcal.metrics import aligned_rmse
-from selfcal.toa.preprocess import (
+from selfcal.toa.recipes.preprocess import (
     fit_offsets_profile_common,
     local_polynomial_prediction,
     observed_columns,
@@ -127,7 +127,7 @@ def test_moving_tag_keeps_a_common_range_offset_by_default():
     tests/toa/test_recipes_common_offset.py."""
     from selfcal.experiments.lps import simulate_uwb_flight
     from selfcal.metrics import aligned_rmse
-    from selfcal.toa.recipes import moving_tag
+    from selfcal.toa.recipes.recipes import moving_tag
 
     sim = simulate_uwb_flight(3, n_positions=240, layout="lps", bias_std=0.0)
     A = sim["anchors"]

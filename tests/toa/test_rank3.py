@@ -10,11 +10,11 @@ import pytest
 from selfcal.errors import ConvergenceWarning, DegenerateGeometryError, InputError
 from selfcal.geometry import align
 from selfcal.scenarios.units import ROOMS, make_units, true_offset_vector
-from selfcal.toa import rank3
-from selfcal.toa.offsets_init import complete_core, initialize_offsets
-from selfcal.toa.rank3 import estimate_offsets, fast_offsets, rank3_lm
-from selfcal.toa.rank3_joint import _rank1_factors, _rank3_lm_joint, _tail
-from selfcal.toa.rank3_model import (
+from selfcal.toa.init import rank3
+from selfcal.toa.init.offsets_init import complete_core, initialize_offsets
+from selfcal.toa.init.rank3 import estimate_offsets, fast_offsets, rank3_lm
+from selfcal.toa.init.rank3_joint import _rank1_factors, _rank3_lm_joint, _tail
+from selfcal.toa.init.rank3_model import (
     THESIS_ACCEPT,
     apply_A,
     apply_Wt,
@@ -25,7 +25,7 @@ from selfcal.toa.rank3_model import (
     thesis_T,
     thesis_W,
 )
-from selfcal.toa.rank3_thesis import rank3_iteration
+from selfcal.toa.init.rank3_thesis import rank3_iteration
 
 C = 343.0
 US = 1e-6 * C  # one microsecond, in metres
@@ -409,7 +409,7 @@ def test_at_12x6_the_rank3_offsets_form_exactly_a_one_parameter_family(seed: int
 
 def test_distance_lower_bounds_never_exceed_the_true_distances() -> None:
     """Offset-free double differences bound every pairwise distance from below (triangle inequality)."""
-    from selfcal.toa.scaled_starts import distance_lower_bounds
+    from selfcal.toa.init.scaled_starts import distance_lower_bounds
 
     for seed in range(10):
         r, s, _, _, R = _minimal_scene(seed)

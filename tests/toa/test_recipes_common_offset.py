@@ -14,14 +14,14 @@ import numpy as np
 import pytest
 
 from selfcal.experiments.lps import simulate_uwb_flight
-from selfcal.toa.common_offset import (
+from selfcal.toa.engine.nls import refine_toa
+from selfcal.toa.recipes.common_offset import (
     COMMON_OFFSET_ALPHA,
     MAX_BLOCKS,
     block_edges,
     block_offset_test,
     residual_correlation_length,
 )
-from selfcal.toa.nls import refine_toa
 
 
 def _base(sim):
@@ -100,10 +100,10 @@ def test_block_test_level_and_power_over_seeds():
 def test_kept_common_offset_is_reported_and_kept_by_frame_refits():
     """With a kept common offset the result says offsets="common" (one value for every
     anchor), and a --frame / --known refit fits that model, not one offset per anchor."""
-    from selfcal.toa.common_offset import choose_common_offset
-    from selfcal.toa.frame import apply_frame
-    from selfcal.toa.known import fit_known
-    from selfcal.toa.nodes import parse_known
+    from selfcal.toa.frame.frame import apply_frame
+    from selfcal.toa.frame.known import fit_known
+    from selfcal.toa.frame.nodes import parse_known
+    from selfcal.toa.recipes.common_offset import choose_common_offset
     from selfcal.toa.solve import solve_toa
 
     sim = _flight(0, bias_std=0.0)

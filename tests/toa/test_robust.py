@@ -1,4 +1,4 @@
-"""selfcal.toa.robust: the vectorised median polish equals NumPy's nanmedian sweeps."""
+"""selfcal.toa.verdict.robust: the vectorised median polish equals NumPy's nanmedian sweeps."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import warnings
 import numpy as np
 import pytest
 
-from selfcal.toa import robust
+from selfcal.toa.verdict import robust
 
 
 def _polish_reference(Y: np.ndarray, iterations: int = 10) -> np.ndarray:
@@ -59,7 +59,7 @@ def test_outlier_threshold_with_an_estimated_scale_is_students_t():
     12 x 6 both-offsets case, is often half the true one, and the normal cut then flagged
     clean entries, throwing 14 of 175 blind solves out of their basin), decreasing in dof,
     and the normal quantile in the limit."""
-    from selfcal.toa.robust import outlier_threshold
+    from selfcal.toa.verdict.robust import outlier_threshold
 
     m = 72
     k_norm = outlier_threshold(m)

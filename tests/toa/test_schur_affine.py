@@ -1,4 +1,4 @@
-"""The Schur-reduced engine of the constrained fits (toa/schur_affine.py).
+"""The Schur-reduced engine of the constrained fits (toa/engine/schur_affine.py).
 
 Two kinds of checks:
 
@@ -23,8 +23,8 @@ import numpy as np
 import pytest
 import scipy.sparse
 
-from selfcal.toa.nls import refine_toa
-from selfcal.toa.schur_affine import RowPattern, local_blocks, solve_affine_lm
+from selfcal.toa.engine.nls import refine_toa
+from selfcal.toa.engine.schur_affine import RowPattern, local_blocks, solve_affine_lm
 
 
 def _random_problem(seed: int, nE: int = 7, mE: int = 3, ng: int = 4, per_node: int = 5):

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from selfcal.toa import nls
-from selfcal.toa import schur_lm as sl
+from selfcal.toa.engine import nls
+from selfcal.toa.engine import schur_lm as sl
 
 CASES = [  # (I, J, offsets, dim, fraction missing)
     (12, 6, "both", 3, 0.0),
@@ -125,7 +125,7 @@ def test_dense_step_gives_the_iterates_of_the_reduced_step(case: tuple) -> None:
 def test_analytic_gauge_projector_equals_the_qr_basis_projector(offsets: str, d: int) -> None:
     """The dense step's projector (translations, rotations by Gram-Schmidt, common shift) is
     ``I - Q Q^T`` with Q the orthonormal QR basis of nls.gauge_basis (independent computation)."""
-    from selfcal.toa.dense_lm import GaugeProjector
+    from selfcal.toa.engine.dense_lm import GaugeProjector
 
     g = np.random.default_rng(7)
     I, J = 7, 5
@@ -144,7 +144,7 @@ def test_dense_step_with_free_parameters_holds_the_others_and_reaches_a_stationa
     """A partial refit (the search's move ranking): fixed parameters keep their values exactly,
     and the free ones end where the gradient of the cost over them vanishes (checked on the
     analytic Jacobian of nls.toa_jacobian, an independent computation)."""
-    from selfcal.toa.dense_lm import solve_dense_lm
+    from selfcal.toa.engine.dense_lm import solve_dense_lm
 
     th0, Y, lay, _ = _problem(12, 6, "both", 3, 0.0, seed=1)
     free = np.zeros(th0.size, bool)

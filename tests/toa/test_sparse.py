@@ -138,8 +138,8 @@ def test_sparse_covariance_equals_the_dense_blocks(seed):
     Same network, same observed pairs and unequal weights; both are the Moore-Penrose
     marginal blocks (the gauge projected out), so they agree up to the CG tolerance.
     """
-    from selfcal.toa.covariance import covariance_blocks
-    from selfcal.toa.sparse_covariance import sparse_covariance_blocks
+    from selfcal.toa.engine.covariance import covariance_blocks
+    from selfcal.toa.engine.sparse_covariance import sparse_covariance_blocks
 
     rng = np.random.default_rng(seed)
     d = 2 + seed % 2
@@ -187,7 +187,7 @@ def test_sparse_solvers_return_the_requested_blocks(rng):
     assert np.isnan(np.delete(sol.receiver_cov, [0, 7], axis=0)).all()
     assert np.isnan(np.delete(sol.source_cov, [3], axis=0)).all()
     # independent: the dense path's blocks at the blind fit's positions, on the pairs it used
-    from selfcal.toa.covariance import covariance_blocks
+    from selfcal.toa.engine.covariance import covariance_blocks
 
     lr, ls = np.isfinite(sol.receivers[:, 0]), np.isfinite(sol.sources[:, 0])
     assert lr[[0, 7]].all() and ls[3]

@@ -59,9 +59,9 @@ from click.testing import CliRunner
 
 from selfcal.cli import main
 from selfcal.toa import solve_toa, toa_model
-from selfcal.toa.frame import calibrate_in_frame
-from selfcal.toa.model_test import forced_model_test
-from selfcal.toa.uniqueness import uniqueness_test
+from selfcal.toa.frame.frame import calibrate_in_frame
+from selfcal.toa.verdict.model_test import forced_model_test
+from selfcal.toa.verdict.uniqueness import uniqueness_test
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from uniqueness_families import FAMILIES, GENERIC, draw  # noqa: E402

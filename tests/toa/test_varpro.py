@@ -1,7 +1,7 @@
-"""Variable projection of the offsets (selfcal.toa.varpro) against the joint dense LM.
+"""Variable projection of the offsets (selfcal.toa.engine.varpro) against the joint dense LM.
 
 Both engines minimise the same cost, so at a converged point they must agree; the checks use
-independent computations (the sparse analytic Jacobian of :func:`selfcal.toa.nls.toa_jacobian`,
+independent computations (the sparse analytic Jacobian of :func:`selfcal.toa.engine.nls.toa_jacobian`,
 the joint engine) and many seeds.
 """
 
@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 
 from selfcal.robust import loss_rho
-from selfcal.toa import dense_lm, nls
-from selfcal.toa.varpro import solve_varpro_lm
+from selfcal.toa.engine import dense_lm, nls
+from selfcal.toa.engine.varpro import solve_varpro_lm
 
 MODES = ("both", "receivers", "sources")
 

@@ -7,7 +7,7 @@ fallbacks the calibration (:mod:`selfcal.acoustics.calibrate`) uses:
 
 - :func:`planarity`: is the layout thinner than its own position uncertainty (or 1 % of
   its extent)? Judged on one 3-D fit's geometry and covariances (re-exported from
-  :mod:`selfcal.toa.select`, the TOA package's model choice).
+  :mod:`selfcal.toa.verdict.select`, the TOA package's model choice).
 - :func:`compare_fits`: nested-model F test of a 3-D against a 2-D fit (likewise; the
   pipeline no longer fits both models by default).
 - :func:`one_side_of_plane`: the microphone-side convention when only the loudspeakers are
@@ -27,7 +27,7 @@ from .._checks import check_magnitude, non_number_leaf
 from ..errors import InputError
 from ..optim.lm import levenberg_marquardt
 from ..optim.steps import ResidualModel
-from ..toa.select import (  # one implementation: the TOA package's model choice (dim="auto")
+from ..toa.verdict.select import (  # one implementation: the TOA package's model choice (dim="auto")
     PLANAR_ALPHA,
     PLANAR_RATIO,
     PLANAR_SIGMAS,

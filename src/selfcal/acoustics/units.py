@@ -12,9 +12,9 @@ offsets (two-way ranging),
 
 (004 eq. 3.1 twice; ``t_kk`` is a unit hearing its own loudspeaker: ``delta_k + tau_k`` plus
 a few centimetres). Classical MDS of these distances
-(:func:`selfcal.toa.mds.classical_mds`) places the units up to a rigid motion and a
+(:func:`selfcal.toa.init.mds.classical_mds`) places the units up to a rigid motion and a
 reflection, both gauge freedoms of the TOA model; the offsets follow by least squares
-(:func:`selfcal.toa.model.least_squares_offsets`). The start is wrong by about the unit
+(:func:`selfcal.toa.engine.model.least_squares_offsets`). The start is wrong by about the unit
 size, far inside the basin of the truth, and goes to :func:`selfcal.toa.solve_toa` as the
 first start of its search (which keeps the lowest cost of all its starts).
 """
@@ -82,8 +82,8 @@ def unit_start(T: Array, pairs: NDArray[np.intp], speed: float, dim: int, *,
     >>> r0.shape, s0.shape
     ((8, 3), (8, 3))
     """
-    from ..toa.mds import classical_mds, complete_distances
-    from ..toa.model import least_squares_offsets
+    from ..toa.engine.model import least_squares_offsets
+    from ..toa.init.mds import classical_mds, complete_distances
 
     T = np.asarray(T, float)
     I, J = T.shape

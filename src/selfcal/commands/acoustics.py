@@ -402,11 +402,11 @@ def _pipeline_outputs(directory: Path, out: Path, plot: Path | None, report: Pat
     if known is not None and frame is not None:
         raise InputError("--known and --frame are exclusive (known positions already define the frame)")
     if known is not None:
-        from ..toa.frame import read_known_csv
+        from ..toa.frame.frame import read_known_csv
 
         read_known_csv(known, 2 if dim == "2" else 3)  # validated before the (slow) run
     if frame is not None:
-        from ..toa.frame import parse_frame
+        from ..toa.frame.frame import parse_frame
 
         parse_frame(frame)
     own = directory / "heights.json" if directory.is_dir() else None
@@ -470,7 +470,7 @@ def _room_frame(result: Any, known: Path | None, frame: str | None) -> Any:
     """
     import numpy as np
 
-    from ..toa.frame import align_known, apply_frame, parse_known, read_known_csv
+    from ..toa.frame.frame import align_known, apply_frame, parse_known, read_known_csv
 
     rn = tuple(result.receiver_names)
     sn = tuple(n if n not in rn else f"\0{n}" for n in result.sender_names)  # shared names: the microphone

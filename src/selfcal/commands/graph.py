@@ -84,8 +84,8 @@ def graph_command(ranges: Path, dim: str, unit: str, known: Path | None, frame: 
     from ..io import staged_outputs, write_json
     from ..io.anchors import write_anchors
     from ..io.graph import read_range_graph
-    from ..toa.graph import TEST_LEVEL, solve_range_graph
-    from ..toa.nodes import read_known_csv
+    from ..toa.frame.nodes import read_known_csv
+    from ..toa.graph.graph import TEST_LEVEL, solve_range_graph
 
     if known is not None and frame is not None:
         raise InputError("--known and --frame are exclusive (known positions already define the frame)")

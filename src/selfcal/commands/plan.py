@@ -45,7 +45,7 @@ def plan_command(anchors: Path, path: Path, room_text: str | None, noise: float,
 
     from ..errors import InputError
     from ..io import read_table, staged_outputs, write_json
-    from ..toa.nodes import read_known_csv
+    from ..toa.frame.nodes import read_known_csv
     from ..toa.plan import plan_layout
     from .acoustics import parse_room
 

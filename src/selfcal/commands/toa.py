@@ -12,7 +12,7 @@ from typing import Any
 
 import click
 
-from ..toa.select import PLANAR_ALPHA, PLANAR_RATIO, PLANAR_SIGMAS
+from ..toa.verdict.select import PLANAR_ALPHA, PLANAR_RATIO, PLANAR_SIGMAS
 from ._base import calibrate, handle_errors
 from ._common import csv_option, unit_options
 from ._options import NOISE_STD, SEED, SPEED
@@ -24,8 +24,8 @@ ENTRIES_JSON_MAX = 100_000
 
 
 def _auto_available() -> bool:
-    """The model selection of ``offsets`` / ``dim`` (``selfcal.toa.select``) is installed."""
-    return importlib.util.find_spec("selfcal.toa.select") is not None
+    """The model selection of ``offsets`` / ``dim`` (``selfcal.toa.verdict.select``) is installed."""
+    return importlib.util.find_spec("selfcal.toa.verdict.select") is not None
 
 
 @calibrate.command("toa")
@@ -105,9 +105,15 @@ def toa_command(matrix: Path, speed: float | None, offsets: str | None, dim: str
     from ..errors import InputError
     from ..io import read_table, staged_outputs, write_json
     from ..progress import stage
-    from ..toa.frame import FramedToaResult, apply_frame, fit_known, parse_known, read_known_csv
-    from ..toa.nodes import check_frame, node_names
-    from ..toa.recipes import apply_recipe
+    from ..toa.frame.frame import (
+        FramedToaResult,
+        apply_frame,
+        fit_known,
+        parse_known,
+        read_known_csv,
+    )
+    from ..toa.frame.nodes import check_frame, node_names
+    from ..toa.recipes.recipes import apply_recipe
     from ._common import enrich_payload, to_metres, write_nodes_csv
 
     if known is not None and frame is not None:
@@ -115,7 +121,7 @@ def toa_command(matrix: Path, speed: float | None, offsets: str | None, dim: str
     if side is not None and known is None:
         raise InputError("--side says where the other nodes lie relative to the --known nodes' plane: give --known")
     if ("auto" in (offsets, dim)) and not _auto_available():
-        raise InputError("--offsets auto / --dim auto need the model selection (selfcal.toa.select), "
+        raise InputError("--offsets auto / --dim auto need the model selection (selfcal.toa.verdict.select), "
                          "which this build does not have yet; give the value explicitly")
     box = parse_room(room)
     table = read_table(matrix, name=str(matrix))
@@ -244,10 +250,10 @@ def toa_command(matrix: Path, speed: float | None, offsets: str | None, dim: str
 
 def _forced_model(res: Any, M: Any, rejected: Any, speed: float | None, noise: float | None, dim: str | None,
                   offsets: str | None) -> Any:
-    """The model the user fixed (not "auto") tested against the larger one (:mod:`selfcal.toa.model_test`)."""
+    """The model the user fixed (not "auto") tested against the larger one (:mod:`selfcal.toa.verdict.model_test`)."""
     import numpy as np
 
-    from ..toa.model_test import forced_model_test
+    from ..toa.verdict.model_test import forced_model_test
 
     off = res.offsets
     test_dim = dim == "2"
@@ -332,7 +338,7 @@ def _installer_outputs(res: Any, names: Any, anchors_out: Path | None, anchor_pl
 
 
 def _dim_choice_lines(res: Any) -> list[str]:
-    """The ``--dim auto`` choice (:func:`selfcal.toa.select.choose_dim`), one line."""
+    """The ``--dim auto`` choice (:func:`selfcal.toa.verdict.select.choose_dim`), one line."""
     sel = (res.selection or {}).get("dim") if isinstance(res.selection, dict) else None
     if not sel or "chosen" not in sel:
         return []
@@ -366,7 +372,7 @@ def _fitted_entries(M: Any, rejected: Any, outliers: Any) -> Any:
 
 def _redim(table: dict[str, tuple[float, ...]], path: Path, d: int) -> dict[str, tuple[float, ...]]:
     """Re-read the known table for the dimension actually fitted (``--dim auto`` may give 2)."""
-    from ..toa.frame import read_known_csv
+    from ..toa.frame.frame import read_known_csv
 
     return table if d == 3 else read_known_csv(path, d)
 

@@ -82,7 +82,7 @@ def lps(data_path: str, out_dir: str, n_sim: int, variants_opt: str | None, seed
     Every variant of :func:`selfcal.experiments.lps.calibrate_lps` runs on every flight
     and on ``--simulate`` simulated flights; the JSON also holds the leave-one-flight-out
     selection among the variants. The recommended variant (plotted) is fixed by principle
-    (spike rejection only, :mod:`selfcal.toa.recipes`), not by these scores.
+    (spike rejection only, :mod:`selfcal.toa.recipes.recipes`), not by these scores.
     """
     import warnings
 

@@ -33,9 +33,9 @@ from numpy.typing import NDArray
 from ..errors import ConvergenceWarning
 from ..io import write_json
 from ..scenarios.units import SPEED_OF_SOUND, make_units, true_offset_vector
-from ..toa.rank3 import estimate_offsets, fast_offsets
-from ..toa.rank3_model import DELAY_MAX, ONSET_MAX, THESIS_TOL, Rank3Result, thesis_lambda
-from ..toa.rank3_thesis import rank3_iteration
+from ..toa.init.rank3 import estimate_offsets, fast_offsets
+from ..toa.init.rank3_model import DELAY_MAX, ONSET_MAX, THESIS_TOL, Rank3Result, thesis_lambda
+from ..toa.init.rank3_thesis import rank3_iteration
 from .runner import run_sweep, write_rows
 
 __all__ = [

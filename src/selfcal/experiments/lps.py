@@ -1,6 +1,6 @@
 """LPS real-data trials: calibration variants, simulated UWB flights, leave-one-flight-out.
 
-Trials and summaries only; the recipe users run lives in :mod:`selfcal.toa.recipes`
+Trials and summaries only; the recipe users run lives in :mod:`selfcal.toa.recipes.recipes`
 (``calibrate toa --recipe moving-tag``). Every variant is blind: it sees the range
 matrix only (no ground truth, no authors' estimate).
 """
@@ -24,7 +24,7 @@ __all__ = [
 Array = NDArray[np.float64]
 
 # the variant ``selfcal reproduce lps`` plots and recommends: chosen by principle, not by
-# its score on the shared flights (see selfcal.toa.recipes): spike rejection only
+# its score on the shared flights (see selfcal.toa.recipes.recipes): spike rejection only
 RECOMMENDED = "clean"
 
 
@@ -47,13 +47,13 @@ def calibrate_lps(ranges: Array, variant: str = "none", *, rng: int = 0) -> dict
     ``none-huber``       the same with a Huber loss (the UWB ranges have outliers).
     ``receivers-huber``  per-anchor offsets (ranging bias) + Huber loss, started from ``none``
                          with zero offsets.
-    ``clean``            the moving-tag recipe (:func:`selfcal.toa.recipes.moving_tag`):
+    ``clean``            the moving-tag recipe (:func:`selfcal.toa.recipes.recipes.moving_tag`):
                          multipath spikes removed in time (robust local quadratic, one-sided
-                         at the Bonferroni threshold of :func:`~selfcal.toa.recipes.spike_threshold`,
+                         at the Bonferroni threshold of :func:`~selfcal.toa.recipes.recipes.spike_threshold`,
                          the recipe's defaults), then ``none``. The recommended variant.
     ``clean-huber``      ``clean`` with a Huber loss.
     ``clean-profile``    ``clean``, then per-anchor offsets whose common component is chosen
-                         by :func:`selfcal.toa.preprocess.fit_offsets_profile_common` (minimum
+                         by :func:`selfcal.toa.recipes.preprocess.fit_offsets_profile_common` (minimum
                          over the common offset of the trimmed RMS of the 70 % smallest
                          residuals).
     ``clean-profile-mad`` the same, profiling the MAD instead (ablation).
@@ -65,8 +65,8 @@ def calibrate_lps(ranges: Array, variant: str = "none", *, rng: int = 0) -> dict
     """
     from .._checks import check_choice
     from ..toa import solve_toa
-    from ..toa.mds import initialize_toa_info
-    from ..toa.preprocess import fit_offsets_profile_common, reject_range_outliers
+    from ..toa.init.mds import initialize_toa_info
+    from ..toa.recipes.preprocess import fit_offsets_profile_common, reject_range_outliers
 
     check_choice(variant, "variant", lps_variants())
     Y = np.asarray(ranges, float)
@@ -76,7 +76,7 @@ def calibrate_lps(ranges: Array, variant: str = "none", *, rng: int = 0) -> dict
     if variant.startswith("clean"):
         # the moving-tag recipe's defaults: one-sided (a blocked or reflected path only
         # lengthens a range), at the solver's Bonferroni false-alarm rule
-        from ..toa.recipes import spike_threshold
+        from ..toa.recipes.recipes import spike_threshold
 
         rej = reject_range_outliers(Y, threshold=spike_threshold(Y, True), one_sided=True)
         extra["n_rejected"] = rej.n_rejected
@@ -219,7 +219,7 @@ def leave_one_flight_out(scores: Mapping[str, Mapping[str, float]],
 
 
 #: spike-rejection / fit variants of the ``moving-tag`` recipe scored by
-#: :func:`score_recipe_variants` (keyword arguments of :func:`selfcal.toa.recipes.moving_tag`)
+#: :func:`score_recipe_variants` (keyword arguments of :func:`selfcal.toa.recipes.recipes.moving_tag`)
 RECIPE_VARIANTS: dict[str, dict[str, Any]] = {
     "2s-3.5": {"threshold": 3.5, "one_sided": False},
     "1s-3.5": {"threshold": 3.5, "one_sided": True},
@@ -257,7 +257,7 @@ def score_recipe_variant(ranges: Array, anchors: Array, variant: str, *, rng: in
     import warnings
 
     from ..metrics import aligned_rmse
-    from ..toa.recipes import moving_tag
+    from ..toa.recipes.recipes import moving_tag
 
     t0 = time.process_time()
     with warnings.catch_warnings():
@@ -308,14 +308,14 @@ def score_common_offset(ranges: Array, anchors: Array, *, rng: int = 0) -> dict[
     """The moving-tag recipe without the common offset, then its block test (both fits scored).
 
     Returns the anchor RMSE without and with the common offset (whatever the test says),
-    the test's decision at its level and its numbers (:func:`selfcal.toa.common_offset.block_offset_test`),
+    the test's decision at its level and its numbers (:func:`selfcal.toa.recipes.common_offset.block_offset_test`),
     so that other levels can be read off the p-value.
     """
     import warnings
 
     from ..metrics import aligned_rmse
-    from ..toa.common_offset import block_offset_test
-    from ..toa.recipes import moving_tag
+    from ..toa.recipes.common_offset import block_offset_test
+    from ..toa.recipes.recipes import moving_tag
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
@@ -388,7 +388,7 @@ def score_bias_model(ranges: Array, anchors: Array, *, rng: int = 0) -> dict[str
     """The moving-tag recipe's offsets chain with both anchor models scored against the truth.
 
     The offsets-free fit, the common-offset block test, then the held-out choice of
-    per-anchor offsets (:func:`selfcal.toa.crossval.choose_receiver_offsets`); returns the
+    per-anchor offsets (:func:`selfcal.toa.verdict.crossval.choose_receiver_offsets`); returns the
     choice, its CV RMS prediction errors and the anchor RMSE (m, after rigid alignment) of
     the kept simple model and of the per-anchor refit whatever the choice.
     """
@@ -396,10 +396,10 @@ def score_bias_model(ranges: Array, anchors: Array, *, rng: int = 0) -> dict[str
     import warnings
 
     from ..metrics import aligned_rmse
-    from ..toa.common_offset import choose_common_offset
-    from ..toa.crossval import choose_receiver_offsets
-    from ..toa.nls import refine_toa
-    from ..toa.recipes import moving_tag
+    from ..toa.engine.nls import refine_toa
+    from ..toa.recipes.common_offset import choose_common_offset
+    from ..toa.recipes.recipes import moving_tag
+    from ..toa.verdict.crossval import choose_receiver_offsets
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")

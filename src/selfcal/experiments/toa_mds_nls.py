@@ -47,7 +47,7 @@ def trial_003(params: dict[str, Any], seed: int) -> dict[str, Any]:
     ``converged``.
     """
     from ..toa import solve_toa, toa_crlb
-    from ..toa.mds import mds_alg2
+    from ..toa.init.mds import mds_alg2
 
     dim = int(params.get("dim", 2))
     sc = paper003_network(int(params.get("n_sensors", 8)), int(params["n_sources"]),
@@ -100,7 +100,7 @@ def example_network(seed: int = 0, sigma: float = 0.30) -> dict[str, Any]:
     from scipy.stats import chi2
 
     from ..toa import solve_toa
-    from ..toa.mds import mds_alg2
+    from ..toa.init.mds import mds_alg2
 
     sc = paper003_network(sigma=sigma, rng=seed)
     r0, s0 = mds_alg2(sc.ranges, 2)

@@ -1,8 +1,8 @@
 """Step solvers and a generic model for :mod:`selfcal.optim.lm`.
 
 The structured step solvers live beside their models (the bipartite Schur steps of the TOA
-engines in :mod:`selfcal.toa.schur_lm` / :mod:`selfcal.toa.batch_lm`, the node-block Schur step
-of :mod:`selfcal.toa.schur_affine`, the far-field Schur / CG steps in :mod:`selfcal.tdoa.lm`);
+engines in :mod:`selfcal.toa.engine.schur_lm` / :mod:`selfcal.toa.engine.batch_lm`, the node-block Schur step
+of :mod:`selfcal.toa.engine.schur_affine`, the far-field Schur / CG steps in :mod:`selfcal.tdoa.lm`);
 here are the dense pieces every one of them ends in, the sparse normal-equations step of a
 problem with a sparse Jacobian and no block structure to eliminate (a range graph: two nonzero
 blocks per row), and :class:`ResidualModel` for a plain ``residuals + Jacobian`` problem.
@@ -126,7 +126,7 @@ class ResidualModel(Model):
         factored by SuperLU above).
     project : x -> (dx -> dx), optional
         The parametrisation's projection of a step at ``x`` (e.g. off the gauge directions:
-        :class:`selfcal.toa.dense_lm.GaugeProjector`), formed once per linearisation.
+        :class:`selfcal.toa.engine.dense_lm.GaugeProjector`), formed once per linearisation.
 
     Notes
     -----

@@ -6,9 +6,9 @@ Every size threshold of the refinements is here, each with the measurement behin
   structure of the range models: ``"dense"`` (the full normal matrix, dense Cholesky) up to
   :data:`DENSE_MAX_UNKNOWNS` unknowns; above, the Schur complement onto the smaller node set,
   ``"reduced"`` (formed, Cholesky) while forming it is cheap, else ``"cg"`` (matrix-free,
-  Schur-Jacobi preconditioned). The TOA engine (:mod:`selfcal.toa.schur_lm`), the search's
+  Schur-Jacobi preconditioned). The TOA engine (:mod:`selfcal.toa.engine.schur_lm`), the search's
   rungs (:mod:`selfcal.toa.search`) and the constrained engine's choice between SciPy's dense
-  trust region and the Schur engine (:mod:`selfcal.toa.constrained`) all ask it; so does
+  trust region and the Schur engine (:mod:`selfcal.toa.engine.constrained`) all ask it; so does
   :class:`selfcal.optim.steps.ResidualModel` with ``step="auto"`` (the range-graph fit),
   whose non-dense answer is the sparse normal equations factored by SuperLU (a graph has no
   bipartite split to take a Schur complement over).

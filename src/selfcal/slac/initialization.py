@@ -30,7 +30,7 @@ from numpy.typing import NDArray
 from scipy.optimize import least_squares
 
 from ..errors import DegenerateGeometryError, InputError
-from ..toa.mds import multilaterate
+from ..toa.init.mds import multilaterate
 from .doa import estimate_doa_from_y
 from .motion import motion_step, process_noise, wrap_angle
 from .signals import SPEED_OF_LIGHT, batch_delay_search

@@ -18,9 +18,9 @@
 
 from __future__ import annotations
 
-from .crlb import CrlbResult, toa_crlb
-from .model import NlsSolution, toa_jacobian, toa_model, toa_residuals
-from .nls import refine_toa
+from .engine.crlb import CrlbResult, toa_crlb
+from .engine.model import NlsSolution, toa_jacobian, toa_model, toa_residuals
+from .engine.nls import refine_toa
 from .result import (
     GeometryTest,
     ResidualTest,

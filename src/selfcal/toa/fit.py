@@ -1,10 +1,10 @@
 """One TOA model fitted robustly and honestly: what :func:`selfcal.toa.solve_toa` runs per model.
 
-Steps (every rule stated in :mod:`selfcal.toa.robust`):
+Steps (every rule stated in :mod:`selfcal.toa.verdict.robust`):
 
 1. sort rows and columns canonically (:func:`selfcal.toa.search.canonical_order`);
-2. screen gross entries (:func:`~selfcal.toa.robust.gross_entries`) out of the search;
-3. drop nodes with too few ranges (:func:`~selfcal.toa.robust.drop_unidentifiable`) and
+2. screen gross entries (:func:`~selfcal.toa.verdict.robust.gross_entries`) out of the search;
+3. drop nodes with too few ranges (:func:`~selfcal.toa.verdict.robust.drop_unidentifiable`) and
    check that what is left is identifiable (:func:`selfcal._checks.check_toa_counts`);
 4. the search (:func:`selfcal.toa.search.search`);
 5. the outlier rule on every entry against the fitted model, with the noise given or its
@@ -12,9 +12,9 @@ Steps (every rule stated in :mod:`selfcal.toa.robust`):
 6. the trust test (:func:`~selfcal.toa.result.residual_test` with a given noise,
    :func:`~selfcal.toa.result.geometry_test` without) -> ``status`` / ``message``;
 7. the result in the caller's numbering, dropped nodes as NaN rows;
-8. the determinacy test (:func:`~selfcal.toa.trust.determinacy_test`) on the result's own
+8. the determinacy test (:func:`~selfcal.toa.verdict.trust.determinacy_test`) on the result's own
    covariances: more than half of the nodes undetermined fails the result, fewer are named;
-9. the uniqueness test (:func:`~selfcal.toa.uniqueness.judge_fit`): an alternative solution
+9. the uniqueness test (:func:`~selfcal.toa.verdict.uniqueness.judge_fit`): an alternative solution
    the data do not reject (a flip, another minimum of the search), or no spare measurement
    at all, fails the result and names the ambiguous nodes.
 """
@@ -28,9 +28,8 @@ from numpy.typing import NDArray
 
 from .._checks import check_toa_counts
 from ..errors import DegenerateGeometryError, InputError, Status
-from .determinacy import DENSE_MAX_UNKNOWNS, fisher_blocks
-from .nls import NlsSolution, refine_toa, toa_model
-from .rank3_model import rank_identifiable
+from .engine.nls import NlsSolution, refine_toa, toa_model
+from .init.rank3_model import rank_identifiable
 from .result import (
     MESSAGES,
     ToaResult,
@@ -39,7 +38,9 @@ from .result import (
     n_parameters,
     residual_test,
 )
-from .robust import (
+from .search import canonical_order, search
+from .verdict.determinacy import DENSE_MAX_UNKNOWNS, fisher_blocks
+from .verdict.robust import (
     drop_unidentifiable,
     gross_entries,
     leverages,
@@ -48,8 +49,7 @@ from .robust import (
     outlier_rule_has_power,
     studentized,
 )
-from .search import canonical_order, search
-from .uniqueness import judge_fit
+from .verdict.uniqueness import judge_fit
 
 __all__ = ["finish", "given_start", "unrefined"]
 
@@ -303,7 +303,7 @@ def finish(M: Array, dim: int, offsets: str, *, init: Any, speed: float | None, 
             blocks = tuple(_embed_rows(B, k, inv, dim) for B, k, inv in ((sb[0], keep_r, inv_r),
                                                                           (sb[1], keep_s, inv_c)))
     res = _judge_determinacy(res, sd, float(final.sigma), covariance, key, singular, blocks)
-    if not degenerate:  # 9. is it the only solution the data allow? (selfcal.toa.uniqueness)
+    if not degenerate:  # 9. is it the only solution the data allow? (selfcal.toa.verdict.uniqueness)
         same = all(np.array_equal(a, b) for a, b in zip(minima[1], (keep_r, keep_s), strict=True))
         res = judge_fit(res, Yf, final, offsets, sd, n_par, (keep_r, keep_s), (pr, pc),
                         minima[0] if same else ())
@@ -361,7 +361,7 @@ def _embed_rows(B: Array, keep: NDArray[np.bool_], inv: NDArray[np.intp], dim: i
 
 def _judge_determinacy(res: ToaResult, sd: float | None, sigma_fit: float, covariance: Any, key: str,
                        singular: bool = False, blocks: Any = None) -> ToaResult:
-    """Attach the determinacy test (:func:`~selfcal.toa.trust.determinacy_test`) and apply its rule.
+    """Attach the determinacy test (:func:`~selfcal.toa.verdict.trust.determinacy_test`) and apply its rule.
 
     The covariances of the final fit are ``sigma_fit^2 (J^T J)^+``; with a given noise ``sd``
     (metres) they are rescaled to it (the estimate has only ``m - n`` degrees of freedom,
@@ -416,13 +416,13 @@ def _nested_start(Y: Array, dim: int, offsets: str, rng: np.random.Generator, lo
     large networks its one start, :func:`selfcal.toa.search.default_budget`).
 
     Where the missing pattern leaves a pair of receivers with fewer than ``dim + 1`` common
-    sources (:func:`selfcal.toa.block_start.needs_block_start`), the incremental
-    :func:`~selfcal.toa.block_start.block_start` joins the offsets-free search's starts (first,
+    sources (:func:`selfcal.toa.init.block_start.needs_block_start`), the incremental
+    :func:`~selfcal.toa.init.block_start.block_start` joins the offsets-free search's starts (first,
     raced against the registry's, the lower cost wins), and ``offsets="none"`` gets that
     search's winner (large networks, whose search refines one start) or the block start itself
     (small ones, whose search races it with the registry) as its start.
     """
-    from .block_start import block_start, needs_block_start
+    from .init.block_start import block_start, needs_block_start
     from .search import MOVES_MAX_NODES, RACE_RUNGS
 
     I, J = Y.shape
@@ -536,7 +536,7 @@ def _residuals(Yc: Array, sol: NlsSolution, kr: NDArray[np.bool_], ks: NDArray[n
 def _flag(Yc: Array, sol: NlsSolution, kr: NDArray[np.bool_], ks: NDArray[np.bool_], offsets: str,
           sd: float | None, fitted: NDArray[np.bool_], memo: dict[str, Any] | None = None,
           at: NlsSolution | None = None) -> NDArray[np.bool_]:
-    """The outlier rule (:mod:`selfcal.toa.robust`) on every observed entry of the kept nodes.
+    """The outlier rule (:mod:`selfcal.toa.verdict.robust`) on every observed entry of the kept nodes.
 
     ``fitted`` (kept I x kept J) marks the entries the fit ``sol`` used; their residuals are
     studentized by ``sqrt(1 - h)``, the others' (held out: suspected outliers, gross

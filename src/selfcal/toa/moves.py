@@ -19,7 +19,7 @@ Subsets, in this order (node indices are the search's canonical order, see
 
 Each move is a :class:`Move`: its name, the start ``(receivers, sources,
 receiver_offsets, source_offsets)`` and the nodes it moved. The search refines it with
-the one engine (:func:`selfcal.toa.nls.refine_toa`): a move of a few nodes first by a
+the one engine (:func:`selfcal.toa.engine.nls.refine_toa`): a move of a few nodes first by a
 partial refit (only the moved nodes and their offsets free, on the entries that touch
 them), which ranks it at a small fraction of a full refinement's cost.
 """

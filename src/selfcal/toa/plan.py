@@ -5,7 +5,7 @@ Given candidate anchor positions, a planned tag path and the range noise,
 tag would log) can reach, from the same machinery as the solver:
 
 - each anchor's error bar: the gauge-free Cramér-Rao bound of the self-calibration
-  (:func:`selfcal.toa.crlb.toa_crlb`, 003 eq. 17 at the planned geometry) with the offset
+  (:func:`selfcal.toa.engine.crlb.toa_crlb`, 003 eq. 17 at the planned geometry) with the offset
   model the data will be fitted with (``offsets="receivers"``: a per-anchor ranging bias);
   the NLS covariances the solver reports converge to it;
 - the tag's positioning error over the room: at each point of a horizontal grid at the
@@ -16,7 +16,7 @@ tag would log) can reach, from the same machinery as the solver:
   (:func:`layout_ambiguities`): a tag path in one plane (one height) leaves each anchor
   determined only up to its mirror image through that plane; coplanar anchors leave each
   tag position determined only up to its mirror image through theirs. Planarity is the
-  solver's own rule (:func:`selfcal.toa.select.planarity`: thinnest extent below 1 % of
+  solver's own rule (:func:`selfcal.toa.verdict.select.planarity`: thinnest extent below 1 % of
   the widest).
 """
 
@@ -115,7 +115,7 @@ class LayoutPlan:
 
 
 def _plane(P: Array) -> tuple[bool, Array, Array]:
-    from .select import planarity
+    from .verdict.select import planarity
 
     pl = planarity(P)
     return pl.near_planar, P.mean(axis=0), np.asarray(pl.normal, float)
@@ -247,7 +247,7 @@ def plan_layout(anchors: Any, path: Any, *, noise: float = 0.05, offsets: str = 
         raise InputError(f"anchors: {len(A)} given; a 3-D self-calibration needs at least 4")
     if len(P) < 10:
         raise InputError(f"path: {len(P)} tag positions; plan at least 10 (a real flight logs hundreds)")
-    from .crlb import toa_crlb
+    from .engine.crlb import toa_crlb
 
     mask = None
     if max_range is not None:

@@ -29,8 +29,8 @@ from .._result import Result, jsonable
 from .._result import json_float as _num
 from ..errors import Status
 from ..geometry import n_parameters
-from .determinacy import DeterminacyTest, determinacy_test
-from .trust import (  # noqa: F401 (re-exported: the trust tests' home is selfcal.toa.trust)
+from .verdict.determinacy import DeterminacyTest, determinacy_test
+from .verdict.trust import (  # noqa: F401 (re-exported: the trust tests' home is selfcal.toa.verdict.trust)
     PERMUTATION_ALPHA,
     PERMUTATION_COPIES,
     RESIDUAL_ALPHA,
@@ -203,7 +203,7 @@ class ToaResult(Result):
         and named in ``message`` instead.)
     undetermined_receivers, undetermined_sources: (I,), (J,) bool masks of the nodes the data
         do not determine (properties, from ``determinacy``; JSON: their indices).
-    uniqueness: the uniqueness test (:class:`selfcal.toa.uniqueness.UniquenessTest`: alternative
+    uniqueness: the uniqueness test (:class:`selfcal.toa.verdict.uniqueness.UniquenessTest`: alternative
         solutions -- flips, other minima -- against the fit by a likelihood-ratio test), or None.
     ambiguous_receivers, ambiguous_sources: (I,), (J,) bool masks of the nodes an
         indistinguishable alternative moves (properties; JSON: their indices, and their
@@ -254,7 +254,7 @@ class ToaResult(Result):
 
     @property
     def ambiguous_receivers(self) -> NDArray[np.bool_]:
-        """(I,) bool: receivers with an alternative position the data do not reject (:class:`~selfcal.toa.uniqueness.UniquenessTest`)."""
+        """(I,) bool: receivers with an alternative position the data do not reject (:class:`~selfcal.toa.verdict.uniqueness.UniquenessTest`)."""
         if self.uniqueness is None:
             return np.zeros(np.shape(self.receivers)[0], bool)
         return np.asarray(self.uniqueness.ambiguous_receivers, bool)

@@ -6,8 +6,8 @@
    sort, so its answer is equivariant under permutations of receivers and of sources
    (exactly: the sorted matrix, and so every later step, is the same bit for bit).
 2. **Starts** from a registry of initialisers (:data:`INITIALISERS`, in that order): the
-   004 rank-3 iteration (:mod:`selfcal.toa.offsets_init`, with offsets and when it identifies
-   them) and the 003 family (:mod:`selfcal.toa.mds`: rank factorisation, MDS +
+   004 rank-3 iteration (:mod:`selfcal.toa.init.offsets_init`, with offsets and when it identifies
+   them) and the 003 family (:mod:`selfcal.toa.init.mds`: rank factorisation, MDS +
    multilateration, Algorithm 2). Starting offsets are the least-squares offsets of the
    start geometry.
 3. **Moves** (:mod:`selfcal.toa.moves`): reflect or lift subsets of nodes through fitted planes.
@@ -18,7 +18,7 @@
    first and with disjoint nodes, are applied together -- a move of the union of their
    subsets -- and refined in full; the best alone if the union does not improve. The
    collective moves (half the network or more) are refined in full directly.
-4. **One engine**: every candidate is refined by :func:`selfcal.toa.nls.refine_toa`.
+4. **One engine**: every candidate is refined by :func:`selfcal.toa.engine.nls.refine_toa`.
 5. **One acceptance rule**: a candidate replaces the best one when its ML cost (the
    robust cost with one fixed scale for the whole search) is lower. With a known noise,
    the chi-square test of :func:`selfcal.toa.result.residual_test` is the stopping rule.
@@ -37,13 +37,13 @@
    the race lands in the truth-started basin in all 180 draws where some start does (at
    3982 iterations median against 8672 for running every start to the end), the halving in
    168 (1110 iterations). Rungs run
-   the engine's dense step (:func:`selfcal.toa.dense_lm.solve_dense_lm`) directly on small
+   the engine's dense step (:func:`selfcal.toa.engine.dense_lm.solve_dense_lm`) directly on small
    problems without a stopping rule; the winner's full refinement is :func:`refine_toa`'s.
 
 Why this file is long (~600 lines): :func:`search` is one function whose stages (race,
 moves) share the refinement count, the robust scale and the best candidate; split by stage
 they would pass that state through a dozen closures. The starts' registry, which has a seam,
-is :mod:`selfcal.toa.starts` (re-exported here).
+is :mod:`selfcal.toa.init.starts` (re-exported here).
 """
 
 from __future__ import annotations
@@ -58,13 +58,13 @@ from ..errors import DegenerateGeometryError, InputError
 from ..optim.structure import lm_step
 from ..progress import report
 from ..robust import TUNING
-from .batch_lm import solve_batch_lm
-from .dense_lm import solve_dense_lm
-from .model import least_squares_offsets
+from .engine.batch_lm import solve_batch_lm
+from .engine.dense_lm import solve_dense_lm
+from .engine.model import least_squares_offsets
+from .engine.nls import NlsSolution, _pack, _rho, _unpack, refine_toa, toa_model
+from .init.starts import _LARGE, INITIALISERS, LARGE_INITIALISERS, MOVES_MAX_NODES, SCALED_STARTS  # noqa: F401
 from .moves import Move, Start, moves
-from .nls import NlsSolution, _pack, _rho, _unpack, refine_toa, toa_model
-from .robust import _nanmedian_rows
-from .starts import _LARGE, INITIALISERS, LARGE_INITIALISERS, MOVES_MAX_NODES, SCALED_STARTS  # noqa: F401
+from .verdict.robust import _nanmedian_rows
 
 __all__ = ["INITIALISERS", "MOVES_MAX_NODES", "SearchOutcome", "canonical_order", "default_budget",
            "least_squares_offsets", "search"]
@@ -106,7 +106,7 @@ def canonical_order(Y: Array) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
     return order(Y), order(Y.T)
 
 
-#: whether the race advances its starts in lockstep (:mod:`selfcal.toa.batch_lm`); False runs
+#: whether the race advances its starts in lockstep (:mod:`selfcal.toa.engine.batch_lm`); False runs
 #: them one at a time through the dense LM (the same iterates, the baseline of the benchmark)
 BATCH_RACE = True
 
@@ -142,7 +142,7 @@ class SearchOutcome:
     history: (candidate name, cost) of every start and accepted move.
     partial_refits: partial refits run to rank the moves of a few nodes (not in ``refinements``).
     minima: converged starts the race dropped behind the winner (lowest cost first, at most
-        :data:`MINIMA_KEPT`): other minima, for :func:`selfcal.toa.uniqueness.uniqueness_test`.
+        :data:`MINIMA_KEPT`): other minima, for :func:`selfcal.toa.verdict.uniqueness.uniqueness_test`.
     """
 
     solution: NlsSolution
@@ -286,7 +286,7 @@ def search(
     budget: maximal refinements (default :func:`default_budget`).
     max_nfev: iteration cap of the full refinements.
     use_moves: run the moves after the starts (only up to :data:`MOVES_MAX_NODES` nodes).
-    solver: passed to :func:`selfcal.toa.nls.refine_toa`.
+    solver: passed to :func:`selfcal.toa.engine.nls.refine_toa`.
 
     Returns
     -------
@@ -340,7 +340,7 @@ def search(
     def refine_part(mv: Move) -> tuple[float, Start] | None:
         """Refit only the moved nodes (and their offsets) on the entries that touch them.
 
-        The engine's dense Levenberg-Marquardt step (:func:`selfcal.toa.dense_lm.solve_dense_lm`)
+        The engine's dense Levenberg-Marquardt step (:func:`selfcal.toa.engine.dense_lm.solve_dense_lm`)
         with every other parameter held: the fixed nodes hold the frame, so no gauge is
         projected; a few free unknowns on a few entries (4 on 6 at 12 x 6 with both offsets).
         """
@@ -433,7 +433,7 @@ def search(
         return (c, nxt, bool(conv), None) if np.isfinite(c) else None
 
     def advance_many(sts: list[Start], nfev: int | None) -> list[_State | None]:
-        """One rung of several starts, in lockstep (:func:`selfcal.toa.batch_lm.solve_batch_lm`:
+        """One rung of several starts, in lockstep (:func:`selfcal.toa.engine.batch_lm.solve_batch_lm`:
         each start's iterates are those of its own dense LM, to round-off)."""
         nonlocal count, iters
         if not (fast and BATCH_RACE) or fs is None or len(sts) < 2:

@@ -1,10 +1,10 @@
 """``solve_toa``: anchor-free TOA / range self-calibration end to end (papers 003, 004).
 
 Validation -> seconds to metres (``speed``) -> ``"auto"`` model choices
-(:mod:`selfcal.toa.select`) -> canonical order of rows and columns -> gross entries
-screened, unidentifiable nodes dropped (:mod:`selfcal.toa.robust`) -> the search
+(:mod:`selfcal.toa.verdict.select`) -> canonical order of rows and columns -> gross entries
+screened, unidentifiable nodes dropped (:mod:`selfcal.toa.verdict.robust`) -> the search
 (:mod:`selfcal.toa.search`: initialisers, plane moves, the one engine
-:func:`selfcal.toa.nls.refine_toa`) -> outlier rule and refit without the outliers ->
+:func:`selfcal.toa.engine.nls.refine_toa`) -> outlier rule and refit without the outliers ->
 covariances, trust test (:mod:`selfcal.toa.result`) -> :class:`ToaResult`.
 """
 
@@ -28,9 +28,9 @@ from .._checks import (
     entry,
 )
 from ..errors import ConvergenceWarning, InputError
-from .covariance import normalize_covariance
+from .engine.covariance import normalize_covariance
+from .engine.nls import LOSSES, OFFSET_MODES
 from .fit import finish, given_start, unrefined
-from .nls import LOSSES, OFFSET_MODES
 from .result import ResidualTest, ToaResult, n_parameters, residual_test
 
 __all__ = ["ResidualTest", "ToaResult", "n_parameters", "residual_test", "solve_toa"]
@@ -69,14 +69,14 @@ def solve_toa(
         receivers, columns = sources, NaN = missing. Negative and zero entries are
         measurements (bias + noise near zero range): accepted, with a warning giving their count.
     dim: 2, 3 or "auto" (3-D unless a 2-D fit explains the data as well: F test and
-        planarity, :func:`selfcal.toa.select.choose_dim`).
+        planarity, :func:`selfcal.toa.verdict.select.choose_dim`).
     offsets: "none" | "receivers" | "sources" | "both" | "auto" (choice by BIC,
-        :func:`selfcal.toa.select.choose_offsets`).
+        :func:`selfcal.toa.verdict.select.choose_offsets`).
     speed: propagation speed (m/s) converting seconds to metres; offsets, residuals and
         noise are then reported in seconds.
     loss: "auto" (default: the search uses the soft-L1 loss with its scale estimated from
         the data, outliers are flagged by the Bonferroni rule of
-        :func:`selfcal.toa.robust.outlier_mask` and the final fit is the linear one without
+        :func:`selfcal.toa.verdict.robust.outlier_mask` and the final fit is the linear one without
         them), "linear" (plain ML on every entry; outliers flagged, not removed) or a robust
         loss "huber" | "soft_l1" | "cauchy" used throughout (outliers removed before the last fit).
     init: "auto" or an explicit start ``(receivers, sources[, receiver_offsets,
@@ -89,13 +89,13 @@ def solve_toa(
     max_nfev: iteration cap of each full refinement.
     covariance: which per-point covariance blocks of the final fit to compute: True / "all",
         "receivers", "sources", False / "none", or indices ``{"receivers": idx, "sources": idx}``
-        in the caller's numbering (:func:`selfcal.toa.covariance.normalize_covariance`); the
+        in the caller's numbering (:func:`selfcal.toa.engine.covariance.normalize_covariance`); the
         others are NaN.
     sweep: run the plane moves of the search (:mod:`selfcal.toa.moves`).
     noise: optional std of the measurement noise in the matrix's units. The result then
         carries ``fit``, the chi-square test of its residuals (rejected at p < 1e-3), which
         is also the search's stopping rule; without it, the geometry test
-        (:func:`selfcal.toa.trust.geometry_test`: a permutation test against offsets alone
+        (:func:`selfcal.toa.verdict.trust.geometry_test`: a permutation test against offsets alone
         plus a median leave-one-out check, ``geometry``) says whether the data fit a
         geometry at all.
     budget: maximal refinements of the search (default :func:`selfcal.toa.search.default_budget`).
@@ -159,7 +159,7 @@ def solve_toa(
     kw = dict(speed=spd, loss=loss, method=method, rng=gen, f_scale=fs, max_nfev=max_nfev,
               covariance=covariance, sweep=sweep, noise=sd, budget=budget, n_negative=n_neg)
     if dim == "auto" or offsets == "auto":
-        from .select import choose
+        from .verdict.select import choose
 
         res = choose(M, dim, offsets, solve=_solve_fixed, **kw)
     else:

@@ -5,8 +5,8 @@ receivers and 10,000 sources and 1 % of the pairs observed, the dense I x J matr
 (800 MB of mostly NaN) is never formed here. Everything works on the list of the m
 observed pairs:
 
-- :func:`refine_toa_sparse` is the engine of :func:`selfcal.toa.nls.refine_toa` (the
-  Levenberg-Marquardt of :mod:`selfcal.toa.schur_lm`, Schur complement onto the smaller
+- :func:`refine_toa_sparse` is the engine of :func:`selfcal.toa.engine.nls.refine_toa` (the
+  Levenberg-Marquardt of :mod:`selfcal.toa.engine.schur_lm`, Schur complement onto the smaller
   node set, matrix-free conjugate gradients with the Schur-Jacobi preconditioner) on the
   pairs: each product is a few ``bincount`` sums over the m pairs, O(m) time and memory.
   On the same observed set it reaches the same minimum as the dense engine (tested).
@@ -25,16 +25,16 @@ partners are nearly coplanar); the blind solve re-checks each against its mirror
 final fit, moves it when the mirror fits its ranges better, refits, and lists them in
 ``weakly_placed_receivers`` / ``weakly_placed_sources``.
 
-Model and gauge are those of :mod:`selfcal.toa.nls` (003 eq. 2 without offsets; the result
+Model and gauge are those of :mod:`selfcal.toa.engine.nls` (003 eq. 2 without offsets; the result
 is in the canonical gauge of :func:`selfcal.geometry.canonical_gauge`). Offsets and robust
 losses are not offered on this path (the dense path has them); exact covariance blocks of
 selected nodes (``covariance=`` of :func:`refine_toa_sparse` / :func:`solve_toa_sparse`) come
-from :func:`selfcal.toa.sparse_covariance.sparse_covariance_blocks` (d matrix-free CG solves
+from :func:`selfcal.toa.engine.sparse_covariance.sparse_covariance_blocks` (d matrix-free CG solves
 per node).
 
 The file is above 600 lines because the result type, the engine wrapper, the growth, its
 mirror re-check and the covariance request share the pair bookkeeping (index maps, batched
-multilateration); the covariance arithmetic itself lives in :mod:`selfcal.toa.sparse_covariance`.
+multilateration); the covariance arithmetic itself lives in :mod:`selfcal.toa.engine.sparse_covariance`.
 
 Cost. A CG product is O(m); the number of CG iterations grows with the graph diameter
 (hops across the network), the growth initialiser is O(m) per round and needs about
@@ -53,7 +53,7 @@ from numpy.typing import NDArray
 from .._checks import check_pairs, entry
 from .._result import Result
 from ..errors import DegenerateGeometryError, InputError
-from .sparse_covariance import sparse_covariance_blocks
+from .engine.sparse_covariance import sparse_covariance_blocks
 
 __all__ = ["SparseToaResult", "refine_toa_sparse", "initialize_toa_sparse", "solve_toa_sparse",
            "simulate_sparse_network"]
@@ -84,7 +84,7 @@ class SparseToaResult(Result):
         their positions deserve less trust than the noise level suggests.
     mirrors_taken : how many weakly placed nodes that re-check moved to their mirror side.
     receiver_cov, source_cov : (I, d, d), (J, d, d) gauge-free covariance blocks (m^2, the
-        canonical frame, ``noise_estimate**2`` times :func:`selfcal.toa.sparse_covariance.
+        canonical frame, ``noise_estimate**2`` times :func:`selfcal.toa.engine.sparse_covariance.
         sparse_covariance_blocks`) of the nodes asked for with ``covariance=``, NaN for the
         others; None when none was asked for.
     """
@@ -120,8 +120,8 @@ def _counts_ok(i: Index, j: Index, I: int, J: int, need: int) -> None:
 
 def _lm(i: Index, j: Index, y: Array, r0: Array, s0: Array, max_nfev: int | None, xtol: float
         ) -> tuple[Array, Array, bool, int]:
-    from .nls import _make_layout, _pack, _unpack, gauge_basis
-    from .schur_lm import solve_schur_lm
+    from .engine.nls import _make_layout, _pack, _unpack, gauge_basis
+    from .engine.schur_lm import solve_schur_lm
 
     I, d = r0.shape
     J = s0.shape[0]
@@ -175,7 +175,7 @@ def refine_toa_sparse(
     xtol : relative step tolerance.
     covariance : which nodes' covariance blocks (``(receiver_idx, source_idx)``,
         ``{"receivers": idx, "sources": idx}``, "receivers" / "sources" / "all", default
-        "none"): d CG solves per node (:mod:`selfcal.toa.sparse_covariance`), so ask for the
+        "none"): d CG solves per node (:mod:`selfcal.toa.engine.sparse_covariance`), so ask for the
         nodes you need on a large network.
 
     Returns
@@ -191,9 +191,9 @@ def refine_toa_sparse(
 
     Notes
     -----
-    The engine of :mod:`selfcal.toa.schur_lm` on the :class:`selfcal.toa.schur_lm.Pairs`
+    The engine of :mod:`selfcal.toa.engine.schur_lm` on the :class:`selfcal.toa.engine.schur_lm.Pairs`
     pattern: O(m) per CG product, O(m + I + J) memory. The same minimum as
-    :func:`selfcal.toa.nls.refine_toa` on the dense matrix with the same observed entries.
+    :func:`selfcal.toa.engine.nls.refine_toa` on the dense matrix with the same observed entries.
 
     Examples
     --------
@@ -220,7 +220,7 @@ def refine_toa_sparse(
 
 def _sparse_request(covariance: Any, I: int, J: int) -> tuple[Index, Index]:
     """Receiver and source indices of a covariance request (``"local"`` refused on this path)."""
-    from .covariance import is_local, normalize_covariance, resolve_covariance
+    from .engine.covariance import is_local, normalize_covariance, resolve_covariance
 
     if is_local(normalize_covariance(covariance)):
         raise InputError("covariance='local' is not offered on the sparse path (its error ~(d+1) / fewest ranges "

@@ -1,0 +1,1 @@
+"""The least-squares engines of the TOA model: model, refinement, covariance, CRLB."""

@@ -1,0 +1,313 @@
+"""Levenberg-Marquardt on many starts of one small range problem at once: the search's race.
+
+The race of :func:`selfcal.toa.search.search` refines a few dozen starts of the same small
+problem (12 receivers x 6 sources with both offsets: 72 ranges, 72 parameters) in rungs of
+a few iterations each. One start at a time, an iteration costs Python overhead, not
+arithmetic (:mod:`selfcal.toa.engine.dense_lm`: ~0.2 ms, most of it in forming the gauge
+projector, the evaluation and the LAPACK call). Here every start advances in lockstep and
+each numpy call serves all of them, and the normal equations use the bipartite structure
+of the model instead of a dense (n, n) product:
+
+- a range ``y_ij = |r_i - s_j| + d_i + o_j`` touches one *receiver block* ``[r_i, d_i]``
+  (``d + 1`` parameters, ``d`` without receiver offsets) and one *source block*
+  ``[s_j, o_j]``: its Jacobian row is ``a_ij = [u_ij, 1]`` on the first and
+  ``b_ij = [-u_ij, 1]`` on the second (``u_ij`` the unit vector from ``s_j`` to ``r_i``);
+- so ``J^T W J`` is made of per-receiver blocks ``sum_j w a a^T``, per-source blocks
+  ``sum_i w b b^T`` and one coupling block ``w a b^T`` per range, O(m (d + 1)^2) flops
+  instead of O(m n^2);
+- the damped system is solved by eliminating the larger node set (its blocks are inverted
+  independently: a Schur complement, as in bundle adjustment, Triggs et al. 2000, sec. 6.1),
+  leaving a ``J (d + 1)`` square system per start (24 x 24 at 12 x 6) for one stacked
+  ``numpy.linalg.solve``.
+
+The iteration of every start is that of :func:`selfcal.toa.engine.dense_lm.full_lm` (the same
+Marquardt damping ``diag(H) (1 + lam)`` starting at ``lam = 1e-4``, the step projected off
+the gauge, a trial accepted when the cost does not rise, Nielsen's gain-ratio update
+:func:`selfcal.toa.engine.dense_lm.damping_after_success` from the decrease predicted for the
+projected step, the same stopping rules), each start with its own damping and its own
+iteration count: batching changes the cost, not the iterates (to round-off: the Schur
+solve and the dense Cholesky differ in the last digits).
+
+Measured (``benchmarks/bench_toa_minimal.py``'s scene, see its docstring): per start and
+iteration the stacked form costs a fraction of the one-start dense step, so the race can
+afford three times the starts for the time it spent on 8.
+
+References
+----------
+B. Triggs, P. McLauchlan, R. Hartley, A. Fitzgibbon, "Bundle adjustment -- a modern
+synthesis", Vision Algorithms: Theory and Practice, LNCS 1883, 2000.
+K. Madsen, H. B. Nielsen, O. Tingleff, "Methods for non-linear least squares problems", 2004.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ...optim.lm import FTOL, TRIALS, BatchModel, levenberg_marquardt_batch
+from ...robust import loss_rho
+
+__all__ = ["solve_batch_lm"]
+
+Array = NDArray[np.float64]
+
+#: relative singular-value floor of the rotation generators (as dense_lm.GaugeProjector:
+#: a rotation dependent on the others, points on a line, adds no gauge direction)
+_ROT_RCOND = 1e-10
+
+
+def _swap_layout(Theta: Array, I: int, J: int, d: int, has_r: bool, has_s: bool) -> Array:
+    """Packed ``[r, s, d_i?, o_j?]`` of a problem to that of its transpose ``[s, r, o_j?, d_i?]``."""
+    N = I + J
+    parts = [Theta[:, I * d:N * d], Theta[:, :I * d]]
+    k = N * d
+    off_r = Theta[:, k:k + I] if has_r else None
+    k += I if has_r else 0
+    off_s = Theta[:, k:k + J] if has_s else None
+    if off_s is not None:
+        parts.append(off_s)
+    if off_r is not None:
+        parts.append(off_r)
+    return np.concatenate(parts, axis=1)
+
+
+class _Problem(BatchModel):
+    """The stacked model of one range matrix: evaluation, normal blocks, damped solve, gauge."""
+
+    def __init__(self, Y: Array, d: int, has_r: bool, has_s: bool, loss: str, f_scale: float) -> None:
+        self.I, self.J = Y.shape
+        self.d, self.has_r, self.has_s = d, has_r, has_s
+        self.obs = np.isfinite(Y)
+        self.Y = np.where(self.obs, Y, 0.0)
+        self.obsf = self.obs.astype(float)
+        self.loss, self.fs = loss, float(f_scale)
+        I, J, N = self.I, self.J, self.I + self.J
+        ir = [np.arange(I)[:, None] * d + np.arange(d)]
+        js = [(I + np.arange(J))[:, None] * d + np.arange(d)]
+        k = N * d
+        if has_r:
+            ir.append((k + np.arange(I))[:, None])
+            k += I
+        if has_s:
+            js.append((k + np.arange(J))[:, None])
+        self.idx_r = np.concatenate(ir, axis=1)  # (I, pr): a receiver block's places in theta
+        self.idx_s = np.concatenate(js, axis=1)  # (J, ps)
+        self.pr, self.ps = pr, ps = self.idx_r.shape[1], self.idx_s.shape[1]
+        self.eye_r, self.eye_s = np.eye(pr, dtype=bool), np.eye(ps, dtype=bool)
+        K = J * ps
+        jb, pb_, qb = np.meshgrid(np.arange(J), np.arange(ps), np.arange(ps), indexing="ij")
+        self.bdiag = ((jb * ps + pb_) * K + jb * ps + qb).ravel()  # flat places of the source blocks in (K, K)
+
+    def evaluate(self, Th: Array, rows: object = None) -> tuple[Array, tuple[Array, Array, Array]]:
+        """(cost (a,), (residuals (a, I, J), weights (a, I, J), unit vectors (a, I, J, d))); zero
+        residual and weight where unobserved (``rows``: the driver's start indices, unused)."""
+        I, J, d = self.I, self.J, self.d
+        P = Th[:, :(I + J) * d].reshape(-1, I + J, d)
+        u = P[:, :I, None, :] - P[:, None, I:, :]
+        dist = np.sqrt(np.einsum("aijp,aijp->aij", u, u))
+        f = dist - self.Y
+        if self.has_r:
+            f += Th[:, self.idx_r[:, -1]][:, :, None]
+        if self.has_s:
+            f += Th[:, self.idx_s[:, -1]][:, None, :]
+        f *= self.obsf  # 0 where unobserved (the entries of Y there are 0, never NaN)
+        u *= np.divide(1.0, dist, out=np.zeros_like(dist), where=dist > 0)[..., None]  # 0 where points coincide
+        if self.loss == "linear":
+            return 0.5 * np.einsum("aij,aij->a", f, f), (f, np.broadcast_to(self.obsf, f.shape), u)
+        rho, w = loss_rho((f / self.fs) ** 2, self.loss)
+        cost = 0.5 * self.fs**2 * np.where(self.obs, rho, 0.0).sum(axis=(1, 2))
+        return cost, (f, np.where(self.obs, w, 0.0), u)
+
+    def linearize(self, Th: Array, state: tuple[Array, Array, Array]) -> _BatchStep:
+        return _BatchStep(self, Th, state)
+
+    def rows(self, u: Array) -> tuple[Array, Array]:
+        """The Jacobian rows' receiver and source parts, (a, I, J, pr) and (a, I, J, ps)."""
+        one = np.ones(u.shape[:-1] + (1,))
+        A = np.concatenate([u, one], axis=-1) if self.has_r else u
+        B = np.concatenate([-u, one], axis=-1) if self.has_s else -u
+        return A, B
+
+    def rotations(self, Th: Array) -> Array:
+        """Orthonormal rotation gauge directions at each start, (a, k, (I + J) d)."""
+        N, d = self.I + self.J, self.d
+        P = Th[:, :N * d].reshape(-1, N, d)
+        P = P - P.mean(axis=1, keepdims=True)
+        pairs = [(0, 1)] if d == 2 else [(0, 1), (0, 2), (1, 2)]
+        V = np.zeros((P.shape[0], len(pairs), N, d))
+        for k, (p, q) in enumerate(pairs):
+            V[:, k, :, p] = -P[:, :, q]
+            V[:, k, :, q] = P[:, :, p]
+        V = V.reshape(P.shape[0], len(pairs), N * d)
+        lam, E = np.linalg.eigh(np.matmul(V, V.transpose(0, 2, 1)))  # the Gram matrix, ascending
+        keep = lam > _ROT_RCOND**2 * lam[:, -1:]
+        scale = np.divide(1.0, np.sqrt(np.where(keep, lam, 1.0)), out=np.zeros_like(lam), where=keep)
+        return np.matmul(E.transpose(0, 2, 1), V) * scale[..., None]  # orthonormal; dependent ones zeroed
+
+    def project(self, dx: Array, Q: Array) -> Array:
+        """``dx`` off the gauge (translations, rotations ``Q``, the common offset shift), in place."""
+        N, d, I = self.I + self.J, self.d, self.I
+        X = dx[:, :N * d].reshape(-1, N, d)
+        X -= X.mean(axis=1, keepdims=True)
+        flat = dx[:, :N * d]
+        flat -= np.matmul(np.matmul(Q, flat[..., None]).transpose(0, 2, 1), Q)[:, 0]
+        if self.has_r and self.has_s:
+            off = dx[:, N * d:]
+            shift = (off[:, :I].sum(axis=1) - off[:, I:].sum(axis=1)) / off.shape[1]
+            off[:, :I] -= shift[:, None]
+            off[:, I:] += shift[:, None]
+        return dx
+
+
+def solve_batch_lm(
+    Theta0: Array, Y: Array, d: int, offsets: str, loss: str, f_scale: float, max_nfev: int | None,
+    xtol: float, max_it: int = 100,
+) -> tuple[Array, NDArray[np.bool_], NDArray[np.intp], NDArray[np.bool_]]:
+    """Levenberg-Marquardt from every row of ``Theta0`` at once (module docstring).
+
+    Parameters
+    ----------
+    Theta0 : (S, n) starts, receiver-major ``[r (I d), s (J d), d_i (I)?, o_j (J)?]`` (metres),
+        the layout of :mod:`selfcal.toa.engine.nls`.
+    Y : (I, J) ranges, metres, NaN = missing (every node needs at least one range).
+    d, offsets : the model (``"none"``, ``"receivers"``, ``"sources"``, ``"both"``).
+    loss, f_scale : robust loss (:func:`selfcal.robust.loss_rho`) and its scale (metres).
+    max_nfev : iteration cap per start (default ``max_it``); xtol : relative step tolerance.
+    max_it : iteration cap when ``max_nfev`` is None.
+
+    Returns
+    -------
+    Theta : (S, n) the iterates reached.
+    converged : (S,) bool, each start's stopping rule met (as :func:`selfcal.toa.engine.dense_lm.full_lm`).
+    iterations : (S,) int.
+    finite : (S,) bool, False for a start whose iterate or cost stopped being finite (its row
+        of ``Theta`` is then its last finite iterate).
+
+    Notes
+    -----
+    Flops per iteration and start O(I J (d + 1)^2 (J + 1)) for the normal blocks and the Schur
+    complement plus O((J (d + 1))^3) for the reduced solve, with the smaller node set kept
+    (the problem is transposed when the sources are the larger set).
+
+    Examples
+    --------
+    Three starts of one 2-D network with receiver delays, refined together to the exact fit:
+
+    >>> import numpy as np
+    >>> from selfcal.toa.engine import nls
+    >>> rx, tx = np.random.default_rng(1).uniform(-2, 2, (8, 2)), np.random.default_rng(2).uniform(-3, 3, (5, 2))
+    >>> delays = np.linspace(0.1, 0.8, 8)
+    >>> Y = nls.toa_model(rx, tx, delays)
+    >>> starts = np.stack([nls._pack(rx + e, tx - e, delays, None) for e in (0.02, -0.01, 0.05)])
+    >>> Th, ok, nit, fin = solve_batch_lm(starts, Y, 2, "receivers", "linear", 1.0, None, 1e-12)
+    >>> res = [float(np.abs(nls.toa_residuals(t, Y, 2, "receivers")).max()) for t in Th]
+    >>> bool(ok.all()) and max(res) < 1e-6
+    True
+    """
+    has_r, has_s = offsets in ("receivers", "both"), offsets in ("sources", "both")
+    Y = np.asarray(Y, float)
+    Theta = np.array(Theta0, dtype=float, ndmin=2)
+    I, J = Y.shape
+    swap = J * (d + has_s) > I * (d + has_r)  # keep the smaller set in the reduced system
+    if swap:
+        Theta = _swap_layout(Theta, I, J, d, has_r, has_s)
+        Y, I, J, has_r, has_s = Y.T, J, I, has_s, has_r
+    pb = _Problem(Y, d, has_r, has_s, loss, f_scale)
+    out = levenberg_marquardt_batch(pb, Theta, max_iter=int(max_nfev or max_it), xtol=xtol, ftol=FTOL,
+                                    trials=TRIALS)
+    Theta = out.x
+    if swap:
+        Theta = _swap_layout(Theta, I, J, d, has_r, has_s)
+    return Theta, out.converged, out.iterations, out.finite
+
+
+class _BatchStep:
+    """The linearisation of the running starts: normal blocks and the stacked Schur step."""
+
+    def __init__(self, pb: _Problem, Theta: Array, state: tuple[Array, Array, Array]) -> None:
+        f, w, u = state
+        I, J, pr, ps = pb.I, pb.J, pb.pr, pb.ps
+        self.pb, self.K, self.w = pb, J * ps, w
+        self.eye_r, self.eye_s, self.bdiag = pb.eye_r, pb.eye_s, pb.bdiag
+        A, B = pb.rows(u)
+        self.A, self.B = A, B
+        wa = w[..., None]
+        wA, wB = wa * A, wa * B
+        self.Hrr = np.matmul(wA.transpose(0, 1, 3, 2), A)  # (a, I, pr, pr): sum over sources
+        self.Hss = np.matmul(wB.transpose(0, 2, 3, 1), B.transpose(0, 2, 1, 3))  # (a, J, ps, ps)
+        na = Theta.shape[0]
+        self.C = (wA[..., :, None] * B[..., None, :]).transpose(0, 1, 3, 2, 4).reshape(na, I, pr, J * ps)
+        fa = f[..., None]
+        self.gr = (wA * fa).sum(axis=2)  # (a, I, pr)
+        self.gs = (wB * fa).sum(axis=1)  # (a, J, ps)
+        self.drr = self.Hrr[:, :, self.eye_r]  # (a, I, pr) diagonals
+        self.dss = self.Hss[:, :, self.eye_s]
+        self.Q = pb.rotations(Theta)
+        self.n = Theta.shape[1]
+        gr, gs = self.gr, self.gs
+        self.gnorm = np.sqrt(np.einsum("aip,aip->a", gr, gr) + np.einsum("ajp,ajp->a", gs, gs))
+
+    def step(self, lam: Array, t: NDArray[np.intp]) -> Array:
+        pb, K = self.pb, self.K
+        I, J, pr, ps = pb.I, pb.J, pb.pr, pb.ps
+        lt = lam[:, None, None]
+        Hr = self.Hrr[t].copy()
+        Hr[:, :, self.eye_r] += lt * self.drr[t]
+        Hs = self.Hss[t].copy()
+        Hs[:, :, self.eye_s] += lt * self.dss[t]
+        nt = t.size
+        Hr_inv = _inv(Hr)
+        Ct = self.C[t]
+        X = np.matmul(Hr_inv, Ct)  # Hrr^-1 Hrs, (t, I, pr, J ps)
+        zr = np.matmul(Hr_inv, self.gr[t][..., None])  # (t, I, pr, 1)
+        CtT = Ct.reshape(nt, I * pr, K).transpose(0, 2, 1)
+        Sred = -np.matmul(CtT, X.reshape(nt, I * pr, K))
+        Sred.reshape(nt, K * K)[:, self.bdiag] += Hs.reshape(nt, -1)
+        rhs = np.matmul(CtT, zr.reshape(nt, I * pr, 1)) - self.gs[t].reshape(nt, K, 1)
+        xs = _solve(Sred, rhs)  # (t, K, 1)
+        xr = -(zr + np.matmul(X, xs[:, None]))[..., 0]
+        xs = xs.reshape(nt, J, ps)
+        dx = np.zeros((nt, self.n))
+        dx[:, pb.idx_r] = xr
+        dx[:, pb.idx_s] = xs
+        ok = np.isfinite(dx).all(axis=1)
+        dx[~ok] = 0.0
+        pb.project(dx, self.Q[t])
+        dx[~ok] = np.nan  # the driver refuses the trial
+        return dx
+
+    def predicted(self, dx: Array, t: NDArray[np.intp]) -> Array:
+        pb = self.pb
+        xr, xs = dx[:, pb.idx_r], dx[:, pb.idx_s]
+        Jx = (np.matmul(self.A[t], xr[..., None])[..., 0]
+              + np.matmul(self.B[t].transpose(0, 2, 1, 3), xs[..., None])[..., 0].transpose(0, 2, 1))
+        return np.asarray(-(np.einsum("aip,aip->a", self.gr[t], xr) + np.einsum("ajp,ajp->a", self.gs[t], xs)
+                            + 0.5 * np.einsum("aij,aij->a", self.w[t] * Jx, Jx)))
+
+
+def _inv(H: Array) -> Array:
+    """Stacked inverses of small damped blocks; NaN for a singular one (its start's trial fails)."""
+    try:
+        return np.asarray(np.linalg.inv(H), float)
+    except np.linalg.LinAlgError:
+        out = np.full_like(H, np.nan)
+        for k in range(H.shape[0]):
+            try:
+                out[k] = np.linalg.inv(H[k])
+            except np.linalg.LinAlgError:
+                pass
+        return out
+
+
+def _solve(Sred: Array, rhs: Array) -> Array:
+    """Stacked solves ``Sred x = rhs`` of the reduced systems, (t, K, 1); NaN for a singular one."""
+    try:
+        return np.asarray(np.linalg.solve(Sred, rhs), float)
+    except np.linalg.LinAlgError:
+        out = np.full_like(rhs, np.nan)
+        for k in range(Sred.shape[0]):
+            try:
+                out[k] = np.linalg.solve(Sred[k], rhs[k])
+            except (np.linalg.LinAlgError, ValueError):
+                pass
+        return out

@@ -1,0 +1,489 @@
+"""Levenberg-Marquardt on the Schur-reduced normal equations (the default engine of refine_toa).
+
+The residual of entry (k, e) of the range matrix, oriented with the *kept* node set K
+(the smaller one, :class:`selfcal.toa.engine.nls._Layout`) in the rows, is::
+
+    f_ke = |x_k - x_e| + o_k + o_e - y_ke          (003 eq. 2; 004 sec. 3 offsets)
+
+so its Jacobian row is ``a_ke = [U_ke, 1?]`` on node k and ``b_ke = [-U_ke, 1?]`` on
+node e, with the unit vector ``U_ke = (x_k - x_e) / |x_k - x_e|``. Everything the solver
+needs is a sum over the observed pairs of products of the d component arrays ``U_p``
+(each nK x nE, the size of the data) with the weights ``w`` and the residuals ``f``:
+
+- the diagonal blocks ``A_k = sum_e w a a^T`` and ``D_e = sum_k w b b^T`` (both from the
+  same products ``w U_p U_q``, summed over the other axis);
+- the Schur-Jacobi preconditioner, the exact d x d diagonal blocks of
+  ``S = A - B D^-1 B^T``: ``S_k = A_k - sum_e c_ke a a^T`` with ``c = w^2 b^T D_e^-1 b``;
+- the products ``B^T x`` and ``B y`` of one CG step: ``(m_K + m_E)`` multiply-adds of
+  nK x nE arrays each.
+
+Component-major storage (d arrays of nK x nE, never an (nK, nE, d) tensor and its
+transposed copies) keeps the working set at ~(d + 4) times the data and lets every
+product run as plain contiguous array arithmetic. Cost per CG product O(nK nE (m_K + m_E)),
+per Levenberg-Marquardt iteration O(nK nE d^2) for the blocks; nothing of size
+(nK d) x (nE d) is formed (Agarwal et al., "Bundle adjustment in the large", 2010, for the
+inexact-Newton Schur scheme).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ...errors import DegenerateGeometryError
+from ...optim.lm import Model, levenberg_marquardt
+from ...optim.structure import DENSE_MAX_UNKNOWNS, DIRECT_MAX_UNKNOWNS, lm_step
+from ...robust import loss_rho
+from .dense_lm import _solve as _direct_solve  # Cholesky (posv), least squares if not PD
+
+Array = NDArray[np.float64]
+
+__all__ = ["DENSE_MAX_UNKNOWNS", "DIRECT_MAX_UNKNOWNS", "solve_schur_lm"]
+
+#: default iteration cap per step kind (the same for all: a larger cap for the cheap dense
+#: step was tried, 400, and made the robust stages of solve_toa at 12 x 6 crawl along flat
+#: valleys towards far-field minima without converging, for no gain in the basin rate)
+DEFAULT_MAX_IT = {"dense": 100, "reduced": 100, "cg": 100}
+#: forcing-term range of the inexact (CG) steps: relative residual of each CG solve
+CG_RTOL = (1e-8, 1e-3)
+
+
+def _inv_blocks(blocks: Array) -> Array:
+    """Inverse of each small symmetric block; an unobservable node raises DegenerateGeometryError."""
+    cond_ok = np.linalg.cond(blocks) < 1e12
+    if not cond_ok.all():
+        bad = int(np.nonzero(~cond_ok)[0][0])
+        raise DegenerateGeometryError(
+            f"node {bad} of the eliminated set is not determined by its observed ranges "
+            "(too few or collinear observations); it needs at least d+1 (+1 per offset) "
+            "ranges to non-collinear partners",
+            kind="unobservable-node",
+        )
+    return np.asarray(np.linalg.inv(blocks), dtype=np.float64)
+
+
+class Grid:
+    """All nK x nE pairs as 2-D arrays (dense data; missing entries carry weight 0)."""
+
+    def __init__(self, nK: int, nE: int) -> None:
+        self.nK, self.nE = nK, nE
+
+    def pairs(self, a: Array, b: Array) -> Array:
+        """``a_k - b_e`` for every pair."""
+        return np.subtract.outer(a, b)
+
+    def kx(self, v: Array) -> Array:
+        """A per-K-node value on every pair."""
+        return v[:, None]
+
+    def ex(self, v: Array) -> Array:
+        """A per-E-node value on every pair."""
+        return v[None, :]
+
+    def ksum(self, a: Array, b: Array | None = None) -> Array:
+        """``sum_e a b`` per K node."""
+        return a.sum(1) if b is None else np.einsum("ke,ke->k", a, b)
+
+    def esum(self, a: Array, b: Array | None = None) -> Array:
+        """``sum_k a b`` per E node."""
+        return a.sum(0) if b is None else np.einsum("ke,ke->e", a, b)
+
+
+class Pairs(Grid):
+    """Only the observed pairs ``(k[m], e[m])`` as 1-D arrays (sparse data)."""
+
+    def __init__(self, k: NDArray[np.intp], e: NDArray[np.intp], nK: int, nE: int) -> None:
+        super().__init__(nK, nE)
+        self.k, self.e = k, e
+
+    def pairs(self, a: Array, b: Array) -> Array:
+        return a[self.k] - b[self.e]
+
+    def kx(self, v: Array) -> Array:
+        return v[self.k]
+
+    def ex(self, v: Array) -> Array:
+        return v[self.e]
+
+    def ksum(self, a: Array, b: Array | None = None) -> Array:
+        return np.bincount(self.k, a if b is None else a * b, minlength=self.nK).astype(np.float64, copy=False)
+
+    def esum(self, a: Array, b: Array | None = None) -> Array:
+        return np.bincount(self.e, a if b is None else a * b, minlength=self.nE).astype(np.float64, copy=False)
+
+
+class _Oriented:
+    """The parameter vector split into kept / eliminated positions and offsets (views)."""
+
+    def __init__(self, lay: object) -> None:
+        self.lay = lay
+        self.hasK = lay.k_idx.shape[1] > lay.d  # type: ignore[attr-defined]
+        self.hasE = lay.e_idx.shape[1] > lay.d  # type: ignore[attr-defined]
+
+    def split(self, theta: Array) -> tuple[Array, Array, Array | None, Array | None]:
+        lay = self.lay
+        d = lay.d  # type: ignore[attr-defined]
+        K = theta[lay.k_idx]  # type: ignore[attr-defined]
+        E = theta[lay.e_idx]  # type: ignore[attr-defined]
+        return K[:, :d], E[:, :d], (K[:, d] if self.hasK else None), (E[:, d] if self.hasE else None)
+
+
+def directions(xK: Array, xE: Array, pat: Grid) -> tuple[list[Array], Array]:
+    """Unit-vector components ``U_p`` (d arrays, one value per pair) and the distances.
+
+    ``U = (x_k - x_e) / |x_k - x_e|``, zero where two points coincide (the range is not
+    differentiable there).
+    """
+    U = [pat.pairs(xK[:, p], xE[:, p]) for p in range(xK.shape[1])]
+    dist = U[0] * U[0]
+    for Up in U[1:]:
+        dist += Up * Up
+    np.sqrt(dist, out=dist)
+    inv = np.divide(1.0, dist, out=np.zeros_like(dist), where=dist > 0)
+    for Up in U:
+        Up *= inv
+    return U, dist
+
+
+def diagonal_blocks(U: list[Array], w: Array, hasK: bool, hasE: bool, pat: Grid) -> tuple[Array, Array]:
+    """The node blocks of the weighted normal matrix: ``A_k = sum_e w a a^T``, ``D_e = sum_k w b b^T``.
+
+    ``a = [U, 1?]``, ``b = [-U, 1?]`` (the offset entry when that side has offsets). Both come
+    from the same products ``w U_p U_q``, summed over the other axis. Returns (nK, mK, mK),
+    (nE, mE, mE).
+    """
+    d = len(U)
+    mK, mE = d + hasK, d + hasE
+    A = np.zeros((pat.nK, mK, mK))
+    D = np.zeros((pat.nE, mE, mE))
+    for p in range(d):
+        wUp = w * U[p]  # one temporary at a time: the working set stays ~(d + 4) x the data
+        for q in range(p, d):
+            A[:, p, q] = pat.ksum(wUp, U[q])
+            D[:, p, q] = pat.esum(wUp, U[q])
+        if hasK:
+            A[:, p, d] = pat.ksum(wUp)
+        if hasE:
+            D[:, p, d] = -pat.esum(wUp)
+        del wUp
+    if hasK:
+        A[:, d, d] = pat.ksum(w)
+    if hasE:
+        D[:, d, d] = pat.esum(w)
+    A = np.triu(A) + np.swapaxes(np.triu(A, 1), 1, 2)
+    D = np.triu(D) + np.swapaxes(np.triu(D, 1), 1, 2)
+    return A, D
+
+
+class _Reduced:
+    """Matrix-free damped Schur complement ``S = A - B D^-1 B^T`` on the kept nodes.
+
+    No coordinate is pinned: the Marquardt damping makes S positive definite and the caller
+    projects the gauge out of the step (pinning would create soft modes of relative stiffness
+    ~1/n that slow conjugate gradients down ~3x). The preconditioner is the inverse of the exact
+    diagonal blocks of S (Schur-Jacobi).
+    """
+
+    def __init__(self, U: list[Array], w: Array, hasK: bool, hasE: bool, damping: float, pat: Grid,
+                 precondition: bool = True) -> None:
+        d = len(U)
+        self.U, self.w, self.hasK, self.hasE, self.d, self.pat = U, w, hasK, hasE, d, pat
+        self.mK, self.mE = d + hasK, d + hasE
+        A, D = diagonal_blocks(U, w, hasK, hasE, pat)
+        if damping > 0:
+            A = A + damping * np.einsum("kpp->kp", A)[:, :, None] * np.eye(self.mK)
+            D = D + damping * np.einsum("epp->ep", D)[:, :, None] * np.eye(self.mE)
+        self.A = A
+        self.Dinv = Dinv = _inv_blocks(D)
+        if not precondition:  # the direct step needs no preconditioner
+            return
+        # c = w^2 b^T D_e^-1 b with b = [-U, 1?]
+        c = np.zeros_like(w)
+        for p in range(d):
+            for q in range(p, d):
+                c += U[p] * U[q] * pat.ex((1.0 if p == q else 2.0) * Dinv[:, p, q])
+            if hasE:
+                c -= U[p] * pat.ex(2.0 * Dinv[:, p, d])
+        if hasE:
+            c += pat.ex(Dinv[:, d, d])
+        c *= w
+        c *= w
+        Sb = A.copy()
+        for p in range(d):
+            cUp = c * U[p]
+            for q in range(p, d):
+                v = pat.ksum(cUp, U[q])
+                Sb[:, p, q] -= v
+                if q != p:
+                    Sb[:, q, p] -= v
+            if hasK:
+                v = pat.ksum(cUp)
+                Sb[:, p, d] -= v
+                Sb[:, d, p] -= v
+            del cUp
+        if hasK:
+            Sb[:, d, d] -= pat.ksum(c)
+        self.Pinv = _inv_blocks(Sb)
+
+    def bt(self, x: Array) -> Array:
+        """``B^T x``: K vector (nK mK,) to E vector (nE mE,)."""
+        d, pat = self.d, self.pat
+        X = x.reshape(-1, self.mK)
+        t = self.U[0] * pat.kx(X[:, 0])
+        for p in range(1, d):
+            t += self.U[p] * pat.kx(X[:, p])
+        if self.hasK:
+            t += pat.kx(X[:, d])
+        t *= self.w
+        out = np.empty((pat.nE, self.mE))
+        for q in range(d):
+            out[:, q] = -pat.esum(t, self.U[q])
+        if self.hasE:
+            out[:, d] = pat.esum(t)
+        return out.ravel()
+
+    def b(self, y: Array) -> Array:
+        """``B y``: E vector (nE mE,) to K vector (nK mK,)."""
+        d, pat = self.d, self.pat
+        Yv = y.reshape(-1, self.mE)
+        t = self.U[0] * pat.ex(-Yv[:, 0])
+        for q in range(1, d):
+            t -= self.U[q] * pat.ex(Yv[:, q])
+        if self.hasE:
+            t += pat.ex(Yv[:, d])
+        t *= self.w
+        out = np.empty((pat.nK, self.mK))
+        for p in range(d):
+            out[:, p] = pat.ksum(t, self.U[p])
+        if self.hasK:
+            out[:, d] = pat.ksum(t)
+        return out.ravel()
+
+    def dinv(self, y: Array) -> Array:
+        return np.einsum("epq,eq->ep", self.Dinv, y.reshape(-1, self.mE)).ravel()
+
+    def smul(self, x: Array) -> Array:
+        return np.einsum("kpq,kq->kp", self.A, x.reshape(-1, self.mK)).ravel() - self.b(self.dinv(self.bt(x)))
+
+    def prec(self, x: Array) -> Array:
+        return np.einsum("kpq,kq->kp", self.Pinv, x.reshape(-1, self.mK)).ravel()
+
+    def dense(self) -> Array:
+        """The reduced matrix ``S = A - B D^-1 B^T`` itself, (nK mK, nK mK).
+
+        With ``D_e^-1 = L_e L_e^T`` (Cholesky) the pair block of ``B D^-1/2`` is
+        ``W_ke = w_ke a_ke (L_e^T b_ke)^T``, so ``S = A - W W^T`` with ``W`` a dense
+        (nK mK, nE mE) array (zero where a pair is not observed): O(nK nE mK mE) memory,
+        O((nK mK)^2 nE mE) time, the price of a direct step (:data:`DIRECT_MAX_UNKNOWNS`).
+        """
+        pat, mK, mE = self.pat, self.mK, self.mE
+        nK, nE = pat.nK, pat.nE
+        L: Array = np.asarray(np.linalg.cholesky(self.Dinv), float)  # (nE, mE, mE); Dinv is positive definite (damped)
+        # the Jacobian entries of each pair per parameter; None = the offset's constant 1
+        a: list[Array | None] = [*self.U, *([None] if self.hasK else [])]
+        b: list[Array | None] = [*(-Up for Up in self.U), *([None] if self.hasE else [])]
+        W = np.zeros((nK, mK, nE, mE))
+        for r in range(mE):
+            G: Array | None = None  # (L_e^T b_ke)_r = sum_q b_q L_e[q, r], one value per pair
+            for q in range(r, mE):
+                Lq = pat.ex(L[:, q, r])
+                bq = b[q]
+                t = Lq if bq is None else bq * Lq
+                G = t if G is None else G + t
+            assert G is not None
+            G = G * self.w
+            for p in range(mK):
+                ap = a[p]
+                v = G if ap is None else G * ap
+                if isinstance(pat, Pairs):
+                    W[pat.k, p, pat.e, r] = v
+                else:
+                    W[:, p, :, r] = v
+        W2 = W.reshape(nK * mK, nE * mE)
+        S = -(W2 @ W2.T)
+        idx = np.arange(nK)
+        for p in range(mK):
+            S[(idx * mK + p)[:, None], (idx * mK)[:, None] + np.arange(mK)] += self.A[:, p, :]
+        return 0.5 * (S + S.T)
+
+
+def solve_schur_lm(
+    theta0: Array, Y: Array, lay: object, loss: str, f_scale: float, max_nfev: int | None, xtol: float,
+    gauge: Callable[[Array], Array], pairs: tuple[NDArray[np.intp], NDArray[np.intp]] | None = None,
+    step: str = "auto",
+) -> tuple[Array, bool, int]:
+    """Levenberg-Marquardt (Marquardt diagonal damping) on the Schur-reduced normal equations.
+
+    Parameters
+    ----------
+    theta0 : (n,) start, receiver-major parameter vector (:mod:`selfcal.toa.engine.nls`).
+    Y : (I, J) ranges, NaN = missing; or, with ``pairs``, the (m,) observed ranges.
+    pairs : None (dense Y) or ``(i, j)``, the receiver and source index of each entry of Y:
+        the observed-pairs path (:class:`Pairs`), O(m) memory and time per product.
+    lay : the :class:`selfcal.toa.engine.nls._Layout` (kept / eliminated sides).
+    loss, f_scale : robust loss and its scale (metres).
+    max_nfev : iteration cap (default :data:`DEFAULT_MAX_IT` of the step kind); xtol : relative step tolerance.
+    gauge : ``theta -> Q`` orthonormal gauge basis (n, g); the step is projected off it (the
+        "dense" step projects the same gauge analytically, :class:`selfcal.toa.engine.dense_lm.GaugeProjector`).
+    step : how each damped system is solved: "dense" (the full normal matrix ``J^T W J``
+        formed once per iteration and Cholesky-factorised per damping trial, in
+        :func:`selfcal.toa.engine.dense_lm.solve_dense_lm`), "reduced" (the
+        Schur-reduced matrix formed and factorised), "cg" (matrix-free preconditioned CG) or
+        "auto" (default): :func:`selfcal.optim.structure.lm_step`, the one rule (dense up to
+        120 unknowns, else the formed reduced system while forming it is cheap, else CG).
+
+    Returns
+    -------
+    (theta, converged, iterations).
+
+    Notes
+    -----
+    Each step solves the reduced system on the smaller node set by conjugate gradients with
+    the Schur-Jacobi preconditioner (inexact Newton with an Eisenstat-Walker forcing term),
+    then back-substitutes the eliminated nodes. Small reduced systems are formed and solved
+    exactly instead (Cholesky, least squares if it fails): at 12 x 6 with both offsets a CG
+    step costs ~150 matrix-free products of Python overhead for 24 unknowns. The iterates
+    are those of the CG path with an exact inner solve (tested); the crossover
+    :data:`DIRECT_MAX_UNKNOWNS` was measured per iteration on square dense networks
+    (``benchmarks/bench_toa_minimal.py --engine``). Robust losses use iteratively reweighted normal
+    equations with weights rho'(z), whose fixed points are the stationary points of the robust
+    cost.
+    """
+    ori = _Oriented(lay)
+    k_is_r = lay.k_is_receivers  # type: ignore[attr-defined]
+    nK, nE = lay.k_idx.shape[0], lay.e_idx.shape[0]  # type: ignore[attr-defined]
+    pat: Grid
+    obs: NDArray[np.bool_] | None
+    if pairs is None:
+        YK = np.ascontiguousarray(Y if k_is_r else Y.T)
+        obs = np.isfinite(YK)
+        pat = Grid(nK, nE)
+    else:
+        ki, ei = (pairs[0], pairs[1]) if k_is_r else (pairs[1], pairs[0])
+        YK, obs = np.asarray(Y, float), None
+        pat = Pairs(np.asarray(ki, np.intp), np.asarray(ei, np.intp), nK, nE)
+    n = lay.n  # type: ignore[attr-defined]
+    k_flat = lay.k_idx.ravel()  # type: ignore[attr-defined]
+    e_flat = lay.e_idx.ravel()  # type: ignore[attr-defined]
+    nk = k_flat.size
+    d = lay.d  # type: ignore[attr-defined]
+    ne = e_flat.size
+    if step not in ("auto", "dense", "reduced", "cg"):
+        raise ValueError(f"step must be 'auto', 'dense', 'reduced' or 'cg', got {step!r}")
+    mode = lm_step(n, nk, ne) if step == "auto" else step
+    max_it = max_nfev or DEFAULT_MAX_IT[mode]
+    if mode == "dense":
+        from .dense_lm import solve_dense_lm
+
+        if pairs is None:
+            ii, jj = np.nonzero(np.isfinite(Y))
+            yv = np.asarray(Y, float)[ii, jj]
+        else:
+            ii, jj, yv = np.asarray(pairs[0], np.intp), np.asarray(pairs[1], np.intp), np.asarray(Y, float)
+        return solve_dense_lm(theta0, yv, ii, jj, lay.I, lay.J, d, lay.offsets, loss,  # type: ignore[attr-defined]
+                              f_scale, max_nfev, xtol, max_it=DEFAULT_MAX_IT["dense"])
+    g0, it = 1.0, 0  # first gradient norm (the CG forcing term's reference), linearisations
+
+    class Ranges(Model):
+        def evaluate(self, theta: Array) -> tuple[float, tuple[Array, Array, list[Array]]]:
+            xK, xE, oK, oE = ori.split(theta)
+            U, f = directions(xK, xE, pat)
+            if oK is not None:
+                f += pat.kx(oK)
+            if oE is not None:
+                f += pat.ex(oE)
+            f -= YK
+            if obs is None:
+                rho, w = loss_rho((f / f_scale) ** 2, loss)
+                cost = 0.5 * f_scale**2 * float(rho.sum())
+                return cost, (f, np.array(w, float), U)
+            f[~obs] = 0.0
+            rho, drho = loss_rho((f / f_scale) ** 2, loss)
+            cost = 0.5 * f_scale**2 * float(rho[obs].sum())
+            w = np.where(obs, drho, 0.0)
+            return cost, (f, w, U)
+
+        def linearize(self, theta: Array, state: tuple[Array, Array, list[Array]]) -> _SchurStep:
+            nonlocal g0, it
+            it += 1
+            f, w, U = state
+            step = _SchurStep(U, w, f, ori, pat, gauge(theta), k_flat, e_flat, n, mode)
+            g0 = step.gnorm if it == 1 else g0
+            # inexact Newton forcing term (Eisenstat-Walker style): loose CG solves far from
+            # the minimum, tight ones once the gradient has dropped (keeps the fast local rate)
+            step.cg_rtol = float(np.clip(step.gnorm / max(g0, 1e-300), *CG_RTOL))
+            return step
+
+    out = levenberg_marquardt(Ranges(), theta0, max_iter=max_it, xtol=xtol)
+    return out.x, out.converged, out.iterations
+
+
+class _SchurStep:
+    """The Schur step solver of :func:`solve_schur_lm`: the damped system reduced to the kept
+    nodes, solved directly (``mode="reduced"``) or by Schur-Jacobi preconditioned CG, the
+    eliminated nodes back-substituted and the step projected off the gauge basis ``Qg``."""
+
+    cg_rtol = CG_RTOL[1]
+
+    def __init__(self, U: list[Array], w: Array, f: Array, ori: _Oriented, pat: Grid, Qg: Array,
+                 k_flat: NDArray[np.intp], e_flat: NDArray[np.intp], n: int, mode: str) -> None:
+        self.U, self.w, self.ori, self.pat, self.Qg = U, w, ori, pat, Qg
+        self.k_flat, self.e_flat, self.n, self.mode = k_flat, e_flat, n, mode
+        d = len(U)
+        wf = w * f
+        gK = np.empty((pat.nK, d + ori.hasK))
+        gE = np.empty((pat.nE, d + ori.hasE))
+        for p in range(d):
+            gK[:, p] = pat.ksum(wf, U[p])
+            gE[:, p] = -pat.esum(wf, U[p])
+        if ori.hasK:
+            gK[:, d] = pat.ksum(wf)
+        if ori.hasE:
+            gE[:, d] = pat.esum(wf)
+        del wf
+        self.gK, self.gE = gK.ravel(), gE.ravel()
+        self.gnorm = float(np.sqrt(self.gK @ self.gK + self.gE @ self.gE))
+
+    def step(self, lam: float) -> Array | None:
+        from scipy.sparse.linalg import LinearOperator, cg
+
+        try:
+            red = _Reduced(self.U, self.w, self.ori.hasK, self.ori.hasE, lam, self.pat,
+                           precondition=self.mode == "cg")
+        except DegenerateGeometryError:
+            return None
+        gK, gE = self.gK, self.gE
+        rhs = -gK + red.b(red.dinv(gE))
+        nk = self.k_flat.size
+        if self.mode == "reduced":
+            xr = _direct_solve(red.dense(), rhs)
+            if xr is None:
+                return None
+            x = xr
+        else:
+            op = LinearOperator((nk, nk), matvec=red.smul, dtype=float)
+            pc = LinearOperator((nk, nk), matvec=red.prec, dtype=float)
+            x, _ = cg(op, rhs, rtol=self.cg_rtol, maxiter=500, M=pc)
+        y = red.dinv(-gE - red.bt(x))
+        del red
+        dx = np.zeros(self.n)
+        dx[self.k_flat] = x
+        dx[self.e_flat] = y
+        dx -= self.Qg @ (self.Qg.T @ dx)  # no rigid drift (and no common offset shift)
+        return dx
+
+    def predicted(self, dx: Array) -> float:
+        """``-(g^T dx + |J dx|_W^2 / 2)``: the cost decrease the Gauss-Newton model predicts."""
+        U, pat = self.U, self.pat
+        xK, xE, oK, oE = self.ori.split(dx)
+        t = U[0] * (pat.kx(xK[:, 0]) - pat.ex(xE[:, 0]))
+        for p in range(1, xK.shape[1]):
+            t += U[p] * (pat.kx(xK[:, p]) - pat.ex(xE[:, p]))
+        if oK is not None:
+            t += pat.kx(oK)
+        if oE is not None:
+            t += pat.ex(oE)
+        gd = float(self.gK @ dx[self.k_flat] + self.gE @ dx[self.e_flat])
+        return -(gd + 0.5 * float(np.sum(self.w * t * t)))

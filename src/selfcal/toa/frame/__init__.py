@@ -1,0 +1,1 @@
+"""The user frame: known nodes, node bookkeeping, the framed result."""

@@ -1,0 +1,1 @@
+"""Sparse-graph TOA: graph structure, start, fit and checks."""

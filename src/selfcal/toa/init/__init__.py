@@ -1,0 +1,1 @@
+"""TOA initialisers (one per file) and their registry (``starts``)."""

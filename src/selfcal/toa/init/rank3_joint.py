@@ -1,0 +1,223 @@
+"""The dense joint LM of the 004 rank-d problem (offsets + missing entries as dense unknowns).
+
+Used by :func:`selfcal.toa.init.rank3.rank3_lm` for small problems (up to
+``_DENSE_JOINT_MAX`` unknowns, where one dense Gauss-Newton matrix and a full
+eigendecomposition are cheaper) and by the tests as the reference of the scalable path.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Any
+
+import numpy as np
+from scipy.linalg import cho_factor, cho_solve
+
+from ..._checks import as_matrix, as_rng, check_choice, check_dim
+from ...errors import DegenerateGeometryError, InputError
+from ...optim.lm import levenberg_marquardt
+from .rank3_model import (
+    Array,
+    Rank3Model,
+    Rank3Result,
+    _centre,
+    _feasible,
+    _impute,
+    _random_p0,
+    _replace,
+    _result,
+    _split,
+    check_rank_identifiable,
+    offset_matrix,
+)
+
+__all__: list[str] = []
+
+
+def _rank1_factors(
+    R: Array, p: Array, model: str, missing: tuple[Any, ...], centring: str = "reference"
+) -> tuple[Array, Array]:
+    """Columns of the Jacobian of the corrected matrix as rank-one pairs: dM/dx_k = U[:, k] V[:, k]^T.
+
+    x = [p, missing t_ij]. Before centring, delta_k changes row k of D by ``-2 e_k.``, tau_l
+    column l by ``-2 e_.l`` and a missing t_ij the single entry D_ij by ``2 e_ij``, with
+    e = t - delta_i - tau_j (exact model, Gamma included) or e = t (linear model: the columns
+    of W). Double centring maps a rank-one ``u v^T`` to ``(L u)(L v)^T``.
+    """
+    I, J = R.shape
+    K = I + J - 1
+    mi, mj = missing
+    if model == "exact":
+        delta, tau = _split(p, I)
+        e = R - delta[:, None] - tau[None, :]
+    else:
+        e = R
+    n = K + mi.size
+    Uf = np.zeros((I, n))
+    Vf = np.zeros((J, n))
+    Uf[np.arange(I), np.arange(I)] = 1.0
+    Vf[:, :I] = -2 * e.T
+    Uf[:, I:K] = -2 * e[:, 1:]
+    Vf[np.arange(1, J), np.arange(I, K)] = 1.0
+    if mi.size:
+        # d/dt_ij of t^2 - 2 t (delta + tau) (linear) and of (t - delta - tau)^2 (exact) agree
+        delta, tau = _split(p, I)
+        cols = np.arange(K, n)
+        Uf[mi, cols] = 2 * (R[mi, mj] - delta[mi] - tau[mj])
+        Vf[mj, cols] = 1.0
+    return _centre(Uf, 0, centring), _centre(Vf, 0, centring)
+
+
+def _tail(M: Array, dim: int) -> tuple[float, Array, Array, Array]:
+    """Cost sum_{k>d} sigma_k^2, the leading singular vectors and the residual M - M_d.
+
+    The leading left subspace comes from the eigendecomposition of the smaller Gram matrix
+    (2-3x cheaper than an SVD); the residual is formed by projection, not from the tail
+    eigenvalues, so the cost keeps its accuracy down to the rounding of M.
+    """
+    if M.shape[0] > M.shape[1]:
+        c, Vd, Ud, r = _tail(M.T, dim)
+        return c, Ud, Vd, r.T
+    w, Q = np.linalg.eigh(M @ M.T)
+    Ud = Q[:, -dim:]
+    B = Ud.T @ M
+    resid = M - Ud @ B
+    Vd, _ = np.linalg.qr(B.T)
+    return float(np.sum(resid * resid)), Ud, Vd, resid
+
+
+
+def _rank3_lm_joint(
+    ranges: Any,
+    *,
+    dim: int = 3,
+    model: str = "exact",
+    p0: Any = None,
+    max_iter: int = 100,
+    xtol: float = 1e-12,
+    centring: str = "mean",
+    rng: np.random.Generator | int | None = None,
+    abort_above: float | None = None,
+) -> Rank3Result:
+    """Reference: the joint LM of :func:`rank3_lm` before 2026-12 (missing entries as dense unknowns).
+
+    Kept for the tests that compare the scalable :func:`rank3_lm` against it on small cases;
+    its Hessian is (I+J-1+missing)^2 and every trial runs a full eigendecomposition.
+
+    Residual: ``N(M(p)) = M(p) - [M(p)]_d`` (the part of the corrected matrix outside its best
+    rank-d approximation), with ``M = T + A(p) (+ Gamma(p))``. Jacobian (Kaufman's variable
+    projection approximation, exact at zero residual): ``N(dM/dp_k) = (P u_k)(Q v_k)^T`` with
+    P, Q the projectors off the leading singular subspaces, so
+    ``J^T J = (U~^T U~) o (V~^T V~)`` (Hadamard) and ``J^T r = diag(U^T N(M) V)`` is the exact
+    gradient of (*)/2. Marquardt damping with the usual gain-ratio update; steps that leave
+    ``|x| <= 2 max t`` are refused (see :func:`_feasible`). Missing entries (NaN) become extra unknowns, each with its own rank-one Jacobian column (matrix
+    completion inside the same projection); their count adds to the I+J-1 unknowns of the
+    identifiability condition.
+
+    Parameters
+    ----------
+    ranges : (I, J) metres; NaN = missing.
+    dim : rank d (3 or 2).
+    model : ``"exact"`` (keeps Gamma: distinct internal delays) or ``"linear"`` (thesis, Gamma = 0).
+    p0 : initial p (metres); default the thesis random initialisation from ``rng``.
+    max_iter : maximum LM iterations.
+    xtol : stop when ``||dx|| <= xtol (||x|| + xtol)`` or F <= xtol ||M||_F.
+    rng : seed or Generator for the initialisation.
+
+    centring : ``"mean"`` (default, no special node) or ``"reference"`` (thesis (3.4)).
+
+    Returns
+    -------
+    Rank3Result with ``method="fast"``; ``frobenius`` is sqrt of (*) with reference centring,
+    the quantity F (3.17) converges to; with missing entries ``extra["completed"]`` is the
+    completed (I, J) matrix.
+    """
+    t0 = time.perf_counter()
+    check_choice(model, "model", ("exact", "linear"))
+    check_choice(centring, "centring", ("reference", "mean"))
+    dim = check_dim(dim)
+    R0 = as_matrix(ranges, "ranges", allow_nan=True, min_shape=(2, 2))
+    mask = np.isnan(R0)
+    I, J = R0.shape
+    K = I + J - 1
+    n_miss = int(mask.sum())
+    check_rank_identifiable(I, J, dim)
+    if n_miss and (I - 1 - dim) * (J - 1 - dim) < K + n_miss:
+        raise DegenerateGeometryError(
+            f"{n_miss} missing entries leave too few equations: the rank-{dim} method needs "
+            f"(I-1-{dim})(J-1-{dim}) = {(I - 1 - dim) * (J - 1 - dim)} >= I+J-1 + missing = {K + n_miss}",
+            kind="too-few-measurements",
+        )
+    missing = np.nonzero(mask)
+    R = _impute(R0)
+    bound = 2.0 * float(np.max(np.abs(R0[~mask])))
+    p = _random_p0(I, J, as_rng(rng)) if p0 is None else np.array(p0, dtype=float).reshape(-1)
+    if p.shape != (K,):
+        raise InputError(f"p0 must have I+J-1 = {K} entries, got {p.shape}")
+    x = np.concatenate([p, R[missing]])
+
+    def unpack(xv: Array) -> tuple[Array, Array]:
+        if not n_miss:
+            return R, xv
+        Rx = R.copy()
+        Rx[missing] = xv[K:]
+        return Rx, xv[:K]
+
+    class Joint(Rank3Model):
+        def evaluate(self, xv: Array) -> tuple[float, tuple[Array, Array, Array, Array, Array]]:
+            Rt, pt = unpack(xv)
+            cost, Ud, Vd, resid = _tail(offset_matrix(Rt, pt, model=model, centring=centring), dim)
+            return cost, (Rt, pt, Ud, Vd, resid)
+
+        def linearize(self, xv: Array, state: tuple[Array, Array, Array, Array, Array]) -> _JointStep:
+            return _JointStep(xv, state, model, missing, centring, self.bound)
+
+    Rx, p = unpack(x)
+    M = offset_matrix(Rx, p, model=model, centring=centring)
+    rm = Joint(bound, float(np.linalg.norm(M)), abort_above)
+    rm.hist.append(float(np.sqrt(_tail(M, dim)[0])))
+    out = levenberg_marquardt(rm, x, max_iter=int(max_iter), xtol=xtol, ftol=0.0, lam0=rm.first_damping)
+    Rx, p = out.state[0], out.state[1]
+    it, converged, cost = out.iterations, out.converged, out.cost
+    hist, steps, aborted = rm.hist, rm.steps, rm.aborted
+    # report the thesis's quantity: the distance to rank d of the reference-centred matrix, the
+    # value F (3.17) converges to, so that the acceptance threshold means the same for both methods
+    F_ref = np.sqrt(_tail(offset_matrix(Rx, p, model=model, centring="reference"), dim)[0])
+    res = _result(Rx, p, F_ref, hist, steps, it, converged, "fast", model, 0.0)
+    extra: dict[str, Any] = {"completed": Rx} if n_miss else {}
+    extra["objective"] = float(np.sqrt(cost))
+    extra["aborted"] = aborted
+    return _replace(res, seconds=time.perf_counter() - t0, extra=extra)
+
+
+
+class _JointStep:
+    """The dense joint Gauss-Newton matrix of offsets and missing times (Hadamard form)."""
+
+    def __init__(self, x: Array, state: tuple[Array, Array, Array, Array, Array], model: str,
+                 missing: tuple[Any, ...], centring: str, bound: float) -> None:
+        Rx, p, Ud, Vd, resid = state
+        Uf, Vf = _rank1_factors(Rx, p, model, missing, centring)
+        Pu = Uf - Ud @ (Ud.T @ Uf)
+        Pv = Vf - Vd @ (Vd.T @ Vf)
+        self.H = (Pu.T @ Pu) * (Pv.T @ Pv)
+        self.g = np.einsum("ik,ik->k", Uf, resid @ Vf)
+        self.dg = np.diag(self.H).copy()
+        self.dg[self.dg <= 0] = 1.0
+        self.x, self.bound = x, bound
+        self.last = np.zeros_like(x)
+        self.gnorm = float(np.linalg.norm(self.g))
+
+    def step(self, lam: float) -> Array | None:
+        try:
+            dx = -cho_solve(cho_factor(self.H + lam * np.diag(self.dg)), self.g)
+        except np.linalg.LinAlgError:
+            return None
+        if not _feasible(self.x + dx, self.bound):
+            return None
+        self.last = dx
+        return np.asarray(dx)
+
+    def predicted(self, dx: Array) -> float:
+        # (*) is a sum of squares: twice the decrease of the model of its half
+        return float(2 * (-(self.g @ dx) - 0.5 * dx @ (self.H @ dx)))

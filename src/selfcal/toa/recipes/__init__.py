@@ -1,0 +1,1 @@
+"""Recipes: preprocessing and the common-offset and other prepared solves."""

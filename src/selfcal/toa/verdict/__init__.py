@@ -1,0 +1,1 @@
+"""The statistical verdicts on a TOA fit: trust, determinacy, selection, uniqueness."""

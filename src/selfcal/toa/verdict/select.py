@@ -1,0 +1,409 @@
+"""Model selection for TOA calibration: which offsets (``offsets="auto"``) and which dimension (``dim="auto"``).
+
+- :func:`choose_offsets`: none / receivers / sources / both by held-out prediction
+  (K-fold cross-validation over the sources with the one-standard-error rule,
+  :mod:`selfcal.toa.verdict.crossval`) on the same entries for every candidate. It replaced the
+  BIC, an in-sample criterion that on measured ranges (serially correlated, partly
+  systematic residuals) accepts every extra parameter.
+- :func:`compare_fits` / :class:`ModelComparison`: the nested-model F test of a 3-D fit
+  against a 2-D one (the 3-D model contains every planar network).
+- :func:`planarity` / :class:`Planarity`: whether a layout's thickness is resolved by its
+  own covariances.
+- :func:`choose_dim`: 3-D unless the F test finds z insignificant or the 3-D layout is
+  near-planar; then 2-D, so a flat layout does not report a confident spurious z.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import warnings
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ..._result import Result
+from ...errors import ConvergenceWarning, DegenerateGeometryError
+from ..result import ToaResult, n_parameters
+
+__all__ = [
+    "NOISE_FLOOR",
+    "PLANAR_ALPHA",
+    "PLANAR_RATIO",
+    "PLANAR_SIGMAS",
+    "ModelComparison",
+    "Planarity",
+    "choose",
+    "choose_dim",
+    "choose_offsets",
+    "compare_fits",
+    "planarity",
+]
+
+Array = NDArray[np.float64]
+
+PLANAR_RATIO = 0.01  # thinnest / widest extent below which a layout counts as flat
+PLANAR_SIGMAS = 3.0  # thickness below this many standard deviations along the normal = flat
+PLANAR_ALPHA = 1e-3  # F-test level: a 3-D improvement less likely than this under a planar truth keeps z
+NOISE_FLOOR = 1e-10  # s, below any real detection error; keeps the F test finite on exact data
+OFFSET_CANDIDATES = ("none", "receivers", "sources", "both")
+
+
+@dataclass(frozen=True)
+class ModelComparison:
+    """Nested-model F test of a 3-D fit against a 2-D fit of the same TOA matrix.
+
+    Attributes
+    ----------
+    residual_2d, residual_3d : float
+        RMS residuals (matrix units).
+    observations : int
+        Observed entries m.
+    extra_parameters : int
+        k = n - 3 unknowns the 3-D model adds (one coordinate per node, less the three
+        extra rigid-motion gauge freedoms of 3-D).
+    dof_3d : int
+        m minus the 3-D model's free parameters (``4 n - 7`` with both offsets, n = I + J).
+    f_statistic : float
+        ``((RSS_2 - RSS_3) / k) / (RSS_3 / dof_3d)``.
+    p_value : float
+        Probability of an F at least this large under a planar truth (F(k, dof_3d)).
+    significant : bool
+        ``p_value < alpha``: z is determined by the data.
+    """
+
+    residual_2d: float
+    residual_3d: float
+    observations: int
+    extra_parameters: int
+    dof_3d: int
+    f_statistic: float
+    p_value: float
+    significant: bool
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-safe dictionary."""
+        return {"residual_2d": self.residual_2d, "residual_3d": self.residual_3d,
+                "observations": self.observations, "extra_parameters": self.extra_parameters,
+                "dof_3d": self.dof_3d, "f_statistic": self.f_statistic, "p_value": self.p_value,
+                "significant": self.significant}
+
+
+def compare_fits(residual_2d: float, residual_3d: float, observations: int, nodes: int, *,
+                 alpha: float = PLANAR_ALPHA, noise_floor: float = NOISE_FLOOR,
+                 n_offsets: int | None = None) -> ModelComparison:
+    """F test: does the 3-D model fit the TOAs significantly better than the planar one?
+
+    With Gaussian noise, the planar model nested in the 3-D one and ``RSS = m rms^2``,
+    ``F = ((RSS_2 - RSS_3) / k) / (RSS_3 / (m - p_3))`` follows F(k, m - p_3) when the
+    network is planar (k = n - 3 extra unknowns, p_3 = 3 n - 6 + offsets: ``4 n - 7`` with
+    both kinds, the default). The noise variance ``RSS_3 / (m - p_3)`` is floored at
+    ``noise_floor^2`` so exact data give a finite answer. Without residual degrees of
+    freedom the test cannot reject, and z is kept only if the 2-D fit is off by more than
+    the floor.
+
+    Parameters
+    ----------
+    residual_2d, residual_3d : float
+        RMS residuals of the two fits over the ``observations`` entries.
+    observations : int
+    nodes : int
+        I + J.
+    alpha : float
+        Significance level.
+    noise_floor : float
+        Same units as the residuals.
+    n_offsets : int, optional
+        Free offsets of the model (default ``nodes - 1``, both kinds).
+
+    Returns
+    -------
+    ModelComparison
+
+    Examples
+    --------
+    >>> compare_fits(1e-3, 1e-5, 400, 40).significant
+    True
+    """
+    from scipy.stats import f as f_dist
+
+    k = max(n_parameters(nodes, 0, 3) - n_parameters(nodes, 0, 2), 1)  # the n - 3 heights of a plane
+    n_off = nodes - 1 if n_offsets is None else int(n_offsets)
+    dof = observations - (n_parameters(nodes, 0, 3) + n_off)
+    rss2 = observations * residual_2d**2
+    rss3 = observations * residual_3d**2
+    if dof < 1:
+        stat = float("inf") if residual_2d > residual_3d + noise_floor else 0.0
+        p = 0.0 if stat > 0 else 1.0
+    else:
+        var = max(rss3 / dof, noise_floor**2)
+        stat = float((rss2 - rss3) / k / var)
+        p = float(f_dist.sf(stat, k, dof)) if stat > 0 else 1.0
+    return ModelComparison(float(residual_2d), float(residual_3d), int(observations), int(k), int(dof),
+                           stat, p, bool(p < alpha))
+
+
+@dataclass(frozen=True, repr=False)
+class Planarity(Result):
+    """How flat a network is.
+
+    Attributes
+    ----------
+    near_planar : bool
+    extents : (d,) array
+        Standard deviations of the centred positions along their principal axes, m
+        (singular values / sqrt(n)), largest first.
+    normal : (d,) array
+        Direction of least extent.
+    normal_std : float
+        RMS standard deviation of the positions along ``normal`` from their covariances, m
+        (NaN without covariances).
+    comparison : ModelComparison or None
+        The 2-D / 3-D F test behind the verdict (:func:`compare_fits`), when one was made.
+    """
+
+    near_planar: bool
+    extents: Array
+    normal: Array
+    normal_std: float
+    comparison: ModelComparison | None = None
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-safe dictionary."""
+        return {"near_planar": bool(self.near_planar), "extents": np.asarray(self.extents, float).tolist(),
+                "normal": np.asarray(self.normal, float).tolist(),
+                "normal_std": None if not math.isfinite(self.normal_std) else float(self.normal_std),
+                "comparison": None if self.comparison is None else self.comparison.to_dict()}
+
+
+def planarity(points: Array, cov: NDArray[np.float64] | None = None, *, ratio: float = PLANAR_RATIO,
+              sigmas: float = PLANAR_SIGMAS) -> Planarity:
+    """Decide whether (n, 3) ``points`` are too close to a plane for a 3-D calibration.
+
+    Near-planar when the thinnest extent ``e_3`` is below ``ratio * e_1`` or below
+    ``sigmas`` times the RMS standard deviation along the normal (``sqrt(mean n^T C_k n)``):
+    then the thickness of the layout is not resolved by the data.
+
+    Parameters
+    ----------
+    points : (n, d) array, m
+    cov : (n, d, d) array, optional
+        Per-point covariances, m^2 (non-finite ones are ignored).
+
+    Returns
+    -------
+    Planarity
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> P = np.random.default_rng(0).uniform(0, 10, (20, 3)) * [1, 1, 0.001]
+    >>> planarity(P).near_planar
+    True
+    """
+    P = np.asarray(points, dtype=float)
+    P = P[np.isfinite(P).all(axis=1)]
+    centred = P - P.mean(axis=0)
+    _, s, vt = np.linalg.svd(centred, full_matrices=False)
+    ext = s / np.sqrt(max(len(P), 1))
+    normal = vt[-1]
+    nstd = float("nan")
+    if cov is not None:
+        C = np.asarray(cov, dtype=float)
+        ok = np.isfinite(C).all(axis=(1, 2))
+        if ok.any():
+            nstd = float(np.sqrt(np.mean(np.einsum("i,kij,j->k", normal, C[ok], normal))))
+    flat = bool(ext[-1] < ratio * ext[0] or (np.isfinite(nstd) and ext[-1] < sigmas * nstd))
+    return Planarity(flat, ext, normal, nstd)
+
+
+# ------------------------------------------------------------------ choices on solve_toa results
+
+Solver = Callable[..., ToaResult]
+
+
+def _quiet(solve: Solver, *args: Any, **kw: Any) -> ToaResult | None:
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ConvergenceWarning)
+        try:
+            return solve(*args, **kw)
+        except DegenerateGeometryError:
+            return None
+
+
+def _n_off(mode: str, I: int, J: int) -> int:
+    return {"none": 0, "receivers": I, "sources": J, "both": I + J - 1}[mode]
+
+
+def _rss(res: ToaResult) -> float:
+    assert res.residuals is not None
+    e = res.residuals[np.isfinite(res.residuals) & ~np.asarray(res.outliers, bool)]
+    return float(e @ e)
+
+
+def _nested_init(res: ToaResult, mode: str, speed: float | None) -> tuple[Any, ...]:
+    """A fit as a start of ``mode`` (metres; dropped nodes at the centroid, missing offsets 0)."""
+    k = 1.0 if speed is None else float(speed)
+
+    def fill(P: Array) -> Array:
+        P = np.array(P, dtype=float)
+        bad = ~np.isfinite(P).all(axis=1)
+        P[bad] = np.nanmean(P[~bad], axis=0) if (~bad).any() else 0.0
+        return P
+
+    def off(a: Array | None, n: int) -> Array:
+        return np.zeros(n) if a is None else np.nan_to_num(np.asarray(a, float) * k)
+
+    r, s = fill(res.receivers), fill(res.sources)
+    d = off(res.receiver_offsets, len(r)) if mode in ("receivers", "both") else None
+    o = off(res.source_offsets, len(s)) if mode in ("sources", "both") else None
+    return r, s, d, o
+
+
+def _misfit(res: ToaResult) -> bool:
+    """True when the fit's own residual test (chi-square at a given noise, else the geometry
+    test) rejects it: the model does not explain the data (not merely undetermined)."""
+    tests = (res.fit, res.geometry)
+    return any(t is not None and not bool(t.passed) for t in tests)
+
+
+def _projected_init(res: ToaResult, mode: str, speed: float | None) -> tuple[Any, ...]:
+    """A 3-D fit projected onto its best-fitting plane: a 2-D start (metres, in-plane axes)."""
+    r, s, d, o = _nested_init(res, mode, speed)
+    P = np.vstack([r, s])
+    c = P.mean(axis=0)
+    _, _, vt = np.linalg.svd(P - c, full_matrices=False)
+    return (r - c) @ vt[:2].T, (s - c) @ vt[:2].T, d, o
+
+
+def choose_offsets(M: Array, dim: int, solve: Solver, **kw: Any) -> tuple[ToaResult, dict[str, Any]]:
+    """Fit every offsets mode and keep the one chosen by held-out prediction; (result, statistics).
+
+    The offsets-free mode is fitted by ``solve``'s search; each larger mode by one
+    refinement (``method="nls"``) started from the best fit of the modes it nests, its new
+    offsets at zero (so it never ends above them; a search per mode cost 4x the blind
+    solve). :func:`selfcal.toa.verdict.crossval.cross_validate` then refits each on K - 1 blocks of
+    the sources, locates the held-out sources with the fitted receivers (and offsets) and
+    scores their leave-one-range-out prediction residuals; the one-standard-error rule
+    keeps the simplest mode within one paired standard error of the best. Every mode is
+    judged on the same entries: those kept by the candidate that removed the fewest as
+    outliers (a model that cannot fit good entries must not hide its misfit by removing
+    them), of the nodes every candidate kept. An in-sample criterion (BIC, F) is not used:
+    on measured ranges (serially correlated, partly systematic residuals) it accepts any
+    extra parameter. The chosen mode, if not the offsets-free one, is finally searched
+    from its refinement (the search accepts only lower costs).
+    ``statistics`` is :meth:`selfcal.toa.verdict.crossval.CvChoice.to_dict` plus ``observations``
+    and each mode's in-sample ``rss``.
+    """
+    fits: dict[str, ToaResult] = {}
+    for mode in OFFSET_CANDIDATES:
+        # every model is also started from the best fit of the models it nests (offsets of the
+        # other kinds at zero): its search accepts only lower costs, so it never ends above them
+        nested = [fits[k] for k in fits if k == "none" or mode == "both"]
+        init = _nested_init(min(nested, key=_rss), mode, kw.get("speed")) if nested else "auto"
+        # the offsets-free model is searched; each larger one is refined from its nested start
+        # (the search restarted per model cost 4x the blind solve; a refinement only lowers the cost)
+        res = _quiet(solve, M, dim, mode, init=init, **({**kw, "method": "nls"} if nested else kw))
+        if res is None and not isinstance(init, str):
+            res = _quiet(solve, M, dim, mode, **kw)
+        if res is not None:
+            fits[mode] = res
+    if not fits:
+        raise DegenerateGeometryError("no offsets model could be fitted to this matrix", kind="too-few-measurements")
+    from .crossval import cross_validate
+
+    # every candidate judged on the same entries: those kept by the candidate that removed the
+    # fewest as outliers (a gross error is removed by every model that fits the rest; a model
+    # that cannot fit good entries removes them too, and must not hide its misfit that way)
+    k = 1.0 if kw.get("speed") is None else float(kw["speed"])
+    fewest = min(fits.values(), key=lambda r: (int(np.asarray(r.outliers).sum()), _rss(r)))
+    kept = np.isfinite(M) & ~np.asarray(fewest.outliers, bool)
+    kr = np.logical_and.reduce([np.isfinite(r.receivers).all(axis=1) for r in fits.values()])
+    ks = np.logical_and.reduce([np.isfinite(r.sources).all(axis=1) for r in fits.values()])
+    Z = np.where(kept, M * k, np.nan)[np.ix_(kr, ks)]
+
+    def start(res: ToaResult) -> tuple[Any, ...]:
+        d = None if res.receiver_offsets is None else np.nan_to_num(np.asarray(res.receiver_offsets)[kr] * k)
+        o = None if res.source_offsets is None else np.nan_to_num(np.asarray(res.source_offsets)[ks] * k)
+        return res.receivers[kr], res.sources[ks], d, o
+
+    choice = cross_validate(Z, {mode: start(res) for mode, res in fits.items()})
+    stats = {**choice.to_dict(), "observations": int(np.isfinite(Z).sum()),
+             "rss": {mode: _rss(res) for mode, res in fits.items()}}
+    chosen = choice.chosen
+    if chosen != "none":
+        # the chosen model (only it) gets the full search, started from its refinement: the
+        # refinement alone can stop in a worse basin (room 7 x 220: anchor RMSE 0.146 vs 0.071 m)
+        full = _quiet(solve, M, dim, chosen, init=_nested_init(fits[chosen], chosen, kw.get("speed")), **kw)
+        if full is not None:
+            fits[chosen] = full
+            stats["searched"] = chosen
+    return fits[chosen], stats
+
+
+def choose_dim(M: Array, offsets: str, solve: Solver, **kw: Any) -> tuple[ToaResult, dict[str, Any]]:
+    """3-D unless z is not determined by the data (F test, :func:`compare_fits`, or :func:`planarity`).
+
+    Both dimensions are fitted; the F test compares their RSS over the entries both fitted,
+    and a 3-D answer must resolve its own thickness. Returns (result, statistics).
+
+    The 2-D model is nested in the 3-D one (a plane is a 3-D layout of zero thickness), so the
+    2-D fit is refined from the 3-D fit projected onto its best plane (one refinement, not a
+    second search): on planar data that start is the 2-D solution up to the noise, and on
+    data with a resolved thickness a 2-D fit cannot approach the 3-D residual from any
+    start. Only when that refinement fails does a full 2-D search run.
+    """
+    r3 = _quiet(solve, M, 3, offsets, **kw)
+    r2 = None
+    if r3 is not None:
+        r2 = _quiet(solve, M, 2, offsets, init=_projected_init(r3, offsets, kw.get("speed")),
+                    **{**kw, "method": "nls"})
+    if r2 is None:
+        r2 = _quiet(solve, M, 2, offsets, **kw)
+    if r3 is None and r2 is None:
+        raise DegenerateGeometryError("neither a 2-D nor a 3-D geometry could be fitted to this matrix",
+                                      kind="degenerate-geometry")
+    if r3 is None or r2 is None:
+        got = r3 if r3 is not None else r2
+        assert got is not None
+        return got, {"criterion": "F", "chosen": got.dim, "reason": f"only the {got.dim}-D fit exists"}
+    assert r2.residuals is not None and r3.residuals is not None and r2.outliers is not None
+    assert r3.outliers is not None
+    common = np.isfinite(r2.residuals) & np.isfinite(r3.residuals) & ~r2.outliers & ~r3.outliers
+    m = int(common.sum())
+    I, J = M.shape
+    rms2 = float(np.sqrt(np.mean(r2.residuals[common] ** 2))) if m else float("nan")
+    rms3 = float(np.sqrt(np.mean(r3.residuals[common] ** 2))) if m else float("nan")
+    floor = float(np.sqrt(np.finfo(float).eps) * np.nanmedian(np.abs(M)))  # the solver's precision
+    cmp = compare_fits(rms2, rms3, m, I + J, noise_floor=floor, n_offsets=_n_off(offsets, I, J))
+    pts = np.vstack([r3.receivers, r3.sources])
+    cov = np.concatenate([r3.receiver_cov, r3.source_cov])
+    plan = planarity(pts, cov)
+    # a thickness the 3-D fit does not resolve means 2-D, unless the 2-D fit fails its own
+    # residual test while the 3-D one fits significantly better: then the data reject the plane
+    # and the 3-D answer stands, judged by its own determinacy test (never a failed 2-D fit)
+    r2_fails = _misfit(r2)
+    # no residual dof left for the F test (the two fits kept different entries): no evidence
+    # for dropping z, so the default 3-D model stands
+    untestable = cmp.dof_3d <= 0
+    keep3 = untestable or (cmp.significant and (not plan.near_planar or r2_fails))
+    stats = {"criterion": "F", "chosen": 3 if keep3 else 2, "f_statistic": cmp.f_statistic,
+             "p_value": cmp.p_value, "residual_2d": rms2, "residual_3d": rms3, "dof_3d": cmp.dof_3d,
+             "near_planar": plan.near_planar, "thickness": float(plan.extents[-1]),
+             "normal_std": plan.normal_std}
+    return (r3 if keep3 else r2), stats
+
+
+def choose(M: Array, dim: int | str, offsets: str, *, solve: Solver, **kw: Any) -> ToaResult:
+    """``solve_toa`` with ``dim`` and / or ``offsets`` set to "auto": the chosen fit with its statistics."""
+    sel: dict[str, Any] = {}
+    if offsets == "auto":
+        d0 = 3 if dim == "auto" else int(dim)
+        res, sel["offsets"] = choose_offsets(M, d0, solve, **kw)
+        offsets = res.offsets
+    if dim == "auto":
+        res, sel["dim"] = choose_dim(M, offsets, solve, **kw)
+    return dataclasses.replace(res, selection=sel)

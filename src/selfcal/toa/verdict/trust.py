@@ -1,0 +1,486 @@
+"""Is the data a geometry at all? The TOA trust tests with the noise *unknown*.
+
+- :func:`null_parameters`: parameters of the model without geometry nested in each offsets mode.
+- :func:`permutation_test` / :class:`PermutationTest`: Monte-Carlo permutation test of
+  "the data fit no geometry" with a fixed cheap procedure (:func:`geometry_statistic`):
+  level 0.05 by construction (19 exchangeable copies).
+- :func:`geometry_test` / :class:`GeometryTest`: the permutation test and leave-one-out
+  cross-validation (median PRESS) of the fit against the model without geometry; what
+  :func:`selfcal.toa.solve_toa` reports as ``geometry`` when no noise level is given.
+- :func:`determinacy_test` / :class:`DeterminacyTest` (home :mod:`selfcal.toa.verdict.determinacy`,
+  re-exported): do the data determine the fitted geometry? Each node's 95 % confidence
+  region against the size of its node set; what ``solve_toa`` reports as ``determinacy``.
+
+Split from :mod:`selfcal.toa.result` (which re-exports every name) to keep both files
+below ~600 lines.
+"""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ..._checks import check_choice
+from ..._result import json_float as _num
+from ...geometry import n_parameters
+from ..engine.nls import OFFSET_MODES
+from .determinacy import (  # noqa: F401 (re-exported: the trust tests are named here)
+    DENSE_MAX_UNKNOWNS,
+    DETERMINED_LEVEL,
+    UNDETERMINED_FAIL_FRACTION,
+    DeterminacyTest,
+    determinacy_test,
+    fisher_blocks,
+    set_scale,
+)
+
+__all__ = [
+    "DETERMINED_LEVEL",
+    "UNDETERMINED_FAIL_FRACTION",
+    "DeterminacyTest",
+    "determinacy_test",
+    "fisher_blocks",
+    "set_scale",
+    "PERMUTATION_ALPHA",
+    "PERMUTATION_COPIES",
+    "RESIDUAL_ALPHA",
+    "GeometryTest",
+    "PermutationTest",
+    "geometry_statistic",
+    "geometry_test",
+    "null_parameters",
+    "permutation_test",
+]
+
+Array = NDArray[np.float64]
+
+#: significance level of both trust tests: a fit whose p-value is below this fails
+RESIDUAL_ALPHA = 1e-3
+
+#: Monte-Carlo copies of the permutation test of the geometry (noise unknown) and its level:
+#: with B exchangeable copies the observed statistic is the smallest of the B + 1 with
+#: probability 1 / (B + 1) under the null, so 19 copies give a test of level exactly 0.05
+PERMUTATION_COPIES = 19
+PERMUTATION_ALPHA = 0.05
+#: the permutation test runs on at most this many receivers and this many sources (the
+#: best-observed ones, ties at random): its cost stays that of a small network
+PERMUTATION_MAX_SIDE = 16
+#: the 003 initialisers (MDS + multilateration, Algorithm 2) whose best start (least-squares offsets) is the test's fixed procedure
+PERMUTATION_INITS = ("mds-multilat", "alg2")
+#: ... followed by at most this many iterations of the one engine from the better start
+#: (the same on the data and on every copy, so the test stays exact: only its power
+#: changes). Without it the unrefined MDS start of a moving tag seen by 5 anchors in 3-D
+#: fitted no better than the copies: 6 of 10 clean simulated LPS-layout flights passed
+#: (4 anchors: 6 of 10). With 5 / 10 / 20 iterations: 10 / 10 / 10 (4 anchors 7 / 7 / 7)
+#: at 0.16 / 0.21 / 0.26 s CPU per test against 0.06 s; uniform random matrices still pass
+#: at the nominal rate (12 of 200 at 20 iterations over five shapes, level 0.05). Small
+#: networks, 20 seeds each, 0 / 5 / 20 iterations: 6 x 8 3-D exact with 5 % missing 15 / 18 / 19,
+#: the same at 5 cm 15 / 19 / 19, 5 x 8 3-D 15 / 18 / 19, 8 x 10 and 6 x 40 20 of 20 throughout
+PERMUTATION_REFINE = 5
+
+def null_parameters(n_receivers: int, n_sources: int, offsets: str) -> int:
+    """Parameters of the model *without geometry* nested in ``offsets`` (see :func:`geometry_test`).
+
+    All points at one place leave ``d_i + o_j`` (two-way additive, ``I + J - 1``) for "both",
+    ``d_i`` (``I``) for "receivers", ``o_j`` (``J``) for "sources" and one constant for "none"
+    (the limit of every source far away at the same distance).
+    """
+    check_choice(offsets, "offsets", OFFSET_MODES)
+    I, J = int(n_receivers), int(n_sources)
+    return {"none": 1, "receivers": I, "sources": J, "both": I + J - 1}[offsets]
+
+
+@dataclass(frozen=True)
+class PermutationTest:
+    """Monte-Carlo permutation test: do the data fit a geometry at all? (noise unknown)
+
+    The statistic ``T = RSS(geometry) / RSS(no geometry)`` is computed by one *fixed*,
+    cheap procedure (:func:`geometry_statistic`: the better of two 003 initialisers with
+    least-squares offsets, no refinement) on the data and on ``copies`` copies without
+    geometry: the fit of the model without geometry (:func:`null_parameters`) plus its
+    residuals permuted at random over the observed entries (re-centred so every copy has
+    the same additive fit and residual sum of squares, Freedman & Lane 1983). Under the
+    null (entries exchangeable about an additive fit, e.g. a uniform random matrix) the
+    B + 1 values are exchangeable, so ``p = (1 + #{T_b <= T}) / (B + 1)`` is a valid
+    p-value: ``P(p <= alpha) <= alpha`` whatever the procedure's quality (Besag & Clifford
+    1989). The same procedure on data and copies is what makes it exact; its quality only
+    sets the power.
+
+    Attributes
+    ----------
+    statistic: T of the data (dimensionless, 0 = exact geometry).
+    null_min, null_median: smallest and median T of the copies.
+    copies: B.
+    p_value: ``(1 + #{T_b <= T}) / (B + 1)``.
+    alpha: level; ``passed`` is ``p_value <= alpha``.
+    receivers, sources: size of the (sub-)matrix tested (at most ``PERMUTATION_MAX_SIDE`` each).
+    passed: the data fit a geometry better than every copy without one.
+    """
+
+    statistic: float
+    null_min: float
+    null_median: float
+    copies: int
+    p_value: float
+    alpha: float
+    receivers: int
+    sources: int
+    passed: bool
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-safe dict."""
+        return {"test": "permutation", "statistic": _num(self.statistic), "null_min": _num(self.null_min),
+                "null_median": _num(self.null_median), "copies": int(self.copies),
+                "p_value": _num(self.p_value), "alpha": float(self.alpha), "receivers": int(self.receivers),
+                "sources": int(self.sources), "passed": bool(self.passed)}
+
+
+@dataclass(frozen=True)
+class GeometryTest:
+    """Do the data fit a geometry better than offsets alone? (noise unknown)
+
+    Two tests, both must pass:
+
+    - the permutation test (:class:`PermutationTest`, level 0.05 by construction): the
+      stated false-alarm rate on data without geometry;
+    - leave-one-out cross-validation in closed form (Allen's PRESS): the linearised
+      prediction error of entry k from a fit without it is ``r_k / (1 - h_k)`` (``h_k`` its
+      leverage). The geometric model must predict better than the model without geometry
+      (all points at one place: ``d_i + o_j``, ``d_i``, ``o_j`` or a constant,
+      :func:`null_parameters`). The comparison is on the *median* squared prediction error
+      (times the number of entries, to read as a PRESS): one entry of leverage near 1 (a
+      node seen by few others) multiplies its term by ``1 / (1 - h)^2`` and would decide a
+      sum alone.
+
+    Attributes
+    ----------
+    press, press_null: ``m * median_k (r_k / (1 - h_k))^2`` of the fit and of the model
+        without geometry (squared matrix units), over the entries ``observations`` where
+        both leverages are below 1 - 1e-8.
+    rss, rss_null: residual sums of squares over the entries used.
+    n_params, n_null: free parameters of the two models.
+    f_statistic, p_value: the nested-model F test of the two RSS (for information: its F
+        reference law assumes a linear model and is optimistic for the nonlinear fit).
+    permutation: the permutation test, or None when it could not run (too few entries).
+    passed: ``press < press_null`` and the permutation test passed.
+    """
+
+    press: float
+    press_null: float
+    rss: float
+    rss_null: float
+    n_params: int
+    n_null: int
+    observations: int
+    f_statistic: float
+    p_value: float
+    passed: bool
+    permutation: PermutationTest | None = None
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-safe dict."""
+        return {"test": "permutation+loo-cv", "press": _num(self.press), "press_null": _num(self.press_null),
+                "rss": _num(self.rss), "rss_null": _num(self.rss_null),
+                "n_params": int(self.n_params), "n_null": int(self.n_null),
+                "observations": int(self.observations), "f_statistic": _num(self.f_statistic),
+                "p_value": _num(self.p_value), "passed": bool(self.passed),
+                "permutation": None if self.permutation is None else self.permutation.to_dict()}
+
+
+def _additive_fit(Y: Array, rows: bool, cols: bool, iterations: int = 100) -> Array:
+    """Least-squares fit of ``a_i + b_j`` (or ``a_i``, ``b_j``, a constant) to the observed entries."""
+    obs = np.isfinite(Y)
+    Z = np.where(obs, Y, 0.0)
+    n_r = np.maximum(obs.sum(axis=1), 1)
+    n_c = np.maximum(obs.sum(axis=0), 1)
+    if not rows and not cols:
+        return np.full(Y.shape, Z.sum() / max(obs.sum(), 1))
+    a = np.zeros(Y.shape[0])
+    b = np.zeros(Y.shape[1])
+    complete = bool(obs.all())
+    for _ in range(iterations if rows and cols and not complete else 1):
+        if rows:
+            a = ((Z - b[None, :]) * obs).sum(axis=1) / n_r
+        if cols:
+            b = ((Z - a[:, None]) * obs).sum(axis=0) / n_c
+    # a complete matrix: one sweep of row then column means is the exact two-way fit
+    return a[:, None] + b[None, :]
+
+
+def _additive_leverages(obs: NDArray[np.bool_], rows: bool, cols: bool, max_unknowns: int = 2000) -> Array:
+    """Leverages of the additive model's design at the observed entries (mean n / m when large).
+
+    The design ``X`` (intercept, row and column indicators less one each) has at most three
+    non-zeros a row, so ``h_k = x_k (X^T X)^+ x_k^T`` comes from the small (n, n) normal
+    matrix (eigenvalues below 1e-12 of the largest cut: a singular value of X below 1e-6 of
+    the largest, a disconnected pattern's extra null direction) and three entries of its
+    inverse per entry: O(m + n^3) instead of the SVD of the dense (m, n) design (0.2 s at
+    14,400 x 239). Above ``max_unknowns`` columns or 5e7 design entries (the former
+    memory guard of the dense design, kept so the choice between the exact and the mean
+    leverages is unchanged) the mean ``n / m``.
+    """
+    import scipy.sparse
+
+    I, J = obs.shape
+    ii, jj = np.nonzero(obs)
+    n = 1 + (I - 1 if rows else 0) + (J - 1 if cols else 0)
+    H = np.full(obs.shape, np.nan)
+    if n > max_unknowns or ii.size * n > 5e7:  # decided before any (entries x n) array is built
+        H[obs] = min(n / max(ii.size, 1), 1.0)
+        return H
+    if ii.size == 0:
+        return H
+    cidx = [np.zeros((ii.size, 1), np.intp)]
+    vals = [np.ones((ii.size, 1))]
+    k = 1
+    for on, idx, size in ((rows, ii, I), (cols, jj, J)):
+        if on:  # indicator of row / column idx, the first one dropped (a zero entry in column 0)
+            cidx.append(np.where(idx > 0, k + idx - 1, 0)[:, None])
+            vals.append((idx > 0).astype(float)[:, None])
+            k += size - 1
+    C, V = np.hstack(cidx), np.hstack(vals)
+    X = scipy.sparse.csr_matrix((V.ravel(), C.ravel(), np.arange(0, C.size + 1, C.shape[1])), shape=(ii.size, n))
+    N = np.asarray((X.T @ X).todense())
+    lam, W = np.linalg.eigh(N)
+    keep = lam > lam[-1] * 1e-12
+    P = (W[:, keep] / lam[keep]) @ W[:, keep].T
+    H[obs] = np.einsum("ka,kab,kb->k", V, P[C[:, :, None], C[:, None, :]], V)
+    return H
+
+
+def geometry_statistic(ranges: Any, dim: int, offsets: str) -> float:
+    """``RSS(geometry) / RSS(no geometry)`` of one fixed, cheap procedure (see :class:`PermutationTest`).
+
+    The geometry is the better of the 003 starts of :data:`PERMUTATION_INITS` (MDS +
+    multilateration, Algorithm 2 of :mod:`selfcal.toa.init.mds`, in the gauge they return) with
+    the least-squares offsets of ``offsets``; no refinement. ``inf`` when no start applies.
+
+    Parameters
+    ----------
+    ranges: (I, J) ranges (metres), NaN = missing.
+    dim, offsets: the model.
+
+    Returns
+    -------
+    float, >= 0 (above 1 when the start fits worse than the model without geometry).
+    """
+    from ...errors import DegenerateGeometryError, InputError
+    from ..engine.nls import refine_toa, toa_model
+    from ..init.mds import mds_alg2, mds_multilateration
+
+    inits = {"mds-multilat": lambda Z: mds_multilateration(Z, dim, rng=0), "alg2": lambda Z: mds_alg2(Z, dim)}
+
+    Y = np.asarray(ranges, dtype=float)
+    has_r, has_s = offsets in ("receivers", "both"), offsets in ("sources", "both")
+    obs = np.isfinite(Y)
+    e0 = (Y - _additive_fit(Y, has_r, has_s))[obs]
+    rss0 = float(e0 @ e0)
+    if not rss0 > 0:
+        return float("inf")
+    shift = min(0.0, float(np.nanmin(Y)))  # negative ranges: shifted for the initialiser only
+    best, start = float("inf"), None
+    for method in PERMUTATION_INITS:
+        try:
+            with np.errstate(all="ignore"):
+                r, s = inits[method](Y - shift)
+                r, s = np.asarray(r, float), np.asarray(s, float)
+                E = Y - toa_model(r, s)
+                E = E - _additive_fit(E, has_r, has_s) if (has_r or has_s) else E
+        except (DegenerateGeometryError, InputError, np.linalg.LinAlgError, ValueError, FloatingPointError):
+            continue
+        e = E[obs]
+        if np.isfinite(e).all() and float(e @ e) / rss0 < best:
+            best, start = float(e @ e) / rss0, (r, s)
+    if start is not None and PERMUTATION_REFINE > 0:
+        try:
+            with np.errstate(all="ignore"), warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                sol = refine_toa(Y, start[0], start[1], offsets=offsets, max_nfev=PERMUTATION_REFINE,
+                                 covariance=False)
+            e = sol.residuals[obs]
+            if np.isfinite(e).all():
+                best = min(best, float(e @ e) / rss0)
+        except (DegenerateGeometryError, InputError, np.linalg.LinAlgError, ValueError, FloatingPointError):
+            pass
+    return best
+
+
+def _test_block(obs: NDArray[np.bool_], side: int, dim: int, g: np.random.Generator,
+                complete: bool = True) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
+    """The tested block: at most ``side`` rows, then ``side`` columns, with the most observed
+    entries (ties at random); then, while it has missing entries, the row or column missing the
+    most is removed, down to ``dim + 3`` a side (a complete block is several times cheaper to
+    initialise than one that needs completing).
+
+    Chosen from the mask only (never the values), so the entries of the block stay
+    exchangeable under the null.
+    """
+    I, J = obs.shape
+
+    def pick(counts: NDArray[np.intp], n: int) -> NDArray[np.intp]:
+        order = g.permutation(counts.size)
+        order = order[np.argsort(-counts[order], kind="stable")]
+        return np.sort(order[:n])
+
+    rows = pick(obs.sum(axis=1), min(I, side)) if I > side else np.arange(I)
+    cols = pick(obs[rows].sum(axis=0), min(J, side)) if J > side else np.arange(J)
+    B = obs[np.ix_(rows, cols)]
+    while complete and not B.all():
+        miss_r, miss_c = (~B).sum(axis=1), (~B).sum(axis=0)
+        by_row = miss_r.max() * B.shape[1] >= miss_c.max() * B.shape[0]  # the larger missing fraction
+        if by_row and B.shape[0] > dim + 3:
+            k = int(g.choice(np.flatnonzero(miss_r == miss_r.max())))
+            rows, B = np.delete(rows, k), np.delete(B, k, axis=0)
+        elif B.shape[1] > dim + 3:
+            k = int(g.choice(np.flatnonzero(miss_c == miss_c.max())))
+            cols, B = np.delete(cols, k), np.delete(B, k, axis=1)
+        elif B.shape[0] > dim + 3:
+            k = int(g.choice(np.flatnonzero(miss_r == miss_r.max())))
+            rows, B = np.delete(rows, k), np.delete(B, k, axis=0)
+        else:
+            break
+    return rows, cols
+
+
+def permutation_test(ranges: Any, dim: int, offsets: str, *, copies: int = PERMUTATION_COPIES,
+                     alpha: float = PERMUTATION_ALPHA, seed: int = 0,
+                     max_side: int = PERMUTATION_MAX_SIDE) -> PermutationTest | None:
+    """Permutation test of "the data fit no geometry" (:class:`PermutationTest`).
+
+    Parameters
+    ----------
+    ranges: (I, J) the entries a fit used (NaN elsewhere), metres.
+    dim, offsets: the model.
+    copies: B, the Monte-Carlo copies (level ``1 / (B + 1)`` is the smallest attainable).
+    alpha: level.
+    seed: seed of the permutations and of the sub-block (fixed: the verdict is
+        reproducible; the permutations do not depend on the data, so the level holds).
+    max_side: at most this many receivers and sources are tested (:func:`_test_block`).
+
+    Returns
+    -------
+    PermutationTest, or None when the tested block has fewer than ``dim + 1`` spare entries
+    (observations minus parameters): too few for the test to have power.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from selfcal.toa import toa_model
+    >>> g = np.random.default_rng(0)
+    >>> permutation_test(g.uniform(0, 10, (8, 10)), 2, "none").passed
+    False
+    >>> r, s = g.uniform(0, 10, (8, 2)), g.uniform(0, 10, (10, 2))
+    >>> permutation_test(toa_model(r, s) + g.normal(0, 0.05, (8, 10)), 2, "none").passed
+    True
+    """
+    g = np.random.default_rng(seed)
+    Y0 = np.asarray(ranges, dtype=float)
+
+    def block(complete: bool) -> tuple[Array, int]:
+        rows, cols = _test_block(np.isfinite(Y0), int(max_side), dim, g, complete)
+        B = Y0[np.ix_(rows, cols)]
+        ob = np.isfinite(B)
+        B = B[np.ix_(ob.sum(axis=1) > 0, ob.sum(axis=0) > 0)]
+        I, J = B.shape
+        spare = int(np.isfinite(B).sum()) - n_parameters(I, J, dim, offsets) if I > dim and J > dim else 0
+        return B, spare
+
+    # the complete block is cheaper; it is used while it keeps at least half the spare
+    # entries (the power) of the block as it is
+    Y, spare = block(False)
+    if not np.isfinite(Y).all():
+        Yc, spare_c = block(True)
+        if 2 * spare_c >= spare:
+            Y, spare = Yc, spare_c
+    if spare < dim + 1:
+        # fewer spare entries than one more node needs to be located with one to spare: a
+        # geometry then fits almost any matrix; measured power at 5 x 5 in 3-D (1 spare entry):
+        # 5 of 10 genuine networks. The verdict rests on the leave-one-out check alone.
+        return None
+    obs = np.isfinite(Y)
+    I, J = Y.shape
+    has_r, has_s = offsets in ("receivers", "both"), offsets in ("sources", "both")
+    F = _additive_fit(Y, has_r, has_s)
+    e = (Y - F)[obs]
+    rss0 = float(e @ e)
+    t_obs = geometry_statistic(Y, dim, offsets)
+    null = np.empty(int(copies))
+    for b in range(int(copies)):
+        Z = np.full(Y.shape, np.nan)
+        Z[obs] = g.permutation(e)
+        if has_r or has_s:  # re-centred: the copy's additive fit is F, its residual RSS rss0
+            Z = Z - _additive_fit(Z, has_r, has_s)
+        z = Z[obs]
+        if z @ z > 0:
+            Z *= np.sqrt(rss0 / float(z @ z))
+        null[b] = geometry_statistic(F + Z, dim, offsets)
+    p = float((1 + np.sum(null <= t_obs)) / (copies + 1))
+    return PermutationTest(float(t_obs), float(np.min(null)), float(np.median(null)), int(copies), p,
+                           float(alpha), I, J, bool(p <= alpha))
+
+
+def geometry_test(ranges: Any, residuals: Any, leverages: Any, dim: int, offsets: str, *,
+                  alpha: float = RESIDUAL_ALPHA, permutation: bool = True) -> GeometryTest:
+    """Test of the geometric model against the model without geometry (noise unknown).
+
+    Parameters
+    ----------
+    ranges: (I, J) the entries the fit used (NaN elsewhere), any units.
+    residuals: (I, J) measured minus modelled of the fit, same units, NaN where not used.
+    leverages: (I, J) the fit's leverages (:func:`selfcal.toa.verdict.robust.leverages`).
+    dim, offsets: the fitted model.
+    alpha: level of the informational F test.
+    permutation: run the permutation test (:func:`permutation_test`).
+
+    Returns
+    -------
+    GeometryTest (see its docstring for the rule).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from selfcal.toa import solve_toa
+    >>> import warnings
+    >>> with warnings.catch_warnings():
+    ...     warnings.simplefilter("ignore")
+    ...     res = solve_toa(np.random.default_rng(0).uniform(0, 10, (8, 10)), rng=0)
+    >>> res.geometry.passed
+    False
+    """
+    from scipy.stats import f as f_dist
+
+    Y = np.asarray(ranges, dtype=float)
+    E = np.asarray(residuals, dtype=float)
+    H = np.asarray(leverages, dtype=float)
+    has_r, has_s = offsets in ("receivers", "both"), offsets in ("sources", "both")
+    use = np.isfinite(Y) & np.isfinite(E)
+    Yu = np.where(use, Y, np.nan)
+    E0 = Yu - _additive_fit(Yu, has_r, has_s)
+    H0 = _additive_leverages(use, has_r, has_s)
+    ok = use & np.isfinite(H) & (1 - H > 1e-8) & (1 - H0 > 1e-8)
+    I, J = Y.shape
+    n_ok = int(ok.sum())
+    # robust PRESS: the median squared leave-one-out error, on the scale of a sum
+    press = float(n_ok * np.median((E[ok] / (1 - H[ok])) ** 2)) if n_ok else float("nan")
+    press0 = float(n_ok * np.median((E0[ok] / (1 - H0[ok])) ** 2)) if n_ok else float("nan")
+    rss = float(np.sum(E[use] ** 2))
+    rss0 = float(np.sum(E0[use] ** 2))
+    n1 = n_parameters(I, J, dim, offsets)
+    n0 = null_parameters(I, J, offsets)
+    m = int(use.sum())
+    dof, k = m - n1, max(n1 - n0, 1)
+    if dof > 0 and rss > 0:
+        stat = ((rss0 - rss) / k) / (rss / dof)
+        p = float(f_dist.sf(stat, k, dof))
+    else:
+        stat, p = float("nan"), float("nan")
+    perm = permutation_test(Yu, dim, offsets) if permutation else None
+    cv_ok = bool(press < press0 or (press == 0.0 and press0 > 0.0))
+    return GeometryTest(press, press0, rss, rss0, n1, n0, n_ok, float(stat), p,
+                        cv_ok and (perm is None or perm.passed), perm)
+
+
