@@ -24,8 +24,8 @@ from selfcal.acoustics.pipeline import _unique_or_plausible
 from selfcal.acoustics.plausibility import EXTENT_FACTOR, WORKING_DAY, extent_reason, repeats_reason
 from selfcal.acoustics.verdict import ErrorBars, judge
 from selfcal.cli import main
-from selfcal.toa.nls import toa_model
-from selfcal.toa.uniqueness import uniqueness_test
+from selfcal.toa.engine.nls import toa_model
+from selfcal.toa.verdict.uniqueness import uniqueness_test
 
 from .test_pipeline_faults import _make
 

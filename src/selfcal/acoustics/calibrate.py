@@ -108,7 +108,7 @@ def _resolve_mirrors(T: Array, res: Any, speed: float, rng: int, notes: list[str
     if flipped and all(np.isfinite(a).all() for a in (r, s, dr, ds)):
         res = _solve(T, 3, speed, rng, init=(r, s, dr, ds))
     elif flipped:  # nodes the solver dropped (NaN rows): no warm start; the refits polish the flipped ones
-        from ..toa.nodes import replace_fields
+        from ..toa.frame.nodes import replace_fields
 
         res = replace_fields(res, receivers=r, sources=s, receiver_cov=rc, source_cov=sc)
     sided.append("receivers" if what[0] == "microphones" else "sources")
@@ -401,7 +401,7 @@ def _as_solution(res: Any, label: str) -> dict[str, Any]:
         "receiver_cov": np.asarray(res.receiver_cov, float), "source_cov": np.asarray(res.source_cov, float),
         "residual_rms": float(res.residual_rms), "converged": bool(res.converged),
         "iterations": int(getattr(res, "iterations", 0)), "method": f"{label} ({res.method})",
-        # the TOA solver's own tests (selfcal.toa.uniqueness, outlier breakdown) for the verdict
+        # the TOA solver's own tests (selfcal.toa.verdict.uniqueness, outlier breakdown) for the verdict
         "uniqueness": getattr(res, "uniqueness", None), "outlier_breakdown": getattr(res, "outlier_breakdown", None),
     }
 

@@ -130,7 +130,7 @@ class PipelineResult(Result):
     timings_cpu : dict
         CPU seconds of this process per stage (comparable on a shared machine).
     uniqueness : UniquenessTest or None
-        The TOA solver's uniqueness test of the final fit (:mod:`selfcal.toa.uniqueness`), in the
+        The TOA solver's uniqueness test of the final fit (:mod:`selfcal.toa.verdict.uniqueness`), in the
         recording's numbering and the solver's frame; None for the known-heights model.
     outlier_breakdown : str or None
         The TOA solver's outlier-breakdown verdict of the final fit, when it fired.
@@ -245,7 +245,7 @@ def _unique_or_plausible(sol: dict[str, Any], rn: tuple[str, ...], sn: tuple[str
                          room: tuple[float, ...] | None, notes: list[str]) -> tuple[str, ...]:
     """FAIL reasons from the TOA solver's own tests and the declared room (:mod:`.plausibility`).
 
-    - the uniqueness test (:mod:`selfcal.toa.uniqueness`): a minimal problem, or units with an
+    - the uniqueness test (:mod:`selfcal.toa.verdict.uniqueness`): a minimal problem, or units with an
       alternative position the data do not reject *farther than the position requirement*
       (10 cm: the truth may be there, so 004 cannot be promised), named with the remedy;
       alternatives closer than that leave the requirement met whichever is true and are a

@@ -170,7 +170,7 @@ def candidate_mirror(points: Array, rank: int) -> tuple[Array, Array] | None:
 
     Known anchors a few centimetres off one plane (ceiling anchors) span the space numerically
     but leave the mirror through that plane nearly open at the noise level: the likelihood-ratio
-    test of :func:`selfcal.toa.uniqueness.uniqueness_test` decides, at the cost of one refit.
+    test of :func:`selfcal.toa.verdict.uniqueness.uniqueness_test` decides, at the cost of one refit.
     """
     P = np.asarray(points, float)
     d = P.shape[1]
