@@ -16,8 +16,8 @@ import numpy as np
 import scipy.linalg
 from scipy.linalg import cho_factor, cho_solve
 
-from ..._checks import as_matrix, as_rng, check_choice, check_dim
-from ...errors import ConvergenceWarning, DegenerateGeometryError, InputError
+from ..._checks import as_rng, check_choice
+from ...errors import ConvergenceWarning, InputError
 from ...optim.lm import levenberg_marquardt
 from .rank3_joint import _rank3_lm_joint
 from .rank3_model import (
@@ -33,7 +33,7 @@ from .rank3_model import (
     _replace,
     _result,
     _split,
-    check_rank_identifiable,
+    checked_rank_input,
 )
 from .rank3_thesis import rank3_iteration
 
@@ -171,21 +171,7 @@ def rank3_lm(
     completed (I, J) matrix.
     """
     t0 = time.perf_counter()
-    check_choice(model, "model", ("exact", "linear"))
-    check_choice(centring, "centring", ("reference", "mean"))
-    dim = check_dim(dim)
-    R0 = as_matrix(ranges, "ranges", allow_nan=True, min_shape=(2, 2))
-    mask = np.isnan(R0)
-    I, J = R0.shape
-    K = I + J - 1
-    n_miss = int(mask.sum())
-    check_rank_identifiable(I, J, dim)
-    if n_miss and (I - 1 - dim) * (J - 1 - dim) < K + n_miss:
-        raise DegenerateGeometryError(
-            f"{n_miss} missing entries leave too few equations: the rank-{dim} method needs "
-            f"(I-1-{dim})(J-1-{dim}) = {(I - 1 - dim) * (J - 1 - dim)} >= I+J-1 + missing = {K + n_miss}",
-            kind="too-few-measurements",
-        )
+    dim, R0, mask, I, J, K, n_miss = checked_rank_input(ranges, model, centring, dim)
     if K + n_miss <= _DENSE_JOINT_MAX:
         # small: one dense joint Gauss-Newton matrix and a full eigendecomposition are cheaper
         # than the iterative pieces below (measured crossover ~300 unknowns)

@@ -13,8 +13,8 @@ from typing import Any
 import numpy as np
 from scipy.linalg import cho_factor, cho_solve
 
-from ..._checks import as_matrix, as_rng, check_choice, check_dim
-from ...errors import DegenerateGeometryError, InputError
+from ..._checks import as_rng
+from ...errors import InputError
 from ...optim.lm import levenberg_marquardt
 from .rank3_model import (
     Array,
@@ -27,7 +27,7 @@ from .rank3_model import (
     _replace,
     _result,
     _split,
-    check_rank_identifiable,
+    checked_rank_input,
     offset_matrix,
 )
 
@@ -133,21 +133,7 @@ def _rank3_lm_joint(
     completed (I, J) matrix.
     """
     t0 = time.perf_counter()
-    check_choice(model, "model", ("exact", "linear"))
-    check_choice(centring, "centring", ("reference", "mean"))
-    dim = check_dim(dim)
-    R0 = as_matrix(ranges, "ranges", allow_nan=True, min_shape=(2, 2))
-    mask = np.isnan(R0)
-    I, J = R0.shape
-    K = I + J - 1
-    n_miss = int(mask.sum())
-    check_rank_identifiable(I, J, dim)
-    if n_miss and (I - 1 - dim) * (J - 1 - dim) < K + n_miss:
-        raise DegenerateGeometryError(
-            f"{n_miss} missing entries leave too few equations: the rank-{dim} method needs "
-            f"(I-1-{dim})(J-1-{dim}) = {(I - 1 - dim) * (J - 1 - dim)} >= I+J-1 + missing = {K + n_miss}",
-            kind="too-few-measurements",
-        )
+    dim, R0, mask, I, J, K, n_miss = checked_rank_input(ranges, model, centring, dim)
     missing = np.nonzero(mask)
     R = _impute(R0)
     bound = 2.0 * float(np.max(np.abs(R0[~mask])))

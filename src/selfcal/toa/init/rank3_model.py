@@ -404,3 +404,31 @@ class Rank3Model(Model):
     def stationary(self, lin: Any, cost: float) -> bool:
         # no decrease even with huge damping: a stationary point of (*), unless the abort fires
         return not self._record(cost, 0.0)
+
+
+def checked_rank_input(ranges: Any, model: str, centring: str, dim: Any) -> tuple[Any, ...]:
+    """Validate the input of the rank-``dim`` offset estimators (:mod:`.rank3`, :mod:`.rank3_joint`).
+
+    Returns ``(dim, R0, mask, I, J, K, n_miss)``: the checked dimension, the (I, J) range matrix
+    (NaN = missing), its missing-entry mask, its shape, ``K = I + J - 1`` offsets and the number
+    of missing entries. Raises when the missing entries leave fewer equations
+    ``(I-1-dim)(J-1-dim)`` than unknowns ``I+J-1 + missing``.
+    """
+    from ..._checks import check_choice
+
+    check_choice(model, "model", ("exact", "linear"))
+    check_choice(centring, "centring", ("reference", "mean"))
+    dim = check_dim(dim)
+    R0 = as_matrix(ranges, "ranges", allow_nan=True, min_shape=(2, 2))
+    mask = np.isnan(R0)
+    I, J = R0.shape
+    K = I + J - 1
+    n_miss = int(mask.sum())
+    check_rank_identifiable(I, J, dim)
+    if n_miss and (I - 1 - dim) * (J - 1 - dim) < K + n_miss:
+        raise DegenerateGeometryError(
+            f"{n_miss} missing entries leave too few equations: the rank-{dim} method needs "
+            f"(I-1-{dim})(J-1-{dim}) = {(I - 1 - dim) * (J - 1 - dim)} >= I+J-1 + missing = {K + n_miss}",
+            kind="too-few-measurements",
+        )
+    return dim, R0, mask, I, J, K, n_miss
