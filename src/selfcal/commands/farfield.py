@@ -174,7 +174,9 @@ def farfield_command(matrix: tuple[Path, ...], out: Path, speed: float | None, d
         _expand(out_dict, keep_r, keep_c)
     ref_rmse = None
     if reference is not None and res.positions.shape[1] == 3:
-        ref_rmse = _aligned_rmse(res.positions, reference)
+        from ..metrics import aligned_rmse
+
+        ref_rmse = aligned_rmse(res.positions, reference).rmse_receivers
         out_dict["reference_rmse"] = ref_rmse
     payload = enrich_payload(
         out_dict, names={"position_names": row_names, "transmitter_names": col_names},
@@ -306,17 +308,6 @@ def _residual_failure(res: FarfieldResult, D: object, sigma: float) -> str | Non
         return (f"residual RMS {float(np.sqrt(np.sum(r**2) / used.sum())):.3g} m against the given noise "
                 f"{sigma:.3g} m: chi-square {stat:.4g} > its 0.999 quantile {q:.4g} with {dof} dof")
     return None
-
-
-def _aligned_rmse(est: object, ref: object) -> float:
-    """RMS distance (metres) between two point sets after the best rotation / reflection and translation."""
-    import numpy as np
-
-    from ..geometry import align
-
-    A, B = np.asarray(est, dtype=float), np.asarray(ref, dtype=float)
-    al = align(A, B, reflection=True)
-    return float(np.sqrt(np.mean(np.sum((al.apply(A) - B) ** 2, axis=1))))
 
 
 @reproduce.command("farfield")

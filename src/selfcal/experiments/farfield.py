@@ -31,9 +31,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from ..geometry import align
 from ..io import write_json
-from ..metrics import aligned_direction_errors
+from ..metrics import aligned_direction_errors, aligned_rmse
 from ..tdoa.farfield import initialize_farfield
 from ..tdoa.minimal import quadric_design, solve_minimal
 from ..tdoa.refine import farfield_crlb, refine_alternating, refine_lm
@@ -92,18 +91,12 @@ def _unit(v: Array) -> Array:
 
 def _pos_error(est: Array, true: Array) -> float:
     """Mean receiver position error after the best rigid motion with reflection."""
-    if not np.all(np.isfinite(est)):
-        return float("nan")
-    al = align(est, true, reflection=True)
-    return float(np.mean(np.linalg.norm(al.apply(est) - true, axis=1)))
+    return float(np.mean(aligned_rmse(est, true).receiver_errors)) if np.isfinite(est).all() else float("nan")
 
 
 def _pos_rms(est: Array, true: Array) -> float:
     """Root mean squared receiver position error after rigid alignment (with reflection)."""
-    if not np.all(np.isfinite(est)):
-        return float("nan")
-    al = align(est, true, reflection=True)
-    return float(np.sqrt(np.mean(np.sum((al.apply(est) - true) ** 2, axis=1))))
+    return aligned_rmse(est, true).rmse_receivers if np.isfinite(est).all() else float("nan")
 
 
 def _scale_ratio(est: Array, true: Array) -> float:
