@@ -28,7 +28,14 @@ from numpy.typing import NDArray
 
 from ..errors import DegenerateGeometryError
 from ..robust import TUNING, mad_std
-from .calibrate import _predict, calibrate_matrix, n_parameters_of, refit, scatter_nodes, sender_matrix
+from .calibrate import (
+    _predict,
+    calibrate_matrix,
+    n_parameters_of,
+    refit,
+    scatter_nodes,
+    sender_matrix,
+)
 from .geometry import Planarity
 from .leverage import event_leverage
 
