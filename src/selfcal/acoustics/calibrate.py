@@ -451,7 +451,7 @@ def refit(T: Array, sol: dict[str, Any], speed: float, heights: tuple[Array, Arr
         # dropped: the others are refined from where they stand
         sub = refit(T[np.ix_(kr, ks)], {**sol, "receivers": r[kr], "sources": s[ks], "receiver_offsets": dr[kr],
                                         "source_offsets": ds[ks]}, speed, f_scale=f_scale)
-        return scatter_nodes(sub, kr, ks, outliers=True)
+        return _scatter_nodes(sub, kr, ks, outliers=True)
     res = _solve(T, d, speed, 0, init=(r[:, :d], s[:, :d], dr, ds), f_scale=f_scale)
     out = _as_solution(res, "")
     out["method"] = method
@@ -459,7 +459,7 @@ def refit(T: Array, sol: dict[str, Any], speed: float, heights: tuple[Array, Arr
     return out
 
 
-def scatter_nodes(sol: dict[str, Any], kr: NDArray[np.bool_], ks: NDArray[np.bool_], *,
+def _scatter_nodes(sol: dict[str, Any], kr: NDArray[np.bool_], ks: NDArray[np.bool_], *,
                   outliers: bool = False) -> dict[str, Any]:
     """A solution on the kept nodes at full size: NaN rows for the others (with ``outliers``, a
     full-size outlier mask too); the uniqueness verdict in the full numbering."""

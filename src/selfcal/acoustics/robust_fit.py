@@ -30,10 +30,10 @@ from ..errors import DegenerateGeometryError
 from ..robust import TUNING, mad_std
 from .calibrate import (
     _predict,
+    _scatter_nodes,
     calibrate_matrix,
     n_parameters_of,
     refit,
-    scatter_nodes,
     sender_matrix,
 )
 from .geometry import Planarity
@@ -379,7 +379,7 @@ def robust_calibrate(
     Sf[np.ix_(kr, ks)] = Sk
     std_out = np.array(std, dtype=float)
     std_out[np.ix_(kr, ev_keep)] = s_ev
-    full = scatter_nodes(sol, kr, ks)
+    full = _scatter_nodes(sol, kr, ks)
     lev_out = np.full(toa.shape, np.nan)
     lev_out[np.ix_(kr, ev_keep)] = event_leverage(sol, t_ev, es_k, Jk, speed, wts())
     return RobustFit(full, plan, notes, outliers, toa_out, Tf, Sf, dropped_r, dropped_s, zc, std_out, n_par, lev_out)
