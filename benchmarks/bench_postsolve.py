@@ -60,6 +60,7 @@ STAGES = [
     ("fit", "outlier_rule_has_power", "outlier_power"),
     ("fit", "uniqueness_check", "uniqueness"),
     ("fit", "uniqueness_test", "uniqueness"),
+    ("fit", "judge_fit", "uniqueness"),
 ]
 #: stages inside another one (counted in their parent's time, reported on their own)
 NESTED = {"permutation_test"}
@@ -130,6 +131,15 @@ class _Clock:
             setattr(m, attr, fn)
 
 
+def _forget_linearisation() -> None:
+    """Drop the linearisation kept from the last call (``robust.normal_equations``): every
+    repeat solves the same matrix, and a kept one would make the repeats cheaper than a first call."""
+    import selfcal.toa.verdict.robust as robust
+
+    if hasattr(robust, "_LAST"):
+        robust._LAST.clear()
+
+
 def run_case(name: str, repeats: int) -> dict[str, Any]:
     """Medians over ``repeats`` calls of ``solve_toa`` (after one warm-up call) of every stage."""
     from selfcal.toa import solve_toa
@@ -140,6 +150,7 @@ def run_case(name: str, repeats: int) -> dict[str, Any]:
     rows: list[dict[str, float]] = []
     res = None
     for _ in range(repeats):
+        _forget_linearisation()
         with _Clock() as clock:
             t = time.perf_counter()
             res = solve_toa(Y, dim=dim, offsets=offsets, rng=0)

@@ -334,25 +334,22 @@ def fisher_blocks(ranges: Any, receivers: Any, sources: Any, receiver_offsets: A
     (Cr, Cs): (I, d, d), (J, d, d) blocks (m^2; ``inf`` diagonal for nodes moved by an
     undetermined direction), or None above :data:`DENSE_MAX_UNKNOWNS` unknowns.
     """
-    from ..engine.nls import _pack, gauge_basis, toa_jacobian
+    from .robust import normal_equations
 
     r, s = np.asarray(receivers, float), np.asarray(sources, float)
     I, d = r.shape
     J = s.shape[0]
     has_r, has_s = offsets in ("receivers", "both"), offsets in ("sources", "both")
-    theta = _pack(r, s, receiver_offsets, source_offsets)
-    n = theta.size
+    n = (I + J) * d + (I if has_r else 0) + (J if has_s else 0)
     if n > DENSE_MAX_UNKNOWNS:
         return None
-    Jac = toa_jacobian(theta, np.asarray(ranges, float), d, offsets)
-    N = np.asarray((Jac.T @ Jac).todense())
-    Q = gauge_basis(r, s, offsets)
+    # J^T J and its lifted inverse: those of the final fit's leverages (robust.normal_equations)
+    ne = normal_equations(np.isfinite(np.asarray(ranges, float)), r, s, receiver_offsets, source_offsets, offsets)
+    N, Q = ne.N, ne.Q
     # the parameters of each node: d coordinates (+ its offset)
     node = np.concatenate([np.repeat(np.arange(I), d), I + np.repeat(np.arange(J), d),
                            np.arange(I) if has_r else np.zeros(0, int),
                            I + np.arange(J) if has_s else np.zeros(0, int)]).astype(np.intp)
-    from .robust import lifted_inverse
-
     w = np.zeros(I + J)
     # each node's information block inverted (its conditional covariance), one side at a time
     # (the blocks of a side have one size); a singular block falls back to the node-by-node loop
@@ -376,7 +373,7 @@ def fisher_blocks(ranges: Any, receivers: Any, sources: Any, receiver_offsets: A
     bad = np.zeros(n, bool)
     # M = N + c Q Q^T, c N's largest diagonal entry (any c > 0 lifts the gauge; N's scale keeps M
     # well-conditioned), inverted once and shared with the final fit's leverages (robust.lifted_inverse)
-    Cl, dl, c = lifted_inverse(N, Q)
+    Cl, dl, c = ne.lifted()
     Mx = N + (c or 1.0) * (Q @ Q.T)
     if Cl is not None and dl is not None and dl.min() > np.sqrt(SINGULAR_RCOND) * dl.max():
         C = Cl

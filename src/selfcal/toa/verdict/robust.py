@@ -186,7 +186,7 @@ def leverages(ranges: Array, receivers: Array, sources: Array, receiver_offsets:
     rule studentizes the residuals by them (:func:`studentized`). Problems with more than
     :data:`LEVERAGE_MAX_UNKNOWNS` unknowns use the mean leverage ``n / m`` everywhere.
     """
-    from ..engine.nls import _pack, gauge_basis, toa_jacobian
+    from ..engine.nls import _pack, toa_jacobian
 
     Y = np.asarray(ranges, float)
     obs = np.isfinite(Y)
@@ -200,12 +200,13 @@ def leverages(ranges: Array, receivers: Array, sources: Array, receiver_offsets:
     if theta.size > LEVERAGE_MAX_UNKNOWNS:
         H[obs | out_mask] = min(n_free / max(m, 1), 1.0)
         return H
-    J = toa_jacobian(theta, Y, dim, offsets).tocsr()
-    Pinv = _normal_pinv(J, gauge_basis(receivers, sources, offsets))
-    H[obs] = _hat_rows(J, Pinv)
+    ne = normal_equations(obs, receivers, sources, receiver_offsets, source_offsets, offsets)
+    if ne.hat is None:
+        ne.hat = _hat_rows(ne.J, ne.pinv())
+    H[obs] = ne.hat
     if out_mask.any():
         Z = np.where(out_mask, 1.0, np.nan)
-        H[out_mask] = _hat_rows(toa_jacobian(theta, Z, dim, offsets).tocsr(), Pinv)
+        H[out_mask] = _hat_rows(toa_jacobian(theta, Z, dim, offsets).tocsr(), ne.pinv())
     return H
 
 
@@ -252,7 +253,7 @@ def outlier_rule_has_power(ranges: Array, receivers: Array, sources: Array, rece
     Weisberg, *Residuals and Influence in Regression*, 1982, sec. 2.2.1); the MAD scale is
     not bounded that way, so the ratio is computed from the projector itself.
     """
-    from ..engine.nls import _pack, gauge_basis, toa_jacobian
+    from ..engine.nls import _pack
 
     if dof <= 0:
         return False
@@ -262,9 +263,11 @@ def outlier_rule_has_power(ranges: Array, receivers: Array, sources: Array, rece
     theta = _pack(receivers, sources, receiver_offsets, source_offsets)
     if theta.size > LEVERAGE_MAX_UNKNOWNS or m > POWER_MAX_ENTRIES:
         return True
-    J = toa_jacobian(theta, Y, receivers.shape[1], offsets).tocsr()
-    Pinv = _normal_pinv(J, gauge_basis(receivers, sources, offsets))
-    d = 1.0 - _hat_rows(J, Pinv)  # diagonal of P (the leverages' complement)
+    ne = normal_equations(obs, receivers, sources, receiver_offsets, source_offsets, offsets)
+    J, Pinv = ne.J, ne.pinv()
+    if ne.hat is None:
+        ne.hat = _hat_rows(J, Pinv)
+    d = 1.0 - ne.hat  # diagonal of P (the leverages' complement)
     ok = np.flatnonzero(d > 1e-8)
     if not ok.size:
         return False
@@ -287,7 +290,89 @@ def outlier_rule_has_power(ranges: Array, receivers: Array, sources: Array, rece
 _LIFT_MARGIN = 1e3
 
 
-_LIFTED: dict[str, Any] = {}  # the last lifted inverse (its key, the result): fisher_blocks reuses it
+#: a linearisation is reused for a geometry within the refinement's step tolerance of the one
+#: it was formed at (the driver's small-step test ``|dx| <= xtol (xtol + |x|)`` with
+#: ``refine_toa``'s default xtol): to the solver's precision the same estimate
+REUSE_XTOL = 1e-10
+
+
+class NormalEquations:
+    """The linearisation of a TOA fit on its fitted entries, and what is derived from it once.
+
+    Attributes
+    ----------
+    pattern: (I, J) bool, the fitted entries; offsets: the offsets mode.
+    theta: (n,) packed parameters it was formed at (:func:`selfcal.toa.engine.nls.toa_jacobian`'s layout).
+    J: (m, n) sparse Jacobian (CSR) over the fitted entries, row-major order of ``pattern``.
+    Q: (n, g) orthonormal gauge basis (:func:`selfcal.toa.engine.nls.gauge_basis`).
+    N: (n, n) normal matrix ``J^T J`` (dense).
+    hat: (m,) leverages of the fitted entries, once computed (:func:`leverages`).
+    """
+
+    def __init__(self, pattern: Mask, offsets: str, theta: Array, J: Any, Q: Array) -> None:
+        self.pattern, self.offsets, self.theta, self.J, self.Q = pattern, offsets, theta, J, Q
+        self.N = np.asarray((J.T @ J).todense())
+        self.hat: Array | None = None
+        self._lifted: tuple[Array | None, Array | None, float] | None = None
+        self._pinv: Array | None = None
+
+    def lifted(self) -> tuple[Array | None, Array | None, float]:
+        """:func:`lifted_inverse` of ``N`` with the gauge ``Q`` (computed once)."""
+        if self._lifted is None:
+            self._lifted = lifted_inverse(self.N, self.Q)
+        return self._lifted
+
+    def pinv(self) -> Array:
+        """``N^+`` (:func:`_normal_pinv`, computed once)."""
+        if self._pinv is None:
+            self._pinv = _normal_pinv(self.N, self.Q, self.lifted())
+        return self._pinv
+
+    def same(self, pattern: Mask, offsets: str, theta: Array) -> bool:
+        """Is this the linearisation at ``theta`` (within :data:`REUSE_XTOL`) on the same entries?"""
+        return (offsets == self.offsets and theta.shape == self.theta.shape and pattern.shape == self.pattern.shape
+                and bool(np.array_equal(pattern, self.pattern))
+                and float(np.linalg.norm(theta - self.theta)) <= REUSE_XTOL * (REUSE_XTOL + float(np.linalg.norm(self.theta))))
+
+
+_LAST: list[NormalEquations] = []  # the last linearisation (the flagging's, reused by the final checks)
+
+
+def normal_equations(pattern: Mask, receivers: Array, sources: Array, receiver_offsets: Array | None,
+                     source_offsets: Array | None, offsets: str) -> NormalEquations:
+    """The linearisation (:class:`NormalEquations`) of a fit on the entries ``pattern``, reused when possible.
+
+    The outlier rule's last leverages (the search's winner), the trust test's (the final fit)
+    and the determinacy test's Fisher blocks all need ``J^T J`` of nearly one geometry: the
+    final fit is refined from the winner on the same entries and, with nothing flagged,
+    moves less than the refinement's step tolerance (120 units noise-free: 2.5e-13 m; 1 mm
+    noise: 3e-10 m). The last linearisation is kept and reused while the entries are the same
+    and the geometry is within :data:`REUSE_XTOL` of it: the solver cannot tell the two
+    estimates apart, and the hat matrix and the Fisher blocks are smooth functions of it
+    (their change is of the order of the displacement over the shortest range). One
+    ``potrf`` + ``potri`` of the lifted matrix instead of two (or three).
+
+    Parameters
+    ----------
+    pattern: (I, J) bool, the fitted entries.
+    receivers, sources, receiver_offsets, source_offsets: the fit (metres; offsets or None).
+    offsets: the offsets mode.
+
+    Returns
+    -------
+    NormalEquations
+    """
+    from ..engine.nls import _pack, gauge_basis, toa_jacobian
+
+    pattern = np.asarray(pattern, bool)
+    theta = _pack(receivers, sources, receiver_offsets, source_offsets)
+    if _LAST and _LAST[0].same(pattern, offsets, theta):
+        return _LAST[0]
+    dim = np.shape(receivers)[1]
+    J = toa_jacobian(theta, np.where(pattern, 1.0, np.nan), dim, offsets).tocsr()
+    ne = NormalEquations(pattern.copy(), offsets, theta, J, gauge_basis(receivers, sources, offsets))
+    _LAST[:] = [ne]
+    return ne
 
 
 def lifted_inverse(N: Array, gauge: Array) -> tuple[Array | None, Array | None, float]:
@@ -306,20 +391,14 @@ def lifted_inverse(N: Array, gauge: Array) -> tuple[Array | None, Array | None, 
 
     Notes
     -----
-    One LAPACK ``potrf`` + ``potri``. The last result is kept (keyed by the bytes of N and
-    Q): the leverages of the final fit (:func:`leverages`, the cross-validation) and the
-    determinacy test's Fisher blocks (:func:`selfcal.toa.verdict.determinacy.fisher_blocks`) invert
-    the same matrix, once.
+    One LAPACK ``potrf`` + ``potri``. The leverages of the final fit (:func:`leverages`, the
+    cross-validation) and the determinacy test's Fisher blocks
+    (:func:`selfcal.toa.verdict.determinacy.fisher_blocks`) invert the same matrix once,
+    through :func:`normal_equations`.
     """
-    import hashlib
-
     import scipy.linalg
 
     c = float(np.max(np.diag(N))) if N.size else 0.0
-    key = hashlib.blake2b(np.ascontiguousarray(N).tobytes() + np.ascontiguousarray(gauge).tobytes(),
-                          digest_size=16).hexdigest() + str(N.shape)
-    if _LIFTED.get("key") == key:
-        return _LIFTED["C"], _LIFTED["dl"], c
     C_out: Array | None = None
     dl: Array | None = None
     if c > 0:
@@ -329,19 +408,19 @@ def lifted_inverse(N: Array, gauge: Array) -> tuple[Array | None, Array | None, 
             C, info = scipy.linalg.lapack.dpotri(L, lower=1)  # lower triangle of M^-1, upper zero
             if info == 0:
                 C_out = C + C.T - np.diag(np.diag(C))
-    _LIFTED.clear()
-    _LIFTED.update(key=key, C=C_out, dl=dl)
     return C_out, dl, c
 
 
-def _normal_pinv(J: Any, gauge: Array | None = None) -> Array:
-    """``(J^T J)^+`` of a sparse Jacobian (n, n), eigenvalues below ``1e-12`` of the largest cut.
+def _normal_pinv(N: Array, gauge: Array | None = None,
+                 lifted: tuple[Array | None, Array | None, float] | None = None) -> Array:
+    """``N^+`` of a normal matrix ``N = J^T J`` (n, n), eigenvalues below ``1e-12`` of the largest cut.
 
     With the gauge basis ``Q`` (:func:`selfcal.toa.engine.nls.gauge_basis`, orthonormal, the null
-    space of ``N = J^T J`` for a determined network) the lifted matrix ``M = N + c Q Q^T``
+    space of ``N`` for a determined network) the lifted matrix ``M = N + c Q Q^T``
     (``c`` the largest diagonal entry of N) is positive definite and ``N^+ = M^-1 - Q Q^T / c``
     exactly: one Cholesky factorization and its inverse (LAPACK ``potrf`` + ``potri``, ~n^3
-    flops), ~5x cheaper than the eigendecomposition. Where M is singular or its smallest
+    flops; ``lifted``: that inverse already computed, :func:`lifted_inverse`), ~5x cheaper
+    than the eigendecomposition. Where M is singular or its smallest
     eigenvalue may be within :data:`_LIFT_MARGIN` of the cut (directions the data do not
     determine beyond the gauge; bounded by row sums, a conservative test), and without
     ``gauge``, the eigendecomposition of N with the
@@ -349,9 +428,8 @@ def _normal_pinv(J: Any, gauge: Array | None = None) -> Array:
     O(m n^2) SVD of the dense (m, n) Jacobian: 4.7 s at 14,400 x 960, 0.2 s this way, 0.04 s
     by the lifted Cholesky).
     """
-    N = np.asarray((J.T @ J).todense())
     if gauge is not None and N.size and gauge.shape[0] == N.shape[0]:
-        C, _, c = lifted_inverse(N, gauge)
+        C, _, c = lifted if lifted is not None else lifted_inverse(N, gauge)
         if C is not None:
             # lambda_min(M) >= 1 / max row sum |C|, lambda_max(N) <= max row sum |N|
             top = float(np.max(np.abs(C).sum(axis=1)))
