@@ -5,6 +5,9 @@
 - the additive model's leverages from its small normal matrix against the SVD of the dense
   design (the former computation);
 - the time-order test's sequential stop: the same decision as all 999 random orders;
+- the linearisation kept between the outlier rule, the trust test and the determinacy test
+  (:func:`~selfcal.toa.verdict.robust.normal_equations`): reused only on the same entries
+  within the solver's step tolerance, and then equal to a fresh one;
 - the permutation test's statistic of the data and its copies refined in lockstep
   (:func:`~selfcal.toa.verdict.trust.geometry_statistics`) against one ``refine_toa`` call per
   matrix (the former computation): the same statistic, so the same level and power.
@@ -179,3 +182,54 @@ def test_lockstep_statistics_equal_one_refinement_at_a_time():
         for t, Yk in zip(T, stack, strict=True):
             t0 = _one_at_a_time(Yk, dim, off)
             assert t == pytest.approx(t0, rel=1e-6, abs=1e-12), (k, off, dim)
+
+
+def test_kept_linearisation_equals_a_fresh_one():
+    """40 random networks (every offsets mode, 2-D and 3-D, up to 30 % missing): leverages and
+    Fisher blocks at a geometry moved by less than the reuse tolerance (which reuse the kept
+    linearisation) equal those computed afresh (leverages to 1e-7 relative, Fisher blocks to
+    1e-7 of their largest entry: the move is 3e-11 of the parameters' norm, the rest is the
+    round-off of two inversions); a move beyond it, a changed
+    entry set or another offsets mode forms a new linearisation (never a stale one)."""
+    from selfcal.toa.verdict import robust
+    from selfcal.toa.verdict.determinacy import fisher_blocks
+
+    g = np.random.default_rng(3)
+    for k in range(40):
+        dim = int(g.choice([2, 3]))
+        I, J = (int(v) for v in g.integers(dim + 4, 14, 2))
+        off = ["none", "receivers", "sources", "both"][k % 4]
+        has_r, has_s = off in ("receivers", "both"), off in ("sources", "both")
+        r, s = g.uniform(0, 10, (I, dim)), g.uniform(0, 10, (J, dim))
+        d = g.uniform(0, 3, I) if has_r else None
+        o = g.uniform(0, 3, J) if has_s else None
+        Y = toa_model(r, s, d, o)
+        Y[g.random(Y.shape) < g.uniform(0, 0.3)] = np.nan
+        robust._LAST.clear()
+        h0 = leverages(Y, r, s, d, o, off)
+        kept = robust._LAST[0]
+        theta_norm = np.linalg.norm(kept.theta)
+        step = 0.3 * robust.REUSE_XTOL * theta_norm  # within the tolerance: reused
+        r1 = r + step / np.sqrt(r.size + s.size) * g.choice([-1, 1], r.shape)
+        s1 = s + step / np.sqrt(r.size + s.size) * g.choice([-1, 1], s.shape)
+        h1 = leverages(Y, r1, s1, d, o, off)
+        assert robust._LAST[0] is kept, k
+        B1 = fisher_blocks(Y, r1, s1, d, o, off, 0.01)
+        robust._LAST.clear()
+        h1_fresh = leverages(Y, r1, s1, d, o, off)
+        B1_fresh = fisher_blocks(Y, r1, s1, d, o, off, 0.01)
+        ok = np.isfinite(h0)
+        assert np.allclose(h1[ok], h1_fresh[ok], rtol=1e-7, atol=1e-10), k
+        for a, b in zip(B1, B1_fresh, strict=True):
+            fin = np.isfinite(b)
+            assert np.allclose(a[fin], b[fin], rtol=1e-7, atol=1e-7 * np.abs(b[fin]).max()), k
+        # beyond the tolerance, other entries, another model: a new linearisation
+        far = leverages(Y, r + 1e-6, s, d, o, off)
+        assert robust._LAST[0] is not kept and robust._LAST[0].same(np.isfinite(Y), off, robust._LAST[0].theta)
+        robust._LAST.clear()
+        assert np.allclose(far[ok], leverages(Y, r + 1e-6, s, d, o, off)[ok], rtol=1e-12, atol=1e-14)
+        Y2 = Y.copy()
+        Y2[np.unravel_index(np.flatnonzero(np.isfinite(Y))[0], Y.shape)] = np.nan
+        before = robust._LAST[0]
+        leverages(Y2, r, s, d, o, off)
+        assert robust._LAST[0] is not before
