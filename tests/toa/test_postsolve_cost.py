@@ -5,6 +5,9 @@
 - the additive model's leverages from its small normal matrix against the SVD of the dense
   design (the former computation);
 - the time-order test's sequential stop: the same decision as all 999 random orders;
+- the bipartite generalised inverse (:class:`~selfcal.toa.verdict.robust.BipartiteInverse`)
+  against the dense lifted inverse: the same leverages (fitted and held-out entries) and the
+  same Fisher blocks;
 - the linearisation kept between the outlier rule, the trust test and the determinacy test
   (:func:`~selfcal.toa.verdict.robust.normal_equations`): reused only on the same entries
   within the solver's step tolerance, and then equal to a fresh one;
@@ -233,3 +236,54 @@ def test_kept_linearisation_equals_a_fresh_one():
         before = robust._LAST[0]
         leverages(Y2, r, s, d, o, off)
         assert robust._LAST[0] is not before
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_bipartite_inverse_equals_the_dense_lifted_one(seed, monkeypatch):
+    """60 random networks a seed (every offsets mode, 2-D and 3-D, sides 5-20 so that either
+    side is eliminated, 0-30 % missing, some entries held out): the leverages of fitted and
+    held-out entries and the determinacy test's Fisher blocks from the bipartite inverse equal
+    those of the dense lifted inverse to 1e-7 (relative to the largest entry of a block: two
+    different O(n^3) factorisations of the same matrix, condition up to ~1e4 here)."""
+    from selfcal.toa.verdict import robust
+    from selfcal.toa.verdict.determinacy import fisher_blocks
+
+    g = np.random.default_rng(100 + seed)
+    used = 0
+    for k in range(60):
+        dim = int(g.choice([2, 3]))
+        I, J = (int(v) for v in g.integers(dim + 3, 21, 2))
+        off = ["none", "receivers", "sources", "both"][k % 4]
+        has_r, has_s = off in ("receivers", "both"), off in ("sources", "both")
+        r, s = g.uniform(0, 10, (I, dim)), g.uniform(0, 10, (J, dim))
+        d = g.uniform(0, 3, I) if has_r else None
+        o = g.uniform(0, 3, J) if has_s else None
+        Y = toa_model(r, s, d, o)
+        Y[g.random(Y.shape) < g.uniform(0, 0.3)] = np.nan
+        held = np.isfinite(Y) & (g.random(Y.shape) < 0.05)
+        Yf = np.where(held, np.nan, Y)
+        robust._LAST.clear()
+        h_blk = leverages(Yf, r, s, d, o, off, held_out=held)
+        blk = robust._LAST[0].block()
+        B_blk = fisher_blocks(Yf, r, s, d, o, off, 0.01)
+        with monkeypatch.context() as m:
+            m.setattr(robust.BipartiteInverse, "build", classmethod(lambda cls, ne: None))
+            robust._LAST.clear()
+            h_dense = leverages(Yf, r, s, d, o, off, held_out=held)
+            B_dense = fisher_blocks(Yf, r, s, d, o, off, 0.01)
+        robust._LAST.clear()
+        if blk is None:
+            continue  # the dense path decided (a block too ill-conditioned): nothing to compare
+        used += 1
+        ok = np.isfinite(h_dense)
+        assert np.array_equal(ok, np.isfinite(h_blk))
+        assert np.allclose(h_blk[ok], h_dense[ok], rtol=1e-7, atol=1e-9), (seed, k, off, dim)
+        if B_dense is None:
+            assert B_blk is None
+            continue
+        for a, b in zip(B_blk, B_dense, strict=True):
+            fin = np.isfinite(b)
+            assert np.array_equal(fin, np.isfinite(a)), (seed, k)
+            scale = np.abs(b[fin]).max() if fin.any() else 1.0
+            assert np.allclose(a[fin], b[fin], rtol=1e-7, atol=1e-7 * scale), (seed, k, off, dim)
+    assert used >= 40  # the bipartite path is the one taken on generic networks
