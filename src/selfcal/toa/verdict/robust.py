@@ -403,13 +403,11 @@ class BipartiteInverse:
         """From a :class:`NormalEquations`; None when a block is singular or too ill-conditioned."""
         import scipy.linalg
 
-        from ..engine.nls import _unpack
-
         pat = ne.pattern
         I, J = pat.shape
         d = ne.dim
         has_r, has_s = ne.offsets in ("receivers", "both"), ne.offsets in ("sources", "both")
-        r, s, _, _ = _unpack(ne.theta, I, J, d, ne.offsets)
+        r, s = ne.theta[:I * d].reshape(I, d), ne.theta[I * d:(I + J) * d].reshape(J, d)  # toa_jacobian's layout
         U = r[:, None, :] - s[None, :, :]
         nrm = np.linalg.norm(U, axis=2, keepdims=True)
         U = np.divide(U, nrm, out=np.zeros_like(U), where=nrm > 0) * pat[..., None]
@@ -529,7 +527,8 @@ def normal_equations(pattern: Mask, receivers: Array, sources: Array, receiver_o
     and the geometry is within :data:`REUSE_XTOL` of it: the solver cannot tell the two
     estimates apart, and the hat matrix and the Fisher blocks are smooth functions of it
     (their change is of the order of the displacement over the shortest range). One
-    ``potrf`` + ``potri`` of the lifted matrix instead of two (or three).
+    inversion (:class:`BipartiteInverse`, else the lifted matrix's ``potrf`` + ``potri``)
+    instead of two (or three).
 
     Parameters
     ----------
