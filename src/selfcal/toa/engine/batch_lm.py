@@ -106,7 +106,7 @@ class _Problem(BatchModel):
         P = Th[:, :(I + J) * d].reshape(-1, I + J, d)
         u = P[:, :I, None, :] - P[:, None, I:, :]
         dist = np.sqrt(np.einsum("aijp,aijp->aij", u, u))
-        f = dist - (self.Y if self.Y.ndim == 2 else self.Y[rows])
+        f = dist - (self.Y if self.Y.ndim == 2 else self.Y[np.asarray(rows, dtype=np.intp)])
         if self.has_r:
             f += Th[:, self.idx_r[:, -1]][:, :, None]
         if self.has_s:

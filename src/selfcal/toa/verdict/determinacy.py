@@ -379,7 +379,7 @@ def fisher_blocks(ranges: Any, receivers: Any, sources: Any, receiver_offsets: A
     bad = np.zeros(n, bool)
     if diag is not None and blk is not None:
         # any generalised inverse G of N gives the same T G T^T (robust.BipartiteInverse)
-        KC = blk.apply(K.T).T  # K G (g, n), G symmetric
+        KC = blk.apply(np.asarray(K.T, dtype=float)).T  # K G (g, n), G symmetric
         Cbs = (diag[0][:, :d, :d], diag[1][:, :d, :d])
     else:
         # M = N + c Q Q^T, c N's largest diagonal entry (any c > 0 lifts the gauge; N's scale keeps

@@ -395,8 +395,29 @@ class BipartiteInverse:
     C. A. Rohde, "Generalized inverses of partitioned matrices", J. SIAM 13 (1965) 1033-1035.
     """
 
+    swap: bool  # the sources' side eliminated (else the receivers')
+    Linv: Array  # (nE, pe, pe) inverse Cholesky factors of the eliminated blocks
+    Ainv: Array  # (nE, pe, pe) their inverses
+    W: Array  # (nE pe, nK pk) L^-1 B S^-
+    W4: Array  # the same, (nE, pe, nK, pk)
+    V: Array  # (nE pe, nK pk) L^-1 B
+    Sg: Array  # (nK pk, nK pk) S^-
+    Ke: Array  # (nE, pe, pe) V_e S^- V_e^T
+    Sd: Array  # (nK, pk, pk) diagonal blocks of S^-
+    info_e: Array  # (nE, pe, pe) information blocks of the eliminated side
+    info_k: Array  # (nK, pk, pk) of the kept side
+    idx_e: NDArray[np.intp]  # (nE, pe) their places in the parameter vector
+    idx_k: NDArray[np.intp]  # (nK, pk)
+    rows_r: Array  # (I, J, pr) receiver parts of the Jacobian rows (zero where unobserved)
+    rows_s: Array  # (I, J, ps) source parts
+    nE: int
+    nK: int
+    pe: int
+    pk: int
+
     def __init__(self, **parts: Any) -> None:
-        self.__dict__.update(parts)
+        for name in self.__annotations__:
+            setattr(self, name, parts[name])
 
     @classmethod
     def build(cls, ne: NormalEquations) -> BipartiteInverse | None:
@@ -495,7 +516,7 @@ class BipartiteInverse:
 
     def apply(self, X: Array) -> Array:
         """``G X`` for X (n, g) in the parameter order of :func:`selfcal.toa.engine.nls.toa_jacobian`."""
-        nE, nK, pe, pk = self.nE, self.nK, self.pe, self.pk
+        nE, pe = self.nE, self.pe
         g = X.shape[1]
         xe = X[self.idx_e.ravel()]  # (nE pe, g), block order
         xk = X[self.idx_k.ravel()]
