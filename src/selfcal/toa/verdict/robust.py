@@ -314,19 +314,31 @@ class NormalEquations:
     ----------
     pattern: (I, J) bool, the fitted entries; offsets: the offsets mode.
     theta: (n,) packed parameters it was formed at (:func:`selfcal.toa.engine.nls.toa_jacobian`'s layout).
-    J: (m, n) sparse Jacobian (CSR) over the fitted entries, row-major order of ``pattern``.
+    J: (m, n) sparse Jacobian (CSR) over the fitted entries, row-major order of ``pattern``
+        (formed on first use: the bipartite path does not need it).
     Q: (n, g) orthonormal gauge basis (:func:`selfcal.toa.engine.nls.gauge_basis`).
-    N: (n, n) normal matrix ``J^T J`` (dense).
+    N: (n, n) normal matrix ``J^T J`` (dense, formed on first use).
     hat: (m,) leverages of the fitted entries, once computed (:func:`leverages`).
     """
 
-    def __init__(self, pattern: Mask, offsets: str, theta: Array, J: Any, Q: Array, dim: int) -> None:
-        self.pattern, self.offsets, self.theta, self.J, self.Q, self.dim = pattern, offsets, theta, J, Q, dim
+    def __init__(self, pattern: Mask, offsets: str, theta: Array, Q: Array, dim: int) -> None:
+        self.pattern, self.offsets, self.theta, self.Q, self.dim = pattern, offsets, theta, Q, dim
         self.hat: Array | None = None
+        self._J: Any = None
         self._N: Array | None = None
         self._lifted: tuple[Array | None, Array | None, float] | None = None
         self._pinv: Array | None = None
         self._block: BipartiteInverse | None | bool = False  # False: not tried yet
+
+    @property
+    def J(self) -> Any:
+        """The sparse Jacobian (CSR), formed on first use (:func:`selfcal.toa.engine.nls.toa_jacobian`)."""
+        if self._J is None:
+            from ..engine.nls import toa_jacobian
+
+            Z = np.where(self.pattern, 1.0, np.nan)
+            self._J = toa_jacobian(self.theta, Z, self.dim, self.offsets).tocsr()
+        return self._J
 
     @property
     def N(self) -> Array:
@@ -561,15 +573,14 @@ def normal_equations(pattern: Mask, receivers: Array, sources: Array, receiver_o
     -------
     NormalEquations
     """
-    from ..engine.nls import _pack, gauge_basis, toa_jacobian
+    from ..engine.nls import _pack, gauge_basis
 
     pattern = np.asarray(pattern, bool)
     theta = _pack(receivers, sources, receiver_offsets, source_offsets)
     if _LAST and _LAST[0].same(pattern, offsets, theta):
         return _LAST[0]
-    dim = np.shape(receivers)[1]
-    J = toa_jacobian(theta, np.where(pattern, 1.0, np.nan), dim, offsets).tocsr()
-    ne = NormalEquations(pattern.copy(), offsets, theta, J, gauge_basis(receivers, sources, offsets), dim)
+    ne = NormalEquations(pattern.copy(), offsets, theta, gauge_basis(receivers, sources, offsets),
+                         np.shape(receivers)[1])
     _LAST[:] = [ne]
     return ne
 
