@@ -327,7 +327,8 @@ def geometry_statistics(stack: Array, dim: int, offsets: str) -> Array:
     rss0 = np.zeros(S)
     starts: list[Array] = []
     which: list[int] = []
-    shifts = np.minimum(0.0, np.nanmin(stack, axis=(1, 2)))  # negative ranges: shifted for the initialiser only
+    # negative ranges: shifted for the initialiser only
+    shifts = np.minimum(0.0, np.where(obs, stack, np.inf).min(axis=(1, 2)))
     batched = _complete_starts(stack - shifts[:, None, None], dim) if obs.all() and S > 1 else None
     for k in range(S):
         Y = stack[k]
