@@ -75,9 +75,9 @@ class _Problem(BatchModel):
     """The stacked model of one range matrix: evaluation, normal blocks, damped solve, gauge."""
 
     def __init__(self, Y: Array, d: int, has_r: bool, has_s: bool, loss: str, f_scale: float) -> None:
-        self.I, self.J = Y.shape
+        self.I, self.J = Y.shape[-2:]
         self.d, self.has_r, self.has_s = d, has_r, has_s
-        self.obs = np.isfinite(Y)
+        self.obs = np.isfinite(Y if Y.ndim == 2 else Y[0])  # (S, I, J): one matrix per start, one pattern
         self.Y = np.where(self.obs, Y, 0.0)
         self.obsf = self.obs.astype(float)
         self.loss, self.fs = loss, float(f_scale)
@@ -100,12 +100,13 @@ class _Problem(BatchModel):
 
     def evaluate(self, Th: Array, rows: object = None) -> tuple[Array, tuple[Array, Array, Array]]:
         """(cost (a,), (residuals (a, I, J), weights (a, I, J), unit vectors (a, I, J, d))); zero
-        residual and weight where unobserved (``rows``: the driver's start indices, unused)."""
+        residual and weight where unobserved (``rows``: the driver's start indices, whose matrix
+        is used when there is one per start)."""
         I, J, d = self.I, self.J, self.d
         P = Th[:, :(I + J) * d].reshape(-1, I + J, d)
         u = P[:, :I, None, :] - P[:, None, I:, :]
         dist = np.sqrt(np.einsum("aijp,aijp->aij", u, u))
-        f = dist - self.Y
+        f = dist - (self.Y if self.Y.ndim == 2 else self.Y[np.asarray(rows, dtype=np.intp)])
         if self.has_r:
             f += Th[:, self.idx_r[:, -1]][:, :, None]
         if self.has_s:
@@ -169,7 +170,9 @@ def solve_batch_lm(
     ----------
     Theta0 : (S, n) starts, receiver-major ``[r (I d), s (J d), d_i (I)?, o_j (J)?]`` (metres),
         the layout of :mod:`selfcal.toa.engine.nls`.
-    Y : (I, J) ranges, metres, NaN = missing (every node needs at least one range).
+    Y : (I, J) ranges, metres, NaN = missing (every node needs at least one range); or (S, I, J),
+        one matrix per start, all with the missing pattern of the first (the permutation
+        test's copies, :func:`selfcal.toa.verdict.trust.permutation_test`).
     d, offsets : the model (``"none"``, ``"receivers"``, ``"sources"``, ``"both"``).
     loss, f_scale : robust loss (:func:`selfcal.robust.loss_rho`) and its scale (metres).
     max_nfev : iteration cap per start (default ``max_it``); xtol : relative step tolerance.
@@ -207,11 +210,11 @@ def solve_batch_lm(
     has_r, has_s = offsets in ("receivers", "both"), offsets in ("sources", "both")
     Y = np.asarray(Y, float)
     Theta = np.array(Theta0, dtype=float, ndmin=2)
-    I, J = Y.shape
+    I, J = Y.shape[-2:]
     swap = J * (d + has_s) > I * (d + has_r)  # keep the smaller set in the reduced system
     if swap:
         Theta = _swap_layout(Theta, I, J, d, has_r, has_s)
-        Y, I, J, has_r, has_s = Y.T, J, I, has_s, has_r
+        Y, I, J, has_r, has_s = np.swapaxes(Y, -1, -2), J, I, has_s, has_r
     pb = _Problem(Y, d, has_r, has_s, loss, f_scale)
     out = levenberg_marquardt_batch(pb, Theta, max_iter=int(max_nfev or max_it), xtol=xtol, ftol=FTOL,
                                     trials=TRIALS)
