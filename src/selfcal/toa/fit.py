@@ -416,13 +416,13 @@ def _nested_start(Y: Array, dim: int, offsets: str, rng: np.random.Generator, lo
     large networks its one start, :func:`selfcal.toa.search.default_budget`).
 
     Where the missing pattern leaves a pair of receivers with fewer than ``dim + 1`` common
-    sources (:func:`selfcal.toa.init.block_start.needs_block_start`), the incremental
-    :func:`~selfcal.toa.init.block_start.block_start` joins the offsets-free search's starts (first,
+    sources (:func:`selfcal.toa.block_start.needs_block_start`), the incremental
+    :func:`~selfcal.toa.block_start.block_start` joins the offsets-free search's starts (first,
     raced against the registry's, the lower cost wins), and ``offsets="none"`` gets that
     search's winner (large networks, whose search refines one start) or the block start itself
     (small ones, whose search races it with the registry) as its start.
     """
-    from .init.block_start import block_start, needs_block_start
+    from .block_start import block_start, needs_block_start
     from .search import MOVES_MAX_NODES, RACE_RUNGS
 
     I, J = Y.shape
