@@ -21,7 +21,7 @@ SRC = Path(__file__).resolve().parents[1] / "src" / "selfcal"
 #: imports only children of lower layers
 TOA_LAYERS: tuple[tuple[str, ...], ...] = (
     ("engine",), ("moves",), ("init",), ("verdict",), ("result",), ("search",), ("block_start",),
-    ("fit_final",), ("fit",), ("solve",), ("plan",), ("frame",), ("recipes",), ("sparse",), ("graph",),
+    ("fit_result",), ("fit",), ("solve",), ("plan",), ("frame",), ("recipes",), ("sparse",), ("graph",),
 )
 
 
