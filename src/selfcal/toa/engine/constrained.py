@@ -330,7 +330,7 @@ def _engine_partition(
 def refine_constrained(
     Y: Array, r0: Array, s0: Array, offsets: str, con: Constraints, *,
     loss: str, f_scale: float | None, max_nfev: int | None, xtol: float,
-    covariance: Any, noise: float | None, engine: str = "auto",
+    covariance: Any, noise: float | None, engine: str = "auto", weights: Array | None = None,
 ) -> Any:
     """Constrained fit of the range model; returns a :class:`selfcal.toa.engine.nls.NlsSolution`.
 
@@ -343,6 +343,11 @@ def refine_constrained(
     otherwise, :func:`_engine_partition`), "schur"
     (the Schur engine whenever its reduced system fits) or "trf" (SciPy
     ``least_squares(method="trf")`` always: the independent reference).
+    ``weights``: (I, J) per-entry weights (``1 / std``, finite and >= 0 on the observed
+    entries) or None: every range residual and its Jacobian row is scaled by its weight
+    (weighted least squares, or the robust loss on the weighted residuals); ``sigma`` is then
+    the noise of a unit-weight entry and the covariance ``sigma^2 (J^T W J)^+``. Weighted fits
+    run on SciPy's trf (the Schur engine has no weights).
     """
     from ...geometry import canonical_gauge
     from .covariance import resolve_covariance
@@ -378,7 +383,13 @@ def refine_constrained(
     # prior coordinates are never pinned: the residual gauge vanishes on them
     prior_pos = np.searchsorted(F, par.prior_x)
     xbase = par.x0.copy()
-    part = _engine_partition(TF, I, J, d, offsets, engine, loss)
+    w = None if weights is None else np.asarray(weights, float)[obs]
+
+    def meas(th: Array) -> Array:  # the (weighted) range residuals
+        f = toa_residuals(th, Y, d, offsets)
+        return f if w is None else w * f
+
+    part = None if w is not None else _engine_partition(TF, I, J, d, offsets, engine, loss)
     schur = None if part is None else RangeSchurModel(obs, I, J, d, offsets, TF, prior_pos, *part)
 
     def theta_of(xf: Array) -> Array:
@@ -389,7 +400,7 @@ def refine_constrained(
     def run(xf0: Array, wprior: Array, fs: float) -> Any:
         def fun(xf: Array) -> Array:
             th = theta_of(xf)
-            f = toa_residuals(th, Y, d, offsets)
+            f = meas(th)
             if n_prior:
                 f = np.concatenate([f, wprior * (xf[prior_pos] - par.prior_mu)])
             return f
@@ -398,6 +409,8 @@ def refine_constrained(
 
         def jac(xf: Array) -> Any:
             Jm = toa_jacobian(theta_of(xf), Y, d, offsets) @ TF
+            if w is not None:
+                Jm = scipy.sparse.diags(w) @ Jm
             if n_prior:
                 Jp = scipy.sparse.csr_matrix((wprior, (np.arange(n_prior), prior_pos)), shape=(n_prior, F.size))
                 Jm = scipy.sparse.vstack([Jm, Jp], format="csr")
@@ -423,7 +436,7 @@ def refine_constrained(
     xf = par.x0[F].copy()
     fs = 1.0
     if loss != "linear":
-        f0 = toa_residuals(theta_of(xf), Y, d, offsets)
+        f0 = meas(theta_of(xf))
         fs = f_scale if f_scale is not None else max(_TUNING[loss] * _robust_sigma(f0), 1e-9)
     # prior weights sigma / std: sigma given, or estimated (start: the fit with the prior
     # coordinates held at their means, i.e. a unit weight on std / sigma_hat = huge)
@@ -445,7 +458,7 @@ def refine_constrained(
         nit += sol.iterations
         if loss != "linear" and f_scale is None and k == 0:
             # the starting residuals mix geometry error with noise: re-scale on the fitted ones
-            f_meas = toa_residuals(theta_of(xf), Y, d, offsets)
+            f_meas = meas(theta_of(xf))
             shrink = float(np.sqrt(m / max(m - F.size + n_prior, 1)))
             fs = max(_TUNING[loss] * shrink * _robust_sigma(f_meas), 1e-9)
             if passes == 1:
@@ -453,7 +466,7 @@ def refine_constrained(
                 xf, conv = sol.x, sol.converged
                 nit += sol.iterations
         if passes > 1:
-            f_meas = toa_residuals(theta_of(xf), Y, d, offsets)
+            f_meas = meas(theta_of(xf))
             est = _sigma_fixed_point(f_meas, (xf[prior_pos] - par.prior_mu) / par.prior_std,
                                      m, n_prior, F.size, loss)
             if not (np.isfinite(est) and est > 0):
@@ -471,12 +484,16 @@ def refine_constrained(
     resid = np.where(obs, Y - model, np.nan)
     f = resid[obs]
     rms = float(np.sqrt(np.mean(f**2)))
+    if w is not None:
+        f = w * f  # the cost, the noise and the covariance are those of the weighted residuals
     wprior = sig_w / par.prior_std
     fp = wprior * (xf[prior_pos] - par.prior_mu) if n_prior else np.zeros(0)
     z = (np.concatenate([f, fp]) / fs) ** 2
     rho, drho = _rho(z, loss)
     cost = 0.5 * fs**2 * float(rho.sum())
     sigma = sigma_of(f, fp)
+    if w is not None:
+        drho = np.concatenate([drho[:m] * w**2, drho[m:]])  # J^T W J of the weighted rows
 
     nr, ns = d + has_r, d + has_s
     if (want_r.size or want_s.size) and np.isfinite(sigma):
