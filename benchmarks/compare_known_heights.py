@@ -125,8 +125,12 @@ def main() -> None:
                   f"conv {r['converged']}")
     rel = np.array([r["rel_cost"] for r in rows])
     ratio = np.array([r["cpu_new_s"] / max(r["cpu_old_s"], 1e-9) for r in rows])
+    both = np.array([all(r["converged"]) for r in rows])
     print(json.dumps({
-        "rows": len(rows), "max_abs_rel_cost": float(np.abs(rel).max()),
+        "rows": len(rows), "both_converged": int(both.sum()),
+        "both_converged_max_abs_rel_cost": float(np.abs(rel[both]).max()),
+        "both_converged_max_pos_diff_m": max(r["pos_diff_m"] for r, b in zip(rows, both, strict=True) if b),
+        "max_abs_rel_cost": float(np.abs(rel).max()),
         "new_lower_or_equal": int(np.sum(rel <= 1e-8)),
         "max_pos_diff_m": max(r["pos_diff_m"] for r in rows),
         "cpu_ratio_median": float(np.median(ratio)), "cpu_ratio_max": float(ratio.max()),

@@ -141,8 +141,8 @@ def refine_known_heights(
     (004 eq. 3.1 with the heights z_i, w_j given) over the (I + J) x 2 horizontal
     positions, the I internal delays and the onsets tau_2..tau_J (tau_1 = 0, 004 sec. 3.3).
     It is the TOA fit (:func:`selfcal.toa.engine.nls.refine_toa`, offsets "both") with the
-    z column of every node fixed and per-entry weights: the constrained path of
-    :mod:`selfcal.toa.engine.constrained`, which holds the horizontal gauge (translation,
+    z column of every node fixed and per-entry weights, on the driver (``solver="lm"``): the
+    constrained path of :mod:`selfcal.toa.engine.constrained`, which holds the horizontal gauge (translation,
     rotation about z) at the start's and reports the covariance free of it,
     ``sigma^2 (J^T W J)^+`` (minimum-norm inner constraints).
 
@@ -194,7 +194,7 @@ def refine_known_heights(
 
     def fit(w: Array | None, r: Array, s: Array, d: Array, o: Array) -> Any:
         return refine_toa(Y, r, s, offsets="both", receiver_offsets0=d, source_offsets0=o,
-                          max_nfev=max_iterations, xtol=1e-12, fixed_receivers=fixed_r, fixed_sources=fixed_s,
+                          max_nfev=max_iterations, xtol=1e-12, solver="lm", fixed_receivers=fixed_r, fixed_sources=fixed_s,
                           weights=w)
 
     cur = (np.column_stack([np.asarray(receivers_xy, float), zr]), np.column_stack([np.asarray(senders_xy, float), zs]),

@@ -55,6 +55,8 @@ from numpy.typing import NDArray
 from scipy.optimize import least_squares
 
 from ...errors import DegenerateGeometryError, InputError
+from ...optim.lm import levenberg_marquardt
+from ...optim.steps import ResidualModel
 from ...optim.structure import TRF_EXACT_MAX, lm_step
 from .model import (
     _TUNING,
@@ -315,7 +317,7 @@ def _engine_partition(
     gross 0.5 m errors, Huber at a given scale: a higher cost than trf's on 3 of 8 seeds, a
     lower one on 1; the same on 4).
     """
-    if engine == "trf" or (engine == "auto" and (lm_step(TF.shape[1]) == "dense" or loss != "linear")):
+    if engine in ("trf", "lm") or (engine == "auto" and (lm_step(TF.shape[1]) == "dense" or loss != "linear")):
         return None
     r_idx, s_idx, n = _node_indices(I, J, d, offsets)
     e_idx = s_idx if I <= J else r_idx  # eliminate the larger node set
@@ -341,8 +343,10 @@ def refine_constrained(
     ``engine``: "auto" (the Schur-reduced LM of :mod:`selfcal.toa.engine.schur_affine` on
     problems above ``DENSE_MAX_UNKNOWNS`` free unknowns with the linear loss, SciPy's trf
     otherwise, :func:`_engine_partition`), "schur"
-    (the Schur engine whenever its reduced system fits) or "trf" (SciPy
-    ``least_squares(method="trf")`` always: the independent reference).
+    (the Schur engine whenever its reduced system fits), "trf" (SciPy
+    ``least_squares(method="trf")`` always: the independent reference) or "lm" (the
+    driver, :func:`selfcal.optim.lm.levenberg_marquardt`, on the reduced vector with the
+    step :func:`selfcal.optim.structure.lm_step` chooses; ``ftol = xtol``).
     ``weights``: (I, J) per-entry weights (``1 / std``, finite and >= 0 on the observed
     entries) or None: every range residual and its Jacobian row is scaled by its weight
     (weighted least squares, or the robust loss on the weighted residuals); ``sigma`` is then
@@ -419,6 +423,10 @@ def refine_constrained(
         if schur is not None:
             x, ok, nit_ = schur.solve(xf0, fun, theta_of, wprior, loss, fs, xtol, max_nfev or 200)
             return _Run(x, ok, nit_)
+        if engine == "lm":  # the one driver on the reduced vector (dense or sparse step by size)
+            out = levenberg_marquardt(ResidualModel(fun, jac, loss=loss, f_scale=fs, step="auto"), xf0,
+                                      max_iter=max_nfev or 200, xtol=xtol, ftol=xtol)
+            return _Run(out.x, out.converged, out.iterations)
         sol = least_squares(
             fun, xf0, jac=jac, method="trf", x_scale="jac", tr_solver="exact" if dense else "lsmr",
             loss=loss, f_scale=fs, xtol=xtol, ftol=1e-12 if dense else 1e-10, gtol=1e-12,
@@ -528,7 +536,8 @@ def refine_constrained(
         receiver_cov=rcov, source_cov=scov,
         receiver_offset_std=dstd, source_offset_std=ostd,
         residuals=resid, residual_rms=rms, sigma=sigma, converged=conv, iterations=nit,
-        cost=cost, solver="trf-constrained" if schur is None else "schur-lm-constrained",
+        cost=cost, solver="schur-lm-constrained" if schur is not None
+        else ("lm-constrained" if engine == "lm" else "trf-constrained"),
     )
 
 

@@ -194,7 +194,9 @@ def refine_toa(
     solver: "auto" / "schur" (Levenberg-Marquardt on the Schur-reduced normal equations,
         conjugate gradients with a Schur-Jacobi preconditioner) or "trf"
         (``scipy.optimize.least_squares(method="trf", x_scale="jac")`` with the sparse
-        analytic Jacobian; ``tr_solver="exact"`` up to 600 unknowns, ``"lsmr"`` above).
+        analytic Jacobian; ``tr_solver="exact"`` up to 600 unknowns, ``"lsmr"`` above) or
+        "lm" (with constraints or weights: the driver's Levenberg-Marquardt on the reduced
+        vector, :func:`selfcal.optim.lm.levenberg_marquardt`; without: as "schur").
     covariance: which 003 eq. 17 covariance blocks to compute: True / "all", "receivers",
         "sources", False / "none", or indices ``{"receivers": idx, "sources": idx}`` /
         ``(receiver_idx, source_idx)`` (:func:`selfcal.toa.engine.covariance.normalize_covariance`);
@@ -253,7 +255,7 @@ def refine_toa(
 
     check_choice(offsets, "offsets", OFFSET_MODES)
     check_choice(loss, "loss", LOSSES)
-    check_choice(solver, "solver", ("auto", "trf", "schur"))
+    check_choice(solver, "solver", ("auto", "trf", "schur", "lm"))
     Y = as_matrix(ranges, "ranges")
     I, J = Y.shape
     r0 = as_points(receivers0, "receivers0")
