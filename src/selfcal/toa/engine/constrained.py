@@ -37,7 +37,7 @@ Newton-LM of :mod:`selfcal.toa.engine.schur_affine` (:func:`_engine_partition`),
 blocks come from the same partition; SciPy trf stays the path of small problems, robust
 losses and ``solver="trf"`` (the reference of the tests).
 
-Length (about 640 lines, above the ~600 guideline): validation of the constraint keywords,
+Length (about 670 lines, above the ~600 guideline): validation of the constraint keywords,
 the parametrisation, the residual gauge, the fit and its covariance are one job (the
 constrained engine's interface); the iteration itself lives in :mod:`selfcal.toa.engine.schur_affine`.
 """
