@@ -55,15 +55,16 @@ from typing import Any
 
 import numpy as np
 
-#: (module attribute in selfcal.toa.fit or selfcal.toa.verdict.trust, stage name); missing names are skipped
+#: (module attribute in selfcal.toa.fit, selfcal.toa.fit_result or selfcal.toa.verdict.trust, stage name); missing names are skipped
 STAGES = [
     ("fit", "_flag", "outlier_flagging"),
     ("fit", "leverages", "leverages"),
-    ("fit", "geometry_test", "geometry_test"),
+    ("fit_result", "leverages", "leverages"),
+    ("fit_result", "geometry_test", "geometry_test"),
     ("trust", "permutation_test", "permutation_test"),
-    ("fit", "fisher_blocks", "determinacy"),
-    ("fit", "_judge_determinacy", "determinacy"),
-    ("fit", "outlier_rule_has_power", "outlier_power"),
+    ("fit_result", "fisher_blocks", "determinacy"),
+    ("fit_result", "_judge_determinacy", "determinacy"),
+    ("fit_result", "outlier_rule_has_power", "outlier_power"),
     ("fit", "uniqueness_check", "uniqueness"),
     ("fit", "uniqueness_test", "uniqueness"),
     ("fit", "judge_fit", "uniqueness"),
@@ -101,9 +102,10 @@ class _Clock:
 
     def __init__(self) -> None:
         import selfcal.toa.fit as fit
+        import selfcal.toa.fit_result as fit_result
         import selfcal.toa.verdict.trust as trust
 
-        self.mods = {"fit": fit, "trust": trust}
+        self.mods = {"fit": fit, "fit_result": fit_result, "trust": trust}
         self.saved: list[tuple[Any, str, Any]] = []
         self.spent: dict[str, float] = {}
         self.cpu: dict[str, float] = {}

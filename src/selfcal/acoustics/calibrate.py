@@ -28,6 +28,7 @@ from numpy.typing import NDArray
 
 from ..errors import DegenerateGeometryError, InputError
 from ..geometry import n_parameters
+from ..requirements import TIMING_REQUIREMENT
 from ..robust import TUNING, loss_rho
 from .geometry import (
     PLANAR_ALPHA,
@@ -37,7 +38,6 @@ from .geometry import (
     planarity,
     refine_known_heights,
 )
-from .requirements import TIMING_REQUIREMENT
 
 __all__ = ["calibrate_matrix", "refit", "sender_matrix", "n_parameters_of"]
 

@@ -37,7 +37,7 @@ Newton-LM of :mod:`selfcal.toa.engine.schur_affine` (:func:`_engine_partition`),
 blocks come from the same partition; SciPy trf stays the path of small problems, robust
 losses and ``solver="trf"`` (the reference of the tests).
 
-Length (about 640 lines, above the ~600 guideline): validation of the constraint keywords,
+Length (about 670 lines, above the ~600 guideline): validation of the constraint keywords,
 the parametrisation, the residual gauge, the fit and its covariance are one job (the
 constrained engine's interface); the iteration itself lives in :mod:`selfcal.toa.engine.schur_affine`.
 """
@@ -55,6 +55,8 @@ from numpy.typing import NDArray
 from scipy.optimize import least_squares
 
 from ...errors import DegenerateGeometryError, InputError
+from ...optim.lm import levenberg_marquardt
+from ...optim.steps import ResidualModel
 from ...optim.structure import TRF_EXACT_MAX, lm_step
 from .model import (
     _TUNING,
@@ -315,7 +317,7 @@ def _engine_partition(
     gross 0.5 m errors, Huber at a given scale: a higher cost than trf's on 3 of 8 seeds, a
     lower one on 1; the same on 4).
     """
-    if engine == "trf" or (engine == "auto" and (lm_step(TF.shape[1]) == "dense" or loss != "linear")):
+    if engine in ("trf", "lm") or (engine == "auto" and (lm_step(TF.shape[1]) == "dense" or loss != "linear")):
         return None
     r_idx, s_idx, n = _node_indices(I, J, d, offsets)
     e_idx = s_idx if I <= J else r_idx  # eliminate the larger node set
@@ -330,7 +332,7 @@ def _engine_partition(
 def refine_constrained(
     Y: Array, r0: Array, s0: Array, offsets: str, con: Constraints, *,
     loss: str, f_scale: float | None, max_nfev: int | None, xtol: float,
-    covariance: Any, noise: float | None, engine: str = "auto",
+    covariance: Any, noise: float | None, engine: str = "auto", weights: Array | None = None,
 ) -> Any:
     """Constrained fit of the range model; returns a :class:`selfcal.toa.engine.nls.NlsSolution`.
 
@@ -341,8 +343,15 @@ def refine_constrained(
     ``engine``: "auto" (the Schur-reduced LM of :mod:`selfcal.toa.engine.schur_affine` on
     problems above ``DENSE_MAX_UNKNOWNS`` free unknowns with the linear loss, SciPy's trf
     otherwise, :func:`_engine_partition`), "schur"
-    (the Schur engine whenever its reduced system fits) or "trf" (SciPy
-    ``least_squares(method="trf")`` always: the independent reference).
+    (the Schur engine whenever its reduced system fits), "trf" (SciPy
+    ``least_squares(method="trf")`` always: the independent reference) or "lm" (the
+    driver, :func:`selfcal.optim.lm.levenberg_marquardt`, on the reduced vector with the
+    step :func:`selfcal.optim.structure.lm_step` chooses; ``ftol = xtol``).
+    ``weights``: (I, J) per-entry weights (``1 / std``, finite and >= 0 on the observed
+    entries) or None: every range residual and its Jacobian row is scaled by its weight
+    (weighted least squares, or the robust loss on the weighted residuals); ``sigma`` is then
+    the noise of a unit-weight entry and the covariance ``sigma^2 (J^T W J)^+``. Weighted fits
+    run on SciPy's trf (the Schur engine has no weights).
     """
     from ...geometry import canonical_gauge
     from .covariance import resolve_covariance
@@ -378,7 +387,13 @@ def refine_constrained(
     # prior coordinates are never pinned: the residual gauge vanishes on them
     prior_pos = np.searchsorted(F, par.prior_x)
     xbase = par.x0.copy()
-    part = _engine_partition(TF, I, J, d, offsets, engine, loss)
+    w = None if weights is None else np.asarray(weights, float)[obs]
+
+    def meas(th: Array) -> Array:  # the (weighted) range residuals
+        f = toa_residuals(th, Y, d, offsets)
+        return f if w is None else w * f
+
+    part = None if w is not None else _engine_partition(TF, I, J, d, offsets, engine, loss)
     schur = None if part is None else RangeSchurModel(obs, I, J, d, offsets, TF, prior_pos, *part)
 
     def theta_of(xf: Array) -> Array:
@@ -389,7 +404,7 @@ def refine_constrained(
     def run(xf0: Array, wprior: Array, fs: float) -> Any:
         def fun(xf: Array) -> Array:
             th = theta_of(xf)
-            f = toa_residuals(th, Y, d, offsets)
+            f = meas(th)
             if n_prior:
                 f = np.concatenate([f, wprior * (xf[prior_pos] - par.prior_mu)])
             return f
@@ -398,6 +413,8 @@ def refine_constrained(
 
         def jac(xf: Array) -> Any:
             Jm = toa_jacobian(theta_of(xf), Y, d, offsets) @ TF
+            if w is not None:
+                Jm = scipy.sparse.diags(w) @ Jm
             if n_prior:
                 Jp = scipy.sparse.csr_matrix((wprior, (np.arange(n_prior), prior_pos)), shape=(n_prior, F.size))
                 Jm = scipy.sparse.vstack([Jm, Jp], format="csr")
@@ -406,6 +423,10 @@ def refine_constrained(
         if schur is not None:
             x, ok, nit_ = schur.solve(xf0, fun, theta_of, wprior, loss, fs, xtol, max_nfev or 200)
             return _Run(x, ok, nit_)
+        if engine == "lm":  # the one driver on the reduced vector (dense or sparse step by size)
+            out = levenberg_marquardt(ResidualModel(fun, jac, loss=loss, f_scale=fs, step="auto"), xf0,
+                                      max_iter=max_nfev or 200, xtol=xtol, ftol=xtol)
+            return _Run(out.x, out.converged, out.iterations)
         sol = least_squares(
             fun, xf0, jac=jac, method="trf", x_scale="jac", tr_solver="exact" if dense else "lsmr",
             loss=loss, f_scale=fs, xtol=xtol, ftol=1e-12 if dense else 1e-10, gtol=1e-12,
@@ -423,7 +444,7 @@ def refine_constrained(
     xf = par.x0[F].copy()
     fs = 1.0
     if loss != "linear":
-        f0 = toa_residuals(theta_of(xf), Y, d, offsets)
+        f0 = meas(theta_of(xf))
         fs = f_scale if f_scale is not None else max(_TUNING[loss] * _robust_sigma(f0), 1e-9)
     # prior weights sigma / std: sigma given, or estimated (start: the fit with the prior
     # coordinates held at their means, i.e. a unit weight on std / sigma_hat = huge)
@@ -445,7 +466,7 @@ def refine_constrained(
         nit += sol.iterations
         if loss != "linear" and f_scale is None and k == 0:
             # the starting residuals mix geometry error with noise: re-scale on the fitted ones
-            f_meas = toa_residuals(theta_of(xf), Y, d, offsets)
+            f_meas = meas(theta_of(xf))
             shrink = float(np.sqrt(m / max(m - F.size + n_prior, 1)))
             fs = max(_TUNING[loss] * shrink * _robust_sigma(f_meas), 1e-9)
             if passes == 1:
@@ -453,7 +474,7 @@ def refine_constrained(
                 xf, conv = sol.x, sol.converged
                 nit += sol.iterations
         if passes > 1:
-            f_meas = toa_residuals(theta_of(xf), Y, d, offsets)
+            f_meas = meas(theta_of(xf))
             est = _sigma_fixed_point(f_meas, (xf[prior_pos] - par.prior_mu) / par.prior_std,
                                      m, n_prior, F.size, loss)
             if not (np.isfinite(est) and est > 0):
@@ -471,12 +492,16 @@ def refine_constrained(
     resid = np.where(obs, Y - model, np.nan)
     f = resid[obs]
     rms = float(np.sqrt(np.mean(f**2)))
+    if w is not None:
+        f = w * f  # the cost, the noise and the covariance are those of the weighted residuals
     wprior = sig_w / par.prior_std
     fp = wprior * (xf[prior_pos] - par.prior_mu) if n_prior else np.zeros(0)
     z = (np.concatenate([f, fp]) / fs) ** 2
     rho, drho = _rho(z, loss)
     cost = 0.5 * fs**2 * float(rho.sum())
     sigma = sigma_of(f, fp)
+    if w is not None:
+        drho = np.concatenate([drho[:m] * w**2, drho[m:]])  # J^T W J of the weighted rows
 
     nr, ns = d + has_r, d + has_s
     if (want_r.size or want_s.size) and np.isfinite(sigma):
@@ -511,7 +536,8 @@ def refine_constrained(
         receiver_cov=rcov, source_cov=scov,
         receiver_offset_std=dstd, source_offset_std=ostd,
         residuals=resid, residual_rms=rms, sigma=sigma, converged=conv, iterations=nit,
-        cost=cost, solver="trf-constrained" if schur is None else "schur-lm-constrained",
+        cost=cost, solver="schur-lm-constrained" if schur is not None
+        else ("lm-constrained" if engine == "lm" else "trf-constrained"),
     )
 
 

@@ -169,6 +169,7 @@ def refine_toa(
     receiver_offset_basis: Any = None,
     source_offset_basis: Any = None,
     noise: float | None = None,
+    weights: Any = None,
 ) -> NlsSolution:
     """Refine receivers, sources (and offsets) by sparse nonlinear least squares (003 eq. 2, 16-17).
 
@@ -193,7 +194,9 @@ def refine_toa(
     solver: "auto" / "schur" (Levenberg-Marquardt on the Schur-reduced normal equations,
         conjugate gradients with a Schur-Jacobi preconditioner) or "trf"
         (``scipy.optimize.least_squares(method="trf", x_scale="jac")`` with the sparse
-        analytic Jacobian; ``tr_solver="exact"`` up to 600 unknowns, ``"lsmr"`` above).
+        analytic Jacobian; ``tr_solver="exact"`` up to 600 unknowns, ``"lsmr"`` above) or
+        "lm" (with constraints or weights: the driver's Levenberg-Marquardt on the reduced
+        vector, :func:`selfcal.optim.lm.levenberg_marquardt`; without: as "schur").
     covariance: which 003 eq. 17 covariance blocks to compute: True / "all", "receivers",
         "sources", False / "none", or indices ``{"receivers": idx, "sources": idx}`` /
         ``(receiver_idx, source_idx)`` (:func:`selfcal.toa.engine.covariance.normalize_covariance`);
@@ -219,6 +222,11 @@ def refine_toa(
         mean with free zero-sum deviations.
     noise: range noise std (metres) weighting the priors; estimated from the fit
         (re-weighted until it settles) when omitted.
+    weights: (I, J) per-entry weights, ``1 / std`` up to a common factor (finite and >= 0 on
+        the observed entries; 0 = the entry does not count): weighted least squares, the ML
+        fit when the entries' noise differs; a robust loss then applies to the weighted
+        residuals (``f_scale`` in their units). ``sigma`` is the noise of a unit-weight entry,
+        the covariance ``sigma^2 (J^T W J)^+``. Runs on the constrained path.
 
     Returns
     -------
@@ -247,7 +255,7 @@ def refine_toa(
 
     check_choice(offsets, "offsets", OFFSET_MODES)
     check_choice(loss, "loss", LOSSES)
-    check_choice(solver, "solver", ("auto", "trf", "schur"))
+    check_choice(solver, "solver", ("auto", "trf", "schur", "lm"))
     Y = as_matrix(ranges, "ranges")
     I, J = Y.shape
     r0 = as_points(receivers0, "receivers0")
@@ -264,17 +272,25 @@ def refine_toa(
     if f_scale is not None and not (np.isfinite(f_scale) and f_scale > 0):
         raise InputError(f"f_scale must be a positive number (metres), got {f_scale!r}")
 
+    wts = None
+    if weights is not None:
+        wts = as_matrix(weights, "weights", allow_nan=True)
+        if wts.shape != (I, J):
+            raise InputError(f"weights has shape {wts.shape}; the range matrix is {I} x {J}")
+        wo = wts[np.isfinite(Y)]
+        if not (np.isfinite(wo).all() and (wo >= 0).all() and (wo > 0).any()):
+            raise InputError("weights must be finite and >= 0 on the observed ranges, and not all 0")
     cons = dict(fixed_receivers=fixed_receivers, fixed_sources=fixed_sources,
                 receiver_prior=receiver_prior, source_prior=source_prior,
                 fixed_receiver_offsets=fixed_receiver_offsets,
                 fixed_source_offsets=fixed_source_offsets, common_offsets=common_offsets,
                 receiver_offset_basis=receiver_offset_basis, source_offset_basis=source_offset_basis)
-    if _constrained.is_active(**cons):
+    if _constrained.is_active(**cons) or wts is not None:
         con = _constrained.make_constraints(I, J, d, offsets, receiver_offsets0=dr0,
                                             source_offsets0=os0, **cons)
         return _constrained.refine_constrained(  # type: ignore[no-any-return]
             Y, r0, s0, offsets, con, loss=loss, f_scale=f_scale, max_nfev=max_nfev, xtol=xtol,
-            covariance=covariance, noise=check_positive(noise, "noise"), engine=solver)
+            covariance=covariance, noise=check_positive(noise, "noise"), engine=solver, weights=wts)
 
     cov_r, cov_s = resolve_covariance(covariance, I, J)
     theta0 = _pack(r0, s0, dr0, os0)

@@ -47,8 +47,8 @@ from numpy.typing import NDArray
 
 from ...errors import DegenerateGeometryError
 from ...optim.lm import Model, levenberg_marquardt
+from ...optim.steps import cholesky_solve as _direct_solve
 from ...robust import loss_rho
-from .dense_lm import _solve as _direct_solve  # Cholesky (posv), least squares if not PD
 from .model import _unpack
 
 Array = NDArray[np.float64]

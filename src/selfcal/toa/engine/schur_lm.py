@@ -34,9 +34,9 @@ from numpy.typing import NDArray
 
 from ...errors import DegenerateGeometryError
 from ...optim.lm import Model, levenberg_marquardt
+from ...optim.steps import cholesky_solve as _direct_solve
 from ...optim.structure import DENSE_MAX_UNKNOWNS, DIRECT_MAX_UNKNOWNS, lm_step
 from ...robust import loss_rho
-from .dense_lm import _solve as _direct_solve  # Cholesky (posv), least squares if not PD
 
 Array = NDArray[np.float64]
 

@@ -12,7 +12,7 @@ depend on the positions, ``P J_x`` is the *exact* Jacobian of the reduced residu
    :func:`selfcal.toa.engine.dense_lm.solve_dense_lm`; the offset block is eliminated (Schur
    complement), which is ``J_x^T W P J_x``, the reduced Gauss-Newton matrix;
 2. the damped reduced system is solved for the position step, which is projected off the
-   rigid gauge (:class:`selfcal.toa.engine.dense_lm.GaugeProjector`, positions only);
+   rigid gauge (:class:`selfcal.toa.engine.joint_lm.GaugeProjector`, positions only);
 3. at the trial positions the offsets are *re-solved* (not moved by their linearised step):
    the cost compared is the variable-projection cost ``min_z cost(x, z)``.
 
@@ -29,7 +29,7 @@ it is handled analytically: ``A^T W A + alpha v v^T`` is positive definite on a 
 observation graph and equals the pseudo-inverse on right-hand sides orthogonal to v (all of
 them here, ``v^T A^T = 0``), and the shift is set so that ``sum d - sum o`` keeps its
 starting value, the convention of the dense engine (which projects the shift off each step).
-Offsets "none" have nothing to project and run :func:`selfcal.toa.engine.dense_lm.full_lm`;
+Offsets "none" have nothing to project and run :func:`selfcal.toa.engine.joint_lm.full_lm`;
 so do partial refits (a ``free`` mask), where the fixed nodes already hold the frame.
 
 Measured (not the default, :data:`selfcal.toa.engine.dense_lm.VARPRO_DEFAULT` is False)
@@ -78,8 +78,8 @@ from numpy.typing import NDArray
 from scipy.linalg import lapack
 
 from ...optim.lm import Model, levenberg_marquardt
-from . import dense_lm
-from .dense_lm import DenseStep, GaugeProjector, full_lm
+from . import joint_lm
+from .joint_lm import DenseStep, GaugeProjector, full_lm
 
 Array = NDArray[np.float64]
 
@@ -105,7 +105,7 @@ def solve_varpro_lm(
     loss, f_scale : loss and its scale; any loss but "linear" runs the joint engine.
     max_nfev : iteration cap (default ``max_it``); xtol : relative step tolerance.
     free : (n,) bool mask of fitted parameters; when given (a partial refit) or when the
-        model has no offsets, the call is :func:`selfcal.toa.engine.dense_lm.full_lm`'s.
+        model has no offsets, the call is :func:`selfcal.toa.engine.joint_lm.full_lm`'s.
 
     Returns
     -------
@@ -197,7 +197,7 @@ def solve_varpro_lm(
         def small_step(self, t: Array, dx: Array, xtol: float) -> bool:
             return math.sqrt(float(dx @ dx)) <= xtol * (xtol + math.sqrt(float(t[:k] @ t[:k])))
 
-    out = levenberg_marquardt(Projected(), theta, max_iter=max_nfev or max_it, xtol=xtol, ftol=dense_lm.FTOL)
+    out = levenberg_marquardt(Projected(), theta, max_iter=max_nfev or max_it, xtol=xtol, ftol=joint_lm.FTOL)
     theta, converged, it = out.x, out.converged, out.iterations
     dist = out.state[1]
     # the offsets of the final geometry, in the gauge of the start (sum d - sum o kept)

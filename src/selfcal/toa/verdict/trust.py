@@ -28,6 +28,7 @@ from ..._checks import check_choice
 from ..._result import json_float as _num
 from ...geometry import n_parameters
 from ..engine.nls import OFFSET_MODES
+from ..init.starts import _additive_fit
 from .determinacy import (  # noqa: F401 (re-exported: the trust tests are named here)
     DENSE_MAX_UNKNOWNS,
     DETERMINED_LEVEL,
@@ -190,26 +191,6 @@ class GeometryTest:
                 "observations": int(self.observations), "f_statistic": _num(self.f_statistic),
                 "p_value": _num(self.p_value), "passed": bool(self.passed),
                 "permutation": None if self.permutation is None else self.permutation.to_dict()}
-
-
-def _additive_fit(Y: Array, rows: bool, cols: bool, iterations: int = 100) -> Array:
-    """Least-squares fit of ``a_i + b_j`` (or ``a_i``, ``b_j``, a constant) to the observed entries."""
-    obs = np.isfinite(Y)
-    Z = np.where(obs, Y, 0.0)
-    n_r = np.maximum(obs.sum(axis=1), 1)
-    n_c = np.maximum(obs.sum(axis=0), 1)
-    if not rows and not cols:
-        return np.full(Y.shape, Z.sum() / max(obs.sum(), 1))
-    a = np.zeros(Y.shape[0])
-    b = np.zeros(Y.shape[1])
-    complete = bool(obs.all())
-    for _ in range(iterations if rows and cols and not complete else 1):
-        if rows:
-            a = ((Z - b[None, :]) * obs).sum(axis=1) / n_r
-        if cols:
-            b = ((Z - a[:, None]) * obs).sum(axis=0) / n_c
-    # a complete matrix: one sweep of row then column means is the exact two-way fit
-    return a[:, None] + b[None, :]
 
 
 def _additive_leverages(obs: NDArray[np.bool_], rows: bool, cols: bool, max_unknowns: int = 2000) -> Array:
