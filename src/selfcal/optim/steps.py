@@ -26,7 +26,7 @@ from .structure import lm_step
 
 Array = NDArray[np.float64]
 
-__all__ = ["ResidualModel", "cholesky_solve"]
+__all__ = ["DenseStep", "ResidualModel", "cholesky_solve"]
 
 
 def cholesky_solve(H: Array, rhs: Array) -> Array | None:
@@ -46,6 +46,45 @@ def cholesky_solve(H: Array, rhs: Array) -> Array | None:
         except (np.linalg.LinAlgError, ValueError):
             return None
     return np.asarray(x, float) if np.isfinite(x).all() else None
+
+
+class DenseStep:
+    """The dense step solver: ``(H + lam diag H) x = -g`` by Cholesky (least squares if H is not
+    numerically positive definite), scattered into the free parameters and projected off the gauge.
+
+    Parameters
+    ----------
+    H, g : (nf, nf), (nf,) the normal matrix and gradient on the free parameters.
+    dstep : flat positions of H's diagonal; proj : an object whose ``apply(dx)`` projects a step in
+        place (:class:`selfcal.toa.engine.model.GaugeProjector`: off the gauge) or None;
+    fidx : indices of the free parameters in the (n,) point (None: all).
+    """
+
+    def __init__(self, H: Array, g: Array, dstep: NDArray[np.intp], proj: Any,
+                 fidx: NDArray[np.intp] | None, n: int) -> None:
+        self.H, self.g, self.dstep, self.proj, self.fidx, self.n = H, g, dstep, proj, fidx, n
+        self.hdiag = H.ravel()[dstep]
+        self.gnorm = math.sqrt(float(g @ g))
+        self.mg = -g
+
+    def step(self, lam: float) -> Array | None:
+        Hd = self.H.copy()
+        Hd.ravel()[self.dstep] += lam * self.hdiag  # Marquardt: diag * (1 + lam)
+        x = cholesky_solve(Hd, self.mg)
+        if x is None:
+            return None
+        if self.fidx is None:
+            dx = x
+        else:
+            dx = np.zeros(self.n)
+            dx[self.fidx] = x
+        if self.proj is not None:
+            self.proj.apply(dx)  # no rigid drift (and no common offset shift)
+        return dx
+
+    def predicted(self, dx: Array) -> float:
+        xv = dx if self.fidx is None else dx[self.fidx]
+        return -(float(self.g @ xv) + 0.5 * float(xv @ (self.H @ xv)))
 
 
 class _DenseNormalStep:
@@ -126,7 +165,7 @@ class ResidualModel(Model):
         factored by SuperLU above).
     project : x -> (dx -> dx), optional
         The parametrisation's projection of a step at ``x`` (e.g. off the gauge directions:
-        :class:`selfcal.toa.engine.dense_lm.GaugeProjector`), formed once per linearisation.
+        :class:`selfcal.toa.engine.model.GaugeProjector`), formed once per linearisation.
 
     Notes
     -----

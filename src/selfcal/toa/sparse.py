@@ -120,18 +120,13 @@ def _counts_ok(i: Index, j: Index, I: int, J: int, need: int) -> None:
 
 def _lm(i: Index, j: Index, y: Array, r0: Array, s0: Array, max_nfev: int | None, xtol: float
         ) -> tuple[Array, Array, bool, int]:
-    from .engine.nls import _make_layout, _pack, _unpack, gauge_basis
+    from .engine.nls import _make_layout, _pack, _unpack
     from .engine.schur_lm import solve_schur_lm
 
     I, d = r0.shape
     J = s0.shape[0]
     lay = _make_layout(r0, s0, "none")
-
-    def gauge(theta: Array) -> Array:
-        return gauge_basis(*_unpack(theta, I, J, d, "none")[:2], "none")
-
-    theta, conv, it = solve_schur_lm(_pack(r0, s0, None, None), y, lay, "linear", 1.0, max_nfev, xtol,
-                                     gauge, pairs=(i, j))
+    theta, conv, it = solve_schur_lm(_pack(r0, s0, None, None), y, lay, "linear", 1.0, max_nfev, xtol, pairs=(i, j))
     r, s, _, _ = _unpack(theta, I, J, d, "none")
     return r.copy(), s.copy(), conv, it
 

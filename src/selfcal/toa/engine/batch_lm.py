@@ -23,7 +23,7 @@ of the model instead of a dense (n, n) product:
 The iteration of every start is that of :func:`selfcal.toa.engine.dense_lm.full_lm` (the same
 Marquardt damping ``diag(H) (1 + lam)`` starting at ``lam = 1e-4``, the step projected off
 the gauge, a trial accepted when the cost does not rise, Nielsen's gain-ratio update
-:func:`selfcal.toa.engine.dense_lm.damping_after_success` from the decrease predicted for the
+:func:`selfcal.optim.lm.damping_after_success` from the decrease predicted for the
 projected step, the same stopping rules), each start with its own damping and its own
 iteration count: batching changes the cost, not the iterates (to round-off: the Schur
 solve and the dense Cholesky differ in the last digits).
@@ -51,7 +51,7 @@ __all__ = ["solve_batch_lm"]
 
 Array = NDArray[np.float64]
 
-#: relative singular-value floor of the rotation generators (as dense_lm.GaugeProjector:
+#: relative singular-value floor of the rotation generators (as model.GaugeProjector:
 #: a rotation dependent on the others, points on a line, adds no gauge direction)
 _ROT_RCOND = 1e-10
 

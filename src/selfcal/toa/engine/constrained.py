@@ -58,14 +58,13 @@ from ...errors import DegenerateGeometryError, InputError
 from ...optim.structure import TRF_EXACT_MAX, lm_step
 from .model import (
     _TUNING,
-    NlsSolution,
     _node_indices,
     _rho,
     _robust_sigma,
+    _solution,
     _unpack,
     gauge_basis,
     toa_jacobian,
-    toa_model,
     toa_residuals,
 )
 from .schur_affine import MAX_GLOBAL, RangeSchurModel, local_blocks
@@ -344,7 +343,6 @@ def refine_constrained(
     (the Schur engine whenever its reduced system fits) or "trf" (SciPy
     ``least_squares(method="trf")`` always: the independent reference).
     """
-    from ...geometry import canonical_gauge
     from .covariance import resolve_covariance
 
     I, J = Y.shape
@@ -465,16 +463,11 @@ def refine_constrained(
     sig_w = w_used
 
     th = theta_of(xf)
-    r, s, dr, os_ = _unpack(th, I, J, d, offsets)
-
-    model = toa_model(r, s, dr, os_)
-    resid = np.where(obs, Y - model, np.nan)
-    f = resid[obs]
-    rms = float(np.sqrt(np.mean(f**2)))
+    r, s, _, _ = _unpack(th, I, J, d, offsets)
+    f = toa_residuals(th, Y, d, offsets)
     wprior = sig_w / par.prior_std
     fp = wprior * (xf[prior_pos] - par.prior_mu) if n_prior else np.zeros(0)
-    z = (np.concatenate([f, fp]) / fs) ** 2
-    rho, drho = _rho(z, loss)
+    rho, drho = _rho((np.concatenate([f, fp]) / fs) ** 2, loss)
     cost = 0.5 * fs**2 * float(rho.sum())
     sigma = sigma_of(f, fp)
 
@@ -490,29 +483,9 @@ def refine_constrained(
     else:
         Cr = np.full((I, nr, nr), np.nan)
         Cs = np.full((J, ns, ns), np.nan)
-    if con.has_positions:
-        rc, sc, Rm = r.copy(), s.copy(), np.eye(d)
-    else:
-        rc, sc_, al = canonical_gauge(r, s)
-        assert sc_ is not None
-        sc, Rm = sc_, al.rotation
-    rcov = np.einsum("ab,nbc,dc->nad", Rm, Cr[:, :d, :d], Rm)
-    scov = np.einsum("ab,nbc,dc->nad", Rm, Cs[:, :d, :d], Rm)
-    dstd = np.sqrt(np.maximum(Cr[:, d, d], 0.0)) if has_r else None
-    ostd = np.sqrt(np.maximum(Cs[:, d, d], 0.0)) if has_s else None
-    if offsets == "both" and not con.offsets_constrained:
-        assert dr is not None and os_ is not None
-        shift = os_[0]
-        dr, os_ = dr + shift, os_ - shift
-    return NlsSolution(
-        receivers=rc, sources=sc,
-        receiver_offsets=None if dr is None else np.array(dr),
-        source_offsets=None if os_ is None else np.array(os_),
-        receiver_cov=rcov, source_cov=scov,
-        receiver_offset_std=dstd, source_offset_std=ostd,
-        residuals=resid, residual_rms=rms, sigma=sigma, converged=conv, iterations=nit,
-        cost=cost, solver="trf-constrained" if schur is None else "schur-lm-constrained",
-    )
+    return _solution(th, Y, d, offsets, Cr, Cs, canonical=not con.has_positions,
+                     shift=not con.offsets_constrained, sigma=sigma, converged=conv, iterations=nit, cost=cost,
+                     solver="trf-constrained" if schur is None else "schur-lm-constrained")
 
 
 def _sigma_fixed_point(f_meas: Array, zp: Array, m: int, n_prior: int, n_free: int, loss: str) -> float:

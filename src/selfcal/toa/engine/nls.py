@@ -73,12 +73,14 @@ from .model import (  # noqa: F401 -- the model's names, re-exported from their 
     _pinned_positions,
     _rho,
     _robust_sigma,
+    _solution,
     _unpack,
     gauge_basis,
     toa_jacobian,
     toa_model,
     toa_residuals,
 )
+from .schur_lm import solve_schur_lm
 
 __all__ = [
     "NlsSolution",
@@ -126,18 +128,6 @@ def _solve_trf(
         f_scale=f_scale, xtol=xtol, ftol=1e-12, gtol=1e-12, max_nfev=max_nfev or 200 * max(1, len(free) // 50 + 1),
     )
     return full(res.x), bool(res.status > 0), int(res.njev or res.nfev)
-
-
-def _solve_schur(
-    theta0: Array, Y: Array, lay: _Layout, loss: str, f_scale: float, max_nfev: int | None, xtol: float
-) -> tuple[Array, bool, int]:
-    """The Schur LM engine of :mod:`selfcal.toa.engine.schur_lm` with this layout's gauge basis."""
-    from .schur_lm import solve_schur_lm
-
-    def gauge(theta: Array) -> Array:
-        return gauge_basis(*_unpack(theta, lay.I, lay.J, lay.d, lay.offsets)[:2], lay.offsets)
-
-    return solve_schur_lm(theta0, Y, lay, loss, f_scale, max_nfev, xtol, gauge)
 
 
 # ---------------------------------------------------------------------------
@@ -242,7 +232,6 @@ def refine_toa(
         gz = np.zeros((J, 3), bool); gz[:, 2] = True
         sol = refine_toa(c * T, r0, s0, offsets="both", fixed_receivers=fz, fixed_sources=gz)
     """
-    from ...geometry import canonical_gauge
     from .covariance import gauge_free_blocks, is_local, local_blocks, resolve_covariance
 
     check_choice(offsets, "offsets", OFFSET_MODES)
@@ -292,7 +281,7 @@ def refine_toa(
     # "auto" = Schur LM: measured faster than least_squares at every size we tried (8x10 to
     # 1000x1000), see benchmarks/bench_toa.py; "trf" stays available as the reference
     use_trf = solver == "trf"
-    run = _solve_trf if use_trf else _solve_schur
+    run = _solve_trf if use_trf else solve_schur_lm
 
     if loss == "linear":
         fs = 1.0
@@ -309,13 +298,8 @@ def refine_toa(
             theta, conv2, nit2 = run(theta, Y, lay, loss, fs, max_nfev, xtol)
             conv, nit = conv2, nit + nit2
 
-    r, s, dr, os_ = _unpack(theta, I, J, d, offsets)
-    model = toa_model(r, s, dr, os_)
-    resid = np.where(obs, Y - model, np.nan)
-    f = resid[obs]
-    rms = float(np.sqrt(np.mean(f**2)))
-    z = (f / fs) ** 2
-    rho, drho = _rho(z, loss)
+    f = toa_residuals(theta, Y, d, offsets)
+    rho, drho = _rho((f / fs) ** 2, loss)
     cost = 0.5 * fs**2 * float(rho.sum())
     dof = m - n_free
     if loss == "linear":
@@ -333,43 +317,14 @@ def refine_toa(
             Cr, Cs = local_blocks(theta, wmat, lay)
         else:
             Cr, Cs = gauge_free_blocks(theta, wmat, lay, cov_r, cov_s)
-        Cr = Cr * sigma**2
-        Cs = Cs * sigma**2
+        Cr, Cs = Cr * sigma**2, Cs * sigma**2
     else:
         Cr = np.full((I, d + has_r, d + has_r), np.nan)
         Cs = np.full((J, d + has_s, d + has_s), np.nan)
     if not np.isfinite(sigma):
-        Cr = np.full_like(Cr, np.nan)
-        Cs = np.full_like(Cs, np.nan)
-
-    rc, sc, al = canonical_gauge(r, s)
-    assert sc is not None
-    R = al.rotation
-    rcov = np.einsum("ab,nbc,dc->nad", R, Cr[:, :d, :d], R)
-    scov = np.einsum("ab,nbc,dc->nad", R, Cs[:, :d, :d], R)
-    dstd = np.sqrt(np.maximum(Cr[:, d, d], 0.0)) if has_r else None
-    ostd = np.sqrt(np.maximum(Cs[:, d, d], 0.0)) if has_s else None
-    if offsets == "both":
-        assert dr is not None and os_ is not None
-        shift = os_[0]
-        dr, os_ = dr + shift, os_ - shift
-    return NlsSolution(
-        receivers=rc,
-        sources=sc,
-        receiver_offsets=None if dr is None else np.array(dr),
-        source_offsets=None if os_ is None else np.array(os_),
-        receiver_cov=rcov,
-        source_cov=scov,
-        receiver_offset_std=dstd,
-        source_offset_std=ostd,
-        residuals=resid,
-        residual_rms=rms,
-        sigma=sigma,
-        converged=conv,
-        iterations=nit,
-        cost=cost,
-        solver="trf" if use_trf else "schur-lm",
-    )
+        Cr, Cs = np.full_like(Cr, np.nan), np.full_like(Cs, np.nan)
+    return _solution(theta, Y, d, offsets, Cr, Cs, canonical=True, shift=True, sigma=sigma, converged=conv,
+                     iterations=nit, cost=cost, solver="trf" if use_trf else "schur-lm")
 
 
 def _check_node_counts(obs: NDArray[np.bool_], d: int, has_r: bool, has_s: bool) -> None:

@@ -30,7 +30,7 @@ through ``T``, the residuals' curvature rows), used by :mod:`selfcal.toa.engine.
 The residual gauge the constraints leave is pinned by the caller (the pinned coordinates
 are not in ``x``), so the system is non-singular beyond the Marquardt damping. The LM loop
 is the engine's: Marquardt diagonal damping, Nielsen's gain-ratio update
-(:func:`selfcal.toa.engine.dense_lm.damping_after_success`), robust losses as iteratively
+(:func:`selfcal.optim.lm.damping_after_success`), robust losses as iteratively
 reweighted normal equations with weights rho'(z) over every residual row (the prior rows
 included, as ``scipy.optimize.least_squares`` applies its loss to them), whose fixed points
 are the stationary points of the robust cost.
@@ -47,8 +47,10 @@ from numpy.typing import NDArray
 
 from ...errors import DegenerateGeometryError
 from ...optim.lm import Model, levenberg_marquardt
+from ...optim.steps import (
+    cholesky_solve as _direct_solve,  # Cholesky (posv), least squares if not PD
+)
 from ...robust import loss_rho
-from .dense_lm import _solve as _direct_solve  # Cholesky (posv), least squares if not PD
 from .model import _unpack
 
 Array = NDArray[np.float64]

@@ -12,7 +12,7 @@ depend on the positions, ``P J_x`` is the *exact* Jacobian of the reduced residu
    :func:`selfcal.toa.engine.dense_lm.solve_dense_lm`; the offset block is eliminated (Schur
    complement), which is ``J_x^T W P J_x``, the reduced Gauss-Newton matrix;
 2. the damped reduced system is solved for the position step, which is projected off the
-   rigid gauge (:class:`selfcal.toa.engine.dense_lm.GaugeProjector`, positions only);
+   rigid gauge (:class:`selfcal.toa.engine.model.GaugeProjector`, positions only);
 3. at the trial positions the offsets are *re-solved* (not moved by their linearised step):
    the cost compared is the variable-projection cost ``min_z cost(x, z)``.
 
@@ -77,9 +77,12 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.linalg import lapack
 
-from ...optim.lm import Model, levenberg_marquardt
+from ...optim.lm import levenberg_marquardt
+from ...optim.steps import DenseStep
 from . import dense_lm
-from .dense_lm import DenseStep, GaugeProjector, full_lm
+from .dense_lm import full_lm
+from .model import _node_indices
+from .schur_lm import Pairs, RangeModel, directions
 
 Array = NDArray[np.float64]
 
@@ -138,10 +141,8 @@ def solve_varpro_lm(
         return full_lm(theta0, y, ii, jj, I, J, d, offsets, loss, f_scale, max_nfev, xtol,
                        free=free, max_it=max_it)
     theta = np.array(theta0, dtype=float)
-    N = I + J
-    k = N * d
+    k = (I + J) * d
     m = y.size
-    ar = np.arange(m)
     # the offset design A (m, p) and the projector P = I - A (A^T A)^+ A^T off its columns
     cols = ([np.eye(I)[ii]] if has_r else []) + ([np.eye(J)[jj]] if has_s else [])
     A = np.hstack(cols)
@@ -156,38 +157,23 @@ def solve_varpro_lm(
     Pm = -A @ AG
     Pm.ravel()[:: m + 1] += 1.0
     shift0 = float(v @ theta[k:]) if v is not None else 0.0
-    sj = I + jj
+    r_idx, s_idx, _ = _node_indices(I, J, d, "none")
 
-    def geometry(t: Array) -> tuple[Array, Array]:
-        P = t[:k].reshape(N, d)
-        u = P[ii] - P[sj]
-        dist = np.sqrt(np.einsum("mp,mp->m", u, u))
-        u *= np.divide(1.0, dist, out=np.zeros_like(dist), where=dist > 0)[:, None]
-        return dist, u
+    class Projected(RangeModel):
+        """The positions' cost with the offsets projected out; a step moves the positions only
+        (the range model without offsets, its residuals and Jacobian projected by ``Pm``)."""
 
-    dstep = np.arange(k) * (k + 1)
-    Jx = np.zeros((m, k))
-    Jflat = Jx.reshape(-1)
-    pos_r = (ar[:, None] * k + ii[:, None] * d + np.arange(d)).ravel()
-    pos_s = (ar[:, None] * k + (I + jj)[:, None] * d + np.arange(d)).ravel()
-
-    class Projected(Model):
-        """The positions' cost with the offsets projected out; a step moves the positions only."""
-
-        def evaluate(self, t: Array) -> tuple[float, tuple[Array, Array, Array]]:
-            dist, u = geometry(t)
+        def evaluate(self, t: Array) -> tuple[float, tuple[Array, Array, list[Array]]]:
+            U, dist = directions(*self.split(t)[:2], self.pat)
             f = Pm @ (dist - y)
-            return 0.5 * float(f @ f), (f, dist, u)
+            return 0.5 * float(f @ f), (f, dist, U)
 
-        def linearize(self, t: Array, state: tuple[Array, Array, Array]) -> DenseStep:
-            f, _, u = state
-            uf = u.ravel()
-            Jflat[pos_r] = uf
-            Jflat[pos_s] = -uf
+        def linearize(self, t: Array, state: tuple[Array, Array, list[Array]]) -> DenseStep:
+            f, _, U = state
+            Jx = self.jacobian(U)
             Jr = Pm @ Jx  # the reduced Jacobian (exact: A does not depend on the positions)
-            Hr = np.dot(Jr.T, Jr)
-            gr = np.dot(Jx.T, f)  # = Jr^T f, since P f = f
-            return DenseStep(Hr, gr, dstep, GaugeProjector(t, N, d, I, False), None, k)
+            # gradient Jx^T f = Jr^T f, since P f = f
+            return DenseStep(np.dot(Jr.T, Jr), np.dot(Jx.T, f), self.dstep, self.projector(t), None, k)
 
         def retract(self, t: Array, dx: Array) -> Array:
             trial = t.copy()
@@ -197,7 +183,8 @@ def solve_varpro_lm(
         def small_step(self, t: Array, dx: Array, xtol: float) -> bool:
             return math.sqrt(float(dx @ dx)) <= xtol * (xtol + math.sqrt(float(t[:k] @ t[:k])))
 
-    out = levenberg_marquardt(Projected(), theta, max_iter=max_nfev or max_it, xtol=xtol, ftol=dense_lm.FTOL)
+    model = Projected(r_idx, s_idx, Pairs(ii, jj, I, J), y, d, I, "linear", 1.0, "dense")
+    out = levenberg_marquardt(model, theta, max_iter=max_nfev or max_it, xtol=xtol, ftol=dense_lm.FTOL)
     theta, converged, it = out.x, out.converged, out.iterations
     dist = out.state[1]
     # the offsets of the final geometry, in the gauge of the start (sum d - sum o kept)
