@@ -58,6 +58,7 @@ from ...errors import DegenerateGeometryError, InputError
 from ...optim.structure import TRF_EXACT_MAX, lm_step
 from .model import (
     _TUNING,
+    _check_counts,
     _node_indices,
     _rho,
     _robust_sigma,
@@ -350,7 +351,10 @@ def refine_constrained(
     want_r, want_s = resolve_covariance(covariance, I, J)
     has_r, has_s = offsets in ("receivers", "both"), offsets in ("sources", "both")
     obs = np.isfinite(Y)
-    _check_counts(obs, con, d)
+    need_r, need_s = ((~fixed & ~np.isfinite(mu)).sum(axis=1) + own.astype(int)
+                      for fixed, mu, own in ((con.fixed_r, con.prior_r_mean, con.own_r),
+                                             (con.fixed_s, con.prior_s_mean, con.own_s)))
+    _check_counts(obs.sum(axis=1), obs.sum(axis=0), need_r, need_s)
     par = _parametrise(con, r0, s0)
     Gx = _residual_gauge(par, con, r0, s0, offsets)
     p = par.x0.size
@@ -503,22 +507,6 @@ def _sigma_fixed_point(f_meas: Array, zp: Array, m: int, n_prior: int, n_free: i
     if den <= 0.5:
         den = max(m - n_free, 1)
     return float(np.sqrt((f_meas @ f_meas) / den))
-
-
-def _check_counts(obs: BoolArray, con: Constraints, d: int) -> None:
-    """Each node needs at least as many ranges as it has free, prior-less unknowns of its own."""
-    for kind, cnt, fixed, mu, own in (
-        ("receiver", obs.sum(axis=1), con.fixed_r, con.prior_r_mean, con.own_r),
-        ("source", obs.sum(axis=0), con.fixed_s, con.prior_s_mean, con.own_s),
-    ):
-        need = (~fixed & ~np.isfinite(mu)).sum(axis=1) + own.astype(int)
-        need = np.where(need > 0, need, 0)
-        bad = np.nonzero(cnt < need)[0]
-        if bad.size:
-            k = int(bad[0])
-            raise DegenerateGeometryError(
-                f"{kind} {k} has {int(cnt[k])} observed ranges but {int(need[k])} free unknowns; "
-                "drop it, fix some of its coordinates or add measurements", kind="unobservable-node")
 
 
 class _LuInverse:

@@ -333,6 +333,19 @@ def _solution(theta: Array, Y: Array, d: int, offsets: str, Cr: Array, Cs: Array
         residuals=resid, residual_rms=float(np.sqrt(np.mean(resid[obs] ** 2))), **fields)  # type: ignore[arg-type]
 
 
+def _check_counts(counts_r: NDArray[np.intp], counts_s: NDArray[np.intp], need_r: object, need_s: object) -> None:
+    """Each node needs at least as many observed ranges as it has unknowns of its own (its free
+    coordinates, its own offset): ``need_r`` / ``need_s`` an int or one per node."""
+    for kind, cnt, need in (("receiver", counts_r, need_r), ("source", counts_s, need_s)):
+        nd = np.broadcast_to(np.asarray(need), cnt.shape)
+        bad = np.flatnonzero(cnt < nd)
+        if bad.size:
+            k = int(bad[0])
+            raise DegenerateGeometryError(
+                f"{kind} {k} has {int(cnt[k])} observed ranges but needs at least {int(nd[k])} (its unknowns of "
+                "its own); drop it, fix some of its coordinates or add measurements", kind="unobservable-node")
+
+
 # ---------------------------------------------------------------------------
 # internal "kept / eliminated" layout for the Schur complement
 # ---------------------------------------------------------------------------

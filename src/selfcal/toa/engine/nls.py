@@ -65,6 +65,7 @@ from .model import (  # noqa: F401 -- the model's names, re-exported from their 
     _TUNING,
     OFFSET_MODES,
     NlsSolution,
+    _check_counts,
     _flags,
     _Layout,
     _make_layout,
@@ -268,7 +269,7 @@ def refine_toa(
     cov_r, cov_s = resolve_covariance(covariance, I, J)
     theta0 = _pack(r0, s0, dr0, os0)
     obs = np.isfinite(Y)
-    _check_node_counts(obs, d, has_r, has_s)
+    _check_counts(obs.sum(axis=1), obs.sum(axis=0), d + has_r, d + has_s)
     lay = _make_layout(r0, s0, offsets)
     m = int(obs.sum())
     g = lay.pins.size
@@ -325,21 +326,6 @@ def refine_toa(
         Cr, Cs = np.full_like(Cr, np.nan), np.full_like(Cs, np.nan)
     return _solution(theta, Y, d, offsets, Cr, Cs, canonical=True, shift=True, sigma=sigma, converged=conv,
                      iterations=nit, cost=cost, solver="trf" if use_trf else "schur-lm")
-
-
-def _check_node_counts(obs: NDArray[np.bool_], d: int, has_r: bool, has_s: bool) -> None:
-    """Each node needs at least d (+1 for its own offset) ranges to be locally determined."""
-    for axis, kind, has in ((1, "receiver", has_r), (0, "source", has_s)):
-        counts = obs.sum(axis=axis)
-        need = d + int(has)
-        bad = np.nonzero(counts < need)[0]
-        if bad.size:
-            k = int(bad[0])
-            raise DegenerateGeometryError(
-                f"{kind} {k} has {int(counts[k])} observed ranges but needs at least {need} "
-                f"({d}-D position{' + offset' if has else ''}); drop it or add measurements",
-                kind="unobservable-node",
-            )
 
 
 def _offsets0(value: Array | None, n: int, name: str) -> Array:

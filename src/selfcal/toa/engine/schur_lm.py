@@ -52,11 +52,12 @@ DEFAULT_MAX_IT = {"dense": 100, "reduced": 100, "cg": 100}
 CG_RTOL = (1e-8, 1e-3)
 
 
-def _inv_blocks(blocks: Array) -> Array:
-    """Inverse of each small symmetric block; an unobservable node raises DegenerateGeometryError."""
+def _inv_blocks(blocks: Array, first: int = 0) -> Array:
+    """Inverse of each small symmetric block (node ``first`` onwards of its set); an unobservable
+    node raises DegenerateGeometryError."""
     cond_ok = np.linalg.cond(blocks) < 1e12
     if not cond_ok.all():
-        bad = int(np.nonzero(~cond_ok)[0][0])
+        bad = first + int(np.nonzero(~cond_ok)[0][0])
         raise DegenerateGeometryError(
             f"node {bad} of the eliminated set is not determined by its observed ranges "
             "(too few or collinear observations); it needs at least d+1 (+1 per offset) "
