@@ -91,30 +91,37 @@ class _DenseNormalStep:
     """``(J^T W J + lam diag(J^T W J)) dx = -J^T W r`` by dense Cholesky (zero diagonal entries
     damped by 1), the step then passed through ``project`` (None: kept as is)."""
 
+    sparse = False
+
     def __init__(self, Jm: Any, r: Array, w: Array | None = None,
                  project: Callable[[Array], Array] | None = None) -> None:
+        if self.sparse:
+            Jm = scipy.sparse.csr_matrix(Jm)
         Jw = Jm if w is None else (scipy.sparse.diags(w) @ Jm if scipy.sparse.issparse(Jm) else Jm * w[:, None])
         A = Jm.T @ Jw
-        self.A = np.asarray(A.toarray() if hasattr(A, "toarray") else A, float)
+        self.A = A.tocsc() if self.sparse else np.asarray(A.toarray() if hasattr(A, "toarray") else A, float)
         self.g = np.asarray(Jw.T @ r, float)
-        self.diag = np.diag(self.A).copy()
+        self.diag = np.asarray(A.diagonal() if self.sparse else np.diag(self.A), float).copy()
         self.diag[self.diag <= 0] = 1.0
         self.gnorm = math.sqrt(float(self.g @ self.g))
         self.project = project
 
-    def step(self, lam: float) -> Array | None:
+    def solve(self, lam: float) -> Array | None:
         H = self.A.copy()
         H[np.diag_indices_from(H)] += lam * self.diag
-        x = cholesky_solve(H, -self.g)
-        if x is None or self.project is None:
-            return x
-        return self.project(x)
+        return cholesky_solve(H, -self.g)
+
+    def step(self, lam: float) -> Array | None:
+        x = self.solve(lam)
+        if x is None or not np.isfinite(x).all():
+            return None
+        return x if self.project is None else self.project(x)
 
     def predicted(self, dx: Array) -> float:
         return -(float(self.g @ dx) + 0.5 * float(dx @ (self.A @ dx)))
 
 
-class _SparseNormalStep:
+class _SparseNormalStep(_DenseNormalStep):
     """The same damped system with ``J^T W J`` kept sparse and factored by SuperLU per trial.
 
     For a Jacobian with a few nonzeros per row and no block structure to eliminate (a range
@@ -125,30 +132,14 @@ class _SparseNormalStep:
     direction the damping does not reach) refuses the trial (None).
     """
 
-    def __init__(self, Jm: Any, r: Array, w: Array | None = None,
-                 project: Callable[[Array], Array] | None = None) -> None:
-        J = scipy.sparse.csr_matrix(Jm)
-        Jw = J if w is None else scipy.sparse.diags(w) @ J
-        self.A = (J.T @ Jw).tocsc()
-        self.g = np.asarray(Jw.T @ r, float)
-        diag = self.A.diagonal().copy()
-        diag[diag <= 0] = 1.0
-        self.diag = diag
-        self.gnorm = math.sqrt(float(self.g @ self.g))
-        self.project = project
+    sparse = True
 
-    def step(self, lam: float) -> Array | None:
+    def solve(self, lam: float) -> Array | None:
         H = (self.A + scipy.sparse.diags(lam * self.diag)).tocsc()
         try:
-            x = scipy.sparse.linalg.splu(H).solve(-self.g)
+            return np.asarray(scipy.sparse.linalg.splu(H).solve(-self.g), float)
         except RuntimeError:  # exactly singular
             return None
-        if not np.isfinite(x).all():
-            return None
-        return x if self.project is None else self.project(x)
-
-    def predicted(self, dx: Array) -> float:
-        return -(float(self.g @ dx) + 0.5 * float(dx @ (self.A @ dx)))
 
 
 class ResidualModel(Model):
