@@ -55,12 +55,12 @@ from numpy.typing import NDArray
 from scipy.optimize import least_squares
 
 from ...errors import DegenerateGeometryError, InputError
+from ...optim.lm import irls
 from ...optim.structure import TRF_EXACT_MAX, lm_step
 from .model import (
     _TUNING,
     _check_counts,
     _node_indices,
-    _rho,
     _robust_sigma,
     _solution,
     _unpack,
@@ -471,8 +471,7 @@ def refine_constrained(
     f = toa_residuals(th, Y, d, offsets)
     wprior = sig_w / par.prior_std
     fp = wprior * (xf[prior_pos] - par.prior_mu) if n_prior else np.zeros(0)
-    rho, drho = _rho((np.concatenate([f, fp]) / fs) ** 2, loss)
-    cost = 0.5 * fs**2 * float(rho.sum())
+    cost, drho = irls(np.concatenate([f, fp]), loss, fs)
     sigma = sigma_of(f, fp)
 
     nr, ns = d + has_r, d + has_s

@@ -14,8 +14,8 @@ Gauge. The cost is invariant under the d(d+1)/2 rigid motions of all points (and
 with both kinds of offsets, under ``d_i + c, o_j - c``), so ``J^T J`` is singular.
 The default solver keeps every coordinate free: the Marquardt damping makes each
 step's system positive definite and the step is projected onto the orthogonal
-complement of the gauge directions (:func:`gauge_basis`), so the network never
-drifts. ``solver="trf"`` and the covariance instead *pin* g coordinates, chosen by
+complement of the gauge directions (:class:`selfcal.toa.engine.model.GaugeProjector`, the
+projector off :func:`gauge_basis` formed analytically), so the network never drifts. ``solver="trf"`` and the covariance instead *pin* g coordinates, chosen by
 a column-pivoted QR of the gauge basis restricted to the smaller node set so that
 no gauge motion leaves every pinned coordinate fixed (the reduced normal matrix is
 then non-singular). The minimum of the cost does not depend on either choice. The
@@ -41,11 +41,13 @@ O(min(I,J)^2 max(I,J) d^3) time for all of them.
 sparse Jacobian is the alternative solver (``solver="trf"``).
 
 Files: the model, its residuals, Jacobian, gauge and the kept / eliminated layout shared by
-every engine live in :mod:`selfcal.toa.engine.model` (re-exported here); the Levenberg-Marquardt
-step of the grid in :mod:`selfcal.toa.engine.schur_lm`, the covariance in
+every engine live in :mod:`selfcal.toa.engine.model` (re-exported here); the one range model of
+the driver with its step solvers (dense, Schur reduced, Schur CG; the grid or the observed
+pairs) in :mod:`selfcal.toa.engine.schur_lm`, the covariance in
 :mod:`selfcal.toa.engine.covariance`, the constrained path in :mod:`selfcal.toa.engine.constrained`; this
 module keeps :func:`refine_toa` (validation of masks, constraints and priors, the choice of
-solver) and the trf solver.
+solver) and the trf solver; the result of both paths is assembled by
+:func:`selfcal.toa.engine.model._solution`.
 """
 
 from __future__ import annotations
@@ -58,6 +60,7 @@ from scipy.optimize import least_squares
 
 from ..._checks import as_matrix, as_points, check_choice, check_positive
 from ...errors import DegenerateGeometryError, InputError
+from ...optim.lm import irls
 from ...optim.structure import TRF_EXACT_MAX
 from ...robust import LOSSES
 from . import constrained as _constrained
@@ -300,8 +303,7 @@ def refine_toa(
             conv, nit = conv2, nit + nit2
 
     f = toa_residuals(theta, Y, d, offsets)
-    rho, drho = _rho((f / fs) ** 2, loss)
-    cost = 0.5 * fs**2 * float(rho.sum())
+    cost, drho = irls(f, loss, fs)
     dof = m - n_free
     if loss == "linear":
         sigma = float(np.sqrt((f**2).sum() / dof)) if dof > 0 else float("nan")

@@ -46,11 +46,10 @@ import scipy.sparse
 from numpy.typing import NDArray
 
 from ...errors import DegenerateGeometryError
-from ...optim.lm import Model, levenberg_marquardt
+from ...optim.lm import Model, irls, levenberg_marquardt
 from ...optim.steps import (
     cholesky_solve as _direct_solve,  # Cholesky (posv), least squares if not PD
 )
-from ...robust import loss_rho
 from .model import _unpack
 
 Array = NDArray[np.float64]
@@ -333,8 +332,8 @@ class _AffineModel(Model):
 
     def evaluate(self, x: Array) -> tuple[float, tuple[Array, Array]]:
         f = self.fun(x)
-        rho, w = loss_rho((f / self.f_scale) ** 2, self.loss)
-        return 0.5 * self.f_scale**2 * float(np.sum(np.asarray(rho, float))), (f, np.asarray(w, float))
+        cost, w = irls(f, self.loss, self.f_scale)
+        return cost, (f, w)
 
     def linearize(self, x: Array, state: tuple[Array, Array]) -> _AffineStep:
         f, w = state

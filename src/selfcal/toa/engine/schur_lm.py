@@ -1,4 +1,11 @@
-"""Levenberg-Marquardt on the Schur-reduced normal equations (the default engine of refine_toa).
+"""The one range model of the TOA engines (:class:`RangeModel`) and its Schur step solver.
+
+:class:`RangeModel` evaluates ``y = |x_k - x_e| + o_k + o_e`` once for every unconstrained
+engine -- on the full grid (:class:`Grid`) or on the observed pairs (:class:`Pairs`, the same
+operations by ``bincount``) -- and hands the driver one of its step solvers: the dense normal
+matrix (:class:`selfcal.optim.steps.DenseStep`) or the Schur complement below, formed or by CG
+(:func:`selfcal.optim.structure.lm_step` chooses). The rest of this docstring is the Schur step,
+the default engine of refine_toa.
 
 The residual of entry (k, e) of the range matrix, oriented with the *kept* node set K
 (the smaller one, :class:`selfcal.toa.engine.nls._Layout`) in the rows, is::
@@ -416,7 +423,7 @@ class RangeModel(Model, _Oriented):
                  free: NDArray[np.bool_] | None = None) -> None:
         self.k_idx, self.e_idx, self.d, self.pat, self.mode, self.I, self.gauge = k_idx, e_idx, d, pat, mode, I, gauge
         self.loss, self.f_scale, self.linear = loss, f_scale, loss == "linear"
-        _Oriented.__init__(self, self)  # type: ignore[arg-type]
+        self.hasK, self.hasE = k_idx.shape[1] > d, e_idx.shape[1] > d
         self.n = int(k_idx.size + e_idx.size)
         self.N = k_idx.shape[0] + e_idx.shape[0]
         self.fidx = None if free is None or bool(np.all(free)) else np.nonzero(free)[0]
