@@ -91,9 +91,11 @@ def toa_problem(I: int, J: int, d: int, offsets: str, seed: int, miss: float = 0
                 d=d, seed=seed)
 
 
-def case_refine(P: dict[str, Any], loss: str = "linear", fixed: str = "", eps: float = 0.0
-                ) -> Callable[[Any], tuple[float, Any]]:
-    """refine_toa from the perturbed truth (``eps``: the receivers' start scaled by 1 + eps)."""
+def case_refine(P: dict[str, Any], loss: str = "linear", fixed: str = "", eps: float = 0.0, solver: str = "auto",
+                f_scale: float | None = None) -> Callable[[Any], tuple[float, Any]]:
+    """refine_toa from the perturbed truth (``eps``: the receivers' start scaled by 1 + eps; ``f_scale``
+    None: the robust scale re-estimated from the first run's end point, so a last-digit difference
+    there changes the objective of the second run)."""
     def run(m: Any) -> tuple[float, Any]:
         kw: dict[str, Any] = {}
         r0, s0 = P["r0"] * (1.0 + eps), P["s0"].copy()
@@ -107,7 +109,8 @@ def case_refine(P: dict[str, Any], loss: str = "linear", fixed: str = "", eps: f
             fr[:, -1] = fs[:, -1] = True
             r0[fr], s0[fs] = P["r"][fr], P["s"][fs]
             kw.update(fixed_receivers=fr, fixed_sources=fs)
-        sol = m("toa.engine.nls").refine_toa(P["Y"], r0, s0, offsets=P["offsets"], loss=loss, covariance=False, **kw)
+        sol = m("toa.engine.nls").refine_toa(P["Y"], r0, s0, offsets=P["offsets"], loss=loss, covariance=False,
+                                             solver=solver, f_scale=f_scale, **kw)
         return float(sol.cost), np.vstack([sol.receivers, sol.sources])
     return run
 
@@ -287,6 +290,9 @@ def cases() -> list[tuple[str, Callable[[Any], tuple[float, Any]]]]:
                                                                     "soft_l1")))
     out.append(("refine 30x40 2d both huber miss10% 10 gross (reduced)",
                 case_refine(toa_problem(30, 40, 2, "both", 33, 0.1, gross=10), "huber")))
+    out.append(("refine 12x6 3d both (trf reference)", case_refine(toa_problem(12, 6, 3, "both", 35), solver="trf")))
+    out.append(("refine 30x40 2d sources miss10% huber 2cm (trf reference)",
+                case_refine(toa_problem(30, 40, 2, "sources", 36, 0.1, gross=5), "huber", solver="trf", f_scale=0.02)))
     out.append(("known anchors 30x40 2d receivers", case_refine(toa_problem(30, 40, 2, "receivers", 34), fixed="anchors")))
     for off in ("none", "both"):
         out.append((f"race 25 starts 12x6 3d {off} (batch)", case_batch(toa_problem(12, 6, 3, off, 11))))

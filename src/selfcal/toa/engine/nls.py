@@ -38,7 +38,9 @@ needs the exact inverse: it forms the reduced matrix once, factorises it once an
 computes only the requested d x d diagonal blocks by selected inversion,
 O(min(I,J)^2 max(I,J) d^3) time for all of them.
 ``scipy.optimize.least_squares(method="trf", x_scale="jac")`` with the analytic
-sparse Jacobian is the alternative solver (``solver="trf"``).
+sparse Jacobian is the alternative solver (``solver="trf"``, the reference): it runs as the
+constrained path's trf engine (:mod:`selfcal.toa.engine.constrained`) with the identity
+parametrisation, the gauge pinned there.
 
 Files: the model, its residuals, Jacobian, gauge and the kept / eliminated layout shared by
 every engine live in :mod:`selfcal.toa.engine.model` (re-exported here); the one range model of
@@ -46,22 +48,21 @@ the driver with its step solvers (dense, Schur reduced, Schur CG; the grid or th
 pairs) in :mod:`selfcal.toa.engine.schur_lm`, the covariance in
 :mod:`selfcal.toa.engine.covariance`, the constrained path in :mod:`selfcal.toa.engine.constrained`; this
 module keeps :func:`refine_toa` (validation of masks, constraints and priors, the choice of
-solver) and the trf solver; the result of both paths is assembled by
+solver); the result of both paths is assembled by
 :func:`selfcal.toa.engine.model._solution`.
 """
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.optimize import least_squares
 
 from ..._checks import as_matrix, as_points, check_choice, check_positive
 from ...errors import DegenerateGeometryError, InputError
 from ...optim.lm import irls
-from ...optim.structure import TRF_EXACT_MAX
 from ...robust import LOSSES
 from . import constrained as _constrained
 from .model import (  # noqa: F401 -- the model's names, re-exported from their historical home
@@ -103,35 +104,6 @@ Array = NDArray[np.float64]
 # ---------------------------------------------------------------------------
 # solvers
 # ---------------------------------------------------------------------------
-
-
-def _solve_trf(
-    theta0: Array, Y: Array, lay: _Layout, loss: str, f_scale: float, max_nfev: int | None, xtol: float
-) -> tuple[Array, bool, int]:
-    d, offsets = lay.d, lay.offsets
-    free = np.setdiff1d(np.arange(lay.n), lay.pins)
-    base = theta0.copy()
-
-    def full(x: Array) -> Array:
-        t = base.copy()
-        t[free] = x
-        return t
-
-    def fun(x: Array) -> Array:
-        return toa_residuals(full(x), Y, d, offsets)
-
-    dense = len(free) <= TRF_EXACT_MAX
-
-    def jac(x: Array) -> Any:
-        Jm = toa_jacobian(full(x), Y, d, offsets)[:, free]
-        return Jm.toarray() if dense else Jm
-
-    res = least_squares(
-        fun, theta0[free], jac=jac, method="trf", x_scale="jac", tr_solver="exact" if dense else "lsmr",
-        loss=loss,
-        f_scale=f_scale, xtol=xtol, ftol=1e-12, gtol=1e-12, max_nfev=max_nfev or 200 * max(1, len(free) // 50 + 1),
-    )
-    return full(res.x), bool(res.status > 0), int(res.njev or res.nfev)
 
 
 # ---------------------------------------------------------------------------
@@ -187,7 +159,9 @@ def refine_toa(
     solver: "auto" / "schur" (Levenberg-Marquardt on the Schur-reduced normal equations,
         conjugate gradients with a Schur-Jacobi preconditioner) or "trf"
         (``scipy.optimize.least_squares(method="trf", x_scale="jac")`` with the sparse
-        analytic Jacobian; ``tr_solver="exact"`` up to 600 unknowns, ``"lsmr"`` above).
+        analytic Jacobian; ``tr_solver="exact"`` up to 600 unknowns, ``"lsmr"`` above: the
+        constrained path's trf with the identity parametrisation, so its covariance, also
+        ``"local"``, is exact).
     covariance: which 003 eq. 17 covariance blocks to compute: True / "all", "receivers",
         "sources", False / "none", or indices ``{"receivers": idx, "sources": idx}`` /
         ``(receiver_idx, source_idx)`` (:func:`selfcal.toa.engine.covariance.normalize_covariance`);
@@ -262,12 +236,14 @@ def refine_toa(
                 fixed_receiver_offsets=fixed_receiver_offsets,
                 fixed_source_offsets=fixed_source_offsets, common_offsets=common_offsets,
                 receiver_offset_basis=receiver_offset_basis, source_offset_basis=source_offset_basis)
-    if _constrained.is_active(**cons):
+    if _constrained.is_active(**cons) or solver == "trf":
+        # the affine parametrisation (the identity, less the pinned gauge, without constraints)
         con = _constrained.make_constraints(I, J, d, offsets, receiver_offsets0=dr0,
                                             source_offsets0=os0, **cons)
-        return _constrained.refine_constrained(  # type: ignore[no-any-return]
+        sol = _constrained.refine_constrained(
             Y, r0, s0, offsets, con, loss=loss, f_scale=f_scale, max_nfev=max_nfev, xtol=xtol,
             covariance=covariance, noise=check_positive(noise, "noise"), engine=solver)
+        return sol if _constrained.is_active(**cons) else dataclasses.replace(sol, solver="trf")
 
     cov_r, cov_s = resolve_covariance(covariance, I, J)
     theta0 = _pack(r0, s0, dr0, os0)
@@ -284,22 +260,20 @@ def refine_toa(
         )
     # "auto" = Schur LM: measured faster than least_squares at every size we tried (8x10 to
     # 1000x1000), see benchmarks/bench_toa.py; "trf" stays available as the reference
-    use_trf = solver == "trf"
-    run = _solve_trf if use_trf else solve_schur_lm
 
     if loss == "linear":
         fs = 1.0
-        theta, conv, nit = run(theta0, Y, lay, loss, fs, max_nfev, xtol)
+        theta, conv, nit = solve_schur_lm(theta0, Y, lay, loss, fs, max_nfev, xtol)
     else:
         f0 = toa_residuals(theta0, Y, d, offsets)
         k95 = _TUNING[loss]
         fs = f_scale if f_scale is not None else max(k95 * _robust_sigma(f0), 1e-9)
-        theta, conv, nit = run(theta0, Y, lay, loss, fs, max_nfev, xtol)
+        theta, conv, nit = solve_schur_lm(theta0, Y, lay, loss, fs, max_nfev, xtol)
         if f_scale is None:
             # the initial residuals mix geometry error with noise: re-scale on the refined ones
             shrink = float(np.sqrt(m / max(m - n_free, 1)))  # fitted residuals underestimate sigma
             fs = max(k95 * shrink * _robust_sigma(toa_residuals(theta, Y, d, offsets)), 1e-9)
-            theta, conv2, nit2 = run(theta, Y, lay, loss, fs, max_nfev, xtol)
+            theta, conv2, nit2 = solve_schur_lm(theta, Y, lay, loss, fs, max_nfev, xtol)
             conv, nit = conv2, nit + nit2
 
     f = toa_residuals(theta, Y, d, offsets)
@@ -327,7 +301,7 @@ def refine_toa(
     if not np.isfinite(sigma):
         Cr, Cs = np.full_like(Cr, np.nan), np.full_like(Cs, np.nan)
     return _solution(theta, Y, d, offsets, Cr, Cs, canonical=True, shift=True, sigma=sigma, converged=conv,
-                     iterations=nit, cost=cost, solver="trf" if use_trf else "schur-lm")
+                     iterations=nit, cost=cost, solver="schur-lm")
 
 
 def _offsets0(value: Array | None, n: int, name: str) -> Array:

@@ -437,6 +437,8 @@ class RangeModel(Model, _Oriented):
             if not isinstance(pat, Pairs):
                 raise ValueError("the dense step needs the Pairs pattern")
             self._dense_setup()
+        elif self.fidx is not None:
+            raise ValueError("a free mask needs the dense step")
 
     def _dense_setup(self) -> None:
         """The preallocated Jacobian (its constant offset entries written) and the flat places
