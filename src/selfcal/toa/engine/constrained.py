@@ -35,11 +35,8 @@ reduced normal matrix, solved for the columns each node needs (no dense inverse)
 Engines. Above 120 free unknowns with the linear loss the fit runs on the Schur-reduced
 Newton-LM of :mod:`selfcal.toa.engine.schur_affine` (:func:`_engine_partition`), whose covariance
 blocks come from the same partition; SciPy trf stays the path of small problems, robust
-losses and ``solver="trf"`` (the reference of the tests).
-
-Length (about 640 lines, above the ~600 guideline): validation of the constraint keywords,
-the parametrisation, the residual gauge, the fit and its covariance are one job (the
-constrained engine's interface); the iteration itself lives in :mod:`selfcal.toa.engine.schur_affine`.
+losses and ``solver="trf"`` (the reference of the tests; without constraints too, as the
+identity parametrisation).
 """
 
 from __future__ import annotations

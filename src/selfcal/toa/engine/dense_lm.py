@@ -100,6 +100,7 @@ separable nonlinear least squares problems. CVPR, 5939-5947.
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -108,7 +109,7 @@ from scipy.linalg import lapack
 from ...optim.lm import FTOL, levenberg_marquardt
 from ...optim.steps import DenseStep
 from .model import _node_indices
-from .schur_lm import DEFAULT_MAX_IT, Pairs, RangeModel, directions
+from .schur_lm import DEFAULT_MAX_IT, Pairs, RangeModel
 
 # FTOL (the relative cost decrease that stops) is read from this module at each call
 
@@ -258,12 +259,12 @@ def solve_varpro_lm(
         """The positions' cost with the offsets projected out; a step moves the positions only
         (the range model without offsets, its residuals and Jacobian projected by ``Pm``)."""
 
-        def evaluate(self, t: Array) -> tuple[float, tuple[Array, Array, list[Array]]]:
-            U, dist = directions(*self.split(t)[:2], self.pat)
+        def evaluate(self, t: Array) -> tuple[float, tuple[Array, Array, Any]]:
+            U, dist = self.geometry(t)
             f = Pm @ (dist - y)
             return 0.5 * float(f @ f), (f, dist, U)
 
-        def linearize(self, t: Array, state: tuple[Array, Array, list[Array]]) -> DenseStep:
+        def linearize(self, t: Array, state: tuple[Array, Array, Any]) -> DenseStep:
             f, _, U = state
             Jx = self.jacobian(U)
             Jr = Pm @ Jx  # the reduced Jacobian (exact: A does not depend on the positions)

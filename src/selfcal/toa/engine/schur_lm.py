@@ -430,6 +430,10 @@ class RangeModel(Model, _Oriented):
         self.g0, self.it = 1.0, 0  # first gradient norm (the CG forcing term's reference), linearisations
         if isinstance(pat, Pairs):
             self.y, self.obs, self.w1 = y, None, np.ones(y.size)
+            # each pair's places in theta: its two positions (m, d) and offsets (m,) gathered directly
+            kc, ec = k_idx[pat.k], e_idx[pat.e]
+            self.pk, self.pe = kc[:, 0] // d, ec[:, 0] // d  # node rows of the (N, d) position block
+            self.ok, self.oe = (kc[:, d] if self.hasK else None), (ec[:, d] if self.hasE else None)
         else:
             self.obs = np.isfinite(y)
             self.y, self.w1 = np.where(self.obs, y, 0.0), self.obs.astype(float)
@@ -454,24 +458,45 @@ class RangeModel(Model, _Oriented):
         if self.hasE:
             self.Jf[ar, ec[:, d]] = 1.0
         self.Jflat = self.Jf.reshape(-1)
-        self.posK = [ar * n + kc[:, p] for p in range(d)]
-        self.posE = [ar * n + ec[:, p] for p in range(d)]
+        self.posK = (ar[:, None] * n + kc[:, :d]).ravel()  # flat places of the unit-vector entries
+        self.posE = (ar[:, None] * n + ec[:, :d]).ravel()
         nf = n if self.fidx is None else self.fidx.size
         self.dstep = np.arange(nf) * (nf + 1)
 
-    def evaluate(self, theta: Array) -> tuple[float, tuple[Array, Array, list[Array]]]:
+    def geometry(self, theta: Array) -> tuple[Any, Array]:
+        """Unit-vector components ``U`` (d rows, one value per pair) and distances at ``theta``.
+
+        On :class:`Pairs` the (m, d) differences are gathered from theta in one step and ``U``
+        is their transpose (a (d, m) view for the dense step, which writes it back row-major;
+        contiguous for the Schur steps); on :class:`Grid`, :func:`directions`."""
+        if self.obs is not None:
+            xK, xE, _, _ = self.split(theta)
+            return directions(xK, xE, self.pat)
+        P = theta[: self.N * self.d].reshape(self.N, self.d)
+        Dm = P[self.pk] - P[self.pe]
+        dist = np.sqrt(np.einsum("mp,mp->m", Dm, Dm))
+        Dm *= np.divide(1.0, dist, out=np.zeros_like(dist), where=dist > 0)[:, None]  # 0 where points coincide
+        return (Dm.T if self.mode == "dense" else np.ascontiguousarray(Dm.T)), dist
+
+    def evaluate(self, theta: Array) -> tuple[float, tuple[Array, Array, Any]]:
         pat = self.pat
-        xK, xE, oK, oE = self.split(theta)
-        U, f = directions(xK, xE, pat)
-        if oK is not None:
-            f += pat.kx(oK)
-        if oE is not None:
-            f += pat.ex(oE)
+        U, f = self.geometry(theta)
+        if self.obs is None:
+            if self.ok is not None:
+                f += theta[self.ok]
+            if self.oe is not None:
+                f += theta[self.oe]
+        else:
+            _, _, oK, oE = self.split(theta)
+            if oK is not None:
+                f += pat.kx(oK)
+            if oE is not None:
+                f += pat.ex(oE)
         f -= self.y
         if self.obs is not None:
             f[~self.obs] = 0.0
         if self.linear:
-            return 0.5 * float(np.vdot(f, f)), (f, self.w1, U)
+            return 0.5 * float(np.vdot(f, f) if self.obs is not None else f @ f), (f, self.w1, U)
         rho, w = loss_rho((f / self.f_scale) ** 2, self.loss)
         w = np.asarray(w, float) if self.obs is None else np.where(self.obs, w, 0.0)
         rsum = float(rho.sum()) if self.obs is None else float(rho[self.obs].sum())
@@ -485,14 +510,14 @@ class RangeModel(Model, _Oriented):
             return _BasisProjector(self.gauge(theta))
         return GaugeProjector(theta, self.N, self.d, self.I, self.hasK and self.hasE)
 
-    def jacobian(self, U: list[Array]) -> Array:
+    def jacobian(self, U: Array) -> Array:
         """The dense Jacobian at the unit vectors ``U`` (its unit-vector entries rewritten)."""
-        for p, Up in enumerate(U):
-            self.Jflat[self.posK[p]] = Up
-            self.Jflat[self.posE[p]] = -Up
+        u = U.T.ravel()  # (m, d) row-major: a view of geometry()'s array
+        self.Jflat[self.posK] = u
+        self.Jflat[self.posE] = -u
         return self.Jf if self.fidx is None else self.Jf[:, self.fidx]
 
-    def linearize(self, theta: Array, state: tuple[Array, Array, list[Array]]) -> Any:
+    def linearize(self, theta: Array, state: tuple[Array, Array, Any]) -> Any:
         f, w, U = state
         proj = self.projector(theta)
         if self.mode == "dense":
