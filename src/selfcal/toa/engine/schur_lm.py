@@ -1,11 +1,9 @@
 """The one range model of the TOA engines (:class:`RangeModel`) and its Schur step solver.
 
-:class:`RangeModel` evaluates ``y = |x_k - x_e| + o_k + o_e`` once for every unconstrained
-engine -- on the full grid (:class:`Grid`) or on the observed pairs (:class:`Pairs`, the same
-operations by ``bincount``) -- and hands the driver one of its step solvers: the dense normal
-matrix (:class:`selfcal.optim.steps.DenseStep`) or the Schur complement below, formed or by CG
-(:func:`selfcal.optim.structure.lm_step` chooses). The rest of this docstring is the Schur step,
-the default engine of refine_toa.
+:class:`RangeModel` evaluates ``y = |x_k - x_e| + o_k + o_e`` for every unconstrained engine,
+on the full grid (:class:`Grid`) or the observed pairs (:class:`Pairs`), and hands the driver
+a step solver: the dense normal matrix (:class:`selfcal.optim.steps.DenseStep`) or the Schur
+complement below, formed or by CG (:func:`selfcal.optim.structure.lm_step` chooses).
 
 The residual of entry (k, e) of the range matrix, oriented with the *kept* node set K
 (the smaller one, :class:`selfcal.toa.engine.nls._Layout`) in the rows, is::
@@ -347,16 +345,12 @@ def solve_schur_lm(
 
     Notes
     -----
-    Each Schur step solves the reduced system on the smaller node set by conjugate gradients
-    with the Schur-Jacobi preconditioner (inexact Newton with an Eisenstat-Walker forcing
-    term), then back-substitutes the eliminated nodes. Small reduced systems are formed and
-    solved exactly instead (Cholesky, least squares if it fails): at 12 x 6 with both offsets
-    a CG step costs ~150 matrix-free products of Python overhead for 24 unknowns. The iterates
-    are those of the CG path with an exact inner solve, and of the dense step (tested); the
-    crossover :data:`DIRECT_MAX_UNKNOWNS` was measured per iteration on square dense networks
-    (``benchmarks/bench_toa_minimal.py --engine``). Robust losses use iteratively reweighted
-    normal equations with weights rho'(z), whose fixed points are the stationary points of the
-    robust cost.
+    Each Schur step solves the reduced system on the smaller node set by Schur-Jacobi
+    preconditioned CG (inexact Newton, Eisenstat-Walker forcing term), then back-substitutes
+    the eliminated nodes; small reduced systems are formed and solved by Cholesky instead
+    (:data:`DIRECT_MAX_UNKNOWNS`). The dense, reduced and CG (exact inner solve) steps give the
+    same iterates (tested). Robust losses run iteratively reweighted normal equations (weights
+    rho'(z)), whose fixed points are the stationary points of the robust cost.
     """
     k_is_r = lay.k_is_receivers  # type: ignore[attr-defined]
     k_idx, e_idx = lay.k_idx, lay.e_idx  # type: ignore[attr-defined]
@@ -403,10 +397,9 @@ class RangeModel(Model, _Oriented):
     - ``"reduced"`` / ``"cg"`` (:class:`_SchurStep`): the damped system reduced onto the
       kept nodes, formed and factorised, or solved matrix-free by preconditioned CG.
 
-    The parametrisation: every parameter free with the gauge projected off each step
-    (:class:`selfcal.toa.engine.model.GaugeProjector`, or a given basis ``gauge``), or
-    (dense step only) the ``free`` parameters fitted and the others held, no gauge
-    projected (the fixed nodes hold the frame).
+    The parametrisation: all free with the gauge projected off each step
+    (:class:`selfcal.toa.engine.model.GaugeProjector`, or a given basis ``gauge``), or (dense
+    step only) the ``free`` parameters fitted, the others held and no gauge projected.
 
     Parameters
     ----------
