@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 
 from selfcal.robust import loss_rho
-from selfcal.toa.engine import dense_lm, joint_lm, nls
-from selfcal.toa.engine.varpro import solve_varpro_lm
+from selfcal.toa.engine import dense_lm, nls
+from selfcal.toa.engine.dense_lm import solve_varpro_lm
 
 MODES = ("both", "receivers", "sources")
 
@@ -47,7 +47,7 @@ def _cost(th: np.ndarray, Y: np.ndarray, d: int, offsets: str, loss: str, fs: fl
 def tight(monkeypatch: pytest.MonkeyPatch) -> None:
     """Run both engines to stationarity (no relative-cost stop): the comparison at 1e-8 is then
     a property of the minimum, not of where each engine's ftol happened to stop it."""
-    monkeypatch.setattr(joint_lm, "FTOL", 0.0)
+    monkeypatch.setattr(dense_lm, "FTOL", 0.0)
 
 
 @pytest.mark.parametrize("offsets", MODES)

@@ -35,11 +35,8 @@ reduced normal matrix, solved for the columns each node needs (no dense inverse)
 Engines. Above 120 free unknowns with the linear loss the fit runs on the Schur-reduced
 Newton-LM of :mod:`selfcal.toa.engine.schur_affine` (:func:`_engine_partition`), whose covariance
 blocks come from the same partition; SciPy trf stays the path of small problems, robust
-losses and ``solver="trf"`` (the reference of the tests).
-
-Length (about 670 lines, above the ~600 guideline): validation of the constraint keywords,
-the parametrisation, the residual gauge, the fit and its covariance are one job (the
-constrained engine's interface); the iteration itself lives in :mod:`selfcal.toa.engine.schur_affine`.
+losses and ``solver="trf"`` (the reference of the tests; without constraints too, as the
+identity parametrisation).
 """
 
 from __future__ import annotations
@@ -55,19 +52,18 @@ from numpy.typing import NDArray
 from scipy.optimize import least_squares
 
 from ...errors import DegenerateGeometryError, InputError
-from ...optim.lm import levenberg_marquardt
+from ...optim.lm import irls, levenberg_marquardt
 from ...optim.steps import ResidualModel
 from ...optim.structure import TRF_EXACT_MAX, lm_step
 from .model import (
     _TUNING,
-    NlsSolution,
+    _check_counts,
     _node_indices,
-    _rho,
     _robust_sigma,
+    _solution,
     _unpack,
     gauge_basis,
     toa_jacobian,
-    toa_model,
     toa_residuals,
 )
 from .schur_affine import MAX_GLOBAL, RangeSchurModel, local_blocks
@@ -353,7 +349,6 @@ def refine_constrained(
     the noise of a unit-weight entry and the covariance ``sigma^2 (J^T W J)^+``. Weighted fits
     run on SciPy's trf (the Schur engine has no weights).
     """
-    from ...geometry import canonical_gauge
     from .covariance import resolve_covariance
 
     I, J = Y.shape
@@ -361,7 +356,10 @@ def refine_constrained(
     want_r, want_s = resolve_covariance(covariance, I, J)
     has_r, has_s = offsets in ("receivers", "both"), offsets in ("sources", "both")
     obs = np.isfinite(Y)
-    _check_counts(obs, con, d)
+    need_r, need_s = ((~fixed & ~np.isfinite(mu)).sum(axis=1) + own.astype(int)
+                      for fixed, mu, own in ((con.fixed_r, con.prior_r_mean, con.own_r),
+                                             (con.fixed_s, con.prior_s_mean, con.own_s)))
+    _check_counts(obs.sum(axis=1), obs.sum(axis=0), need_r, need_s)
     par = _parametrise(con, r0, s0)
     Gx = _residual_gauge(par, con, r0, s0, offsets)
     p = par.x0.size
@@ -486,19 +484,13 @@ def refine_constrained(
     sig_w = w_used
 
     th = theta_of(xf)
-    r, s, dr, os_ = _unpack(th, I, J, d, offsets)
-
-    model = toa_model(r, s, dr, os_)
-    resid = np.where(obs, Y - model, np.nan)
-    f = resid[obs]
-    rms = float(np.sqrt(np.mean(f**2)))
+    r, s, _, _ = _unpack(th, I, J, d, offsets)
+    f = toa_residuals(th, Y, d, offsets)
     if w is not None:
         f = w * f  # the cost, the noise and the covariance are those of the weighted residuals
     wprior = sig_w / par.prior_std
     fp = wprior * (xf[prior_pos] - par.prior_mu) if n_prior else np.zeros(0)
-    z = (np.concatenate([f, fp]) / fs) ** 2
-    rho, drho = _rho(z, loss)
-    cost = 0.5 * fs**2 * float(rho.sum())
+    cost, drho = irls(np.concatenate([f, fp]), loss, fs)
     sigma = sigma_of(f, fp)
     if w is not None:
         drho = np.concatenate([drho[:m] * w**2, drho[m:]])  # J^T W J of the weighted rows
@@ -515,30 +507,10 @@ def refine_constrained(
     else:
         Cr = np.full((I, nr, nr), np.nan)
         Cs = np.full((J, ns, ns), np.nan)
-    if con.has_positions:
-        rc, sc, Rm = r.copy(), s.copy(), np.eye(d)
-    else:
-        rc, sc_, al = canonical_gauge(r, s)
-        assert sc_ is not None
-        sc, Rm = sc_, al.rotation
-    rcov = np.einsum("ab,nbc,dc->nad", Rm, Cr[:, :d, :d], Rm)
-    scov = np.einsum("ab,nbc,dc->nad", Rm, Cs[:, :d, :d], Rm)
-    dstd = np.sqrt(np.maximum(Cr[:, d, d], 0.0)) if has_r else None
-    ostd = np.sqrt(np.maximum(Cs[:, d, d], 0.0)) if has_s else None
-    if offsets == "both" and not con.offsets_constrained:
-        assert dr is not None and os_ is not None
-        shift = os_[0]
-        dr, os_ = dr + shift, os_ - shift
-    return NlsSolution(
-        receivers=rc, sources=sc,
-        receiver_offsets=None if dr is None else np.array(dr),
-        source_offsets=None if os_ is None else np.array(os_),
-        receiver_cov=rcov, source_cov=scov,
-        receiver_offset_std=dstd, source_offset_std=ostd,
-        residuals=resid, residual_rms=rms, sigma=sigma, converged=conv, iterations=nit,
-        cost=cost, solver="schur-lm-constrained" if schur is not None
-        else ("lm-constrained" if engine == "lm" else "trf-constrained"),
-    )
+    return _solution(th, Y, d, offsets, Cr, Cs, canonical=not con.has_positions,
+                     shift=not con.offsets_constrained, sigma=sigma, converged=conv, iterations=nit, cost=cost,
+                     solver="schur-lm-constrained" if schur is not None
+                     else ("lm-constrained" if engine == "lm" else "trf-constrained"))
 
 
 def _sigma_fixed_point(f_meas: Array, zp: Array, m: int, n_prior: int, n_free: int, loss: str) -> float:
@@ -556,22 +528,6 @@ def _sigma_fixed_point(f_meas: Array, zp: Array, m: int, n_prior: int, n_free: i
     if den <= 0.5:
         den = max(m - n_free, 1)
     return float(np.sqrt((f_meas @ f_meas) / den))
-
-
-def _check_counts(obs: BoolArray, con: Constraints, d: int) -> None:
-    """Each node needs at least as many ranges as it has free, prior-less unknowns of its own."""
-    for kind, cnt, fixed, mu, own in (
-        ("receiver", obs.sum(axis=1), con.fixed_r, con.prior_r_mean, con.own_r),
-        ("source", obs.sum(axis=0), con.fixed_s, con.prior_s_mean, con.own_s),
-    ):
-        need = (~fixed & ~np.isfinite(mu)).sum(axis=1) + own.astype(int)
-        need = np.where(need > 0, need, 0)
-        bad = np.nonzero(cnt < need)[0]
-        if bad.size:
-            k = int(bad[0])
-            raise DegenerateGeometryError(
-                f"{kind} {k} has {int(cnt[k])} observed ranges but {int(need[k])} free unknowns; "
-                "drop it, fix some of its coordinates or add measurements", kind="unobservable-node")
 
 
 class _LuInverse:
