@@ -36,7 +36,13 @@ Engines. Above 120 free unknowns with the linear loss the fit runs on the Schur-
 Newton-LM of :mod:`selfcal.toa.engine.schur_affine` (:func:`_engine_partition`), whose covariance
 blocks come from the same partition; SciPy trf stays the path of small problems, robust
 losses and ``solver="trf"`` (the reference of the tests; without constraints too, as the
-identity parametrisation).
+identity parametrisation), and ``solver="lm"``: the driver on the reduced vector (the
+pipeline's known-heights fit, with per-entry ``weights``).
+
+Length (about 630 lines, above the ~600 guideline): validation of the constraint keywords,
+the parametrisation, the residual gauge, the weighted fit and its covariance are one job
+(the constrained engine's interface); the Schur iteration lives in
+:mod:`selfcal.toa.engine.schur_affine`.
 """
 
 from __future__ import annotations
