@@ -36,15 +36,16 @@ Array = NDArray[np.float64]
 
 @dataclass(frozen=True)
 class KnownNode:
-    """One node with a known position.
+    """One node with a known position, or some known coordinates of it.
 
     Attributes
     ----------
     name: the name it was given by.
     kind: "receiver" or "source".
     index: row (receiver) or column (source) index of the range matrix.
-    position: (d,) metres in the user's frame.
-    std: isotropic standard deviation per coordinate (m), or None for an exact position.
+    position: (d,) metres in the user's frame; NaN where the coordinate is not known
+        (``A3,,,2.41``: only the height known).
+    std: isotropic standard deviation of each known coordinate (m), or None for exact ones.
     """
 
     name: str
@@ -52,6 +53,16 @@ class KnownNode:
     index: int
     position: Array
     std: float | None = None
+
+    @property
+    def mask(self) -> NDArray[np.bool_]:
+        """(d,) bool: which coordinates are known."""
+        return np.isfinite(np.asarray(self.position, float))
+
+    @property
+    def full(self) -> bool:
+        """Every coordinate known."""
+        return bool(self.mask.all())
 
 
 @dataclass(frozen=True)
@@ -74,6 +85,9 @@ class FrameInfo:
     known_rms_fit: the same after the constrained fit (0 for exact nodes).
     known_test: the test of the known positions against the ranges
         (:class:`selfcal.toa.verdict.known_test.KnownTest` as a dict), None for kind != "known".
+    axes_fixed: the frame axes whose direction and origin the known coordinates fix
+        (``("z",)`` when only heights are known: the room's z, horizontal axes canonical);
+        None where not computed (kind != "known").
     """
 
     kind: str
@@ -86,10 +100,12 @@ class FrameInfo:
     known_rms: float | None = None
     known_rms_fit: float | None = None
     known_test: dict[str, Any] | None = None
+    axes_fixed: tuple[str, ...] | None = None
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-safe dictionary."""
-        return dataclasses.asdict(self) | {"references": list(self.references)}
+        return dataclasses.asdict(self) | {"references": list(self.references),
+                                           "axes_fixed": None if self.axes_fixed is None else list(self.axes_fixed)}
 
 
 @dataclass(frozen=True, repr=False)
@@ -188,17 +204,27 @@ def read_known_csv(path: str | os.PathLike[str], dim: int = 3) -> dict[str, tupl
     One node per line. An optional header line names the columns (``name,x,y,z,std``;
     ``z`` absent in 2-D). Without a header the columns are ``name`` then ``dim``
     coordinates then an optional ``std``; an empty or absent ``std`` means exact.
+    An empty coordinate is one not known: ``A3,,,2.41`` gives only A3's height (the
+    fit holds that coordinate, the others stay free); at least one coordinate per line.
     Lines starting with ``#`` and blank lines are skipped.
 
     Returns
     -------
     ``{name: (x, y[, z][, std])}`` suitable for ``known=`` of :func:`calibrate_in_frame`
-    (a tuple of ``dim + 1`` values carries a std).
+    (a tuple of ``dim + 1`` values carries a std; NaN = coordinate not known).
 
     Raises
     ------
     InputError: unreadable file, wrong number of columns, non-numeric or non-finite
-        values, negative std, duplicated names.
+        values, no coordinate on a line, negative std, duplicated names.
+
+    Examples
+    --------
+    >>> import tempfile, pathlib
+    >>> f = pathlib.Path(tempfile.mkdtemp()) / "known.csv"
+    >>> _ = f.write_text("name,x,y,z\nA0,0,0,2.4\nA3,,,2.41\n")
+    >>> read_known_csv(f)["A3"]
+    (nan, nan, 2.41)
     """
     p = Path(path)
     if not p.is_file():
@@ -220,7 +246,8 @@ def read_known_csv(path: str | os.PathLike[str], dim: int = 3) -> dict[str, tupl
         if dim == 2 and "z" in first:
             raise InputError(f"{p}: the header has a z column but the calibration is 2-D")
         if any(a not in first for a in axes):
-            raise InputError(f"{p}: header {rows[0]} lacks one of {','.join(axes)}")
+            raise InputError(f"{p}: header {rows[0]} lacks one of {','.join(axes)} (leave a value empty "
+                             "for a coordinate that is not known)")
         cols = first
         rows = rows[1:]
         header = True
@@ -241,23 +268,35 @@ def read_known_csv(path: str | os.PathLike[str], dim: int = 3) -> dict[str, tupl
         if name in out:
             raise InputError(f"{p}: line {ln}: node {name!r} given twice")
         try:
-            xyz = [float(rec[a]) for a in axes]
+            xyz = [float(rec[a]) if rec.get(a, "") != "" else float("nan") for a in axes]
             std = float(rec["std"]) if rec.get("std", "") != "" else None
         except ValueError:
             raise InputError(f"{p}: line {ln}: non-numeric value in {row}") from None
-        if not np.all(np.isfinite(xyz)) or (std is not None and not (np.isfinite(std) and std >= 0)):
+        given = [a for a in axes if rec.get(a, "") != ""]
+        if not given:
+            raise InputError(f"{p}: line {ln}: node {name!r} has no coordinate (give at least one of "
+                             f"{','.join(axes)}; an empty field is a coordinate not known)")
+        if not np.all(np.isfinite([v for v, a in zip(xyz, axes, strict=True) if a in given])) or (
+                std is not None and not (np.isfinite(std) and std >= 0)):
             raise InputError(f"{p}: line {ln}: coordinates must be finite and std >= 0")
         out[name] = tuple(xyz) + (() if std is None or std == 0 else (std,))
     return out
 
 
 def parse_known(known: Any, I: int, J: int, dim: int, *, receiver_names: Sequence[str] | None = None,
-                source_names: Sequence[str] | None = None) -> list[KnownNode]:
+                source_names: Sequence[str] | None = None, partial: bool = True) -> list[KnownNode]:
     """Validate ``known=`` into :class:`KnownNode` records.
 
     ``known``: a mapping ``{node: (x, y[, z][, std])}`` (std in metres; absent or 0 =
-    exact), a path to a CSV file (:func:`read_known_csv`), or a list of
-    :class:`KnownNode`.
+    exact; NaN or None = a coordinate not known, e.g. ``(nan, nan, 2.41)`` a known
+    height), a path to a CSV file (:func:`read_known_csv`), or a list of
+    :class:`KnownNode`. ``partial=False``: every coordinate must be given (for fits that
+    take whole positions only).
+
+    Raises
+    ------
+    InputError: unknown node names, a node given twice, a node without any coordinate,
+        partial coordinates where ``partial=False``.
     """
     if isinstance(known, (str, os.PathLike)):
         known = read_known_csv(known, dim)
@@ -266,10 +305,16 @@ def parse_known(known: Any, I: int, J: int, dim: int, *, receiver_names: Sequenc
     elif isinstance(known, Mapping):
         nodes = []
         for name, value in known.items():
-            v = np.asarray(value, dtype=float).ravel()
-            if v.size not in (dim, dim + 1) or not np.isfinite(v).all():
-                raise InputError(f"known node {name!r}: expected {dim} finite coordinates and an "
-                                 f"optional std, got {value!r}")
+            try:
+                v = np.array([np.nan if x is None else x for x in np.ravel(np.asarray(value, dtype=object))],
+                             dtype=float)
+            except (TypeError, ValueError):
+                raise InputError(f"known node {name!r}: expected {dim} coordinates and an optional std, "
+                                 f"got {value!r}") from None
+            if v.size not in (dim, dim + 1) or not np.isfinite(v[:dim]).any() or (
+                    v.size == dim + 1 and not np.isfinite(v[dim])):
+                raise InputError(f"known node {name!r}: expected {dim} coordinates (NaN = not known, at least "
+                                 f"one given) and an optional std, got {value!r}")
             std = float(v[dim]) if v.size == dim + 1 else None
             if std is not None and std < 0:
                 raise InputError(f"known node {name!r}: std must be >= 0, got {std}")
@@ -284,6 +329,11 @@ def parse_known(known: Any, I: int, J: int, dim: int, *, receiver_names: Sequenc
         seen.add((n.kind, n.index))
         if np.asarray(n.position).shape != (dim,):
             raise InputError(f"known node {n.name!r}: position must have {dim} coordinates")
+        if not n.mask.any():
+            raise InputError(f"known node {n.name!r}: no coordinate given")
+        if not partial and not n.full:
+            raise InputError(f"known node {n.name!r}: only some coordinates given; this fit takes whole "
+                             f"positions ({dim} coordinates per node)")
     if not nodes:
         raise InputError("known: no nodes given")
     return nodes
