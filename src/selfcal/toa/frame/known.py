@@ -201,9 +201,9 @@ def _fit_partial(result: Any, data: Any, usable: Sequence[KnownNode], dropped: S
         sol, other = _refit(data, _full(other.receivers, ok_r), _full(other.sources, ok_s), usable, kw,
                             covariance)[0], sol
     out = _embed(result, sol, ok_r, ok_s, c, f"{result.method}+known({len(usable)}, partial)")
-    before = float(np.sqrt(np.nanmean(np.where(mask, aligned - ref, np.nan) ** 2) * d))
+    before = float(np.sqrt(np.nanmean(np.where(mask, aligned - ref, np.nan) ** 2)))  # per known coordinate
     fitted = np.array([node_positions(out, k.kind)[k.index] for k in usable])
-    after = float(np.sqrt(np.nanmean(np.where(mask, fitted - ref, np.nan) ** 2) * d))
+    after = float(np.sqrt(np.nanmean(np.where(mask, fitted - ref, np.nan) ** 2)))
     info = _partial_info(usable, d, axes, n_free, before, after, dropped)
     out, info = judge_known(out, info, result, sol, data, usable, aligned, Rm, d, fr, fs, kw["offsets"],
                             kw["noise"], mirror_stated=side is not None, mirror_fit=other)

@@ -73,7 +73,8 @@ class FrameInfo:
     ----------
     kind: "canonical" (no frame asked), "known" or "reference".
     references: names of the nodes that define the frame.
-    rank: affine rank of the references (0 = one point, d = full).
+    rank: affine rank of the references (0 = one point, d = full); where known nodes give
+        only some coordinates, the number of frame axes they fix (``axes_fixed``).
     determined: True when rotation, translation and mirror are all fixed by them.
     residual_gauge: continuous freedoms the references leave (0 when determined or only
         the mirror is left); those are held at the blind solution's canonical gauge.
@@ -81,7 +82,8 @@ class FrameInfo:
     message: one line saying what was fixed, and what choice was taken where not.
     known_rms: RMS (m) of known-minus-estimated positions over the known nodes after the
         rigid alignment of the blind solution (before the constrained fit): a check of
-        the known coordinates against the ranges; None for kind != "known".
+        the known coordinates against the ranges; None for kind != "known". Where some
+        nodes give only some coordinates: the RMS over the known coordinates.
     known_rms_fit: the same after the constrained fit (0 for exact nodes).
     known_test: the test of the known positions against the ranges
         (:class:`selfcal.toa.verdict.known_test.KnownTest` as a dict), None for kind != "known".
