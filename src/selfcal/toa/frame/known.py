@@ -206,8 +206,25 @@ def _fit_partial(result: Any, data: Any, usable: Sequence[KnownNode], dropped: S
     after = float(np.sqrt(np.nanmean(np.where(mask, fitted - ref, np.nan) ** 2)))
     info = _partial_info(usable, d, axes, n_free, before, after, dropped)
     out, info = judge_known(out, info, result, sol, data, usable, aligned, Rm, d, fr, fs, kw["offsets"],
-                            kw["noise"], mirror_stated=side is not None, mirror_fit=other)
+                            kw["noise"], mirror_stated=side is not None, mirror_fit=other,
+                            local_blind=_local_blind(data, sol, kw))
     return FramedToaResult(out, info)
+
+
+def _local_blind(data: Any, sol: Any, kw: dict[str, Any]) -> Any:
+    """The blind model refitted from the constrained fit ``sol`` (no constraint, no covariance):
+    the nested model of the known test at the same minimum; None when the refit fails."""
+    from ...errors import DegenerateGeometryError
+    from ..engine.nls import refine_toa
+
+    c, ok_r, ok_s = data.c, data.ok_r, data.ok_s
+    try:
+        return refine_toa(data.Y[np.ix_(ok_r, ok_s)], sol.receivers, sol.sources, offsets=kw["offsets"],
+                          common_offsets=kw["common"], receiver_offsets0=sol.receiver_offsets,
+                          source_offsets0=sol.source_offsets, loss=kw["loss"],
+                          f_scale=None if kw["f_scale"] is None else kw["f_scale"] * c, covariance=False)
+    except (DegenerateGeometryError, np.linalg.LinAlgError, ValueError):
+        return None
 
 
 def _mirror_start(sol: Any, data: Any, usable: Sequence[KnownNode], axes: tuple[str, ...], n_free: int,
