@@ -423,8 +423,13 @@ def align_known(result: Any, known: Sequence[KnownNode]) -> FramedToaResult:
     >>> bool(np.allclose(out.receivers, r, atol=1e-6))
     True
     """
+    from ...errors import InputError
     from ...geometry import rotate_covariances
 
+    part = [k.name for k in known if not k.full]
+    if part:
+        raise InputError(f"known node(s) {', '.join(part)}: only some coordinates given; moving a result "
+                         "without refitting it takes whole positions")
     R0 = np.asarray(result.receivers, float)
     S0 = np.asarray(result.sources, float)
     d = R0.shape[1]

@@ -200,7 +200,8 @@ def check_frame(frame: str | Mapping[str, Any], I: int, J: int, *, receiver_name
     return {k: resolve_node(v, I, J, receiver_names, source_names) for k, v in roles.items()}
 
 
-def read_known_csv(path: str | os.PathLike[str], dim: int = 3) -> dict[str, tuple[float, ...]]:
+def read_known_csv(path: str | os.PathLike[str], dim: int = 3, *, partial: bool = True
+                   ) -> dict[str, tuple[float, ...]]:
     """Read known node positions from a CSV file ``name,x,y,z[,std]`` (metres).
 
     One node per line. An optional header line names the columns (``name,x,y,z,std``;
@@ -208,7 +209,8 @@ def read_known_csv(path: str | os.PathLike[str], dim: int = 3) -> dict[str, tupl
     coordinates then an optional ``std``; an empty or absent ``std`` means exact.
     An empty coordinate is one not known: ``A3,,,2.41`` gives only A3's height (the
     fit holds that coordinate, the others stay free); at least one coordinate per line.
-    Lines starting with ``#`` and blank lines are skipped.
+    Lines starting with ``#`` and blank lines are skipped. ``partial=False``: every
+    coordinate must be given (for the commands that take whole positions).
 
     Returns
     -------
@@ -278,6 +280,9 @@ def read_known_csv(path: str | os.PathLike[str], dim: int = 3) -> dict[str, tupl
         if not given:
             raise InputError(f"{p}: line {ln}: node {name!r} has no coordinate (give at least one of "
                              f"{','.join(axes)}; an empty field is a coordinate not known)")
+        if not partial and len(given) < dim:
+            raise InputError(f"{p}: line {ln}: node {name!r} lacks a coordinate; this command takes whole "
+                             f"positions ({','.join(axes)}); only calibrate toa --known fits partly known nodes")
         if not np.all(np.isfinite([v for v, a in zip(xyz, axes, strict=True) if a in given])) or (
                 std is not None and not (np.isfinite(std) and std >= 0)):
             raise InputError(f"{p}: line {ln}: coordinates must be finite and std >= 0")
