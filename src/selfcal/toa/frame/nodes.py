@@ -226,7 +226,7 @@ def read_known_csv(path: str | os.PathLike[str], dim: int = 3, *, partial: bool 
     --------
     >>> import tempfile, pathlib
     >>> f = pathlib.Path(tempfile.mkdtemp()) / "known.csv"
-    >>> _ = f.write_text("name,x,y,z\nA0,0,0,2.4\nA3,,,2.41\n")
+    >>> _ = f.write_text("name,x,y,z\\nA0,0,0,2.4\\nA3,,,2.41\\n")
     >>> read_known_csv(f)["A3"]
     (nan, nan, 2.41)
     """
