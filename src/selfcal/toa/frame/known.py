@@ -3,7 +3,9 @@
 ``known=`` (``--known FILE.csv``, ``name,x,y,z[,std]``): the blind solution is moved onto
 the known nodes by a weighted least-squares rigid motion (Kabsch), then refined by
 :func:`selfcal.toa.engine.nls.refine_toa` with the exact nodes as fixed rows and the others as
-Gaussian priors. ``k`` affinely independent known nodes fix a rigid motion in ``d``
+Gaussian priors. A node may give only some coordinates (an empty field, ``A3,,,2.41``):
+those are fixed entries (or per-coordinate priors) and the rigid motion is fitted to the
+known coordinates alone (:func:`_fit_partial`). ``k`` affinely independent known nodes fix a rigid motion in ``d``
 dimensions only when ``k >= d + 1``; what they leave open (a mirror, a rotation about a
 line, every rotation) is held at the blind solution's canonical gauge and reported in
 :class:`selfcal.toa.frame.nodes.FrameInfo`. Re-exported by :mod:`selfcal.toa.frame.frame`.
@@ -64,7 +66,9 @@ def fit_known(
     ----------
     matrix: the (I, J) ranges (metres) or times (seconds with the result's ``speed``).
     result: the blind :class:`selfcal.toa.solve.ToaResult`.
-    known: from :func:`parse_known`.
+    known: from :func:`parse_known`. Nodes may give only some coordinates (NaN elsewhere,
+        ``A3,,,2.41`` a known height): those are fixed entries / per-coordinate priors, the
+        frame's axes they fix are the user's and the others canonical (:func:`_fit_partial`).
     offsets, loss, f_scale, max_nfev, covariance: as for :func:`selfcal.toa.engine.nls.refine_toa`
         (``f_scale`` / ``noise`` in the matrix's units); ``offsets="common"``: one offset
         shared by every receiver (``common_offsets="receivers"``), the model the moving-tag

@@ -18,6 +18,11 @@ estimate until the result "passes". The test here (:func:`known_test`):
   covariance and its stated std (Bonferroni over the known nodes); the worst one when
   none alone is significant.
 
+Known nodes that give only some coordinates (heights): ``q`` is the known coordinates
+less the rigid freedoms they fix (:func:`gauge_left`), the blind fit is the blind model
+refitted from the constrained one (:func:`judge_known`), and each node's discrepancy is
+chi-square with as many dof as its known coordinates.
+
 :func:`frame_mirror` gives the isometry a known set of affine rank ``r < d`` leaves (the
 mirror through their plane, the half-turn about their line, the point reflection), which
 :func:`selfcal.toa.verdict.uniqueness.uniqueness_test` then tests as an alternative of the free nodes.
