@@ -320,10 +320,13 @@ def _on_side(sol: Any, usable: Sequence[KnownNode], ok_r: NDArray[np.bool_], ok_
 
 
 def _rotation(p: Array, d: int) -> Array:
+    """The rotation of a rotation vector (3-D, Rodrigues) or an angle (2-D)."""
     if d == 3:
-        from scipy.spatial.transform import Rotation
-
-        return Rotation.from_rotvec(p).as_matrix()
+        th = float(np.linalg.norm(p))
+        K = np.array([[0.0, -p[2], p[1]], [p[2], 0.0, -p[0]], [-p[1], p[0], 0.0]])
+        if th < 1e-8:
+            return np.eye(3) + K
+        return np.eye(3) + np.sin(th) / th * K + (1.0 - np.cos(th)) / th**2 * (K @ K)
     cs, sn = np.cos(p[0]), np.sin(p[0])
     return np.array([[cs, -sn], [sn, cs]])
 
@@ -332,11 +335,13 @@ def _masked_rigid(est: Array, ref: Array, w: Array, scale: float) -> list[tuple[
     """The best rigid motion ``y = R x + t`` of each handedness onto known coordinates.
 
     Minimises ``sum_k w_k sum_{c known} ((R est_k + t)_c - ref_kc)^2`` over proper rotations
-    and over improper ones (``R = Q F``, ``F`` the reflection of the last axis), each from
-    the cube group's 24 rotations (4 in 2-D) as starts (SciPy ``least_squares``); the
-    freedoms the known coordinates leave (a rotation about z and horizontal translations
-    when only heights are known) are held nearest the blind fit's canonical gauge by a
-    vanishing penalty (``1e-7`` relative). Returns ``[(R, t, cost)]``, the better
+    and over improper ones (``R = Q F``, ``F`` the reflection of the last axis) by SciPy
+    ``least_squares`` (trf) from the cube group's 24 rotations (4 in 2-D). The freedoms the
+    known coordinates leave (a rotation about z and horizontal translations when only
+    heights are known) do not move from their start: the start at ``R = F``, ``t`` zero
+    along axes without a known coordinate (the blind fit's canonical gauge) is kept when it
+    reaches the best cost (within 1e-9 relative), so those freedoms stay at the blind
+    solution's principal axes and centroid. Returns ``[(R, t, cost)]``, the better
     handedness first (the proper one on a tie at round-off).
     """
     from scipy.optimize import least_squares
@@ -346,32 +351,39 @@ def _masked_rigid(est: Array, ref: Array, w: Array, scale: float) -> list[tuple[
     refz = np.where(mask, ref, 0.0)
     sw = np.sqrt(np.asarray(w, float) / float(np.max(w)))
     nr = 3 if d == 3 else 1
-    eps = 1e-7
     if d == 3:
         from scipy.spatial.transform import Rotation
 
         starts = list(Rotation.create_group("O").as_rotvec())
+        starts.sort(key=lambda v: float(np.linalg.norm(v)))  # the identity first
     else:
         starts = [np.array([a]) for a in (0.0, np.pi / 2, np.pi, -np.pi / 2)]
     out = []
     for H in (np.eye(d), np.diag([1.0] * (d - 1) + [-1.0])):
         def fun(x: Array, H: Array = H) -> Array:
-            R = _rotation(x[:nr], d) @ H
-            E = (est @ R.T + x[nr:] - refz) * sw[:, None]
-            return np.concatenate([E[mask], eps * scale * x[:nr], eps * x[nr:]])
+            E = (est @ (_rotation(x[:nr], d) @ H).T + x[nr:] - refz) * sw[:, None]
+            return E[mask]
 
-        best = None
-        for p0 in starts:
+        def run(p0: Array, nfev: int) -> Any:
             R0 = _rotation(p0, d) @ H
             t0 = np.array([np.mean((refz - est @ R0.T)[mask[:, c], c]) if mask[:, c].any() else 0.0
                            for c in range(d)])
-            sol = least_squares(fun, np.concatenate([p0, t0]), method="lm", xtol=1e-12, ftol=1e-12)
-            if best is None or sol.cost < best.cost:
-                best = sol
-        assert best is not None
+            return least_squares(fun, np.concatenate([p0, t0]), method="trf", x_scale=np.r_[
+                np.ones(nr), np.full(d, scale)], xtol=1e-12, ftol=1e-12, gtol=1e-12, max_nfev=nfev)
+
+        # every start a few steps, the identity and the best of the others to convergence
+        sols = [run(starts[0], 200)]
+        screen = [run(p0, 8) for p0 in starts[1:]]
+        if screen:
+            top = min(screen, key=lambda r: r.cost)
+            sols.append(least_squares(fun, top.x, method="trf", x_scale=np.r_[np.ones(nr), np.full(d, scale)],
+                                      xtol=1e-12, ftol=1e-12, gtol=1e-12, max_nfev=200))
+        best = min(sols, key=lambda r: r.cost)
+        floor = 1e-18 * scale**2 * max(int(mask.sum()), 1)
+        if sols[0].cost <= best.cost * (1.0 + 1e-9) + floor:  # the blind gauge reaches the optimum
+            best = sols[0]
         R = _rotation(best.x[:nr], d) @ H
-        E = (est @ R.T + best.x[nr:] - refz) * sw[:, None]
-        out.append((R, best.x[nr:], float(np.sum(E[mask] ** 2))))
+        out.append((R, best.x[nr:], 2.0 * float(best.cost)))
     tie = 1e-10 * (scale**2) * max(int(mask.sum()), 1)
     if out[1][2] < out[0][2] * (1.0 - 1e-6) - tie:
         out = out[::-1]
