@@ -476,10 +476,11 @@ def _partial_mirror(u: Any, out: Any, sol: Any, alt: Any, usable: Sequence[Any],
     ok = np.concatenate([ok_r, ok_s])
     X0, Xa = np.vstack([R0, S0]), np.vstack([Ra, Sa])
     axes, n_free = gauge_left(np.asarray(aligned, float), masks)
-    if n_free:  # the freedoms the known coordinates leave: align over them (proper motions)
+    if n_free:  # the freedoms the known coordinates leave: align over them (a reflection of
+        # axes the user did not fix is a gauge too: heights alone leave x -> -x)
         cols = [c for c in range(d) if "xyz"[c] not in axes] if axes else list(range(d))
         if len(cols) >= 2:
-            al = align(Xa[ok][:, cols], X0[ok][:, cols], reflection=False)
+            al = align(Xa[ok][:, cols], X0[ok][:, cols], reflection=len(cols) < d)
             Xa[:, cols] = al.apply(Xa[:, cols])
         elif cols:
             Xa[:, cols] += np.nanmean(X0[ok][:, cols] - Xa[ok][:, cols], axis=0)
