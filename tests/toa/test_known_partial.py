@@ -13,8 +13,11 @@ works, over random draws of that family (``uniqueness_families.tag_one_height``)
 - known heights all at one level leave the mirror ``z -> 2h - z`` open: reported, exit 1.
 
 The default run takes a few draws (deterministic seeds); the ``slow`` ones 100 per case
-(``pytest -m slow``). Measured (slow run, this commit's code): see the report of issue 27
-/ 29 and docs/design.md.
+(``pytest -m slow``). Measured with this code (``_remedy`` / ``_wrong`` over seeds 0-49,
+``_level`` over 0-32): tag-one-height blind flagged 50 / 50, with the true heights 49 / 50
+pass (seed 10: the blind fit's determinacy verdict stands) and 50 / 50 right, wrong
+heights caught 50 / 50 (the culprit named in 29); one level: the mirror reported 33 / 33;
+two levels: 33 / 33 pass, 32 / 33 right (seed 13, see ``_level``).
 """
 
 from __future__ import annotations
