@@ -64,3 +64,12 @@ def test_graph_takes_whole_positions_only(tmp_path):
     known.write_text("name,x,y,z\nA0,,,2.8\n")
     r = run("calibrate", "graph", log, "--known", known, "--out", tmp_path / "g.json")
     assert r.exit_code == 2 and "whole" in r.output, r.output
+
+
+def test_known_file_in_millimetres_refused_before_the_solve(tmp_path):
+    rng_path = _scene(tmp_path, 0)
+    known = tmp_path / "mm.csv"
+    known.write_text("name,x,y,z\n" + "".join(f"A{i},,,{1000 * ANCHORS[i, 2]}\n" for i in range(7)))
+    r = run("calibrate", "toa", rng_path, "--known", known, "--out", tmp_path / "x.json")
+    assert r.exit_code == 2 and "unit mistake" in r.output, r.output
+    assert not (tmp_path / "x.json").exists()

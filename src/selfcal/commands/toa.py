@@ -115,7 +115,7 @@ def toa_command(matrix: Path, speed: float | None, offsets: str | None, dim: str
         parse_known,
         read_known_csv,
     )
-    from ..toa.frame.nodes import check_frame, node_names
+    from ..toa.frame.nodes import check_frame, check_known_scale, node_names
     from ..toa.recipes.recipes import apply_recipe
     from ._common import enrich_payload, to_metres, write_nodes_csv
 
@@ -143,7 +143,9 @@ def toa_command(matrix: Path, speed: float | None, offsets: str | None, dim: str
     known_table = None
     if known is not None:
         known_table = read_known_csv(known, 2 if dim == "2" else 3)  # validated before the solve
-        parse_known(known_table, I, J, 2 if dim == "2" else 3, **names)
+        check_known_scale(parse_known(known_table, I, J, 2 if dim == "2" else 3, receiver_names=names["receiver_names"],
+                                      source_names=names["source_names"]),
+                          float(np.nanmax(np.abs(M))) * (speed if speed is not None else 1.0))
     if frame is not None:
         check_frame(frame, I, J, **names)
     sidecar = _sidecar(entries, M.shape, out, [matrix, known])  # refused before the solve
@@ -167,7 +169,8 @@ def toa_command(matrix: Path, speed: float | None, offsets: str | None, dim: str
     loss_used = loss if loss is not None else "linear"
     M_fit = _fitted_entries(M, rec.rejected, res.outliers)
     if known_table is not None and known is not None:
-        nodes = parse_known(_redim(known_table, known, d_out), I, J, d_out, **names)
+        nodes = parse_known(_redim(known_table, known, d_out), I, J, d_out, receiver_names=names["receiver_names"],
+                            source_names=names["source_names"])
         with stage(f"fit with {len(nodes)} known nodes"):
             framed = fit_known(M_fit, res, nodes, offsets=off_used, loss=loss_used, noise=noise, side=side)
     elif frame is not None:

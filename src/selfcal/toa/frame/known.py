@@ -364,7 +364,7 @@ def _masked_rigid(est: Array, ref: Array, w: Array, scale: float) -> list[tuple[
             E = (est @ (_rotation(x[:nr], d) @ H).T + x[nr:] - refz) * sw[:, None]
             return E[mask]
 
-        def run(p0: Array, nfev: int) -> Any:
+        def run(p0: Array, nfev: int, H: Array = H) -> Any:
             R0 = _rotation(p0, d) @ H
             t0 = np.array([np.mean((refz - est @ R0.T)[mask[:, c], c]) if mask[:, c].any() else 0.0
                            for c in range(d)])

@@ -27,7 +27,8 @@ from numpy.typing import NDArray
 from ..._result import WrappedResult
 from ...errors import InputError
 
-__all__ = ["FrameInfo", "FramedToaResult", "KnownNode", "check_frame", "node_names", "node_positions",
+__all__ = ["FrameInfo", "FramedToaResult", "KnownNode", "check_frame", "check_known_scale", "node_names",
+           "node_positions",
            "parse_frame", "parse_known",
            "read_known_csv", "RefitData", "refit_data", "replace_fields", "resolve_node", "units"]
 
@@ -344,6 +345,46 @@ def parse_known(known: Any, I: int, J: int, dim: int, *, receiver_names: Sequenc
     if not nodes:
         raise InputError("known: no nodes given")
     return nodes
+
+
+#: known coordinates may spread at most this many times the triangle-inequality bound
+#: ``2 max range`` (two nodes ranging to a common partner are at most that far apart): the
+#: margin leaves offsets and missing partners room; a unit mistake (cm, mm) is 100-1000x
+KNOWN_SCALE_MARGIN = 10.0
+
+
+def check_known_scale(nodes: Sequence[KnownNode], max_range: float) -> None:
+    """Refuse known coordinates whose spread points at a unit mistake (the file is metres).
+
+    Parameters
+    ----------
+    nodes: from :func:`parse_known`.
+    max_range: the largest range of the input (metres).
+
+    Raises
+    ------
+    InputError
+        Along some axis the known coordinates spread beyond :data:`KNOWN_SCALE_MARGIN`
+        times ``2 max_range``.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> n = [KnownNode("A0", "receiver", 0, np.array([np.nan, np.nan, 2900.0])),
+    ...      KnownNode("A1", "receiver", 1, np.array([np.nan, np.nan, 300.0]))]
+    >>> check_known_scale(n, 8.0)
+    Traceback (most recent call last):
+    ...
+    selfcal.errors.InputError: known coordinates spread 2600 m along z but the largest range is 8 m: the known file is in metres (a unit mistake?)
+    """
+    if not nodes or not np.isfinite(max_range) or max_range <= 0:
+        return
+    P = np.array([np.asarray(k.position, float) for k in nodes])
+    for c in range(P.shape[1]):
+        v = P[:, c][np.isfinite(P[:, c])]
+        if v.size >= 2 and float(np.ptp(v)) > KNOWN_SCALE_MARGIN * 2.0 * max_range:
+            raise InputError(f"known coordinates spread {float(np.ptp(v)):.4g} m along {'xyz'[c]} but the largest "
+                             f"range is {max_range:.4g} m: the known file is in metres (a unit mistake?)")
 
 
 _ROLES = ("origin", "x", "xy", "z")
