@@ -222,3 +222,13 @@ def test_heights_at_one_level_leave_the_mirror_many_draws():
     assert mirror == FULL
     assert passed >= 0.99 * FULL  # false alarms of the mirror / known tests <= 1 % (levels 1e-3)
     assert right >= 0.95 * FULL and wrong <= 0.05 * FULL
+
+
+def test_side_resolves_the_mirror_heights_at_one_level_leave():
+    """``side`` is the user's statement of the mirror image: the other nodes below (above) the level."""
+    for seed in range(2):
+        Y, r, s = _room(seed)
+        below = _calibrate(Y, _heights(r[:, 2], range(4)), seed, dim=3, side="below")
+        assert below.success and _room_ok(below, r, s)
+        above = _calibrate(Y, _heights(r[:, 2], range(4)), seed, dim=3, side="above")
+        assert np.median(above.sources[:, 2]) > 2.9  # the mirror image, as stated
