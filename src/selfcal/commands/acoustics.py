@@ -404,7 +404,7 @@ def _pipeline_outputs(directory: Path, out: Path, plot: Path | None, report: Pat
     if known is not None:
         from ..toa.frame.frame import read_known_csv
 
-        read_known_csv(known, 2 if dim == "2" else 3)  # validated before the (slow) run
+        read_known_csv(known, 2 if dim == "2" else 3, partial=False)  # validated before the (slow) run
     if frame is not None:
         from ..toa.frame.frame import parse_frame
 
@@ -477,7 +477,7 @@ def _room_frame(result: Any, known: Path | None, frame: str | None) -> Any:
     I, d = np.asarray(result.receivers).shape
     J = np.asarray(result.sources).shape[0]
     if known is not None:
-        nodes = parse_known(read_known_csv(known, d), I, J, d, receiver_names=rn, source_names=sn)
+        nodes = parse_known(read_known_csv(known, d, partial=False), I, J, d, receiver_names=rn, source_names=sn)
         return align_known(result, nodes)
     return apply_frame(result, str(frame), receiver_names=rn, source_names=sn)
 

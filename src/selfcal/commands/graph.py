@@ -93,7 +93,7 @@ def graph_command(ranges: Path, dim: str, unit: str, known: Path | None, frame: 
     box = parse_room(room)
     g = read_range_graph(ranges, name=str(ranges))
     k = _LENGTH_UNITS[unit]
-    known_table = read_known_csv(known, d) if known is not None else None
+    known_table = read_known_csv(known, d, partial=False) if known is not None else None
     is_tag = np.array([tags is not None and fnmatch.fnmatchcase(n, tags) for n in g.names], dtype=bool)
     if tags and not is_tag.any():
         raise InputError(f"--tags {tags!r} matches none of the {g.n_nodes} node names (e.g. {g.names[0]!r})")

@@ -49,7 +49,7 @@ def plan_command(anchors: Path, path: Path, room_text: str | None, noise: float,
     from ..toa.plan import plan_layout
     from .acoustics import parse_room
 
-    table = read_known_csv(anchors, 3)
+    table = read_known_csv(anchors, 3, partial=False)
     names = list(table)
     A = np.array([v[:3] for v in table.values()], float)
     P = np.asarray(read_table(path, name=str(path)).values, float)

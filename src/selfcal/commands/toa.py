@@ -60,7 +60,8 @@ def _auto_available() -> bool:
                    "(p < 0.05), then per-anchor offsets when they predict held-out tag positions better; "
                    "'free' = neither.")
 @click.option("--known", "known", type=click.Path(dir_okay=False, path_type=Path), default=None,
-              help="CSV name,x,y,z[,std] of nodes with known positions (r<i>, s<j> or a receiver "
+              help="CSV name,x,y,z[,std] of nodes with known positions, metres; an empty coordinate is not "
+                   "known ('A3,,,2.41': only the height) (r<i>, s<j> or a receiver "
                    "index); they constrain the fit and set the frame.")
 @click.option("--side", type=click.Choice(["below", "above"]), default=None,
               help="With --known nodes in one plane (ceiling anchors): the other nodes lie below / above "
@@ -99,6 +100,8 @@ def toa_command(matrix: Path, speed: float | None, offsets: str | None, dim: str
     Rows are receivers, columns are sources (a header row and a first column of names are
     kept). Metres unless --speed is given (then seconds); --unit names another unit.
     """
+    import warnings
+
     import numpy as np
 
     from .._checks import plausible_matrix_scale
@@ -112,7 +115,7 @@ def toa_command(matrix: Path, speed: float | None, offsets: str | None, dim: str
         parse_known,
         read_known_csv,
     )
-    from ..toa.frame.nodes import check_frame, node_names
+    from ..toa.frame.nodes import check_frame, check_known_scale, node_names
     from ..toa.recipes.recipes import apply_recipe
     from ._common import enrich_payload, to_metres, write_nodes_csv
 
@@ -140,12 +143,20 @@ def toa_command(matrix: Path, speed: float | None, offsets: str | None, dim: str
     known_table = None
     if known is not None:
         known_table = read_known_csv(known, 2 if dim == "2" else 3)  # validated before the solve
-        parse_known(known_table, I, J, 2 if dim == "2" else 3, **names)
+        check_known_scale(parse_known(known_table, I, J, 2 if dim == "2" else 3, receiver_names=names["receiver_names"],
+                                      source_names=names["source_names"]),
+                          float(np.nanmax(np.abs(M))) * (speed if speed is not None else 1.0))
     if frame is not None:
         check_frame(frame, I, J, **names)
     sidecar = _sidecar(entries, M.shape, out, [matrix, known])  # refused before the solve
-    with stage(f"fit {M.shape[0]} x {M.shape[1]}"):
+    # with --known the blind fit's verdict is superseded by the constrained fit's (judged again
+    # below): its warning is held back, the others are passed on
+    with warnings.catch_warnings(record=True) as blind_warnings, stage(f"fit {M.shape[0]} x {M.shape[1]}"):
+        warnings.simplefilter("always")
         rec = apply_recipe(recipe, M, common_offset=common_offset, **kw)
+    for w in blind_warnings:
+        if not (known is not None and str(w.message).startswith("solve_toa: ")):
+            warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
     res: Any = rec.result
     forced = _forced_model(rec.result, M, rec.rejected, speed, noise, dim, offsets)
     framed: FramedToaResult | None = None
@@ -158,7 +169,8 @@ def toa_command(matrix: Path, speed: float | None, offsets: str | None, dim: str
     loss_used = loss if loss is not None else "linear"
     M_fit = _fitted_entries(M, rec.rejected, res.outliers)
     if known_table is not None and known is not None:
-        nodes = parse_known(_redim(known_table, known, d_out), I, J, d_out, **names)
+        nodes = parse_known(_redim(known_table, known, d_out), I, J, d_out, receiver_names=names["receiver_names"],
+                            source_names=names["source_names"])
         with stage(f"fit with {len(nodes)} known nodes"):
             framed = fit_known(M_fit, res, nodes, offsets=off_used, loss=loss_used, noise=noise, side=side)
     elif frame is not None:
@@ -285,7 +297,9 @@ def _verdict_lines(res: Any, forced: Any, row_names: Any, col_names: Any) -> lis
                     "in the JSON under 'uniqueness')")
             if u.failed:
                 out.append(f"FAIL: ambiguous: {what}; remedy: a tag position off the plane of their partners, "
-                           "a known height, a known node off the plane (or --side with coplanar --known nodes)")
+                           "known heights of the ambiguous anchors on more than one level (--known rows such as "
+                           "'A3,,,2.41': x, y left empty), a known node off the plane (or --side with coplanar "
+                           "--known nodes)")
             else:  # a few nodes: named, their error bars widened to cover the alternative (as 'undetermined')
                 click.echo(f"  ambiguous: {what}; their error bars cover the alternative")
         if u.minimal:

@@ -3,7 +3,9 @@
 ``known=`` (``--known FILE.csv``, ``name,x,y,z[,std]``): the blind solution is moved onto
 the known nodes by a weighted least-squares rigid motion (Kabsch), then refined by
 :func:`selfcal.toa.engine.nls.refine_toa` with the exact nodes as fixed rows and the others as
-Gaussian priors. ``k`` affinely independent known nodes fix a rigid motion in ``d``
+Gaussian priors. A node may give only some coordinates (an empty field, ``A3,,,2.41``):
+those are fixed entries (or per-coordinate priors) and the rigid motion is fitted to the
+known coordinates alone (:func:`_fit_partial`). ``k`` affinely independent known nodes fix a rigid motion in ``d``
 dimensions only when ``k >= d + 1``; what they leave open (a mirror, a rotation about a
 line, every rotation) is held at the blind solution's canonical gauge and reported in
 :class:`selfcal.toa.frame.nodes.FrameInfo`. Re-exported by :mod:`selfcal.toa.frame.frame`.
@@ -12,12 +14,14 @@ line, every rotation) is held at the blind solution's canonical gauge and report
 from __future__ import annotations
 
 from collections.abc import Sequence
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 from ...errors import DegenerateGeometryError
+from ..verdict.known_test import gauge_left as _axes_fixed
 from .nodes import FramedToaResult, FrameInfo, KnownNode, node_positions, refit_data, replace_fields
 
 __all__ = ["fit_known", "align_known"]
@@ -62,7 +66,9 @@ def fit_known(
     ----------
     matrix: the (I, J) ranges (metres) or times (seconds with the result's ``speed``).
     result: the blind :class:`selfcal.toa.solve.ToaResult`.
-    known: from :func:`parse_known`.
+    known: from :func:`parse_known`. Nodes may give only some coordinates (NaN elsewhere,
+        ``A3,,,2.41`` a known height): those are fixed entries / per-coordinate priors, the
+        frame's axes they fix are the user's and the others canonical (:func:`_fit_partial`).
     offsets, loss, f_scale, max_nfev, covariance: as for :func:`selfcal.toa.engine.nls.refine_toa`
         (``f_scale`` / ``noise`` in the matrix's units); ``offsets="common"``: one offset
         shared by every receiver (``common_offsets="receivers"``), the model the moving-tag
@@ -76,14 +82,17 @@ def fit_known(
     -------
     :class:`FramedToaResult` whose positions are in the known frame.
     """
-    from ..engine.nls import refine_toa
-
     data = refit_data(result, matrix)
     c, R0, S0, ok_r, ok_s = data.c, data.receivers, data.sources, data.ok_r, data.ok_s
     I, d = R0.shape
-    J = S0.shape[0]
     usable, dropped, est, ref, w, rank = _matched(
         result, known, lambda k: bool((ok_r if k.kind == "receiver" else ok_s)[k.index]))
+    # "common": one offset shared by every receiver (the moving-tag recipe's kept model)
+    off, common = ("receivers", "receivers") if offsets == "common" else (offsets, "none")
+    fit_kw: dict[str, Any] = {"offsets": off, "common": common, "loss": loss, "f_scale": f_scale, "noise": noise,
+                              "max_nfev": max_nfev}
+    if not all(k.full for k in usable):
+        return _fit_partial(result, data, usable, dropped, est, ref, w, fit_kw, covariance, side)
     full = rank == d
     # (a) align on the known nodes; the undetermined part stays at the canonical gauge
     # (reflection is a choice only when the references span the space)
@@ -95,43 +104,307 @@ def fit_known(
 
         Ra, Sa = choose_side(Ra, Sa, usable, ref, rank, side)
     # (b) the constrained refit
-    fr = np.zeros((I, d), bool)
-    fs = np.zeros((J, d), bool)
-    pr_m, pr_s = np.full((I, d), np.nan), np.full((J, d), np.nan)
-    pr_sd, ps_sd = np.ones(I), np.ones(J)
-    for k in usable:
-        pts, mask, mu, sd = (Ra, fr, pr_m, pr_sd) if k.kind == "receiver" else (Sa, fs, pr_s, ps_sd)
-        if k.std is None:
-            pts[k.index] = k.position
-            mask[k.index] = True
-        else:
-            mu[k.index] = k.position
-            sd[k.index] = k.std
-    kw: dict[str, Any] = {}
-    if fr.any():
-        kw["fixed_receivers"] = fr[ok_r]
-    if fs.any():
-        kw["fixed_sources"] = fs[ok_s]
-    if np.isfinite(pr_m).any():
-        kw["receiver_prior"] = (pr_m[ok_r], pr_sd[ok_r])
-    if np.isfinite(pr_s).any():
-        kw["source_prior"] = (pr_s[ok_s], ps_sd[ok_s])
-    # "common": one offset shared by every receiver (the moving-tag recipe's kept model)
-    off, common = ("receivers", "receivers") if offsets == "common" else (offsets, "none")
-    sol = refine_toa(data.Y[np.ix_(ok_r, ok_s)], Ra[ok_r], Sa[ok_s], offsets=off, common_offsets=common,
-                     receiver_offsets0=data.receiver_offsets, source_offsets0=data.source_offsets, loss=loss, f_scale=None if f_scale is None else f_scale * c,
-                     noise=None if noise is None else noise * c, max_nfev=max_nfev,
-                     covariance=covariance, **kw)
+    sol, fr, fs = _refit(data, Ra, Sa, usable, fit_kw, covariance)
     out = _embed(result, sol, ok_r, ok_s, c, f"{result.method}+known({len(usable)})")
     fitted = np.array([node_positions(out, k.kind)[k.index] for k in usable])
     after = float(np.sqrt(np.mean(np.sum((fitted - ref) ** 2, axis=1))))
     info = _known_info(usable, rank, d, before, after, dropped)
+    info = replace(info, axes_fixed=_axes_fixed(est @ Rm.T + t, np.isfinite(ref))[0])
     # the known positions tested against the ranges, the frame's mirror against the data
     from ..verdict.known_test import judge_known
 
     out, info = judge_known(out, info, result, sol, data, usable, est @ Rm.T + t, Rm, rank, fr, fs, off, noise,
                             mirror_stated=side is not None)
     return FramedToaResult(out, info)
+
+
+def _refit(data: Any, Ra: Array, Sa: Array, usable: Sequence[KnownNode], kw: dict[str, Any], covariance: Any,
+           max_nfev: int | None = None) -> tuple[Any, NDArray[np.bool_], NDArray[np.bool_]]:
+    """The constrained refit from ``(Ra, Sa)`` in the known frame: exact known coordinates fixed
+    (set to their values), known coordinates with a std Gaussian priors. Returns ``(sol, fixed_r, fixed_s)``
+    ((I, d), (J, d) masks of the fixed coordinates)."""
+    from ..engine.nls import refine_toa
+
+    c, ok_r, ok_s = data.c, data.ok_r, data.ok_s
+    Ra, Sa = np.array(Ra, float), np.array(Sa, float)
+    I, d = Ra.shape
+    J = Sa.shape[0]
+    fr = np.zeros((I, d), bool)
+    fs = np.zeros((J, d), bool)
+    pr_m, pr_s = np.full((I, d), np.nan), np.full((J, d), np.nan)
+    pr_sd, ps_sd = np.ones((I, d)), np.ones((J, d))
+    for k in usable:
+        pts, mask, mu, sd = (Ra, fr, pr_m, pr_sd) if k.kind == "receiver" else (Sa, fs, pr_s, ps_sd)
+        m = k.mask
+        if k.std is None:
+            pts[k.index, m] = k.position[m]
+            mask[k.index, m] = True
+        else:
+            mu[k.index, m] = k.position[m]
+            sd[k.index, m] = k.std
+    extra: dict[str, Any] = {}
+    if fr.any():
+        extra["fixed_receivers"] = fr[ok_r]
+    if fs.any():
+        extra["fixed_sources"] = fs[ok_s]
+    if np.isfinite(pr_m).any():
+        extra["receiver_prior"] = (pr_m[ok_r], pr_sd[ok_r])
+    if np.isfinite(pr_s).any():
+        extra["source_prior"] = (pr_s[ok_s], ps_sd[ok_s])
+    f_scale, noise = kw["f_scale"], kw["noise"]
+    sol = refine_toa(data.Y[np.ix_(ok_r, ok_s)], Ra[ok_r], Sa[ok_s], offsets=kw["offsets"],
+                     common_offsets=kw["common"], receiver_offsets0=data.receiver_offsets,
+                     source_offsets0=data.source_offsets, loss=kw["loss"],
+                     f_scale=None if f_scale is None else f_scale * c, noise=None if noise is None else noise * c,
+                     max_nfev=kw["max_nfev"] if max_nfev is None else max_nfev, covariance=covariance, **extra)
+    return sol, fr, fs
+
+
+#: iterations of the refit from the other handedness (the mirror candidate of partial known coordinates)
+MIRROR_NFEV = 50
+
+
+def _fit_partial(result: Any, data: Any, usable: Sequence[KnownNode], dropped: Sequence[str], est: Array,
+                 ref: Array, w: Array, kw: dict[str, Any], covariance: Any, side: str | None) -> FramedToaResult:
+    """:func:`fit_known` where some known nodes give only some coordinates (``A3,,,2.41``).
+
+    The blind fit is moved onto the known coordinates by the best rigid motion
+    (:func:`_masked_rigid`) and refitted with them. The axes they fix (:func:`gauge_left`)
+    may still be mirrored: known heights all at one level leave ``z -> 2h - z``, heights on
+    several levels do not. That mirror (:func:`_mirror_start`) is refitted too, with at
+    most :data:`MIRROR_NFEV` iterations; the better of the two fits is the result and
+    :func:`selfcal.toa.verdict.known_test.judge_known` tests the other against it.
+    """
+    from ..verdict.known_test import judge_known
+
+    c, R0, S0, ok_r, ok_s = data.c, data.receivers, data.sources, data.ok_r, data.ok_s
+    d = R0.shape[1]
+    mask = np.isfinite(ref)
+    scale = float(np.nanmax(np.ptp(np.vstack([R0[ok_r], S0[ok_s]]), axis=0))) or 1.0
+    motions = _masked_rigid(est, ref, w, scale)
+    Rm, t, _ = motions[0]
+    aligned = est @ Rm.T + t
+    axes, n_free = _axes_fixed(aligned, mask)
+    sol, fr, fs = _refit(data, R0 @ Rm.T + t, S0 @ Rm.T + t, usable, kw, covariance)
+    other = None
+    start = _mirror_start(sol, data, usable, axes, n_free, motions[1])
+    if start is not None:
+        other = _refit(data, start[0], start[1], usable, kw, False, MIRROR_NFEV)[0]
+    s2 = None if kw["noise"] is None else (kw["noise"] * c) ** 2
+
+    def total(fit: Any) -> float:  # the constrained cost: RSS + noise^2 x prior misfit
+        rss = float(np.nansum(np.asarray(fit.residuals, float) ** 2))
+        sig2 = s2 if s2 is not None else float(sol.sigma) ** 2
+        return rss + sig2 * _prior_misfit(fit, usable, ok_r, ok_s)
+
+    swap = other is not None and total(other) < total(sol) * (1.0 - 1e-9)
+    if other is not None and side is not None:  # the user's statement picks the mirror image
+        swap = not _on_side(sol, usable, ok_r, ok_s, side) and _on_side(other, usable, ok_r, ok_s, side)
+    if swap:  # the mirror fits better (or is the side stated): it is the result, with its covariance
+        assert other is not None
+        sol, other = _refit(data, _full(other.receivers, ok_r), _full(other.sources, ok_s), usable, kw,
+                            covariance)[0], sol
+    out = _embed(result, sol, ok_r, ok_s, c, f"{result.method}+known({len(usable)}, partial)")
+    before = float(np.sqrt(np.nanmean(np.where(mask, aligned - ref, np.nan) ** 2)))  # per known coordinate
+    fitted = np.array([node_positions(out, k.kind)[k.index] for k in usable])
+    after = float(np.sqrt(np.nanmean(np.where(mask, fitted - ref, np.nan) ** 2)))
+    info = _partial_info(usable, d, axes, n_free, before, after, dropped)
+    out, info = judge_known(out, info, result, sol, data, usable, aligned, Rm, d, fr, fs, kw["offsets"],
+                            kw["noise"], mirror_stated=side is not None, mirror_fit=other,
+                            local_blind=_local_blind(data, sol, kw))
+    return FramedToaResult(out, info)
+
+
+def _local_blind(data: Any, sol: Any, kw: dict[str, Any]) -> Any:
+    """The blind model refitted from the constrained fit ``sol`` (no constraint, no covariance):
+    the nested model of the known test at the same minimum; None when the refit fails."""
+    from ...errors import DegenerateGeometryError
+    from ..engine.nls import refine_toa
+
+    c, ok_r, ok_s = data.c, data.ok_r, data.ok_s
+    try:
+        return refine_toa(data.Y[np.ix_(ok_r, ok_s)], sol.receivers, sol.sources, offsets=kw["offsets"],
+                          common_offsets=kw["common"], receiver_offsets0=sol.receiver_offsets,
+                          source_offsets0=sol.source_offsets, loss=kw["loss"],
+                          f_scale=None if kw["f_scale"] is None else kw["f_scale"] * c, covariance=False)
+    except (DegenerateGeometryError, np.linalg.LinAlgError, ValueError):
+        return None
+
+
+def _mirror_start(sol: Any, data: Any, usable: Sequence[KnownNode], axes: tuple[str, ...], n_free: int,
+                  other_motion: tuple[Array, Array, float]) -> tuple[Array, Array] | None:
+    """The start of the mirror candidate of a fit to partial known coordinates, or None.
+
+    Every rigid motion the known coordinates fix (no freedom left): the blind fit moved by the
+    best motion of the other handedness. Otherwise a reflection of the free axes alone is a
+    gauge, not an alternative; the candidate reflects the fixed axes: one axis (heights) through
+    the mean known value (``z -> 2 mean(z_known) - z``), several through the best-fitting
+    line / plane of the known nodes within them. No fixed axis: None (nothing to mirror).
+    """
+    from ..verdict.known_test import candidate_mirror
+
+    R0, S0, ok_r, ok_s = data.receivers, data.sources, data.ok_r, data.ok_s
+    d = R0.shape[1]
+    if n_free == 0:
+        Rm, t, _ = other_motion
+        return R0 @ Rm.T + t, S0 @ Rm.T + t
+    idx = ["xyz".index(a) for a in axes]
+    if not idx or len(idx) == d:
+        return None
+    R, S = _full(np.asarray(sol.receivers), ok_r), _full(np.asarray(sol.sources), ok_s)
+    P = np.array([k.position[idx] for k in usable if k.mask[idx].all()], float)
+    if P.shape[0] == 0:
+        return None
+    if len(idx) == 1:
+        cen, Q = P.mean(0), -np.eye(1)
+    else:
+        rank = _affine_rank(P)[0]
+        got = candidate_mirror(P, rank)
+        if got is None:
+            return None
+        cen, Q = got
+    out = []
+    for X in (R, S):
+        Y = X.copy()
+        Y[:, idx] = cen + (X[:, idx] - cen) @ np.asarray(Q).T
+        out.append(Y)
+    return out[0], out[1]
+
+
+def _full(P: Array, ok: NDArray[np.bool_]) -> Array:
+    out = np.full((ok.size, P.shape[1]), np.nan)
+    out[ok] = P
+    return out
+
+
+def _masks(usable: Sequence[KnownNode], rshape: tuple[int, ...], sshape: tuple[int, ...]
+           ) -> tuple[NDArray[np.bool_], NDArray[np.bool_]]:
+    fr, fs = np.zeros(rshape, bool), np.zeros(sshape, bool)
+    for k in usable:
+        if k.std is None:
+            (fr if k.kind == "receiver" else fs)[k.index, k.mask] = True
+    return fr, fs
+
+
+def _prior_misfit(sol: Any, usable: Sequence[KnownNode], ok_r: NDArray[np.bool_], ok_s: NDArray[np.bool_]) -> float:
+    """``sum |p - mu|^2 / std^2`` over the known coordinates given with a std (sol on the located nodes)."""
+    R, S = _full(np.asarray(sol.receivers), ok_r), _full(np.asarray(sol.sources), ok_s)
+    tot = 0.0
+    for k in usable:
+        if k.std is not None:
+            p = (R if k.kind == "receiver" else S)[k.index]
+            tot += float(np.sum((p[k.mask] - k.position[k.mask]) ** 2)) / k.std**2
+    return tot
+
+
+def _on_side(sol: Any, usable: Sequence[KnownNode], ok_r: NDArray[np.bool_], ok_s: NDArray[np.bool_],
+             side: str) -> bool:
+    """Whether most free nodes lie ``side`` ("below" / "above") of the known heights' mean level."""
+    from ...errors import InputError
+
+    if side not in ("below", "above"):
+        raise InputError(f"side must be 'below' or 'above', got {side!r}")
+    R, S = _full(np.asarray(sol.receivers), ok_r), _full(np.asarray(sol.sources), ok_s)
+    if R.shape[1] != 3:
+        raise InputError("side (below / above the known nodes) applies to 3-D fits only")
+    zk = [k.position[2] for k in usable if k.mask[2]]
+    if not zk:
+        raise InputError("side (below / above) needs known heights (a z coordinate in --known)")
+    free_r, free_s = np.ones(len(R), bool), np.ones(len(S), bool)
+    for k in usable:
+        (free_r if k.kind == "receiver" else free_s)[k.index] = False
+    z = np.concatenate([R[free_r, 2], S[free_s, 2]])
+    z = z[np.isfinite(z)]
+    h = float(np.median(z)) - float(np.mean(zk)) if z.size else 0.0
+    return (h < 0) == (side == "below")
+
+
+def _rotation(p: Array, d: int) -> Array:
+    """The rotation of a rotation vector (3-D, Rodrigues) or an angle (2-D)."""
+    if d == 3:
+        th = float(np.linalg.norm(p))
+        K = np.array([[0.0, -p[2], p[1]], [p[2], 0.0, -p[0]], [-p[1], p[0], 0.0]])
+        if th < 1e-8:
+            return np.eye(3) + K
+        return np.eye(3) + np.sin(th) / th * K + (1.0 - np.cos(th)) / th**2 * (K @ K)
+    cs, sn = np.cos(p[0]), np.sin(p[0])
+    return np.array([[cs, -sn], [sn, cs]])
+
+
+def _masked_rigid(est: Array, ref: Array, w: Array, scale: float) -> list[tuple[Array, Array, float]]:
+    """The best rigid motion ``y = R x + t`` of each handedness onto known coordinates.
+
+    Minimises ``sum_k w_k sum_{c known} ((R est_k + t)_c - ref_kc)^2`` over proper rotations
+    and over improper ones (``R = Q F``, ``F`` the reflection of the last axis) by SciPy
+    ``least_squares`` (trf) from the cube group's 24 rotations (4 in 2-D). The freedoms the
+    known coordinates leave (a rotation about z and horizontal translations when only
+    heights are known) do not move from their start: the start at ``R = F``, ``t`` zero
+    along axes without a known coordinate (the blind fit's canonical gauge) is kept when it
+    reaches the best cost (within 1e-9 relative), so those freedoms stay at the blind
+    solution's principal axes and centroid. Returns ``[(R, t, cost)]``, the better
+    handedness first (the proper one on a tie at round-off).
+    """
+    from scipy.optimize import least_squares
+
+    k, d = est.shape
+    mask = np.isfinite(ref)
+    refz = np.where(mask, ref, 0.0)
+    sw = np.sqrt(np.asarray(w, float) / float(np.max(w)))
+    nr = 3 if d == 3 else 1
+    if d == 3:
+        from scipy.spatial.transform import Rotation
+
+        starts = list(Rotation.create_group("O").as_rotvec())
+        starts.sort(key=lambda v: float(np.linalg.norm(v)))  # the identity first
+    else:
+        starts = [np.array([a]) for a in (0.0, np.pi / 2, np.pi, -np.pi / 2)]
+    out = []
+    for H in (np.eye(d), np.diag([1.0] * (d - 1) + [-1.0])):
+        def fun(x: Array, H: Array = H) -> Array:
+            E = (est @ (_rotation(x[:nr], d) @ H).T + x[nr:] - refz) * sw[:, None]
+            return E[mask]
+
+        def run(p0: Array, nfev: int, H: Array = H) -> Any:
+            R0 = _rotation(p0, d) @ H
+            t0 = np.array([np.mean((refz - est @ R0.T)[mask[:, c], c]) if mask[:, c].any() else 0.0
+                           for c in range(d)])
+            return least_squares(fun, np.concatenate([p0, t0]), method="trf", x_scale=np.r_[
+                np.ones(nr), np.full(d, scale)], xtol=1e-12, ftol=1e-12, gtol=1e-12, max_nfev=nfev)
+
+        # every start a few steps, the identity and the best of the others to convergence
+        sols = [run(starts[0], 200)]
+        screen = [run(p0, 8) for p0 in starts[1:]]
+        if screen:
+            top = min(screen, key=lambda r: r.cost)
+            sols.append(least_squares(fun, top.x, method="trf", x_scale=np.r_[np.ones(nr), np.full(d, scale)],
+                                      xtol=1e-12, ftol=1e-12, gtol=1e-12, max_nfev=200))
+        best = min(sols, key=lambda r: r.cost)
+        floor = 1e-18 * scale**2 * max(int(mask.sum()), 1)
+        if sols[0].cost <= best.cost * (1.0 + 1e-9) + floor:  # the blind gauge reaches the optimum
+            best = sols[0]
+        R = _rotation(best.x[:nr], d) @ H
+        out.append((R, best.x[nr:], 2.0 * float(best.cost)))
+    tie = 1e-10 * (scale**2) * max(int(mask.sum()), 1)
+    if out[1][2] < out[0][2] * (1.0 - 1e-6) - tie:
+        out = out[::-1]
+    return out
+
+
+def _partial_info(usable: Sequence[KnownNode], d: int, axes: tuple[str, ...], n_gauge: int, before: float,
+                  after: float, dropped: Sequence[str]) -> FrameInfo:
+    names = tuple(k.name for k in usable)
+    free = [a for a in "xyz"[:d] if a not in axes]
+    given = sorted({a for k in usable for a, m in zip("xyz"[:d], k.mask, strict=False) if m}, key="xyz".index)
+    msg = (f"{len(usable)} known node(s), coordinates {','.join(given)} given; frame axes fixed by them: "
+           f"{','.join(axes) if axes else 'none'}")
+    if free:
+        msg += (f"; {','.join(free)} canonical (direction and origin held nearest the blind solution's "
+                "principal axes and centroid: a gauge the known coordinates leave)")
+    if dropped:
+        msg += f"; known node(s) without an estimate ignored: {', '.join(dropped)}"
+    return FrameInfo(kind="known", references=names, rank=len(axes), determined=n_gauge == 0,
+                     residual_gauge=n_gauge, mirror_resolved=False, message=msg,
+                     known_rms=before, known_rms_fit=after, axes_fixed=axes)
 
 
 def align_known(result: Any, known: Sequence[KnownNode]) -> FramedToaResult:
@@ -166,8 +439,13 @@ def align_known(result: Any, known: Sequence[KnownNode]) -> FramedToaResult:
     >>> bool(np.allclose(out.receivers, r, atol=1e-6))
     True
     """
+    from ...errors import InputError
     from ...geometry import rotate_covariances
 
+    part = [k.name for k in known if not k.full]
+    if part:
+        raise InputError(f"known node(s) {', '.join(part)}: only some coordinates given; moving a result "
+                         "without refitting it takes whole positions")
     R0 = np.asarray(result.receivers, float)
     S0 = np.asarray(result.sources, float)
     d = R0.shape[1]
@@ -198,9 +476,12 @@ def _matched(result: Any, known: Sequence[KnownNode], located: Any) -> tuple[Any
     if not usable:
         raise DegenerateGeometryError("none of the known nodes has an estimated position", kind="degenerate-frame")
     est = np.array([node_positions(result, k.kind)[k.index] for k in usable])
-    ref = np.array([k.position for k in usable], float)
+    ref = np.array([k.position for k in usable], float)  # NaN: a coordinate not known
     stds = np.array([k.std if k.std is not None else 0.0 for k in usable])
-    rank, spread = _affine_rank(ref)
+    full = np.isfinite(ref).all(1)
+    rank, spread = _affine_rank(ref[full])
+    if not full.all():  # the spread of the coordinates given
+        spread = max(spread, float(np.nanmax(np.nanmax(ref, 0) - np.nanmin(ref, 0))))
     tiny = max(1e-3 * spread, 1e-9) if spread > 0 else 1e-3
     return usable, dropped, est, ref, 1.0 / np.maximum(stds, tiny * 1e-3) ** 2, rank
 

@@ -27,7 +27,8 @@ from numpy.typing import NDArray
 from ..._result import WrappedResult, replace_fields
 from ...errors import InputError
 
-__all__ = ["FrameInfo", "FramedToaResult", "KnownNode", "check_frame", "node_names", "node_positions",
+__all__ = ["FrameInfo", "FramedToaResult", "KnownNode", "check_frame", "check_known_scale", "node_names",
+           "node_positions",
            "parse_frame", "parse_known",
            "read_known_csv", "RefitData", "refit_data", "replace_fields", "resolve_node", "units"]
 
@@ -36,15 +37,16 @@ Array = NDArray[np.float64]
 
 @dataclass(frozen=True)
 class KnownNode:
-    """One node with a known position.
+    """One node with a known position, or some known coordinates of it.
 
     Attributes
     ----------
     name: the name it was given by.
     kind: "receiver" or "source".
     index: row (receiver) or column (source) index of the range matrix.
-    position: (d,) metres in the user's frame.
-    std: isotropic standard deviation per coordinate (m), or None for an exact position.
+    position: (d,) metres in the user's frame; NaN where the coordinate is not known
+        (``A3,,,2.41``: only the height known).
+    std: isotropic standard deviation of each known coordinate (m), or None for exact ones.
     """
 
     name: str
@@ -52,6 +54,16 @@ class KnownNode:
     index: int
     position: Array
     std: float | None = None
+
+    @property
+    def mask(self) -> NDArray[np.bool_]:
+        """(d,) bool: which coordinates are known."""
+        return np.isfinite(np.asarray(self.position, float))
+
+    @property
+    def full(self) -> bool:
+        """Every coordinate known."""
+        return bool(self.mask.all())
 
 
 @dataclass(frozen=True)
@@ -62,7 +74,8 @@ class FrameInfo:
     ----------
     kind: "canonical" (no frame asked), "known" or "reference".
     references: names of the nodes that define the frame.
-    rank: affine rank of the references (0 = one point, d = full).
+    rank: affine rank of the references (0 = one point, d = full); where known nodes give
+        only some coordinates, the number of frame axes they fix (``axes_fixed``).
     determined: True when rotation, translation and mirror are all fixed by them.
     residual_gauge: continuous freedoms the references leave (0 when determined or only
         the mirror is left); those are held at the blind solution's canonical gauge.
@@ -70,10 +83,14 @@ class FrameInfo:
     message: one line saying what was fixed, and what choice was taken where not.
     known_rms: RMS (m) of known-minus-estimated positions over the known nodes after the
         rigid alignment of the blind solution (before the constrained fit): a check of
-        the known coordinates against the ranges; None for kind != "known".
+        the known coordinates against the ranges; None for kind != "known". Where some
+        nodes give only some coordinates: the RMS over the known coordinates.
     known_rms_fit: the same after the constrained fit (0 for exact nodes).
     known_test: the test of the known positions against the ranges
         (:class:`selfcal.toa.verdict.known_test.KnownTest` as a dict), None for kind != "known".
+    axes_fixed: the frame axes whose direction and origin the known coordinates fix
+        (``("z",)`` when only heights are known: the room's z, horizontal axes canonical);
+        None where not computed (kind != "known").
     """
 
     kind: str
@@ -86,10 +103,12 @@ class FrameInfo:
     known_rms: float | None = None
     known_rms_fit: float | None = None
     known_test: dict[str, Any] | None = None
+    axes_fixed: tuple[str, ...] | None = None
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-safe dictionary."""
-        return dataclasses.asdict(self) | {"references": list(self.references)}
+        return dataclasses.asdict(self) | {"references": list(self.references),
+                                           "axes_fixed": None if self.axes_fixed is None else list(self.axes_fixed)}
 
 
 @dataclass(frozen=True, repr=False)
@@ -182,23 +201,35 @@ def check_frame(frame: str | Mapping[str, Any], I: int, J: int, *, receiver_name
     return {k: resolve_node(v, I, J, receiver_names, source_names) for k, v in roles.items()}
 
 
-def read_known_csv(path: str | os.PathLike[str], dim: int = 3) -> dict[str, tuple[float, ...]]:
+def read_known_csv(path: str | os.PathLike[str], dim: int = 3, *, partial: bool = True
+                   ) -> dict[str, tuple[float, ...]]:
     """Read known node positions from a CSV file ``name,x,y,z[,std]`` (metres).
 
     One node per line. An optional header line names the columns (``name,x,y,z,std``;
     ``z`` absent in 2-D). Without a header the columns are ``name`` then ``dim``
     coordinates then an optional ``std``; an empty or absent ``std`` means exact.
-    Lines starting with ``#`` and blank lines are skipped.
+    An empty coordinate is one not known: ``A3,,,2.41`` gives only A3's height (the
+    fit holds that coordinate, the others stay free); at least one coordinate per line.
+    Lines starting with ``#`` and blank lines are skipped. ``partial=False``: every
+    coordinate must be given (for the commands that take whole positions).
 
     Returns
     -------
     ``{name: (x, y[, z][, std])}`` suitable for ``known=`` of :func:`calibrate_in_frame`
-    (a tuple of ``dim + 1`` values carries a std).
+    (a tuple of ``dim + 1`` values carries a std; NaN = coordinate not known).
 
     Raises
     ------
     InputError: unreadable file, wrong number of columns, non-numeric or non-finite
-        values, negative std, duplicated names.
+        values, no coordinate on a line, negative std, duplicated names.
+
+    Examples
+    --------
+    >>> import tempfile, pathlib
+    >>> f = pathlib.Path(tempfile.mkdtemp()) / "known.csv"
+    >>> _ = f.write_text("name,x,y,z\\nA0,0,0,2.4\\nA3,,,2.41\\n")
+    >>> read_known_csv(f)["A3"]
+    (nan, nan, 2.41)
     """
     p = Path(path)
     if not p.is_file():
@@ -220,7 +251,8 @@ def read_known_csv(path: str | os.PathLike[str], dim: int = 3) -> dict[str, tupl
         if dim == 2 and "z" in first:
             raise InputError(f"{p}: the header has a z column but the calibration is 2-D")
         if any(a not in first for a in axes):
-            raise InputError(f"{p}: header {rows[0]} lacks one of {','.join(axes)}")
+            raise InputError(f"{p}: header {rows[0]} lacks one of {','.join(axes)} (leave a value empty "
+                             "for a coordinate that is not known)")
         cols = first
         rows = rows[1:]
         header = True
@@ -241,23 +273,38 @@ def read_known_csv(path: str | os.PathLike[str], dim: int = 3) -> dict[str, tupl
         if name in out:
             raise InputError(f"{p}: line {ln}: node {name!r} given twice")
         try:
-            xyz = [float(rec[a]) for a in axes]
+            xyz = [float(rec[a]) if rec.get(a, "") != "" else float("nan") for a in axes]
             std = float(rec["std"]) if rec.get("std", "") != "" else None
         except ValueError:
             raise InputError(f"{p}: line {ln}: non-numeric value in {row}") from None
-        if not np.all(np.isfinite(xyz)) or (std is not None and not (np.isfinite(std) and std >= 0)):
+        given = [a for a in axes if rec.get(a, "") != ""]
+        if not given:
+            raise InputError(f"{p}: line {ln}: node {name!r} has no coordinate (give at least one of "
+                             f"{','.join(axes)}; an empty field is a coordinate not known)")
+        if not partial and len(given) < dim:
+            raise InputError(f"{p}: line {ln}: node {name!r} lacks a coordinate; this command takes whole "
+                             f"positions ({','.join(axes)}); only calibrate toa --known fits partly known nodes")
+        if not np.all(np.isfinite([v for v, a in zip(xyz, axes, strict=True) if a in given])) or (
+                std is not None and not (np.isfinite(std) and std >= 0)):
             raise InputError(f"{p}: line {ln}: coordinates must be finite and std >= 0")
         out[name] = tuple(xyz) + (() if std is None or std == 0 else (std,))
     return out
 
 
 def parse_known(known: Any, I: int, J: int, dim: int, *, receiver_names: Sequence[str] | None = None,
-                source_names: Sequence[str] | None = None) -> list[KnownNode]:
+                source_names: Sequence[str] | None = None, partial: bool = True) -> list[KnownNode]:
     """Validate ``known=`` into :class:`KnownNode` records.
 
     ``known``: a mapping ``{node: (x, y[, z][, std])}`` (std in metres; absent or 0 =
-    exact), a path to a CSV file (:func:`read_known_csv`), or a list of
-    :class:`KnownNode`.
+    exact; NaN or None = a coordinate not known, e.g. ``(nan, nan, 2.41)`` a known
+    height), a path to a CSV file (:func:`read_known_csv`), or a list of
+    :class:`KnownNode`. ``partial=False``: every coordinate must be given (for fits that
+    take whole positions only).
+
+    Raises
+    ------
+    InputError: unknown node names, a node given twice, a node without any coordinate,
+        partial coordinates where ``partial=False``.
     """
     if isinstance(known, (str, os.PathLike)):
         known = read_known_csv(known, dim)
@@ -266,10 +313,16 @@ def parse_known(known: Any, I: int, J: int, dim: int, *, receiver_names: Sequenc
     elif isinstance(known, Mapping):
         nodes = []
         for name, value in known.items():
-            v = np.asarray(value, dtype=float).ravel()
-            if v.size not in (dim, dim + 1) or not np.isfinite(v).all():
-                raise InputError(f"known node {name!r}: expected {dim} finite coordinates and an "
-                                 f"optional std, got {value!r}")
+            try:
+                v = np.array([np.nan if x is None else x for x in np.ravel(np.asarray(value, dtype=object))],
+                             dtype=float)
+            except (TypeError, ValueError):
+                raise InputError(f"known node {name!r}: expected {dim} coordinates and an optional std, "
+                                 f"got {value!r}") from None
+            if v.size not in (dim, dim + 1) or not np.isfinite(v[:dim]).any() or (
+                    v.size == dim + 1 and not np.isfinite(v[dim])):
+                raise InputError(f"known node {name!r}: expected {dim} coordinates (NaN = not known, at least "
+                                 f"one given) and an optional std, got {value!r}")
             std = float(v[dim]) if v.size == dim + 1 else None
             if std is not None and std < 0:
                 raise InputError(f"known node {name!r}: std must be >= 0, got {std}")
@@ -284,9 +337,54 @@ def parse_known(known: Any, I: int, J: int, dim: int, *, receiver_names: Sequenc
         seen.add((n.kind, n.index))
         if np.asarray(n.position).shape != (dim,):
             raise InputError(f"known node {n.name!r}: position must have {dim} coordinates")
+        if not n.mask.any():
+            raise InputError(f"known node {n.name!r}: no coordinate given")
+        if not partial and not n.full:
+            raise InputError(f"known node {n.name!r}: only some coordinates given; this fit takes whole "
+                             f"positions ({dim} coordinates per node)")
     if not nodes:
         raise InputError("known: no nodes given")
     return nodes
+
+
+#: known coordinates may spread at most this many times the triangle-inequality bound
+#: ``2 max range`` (two nodes ranging to a common partner are at most that far apart): the
+#: margin leaves offsets and missing partners room; a unit mistake (cm, mm) is 100-1000x
+KNOWN_SCALE_MARGIN = 10.0
+
+
+def check_known_scale(nodes: Sequence[KnownNode], max_range: float) -> None:
+    """Refuse known coordinates whose spread points at a unit mistake (the file is metres).
+
+    Parameters
+    ----------
+    nodes: from :func:`parse_known`.
+    max_range: the largest range of the input (metres).
+
+    Raises
+    ------
+    InputError
+        Along some axis the known coordinates spread beyond :data:`KNOWN_SCALE_MARGIN`
+        times ``2 max_range``.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> n = [KnownNode("A0", "receiver", 0, np.array([np.nan, np.nan, 2900.0])),
+    ...      KnownNode("A1", "receiver", 1, np.array([np.nan, np.nan, 300.0]))]
+    >>> check_known_scale(n, 8.0)
+    Traceback (most recent call last):
+    ...
+    selfcal.errors.InputError: known coordinates spread 2600 m along z but the largest range is 8 m: the known file is in metres (a unit mistake?)
+    """
+    if not nodes or not np.isfinite(max_range) or max_range <= 0:
+        return
+    P = np.array([np.asarray(k.position, float) for k in nodes])
+    for c in range(P.shape[1]):
+        v = P[:, c][np.isfinite(P[:, c])]
+        if v.size >= 2 and float(np.ptp(v)) > KNOWN_SCALE_MARGIN * 2.0 * max_range:
+            raise InputError(f"known coordinates spread {float(np.ptp(v)):.4g} m along {'xyz'[c]} but the largest "
+                             f"range is {max_range:.4g} m: the known file is in metres (a unit mistake?)")
 
 
 _ROLES = ("origin", "x", "xy", "z")

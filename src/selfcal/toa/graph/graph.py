@@ -289,7 +289,7 @@ def solve_range_graph(
         raise InputError("give either known positions or a reference frame, not both "
                          "(known positions already define the frame)")
     # references resolved before any work
-    nodes = parse_known(known, n, 0, d, receiver_names=nm, source_names=()) if known is not None else None
+    nodes = parse_known(known, n, 0, d, receiver_names=nm, source_names=(), partial=False) if known is not None else None
     refs = check_frame(frame, n, 0, receiver_names=nm, source_names=()) if frame is not None else None
     P = _pairs(aa.astype(np.intp), bb.astype(np.intp), y, sd)
     deg = np.bincount(np.concatenate([P.a, P.b]), minlength=n)
