@@ -6,9 +6,18 @@ unknown). Prints the successes, the dropped nodes, the injected errors in the ``
 mask, and the nodes of successful results further from the truth (after rigid alignment) than
 3x their own error bar plus 1 mm.
 
+``--families`` runs instead the families of ``tests/toa/outlier_families.py`` (10-40 % of
+the ranges off by +1..+5 m, one-sided or symmetric, noise given or unknown, 2-D and 3-D,
+offsets none or per receiver; and clean generic networks for the false alarms) and prints,
+per family: the injected errors in the ``outliers`` mask, the draws that report an outlier
+breakdown, that are right (exit 0, within 3 error bars, every injected error flagged), right
+but with injected errors left in the fit, wrong with exit 0 (a node outside 3x its error
+bar), and failed for another reason.
+
 Usage::
 
     PYTHONPATH=src python benchmarks/outlier_sweep.py [--draws 60] [--fraction 0.06]
+    PYTHONPATH=src python benchmarks/outlier_sweep.py --families [--draws 40] [--only 3d-plus-unknown,...]
 """
 
 from __future__ import annotations
@@ -47,9 +56,41 @@ def main(draws: int = 60, fraction: float = 0.06) -> dict[str, int]:
     return out
 
 
+def families(draws: int = 40, only: str = "") -> dict[str, dict[str, int]]:
+    """The table of the contamination and clean families (module docstring)."""
+    import collections
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests" / "toa"))
+    from outlier_families import CLEAN, CONTAMINATED, classify
+
+    every = {**CONTAMINATED, **CLEAN}
+    names = [n for n in every if not only or n in only.split(",")]
+    cols = ("breakdown", "right", "right-unflagged", "wrong", "failed")
+    print(f"{'family':26s} {'draws':>5s} {'flagged':>11s} " + " ".join(f"{c:>15s}" for c in cols))
+    table = {}
+    for name in names:
+        c: collections.Counter[str] = collections.Counter()
+        for seed in range(draws):
+            d = classify(every[name], seed)
+            c[d["kind"]] += 1
+            c["flagged"] += d["flagged"]
+            c["bad"] += d["bad"]
+        table[name] = dict(c)
+        flagged = f"{c['flagged']}/{c['bad']}"
+        print(f"{name:26s} {draws:5d} {flagged:>11s} " + " ".join(f"{c[k]:15d}" for k in cols), flush=True)
+    return table
+
+
 if __name__ == "__main__":
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--draws", type=int, default=60)
     ap.add_argument("--fraction", type=float, default=0.06)
+    ap.add_argument("--families", action="store_true", help="the families of tests/toa/outlier_families.py")
+    ap.add_argument("--only", default="", help="comma-separated family names (with --families)")
     a = ap.parse_args()
-    main(a.draws, a.fraction)
+    if a.families:
+        families(a.draws, a.only)
+    else:
+        main(a.draws, a.fraction)
