@@ -419,6 +419,9 @@ HB_DECREASE = 0.99
 #: :func:`high_breakdown_start` (a cost bound, not a statistical one: its cost grows as
 #: sweeps x subsets x entries, ~0.03 s at 12 x 40, ~0.4 s at 120 x 120 on a loaded core)
 HB_MAX_ENTRIES = 6000
+#: level of the F test by which the high-breakdown start must lower the trimmed cost to replace
+#: the soft-L1 start of the outlier rule (:func:`selfcal.toa.fit.finish`)
+HB_LEVEL = 0.01
 #: inlier cut of the reweighting step, in robust standard deviations (Rousseeuw & Leroy 1987, p. 202)
 HB_CUT = 2.5
 
@@ -459,11 +462,10 @@ def _lmeds_side(A: Array, Y: Array, q: Array | None, own: bool, X0: Array, D0: A
     idx = np.flatnonzero(fit)
     Yv, ob, nv = Yq[idx], obs[idx], n[idx]
     K = subsets if subsets else elemental_subsets(p)
-    # each node's observed anchors first (stable), then p random picks among them: a repeated
-    # anchor makes the set singular, skipped below
-    order = np.argsort(~ob, axis=1, kind="stable")
-    pick = np.floor(rng.random((idx.size, K, p)) * nv[:, None, None]).astype(np.intp)
-    sub = np.take_along_axis(order, pick.reshape(idx.size, -1), axis=1).reshape(idx.size, K, p)
+    # p distinct observed anchors per set: the first p of a random order (unobserved sort last)
+    keys = rng.random((idx.size, K, M))
+    keys[np.broadcast_to(~ob[:, None, :], keys.shape)] = 2.0
+    sub = np.argpartition(keys, p - 1, axis=2)[:, :, :p] if p < M else np.argsort(keys, axis=2)[:, :, :p]
     a = A[sub]  # (n, K, p, d)
     ys = np.take_along_axis(Yv, sub.reshape(idx.size, -1), axis=1).reshape(idx.size, K, p)
     # linearised trilateration: |x|^2 - 2 a.x + |a|^2 = (y - delta)^2, unknowns (x, |x|^2 - delta^2, delta)
