@@ -8,7 +8,9 @@ Steps (every rule stated in :mod:`selfcal.toa.verdict.robust`):
    check that what is left is identifiable (:func:`selfcal._checks.check_toa_counts`);
 4. the search (:func:`selfcal.toa.search.search`);
 5. the outlier rule on every entry against the fitted model, with the noise given or its
-   robust estimate, and the final refit without the outliers (and with covariances);
+   robust estimate, and the final refit without the outliers (and with covariances); its
+   first candidates come from a soft-L1 refit or, where its trimmed cost is significantly
+   lower, the high-breakdown start (:func:`~selfcal.toa.verdict.robust.high_breakdown_start`);
 6. the trust test (:func:`~selfcal.toa.result.residual_test` with a given noise,
    :func:`~selfcal.toa.result.geometry_test` without) -> ``status`` / ``message``;
 7. the result in the caller's numbering, dropped nodes as NaN rows;
