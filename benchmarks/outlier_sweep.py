@@ -12,7 +12,8 @@ offsets none or per receiver; and clean generic networks for the false alarms) a
 per family: the injected errors in the ``outliers`` mask, the draws that report an outlier
 breakdown, that are right (exit 0, within 3 error bars, every injected error flagged), right
 but with injected errors left in the fit, wrong with exit 0 (a node outside 3x its error
-bar), and failed for another reason.
+bar; ``wrong>10cm``: of those, the draws where such a node is more than 10 cm = 10 noise std
+off, not a tail of its covariance), and failed for another reason.
 
 Usage::
 
@@ -67,7 +68,7 @@ def families(draws: int = 40, only: str = "") -> dict[str, dict[str, int]]:
 
     every = {**CONTAMINATED, **CLEAN}
     names = [n for n in every if not only or n in only.split(",")]
-    cols = ("breakdown", "right", "right-unflagged", "wrong", "failed")
+    cols = ("breakdown", "right", "right-unflagged", "wrong", "wrong>10cm", "failed")
     print(f"{'family':26s} {'draws':>5s} {'flagged':>11s} " + " ".join(f"{c:>15s}" for c in cols))
     table = {}
     for name in names:
@@ -75,6 +76,7 @@ def families(draws: int = 40, only: str = "") -> dict[str, dict[str, int]]:
         for seed in range(draws):
             d = classify(every[name], seed)
             c[d["kind"]] += 1
+            c["wrong>10cm"] += d["kind"] == "wrong" and d.get("worst_m", 0.0) > 0.1
             c["flagged"] += d["flagged"]
             c["bad"] += d["bad"]
         table[name] = dict(c)

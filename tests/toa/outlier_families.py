@@ -107,6 +107,24 @@ def outside(res: Any, r: np.ndarray, s: np.ndarray, k: float = 3.0) -> int:
     return int((np.linalg.norm(X - ref[ok], axis=1) > k * bar + 1e-3).sum())
 
 
+def worst_outside(res: Any, r: np.ndarray, s: np.ndarray, k: float = 3.0) -> float:
+    """The largest error (metres) of a node outside ``k`` of its error bars (0 when none), as :func:`outside`."""
+    from selfcal.geometry import align
+
+    est, ref = np.vstack([res.receivers, res.sources]), np.vstack([r, s])
+    ok = np.isfinite(est).all(1)
+    if ok.sum() < est.shape[1] + 1:
+        return float("inf")
+    X = align(est[ok], ref[ok], reflection=True).apply(est[ok])
+    C = np.concatenate([res.receiver_cov, res.source_cov])[ok]
+    with np.errstate(invalid="ignore"):
+        bar = np.sqrt(np.trace(C, axis1=1, axis2=2))
+    bar = np.where(np.isfinite(bar), bar, 0.0)
+    err = np.linalg.norm(X - ref[ok], axis=1)
+    out = err > k * bar + 1e-3
+    return float(err[out].max()) if out.any() else 0.0
+
+
 def classify(fam: Any, seed: int) -> dict[str, Any]:
     """Solve one draw and sort it (module docstring)."""
     Y, r, s, bad, kw = fam(seed)
@@ -131,4 +149,5 @@ def classify(fam: Any, seed: int) -> dict[str, Any]:
     if kind == "right" and missed:
         kind = "right-unflagged"  # within its (inflated) error bars, but gross errors left in the fit
     return {"kind": kind, "flagged": int((bad & mask).sum()), "bad": int(bad.sum()), "missed": missed,
+            "worst_m": worst_outside(res, r, s) if kind == "wrong" else 0.0,
             "false_flags": int((~bad & mask).sum()), "outside": n_out, "message": res.message, "result": res}
