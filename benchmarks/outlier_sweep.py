@@ -19,6 +19,7 @@ Usage::
 
     PYTHONPATH=src python benchmarks/outlier_sweep.py [--draws 60] [--fraction 0.06]
     PYTHONPATH=src python benchmarks/outlier_sweep.py --families [--draws 40] [--only 3d-plus-unknown,...]
+    PYTHONPATH=src python benchmarks/outlier_sweep.py --cost [--draws 6]
 """
 
 from __future__ import annotations
@@ -85,14 +86,54 @@ def families(draws: int = 40, only: str = "") -> dict[str, dict[str, int]]:
     return table
 
 
+def cost(draws: int = 6) -> dict[str, float]:
+    """Same-process A/B of ``solve_toa`` with and without the high-breakdown start (interleaved).
+
+    The start is switched off by setting ``robust.HB_MAX_ENTRIES`` below every matrix; the
+    median wall time of each is printed with their ratio.
+    """
+    import sys
+    import time
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests" / "toa"))
+    import selfcal.toa.verdict.robust as rb
+    from outlier_families import CLEAN, CONTAMINATED
+    from selfcal.toa import solve_toa
+
+    warnings.simplefilter("ignore")
+    limit = rb.HB_MAX_ENTRIES
+    cases = {"12x40 clean": CLEAN["clean-3d-unknown"], "8x10 clean": CLEAN["clean-small-3d-unknown"],
+             "12x40 offsets clean": CLEAN["clean-3d-offsets-unknown"],
+             "12x40 10-25% gross": CONTAMINATED["3d-plus-unknown-25"]}
+    out = {}
+    for name, fam in cases.items():
+        t: dict[bool, list[float]] = {True: [], False: []}
+        for seed in range(draws):
+            Y, _, _, _, kw = fam(seed)
+            for on in (False, True):
+                rb.HB_MAX_ENTRIES = limit if on else -1
+                t0 = time.perf_counter()
+                solve_toa(Y, rng=seed, **kw)
+                t[on].append(time.perf_counter() - t0)
+        rb.HB_MAX_ENTRIES = limit
+        a, b = float(np.median(t[False])), float(np.median(t[True]))
+        out[name] = b / a
+        print(f"{name:22s} without {a:.3f} s  with {b:.3f} s  ratio {b / a:.2f}")
+    return out
+
+
 if __name__ == "__main__":
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--draws", type=int, default=60)
     ap.add_argument("--fraction", type=float, default=0.06)
     ap.add_argument("--families", action="store_true", help="the families of tests/toa/outlier_families.py")
     ap.add_argument("--only", default="", help="comma-separated family names (with --families)")
+    ap.add_argument("--cost", action="store_true", help="solve time with / without the high-breakdown start")
     a = ap.parse_args()
-    if a.families:
+    if a.cost:
+        cost(a.draws)
+    elif a.families:
         families(a.draws, a.only)
     else:
         main(a.draws, a.fraction)
