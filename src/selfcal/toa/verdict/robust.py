@@ -446,8 +446,8 @@ def _lmeds_side(A: Array, Y: Array, q: Array | None, own: bool, X0: Array, D0: A
     """Every node of one side re-placed from its ranges ``Y`` (N, M) to anchors ``A`` (M, d):
     LMedS over random elemental sets, then Gauss-Newton least squares on its inliers
     (:func:`high_breakdown_start`). ``q``: the anchors' offsets (subtracted from ``Y``);
-    ``own``: each node has its own offset (``D0``). Nodes with fewer than ``p + 1`` ranges, or
-    no regular elemental set, keep ``X0``, ``D0``. Vectorised over the nodes (N x subsets x M)."""
+    ``own``: each node has its own offset (``D0``). Nodes with at most ``2 p`` ranges (an
+    elemental set could fit half of them), or no regular elemental set, keep ``X0``, ``D0``. Vectorised over the nodes (N x subsets x M)."""
     N, M = Y.shape
     d = A.shape[1]
     p = d + 1 + int(own)
@@ -456,7 +456,9 @@ def _lmeds_side(A: Array, Y: Array, q: Array | None, own: bool, X0: Array, D0: A
     n = obs.sum(axis=1)
     X = np.array(X0, float)
     D = None if D0 is None else np.array(D0, float)
-    fit = n >= p + 1
+    # the median of a node's residuals must not be fittable by one elemental set: n > 2 p
+    # (with n <= 2 p ranges, p of them fitted exactly make the median 0 whatever the rest are)
+    fit = n >= 2 * p + 1
     if not fit.any():
         return X, D
     idx = np.flatnonzero(fit)
@@ -536,7 +538,8 @@ def high_breakdown_start(ranges: Array, receivers: Array, sources: Array, receiv
     absolute residual of its ranges over random elemental sets (``dim + 1``
     ranges, ``+1`` with an offset; linearised trilateration), then least squares on the
     ranges within :data:`HB_CUT` of its finite-sample-corrected LMedS scale (Rousseeuw's
-    reweighted LMedS). The sweeps stop when one lowers the trimmed cost
+    reweighted LMedS). A node with at most ``2 p`` ranges keeps its place: one elemental set
+    of ``p`` would fit half of them exactly and make their median 0. The sweeps stop when one lowers the trimmed cost
     (:func:`lts_criterion`) by less than 1 % (at most ``sweeps``); the best sweep is returned.
     Per node the breakdown point is that of LMedS, ``floor((n - p) / 2) / n``
     for ``n`` ranges and ``p`` unknowns, the most any regression-equivariant estimator can
