@@ -13,11 +13,17 @@ same process by wrapping the function that runs it:
 - ``determinacy``: the Fisher blocks of small networks and the determinacy test
   (``fit.fisher_blocks`` + ``fit._judge_determinacy``);
 - ``outlier_power``: can the estimated-scale rule flag anything (``fit.outlier_rule_has_power``);
-- ``uniqueness``: the uniqueness hook, when the module has one (``fit.uniqueness_check`` /
+- ``uniqueness``: the uniqueness test (``fit.judge_fit``; older layouts ``fit.uniqueness_check`` /
   ``fit.uniqueness_test``).
 
+Every repeat starts without the linearisation a previous call kept
+(``selfcal.toa.verdict.robust.normal_equations``: the repeats solve the same matrix, and a
+kept one would make them cheaper than a first call).
+
 ``solve`` is the rest of the same call (initialisation, search, outlier refits, final fit,
-covariance): every ratio is a stage over it, same call, medians over repeats. ``checks`` is the
+covariance): every ratio is a stage over it, same call, medians over repeats; in wall-clock
+time and in process CPU time (the second line of each case: on a shared, loaded machine the
+wall-clock time of a stage also counts the time others' processes held the cores). ``checks`` is the
 sum of the stages. Cases: ``12x6`` 3-D with both offsets (1 cm); the paper-004 workload, 120
 units in the 30 x 30 x 12 m room, complete, both offsets: ``120t`` the thesis's simulation
 (noise-free, one internal delay, ``benchmarks/bench_delays.py``'s setup) and ``120u`` with 1 mm
@@ -49,17 +55,19 @@ from typing import Any
 
 import numpy as np
 
-#: (module attribute in selfcal.toa.fit or selfcal.toa.verdict.trust, stage name); missing names are skipped
+#: (module attribute in selfcal.toa.fit, selfcal.toa.fit_result or selfcal.toa.verdict.trust, stage name); missing names are skipped
 STAGES = [
     ("fit", "_flag", "outlier_flagging"),
     ("fit", "leverages", "leverages"),
-    ("fit", "geometry_test", "geometry_test"),
+    ("fit_result", "leverages", "leverages"),
+    ("fit_result", "geometry_test", "geometry_test"),
     ("trust", "permutation_test", "permutation_test"),
-    ("fit", "fisher_blocks", "determinacy"),
-    ("fit", "_judge_determinacy", "determinacy"),
-    ("fit", "outlier_rule_has_power", "outlier_power"),
+    ("fit_result", "fisher_blocks", "determinacy"),
+    ("fit_result", "_judge_determinacy", "determinacy"),
+    ("fit_result", "outlier_rule_has_power", "outlier_power"),
     ("fit", "uniqueness_check", "uniqueness"),
     ("fit", "uniqueness_test", "uniqueness"),
+    ("fit", "judge_fit", "uniqueness"),
 ]
 #: stages inside another one (counted in their parent's time, reported on their own)
 NESTED = {"permutation_test"}
@@ -94,11 +102,13 @@ class _Clock:
 
     def __init__(self) -> None:
         import selfcal.toa.fit as fit
+        import selfcal.toa.fit_result as fit_result
         import selfcal.toa.verdict.trust as trust
 
-        self.mods = {"fit": fit, "trust": trust}
+        self.mods = {"fit": fit, "fit_result": fit_result, "trust": trust}
         self.saved: list[tuple[Any, str, Any]] = []
         self.spent: dict[str, float] = {}
+        self.cpu: dict[str, float] = {}
         self.depth = 0
 
     def _wrap(self, fn: Callable[..., Any], stage: str) -> Callable[..., Any]:
@@ -107,11 +117,12 @@ class _Clock:
             if self.depth and not nested:  # inside another stage (leverages inside the flagging)
                 return fn(*a, **k)
             self.depth += 0 if nested else 1
-            t = time.perf_counter()
+            t, c = time.perf_counter(), time.process_time()
             try:
                 return fn(*a, **k)
             finally:
                 self.spent[stage] = self.spent.get(stage, 0.0) + time.perf_counter() - t
+                self.cpu[stage] = self.cpu.get(stage, 0.0) + time.process_time() - c
                 self.depth -= 0 if nested else 1
 
         return timed
@@ -130,6 +141,15 @@ class _Clock:
             setattr(m, attr, fn)
 
 
+def _forget_linearisation() -> None:
+    """Drop the linearisation kept from the last call (``robust.normal_equations``): every
+    repeat solves the same matrix, and a kept one would make the repeats cheaper than a first call."""
+    import selfcal.toa.verdict.robust as robust
+
+    if hasattr(robust, "_LAST"):
+        robust._LAST.clear()
+
+
 def run_case(name: str, repeats: int) -> dict[str, Any]:
     """Medians over ``repeats`` calls of ``solve_toa`` (after one warm-up call) of every stage."""
     from selfcal.toa import solve_toa
@@ -138,20 +158,30 @@ def run_case(name: str, repeats: int) -> dict[str, Any]:
     warnings.simplefilter("ignore")
     solve_toa(Y, dim=dim, offsets=offsets, rng=0)  # warm-up (imports, caches)
     rows: list[dict[str, float]] = []
+    cpu_rows: list[dict[str, float]] = []
     res = None
     for _ in range(repeats):
+        _forget_linearisation()
         with _Clock() as clock:
-            t = time.perf_counter()
+            t, c = time.perf_counter(), time.process_time()
             res = solve_toa(Y, dim=dim, offsets=offsets, rng=0)
-            total = time.perf_counter() - t
+            total, total_cpu = time.perf_counter() - t, time.process_time() - c
         checks = sum(v for k, v in clock.spent.items() if k not in NESTED)
         rows.append({"total": total, "solve": total - checks, "checks": checks, **clock.spent})
+        checks_cpu = sum(v for k, v in clock.cpu.items() if k not in NESTED)
+        cpu_rows.append({"total": total_cpu, "solve": total_cpu - checks_cpu, "checks": checks_cpu, **clock.cpu})
     assert res is not None
-    keys = sorted({k for r in rows for k in r})
-    med = {k: statistics.median(r.get(k, 0.0) for r in rows) for k in keys}
-    ratios = {k: med[k] / med["solve"] for k in keys if k not in ("solve", "total")}
+
+    def summary(rs: list[dict[str, float]]) -> tuple[dict[str, float], dict[str, float]]:
+        keys = sorted({k for r in rs for k in r})
+        med = {k: statistics.median(r.get(k, 0.0) for r in rs) for k in keys}
+        return med, {k: med[k] / med["solve"] for k in keys if k not in ("solve", "total")}
+
+    med, ratios = summary(rows)
+    med_cpu, ratios_cpu = summary(cpu_rows)
     return {"case": name, "shape": list(Y.shape), "measurements": int(np.isfinite(Y).sum()), "dim": dim,
             "offsets": offsets, "repeats": repeats, "median_s": med, "over_solve": ratios,
+            "median_cpu_s": med_cpu, "cpu_over_solve": ratios_cpu,
             "verdict": res.verdict_message, "outliers": int(res.outliers.sum()) if res.outliers is not None else 0}
 
 
@@ -198,6 +228,8 @@ def main(out_dir: Path | None = None, cases: str = "12x6,120t,120u,1000x1000", r
         parts = ", ".join(f"{k} {v:.3f}" for k, v in sorted(row["over_solve"].items()))
         print(f"[postsolve] {name} ({row['measurements']} measurements): solve {row['median_s']['solve']:.3f} s; "
               f"over the solve: {parts}")
+        parts = ", ".join(f"{k} {v:.3f}" for k, v in sorted(row["cpu_over_solve"].items()))
+        print(f"[postsolve] {name} CPU: solve {row['median_cpu_s']['solve']:.3f} s; over the solve: {parts}")
     for name in filter(None, (c.strip() for c in cli.split(","))):
         row = run_cli(name)
         report.setdefault("cli", []).append(row)

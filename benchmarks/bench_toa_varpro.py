@@ -5,7 +5,7 @@ engines in the same run:
 
 - ``--per-start``: every start the search builds for a draw (the nested offsets-free fit and
   :data:`selfcal.toa.search.INITIALISERS`, canonical order) refined by
-  :func:`selfcal.toa.engine.dense_lm.full_lm` and :func:`selfcal.toa.engine.varpro.solve_varpro_lm` to
+  :func:`selfcal.toa.engine.dense_lm.full_lm` and :func:`selfcal.toa.engine.dense_lm.solve_varpro_lm` to
   convergence or ``--cap`` iterations (least squares); per start: sum of squared residuals,
   converged, iterations, CPU, the largest source distance from the receivers' centroid;
   "best basin" = within 0.01 sigma^2 of the lowest sum over both engines;
@@ -14,7 +14,7 @@ engines in the same run:
   distance and whether the solve raised.
 
 Measured (2026-12-02, 2 loaded cores, slices of 25 / 10 draws; numbers in
-:mod:`selfcal.toa.engine.varpro`'s notes): blind seeds 0-199, 165 joint vs 176 VarPro in the basin
+:mod:`selfcal.toa.engine.dense_lm`'s notes): blind seeds 0-199, 165 joint vs 176 VarPro in the basin
 (McNemar p = 0.11), CPU median 0.94 vs 0.85 s, a source beyond 100 m in 3 vs 49 results, 3
 VarPro solves raised; per start (seeds 0-39) converged 50 % vs 79 %, median 496 vs 160
 iterations.
@@ -40,8 +40,7 @@ def per_start(seed: int, cap: int) -> dict[str, Any]:
     """Every start of the search for one draw, refined by both engines."""
     from selfcal.toa import fit
     from selfcal.toa.engine import nls
-    from selfcal.toa.engine.dense_lm import full_lm
-    from selfcal.toa.engine.varpro import solve_varpro_lm
+    from selfcal.toa.engine.dense_lm import full_lm, solve_varpro_lm
     from selfcal.toa.search import INITIALISERS, _pack_start, _sane, canonical_order
 
     _, _, _, _, T = scene(seed)

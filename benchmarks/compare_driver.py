@@ -17,8 +17,9 @@ one row per case:
 Cases: the test and benchmark networks of the engines -- TOA with every offsets model, 2-D and
 3-D, the dense (12 x 6), Schur-reduced (30 x 40) and Schur-CG (150 x 200) steps, missing
 entries, robust losses (Huber, soft-L1, Cauchy), known nodes (fixed anchor rows and fixed
-heights: the constrained engine), the search's lockstep race (25 starts), ``solve_toa`` end to
-end, the rank-d offsets LM (dense joint and scalable), far-field TDOA (LM, robust, planar),
+heights: the constrained engine), the dense engine as the search calls it (a partial refit,
+the offsets by variable projection), the observed-pairs path (``refine_toa_sparse``, each
+step solver), the search's lockstep race (25 starts), ``solve_toa`` end to end, the rank-d offsets LM (dense joint and scalable), far-field TDOA (LM, robust, planar),
 AOA ML poses (3-D / 2-D, batched) and a pipeline room (a conference scene's TOA matrix through
 ``calibrate_matrix`` with and without known heights).
 
@@ -90,10 +91,14 @@ def toa_problem(I: int, J: int, d: int, offsets: str, seed: int, miss: float = 0
                 d=d, seed=seed)
 
 
-def case_refine(P: dict[str, Any], loss: str = "linear", fixed: str = "") -> Callable[[Any], tuple[float, Any]]:
+def case_refine(P: dict[str, Any], loss: str = "linear", fixed: str = "", eps: float = 0.0, solver: str = "auto",
+                f_scale: float | None = None) -> Callable[[Any], tuple[float, Any]]:
+    """refine_toa from the perturbed truth (``eps``: the receivers' start scaled by 1 + eps; ``f_scale``
+    None: the robust scale re-estimated from the first run's end point, so a last-digit difference
+    there changes the objective of the second run)."""
     def run(m: Any) -> tuple[float, Any]:
         kw: dict[str, Any] = {}
-        r0, s0 = P["r0"].copy(), P["s0"].copy()
+        r0, s0 = P["r0"] * (1.0 + eps), P["s0"].copy()
         if fixed == "anchors":  # the first d + 1 receivers known
             fr = np.zeros(r0.shape, bool)
             fr[: P["d"] + 1] = True
@@ -104,7 +109,8 @@ def case_refine(P: dict[str, Any], loss: str = "linear", fixed: str = "") -> Cal
             fr[:, -1] = fs[:, -1] = True
             r0[fr], s0[fs] = P["r"][fr], P["s"][fs]
             kw.update(fixed_receivers=fr, fixed_sources=fs)
-        sol = m("toa.engine.nls").refine_toa(P["Y"], r0, s0, offsets=P["offsets"], loss=loss, covariance=False, **kw)
+        sol = m("toa.engine.nls").refine_toa(P["Y"], r0, s0, offsets=P["offsets"], loss=loss, covariance=False,
+                                             solver=solver, f_scale=f_scale, **kw)
         return float(sol.cost), np.vstack([sol.receivers, sol.sources])
     return run
 
@@ -122,6 +128,42 @@ def case_batch(P: dict[str, Any]) -> Callable[[Any], tuple[float, Any]]:
         Th, ok, it, fin = m("toa.engine.batch_lm").solve_batch_lm(starts, P["Y"], d, off, "linear", 1.0, None, 1e-12)
         costs = [0.5 * float(np.nansum(m("toa.engine.nls").toa_residuals(t, P["Y"], d, off) ** 2)) for t in Th]
         return float(np.sum(costs)), Th[int(np.argmin(costs)), :(I + J) * d].reshape(-1, d)
+    return run
+
+
+def case_sparse(I: int, J: int, frac: float, d: int, seed: int) -> Callable[[Any], tuple[float, Any]]:
+    """refine_toa_sparse (the Schur engine on the observed pairs) from a perturbed truth."""
+    g = np.random.default_rng(seed)
+    r, s = g.uniform(0, 20, (I, d)), g.uniform(0, 20, (J, d))
+    i, j = np.nonzero(g.random((I, J)) < frac)
+    y = np.linalg.norm(r[i] - s[j], axis=1) + g.normal(0, 0.01, i.size)
+    r0, s0 = r + g.normal(0, 0.1, r.shape), s + g.normal(0, 0.1, s.shape)
+
+    def run(m: Any) -> tuple[float, Any]:
+        sol = m("toa.sparse").refine_toa_sparse(i, j, y, r0, s0)
+        return float(sol.cost), np.vstack([sol.receivers, sol.sources])
+    return run
+
+
+def case_dense_lm(P: dict[str, Any], varpro: bool = False, free: bool = False) -> Callable[[Any], tuple[float, Any]]:
+    """The search's direct call of the dense engine: full, a partial refit (``free``: the first
+    receiver and the last source move), or with the offsets eliminated (``varpro``)."""
+    Y, d, off = P["Y"], P["d"], P["offsets"]
+    I, J = Y.shape
+    has_r, has_s = off in ("receivers", "both"), off in ("sources", "both")
+    th0 = np.concatenate([P["r0"].ravel(), P["s0"].ravel(), np.zeros(I if has_r else 0), np.zeros(J if has_s else 0)])
+    ii, jj = np.nonzero(np.isfinite(Y))
+    mask = None
+    if free:
+        mask = np.zeros(th0.size, bool)
+        mask[:d] = True
+        mask[(I + J - 1) * d:(I + J) * d] = True
+
+    def run(m: Any) -> tuple[float, Any]:
+        th, _, _ = m("toa.engine.dense_lm").solve_dense_lm(th0, Y[ii, jj], ii, jj, I, J, d, off, "linear", 1.0,
+                                                           None, 1e-12, free=mask, varpro=varpro)
+        f = m("toa.engine.nls").toa_residuals(th, Y, d, off)
+        return 0.5 * float(f @ f), th[:(I + J) * d].reshape(-1, d)
     return run
 
 
@@ -237,6 +279,21 @@ def cases() -> list[tuple[str, Callable[[Any], tuple[float, Any]]]]:
                                                                           fixed="heights")))
     out.append(("known heights 60x80 3d receivers (schur-affine)", case_refine(toa_problem(60, 80, 3, "receivers", 10),
                                                                                fixed="heights")))
+    for off in ("receivers", "both"):
+        out.append((f"dense_lm 12x6 3d {off} varpro", case_dense_lm(toa_problem(12, 6, 3, off, 26), varpro=True)))
+    out.append(("dense_lm 12x6 3d both partial refit", case_dense_lm(toa_problem(12, 6, 3, "both", 27), free=True)))
+    out.append(("dense_lm 10x8 2d sources", case_dense_lm(toa_problem(10, 8, 2, "sources", 28))))
+    out.append(("sparse 200x300 3d 10% (cg)", case_sparse(200, 300, 0.1, 3, 29)))
+    out.append(("sparse 40x50 2d 30% (reduced)", case_sparse(40, 50, 0.3, 2, 30)))
+    out.append(("sparse 8x9 3d 80% (dense)", case_sparse(8, 9, 0.8, 3, 31)))
+    out.append(("refine 12x6 2d sources soft_l1 2 gross", case_refine(toa_problem(12, 6, 2, "sources", 32, gross=2),
+                                                                    "soft_l1")))
+    out.append(("refine 30x40 2d both huber miss10% 10 gross (reduced)",
+                case_refine(toa_problem(30, 40, 2, "both", 33, 0.1, gross=10), "huber")))
+    out.append(("refine 12x6 3d both (trf reference)", case_refine(toa_problem(12, 6, 3, "both", 35), solver="trf")))
+    out.append(("refine 30x40 2d sources miss10% huber 2cm (trf reference)",
+                case_refine(toa_problem(30, 40, 2, "sources", 36, 0.1, gross=5), "huber", solver="trf", f_scale=0.02)))
+    out.append(("known anchors 30x40 2d receivers", case_refine(toa_problem(30, 40, 2, "receivers", 34), fixed="anchors")))
     for off in ("none", "both"):
         out.append((f"race 25 starts 12x6 3d {off} (batch)", case_batch(toa_problem(12, 6, 3, off, 11))))
     out.append(("solve_toa 12x6 3d both", case_solve_toa(toa_problem(12, 6, 3, "both", 12, noise=1e-3))))
@@ -256,6 +313,17 @@ def cases() -> list[tuple[str, Callable[[Any], tuple[float, Any]]]]:
     out.append(("room 12 units, known heights", case_room(12, 5, True)))
     out.append(("room 10 units tiered, 3-D", case_room(10, 8, False, "tiered")))
     return out
+
+
+def roundoff(old: Any) -> None:
+    """The robust 12 x 6 rows on the old tree alone, from the start and from the start scaled by
+    1 -+ 1e-13: how far round-off alone moves their end point (these runs stop at the iteration
+    cap in a flat valley, so old and new differ by as much as the old code from itself)."""
+    for loss in ("huber", "soft_l1", "cauchy"):
+        P = toa_problem(12, 6, 3, "both", 6, gross=3)
+        c = [case_refine(P, loss, eps=e)(old)[0] for e in (0.0, 1e-13, -1e-13)]
+        print(f"old tree, refine 12x6 3d both {loss} 3 gross, start x (1, 1 + 1e-13, 1 - 1e-13): "
+              f"costs {', '.join(f'{v:.10g}' for v in c)}; relative spread {np.ptp(c) / c[0]:.2e}")
 
 
 def align_diff(a: Any, b: Any) -> float:
@@ -299,8 +367,10 @@ def main() -> None:
     ap.add_argument("--repeat", type=int, default=3, help="timings per case and tree (the best counts)")
     ap.add_argument("--min-seconds", type=float, default=0.2,
                     help="CPU seconds each timing runs for (short cases are called repeatedly)")
-    ap.add_argument("--only", default="", help="run the cases whose name contains this text")
+    ap.add_argument("--only", default="", help="run the cases whose name contains one of these comma-separated texts")
     ap.add_argument("--json", default="", help="also write the rows here")
+    ap.add_argument("--roundoff", action="store_true",
+                    help="also show how far round-off alone moves the robust 12 x 6 rows on the old tree")
     a = ap.parse_args()
     import warnings
 
@@ -311,7 +381,7 @@ def main() -> None:
         rows = []
         print(f"{'case':50s} {'cost_old':>12s} {'rel_cost':>9s} {'pos_diff':>9s} {'t_old s':>8s} {'t_ratio':>7s}")
         for name, f in cases():
-            if a.only not in name:
+            if not any(o in name for o in a.only.split(",")):
                 continue
             (c_old, p_old, t_old), (c_new, p_new, t_new) = timed_pair(f, old, new, a.repeat, a.min_seconds)
             rel = abs(c_new - c_old) / max(abs(c_old), 1e-300)
@@ -326,6 +396,8 @@ def main() -> None:
               f"geometric mean {np.exp(np.mean(np.log(ratios))):.2f}, max {ratios.max():.2f}")
         if a.json:
             Path(a.json).write_text(json.dumps(rows, indent=1))
+        if a.roundoff:
+            roundoff(old)
 
 
 if __name__ == "__main__":

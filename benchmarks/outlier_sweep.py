@@ -97,8 +97,9 @@ def cost(draws: int = 6) -> dict[str, float]:
     from pathlib import Path
 
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests" / "toa"))
-    import selfcal.toa.verdict.robust as rb
     from outlier_families import CLEAN, CONTAMINATED
+
+    import selfcal.toa.verdict.robust as rb
     from selfcal.toa import solve_toa
 
     warnings.simplefilter("ignore")

@@ -39,7 +39,6 @@ __all__ = [
     "check_choice",
     "check_positive",
     "as_rng",
-    "min_counts_toa",
     "check_toa_counts",
     "check_toa_observable",
     "check_path",
@@ -200,31 +199,17 @@ def as_rng(rng: np.random.Generator | int | None) -> np.random.Generator:
     raise InputError(f"rng must be a numpy Generator, an int seed >= 0 or None, got {type(rng).__name__}")
 
 
-def min_counts_toa(dim: int, offsets: str) -> tuple[int, int]:
-    """Minimal (receivers, transmitters) for anchor-free TOA self-calibration.
-
-    Counting argument: an I x J range matrix gives at most I*J equations; unknowns
-    are d*(I+J) coordinates minus the d(d+1)/2 gauge freedoms of a rigid motion,
-    plus I and/or J offsets (minus one common shift when both kinds are present).
-    The classical minimal configurations (Kuang, Burgess, Torstensson & Astrom
-    2013) for ``offsets="none"`` are 3 x 3 in 2D (with one more row or column for
-    a finite solution set in practice) and 4 x 6 / 6 x 4 in 3D. We require at
-    least d+1 nodes on each side so that the positions span the space, and then
-    the count of equations >= unknowns.
-    """
-    base = dim + 1
-    return base, base
-
-
 def check_toa_counts(shape: tuple[int, int], n_observed: int, dim: int, offsets: str) -> None:
     """Raise :class:`DegenerateGeometryError` when an I x J TOA problem is under-determined.
 
-    The condition is ``I >= d+1``, ``J >= d+1`` and ``observed entries >= unknowns``
-    where ``unknowns = d(I+J) - d(d+1)/2 + [I] + [J] - [both]`` (see
-    :func:`min_counts_toa`).
+    The condition is ``I >= d+1``, ``J >= d+1`` (the positions must span the space) and
+    ``observed entries >= unknowns`` where ``unknowns = d(I+J) - d(d+1)/2 + [I] + [J] - [both]``
+    (coordinates less the rigid motions, plus the offsets less one common shift). The classical
+    minimal configurations for ``offsets="none"`` (Kuang, Burgess, Torstensson & Astrom 2013)
+    are 3 x 3 in 2-D and 4 x 6 / 6 x 4 in 3-D.
     """
     I, J = shape
-    r_min, s_min = min_counts_toa(dim, offsets)
+    r_min = s_min = dim + 1
     if I < r_min:
         raise DegenerateGeometryError(
             f"{I} receivers cannot determine a {dim}-D geometry; at least {r_min} are needed "

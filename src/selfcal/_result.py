@@ -49,7 +49,7 @@ import numpy as np
 
 from .errors import Status
 
-__all__ = ["Result", "Status", "WrappedResult", "json_float", "jsonable"]
+__all__ = ["Result", "Status", "WrappedResult", "json_float", "jsonable", "replace_fields"]
 
 
 def json_float(x: float) -> float | None:
@@ -354,3 +354,28 @@ class WrappedResult(Result):
         own = super().summary()
         inner = self.result.summary() if isinstance(self.result, Result) else repr(self.result)
         return own + "\n\n" + inner
+
+
+def replace_fields(result: Any, **kw: Any) -> Any:
+    """:func:`dataclasses.replace` with only the fields the result type has (others dropped).
+
+    Parameters
+    ----------
+    result : a dataclass instance (a result).
+    **kw : new field values; names the type lacks are ignored.
+
+    Returns
+    -------
+    A copy of ``result`` with the fields it has replaced.
+
+    Examples
+    --------
+    >>> from dataclasses import dataclass
+    >>> @dataclass(frozen=True)
+    ... class R:
+    ...     x: int
+    >>> replace_fields(R(1), x=2, y=3)
+    R(x=2)
+    """
+    names = {f.name for f in dataclasses.fields(result)}
+    return dataclasses.replace(result, **{k: v for k, v in kw.items() if k in names})

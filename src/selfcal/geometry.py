@@ -23,7 +23,6 @@ from .errors import InputError
 __all__ = [
     "Alignment",
     "align",
-    "apply_alignment",
     "rotate_covariances",
     "rotation_2d",
     "rotation_from_rotvec",
@@ -140,11 +139,6 @@ def align(
     if batched:
         return Alignment(rotation=R, translation=t, scale=s)
     return Alignment(rotation=R[0], translation=t[0], scale=float(s[0]))
-
-
-def apply_alignment(points: Array, alignment: Alignment) -> Array:
-    """Map (n, d) ``points`` with ``alignment`` (convenience for :meth:`Alignment.apply`)."""
-    return alignment.apply(points)
 
 
 def rotate_covariances(cov: Array, R: Array) -> Array:

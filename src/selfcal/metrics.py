@@ -10,7 +10,7 @@ from numpy.typing import NDArray
 from ._checks import entry
 from .geometry import Alignment, align, wrap_angle
 
-__all__ = ["AlignedError", "aligned_rmse", "per_point_errors", "percentiles", "angle_error", "rotation_angle_error",
+__all__ = ["AlignedError", "aligned_rmse", "percentiles", "angle_error", "rotation_angle_error",
            "aligned_direction_errors", "efficiency"]
 
 Array = NDArray[np.float64]
@@ -68,11 +68,6 @@ def aligned_rmse(
         source_errors=serr,
         alignment=al,
     )
-
-
-def per_point_errors(estimate: Array, reference: Array) -> Array:
-    """Euclidean error of each row: (n, d), (n, d) -> (n,)."""
-    return np.linalg.norm(np.asarray(estimate, float) - np.asarray(reference, float), axis=-1)
 
 
 def percentiles(values: Array, qs: tuple[float, ...] = (50, 90, 95, 99)) -> dict[str, float]:

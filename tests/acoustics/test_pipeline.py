@@ -158,24 +158,6 @@ def test_pipeline_tiered_room_in_3d(tmp_path):
     assert data["errors"]["position_max"] < 0.10 and data["errors"]["timing_max"] < 58e-6
 
 
-def test_gauge_pseudo_inverse_equals_numpy_pinv():
-    """N^+ = (N + a G G^T)^-1 - G G^T / a for a normal matrix whose null space is the horizontal gauge."""
-    from selfcal.acoustics.geometry import _gauge_pinv
-
-    g = np.random.default_rng(1)
-    xr, xs = g.uniform(0, 8, (10, 2)), g.uniform(0, 8, (10, 2))
-    n = 2 * 20 + 10 + 9
-    G = np.zeros((n, 3))
-    c = np.vstack([xr, xs]) - np.vstack([xr, xs]).mean(axis=0)
-    G[0:40:2, 0], G[1:40:2, 1] = 1.0, 1.0
-    G[0:40:2, 2], G[1:40:2, 2] = -c[:, 1], c[:, 0]
-    Q, _ = np.linalg.qr(G)
-    Jm = g.normal(size=(300, n))
-    Jm -= Jm @ Q @ Q.T
-    N = Jm.T @ Jm
-    np.testing.assert_allclose(_gauge_pinv(N, xr, xs), np.linalg.pinv(N, hermitian=True), atol=1e-12)
-
-
 def test_microphones_mirrored_under_coplanar_loudspeakers_are_put_back_on_one_side():
     """Coplanar senders: reflecting one receiver through their plane changes no distance."""
     from selfcal.acoustics.geometry import one_side_of_plane

@@ -1,4 +1,4 @@
-"""The incremental block start (selfcal.toa.init.block_start) on flights with complementary anchor gaps.
+"""The incremental block start (selfcal.toa.block_start) on flights with complementary anchor gaps.
 
 Scene: six anchors at the corners of a 2.4 x 2.0 x 1.2 m box at mixed heights (the Lund LPS
 layout of ``benchmarks/lps_faults.py``), one tag on a smooth 3-D trajectory, ranges with
@@ -14,8 +14,8 @@ import numpy as np
 import pytest
 
 from selfcal.toa import solve_toa
+from selfcal.toa.block_start import block_start, needs_block_start
 from selfcal.toa.engine.nls import refine_toa, toa_model
-from selfcal.toa.init.block_start import block_start, needs_block_start
 
 CORNERS = np.array([[0, 0, 0], [1, 0, 1], [1, 1, 0], [0, 1, 1], [0.5, 0, 0.9], [0.5, 1, 0.1]], float)
 BOX = np.array([2.4, 2.0, 1.2])

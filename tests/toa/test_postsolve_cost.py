@@ -4,7 +4,16 @@
   eigendecomposition of ``J^T J`` with the relative cut (the former computation);
 - the additive model's leverages from its small normal matrix against the SVD of the dense
   design (the former computation);
-- the time-order test's sequential stop: the same decision as all 999 random orders.
+- the time-order test's sequential stop: the same decision as all 999 random orders;
+- the bipartite generalised inverse (:class:`~selfcal.toa.verdict.robust.BipartiteInverse`)
+  against the dense lifted inverse: the same leverages (fitted and held-out entries) and the
+  same Fisher blocks;
+- the linearisation kept between the outlier rule, the trust test and the determinacy test
+  (:func:`~selfcal.toa.verdict.robust.normal_equations`): reused only on the same entries
+  within the solver's step tolerance, and then equal to a fresh one;
+- the permutation test's statistic of the data and its copies refined in lockstep
+  (:func:`~selfcal.toa.verdict.trust.geometry_statistics`) against one ``refine_toa`` call per
+  matrix (the former computation): the same statistic, so the same level and power.
 
 Speed itself is measured in ``benchmarks/bench_postsolve.py``, never asserted here.
 """
@@ -14,6 +23,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from selfcal.errors import DegenerateGeometryError
 from selfcal.robust import mad_std
 from selfcal.toa import toa_model
 from selfcal.toa.engine.nls import _pack, toa_jacobian
@@ -118,3 +128,193 @@ def test_time_order_stop_keeps_the_decision():
         test = detect_time_order(Y, rng=k)
         assert test.detected == _full_time_order(Y, k), k
         assert 0 < test.p_value <= 1 and 1 <= test.permutations <= TIME_ORDER_PERMUTATIONS
+
+
+def _one_at_a_time(Y, dim, offsets):
+    """The former geometry statistic: best 003 start, then ``refine_toa`` (5 iterations)."""
+    from selfcal.toa.engine.nls import refine_toa
+    from selfcal.toa.init.mds import mds_alg2, mds_multilateration
+    from selfcal.toa.verdict.trust import PERMUTATION_REFINE, _additive_fit
+
+    has_r, has_s = offsets in ("receivers", "both"), offsets in ("sources", "both")
+    obs = np.isfinite(Y)
+    e0 = (Y - _additive_fit(Y, has_r, has_s))[obs]
+    rss0 = e0 @ e0
+    best, start = np.inf, None
+    for init in (lambda Z: mds_multilateration(Z, dim, rng=0), lambda Z: mds_alg2(Z, dim)):
+        try:
+            r, s = init(Y - min(0.0, float(np.nanmin(Y))))
+        except Exception:  # noqa: BLE001 (an initialiser that does not apply, as in the statistic)
+            continue
+        E = Y - toa_model(r, s)
+        E = E - _additive_fit(E, has_r, has_s) if (has_r or has_s) else E
+        if np.isfinite(E[obs]).all() and E[obs] @ E[obs] / rss0 < best:
+            best, start = E[obs] @ E[obs] / rss0, (r, s)
+    if start is not None:
+        try:
+            sol = refine_toa(Y, *start, offsets=offsets, max_nfev=PERMUTATION_REFINE, covariance=False)
+        except DegenerateGeometryError:  # too few ranges: the start's statistic, as before
+            return best
+        if np.isfinite(sol.residuals[obs]).all():
+            best = min(best, sol.residuals[obs] @ sol.residuals[obs] / rss0)
+    return best
+
+
+def test_lockstep_statistics_equal_one_refinement_at_a_time():
+    """24 stacks (every offsets mode, 2-D and 3-D, 5-16 nodes a side, half complete (their starts
+    stacked too), half 0-20 % missing, genuine networks and their permuted copies, as the test
+    builds them): each matrix's statistic in
+    the stack equals the one-at-a-time procedure's to 1e-6 relative (the batched driver's
+    iterates are the dense / Schur engine's up to round-off, amplified at most by the few
+    accepted-or-refused trials that round-off can flip)."""
+    from selfcal.toa.verdict.trust import _additive_fit, geometry_statistics
+
+    g = np.random.default_rng(7)
+    for k in range(24):
+        dim = int(g.choice([2, 3]))
+        I, J = (int(v) for v in g.integers(dim + 3, 17, 2))
+        off = ["none", "receivers", "sources", "both"][k % 4]
+        has_r, has_s = off in ("receivers", "both"), off in ("sources", "both")
+        r, s = g.uniform(0, 10, (I, dim)), g.uniform(0, 10, (J, dim))
+        Y = toa_model(r, s, g.uniform(0, 3, I) if has_r else None, g.uniform(0, 3, J) if has_s else None)
+        Y = Y + g.normal(0, g.choice([0.0, 0.01, 0.3]), Y.shape)
+        if k % 2:  # complete stacks take the stacked starts (trust._complete_starts)
+            Y[g.random(Y.shape) < g.uniform(0, 0.2)] = np.nan
+        obs = np.isfinite(Y)
+        F = _additive_fit(Y, has_r, has_s)
+        stack = [Y]
+        for _ in range(3):  # copies as permutation_test makes them
+            Z = np.full(Y.shape, np.nan)
+            Z[obs] = g.permutation((Y - F)[obs])
+            stack.append(F + Z)
+        T = geometry_statistics(np.stack(stack), dim, off)
+        for t, Yk in zip(T, stack, strict=True):
+            t0 = _one_at_a_time(Yk, dim, off)
+            assert t == pytest.approx(t0, rel=1e-6, abs=1e-12), (k, off, dim)
+
+
+def test_kept_linearisation_equals_a_fresh_one():
+    """40 random networks (every offsets mode, 2-D and 3-D, up to 30 % missing): leverages and
+    Fisher blocks at a geometry moved by less than the reuse tolerance (which reuse the kept
+    linearisation) equal those computed afresh (leverages to 1e-7 relative, Fisher blocks to
+    1e-7 of their largest entry: the move is 3e-11 of the parameters' norm, the rest is the
+    round-off of two inversions); a move beyond it, a changed
+    entry set or another offsets mode forms a new linearisation (never a stale one)."""
+    from selfcal.toa.verdict import robust
+    from selfcal.toa.verdict.determinacy import fisher_blocks
+
+    g = np.random.default_rng(3)
+    for k in range(40):
+        dim = int(g.choice([2, 3]))
+        I, J = (int(v) for v in g.integers(dim + 4, 14, 2))
+        off = ["none", "receivers", "sources", "both"][k % 4]
+        has_r, has_s = off in ("receivers", "both"), off in ("sources", "both")
+        r, s = g.uniform(0, 10, (I, dim)), g.uniform(0, 10, (J, dim))
+        d = g.uniform(0, 3, I) if has_r else None
+        o = g.uniform(0, 3, J) if has_s else None
+        Y = toa_model(r, s, d, o)
+        Y[g.random(Y.shape) < g.uniform(0, 0.3)] = np.nan
+        robust._LAST.clear()
+        h0 = leverages(Y, r, s, d, o, off)
+        kept = robust._LAST[0]
+        theta_norm = np.linalg.norm(kept.theta)
+        step = 0.3 * robust.REUSE_XTOL * theta_norm  # within the tolerance: reused
+        r1 = r + step / np.sqrt(r.size + s.size) * g.choice([-1, 1], r.shape)
+        s1 = s + step / np.sqrt(r.size + s.size) * g.choice([-1, 1], s.shape)
+        h1 = leverages(Y, r1, s1, d, o, off)
+        assert robust._LAST[0] is kept, k
+        B1 = fisher_blocks(Y, r1, s1, d, o, off, 0.01)
+        robust._LAST.clear()
+        h1_fresh = leverages(Y, r1, s1, d, o, off)
+        B1_fresh = fisher_blocks(Y, r1, s1, d, o, off, 0.01)
+        ok = np.isfinite(h0)
+        assert np.allclose(h1[ok], h1_fresh[ok], rtol=1e-7, atol=1e-10), k
+        for a, b in zip(B1, B1_fresh, strict=True):
+            fin = np.isfinite(b)
+            assert np.allclose(a[fin], b[fin], rtol=1e-7, atol=1e-7 * np.abs(b[fin]).max()), k
+        # beyond the tolerance, other entries, another model: a new linearisation
+        far = leverages(Y, r + 1e-6, s, d, o, off)
+        assert robust._LAST[0] is not kept and robust._LAST[0].same(np.isfinite(Y), off, robust._LAST[0].theta)
+        robust._LAST.clear()
+        assert np.allclose(far[ok], leverages(Y, r + 1e-6, s, d, o, off)[ok], rtol=1e-12, atol=1e-14)
+        Y2 = Y.copy()
+        Y2[np.unravel_index(np.flatnonzero(np.isfinite(Y))[0], Y.shape)] = np.nan
+        before = robust._LAST[0]
+        leverages(Y2, r, s, d, o, off)
+        assert robust._LAST[0] is not before
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_bipartite_inverse_equals_the_dense_lifted_one(seed, monkeypatch):
+    """60 random networks a seed (every offsets mode, 2-D and 3-D, sides 5-20 so that either
+    side is eliminated, 0-30 % missing, some entries held out): the leverages of fitted and
+    held-out entries and the determinacy test's Fisher blocks from the bipartite inverse equal
+    those of the dense lifted inverse to 1e-7 (relative to the largest entry of a block: two
+    different O(n^3) factorisations of the same matrix, condition up to ~1e4 here)."""
+    from selfcal.toa.verdict import robust
+    from selfcal.toa.verdict.determinacy import fisher_blocks
+
+    g = np.random.default_rng(100 + seed)
+    used = 0
+    for k in range(60):
+        dim = int(g.choice([2, 3]))
+        I, J = (int(v) for v in g.integers(dim + 3, 21, 2))
+        off = ["none", "receivers", "sources", "both"][k % 4]
+        has_r, has_s = off in ("receivers", "both"), off in ("sources", "both")
+        r, s = g.uniform(0, 10, (I, dim)), g.uniform(0, 10, (J, dim))
+        d = g.uniform(0, 3, I) if has_r else None
+        o = g.uniform(0, 3, J) if has_s else None
+        Y = toa_model(r, s, d, o)
+        Y[g.random(Y.shape) < g.uniform(0, 0.3)] = np.nan
+        held = np.isfinite(Y) & (g.random(Y.shape) < 0.05)
+        Yf = np.where(held, np.nan, Y)
+        robust._LAST.clear()
+        h_blk = leverages(Yf, r, s, d, o, off, held_out=held)
+        blk = robust._LAST[0].block()
+        B_blk = fisher_blocks(Yf, r, s, d, o, off, 0.01)
+        with monkeypatch.context() as m:
+            m.setattr(robust.BipartiteInverse, "build", classmethod(lambda cls, ne: None))
+            robust._LAST.clear()
+            h_dense = leverages(Yf, r, s, d, o, off, held_out=held)
+            B_dense = fisher_blocks(Yf, r, s, d, o, off, 0.01)
+        robust._LAST.clear()
+        if blk is None:
+            continue  # the dense path decided (a block too ill-conditioned): nothing to compare
+        used += 1
+        ok = np.isfinite(h_dense)
+        assert np.array_equal(ok, np.isfinite(h_blk))
+        assert np.allclose(h_blk[ok], h_dense[ok], rtol=1e-7, atol=1e-9), (seed, k, off, dim)
+        if B_dense is None:
+            assert B_blk is None
+            continue
+        for a, b in zip(B_blk, B_dense, strict=True):
+            fin = np.isfinite(b)
+            assert np.array_equal(fin, np.isfinite(a)), (seed, k)
+            scale = np.abs(b[fin]).max() if fin.any() else 1.0
+            assert np.allclose(a[fin], b[fin], rtol=1e-7, atol=1e-7 * scale), (seed, k, off, dim)
+    assert used >= 40  # the bipartite path is the one taken on generic networks
+
+
+def test_stacked_starts_equal_the_initialisers():
+    """30 complete stacks (2-D and 3-D, 4-39 nodes a side: both eigensolvers of the MDS, a
+    network with offsets and noise 0-1 m, a permuted copy, a noisy absolute one): the stacked
+    starts equal ``mds_multilateration`` and ``mds_alg2`` matrix by matrix to 1e-10 of the
+    configuration's size (round-off of the same LAPACK calls in another order)."""
+    from selfcal.toa.init.mds import mds_alg2, mds_multilateration
+    from selfcal.toa.verdict.trust import _complete_starts
+
+    g = np.random.default_rng(11)
+    for k in range(30):
+        dim = int(g.choice([2, 3]))
+        I, J = (int(v) for v in g.integers(dim + 2, 40, 2))
+        r, s = g.uniform(0, 10, (I, dim)), g.uniform(0, 10, (J, dim))
+        Y = toa_model(r, s) + g.uniform(0, 3, (I, 1)) + g.normal(0, g.choice([0.0, 0.01, 1.0]), (I, J))
+        st = np.stack([Y, g.permutation(Y.ravel()).reshape(I, J), np.abs(Y + g.normal(0, 2, Y.shape))])
+        st = st - np.minimum(0.0, st.min(axis=(1, 2)))[:, None, None]
+        got = _complete_starts(st, dim)
+        assert got is not None, k
+        for i in range(3):
+            for name, start in (("mds-multilat", mds_multilateration(st[i], dim, rng=0)), ("alg2", mds_alg2(st[i], dim))):
+                size = max(1.0, float(np.abs(start[0]).max()))
+                assert np.abs(got[name][0][i] - start[0]).max() < 1e-10 * size, (k, i, name)
+                assert np.abs(got[name][1][i] - start[1]).max() < 1e-10 * size, (k, i, name)

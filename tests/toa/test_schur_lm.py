@@ -125,7 +125,7 @@ def test_dense_step_gives_the_iterates_of_the_reduced_step(case: tuple) -> None:
 def test_analytic_gauge_projector_equals_the_qr_basis_projector(offsets: str, d: int) -> None:
     """The dense step's projector (translations, rotations by Gram-Schmidt, common shift) is
     ``I - Q Q^T`` with Q the orthonormal QR basis of nls.gauge_basis (independent computation)."""
-    from selfcal.toa.engine.dense_lm import GaugeProjector
+    from selfcal.toa.engine.model import GaugeProjector
 
     g = np.random.default_rng(7)
     I, J = 7, 5

@@ -12,7 +12,7 @@ import pytest
 
 from selfcal.robust import loss_rho
 from selfcal.toa.engine import dense_lm, nls
-from selfcal.toa.engine.varpro import solve_varpro_lm
+from selfcal.toa.engine.dense_lm import solve_varpro_lm
 
 MODES = ("both", "receivers", "sources")
 

@@ -28,6 +28,7 @@ from numpy.typing import NDArray
 
 from ..errors import DegenerateGeometryError, InputError
 from ..geometry import n_parameters
+from ..requirements import TIMING_REQUIREMENT
 from ..robust import TUNING, loss_rho
 from .geometry import (
     PLANAR_ALPHA,
@@ -37,7 +38,6 @@ from .geometry import (
     planarity,
     refine_known_heights,
 )
-from .requirements import TIMING_REQUIREMENT
 
 __all__ = ["calibrate_matrix", "refit", "sender_matrix", "n_parameters_of"]
 
@@ -451,7 +451,7 @@ def refit(T: Array, sol: dict[str, Any], speed: float, heights: tuple[Array, Arr
         # dropped: the others are refined from where they stand
         sub = refit(T[np.ix_(kr, ks)], {**sol, "receivers": r[kr], "sources": s[ks], "receiver_offsets": dr[kr],
                                         "source_offsets": ds[ks]}, speed, f_scale=f_scale)
-        return _scatter_nodes(sub, kr, ks)
+        return _scatter_nodes(sub, kr, ks, outliers=True)
     res = _solve(T, d, speed, 0, init=(r[:, :d], s[:, :d], dr, ds), f_scale=f_scale)
     out = _as_solution(res, "")
     out["method"] = method
@@ -459,21 +459,27 @@ def refit(T: Array, sol: dict[str, Any], speed: float, heights: tuple[Array, Arr
     return out
 
 
-def _scatter_nodes(sol: dict[str, Any], kr: NDArray[np.bool_], ks: NDArray[np.bool_]) -> dict[str, Any]:
-    """A solution on the kept nodes at full size: NaN rows (and a clean outlier mask) for the others."""
+def _scatter_nodes(sol: dict[str, Any], kr: NDArray[np.bool_], ks: NDArray[np.bool_], *,
+                  outliers: bool = False) -> dict[str, Any]:
+    """A solution on the kept nodes at full size: NaN rows for the others (with ``outliers``, a
+    full-size outlier mask too); the uniqueness verdict in the full numbering."""
     I, J = len(kr), len(ks)
     out = dict(sol)
     for key, keep, n in (("receivers", kr, I), ("sources", ks, J), ("receiver_offsets", kr, I),
-                         ("source_offsets", ks, J), ("receiver_cov", kr, I), ("source_cov", ks, J)):
+                         ("source_offsets", ks, J), ("receiver_cov", kr, I), ("source_cov", ks, J),
+                         ("receiver_offset_std", kr, I), ("source_offset_std", ks, J)):
+        if sol.get(key) is None:
+            continue
         a = np.asarray(sol[key], float)
         full = np.full((n,) + a.shape[1:], np.nan)
         full[keep] = a
         out[key] = full
-    mask = np.zeros((I, J), bool)
-    mask[np.ix_(kr, ks)] = np.asarray(sol["toa_outliers"], bool)
-    out["toa_outliers"] = mask
+    if outliers:
+        mask = np.zeros((I, J), bool)
+        mask[np.ix_(kr, ks)] = np.asarray(sol["toa_outliers"], bool)
+        out["toa_outliers"] = mask
     u = sol.get("uniqueness")
-    if u is not None:
+    if u is not None and hasattr(u, "relabel") and len(u.ambiguous_receivers) == int(kr.sum()):
         out["uniqueness"] = u.relabel(kr, ks, np.arange(I), np.arange(J))
     return out
 

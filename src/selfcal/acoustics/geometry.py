@@ -12,11 +12,13 @@ fallbacks the calibration (:mod:`selfcal.acoustics.calibrate`) uses:
   pipeline no longer fits both models by default).
 - :func:`one_side_of_plane`: the microphone-side convention when only the loudspeakers are
   coplanar.
-- :func:`refine_known_heights`: horizontal positions and offsets with every z given.
+- :func:`refine_known_heights`: horizontal positions and offsets with every z given (the TOA
+  fit with a fixed z column and per-entry weights).
 """
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 from typing import Any
 
@@ -25,8 +27,6 @@ from numpy.typing import NDArray
 
 from .._checks import check_magnitude, non_number_leaf
 from ..errors import InputError
-from ..optim.lm import levenberg_marquardt
-from ..optim.steps import ResidualModel
 from ..toa.verdict.select import (  # one implementation: the TOA package's model choice (dim="auto")
     PLANAR_ALPHA,
     PLANAR_RATIO,
@@ -121,63 +121,6 @@ def read_heights(path: str | Path, receivers: tuple[str, ...], senders: tuple[st
     return out[0], out[1]
 
 
-def _heights_jacobian(xy_r: Array, xy_s: Array, dz: Array, rows: NDArray[np.intp], cols: NDArray[np.intp],
-                      I: int, J: int) -> Any:
-    import scipy.sparse as sp
-
-    diff = xy_r[rows] - xy_s[cols]
-    dist = np.sqrt((diff**2).sum(axis=1) + dz[rows, cols] ** 2)
-    g = diff / np.maximum(dist, 1e-9)[:, None]
-    m = len(rows)
-    n_xy = 2 * (I + J)
-    # Parameter order: receiver xy (2I), sender xy (2J), receiver offsets (I), sender offsets 2..J.
-    r_idx = np.repeat(np.arange(m), 6)
-    c_idx = np.column_stack([2 * rows, 2 * rows + 1, 2 * I + 2 * cols, 2 * I + 2 * cols + 1,
-                             n_xy + rows, n_xy + I + cols - 1])
-    vals = np.column_stack([-g[:, 0], -g[:, 1], g[:, 0], g[:, 1], -np.ones(m), -np.ones(m)])
-    keep = ~((c_idx == n_xy + I - 1) & (np.arange(6) == 5)[None, :])  # sender 0's offset is the gauge
-    Jm = sp.csr_matrix((vals[keep], (r_idx[keep.ravel()], c_idx[keep])), shape=(m, n_xy + I + J - 1))
-    return Jm, dist
-
-
-def _levenberg_marquardt(resid: Any, jac: Any, theta0: Array, max_iterations: int,
-                         tol: float = 1e-12) -> tuple[Array, Array, Any, int, bool]:
-    """Minimise ``|resid(theta)|^2`` with :func:`selfcal.optim.levenberg_marquardt` (dense
-    normal equations: the problems here have a few hundred unknowns; Marquardt's scaling keeps
-    the gauge null space, the rigid motions, from making the step singular)."""
-    out = levenberg_marquardt(ResidualModel(resid, jac), theta0, max_iter=max_iterations, xtol=tol, ftol=tol)
-    return out.x, out.state, jac(out.x), out.iterations, out.converged
-
-
-def _gauge_pinv(N: Array, xr: Array, xs: Array) -> Array:
-    """Pseudo-inverse of the normal matrix whose null space is the horizontal rigid motions.
-
-    With ``G`` an orthonormal basis of that null space (x and y translations and the
-    rotation about z of every horizontal coordinate; offsets are untouched),
-    ``N^+ = (N + G G^T)^-1 - G G^T`` -- one Cholesky instead of an eigendecomposition.
-    """
-    from scipy.linalg import cho_factor, cho_solve
-
-    n = N.shape[0]
-    pts = np.vstack([xr, xs])
-    k = 2 * len(pts)
-    G = np.zeros((n, 3))
-    G[0:k:2, 0] = 1.0
-    G[1:k:2, 1] = 1.0
-    centred = pts - pts.mean(axis=0)
-    G[0:k:2, 2] = -centred[:, 1]
-    G[1:k:2, 2] = centred[:, 0]
-    G, _ = np.linalg.qr(G)
-    GG = G @ G.T
-    scale = float(np.mean(np.diag(N))) or 1.0
-    # Scaling G G^T like N keeps the sum well conditioned; N^+ = (N + a G G^T)^-1 - G G^T / a.
-    try:
-        factor = cho_factor(N + scale * GG)
-    except np.linalg.LinAlgError:  # a further null direction (a node with too few entries): SVD
-        return np.asarray(np.linalg.pinv(N, hermitian=True), dtype=np.float64)
-    return np.asarray(cho_solve(factor, np.eye(n)) - GG / scale, dtype=np.float64)
-
-
 def refine_known_heights(
     matrix: Array,
     receiver_heights: Array,
@@ -197,8 +140,11 @@ def refine_known_heights(
     Minimises ``sum_ij (c t_ij - sqrt(|x_i - y_j|^2 + (z_i - w_j)^2) - c delta_i - c tau_j)^2``
     (004 eq. 3.1 with the heights z_i, w_j given) over the (I + J) x 2 horizontal
     positions, the I internal delays and the onsets tau_2..tau_J (tau_1 = 0, 004 sec. 3.3).
-    The horizontal gauge (rotation, translation, reflection) stays free; the covariance is
-    ``sigma^2 (J^T J)^+`` (minimum-norm inner constraints).
+    It is the TOA fit (:func:`selfcal.toa.engine.nls.refine_toa`, offsets "both") with the
+    z column of every node fixed and per-entry weights, on the driver (``solver="lm"``): the
+    constrained path of :mod:`selfcal.toa.engine.constrained`, which holds the horizontal gauge (translation,
+    rotation about z) at the start's and reports the covariance free of it,
+    ``sigma^2 (J^T W J)^+`` (minimum-norm inner constraints).
 
     Parameters
     ----------
@@ -212,8 +158,8 @@ def refine_known_heights(
     speed : float
         m/s.
     f_scale : float, optional
-        s: a Cauchy loss of this scale instead of least squares (iteratively reweighted:
-        weights ``1 / (1 + (e / f_scale)^2)``), robust to a minority of wrong entries.
+        s: a Cauchy loss of this scale on the weighted residuals instead of least squares
+        (``sum log(1 + (e / f_scale)^2)``), robust to a minority of wrong entries.
     weights : (I, J) array, optional
         ``1 / std`` of every entry (1/s): weighted least squares, the ML fit when the entries'
         noise differs (a detection in a noise burst against a clean one). Default equal
@@ -228,88 +174,56 @@ def refine_known_heights(
         (J, 3, 3) (zero z variance: heights are given), ``residual_rms`` (s),
         ``converged``, ``iterations``.
     """
+    from ..toa.engine.nls import refine_toa, toa_model
+
     T = np.asarray(matrix, dtype=float)
     I, J = T.shape
-    rows, cols = np.nonzero(np.isfinite(T))
-    y = speed * T[rows, cols]
-    dz = np.asarray(receiver_heights, float)[:, None] - np.asarray(sender_heights, float)[None, :]
+    obs = np.isfinite(T)
+    zr, zs = np.asarray(receiver_heights, float), np.asarray(sender_heights, float)
     shift = float(source_offsets[0])
-    theta0 = np.concatenate([np.asarray(receivers_xy, float).ravel(), np.asarray(senders_xy, float).ravel(),
-                             speed * (np.asarray(receiver_offsets, float) + shift),
-                             speed * (np.asarray(source_offsets, float)[1:] - shift)])
-    n_xy = 2 * (I + J)
+    wt = np.ones((I, J))
+    if weights is not None:
+        w = np.asarray(weights, float)
+        wt = np.where(np.isfinite(w) & (w > 0), w, 0.0)
+        pos = obs & (wt > 0)
+        wt = wt / (float(np.exp(np.mean(np.log(wt[pos])))) if pos.any() else 1.0)  # geometric mean 1
+    fixed_r = np.zeros((I, 3), bool)
+    fixed_s = np.zeros((J, 3), bool)
+    fixed_r[:, 2] = fixed_s[:, 2] = True  # the known heights: a fixed z column
+    Y = speed * T
 
-    def unpack(th: Array) -> tuple[Array, Array, Array, Array]:
-        xr = th[: 2 * I].reshape(I, 2)
-        xs = th[2 * I: n_xy].reshape(J, 2)
-        dr = th[n_xy: n_xy + I]
-        ds = np.concatenate([[0.0], th[n_xy + I:]])
-        return xr, xs, dr, ds
+    def fit(w: Array | None, r: Array, s: Array, d: Array, o: Array) -> Any:
+        return refine_toa(Y, r, s, offsets="both", receiver_offsets0=d, source_offsets0=o,
+                          max_nfev=max_iterations, xtol=1e-12, solver="lm", fixed_receivers=fixed_r, fixed_sources=fixed_s,
+                          weights=w)
 
-    if weights is None:
-        wt = np.ones(len(rows))
-    else:
-        wt = np.asarray(weights, float)[rows, cols]
-        wt = np.where(np.isfinite(wt) & (wt > 0), wt, 0.0)
-        wt = wt / (float(np.exp(np.mean(np.log(wt[wt > 0])))) if (wt > 0).any() else 1.0)  # geometric mean 1
-    import scipy.sparse as _sp
-
-    Wt = _sp.diags(wt)
-
-    def resid(th: Array) -> Array:
-        xr, xs, dr, ds = unpack(th)
-        dist = np.sqrt(((xr[rows] - xs[cols]) ** 2).sum(axis=1) + dz[rows, cols] ** 2)
-        return wt * (y - dist - dr[rows] - ds[cols])
-
-    def jac(th: Array) -> Any:
-        xr, xs, _, _ = unpack(th)
-        return Wt @ _heights_jacobian(xr, xs, dz, rows, cols, I, J)[0]
-
+    cur = (np.column_stack([np.asarray(receivers_xy, float), zr]), np.column_stack([np.asarray(senders_xy, float), zs]),
+           speed * (np.asarray(receiver_offsets, float) + shift), speed * (np.asarray(source_offsets, float) - shift))
     if f_scale is None:
-        theta, r, Jm, iterations, converged = _levenberg_marquardt(resid, jac, theta0, max_iterations)
-    else:
-        import scipy.sparse as sp
-
-        theta, iterations, converged = theta0, 0, False
+        sol = fit(None if weights is None else wt, *cur)
+    else:  # Cauchy by IRLS from the start: weights sqrt(rho') of the weighted residuals, weighted fits
         fs_m = float(f_scale) * speed
-        for _ in range(8):  # IRLS: weights from the current residuals, then weighted LM
-            w = np.sqrt(1.0 / (1.0 + (resid(theta) / fs_m) ** 2))
-            W = sp.diags(w)
-
-            def wres(th: Array, w: Array = w) -> Array:
-                return w * resid(th)
-
-            def wjac(th: Array, W: Any = W) -> Any:
-                return W @ jac(th)
-
-            theta_new, r, Jm, it, converged = _levenberg_marquardt(wres, wjac, theta, max_iterations)
-            iterations += it
-            step = float(np.abs(theta_new - theta).max())
-            theta = theta_new
+        iterations = 0
+        for _ in range(8):
+            e = np.where(obs, wt * (Y - toa_model(*cur)), 0.0)
+            sol = fit(wt * np.sqrt(1.0 / (1.0 + (e / fs_m) ** 2)), *cur)
+            iterations += sol.iterations
+            new = (sol.receivers, sol.sources, sol.receiver_offsets, sol.source_offsets)
+            step = max(float(np.abs(x - y).max()) for x, y in zip(new, cur, strict=True))  # type: ignore[operator]
+            cur = new  # type: ignore[assignment]
             if step < 1e-9:
                 break
-        r = resid(theta)
-        Jm = jac(theta)
-    xr, xs, dr, ds = unpack(theta)
-    m, n = len(r), len(theta)
-    dof = max(m - n + 3, 1)  # 3 = horizontal rigid-motion gauge freedoms
-    sigma2 = float(r @ r) / dof
-    cov = sigma2 * _gauge_pinv((Jm.T @ Jm).toarray(), xr, xs)
-    rcov = np.zeros((I, 3, 3))
-    scov = np.zeros((J, 3, 3))
-    for i in range(I):
-        rcov[i, :2, :2] = cov[2 * i: 2 * i + 2, 2 * i: 2 * i + 2]
-    for j in range(J):
-        k = 2 * I + 2 * j
-        scov[j, :2, :2] = cov[k: k + 2, k: k + 2]
+        sol = dataclasses.replace(sol, iterations=iterations)
+    assert sol.receiver_offsets is not None and sol.source_offsets is not None
+    e = sol.residuals[obs & (wt > 0)]
     return {
-        "receivers": np.column_stack([xr, receiver_heights]),
-        "sources": np.column_stack([xs, sender_heights]),
-        "receiver_offsets": dr / speed,
-        "source_offsets": ds / speed,
-        "receiver_cov": rcov,
-        "source_cov": scov,
-        "residual_rms": float(np.sqrt(np.mean((r[wt > 0] / wt[wt > 0]) ** 2))) / speed if (wt > 0).any() else float("nan"),
-        "converged": converged,
-        "iterations": iterations,
+        "receivers": np.asarray(sol.receivers, float),
+        "sources": np.asarray(sol.sources, float),
+        "receiver_offsets": np.asarray(sol.receiver_offsets, float) / speed,
+        "source_offsets": np.asarray(sol.source_offsets, float) / speed,
+        "receiver_cov": np.asarray(sol.receiver_cov, float),
+        "source_cov": np.asarray(sol.source_cov, float),
+        "residual_rms": float(np.sqrt(np.mean(e**2))) / speed if e.size else float("nan"),
+        "converged": bool(sol.converged),
+        "iterations": int(sol.iterations),
     }

@@ -26,6 +26,7 @@ from numpy.typing import NDArray
 from .._checks import entry
 from .._result import Result
 from ..errors import DegenerateGeometryError, InputError, Status
+from ..requirements import POSITION_REQUIREMENT, TIMING_REQUIREMENT
 from .calibrate import _predict, calibrate_matrix, sender_matrix
 from .geometry import (
     ModelComparison,
@@ -38,7 +39,6 @@ from .geometry import (
 )
 from .noise import MF_FACTOR, TIMING_FLOOR, detection_std, fit_test, residual_check, timing_noise
 from .plausibility import extent_reason
-from .requirements import POSITION_REQUIREMENT, TIMING_REQUIREMENT
 from .robust_fit import Outlier, robust_calibrate
 from .scale import apply_scale, scale_from_distances
 from .scoring import truth_errors

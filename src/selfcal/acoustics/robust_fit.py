@@ -28,7 +28,14 @@ from numpy.typing import NDArray
 
 from ..errors import DegenerateGeometryError
 from ..robust import TUNING, mad_std
-from .calibrate import _predict, calibrate_matrix, n_parameters_of, refit, sender_matrix
+from .calibrate import (
+    _predict,
+    _scatter_nodes,
+    calibrate_matrix,
+    n_parameters_of,
+    refit,
+    sender_matrix,
+)
 from .geometry import Planarity
 from .leverage import event_leverage
 
@@ -128,25 +135,6 @@ def _drop_units(T: Array, need: int) -> tuple[NDArray[np.bool_], NDArray[np.bool
         if (nr == kr).all() and (ns == ks).all():
             return kr, ks
         kr, ks = nr, ns
-
-
-def _scatter(sol: dict[str, Any], kr: NDArray[np.bool_], ks: NDArray[np.bool_]) -> dict[str, Any]:
-    """Full-size solution with NaN rows for the dropped units."""
-    I, J = len(kr), len(ks)
-    out = dict(sol)
-    for key, keep, n in (("receivers", kr, I), ("sources", ks, J), ("receiver_offsets", kr, I),
-                         ("source_offsets", ks, J), ("receiver_cov", kr, I), ("source_cov", ks, J),
-                         ("receiver_offset_std", kr, I), ("source_offset_std", ks, J)):
-        if key not in sol or sol[key] is None:
-            continue
-        a = np.asarray(sol[key], float)
-        full = np.full((n,) + a.shape[1:], np.nan)
-        full[keep] = a
-        out[key] = full
-    u = sol.get("uniqueness")
-    if u is not None and hasattr(u, "relabel") and len(u.ambiguous_receivers) == int(kr.sum()):
-        out["uniqueness"] = u.relabel(kr, ks, np.arange(I), np.arange(J))  # in the recording's numbering
-    return out
 
 
 def robust_calibrate(
@@ -391,7 +379,7 @@ def robust_calibrate(
     Sf[np.ix_(kr, ks)] = Sk
     std_out = np.array(std, dtype=float)
     std_out[np.ix_(kr, ev_keep)] = s_ev
-    full = _scatter(sol, kr, ks)
+    full = _scatter_nodes(sol, kr, ks)
     lev_out = np.full(toa.shape, np.nan)
     lev_out[np.ix_(kr, ev_keep)] = event_leverage(sol, t_ev, es_k, Jk, speed, wts())
     return RobustFit(full, plan, notes, outliers, toa_out, Tf, Sf, dropped_r, dropped_s, zc, std_out, n_par, lev_out)

@@ -11,7 +11,7 @@ from typing import Any
 
 import numpy as np
 
-from .requirements import POSITION_REQUIREMENT, TIMING_REQUIREMENT
+from ..requirements import POSITION_REQUIREMENT, TIMING_REQUIREMENT
 
 __all__ = ["truth_errors"]
 

@@ -29,8 +29,8 @@ import numpy as np
 import scipy.sparse
 from numpy.typing import NDArray
 
+from ..requirements import POSITION_REQUIREMENT, SIGMAS, TIMING_REQUIREMENT
 from .plausibility import repeats_reason
-from .requirements import POSITION_REQUIREMENT, SIGMAS, TIMING_REQUIREMENT
 
 __all__ = ["POSITION_REQUIREMENT", "TIMING_REQUIREMENT", "SIGMAS", "ErrorBars", "Verdict", "error_bars", "judge"]
 

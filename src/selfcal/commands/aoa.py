@@ -228,7 +228,6 @@ def reproduce_aoa(
     import numpy as np
 
     from .._checks import check_runs
-    from ..errors import InputError
     from ..experiments.aoa import (
         METHODS,
         PAPER_TABLE1,
@@ -241,11 +240,7 @@ def reproduce_aoa(
     from ..io import write_json
     from ..plotting.aoa import plot_error_surfaces
 
-    if runs < 1 or not (0 < step <= 5):
-        raise InputError("--runs must be >= 1 and --step in (0, 5]")
-    if not (np.isfinite(sigma_deg) and 0 < sigma_deg < 180):
-        raise InputError(f"--sigma-deg must be a positive number of degrees below 180, got {sigma_deg}")
-    check_runs(runs)
+    check_runs(runs)  # --step and --sigma-deg: their Quantity ranges (GRID_STEP_M, SIGMA_DEG)
     # the grid has (5 / step + 1)^2 points, each run at each point one trial held in memory
     # (TRIAL_BYTES): a step of 1e-4 m would be 2.5e9 points (was a hang; 1e-300 an internal error)
     from .._checks import TRIAL_BYTES, guard_size

@@ -35,22 +35,20 @@ MAX_THESIS_ITER = 1_000_000
 def reproduce_delays(runs: int, faithful_runs: int, max_iter: int, cap_120: int, noise_runs: int, full: bool,
                      quick: bool, backend: str, scheduler: str | None, seed: int, out: Path) -> None:
     """Reproduce 004 Fig. 4.1-4.5 (+ noise vs CRLB): figures and delays.json in --out."""
-    from .._checks import check_runs
+    from .._checks import check_int, check_runs
     from ..errors import InputError
     from ..experiments.delays import UNITS, reproduce_all
 
-    for name, value, low in (("runs", runs, 1), ("faithful-runs", faithful_runs, 0), ("noise-runs", noise_runs, 0),
-                             ("max-iter", max_iter, 1), ("cap-120", cap_120, 1)):
-        if value < low:
-            raise InputError(f"--{name} must be >= {low}, got {value}")
+    for name, value, low in (("runs", runs, 1), ("faithful-runs", faithful_runs, 0), ("noise-runs", noise_runs, 0)):
+        check_runs(value, f"--{name}", minimum=low)
+    for name, value in (("max-iter", max_iter), ("cap-120", cap_120)):
+        check_int(value, f"--{name}", minimum=1)
     # the thesis iteration's own cap is 1e6 (--full); a larger cap changes no figure (the runs that
     # reach it are extrapolated) and would run for days: refused rather than started
     for name, value in (("max-iter", max_iter), ("cap-120", cap_120)):
         if value > MAX_THESIS_ITER:
             raise InputError(f"--{name} {value} is beyond the thesis protocol's cap of {MAX_THESIS_ITER:,} "
                              "iterations (--full uses it)")
-    for name, value in (("runs", runs), ("faithful-runs", faithful_runs), ("noise-runs", noise_runs)):
-        check_runs(value, f"--{name}", minimum=0)
     kwargs: dict[str, object] = {}
     if quick:
         kwargs = {"units": (12, 16), "timing_runs": (2, 1), "faithful_timing_runs": (1, 1),

@@ -57,7 +57,6 @@ from ..io import read_json
 __all__ = ["PyramicData", "load_pyramic", "pyramic_from_dict", "join_pyramic", "simulate_pyramic"]
 
 Array = NDArray[np.float64]
-_FILE = "pyramic_tdoa_speaker0.json"
 _PATTERN = "pyramic_tdoa*.json"
 PathLike = str | os.PathLike[str]
 

@@ -31,9 +31,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from ..geometry import align
 from ..io import write_json
-from ..metrics import aligned_direction_errors
+from ..metrics import aligned_direction_errors, aligned_rmse
 from ..tdoa.farfield import initialize_farfield
 from ..tdoa.minimal import quadric_design, solve_minimal
 from ..tdoa.refine import farfield_crlb, refine_alternating, refine_lm
@@ -47,7 +46,6 @@ __all__ = [
     "fig2_trial",
     "fig3_trial",
     "fig4_trial",
-    "screen_rates",
     "reproduce_all",
 ]
 
@@ -93,18 +91,12 @@ def _unit(v: Array) -> Array:
 
 def _pos_error(est: Array, true: Array) -> float:
     """Mean receiver position error after the best rigid motion with reflection."""
-    if not np.all(np.isfinite(est)):
-        return float("nan")
-    al = align(est, true, reflection=True)
-    return float(np.mean(np.linalg.norm(al.apply(est) - true, axis=1)))
+    return float(np.mean(aligned_rmse(est, true).receiver_errors)) if np.isfinite(est).all() else float("nan")
 
 
 def _pos_rms(est: Array, true: Array) -> float:
     """Root mean squared receiver position error after rigid alignment (with reflection)."""
-    if not np.all(np.isfinite(est)):
-        return float("nan")
-    al = align(est, true, reflection=True)
-    return float(np.sqrt(np.mean(np.sum((al.apply(est) - true) ** 2, axis=1))))
+    return aligned_rmse(est, true).rmse_receivers if np.isfinite(est).all() else float("nan")
 
 
 def _scale_ratio(est: Array, true: Array) -> float:
@@ -446,61 +438,3 @@ def reproduce_all(
     summary["report"] = report
     write_json(out / "farfield.json", summary)
     return summary
-
-
-def screen_rates(m: int, k: int, *, clean: int = 100, gross: int = 30, sigma: float = 1e-4,
-                 error: float = 1.0, seed: int | None = None) -> dict[str, Any]:
-    """False alarms and detections of the default gross-error screen on a 5 cm array (issue 16 table).
-
-    ``clean`` matrices of m microphones uniform in a 5 cm cube and k random far-field sources
-    (unit offsets, ``sigma`` metres of Gaussian noise), then ``gross`` more with ``error``
-    metres added to one random entry, each screened by
-    :func:`~selfcal.tdoa.screen.gross_error_screen` (family-wise false-alarm rate 1 %).
-
-    Parameters
-    ----------
-    m, k : matrix size; clean, gross : numbers of draws; sigma, error : metres;
-    seed : base seed (default ``7 + 100 m + k``).
-
-    Returns
-    -------
-    dict: ``false_alarms`` (clean draws with any flag), ``caught`` (gross entries flagged),
-    ``extra`` (other entries flagged in the gross draws), ``methods`` (count per screen
-    method), ``untestable_median`` (entries reported unchecked, clean draws), ``cpu_s``.
-
-    Examples
-    --------
-    >>> out = screen_rates(4, 6, clean=2, gross=1)
-    >>> out["untestable_median"], out["caught"]      # 4 x 6: no spare measurement at all
-    (24.0, 0)
-    """
-    import time
-
-    from ..tdoa.screen import gross_error_screen
-
-    rng = np.random.default_rng(7 + 100 * m + k if seed is None else seed)
-
-    def draw() -> Array:
-        Z = rng.uniform(-0.025, 0.025, (m, 3))
-        N = _unit(rng.normal(size=(k, 3)))
-        return Z @ N.T + rng.normal(size=k) + sigma * rng.standard_normal((m, k))
-
-    t0 = time.process_time()
-    false, unt = 0, []
-    for _ in range(clean):
-        g = gross_error_screen(draw())
-        false += bool(g.mask.any())
-        unt.append(int(g.untestable.sum()))
-    caught = extra = 0
-    methods: dict[str, int] = {}
-    for _ in range(gross):
-        D = draw()
-        i, j = int(rng.integers(m)), int(rng.integers(k))
-        D[i, j] += error
-        g = gross_error_screen(D)
-        caught += bool(g.mask[i, j])
-        extra += int(g.mask.sum()) - int(g.mask[i, j])
-        methods[g.method] = methods.get(g.method, 0) + 1
-    return {"m": m, "k": k, "false_alarms": false, "clean": clean, "caught": caught, "gross": gross,
-            "extra": extra, "methods": methods, "untestable_median": float(np.median(unt)) if unt else 0.0,
-            "cpu_s": time.process_time() - t0}

@@ -1,4 +1,4 @@
-"""Reproduction of paper 003 (Fig. 5-7) and the LPS real-data anchor calibration.
+"""Reproduction of paper 003 (Fig. 5-7).
 
 Trials are module-level functions ``trial(params, seed) -> dict`` for
 :func:`selfcal.experiments.run_sweep`. One trial draws a new 003 network (Table I),
@@ -23,8 +23,6 @@ __all__ = [
     "trial_003",
     "summarise",
     "example_network",
-    "lps_variants",
-    "calibrate_lps",
 ]
 
 Array = NDArray[np.float64]
@@ -126,7 +124,3 @@ def example_network(seed: int = 0, sigma: float = 0.30) -> dict[str, Any]:
         "mean_trace_receivers": float(np.mean(np.trace(rc, axis1=1, axis2=2))),
         "mean_trace_sources": float(np.mean(np.trace(scv, axis1=1, axis2=2))),
     }
-
-
-# LPS real data: moved to selfcal.experiments.lps (re-exported for old imports)
-from .lps import calibrate_lps, lps_variants  # noqa: E402

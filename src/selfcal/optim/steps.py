@@ -26,7 +26,7 @@ from .structure import lm_step
 
 Array = NDArray[np.float64]
 
-__all__ = ["ResidualModel", "cholesky_solve"]
+__all__ = ["DenseStep", "ResidualModel", "cholesky_solve"]
 
 
 def cholesky_solve(H: Array, rhs: Array) -> Array | None:
@@ -48,34 +48,80 @@ def cholesky_solve(H: Array, rhs: Array) -> Array | None:
     return np.asarray(x, float) if np.isfinite(x).all() else None
 
 
+class DenseStep:
+    """The dense step solver: ``(H + lam diag H) x = -g`` by Cholesky (least squares if H is not
+    numerically positive definite), scattered into the free parameters and projected off the gauge.
+
+    Parameters
+    ----------
+    H, g : (nf, nf), (nf,) the normal matrix and gradient on the free parameters.
+    dstep : flat positions of H's diagonal; proj : an object whose ``apply(dx)`` projects a step in
+        place (:class:`selfcal.toa.engine.model.GaugeProjector`: off the gauge) or None;
+    fidx : indices of the free parameters in the (n,) point (None: all).
+    """
+
+    def __init__(self, H: Array, g: Array, dstep: NDArray[np.intp], proj: Any,
+                 fidx: NDArray[np.intp] | None, n: int) -> None:
+        self.H, self.g, self.dstep, self.proj, self.fidx, self.n = H, g, dstep, proj, fidx, n
+        self.hdiag = H.ravel()[dstep]
+        self.gnorm = math.sqrt(float(g @ g))
+        self.mg = -g
+
+    def step(self, lam: float) -> Array | None:
+        Hd = self.H.copy()
+        Hd.ravel()[self.dstep] += lam * self.hdiag  # Marquardt: diag * (1 + lam)
+        x = cholesky_solve(Hd, self.mg)
+        if x is None:
+            return None
+        if self.fidx is None:
+            dx = x
+        else:
+            dx = np.zeros(self.n)
+            dx[self.fidx] = x
+        if self.proj is not None:
+            self.proj.apply(dx)  # no rigid drift (and no common offset shift)
+        return dx
+
+    def predicted(self, dx: Array) -> float:
+        xv = dx if self.fidx is None else dx[self.fidx]
+        return -(float(self.g @ xv) + 0.5 * float(xv @ (self.H @ xv)))
+
+
 class _DenseNormalStep:
     """``(J^T W J + lam diag(J^T W J)) dx = -J^T W r`` by dense Cholesky (zero diagonal entries
     damped by 1), the step then passed through ``project`` (None: kept as is)."""
 
+    sparse = False
+
     def __init__(self, Jm: Any, r: Array, w: Array | None = None,
                  project: Callable[[Array], Array] | None = None) -> None:
+        if self.sparse:
+            Jm = scipy.sparse.csr_matrix(Jm)
         Jw = Jm if w is None else (scipy.sparse.diags(w) @ Jm if scipy.sparse.issparse(Jm) else Jm * w[:, None])
         A = Jm.T @ Jw
-        self.A = np.asarray(A.toarray() if hasattr(A, "toarray") else A, float)
+        self.A = A.tocsc() if self.sparse else np.asarray(A.toarray() if hasattr(A, "toarray") else A, float)
         self.g = np.asarray(Jw.T @ r, float)
-        self.diag = np.diag(self.A).copy()
+        self.diag = np.asarray(A.diagonal() if self.sparse else np.diag(self.A), float).copy()
         self.diag[self.diag <= 0] = 1.0
         self.gnorm = math.sqrt(float(self.g @ self.g))
         self.project = project
 
-    def step(self, lam: float) -> Array | None:
+    def solve(self, lam: float) -> Array | None:
         H = self.A.copy()
         H[np.diag_indices_from(H)] += lam * self.diag
-        x = cholesky_solve(H, -self.g)
-        if x is None or self.project is None:
-            return x
-        return self.project(x)
+        return cholesky_solve(H, -self.g)
+
+    def step(self, lam: float) -> Array | None:
+        x = self.solve(lam)
+        if x is None or not np.isfinite(x).all():
+            return None
+        return x if self.project is None else self.project(x)
 
     def predicted(self, dx: Array) -> float:
         return -(float(self.g @ dx) + 0.5 * float(dx @ (self.A @ dx)))
 
 
-class _SparseNormalStep:
+class _SparseNormalStep(_DenseNormalStep):
     """The same damped system with ``J^T W J`` kept sparse and factored by SuperLU per trial.
 
     For a Jacobian with a few nonzeros per row and no block structure to eliminate (a range
@@ -86,30 +132,14 @@ class _SparseNormalStep:
     direction the damping does not reach) refuses the trial (None).
     """
 
-    def __init__(self, Jm: Any, r: Array, w: Array | None = None,
-                 project: Callable[[Array], Array] | None = None) -> None:
-        J = scipy.sparse.csr_matrix(Jm)
-        Jw = J if w is None else scipy.sparse.diags(w) @ J
-        self.A = (J.T @ Jw).tocsc()
-        self.g = np.asarray(Jw.T @ r, float)
-        diag = self.A.diagonal().copy()
-        diag[diag <= 0] = 1.0
-        self.diag = diag
-        self.gnorm = math.sqrt(float(self.g @ self.g))
-        self.project = project
+    sparse = True
 
-    def step(self, lam: float) -> Array | None:
+    def solve(self, lam: float) -> Array | None:
         H = (self.A + scipy.sparse.diags(lam * self.diag)).tocsc()
         try:
-            x = scipy.sparse.linalg.splu(H).solve(-self.g)
+            return np.asarray(scipy.sparse.linalg.splu(H).solve(-self.g), float)
         except RuntimeError:  # exactly singular
             return None
-        if not np.isfinite(x).all():
-            return None
-        return x if self.project is None else self.project(x)
-
-    def predicted(self, dx: Array) -> float:
-        return -(float(self.g @ dx) + 0.5 * float(dx @ (self.A @ dx)))
 
 
 class ResidualModel(Model):
@@ -126,7 +156,7 @@ class ResidualModel(Model):
         factored by SuperLU above).
     project : x -> (dx -> dx), optional
         The parametrisation's projection of a step at ``x`` (e.g. off the gauge directions:
-        :class:`selfcal.toa.engine.dense_lm.GaugeProjector`), formed once per linearisation.
+        :class:`selfcal.toa.engine.model.GaugeProjector`), formed once per linearisation.
 
     Notes
     -----

@@ -14,7 +14,7 @@ import numpy as np
 from matplotlib.figure import Figure
 from numpy.typing import NDArray
 
-from ..acoustics.requirements import TIMING_REQUIREMENT
+from ..requirements import TIMING_REQUIREMENT
 from ._common import finish, new_figure
 from .elements import (
     confidence_ellipse,
@@ -95,7 +95,7 @@ def plot_timing(result: Any, path: Path | None = None, errors: dict[str, Any] | 
         With ``delay_errors`` / ``onset_errors`` (s): those are drawn, in microseconds.
     requirement : float, optional
         Timing requirement drawn as +- lines, s (default: paper 004's 58 us,
-        :data:`selfcal.acoustics.requirements.TIMING_REQUIREMENT`).
+        :data:`selfcal.requirements.TIMING_REQUIREMENT`).
 
     Returns
     -------

@@ -45,7 +45,7 @@ _MOVED = {
     "FarfieldInit": "result",
     "check_orientation": "orientation",
     "fit_A_nonlinear": "initialize", "initialize_farfield": "initialize", "reduce_matrix": "initialize",
-    "lowrank_fit": "screen", "ransac_farfield": "screen", "screen_gross_errors": "screen",
+    "lowrank_fit": "structure", "ransac_farfield": "structure", "screen_gross_errors": "screen",
     "farfield_jacobian": "model", "farfield_residuals": "model",
     "refine_alternating": "alternating", "sphere_lstsq_global": "alternating",
     "sphere_lstsq_local": "alternating",

@@ -354,7 +354,6 @@ def analyse_degeneracy(
     *,
     noise_std: float | None = None,
     alpha: float = RANK_ALPHA,
-    rank_factor: float | None = None,
     rel_floor: float = 1e-9,
     cone_tol: float = 3.0,
     chi2_tol: float = 25.0,
@@ -366,8 +365,6 @@ def analyse_degeneracy(
     X : (m, k) complete column-centred relative distances (metres).
     noise_std : noise standard deviation of the entries of D (metres) if known.
     alpha : false-alarm rate of each step of the nested rank test (:data:`RANK_ALPHA`).
-    rank_factor : None (the nested test) or a factor on the Marchenko-Pastur edge (the
-        rule before 0.3, kept for comparison).
     rel_floor, cone_tol, chi2_tol : thresholds (see the module docstring).
 
     Returns
@@ -386,8 +383,6 @@ def analyse_degeneracy(
     def thr(r: int) -> float:
         # nested test of "rank >= r" against "rank <= r - 1": under the smaller model the r-th
         # singular value is the largest of an (a - r + 1) x (k - r + 1) noise matrix
-        if rank_factor is not None:  # the former rule: rank_factor x the Marchenko-Pastur edge
-            return max(rank_factor * sig(r) * (np.sqrt(a) + np.sqrt(k)), rel_floor * s1)
         # sigma under the smaller model, estimated from the rank-r residual with the expected
         # energy of the largest noise component added back (_sigma_null), so a real s_r does not
         # set the level it is compared with. With too few remaining degrees of freedom (e.g.

@@ -42,7 +42,7 @@ from numpy.typing import NDArray
 from ..robust import TUNING, mad_std
 from .degeneracy import fit_quadric, rank_threshold, top_svd
 from .model import farfield_jacobian, farfield_residuals
-from .screen import far_field_parameters
+from .structure import far_field_parameters
 
 __all__ = ["DeletionScreen", "farfield_leverages", "deletion_screen", "POWER_Z", "SMALL_TAIL_DOF"]
 
@@ -123,7 +123,7 @@ def _fit_submatrix(D: Array, used: Mask, *, require_pd: bool = False) -> tuple[A
     import warnings
 
     from ..errors import ConvergenceWarning, DegenerateGeometryError, InputError
-    from .farfield import solve_farfield
+    from .solve import solve_unscreened
 
     rows, cols = used.any(axis=1), used.any(axis=0)
     sub = np.where(used, D, np.nan)[np.ix_(rows, cols)]
@@ -141,7 +141,7 @@ def _fit_submatrix(D: Array, used: Mask, *, require_pd: bool = False) -> tuple[A
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", ConvergenceWarning)
-            res = solve_farfield(sub, screen=False, method="lm", offsets="free")
+            res = solve_unscreened(sub, method="lm", offsets="free")
     except (InputError, DegenerateGeometryError, np.linalg.LinAlgError):
         return None
     if not (np.isfinite(res.positions).all() and np.isfinite(res.directions).all()):

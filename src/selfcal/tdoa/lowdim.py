@@ -15,7 +15,7 @@ from .degeneracy import DETERMINED as _DETERMINED
 from .degeneracy import DegeneracyReport, top_svd
 from .initialize import initialize_farfield
 from .refine import refine_lm
-from .screen import _robust_sigma
+from .structure import _robust_sigma
 
 __all__: list[str] = []
 

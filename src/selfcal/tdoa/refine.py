@@ -37,62 +37,23 @@ flags such solutions (``warnings``: ``directions-collapsed``, threshold
 
 One job per module: :mod:`.model` (losses, residuals, Jacobian, normal equations),
 :mod:`.alternating` (Algorithm 2), :mod:`.lm` (Algorithm 3), :mod:`.covariance` and
-:mod:`.crlb`; this module re-exports their public names. Registry: :data:`REFINERS`.
+:mod:`.crlb`; this module names the refinements (:data:`REFINERS`) and re-exports what its
+importers use.
 """
 
 from __future__ import annotations
 
 from ..robust import LOSSES
-from .alternating import refine_alternating, sphere_lstsq_global, sphere_lstsq_local
-from .covariance import _rotation_generators, _spd_inverse, position_covariance
+from .alternating import refine_alternating
+from .covariance import position_covariance
 from .crlb import farfield_crlb
-from .lm import (
-    COV_DIRECT_MAX,
-    DIRECT_MAX,
-    _block_jacobi_cg,
-    _lm_step,
-    _lm_step_cg,
-    _lm_step_cg_factored,
-    refine_lm,
-)
-from .model import (
-    RefineResult,
-    _cost,
-    _eliminate_positions,
-    _flat,
-    _normal_equations,
-    _positions_given_directions,
-    _prepare,
-    _start,
-    _tangent,
-    _weights,
-    farfield_jacobian,
-    farfield_residuals,
-    loss_rho,
-    loss_weight,
-)
+from .lm import COV_DIRECT_MAX, _lm_step, refine_lm
+from .model import RefineResult, _normal_equations, farfield_residuals, loss_weight
 
-__all__ = [
-    "LOSSES",
-    "REFINERS",
-    "RefineResult",
-    "loss_rho",
-    "loss_weight",
-    "farfield_residuals",
-    "farfield_jacobian",
-    "sphere_lstsq_global",
-    "sphere_lstsq_local",
-    "refine_alternating",
-    "refine_lm",
-    "position_covariance",
-    "farfield_crlb",
-    "DIRECT_MAX",
-    "COV_DIRECT_MAX",
-]
+__all__ = ["LOSSES", "REFINERS", "RefineResult", "loss_weight", "farfield_residuals", "refine_alternating",
+           "refine_lm", "position_covariance", "farfield_crlb", "COV_DIRECT_MAX"]
 
 #: the refinements by name (``solve_farfield(method=...)``), registry style
 REFINERS = {"lm": refine_lm, "alternating": refine_alternating}
 
-_PRIVATE = (_rotation_generators, _spd_inverse, _block_jacobi_cg, _lm_step, _lm_step_cg,
-            _lm_step_cg_factored, _cost, _eliminate_positions, _flat, _normal_equations,
-            _positions_given_directions, _prepare, _start, _tangent, _weights)  # kept importable from here
+_PRIVATE = (_lm_step, _normal_equations)  # tests and benchmarks import them from here

@@ -55,13 +55,14 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..errors import DegenerateGeometryError, InputError
+from ..optim.lm import irls
 from ..optim.structure import lm_step
 from ..progress import report
 from ..robust import TUNING
 from .engine.batch_lm import solve_batch_lm
 from .engine.dense_lm import solve_dense_lm
 from .engine.model import least_squares_offsets
-from .engine.nls import NlsSolution, _pack, _rho, _unpack, refine_toa, toa_model
+from .engine.nls import NlsSolution, _pack, _unpack, refine_toa, toa_model
 from .init.starts import _LARGE, INITIALISERS, LARGE_INITIALISERS, MOVES_MAX_NODES, SCALED_STARTS  # noqa: F401
 from .moves import Move, Start, moves
 from .verdict.robust import _nanmedian_rows
@@ -163,11 +164,7 @@ def _cost(sol: NlsSolution, loss: str, fs: float) -> float:
 
 def _cost_of(residuals: Array, loss: str, fs: float) -> float:
     """The ML cost of the search: ``sum rho`` of the finite residuals at the search's one scale."""
-    f = residuals[np.isfinite(residuals)]
-    if loss == "linear":
-        return 0.5 * float(f @ f)
-    rho, _ = _rho((f / fs) ** 2, loss)
-    return 0.5 * fs**2 * float(rho.sum())
+    return irls(residuals[np.isfinite(residuals)], loss, fs)[0]
 
 
 def _as_start(sol: NlsSolution) -> Start:

@@ -53,6 +53,7 @@ from numpy.typing import NDArray
 from .._checks import check_pairs, entry
 from .._result import Result
 from ..errors import DegenerateGeometryError, InputError
+from .engine.model import _check_counts
 from .engine.sparse_covariance import sparse_covariance_blocks
 
 __all__ = ["SparseToaResult", "refine_toa_sparse", "initialize_toa_sparse", "solve_toa_sparse",
@@ -108,30 +109,15 @@ class SparseToaResult(Result):
     source_cov: Array | None = None
 
 
-def _counts_ok(i: Index, j: Index, I: int, J: int, need: int) -> None:
-    for kind, idx, n in (("receiver", i, I), ("source", j, J)):
-        c = np.bincount(idx, minlength=n)
-        bad = np.flatnonzero(c < need)
-        if bad.size:
-            raise DegenerateGeometryError(
-                f"{kind} {int(bad[0])} has {int(c[bad[0]])} observed ranges but needs at least {need}; "
-                "drop it or add measurements", kind="unobservable-node")
-
-
 def _lm(i: Index, j: Index, y: Array, r0: Array, s0: Array, max_nfev: int | None, xtol: float
         ) -> tuple[Array, Array, bool, int]:
-    from .engine.nls import _make_layout, _pack, _unpack, gauge_basis
+    from .engine.nls import _make_layout, _pack, _unpack
     from .engine.schur_lm import solve_schur_lm
 
     I, d = r0.shape
     J = s0.shape[0]
     lay = _make_layout(r0, s0, "none")
-
-    def gauge(theta: Array) -> Array:
-        return gauge_basis(*_unpack(theta, I, J, d, "none")[:2], "none")
-
-    theta, conv, it = solve_schur_lm(_pack(r0, s0, None, None), y, lay, "linear", 1.0, max_nfev, xtol,
-                                     gauge, pairs=(i, j))
+    theta, conv, it = solve_schur_lm(_pack(r0, s0, None, None), y, lay, "linear", 1.0, max_nfev, xtol, pairs=(i, j))
     r, s, _, _ = _unpack(theta, I, J, d, "none")
     return r.copy(), s.copy(), conv, it
 
@@ -213,7 +199,7 @@ def refine_toa_sparse(
     s0 = as_points(sources0, "sources0", dim=d)
     ii, jj, y, I, J = check_pairs(i, j, ranges, r0.shape[0], s0.shape[0])
     cov = _sparse_request(covariance, I, J)
-    _counts_ok(ii, jj, I, J, d)
+    _check_counts(np.bincount(ii, minlength=I), np.bincount(jj, minlength=J), d, d)
     r, s, conv, it = _lm(ii, jj, y, r0, s0, max_nfev, xtol)
     return _result(ii, jj, y, r, s, conv, it, cov=cov)
 
@@ -610,7 +596,7 @@ def _grow_and_fit(ii: Index, jj: Index, y: Array, I: int, J: int, d: int, gen: n
         sidx = -np.ones(J, np.intp)
         sidx[S] = np.arange(S.size)
         si, sj = ridx[ii[m]], sidx[jj[m]]
-        _counts_ok(si, sj, R.size, S.size, d)
+        _check_counts(np.bincount(si, minlength=R.size), np.bincount(sj, minlength=S.size), d, d)
         r, s, conv, it = _lm(si, sj, y[m], r0[R], s0[S], max_nfev, 1e-10)
         # the nodes with one redundant range against their mirror placement; one refit if any moved
         r, s, weak_r, weak_s, moved = _mirror_recheck(si, sj, y[m], r, s, d)

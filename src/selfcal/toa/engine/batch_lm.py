@@ -23,7 +23,7 @@ of the model instead of a dense (n, n) product:
 The iteration of every start is that of :func:`selfcal.toa.engine.dense_lm.full_lm` (the same
 Marquardt damping ``diag(H) (1 + lam)`` starting at ``lam = 1e-4``, the step projected off
 the gauge, a trial accepted when the cost does not rise, Nielsen's gain-ratio update
-:func:`selfcal.toa.engine.dense_lm.damping_after_success` from the decrease predicted for the
+:func:`selfcal.optim.lm.damping_after_success` from the decrease predicted for the
 projected step, the same stopping rules), each start with its own damping and its own
 iteration count: batching changes the cost, not the iterates (to round-off: the Schur
 solve and the dense Cholesky differ in the last digits).
@@ -46,66 +46,50 @@ from numpy.typing import NDArray
 
 from ...optim.lm import FTOL, TRIALS, BatchModel, levenberg_marquardt_batch
 from ...robust import loss_rho
+from .model import _flags, _node_indices
 
 __all__ = ["solve_batch_lm"]
 
 Array = NDArray[np.float64]
 
-#: relative singular-value floor of the rotation generators (as dense_lm.GaugeProjector:
+#: relative singular-value floor of the rotation generators (as model.GaugeProjector:
 #: a rotation dependent on the others, points on a line, adds no gauge direction)
 _ROT_RCOND = 1e-10
-
-
-def _swap_layout(Theta: Array, I: int, J: int, d: int, has_r: bool, has_s: bool) -> Array:
-    """Packed ``[r, s, d_i?, o_j?]`` of a problem to that of its transpose ``[s, r, o_j?, d_i?]``."""
-    N = I + J
-    parts = [Theta[:, I * d:N * d], Theta[:, :I * d]]
-    k = N * d
-    off_r = Theta[:, k:k + I] if has_r else None
-    k += I if has_r else 0
-    off_s = Theta[:, k:k + J] if has_s else None
-    if off_s is not None:
-        parts.append(off_s)
-    if off_r is not None:
-        parts.append(off_r)
-    return np.concatenate(parts, axis=1)
 
 
 class _Problem(BatchModel):
     """The stacked model of one range matrix: evaluation, normal blocks, damped solve, gauge."""
 
-    def __init__(self, Y: Array, d: int, has_r: bool, has_s: bool, loss: str, f_scale: float) -> None:
-        self.I, self.J = Y.shape
+    def __init__(self, Y: Array, d: int, offsets: str, loss: str, f_scale: float) -> None:
+        I0, J0 = Y.shape[-2:]
+        has_r, has_s = _flags(offsets)
+        r_idx, s_idx, _ = _node_indices(I0, J0, d, offsets)
+        # the rows are the eliminated (larger) node set, the columns the kept one
+        swap = J0 * (d + has_s) > I0 * (d + has_r)
+        if swap:
+            Y, has_r, has_s, r_idx, s_idx = np.swapaxes(Y, -1, -2), has_s, has_r, s_idx, r_idx
+        self.I, self.J = Y.shape[-2:]
+        self.I0 = I0  # receivers: the sign of the common-offset gauge direction
         self.d, self.has_r, self.has_s = d, has_r, has_s
-        self.obs = np.isfinite(Y)
+        self.obs = np.isfinite(Y if Y.ndim == 2 else Y[0])  # (S, I, J): one matrix per start, one pattern
         self.Y = np.where(self.obs, Y, 0.0)
         self.obsf = self.obs.astype(float)
         self.loss, self.fs = loss, float(f_scale)
-        I, J, N = self.I, self.J, self.I + self.J
-        ir = [np.arange(I)[:, None] * d + np.arange(d)]
-        js = [(I + np.arange(J))[:, None] * d + np.arange(d)]
-        k = N * d
-        if has_r:
-            ir.append((k + np.arange(I))[:, None])
-            k += I
-        if has_s:
-            js.append((k + np.arange(J))[:, None])
-        self.idx_r = np.concatenate(ir, axis=1)  # (I, pr): a receiver block's places in theta
-        self.idx_s = np.concatenate(js, axis=1)  # (J, ps)
+        self.idx_r, self.idx_s = r_idx, s_idx  # (I, pr), (J, ps): a row / column node's places in theta
         self.pr, self.ps = pr, ps = self.idx_r.shape[1], self.idx_s.shape[1]
         self.eye_r, self.eye_s = np.eye(pr, dtype=bool), np.eye(ps, dtype=bool)
-        K = J * ps
-        jb, pb_, qb = np.meshgrid(np.arange(J), np.arange(ps), np.arange(ps), indexing="ij")
+        K = self.J * ps
+        jb, pb_, qb = np.meshgrid(np.arange(self.J), np.arange(ps), np.arange(ps), indexing="ij")
         self.bdiag = ((jb * ps + pb_) * K + jb * ps + qb).ravel()  # flat places of the source blocks in (K, K)
 
     def evaluate(self, Th: Array, rows: object = None) -> tuple[Array, tuple[Array, Array, Array]]:
         """(cost (a,), (residuals (a, I, J), weights (a, I, J), unit vectors (a, I, J, d))); zero
-        residual and weight where unobserved (``rows``: the driver's start indices, unused)."""
-        I, J, d = self.I, self.J, self.d
-        P = Th[:, :(I + J) * d].reshape(-1, I + J, d)
-        u = P[:, :I, None, :] - P[:, None, I:, :]
+        residual and weight where unobserved (``rows``: the driver's start indices, whose matrix
+        is used when there is one per start)."""
+        d = self.d
+        u = Th[:, self.idx_r[:, :d]][:, :, None, :] - Th[:, self.idx_s[:, :d]][:, None, :, :]
         dist = np.sqrt(np.einsum("aijp,aijp->aij", u, u))
-        f = dist - self.Y
+        f = dist - (self.Y if self.Y.ndim == 2 else self.Y[np.asarray(rows, dtype=np.intp)])
         if self.has_r:
             f += Th[:, self.idx_r[:, -1]][:, :, None]
         if self.has_s:
@@ -146,7 +130,7 @@ class _Problem(BatchModel):
 
     def project(self, dx: Array, Q: Array) -> Array:
         """``dx`` off the gauge (translations, rotations ``Q``, the common offset shift), in place."""
-        N, d, I = self.I + self.J, self.d, self.I
+        N, d, I = self.I + self.J, self.d, self.I0
         X = dx[:, :N * d].reshape(-1, N, d)
         X -= X.mean(axis=1, keepdims=True)
         flat = dx[:, :N * d]
@@ -169,7 +153,9 @@ def solve_batch_lm(
     ----------
     Theta0 : (S, n) starts, receiver-major ``[r (I d), s (J d), d_i (I)?, o_j (J)?]`` (metres),
         the layout of :mod:`selfcal.toa.engine.nls`.
-    Y : (I, J) ranges, metres, NaN = missing (every node needs at least one range).
+    Y : (I, J) ranges, metres, NaN = missing (every node needs at least one range); or (S, I, J),
+        one matrix per start, all with the missing pattern of the first (the permutation
+        test's copies, :func:`selfcal.toa.verdict.trust.permutation_test`).
     d, offsets : the model (``"none"``, ``"receivers"``, ``"sources"``, ``"both"``).
     loss, f_scale : robust loss (:func:`selfcal.robust.loss_rho`) and its scale (metres).
     max_nfev : iteration cap per start (default ``max_it``); xtol : relative step tolerance.
@@ -187,7 +173,7 @@ def solve_batch_lm(
     -----
     Flops per iteration and start O(I J (d + 1)^2 (J + 1)) for the normal blocks and the Schur
     complement plus O((J (d + 1))^3) for the reduced solve, with the smaller node set kept
-    (the problem is transposed when the sources are the larger set).
+    (the sources are the eliminated rows when they are the larger set).
 
     Examples
     --------
@@ -204,21 +190,10 @@ def solve_batch_lm(
     >>> bool(ok.all()) and max(res) < 1e-6
     True
     """
-    has_r, has_s = offsets in ("receivers", "both"), offsets in ("sources", "both")
-    Y = np.asarray(Y, float)
-    Theta = np.array(Theta0, dtype=float, ndmin=2)
-    I, J = Y.shape
-    swap = J * (d + has_s) > I * (d + has_r)  # keep the smaller set in the reduced system
-    if swap:
-        Theta = _swap_layout(Theta, I, J, d, has_r, has_s)
-        Y, I, J, has_r, has_s = Y.T, J, I, has_s, has_r
-    pb = _Problem(Y, d, has_r, has_s, loss, f_scale)
-    out = levenberg_marquardt_batch(pb, Theta, max_iter=int(max_nfev or max_it), xtol=xtol, ftol=FTOL,
-                                    trials=TRIALS)
-    Theta = out.x
-    if swap:
-        Theta = _swap_layout(Theta, I, J, d, has_r, has_s)
-    return Theta, out.converged, out.iterations, out.finite
+    pb = _Problem(np.asarray(Y, float), d, offsets, loss, f_scale)
+    out = levenberg_marquardt_batch(pb, np.array(Theta0, dtype=float, ndmin=2), max_iter=int(max_nfev or max_it),
+                                    xtol=xtol, ftol=FTOL, trials=TRIALS)
+    return out.x, out.converged, out.iterations, out.finite
 
 
 class _BatchStep:

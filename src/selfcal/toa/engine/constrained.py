@@ -35,11 +35,14 @@ reduced normal matrix, solved for the columns each node needs (no dense inverse)
 Engines. Above 120 free unknowns with the linear loss the fit runs on the Schur-reduced
 Newton-LM of :mod:`selfcal.toa.engine.schur_affine` (:func:`_engine_partition`), whose covariance
 blocks come from the same partition; SciPy trf stays the path of small problems, robust
-losses and ``solver="trf"`` (the reference of the tests).
+losses and ``solver="trf"`` (the reference of the tests; without constraints too, as the
+identity parametrisation), and ``solver="lm"``: the driver on the reduced vector (the
+pipeline's known-heights fit, with per-entry ``weights``).
 
-Length (about 640 lines, above the ~600 guideline): validation of the constraint keywords,
-the parametrisation, the residual gauge, the fit and its covariance are one job (the
-constrained engine's interface); the iteration itself lives in :mod:`selfcal.toa.engine.schur_affine`.
+Length (about 630 lines, above the ~600 guideline): validation of the constraint keywords,
+the parametrisation, the residual gauge, the weighted fit and its covariance are one job
+(the constrained engine's interface); the Schur iteration lives in
+:mod:`selfcal.toa.engine.schur_affine`.
 """
 
 from __future__ import annotations
@@ -55,17 +58,18 @@ from numpy.typing import NDArray
 from scipy.optimize import least_squares
 
 from ...errors import DegenerateGeometryError, InputError
+from ...optim.lm import irls, levenberg_marquardt
+from ...optim.steps import ResidualModel
 from ...optim.structure import TRF_EXACT_MAX, lm_step
 from .model import (
     _TUNING,
-    NlsSolution,
+    _check_counts,
     _node_indices,
-    _rho,
     _robust_sigma,
+    _solution,
     _unpack,
     gauge_basis,
     toa_jacobian,
-    toa_model,
     toa_residuals,
 )
 from .schur_affine import MAX_GLOBAL, RangeSchurModel, local_blocks
@@ -315,7 +319,7 @@ def _engine_partition(
     gross 0.5 m errors, Huber at a given scale: a higher cost than trf's on 3 of 8 seeds, a
     lower one on 1; the same on 4).
     """
-    if engine == "trf" or (engine == "auto" and (lm_step(TF.shape[1]) == "dense" or loss != "linear")):
+    if engine in ("trf", "lm") or (engine == "auto" and (lm_step(TF.shape[1]) == "dense" or loss != "linear")):
         return None
     r_idx, s_idx, n = _node_indices(I, J, d, offsets)
     e_idx = s_idx if I <= J else r_idx  # eliminate the larger node set
@@ -330,7 +334,7 @@ def _engine_partition(
 def refine_constrained(
     Y: Array, r0: Array, s0: Array, offsets: str, con: Constraints, *,
     loss: str, f_scale: float | None, max_nfev: int | None, xtol: float,
-    covariance: Any, noise: float | None, engine: str = "auto",
+    covariance: Any, noise: float | None, engine: str = "auto", weights: Array | None = None,
 ) -> Any:
     """Constrained fit of the range model; returns a :class:`selfcal.toa.engine.nls.NlsSolution`.
 
@@ -341,10 +345,16 @@ def refine_constrained(
     ``engine``: "auto" (the Schur-reduced LM of :mod:`selfcal.toa.engine.schur_affine` on
     problems above ``DENSE_MAX_UNKNOWNS`` free unknowns with the linear loss, SciPy's trf
     otherwise, :func:`_engine_partition`), "schur"
-    (the Schur engine whenever its reduced system fits) or "trf" (SciPy
-    ``least_squares(method="trf")`` always: the independent reference).
+    (the Schur engine whenever its reduced system fits), "trf" (SciPy
+    ``least_squares(method="trf")`` always: the independent reference) or "lm" (the
+    driver, :func:`selfcal.optim.lm.levenberg_marquardt`, on the reduced vector with the
+    step :func:`selfcal.optim.structure.lm_step` chooses; ``ftol = xtol``).
+    ``weights``: (I, J) per-entry weights (``1 / std``, finite and >= 0 on the observed
+    entries) or None: every range residual and its Jacobian row is scaled by its weight
+    (weighted least squares, or the robust loss on the weighted residuals); ``sigma`` is then
+    the noise of a unit-weight entry and the covariance ``sigma^2 (J^T W J)^+``. Weighted fits
+    run on SciPy's trf (the Schur engine has no weights).
     """
-    from ...geometry import canonical_gauge
     from .covariance import resolve_covariance
 
     I, J = Y.shape
@@ -352,7 +362,10 @@ def refine_constrained(
     want_r, want_s = resolve_covariance(covariance, I, J)
     has_r, has_s = offsets in ("receivers", "both"), offsets in ("sources", "both")
     obs = np.isfinite(Y)
-    _check_counts(obs, con, d)
+    need_r, need_s = ((~fixed & ~np.isfinite(mu)).sum(axis=1) + own.astype(int)
+                      for fixed, mu, own in ((con.fixed_r, con.prior_r_mean, con.own_r),
+                                             (con.fixed_s, con.prior_s_mean, con.own_s)))
+    _check_counts(obs.sum(axis=1), obs.sum(axis=0), need_r, need_s)
     par = _parametrise(con, r0, s0)
     Gx = _residual_gauge(par, con, r0, s0, offsets)
     p = par.x0.size
@@ -378,7 +391,13 @@ def refine_constrained(
     # prior coordinates are never pinned: the residual gauge vanishes on them
     prior_pos = np.searchsorted(F, par.prior_x)
     xbase = par.x0.copy()
-    part = _engine_partition(TF, I, J, d, offsets, engine, loss)
+    w = None if weights is None else np.asarray(weights, float)[obs]
+
+    def meas(th: Array) -> Array:  # the (weighted) range residuals
+        f = toa_residuals(th, Y, d, offsets)
+        return f if w is None else w * f
+
+    part = None if w is not None else _engine_partition(TF, I, J, d, offsets, engine, loss)
     schur = None if part is None else RangeSchurModel(obs, I, J, d, offsets, TF, prior_pos, *part)
 
     def theta_of(xf: Array) -> Array:
@@ -389,7 +408,7 @@ def refine_constrained(
     def run(xf0: Array, wprior: Array, fs: float) -> Any:
         def fun(xf: Array) -> Array:
             th = theta_of(xf)
-            f = toa_residuals(th, Y, d, offsets)
+            f = meas(th)
             if n_prior:
                 f = np.concatenate([f, wprior * (xf[prior_pos] - par.prior_mu)])
             return f
@@ -398,6 +417,8 @@ def refine_constrained(
 
         def jac(xf: Array) -> Any:
             Jm = toa_jacobian(theta_of(xf), Y, d, offsets) @ TF
+            if w is not None:
+                Jm = scipy.sparse.diags(w) @ Jm
             if n_prior:
                 Jp = scipy.sparse.csr_matrix((wprior, (np.arange(n_prior), prior_pos)), shape=(n_prior, F.size))
                 Jm = scipy.sparse.vstack([Jm, Jp], format="csr")
@@ -406,6 +427,10 @@ def refine_constrained(
         if schur is not None:
             x, ok, nit_ = schur.solve(xf0, fun, theta_of, wprior, loss, fs, xtol, max_nfev or 200)
             return _Run(x, ok, nit_)
+        if engine == "lm":  # the one driver on the reduced vector (dense or sparse step by size)
+            out = levenberg_marquardt(ResidualModel(fun, jac, loss=loss, f_scale=fs, step="auto"), xf0,
+                                      max_iter=max_nfev or 200, xtol=xtol, ftol=xtol)
+            return _Run(out.x, out.converged, out.iterations)
         sol = least_squares(
             fun, xf0, jac=jac, method="trf", x_scale="jac", tr_solver="exact" if dense else "lsmr",
             loss=loss, f_scale=fs, xtol=xtol, ftol=1e-12 if dense else 1e-10, gtol=1e-12,
@@ -423,7 +448,7 @@ def refine_constrained(
     xf = par.x0[F].copy()
     fs = 1.0
     if loss != "linear":
-        f0 = toa_residuals(theta_of(xf), Y, d, offsets)
+        f0 = meas(theta_of(xf))
         fs = f_scale if f_scale is not None else max(_TUNING[loss] * _robust_sigma(f0), 1e-9)
     # prior weights sigma / std: sigma given, or estimated (start: the fit with the prior
     # coordinates held at their means, i.e. a unit weight on std / sigma_hat = huge)
@@ -445,7 +470,7 @@ def refine_constrained(
         nit += sol.iterations
         if loss != "linear" and f_scale is None and k == 0:
             # the starting residuals mix geometry error with noise: re-scale on the fitted ones
-            f_meas = toa_residuals(theta_of(xf), Y, d, offsets)
+            f_meas = meas(theta_of(xf))
             shrink = float(np.sqrt(m / max(m - F.size + n_prior, 1)))
             fs = max(_TUNING[loss] * shrink * _robust_sigma(f_meas), 1e-9)
             if passes == 1:
@@ -453,7 +478,7 @@ def refine_constrained(
                 xf, conv = sol.x, sol.converged
                 nit += sol.iterations
         if passes > 1:
-            f_meas = toa_residuals(theta_of(xf), Y, d, offsets)
+            f_meas = meas(theta_of(xf))
             est = _sigma_fixed_point(f_meas, (xf[prior_pos] - par.prior_mu) / par.prior_std,
                                      m, n_prior, F.size, loss)
             if not (np.isfinite(est) and est > 0):
@@ -465,18 +490,16 @@ def refine_constrained(
     sig_w = w_used
 
     th = theta_of(xf)
-    r, s, dr, os_ = _unpack(th, I, J, d, offsets)
-
-    model = toa_model(r, s, dr, os_)
-    resid = np.where(obs, Y - model, np.nan)
-    f = resid[obs]
-    rms = float(np.sqrt(np.mean(f**2)))
+    r, s, _, _ = _unpack(th, I, J, d, offsets)
+    f = toa_residuals(th, Y, d, offsets)
+    if w is not None:
+        f = w * f  # the cost, the noise and the covariance are those of the weighted residuals
     wprior = sig_w / par.prior_std
     fp = wprior * (xf[prior_pos] - par.prior_mu) if n_prior else np.zeros(0)
-    z = (np.concatenate([f, fp]) / fs) ** 2
-    rho, drho = _rho(z, loss)
-    cost = 0.5 * fs**2 * float(rho.sum())
+    cost, drho = irls(np.concatenate([f, fp]), loss, fs)
     sigma = sigma_of(f, fp)
+    if w is not None:
+        drho = np.concatenate([drho[:m] * w**2, drho[m:]])  # J^T W J of the weighted rows
 
     nr, ns = d + has_r, d + has_s
     if (want_r.size or want_s.size) and np.isfinite(sigma):
@@ -490,29 +513,10 @@ def refine_constrained(
     else:
         Cr = np.full((I, nr, nr), np.nan)
         Cs = np.full((J, ns, ns), np.nan)
-    if con.has_positions:
-        rc, sc, Rm = r.copy(), s.copy(), np.eye(d)
-    else:
-        rc, sc_, al = canonical_gauge(r, s)
-        assert sc_ is not None
-        sc, Rm = sc_, al.rotation
-    rcov = np.einsum("ab,nbc,dc->nad", Rm, Cr[:, :d, :d], Rm)
-    scov = np.einsum("ab,nbc,dc->nad", Rm, Cs[:, :d, :d], Rm)
-    dstd = np.sqrt(np.maximum(Cr[:, d, d], 0.0)) if has_r else None
-    ostd = np.sqrt(np.maximum(Cs[:, d, d], 0.0)) if has_s else None
-    if offsets == "both" and not con.offsets_constrained:
-        assert dr is not None and os_ is not None
-        shift = os_[0]
-        dr, os_ = dr + shift, os_ - shift
-    return NlsSolution(
-        receivers=rc, sources=sc,
-        receiver_offsets=None if dr is None else np.array(dr),
-        source_offsets=None if os_ is None else np.array(os_),
-        receiver_cov=rcov, source_cov=scov,
-        receiver_offset_std=dstd, source_offset_std=ostd,
-        residuals=resid, residual_rms=rms, sigma=sigma, converged=conv, iterations=nit,
-        cost=cost, solver="trf-constrained" if schur is None else "schur-lm-constrained",
-    )
+    return _solution(th, Y, d, offsets, Cr, Cs, canonical=not con.has_positions,
+                     shift=not con.offsets_constrained, sigma=sigma, converged=conv, iterations=nit, cost=cost,
+                     solver="schur-lm-constrained" if schur is not None
+                     else ("lm-constrained" if engine == "lm" else "trf-constrained"))
 
 
 def _sigma_fixed_point(f_meas: Array, zp: Array, m: int, n_prior: int, n_free: int, loss: str) -> float:
@@ -530,22 +534,6 @@ def _sigma_fixed_point(f_meas: Array, zp: Array, m: int, n_prior: int, n_free: i
     if den <= 0.5:
         den = max(m - n_free, 1)
     return float(np.sqrt((f_meas @ f_meas) / den))
-
-
-def _check_counts(obs: BoolArray, con: Constraints, d: int) -> None:
-    """Each node needs at least as many ranges as it has free, prior-less unknowns of its own."""
-    for kind, cnt, fixed, mu, own in (
-        ("receiver", obs.sum(axis=1), con.fixed_r, con.prior_r_mean, con.own_r),
-        ("source", obs.sum(axis=0), con.fixed_s, con.prior_s_mean, con.own_s),
-    ):
-        need = (~fixed & ~np.isfinite(mu)).sum(axis=1) + own.astype(int)
-        need = np.where(need > 0, need, 0)
-        bad = np.nonzero(cnt < need)[0]
-        if bad.size:
-            k = int(bad[0])
-            raise DegenerateGeometryError(
-                f"{kind} {k} has {int(cnt[k])} observed ranges but {int(need[k])} free unknowns; "
-                "drop it, fix some of its coordinates or add measurements", kind="unobservable-node")
 
 
 class _LuInverse:

@@ -104,6 +104,7 @@ from numpy.typing import NDArray
 
 from ...errors import DegenerateGeometryError, InputError
 from .model import _flags, _Layout, _make_layout, _pack, _pinned_positions, _unpack, gauge_basis
+from .schur_lm import Grid, _inv_blocks, diagonal_blocks, directions
 
 __all__ = [
     "COVARIANCE_MODES",
@@ -316,8 +317,6 @@ def _components(PK: Array, PE: Array) -> list[Array]:
     The Jacobian row of pair (k, e) is ``a = [U, 1?]`` on the kept node and ``b = [-U, 1?]``
     on the eliminated one (:mod:`selfcal.toa.engine.schur_lm`).
     """
-    from .schur_lm import Grid, directions
-
     U, _ = directions(PK, PE, Grid(PK.shape[0], PE.shape[0]))
     return U
 
@@ -325,19 +324,6 @@ def _components(PK: Array, PE: Array) -> list[Array]:
 def _block_ranges(nE: int, nK: int, mK: int, mE: int) -> list[tuple[int, int]]:
     per = max(1, _BLOCK_DOUBLES // max(1, nK * max(mK, mE) * mE))
     return [(e0, min(nE, e0 + per)) for e0 in range(0, nE, per)]
-
-
-def _inv_eliminated(Dblk: Array, e0: int) -> Array:
-    cond_ok = np.linalg.cond(Dblk) < 1e12
-    if not cond_ok.all():
-        bad = e0 + int(np.nonzero(~cond_ok)[0][0])
-        raise DegenerateGeometryError(
-            f"node {bad} of the eliminated set is not determined by its observed ranges "
-            "(too few or collinear observations); it needs at least d+1 (+1 per offset) "
-            "ranges to non-collinear partners",
-            kind="unobservable-node",
-        )
-    return np.asarray(np.linalg.inv(Dblk), dtype=np.float64)
 
 
 def _h_block(Ub: list[Array], hasK: bool, hasE: bool, wK: Array, Rc: Array, pinned: Index) -> Array:
@@ -438,8 +424,6 @@ def _gauge_free_blocks(theta: Array, w: Array, lay: _Layout, receivers: Index | 
 
     # the node blocks A (K) and D (E) from component sums over the pairs, D^-1 = R R^T, and the
     # unit-vector components, all generated per column block of E nodes (memory: one block)
-    from .schur_lm import Grid, diagonal_blocks
-
     hasK, hasE = mK > lay.d, mE > lay.d
     Ablk = np.zeros((nK, mK, mK))
     Dinv = np.empty((nE, mE, mE))
@@ -457,7 +441,7 @@ def _gauge_free_blocks(theta: Array, w: Array, lay: _Layout, receivers: Index | 
         Ub = comps(e0, e1)
         Ab, Db = diagonal_blocks(Ub, wK[:, e0:e1], hasK, hasE, Grid(nK, e1 - e0))
         Ablk += Ab
-        Dinv[e0:e1] = _inv_eliminated(Db, e0)
+        Dinv[e0:e1] = _inv_blocks(Db, e0)
         Rc[e0:e1] = np.linalg.cholesky(Dinv[e0:e1])
         H = _h_block(Ub, hasK, hasE, wK[:, e0:e1], Rc[e0:e1], pinned)
         del Ub
@@ -584,8 +568,6 @@ def local_blocks(theta: Array, w: Array, lay: _Layout) -> tuple[Array, Array]:
     offset against the scale) that conditional blocks miss (4-14 % at ~100 nodes, not
     O(1/n)), so other offset modes raise :class:`~selfcal.errors.InputError`.
     """
-    from .schur_lm import Grid, diagonal_blocks
-
     if lay.offsets != "none":
         raise InputError("covariance='local' needs offsets='none': with unknown offsets the nodes share soft "
                          "global modes (a common offset against the scale) that conditional blocks miss "
@@ -601,7 +583,7 @@ def local_blocks(theta: Array, w: Array, lay: _Layout) -> tuple[Array, Array]:
         Ab, Dblk[e0:e1] = diagonal_blocks(_components(PK, PE[e0:e1]), wK[:, e0:e1], False, False,
                                           Grid(nK, e1 - e0))
         Ablk += Ab
-    CK, CE = _inv_eliminated(Ablk, 0), _inv_eliminated(Dblk, 0)
+    CK, CE = _inv_blocks(Ablk), _inv_blocks(Dblk)
     return (CK, CE) if lay.k_is_receivers else (CE, CK)
 
 

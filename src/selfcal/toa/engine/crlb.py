@@ -22,8 +22,8 @@ from numpy.typing import NDArray
 from ..._checks import as_points, check_choice
 from ..._result import Result
 from ...errors import InputError
-from .covariance import gauge_free_blocks, is_local, normalize_covariance, resolve_covariance
-from .nls import OFFSET_MODES, _flags, _make_layout, _pack
+from .covariance import covariance_blocks, is_local, normalize_covariance
+from .model import OFFSET_MODES, _flags
 
 __all__ = ["CrlbResult", "toa_crlb"]
 
@@ -132,13 +132,9 @@ def toa_crlb(
     if m.shape != (I, J):
         raise InputError(f"mask must have shape ({I}, {J}), got {m.shape}")
     has_r, has_s = _flags(offsets)
-    theta = _pack(r, s, np.zeros(I) if has_r else None, np.zeros(J) if has_s else None)
-    lay = _make_layout(r, s, offsets)
-    w = np.where(m, 1.0 / sig**2, 0.0)
     if is_local(normalize_covariance(covariance)):
         raise InputError("toa_crlb: covariance='local' is an approximation, not a bound; ask for 'all' or indices")
-    ri, si = resolve_covariance(covariance, I, J)
-    Cr, Cs = gauge_free_blocks(theta, w, lay, ri, si)
+    Cr, Cs = covariance_blocks(r, s, np.where(m, 1.0 / sig**2, 0.0), offsets=offsets, covariance=covariance)
     rb, sb = Cr[:, :d, :d], Cs[:, :d, :d]
     rt = np.trace(rb, axis1=1, axis2=2)
     st = np.trace(sb, axis1=1, axis2=2)

@@ -1,114 +1,125 @@
-"""The dense Levenberg-Marquardt step of small range problems, with the gauge projected analytically.
+"""The range model's dense step on the observed pairs (the search's direct call), joint or with the offsets projected out.
 
-The same iteration as the "dense" step of :func:`selfcal.toa.engine.schur_lm.solve_schur_lm`
-(Marquardt diagonal damping ``(J^T W J + lam diag(J^T W J)) dx = -J^T W f``, the step
-projected off the gauge, a damping trial accepted when the cost does not rise, the damping
-updated by Nielsen's gain-ratio rule :func:`damping_after_success`, the same stopping rules), written for problems small enough that the per-iteration cost is
-Python overhead, not arithmetic (12 receivers x 6 sources with both offsets: 72 ranges,
-66 unknowns). What makes it cheaper than the general engine:
+:func:`full_lm` is :class:`selfcal.toa.engine.schur_lm.RangeModel` (the one range model of
+the engines) on the :class:`~selfcal.toa.engine.schur_lm.Pairs` pattern with the ``"dense"``
+step solver (:class:`selfcal.optim.steps.DenseStep`), run by the one driver
+(:func:`selfcal.optim.lm.levenberg_marquardt`); :func:`solve_dense_lm` routes to it or to the
+variable projection of the offsets (:func:`solve_varpro_lm`, below). What makes the dense
+step cheap on small problems (12 receivers x 6 sources with both offsets: 72 ranges, 66
+unknowns, where the cost of an iteration is Python overhead, not arithmetic):
 
-- the parameters stay in the receiver-major order of :mod:`selfcal.toa.engine.nls` (no split into
-  kept / eliminated node sets and back); the Jacobian is one preallocated (m, n) array whose
-  offset columns never change, so an iteration writes only the 2 d unit-vector columns;
-- the gauge is projected without a QR per iteration: translations, rotations about the
-  centroid and (with both offset kinds) the common shift ``d_i + c, o_j - c`` are mutually
-  orthogonal, so the orthogonal projector off their span is "subtract the mean of each
-  coordinate", "subtract the shift's component" and a d(d-1)/2-square Gram solve for the
-  rotations (the same projector as ``I - Q Q^T`` with Q the orthonormal
-  :func:`selfcal.toa.engine.nls.gauge_basis`, to round-off);
+- the parameters stay in the receiver-major order of :mod:`selfcal.toa.engine.nls`; the
+  Jacobian is one preallocated (m, n) array whose offset columns never change, so an
+  iteration writes only the 2 d unit-vector entries per row;
+- the gauge is projected without a QR per iteration
+  (:class:`selfcal.toa.engine.model.GaugeProjector`, the same projector as ``I - Q Q^T`` with
+  Q the orthonormal :func:`selfcal.toa.engine.nls.gauge_basis`, to round-off);
 - each damped system is solved by one LAPACK ``posv`` call (Cholesky), least squares when
   it is not numerically positive definite;
-- a mask of free parameters: the fixed ones keep their values and no gauge is projected
-  (the fixed nodes hold the frame), which is the partial refit of the search's moves.
+- a mask of free parameters (the parametrisation of a partial refit, the search's moves):
+  the fixed ones keep their values and no gauge is projected (the fixed nodes hold the frame).
 
 Cost per iteration O(m n^2) flops for ``J^T W J`` plus O(n^3 / 3) for the factorisation;
-at 12 x 6 with both offsets 0.42-0.48 ms per iteration against 0.95-1.05 ms for the general
-engine's dense step with its QR gauge basis and layout round trips (same run, same iterates,
-a loaded 2-core machine); with the gain-ratio damping, 0.23 ms against 0.67 ms (same run,
-six draws from perturbed truths, 1443 vs 1440 iterations). Stacking many starts into one
-batched dense solve was tried and measured no faster (the stacked (n, n) products and LU
-solves are flop-bound at n = 72); what pays is the bipartite block structure of the normal
-equations, which :mod:`selfcal.toa.engine.batch_lm` uses to run the search's race (the same
-iterates, start by start).
+at 12 x 6 with both offsets 0.23 ms per iteration against 0.67 ms for the Schur step (same
+run, six draws from perturbed truths). Stacking many starts into one batched dense solve was
+tried and measured no faster (the stacked (n, n) products and LU solves are flop-bound at
+n = 72); what pays is the bipartite block structure of the normal equations, which
+:mod:`selfcal.toa.engine.batch_lm` uses to run the search's race (the same iterates, start by
+start).
+
+Variable projection of the offsets (:func:`solve_varpro_lm`): Levenberg-Marquardt on the
+positions alone, a parametrisation of the same model and step.
+
+The range model ``y_ij = |r_i - s_j| + d_i + o_j`` is linear in the offsets. For a given
+geometry the offsets minimising the (weighted) cost are a small linear least-squares problem
+over the observed entries, so they can be eliminated (Golub & Pereyra 1973): the reduced
+residual is ``P (dist(x) - y)`` with ``P = I - A (A^T W A)^+ A^T W`` the weighted projector
+off the offset design A (0/1 columns, one per offset of the model), and because A does not
+depend on the positions, ``P J_x`` is the *exact* Jacobian of the reduced residual (Kaufman's
+1975 approximation drops nothing here). Each iteration:
+
+1. the normal matrix of the full problem ``J^T W J`` is formed as in
+   :func:`full_lm`; the offset block is eliminated (Schur
+   complement), which is ``J_x^T W P J_x``, the reduced Gauss-Newton matrix;
+2. the damped reduced system is solved for the position step, which is projected off the
+   rigid gauge (:class:`selfcal.toa.engine.model.GaugeProjector`, positions only);
+3. at the trial positions the offsets are *re-solved* (not moved by their linearised step):
+   the cost compared is the variable-projection cost ``min_z cost(x, z)``.
+
+With the least-squares loss the projector is fixed, so it is formed once (an (m, m) matrix)
+and an iteration is two products with it plus the joint engine's step. Robust losses make
+the offsets a nonlinear (IRLS) sub-problem; they run the joint engine. Measured before that
+choice: with one IRLS step for the offsets per trial (weights of the trial positions, a
+majorise-minimise step) the iteration reached a stationary point, but on one of 18 soft-L1
+problems (12 x 8, both offsets, seed 3 of ``tests/toa/test_varpro.py``) it took 867
+iterations against 57 for the joint engine, the lagging weights slowing the final rate.
+
+The offset gauge (``d_i + c, o_j - c`` with both kinds) is the null vector v of ``A^T W A``;
+it is handled analytically: ``A^T W A + alpha v v^T`` is positive definite on a connected
+observation graph and equals the pseudo-inverse on right-hand sides orthogonal to v (all of
+them here, ``v^T A^T = 0``), and the shift is set so that ``sum d - sum o`` keeps its
+starting value, the convention of the dense engine (which projects the shift off each step).
+Offsets "none" have nothing to project and run :func:`full_lm`;
+so do partial refits (a ``free`` mask), where the fixed nodes already hold the frame.
+
+Measured (not the default, :data:`VARPRO_DEFAULT` is False). Same run, 12 x 6 with both offsets, the benchmark scene of ``benchmarks/bench_toa_minimal.py``
+(2 shared cores, loaded; ``python benchmarks/bench_toa_varpro.py``):
+
+- per start (the search's starts of seeds 0-39, 1090 starts, each run to convergence or 500
+  iterations, least squares): converged 79 % vs 50 % for the joint engine, median 160 vs 496
+  iterations, 0.50 vs 0.38 ms per iteration (an earlier Schur-complement form; the fixed
+  projector form is on par: 0.42-0.56 vs 0.43-0.56 ms on the same draws), 124 vs 140 s CPU
+  in all. The starts that reach the draw's lowest basin get there in a median 82 vs 125
+  iterations. But 52 % of VarPro's starts end with a source beyond 100 m (34 % beyond 1 km)
+  against 4.5 % for the joint engine (seeds 40-47): with the offsets eliminated, the
+  far-field valley (a source receding along its direction while its offset absorbs the
+  range) is followed to its end instead of crawled along, and its end has a lower cost.
+  Geodesic acceleration (Transtrum & Sethna 2012) on top converged still more starts (89 %,
+  median 112 iterations) at 0.62 ms per iteration, with the same far-field ends (43 %); not kept.
+- blind ``solve_toa``, seeds 0-199: in the basin (cost at most the truth-started fit's + 0.01
+  sigma^2) 165 joint vs 176 VarPro (25 gained, 14 lost, McNemar p = 0.11), CPU median 0.94
+  vs 0.85 s; the same minimum as the truth-started fit 59 vs 61; a source beyond 100 m in
+  3 vs 49 results (13 for the truth-started fit), and 3 VarPro solves (seeds 15, 19, 160)
+  raised DegenerateGeometryError: the first round ended with every source about 3.9 km away
+  and the outlier round's refit from there (1800 km) could not fix the gauge.
+- the same with the race over the starts of the merged search (main at 655ad68), seeds 0-47:
+  in the basin 44 joint vs 40 VarPro (4 gained, 8 lost, McNemar p = 0.39), CPU median 2.11 vs
+  1.39 s (paired ratio 0.68), a source beyond 100 m in 2 vs 11 results (3 for the
+  truth-started fit), one VarPro solve raised (seed 44).
+
+References
+----------
+Golub, G. H. & Pereyra, V. (1973). The differentiation of pseudo-inverses and nonlinear least
+squares problems whose variables separate. SIAM J. Numer. Anal. 10(2), 413-432.
+Kaufman, L. (1975). A variable projection method for solving separable nonlinear least
+squares problems. BIT 15, 49-57.
+Hong, J. H., Zach, C. & Fitzgibbon, A. (2017). Revisiting the variable projection method for
+separable nonlinear least squares problems. CVPR, 5939-5947.
 """
 
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.linalg import lapack
 
-from ...optim.lm import FTOL, Model, damping_after_success, levenberg_marquardt
-from ...optim.steps import cholesky_solve as _solve
+from ...optim.lm import FTOL, levenberg_marquardt
+from ...optim.steps import DenseStep
+from .model import _node_indices
+from .schur_lm import DEFAULT_MAX_IT, Pairs, RangeModel
 
 # FTOL (the relative cost decrease that stops) is read from this module at each call
-from ...robust import loss_rho
 
 Array = NDArray[np.float64]
 
-__all__ = ["VARPRO_DEFAULT", "GaugeProjector", "damping_after_success", "full_lm", "solve_dense_lm"]
-
-def _rotation_generators(d: int) -> list[tuple[int, int]]:
-    """(a, b) of the infinitesimal rotations ``x_a -> -x_b, x_b -> x_a`` (one in 2-D, three in 3-D)."""
-    return [(0, 1)] if d == 2 else [(0, 1), (0, 2), (1, 2)]
-
-
-class GaugeProjector:
-    """The orthogonal projector off the gauge directions at one point (formed once per iteration).
-
-    Parameters
-    ----------
-    theta : (n,) point, receiver-major ``[r (I d), s (J d), d_i?, o_j?]``.
-    N : number of nodes I + J; d : dimension; I : receivers.
-    both : whether the common offset shift ``d_i + c, o_j - c`` is a gauge direction.
-
-    Notes
-    -----
-    Translations (one unit vector per coordinate), rotations about the centroid (centred, so
-    orthogonal to the translations) and the shift (on the offsets only) are mutually
-    orthogonal; only the d(d-1)/2 rotation vectors need orthonormalising (Gram-Schmidt). ``apply`` gives ``(I - Q Q^T) dx`` with Q the orthonormal basis of
-    :func:`selfcal.toa.engine.nls.gauge_basis`, to round-off.
-    """
-
-    def __init__(self, theta: Array, N: int, d: int, I: int, both: bool) -> None:
-        self.N, self.d, self.I, self.both = N, d, I, both
-        P = theta[: N * d].reshape(N, d)
-        P = P - P.sum(axis=0) * (1.0 / N)
-        rows: list[Array] = []
-        big = 0.0
-        for a, b in _rotation_generators(d):  # rotation a -> b: (-x_b, x_a) on coordinates (a, b)
-            v2 = np.zeros((N, d))
-            v2[:, a] = -P[:, b]
-            v2[:, b] = P[:, a]
-            v: Array = v2.ravel()
-            big = max(big, math.sqrt(float(v @ v)))
-            for q in rows:  # Gram-Schmidt (twice is enough for three vectors)
-                v = v - float(q @ v) * q
-            for q in rows:
-                v = v - float(q @ v) * q
-            nv = math.sqrt(float(v @ v))
-            if nv > 1e-10 * big:  # a dependent rotation (points on a line) adds no direction
-                rows.append(v / nv)
-        self.Qr = np.array(rows).reshape(len(rows), N * d)
-
-    def apply(self, dx: Array) -> Array:
-        """``dx`` minus its projection on the gauge directions (in place); returns dx."""
-        N, d = self.N, self.d
-        X = dx[: N * d].reshape(N, d)
-        X -= X.sum(axis=0) * (1.0 / N)
-        flat = dx[: N * d]
-        flat -= (self.Qr @ flat) @ self.Qr
-        if self.both:
-            off = dx[N * d:]
-            shift = (off[: self.I].sum() - off[self.I:].sum()) / off.size
-            off[: self.I] -= shift
-            off[self.I:] += shift
-        return dx
+__all__ = ["VARPRO_DEFAULT", "full_lm", "solve_dense_lm", "solve_varpro_lm"]
 
 
 #: default of ``solve_dense_lm(varpro=None)``: whether full fits of offset-bearing models
-#: eliminate the offsets (:mod:`selfcal.toa.engine.varpro`); see that module's notes for the measurements
+#: eliminate the offsets (:func:`solve_varpro_lm`); see the module docstring for the measurements
 VARPRO_DEFAULT = False
 
 
@@ -131,7 +142,7 @@ def solve_dense_lm(
         of every step); the others are held at ``theta0`` and no gauge is projected.
     max_it : iteration cap when ``max_nfev`` is None.
     varpro : eliminate the offsets by variable projection
-        (:func:`selfcal.toa.engine.varpro.solve_varpro_lm`: LM on the positions, the offsets re-solved
+        (:func:`solve_varpro_lm`: LM on the positions, the offsets re-solved
         at every trial) instead of damping them with the positions; default
         :data:`VARPRO_DEFAULT`. Only full fits of models with offsets are affected.
 
@@ -153,8 +164,6 @@ def solve_dense_lm(
     True
     """
     if VARPRO_DEFAULT if varpro is None else varpro:
-        from .varpro import solve_varpro_lm
-
         return solve_varpro_lm(theta0, y, ii, jj, I, J, d, offsets, loss, f_scale, max_nfev, xtol,
                                free=free, max_it=max_it)
     return full_lm(theta0, y, ii, jj, I, J, d, offsets, loss, f_scale, max_nfev, xtol, free=free, max_it=max_it)
@@ -163,121 +172,120 @@ def solve_dense_lm(
 def full_lm(
     theta0: Array, y: Array, ii: NDArray[np.intp], jj: NDArray[np.intp], I: int, J: int, d: int,
     offsets: str, loss: str, f_scale: float, max_nfev: int | None, xtol: float,
-    free: NDArray[np.bool_] | None = None, max_it: int = 100,
+    free: NDArray[np.bool_] | None = None, max_it: int = DEFAULT_MAX_IT["dense"],
 ) -> tuple[Array, bool, int]:
     """The joint LM of :func:`solve_dense_lm` (positions and offsets damped together); same
-    parameters (without ``varpro``) and return."""
-    has_r, has_s = offsets in ("receivers", "both"), offsets in ("sources", "both")
-    theta = np.array(theta0, dtype=float)
-    n = theta.size
-    N = I + J
-    m = y.size
-    ar = np.arange(m)
-    Jf = np.zeros((m, n))
-    rcol = ii[:, None] * d + np.arange(d)
-    scol = I * d + jj[:, None] * d + np.arange(d)
-    k = N * d
-    if has_r:
-        Jf[ar, k + ii] = 1.0
-        k += I
-    if has_s:
-        Jf[ar, k + jj] = 1.0
-    fidx = None if free is None or bool(np.all(free)) else np.nonzero(free)[0]
-    model = _DenseRanges(y, ii, jj, I, J, d, has_r, has_s, loss, f_scale, Jf, fidx, n, rcol, scol)
-    out = levenberg_marquardt(model, theta, max_iter=max_nfev or max_it, xtol=xtol, ftol=FTOL)
+    parameters (without ``varpro``) and return: :class:`selfcal.toa.engine.schur_lm.RangeModel`
+    on the observed pairs with the dense step."""
+    r_idx, s_idx, _ = _node_indices(I, J, d, offsets)
+    model = RangeModel(r_idx, s_idx, Pairs(ii, jj, I, J), np.asarray(y, float), d, I, loss, f_scale, "dense",
+                       free=free)
+    out = levenberg_marquardt(model, np.array(theta0, dtype=float), max_iter=max_nfev or max_it, xtol=xtol,
+                              ftol=FTOL)
     return out.x, out.converged, out.iterations
 
 
-class _DenseRanges(Model):
-    """The range model of :func:`full_lm` on the driver: residuals, IRLS weights and unit
-    vectors per evaluation; the preallocated Jacobian's unit-vector columns rewritten per
-    linearisation; the dense step (:class:`DenseStep`) with the gauge projected when every
-    parameter is free."""
+def solve_varpro_lm(
+    theta0: Array, y: Array, ii: NDArray[np.intp], jj: NDArray[np.intp], I: int, J: int, d: int,
+    offsets: str, loss: str, f_scale: float, max_nfev: int | None, xtol: float,
+    free: NDArray[np.bool_] | None = None, max_it: int = 100,
+) -> tuple[Array, bool, int]:
+    """Levenberg-Marquardt on the positions with the offsets projected out (variable projection).
 
-    def __init__(self, y: Array, ii: NDArray[np.intp], jj: NDArray[np.intp], I: int, J: int, d: int,
-                 has_r: bool, has_s: bool, loss: str, f_scale: float, Jf: Array,
-                 fidx: NDArray[np.intp] | None, n: int, rcol: NDArray[np.intp], scol: NDArray[np.intp]) -> None:
-        N = I + J
-        m = y.size
-        ar = np.arange(m)
-        self.y, self.ii, self.I, self.d, self.N = y, ii, I, d, N
-        self.has_r, self.has_s, self.both = has_r, has_s, has_r and has_s
-        self.loss, self.f_scale, self.linear = loss, f_scale, loss == "linear"
-        self.Jf, self.fidx, self.n = Jf, fidx, n
-        self.sj, self.ri, self.oj = I + jj, N * d + ii, N * d + (I if has_r else 0) + jj
-        self.ones = np.ones(m)
-        self.Jflat = Jf.reshape(-1)
-        self.pos_r = (ar[:, None] * n + rcol).ravel()  # flat positions of the unit-vector entries
-        self.pos_s = (ar[:, None] * n + scol).ravel()
-        nf = n if fidx is None else fidx.size
-        self.dstep = np.arange(nf) * (nf + 1)  # flat positions of the diagonal
-
-    def evaluate(self, t: Array) -> tuple[float, tuple[Array, Array, Array]]:
-        P = t[: self.N * self.d].reshape(self.N, self.d)
-        u = P[self.ii] - P[self.sj]
-        dist = np.sqrt(np.einsum("mp,mp->m", u, u))
-        f = dist - self.y
-        if self.has_r:
-            f += t[self.ri]
-        if self.has_s:
-            f += t[self.oj]
-        u *= np.divide(1.0, dist, out=np.zeros_like(dist), where=dist > 0)[:, None]  # 0 where points coincide
-        if self.linear:
-            return 0.5 * float(f @ f), (f, self.ones, u)
-        rho, w = loss_rho((f / self.f_scale) ** 2, self.loss)
-        return 0.5 * self.f_scale**2 * float(np.sum(rho)), (f, np.asarray(w, float), u)
-
-    def linearize(self, theta: Array, state: tuple[Array, Array, Array]) -> DenseStep:
-        f, w, u = state
-        uf = u.ravel()
-        self.Jflat[self.pos_r] = uf
-        self.Jflat[self.pos_s] = -uf
-        fidx = self.fidx
-        Jm = self.Jf if fidx is None else self.Jf[:, fidx]
-        if self.linear:
-            H = np.dot(Jm.T, Jm)
-            g = np.dot(Jm.T, f)
-        else:
-            Jw = Jm * w[:, None]
-            H = np.dot(Jm.T, Jw)
-            g = np.dot(Jw.T, f)
-        proj = GaugeProjector(theta, self.N, self.d, self.I, self.both) if fidx is None else None
-        return DenseStep(H, g, self.dstep, proj, fidx, self.n)
-
-
-class DenseStep:
-    """The dense step solver: ``(H + lam diag H) x = -g`` by Cholesky (least squares if H is not
-    numerically positive definite), scattered into the free parameters and projected off the gauge.
+    Same call and return as :func:`solve_dense_lm`.
 
     Parameters
     ----------
-    H, g : (nf, nf), (nf,) the normal matrix and gradient on the free parameters.
-    dstep : flat positions of H's diagonal; proj : :class:`GaugeProjector` or None;
-    fidx : indices of the free parameters in the (n,) point (None: all).
+    theta0 : (n,) start, receiver-major ``[r (I d), s (J d), d_i (I)?, o_j (J)?]`` (metres);
+        its offsets only set the offset gauge (``sum d - sum o``): the offsets are re-solved
+        at the start's geometry.
+    y : (m,) observed ranges (metres); ii, jj : (m,) their receiver and source indices.
+    I, J, d, offsets : the model (:mod:`selfcal.toa.engine.nls`).
+    loss, f_scale : loss and its scale; any loss but "linear" runs the joint engine.
+    max_nfev : iteration cap (default ``max_it``); xtol : relative step tolerance.
+    free : (n,) bool mask of fitted parameters; when given (a partial refit) or when the
+        model has no offsets, the call is :func:`full_lm`'s.
+
+    Returns
+    -------
+    (theta, converged, iterations): the point (offsets included, in the dense engine's
+    gauge), whether a stopping rule was met, iterations (normal matrices formed).
+
+    Notes
+    -----
+    Per iteration O(m^2 k + m k^2) for the reduced normal matrix ``(P J_x)^T (P J_x)``
+    (k = (I + J) d positions, P the (m, m) projector formed once in O(m^2 p + p^3)) and
+    O(k^3 / 3) per damping trial, which costs one product ``P (dist - y)``. The projector
+    needs the offsets determined by the observation pattern (every node observed and, with
+    both kinds, a connected bipartite graph); otherwise the joint engine runs.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from selfcal.toa.engine import nls
+    >>> g = np.random.default_rng(0)
+    >>> r, s = g.uniform(0, 1.5, (12, 3)), g.normal(0, 2, (6, 3))
+    >>> Y = nls.toa_model(r, s, g.uniform(0, 3, 12), g.uniform(0, 30, 6))
+    >>> ii, jj = np.nonzero(np.isfinite(Y))
+    >>> th0 = nls._pack(r + 0.05, s - 0.05, np.zeros(12), np.zeros(6))
+    >>> th, ok, nit = solve_varpro_lm(th0, Y[ii, jj], ii, jj, 12, 6, 3, "both", "linear", 1.0, None, 1e-12)
+    >>> bool(ok) and float(np.abs(nls.toa_residuals(th, Y, 3, "both")).max()) < 1e-6
+    True
     """
+    has_r, has_s = offsets in ("receivers", "both"), offsets in ("sources", "both")
+    if not (has_r or has_s) or loss != "linear" or (free is not None and not bool(np.all(free))):
+        return full_lm(theta0, y, ii, jj, I, J, d, offsets, loss, f_scale, max_nfev, xtol,
+                       free=free, max_it=max_it)
+    theta = np.array(theta0, dtype=float)
+    k = (I + J) * d
+    m = y.size
+    # the offset design A (m, p) and the projector P = I - A (A^T A)^+ A^T off its columns
+    cols = ([np.eye(I)[ii]] if has_r else []) + ([np.eye(J)[jj]] if has_s else [])
+    A = np.hstack(cols)
+    G = A.T @ A
+    v = np.concatenate([np.ones(I), -np.ones(J)]) if has_r and has_s else None
+    if v is not None:  # the offset gauge d + c, o - c: null vector of G, made positive definite
+        G += (float(np.trace(G)) / G.shape[0] / v.size) * np.outer(v, v)
+    fac, info = lapack.dpotrf(G, lower=1, clean=1)
+    if info != 0:  # offsets not determined by the pattern: the joint engine
+        return full_lm(theta0, y, ii, jj, I, J, d, offsets, loss, f_scale, max_nfev, xtol, max_it=max_it)
+    AG, _ = lapack.dpotrs(fac, A.T, lower=1)  # (A^T A)^+ A^T on the gauge-free complement
+    Pm = -A @ AG
+    Pm.ravel()[:: m + 1] += 1.0
+    shift0 = float(v @ theta[k:]) if v is not None else 0.0
+    r_idx, s_idx, _ = _node_indices(I, J, d, "none")
 
-    def __init__(self, H: Array, g: Array, dstep: NDArray[np.intp], proj: GaugeProjector | None,
-                 fidx: NDArray[np.intp] | None, n: int) -> None:
-        self.H, self.g, self.dstep, self.proj, self.fidx, self.n = H, g, dstep, proj, fidx, n
-        self.hdiag = H.ravel()[dstep]
-        self.gnorm = math.sqrt(float(g @ g))
-        self.mg = -g
+    class Projected(RangeModel):
+        """The positions' cost with the offsets projected out; a step moves the positions only
+        (the range model without offsets, its residuals and Jacobian projected by ``Pm``)."""
 
-    def step(self, lam: float) -> Array | None:
-        Hd = self.H.copy()
-        Hd.ravel()[self.dstep] += lam * self.hdiag  # Marquardt: diag * (1 + lam)
-        x = _solve(Hd, self.mg)
-        if x is None:
-            return None
-        if self.fidx is None:
-            dx = x
-        else:
-            dx = np.zeros(self.n)
-            dx[self.fidx] = x
-        if self.proj is not None:
-            self.proj.apply(dx)  # no rigid drift (and no common offset shift)
-        return dx
+        def evaluate(self, t: Array) -> tuple[float, tuple[Array, Array, Any]]:
+            U, dist = self.geometry(t)
+            f = Pm @ (dist - y)
+            return 0.5 * float(f @ f), (f, dist, U)
 
-    def predicted(self, dx: Array) -> float:
-        xv = dx if self.fidx is None else dx[self.fidx]
-        return -(float(self.g @ xv) + 0.5 * float(xv @ (self.H @ xv)))
+        def linearize(self, t: Array, state: tuple[Array, Array, Any]) -> DenseStep:
+            f, _, U = state
+            Jx = self.jacobian(U)
+            Jr = Pm @ Jx  # the reduced Jacobian (exact: A does not depend on the positions)
+            # gradient Jx^T f = Jr^T f, since P f = f
+            return DenseStep(np.dot(Jr.T, Jr), np.dot(Jx.T, f), self.dstep, self.projector(t), None, k)
+
+        def retract(self, t: Array, dx: Array) -> Array:
+            trial = t.copy()
+            trial[:k] += dx
+            return trial
+
+        def small_step(self, t: Array, dx: Array, xtol: float) -> bool:
+            return math.sqrt(float(dx @ dx)) <= xtol * (xtol + math.sqrt(float(t[:k] @ t[:k])))
+
+    model = Projected(r_idx, s_idx, Pairs(ii, jj, I, J), y, d, I, "linear", 1.0, "dense")
+    out = levenberg_marquardt(model, theta, max_iter=max_nfev or max_it, xtol=xtol, ftol=FTOL)
+    theta, converged, it = out.x, out.converged, out.iterations
+    dist = out.state[1]
+    # the offsets of the final geometry, in the gauge of the start (sum d - sum o kept)
+    z = AG @ (y - dist)
+    if v is not None:
+        z += ((shift0 - float(v @ z)) / v.size) * v
+    theta[k:] = z
+    return theta, converged, it

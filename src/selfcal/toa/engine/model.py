@@ -8,7 +8,7 @@ with optional per-receiver offsets ``d_i`` and per-source offsets ``o_j`` (``off
 :data:`OFFSET_MODES`). This module holds what every refinement, covariance and verdict
 of :mod:`selfcal.toa` reads: the receiver-major parameter vector (:func:`_pack` /
 :func:`_unpack`), the model (:func:`toa_model`), residuals and analytic Jacobian
-(:func:`toa_residuals`, :func:`toa_jacobian`, 003 eq. 16), the gauge (:func:`gauge_basis`),
+(:func:`toa_residuals`, :func:`toa_jacobian`, 003 eq. 16), the gauge (:func:`gauge_basis`, and its projector :class:`GaugeProjector`),
 the kept / eliminated layout of the Schur complement (:class:`_Layout`,
 :func:`_make_layout`), the robust-loss helpers and the refinement's result record
 (:class:`NlsSolution`).
@@ -20,6 +20,7 @@ circle. :mod:`selfcal.toa.engine.nls` re-exports these names (their historical h
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -28,9 +29,10 @@ import scipy.sparse
 from numpy.typing import NDArray
 
 from ...errors import DegenerateGeometryError
+from ...geometry import canonical_gauge
 from ...robust import TUNING, loss_rho, mad_std
 
-__all__ = ["OFFSET_MODES", "NlsSolution", "gauge_basis", "least_squares_offsets", "toa_jacobian", "toa_model",
+__all__ = ["OFFSET_MODES", "GaugeProjector", "NlsSolution", "gauge_basis", "least_squares_offsets", "toa_jacobian", "toa_model",
            "toa_residuals"]
 
 Array = NDArray[np.float64]
@@ -239,6 +241,109 @@ def gauge_basis(
         cols.append(_pack(np.zeros_like(r), np.zeros_like(s), np.ones(I), -np.ones(J)))
     Q, _ = np.linalg.qr(np.column_stack(cols))
     return Q
+
+
+def _rotation_generators(d: int) -> list[tuple[int, int]]:
+    """(a, b) of the infinitesimal rotations ``x_a -> -x_b, x_b -> x_a`` (one in 2-D, three in 3-D)."""
+    return [(0, 1)] if d == 2 else [(0, 1), (0, 2), (1, 2)]
+
+
+class GaugeProjector:
+    """The orthogonal projector off the gauge directions at one point (formed once per iteration).
+
+    Parameters
+    ----------
+    theta : (n,) point, receiver-major ``[r (I d), s (J d), d_i?, o_j?]``.
+    N : number of nodes I + J; d : dimension; I : receivers.
+    both : whether the common offset shift ``d_i + c, o_j - c`` is a gauge direction.
+
+    Notes
+    -----
+    Translations (one unit vector per coordinate), rotations about the centroid (centred, so
+    orthogonal to the translations) and the shift (on the offsets only) are mutually
+    orthogonal; only the d(d-1)/2 rotation vectors need orthonormalising (Gram-Schmidt). ``apply`` gives ``(I - Q Q^T) dx`` with Q the orthonormal basis of
+    :func:`selfcal.toa.engine.nls.gauge_basis`, to round-off.
+    """
+
+    def __init__(self, theta: Array, N: int, d: int, I: int, both: bool) -> None:
+        self.N, self.d, self.I, self.both = N, d, I, both
+        P = theta[: N * d].reshape(N, d)
+        P = P - P.sum(axis=0) * (1.0 / N)
+        rows: list[Array] = []
+        big = 0.0
+        for a, b in _rotation_generators(d):  # rotation a -> b: (-x_b, x_a) on coordinates (a, b)
+            v2 = np.zeros((N, d))
+            v2[:, a] = -P[:, b]
+            v2[:, b] = P[:, a]
+            v: Array = v2.ravel()
+            big = max(big, math.sqrt(float(v @ v)))
+            for q in rows:  # Gram-Schmidt (twice is enough for three vectors)
+                v = v - float(q @ v) * q
+            for q in rows:
+                v = v - float(q @ v) * q
+            nv = math.sqrt(float(v @ v))
+            if nv > 1e-10 * big:  # a dependent rotation (points on a line) adds no direction
+                rows.append(v / nv)
+        self.Qr = np.array(rows).reshape(len(rows), N * d)
+
+    def apply(self, dx: Array) -> Array:
+        """``dx`` minus its projection on the gauge directions (in place); returns dx."""
+        N, d = self.N, self.d
+        X = dx[: N * d].reshape(N, d)
+        X -= X.sum(axis=0) * (1.0 / N)
+        flat = dx[: N * d]
+        flat -= (self.Qr @ flat) @ self.Qr
+        if self.both:
+            off = dx[N * d:]
+            shift = (off[: self.I].sum() - off[self.I:].sum()) / off.size
+            off[: self.I] -= shift
+            off[self.I:] += shift
+        return dx
+
+
+def _solution(theta: Array, Y: Array, d: int, offsets: str, Cr: Array, Cs: Array, *, canonical: bool,
+              shift: bool, **fields: object) -> NlsSolution:
+    """The :class:`NlsSolution` of a fit ending at ``theta``: its residuals and their rms, the
+    positions in the canonical gauge (``canonical``; else in the frame of the fit) with the
+    covariance blocks ``Cr`` (I, d + hasR, d + hasR), ``Cs`` rotated along, the offsets' standard
+    deviations, and (``shift``, with both offset kinds) the common shift moved into the receiver
+    offsets so that the first source offset is 0; ``fields`` the rest (sigma, cost, status)."""
+    I, J = Y.shape
+    has_r, has_s = _flags(offsets)
+    r, s, dr, os_ = _unpack(theta, I, J, d, offsets)
+    obs = np.isfinite(Y)
+    resid = np.where(obs, Y - toa_model(r, s, dr, os_), np.nan)
+    if canonical:
+        rc, sc, al = canonical_gauge(r, s)
+        assert sc is not None
+        R = al.rotation
+    else:
+        rc, sc, R = r.copy(), s.copy(), np.eye(d)
+    if shift and offsets == "both":
+        assert dr is not None and os_ is not None
+        dr, os_ = dr + os_[0], os_ - os_[0]
+    return NlsSolution(
+        receivers=rc, sources=sc,
+        receiver_offsets=None if dr is None else np.array(dr),
+        source_offsets=None if os_ is None else np.array(os_),
+        receiver_cov=np.einsum("ab,nbc,dc->nad", R, Cr[:, :d, :d], R),
+        source_cov=np.einsum("ab,nbc,dc->nad", R, Cs[:, :d, :d], R),
+        receiver_offset_std=np.sqrt(np.maximum(Cr[:, d, d], 0.0)) if has_r else None,
+        source_offset_std=np.sqrt(np.maximum(Cs[:, d, d], 0.0)) if has_s else None,
+        residuals=resid, residual_rms=float(np.sqrt(np.mean(resid[obs] ** 2))), **fields)  # type: ignore[arg-type]
+
+
+def _check_counts(counts_r: NDArray[np.intp], counts_s: NDArray[np.intp], need_r: object, need_s: object) -> None:
+    """Each node needs at least as many observed ranges as it has unknowns of its own (its free
+    coordinates, its own offset): ``need_r`` / ``need_s`` an int or one per node."""
+    for kind, cnt, need in (("receiver", counts_r, need_r), ("source", counts_s, need_s)):
+        nd = np.broadcast_to(np.asarray(need), cnt.shape)
+        bad = np.flatnonzero(cnt < nd)
+        if bad.size:
+            k = int(bad[0])
+            raise DegenerateGeometryError(
+                f"{kind} {k} has {int(cnt[k])} observed ranges but needs at least {int(nd[k])} (its unknowns of "
+                "its own); drop it, fix some of its coordinates or add measurements", kind="unobservable-node")
 
 
 # ---------------------------------------------------------------------------

@@ -14,8 +14,8 @@ Gauge. The cost is invariant under the d(d+1)/2 rigid motions of all points (and
 with both kinds of offsets, under ``d_i + c, o_j - c``), so ``J^T J`` is singular.
 The default solver keeps every coordinate free: the Marquardt damping makes each
 step's system positive definite and the step is projected onto the orthogonal
-complement of the gauge directions (:func:`gauge_basis`), so the network never
-drifts. ``solver="trf"`` and the covariance instead *pin* g coordinates, chosen by
+complement of the gauge directions (:class:`selfcal.toa.engine.model.GaugeProjector`, the
+projector off :func:`gauge_basis` formed analytically), so the network never drifts. ``solver="trf"`` and the covariance instead *pin* g coordinates, chosen by
 a column-pivoted QR of the gauge basis restricted to the smaller node set so that
 no gauge motion leaves every pinned coordinate fixed (the reduced normal matrix is
 then non-singular). The minimum of the cost does not depend on either choice. The
@@ -38,33 +38,38 @@ needs the exact inverse: it forms the reduced matrix once, factorises it once an
 computes only the requested d x d diagonal blocks by selected inversion,
 O(min(I,J)^2 max(I,J) d^3) time for all of them.
 ``scipy.optimize.least_squares(method="trf", x_scale="jac")`` with the analytic
-sparse Jacobian is the alternative solver (``solver="trf"``).
+sparse Jacobian is the alternative solver (``solver="trf"``, the reference): it runs as the
+constrained path's trf engine (:mod:`selfcal.toa.engine.constrained`) with the identity
+parametrisation, the gauge pinned there.
 
 Files: the model, its residuals, Jacobian, gauge and the kept / eliminated layout shared by
-every engine live in :mod:`selfcal.toa.engine.model` (re-exported here); the Levenberg-Marquardt
-step of the grid in :mod:`selfcal.toa.engine.schur_lm`, the covariance in
+every engine live in :mod:`selfcal.toa.engine.model` (re-exported here); the one range model of
+the driver with its step solvers (dense, Schur reduced, Schur CG; the grid or the observed
+pairs) in :mod:`selfcal.toa.engine.schur_lm`, the covariance in
 :mod:`selfcal.toa.engine.covariance`, the constrained path in :mod:`selfcal.toa.engine.constrained`; this
 module keeps :func:`refine_toa` (validation of masks, constraints and priors, the choice of
-solver) and the trf solver.
+solver); the result of both paths is assembled by
+:func:`selfcal.toa.engine.model._solution`.
 """
 
 from __future__ import annotations
 
+import dataclasses
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.optimize import least_squares
 
 from ..._checks import as_matrix, as_points, check_choice, check_positive
 from ...errors import DegenerateGeometryError, InputError
-from ...optim.structure import TRF_EXACT_MAX
+from ...optim.lm import irls
 from ...robust import LOSSES
 from . import constrained as _constrained
 from .model import (  # noqa: F401 -- the model's names, re-exported from their historical home
     _TUNING,
     OFFSET_MODES,
     NlsSolution,
+    _check_counts,
     _flags,
     _Layout,
     _make_layout,
@@ -73,12 +78,14 @@ from .model import (  # noqa: F401 -- the model's names, re-exported from their 
     _pinned_positions,
     _rho,
     _robust_sigma,
+    _solution,
     _unpack,
     gauge_basis,
     toa_jacobian,
     toa_model,
     toa_residuals,
 )
+from .schur_lm import solve_schur_lm
 
 __all__ = [
     "NlsSolution",
@@ -97,47 +104,6 @@ Array = NDArray[np.float64]
 # ---------------------------------------------------------------------------
 # solvers
 # ---------------------------------------------------------------------------
-
-
-def _solve_trf(
-    theta0: Array, Y: Array, lay: _Layout, loss: str, f_scale: float, max_nfev: int | None, xtol: float
-) -> tuple[Array, bool, int]:
-    d, offsets = lay.d, lay.offsets
-    free = np.setdiff1d(np.arange(lay.n), lay.pins)
-    base = theta0.copy()
-
-    def full(x: Array) -> Array:
-        t = base.copy()
-        t[free] = x
-        return t
-
-    def fun(x: Array) -> Array:
-        return toa_residuals(full(x), Y, d, offsets)
-
-    dense = len(free) <= TRF_EXACT_MAX
-
-    def jac(x: Array) -> Any:
-        Jm = toa_jacobian(full(x), Y, d, offsets)[:, free]
-        return Jm.toarray() if dense else Jm
-
-    res = least_squares(
-        fun, theta0[free], jac=jac, method="trf", x_scale="jac", tr_solver="exact" if dense else "lsmr",
-        loss=loss,
-        f_scale=f_scale, xtol=xtol, ftol=1e-12, gtol=1e-12, max_nfev=max_nfev or 200 * max(1, len(free) // 50 + 1),
-    )
-    return full(res.x), bool(res.status > 0), int(res.njev or res.nfev)
-
-
-def _solve_schur(
-    theta0: Array, Y: Array, lay: _Layout, loss: str, f_scale: float, max_nfev: int | None, xtol: float
-) -> tuple[Array, bool, int]:
-    """The Schur LM engine of :mod:`selfcal.toa.engine.schur_lm` with this layout's gauge basis."""
-    from .schur_lm import solve_schur_lm
-
-    def gauge(theta: Array) -> Array:
-        return gauge_basis(*_unpack(theta, lay.I, lay.J, lay.d, lay.offsets)[:2], lay.offsets)
-
-    return solve_schur_lm(theta0, Y, lay, loss, f_scale, max_nfev, xtol, gauge)
 
 
 # ---------------------------------------------------------------------------
@@ -169,6 +135,7 @@ def refine_toa(
     receiver_offset_basis: Any = None,
     source_offset_basis: Any = None,
     noise: float | None = None,
+    weights: Any = None,
 ) -> NlsSolution:
     """Refine receivers, sources (and offsets) by sparse nonlinear least squares (003 eq. 2, 16-17).
 
@@ -193,7 +160,11 @@ def refine_toa(
     solver: "auto" / "schur" (Levenberg-Marquardt on the Schur-reduced normal equations,
         conjugate gradients with a Schur-Jacobi preconditioner) or "trf"
         (``scipy.optimize.least_squares(method="trf", x_scale="jac")`` with the sparse
-        analytic Jacobian; ``tr_solver="exact"`` up to 600 unknowns, ``"lsmr"`` above).
+        analytic Jacobian; ``tr_solver="exact"`` up to 600 unknowns, ``"lsmr"`` above: the
+        constrained path's trf with the identity parametrisation, so its covariance, also
+        ``"local"``, is exact) or
+        "lm" (with constraints or weights: the driver's Levenberg-Marquardt on the reduced
+        vector, :func:`selfcal.optim.lm.levenberg_marquardt`; without: as "schur").
     covariance: which 003 eq. 17 covariance blocks to compute: True / "all", "receivers",
         "sources", False / "none", or indices ``{"receivers": idx, "sources": idx}`` /
         ``(receiver_idx, source_idx)`` (:func:`selfcal.toa.engine.covariance.normalize_covariance`);
@@ -219,6 +190,11 @@ def refine_toa(
         mean with free zero-sum deviations.
     noise: range noise std (metres) weighting the priors; estimated from the fit
         (re-weighted until it settles) when omitted.
+    weights: (I, J) per-entry weights, ``1 / std`` up to a common factor (finite and >= 0 on
+        the observed entries; 0 = the entry does not count): weighted least squares, the ML
+        fit when the entries' noise differs; a robust loss then applies to the weighted
+        residuals (``f_scale`` in their units). ``sigma`` is the noise of a unit-weight entry,
+        the covariance ``sigma^2 (J^T W J)^+``. Runs on the constrained path.
 
     Returns
     -------
@@ -242,12 +218,11 @@ def refine_toa(
         gz = np.zeros((J, 3), bool); gz[:, 2] = True
         sol = refine_toa(c * T, r0, s0, offsets="both", fixed_receivers=fz, fixed_sources=gz)
     """
-    from ...geometry import canonical_gauge
     from .covariance import gauge_free_blocks, is_local, local_blocks, resolve_covariance
 
     check_choice(offsets, "offsets", OFFSET_MODES)
     check_choice(loss, "loss", LOSSES)
-    check_choice(solver, "solver", ("auto", "trf", "schur"))
+    check_choice(solver, "solver", ("auto", "trf", "schur", "lm"))
     Y = as_matrix(ranges, "ranges")
     I, J = Y.shape
     r0 = as_points(receivers0, "receivers0")
@@ -264,22 +239,32 @@ def refine_toa(
     if f_scale is not None and not (np.isfinite(f_scale) and f_scale > 0):
         raise InputError(f"f_scale must be a positive number (metres), got {f_scale!r}")
 
+    wts = None
+    if weights is not None:
+        wts = as_matrix(weights, "weights", allow_nan=True)
+        if wts.shape != (I, J):
+            raise InputError(f"weights has shape {wts.shape}; the range matrix is {I} x {J}")
+        wo = wts[np.isfinite(Y)]
+        if not (np.isfinite(wo).all() and (wo >= 0).all() and (wo > 0).any()):
+            raise InputError("weights must be finite and >= 0 on the observed ranges, and not all 0")
     cons = dict(fixed_receivers=fixed_receivers, fixed_sources=fixed_sources,
                 receiver_prior=receiver_prior, source_prior=source_prior,
                 fixed_receiver_offsets=fixed_receiver_offsets,
                 fixed_source_offsets=fixed_source_offsets, common_offsets=common_offsets,
                 receiver_offset_basis=receiver_offset_basis, source_offset_basis=source_offset_basis)
-    if _constrained.is_active(**cons):
+    if _constrained.is_active(**cons) or solver == "trf" or wts is not None:
+        # the affine parametrisation (the identity, less the pinned gauge, without constraints)
         con = _constrained.make_constraints(I, J, d, offsets, receiver_offsets0=dr0,
                                             source_offsets0=os0, **cons)
-        return _constrained.refine_constrained(  # type: ignore[no-any-return]
+        sol = _constrained.refine_constrained(
             Y, r0, s0, offsets, con, loss=loss, f_scale=f_scale, max_nfev=max_nfev, xtol=xtol,
-            covariance=covariance, noise=check_positive(noise, "noise"), engine=solver)
+            covariance=covariance, noise=check_positive(noise, "noise"), engine=solver, weights=wts)
+        return sol if _constrained.is_active(**cons) or wts is not None else dataclasses.replace(sol, solver="trf")
 
     cov_r, cov_s = resolve_covariance(covariance, I, J)
     theta0 = _pack(r0, s0, dr0, os0)
     obs = np.isfinite(Y)
-    _check_node_counts(obs, d, has_r, has_s)
+    _check_counts(obs.sum(axis=1), obs.sum(axis=0), d + has_r, d + has_s)
     lay = _make_layout(r0, s0, offsets)
     m = int(obs.sum())
     g = lay.pins.size
@@ -291,32 +276,24 @@ def refine_toa(
         )
     # "auto" = Schur LM: measured faster than least_squares at every size we tried (8x10 to
     # 1000x1000), see benchmarks/bench_toa.py; "trf" stays available as the reference
-    use_trf = solver == "trf"
-    run = _solve_trf if use_trf else _solve_schur
 
     if loss == "linear":
         fs = 1.0
-        theta, conv, nit = run(theta0, Y, lay, loss, fs, max_nfev, xtol)
+        theta, conv, nit = solve_schur_lm(theta0, Y, lay, loss, fs, max_nfev, xtol)
     else:
         f0 = toa_residuals(theta0, Y, d, offsets)
         k95 = _TUNING[loss]
         fs = f_scale if f_scale is not None else max(k95 * _robust_sigma(f0), 1e-9)
-        theta, conv, nit = run(theta0, Y, lay, loss, fs, max_nfev, xtol)
+        theta, conv, nit = solve_schur_lm(theta0, Y, lay, loss, fs, max_nfev, xtol)
         if f_scale is None:
             # the initial residuals mix geometry error with noise: re-scale on the refined ones
             shrink = float(np.sqrt(m / max(m - n_free, 1)))  # fitted residuals underestimate sigma
             fs = max(k95 * shrink * _robust_sigma(toa_residuals(theta, Y, d, offsets)), 1e-9)
-            theta, conv2, nit2 = run(theta, Y, lay, loss, fs, max_nfev, xtol)
+            theta, conv2, nit2 = solve_schur_lm(theta, Y, lay, loss, fs, max_nfev, xtol)
             conv, nit = conv2, nit + nit2
 
-    r, s, dr, os_ = _unpack(theta, I, J, d, offsets)
-    model = toa_model(r, s, dr, os_)
-    resid = np.where(obs, Y - model, np.nan)
-    f = resid[obs]
-    rms = float(np.sqrt(np.mean(f**2)))
-    z = (f / fs) ** 2
-    rho, drho = _rho(z, loss)
-    cost = 0.5 * fs**2 * float(rho.sum())
+    f = toa_residuals(theta, Y, d, offsets)
+    cost, drho = irls(f, loss, fs)
     dof = m - n_free
     if loss == "linear":
         sigma = float(np.sqrt((f**2).sum() / dof)) if dof > 0 else float("nan")
@@ -333,58 +310,14 @@ def refine_toa(
             Cr, Cs = local_blocks(theta, wmat, lay)
         else:
             Cr, Cs = gauge_free_blocks(theta, wmat, lay, cov_r, cov_s)
-        Cr = Cr * sigma**2
-        Cs = Cs * sigma**2
+        Cr, Cs = Cr * sigma**2, Cs * sigma**2
     else:
         Cr = np.full((I, d + has_r, d + has_r), np.nan)
         Cs = np.full((J, d + has_s, d + has_s), np.nan)
     if not np.isfinite(sigma):
-        Cr = np.full_like(Cr, np.nan)
-        Cs = np.full_like(Cs, np.nan)
-
-    rc, sc, al = canonical_gauge(r, s)
-    assert sc is not None
-    R = al.rotation
-    rcov = np.einsum("ab,nbc,dc->nad", R, Cr[:, :d, :d], R)
-    scov = np.einsum("ab,nbc,dc->nad", R, Cs[:, :d, :d], R)
-    dstd = np.sqrt(np.maximum(Cr[:, d, d], 0.0)) if has_r else None
-    ostd = np.sqrt(np.maximum(Cs[:, d, d], 0.0)) if has_s else None
-    if offsets == "both":
-        assert dr is not None and os_ is not None
-        shift = os_[0]
-        dr, os_ = dr + shift, os_ - shift
-    return NlsSolution(
-        receivers=rc,
-        sources=sc,
-        receiver_offsets=None if dr is None else np.array(dr),
-        source_offsets=None if os_ is None else np.array(os_),
-        receiver_cov=rcov,
-        source_cov=scov,
-        receiver_offset_std=dstd,
-        source_offset_std=ostd,
-        residuals=resid,
-        residual_rms=rms,
-        sigma=sigma,
-        converged=conv,
-        iterations=nit,
-        cost=cost,
-        solver="trf" if use_trf else "schur-lm",
-    )
-
-
-def _check_node_counts(obs: NDArray[np.bool_], d: int, has_r: bool, has_s: bool) -> None:
-    """Each node needs at least d (+1 for its own offset) ranges to be locally determined."""
-    for axis, kind, has in ((1, "receiver", has_r), (0, "source", has_s)):
-        counts = obs.sum(axis=axis)
-        need = d + int(has)
-        bad = np.nonzero(counts < need)[0]
-        if bad.size:
-            k = int(bad[0])
-            raise DegenerateGeometryError(
-                f"{kind} {k} has {int(counts[k])} observed ranges but needs at least {need} "
-                f"({d}-D position{' + offset' if has else ''}); drop it or add measurements",
-                kind="unobservable-node",
-            )
+        Cr, Cs = np.full_like(Cr, np.nan), np.full_like(Cs, np.nan)
+    return _solution(theta, Y, d, offsets, Cr, Cs, canonical=True, shift=True, sigma=sigma, converged=conv,
+                     iterations=nit, cost=cost, solver="schur-lm")
 
 
 def _offsets0(value: Array | None, n: int, name: str) -> Array:

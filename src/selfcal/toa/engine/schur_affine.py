@@ -30,7 +30,7 @@ through ``T``, the residuals' curvature rows), used by :mod:`selfcal.toa.engine.
 The residual gauge the constraints leave is pinned by the caller (the pinned coordinates
 are not in ``x``), so the system is non-singular beyond the Marquardt damping. The LM loop
 is the engine's: Marquardt diagonal damping, Nielsen's gain-ratio update
-(:func:`selfcal.toa.engine.dense_lm.damping_after_success`), robust losses as iteratively
+(:func:`selfcal.optim.lm.damping_after_success`), robust losses as iteratively
 reweighted normal equations with weights rho'(z) over every residual row (the prior rows
 included, as ``scipy.optimize.least_squares`` applies its loss to them), whose fixed points
 are the stationary points of the robust cost.
@@ -46,9 +46,10 @@ import scipy.sparse
 from numpy.typing import NDArray
 
 from ...errors import DegenerateGeometryError
-from ...optim.lm import Model, levenberg_marquardt
-from ...robust import loss_rho
-from .dense_lm import _solve as _direct_solve  # Cholesky (posv), least squares if not PD
+from ...optim.lm import Model, irls, levenberg_marquardt
+from ...optim.steps import (
+    cholesky_solve as _direct_solve,  # Cholesky (posv), least squares if not PD
+)
 from .model import _unpack
 
 Array = NDArray[np.float64]
@@ -331,8 +332,8 @@ class _AffineModel(Model):
 
     def evaluate(self, x: Array) -> tuple[float, tuple[Array, Array]]:
         f = self.fun(x)
-        rho, w = loss_rho((f / self.f_scale) ** 2, self.loss)
-        return 0.5 * self.f_scale**2 * float(np.sum(np.asarray(rho, float))), (f, np.asarray(w, float))
+        cost, w = irls(f, self.loss, self.f_scale)
+        return cost, (f, w)
 
     def linearize(self, x: Array, state: tuple[Array, Array]) -> _AffineStep:
         f, w = state

@@ -1,4 +1,9 @@
-"""Levenberg-Marquardt on the Schur-reduced normal equations (the default engine of refine_toa).
+"""The one range model of the TOA engines (:class:`RangeModel`) and its Schur step solver.
+
+:class:`RangeModel` evaluates ``y = |x_k - x_e| + o_k + o_e`` for every unconstrained engine,
+on the full grid (:class:`Grid`) or the observed pairs (:class:`Pairs`), and hands the driver
+a step solver: the dense normal matrix (:class:`selfcal.optim.steps.DenseStep`) or the Schur
+complement below, formed or by CG (:func:`selfcal.optim.structure.lm_step` chooses).
 
 The residual of entry (k, e) of the range matrix, oriented with the *kept* node set K
 (the smaller one, :class:`selfcal.toa.engine.nls._Layout`) in the rows, is::
@@ -28,15 +33,17 @@ inexact-Newton Schur scheme).
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 from ...errors import DegenerateGeometryError
 from ...optim.lm import Model, levenberg_marquardt
+from ...optim.steps import DenseStep, cholesky_solve
 from ...optim.structure import DENSE_MAX_UNKNOWNS, DIRECT_MAX_UNKNOWNS, lm_step
 from ...robust import loss_rho
-from .dense_lm import _solve as _direct_solve  # Cholesky (posv), least squares if not PD
+from .model import GaugeProjector
 
 Array = NDArray[np.float64]
 
@@ -50,11 +57,12 @@ DEFAULT_MAX_IT = {"dense": 100, "reduced": 100, "cg": 100}
 CG_RTOL = (1e-8, 1e-3)
 
 
-def _inv_blocks(blocks: Array) -> Array:
-    """Inverse of each small symmetric block; an unobservable node raises DegenerateGeometryError."""
+def _inv_blocks(blocks: Array, first: int = 0) -> Array:
+    """Inverse of each small symmetric block (node ``first`` onwards of its set); an unobservable
+    node raises DegenerateGeometryError."""
     cond_ok = np.linalg.cond(blocks) < 1e12
     if not cond_ok.all():
-        bad = int(np.nonzero(~cond_ok)[0][0])
+        bad = first + int(np.nonzero(~cond_ok)[0][0])
         raise DegenerateGeometryError(
             f"node {bad} of the eliminated set is not determined by its observed ranges "
             "(too few or collinear observations); it needs at least d+1 (+1 per offset) "
@@ -115,18 +123,17 @@ class Pairs(Grid):
 
 
 class _Oriented:
-    """The parameter vector split into kept / eliminated positions and offsets (views)."""
+    """The parameter vector split into the two sides' positions and offsets (views), from any
+    ``lay`` with ``k_idx``, ``e_idx`` (:class:`selfcal.toa.engine.model._Layout`) and ``d``."""
 
-    def __init__(self, lay: object) -> None:
-        self.lay = lay
-        self.hasK = lay.k_idx.shape[1] > lay.d  # type: ignore[attr-defined]
-        self.hasE = lay.e_idx.shape[1] > lay.d  # type: ignore[attr-defined]
+    def __init__(self, lay: Any) -> None:
+        self.k_idx, self.e_idx, self.d = lay.k_idx, lay.e_idx, lay.d
+        self.hasK, self.hasE = self.k_idx.shape[1] > self.d, self.e_idx.shape[1] > self.d
 
     def split(self, theta: Array) -> tuple[Array, Array, Array | None, Array | None]:
-        lay = self.lay
-        d = lay.d  # type: ignore[attr-defined]
-        K = theta[lay.k_idx]  # type: ignore[attr-defined]
-        E = theta[lay.e_idx]  # type: ignore[attr-defined]
+        """Positions of the two sides and their offsets (None without)."""
+        d = self.d
+        K, E = theta[self.k_idx], theta[self.e_idx]
         return K[:, :d], E[:, :d], (K[:, d] if self.hasK else None), (E[:, d] if self.hasE else None)
 
 
@@ -311,10 +318,10 @@ class _Reduced:
 
 def solve_schur_lm(
     theta0: Array, Y: Array, lay: object, loss: str, f_scale: float, max_nfev: int | None, xtol: float,
-    gauge: Callable[[Array], Array], pairs: tuple[NDArray[np.intp], NDArray[np.intp]] | None = None,
-    step: str = "auto",
+    gauge: Callable[[Array], Array] | None = None,
+    pairs: tuple[NDArray[np.intp], NDArray[np.intp]] | None = None, step: str = "auto",
 ) -> tuple[Array, bool, int]:
-    """Levenberg-Marquardt (Marquardt diagonal damping) on the Schur-reduced normal equations.
+    """Levenberg-Marquardt (Marquardt diagonal damping) on the range model, dense or Schur-reduced.
 
     Parameters
     ----------
@@ -325,14 +332,12 @@ def solve_schur_lm(
     lay : the :class:`selfcal.toa.engine.nls._Layout` (kept / eliminated sides).
     loss, f_scale : robust loss and its scale (metres).
     max_nfev : iteration cap (default :data:`DEFAULT_MAX_IT` of the step kind); xtol : relative step tolerance.
-    gauge : ``theta -> Q`` orthonormal gauge basis (n, g); the step is projected off it (the
-        "dense" step projects the same gauge analytically, :class:`selfcal.toa.engine.dense_lm.GaugeProjector`).
-    step : how each damped system is solved: "dense" (the full normal matrix ``J^T W J``
-        formed once per iteration and Cholesky-factorised per damping trial, in
-        :func:`selfcal.toa.engine.dense_lm.solve_dense_lm`), "reduced" (the
-        Schur-reduced matrix formed and factorised), "cg" (matrix-free preconditioned CG) or
-        "auto" (default): :func:`selfcal.optim.structure.lm_step`, the one rule (dense up to
-        120 unknowns, else the formed reduced system while forming it is cheap, else CG).
+    gauge : ``theta -> Q`` orthonormal gauge basis (n, g) to project each step off; default
+        None, the same projector formed analytically
+        (:class:`selfcal.toa.engine.model.GaugeProjector`).
+    step : the step solver (:class:`RangeModel`): "dense", "reduced", "cg" or "auto"
+        (default): :func:`selfcal.optim.structure.lm_step`, the one rule (dense up to 120
+        unknowns, else the formed reduced system while forming it is cheap, else CG).
 
     Returns
     -------
@@ -340,107 +345,212 @@ def solve_schur_lm(
 
     Notes
     -----
-    Each step solves the reduced system on the smaller node set by conjugate gradients with
-    the Schur-Jacobi preconditioner (inexact Newton with an Eisenstat-Walker forcing term),
-    then back-substitutes the eliminated nodes. Small reduced systems are formed and solved
-    exactly instead (Cholesky, least squares if it fails): at 12 x 6 with both offsets a CG
-    step costs ~150 matrix-free products of Python overhead for 24 unknowns. The iterates
-    are those of the CG path with an exact inner solve (tested); the crossover
-    :data:`DIRECT_MAX_UNKNOWNS` was measured per iteration on square dense networks
-    (``benchmarks/bench_toa_minimal.py --engine``). Robust losses use iteratively reweighted normal
-    equations with weights rho'(z), whose fixed points are the stationary points of the robust
-    cost.
+    Each Schur step solves the reduced system on the smaller node set by Schur-Jacobi
+    preconditioned CG (inexact Newton, Eisenstat-Walker forcing term), then back-substitutes
+    the eliminated nodes; small reduced systems are formed and solved by Cholesky instead
+    (:data:`DIRECT_MAX_UNKNOWNS`). The dense, reduced and CG (exact inner solve) steps give the
+    same iterates (tested). Robust losses run iteratively reweighted normal equations (weights
+    rho'(z)), whose fixed points are the stationary points of the robust cost.
     """
-    ori = _Oriented(lay)
     k_is_r = lay.k_is_receivers  # type: ignore[attr-defined]
-    nK, nE = lay.k_idx.shape[0], lay.e_idx.shape[0]  # type: ignore[attr-defined]
-    pat: Grid
-    obs: NDArray[np.bool_] | None
-    if pairs is None:
-        YK = np.ascontiguousarray(Y if k_is_r else Y.T)
-        obs = np.isfinite(YK)
-        pat = Grid(nK, nE)
-    else:
-        ki, ei = (pairs[0], pairs[1]) if k_is_r else (pairs[1], pairs[0])
-        YK, obs = np.asarray(Y, float), None
-        pat = Pairs(np.asarray(ki, np.intp), np.asarray(ei, np.intp), nK, nE)
+    k_idx, e_idx = lay.k_idx, lay.e_idx  # type: ignore[attr-defined]
     n = lay.n  # type: ignore[attr-defined]
-    k_flat = lay.k_idx.ravel()  # type: ignore[attr-defined]
-    e_flat = lay.e_idx.ravel()  # type: ignore[attr-defined]
-    nk = k_flat.size
-    d = lay.d  # type: ignore[attr-defined]
-    ne = e_flat.size
     if step not in ("auto", "dense", "reduced", "cg"):
         raise ValueError(f"step must be 'auto', 'dense', 'reduced' or 'cg', got {step!r}")
-    mode = lm_step(n, nk, ne) if step == "auto" else step
-    max_it = max_nfev or DEFAULT_MAX_IT[mode]
-    if mode == "dense":
-        from .dense_lm import solve_dense_lm
+    mode = lm_step(n, k_idx.size, e_idx.size) if step == "auto" else step
+    if pairs is None and mode == "dense":  # the dense step works on the observed entries
+        ii, jj = np.nonzero(np.isfinite(Y))
+        Y, pairs = np.asarray(Y, float)[ii, jj], (ii, jj)
+    pat: Grid
+    if pairs is None:
+        YK = np.ascontiguousarray(Y if k_is_r else Y.T)
+        pat = Grid(k_idx.shape[0], e_idx.shape[0])
+    else:
+        ki, ei = (pairs[0], pairs[1]) if k_is_r else (pairs[1], pairs[0])
+        YK = np.asarray(Y, float)
+        pat = Pairs(np.asarray(ki, np.intp), np.asarray(ei, np.intp), k_idx.shape[0], e_idx.shape[0])
+    model = RangeModel(k_idx, e_idx, pat, YK, lay.d, lay.I, loss, f_scale, mode, gauge=gauge)  # type: ignore[attr-defined]
+    out = levenberg_marquardt(model, theta0, max_iter=max_nfev or DEFAULT_MAX_IT[mode], xtol=xtol)
+    return out.x, out.converged, out.iterations
 
-        if pairs is None:
-            ii, jj = np.nonzero(np.isfinite(Y))
-            yv = np.asarray(Y, float)[ii, jj]
+
+class _BasisProjector:
+    """``dx - Q Q^T dx`` in place (a given orthonormal gauge basis Q)."""
+
+    def __init__(self, Q: Array) -> None:
+        self.Q = Q
+
+    def apply(self, dx: Array) -> Array:
+        dx -= self.Q @ (self.Q.T @ dx)
+        return dx
+
+
+class RangeModel(Model, _Oriented):
+    """The range model ``y = |x_k - x_e| + o_k + o_e`` on the driver, with its plug-ins.
+
+    One evaluation (residuals, IRLS weights, unit vectors on the data's :class:`Grid` or
+    :class:`Pairs` pattern) for every step solver:
+
+    - ``"dense"`` (:class:`selfcal.optim.steps.DenseStep`): the Jacobian written into a
+      preallocated (m, n) array (only its unit-vector entries change), ``J^T W J`` formed
+      and Cholesky-factorised per trial; needs the :class:`Pairs` pattern;
+    - ``"reduced"`` / ``"cg"`` (:class:`_SchurStep`): the damped system reduced onto the
+      kept nodes, formed and factorised, or solved matrix-free by preconditioned CG.
+
+    The parametrisation: all free with the gauge projected off each step
+    (:class:`selfcal.toa.engine.model.GaugeProjector`, or a given basis ``gauge``), or (dense
+    step only) the ``free`` parameters fitted, the others held and no gauge projected.
+
+    Parameters
+    ----------
+    k_idx, e_idx : (nK, d + hasK), (nE, d + hasE) parameter indices of each node of the two
+        sides (its d coordinates, then its offset when that side has offsets).
+    pat : the pattern; y : the data in its shape ((nK, nE) with NaN = missing, or (m,)).
+    d : dimension; I : number of receivers (the sign of the common-offset gauge direction).
+    loss, f_scale : robust loss and its scale (metres); mode : the step solver.
+    gauge : ``theta -> Q`` or None (see :func:`solve_schur_lm`); free : (n,) bool or None.
+    """
+
+    def __init__(self, k_idx: NDArray[np.intp], e_idx: NDArray[np.intp], pat: Grid, y: Array, d: int, I: int,
+                 loss: str, f_scale: float, mode: str, gauge: Callable[[Array], Array] | None = None,
+                 free: NDArray[np.bool_] | None = None) -> None:
+        self.k_idx, self.e_idx, self.d, self.pat, self.mode, self.I, self.gauge = k_idx, e_idx, d, pat, mode, I, gauge
+        self.loss, self.f_scale, self.linear = loss, f_scale, loss == "linear"
+        self.hasK, self.hasE = k_idx.shape[1] > d, e_idx.shape[1] > d
+        self.n = int(k_idx.size + e_idx.size)
+        self.N = k_idx.shape[0] + e_idx.shape[0]
+        self.fidx = None if free is None or bool(np.all(free)) else np.nonzero(free)[0]
+        self.g0, self.it = 1.0, 0  # first gradient norm (the CG forcing term's reference), linearisations
+        if isinstance(pat, Pairs):
+            self.y, self.obs, self.w1 = y, None, np.ones(y.size)
+            # each pair's places in theta: its two positions (m, d) and offsets (m,) gathered directly
+            kc, ec = k_idx[pat.k], e_idx[pat.e]
+            self.pk, self.pe = kc[:, 0] // d, ec[:, 0] // d  # node rows of the (N, d) position block
+            self.ok, self.oe = (kc[:, d] if self.hasK else None), (ec[:, d] if self.hasE else None)
         else:
-            ii, jj, yv = np.asarray(pairs[0], np.intp), np.asarray(pairs[1], np.intp), np.asarray(Y, float)
-        return solve_dense_lm(theta0, yv, ii, jj, lay.I, lay.J, d, lay.offsets, loss,  # type: ignore[attr-defined]
-                              f_scale, max_nfev, xtol, max_it=DEFAULT_MAX_IT["dense"])
-    g0, it = 1.0, 0  # first gradient norm (the CG forcing term's reference), linearisations
+            self.obs = np.isfinite(y)
+            self.y, self.w1 = np.where(self.obs, y, 0.0), self.obs.astype(float)
+        if mode == "dense":
+            if not isinstance(pat, Pairs):
+                raise ValueError("the dense step needs the Pairs pattern")
+            self._dense_setup()
+        elif self.fidx is not None:
+            raise ValueError("a free mask needs the dense step")
 
-    class Ranges(Model):
-        def evaluate(self, theta: Array) -> tuple[float, tuple[Array, Array, list[Array]]]:
-            xK, xE, oK, oE = ori.split(theta)
-            U, f = directions(xK, xE, pat)
+    def _dense_setup(self) -> None:
+        """The preallocated Jacobian (its constant offset entries written) and the flat places
+        of its unit-vector entries and of the normal matrix's diagonal."""
+        pat, d, n = self.pat, self.d, self.n
+        assert isinstance(pat, Pairs)
+        m = pat.k.size
+        ar = np.arange(m)
+        self.Jf = np.zeros((m, n))
+        kc, ec = self.k_idx[pat.k], self.e_idx[pat.e]
+        if self.hasK:
+            self.Jf[ar, kc[:, d]] = 1.0
+        if self.hasE:
+            self.Jf[ar, ec[:, d]] = 1.0
+        self.Jflat = self.Jf.reshape(-1)
+        self.posK = (ar[:, None] * n + kc[:, :d]).ravel()  # flat places of the unit-vector entries
+        self.posE = (ar[:, None] * n + ec[:, :d]).ravel()
+        nf = n if self.fidx is None else self.fidx.size
+        self.dstep = np.arange(nf) * (nf + 1)
+
+    def geometry(self, theta: Array) -> tuple[Any, Array]:
+        """Unit-vector components ``U`` (d rows, one value per pair) and distances at ``theta``.
+
+        On :class:`Pairs` the (m, d) differences are gathered from theta in one step and ``U``
+        is their transpose (a (d, m) view for the dense step, which writes it back row-major;
+        contiguous for the Schur steps); on :class:`Grid`, :func:`directions`."""
+        if self.obs is not None:
+            xK, xE, _, _ = self.split(theta)
+            return directions(xK, xE, self.pat)
+        P = theta[: self.N * self.d].reshape(self.N, self.d)
+        Dm = P[self.pk] - P[self.pe]
+        dist = np.sqrt(np.einsum("mp,mp->m", Dm, Dm))
+        Dm *= np.divide(1.0, dist, out=np.zeros_like(dist), where=dist > 0)[:, None]  # 0 where points coincide
+        return (Dm.T if self.mode == "dense" else np.ascontiguousarray(Dm.T)), dist
+
+    def evaluate(self, theta: Array) -> tuple[float, tuple[Array, Array, Any]]:
+        pat = self.pat
+        U, f = self.geometry(theta)
+        if self.obs is None:
+            if self.ok is not None:
+                f += theta[self.ok]
+            if self.oe is not None:
+                f += theta[self.oe]
+        else:
+            _, _, oK, oE = self.split(theta)
             if oK is not None:
                 f += pat.kx(oK)
             if oE is not None:
                 f += pat.ex(oE)
-            f -= YK
-            if obs is None:
-                rho, w = loss_rho((f / f_scale) ** 2, loss)
-                cost = 0.5 * f_scale**2 * float(rho.sum())
-                return cost, (f, np.array(w, float), U)
-            f[~obs] = 0.0
-            rho, drho = loss_rho((f / f_scale) ** 2, loss)
-            cost = 0.5 * f_scale**2 * float(rho[obs].sum())
-            w = np.where(obs, drho, 0.0)
-            return cost, (f, w, U)
+        f -= self.y
+        if self.obs is not None:
+            f[~self.obs] = 0.0
+        if self.linear:
+            return 0.5 * float(np.vdot(f, f) if self.obs is not None else f @ f), (f, self.w1, U)
+        rho, w = loss_rho((f / self.f_scale) ** 2, self.loss)
+        w = np.asarray(w, float) if self.obs is None else np.where(self.obs, w, 0.0)
+        rsum = float(rho.sum()) if self.obs is None else float(rho[self.obs].sum())
+        return 0.5 * self.f_scale**2 * rsum, (f, w, U)
 
-        def linearize(self, theta: Array, state: tuple[Array, Array, list[Array]]) -> _SchurStep:
-            nonlocal g0, it
-            it += 1
-            f, w, U = state
-            step = _SchurStep(U, w, f, ori, pat, gauge(theta), k_flat, e_flat, n, mode)
-            g0 = step.gnorm if it == 1 else g0
-            # inexact Newton forcing term (Eisenstat-Walker style): loose CG solves far from
-            # the minimum, tight ones once the gradient has dropped (keeps the fast local rate)
-            step.cg_rtol = float(np.clip(step.gnorm / max(g0, 1e-300), *CG_RTOL))
-            return step
+    def projector(self, theta: Array) -> Any:
+        """The gauge projector at ``theta`` (None for a partial refit)."""
+        if self.fidx is not None:
+            return None
+        if self.gauge is not None:
+            return _BasisProjector(self.gauge(theta))
+        return GaugeProjector(theta, self.N, self.d, self.I, self.hasK and self.hasE)
 
-    out = levenberg_marquardt(Ranges(), theta0, max_iter=max_it, xtol=xtol)
-    return out.x, out.converged, out.iterations
+    def jacobian(self, U: Array) -> Array:
+        """The dense Jacobian at the unit vectors ``U`` (its unit-vector entries rewritten)."""
+        u = U.T.ravel()  # (m, d) row-major: a view of geometry()'s array
+        self.Jflat[self.posK] = u
+        self.Jflat[self.posE] = -u
+        return self.Jf if self.fidx is None else self.Jf[:, self.fidx]
+
+    def linearize(self, theta: Array, state: tuple[Array, Array, Any]) -> Any:
+        f, w, U = state
+        proj = self.projector(theta)
+        if self.mode == "dense":
+            Jm = self.jacobian(U)
+            if self.linear:
+                H, g = np.dot(Jm.T, Jm), np.dot(Jm.T, f)
+            else:
+                Jw = Jm * w[:, None]
+                H, g = np.dot(Jm.T, Jw), np.dot(Jw.T, f)
+            return DenseStep(H, g, self.dstep, proj, self.fidx, self.n)
+        self.it += 1
+        step = _SchurStep(U, w, f, self, proj)
+        self.g0 = step.gnorm if self.it == 1 else self.g0
+        # inexact Newton forcing term (Eisenstat-Walker style): loose CG solves far from
+        # the minimum, tight ones once the gradient has dropped (keeps the fast local rate)
+        step.cg_rtol = float(np.clip(step.gnorm / max(self.g0, 1e-300), *CG_RTOL))
+        return step
 
 
 class _SchurStep:
-    """The Schur step solver of :func:`solve_schur_lm`: the damped system reduced to the kept
+    """The Schur step solver of :class:`RangeModel`: the damped system reduced to the kept
     nodes, solved directly (``mode="reduced"``) or by Schur-Jacobi preconditioned CG, the
-    eliminated nodes back-substituted and the step projected off the gauge basis ``Qg``."""
+    eliminated nodes back-substituted and the step projected off the gauge."""
 
     cg_rtol = CG_RTOL[1]
 
-    def __init__(self, U: list[Array], w: Array, f: Array, ori: _Oriented, pat: Grid, Qg: Array,
-                 k_flat: NDArray[np.intp], e_flat: NDArray[np.intp], n: int, mode: str) -> None:
-        self.U, self.w, self.ori, self.pat, self.Qg = U, w, ori, pat, Qg
-        self.k_flat, self.e_flat, self.n, self.mode = k_flat, e_flat, n, mode
+    def __init__(self, U: list[Array], w: Array, f: Array, rm: RangeModel, proj: Any) -> None:
+        self.U, self.w, self.rm, self.pat, self.proj = U, w, rm, rm.pat, proj
+        self.k_flat, self.e_flat, self.n, self.mode = rm.k_idx.ravel(), rm.e_idx.ravel(), rm.n, rm.mode
+        pat = rm.pat
         d = len(U)
         wf = w * f
-        gK = np.empty((pat.nK, d + ori.hasK))
-        gE = np.empty((pat.nE, d + ori.hasE))
+        gK = np.empty((pat.nK, d + rm.hasK))
+        gE = np.empty((pat.nE, d + rm.hasE))
         for p in range(d):
             gK[:, p] = pat.ksum(wf, U[p])
             gE[:, p] = -pat.esum(wf, U[p])
-        if ori.hasK:
+        if rm.hasK:
             gK[:, d] = pat.ksum(wf)
-        if ori.hasE:
+        if rm.hasE:
             gE[:, d] = pat.esum(wf)
         del wf
         self.gK, self.gE = gK.ravel(), gE.ravel()
@@ -450,7 +560,7 @@ class _SchurStep:
         from scipy.sparse.linalg import LinearOperator, cg
 
         try:
-            red = _Reduced(self.U, self.w, self.ori.hasK, self.ori.hasE, lam, self.pat,
+            red = _Reduced(self.U, self.w, self.rm.hasK, self.rm.hasE, lam, self.pat,
                            precondition=self.mode == "cg")
         except DegenerateGeometryError:
             return None
@@ -458,7 +568,7 @@ class _SchurStep:
         rhs = -gK + red.b(red.dinv(gE))
         nk = self.k_flat.size
         if self.mode == "reduced":
-            xr = _direct_solve(red.dense(), rhs)
+            xr = cholesky_solve(red.dense(), rhs)
             if xr is None:
                 return None
             x = xr
@@ -471,13 +581,14 @@ class _SchurStep:
         dx = np.zeros(self.n)
         dx[self.k_flat] = x
         dx[self.e_flat] = y
-        dx -= self.Qg @ (self.Qg.T @ dx)  # no rigid drift (and no common offset shift)
+        if self.proj is not None:
+            self.proj.apply(dx)  # no rigid drift (and no common offset shift)
         return dx
 
     def predicted(self, dx: Array) -> float:
         """``-(g^T dx + |J dx|_W^2 / 2)``: the cost decrease the Gauss-Newton model predicts."""
         U, pat = self.U, self.pat
-        xK, xE, oK, oE = self.ori.split(dx)
+        xK, xE, oK, oE = self.rm.split(dx)
         t = U[0] * (pat.kx(xK[:, 0]) - pat.ex(xE[:, 0]))
         for p in range(1, xK.shape[1]):
             t += U[p] * (pat.kx(xK[:, p]) - pat.ex(xE[:, p]))

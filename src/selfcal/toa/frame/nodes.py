@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from ..._result import WrappedResult
+from ..._result import WrappedResult, replace_fields
 from ...errors import InputError
 
 __all__ = ["FrameInfo", "FramedToaResult", "KnownNode", "check_frame", "node_names", "node_positions",
@@ -366,12 +366,6 @@ def refit_data(result: Any, matrix: Any) -> RefitData:
     do = None if result.receiver_offsets is None else np.asarray(result.receiver_offsets, float)[ok_r] * c
     so = None if result.source_offsets is None else np.asarray(result.source_offsets, float)[ok_s] * c
     return RefitData(c, np.asarray(matrix, float) * c, R, S, ok_r, ok_s, do, so)
-
-
-def replace_fields(result: Any, **kw: Any) -> Any:
-    """dataclasses.replace with only the fields the result type has."""
-    names = {f.name for f in dataclasses.fields(result)}
-    return dataclasses.replace(result, **{k: v for k, v in kw.items() if k in names})
 
 
 def node_positions(result: Any, kind: str) -> Array:

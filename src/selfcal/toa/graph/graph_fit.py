@@ -146,7 +146,7 @@ def _fit(X0: Array, P: _Pairs, free: NDArray[np.bool_], prior: tuple[Array, Arra
     :func:`_jacobian` (two ``d``-blocks per pair), the robust loss by the driver's IRLS; the
     parametrisation keeps the fixed coordinates (known nodes, frame references) out of the
     unknowns, and a blind fit (every coordinate free, no prior) has the rigid motions
-    projected off each step (:class:`selfcal.toa.engine.dense_lm.GaugeProjector`, as the TOA
+    projected off each step (:class:`selfcal.toa.engine.model.GaugeProjector`, as the TOA
     engines). The step: dense Cholesky or the sparse normal equations by SuperLU, as
     :func:`selfcal.optim.structure.lm_step` decides from the number of unknowns.
 
@@ -156,7 +156,7 @@ def _fit(X0: Array, P: _Pairs, free: NDArray[np.bool_], prior: tuple[Array, Arra
 
     from ...optim.lm import levenberg_marquardt
     from ...optim.steps import ResidualModel
-    from ..engine.dense_lm import GaugeProjector
+    from ..engine.model import GaugeProjector
 
     n, d = X0.shape
     sw = np.sqrt(P.weight)

@@ -37,15 +37,37 @@ def _double_centre(sq: Array) -> Array:
     return -0.5 * (sq - row - col + sq.mean(axis=(-1, -2), keepdims=True))
 
 
+#: from this size on, the top eigenpairs alone (LAPACK ``syevr`` on a subset, one matrix at a
+#: time) are cheaper than every eigenpair of the whole stack at once (``numpy.linalg.eigh``):
+#: measured single-threaded, 30 x 31 x 31: 2.5 vs 2.3 ms; 120 x 121 x 121 (Algorithm 2 at 120
+#: units): 99 vs 39 ms; 16 x 17 x 17: 0.4 vs 0.5 ms
+SUBSET_EIG_MIN = 32
+
+
 def _top_eig_coords(B: Array, dim: int) -> Array:
     """Coordinates ``U_r Sigma_r^{1/2}`` from the top-``dim`` eigenpairs of symmetric ``B``.
 
     Works on a stack (..., n, n). Negative eigenvalues (non-Euclidean noise) are clipped to 0,
-    which is the best PSD rank-``dim`` approximation (003 eq. 8).
+    which is the best PSD rank-``dim`` approximation (003 eq. 8). From
+    :data:`SUBSET_EIG_MIN` rows on only the top ``dim`` eigenpairs are computed.
     """
-    w, V = np.linalg.eigh(0.5 * (B + np.swapaxes(B, -1, -2)))
-    w = w[..., ::-1][..., :dim]
-    V = V[..., :, ::-1][..., :, :dim]
+    S = 0.5 * (B + np.swapaxes(B, -1, -2))
+    n = S.shape[-1]
+    if n >= SUBSET_EIG_MIN and dim < n and np.isfinite(S).all():
+        import scipy.linalg
+
+        flat = S.reshape(-1, n, n)
+        w = np.empty((flat.shape[0], dim))
+        V = np.empty((flat.shape[0], n, dim))
+        for k in range(flat.shape[0]):
+            w[k], V[k] = scipy.linalg.eigh(flat[k], subset_by_index=[n - dim, n - 1], driver="evr",
+                                           check_finite=False)
+        w = w.reshape(S.shape[:-2] + (dim,))[..., ::-1]
+        V = V.reshape(S.shape[:-2] + (n, dim))[..., :, ::-1]
+    else:
+        w, V = np.linalg.eigh(S)
+        w = w[..., ::-1][..., :dim]
+        V = V[..., :, ::-1][..., :, :dim]
     return V * np.sqrt(np.maximum(w, 0.0))[..., None, :]
 
 

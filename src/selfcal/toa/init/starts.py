@@ -19,7 +19,6 @@ from numpy.typing import NDArray
 from ...errors import DegenerateGeometryError, InputError
 from ..engine.model import least_squares_offsets
 from ..moves import Start
-from ..result import _additive_fit
 from .rank3_model import rank_identifiable
 from .scaled_starts import scaled_random_starts
 
@@ -125,3 +124,21 @@ LARGE_INITIALISERS = ("rank3", "mds-auto")
 _LARGE = {"rank3": _rank3, "mds-auto": _mds("auto")}
 
 
+def _additive_fit(Y: Array, rows: bool, cols: bool, iterations: int = 100) -> Array:
+    """Least-squares fit of ``a_i + b_j`` (or ``a_i``, ``b_j``, a constant) to the observed entries."""
+    obs = np.isfinite(Y)
+    Z = np.where(obs, Y, 0.0)
+    n_r = np.maximum(obs.sum(axis=1), 1)
+    n_c = np.maximum(obs.sum(axis=0), 1)
+    if not rows and not cols:
+        return np.full(Y.shape, Z.sum() / max(obs.sum(), 1))
+    a = np.zeros(Y.shape[0])
+    b = np.zeros(Y.shape[1])
+    complete = bool(obs.all())
+    for _ in range(iterations if rows and cols and not complete else 1):
+        if rows:
+            a = ((Z - b[None, :]) * obs).sum(axis=1) / n_r
+        if cols:
+            b = ((Z - a[:, None]) * obs).sum(axis=0) / n_c
+    # a complete matrix: one sweep of row then column means is the exact two-way fit
+    return a[:, None] + b[None, :]

@@ -69,8 +69,8 @@ bias, AR(1) noise, NLOS stretches, multipath spikes; LPS and room geometries), n
 the shared flights (kept there at every level: t = -7.7 / -10.8, anchor RMSE 0.236 ->
 0.185 and 0.176 -> 0.155 m against the authors' 0.235 / 0.170). The one-sided Bonferroni
 spike rule replaced a two-sided 3.5-sigma rule by principle (the physics of NLOS, a
-stated false-alarm rate); every variant is in
-:func:`selfcal.experiments.lps.score_recipe_variants` (docs/results.md, "Results on real data").
+stated false-alarm rate); every variant is scored by
+``benchmarks/lps_variants.py`` (docs/results.md, "Results on real data").
 """
 
 from __future__ import annotations

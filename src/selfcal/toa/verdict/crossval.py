@@ -319,7 +319,7 @@ def cross_validate(
     'receivers'
     """
     from ..engine.nls import refine_toa
-    from ..recipes.common_offset import residual_correlation_length
+    from .offset_fit import residual_correlation_length
 
     Y = np.asarray(matrix, float)
     I, J = Y.shape
@@ -444,7 +444,7 @@ def choose_receiver_offsets(res: Any, sub: Array, scale: float = 1.0, solver: st
         the per-receiver model could not be fitted.
     """
     from ..engine.nls import refine_toa
-    from ..recipes.common_offset import _with_common
+    from .offset_fit import _with_common
 
     simple = str(res.offsets)
     kr = np.isfinite(res.receivers).all(axis=1)

@@ -334,39 +334,42 @@ def fisher_blocks(ranges: Any, receivers: Any, sources: Any, receiver_offsets: A
     (Cr, Cs): (I, d, d), (J, d, d) blocks (m^2; ``inf`` diagonal for nodes moved by an
     undetermined direction), or None above :data:`DENSE_MAX_UNKNOWNS` unknowns.
     """
-    from ..engine.nls import _pack, gauge_basis, toa_jacobian
+    from .robust import normal_equations
 
     r, s = np.asarray(receivers, float), np.asarray(sources, float)
     I, d = r.shape
     J = s.shape[0]
     has_r, has_s = offsets in ("receivers", "both"), offsets in ("sources", "both")
-    theta = _pack(r, s, receiver_offsets, source_offsets)
-    n = theta.size
+    n = (I + J) * d + (I if has_r else 0) + (J if has_s else 0)
     if n > DENSE_MAX_UNKNOWNS:
         return None
-    Jac = toa_jacobian(theta, np.asarray(ranges, float), d, offsets)
-    N = np.asarray((Jac.T @ Jac).todense())
-    Q = gauge_basis(r, s, offsets)
+    # J^T J and its lifted inverse: those of the final fit's leverages (robust.normal_equations)
+    ne = normal_equations(np.isfinite(np.asarray(ranges, float)), r, s, receiver_offsets, source_offsets, offsets)
+    Q = ne.Q
     # the parameters of each node: d coordinates (+ its offset)
     node = np.concatenate([np.repeat(np.arange(I), d), I + np.repeat(np.arange(J), d),
                            np.arange(I) if has_r else np.zeros(0, int),
                            I + np.arange(J) if has_s else np.zeros(0, int)]).astype(np.intp)
-    from .robust import lifted_inverse
-
+    blk = ne.block()  # the bipartite generalised inverse (robust.BipartiteInverse), else the lifted one
+    diag = None if blk is None else blk.diagonal_blocks()
     w = np.zeros(I + J)
     # each node's information block inverted (its conditional covariance), one side at a time
     # (the blocks of a side have one size); a singular block falls back to the node-by-node loop
-    for first, count in ((0, I), (I, J)):
+    for side, (first, count) in enumerate(((0, I), (I, J))):
         if not count:
             continue
-        idx = np.stack([np.flatnonzero(node == k) for k in range(first, first + count)])
+        if diag is not None:
+            Nb = diag[2 + side]
+        else:
+            idx = np.stack([np.flatnonzero(node == k) for k in range(first, first + count)])
+            Nb = ne.N[idx[:, :, None], idx[:, None, :]]
         try:
-            tr = np.trace(np.linalg.inv(N[idx[:, :, None], idx[:, None, :]])[:, :d, :d], axis1=1, axis2=2)
+            tr = np.trace(np.linalg.inv(Nb)[:, :d, :d], axis1=1, axis2=2)
             w[first:first + count] = np.where(np.isfinite(tr) & (tr > 0), 1.0 / np.where(tr > 0, tr, 1.0), 0.0)
         except np.linalg.LinAlgError:
             for k in range(first, first + count):
                 try:
-                    t = float(np.trace(np.linalg.inv(N[np.ix_(idx[k - first], idx[k - first])])[:d, :d]))
+                    t = float(np.trace(np.linalg.inv(Nb[k - first])[:d, :d]))
                     w[k] = 1.0 / t if np.isfinite(t) and t > 0 else 0.0
                 except np.linalg.LinAlgError:
                     w[k] = 0.0
@@ -374,29 +377,36 @@ def fisher_blocks(ranges: Any, receivers: Any, sources: Any, receiver_offsets: A
     GW = Q.T * Wd  # (g, n)
     K = np.linalg.lstsq(GW @ Q, GW, rcond=None)[0]  # (G^T W G)^-1 G^T W
     bad = np.zeros(n, bool)
-    # M = N + c Q Q^T, c N's largest diagonal entry (any c > 0 lifts the gauge; N's scale keeps M
-    # well-conditioned), inverted once and shared with the final fit's leverages (robust.lifted_inverse)
-    Cl, dl, c = lifted_inverse(N, Q)
-    Mx = N + (c or 1.0) * (Q @ Q.T)
-    if Cl is not None and dl is not None and dl.min() > np.sqrt(SINGULAR_RCOND) * dl.max():
-        C = Cl
+    if diag is not None and blk is not None:
+        # any generalised inverse G of N gives the same T G T^T (robust.BipartiteInverse)
+        KC = blk.apply(np.asarray(K.T, dtype=float)).T  # K G (g, n), G symmetric
+        Cbs = (diag[0][:, :d, :d], diag[1][:, :d, :d])
     else:
-        lam, V = np.linalg.eigh(Mx)
-        ok = lam > SINGULAR_RCOND * lam[-1]
-        C = (V[:, ok] / lam[ok]) @ V[:, ok].T
-        # the undetermined directions in the same gauge (orthogonal to the gauge they would
-        # carry a translation of every node, ~1/n each), normalised
-        Vn = V[:, ~ok] - Q @ (K @ V[:, ~ok])
-        Vn /= np.maximum(np.linalg.norm(Vn, axis=0), np.finfo(float).tiny)
-        bad = (Vn**2).sum(axis=1) > SINGULAR_SHARE
+        # M = N + c Q Q^T, c N's largest diagonal entry (any c > 0 lifts the gauge; N's scale keeps
+        # M well-conditioned), inverted once and shared with the final fit's leverages
+        # (robust.lifted_inverse)
+        N = ne.N
+        Cl, dl, c = ne.lifted()
+        if Cl is not None and dl is not None and dl.min() > np.sqrt(SINGULAR_RCOND) * dl.max():
+            C = Cl
+        else:
+            lam, V = np.linalg.eigh(N + (c or 1.0) * (Q @ Q.T))
+            ok = lam > SINGULAR_RCOND * lam[-1]
+            C = (V[:, ok] / lam[ok]) @ V[:, ok].T
+            # the undetermined directions in the same gauge (orthogonal to the gauge they would
+            # carry a translation of every node, ~1/n each), normalised
+            Vn = V[:, ~ok] - Q @ (K @ V[:, ~ok])
+            Vn /= np.maximum(np.linalg.norm(Vn, axis=0), np.finfo(float).tiny)
+            bad = (Vn**2).sum(axis=1) > SINGULAR_SHARE
+        KC = K @ C  # (g, n)
+        Cbs = tuple(C[ix[:, :, None], ix[:, None, :]] for ix in
+                    (np.arange(I)[:, None] * d + np.arange(d), I * d + np.arange(J)[:, None] * d + np.arange(d)))
     # diagonal blocks of T C T^T, T = I - Q K, without forming it: O(g n^2)
-    KC = K @ C  # (g, n)
     KCK = KC @ K.T  # (g, g)
     s2 = float(sigma) ** 2
 
-    def blocks(first: int, count: int) -> Array:
+    def blocks(first: int, count: int, Cb: Array) -> Array:
         idx = first + np.arange(count)[:, None] * d + np.arange(d)  # (count, d)
-        Cb = C[idx[:, :, None], idx[:, None, :]]
         Qn = Q[idx]  # (count, d, g)
         X = np.einsum("nag,gnb->nab", Qn, KC[:, idx])
         B = (Cb - X - np.swapaxes(X, 1, 2) + np.einsum("nag,gh,nbh->nab", Qn, KCK, Qn)) * s2
@@ -404,4 +414,4 @@ def fisher_blocks(ranges: Any, receivers: Any, sources: Any, receiver_offsets: A
         B[inf] = np.where(np.eye(d, dtype=bool), np.inf, 0.0)
         return B
 
-    return blocks(0, I), blocks(I * d, J)
+    return blocks(0, I, Cbs[0]), blocks(I * d, J, Cbs[1])

@@ -193,9 +193,9 @@ def judge_known(out: Any, info: Any, blind: Any, sol: Any, data: Any, usable: Se
     """
     import dataclasses
 
+    from ..._result import replace_fields
     from ...errors import Status
     from ...geometry import n_parameters, rotate_covariances
-    from ..frame.nodes import replace_fields
     from .uniqueness import apply_rule, uniqueness_test
 
     c, ok_r, ok_s = data.c, data.ok_r, data.ok_s

@@ -20,14 +20,17 @@ import math
 import warnings
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 from ..._result import Result
 from ...errors import ConvergenceWarning, DegenerateGeometryError
-from ..result import ToaResult, n_parameters
+from ...geometry import n_parameters
+
+if TYPE_CHECKING:  # the result type sits one layer above the verdicts (docs/design.md)
+    from ..result import ToaResult
 
 __all__ = [
     "NOISE_FLOOR",
@@ -222,7 +225,7 @@ def planarity(points: Array, cov: NDArray[np.float64] | None = None, *, ratio: f
 
 # ------------------------------------------------------------------ choices on solve_toa results
 
-Solver = Callable[..., ToaResult]
+Solver = Callable[..., "ToaResult"]
 
 
 def _quiet(solve: Solver, *args: Any, **kw: Any) -> ToaResult | None:

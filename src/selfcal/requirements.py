@@ -4,7 +4,9 @@
 timing offsets (internal delay plus onset of a receiver-sender pair) within 58 us, 2 cm at
 343 m/s. The verdict (:mod:`selfcal.acoustics.verdict`), the truth scoring
 (:mod:`selfcal.acoustics.scoring`) and the figures (:mod:`selfcal.plotting.conference`) import
-them from here; this module imports nothing.
+them from here; this module imports nothing. It sits at the top of the package, not in
+:mod:`selfcal.acoustics`, so that the figures can import it without importing the acoustics
+package that imports them (no import circle between subpackages).
 """
 
 from __future__ import annotations

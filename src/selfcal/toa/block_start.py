@@ -39,11 +39,11 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-from ..._checks import check_toa_counts
-from ...errors import DegenerateGeometryError, InputError
-from ..engine.nls import refine_toa
-from ..search import INITIALISERS, RACE_RUNGS, canonical_order, search
-from .mds_core import multilaterate
+from .._checks import check_toa_counts
+from ..errors import DegenerateGeometryError, InputError
+from .engine.nls import refine_toa
+from .init.mds_core import multilaterate
+from .search import INITIALISERS, RACE_RUNGS, canonical_order, search
 
 __all__ = ["block_start", "grown_starts", "needs_block_start"]
 
