@@ -909,6 +909,27 @@ def lts_criterion(residuals: Array, n_par: int) -> float:
     Its minimiser has breakdown point ``(m - h + 1) / m``, about one half (Rousseeuw 1984): a
     fit that holds the majority of the entries scores lower than one that gross errors pulled
     off, whatever they are. Used to choose the outlier rule's start among candidate fits.
+
+    Parameters
+    ----------
+    residuals:
+        Residuals of a fit (any shape, metres); NaN entries are ignored.
+    n_par:
+        Unknowns of the fit (sets ``h``).
+
+    Returns
+    -------
+    float
+        The trimmed sum of squares (m^2); ``inf`` without a finite residual.
+
+    References
+    ----------
+    P. J. Rousseeuw, "Least median of squares regression", *J. Am. Stat. Assoc.* 79 (1984) 871-880.
+
+    Examples
+    --------
+    >>> round(lts_criterion(np.array([0.1, -0.2, 0.1, 5.0, np.nan]), n_par=1), 9)  # h = 3 of 4 finite
+    0.06
     """
     f = np.asarray(residuals, float)
     f = f[np.isfinite(f)]
