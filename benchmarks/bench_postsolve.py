@@ -17,7 +17,7 @@ same process by wrapping the function that runs it:
   ``fit.uniqueness_test``).
 
 Every repeat starts without the linearisation a previous call kept
-(``selfcal.toa.verdict.robust.normal_equations``: the repeats solve the same matrix, and a
+(``selfcal.toa.verdict.leverage.normal_equations``: the repeats solve the same matrix, and a
 kept one would make them cheaper than a first call).
 
 ``solve`` is the rest of the same call (initialisation, search, outlier refits, final fit,
@@ -142,12 +142,11 @@ class _Clock:
 
 
 def _forget_linearisation() -> None:
-    """Drop the linearisation kept from the last call (``robust.normal_equations``): every
+    """Drop the linearisation kept from the last call (``leverage.normal_equations``): every
     repeat solves the same matrix, and a kept one would make the repeats cheaper than a first call."""
-    import selfcal.toa.verdict.robust as robust
+    import selfcal.toa.verdict.leverage as leverage
 
-    if hasattr(robust, "_LAST"):
-        robust._LAST.clear()
+    leverage._LAST.clear()
 
 
 def run_case(name: str, repeats: int) -> dict[str, Any]:

@@ -89,7 +89,7 @@ def families(draws: int = 40, only: str = "") -> dict[str, dict[str, int]]:
 def cost(draws: int = 6) -> dict[str, float]:
     """Same-process A/B of ``solve_toa`` with and without the high-breakdown start (interleaved).
 
-    The start is switched off by setting ``robust.HB_MAX_ENTRIES`` below every matrix; the
+    The start is switched off by setting ``high_breakdown.HB_MAX_ENTRIES`` below every matrix; the
     median wall time of each is printed with their ratio.
     """
     import sys
@@ -99,7 +99,7 @@ def cost(draws: int = 6) -> dict[str, float]:
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests" / "toa"))
     from outlier_families import CLEAN, CONTAMINATED
 
-    import selfcal.toa.verdict.robust as rb
+    import selfcal.toa.verdict.high_breakdown as rb
     from selfcal.toa import solve_toa
 
     warnings.simplefilter("ignore")

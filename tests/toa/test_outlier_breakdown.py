@@ -116,7 +116,7 @@ def test_a_node_with_most_of_its_ranges_wrong_is_dropped_or_right_many_draws():
 @pytest.mark.parametrize("seed", range(3))
 def test_thirty_percent_gross_with_the_noise_given_is_right_and_flagged_or_a_breakdown(seed):
     """30 % of the ranges 5 m long with the noise given (1 cm): the high-breakdown start
-    (``robust.high_breakdown_start``) finds the majority, and the result is right within 3x
+    (``high_breakdown.high_breakdown_start``) finds the majority, and the result is right within 3x
     its error bars with the injected errors between located nodes flagged; or the rule flags
     more than the half the MAD scale can hold and says so, not "0 outliers"."""
     g, r, s, Y = _network(3000 + seed)

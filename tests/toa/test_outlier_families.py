@@ -10,7 +10,7 @@ its own error bars of the truth) with the injected errors between located nodes 
 breakdown``. Why this can hold: a source of 12 ranges and 3 unknowns holds at most
 floor((12 - 3) / 2) = 4 gross ranges (the maximal breakdown point of any regression
 estimator of its position, Rousseeuw & Leroy 1987, sec. 3.4); the high-breakdown start
-(``toa.verdict.robust.high_breakdown_start``: nodewise least median of squares, per node
+(``toa.verdict.high_breakdown.high_breakdown_start``: nodewise least median of squares, per node
 that same breakdown point) reaches the majority's basin where most nodes are within it, and
 the outlier rule (Bonferroni at family-wise level 0.01) then flags the rest. With the noise
 given, the rule also measures the flagged fraction against the noise, so a fit it cannot

@@ -1,4 +1,4 @@
-"""The estimated-scale outlier cut says when it has no power (``toa.verdict.robust.outlier_rule_has_power``).
+"""The estimated-scale outlier cut says when it has no power (``toa.verdict.leverage.outlier_rule_has_power``).
 
 With few residual degrees of freedom a gross error inflates the MAD scale it is judged
 against, so Student's t cut at that dof can flag nothing, whatever the error's size. The
@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 from selfcal.toa import solve_toa
-from selfcal.toa.verdict.robust import outlier_rule_has_power
+from selfcal.toa.verdict.leverage import outlier_rule_has_power
 
 
 def _net(seed: int, I: int, J: int) -> np.ndarray:

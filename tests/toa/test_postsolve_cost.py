@@ -5,11 +5,11 @@
 - the additive model's leverages from its small normal matrix against the SVD of the dense
   design (the former computation);
 - the time-order test's sequential stop: the same decision as all 999 random orders;
-- the bipartite generalised inverse (:class:`~selfcal.toa.verdict.robust.BipartiteInverse`)
+- the bipartite generalised inverse (:class:`~selfcal.toa.verdict.leverage.BipartiteInverse`)
   against the dense lifted inverse: the same leverages (fitted and held-out entries) and the
   same Fisher blocks;
 - the linearisation kept between the outlier rule, the trust test and the determinacy test
-  (:func:`~selfcal.toa.verdict.robust.normal_equations`): reused only on the same entries
+  (:func:`~selfcal.toa.verdict.leverage.normal_equations`): reused only on the same entries
   within the solver's step tolerance, and then equal to a fresh one;
 - the permutation test's statistic of the data and its copies refined in lockstep
   (:func:`~selfcal.toa.verdict.trust.geometry_statistics`) against one ``refine_toa`` call per
@@ -28,7 +28,7 @@ from selfcal.robust import mad_std
 from selfcal.toa import toa_model
 from selfcal.toa.engine.nls import _pack, toa_jacobian
 from selfcal.toa.recipes.recipes import TIME_ORDER_PERMUTATIONS, _total_variation, detect_time_order
-from selfcal.toa.verdict.robust import leverages
+from selfcal.toa.verdict.leverage import leverages
 from selfcal.toa.verdict.trust import _additive_leverages
 
 
@@ -200,7 +200,7 @@ def test_kept_linearisation_equals_a_fresh_one():
     1e-7 of their largest entry: the move is 3e-11 of the parameters' norm, the rest is the
     round-off of two inversions); a move beyond it, a changed
     entry set or another offsets mode forms a new linearisation (never a stale one)."""
-    from selfcal.toa.verdict import robust
+    from selfcal.toa.verdict import leverage
     from selfcal.toa.verdict.determinacy import fisher_blocks
 
     g = np.random.default_rng(3)
@@ -214,17 +214,17 @@ def test_kept_linearisation_equals_a_fresh_one():
         o = g.uniform(0, 3, J) if has_s else None
         Y = toa_model(r, s, d, o)
         Y[g.random(Y.shape) < g.uniform(0, 0.3)] = np.nan
-        robust._LAST.clear()
+        leverage._LAST.clear()
         h0 = leverages(Y, r, s, d, o, off)
-        kept = robust._LAST[0]
+        kept = leverage._LAST[0]
         theta_norm = np.linalg.norm(kept.theta)
-        step = 0.3 * robust.REUSE_XTOL * theta_norm  # within the tolerance: reused
+        step = 0.3 * leverage.REUSE_XTOL * theta_norm  # within the tolerance: reused
         r1 = r + step / np.sqrt(r.size + s.size) * g.choice([-1, 1], r.shape)
         s1 = s + step / np.sqrt(r.size + s.size) * g.choice([-1, 1], s.shape)
         h1 = leverages(Y, r1, s1, d, o, off)
-        assert robust._LAST[0] is kept, k
+        assert leverage._LAST[0] is kept, k
         B1 = fisher_blocks(Y, r1, s1, d, o, off, 0.01)
-        robust._LAST.clear()
+        leverage._LAST.clear()
         h1_fresh = leverages(Y, r1, s1, d, o, off)
         B1_fresh = fisher_blocks(Y, r1, s1, d, o, off, 0.01)
         ok = np.isfinite(h0)
@@ -234,14 +234,14 @@ def test_kept_linearisation_equals_a_fresh_one():
             assert np.allclose(a[fin], b[fin], rtol=1e-7, atol=1e-7 * np.abs(b[fin]).max()), k
         # beyond the tolerance, other entries, another model: a new linearisation
         far = leverages(Y, r + 1e-6, s, d, o, off)
-        assert robust._LAST[0] is not kept and robust._LAST[0].same(np.isfinite(Y), off, robust._LAST[0].theta)
-        robust._LAST.clear()
+        assert leverage._LAST[0] is not kept and leverage._LAST[0].same(np.isfinite(Y), off, leverage._LAST[0].theta)
+        leverage._LAST.clear()
         assert np.allclose(far[ok], leverages(Y, r + 1e-6, s, d, o, off)[ok], rtol=1e-12, atol=1e-14)
         Y2 = Y.copy()
         Y2[np.unravel_index(np.flatnonzero(np.isfinite(Y))[0], Y.shape)] = np.nan
-        before = robust._LAST[0]
+        before = leverage._LAST[0]
         leverages(Y2, r, s, d, o, off)
-        assert robust._LAST[0] is not before
+        assert leverage._LAST[0] is not before
 
 
 @pytest.mark.parametrize("seed", range(3))
@@ -251,7 +251,7 @@ def test_bipartite_inverse_equals_the_dense_lifted_one(seed, monkeypatch):
     held-out entries and the determinacy test's Fisher blocks from the bipartite inverse equal
     those of the dense lifted inverse to 1e-7 (relative to the largest entry of a block: two
     different O(n^3) factorisations of the same matrix, condition up to ~1e4 here)."""
-    from selfcal.toa.verdict import robust
+    from selfcal.toa.verdict import leverage
     from selfcal.toa.verdict.determinacy import fisher_blocks
 
     g = np.random.default_rng(100 + seed)
@@ -268,16 +268,16 @@ def test_bipartite_inverse_equals_the_dense_lifted_one(seed, monkeypatch):
         Y[g.random(Y.shape) < g.uniform(0, 0.3)] = np.nan
         held = np.isfinite(Y) & (g.random(Y.shape) < 0.05)
         Yf = np.where(held, np.nan, Y)
-        robust._LAST.clear()
+        leverage._LAST.clear()
         h_blk = leverages(Yf, r, s, d, o, off, held_out=held)
-        blk = robust._LAST[0].block()
+        blk = leverage._LAST[0].block()
         B_blk = fisher_blocks(Yf, r, s, d, o, off, 0.01)
         with monkeypatch.context() as m:
-            m.setattr(robust.BipartiteInverse, "build", classmethod(lambda cls, ne: None))
-            robust._LAST.clear()
+            m.setattr(leverage.BipartiteInverse, "build", classmethod(lambda cls, ne: None))
+            leverage._LAST.clear()
             h_dense = leverages(Yf, r, s, d, o, off, held_out=held)
             B_dense = fisher_blocks(Yf, r, s, d, o, off, 0.01)
-        robust._LAST.clear()
+        leverage._LAST.clear()
         if blk is None:
             continue  # the dense path decided (a block too ill-conditioned): nothing to compare
         used += 1

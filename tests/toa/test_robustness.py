@@ -423,7 +423,7 @@ def test_one_entry_of_leverage_near_one_does_not_decide_the_geometry_verdict():
     rule of the last stop then failed the network (as on the LPS flight data4: 4.44e3 vs
     1.12e3); the median-PRESS rule and the permutation test pass it."""
     from selfcal.toa.result import geometry_test
-    from selfcal.toa.verdict.robust import leverages
+    from selfcal.toa.verdict.leverage import leverages
 
     g = np.random.default_rng(0)
     r, s = g.uniform(0, 10, (8, 3)), g.uniform(0, 10, (10, 3))
@@ -529,7 +529,7 @@ def test_leverages_equal_the_hat_diagonal_of_the_dense_jacobian(offsets):
     # Jacobian's SVD is the independent computation. Squaring the condition number costs
     # digits (1e-7 measured), far below what studentisation needs (h is in [0, 1]).
     from selfcal.toa.engine.nls import _pack, toa_jacobian
-    from selfcal.toa.verdict.robust import leverages
+    from selfcal.toa.verdict.leverage import leverages
 
     for seed in range(6):
         rng = np.random.default_rng(seed)

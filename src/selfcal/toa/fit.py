@@ -10,7 +10,7 @@ Steps (every rule stated in :mod:`selfcal.toa.verdict.robust`):
 5. the outlier rule on every entry against the fitted model, with the noise given or its
    robust estimate, and the final refit without the outliers (and with covariances); its
    first candidates come from a soft-L1 refit or, where its trimmed cost is significantly
-   lower, the high-breakdown start (:func:`~selfcal.toa.verdict.robust.high_breakdown_start`);
+   lower, the high-breakdown start (:func:`~selfcal.toa.verdict.high_breakdown.high_breakdown_start`);
 Steps 6-9 judge and package the final fit (:mod:`selfcal.toa.fit_result`, below this module):
 
 6. the trust test (:func:`~selfcal.toa.result.residual_test` with a given noise,
@@ -41,14 +41,8 @@ from .result import (
     residual_test,
 )
 from .search import canonical_order, search
-from .verdict.robust import (
-    drop_unidentifiable,
-    gross_entries,
-    leverages,
-    noise_scale,
-    outlier_mask,
-    studentized,
-)
+from .verdict.leverage import leverages, studentized
+from .verdict.robust import drop_unidentifiable, gross_entries, noise_scale, outlier_mask
 
 __all__ = ["finish", "given_start", "unrefined"]
 
@@ -133,7 +127,7 @@ def finish(M: Array, dim: int, offsets: str, *, init: Any, speed: float | None, 
     minima: Any = ([], prev_keep)
     degenerate = False  # the best fit collapsed to a line / point (data that fit no dim-D geometry)
     ever = gross.copy()  # every entry screened or flagged in some round (outliers if its node is dropped)
-    memo: dict[str, Any] = {}  # the last leverages of the outlier rule (robust.leverages)
+    memo: dict[str, Any] = {}  # the last leverages of the outlier rule (leverage.leverages)
     breakdown: list[str] = []  # why the outlier rule cannot be trusted here (reported, FAILED_TEST)
     overflagged: list[str] = []  # nodes dropped: more flagged ranges than their position can hold
     # 4. the search (ML cost on the entries in use), 5. the outlier rule; a changed set of
@@ -450,8 +444,8 @@ def _flag(Yc: Array, sol: NlsSolution, kr: NDArray[np.bool_], ks: NDArray[np.boo
 def _high_breakdown(Y: Array, rob: NlsSolution, offsets: str, n_par: int) -> NlsSolution:
     """``rob``, or the high-breakdown start from it where its trimmed cost is lower.
 
-    :func:`~selfcal.toa.verdict.robust.high_breakdown_start` re-places every node by LMedS;
-    :func:`~selfcal.toa.verdict.robust.lts_criterion` (breakdown point ~1/2) picks the fit that
+    :func:`~selfcal.toa.verdict.high_breakdown.high_breakdown_start` re-places every node by LMedS;
+    :func:`~selfcal.toa.verdict.high_breakdown.lts_criterion` (breakdown point ~1/2) picks the fit that
     holds the majority of the entries ``Y`` (the kept block without gross entries). The start
     replaces ``rob`` only when its trimmed cost is lower by more than the ``1 - HB_LEVEL``
     quantile of F(k, k), ``k = h - n_par`` the trimmed sums' degrees of freedom: a different
@@ -461,7 +455,12 @@ def _high_breakdown(Y: Array, rob: NlsSolution, offsets: str, n_par: int) -> Nls
     """
     import dataclasses
 
-    from .verdict.robust import HB_LEVEL, HB_MAX_ENTRIES, high_breakdown_start, lts_criterion
+    from .verdict.high_breakdown import (
+        HB_LEVEL,
+        HB_MAX_ENTRIES,
+        high_breakdown_start,
+        lts_criterion,
+    )
 
     if int(np.isfinite(Y).sum()) > HB_MAX_ENTRIES:
         return rob

@@ -31,7 +31,8 @@ from .result import (
     residual_test,
 )
 from .verdict.determinacy import DENSE_MAX_UNKNOWNS, fisher_blocks
-from .verdict.robust import leverages, noise_scale, outlier_rule_has_power
+from .verdict.leverage import leverages, outlier_rule_has_power
+from .verdict.robust import noise_scale
 from .verdict.uniqueness import judge_fit
 
 __all__ = ["judge_final"]

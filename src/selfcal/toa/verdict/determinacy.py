@@ -293,7 +293,7 @@ def determinacy_test(receivers: Any, sources: Any, receiver_cov: Any, source_cov
 #: reason are in :mod:`selfcal.optim.structure`
 DENSE_MAX_UNKNOWNS = DENSE_COVARIANCE_MAX
 #: eigenvalues of the gauge-lifted normal matrix below this fraction of the largest are
-#: directions the data do not determine at all (the relative cut of ``robust._normal_pinv``)
+#: directions the data do not determine at all (the relative cut of ``leverage._normal_pinv``)
 SINGULAR_RCOND = 1e-12
 #: a node moves along an undetermined direction when its squared share of the unit
 #: eigenvector exceeds this (eigenvector noise is ~sqrt(eps) ~ 1e-8 in amplitude)
@@ -334,7 +334,7 @@ def fisher_blocks(ranges: Any, receivers: Any, sources: Any, receiver_offsets: A
     (Cr, Cs): (I, d, d), (J, d, d) blocks (m^2; ``inf`` diagonal for nodes moved by an
     undetermined direction), or None above :data:`DENSE_MAX_UNKNOWNS` unknowns.
     """
-    from .robust import normal_equations
+    from .leverage import normal_equations
 
     r, s = np.asarray(receivers, float), np.asarray(sources, float)
     I, d = r.shape
@@ -343,14 +343,14 @@ def fisher_blocks(ranges: Any, receivers: Any, sources: Any, receiver_offsets: A
     n = (I + J) * d + (I if has_r else 0) + (J if has_s else 0)
     if n > DENSE_MAX_UNKNOWNS:
         return None
-    # J^T J and its lifted inverse: those of the final fit's leverages (robust.normal_equations)
+    # J^T J and its lifted inverse: those of the final fit's leverages (leverage.normal_equations)
     ne = normal_equations(np.isfinite(np.asarray(ranges, float)), r, s, receiver_offsets, source_offsets, offsets)
     Q = ne.Q
     # the parameters of each node: d coordinates (+ its offset)
     node = np.concatenate([np.repeat(np.arange(I), d), I + np.repeat(np.arange(J), d),
                            np.arange(I) if has_r else np.zeros(0, int),
                            I + np.arange(J) if has_s else np.zeros(0, int)]).astype(np.intp)
-    blk = ne.block()  # the bipartite generalised inverse (robust.BipartiteInverse), else the lifted one
+    blk = ne.block()  # the bipartite generalised inverse (leverage.BipartiteInverse), else the lifted one
     diag = None if blk is None else blk.diagonal_blocks()
     w = np.zeros(I + J)
     # each node's information block inverted (its conditional covariance), one side at a time
@@ -378,13 +378,13 @@ def fisher_blocks(ranges: Any, receivers: Any, sources: Any, receiver_offsets: A
     K = np.linalg.lstsq(GW @ Q, GW, rcond=None)[0]  # (G^T W G)^-1 G^T W
     bad = np.zeros(n, bool)
     if diag is not None and blk is not None:
-        # any generalised inverse G of N gives the same T G T^T (robust.BipartiteInverse)
+        # any generalised inverse G of N gives the same T G T^T (leverage.BipartiteInverse)
         KC = blk.apply(np.asarray(K.T, dtype=float)).T  # K G (g, n), G symmetric
         Cbs = (diag[0][:, :d, :d], diag[1][:, :d, :d])
     else:
         # M = N + c Q Q^T, c N's largest diagonal entry (any c > 0 lifts the gauge; N's scale keeps
         # M well-conditioned), inverted once and shared with the final fit's leverages
-        # (robust.lifted_inverse)
+        # (leverage.lifted_inverse)
         N = ne.N
         Cl, dl, c = ne.lifted()
         if Cl is not None and dl is not None and dl.min() > np.sqrt(SINGULAR_RCOND) * dl.max():

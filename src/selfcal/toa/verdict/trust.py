@@ -546,7 +546,7 @@ def geometry_test(ranges: Any, residuals: Any, leverages: Any, dim: int, offsets
     ----------
     ranges: (I, J) the entries the fit used (NaN elsewhere), any units.
     residuals: (I, J) measured minus modelled of the fit, same units, NaN where not used.
-    leverages: (I, J) the fit's leverages (:func:`selfcal.toa.verdict.robust.leverages`).
+    leverages: (I, J) the fit's leverages (:func:`selfcal.toa.verdict.leverage.leverages`).
     dim, offsets: the fitted model.
     alpha: level of the informational F test.
     permutation: run the permutation test (:func:`permutation_test`).
