@@ -40,22 +40,10 @@ from .determinacy import (  # noqa: F401 (re-exported: the trust tests are named
 )
 
 __all__ = [
-    "DETERMINED_LEVEL",
-    "UNDETERMINED_FAIL_FRACTION",
-    "DeterminacyTest",
-    "determinacy_test",
-    "fisher_blocks",
-    "set_scale",
-    "PERMUTATION_ALPHA",
-    "PERMUTATION_COPIES",
-    "RESIDUAL_ALPHA",
-    "GeometryTest",
-    "PermutationTest",
-    "geometry_statistic",
-    "geometry_statistics",
-    "geometry_test",
-    "null_parameters",
-    "permutation_test",
+    "DETERMINED_LEVEL", "UNDETERMINED_FAIL_FRACTION", "DeterminacyTest", "determinacy_test",
+    "fisher_blocks", "set_scale", "PERMUTATION_ALPHA", "PERMUTATION_COPIES", "RESIDUAL_ALPHA",
+    "GeometryTest", "PermutationTest", "geometry_statistic", "geometry_statistics", "geometry_test",
+    "null_parameters", "permutation_test",
 ]
 
 Array = NDArray[np.float64]
