@@ -12,7 +12,7 @@ from typing import Any
 
 import click
 
-from ..toa.verdict.select import PLANAR_ALPHA, PLANAR_RATIO, PLANAR_SIGMAS
+from ..toa.verdict.select import PLANAR_ALPHA, PLANAR_RATIO
 from ._base import calibrate, handle_errors
 from ._common import csv_option, unit_options
 from ._options import NOISE_STD, SEED, SPEED
@@ -39,8 +39,9 @@ def _auto_available() -> bool:
 @click.option("--dim", type=click.Choice(["2", "3", "auto"]), default="auto", show_default=True,
               help="Dimension. auto: 3-D unless z is not determined by the data (an F test of the 3-D "
                    f"fit against the 2-D one at level {PLANAR_ALPHA:g}, and the 3-D layout's thickness must "
-                   f"exceed {PLANAR_RATIO:.0%} of its extent and {PLANAR_SIGMAS:g} standard deviations along "
-                   "its normal); the choice and its statistics are printed and in the JSON ('selection').")
+                   f"exceed {PLANAR_RATIO:.0%} of its extent and be resolved by the 3-D fit's own error bars: "
+                   f"a chi-square test of the out-of-plane coordinates at the same level); the choice and its "
+                   "statistics are printed and in the JSON ('selection').")
 @click.option("--loss", type=click.Choice(["linear", "huber", "soft_l1", "cauchy"]), default=None,
               help="Loss of the fit. Default: the solver's robust default (outliers found on a "
                    "soft-L1 fit with a data-estimated scale, flagged by a Bonferroni rule, then "

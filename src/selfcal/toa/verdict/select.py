@@ -23,6 +23,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
+import scipy.stats
 from numpy.typing import NDArray
 
 from ..._result import Result
@@ -166,6 +167,11 @@ class Planarity(Result):
         (NaN without covariances).
     comparison : ModelComparison or None
         The 2-D / 3-D F test behind the verdict (:func:`compare_fits`), when one was made.
+    thickness_chi2, thickness_p : float
+        ``T = sum_k (n^T (p_k - c))^2 / (n^T C_k n)`` over the points with a covariance, and
+        its p-value under a planar layout (chi-square with ``n_points - d`` dof: the fitted
+        plane takes ``d``); NaN without covariances. A small p means the data resolve the
+        thickness jointly, even where no single point's offset from the plane is resolved.
     """
 
     near_planar: bool
@@ -173,13 +179,17 @@ class Planarity(Result):
     normal: Array
     normal_std: float
     comparison: ModelComparison | None = None
+    thickness_chi2: float = float("nan")
+    thickness_p: float = float("nan")
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-safe dictionary."""
         return {"near_planar": bool(self.near_planar), "extents": np.asarray(self.extents, float).tolist(),
                 "normal": np.asarray(self.normal, float).tolist(),
                 "normal_std": None if not math.isfinite(self.normal_std) else float(self.normal_std),
-                "comparison": None if self.comparison is None else self.comparison.to_dict()}
+                "comparison": None if self.comparison is None else self.comparison.to_dict(),
+                "thickness_chi2": None if not math.isfinite(self.thickness_chi2) else float(self.thickness_chi2),
+                "thickness_p": None if not math.isfinite(self.thickness_p) else float(self.thickness_p)}
 
 
 def planarity(points: Array, cov: NDArray[np.float64] | None = None, *, ratio: float = PLANAR_RATIO,
@@ -213,14 +223,22 @@ def planarity(points: Array, cov: NDArray[np.float64] | None = None, *, ratio: f
     _, s, vt = np.linalg.svd(centred, full_matrices=False)
     ext = s / np.sqrt(max(len(P), 1))
     normal = vt[-1]
-    nstd = float("nan")
+    nstd = chi2_t = p_t = float("nan")
     if cov is not None:
         C = np.asarray(cov, dtype=float)
+        C = C[np.isfinite(np.asarray(points, float)).all(axis=1)]
         ok = np.isfinite(C).all(axis=(1, 2))
         if ok.any():
-            nstd = float(np.sqrt(np.mean(np.einsum("i,kij,j->k", normal, C[ok], normal))))
+            var_n = np.einsum("i,kij,j->k", normal, C[ok], normal)
+            nstd = float(np.sqrt(np.mean(var_n)))
+            good = var_n > 0
+            dof = int(good.sum()) - P.shape[1]
+            if dof > 0:
+                z = centred[ok][good] @ normal
+                chi2_t = float(np.sum(z**2 / var_n[good]))
+                p_t = float(scipy.stats.chi2.sf(chi2_t, dof))
     flat = bool(ext[-1] < ratio * ext[0] or (np.isfinite(nstd) and ext[-1] < sigmas * nstd))
-    return Planarity(flat, ext, normal, nstd)
+    return Planarity(flat, ext, normal, nstd, None, chi2_t, p_t)
 
 
 # ------------------------------------------------------------------ choices on solve_toa results
@@ -392,11 +410,19 @@ def choose_dim(M: Array, offsets: str, solve: Solver, **kw: Any) -> tuple[ToaRes
     # no residual dof left for the F test (the two fits kept different entries): no evidence
     # for dropping z, so the default 3-D model stands
     untestable = cmp.dof_3d <= 0
-    keep3 = untestable or (cmp.significant and (not plan.near_planar or r2_fails))
+    # the thickness is resolved when the out-of-plane coordinates, judged jointly against their
+    # own covariances (chi-square, Planarity.thickness_p), are unlikely under a planar layout at
+    # the F test's level: a per-point rule (PLANAR_SIGMAS) cannot see a thickness that every
+    # point resolves only a little (a flight of several hundred weakly determined positions)
+    thin = bool(plan.extents[-1] < PLANAR_RATIO * plan.extents[0])
+    resolved = (not thin) and (plan.thickness_p <= PLANAR_ALPHA if math.isfinite(plan.thickness_p)
+                               else not plan.near_planar)
+    keep3 = untestable or (cmp.significant and (resolved or r2_fails))
     stats = {"criterion": "F", "chosen": 3 if keep3 else 2, "f_statistic": cmp.f_statistic,
              "p_value": cmp.p_value, "residual_2d": rms2, "residual_3d": rms3, "dof_3d": cmp.dof_3d,
-             "near_planar": plan.near_planar, "thickness": float(plan.extents[-1]),
-             "normal_std": plan.normal_std}
+             "near_planar": not resolved, "thickness": float(plan.extents[-1]),
+             "normal_std": plan.normal_std, "thickness_chi2": plan.thickness_chi2,
+             "thickness_p": plan.thickness_p}
     return (r3 if keep3 else r2), stats
 
 
