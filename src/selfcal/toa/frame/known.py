@@ -11,6 +11,7 @@ line, every rotation) is held at the blind solution's canonical gauge and report
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Sequence
 from typing import Any
 
@@ -48,6 +49,7 @@ def fit_known(
     matrix: Any, result: Any, known: Sequence[KnownNode], *, offsets: str = "none",
     loss: str = "linear", f_scale: float | None = None, noise: float | None = None,
     max_nfev: int | None = None, covariance: bool = True, side: str | None = None,
+    jackknife: bool = True,
 ) -> FramedToaResult:
     """Constrain a calibration by known node positions and express it in their frame.
 
@@ -71,6 +73,12 @@ def fit_known(
     side: "below" | "above": in 3-D, the other nodes lie below / above the plane of coplanar
         known nodes (along the known frame's z): resolves the mirror they leave
         (:func:`selfcal.toa.verdict.known_test.choose_side`); None = the mirror is tested and reported.
+    jackknife: scale each free receiver's covariance by the block jackknife's evidence
+        (:func:`selfcal.toa.verdict.crossval.block_jackknife_scale`: the constrained fit
+        repeated without each of K contiguous column blocks; a receiver's covariance is
+        multiplied by ``max(1, tr(C^-1 V) / d)``, ``V`` the jackknife covariance), so that the
+        stated error bars hold where range errors are serially correlated or depend on the
+        tag's position (measured UWB ranges). Reported in ``frame.error_scale``.
 
     Returns
     -------
@@ -122,6 +130,11 @@ def fit_known(
                      receiver_offsets0=data.receiver_offsets, source_offsets0=data.source_offsets, loss=loss, f_scale=None if f_scale is None else f_scale * c,
                      noise=None if noise is None else noise * c, max_nfev=max_nfev,
                      covariance=covariance, **kw)
+    scaled = None
+    if jackknife and covariance:
+        sol, scaled = _jackknife(sol, data.Y[np.ix_(ok_r, ok_s)], dict(
+            offsets=off, common_offsets=common, loss=loss, f_scale=None if f_scale is None else f_scale * c,
+            noise=None if noise is None else noise * c, max_nfev=max_nfev, **kw))
     out = _embed(result, sol, ok_r, ok_s, c, f"{result.method}+known({len(usable)})")
     fitted = np.array([node_positions(out, k.kind)[k.index] for k in usable])
     after = float(np.sqrt(np.mean(np.sum((fitted - ref) ** 2, axis=1))))
@@ -131,7 +144,34 @@ def fit_known(
 
     out, info = judge_known(out, info, result, sol, data, usable, est @ Rm.T + t, Rm, rank, fr, fs, off, noise,
                             mirror_stated=side is not None)
+    if scaled is not None:
+        names = [f"r{i}" for i in np.nonzero(ok_r)[0]]
+        info = dataclasses.replace(info, error_scale=scaled.to_dict(names))
     return FramedToaResult(out, info)
+
+
+def _jackknife(sol: Any, Y: Array, kw: dict[str, Any]) -> tuple[Any, Any]:
+    """``sol`` with its receivers' covariances scaled by the block jackknife, and the scale (or None)."""
+    from ..engine.nls import refine_toa
+    from ..verdict.crossval import block_jackknife_scale
+
+    if sol.receiver_cov is None or sol.residuals is None or not np.isfinite(sol.receiver_cov).all():
+        return sol, None
+    per_source = {"fixed_sources", "source_prior"}
+
+    def cols_of(v: Any, cols: NDArray[np.bool_]) -> Any:
+        return tuple(a[cols] for a in v) if isinstance(v, tuple) else np.asarray(v)[cols]
+
+    def refit(cols: NDArray[np.bool_]) -> Array:
+        fkw = {k: (cols_of(v, cols) if k in per_source else v) for k, v in kw.items()}
+        so = None if sol.source_offsets is None else np.asarray(sol.source_offsets)[cols]
+        return refine_toa(Y[:, cols], sol.receivers, sol.sources[cols], receiver_offsets0=sol.receiver_offsets,
+                          source_offsets0=so, covariance=False, **fkw).receivers
+
+    js = block_jackknife_scale(sol.residuals, sol.receivers, sol.receiver_cov, refit)
+    if js is None:
+        return sol, None
+    return dataclasses.replace(sol, receiver_cov=sol.receiver_cov * js.scale[:, None, None]), js
 
 
 def align_known(result: Any, known: Sequence[KnownNode]) -> FramedToaResult:

@@ -74,6 +74,8 @@ class FrameInfo:
     known_rms_fit: the same after the constrained fit (0 for exact nodes).
     known_test: the test of the known positions against the ranges
         (:class:`selfcal.toa.verdict.known_test.KnownTest` as a dict), None for kind != "known".
+    error_scale: the block jackknife's scale of the receivers' covariances
+        (:meth:`selfcal.toa.verdict.crossval.JackknifeScale.to_dict`), None when not run.
     """
 
     kind: str
@@ -86,6 +88,7 @@ class FrameInfo:
     known_rms: float | None = None
     known_rms_fit: float | None = None
     known_test: dict[str, Any] | None = None
+    error_scale: dict[str, Any] | None = None
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-safe dictionary."""
