@@ -67,3 +67,28 @@ def test_jackknife_coverage_over_many_draws():
     ar = _m2(range(60), 0.8, True)
     assert 0.9 <= np.mean(iid <= Q95) <= 1.0
     assert np.mean(ar <= Q95) >= 0.88
+
+
+def test_cli_reports_the_scale_by_the_matrix_names(tmp_path):
+    """``calibrate toa --known``: the JSON's ``frame.error_scale`` is keyed by the anchors' own
+    names (known anchors unscaled) and the summary says which error bars grew."""
+    import json
+
+    from click.testing import CliRunner
+
+    from selfcal.cli import main
+
+    sim = simulate_uwb_flight(3, 300, layout="lps", bias_std=0.15, noise_corr=0.8)
+    Y, A = sim["ranges"], sim["anchors"]
+    csv = tmp_path / "r.csv"
+    csv.write_text("anchor," + ",".join(f"t{j}" for j in range(Y.shape[1])) + "\n" + "".join(
+        f"A{i}," + ",".join("" if np.isnan(v) else f"{v:.4f}" for v in row) + "\n" for i, row in enumerate(Y)))
+    known = tmp_path / "k.csv"
+    known.write_text("name,x,y,z\n" + "".join(f"A{i},{x},{y},{z}\n" for i, (x, y, z) in enumerate(A[:4])))
+    out = tmp_path / "o.json"
+    res = CliRunner().invoke(main, ["calibrate", "toa", str(csv), "--known", str(known), "--dim", "3", "--out", str(out)])
+    assert res.exit_code in (0, 1), res.output
+    es = json.loads(out.read_text())["frame"]["error_scale"]
+    assert set(es["scale"]) == {f"A{i}" for i in range(6)}
+    assert all(es["scale"][f"A{i}"] == 1.0 for i in range(4)) and es["folds"] >= 4
+    assert "error bars: block jackknife" in res.output

@@ -179,6 +179,11 @@ def toa_command(matrix: Path, speed: float | None, offsets: str | None, dim: str
         payload["recipe"] = rec.recipe_dict()
     if framed is not None:
         payload["frame"] = framed.frame.to_dict()
+        es = payload["frame"].get("error_scale")
+        if es:  # per receiver by the matrix's names, as everywhere in the JSON
+            rn = names["receiver_names"]
+            for key in ("scale", "ratio"):
+                es[key] = {rn[int(k[1:])]: v for k, v in es[key].items()}
     if forced is not None:
         payload["model_test"] = forced.to_dict()
     ok, why = _trustworthy(res)
@@ -228,6 +233,12 @@ def toa_command(matrix: Path, speed: float | None, offsets: str | None, dim: str
         if framed.frame.known_rms is not None:
             lines.append(f"  known nodes: RMS {framed.frame.known_rms:.4g} m after alignment, "
                          f"{framed.frame.known_rms_fit:.4g} m after the constrained fit")
+        es = framed.frame.error_scale
+        if es:
+            rn = names["receiver_names"]
+            grown = [f"{rn[int(k[1:])]} x{np.sqrt(v):.2g}" for k, v in es["scale"].items() if v > 1.0]
+            lines.append(f"  error bars: block jackknife over {es['folds']} blocks of tag positions; stds grown where "
+                         f"the data vary more than the model says: {', '.join(grown) if grown else 'none'}")
     ok_tr, ok_ts = np.isfinite(tr), np.isfinite(ts)
     if ok_tr.any() and ok_ts.any():
         lines.append(

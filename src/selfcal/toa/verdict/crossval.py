@@ -318,6 +318,7 @@ def cross_validate(
     >>> cross_validate(Y, st).chosen
     'receivers'
     """
+    from ..engine.nls import refine_toa
     from ..recipes.common_offset import residual_correlation_length
 
     Y = np.asarray(matrix, float)
@@ -337,33 +338,29 @@ def cross_validate(
     total, done = len(models) * K, 0
     fails = (DegenerateGeometryError, InputError, np.linalg.LinAlgError, ValueError)
     for m in models:
-        R, S = np.asarray(starts[m][0], float), np.asarray(starts[m][1], float)
-        d, o = (None if a is None else np.asarray(a, float) for a in starts[m][2:])
-        # training sources the model can locate (d + 1 ranges, one more with a source offset)
-        need = R.shape[1] + 1 + int(m in ("sources", "both"))
-        usable = np.isfinite(S).all(axis=1) & (np.isfinite(Y).sum(axis=0) >= need)
+        R, S, d, o = starts[m]
         P = np.full((I, J), np.nan)
-        try:
-            # the model's minimum on exactly these entries (the given fit may have used other
-            # ones): every fold's training set is a perturbation of it, so each fold's refit
-            # starts there and takes a few iterations (the folds' minima are unchanged)
-            R, S, d, o = _refit(Y, R, S, d, o, m, usable, solver)
-        except fails as exc:
-            failed[m] = f"all columns: {exc}"
-            continue
         for k in range(K):
             test = np.zeros(J, bool)
             test[edges[k]:edges[k + 1]] = True
-            train = ~test & usable
+            # training sources the model can locate (d + 1 ranges, one more with a source offset)
+            need = np.asarray(R).shape[1] + 1 + int(m in ("sources", "both"))
+            train = ~test & np.isfinite(np.asarray(S, float)).all(axis=1) & (np.isfinite(Y).sum(axis=0) >= need)
+            kw: dict[str, Any] = dict(_REFIT[m])
+            if d is not None:
+                kw["receiver_offsets0"] = np.nan_to_num(np.asarray(d, float))
+            if o is not None:
+                kw["source_offsets0"] = np.nan_to_num(np.asarray(o, float)[train])
             try:
-                Rk, _, dk, _ = _refit(Y, R, S, d, o, m, train, solver)
+                with warnings.catch_warnings():
+                    warnings.simplefilter("ignore", ConvergenceWarning)
+                    sol = refine_toa(np.where(np.isfinite(Y), Y, np.nan)[:, train], np.asarray(R, float),
+                                     np.asarray(S, float)[train], covariance=False, solver=solver, **kw)
             except fails as exc:
                 failed[m] = f"fold {k}: {exc}"
                 break
-            # the held-out sources start at the all-column fit's positions (a perturbation of theirs)
-            start = np.where(np.isfinite(S[test]), S[test], np.nan)
-            _, _, E, H = locate_sources(Y[:, test], Rk, dk, source_offset=m in ("sources", "both"),
-                                        start=start if np.isfinite(start).all() else None)
+            _, _, E, H = locate_sources(Y[:, test], sol.receivers, sol.receiver_offsets,
+                                        source_offset=m in ("sources", "both"))
             with np.errstate(all="ignore"):
                 P[:, test] = np.where(H < _MAX_LEVERAGE, E / (1 - H), np.nan)
             done += 1
@@ -385,29 +382,6 @@ def cross_validate(
     scores = {m: float(np.mean(P[common] ** 2)) if common.any() else float("nan") for m, P in press.items()}
     chosen, best, se = one_se_choice(scores, fold_mse, I, J)
     return CvChoice(chosen, scores, se, best, K, int(L), int(common.sum()), fold_mse, failed)
-
-
-def _refit(Y: Array, R: Array, S: Array, d: Array | None, o: Array | None, model: str,
-           cols: NDArray[np.bool_], solver: str) -> tuple[Array, Array, Array | None, Array | None]:
-    """``model`` refitted on the columns ``cols`` of ``Y``, started from (R, S, d, o): all J sources
-    returned (those outside ``cols`` as given)."""
-    from ..engine.nls import refine_toa
-
-    kw: dict[str, Any] = dict(_REFIT[model])
-    if d is not None:
-        kw["receiver_offsets0"] = np.nan_to_num(d)
-    if o is not None:
-        kw["source_offsets0"] = np.nan_to_num(o[cols])
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", ConvergenceWarning)
-        sol = refine_toa(Y[:, cols], R, S[cols], covariance=False, solver=solver, **kw)
-    S2 = S.copy()
-    S2[cols] = sol.sources
-    o2 = None
-    if o is not None:
-        o2 = o.copy()
-        o2[cols] = sol.source_offsets
-    return sol.receivers, S2, sol.receiver_offsets, o2
 
 
 def one_se_choice(scores: Mapping[str, float], fold_scores: Mapping[str, Sequence[float]],
