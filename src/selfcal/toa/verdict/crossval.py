@@ -486,12 +486,16 @@ class JackknifeScale:
         K, the number of column blocks.
     correlation_length : int
         Residual correlation length (columns) behind K.
+    bias_tau : float, optional
+        Set by :func:`selfcal.toa.frame.known.fit_known` when it adds the random effect of
+        per-receiver biases the model does not hold: their estimated std (m).
     """
 
     scale: Array
     ratio: Array
     folds: int
     correlation_length: int
+    bias_tau: float | None = None
 
     def to_dict(self, names: Sequence[str] | None = None) -> dict[str, Any]:
         """JSON-safe dictionary (per-receiver values keyed by ``names``, default ``r<i>``)."""
@@ -500,7 +504,8 @@ class JackknifeScale:
                              "max(1, tr(C^-1 V) / d)",
                 "folds": self.folds, "correlation_length": self.correlation_length,
                 "scale": {k: float(v) for k, v in zip(keys, self.scale, strict=True)},
-                "ratio": {k: (None if not np.isfinite(v) else float(v)) for k, v in zip(keys, self.ratio, strict=True)}}
+                "ratio": {k: (None if not np.isfinite(v) else float(v)) for k, v in zip(keys, self.ratio, strict=True)},
+                "bias_tau": self.bias_tau}
 
 
 def block_jackknife_scale(residuals: Array, receivers: Array, receiver_cov: Array,
