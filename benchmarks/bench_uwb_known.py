@@ -107,7 +107,9 @@ def run_case(Y: np.ndarray, A: np.ndarray, repeat: int, tmp: str) -> dict[str, d
                 cpu[v].append(time.process_time() - t0)
             data = json.loads(open(out).read()) if os.path.isfile(out) else {}
             rec = np.array(data.get("receivers", np.full_like(A, np.nan)), float)
-            rows[v] = {"exit": res.exit_code, "offsets": data.get("offsets"),
+            dim = rec.shape[1]
+            rec = np.c_[rec, np.zeros((rec.shape[0], A.shape[1] - dim))]  # a 2-D answer (dim auto) in its plane
+            rows[v] = {"exit": res.exit_code, "offsets": data.get("offsets"), "dim": dim,
                        "rmse": float(aligned_rmse(rec, A).rmse_receivers) if np.isfinite(rec).all() else float("nan")}
     base = statistics.median(cpu["blind"])
     for v in VARIANTS:
@@ -130,7 +132,7 @@ def main() -> None:
             table[name] = rows
             for v, r in rows.items():
                 print(f"{name:14s} {v:16s} CPU {r['cpu_s']:6.2f} s  ratio {r['ratio']:4.2f}  exit {r['exit']}  "
-                      f"offsets {r['offsets']}  anchor RMSE {r['rmse']:.4f} m", flush=True)
+                      f"dim {r['dim']}  offsets {r['offsets']}  anchor RMSE {r['rmse']:.4f} m", flush=True)
     if args.out:
         with open(args.out, "w") as fh:
             json.dump(table, fh, indent=1)

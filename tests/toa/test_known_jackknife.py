@@ -87,7 +87,9 @@ def test_jackknife_coverage_over_many_draws():
 
 def test_cli_reports_the_scale_by_the_matrix_names(tmp_path):
     """``calibrate toa --known``: the JSON's ``frame.error_scale`` is keyed by the anchors' own
-    names (known anchors unscaled) and the summary says which error bars grew."""
+    names (known anchors unscaled) and the summary says which error bars grew. The known
+    anchors span 3-D, so ``--dim auto`` (the default) fits 3-D and says why (on the shared
+    flight data4 auto chose 2-D and the known file's z column then stopped the command)."""
     import json
 
     from click.testing import CliRunner
@@ -102,9 +104,11 @@ def test_cli_reports_the_scale_by_the_matrix_names(tmp_path):
     known = tmp_path / "k.csv"
     known.write_text("name,x,y,z\n" + "".join(f"A{i},{x},{y},{z}\n" for i, (x, y, z) in enumerate(A[:4])))
     out = tmp_path / "o.json"
-    res = CliRunner().invoke(main, ["calibrate", "toa", str(csv), "--known", str(known), "--dim", "3", "--out", str(out)])
+    res = CliRunner().invoke(main, ["calibrate", "toa", str(csv), "--known", str(known), "--out", str(out)])
     assert res.exit_code in (0, 1), res.output
-    es = json.loads(out.read_text())["frame"]["error_scale"]
+    data = json.loads(out.read_text())
+    assert np.shape(data["receivers"]) == (6, 3) and "the --known nodes span three dimensions" in res.output
+    es = data["frame"]["error_scale"]
     assert set(es["scale"]) == {f"A{i}" for i in range(6)}
     assert all(es["scale"][f"A{i}"] == 1.0 for i in range(4)) and es["folds"] >= 4
     assert "error bars: block jackknife" in res.output

@@ -138,9 +138,15 @@ def toa_command(matrix: Path, speed: float | None, offsets: str | None, dim: str
     I, J = M.shape
     names = node_names(table.row_names, table.col_names, I, J)
     known_table = None
+    dim_by_known = False
     if known is not None:
         known_table = read_known_csv(known, 2 if dim == "2" else 3)  # validated before the solve
-        parse_known(known_table, I, J, 2 if dim == "2" else 3, **names)
+        known_nodes = parse_known(known_table, I, J, 2 if dim == "2" else 3, **names)
+        # known positions that span 3-D (affine rank 3) fix a 3-D frame: z is not a question
+        # for the data, and a 2-D fit could not be put in that frame
+        if dim == "auto" and _spans_3d([k.position for k in known_nodes]):
+            kw["dim"] = 3
+            dim_by_known = True
     if frame is not None:
         check_frame(frame, I, J, **names)
     sidecar = _sidecar(entries, M.shape, out, [matrix, known])  # refused before the solve
@@ -225,6 +231,8 @@ def toa_command(matrix: Path, speed: float | None, offsets: str | None, dim: str
                          f"{co['blocks']} blocks, p = {co['p_value']:.2g}, level {co['alpha']:g})")
     lines += _offsets_choice_lines(rec.details, res, unit)
     lines += _dim_choice_lines(res)
+    if dim_by_known:
+        lines.append("  dim 3 (auto: the --known nodes span three dimensions)")
     counts = _counts(res)
     if counts:
         lines.append("  " + ", ".join(counts))
@@ -379,6 +387,17 @@ def _fitted_entries(M: Any, rejected: Any, outliers: Any) -> Any:
         if mask is not None and np.shape(mask) == out.shape:
             out[np.asarray(mask, bool)] = np.nan
     return out
+
+
+def _spans_3d(points: Any) -> bool:
+    """Known positions with affine rank 3 (relative singular value above 1e-6, as known.py's)."""
+    import numpy as np
+
+    P = np.asarray(points, float)
+    if P.ndim != 2 or P.shape[1] != 3 or P.shape[0] < 4:
+        return False
+    sv = np.linalg.svd(P - P.mean(axis=0), compute_uv=False)
+    return bool(sv[-1] > 1e-6 * max(sv[0], 1e-300))
 
 
 def _redim(table: dict[str, tuple[float, ...]], path: Path, d: int) -> dict[str, tuple[float, ...]]:
