@@ -24,6 +24,18 @@ Measured (2026-12-03, branch ``uwbmodel``, loaded 2-core machine, ``--repeat 1``
 data4 0.95 / 1.70 / 1.65 / 0.95 (blind 9.17 s); data5 1.01 / 1.36 / 1.33 / 1.15 (blind 9.14 s).
 Heights only (branch ``knownz``, same conditions, ``--cases room,room-shuffled``): room 1.14
 (blind 0.92 s, exit 0, anchor RMSE 0.058 m vs blind 0.060 m), room-shuffled 1.27 (blind 0.64 s).
+Measured (2026-12-03, branch ``uwbauto`` against main 33dc51a in the same session, loaded
+2-core machine; rooms ``--repeat 3``, flights ``--repeat 1``), ratios --known / --offsets
+receivers / --known --offsets receivers / --offsets auto, before -> after:
+room 1.08 / 1.73 / 1.70 / 1.01 -> 1.03 / 1.51 / 1.51 / 0.90 (blind 0.84 s);
+room-shuffled 1.03 / 2.20 / 2.18 / 6.54 -> 1.09 / 2.16 / 2.28 / 4.74 (blind 0.57 s; ``auto``
+no longer searches the chosen model a second time for ``--dim auto``; the rest is the
+chosen model's search, whose rank-3 offsets initialiser takes ~0.7 s and never won over
+the nested start on 8 of 8 shuffled rooms, and the cross-validation, ~0.5 s);
+data4 0.97 (exit 2: ``--dim auto`` chose 2-D and the known file has z) / 1.10 / 1.25 / 0.95
+-> 0.45 (3-D: the known anchors span 3-D) / 1.13 / 1.27 / 1.01 (blind 8.5-9.7 s);
+data5 0.98 / 1.55 / 1.60 / 0.99 -> 1.04 / 1.61 / 1.80 / 1.01 (blind 4.2 s). ``--known``
+now includes the block jackknife and the random-effect refits (about 0.3-0.8 s).
 
 Run: ``OPENBLAS_NUM_THREADS=1 PYTHONPATH=src python benchmarks/bench_uwb_known.py
 [--cases room,room-shuffled,data4,data5] [--repeat 1] [--out FILE]``.
@@ -107,6 +119,8 @@ def run_case(Y: np.ndarray, A: np.ndarray, repeat: int, tmp: str) -> dict[str, d
     for _ in range(repeat):
         for v, extra in VARIANTS.items():
             out = os.path.join(tmp, f"{v}.json")
+            if os.path.isfile(out):  # a run that writes nothing must not be read as the last case's
+                os.remove(out)
             args = ["calibrate", "toa", mat, "--out", out, *[a.format(known=known, heights=heights) for a in extra]]
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")
@@ -115,7 +129,9 @@ def run_case(Y: np.ndarray, A: np.ndarray, repeat: int, tmp: str) -> dict[str, d
                 cpu[v].append(time.process_time() - t0)
             data = json.loads(open(out).read()) if os.path.isfile(out) else {}
             rec = np.array(data.get("receivers", np.full_like(A, np.nan)), float)
-            rows[v] = {"exit": res.exit_code, "offsets": data.get("offsets"),
+            dim = rec.shape[1]
+            rec = np.c_[rec, np.zeros((rec.shape[0], A.shape[1] - dim))]  # a 2-D answer (dim auto) in its plane
+            rows[v] = {"exit": res.exit_code, "offsets": data.get("offsets"), "dim": dim,
                        "rmse": float(aligned_rmse(rec, A).rmse_receivers) if np.isfinite(rec).all() else float("nan")}
     base = statistics.median(cpu["blind"])
     for v in VARIANTS:
@@ -138,7 +154,7 @@ def main() -> None:
             table[name] = rows
             for v, r in rows.items():
                 print(f"{name:14s} {v:16s} CPU {r['cpu_s']:6.2f} s  ratio {r['ratio']:4.2f}  exit {r['exit']}  "
-                      f"offsets {r['offsets']}  anchor RMSE {r['rmse']:.4f} m", flush=True)
+                      f"dim {r['dim']}  offsets {r['offsets']}  anchor RMSE {r['rmse']:.4f} m", flush=True)
     if args.out:
         with open(args.out, "w") as fh:
             json.dump(table, fh, indent=1)

@@ -142,11 +142,18 @@ def toa_command(matrix: Path, speed: float | None, offsets: str | None, dim: str
     I, J = M.shape
     names = node_names(table.row_names, table.col_names, I, J)
     known_table = None
+    dim_by_known = False
     if known is not None:
         known_table = read_known_csv(known, 2 if dim == "2" else 3)  # validated before the solve
-        check_known_scale(parse_known(known_table, I, J, 2 if dim == "2" else 3, receiver_names=names["receiver_names"],
-                                      source_names=names["source_names"]),
-                          float(np.nanmax(np.abs(M))) * (speed if speed is not None else 1.0))
+        known_nodes = parse_known(known_table, I, J, 2 if dim == "2" else 3, receiver_names=names["receiver_names"],
+                                  source_names=names["source_names"])
+        check_known_scale(known_nodes, float(np.nanmax(np.abs(M))) * (speed if speed is not None else 1.0))
+        # known positions that span 3-D (affine rank 3) fix a 3-D frame: z is not a question
+        # for the data, and a 2-D fit could not be put in that frame
+        full_known = [k.position for k in known_nodes if np.isfinite(k.position).all()]
+        if dim == "auto" and _spans_3d(full_known):
+            kw["dim"] = 3
+            dim_by_known = True
     if frame is not None:
         check_frame(frame, I, J, **names)
     sidecar = _sidecar(entries, M.shape, out, [matrix, known])  # refused before the solve
@@ -192,6 +199,11 @@ def toa_command(matrix: Path, speed: float | None, offsets: str | None, dim: str
         payload["recipe"] = rec.recipe_dict()
     if framed is not None:
         payload["frame"] = framed.frame.to_dict()
+        es = payload["frame"].get("error_scale")
+        if es:  # per receiver by the matrix's names, as everywhere in the JSON
+            rn = names["receiver_names"]
+            for key in ("scale", "ratio"):
+                es[key] = {rn[int(k[1:])]: v for k, v in es[key].items()}
     if forced is not None:
         payload["model_test"] = forced.to_dict()
     ok, why = _trustworthy(res)
@@ -233,6 +245,8 @@ def toa_command(matrix: Path, speed: float | None, offsets: str | None, dim: str
                          f"{co['blocks']} blocks, p = {co['p_value']:.2g}, level {co['alpha']:g})")
     lines += _offsets_choice_lines(rec.details, res, unit)
     lines += _dim_choice_lines(res)
+    if dim_by_known:
+        lines.append("  dim 3 (auto: the --known nodes span three dimensions)")
     counts = _counts(res)
     if counts:
         lines.append("  " + ", ".join(counts))
@@ -241,6 +255,12 @@ def toa_command(matrix: Path, speed: float | None, offsets: str | None, dim: str
         if framed.frame.known_rms is not None:
             lines.append(f"  known nodes: RMS {framed.frame.known_rms:.4g} m after alignment, "
                          f"{framed.frame.known_rms_fit:.4g} m after the constrained fit")
+        es = framed.frame.error_scale
+        if es:
+            rn = names["receiver_names"]
+            grown = [f"{rn[int(k[1:])]} x{np.sqrt(v):.2g}" for k, v in es["scale"].items() if v > 1.0]
+            lines.append(f"  error bars: block jackknife over {es['folds']} blocks of tag positions; stds grown where "
+                         f"the data vary more than the model says: {', '.join(grown) if grown else 'none'}")
     ok_tr, ok_ts = np.isfinite(tr), np.isfinite(ts)
     if ok_tr.any() and ok_ts.any():
         lines.append(
@@ -383,6 +403,17 @@ def _fitted_entries(M: Any, rejected: Any, outliers: Any) -> Any:
         if mask is not None and np.shape(mask) == out.shape:
             out[np.asarray(mask, bool)] = np.nan
     return out
+
+
+def _spans_3d(points: Any) -> bool:
+    """Known positions with affine rank 3 (relative singular value above 1e-6, as known.py's)."""
+    import numpy as np
+
+    P = np.asarray(points, float)
+    if P.ndim != 2 or P.shape[1] != 3 or P.shape[0] < 4:
+        return False
+    sv = np.linalg.svd(P - P.mean(axis=0), compute_uv=False)
+    return bool(sv[-1] > 1e-6 * max(sv[0], 1e-300))
 
 
 def _redim(table: dict[str, tuple[float, ...]], path: Path, d: int) -> dict[str, tuple[float, ...]]:

@@ -13,6 +13,7 @@ line, every rotation) is held at the blind solution's canonical gauge and report
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Sequence
 from dataclasses import replace
 from typing import Any
@@ -52,6 +53,7 @@ def fit_known(
     matrix: Any, result: Any, known: Sequence[KnownNode], *, offsets: str = "none",
     loss: str = "linear", f_scale: float | None = None, noise: float | None = None,
     max_nfev: int | None = None, covariance: bool = True, side: str | None = None,
+    jackknife: bool = True,
 ) -> FramedToaResult:
     """Constrain a calibration by known node positions and express it in their frame.
 
@@ -77,6 +79,20 @@ def fit_known(
     side: "below" | "above": in 3-D, the other nodes lie below / above the plane of coplanar
         known nodes (along the known frame's z): resolves the mirror they leave
         (:func:`selfcal.toa.verdict.known_test.choose_side`); None = the mirror is tested and reported.
+    jackknife: scale each free receiver's covariance by the block jackknife's evidence
+        (:func:`selfcal.toa.verdict.crossval.block_jackknife_scale`: the constrained fit
+        repeated without each of K contiguous column blocks; a receiver's covariance is
+        multiplied by ``max(1, tr(C^-1 V) / d)``, ``V`` the jackknife covariance), so that the
+        stated error bars hold where range errors are serially correlated or depend on the
+        tag's position (measured UWB ranges). With ``offsets="common"`` (per-anchor biases
+        not in the model: the held-out choice did not adopt them) their effect is added as
+        a random effect, which the jackknife cannot see (a bias is the same in every block):
+        per-anchor biases ``b_i ~ N(c, tau^2)``, ``tau^2`` by the method of moments from the
+        per-anchor refit (``(sum (d_i - mean d)^2 - (1 - 1/I) sum var d_i) / (I - 1)``, at
+        least 0; 0 unless the offsets' weighted spread exceeds the chi-square 0.95 quantile
+        with I - 1 dof), their effect on the receivers by the delta method, ``C_i += tau^2 G_i G_i^T``
+        with ``G = d receivers / d b`` of the common-offset fit (finite differences, one refit
+        per receiver). Reported in ``frame.error_scale`` (``bias_tau``, m).
 
     Returns
     -------
@@ -104,7 +120,12 @@ def fit_known(
 
         Ra, Sa = choose_side(Ra, Sa, usable, ref, rank, side)
     # (b) the constrained refit
-    sol, fr, fs = _refit(data, Ra, Sa, usable, fit_kw, covariance)
+    sol, fr, fs, extra = _refit(data, Ra, Sa, usable, fit_kw, covariance)
+    scaled = None
+    if jackknife and covariance:
+        sol, scaled = _jackknife(sol, data.Y[np.ix_(ok_r, ok_s)], dict(
+            offsets=off, common_offsets=common, loss=loss, f_scale=None if f_scale is None else f_scale * c,
+            noise=None if noise is None else noise * c, max_nfev=max_nfev, **extra))
     out = _embed(result, sol, ok_r, ok_s, c, f"{result.method}+known({len(usable)})")
     fitted = np.array([node_positions(out, k.kind)[k.index] for k in usable])
     after = float(np.sqrt(np.mean(np.sum((fitted - ref) ** 2, axis=1))))
@@ -115,14 +136,18 @@ def fit_known(
 
     out, info = judge_known(out, info, result, sol, data, usable, est @ Rm.T + t, Rm, rank, fr, fs, off, noise,
                             mirror_stated=side is not None)
+    if scaled is not None:
+        names = [f"r{i}" for i in np.nonzero(ok_r)[0]]
+        info = dataclasses.replace(info, error_scale=scaled.to_dict(names))
     return FramedToaResult(out, info)
 
 
 def _refit(data: Any, Ra: Array, Sa: Array, usable: Sequence[KnownNode], kw: dict[str, Any], covariance: Any,
-           max_nfev: int | None = None) -> tuple[Any, NDArray[np.bool_], NDArray[np.bool_]]:
+           max_nfev: int | None = None) -> tuple[Any, NDArray[np.bool_], NDArray[np.bool_], dict[str, Any]]:
     """The constrained refit from ``(Ra, Sa)`` in the known frame: exact known coordinates fixed
-    (set to their values), known coordinates with a std Gaussian priors. Returns ``(sol, fixed_r, fixed_s)``
-    ((I, d), (J, d) masks of the fixed coordinates)."""
+    (set to their values), known coordinates with a std Gaussian priors. Returns ``(sol, fixed_r,
+    fixed_s, constraints)`` ((I, d), (J, d) masks of the fixed coordinates; the constraint
+    keywords of :func:`selfcal.toa.engine.nls.refine_toa` on the located nodes)."""
     from ..engine.nls import refine_toa
 
     c, ok_r, ok_s = data.c, data.ok_r, data.ok_s
@@ -157,7 +182,7 @@ def _refit(data: Any, Ra: Array, Sa: Array, usable: Sequence[KnownNode], kw: dic
                      source_offsets0=data.source_offsets, loss=kw["loss"],
                      f_scale=None if f_scale is None else f_scale * c, noise=None if noise is None else noise * c,
                      max_nfev=kw["max_nfev"] if max_nfev is None else max_nfev, covariance=covariance, **extra)
-    return sol, fr, fs
+    return sol, fr, fs, extra
 
 
 #: iterations of the refit from the other handedness (the mirror candidate of partial known coordinates)
@@ -185,7 +210,7 @@ def _fit_partial(result: Any, data: Any, usable: Sequence[KnownNode], dropped: S
     Rm, t, _ = motions[0]
     aligned = est @ Rm.T + t
     axes, n_free = _axes_fixed(aligned, mask)
-    sol, fr, fs = _refit(data, R0 @ Rm.T + t, S0 @ Rm.T + t, usable, kw, covariance)
+    sol, fr, fs, _ = _refit(data, R0 @ Rm.T + t, S0 @ Rm.T + t, usable, kw, covariance)
     other = None
     start = _mirror_start(sol, data, usable, axes, n_free, motions[1])
     if start is not None:
@@ -405,6 +430,79 @@ def _partial_info(usable: Sequence[KnownNode], d: int, axes: tuple[str, ...], n_
     return FrameInfo(kind="known", references=names, rank=len(axes), determined=n_gauge == 0,
                      residual_gauge=n_gauge, mirror_resolved=False, message=msg,
                      known_rms=before, known_rms_fit=after, axes_fixed=axes)
+
+
+def _jackknife(sol: Any, Y: Array, kw: dict[str, Any]) -> tuple[Any, Any]:
+    """``sol`` with its receivers' covariances scaled by the block jackknife, and the scale (or None)."""
+    from ..engine.nls import refine_toa
+    from ..verdict.crossval import block_jackknife_scale
+
+    if sol.receiver_cov is None or sol.residuals is None or not np.isfinite(sol.receiver_cov).all():
+        return sol, None
+    per_source = {"fixed_sources", "source_prior"}
+
+    def cols_of(v: Any, cols: NDArray[np.bool_]) -> Any:
+        return tuple(a[cols] for a in v) if isinstance(v, tuple) else np.asarray(v)[cols]
+
+    def refit(cols: NDArray[np.bool_]) -> Array:
+        fkw = {k: (cols_of(v, cols) if k in per_source else v) for k, v in kw.items()}
+        so = None if sol.source_offsets is None else np.asarray(sol.source_offsets)[cols]
+        return refine_toa(Y[:, cols], sol.receivers, sol.sources[cols], receiver_offsets0=sol.receiver_offsets,
+                          source_offsets0=so, covariance=False, **fkw).receivers
+
+    js = block_jackknife_scale(sol.residuals, sol.receivers, sol.receiver_cov, refit)
+    if js is None:
+        return sol, None
+    cov = sol.receiver_cov * js.scale[:, None, None]
+    if kw.get("offsets") == "receivers" and kw.get("common_offsets") == "receivers":
+        extra = _bias_effect(sol, Y, kw)
+        if extra is not None:
+            tau, add = extra
+            cov = cov + add
+            js = dataclasses.replace(js, bias_tau=tau)
+    return dataclasses.replace(sol, receiver_cov=cov), js
+
+
+_BIAS_ALPHA = 0.05  # level of the test that the per-receiver offsets spread beyond their noise
+_BIAS_STEP = 0.01  # m, the finite-difference step of a row's bias (the fit is linear in it at this scale)
+
+
+def _bias_effect(sol: Any, Y: Array, kw: dict[str, Any]) -> tuple[float, Array] | None:
+    """Random per-receiver biases around the common offset: ``(tau, tau^2 G_i G_i^T per receiver)``.
+
+    ``sol`` is the common-offset fit of ``Y`` (metres) with the fit options ``kw``; None when
+    the per-receiver refit or a shifted refit fails.
+    """
+    from scipy.stats import chi2
+
+    from ..engine.nls import refine_toa
+
+    I = Y.shape[0]
+    base = {k: v for k, v in kw.items() if k not in ("offsets", "common_offsets")}
+    try:
+        full = refine_toa(Y, sol.receivers, sol.sources, offsets="receivers", receiver_offsets0=sol.receiver_offsets,
+                          source_offsets0=sol.source_offsets, covariance=True, **base)
+        d = np.asarray(full.receiver_offsets, float)
+        var = np.asarray(full.receiver_offset_std, float) ** 2
+        if not (np.isfinite(d).all() and np.isfinite(var).all()) or I < 2:
+            return None
+        tau2 = max(0.0, float(np.sum((d - d.mean()) ** 2) - (1 - 1 / I) * np.sum(var)) / (I - 1))
+        # no spread beyond the offsets' own noise (chi-square of their deviations from the
+        # precision-weighted mean, level 0.05): no random effect
+        w = 1.0 / var
+        spread = float(np.sum(w * (d - np.sum(w * d) / np.sum(w)) ** 2))
+        if tau2 == 0.0 or spread <= chi2.ppf(1 - _BIAS_ALPHA, I - 1):
+            return 0.0, np.zeros_like(sol.receiver_cov)
+        G = np.zeros((*sol.receivers.shape, I))
+        for k in range(I):
+            Yk = Y.copy()
+            Yk[k] += _BIAS_STEP
+            sk = refine_toa(Yk, sol.receivers, sol.sources, receiver_offsets0=sol.receiver_offsets,
+                            source_offsets0=sol.source_offsets, covariance=False, **kw)
+            G[:, :, k] = (sk.receivers - sol.receivers) / _BIAS_STEP
+    except (DegenerateGeometryError, np.linalg.LinAlgError, ValueError):
+        return None
+    return float(np.sqrt(tau2)), tau2 * np.einsum("iak,ibk->iab", G, G)
 
 
 def align_known(result: Any, known: Sequence[KnownNode]) -> FramedToaResult:

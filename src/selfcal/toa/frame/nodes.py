@@ -91,6 +91,8 @@ class FrameInfo:
     axes_fixed: the frame axes whose direction and origin the known coordinates fix
         (``("z",)`` when only heights are known: the room's z, horizontal axes canonical);
         None where not computed (kind != "known").
+    error_scale: the block jackknife's scale of the receivers' covariances
+        (:meth:`selfcal.toa.verdict.crossval.JackknifeScale.to_dict`), None when not run.
     """
 
     kind: str
@@ -104,6 +106,7 @@ class FrameInfo:
     known_rms_fit: float | None = None
     known_test: dict[str, Any] | None = None
     axes_fixed: tuple[str, ...] | None = None
+    error_scale: dict[str, Any] | None = None
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-safe dictionary."""

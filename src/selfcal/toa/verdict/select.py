@@ -365,11 +365,14 @@ def choose_offsets(M: Array, dim: int, solve: Solver, **kw: Any) -> tuple[ToaRes
     return fits[chosen], stats
 
 
-def choose_dim(M: Array, offsets: str, solve: Solver, **kw: Any) -> tuple[ToaResult, dict[str, Any]]:
+def choose_dim(M: Array, offsets: str, solve: Solver, *, fit3: ToaResult | None = None,
+               **kw: Any) -> tuple[ToaResult, dict[str, Any]]:
     """3-D unless z is not determined by the data (F test, :func:`compare_fits`, or :func:`planarity`).
 
     Both dimensions are fitted; the F test compares their RSS over the entries both fitted,
     and a 3-D answer must resolve its own thickness. Returns (result, statistics).
+    ``fit3``: the 3-D fit of this model when the caller already searched it
+    (:func:`choose` after :func:`choose_offsets`); it is not searched again.
 
     The 2-D model is nested in the 3-D one (a plane is a 3-D layout of zero thickness), so the
     2-D fit is refined from the 3-D fit projected onto its best plane (one refinement, not a
@@ -377,7 +380,7 @@ def choose_dim(M: Array, offsets: str, solve: Solver, **kw: Any) -> tuple[ToaRes
     data with a resolved thickness a 2-D fit cannot approach the 3-D residual from any
     start. Only when that refinement fails does a full 2-D search run.
     """
-    r3 = _quiet(solve, M, 3, offsets, **kw)
+    r3 = fit3 if fit3 is not None else _quiet(solve, M, 3, offsets, **kw)
     r2 = None
     if r3 is not None:
         r2 = _quiet(solve, M, 2, offsets, init=_projected_init(r3, offsets, kw.get("speed")),
@@ -429,10 +432,14 @@ def choose_dim(M: Array, offsets: str, solve: Solver, **kw: Any) -> tuple[ToaRes
 def choose(M: Array, dim: int | str, offsets: str, *, solve: Solver, **kw: Any) -> ToaResult:
     """``solve_toa`` with ``dim`` and / or ``offsets`` set to "auto": the chosen fit with its statistics."""
     sel: dict[str, Any] = {}
+    fit3 = None
     if offsets == "auto":
         d0 = 3 if dim == "auto" else int(dim)
         res, sel["offsets"] = choose_offsets(M, d0, solve, **kw)
         offsets = res.offsets
+        # the chosen model's 3-D fit, searched (its refinement alone is searched again)
+        searched = res.offsets == "none" or "searched" in sel["offsets"]
+        fit3 = res if d0 == 3 and searched else None
     if dim == "auto":
-        res, sel["dim"] = choose_dim(M, offsets, solve, **kw)
+        res, sel["dim"] = choose_dim(M, offsets, solve, fit3=fit3, **kw)
     return dataclasses.replace(res, selection=sel)
