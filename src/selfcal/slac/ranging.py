@@ -164,14 +164,16 @@ class _Pass:
 
 def _forward(ch: _Chain, log: RangeLog, cfg: RangeModelConfig, noise: float, *, ref: FArray | None,
              weights: FArray | None, store: bool, progress: bool, var: FArray | None = None,
-             adapt: bool = False, noise_seq: FArray | None = None, odo_scale: bool = False) -> _Pass:
+             adapt: bool = False, noise_seq: FArray | None = None, odo_scale: bool = False,
+             scale_cov: FArray | None = None) -> _Pass:
     """One Kalman pass; ``ref`` None = EKF about the running estimate (gate + Huber on the
     innovations), else linearised about ``ref`` (N, D) with the given range ``weights`` (0 = out).
 
     ``odo_scale`` (causal filter only): one more state, the odometry's distance scale ``k``
     (``dd_true = k dd``, prior N(1, ODO_SCALE_STD^2)), the last entry of the state vector. With
     ``ref`` None, a beacon with ``RECOVER_M`` of its last ``RECOVER_N`` ranges gated has its
-    calibration re-initialised (see :data:`RECOVER_M`)."""
+    calibration re-initialised (see :data:`RECOVER_M`). ``scale_cov`` (B, B): the prior
+    covariance of the scales (default ``scale_std^2 I``; the smoother's empirical-Bayes prior)."""
     B = log.beacons.shape[0]
     D = 3 + 2 * B + (1 if odo_scale else 0)
     N = ch.times.size
@@ -180,6 +182,8 @@ def _forward(ch: _Chain, log: RangeLog, cfg: RangeModelConfig, noise: float, *, 
     prior_var = np.concatenate([[cfg.init_position_std**2] * 2, [cfg.init_heading_std**2], [cfg.scale_std**2] * B,
                                 [cfg.offset_std**2] * B, [ODO_SCALE_STD**2] if odo_scale else []])
     P = np.diag(prior_var)
+    if scale_cov is not None:
+        P[3 : 3 + B, 3 : 3 + B] = scale_cov
     gated_hist = np.zeros((B, RECOVER_N), dtype=bool)  # ring buffer of each beacon's last gate decisions
     n_seen = np.zeros(B, dtype=np.int64)
     resets = 0
@@ -406,6 +410,116 @@ def _refit_calibration(x: FArray, ch: _Chain, log: RangeLog, cfg: RangeModelConf
     return out
 
 
+@dataclass
+class _Smoothed:
+    ms: FArray  # (N, D) smoothed means
+    Ps: FArray  # (N, D, D) smoothed covariances
+    weights: FArray  # (K,) final range weights (0 = gated)
+    sigma: float  # range noise std
+    var: FArray  # (N, 2) odometry variances
+    lam: FArray  # (2,) EM factors applied to ``var``
+    iterations: int
+    converged: bool
+
+
+def _smooth(ch: _Chain, log: RangeLog, cfg: RangeModelConfig, ref: FArray, sigma: float, var: FArray,
+            scale_cov: FArray | None, progress: bool) -> _Smoothed:
+    """The iterated extended Kalman smoother from the reference trajectory ``ref`` (N, D), with
+    the noise levels (range ``sigma``, odometry ``var``) by expectation-maximisation.
+
+    ECM: each round a Gauss-Newton solve at fixed noise, then the range noise re-estimated from
+    the residuals (robust median estimator) and the two odometry variance factors by EM
+    (:func:`~selfcal.slac.odometry_em.odometry_noise_factors`); the given levels are only the start.
+    """
+    K = ch.r_value.size
+    gate2 = float(stats.chi2.ppf(cfg.gate_quantile, 1)) if cfg.gate_quantile < 1 else np.inf
+    weights = np.ones(K)
+    lam = np.ones(2)
+    iterations, status = 0, 1
+    ms, Ps = ref, np.zeros((0, 0, 0))
+    for rnd in range(cfg.noise_rounds + 1 if cfg.estimate_noise else 1):
+        status = 1
+        for _ in range(cfg.max_iter):
+            e = _residuals(ref, ch, log) / sigma
+            weights = np.where(e**2 > gate2, 0.0, huber_weight(e, cfg.huber))
+            ps = _forward(ch, log, cfg, sigma, ref=ref, weights=weights, store=True, progress=progress, var=var,
+                          scale_cov=scale_cov)
+            ms, Ps, Xs = _rts(ps)
+            iterations += 1
+            step = np.max(np.abs(ms[:, :3] - ref[:, :3]))
+            ref = ms
+            if step < cfg.tol:
+                status = 0
+                break
+        if rnd == cfg.noise_rounds or not cfg.estimate_noise:
+            break
+        s_res = _noise_from_innovations(_residuals(ref, ch, log), np.zeros(K))
+        f_d, f_p = odometry_noise_factors(ms[:, :3], Ps[:, :3, :3], Xs, ch.inc, var)
+        f = np.array([f_d, f_p])
+        f = np.where(np.isfinite(f) & (f > 0), f, 1.0)
+        ds = 0.0
+        if np.isfinite(s_res) and s_res > 0:
+            ds = abs(np.log(s_res / sigma))
+            sigma = s_res
+        var = var * f[None, :]
+        lam *= f
+        if max(ds, float(np.max(np.abs(np.log(f))))) < cfg.noise_tol:
+            break
+    return _Smoothed(ms=ms, Ps=Ps, weights=weights, sigma=float(sigma), var=var, lam=lam, iterations=iterations,
+                     converged=status == 0)
+
+
+#: Smallest prior std of the scales the empirical-Bayes step returns (common and per-beacon
+#: part): 1e-4 is 2 mm at 20 m, a hundredth of decimetre ranging noise and ~20x below the
+#: scale std one log's ranges give (0.001-0.003), so a scale at this prior is fixed in all
+#: but name, while the smoother's gain solves stay well conditioned.
+SCALE_PRIOR_FLOOR = 1e-4
+
+
+def _scale_prior_eb(s_hat: FArray, V: FArray, scale_std: float) -> tuple[FArray, FArray]:
+    """Empirical-Bayes prior of the scales: ``s ~ N(1, a^2 11^T + tau^2 I)`` with the common
+    part ``a`` and the per-beacon part ``tau`` at their type-II maximum likelihood.
+
+    ``s_hat`` (B,), ``V`` (B, B): the scales' posterior mean and covariance under the fixed
+    prior ``N(1, scale_std^2 I)`` (Laplace, marginal over poses and offsets). The data's
+    information about ``delta = s - 1`` is Gaussian with precision ``L = V^-1 - I / scale_std^2``
+    and information vector ``g = V^-1 (s_hat - 1)``; the evidence of a prior covariance S is
+    ``log Z(S) = -1/2 log det(I + S L) + 1/2 g^T S (I + L S)^-1 g`` (the Gaussian integral,
+    valid for singular S). It is maximised over ``log a, log tau`` in
+    ``[log SCALE_PRIOR_FLOOR, 0]`` (a coarse grid, then L-BFGS-B). Returns S (B, B) and
+    ``[a, tau]``.
+
+    Exact scales drive both parts to the floor (the offset-only model); one clock or
+    propagation-speed error shared by all beacons gives a large ``a`` and a small ``tau`` (one
+    scale, pooled); independent per-beacon errors a large ``tau``. The estimate uses the log
+    twice (empirical Bayes): 2 hyper-parameters against B scales.
+    """
+    from scipy.optimize import minimize
+
+    B = s_hat.size
+    Vi = np.linalg.inv(V)
+    L = Vi - np.eye(B) / scale_std**2
+    w, U = np.linalg.eigh(0.5 * (L + L.T))
+    L = (U * np.maximum(w, 0.0)) @ U.T
+    g = Vi @ (s_hat - 1.0)
+    one = np.ones((B, B))
+    eye = np.eye(B)
+
+    def neg_log_z(th: FArray) -> float:
+        S = np.exp(2 * th[0]) * one + np.exp(2 * th[1]) * eye
+        M = eye + L @ S
+        sign, logdet = np.linalg.slogdet(M)
+        return float(0.5 * logdet - 0.5 * g @ (S @ np.linalg.solve(M, g)))
+
+    lo = np.log(SCALE_PRIOR_FLOOR)
+    grid = np.linspace(lo, 0.0, 13)
+    th0 = min(((x, y) for x in grid for y in grid), key=lambda t: neg_log_z(np.array(t)))
+    sol = minimize(neg_log_z, np.array(th0), method="L-BFGS-B", bounds=[(lo, 0.0)] * 2)
+    th = sol.x if sol.fun <= neg_log_z(np.array(th0)) else np.array(th0)
+    a, tau = np.exp(th)
+    return a**2 * one + tau**2 * eye, np.array([a, tau])
+
+
 @entry(log=has_attributes("beacons", "odo", "ranges", "range_times", "range_beacon",
                           what="RangeLog (or PlazaData)"), method="str", progress="bool")
 def solve_range_slac(log: RangeLog | Any, *, method: str = "smoother", config: RangeModelConfig | None = None,
@@ -508,6 +622,7 @@ def solve_range_slac(log: RangeLog | Any, *, method: str = "smoother", config: R
     iterations, status = 1, 0
     lam = np.ones(2)
     scale_weight = 0.0
+    scale_prior_std = np.array([0.0, cfg.scale_std])
     tests: dict[str, float] = {}
     if method == "filter":
         # multiple-model mixture with the causal weights p(model | ranges up to node n)
@@ -542,44 +657,21 @@ def solve_range_slac(log: RangeLog | Any, *, method: str = "smoother", config: R
     else:
         sigma = sigma_hat if (cfg.estimate_noise and np.isfinite(sigma_hat) and sigma_hat > 0) else cfg.range_noise
         var = np.column_stack([cfg.odo_distance**2 * z_d, g_best**2 * (cfg.odo_turn**2 * z_t + cfg.odo_drift**2 * z_d)])
-        ref = _refit_calibration(fw.mf, ch, log, cfg, sigma)
-        weights = np.ones(K)
-        status = 1
-        iterations = 0
-        ms, Ps = ref, fw.Pf
-        # noise levels by expectation-maximisation at the smoother's solution (ECM: each round
-        # a Gauss-Newton solve at fixed noise, then the range noise re-estimated from the
-        # residuals (robust median estimator) and the two odometry variance factors by EM,
-        # odometry_em): the grid's factor and the prior densities are only the start
-        for rnd in range(cfg.noise_rounds + 1 if cfg.estimate_noise else 1):
-            status = 1
-            for _ in range(cfg.max_iter):
-                e = _residuals(ref, ch, log) / sigma
-                weights = np.where(e**2 > gate2, 0.0, huber_weight(e, cfg.huber))
-                ps = _forward(ch, log, cfg, sigma, ref=ref, weights=weights, store=True, progress=progress, var=var)
-                ms, Ps, Xs = _rts(ps)
-                iterations += 1
-                step = np.max(np.abs(ms[:, :3] - ref[:, :3]))
-                ref = ms
-                if step < cfg.tol:
-                    status = 0
-                    break
-            if rnd == cfg.noise_rounds or not cfg.estimate_noise:
-                break
-            s_res = _noise_from_innovations(_residuals(ref, ch, log), np.zeros(K))
-            f_d, f_p = odometry_noise_factors(ms[:, :3], Ps[:, :3, :3], Xs, ch.inc, var)
-            f = np.array([f_d, f_p])
-            f = np.where(np.isfinite(f) & (f > 0), f, 1.0)
-            ds = 0.0
-            if np.isfinite(s_res) and s_res > 0:
-                ds = abs(np.log(s_res / sigma))
-                sigma = sigma_hat = s_res
-            var = var * f[None, :]
-            lam *= f
-            if max(ds, float(np.max(np.abs(np.log(f))))) < cfg.noise_tol:
-                break
-        x_nodes, P_nodes = ms, Ps
-        cal_x, cal_P = ms[0], Ps[0]
+        sm = _smooth(ch, log, cfg, _refit_calibration(fw.mf, ch, log, cfg, sigma), sigma, var, None, progress)
+        if cfg.scale_prior == "empirical" and K:
+            # empirical Bayes (type-II maximum likelihood) of the scales' prior from the data's
+            # own information about them, then the MAP again under that prior (_scale_prior_eb)
+            scale_cov, scale_prior_std = _scale_prior_eb(sm.ms[0, 3 : 3 + B], sm.Ps[0, 3 : 3 + B, 3 : 3 + B],
+                                                         cfg.scale_std)
+            first = sm
+            sm = _smooth(ch, log, cfg, first.ms, first.sigma, first.var, scale_cov, progress)
+            sm.iterations += first.iterations
+            sm.lam *= first.lam
+        if sm.sigma != sigma:
+            sigma_hat = sm.sigma
+        lam, iterations, status, weights = sm.lam, sm.iterations, 0 if sm.converged else 1, sm.weights
+        x_nodes, P_nodes = sm.ms, sm.Ps
+        cal_x, cal_P = sm.ms[0], sm.Ps[0]
         used = int((weights > 0).sum())
         rejected = int((weights == 0).sum())
     sd_nodes = np.sqrt(np.maximum(np.diagonal(P_nodes, axis1=1, axis2=2), 0.0))
@@ -599,7 +691,7 @@ def solve_range_slac(log: RangeLog | Any, *, method: str = "smoother", config: R
         calibration_cov=np.array([cal_P[np.ix_([3 + b, 3 + B + b], [3 + b, 3 + B + b])] for b in range(B)]),
         odometry_scale=float(cal_x[-1]) if method == "filter" else 1.0,
         odometry_scale_std=float(cal_sd[-1]) if method == "filter" else 0.0,
-        odometry_scale_weight=scale_weight, innovation_test=tests, calibration_resets=int(fw.resets),
+        odometry_scale_weight=scale_weight, scale_prior_std=scale_prior_std, innovation_test=tests, calibration_resets=int(fw.resets),
     )
     if method == "filter" and not res.success:
         warnings.warn(f"solve_range_slac: {res.message}", ConvergenceWarning, stacklevel=2)
