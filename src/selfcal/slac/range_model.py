@@ -240,7 +240,12 @@ class RangeSlacResult(Result):
     odometry_scale, odometry_scale_std : float; odometry_scale_weight : float
         Filter: the estimated distance scale of the odometry (``dd_true = k dd``) mixed over
         the candidates, its std, and the mixture weight of the candidates that estimate it
-        (the rest take it as exactly 1); smoother: 1, 0, 0.
+        (the rest take it as exactly 1). Smoother with ``scale_prior="empirical"``: its
+        estimate and std under the empirical-Bayes prior N(1, ``odometry_scale_prior_std^2``)
+        (weight 0); with ``"fixed"``: 1, 0, 0 (no such state).
+    odometry_scale_prior_std : float
+        The prior std of ``k`` used (filter 0.05; smoother: its type-II ML estimate, 1.4e-4 at
+        the floor = no odometry scale error; 0 with the fixed prior).
     innovation_test : dict
         Filter: :func:`selfcal.slac.consistency.innovation_tests` on the innovations of the candidate of largest
         weight (NIS level and whiteness); a failure sets ``status`` to ``FAILED_TEST`` and
@@ -284,6 +289,7 @@ class RangeSlacResult(Result):
     innovation_test: dict[str, float] = field(default_factory=dict)
     calibration_resets: int = 0
     scale_prior_std: FArray = field(default_factory=lambda: np.array([0.0, 0.1]))
+    odometry_scale_prior_std: float = 0.0
 
     def _diagnose(self) -> tuple[Status, str]:
         if not self.converged:

@@ -165,7 +165,7 @@ class _Pass:
 def _forward(ch: _Chain, log: RangeLog, cfg: RangeModelConfig, noise: float, *, ref: FArray | None,
              weights: FArray | None, store: bool, progress: bool, var: FArray | None = None,
              adapt: bool = False, noise_seq: FArray | None = None, odo_scale: bool = False,
-             scale_cov: FArray | None = None) -> _Pass:
+             scale_cov: FArray | None = None, odo_scale_std: float = ODO_SCALE_STD) -> _Pass:
     """One Kalman pass; ``ref`` None = EKF about the running estimate (gate + Huber on the
     innovations), else linearised about ``ref`` (N, D) with the given range ``weights`` (0 = out).
 
@@ -173,14 +173,15 @@ def _forward(ch: _Chain, log: RangeLog, cfg: RangeModelConfig, noise: float, *, 
     (``dd_true = k dd``, prior N(1, ODO_SCALE_STD^2)), the last entry of the state vector. With
     ``ref`` None, a beacon with ``RECOVER_M`` of its last ``RECOVER_N`` ranges gated has its
     calibration re-initialised (see :data:`RECOVER_M`). ``scale_cov`` (B, B): the prior
-    covariance of the scales (default ``scale_std^2 I``; the smoother's empirical-Bayes prior)."""
+    covariance of the scales (default ``scale_std^2 I``; the smoother's empirical-Bayes prior);
+    ``odo_scale_std`` the prior std of ``k``."""
     B = log.beacons.shape[0]
     D = 3 + 2 * B + (1 if odo_scale else 0)
     N = ch.times.size
     K = ch.r_value.size
     m = np.concatenate([log.start_pose, np.ones(B), np.zeros(B), [1.0] if odo_scale else []])
     prior_var = np.concatenate([[cfg.init_position_std**2] * 2, [cfg.init_heading_std**2], [cfg.scale_std**2] * B,
-                                [cfg.offset_std**2] * B, [ODO_SCALE_STD**2] if odo_scale else []])
+                                [cfg.offset_std**2] * B, [odo_scale_std**2] if odo_scale else []])
     P = np.diag(prior_var)
     if scale_cov is not None:
         P[3 : 3 + B, 3 : 3 + B] = scale_cov
@@ -191,7 +192,7 @@ def _forward(ch: _Chain, log: RangeLog, cfg: RangeModelConfig, noise: float, *, 
     Pf = np.empty((N, D, D))
     mp = np.empty((N, D)) if store else None
     Pp = np.empty((N, D, D)) if store else None
-    Fs = np.empty((N, 3, 3)) if store else None
+    Fs = np.zeros((N, 3, D)) if store else None  # pose rows of the transition A (the rest is I)
     innov = np.zeros(K)
     innov_var0 = np.zeros(K)
     noise_used = np.zeros(K)
@@ -213,8 +214,10 @@ def _forward(ch: _Chain, log: RangeLog, cfg: RangeModelConfig, noise: float, *, 
         if n > 0:
             lin = m[:3] if ref is None else ref[n - 1, :3]
             u = ch.inc[n]
-            if odo_scale:
-                u = np.array([m[-1] * u[0], u[1]])
+            kl = 1.0
+            if odo_scale:  # the odometry scale at the linearisation point (EKF: the estimate)
+                kl = float(m[-1] if ref is None else ref[n - 1, -1])
+                u = np.array([kl * u[0], u[1]])
             xn, F, G = _motion(lin, u)
             m = m.copy()
             m[:3] = xn + F @ (m[:3] - lin)
@@ -223,6 +226,7 @@ def _forward(ch: _Chain, log: RangeLog, cfg: RangeModelConfig, noise: float, *, 
                 J = np.zeros((3, D))
                 J[:, :3] = F
                 J[:2, -1] = ch.inc[n, 0] * np.array([np.cos(lin[2]), np.sin(lin[2])])
+                m[:3] += J[:, -1] * (m[-1] - kl)
                 P[:3] = J @ P
                 P[:, :3] = P @ J.T
             else:
@@ -232,7 +236,9 @@ def _forward(ch: _Chain, log: RangeLog, cfg: RangeModelConfig, noise: float, *, 
             if store:
                 mp[n] = m  # type: ignore[index]
                 Pp[n] = P  # type: ignore[index]
-                Fs[n] = F  # type: ignore[index]
+                Fs[n, :, :3] = F  # type: ignore[index]
+                if odo_scale:
+                    Fs[n, :, -1] = J[:, -1]  # type: ignore[index]
         for k in range(ch.r_start[n], ch.r_start[n + 1]):
             b = ch.r_beacon[k]
             xl = m if ref is None else ref[n]
@@ -316,7 +322,7 @@ def _rts(ps: _Pass) -> tuple[FArray, FArray, FArray]:
     X = np.zeros((N, 3, 3))
     for n in range(N - 2, -1, -1):
         AP = ps.Pf[n].copy()
-        AP[:3] = ps.F[n + 1] @ AP[:3]  # A P_f with A = blockdiag(F, I)
+        AP[:3] = ps.F[n + 1] @ ps.Pf[n]  # A P_f (A: pose rows F, odometry-scale column g; identity elsewhere)
         C = np.linalg.solve(ps.Pp[n + 1], AP).T
         ms[n] = ps.mf[n] + C @ (ms[n + 1] - ps.mp[n + 1])
         Ps[n] = ps.Pf[n] + C @ (Ps[n + 1] - ps.Pp[n + 1]) @ C.T
@@ -336,7 +342,7 @@ def _fixed_lag(ps: _Pass, times: FArray, lag_s: float) -> tuple[FArray, FArray]:
     gains = np.empty((max(N - 1, 0),) + ps.Pf.shape[1:])
     for n in range(N - 1):
         AP = ps.Pf[n].copy()
-        AP[:3] = ps.F[n + 1] @ AP[:3]  # A P_f with A = blockdiag(F, I)
+        AP[:3] = ps.F[n + 1] @ ps.Pf[n]  # A P_f
         gains[n] = np.linalg.solve(ps.Pp[n + 1], AP).T
     end = np.searchsorted(times, times + lag_s, side="right") - 1
     ms = np.empty_like(ps.mf)
@@ -423,9 +429,11 @@ class _Smoothed:
 
 
 def _smooth(ch: _Chain, log: RangeLog, cfg: RangeModelConfig, ref: FArray, sigma: float, var: FArray,
-            scale_cov: FArray | None, progress: bool) -> _Smoothed:
+            scale_cov: FArray | None, odo_scale_std: float | None, progress: bool) -> _Smoothed:
     """The iterated extended Kalman smoother from the reference trajectory ``ref`` (N, D), with
     the noise levels (range ``sigma``, odometry ``var``) by expectation-maximisation.
+    ``odo_scale_std`` not None: the last state is the odometry distance scale ``k`` with
+    prior N(1, odo_scale_std^2) (``ref`` has its column).
 
     ECM: each round a Gauss-Newton solve at fixed noise, then the range noise re-estimated from
     the residuals (robust median estimator) and the two odometry variance factors by EM
@@ -443,7 +451,8 @@ def _smooth(ch: _Chain, log: RangeLog, cfg: RangeModelConfig, ref: FArray, sigma
             e = _residuals(ref, ch, log) / sigma
             weights = np.where(e**2 > gate2, 0.0, huber_weight(e, cfg.huber))
             ps = _forward(ch, log, cfg, sigma, ref=ref, weights=weights, store=True, progress=progress, var=var,
-                          scale_cov=scale_cov)
+                          scale_cov=scale_cov, odo_scale=odo_scale_std is not None,
+                          odo_scale_std=ODO_SCALE_STD if odo_scale_std is None else odo_scale_std)
             ms, Ps, Xs = _rts(ps)
             iterations += 1
             step = np.max(np.abs(ms[:, :3] - ref[:, :3]))
@@ -454,7 +463,9 @@ def _smooth(ch: _Chain, log: RangeLog, cfg: RangeModelConfig, ref: FArray, sigma
         if rnd == cfg.noise_rounds or not cfg.estimate_noise:
             break
         s_res = _noise_from_innovations(_residuals(ref, ch, log), np.zeros(K))
-        f_d, f_p = odometry_noise_factors(ms[:, :3], Ps[:, :3, :3], Xs, ch.inc, var)
+        # the increments as the model drives them (times the odometry scale, when estimated)
+        inc = ch.inc * np.array([ms[0, -1] if odo_scale_std is not None else 1.0, 1.0])
+        f_d, f_p = odometry_noise_factors(ms[:, :3], Ps[:, :3, :3], Xs, inc, var)
         f = np.array([f_d, f_p])
         f = np.where(np.isfinite(f) & (f > 0), f, 1.0)
         ds = 0.0
@@ -623,6 +634,8 @@ def solve_range_slac(log: RangeLog | Any, *, method: str = "smoother", config: R
     lam = np.ones(2)
     scale_weight = 0.0
     scale_prior_std = np.array([0.0, cfg.scale_std])
+    odo_prior = ODO_SCALE_STD if method == "filter" else 0.0
+    smoother_k = False
     tests: dict[str, float] = {}
     if method == "filter":
         # multiple-model mixture with the causal weights p(model | ranges up to node n)
@@ -657,16 +670,28 @@ def solve_range_slac(log: RangeLog | Any, *, method: str = "smoother", config: R
     else:
         sigma = sigma_hat if (cfg.estimate_noise and np.isfinite(sigma_hat) and sigma_hat > 0) else cfg.range_noise
         var = np.column_stack([cfg.odo_distance**2 * z_d, g_best**2 * (cfg.odo_turn**2 * z_t + cfg.odo_drift**2 * z_d)])
-        sm = _smooth(ch, log, cfg, _refit_calibration(fw.mf, ch, log, cfg, sigma), sigma, var, None, progress)
+        ref0 = _refit_calibration(fw.mf, ch, log, cfg, sigma)
         if cfg.scale_prior == "empirical" and K:
-            # empirical Bayes (type-II maximum likelihood) of the scales' prior from the data's
-            # own information about them, then the MAP again under that prior (_scale_prior_eb)
-            scale_cov, scale_prior_std = _scale_prior_eb(sm.ms[0, 3 : 3 + B], sm.Ps[0, 3 : 3 + B, 3 : 3 + B],
+            # empirical Bayes (type-II maximum likelihood) of the priors of the range scales and
+            # of the odometry distance scale k from the data's own information about them (a
+            # first solve under the wide fixed priors), then the MAP again under those priors
+            # (_scale_prior_eb): a scale error the data do not show shrinks to none
+            first = _smooth(ch, log, cfg, np.column_stack([ref0, np.ones(ref0.shape[0])]), sigma, var, None,
+                            ODO_SCALE_STD, progress)
+            scale_cov, scale_prior_std = _scale_prior_eb(first.ms[0, 3 : 3 + B], first.Ps[0, 3 : 3 + B, 3 : 3 + B],
                                                          cfg.scale_std)
-            first = sm
-            sm = _smooth(ch, log, cfg, first.ms, first.sigma, first.var, scale_cov, progress)
+            # a beacon without ranges keeps the fixed prior (nothing learnt about it)
+            silent = np.bincount(ch.r_beacon, minlength=B) == 0
+            scale_cov[silent, :] = 0.0
+            scale_cov[:, silent] = 0.0
+            scale_cov[silent, silent] = cfg.scale_std**2
+            odo_prior = float(np.sqrt(_scale_prior_eb(first.ms[0, -1:], first.Ps[0, -1:, -1:], ODO_SCALE_STD)[0][0, 0]))
+            sm = _smooth(ch, log, cfg, first.ms, first.sigma, first.var, scale_cov, odo_prior, progress)
             sm.iterations += first.iterations
             sm.lam *= first.lam
+            smoother_k = True
+        else:
+            sm = _smooth(ch, log, cfg, ref0, sigma, var, None, None, progress)
         if sm.sigma != sigma:
             sigma_hat = sm.sigma
         lam, iterations, status, weights = sm.lam, sm.iterations, 0 if sm.converged else 1, sm.weights
@@ -689,8 +714,9 @@ def solve_range_slac(log: RangeLog | Any, *, method: str = "smoother", config: R
         ranges_used=used, ranges_rejected=rejected, ranges_outside=ch.outside, iterations=iterations,
         converged=status == 0, pose_cov=P_nodes[pn, :2, :2].copy(),
         calibration_cov=np.array([cal_P[np.ix_([3 + b, 3 + B + b], [3 + b, 3 + B + b])] for b in range(B)]),
-        odometry_scale=float(cal_x[-1]) if method == "filter" else 1.0,
-        odometry_scale_std=float(cal_sd[-1]) if method == "filter" else 0.0,
+        odometry_scale=float(cal_x[-1]) if method == "filter" or smoother_k else 1.0,
+        odometry_scale_std=float(cal_sd[-1]) if method == "filter" or smoother_k else 0.0,
+        odometry_scale_prior_std=float(odo_prior),
         odometry_scale_weight=scale_weight, scale_prior_std=scale_prior_std, innovation_test=tests, calibration_resets=int(fw.resets),
     )
     if method == "filter" and not res.success:
