@@ -497,8 +497,8 @@ def _scale_prior_eb(s_hat: FArray, V: FArray, scale_std: float) -> tuple[FArray,
     and information vector ``g = V^-1 (s_hat - 1)``; the evidence of a prior covariance S is
     ``log Z(S) = -1/2 log det(I + S L) + 1/2 g^T S (I + L S)^-1 g`` (the Gaussian integral,
     valid for singular S). It is maximised over ``log a, log tau`` in
-    ``[log SCALE_PRIOR_FLOOR, 0]`` (a coarse grid, then L-BFGS-B). Returns S (B, B) and
-    ``[a, tau]``.
+    ``[log SCALE_PRIOR_FLOOR, 0]`` (a coarse grid, then L-BFGS-B; a flat evidence keeps the
+    given prior). Returns S (B, B) and ``[a, tau]``.
 
     Exact scales drive both parts to the floor (the offset-only model); one clock or
     propagation-speed error shared by all beacons gives a large ``a`` and a small ``tau`` (one
@@ -524,7 +524,10 @@ def _scale_prior_eb(s_hat: FArray, V: FArray, scale_std: float) -> tuple[FArray,
 
     lo = np.log(SCALE_PRIOR_FLOOR)
     grid = np.linspace(lo, 0.0, 13)
-    th0 = min(((x, y) for x in grid for y in grid), key=lambda t: neg_log_z(np.array(t)))
+    # the given prior (a = floor, tau = scale_std) first: where the data carry no information
+    # about the scales the evidence is flat and the tie keeps the physics prior
+    cands = [(lo, float(np.log(scale_std)))] + [(x, y) for x in grid for y in grid]
+    th0 = min(cands, key=lambda t: neg_log_z(np.array(t)))
     sol = minimize(neg_log_z, np.array(th0), method="L-BFGS-B", bounds=[(lo, 0.0)] * 2)
     th = sol.x if sol.fun <= neg_log_z(np.array(th0)) else np.array(th0)
     a, tau = np.exp(th)
