@@ -22,7 +22,12 @@ from scipy.io import savemat
 from scipy.stats import multivariate_normal
 
 from selfcal.datasets.plaza import load_plaza
-from selfcal.slac.ranging import SCALE_PRIOR_FLOOR, RangeModelConfig, _scale_prior_eb, solve_range_slac
+from selfcal.slac.ranging import (
+    SCALE_PRIOR_FLOOR,
+    RangeModelConfig,
+    _scale_prior_eb,
+    solve_range_slac,
+)
 from tests.datasets.cmu_logs import cmu_log
 
 
