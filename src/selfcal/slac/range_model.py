@@ -55,6 +55,9 @@ class RangeModelConfig:
         Odometry distance noise density (m^0.5): ``var(dd) = odo_distance^2 |dd|``, a random
         walk in the distance travelled (wheel slip / radius errors of a few percent: 5 % of
         one metre). Variances are additive over pieces, so splitting a row does not change them.
+        A wheel-only bound: the smoother multiplies it by the factor of
+        :data:`selfcal.slac.ranging.DISTANCE_NOISE_GRID` (1, 0.3, 0.1) of largest predictive
+        likelihood, as it chooses the heading factor.
     odo_turn : float
         Heading noise per turned angle (rad^0.5): ``var(dpsi) += odo_turn^2 |dpsi|`` (5 %).
     odo_drift : float
@@ -233,9 +236,10 @@ class RangeSlacResult(Result):
     iterations : int (smoother Gauss-Newton iterations; 1 for the filter); converged : bool.
     pose_cov : (P, 2, 2) position covariance of each pose (m^2; the 95 % ellipse is
         ``e^T C^-1 e <= chi2_2(0.95)``); not in ``to_dict`` (use ``pose_std`` there).
-    odometry_noise_factor : (2,) the smoother's EM factors on the distance and heading noise
-        variances (1, 1 for the filter); ``heading_noise_factor`` already includes the square
-        root of the second.
+    odometry_noise_factor : (2,) the smoother's factors on the distance and heading noise
+        variances (1, 1 for the filter): the first is the square of the distance-grid factor
+        times EM's, the second EM's; ``heading_noise_factor`` already includes the square root
+        of the second.
     calibration_cov : (B, 2, 2) covariance of each beacon's (scale, offset) at the end.
     odometry_scale, odometry_scale_std : float; odometry_scale_weight : float
         Filter: the estimated distance scale of the odometry (``dd_true = k dd``) mixed over
@@ -244,8 +248,9 @@ class RangeSlacResult(Result):
         estimate and std under the empirical-Bayes prior N(1, ``odometry_scale_prior_std^2``)
         (weight 0); with ``"fixed"``: 1, 0, 0 (no such state).
     odometry_scale_prior_std : float
-        The prior std of ``k`` used (filter 0.05; smoother: its type-II ML estimate, 1.4e-4 at
-        the floor = no odometry scale error; 0 with the fixed prior).
+        The prior std of ``k`` used (filter 0.05; smoother: 0.05 when the Bayes factor of
+        ``k ~ N(1, 0.05^2)`` against ``k = 1`` keeps it, else 1e-4 = no odometry scale error;
+        0 with the fixed prior).
     innovation_test : dict
         Filter: :func:`selfcal.slac.consistency.innovation_tests` on the innovations of the candidate of largest
         weight (NIS level and whiteness); a failure sets ``status`` to ``FAILED_TEST`` and
