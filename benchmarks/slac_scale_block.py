@@ -4,8 +4,9 @@ Simulated CMU-style logs (tests/datasets/cmu_logs.py, 150 s) under several fault
 by the smoother with three scale models (``RangeModelConfig``):
 
 * ``empirical`` (default): the scales' prior ``N(1, a^2 11^T + tau^2 I)`` estimated from the
-  log by type-II maximum likelihood (empirical Bayes), then the MAP under it;
-* ``fixed 0.1``: the fixed prior ``N(1, 0.1^2 I)`` (the previous default);
+  log by type-II maximum likelihood (empirical Bayes), an odometry distance scale kept by its
+  Bayes factor, then the MAP under these priors;
+* ``fixed 0.1``: the fixed prior ``N(1, 0.1^2 I)``, no odometry scale (the previous scale model);
 * ``offset only``: ``scale_std=1e-4`` with the fixed prior (the scales held at 1).
 
 Prints, per case, the mean / median / worst position RMSE (m) over the seeds and the median of
