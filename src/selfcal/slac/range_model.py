@@ -39,6 +39,15 @@ class RangeModelConfig:
         Prior std of each scale ``s_b`` around 1. Clock-rate mismatch, propagation-speed and
         calibration errors of time-of-flight radios give scale errors of a few percent;
         0.1 keeps the prior weak over that range (a 7 % error is 0.7 sigma).
+    scale_prior : str
+        The smoother's prior of the scales: ``"empirical"`` (default) estimates it from the
+        log (empirical Bayes: ``s ~ N(1, a^2 11^T + tau^2 I)``, a part ``a`` common to all
+        beacons and a per-beacon part ``tau``, both at their type-II maximum likelihood given
+        the data's Laplace information about the scales under the ``scale_std`` prior; then
+        the MAP again under that prior). Exact scales shrink to 1 (the offset-only model), one
+        shared scale error is fitted as one scale, independent errors per beacon. ``"fixed"``:
+        ``N(1, scale_std^2 I)`` as given. The filter and the fixed-lag smoother always use the
+        fixed prior (they are causal; the estimate needs the whole log).
     offset_std : float
         Prior std (m) of each offset ``o_b`` around 0: antenna / electronics delays of
         ranging radios are up to about a metre.
@@ -46,6 +55,9 @@ class RangeModelConfig:
         Odometry distance noise density (m^0.5): ``var(dd) = odo_distance^2 |dd|``, a random
         walk in the distance travelled (wheel slip / radius errors of a few percent: 5 % of
         one metre). Variances are additive over pieces, so splitting a row does not change them.
+        A wheel-only bound: the smoother multiplies it by the factor of
+        :data:`selfcal.slac.ranging.DISTANCE_NOISE_GRID` (1, 0.3, 0.1) of largest predictive
+        likelihood, as it chooses the heading factor.
     odo_turn : float
         Heading noise per turned angle (rad^0.5): ``var(dpsi) += odo_turn^2 |dpsi|`` (5 %).
     odo_drift : float
@@ -96,6 +108,7 @@ class RangeModelConfig:
 
     range_noise: float = 0.3
     scale_std: float = 0.1
+    scale_prior: str = "empirical"
     offset_std: float = 1.0
     odo_distance: float = 0.05
     odo_turn: float = 0.05
@@ -136,6 +149,8 @@ class RangeModelConfig:
                 raise InputError(f"RangeModelConfig.{name} must be an integer >= {low}, got {type(v).__name__} {v!r}")
             if v < low:
                 raise InputError(f"RangeModelConfig.{name} must be >= {low}, got {v!r}")
+        if self.scale_prior not in ("empirical", "fixed"):
+            raise InputError(f"RangeModelConfig.scale_prior must be 'empirical' or 'fixed', got {self.scale_prior!r}")
         if not isinstance(self.estimate_noise, (bool, np.bool_)):
             raise InputError(f"RangeModelConfig.estimate_noise must be True or False, got {self.estimate_noise!r}")
         try:
@@ -221,18 +236,30 @@ class RangeSlacResult(Result):
     iterations : int (smoother Gauss-Newton iterations; 1 for the filter); converged : bool.
     pose_cov : (P, 2, 2) position covariance of each pose (m^2; the 95 % ellipse is
         ``e^T C^-1 e <= chi2_2(0.95)``); not in ``to_dict`` (use ``pose_std`` there).
-    odometry_noise_factor : (2,) the smoother's EM factors on the distance and heading noise
-        variances (1, 1 for the filter); ``heading_noise_factor`` already includes the square
-        root of the second.
+    odometry_noise_factor : (2,) the smoother's factors on the distance and heading noise
+        variances (1, 1 for the filter): the first is the square of the distance-grid factor
+        times EM's, the second EM's; ``heading_noise_factor`` already includes the square root
+        of the second.
     calibration_cov : (B, 2, 2) covariance of each beacon's (scale, offset) at the end.
     odometry_scale, odometry_scale_std : float; odometry_scale_weight : float
         Filter: the estimated distance scale of the odometry (``dd_true = k dd``) mixed over
         the candidates, its std, and the mixture weight of the candidates that estimate it
-        (the rest take it as exactly 1); smoother: 1, 0, 0.
+        (the rest take it as exactly 1). Smoother with ``scale_prior="empirical"``: its
+        estimate and std under the empirical-Bayes prior N(1, ``odometry_scale_prior_std^2``)
+        (weight 0); with ``"fixed"``: 1, 0, 0 (no such state).
+    odometry_scale_prior_std : float
+        The prior std of ``k`` used (filter 0.05; smoother: 0.05 when the Bayes factor of
+        ``k ~ N(1, 0.05^2)`` against ``k = 1`` keeps it, else 1e-4 = no odometry scale error;
+        0 with the fixed prior).
     innovation_test : dict
         Filter: :func:`selfcal.slac.consistency.innovation_tests` on the innovations of the candidate of largest
         weight (NIS level and whiteness); a failure sets ``status`` to ``FAILED_TEST`` and
         warns (:class:`~selfcal.errors.ConvergenceWarning`). Empty for the smoother.
+    scale_prior_std : (2,)
+        The std ``[a, tau]`` of the scales' prior ``N(1, a^2 11^T + tau^2 I)`` the result used:
+        the smoother's empirical-Bayes estimate (``RangeModelConfig.scale_prior``), else
+        ``[0, scale_std]``. ``tau`` at its floor (1e-4) means "no per-beacon scale error
+        detectable", both at the floor "no scale error": the offset-only model.
     calibration_resets : int
         Filter: beacon calibrations re-initialised by the M-of-N gate test (:data:`selfcal.slac.ranging.RECOVER_M`).
     ``status`` / ``message`` / ``success`` come from :class:`~selfcal._result.Result`.
@@ -266,6 +293,8 @@ class RangeSlacResult(Result):
     odometry_scale_weight: float = 0.0
     innovation_test: dict[str, float] = field(default_factory=dict)
     calibration_resets: int = 0
+    scale_prior_std: FArray = field(default_factory=lambda: np.array([0.0, 0.1]))
+    odometry_scale_prior_std: float = 0.0
 
     def _diagnose(self) -> tuple[Status, str]:
         if not self.converged:
