@@ -399,11 +399,12 @@ def search(
         reg = _LARGE if large else INITIALISERS
         starts = [] if first is None else [first]
         ended = first is not None and final_start(first[1])
+        shared: dict[str, object] = {}  # what two initialisers compute from Y, computed once (init.starts)
         for name, init in reg.items():
             if ended:
                 break  # an earlier start ends the race at or before it: the later ones cannot win
             try:
-                got = init(Y, dim, offsets, rng)
+                got = init(Y, dim, offsets, rng, shared)
             except (DegenerateGeometryError, InputError, np.linalg.LinAlgError, ValueError, FloatingPointError):
                 continue  # an initialiser that does not apply here is skipped
             new = [(name, st) for st in got if _sane(st, Y)]
