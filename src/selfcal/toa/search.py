@@ -267,7 +267,7 @@ def search(
     f_scale: float | None = None,
     starts: list[tuple[str, Start]] | None = None,
     first: tuple[str, Start] | None = None,
-    stop: Callable[[NlsSolution], bool] | None = None,
+    stop: Callable[[Array], bool] | None = None,
     budget: int | None = None,
     max_nfev: int | None = None,
     use_moves: bool = True,
