@@ -91,6 +91,16 @@ def toa_problem(I: int, J: int, d: int, offsets: str, seed: int, miss: float = 0
                 d=d, seed=seed)
 
 
+def units_problem(units: int, seed: int, noise: float = 0.0) -> dict[str, Any]:
+    """The thesis's simulation (004 Fig. 4.4, ``benchmarks/bench_delays.py``): ``units`` units in the
+    30 x 30 x 12 m room, complete, both offsets, ranges in metres (+ Gaussian ``noise`` metres)."""
+    from selfcal.scenarios.units import make_units
+
+    sc = make_units(units, room="large", rng=seed)
+    Y = sc.ranges + np.random.default_rng(seed).normal(0, noise, sc.ranges.shape) if noise else sc.ranges
+    return dict(Y=Y, offsets="both", d=3, seed=seed)
+
+
 def case_refine(P: dict[str, Any], loss: str = "linear", fixed: str = "", eps: float = 0.0, solver: str = "auto",
                 f_scale: float | None = None) -> Callable[[Any], tuple[float, Any]]:
     """refine_toa from the perturbed truth (``eps``: the receivers' start scaled by 1 + eps; ``f_scale``
@@ -298,6 +308,14 @@ def cases() -> list[tuple[str, Callable[[Any], tuple[float, Any]]]]:
         out.append((f"race 25 starts 12x6 3d {off} (batch)", case_batch(toa_problem(12, 6, 3, off, 11))))
     out.append(("solve_toa 12x6 3d both", case_solve_toa(toa_problem(12, 6, 3, "both", 12, noise=1e-3))))
     out.append(("solve_toa 8x10 2d none", case_solve_toa(toa_problem(8, 10, 2, "none", 13, noise=1e-3))))
+    # the search's stopping rule before refinement (search.py, 2.): the thesis's 120 units
+    # (noise-free: the 004 start is exact), the same with 1 mm noise (no start passes: nothing
+    # skipped) and with that noise given (the chi-square test on every start)
+    out.append(("solve_toa 120t 3d both (thesis, exact start)", case_solve_toa(units_problem(120, 0))))
+    out.append(("solve_toa 120 3d both 1mm", case_solve_toa(units_problem(120, 1, 1e-3))))
+    out.append(("solve_toa 120 3d both 1mm noise given", case_solve_toa(units_problem(120, 1, 1e-3), noise=1e-3)))
+    out.append(("solve_toa 30x40 3d both 1mm noise given", case_solve_toa(toa_problem(30, 40, 3, "both", 37,
+                                                                                      noise=1e-3), noise=1e-3)))
     out.append(("rank3 12x14 exact (joint)", case_rank3(12, 14, 0.0, 14, "exact")))
     out.append(("rank3 12x14 linear miss5% (joint)", case_rank3(12, 14, 0.05, 15, "linear")))
     out.append(("rank3 40x50 exact (scalable)", case_rank3(40, 50, 0.0, 16, "exact")))

@@ -115,7 +115,7 @@ def finish(M: Array, dim: int, offsets: str, *, init: Any, speed: float | None, 
         if sd is None:
             return None
         n_par = n_par_of(kr, ks)
-        return lambda sol: residual_test(sol.residuals, sd, n_par).passed
+        return lambda res: residual_test(res, sd, n_par).passed
 
     one = method == "nls"
     given = None if start0 is None else ("given", _restrict(start0, keep_r, keep_s))

@@ -122,7 +122,7 @@ def _candidate_methods(shape: tuple[int, int], dim: int) -> list[str]:
 
 
 def initialize_toa_info(ranges: Array, dim: int = 3, *, method: str = "auto",
-                        rng: Any = None) -> InitResult:
+                        rng: Any = None, shared: dict[str, Any] | None = None) -> InitResult:
     """Initial receivers and sources for anchor-free TOA calibration, with diagnostics.
 
     Parameters
@@ -137,6 +137,10 @@ def initialize_toa_info(ranges: Array, dim: int = 3, *, method: str = "auto",
         (Algorithm 2 only while ``J (I+1)^3`` is small) and keep the smallest range residual.
     rng:
         Generator / seed for the randomized SVD and sub-sampling.
+    shared:
+        Optional dict, the same for every call on the same ``ranges`` (one search's): the eq. 11
+        estimate (:func:`estimate_receiver_distances`, completed) that ``"alg2"`` and
+        ``"mds-multilat"`` both start from is computed once and kept there under ``"eq11"``.
 
     Returns
     -------
@@ -146,13 +150,22 @@ def initialize_toa_info(ranges: Array, dim: int = 3, *, method: str = "auto",
     check_choice(method, "method", INIT_METHODS)
     Y = _validated_ranges(ranges, dim)
     gen = as_rng(rng)
+    I, J = Y.shape
     methods = _candidate_methods(Y.shape, dim) if method == "auto" else [method]
     # large problems try only the rank method; the sub-sampled eq. 11 route is the fallback
     fallback = ["mds-multilat"] if method == "auto" and "mds-multilat" not in methods else []
+    def eq11() -> Array | None:
+        if shared is None:
+            return None
+        if "eq11" not in shared:
+            shared["eq11"] = complete_distances(estimate_receiver_distances(Y))
+        return shared["eq11"]
+
     funcs = {
-        "alg2": lambda: mds_alg2(Y, dim),
+        "alg2": lambda: mds_alg2(Y, dim, receiver_distances=eq11()),
         "rank": lambda: rank_init(Y, dim, rng=gen),
-        "mds-multilat": lambda: mds_multilateration(Y, dim, rng=gen),
+        "mds-multilat": lambda: mds_multilateration(
+            Y, dim, rng=gen, receiver_distances=eq11() if I * I * J <= _EQ11_MAX_FLOPS else None),
     }
     scores: dict[str, float] = {}
     best: tuple[Array, Array] | None = None
@@ -193,12 +206,12 @@ def initialize_toa_info(ranges: Array, dim: int = 3, *, method: str = "auto",
 
 
 def initialize_toa(ranges: Array, dim: int = 3, *, method: str = "auto",
-                   rng: Any = None) -> tuple[Array, Array]:
+                   rng: Any = None, shared: dict[str, Any] | None = None) -> tuple[Array, Array]:
     """Initial (receivers (I, dim), sources (J, dim)) for the TOA NLS; see :func:`initialize_toa_info`.
 
     This is what :func:`selfcal.toa.solve_toa` calls for ``init="auto"``; noise-free data
     gives the exact geometry (up to a rigid motion) for ``"rank"`` and, with enough sources
     around the receivers, a start from which the NLS converges for every method.
     """
-    res = initialize_toa_info(ranges, dim, method=method, rng=rng)
+    res = initialize_toa_info(ranges, dim, method=method, rng=rng, shared=shared)
     return res.receivers, res.sources

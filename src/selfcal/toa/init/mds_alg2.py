@@ -66,7 +66,7 @@ def _alg2_sources(D_hat: Array, receivers: Array, Y: Array, dim: int) -> Array:
     return sources
 
 
-def mds_alg2(ranges: Array, dim: int) -> tuple[Array, Array]:
+def mds_alg2(ranges: Array, dim: int, *, receiver_distances: Array | None = None) -> tuple[Array, Array]:
     """003 Algorithm 2: MDS initialisation of receivers and sources.
 
     1. ``D_hat`` from eq. 11 (:func:`estimate_receiver_distances`); pairs that share no
@@ -83,6 +83,7 @@ def mds_alg2(ranges: Array, dim: int) -> tuple[Array, Array]:
     ----------
     ranges: (I, J) metres, rows = receivers, NaN = missing.
     dim: 2 or 3.
+    receiver_distances: ``D_hat`` of step 1 when the caller already has it (I, I).
 
     Returns
     -------
@@ -90,7 +91,8 @@ def mds_alg2(ranges: Array, dim: int) -> tuple[Array, Array]:
     """
     dim = check_dim(dim)
     Y = _validated_ranges(ranges, dim)
-    D_hat = complete_distances(estimate_receiver_distances(Y))
+    D_hat = complete_distances(estimate_receiver_distances(Y)) if receiver_distances is None \
+        else np.asarray(receiver_distances, float)
     receivers = classical_mds(D_hat, dim)
     sources = _alg2_sources(D_hat, receivers, Y, dim)
     lost = np.isnan(sources).any(axis=1)

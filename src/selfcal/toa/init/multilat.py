@@ -27,13 +27,17 @@ _EQ11_MAX_FLOPS = 5e7
 EQ11_MAX_FLOPS = _EQ11_MAX_FLOPS
 
 
-def mds_multilateration(ranges: Array, dim: int, *, rng: Any = None) -> tuple[Array, Array]:
+def mds_multilateration(ranges: Array, dim: int, *, rng: Any = None,
+                        receiver_distances: Array | None = None) -> tuple[Array, Array]:
     """Receivers by MDS on eq. 11, then every source by linear multilateration.
 
     The reverse-triangle estimate costs ``O(I^2 J)``; above a size cap it uses a random
     subset of the transmitters (the max in eq. 11 only needs a few well-aligned ones).
     Two alternations (receivers multilaterated from the sources, then the sources again)
-    remove most of the eq. 11 under-estimation bias.
+    remove most of the eq. 11 under-estimation bias. ``receiver_distances``: the completed
+    eq. 11 estimate of ``ranges`` over every transmitter (:func:`complete_distances` of
+    :func:`estimate_receiver_distances`), when the caller already has it; used below the
+    size cap, where it is what this function would compute.
 
     Returns receivers (I, dim), sources (J, dim).
     """
@@ -45,7 +49,10 @@ def mds_multilateration(ranges: Array, dim: int, *, rng: Any = None) -> tuple[Ar
     max_cols = max(dim + 1, int(_EQ11_MAX_FLOPS // max(1, I * I)))
     if J > max_cols:
         cols = np.sort(gen.choice(J, size=max_cols, replace=False))
-    D_hat = complete_distances(estimate_receiver_distances(Y[:, cols]))
+    if receiver_distances is not None and cols.size == J:
+        D_hat = np.asarray(receiver_distances, float)
+    else:
+        D_hat = complete_distances(estimate_receiver_distances(Y[:, cols]))
     receivers = classical_mds(D_hat, dim)
     sources = multilaterate(receivers, Y.T)
     for _ in range(2):

@@ -12,6 +12,7 @@ The search that races them is :mod:`selfcal.toa.search`.
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -31,10 +32,15 @@ Array = NDArray[np.float64]
 MOVES_MAX_NODES = 300
 
 
-_Init = Callable[[Array, int, str, np.random.Generator], list[Start]]
+#: an initialiser: (ranges, dim, offsets, rng[, shared]) -> starts. ``shared`` (optional) is a dict
+#: the caller creates for one matrix (one search) and passes to every initialiser: quantities
+#: two of them compute from the same matrix (the eq. 11 distances of the 003 family) are kept
+#: there the first time and reused, never across matrices
+_Init = Callable[..., list[Start]]
 
 
-def _rank3(Y: Array, dim: int, offsets: str, rng: np.random.Generator) -> list[Start]:
+def _rank3(Y: Array, dim: int, offsets: str, rng: np.random.Generator,
+           shared: dict[str, Any] | None = None) -> list[Start]:
     """004 rank-3 iteration (selfcal.toa.init.offsets_init): up to 4 distinct starts, offsets collapsed."""
     from .offsets_init import initialize_offsets_candidates
 
@@ -65,13 +71,15 @@ def _rank3(Y: Array, dim: int, offsets: str, rng: np.random.Generator) -> list[S
 
 
 def _mds(method: str) -> _Init:
-    def init(Y: Array, dim: int, offsets: str, rng: np.random.Generator) -> list[Start]:
+    def init(Y: Array, dim: int, offsets: str, rng: np.random.Generator,
+             shared: dict[str, Any] | None = None) -> list[Start]:
         from . import mds
 
         if _offsets_unidentified(Y, dim, offsets):
             return []  # MDS of offset-free ranges knows nothing of offsets of metres: the scaled starts' case
         shift = min(0.0, float(np.nanmin(Y)))  # negative ranges: shift for the initialiser only
-        r, s = mds.initialize_toa(Y - shift, dim, method=method, rng=rng)
+        r, s = mds.initialize_toa(Y - shift, dim, method=method, rng=rng,
+                                  shared=None if shared is None else shared.setdefault(f"mds{shift!r}", {}))
         r, s = np.asarray(r, float), np.asarray(s, float)
         d0, o0 = least_squares_offsets(Y, r, s, offsets)
         return [(r, s, d0, o0)]
@@ -80,7 +88,8 @@ def _mds(method: str) -> _Init:
     return init
 
 
-def _scaled(Y: Array, dim: int, offsets: str, rng: np.random.Generator) -> list[Start]:
+def _scaled(Y: Array, dim: int, offsets: str, rng: np.random.Generator,
+            shared: dict[str, Any] | None = None) -> list[Start]:
     """Random starts at the data's distance bounds (selfcal.toa.init.scaled_starts), only where no
     other initialiser has information on the offsets: both kinds, rank-d method not identifiable."""
     if not _offsets_unidentified(Y, dim, offsets):
