@@ -22,12 +22,8 @@ from scipy.io import savemat
 from scipy.stats import multivariate_normal
 
 from selfcal.datasets.plaza import load_plaza
-from selfcal.slac.ranging import (
-    SCALE_PRIOR_FLOOR,
-    RangeModelConfig,
-    _scale_prior_eb,
-    solve_range_slac,
-)
+from selfcal.slac.ranging import RangeModelConfig, solve_range_slac
+from selfcal.slac.scale_prior import SCALE_PRIOR_FLOOR, scale_prior_eb
 from tests.datasets.cmu_logs import cmu_log
 
 
@@ -58,7 +54,7 @@ def test_evidence_is_the_gaussian_marginal(seed: int) -> None:
     P0 = np.eye(B) / 0.1**2
     V = np.linalg.inv(np.linalg.inv(Vlik) + P0)
     s_hat = V @ (np.linalg.solve(Vlik, s_lik) + P0 @ np.ones(B))
-    S, (a, tau) = _scale_prior_eb(s_hat, V, 0.1)
+    S, (a, tau) = scale_prior_eb(s_hat, V, 0.1)
     assert np.allclose(S, a**2 * np.ones((B, B)) + tau**2 * np.eye(B))
 
     def ll(a: float, t: float) -> float:
@@ -156,7 +152,7 @@ def test_flat_evidence_keeps_the_given_prior() -> None:
     """No information about the scales (posterior = prior): the evidence is flat in (a, tau)
     and the estimate is the given prior, not the floor (which would claim exact scales)."""
     for B in (1, 4):
-        S, (a, tau) = _scale_prior_eb(np.ones(B), 0.1**2 * np.eye(B), 0.1)
+        S, (a, tau) = scale_prior_eb(np.ones(B), 0.1**2 * np.eye(B), 0.1)
         assert a == pytest.approx(SCALE_PRIOR_FLOOR) and tau == pytest.approx(0.1)
 
 
@@ -164,7 +160,7 @@ def test_odometry_scale_bayes_factor_threshold() -> None:
     """k is kept (prior ODO_SCALE_STD) exactly when its Bayes factor against k = 1 exceeds 1:
     ``z^2 > (1 + r) log(1 + 1 / r) `` with ``r = v_lik / ODO_SCALE_STD^2`` (the closed form of
     the ratio of the two Gaussian marginals)."""
-    from selfcal.slac.ranging import ODO_SCALE_STD, _odo_scale_prior
+    from selfcal.slac.scale_prior import ODO_SCALE_STD, odo_scale_prior
 
     for v_lik in (1e-6, 1e-5, 1e-4):
         r = v_lik / ODO_SCALE_STD**2
@@ -172,4 +168,4 @@ def test_odometry_scale_bayes_factor_threshold() -> None:
         v = 1 / (1 / v_lik + 1 / ODO_SCALE_STD**2)  # the posterior variance under the prior
         for z, keep in ((0.98 * z_star, False), (1.02 * z_star, True)):
             k_hat = 1 + z * np.sqrt(v_lik) * v / v_lik  # posterior mean for k_lik - 1 = z sqrt(v_lik)
-            assert (_odo_scale_prior(k_hat, v) == ODO_SCALE_STD) is keep, (v_lik, z)
+            assert (odo_scale_prior(k_hat, v) == ODO_SCALE_STD) is keep, (v_lik, z)

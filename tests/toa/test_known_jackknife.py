@@ -3,7 +3,7 @@
 The model covariance assumes independent range errors of one variance; along a moving tag's
 path measured UWB errors are serially correlated (lag-1 autocorrelation ~0.8 on the LPS
 flights) and the stated std of an unknown anchor was 2-8x smaller than its error.
-:func:`selfcal.toa.verdict.crossval.block_jackknife_scale` scales each free receiver's
+:func:`selfcal.toa.verdict.jackknife.block_jackknife_scale` scales each free receiver's
 covariance by ``max(1, tr(C^-1 V) / d)``, ``V`` the delete-a-block jackknife covariance.
 """
 

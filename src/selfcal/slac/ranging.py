@@ -31,7 +31,7 @@ Two estimators share one linear-Gaussian engine:
   noise is re-estimated from the causal filter's predictive innovations (robust, median
   based), the heading and odometry-distance noise factors chosen by the filter's predictive
   likelihood over grids. The range scales and an odometry distance scale get priors
-  estimated from the log (empirical Bayes, :func:`_scale_prior_eb`). Its covariances are the
+  estimated from the log (empirical Bayes, :func:`selfcal.slac.scale_prior.scale_prior_eb`). Its covariances are the
   Laplace marginals at the solution.
 
 Use the filter online (or when the data arrive as a stream), the smoother offline when the
@@ -42,11 +42,12 @@ Ranges are applied at their own times: an odometry row whose interval contains r
 is split there (each piece a fraction of the row proportional to its duration), so no range
 is moved to the nearest odometry time.
 
-Why this file is long (~600 lines, at the package's limit): the filter, the smoother, the
+Why this file is long (~690 lines, above the package's ~600 guideline): the filter, the smoother, the
 calibration refit and the noise re-estimation are one engine over one private chain
 structure (``_Chain``, ``_Pass``); split into modules they would share every private type.
 What has a seam lives elsewhere: the inputs and the result in :mod:`selfcal.slac.range_model`,
-the filter's innovation tests in :mod:`selfcal.slac.consistency` (both re-exported here).
+the filter's innovation tests in :mod:`selfcal.slac.consistency` (both re-exported here), the
+empirical-Bayes priors of the beacon scales and the odometry scale in :mod:`selfcal.slac.scale_prior`.
 """
 
 from __future__ import annotations
@@ -68,17 +69,13 @@ from ..robust import loss_rho
 from .consistency import innovation_tests
 from .odometry_em import odometry_noise_factors
 from .range_model import RangeLog, RangeModelConfig, RangeSlacResult
+from .scale_prior import ODO_SCALE_STD, odo_scale_prior, scale_prior_eb
 
 __all__ = ["RangeLog", "RangeModelConfig", "RangeSlacResult", "solve_range_slac", "huber_weight", "innovation_tests"]
 
 FArray = NDArray[np.float64]
 IArray = NDArray[np.int64]
 
-#: Prior std of the causal filter's odometry distance scale ``k`` (``dd_true = k dd``): a
-#: wheel-radius / encoder-calibration error of a few percent (the 5 % of ``odo_distance``),
-#: a constant of the whole log, not a random walk -- integrated over a log of hundreds of
-#: metres it is the dominant odometry error, and a filter without it is overconfident.
-ODO_SCALE_STD = 0.05
 #: M-of-N test on a beacon's gate decisions (track maintenance, Blackman 1986): when
 #: ``RECOVER_M`` of its last ``RECOVER_N`` ranges are gated the filter's calibration of that
 #: beacon is taken as locked on a wrong value (typically an outlier among its first ranges,
@@ -488,83 +485,6 @@ def _smooth(ch: _Chain, log: RangeLog, cfg: RangeModelConfig, ref: FArray, sigma
 #: prior (5 % of a metre) is a wheel-only bound, encoders are often far better.
 DISTANCE_NOISE_GRID = (1.0, 0.3, 0.1)
 
-#: Smallest prior std of the scales the empirical-Bayes step returns (common and per-beacon
-#: part): 1e-4 is 2 mm at 20 m, a hundredth of decimetre ranging noise and ~20x below the
-#: scale std one log's ranges give (0.001-0.003), so a scale at this prior is fixed in all
-#: but name, while the smoother's gain solves stay well conditioned.
-SCALE_PRIOR_FLOOR = 1e-4
-
-
-def _scale_prior_eb(s_hat: FArray, V: FArray, scale_std: float) -> tuple[FArray, FArray]:
-    """Empirical-Bayes prior of the scales: ``s ~ N(1, a^2 11^T + tau^2 I)`` with the common
-    part ``a`` and the per-beacon part ``tau`` at their type-II maximum likelihood.
-
-    ``s_hat`` (B,), ``V`` (B, B): the scales' posterior mean and covariance under the fixed
-    prior ``N(1, scale_std^2 I)`` (Laplace, marginal over poses and offsets). The data's
-    information about ``delta = s - 1`` is Gaussian with precision ``L = V^-1 - I / scale_std^2``
-    and information vector ``g = V^-1 (s_hat - 1)``; the evidence of a prior covariance S is
-    ``log Z(S) = -1/2 log det(I + S L) + 1/2 g^T S (I + L S)^-1 g`` (the Gaussian integral,
-    valid for singular S). It is maximised over ``log a, log tau`` in
-    ``[log SCALE_PRIOR_FLOOR, 0]`` (a coarse grid, then L-BFGS-B; a flat evidence keeps the
-    given prior). Returns S (B, B) and ``[a, tau]``.
-
-    Exact scales drive both parts to the floor (the offset-only model); one clock or
-    propagation-speed error shared by all beacons gives a large ``a`` and a small ``tau`` (one
-    scale, pooled); independent per-beacon errors a large ``tau``. The estimate uses the log
-    twice (empirical Bayes): 2 hyper-parameters against B scales.
-    """
-    from scipy.optimize import minimize
-
-    B = s_hat.size
-    Vi = np.linalg.inv(V)
-    L = Vi - np.eye(B) / scale_std**2
-    w, U = np.linalg.eigh(0.5 * (L + L.T))
-    L = (U * np.maximum(w, 0.0)) @ U.T
-    g = Vi @ (s_hat - 1.0)
-    one = np.ones((B, B))
-    eye = np.eye(B)
-
-    def neg_log_z(th: FArray) -> float:
-        S = np.exp(2 * th[0]) * one + np.exp(2 * th[1]) * eye
-        M = eye + L @ S
-        sign, logdet = np.linalg.slogdet(M)
-        return float(0.5 * logdet - 0.5 * g @ (S @ np.linalg.solve(M, g)))
-
-    lo = np.log(SCALE_PRIOR_FLOOR)
-    grid = np.linspace(lo, 0.0, 13)
-    # the given prior (a = floor, tau = scale_std) first: where the data carry no information
-    # about the scales the evidence is flat and the tie keeps the physics prior
-    cands = [(lo, float(np.log(scale_std)))] + [(x, y) for x in grid for y in grid]
-    th0 = min(cands, key=lambda t: neg_log_z(np.array(t)))
-    sol = minimize(neg_log_z, np.array(th0), method="L-BFGS-B", bounds=[(lo, 0.0)] * 2)
-    th = sol.x if sol.fun <= neg_log_z(np.array(th0)) else np.array(th0)
-    a, tau = np.exp(th)
-    return a**2 * one + tau**2 * eye, np.array([a, tau])
-
-
-def _odo_scale_prior(k_hat: float, v: float) -> float:
-    """Prior std of the odometry distance scale ``k``: ``ODO_SCALE_STD`` when the evidence
-    (Bayes factor) favours ``k ~ N(1, ODO_SCALE_STD^2)`` over ``k = 1``, else the floor.
-
-    ``k_hat``, ``v``: its posterior mean and variance under the ``ODO_SCALE_STD`` prior. The
-    data's likelihood of ``k`` is ``N(k_lik, v_lik)`` with ``1 / v_lik = 1 / v - 1 / ODO_SCALE_STD^2``;
-    the Bayes factor is ``N(k_lik - 1; 0, v_lik + ODO_SCALE_STD^2) / N(k_lik - 1; 0, v_lik)``.
-    One parameter gives one observation of its own prior variance, whose type-II ML keeps it
-    whenever its |z| > 1 (a third of the logs without the error); the Bayes factor against the
-    physics prior keeps it when ``z^2 > log(1 + ODO_SCALE_STD^2 / v_lik)`` (|z| > 2.4 at the
-    ``v_lik`` of a 150-s log). A spurious ``k`` is costly: it trades against the shared range
-    scale (measured: 2 of 8 logs without an odometry error at 1.7-4.5x the RMSE).
-    """
-    prec = 1.0 / v - 1.0 / ODO_SCALE_STD**2
-    if not np.isfinite(prec) or prec <= 0:
-        return SCALE_PRIOR_FLOOR
-    v_lik = 1.0 / prec
-    d = (k_hat - 1.0) / v * v_lik  # k_lik - 1: the information (k_hat - 1) / v times v_lik
-    z2 = d * d / v_lik
-    log_bf = -0.5 * np.log(1.0 + ODO_SCALE_STD**2 / v_lik) + 0.5 * z2 * ODO_SCALE_STD**2 / (v_lik + ODO_SCALE_STD**2)
-    return ODO_SCALE_STD if log_bf > 0 else SCALE_PRIOR_FLOOR
-
-
 @entry(log=has_attributes("beacons", "odo", "ranges", "range_times", "range_beacon",
                           what="RangeLog (or PlazaData)"), method="str", progress="bool")
 def solve_range_slac(log: RangeLog | Any, *, method: str = "smoother", config: RangeModelConfig | None = None,
@@ -711,21 +631,21 @@ def solve_range_slac(log: RangeLog | Any, *, method: str = "smoother", config: R
         var = _var(g_best, h_best)
         ref0 = _refit_calibration(fw.mf, ch, log, cfg, sigma)
         if cfg.scale_prior == "empirical" and K:
-            # empirical Bayes (type-II maximum likelihood, _scale_prior_eb) of the range scales'
-            # prior and the Bayes factor of the odometry distance scale k (_odo_scale_prior),
+            # empirical Bayes (type-II maximum likelihood, scale_prior_eb) of the range scales'
+            # prior and the Bayes factor of the odometry distance scale k (odo_scale_prior),
             # from the data's own information about them (a first solve under the wide fixed
             # priors), then the MAP again under those priors: a scale error the data do not
             # show shrinks to none
             first = _smooth(ch, log, cfg, np.column_stack([ref0, np.ones(ref0.shape[0])]), sigma, var, None,
                             ODO_SCALE_STD, progress)
-            scale_cov, scale_prior_std = _scale_prior_eb(first.ms[0, 3 : 3 + B], first.Ps[0, 3 : 3 + B, 3 : 3 + B],
+            scale_cov, scale_prior_std = scale_prior_eb(first.ms[0, 3 : 3 + B], first.Ps[0, 3 : 3 + B, 3 : 3 + B],
                                                          cfg.scale_std)
             # a beacon without ranges keeps the fixed prior (nothing learnt about it)
             silent = np.bincount(ch.r_beacon, minlength=B) == 0
             scale_cov[silent, :] = 0.0
             scale_cov[:, silent] = 0.0
             scale_cov[silent, silent] = cfg.scale_std**2
-            odo_prior = _odo_scale_prior(float(first.ms[0, -1]), float(first.Ps[0, -1, -1]))
+            odo_prior = odo_scale_prior(float(first.ms[0, -1]), float(first.Ps[0, -1, -1]))
             sm = _smooth(ch, log, cfg, first.ms, first.sigma, first.var, scale_cov, odo_prior, progress)
             sm.iterations += first.iterations
             sm.lam *= first.lam

@@ -23,6 +23,7 @@ from numpy.typing import NDArray
 
 from ...errors import DegenerateGeometryError
 from ..verdict.known_test import gauge_left as _axes_fixed
+from .error_scale import jackknife_scaled
 from .nodes import FramedToaResult, FrameInfo, KnownNode, node_positions, refit_data, replace_fields
 
 __all__ = ["fit_known", "align_known"]
@@ -80,7 +81,7 @@ def fit_known(
         known nodes (along the known frame's z): resolves the mirror they leave
         (:func:`selfcal.toa.verdict.known_test.choose_side`); None = the mirror is tested and reported.
     jackknife: scale each free receiver's covariance by the block jackknife's evidence
-        (:func:`selfcal.toa.verdict.crossval.block_jackknife_scale`: the constrained fit
+        (:func:`selfcal.toa.verdict.jackknife.block_jackknife_scale`: the constrained fit
         repeated without each of K contiguous column blocks; a receiver's covariance is
         multiplied by ``max(1, tr(C^-1 V) / d)``, ``V`` the jackknife covariance), so that the
         stated error bars hold where range errors are serially correlated or depend on the
@@ -123,7 +124,7 @@ def fit_known(
     sol, fr, fs, extra = _refit(data, Ra, Sa, usable, fit_kw, covariance)
     scaled = None
     if jackknife and covariance:
-        sol, scaled = _jackknife(sol, data.Y[np.ix_(ok_r, ok_s)], dict(
+        sol, scaled = jackknife_scaled(sol, data.Y[np.ix_(ok_r, ok_s)], dict(
             offsets=off, common_offsets=common, loss=loss, f_scale=None if f_scale is None else f_scale * c,
             noise=None if noise is None else noise * c, max_nfev=max_nfev, **extra))
     out = _embed(result, sol, ok_r, ok_s, c, f"{result.method}+known({len(usable)})")
@@ -430,79 +431,6 @@ def _partial_info(usable: Sequence[KnownNode], d: int, axes: tuple[str, ...], n_
     return FrameInfo(kind="known", references=names, rank=len(axes), determined=n_gauge == 0,
                      residual_gauge=n_gauge, mirror_resolved=False, message=msg,
                      known_rms=before, known_rms_fit=after, axes_fixed=axes)
-
-
-def _jackknife(sol: Any, Y: Array, kw: dict[str, Any]) -> tuple[Any, Any]:
-    """``sol`` with its receivers' covariances scaled by the block jackknife, and the scale (or None)."""
-    from ..engine.nls import refine_toa
-    from ..verdict.crossval import block_jackknife_scale
-
-    if sol.receiver_cov is None or sol.residuals is None or not np.isfinite(sol.receiver_cov).all():
-        return sol, None
-    per_source = {"fixed_sources", "source_prior"}
-
-    def cols_of(v: Any, cols: NDArray[np.bool_]) -> Any:
-        return tuple(a[cols] for a in v) if isinstance(v, tuple) else np.asarray(v)[cols]
-
-    def refit(cols: NDArray[np.bool_]) -> Array:
-        fkw = {k: (cols_of(v, cols) if k in per_source else v) for k, v in kw.items()}
-        so = None if sol.source_offsets is None else np.asarray(sol.source_offsets)[cols]
-        return refine_toa(Y[:, cols], sol.receivers, sol.sources[cols], receiver_offsets0=sol.receiver_offsets,
-                          source_offsets0=so, covariance=False, **fkw).receivers
-
-    js = block_jackknife_scale(sol.residuals, sol.receivers, sol.receiver_cov, refit)
-    if js is None:
-        return sol, None
-    cov = sol.receiver_cov * js.scale[:, None, None]
-    if kw.get("offsets") == "receivers" and kw.get("common_offsets") == "receivers":
-        extra = _bias_effect(sol, Y, kw)
-        if extra is not None:
-            tau, add = extra
-            cov = cov + add
-            js = dataclasses.replace(js, bias_tau=tau)
-    return dataclasses.replace(sol, receiver_cov=cov), js
-
-
-_BIAS_ALPHA = 0.05  # level of the test that the per-receiver offsets spread beyond their noise
-_BIAS_STEP = 0.01  # m, the finite-difference step of a row's bias (the fit is linear in it at this scale)
-
-
-def _bias_effect(sol: Any, Y: Array, kw: dict[str, Any]) -> tuple[float, Array] | None:
-    """Random per-receiver biases around the common offset: ``(tau, tau^2 G_i G_i^T per receiver)``.
-
-    ``sol`` is the common-offset fit of ``Y`` (metres) with the fit options ``kw``; None when
-    the per-receiver refit or a shifted refit fails.
-    """
-    from scipy.stats import chi2
-
-    from ..engine.nls import refine_toa
-
-    I = Y.shape[0]
-    base = {k: v for k, v in kw.items() if k not in ("offsets", "common_offsets")}
-    try:
-        full = refine_toa(Y, sol.receivers, sol.sources, offsets="receivers", receiver_offsets0=sol.receiver_offsets,
-                          source_offsets0=sol.source_offsets, covariance=True, **base)
-        d = np.asarray(full.receiver_offsets, float)
-        var = np.asarray(full.receiver_offset_std, float) ** 2
-        if not (np.isfinite(d).all() and np.isfinite(var).all()) or I < 2:
-            return None
-        tau2 = max(0.0, float(np.sum((d - d.mean()) ** 2) - (1 - 1 / I) * np.sum(var)) / (I - 1))
-        # no spread beyond the offsets' own noise (chi-square of their deviations from the
-        # precision-weighted mean, level 0.05): no random effect
-        w = 1.0 / var
-        spread = float(np.sum(w * (d - np.sum(w * d) / np.sum(w)) ** 2))
-        if tau2 == 0.0 or spread <= chi2.ppf(1 - _BIAS_ALPHA, I - 1):
-            return 0.0, np.zeros_like(sol.receiver_cov)
-        G = np.zeros((*sol.receivers.shape, I))
-        for k in range(I):
-            Yk = Y.copy()
-            Yk[k] += _BIAS_STEP
-            sk = refine_toa(Yk, sol.receivers, sol.sources, receiver_offsets0=sol.receiver_offsets,
-                            source_offsets0=sol.source_offsets, covariance=False, **kw)
-            G[:, :, k] = (sk.receivers - sol.receivers) / _BIAS_STEP
-    except (DegenerateGeometryError, np.linalg.LinAlgError, ValueError):
-        return None
-    return float(np.sqrt(tau2)), tau2 * np.einsum("iak,ibk->iab", G, G)
 
 
 def align_known(result: Any, known: Sequence[KnownNode]) -> FramedToaResult:

@@ -92,7 +92,7 @@ class FrameInfo:
         (``("z",)`` when only heights are known: the room's z, horizontal axes canonical);
         None where not computed (kind != "known").
     error_scale: the block jackknife's scale of the receivers' covariances
-        (:meth:`selfcal.toa.verdict.crossval.JackknifeScale.to_dict`), None when not run.
+        (:meth:`selfcal.toa.verdict.jackknife.JackknifeScale.to_dict`), None when not run.
     """
 
     kind: str

@@ -39,7 +39,7 @@ it predicts held-out positions better by more than the fold-to-fold noise of tha
 comparison. Every candidate is scored on the same entries.
 
 Folds: ``K = min(MAX_FOLDS, J // L)`` with ``L`` the residual correlation length along
-the columns (:func:`selfcal.toa.recipes.common_offset.residual_correlation_length` on the
+the columns (:func:`selfcal.toa.verdict.offset_fit.residual_correlation_length` on the
 simplest model's residuals), at least :data:`MIN_FOLDS`; so a held-out block is longer
 than the span over which its errors are correlated with the training blocks next to it.
 """
@@ -56,7 +56,7 @@ from numpy.typing import NDArray
 
 from ...errors import ConvergenceWarning, DegenerateGeometryError, InputError
 
-__all__ = ["MAX_FOLDS", "MIN_FOLDS", "MODELS", "CvChoice", "JackknifeScale", "block_jackknife_scale",
+__all__ = ["MAX_FOLDS", "MIN_FOLDS", "MODELS", "CvChoice",
            "choose_receiver_offsets", "cross_validate", "locate_sources", "one_se_choice"]
 
 Array = NDArray[np.float64]
@@ -468,137 +468,3 @@ def choose_receiver_offsets(res: Any, sub: Array, scale: float = 1.0, solver: st
     assert full.receiver_offsets is not None
     out = _with_common(res, full, sub, scale, kr, ks, used, np.asarray(full.receiver_offsets, float), "receivers")
     return out, choice
-
-
-@dataclass(frozen=True)
-class JackknifeScale:
-    """Per-receiver covariance scale from the block jackknife (:func:`block_jackknife_scale`).
-
-    Attributes
-    ----------
-    scale : (I,) array
-        Factor applied to each receiver's covariance, ``max(1, ratio)`` (1 for receivers
-        the fit holds fixed or that have no covariance).
-    ratio : (I,) array
-        ``tr(C_i^-1 V_i) / d``: the jackknife covariance ``V_i`` in units of the model's
-        ``C_i`` (about 1 when the model's noise description is right; NaN where undefined).
-    folds : int
-        K, the number of column blocks.
-    correlation_length : int
-        Residual correlation length (columns) behind K.
-    bias_tau : float, optional
-        Set by :func:`selfcal.toa.frame.known.fit_known` when it adds the random effect of
-        per-receiver biases the model does not hold: their estimated std (m).
-    """
-
-    scale: Array
-    ratio: Array
-    folds: int
-    correlation_length: int
-    bias_tau: float | None = None
-
-    def to_dict(self, names: Sequence[str] | None = None) -> dict[str, Any]:
-        """JSON-safe dictionary (per-receiver values keyed by ``names``, default ``r<i>``)."""
-        keys = list(names) if names is not None else [f"r{i}" for i in range(len(self.scale))]
-        return {"estimator": "block jackknife over contiguous column blocks, covariance scaled by "
-                             "max(1, tr(C^-1 V) / d)",
-                "folds": self.folds, "correlation_length": self.correlation_length,
-                "scale": {k: float(v) for k, v in zip(keys, self.scale, strict=True)},
-                "ratio": {k: (None if not np.isfinite(v) else float(v)) for k, v in zip(keys, self.ratio, strict=True)},
-                "bias_tau": self.bias_tau}
-
-
-def block_jackknife_scale(residuals: Array, receivers: Array, receiver_cov: Array,
-                          refit: Any, *, folds: int | None = None) -> JackknifeScale | None:
-    """How much larger the receivers' error is than their model covariance says: block jackknife.
-
-    The model covariance ``C = sigma^2 (J^T J)^-1`` of a least-squares fit assumes errors
-    independent from range to range with one variance. Measured UWB ranges break both: errors
-    are serially correlated along a moving tag's path and depend on where the tag is
-    (antenna patterns, NLOS stretches, multipath), so a receiver's stated standard deviation
-    can be several times smaller than its error (LPS flights with known anchors: 2-8x).
-    The delete-a-block jackknife (Kunsch 1989; Efron & Stein 1981) needs neither assumption:
-    the fit is repeated ``K`` times, each time without one contiguous block of columns (the
-    blocks of :func:`cross_validate`, longer than the residual correlation length), and
-
-        ``V_i = (K - 1) / K * sum_k (r_i^(k) - mean_k r_i^(k)) (.)^T``
-
-    estimates the covariance of receiver ``i``. ``V_i`` from ``K <= 10`` blocks is noisy
-    (about ``d (K - 1)`` degrees of freedom), so it is not used as the covariance itself: the
-    model's ``C_i`` (its shape well determined) is scaled by ``max(1, tr(C_i^-1 V_i) / d)``.
-    Under the model the ratio is 1 within its sampling spread and the scale stays near 1 (the
-    ``max`` makes the stated regions slightly conservative); where the data vary more from block
-    to block than the model says, the error bars grow by what the data show.
-    What the jackknife cannot see is an error common to every block (a constant per-anchor
-    ranging bias the model does not hold): that is the bias model's job
-    (:func:`choose_receiver_offsets`).
-
-    Parameters
-    ----------
-    residuals : (I, J) array
-        The fit's residuals (NaN = not used), columns in time order for a moving tag: sets
-        the block length.
-    receivers : (I, d) array
-        The fit's receivers.
-    receiver_cov : (I, d, d) array
-        Their model covariances (zero for receivers the fit holds fixed).
-    refit : callable
-        ``refit(columns) -> (I, d) receivers``: the same fit, started from this one, on the
-        columns ``columns`` (a boolean (J,) mask) only; may raise
-        :class:`~selfcal.errors.DegenerateGeometryError` / :class:`ValueError`.
-    folds : int, optional
-        K (default from the residual correlation length, as in :func:`cross_validate`).
-
-    Returns
-    -------
-    JackknifeScale or None
-        None when a block's refit fails (the covariance is then left as the model's).
-
-    Examples
-    --------
-    >>> import numpy as np
-    >>> from selfcal.toa.engine.nls import refine_toa
-    >>> g = np.random.default_rng(1)
-    >>> R, S = g.uniform(0, 5, (6, 3)), g.uniform(1, 4, (200, 3))
-    >>> Y = np.linalg.norm(R[:, None] - S[None], axis=2) + 0.02 * g.standard_normal((6, 200))
-    >>> fit = refine_toa(Y, R, S, fixed_receivers=np.arange(6) < 4)
-    >>> refit = lambda c: refine_toa(Y[:, c], fit.receivers, fit.sources[c], fixed_receivers=np.arange(6) < 4,
-    ...                              covariance=False).receivers
-    >>> js = block_jackknife_scale(fit.residuals, fit.receivers, fit.receiver_cov, refit)
-    >>> js.folds, bool(np.all(js.scale[:4] == 1)), bool(np.all(js.ratio[4:] < 3))
-    (10, True, True)
-    """
-    from ..recipes.common_offset import residual_correlation_length
-
-    E = np.asarray(residuals, float)
-    R = np.asarray(receivers, float)
-    C = np.asarray(receiver_cov, float)
-    I, d = R.shape
-    J = E.shape[1]
-    L = residual_correlation_length(E)
-    edges = np.linspace(0, J, int(folds) + 1).round().astype(np.intp) if folds else _folds(J, L)
-    K = len(edges) - 1
-    fails = (DegenerateGeometryError, InputError, np.linalg.LinAlgError, ValueError)
-    reps = []
-    for k in range(K):
-        cols = np.ones(J, bool)
-        cols[edges[k]:edges[k + 1]] = False
-        try:
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore", ConvergenceWarning)
-                reps.append(np.asarray(refit(cols), float))
-        except fails:
-            return None
-    X = np.array(reps)  # (K, I, d)
-    D = X - X.mean(axis=0)
-    V = (K - 1) / K * np.einsum("kia,kib->iab", D, D)
-    ratio = np.full(I, np.nan)
-    for i in range(I):
-        tr = np.trace(C[i]) if np.isfinite(C[i]).all() else 0.0
-        if tr <= 0 or not np.isfinite(V[i]).all():
-            continue
-        # tr(C^-1 V) / d on the subspace C spans (a receiver fixed along some axes has C singular there)
-        ratio[i] = float(np.trace(np.linalg.pinv(C[i], rcond=1e-10, hermitian=True) @ V[i])) / np.linalg.matrix_rank(
-            C[i], hermitian=True)
-    scale = np.where(np.isfinite(ratio), np.maximum(ratio, 1.0), 1.0)
-    return JackknifeScale(scale, ratio, K, int(L))

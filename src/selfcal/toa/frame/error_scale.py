@@ -1,0 +1,102 @@
+"""Error bars of a fit to known nodes that hold on measured ranges (``fit_known(jackknife=True)``).
+
+The model covariance of a constrained fit assumes independent range errors. Along a UWB
+flight they are serially correlated and depend on where the tag is, and a per-anchor bias
+the model does not hold is the same in every range of its anchor. Two corrections, used by
+:func:`selfcal.toa.frame.known.fit_known`:
+
+- :func:`jackknife_scaled`: each free receiver's covariance times ``max(1, tr(C^-1 V) / d)``,
+  ``V`` the block jackknife covariance over contiguous column blocks
+  (:func:`selfcal.toa.verdict.jackknife.block_jackknife_scale`);
+- :func:`bias_effect`: with one common offset in the model, per-anchor biases as a random
+  effect ``b_i ~ N(c, tau^2)`` (``tau^2`` by the method of moments from the per-anchor refit,
+  0 unless the offsets spread beyond their noise, chi-square at level 0.05), carried to the
+  receivers by the delta method, ``C_i += tau^2 G_i G_i^T``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from ...errors import DegenerateGeometryError
+
+__all__ = ["bias_effect", "jackknife_scaled"]
+
+Array = NDArray[np.float64]
+
+
+def jackknife_scaled(sol: Any, Y: Array, kw: dict[str, Any]) -> tuple[Any, Any]:
+    """``sol`` with its receivers' covariances scaled by the block jackknife, and the scale (or None)."""
+    from ..engine.nls import refine_toa
+    from ..verdict.jackknife import block_jackknife_scale
+
+    if sol.receiver_cov is None or sol.residuals is None or not np.isfinite(sol.receiver_cov).all():
+        return sol, None
+    per_source = {"fixed_sources", "source_prior"}
+
+    def cols_of(v: Any, cols: NDArray[np.bool_]) -> Any:
+        return tuple(a[cols] for a in v) if isinstance(v, tuple) else np.asarray(v)[cols]
+
+    def refit(cols: NDArray[np.bool_]) -> Array:
+        fkw = {k: (cols_of(v, cols) if k in per_source else v) for k, v in kw.items()}
+        so = None if sol.source_offsets is None else np.asarray(sol.source_offsets)[cols]
+        return refine_toa(Y[:, cols], sol.receivers, sol.sources[cols], receiver_offsets0=sol.receiver_offsets,
+                          source_offsets0=so, covariance=False, **fkw).receivers
+
+    js = block_jackknife_scale(sol.residuals, sol.receivers, sol.receiver_cov, refit)
+    if js is None:
+        return sol, None
+    cov = sol.receiver_cov * js.scale[:, None, None]
+    if kw.get("offsets") == "receivers" and kw.get("common_offsets") == "receivers":
+        extra = bias_effect(sol, Y, kw)
+        if extra is not None:
+            tau, add = extra
+            cov = cov + add
+            js = dataclasses.replace(js, bias_tau=tau)
+    return dataclasses.replace(sol, receiver_cov=cov), js
+
+
+_BIAS_ALPHA = 0.05  # level of the test that the per-receiver offsets spread beyond their noise
+_BIAS_STEP = 0.01  # m, the finite-difference step of a row's bias (the fit is linear in it at this scale)
+
+
+def bias_effect(sol: Any, Y: Array, kw: dict[str, Any]) -> tuple[float, Array] | None:
+    """Random per-receiver biases around the common offset: ``(tau, tau^2 G_i G_i^T per receiver)``.
+
+    ``sol`` is the common-offset fit of ``Y`` (metres) with the fit options ``kw``; None when
+    the per-receiver refit or a shifted refit fails.
+    """
+    from scipy.stats import chi2
+
+    from ..engine.nls import refine_toa
+
+    I = Y.shape[0]
+    base = {k: v for k, v in kw.items() if k not in ("offsets", "common_offsets")}
+    try:
+        full = refine_toa(Y, sol.receivers, sol.sources, offsets="receivers", receiver_offsets0=sol.receiver_offsets,
+                          source_offsets0=sol.source_offsets, covariance=True, **base)
+        d = np.asarray(full.receiver_offsets, float)
+        var = np.asarray(full.receiver_offset_std, float) ** 2
+        if not (np.isfinite(d).all() and np.isfinite(var).all()) or I < 2:
+            return None
+        tau2 = max(0.0, float(np.sum((d - d.mean()) ** 2) - (1 - 1 / I) * np.sum(var)) / (I - 1))
+        # no spread beyond the offsets' own noise (chi-square of their deviations from the
+        # precision-weighted mean, level 0.05): no random effect
+        w = 1.0 / var
+        spread = float(np.sum(w * (d - np.sum(w * d) / np.sum(w)) ** 2))
+        if tau2 == 0.0 or spread <= chi2.ppf(1 - _BIAS_ALPHA, I - 1):
+            return 0.0, np.zeros_like(sol.receiver_cov)
+        G = np.zeros((*sol.receivers.shape, I))
+        for k in range(I):
+            Yk = Y.copy()
+            Yk[k] += _BIAS_STEP
+            sk = refine_toa(Yk, sol.receivers, sol.sources, receiver_offsets0=sol.receiver_offsets,
+                            source_offsets0=sol.source_offsets, covariance=False, **kw)
+            G[:, :, k] = (sk.receivers - sol.receivers) / _BIAS_STEP
+    except (DegenerateGeometryError, np.linalg.LinAlgError, ValueError):
+        return None
+    return float(np.sqrt(tau2)), tau2 * np.einsum("iak,ibk->iab", G, G)
