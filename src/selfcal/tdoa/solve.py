@@ -224,7 +224,10 @@ def solve_unscreened(
                 dirs.shape[1] * (len(pos) - 1) <= DIRECTION_COV_MAX:
             Wd = (used & ~rej).astype(float)
             Cf = np.sum(Wd * np.where(Wd > 0, D - pos @ dirs.T, 0.0), axis=0) / np.maximum(Wd.sum(0), 1e-300)
-            dcov = direction_covariance(D, pos, dirs, Cf, Wd, free_offsets=True)
+            if offsets == "reference":  # the estimate with C_j = D_1j (sandwich for row 1's noise)
+                dcov = direction_covariance(D, pos, dirs, D[0].copy(), Wd, free_offsets=False)
+            else:
+                dcov = direction_covariance(D, pos, dirs, Cf, Wd, free_offsets=True)
         return FarfieldResult(pos, dirs, C, kind, rms, conv, its, meth, loss, rej | gross, pd, report, hist,
                               cov, warnings=screen_note, untestable=untestable, dim_rule=dim_rule,
                               direction_cov=dcov, screen_rule=screen_rule)
