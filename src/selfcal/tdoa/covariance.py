@@ -7,6 +7,7 @@ from numpy.typing import NDArray
 from scipy.linalg import block_diag
 
 from .._checks import check_choice
+from ..robust import loss_rho
 from .model import _eliminate_positions, _flat, _normal_equations
 
 Array = NDArray[np.float64]
@@ -103,8 +104,6 @@ def m_estimator_sigma2(r: Array, mask: Array, loss: str, delta: float, n_par: in
     n = r.size
     if loss == "linear":
         return float(np.sum(r**2)) / max(n - n_par, 1)
-    from ..robust import loss_rho
-
     z = (r / delta) ** 2
     psi = r * loss_rho(z, loss)[1]
     dp = _dpsi(z, loss)
