@@ -192,7 +192,9 @@ def solve_unscreened(
             # largest (rank-3) fit, unbiased whatever the true rank
             for rank_r in range(1, 3 if dim == "auto" else 2):
                 Lr, _ = lowrank_fit(D, used.astype(float), rank=rank_r, loss=fit_loss)
-                Fr = np.where(used, D, Lr) if loss == "linear" else Lr
+                # the observed entries carry the rank (a robust fit's own rank-r matrix always passes
+                # its rank-r test: with Lr here dim=2 and a robust loss refused every planar matrix)
+                Fr = np.where(used, D, Lr)
                 if analyse_degeneracy(Fr - Fr.mean(axis=0), noise_std=sigma_entries,
                                       cone_tol=cone_tol).rank <= rank_r:
                     Dfill = Lr
