@@ -71,7 +71,7 @@ def _dpsi(z: Array, loss: str) -> Array:
     return np.ones_like(z)
 
 
-def m_estimator_sigma2(r: Array, mask: Array, loss: str, delta: float, n_par: int) -> float:
+def m_estimator_sigma2(r: Array, mask: NDArray[np.bool_], loss: str, delta: float, n_par: int) -> float:
     """Variance factor of an M-estimate's covariance ``sigma_psi^2 (J^T J)^+`` (Huber 1981, sec. 7.6).
 
     ``sigma_psi^2 = K^2 [sum psi(r)^2 / (n - n_par)] / [mean psi'(r)]^2`` with
