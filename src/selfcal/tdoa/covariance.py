@@ -7,6 +7,7 @@ from numpy.typing import NDArray
 from scipy.linalg import block_diag
 
 from .._checks import check_choice
+from ..robust import loss_rho
 from .model import _eliminate_positions, _flat, _normal_equations
 
 Array = NDArray[np.float64]
@@ -25,15 +26,108 @@ def _rotation_generators(Z: Array) -> Array:
     return np.asarray(Q[:, keep])
 
 
+def _reference_blocks(Hzn: Array, Hnn: Array) -> tuple[Array, Array, Array, Array]:
+    """Split the free-offset blocks for the reference-offset estimator (``C_j = D_1j``).
+
+    Returns the reference blocks ``Hzn`` (mz, k, d, q), ``Hnn`` (k, q, q) (q = d - 1 tangent
+    coordinates) and the columns' noise-sharing vectors: ``Gz`` (mz, k, d) and ``gn`` (k, q),
+    ``g_j = sum_{i >= 2} W_ij J_ij`` (the offset column of the free-offset normal equations), the
+    direction in which row 1's noise ``e_1j`` enters every reduced entry of column j.
+    """
+    q = Hzn.shape[-1] - 1
+    return Hzn[..., :q], Hnn[:, :q, :q], Hzn[..., q], Hnn[:, :q, q]
+
+
+def _reference_sigma2(W: Array, r: Array, rank: int, A: Array, gn: Array, Gt: Array, SpG: Array,
+                      dof_extra: int = 0) -> float:
+    """Unbiased noise variance of the entries for the reference-offset estimator.
+
+    The reduced entries ``D_ij - D_1j`` (i >= 2) have covariance ``sigma^2 (I + 1 1^T)`` per
+    column, so ``E[RSS] = sigma^2 tr((I - P)(I + 1 1^T)) = sigma^2 (2 n - rank - sum_j g_j^T H^+ g_j)``
+    (n reduced observations, P the hat matrix), with ``g^T H^+ g = g_n^T A g_n + gt^T S^+ gt``.
+    """
+    n_red = int((W[1:] > 0).sum())
+    tr = float(np.einsum("kp,kpq,kq->", gn, A, gn) + np.sum(Gt * SpG))
+    dof = 2.0 * n_red - rank - tr - dof_extra
+    return float(np.sum(W * r**2)) / max(dof, 1.0)
+
+
+def _shared_noise_directions(X: Array, Gz: Array, gn: Array) -> Array:
+    """``gt_j = g_z,j - H_zn,j A_j g_n,j`` for every column, as the (mz d, k) matrix (positions'
+    part of ``g_j`` after the column's own unknowns are profiled out)."""
+    Gt = Gz - np.einsum("ijaq,jq->ija", X, gn)  # (mz, k, d)
+    mz, k, d = Gt.shape
+    return np.asarray(Gt.transpose(0, 2, 1).reshape(mz * d, k))
+
+
+def _dpsi(z: Array, loss: str) -> Array:
+    """``psi'(r)`` of ``psi(r) = r rho'(r^2 / delta^2)`` as a function of ``z = r^2 / delta^2``."""
+    if loss == "huber":
+        return (z <= 1.0).astype(float)
+    if loss == "soft_l1":
+        return np.asarray((1.0 + z) ** -1.5)
+    if loss == "cauchy":
+        return np.asarray((1.0 - z) / (1.0 + z) ** 2)
+    return np.ones_like(z)
+
+
+def m_estimator_sigma2(r: Array, mask: NDArray[np.bool_], loss: str, delta: float, n_par: int) -> float:
+    """Variance factor of an M-estimate's covariance ``sigma_psi^2 (J^T J)^+`` (Huber 1981, sec. 7.6).
+
+    ``sigma_psi^2 = K^2 [sum psi(r)^2 / (n - n_par)] / [mean psi'(r)]^2`` with
+    ``K = 1 + (n_par / n) var(psi') / mean(psi')^2``, ``psi(r) = r rho'(r^2/delta^2)``; for the
+    linear loss it is ``RSS / (n - n_par)``. Unlike ``sigma^2 (J^T W J)^+`` with the IRLS weights W
+    (which shrinks the squared residuals the weights cut: 1.2x too small in variance on Gaussian
+    noise with Huber at 1.345 sigma), it is the sandwich of the estimating equations, valid for
+    heavy-tailed noise when the weights' spread does not depend on the design.
+
+    Parameters
+    ----------
+    r : residuals (any shape); mask : which of them the fit used (bool, same shape);
+    loss : "linear", "huber", "soft_l1" or "cauchy"; delta : the loss scale (residual units);
+    n_par : identifiable parameters.
+
+    Returns
+    -------
+    float
+        ``sigma_psi^2`` in residual units squared.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> r = np.random.default_rng(0).standard_normal(20000)
+    >>> ok = np.ones(r.shape, dtype=bool)
+    >>> round(m_estimator_sigma2(r, ok, "huber", 1.345, 10), 1)
+    1.0
+    """
+    r = np.asarray(r, dtype=float)[mask]
+    n = r.size
+    if loss == "linear":
+        return float(np.sum(r**2)) / max(n - n_par, 1)
+    z = (r / delta) ** 2
+    psi = r * loss_rho(z, loss)[1]
+    dp = _dpsi(z, loss)
+    mean_dp = float(np.mean(dp)) if n else 1.0
+    if mean_dp <= 0:
+        return float(np.sum(r**2)) / max(n - n_par, 1)
+    K = 1.0 + (n_par / max(n, 1)) * float(np.var(dp)) / mean_dp**2
+    return float(K**2 * np.sum(psi**2) / max(n - n_par, 1) / mean_dp**2)
+
+
 def position_covariance(
     D: Array, Z: Array, N: Array, C: Array, W: Array, *, free_offsets: bool, dof_extra: int = 0,
-    method: str = "auto",
+    method: str = "auto", loss: str = "linear", delta: float = 1.0,
 ) -> Array:
     """Gauss-Newton covariance of the positions at a least-squares solution: (m, d, d).
 
     ``sigma^2 [S^+]_ii`` with S the Schur complement of the direction/offset blocks in
     ``J^T W J`` (the positions' information with the directions and offsets profiled out)
-    and ``sigma^2 = cost / (observations - parameters + rotations)``. The pseudo-inverse puts
+    and ``sigma^2 = cost / (observations - parameters + rotations)``. With the paper's reference
+    offsets (``free_offsets=False``, ``C = D[0]``) row 1's noise enters every entry of its column,
+    so the reduced entries are correlated (``sigma^2 (I + 1 1^T)`` per column) and the covariance
+    is the least-squares sandwich ``sigma^2 (S^+ + S^+ Gt Gt^T S^+)`` (``Gt``: the columns'
+    shared-noise directions, :func:`_reference_blocks`) with ``sigma^2`` from the residuals'
+    expected sum under that correlation (:func:`_reference_sigma2`). The pseudo-inverse puts
     the unobservable rotations (3 in space, 1 in a plane) in the minimum-norm gauge
     (z_1 = 0 fixes translation), so the covariances describe errors after the best rotation
     about the first position.
@@ -44,6 +138,9 @@ def position_covariance(
         weights (m, k) (0 = unused entry).
     free_offsets : whether the C_j are estimated (adds one parameter per column).
     dof_extra : further parameters to subtract from the residual degrees of freedom.
+    loss, delta : the fit's loss and scale; with a robust loss W must be the 0/1 mask of the
+        entries it used and the variance factor is :func:`m_estimator_sigma2` (the M-estimator's
+        sandwich) instead of ``sigma^2``.
     method : ``"dense"`` -- pseudo-inverse of the d(m-1) x d(m-1) Schur complement (SVD;
         the reference, O(m^3)); ``"schur"`` -- the same blocks without a pseudo-inverse,
         ``S^+ = (S + Q Q^T)^-1 - Q Q^T`` with Q the orthonormal rotation generators (the
@@ -65,17 +162,23 @@ def position_covariance(
     """
     check_choice(method, "method", ("auto", "dense", "schur"))
     D0 = np.where(W > 0, D, 0.0)
-    Hzz, Hzn, Hnn, _, _, _, r = _normal_equations(D0, Z, N, C, W, free_offsets)
+    reference = not free_offsets
+    Hzz, Hzn, Hnn, _, _, _, r = _normal_equations(D0, Z, N, C, W, True)
+    if reference:
+        Hzn, Hnn, Gz, gn = _reference_blocks(Hzn, Hnn)
     mz, k, d, p = Hzn.shape
     Q = _rotation_generators(Z)
     g = Q.shape[1]
     n_obs = int((W > 0).sum())
     n_par = d * mz + p * k - g - dof_extra
     sigma2 = float(np.sum(W * r**2)) / max(n_obs - n_par, 1)
+    if loss != "linear":
+        sigma2 = m_estimator_sigma2(r, W > 0, loss, delta, n_par)
     idx = np.arange(mz)
     Hr = _flat(Hzn)
+    Hnn_inv = np.linalg.pinv(Hnn)  # (k, p, p) blocks: cheap either way
+    Gt = _shared_noise_directions(np.matmul(Hzn, Hnn_inv[None]), Gz, gn) if reference else None
     if method == "dense" or (method in ("auto", "schur") and not _eliminate_positions(mz, d, k, p)):
-        Hnn_inv = np.linalg.pinv(Hnn)  # (k, p, p) blocks: cheap either way
         X = np.matmul(Hzn, Hnn_inv[None])
         S = -(_flat(X) @ Hr.T)
         S4 = S.reshape(mz, d, mz, d)
@@ -86,10 +189,11 @@ def position_covariance(
             inv = _spd_inverse(S + Q @ Q.T)
             cov = np.linalg.pinv(S, rcond=1e-10, hermitian=True) if inv is None else inv - Q @ Q.T
         blocks = cov.reshape(mz, d, mz, d)[idx, :, idx, :]
+        SpG = cov @ Gt if Gt is not None else None
     else:
         if np.min(np.linalg.eigvalsh(Hzz)[:, 0] / np.maximum(np.trace(Hzz, axis1=1, axis2=2), 1e-300)) < 1e-10:
             return position_covariance(D, Z, N, C, W, free_offsets=free_offsets, dof_extra=dof_extra,
-                                       method="dense")  # a position is not seen by d directions
+                                       method="dense", loss=loss, delta=delta)  # a position is not seen by d directions
         A_inv = np.linalg.inv(Hzz)  # (mz, d, d): each position seen by >= d directions
         Qb = Q.reshape(mz, d, g)
         U = np.concatenate([Hr, Q], axis=1)  # (mz d, k p + g)
@@ -101,6 +205,14 @@ def position_covariance(
         K[k * p:, k * p:] += np.eye(g)
         YK = (Yf @ np.linalg.inv(K)).reshape(mz, d, -1)  # one (kp+g)^3 inverse, then BLAS
         blocks = A_inv - np.matmul(YK, Y.transpose(0, 2, 1)) - np.matmul(Qb, Qb.transpose(0, 2, 1))
+        SpG = None
+        if Gt is not None:  # S^+ Gt = A^-1 Gt - Y K^-1 Y^T Gt - Q Q^T Gt
+            AG = np.matmul(A_inv, Gt.reshape(mz, d, -1)).reshape(mz * d, -1)
+            SpG = AG - YK.reshape(mz * d, -1) @ (Yf.T @ Gt) - Q @ (Q.T @ Gt)
+    if Gt is not None and SpG is not None and loss == "linear":
+        sigma2 = _reference_sigma2(W, r, d * mz + p * k - g, Hnn_inv, gn, Gt, SpG, dof_extra)
+        SG = SpG.reshape(mz, d, -1)
+        blocks = blocks + np.matmul(SG, SG.transpose(0, 2, 1))
     blocks = sigma2 * 0.5 * (blocks + blocks.transpose(0, 2, 1))
     return np.concatenate([np.zeros((1, d, d)), blocks], axis=0)
 
@@ -225,7 +337,9 @@ def direction_covariance(D: Array, Z: Array, N: Array, C: Array, W: Array, *, fr
     ----------
     D, Z, N, C, W : data (m, k), positions (m, d) with ``Z[0] = 0``, unit directions (k, d), offsets
         (k,), weights (m, k) (0 = unused entry).
-    free_offsets : whether the C_j are estimated.
+    free_offsets : whether the C_j are estimated; False: the paper's reference offsets
+        ``C = D[0]``, whose shared row-1 noise is carried by the sandwich of
+        :func:`position_covariance`.
 
     Returns
     -------
@@ -244,7 +358,10 @@ def direction_covariance(D: Array, Z: Array, N: Array, C: Array, W: Array, *, fr
     ((12, 3, 3), True)
     """
     D0 = np.where(W > 0, D, 0.0)
-    Hzz, Hzn, Hnn, _, _, T, r = _normal_equations(D0, Z, N, C, W, free_offsets)
+    Hzz, Hzn, Hnn, _, _, T, r = _normal_equations(D0, Z, N, C, W, True)
+    reference = not free_offsets
+    if reference:
+        Hzn, Hnn, Gz, gn = _reference_blocks(Hzn, Hnn)
     mz, k, d, p = Hzn.shape
     Q = _rotation_generators(Z)
     g = Q.shape[1]
@@ -265,6 +382,15 @@ def direction_covariance(D: Array, Z: Array, N: Array, C: Array, W: Array, *, fr
     Yb = Y.reshape(mz * d, k, p)
     SYb = SY.reshape(mz * d, k, p)
     cov_v = A + np.einsum("akp,akq->kpq", Yb, SYb)
+    if reference:
+        # sandwich term: column j' moves with row 1's noise of every column j through the positions
+        # (-X_j'^T S^+ gt_j) and of its own column (A_j' g_n,j')
+        Gt = _shared_noise_directions(X, Gz, gn)
+        SpG = Sp @ Gt
+        Wm = -np.einsum("akp,al->kpl", Yb, SpG)  # (k, p, k)
+        Wm[np.arange(k), :, np.arange(k)] += np.einsum("kpq,kq->kp", A, gn)
+        cov_v = cov_v + np.einsum("kpl,kql->kpq", Wm, Wm)
+        sigma2 = _reference_sigma2(W, r, d * mz + p * k - g, A, gn, Gt, SpG)
     q = d - 1
     cov_t = cov_v[:, :q, :q]
     cov = sigma2 * np.matmul(np.matmul(T, cov_t), T.transpose(0, 2, 1))

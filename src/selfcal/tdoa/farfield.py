@@ -101,8 +101,10 @@ def solve_farfield(
         x the robust noise estimate (1.4826 MAD of the residuals, dof-corrected).
     noise_std : known noise standard deviation of the entries (metres); used by the
         degeneracy thresholds (else estimated from the data).
-    offsets : "reference" (C_j = D_1j, the paper's reduced cost), "free" (C_j estimated)
-        or "auto" ("reference" for complete data with the linear loss, else "free").
+    offsets : "reference" (C_j = D_1j, the paper's reduced cost), "free" (C_j estimated: the
+        maximum-likelihood fit under i.i.d. noise on D) or "auto" (= "free"; it used to be
+        "reference" for complete data with the linear loss, whose noise in row 1 is shared by every
+        row: a less accurate estimate, and one that changed with whether the screen flagged anything).
     direction_solver : for "alternating": "global" or "local" (see :mod:`.refine`).
     allow_degenerate : return the partial reconstruction of a degenerate configuration
         (with ``degeneracy`` set) instead of raising.

@@ -351,6 +351,9 @@ def refine_lm(
     if covariance is None:
         d_, p_ = Z.shape[1], Z.shape[1] - 1 + int(free_offsets)
         covariance = min(d_ * (Z.shape[0] - 1), p_ * N.shape[0]) <= COV_DIRECT_MAX
-    cov = (position_covariance(D0, Z, N, C, W, free_offsets=free_offsets, method=covariance_method)
+    # a robust fit's covariance: the Gauss-Newton information of the entries used and the
+    # M-estimator's variance factor (not the IRLS weights, which shrink the cut residuals)
+    cov = (position_covariance(D0, Z, N, C, W if loss == "linear" else obs.astype(float),
+                               free_offsets=free_offsets, method=covariance_method, loss=loss, delta=delta)
            if covariance else None)
     return RefineResult(Z, N, C, cost, it, converged, hist, phist, cov)
