@@ -102,8 +102,8 @@ def canonical_order(Y: Array) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
     --------
     >>> import numpy as np
     >>> Y = np.array([[3.0, 1.0], [1.0, 2.0], [2.0, 2.0]])
-    >>> [int(i) for i in canonical_order(Y)[0]]
-    [1, 2, 0]
+    >>> [int(i) for i in canonical_order(Y)[0]]  # medians 2, 1.5, 2; rows 0 and 2 tie, then [1, 3] < [2, 2]
+    [1, 0, 2]
     """
     def order(M: Array) -> NDArray[np.intp]:
         med = _nanmedian_rows(M)  # = np.nanmedian(M, axis=1), vectorised above 600 columns
