@@ -413,6 +413,13 @@ def moving_tag(
                 if cv is not None:
                     details["offsets_choice"] = cv.to_dict()
                 details["offsets"] = res.offsets
+                # error bars that hold on a flight's serially correlated, position-dependent errors
+                from ..verdict.jackknife import jackknife_blind_fit
+
+                with stage("anchor error bars: block jackknife", unit="refits"):
+                    res, js = jackknife_blind_fit(res, sub, scale)
+                if js is not None:
+                    details["error_scale"] = js.to_dict()
         inner = res.determinacy
         res = _embed_columns(res, keep, J, M)
         _reissue(caught, inner, res.determinacy)

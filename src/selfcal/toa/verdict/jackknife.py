@@ -21,7 +21,7 @@ from numpy.typing import NDArray
 from ...errors import ConvergenceWarning, DegenerateGeometryError, InputError
 from .crossval import _folds
 
-__all__ = ["JackknifeScale", "block_jackknife_scale"]
+__all__ = ["JackknifeScale", "block_jackknife_scale", "jackknife_blind_fit"]
 
 Array = NDArray[np.float64]
 
@@ -158,3 +158,68 @@ def block_jackknife_scale(residuals: Array, receivers: Array, receiver_cov: Arra
             C[i], hermitian=True)
     scale = np.where(np.isfinite(ratio), np.maximum(ratio, 1.0), 1.0)
     return JackknifeScale(scale, ratio, K, int(L))
+
+
+def jackknife_blind_fit(res: Any, sub: Array, scale: float = 1.0) -> tuple[Any, JackknifeScale | None]:
+    """A blind moving-tag fit with its receivers' covariances scaled by the block jackknife.
+
+    The same estimator as :func:`block_jackknife_scale` for a fit without known nodes: each
+    refit (the fit's own offset model, started from it, without one contiguous block of tag
+    positions) is moved onto the fit's receivers by the best rigid motion (Kabsch, no
+    reflection: :func:`selfcal.geometry.align`) before the spread is taken, so the gauge
+    does not count as error. Aligning on the receivers removes their common rigid motion
+    from the spread, so under the model the ratio is at most about 1 and the scale stays 1;
+    it grows where the flight's blocks disagree by more than the model's noise allows
+    (serially correlated, position-dependent UWB errors).
+
+    Parameters
+    ----------
+    res : ToaResult
+        A fit of ``sub`` with ``offsets`` "none", "common" or "receivers" and receiver covariances.
+    sub : (I, J) array
+        The matrix it was fitted on, matrix units; columns in time order.
+    scale : float
+        Metres per matrix unit.
+
+    Returns
+    -------
+    (result, scale)
+        ``res`` with ``receiver_cov`` scaled, and the :class:`JackknifeScale`; ``res`` itself
+        and None where the jackknife cannot run (no covariance, a failed refit, other offsets).
+    """
+    import dataclasses
+
+    from ...geometry import align
+    from ..engine.nls import refine_toa
+
+    models: dict[str, dict[str, Any]] = {"none": {"offsets": "none"}, "receivers": {"offsets": "receivers"},
+              "common": {"offsets": "receivers", "common_offsets": "receivers"}}
+    if res.offsets not in models or res.receiver_cov is None or res.residuals is None:
+        return res, None
+    kr = np.isfinite(res.receivers).all(axis=1)
+    ks = np.isfinite(res.sources).all(axis=1)
+    C = np.asarray(res.receiver_cov, float)[kr]
+    if kr.sum() < res.receivers.shape[1] + 1 or not np.isfinite(C).all():
+        return res, None
+    used = np.isfinite(res.residuals) & ~np.asarray(res.outliers, bool)
+    Z = np.where(used, np.asarray(sub, float) * scale, np.nan)[np.ix_(kr, ks)]
+    R, S = np.asarray(res.receivers, float)[kr], np.asarray(res.sources, float)[ks]
+    d0 = None if res.receiver_offsets is None else np.asarray(res.receiver_offsets, float)[kr] * scale
+    kw = models[str(res.offsets)]
+
+    def refit(cols: NDArray[np.bool_]) -> Array:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            sol = refine_toa(Z[:, cols], R, S[cols], receiver_offsets0=d0, covariance=False, **kw)
+        return align(np.asarray(sol.receivers, float), R, reflection=False).apply(np.asarray(sol.receivers, float))
+
+    js = block_jackknife_scale(np.asarray(res.residuals, float)[np.ix_(kr, ks)], R, C, refit)
+    if js is None:
+        return res, None
+    cov = np.array(res.receiver_cov, float)
+    cov[kr] = C * js.scale[:, None, None]
+    full = np.ones(kr.size)
+    full[kr] = js.scale
+    ratio = np.full(kr.size, np.nan)
+    ratio[kr] = js.ratio
+    return dataclasses.replace(res, receiver_cov=cov), dataclasses.replace(js, scale=full, ratio=ratio)
