@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from ...errors import DegenerateGeometryError
+from ..verdict.jackknife import bias_effect
 
 __all__ = ["bias_effect", "jackknife_scaled"]
 
@@ -58,45 +58,3 @@ def jackknife_scaled(sol: Any, Y: Array, kw: dict[str, Any]) -> tuple[Any, Any]:
             cov = cov + add
             js = dataclasses.replace(js, bias_tau=tau)
     return dataclasses.replace(sol, receiver_cov=cov), js
-
-
-_BIAS_ALPHA = 0.05  # level of the test that the per-receiver offsets spread beyond their noise
-_BIAS_STEP = 0.01  # m, the finite-difference step of a row's bias (the fit is linear in it at this scale)
-
-
-def bias_effect(sol: Any, Y: Array, kw: dict[str, Any]) -> tuple[float, Array] | None:
-    """Random per-receiver biases around the common offset: ``(tau, tau^2 G_i G_i^T per receiver)``.
-
-    ``sol`` is the common-offset fit of ``Y`` (metres) with the fit options ``kw``; None when
-    the per-receiver refit or a shifted refit fails.
-    """
-    from scipy.stats import chi2
-
-    from ..engine.nls import refine_toa
-
-    I = Y.shape[0]
-    base = {k: v for k, v in kw.items() if k not in ("offsets", "common_offsets")}
-    try:
-        full = refine_toa(Y, sol.receivers, sol.sources, offsets="receivers", receiver_offsets0=sol.receiver_offsets,
-                          source_offsets0=sol.source_offsets, covariance=True, **base)
-        d = np.asarray(full.receiver_offsets, float)
-        var = np.asarray(full.receiver_offset_std, float) ** 2
-        if not (np.isfinite(d).all() and np.isfinite(var).all()) or I < 2:
-            return None
-        tau2 = max(0.0, float(np.sum((d - d.mean()) ** 2) - (1 - 1 / I) * np.sum(var)) / (I - 1))
-        # no spread beyond the offsets' own noise (chi-square of their deviations from the
-        # precision-weighted mean, level 0.05): no random effect
-        w = 1.0 / var
-        spread = float(np.sum(w * (d - np.sum(w * d) / np.sum(w)) ** 2))
-        if tau2 == 0.0 or spread <= chi2.ppf(1 - _BIAS_ALPHA, I - 1):
-            return 0.0, np.zeros_like(sol.receiver_cov)
-        G = np.zeros((*sol.receivers.shape, I))
-        for k in range(I):
-            Yk = Y.copy()
-            Yk[k] += _BIAS_STEP
-            sk = refine_toa(Yk, sol.receivers, sol.sources, receiver_offsets0=sol.receiver_offsets,
-                            source_offsets0=sol.source_offsets, covariance=False, **kw)
-            G[:, :, k] = (sk.receivers - sol.receivers) / _BIAS_STEP
-    except (DegenerateGeometryError, np.linalg.LinAlgError, ValueError):
-        return None
-    return float(np.sqrt(tau2)), tau2 * np.einsum("iak,ibk->iab", G, G)

@@ -21,7 +21,7 @@ from numpy.typing import NDArray
 from ...errors import ConvergenceWarning, DegenerateGeometryError, InputError
 from .crossval import _folds
 
-__all__ = ["JackknifeScale", "block_jackknife_scale", "jackknife_blind_fit"]
+__all__ = ["JackknifeScale", "bias_effect", "block_jackknife_scale", "jackknife_blind_fit"]
 
 Array = NDArray[np.float64]
 
@@ -216,10 +216,70 @@ def jackknife_blind_fit(res: Any, sub: Array, scale: float = 1.0) -> tuple[Any, 
     js = block_jackknife_scale(np.asarray(res.residuals, float)[np.ix_(kr, ks)], R, C, refit)
     if js is None:
         return res, None
+    Cs = C * js.scale[:, None, None]
+    if res.offsets == "common":  # per-anchor biases the model does not hold: a random effect
+        import types
+
+        fit = types.SimpleNamespace(receivers=R, sources=S, receiver_offsets=d0, source_offsets=None, receiver_cov=Cs)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            extra = bias_effect(fit, Z, kw, align_receivers=True)
+        if extra is not None:
+            Cs = Cs + extra[1]
+            js = dataclasses.replace(js, bias_tau=extra[0])
     cov = np.array(res.receiver_cov, float)
-    cov[kr] = C * js.scale[:, None, None]
+    cov[kr] = Cs
     full = np.ones(kr.size)
     full[kr] = js.scale
     ratio = np.full(kr.size, np.nan)
     ratio[kr] = js.ratio
     return dataclasses.replace(res, receiver_cov=cov), dataclasses.replace(js, scale=full, ratio=ratio)
+
+
+_BIAS_ALPHA = 0.05  # level of the test that the per-receiver offsets spread beyond their noise
+_BIAS_STEP = 0.01  # m, the finite-difference step of a row's bias (the fit is linear in it at this scale)
+
+
+def bias_effect(sol: Any, Y: Array, kw: dict[str, Any], *, align_receivers: bool = False
+                ) -> tuple[float, Array] | None:
+    """Random per-receiver biases around the common offset: ``(tau, tau^2 G_i G_i^T per receiver)``.
+
+    ``sol`` is the common-offset fit of ``Y`` (metres) with the fit options ``kw``; None when
+    the per-receiver refit or a shifted refit fails. ``align_receivers``: a blind fit's
+    shifted refits come back in their own gauge; each is moved onto ``sol``'s receivers by the
+    best rigid motion (Kabsch, no reflection) before the difference is taken.
+    """
+    from scipy.stats import chi2
+
+    from ...geometry import align
+    from ..engine.nls import refine_toa
+
+    I = Y.shape[0]
+    base = {k: v for k, v in kw.items() if k not in ("offsets", "common_offsets")}
+    try:
+        full = refine_toa(Y, sol.receivers, sol.sources, offsets="receivers", receiver_offsets0=sol.receiver_offsets,
+                          source_offsets0=sol.source_offsets, covariance=True, **base)
+        d = np.asarray(full.receiver_offsets, float)
+        var = np.asarray(full.receiver_offset_std, float) ** 2
+        if not (np.isfinite(d).all() and np.isfinite(var).all()) or I < 2:
+            return None
+        tau2 = max(0.0, float(np.sum((d - d.mean()) ** 2) - (1 - 1 / I) * np.sum(var)) / (I - 1))
+        # no spread beyond the offsets' own noise (chi-square of their deviations from the
+        # precision-weighted mean, level 0.05): no random effect
+        w = 1.0 / var
+        spread = float(np.sum(w * (d - np.sum(w * d) / np.sum(w)) ** 2))
+        if tau2 == 0.0 or spread <= chi2.ppf(1 - _BIAS_ALPHA, I - 1):
+            return 0.0, np.zeros_like(sol.receiver_cov)
+        G = np.zeros((*sol.receivers.shape, I))
+        for k in range(I):
+            Yk = Y.copy()
+            Yk[k] += _BIAS_STEP
+            sk = refine_toa(Yk, sol.receivers, sol.sources, receiver_offsets0=sol.receiver_offsets,
+                            source_offsets0=sol.source_offsets, covariance=False, **kw)
+            Rk = np.asarray(sk.receivers, float)
+            if align_receivers:
+                Rk = align(Rk, np.asarray(sol.receivers, float), reflection=False).apply(Rk)
+            G[:, :, k] = (Rk - sol.receivers) / _BIAS_STEP
+    except (DegenerateGeometryError, np.linalg.LinAlgError, ValueError):
+        return None
+    return float(np.sqrt(tau2)), tau2 * np.einsum("iak,ibk->iab", G, G)
