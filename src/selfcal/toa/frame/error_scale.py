@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from ..verdict.jackknife import bias_effect
+from ..verdict.jackknife import bias_effect, scaled_receiver_cov
 
 __all__ = ["bias_effect", "jackknife_scaled"]
 
@@ -32,7 +32,6 @@ Array = NDArray[np.float64]
 def jackknife_scaled(sol: Any, Y: Array, kw: dict[str, Any]) -> tuple[Any, Any]:
     """``sol`` with its receivers' covariances scaled by the block jackknife, and the scale (or None)."""
     from ..engine.nls import refine_toa
-    from ..verdict.jackknife import block_jackknife_scale
 
     if sol.receiver_cov is None or sol.residuals is None or not np.isfinite(sol.receiver_cov).all():
         return sol, None
@@ -47,14 +46,8 @@ def jackknife_scaled(sol: Any, Y: Array, kw: dict[str, Any]) -> tuple[Any, Any]:
         return refine_toa(Y[:, cols], sol.receivers, sol.sources[cols], receiver_offsets0=sol.receiver_offsets,
                           source_offsets0=so, covariance=False, **fkw).receivers
 
-    js = block_jackknife_scale(sol.residuals, sol.receivers, sol.receiver_cov, refit)
-    if js is None:
+    got = scaled_receiver_cov(sol, Y, kw, refit)
+    if got is None:
         return sol, None
-    cov = sol.receiver_cov * js.scale[:, None, None]
-    if kw.get("offsets") == "receivers" and kw.get("common_offsets") == "receivers":
-        extra = bias_effect(sol, Y, kw)
-        if extra is not None:
-            tau, add = extra
-            cov = cov + add
-            js = dataclasses.replace(js, bias_tau=tau)
+    cov, js = got
     return dataclasses.replace(sol, receiver_cov=cov), js

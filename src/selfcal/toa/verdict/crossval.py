@@ -414,6 +414,23 @@ def one_se_choice(scores: Mapping[str, float], fold_scores: Mapping[str, Sequenc
     return chosen, best, se
 
 
+def located_block(res: Any, sub: Array, scale: float = 1.0) -> tuple[Any, ...]:
+    """A fit's located nodes and the entries it used, in metres, for refits started from it.
+
+    Returns ``(kr, ks, used, Z, R, S, d0)``: (I,) / (J,) masks of the located receivers /
+    sources, the (I, J) mask of the entries used (observed, not flagged), ``Z`` the used
+    entries of ``sub * scale`` on the located block (NaN elsewhere), the located receivers
+    and sources, and the receivers' offsets in metres (None without offsets).
+    """
+    kr = np.isfinite(res.receivers).all(axis=1)
+    ks = np.isfinite(res.sources).all(axis=1)
+    used = np.isfinite(res.residuals) & ~np.asarray(res.outliers, bool)
+    Z = np.where(used, np.asarray(sub, float) * scale, np.nan)[np.ix_(kr, ks)]
+    R, S = np.asarray(res.receivers, float)[kr], np.asarray(res.sources, float)[ks]
+    d0 = None if res.receiver_offsets is None else np.asarray(res.receiver_offsets, float)[kr] * scale
+    return kr, ks, used, Z, R, S, d0
+
+
 def choose_receiver_offsets(res: Any, sub: Array, scale: float = 1.0, solver: str = "auto",
                             progress: Any = None) -> tuple[Any, CvChoice | None]:
     """Per-receiver offsets (per-anchor ranging biases) kept when they predict held-out sources better.
@@ -447,12 +464,7 @@ def choose_receiver_offsets(res: Any, sub: Array, scale: float = 1.0, solver: st
     from .offset_fit import _with_common
 
     simple = str(res.offsets)
-    kr = np.isfinite(res.receivers).all(axis=1)
-    ks = np.isfinite(res.sources).all(axis=1)
-    used = np.isfinite(res.residuals) & ~np.asarray(res.outliers, bool)
-    Z = np.where(used, np.asarray(sub, float) * scale, np.nan)[np.ix_(kr, ks)]
-    R, S = np.asarray(res.receivers, float)[kr], np.asarray(res.sources, float)[ks]
-    d0 = None if res.receiver_offsets is None else np.asarray(res.receiver_offsets, float)[kr] * scale
+    kr, ks, used, Z, R, S, d0 = located_block(res, sub, scale)
     fails = (DegenerateGeometryError, InputError, np.linalg.LinAlgError, ValueError)
     try:
         with warnings.catch_warnings():

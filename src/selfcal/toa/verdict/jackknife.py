@@ -10,6 +10,7 @@ covariance; used by :func:`selfcal.toa.frame.known.fit_known` through
 
 from __future__ import annotations
 
+import dataclasses
 import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -19,9 +20,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ...errors import ConvergenceWarning, DegenerateGeometryError, InputError
-from .crossval import _folds
+from .crossval import _REFIT, _folds, located_block
 
-__all__ = ["JackknifeScale", "bias_effect", "block_jackknife_scale", "jackknife_blind_fit"]
+__all__ = ["JackknifeScale", "bias_effect", "block_jackknife_scale", "jackknife_blind_fit", "scaled_receiver_cov"]
 
 Array = NDArray[np.float64]
 
@@ -187,46 +188,34 @@ def jackknife_blind_fit(res: Any, sub: Array, scale: float = 1.0) -> tuple[Any, 
         ``res`` with ``receiver_cov`` scaled, and the :class:`JackknifeScale`; ``res`` itself
         and None where the jackknife cannot run (no covariance, a failed refit, other offsets).
     """
-    import dataclasses
+    import types
 
     from ...geometry import align
     from ..engine.nls import refine_toa
 
-    models: dict[str, dict[str, Any]] = {"none": {"offsets": "none"}, "receivers": {"offsets": "receivers"},
-              "common": {"offsets": "receivers", "common_offsets": "receivers"}}
-    if res.offsets not in models or res.receiver_cov is None or res.residuals is None:
+    if res.offsets not in ("none", "common", "receivers") or res.receiver_cov is None or res.residuals is None:
         return res, None
-    kr = np.isfinite(res.receivers).all(axis=1)
-    ks = np.isfinite(res.sources).all(axis=1)
+    kr, ks, _, Z, R, S, d0 = located_block(res, sub, scale)
     C = np.asarray(res.receiver_cov, float)[kr]
     if kr.sum() < res.receivers.shape[1] + 1 or not np.isfinite(C).all():
         return res, None
-    used = np.isfinite(res.residuals) & ~np.asarray(res.outliers, bool)
-    Z = np.where(used, np.asarray(sub, float) * scale, np.nan)[np.ix_(kr, ks)]
-    R, S = np.asarray(res.receivers, float)[kr], np.asarray(res.sources, float)[ks]
-    d0 = None if res.receiver_offsets is None else np.asarray(res.receiver_offsets, float)[kr] * scale
-    kw = models[str(res.offsets)]
+    kw: dict[str, Any] = _REFIT[str(res.offsets)]
 
     def refit(cols: NDArray[np.bool_]) -> Array:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            sol = refine_toa(Z[:, cols], R, S[cols], receiver_offsets0=d0, covariance=False, **kw)
-        return align(np.asarray(sol.receivers, float), R, reflection=False).apply(np.asarray(sol.receivers, float))
+            Rk = np.asarray(refine_toa(Z[:, cols], R, S[cols], receiver_offsets0=d0, covariance=False, **kw).receivers,
+                            float)
+        return align(Rk, R, reflection=False).apply(Rk)
 
-    js = block_jackknife_scale(np.asarray(res.residuals, float)[np.ix_(kr, ks)], R, C, refit)
-    if js is None:
+    fit = types.SimpleNamespace(receivers=R, sources=S, receiver_offsets=d0, source_offsets=None, receiver_cov=C,
+                                residuals=np.asarray(res.residuals, float)[np.ix_(kr, ks)])
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        got = scaled_receiver_cov(fit, Z, kw, refit, align_receivers=True)
+    if got is None:
         return res, None
-    Cs = C * js.scale[:, None, None]
-    if res.offsets == "common":  # per-anchor biases the model does not hold: a random effect
-        import types
-
-        fit = types.SimpleNamespace(receivers=R, sources=S, receiver_offsets=d0, source_offsets=None, receiver_cov=Cs)
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            extra = bias_effect(fit, Z, kw, align_receivers=True)
-        if extra is not None:
-            Cs = Cs + extra[1]
-            js = dataclasses.replace(js, bias_tau=extra[0])
+    Cs, js = got
     cov = np.array(res.receiver_cov, float)
     cov[kr] = Cs
     full = np.ones(kr.size)
@@ -283,3 +272,26 @@ def bias_effect(sol: Any, Y: Array, kw: dict[str, Any], *, align_receivers: bool
     except (DegenerateGeometryError, np.linalg.LinAlgError, ValueError):
         return None
     return float(np.sqrt(tau2)), tau2 * np.einsum("iak,ibk->iab", G, G)
+
+
+def scaled_receiver_cov(sol: Any, Y: Array, kw: dict[str, Any], refit: Any, *, align_receivers: bool = False
+                        ) -> tuple[Array, JackknifeScale] | None:
+    """A fit's receiver covariances scaled by :func:`block_jackknife_scale`, plus, for the
+    common-offset model, the random effect of per-receiver biases (:func:`bias_effect`).
+
+    ``sol``: the fit (receivers, sources, receiver / source offsets, receiver_cov, residuals)
+    of ``Y`` (metres) with the fit options ``kw``; ``refit(columns) -> receivers`` as for
+    :func:`block_jackknife_scale`; ``align_receivers`` as for :func:`bias_effect` (a blind fit).
+    Returns ``(receiver_cov, scale)``, or None when the jackknife cannot run. Used by
+    :func:`jackknife_blind_fit` and :func:`selfcal.toa.frame.error_scale.jackknife_scaled`.
+    """
+    js = block_jackknife_scale(sol.residuals, sol.receivers, sol.receiver_cov, refit)
+    if js is None:
+        return None
+    cov = sol.receiver_cov * js.scale[:, None, None]
+    if kw.get("offsets") == "receivers" and kw.get("common_offsets") == "receivers":
+        extra = bias_effect(sol, Y, kw, align_receivers=align_receivers)
+        if extra is not None:
+            cov = cov + extra[1]
+            js = dataclasses.replace(js, bias_tau=extra[0])
+    return cov, js
