@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import time
 import warnings
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -30,7 +31,6 @@ from .rank3_model import (
     _feasible,
     _impute,
     _random_p0,
-    _replace,
     _result,
     _split,
     checked_rank_input,
@@ -298,7 +298,7 @@ def rank3_lm(
     extra: dict[str, Any] = {"completed": Rx} if n_miss else {}
     extra["objective"] = float(np.sqrt(cost))
     extra["aborted"] = aborted
-    return _replace(res, seconds=time.perf_counter() - t0, extra=extra)
+    return replace(res, seconds=time.perf_counter() - t0, extra=extra)
 
 
 class _ScalableStep:
@@ -368,7 +368,7 @@ def fast_offsets(
     if model == "linear":
         return first
     second = rank3_lm(ranges, dim=dim, model=model, p0=first.p, max_iter=max_iter, abort_above=abort_above)
-    return _replace(
+    return replace(
         second,
         iterations=first.iterations + second.iterations,
         total_iterations=first.iterations + second.iterations,
@@ -454,11 +454,11 @@ def estimate_offsets(
             )
         total += res.iterations
         ok = None if accept is None else bool(np.isfinite(res.frobenius) and res.frobenius <= accept)
-        res = _replace(res, accepted=ok, restarts=attempt, total_iterations=total)
+        res = replace(res, accepted=ok, restarts=attempt, total_iterations=total)
         if best is None or res.frobenius < best.frobenius:
             best = res
         if ok:
-            return _replace(res, seconds=time.perf_counter() - t0)
+            return replace(res, seconds=time.perf_counter() - t0)
     assert best is not None
     if accept is not None:
         warnings.warn(
@@ -467,5 +467,5 @@ def estimate_offsets(
             ConvergenceWarning,
             stacklevel=2,
         )
-    return _replace(best, total_iterations=total, seconds=time.perf_counter() - t0)
+    return replace(best, total_iterations=total, seconds=time.perf_counter() - t0)
 

@@ -8,6 +8,7 @@ eigendecomposition are cheaper) and by the tests as the reference of the scalabl
 from __future__ import annotations
 
 import time
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -25,7 +26,6 @@ from .rank3_model import (
     _feasible,
     _impute,
     _random_p0,
-    _replace,
     _result,
     _split,
     checked_rank_input,
@@ -181,7 +181,7 @@ def _rank3_lm_joint(
     extra: dict[str, Any] = {"completed": Rx} if n_miss else {}
     extra["objective"] = float(np.sqrt(cost))
     extra["aborted"] = aborted
-    return _replace(res, seconds=time.perf_counter() - t0, extra=extra)
+    return replace(res, seconds=time.perf_counter() - t0, extra=extra)
 
 
 

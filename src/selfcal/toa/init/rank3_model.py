@@ -329,12 +329,6 @@ def _random_p0(I: int, J: int, rng: np.random.Generator) -> Array:
 
 # ----------------------------------------------------------------------------- faithful iteration
 
-def _replace(res: Rank3Result, **kw: Any) -> Rank3Result:
-    from dataclasses import replace
-
-    return replace(res, **kw)
-
-
 
 def _feasible(x: Array, bound: float) -> bool:
     """Keep the search finite: |offsets| and the missing entries within twice the largest measured value.
