@@ -6,7 +6,6 @@ line; the result is still written), 2 = bad input (one line on stderr, no output
 
 from __future__ import annotations
 
-import importlib.util
 from pathlib import Path
 from typing import Any
 
@@ -21,11 +20,6 @@ from .graph import parse_room, room_option
 #: ``--entries auto`` keeps per-entry arrays in the JSON up to this many matrix entries: about
 #: 2 MB of text and ~1 s of conversion; a 1000 x 1000 matrix took 17 s to convert and 10 s to write
 ENTRIES_JSON_MAX = 100_000
-
-
-def _auto_available() -> bool:
-    """The model selection of ``offsets`` / ``dim`` (``selfcal.toa.verdict.select``) is installed."""
-    return importlib.util.find_spec("selfcal.toa.verdict.select") is not None
 
 
 @calibrate.command("toa")
@@ -124,9 +118,6 @@ def toa_command(matrix: Path, speed: float | None, offsets: str | None, dim: str
         raise InputError("--known and --frame are exclusive (known positions already define the frame)")
     if side is not None and known is None:
         raise InputError("--side says where the other nodes lie relative to the --known nodes' plane: give --known")
-    if ("auto" in (offsets, dim)) and not _auto_available():
-        raise InputError("--offsets auto / --dim auto need the model selection (selfcal.toa.verdict.select), "
-                         "which this build does not have yet; give the value explicitly")
     box = parse_room(room)
     table = read_table(matrix, name=str(matrix))
     M, speed, _ = to_metres(table.values, unit, speed, sample_rate, name=str(matrix))

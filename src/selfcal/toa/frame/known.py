@@ -303,15 +303,6 @@ def _full(P: Array, ok: NDArray[np.bool_]) -> Array:
     return out
 
 
-def _masks(usable: Sequence[KnownNode], rshape: tuple[int, ...], sshape: tuple[int, ...]
-           ) -> tuple[NDArray[np.bool_], NDArray[np.bool_]]:
-    fr, fs = np.zeros(rshape, bool), np.zeros(sshape, bool)
-    for k in usable:
-        if k.std is None:
-            (fr if k.kind == "receiver" else fs)[k.index, k.mask] = True
-    return fr, fs
-
-
 def _prior_misfit(sol: Any, usable: Sequence[KnownNode], ok_r: NDArray[np.bool_], ok_s: NDArray[np.bool_]) -> float:
     """``sum |p - mu|^2 / std^2`` over the known coordinates given with a std (sol on the located nodes)."""
     R, S = _full(np.asarray(sol.receivers), ok_r), _full(np.asarray(sol.sources), ok_s)

@@ -94,7 +94,6 @@ def _tail(M: Array, dim: int) -> tuple[float, Array, Array, Array]:
     return float(np.sum(resid * resid)), Ud, Vd, resid
 
 
-
 def _rank3_lm_joint(
     ranges: Any,
     *,
@@ -107,38 +106,13 @@ def _rank3_lm_joint(
     rng: np.random.Generator | int | None = None,
     abort_above: float | None = None,
 ) -> Rank3Result:
-    """Reference: the joint LM of :func:`rank3_lm` before 2026-12 (missing entries as dense unknowns).
+    """:func:`~selfcal.toa.init.rank3.rank3_lm` (same problem, parameters and result) with a dense joint step.
 
-    Kept for the tests that compare the scalable :func:`rank3_lm` against it on small cases;
-    its Hessian is (I+J-1+missing)^2 and every trial runs a full eigendecomposition.
-
-    Residual: ``N(M(p)) = M(p) - [M(p)]_d`` (the part of the corrected matrix outside its best
-    rank-d approximation), with ``M = T + A(p) (+ Gamma(p))``. Jacobian (Kaufman's variable
-    projection approximation, exact at zero residual): ``N(dM/dp_k) = (P u_k)(Q v_k)^T`` with
-    P, Q the projectors off the leading singular subspaces, so
-    ``J^T J = (U~^T U~) o (V~^T V~)`` (Hadamard) and ``J^T r = diag(U^T N(M) V)`` is the exact
-    gradient of (*)/2. Marquardt damping with the usual gain-ratio update; steps that leave
-    ``|x| <= 2 max t`` are refused (see :func:`_feasible`). Missing entries (NaN) become extra unknowns, each with its own rank-one Jacobian column (matrix
-    completion inside the same projection); their count adds to the I+J-1 unknowns of the
-    identifiability condition.
-
-    Parameters
-    ----------
-    ranges : (I, J) metres; NaN = missing.
-    dim : rank d (3 or 2).
-    model : ``"exact"`` (keeps Gamma: distinct internal delays) or ``"linear"`` (thesis, Gamma = 0).
-    p0 : initial p (metres); default the thesis random initialisation from ``rng``.
-    max_iter : maximum LM iterations.
-    xtol : stop when ``||dx|| <= xtol (||x|| + xtol)`` or F <= xtol ||M||_F.
-    rng : seed or Generator for the initialisation.
-
-    centring : ``"mean"`` (default, no special node) or ``"reference"`` (thesis (3.4)).
-
-    Returns
-    -------
-    Rank3Result with ``method="fast"``; ``frobenius`` is sqrt of (*) with reference centring,
-    the quantity F (3.17) converges to; with missing entries ``extra["completed"]`` is the
-    completed (I, J) matrix.
+    The missing entries are dense unknowns beside the I+J-1 offsets: one
+    (I+J-1+missing)^2 Gauss-Newton matrix (Hadamard form, ``_JointStep``) and a full
+    eigendecomposition per trial, cheaper than the scalable path's iterative pieces up to
+    ``_DENSE_JOINT_MAX`` unknowns, where :func:`~selfcal.toa.init.rank3.rank3_lm` calls it;
+    the tests also use it as the reference of the scalable path on small cases.
     """
     t0 = time.perf_counter()
     dim, R0, mask, I, J, K, n_miss = checked_rank_input(ranges, model, centring, dim)
@@ -182,7 +156,6 @@ def _rank3_lm_joint(
     extra["objective"] = float(np.sqrt(cost))
     extra["aborted"] = aborted
     return replace(res, seconds=time.perf_counter() - t0, extra=extra)
-
 
 
 class _JointStep:
