@@ -70,7 +70,7 @@ from .engine.batch_lm import solve_batch_lm
 from .engine.dense_lm import solve_dense_lm
 from .engine.model import least_squares_offsets
 from .engine.nls import NlsSolution, _pack, _unpack, refine_toa, toa_model
-from .init.starts import _LARGE, INITIALISERS, LARGE_INITIALISERS, MOVES_MAX_NODES, SCALED_STARTS  # noqa: F401
+from .init.starts import _LARGE, INITIALISERS, MOVES_MAX_NODES, SCALED_STARTS  # noqa: F401
 from .moves import Move, Start, moves
 from .verdict.robust import _nanmedian_rows
 
