@@ -68,8 +68,8 @@ from ..progress import report
 from ..robust import TUNING
 from .engine.batch_lm import solve_batch_lm
 from .engine.dense_lm import solve_dense_lm
-from .engine.model import least_squares_offsets
-from .engine.nls import NlsSolution, _pack, _unpack, refine_toa, toa_model
+from .engine.model import _pack, _unpack, least_squares_offsets
+from .engine.nls import NlsSolution, refine_toa, toa_model
 from .init.starts import _LARGE, INITIALISERS, MOVES_MAX_NODES, SCALED_STARTS  # noqa: F401
 from .moves import Move, Start, moves
 from .verdict.robust import _nanmedian_rows

@@ -75,7 +75,6 @@ from .model import (  # noqa: F401 -- the model's names, re-exported from their 
     _pack,
     _robust_sigma,
     _solution,
-    _unpack,
     gauge_basis,
     toa_jacobian,
     toa_model,
