@@ -14,8 +14,6 @@ from typing import Any
 import numpy as np
 from scipy.linalg import cho_factor, cho_solve, eigh
 
-from ..._checks import as_rng
-from ...errors import InputError
 from ...optim.lm import levenberg_marquardt
 from .mds_core import SUBSET_EIG_MIN
 from .rank3_model import (
@@ -24,8 +22,8 @@ from .rank3_model import (
     Rank3Result,
     _centre,
     _feasible,
-    _impute,
-    _random_p0,
+    _lm_extra,
+    _lm_start,
     _result,
     _split,
     checked_rank_input,
@@ -116,12 +114,7 @@ def _rank3_lm_joint(
     """
     t0 = time.perf_counter()
     dim, R0, mask, I, J, K, n_miss = checked_rank_input(ranges, model, centring, dim)
-    missing = np.nonzero(mask)
-    R = _impute(R0)
-    bound = 2.0 * float(np.max(np.abs(R0[~mask])))
-    p = _random_p0(I, J, as_rng(rng)) if p0 is None else np.array(p0, dtype=float).reshape(-1)
-    if p.shape != (K,):
-        raise InputError(f"p0 must have I+J-1 = {K} entries, got {p.shape}")
+    missing, R, bound, p = _lm_start(R0, mask, K, p0, rng)
     x = np.concatenate([p, R[missing]])
 
     def unpack(xv: Array) -> tuple[Array, Array]:
@@ -152,10 +145,7 @@ def _rank3_lm_joint(
     # value F (3.17) converges to, so that the acceptance threshold means the same for both methods
     F_ref = np.sqrt(_tail(offset_matrix(Rx, p, model=model, centring="reference"), dim)[0])
     res = _result(Rx, p, F_ref, hist, steps, it, converged, "fast", model, 0.0)
-    extra: dict[str, Any] = {"completed": Rx} if n_miss else {}
-    extra["objective"] = float(np.sqrt(cost))
-    extra["aborted"] = aborted
-    return replace(res, seconds=time.perf_counter() - t0, extra=extra)
+    return replace(res, seconds=time.perf_counter() - t0, extra=_lm_extra(Rx, n_miss, cost, aborted))
 
 
 class _JointStep:
