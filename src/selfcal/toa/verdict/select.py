@@ -329,7 +329,7 @@ def choose_offsets(M: Array, dim: int, solve: Solver, opts: ToaOptions) -> tuple
         init = _nested_init(min(nested, key=_rss), mode, opts.speed) if nested else "auto"
         # the offsets-free model is searched; each larger one is refined from its nested start
         # (the search restarted per model cost 4x the blind solve; a refinement only lowers the cost)
-        res = _quiet(solve, M, dim, mode, opts.with_(method="nls") if nested else opts, init=init)
+        res = _quiet(solve, M, dim, mode, dataclasses.replace(opts, method="nls") if nested else opts, init=init)
         if res is None and not isinstance(init, str):
             res = _quiet(solve, M, dim, mode, opts)
         if res is not None:
@@ -385,7 +385,7 @@ def choose_dim(M: Array, offsets: str, solve: Solver, opts: ToaOptions, *,
     r3 = fit3 if fit3 is not None else _quiet(solve, M, 3, offsets, opts)
     r2 = None
     if r3 is not None:
-        r2 = _quiet(solve, M, 2, offsets, opts.with_(method="nls"),
+        r2 = _quiet(solve, M, 2, offsets, dataclasses.replace(opts, method="nls"),
                     init=_projected_init(r3, offsets, opts.speed))
     if r2 is None:
         r2 = _quiet(solve, M, 2, offsets, opts)
