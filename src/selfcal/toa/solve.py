@@ -1,6 +1,7 @@
 """``solve_toa``: anchor-free TOA / range self-calibration end to end (papers 003, 004).
 
-Validation -> seconds to metres (``speed``) -> ``"auto"`` model choices
+Validation (the options then travel as one :class:`selfcal.toa.options.ToaOptions`) ->
+seconds to metres (``speed``) -> ``"auto"`` model choices
 (:mod:`selfcal.toa.verdict.select`) -> canonical order of rows and columns -> gross entries
 screened, unidentifiable nodes dropped (:mod:`selfcal.toa.verdict.robust`) -> the search
 (:mod:`selfcal.toa.search`: initialisers, plane moves, the one engine
