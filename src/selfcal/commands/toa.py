@@ -110,7 +110,7 @@ def toa_command(matrix: Path, speed: float | None, offsets: str | None, dim: str
         parse_known,
         read_known_csv,
     )
-    from ..toa.frame.nodes import check_frame, check_known_scale, node_names
+    from ..toa.frame.nodes import check_frame, check_known_scale, node_names, offsets_of
     from ..toa.recipes.recipes import apply_recipe
     from ._common import enrich_payload, to_metres, write_nodes_csv
 
@@ -161,7 +161,7 @@ def toa_command(matrix: Path, speed: float | None, offsets: str | None, dim: str
     framed: FramedToaResult | None = None
     d_out = np.asarray(res.receivers).shape[1]
     # a kept common range offset (moving-tag recipe) is its own model: the refits keep it
-    off_used = "common" if res.offsets == "common" else _offsets_of(res)
+    off_used = "common" if res.offsets == "common" else offsets_of(res)
     # the constrained / frame refits see what the blind fit used: the recipe's spikes and
     # the outliers the solver removed are left out; the default ("auto") fits the inliers
     # by least squares, as the blind fit's last step does
@@ -412,13 +412,6 @@ def _redim(table: dict[str, tuple[float, ...]], path: Path, d: int) -> dict[str,
     from ..toa.frame.frame import read_known_csv
 
     return table if d == 3 else read_known_csv(path, d)
-
-
-def _offsets_of(res: Any) -> str:
-    has_r = res.receiver_offsets is not None
-    has_s = res.source_offsets is not None
-    return {(False, False): "none", (True, False): "receivers", (False, True): "sources",
-            (True, True): "both"}[(has_r, has_s)]
 
 
 def _counts(res: Any) -> list[str]:
