@@ -122,12 +122,9 @@ def toa_command(matrix: Path, speed: float | None, offsets: str | None, dim: str
     table = read_table(matrix, name=str(matrix))
     M, speed, _ = to_metres(table.values, unit, speed, sample_rate, name=str(matrix))
     plausible_matrix_scale(M, speed=speed, explicit_unit=unit is not None, name=str(matrix))
-    kw: dict[str, Any] = {"method": method, "rng": seed, "speed": speed}
-    for key, val in (("offsets", offsets), ("loss", loss), ("noise", noise)):
-        if val is not None:
-            kw[key] = val
-    if dim is not None:
-        kw["dim"] = dim if dim == "auto" else int(dim)
+    # the model and the loss when given (None: the solver's default; the recipe's for offsets)
+    model: dict[str, Any] = {"offsets": offsets, "loss": loss, "dim": dim if dim in (None, "auto") else int(dim)}
+    model = {key: val for key, val in model.items() if val is not None}
     # node names: the matrix's own (header row / first column) or 0-based r<i> / s<j>;
     # --known and --frame are read and resolved against them before any work
     I, J = M.shape
@@ -143,7 +140,7 @@ def toa_command(matrix: Path, speed: float | None, offsets: str | None, dim: str
         # for the data, and a 2-D fit could not be put in that frame
         full_known = [k.position for k in known_nodes if np.isfinite(k.position).all()]
         if dim == "auto" and _spans_3d(full_known):
-            kw["dim"] = 3
+            model["dim"] = 3
             dim_by_known = True
     if frame is not None:
         check_frame(frame, I, J, **names)
@@ -152,7 +149,8 @@ def toa_command(matrix: Path, speed: float | None, offsets: str | None, dim: str
     # below): its warning is held back, the others are passed on
     with warnings.catch_warnings(record=True) as blind_warnings, stage(f"fit {M.shape[0]} x {M.shape[1]}"):
         warnings.simplefilter("always")
-        rec = apply_recipe(recipe, M, common_offset=common_offset, **kw)
+        rec = apply_recipe(recipe, M, common_offset=common_offset, method=method, rng=seed, speed=speed,
+                           noise=noise, **model)
     for w in blind_warnings:
         if not (known is not None and str(w.message).startswith("solve_toa: ")):
             warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
