@@ -291,8 +291,8 @@ def calibrate_in_frame(
     offsets = solve_kw.get("offsets", "none")
     if offsets not in ("none", "receivers", "sources", "both"):  # e.g. "auto": the chosen model
         offsets = offsets_of(blind)
-    loss = solve_kw.get("loss", getattr(blind, "loss", "linear"))
-    if loss not in ("linear", "huber", "soft_l1", "cauchy"):
+    loss = solve_kw.get("loss", "linear")
+    if loss not in ("linear", "huber", "soft_l1", "cauchy"):  # "auto": least squares on the inliers
         loss = "linear"
     if frame is not None:
         return apply_frame(blind, frame, matrix=M if solve_kw.get("covariance", True) else None,
