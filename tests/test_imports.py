@@ -20,7 +20,7 @@ SRC = Path(__file__).resolve().parents[1] / "src" / "selfcal"
 #: the children of selfcal.toa, bottom to top (docs/design.md, "The toa layers"); a child
 #: imports only children of lower layers
 TOA_LAYERS: tuple[tuple[str, ...], ...] = (
-    ("engine",), ("moves",), ("init",), ("verdict",), ("result",), ("search",), ("block_start",),
+    ("options",), ("engine",), ("moves",), ("init",), ("verdict",), ("result",), ("search",), ("block_start",),
     ("fit_result",), ("fit",), ("solve",), ("plan",), ("frame",), ("recipes",), ("sparse",), ("graph",),
 )
 

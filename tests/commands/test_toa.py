@@ -157,18 +157,13 @@ def test_data_that_fit_no_geometry_exit_1_with_fail(tmp_path):
     assert out.exists()  # the result is still written, marked untrustworthy
 
 
-def test_auto_modes_pass_through_or_refuse_clearly(tmp_path):
-    from selfcal.commands.toa import _auto_available
-
+def test_auto_modes_pass_through(tmp_path):
     _, r, s, Y = _scene3d(14)
     path = tmp_path / "m.csv"
     np.savetxt(path, Y, delimiter=",")
     out = tmp_path / "res.json"
     res = run(path, "--offsets", "auto", "--out", out)
-    if _auto_available():
-        assert res.exit_code in (0, 1), res.output
-    else:
-        assert res.exit_code == 2 and "selfcal.toa.verdict.select" in res.output
+    assert res.exit_code in (0, 1), res.output
 
 
 def test_moving_tag_recipe_rejects_spikes_and_drops_positions(tmp_path):

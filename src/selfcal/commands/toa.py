@@ -6,7 +6,6 @@ line; the result is still written), 2 = bad input (one line on stderr, no output
 
 from __future__ import annotations
 
-import importlib.util
 from pathlib import Path
 from typing import Any
 
@@ -21,11 +20,6 @@ from .graph import parse_room, room_option
 #: ``--entries auto`` keeps per-entry arrays in the JSON up to this many matrix entries: about
 #: 2 MB of text and ~1 s of conversion; a 1000 x 1000 matrix took 17 s to convert and 10 s to write
 ENTRIES_JSON_MAX = 100_000
-
-
-def _auto_available() -> bool:
-    """The model selection of ``offsets`` / ``dim`` (``selfcal.toa.verdict.select``) is installed."""
-    return importlib.util.find_spec("selfcal.toa.verdict.select") is not None
 
 
 @calibrate.command("toa")
@@ -116,7 +110,7 @@ def toa_command(matrix: Path, speed: float | None, offsets: str | None, dim: str
         parse_known,
         read_known_csv,
     )
-    from ..toa.frame.nodes import check_frame, check_known_scale, node_names
+    from ..toa.frame.nodes import check_frame, check_known_scale, node_names, offsets_of
     from ..toa.recipes.recipes import apply_recipe
     from ._common import enrich_payload, to_metres, write_nodes_csv
 
@@ -124,19 +118,13 @@ def toa_command(matrix: Path, speed: float | None, offsets: str | None, dim: str
         raise InputError("--known and --frame are exclusive (known positions already define the frame)")
     if side is not None and known is None:
         raise InputError("--side says where the other nodes lie relative to the --known nodes' plane: give --known")
-    if ("auto" in (offsets, dim)) and not _auto_available():
-        raise InputError("--offsets auto / --dim auto need the model selection (selfcal.toa.verdict.select), "
-                         "which this build does not have yet; give the value explicitly")
     box = parse_room(room)
     table = read_table(matrix, name=str(matrix))
     M, speed, _ = to_metres(table.values, unit, speed, sample_rate, name=str(matrix))
     plausible_matrix_scale(M, speed=speed, explicit_unit=unit is not None, name=str(matrix))
-    kw: dict[str, Any] = {"method": method, "rng": seed, "speed": speed}
-    for key, val in (("offsets", offsets), ("loss", loss), ("noise", noise)):
-        if val is not None:
-            kw[key] = val
-    if dim is not None:
-        kw["dim"] = dim if dim == "auto" else int(dim)
+    # the model and the loss when given (None: the solver's default; the recipe's for offsets)
+    model: dict[str, Any] = {"offsets": offsets, "loss": loss, "dim": dim if dim in (None, "auto") else int(dim)}
+    model = {key: val for key, val in model.items() if val is not None}
     # node names: the matrix's own (header row / first column) or 0-based r<i> / s<j>;
     # --known and --frame are read and resolved against them before any work
     I, J = M.shape
@@ -152,7 +140,7 @@ def toa_command(matrix: Path, speed: float | None, offsets: str | None, dim: str
         # for the data, and a 2-D fit could not be put in that frame
         full_known = [k.position for k in known_nodes if np.isfinite(k.position).all()]
         if dim == "auto" and _spans_3d(full_known):
-            kw["dim"] = 3
+            model["dim"] = 3
             dim_by_known = True
     if frame is not None:
         check_frame(frame, I, J, **names)
@@ -161,7 +149,8 @@ def toa_command(matrix: Path, speed: float | None, offsets: str | None, dim: str
     # below): its warning is held back, the others are passed on
     with warnings.catch_warnings(record=True) as blind_warnings, stage(f"fit {M.shape[0]} x {M.shape[1]}"):
         warnings.simplefilter("always")
-        rec = apply_recipe(recipe, M, common_offset=common_offset, **kw)
+        rec = apply_recipe(recipe, M, common_offset=common_offset, method=method, rng=seed, speed=speed,
+                           noise=noise, **model)
     for w in blind_warnings:
         if not (known is not None and str(w.message).startswith("solve_toa: ")):
             warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
@@ -170,7 +159,7 @@ def toa_command(matrix: Path, speed: float | None, offsets: str | None, dim: str
     framed: FramedToaResult | None = None
     d_out = np.asarray(res.receivers).shape[1]
     # a kept common range offset (moving-tag recipe) is its own model: the refits keep it
-    off_used = "common" if res.offsets == "common" else _offsets_of(res)
+    off_used = "common" if res.offsets == "common" else offsets_of(res)
     # the constrained / frame refits see what the blind fit used: the recipe's spikes and
     # the outliers the solver removed are left out; the default ("auto") fits the inliers
     # by least squares, as the blind fit's last step does
@@ -421,13 +410,6 @@ def _redim(table: dict[str, tuple[float, ...]], path: Path, d: int) -> dict[str,
     from ..toa.frame.frame import read_known_csv
 
     return table if d == 3 else read_known_csv(path, d)
-
-
-def _offsets_of(res: Any) -> str:
-    has_r = res.receiver_offsets is not None
-    has_s = res.source_offsets is not None
-    return {(False, False): "none", (True, False): "receivers", (False, True): "sources",
-            (True, True): "both"}[(has_r, has_s)]
 
 
 def _counts(res: Any) -> list[str]:

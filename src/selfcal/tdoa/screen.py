@@ -16,9 +16,7 @@ from numpy.typing import NDArray
 from ..robust import mad_std
 from .structure import (  # noqa: F401 (re-exported: the structure fits' home is selfcal.tdoa.structure)
     _lowrank_factors,
-    _robust_sigma,
     consensus_model,
-    consensus_prediction,
     far_field_parameters,
     lowrank_fit,
     ransac_farfield,

@@ -35,6 +35,7 @@ from ..errors import DegenerateGeometryError, InputError, Status
 from .engine.nls import NlsSolution, refine_toa, toa_model
 from .fit_result import _start, judge_final
 from .init.rank3_model import rank_identifiable
+from .options import ToaOptions
 from .result import (
     ToaResult,
     n_parameters,
@@ -44,7 +45,7 @@ from .search import canonical_order, search
 from .verdict.leverage import leverages, studentized
 from .verdict.robust import drop_unidentifiable, gross_entries, noise_scale, outlier_mask
 
-__all__ = ["finish", "given_start", "unrefined"]
+__all__ = ["finish", "given_start", "n_negative", "unrefined"]
 
 Array = NDArray[np.float64]
 Start = tuple[Array, Array, "Array | None", "Array | None"]
@@ -70,10 +71,16 @@ def given_start(init: Any, I: int, J: int, dim: int, offsets: str, scale: float,
     return r, s, (d0 if has_r else None), (o0 if has_s else None)
 
 
-def finish(M: Array, dim: int, offsets: str, *, init: Any, speed: float | None, loss: str, method: str,
-           rng: np.random.Generator, f_scale: float | None, max_nfev: int | None, covariance: Any,
-           sweep: bool, noise: float | None, budget: int | None, n_negative: int) -> ToaResult:
+def n_negative(M: Array) -> int:
+    """How many observed entries of ``M`` are zero or negative (measurements, reported)."""
+    return int(np.sum(M[np.isfinite(M)] <= 0))
+
+
+def finish(M: Array, dim: int, offsets: str, opts: ToaOptions, *, init: Any) -> ToaResult:
     """Fit one model robustly (module docstring) and package the :class:`ToaResult`."""
+    # the options by their names (ToaOptions documents each)
+    speed, loss, method, rng, f_scale = opts.speed, opts.loss, opts.method, opts.rng, opts.f_scale
+    max_nfev, covariance, noise, budget = opts.max_nfev, opts.covariance, opts.noise, opts.budget
     scale = speed if speed is not None else 1.0
     I, J = M.shape
     Y = M * scale
@@ -144,7 +151,7 @@ def finish(M: Array, dim: int, offsets: str, *, init: Any, speed: float | None, 
                      starts=[first] if (one or again) and first is not None else None,
                      first=None if one or again else first,
                      stop=stop_rule(keep_r, keep_s), budget=1 if one or again else budget, max_nfev=max_nfev,
-                     use_moves=sweep and not one and not again)
+                     use_moves=opts.sweep and not one and not again)
         best, prev_keep = out.solution, (keep_r.copy(), keep_s.copy())
         if rnd == 0:  # the race's other minima, on these nodes (the uniqueness test's candidates)
             minima = (out.minima, prev_keep)
@@ -261,7 +268,7 @@ def finish(M: Array, dim: int, offsets: str, *, init: Any, speed: float | None, 
     return judge_final(M, Yc, final, Yf, keep=(keep_r, keep_s), order=(pr, pc), outliers=outliers, speed=speed,
                        label=label, iters=iters, n_runs=n_runs, dim=dim, offsets=offsets, noise=noise, sd=sd,
                        scale=scale, covariance=covariance, degenerate=degenerate, singular=singular, minima=minima,
-                       overflagged=overflagged, breakdown=breakdown, n_negative=n_negative)
+                       overflagged=overflagged, breakdown=breakdown, n_negative=n_negative(M))
 
 
 def _overflagged(obs: NDArray[np.bool_], flags: NDArray[np.bool_], kr: NDArray[np.bool_], ks: NDArray[np.bool_],
@@ -512,8 +519,7 @@ def _check_kept(used: NDArray[np.bool_], kr: NDArray[np.bool_], ks: NDArray[np.b
         raise DegenerateGeometryError(f"{exc.args[0]}{dropped}", kind=exc.kind) from None
 
 
-def unrefined(M: Array, dim: int, offsets: str, speed: float | None, rng: np.random.Generator,
-              n_negative: int) -> ToaResult:
+def unrefined(M: Array, dim: int, offsets: str, speed: float | None, rng: np.random.Generator) -> ToaResult:
     """``method="rank3"``: the 004 initialiser's estimate without refinement (NaN covariances)."""
     from ..geometry import canonical_gauge
     from .search import INITIALISERS
@@ -541,5 +547,6 @@ def unrefined(M: Array, dim: int, offsets: str, speed: float | None, rng: np.ran
         residual_rms=float(np.sqrt(np.mean(f**2))) * k, sigma=float("nan"), converged=True, iterations=0,
         method="rank3", n_missing=int((~np.isfinite(M)).sum()), speed=speed, residuals=res * k,
         verdict=int(Status.SUCCESS), verdict_message="the 004 initialiser alone (method='rank3'): not refined, not tested",
-        outliers=np.zeros((I, J), bool), dim=dim, offsets=offsets, n_negative=n_negative)
+        outliers=np.zeros((I, J), bool), dim=dim, offsets=offsets,
+        n_negative=n_negative(M))
 

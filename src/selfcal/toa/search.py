@@ -68,9 +68,9 @@ from ..progress import report
 from ..robust import TUNING
 from .engine.batch_lm import solve_batch_lm
 from .engine.dense_lm import solve_dense_lm
-from .engine.model import least_squares_offsets
-from .engine.nls import NlsSolution, _pack, _unpack, refine_toa, toa_model
-from .init.starts import _LARGE, INITIALISERS, LARGE_INITIALISERS, MOVES_MAX_NODES, SCALED_STARTS  # noqa: F401
+from .engine.model import _pack, _unpack, least_squares_offsets
+from .engine.nls import NlsSolution, refine_toa, toa_model
+from .init.starts import _LARGE, INITIALISERS, MOVES_MAX_NODES, SCALED_STARTS  # noqa: F401
 from .moves import Move, Start, moves
 from .verdict.robust import _nanmedian_rows
 
@@ -148,7 +148,6 @@ class SearchOutcome:
     stopped: why the search ended: "test" (the chi-square test passed), "exact" (residuals at
         the solver's precision: no candidate can do better), "budget", "exhausted".
     history: (candidate name, cost) of every start and accepted move.
-    partial_refits: partial refits run to rank the moves of a few nodes (not in ``refinements``).
     minima: converged starts the race dropped behind the winner (lowest cost first, at most
         :data:`MINIMA_KEPT`): other minima, for :func:`selfcal.toa.verdict.uniqueness.uniqueness_test`.
     """
@@ -161,7 +160,6 @@ class SearchOutcome:
     f_scale: float
     stopped: str
     history: list[tuple[str, float]] = field(default_factory=list)
-    partial_refits: int = 0
     minima: list[Start] = field(default_factory=list)
 
 
@@ -306,7 +304,6 @@ def search(
     nb_given = None if budget is None else max(1, int(budget))
     fs: float | None = f_scale if loss != "linear" else 1.0
     count = 0
-    partial_count = 0
     iters = 0
     history: list[tuple[str, float]] = []
     last_err: Exception | None = None
@@ -352,8 +349,7 @@ def search(
         with every other parameter held: the fixed nodes hold the frame, so no gauge is
         projected; a few free unknowns on a few entries (4 on 6 at 12 x 6 with both offsets).
         """
-        nonlocal partial_count, iters
-        partial_count += 1
+        nonlocal iters
         r0, s0, d0, o0 = mv.start
         ir, js = list(mv.receivers), list(mv.sources)
         touch = np.zeros((I, J), bool)
@@ -621,4 +617,4 @@ def search(
                         stopped = why
     settled.sort(key=lambda e: (e[0], e[1]))
     return SearchOutcome(best, best_name, tuple(accepted), count, iters, float(fs or 1.0), stopped, history,
-                         partial_count, [st for _, _, st in settled[:MINIMA_KEPT]])
+                         [st for _, _, st in settled[:MINIMA_KEPT]])

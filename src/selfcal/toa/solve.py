@@ -1,6 +1,7 @@
 """``solve_toa``: anchor-free TOA / range self-calibration end to end (papers 003, 004).
 
-Validation -> seconds to metres (``speed``) -> ``"auto"`` model choices
+Validation (the options then travel as one :class:`selfcal.toa.options.ToaOptions`) ->
+seconds to metres (``speed``) -> ``"auto"`` model choices
 (:mod:`selfcal.toa.verdict.select`) -> canonical order of rows and columns -> gross entries
 screened, unidentifiable nodes dropped (:mod:`selfcal.toa.verdict.robust`) -> the search
 (:mod:`selfcal.toa.search`: initialisers, plane moves, the one engine
@@ -30,7 +31,8 @@ from .._checks import (
 from ..errors import ConvergenceWarning, InputError
 from .engine.covariance import normalize_covariance
 from .engine.nls import LOSSES, OFFSET_MODES
-from .fit import finish, given_start, unrefined
+from .fit import finish, given_start, n_negative, unrefined
+from .options import ToaOptions
 from .result import ResidualTest, ToaResult, n_parameters, residual_test
 
 __all__ = ["ResidualTest", "ToaResult", "n_parameters", "residual_test", "solve_toa"]
@@ -145,7 +147,7 @@ def solve_toa(
     if method == "rank3" and offsets == "none":
         raise InputError("method='rank3' estimates offsets: use offsets='both' (or 'receivers'/'sources'), "
                          "or method='nls'")
-    n_neg = int(np.sum(M[np.isfinite(M)] <= 0))
+    n_neg = n_negative(M)
     if n_neg:
         warnings.warn(f"{n_neg} of the entries are zero or negative; they are kept as measurements "
                       "(bias + noise near zero range)", UserWarning, stacklevel=2)
@@ -156,32 +158,27 @@ def solve_toa(
         init = given_start(init, I, J, int(dim), offsets, spd or 1.0, as_points)
     elif init != "auto":
         raise InputError(f"init must be 'auto' or a tuple of arrays, got {init!r}")
-    kw = dict(speed=spd, loss=loss, method=method, rng=gen, f_scale=fs, max_nfev=max_nfev,
-              covariance=covariance, sweep=sweep, noise=sd, budget=budget, n_negative=n_neg)
+    opts = ToaOptions(speed=spd, loss=loss, method=method, rng=gen, f_scale=fs, max_nfev=max_nfev,
+                      covariance=covariance, sweep=sweep, noise=sd, budget=budget)
     if dim == "auto" or offsets == "auto":
         from .verdict.select import choose
 
-        res = choose(M, dim, offsets, solve=_solve_fixed, **kw)
+        res = choose(M, dim, offsets, opts, solve=_solve_fixed)
     else:
-        res = _solve_fixed(M, int(dim), offsets, init=init, **kw)  # type: ignore[arg-type]
+        res = _solve_fixed(M, int(dim), offsets, opts, init=init)  # type: ignore[arg-type]
     if not res.success or res.undetermined_receivers.any() or res.undetermined_sources.any():
         # a success with undetermined nodes warns too: its message names them
         warnings.warn(f"solve_toa: {res.message}", ConvergenceWarning, stacklevel=2)
     return res
 
 
-def _solve_fixed(M: np.ndarray, dim: int, offsets: str, *, init: Any = "auto", speed: float | None,
-                 loss: str, method: str, rng: np.random.Generator, f_scale: float | None,
-                 max_nfev: int | None, covariance: Any, sweep: bool, noise: float | None,
-                 budget: int | None, n_negative: int) -> ToaResult:
+def _solve_fixed(M: np.ndarray, dim: int, offsets: str, opts: ToaOptions, *, init: Any = "auto") -> ToaResult:
     """One model (dim, offsets): counts, the rank-3 shortcut, else the robust search (:mod:`.fit`)."""
     I, J = M.shape
     check_toa_counts((I, J), int(np.isfinite(M).sum()), dim, offsets)
-    if method == "rank3":
-        return unrefined(M, dim, offsets, speed, rng, n_negative)
+    if opts.method == "rank3":
+        return unrefined(M, dim, offsets, opts.speed, opts.rng)
     from ..progress import stage
 
     with stage(f"solve {I}x{J} ({dim}-D, offsets {offsets}): search", unit="refinements"):
-        return finish(M, dim, offsets, init=init, speed=speed, loss=loss, method=method, rng=rng,
-                      f_scale=f_scale, max_nfev=max_nfev, covariance=covariance, sweep=sweep, noise=noise,
-                      budget=budget, n_negative=n_negative)
+        return finish(M, dim, offsets, opts, init=init)

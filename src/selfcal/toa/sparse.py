@@ -111,7 +111,7 @@ class SparseToaResult(Result):
 
 def _lm(i: Index, j: Index, y: Array, r0: Array, s0: Array, max_nfev: int | None, xtol: float
         ) -> tuple[Array, Array, bool, int]:
-    from .engine.nls import _make_layout, _pack, _unpack
+    from .engine.model import _make_layout, _pack, _unpack
     from .engine.schur_lm import solve_schur_lm
 
     I, d = r0.shape

@@ -47,6 +47,7 @@ the parametrisation, the residual gauge, the weighted fit and its covariance are
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
@@ -226,9 +227,9 @@ def make_constraints(
                        cr or cs)
 
 
-def is_active(**kw: Any) -> bool:
-    """True when any constraint keyword differs from its default (None / "none")."""
-    return any(v is not None and not (isinstance(v, str) and v == "none") for v in kw.values())
+def is_active(constraints: Mapping[str, Any]) -> bool:
+    """True when any constraint keyword (name -> value) differs from its default (None / "none")."""
+    return any(v is not None and not (isinstance(v, str) and v == "none") for v in constraints.values())
 
 
 @dataclass(frozen=True)

@@ -71,15 +71,10 @@ from .model import (  # noqa: F401 -- the model's names, re-exported from their 
     NlsSolution,
     _check_counts,
     _flags,
-    _Layout,
     _make_layout,
-    _node_indices,
     _pack,
-    _pinned_positions,
-    _rho,
     _robust_sigma,
     _solution,
-    _unpack,
     gauge_basis,
     toa_jacobian,
     toa_model,
@@ -252,14 +247,14 @@ def refine_toa(
                 fixed_receiver_offsets=fixed_receiver_offsets,
                 fixed_source_offsets=fixed_source_offsets, common_offsets=common_offsets,
                 receiver_offset_basis=receiver_offset_basis, source_offset_basis=source_offset_basis)
-    if _constrained.is_active(**cons) or solver == "trf" or wts is not None:
+    if _constrained.is_active(cons) or solver == "trf" or wts is not None:
         # the affine parametrisation (the identity, less the pinned gauge, without constraints)
         con = _constrained.make_constraints(I, J, d, offsets, receiver_offsets0=dr0,
                                             source_offsets0=os0, **cons)
         sol = _constrained.refine_constrained(
             Y, r0, s0, offsets, con, loss=loss, f_scale=f_scale, max_nfev=max_nfev, xtol=xtol,
             covariance=covariance, noise=check_positive(noise, "noise"), engine=solver, weights=wts)
-        return sol if _constrained.is_active(**cons) or wts is not None else dataclasses.replace(sol, solver="trf")
+        return sol if _constrained.is_active(cons) or wts is not None else dataclasses.replace(sol, solver="trf")
 
     cov_r, cov_s = resolve_covariance(covariance, I, J)
     theta0 = _pack(r0, s0, dr0, os0)

@@ -6,7 +6,7 @@ a step solver: the dense normal matrix (:class:`selfcal.optim.steps.DenseStep`) 
 complement below, formed or by CG (:func:`selfcal.optim.structure.lm_step` chooses).
 
 The residual of entry (k, e) of the range matrix, oriented with the *kept* node set K
-(the smaller one, :class:`selfcal.toa.engine.nls._Layout`) in the rows, is::
+(the smaller one, :class:`selfcal.toa.engine.model._Layout`) in the rows, is::
 
     f_ke = |x_k - x_e| + o_k + o_e - y_ke          (003 eq. 2; 004 sec. 3 offsets)
 
@@ -329,7 +329,7 @@ def solve_schur_lm(
     Y : (I, J) ranges, NaN = missing; or, with ``pairs``, the (m,) observed ranges.
     pairs : None (dense Y) or ``(i, j)``, the receiver and source index of each entry of Y:
         the observed-pairs path (:class:`Pairs`), O(m) memory and time per product.
-    lay : the :class:`selfcal.toa.engine.nls._Layout` (kept / eliminated sides).
+    lay : the :class:`selfcal.toa.engine.model._Layout` (kept / eliminated sides).
     loss, f_scale : robust loss and its scale (metres).
     max_nfev : iteration cap (default :data:`DEFAULT_MAX_IT` of the step kind); xtol : relative step tolerance.
     gauge : ``theta -> Q`` orthonormal gauge basis (n, g) to project each step off; default

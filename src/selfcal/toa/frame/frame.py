@@ -51,6 +51,7 @@ from .nodes import (
     FrameInfo,
     KnownNode,
     node_positions,
+    offsets_of,
     parse_frame,
     parse_known,
     read_known_csv,
@@ -289,9 +290,9 @@ def calibrate_in_frame(
     dim = np.asarray(blind.receivers).shape[1]
     offsets = solve_kw.get("offsets", "none")
     if offsets not in ("none", "receivers", "sources", "both"):  # e.g. "auto": the chosen model
-        offsets = _offsets_of(blind)
-    loss = solve_kw.get("loss", getattr(blind, "loss", "linear"))
-    if loss not in ("linear", "huber", "soft_l1", "cauchy"):
+        offsets = offsets_of(blind)
+    loss = solve_kw.get("loss", "linear")
+    if loss not in ("linear", "huber", "soft_l1", "cauchy"):  # "auto": least squares on the inliers
         loss = "linear"
     if frame is not None:
         return apply_frame(blind, frame, matrix=M if solve_kw.get("covariance", True) else None,
@@ -302,9 +303,3 @@ def calibrate_in_frame(
                      noise=solve_kw.get("noise"), max_nfev=solve_kw.get("max_nfev"),
                      covariance=solve_kw.get("covariance", True), side=side)
 
-
-def _offsets_of(result: Any) -> str:
-    has_r = result.receiver_offsets is not None
-    has_s = result.source_offsets is not None
-    return {(False, False): "none", (True, False): "receivers", (False, True): "sources",
-            (True, True): "both"}[(has_r, has_s)]

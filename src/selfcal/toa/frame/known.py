@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import dataclasses
 from collections.abc import Sequence
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -48,6 +48,23 @@ def _rigid(X: Array, Y: Array, w: Array, allow_reflection: bool) -> tuple[Array,
         return np.eye(X.shape[1]), Y[0] - X[0]
     al = align(X, Y, reflection=allow_reflection, weights=w)
     return al.rotation, al.translation
+
+
+@dataclass(frozen=True)
+class _Refit:
+    """The model and options of :func:`fit_known`'s refits (its arguments; ``f_scale`` and
+    ``noise`` in the matrix's units, scaled to metres by ``c`` at each refit)."""
+
+    offsets: str  # the refits' offsets mode ("receivers" for a common offset)
+    common: str  # "receivers": one offset common to every receiver, else "none"
+    loss: str
+    f_scale: float | None
+    noise: float | None
+    max_nfev: int | None
+
+    def metres(self, value: float | None, c: float) -> float | None:
+        """``f_scale`` or ``noise`` in metres (``c``: metres per matrix unit)."""
+        return None if value is None else value * c
 
 
 def fit_known(
@@ -106,10 +123,9 @@ def fit_known(
         result, known, lambda k: bool((ok_r if k.kind == "receiver" else ok_s)[k.index]))
     # "common": one offset shared by every receiver (the moving-tag recipe's kept model)
     off, common = ("receivers", "receivers") if offsets == "common" else (offsets, "none")
-    fit_kw: dict[str, Any] = {"offsets": off, "common": common, "loss": loss, "f_scale": f_scale, "noise": noise,
-                              "max_nfev": max_nfev}
+    spec = _Refit(off, common, loss, f_scale, noise, max_nfev)
     if not all(k.full for k in usable):
-        return _fit_partial(result, data, usable, dropped, est, ref, w, fit_kw, covariance, side)
+        return _fit_partial(result, data, usable, dropped, est, ref, w, spec, covariance, side)
     full = rank == d
     # (a) align on the known nodes; the undetermined part stays at the canonical gauge
     # (reflection is a choice only when the references span the space)
@@ -121,7 +137,7 @@ def fit_known(
 
         Ra, Sa = choose_side(Ra, Sa, usable, ref, rank, side)
     # (b) the constrained refit
-    sol, fr, fs, extra = _refit(data, Ra, Sa, usable, fit_kw, covariance)
+    sol, fr, fs, extra = _refit(data, Ra, Sa, usable, spec, covariance)
     scaled = None
     if jackknife and covariance:
         sol, scaled = jackknife_scaled(sol, data.Y[np.ix_(ok_r, ok_s)], dict(
@@ -143,7 +159,7 @@ def fit_known(
     return FramedToaResult(out, info)
 
 
-def _refit(data: Any, Ra: Array, Sa: Array, usable: Sequence[KnownNode], kw: dict[str, Any], covariance: Any,
+def _refit(data: Any, Ra: Array, Sa: Array, usable: Sequence[KnownNode], spec: _Refit, covariance: Any,
            max_nfev: int | None = None) -> tuple[Any, NDArray[np.bool_], NDArray[np.bool_], dict[str, Any]]:
     """The constrained refit from ``(Ra, Sa)`` in the known frame: exact known coordinates fixed
     (set to their values), known coordinates with a std Gaussian priors. Returns ``(sol, fixed_r,
@@ -177,12 +193,11 @@ def _refit(data: Any, Ra: Array, Sa: Array, usable: Sequence[KnownNode], kw: dic
         extra["receiver_prior"] = (pr_m[ok_r], pr_sd[ok_r])
     if np.isfinite(pr_s).any():
         extra["source_prior"] = (pr_s[ok_s], ps_sd[ok_s])
-    f_scale, noise = kw["f_scale"], kw["noise"]
-    sol = refine_toa(data.Y[np.ix_(ok_r, ok_s)], Ra[ok_r], Sa[ok_s], offsets=kw["offsets"],
-                     common_offsets=kw["common"], receiver_offsets0=data.receiver_offsets,
-                     source_offsets0=data.source_offsets, loss=kw["loss"],
-                     f_scale=None if f_scale is None else f_scale * c, noise=None if noise is None else noise * c,
-                     max_nfev=kw["max_nfev"] if max_nfev is None else max_nfev, covariance=covariance, **extra)
+    sol = refine_toa(data.Y[np.ix_(ok_r, ok_s)], Ra[ok_r], Sa[ok_s], offsets=spec.offsets,
+                     common_offsets=spec.common, receiver_offsets0=data.receiver_offsets,
+                     source_offsets0=data.source_offsets, loss=spec.loss, f_scale=spec.metres(spec.f_scale, c),
+                     noise=spec.metres(spec.noise, c), max_nfev=spec.max_nfev if max_nfev is None else max_nfev,
+                     covariance=covariance, **extra)
     return sol, fr, fs, extra
 
 
@@ -191,7 +206,7 @@ MIRROR_NFEV = 50
 
 
 def _fit_partial(result: Any, data: Any, usable: Sequence[KnownNode], dropped: Sequence[str], est: Array,
-                 ref: Array, w: Array, kw: dict[str, Any], covariance: Any, side: str | None) -> FramedToaResult:
+                 ref: Array, w: Array, spec: _Refit, covariance: Any, side: str | None) -> FramedToaResult:
     """:func:`fit_known` where some known nodes give only some coordinates (``A3,,,2.41``).
 
     The blind fit is moved onto the known coordinates by the best rigid motion
@@ -211,12 +226,13 @@ def _fit_partial(result: Any, data: Any, usable: Sequence[KnownNode], dropped: S
     Rm, t, _ = motions[0]
     aligned = est @ Rm.T + t
     axes, n_free = _axes_fixed(aligned, mask)
-    sol, fr, fs, _ = _refit(data, R0 @ Rm.T + t, S0 @ Rm.T + t, usable, kw, covariance)
+    sol, fr, fs, _ = _refit(data, R0 @ Rm.T + t, S0 @ Rm.T + t, usable, spec, covariance)
     other = None
     start = _mirror_start(sol, data, usable, axes, n_free, motions[1])
     if start is not None:
-        other = _refit(data, start[0], start[1], usable, kw, False, MIRROR_NFEV)[0]
-    s2 = None if kw["noise"] is None else (kw["noise"] * c) ** 2
+        other = _refit(data, start[0], start[1], usable, spec, False, MIRROR_NFEV)[0]
+    s_m = spec.metres(spec.noise, c)
+    s2 = None if s_m is None else s_m**2
 
     def total(fit: Any) -> float:  # the constrained cost: RSS + noise^2 x prior misfit
         rss = float(np.nansum(np.asarray(fit.residuals, float) ** 2))
@@ -228,20 +244,20 @@ def _fit_partial(result: Any, data: Any, usable: Sequence[KnownNode], dropped: S
         swap = not _on_side(sol, usable, ok_r, ok_s, side) and _on_side(other, usable, ok_r, ok_s, side)
     if swap:  # the mirror fits better (or is the side stated): it is the result, with its covariance
         assert other is not None
-        sol, other = _refit(data, _full(other.receivers, ok_r), _full(other.sources, ok_s), usable, kw,
+        sol, other = _refit(data, _full(other.receivers, ok_r), _full(other.sources, ok_s), usable, spec,
                             covariance)[0], sol
     out = _embed(result, sol, ok_r, ok_s, c, f"{result.method}+known({len(usable)}, partial)")
     before = float(np.sqrt(np.nanmean(np.where(mask, aligned - ref, np.nan) ** 2)))  # per known coordinate
     fitted = np.array([node_positions(out, k.kind)[k.index] for k in usable])
     after = float(np.sqrt(np.nanmean(np.where(mask, fitted - ref, np.nan) ** 2)))
     info = _partial_info(usable, d, axes, n_free, before, after, dropped)
-    out, info = judge_known(out, info, result, sol, data, usable, aligned, Rm, d, fr, fs, kw["offsets"],
-                            kw["noise"], mirror_stated=side is not None, mirror_fit=other,
-                            local_blind=_local_blind(data, sol, kw))
+    out, info = judge_known(out, info, result, sol, data, usable, aligned, Rm, d, fr, fs, spec.offsets,
+                            spec.noise, mirror_stated=side is not None, mirror_fit=other,
+                            local_blind=_local_blind(data, sol, spec))
     return FramedToaResult(out, info)
 
 
-def _local_blind(data: Any, sol: Any, kw: dict[str, Any]) -> Any:
+def _local_blind(data: Any, sol: Any, spec: _Refit) -> Any:
     """The blind model refitted from the constrained fit ``sol`` (no constraint, no covariance):
     the nested model of the known test at the same minimum; None when the refit fails."""
     from ...errors import DegenerateGeometryError
@@ -249,10 +265,10 @@ def _local_blind(data: Any, sol: Any, kw: dict[str, Any]) -> Any:
 
     c, ok_r, ok_s = data.c, data.ok_r, data.ok_s
     try:
-        return refine_toa(data.Y[np.ix_(ok_r, ok_s)], sol.receivers, sol.sources, offsets=kw["offsets"],
-                          common_offsets=kw["common"], receiver_offsets0=sol.receiver_offsets,
-                          source_offsets0=sol.source_offsets, loss=kw["loss"],
-                          f_scale=None if kw["f_scale"] is None else kw["f_scale"] * c, covariance=False)
+        return refine_toa(data.Y[np.ix_(ok_r, ok_s)], sol.receivers, sol.sources, offsets=spec.offsets,
+                          common_offsets=spec.common, receiver_offsets0=sol.receiver_offsets,
+                          source_offsets0=sol.source_offsets, loss=spec.loss,
+                          f_scale=spec.metres(spec.f_scale, c), covariance=False)
     except (DegenerateGeometryError, np.linalg.LinAlgError, ValueError):
         return None
 
@@ -301,15 +317,6 @@ def _full(P: Array, ok: NDArray[np.bool_]) -> Array:
     out = np.full((ok.size, P.shape[1]), np.nan)
     out[ok] = P
     return out
-
-
-def _masks(usable: Sequence[KnownNode], rshape: tuple[int, ...], sshape: tuple[int, ...]
-           ) -> tuple[NDArray[np.bool_], NDArray[np.bool_]]:
-    fr, fs = np.zeros(rshape, bool), np.zeros(sshape, bool)
-    for k in usable:
-        if k.std is None:
-            (fr if k.kind == "receiver" else fs)[k.index, k.mask] = True
-    return fr, fs
 
 
 def _prior_misfit(sol: Any, usable: Sequence[KnownNode], ok_r: NDArray[np.bool_], ok_s: NDArray[np.bool_]) -> float:

@@ -28,7 +28,7 @@ from ..._result import WrappedResult, replace_fields
 from ...errors import InputError
 
 __all__ = ["FrameInfo", "FramedToaResult", "KnownNode", "check_frame", "check_known_scale", "node_names",
-           "node_positions",
+           "node_positions", "offsets_of",
            "parse_frame", "parse_known",
            "read_known_csv", "RefitData", "refit_data", "replace_fields", "resolve_node", "units"]
 
@@ -467,6 +467,13 @@ def refit_data(result: Any, matrix: Any) -> RefitData:
     do = None if result.receiver_offsets is None else np.asarray(result.receiver_offsets, float)[ok_r] * c
     so = None if result.source_offsets is None else np.asarray(result.source_offsets, float)[ok_s] * c
     return RefitData(c, np.asarray(matrix, float) * c, R, S, ok_r, ok_s, do, so)
+
+
+def offsets_of(result: Any) -> str:
+    """The offsets mode whose arrays ``result`` carries: "none", "receivers", "sources" or "both"."""
+    has_r, has_s = result.receiver_offsets is not None, result.source_offsets is not None
+    return {(False, False): "none", (True, False): "receivers", (False, True): "sources",
+            (True, True): "both"}[(has_r, has_s)]
 
 
 def node_positions(result: Any, kind: str) -> Array:

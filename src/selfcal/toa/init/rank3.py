@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import time
 import warnings
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -28,9 +29,8 @@ from .rank3_model import (
     Rank3Result,
     _centre,
     _feasible,
-    _impute,
-    _random_p0,
-    _replace,
+    _lm_extra,
+    _lm_start,
     _result,
     _split,
     checked_rank_input,
@@ -177,12 +177,7 @@ def rank3_lm(
         # than the iterative pieces below (measured crossover ~300 unknowns)
         return _rank3_lm_joint(R0, dim=dim, model=model, p0=p0, max_iter=max_iter, xtol=xtol,
                                centring=centring, rng=rng, abort_above=abort_above)
-    missing = np.nonzero(mask)
-    R = _impute(R0)
-    bound = 2.0 * float(np.max(np.abs(R0[~mask])))
-    p = _random_p0(I, J, as_rng(rng)) if p0 is None else np.array(p0, dtype=float).reshape(-1)
-    if p.shape != (K,):
-        raise InputError(f"p0 must have I+J-1 = {K} entries, got {p.shape}")
+    missing, R, bound, p = _lm_start(R0, mask, K, p0, rng)
     Fr, Sr = _centre_gram(I, centring)
     Fc, Sc = _centre_gram(J, centring)
 
@@ -295,10 +290,7 @@ def rank3_lm(
     Mref = _centre(_centre(Dx, 0, "reference"), 1, "reference")
     F_ref = np.sqrt(_tail_sub(Mref, dim)[0])
     res = _result(Rx, p, F_ref, hist, steps, it, converged, "fast", model, 0.0)
-    extra: dict[str, Any] = {"completed": Rx} if n_miss else {}
-    extra["objective"] = float(np.sqrt(cost))
-    extra["aborted"] = aborted
-    return _replace(res, seconds=time.perf_counter() - t0, extra=extra)
+    return replace(res, seconds=time.perf_counter() - t0, extra=_lm_extra(Rx, n_miss, cost, aborted))
 
 
 class _ScalableStep:
@@ -368,7 +360,7 @@ def fast_offsets(
     if model == "linear":
         return first
     second = rank3_lm(ranges, dim=dim, model=model, p0=first.p, max_iter=max_iter, abort_above=abort_above)
-    return _replace(
+    return replace(
         second,
         iterations=first.iterations + second.iterations,
         total_iterations=first.iterations + second.iterations,
@@ -454,11 +446,11 @@ def estimate_offsets(
             )
         total += res.iterations
         ok = None if accept is None else bool(np.isfinite(res.frobenius) and res.frobenius <= accept)
-        res = _replace(res, accepted=ok, restarts=attempt, total_iterations=total)
+        res = replace(res, accepted=ok, restarts=attempt, total_iterations=total)
         if best is None or res.frobenius < best.frobenius:
             best = res
         if ok:
-            return _replace(res, seconds=time.perf_counter() - t0)
+            return replace(res, seconds=time.perf_counter() - t0)
     assert best is not None
     if accept is not None:
         warnings.warn(
@@ -467,5 +459,5 @@ def estimate_offsets(
             ConvergenceWarning,
             stacklevel=2,
         )
-    return _replace(best, total_iterations=total, seconds=time.perf_counter() - t0)
+    return replace(best, total_iterations=total, seconds=time.perf_counter() - t0)
 

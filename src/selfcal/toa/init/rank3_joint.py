@@ -8,13 +8,12 @@ eigendecomposition are cheaper) and by the tests as the reference of the scalabl
 from __future__ import annotations
 
 import time
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
 from scipy.linalg import cho_factor, cho_solve, eigh
 
-from ..._checks import as_rng
-from ...errors import InputError
 from ...optim.lm import levenberg_marquardt
 from .mds_core import SUBSET_EIG_MIN
 from .rank3_model import (
@@ -23,9 +22,8 @@ from .rank3_model import (
     Rank3Result,
     _centre,
     _feasible,
-    _impute,
-    _random_p0,
-    _replace,
+    _lm_extra,
+    _lm_start,
     _result,
     _split,
     checked_rank_input,
@@ -94,7 +92,6 @@ def _tail(M: Array, dim: int) -> tuple[float, Array, Array, Array]:
     return float(np.sum(resid * resid)), Ud, Vd, resid
 
 
-
 def _rank3_lm_joint(
     ranges: Any,
     *,
@@ -107,47 +104,17 @@ def _rank3_lm_joint(
     rng: np.random.Generator | int | None = None,
     abort_above: float | None = None,
 ) -> Rank3Result:
-    """Reference: the joint LM of :func:`rank3_lm` before 2026-12 (missing entries as dense unknowns).
+    """:func:`~selfcal.toa.init.rank3.rank3_lm` (same problem, parameters and result) with a dense joint step.
 
-    Kept for the tests that compare the scalable :func:`rank3_lm` against it on small cases;
-    its Hessian is (I+J-1+missing)^2 and every trial runs a full eigendecomposition.
-
-    Residual: ``N(M(p)) = M(p) - [M(p)]_d`` (the part of the corrected matrix outside its best
-    rank-d approximation), with ``M = T + A(p) (+ Gamma(p))``. Jacobian (Kaufman's variable
-    projection approximation, exact at zero residual): ``N(dM/dp_k) = (P u_k)(Q v_k)^T`` with
-    P, Q the projectors off the leading singular subspaces, so
-    ``J^T J = (U~^T U~) o (V~^T V~)`` (Hadamard) and ``J^T r = diag(U^T N(M) V)`` is the exact
-    gradient of (*)/2. Marquardt damping with the usual gain-ratio update; steps that leave
-    ``|x| <= 2 max t`` are refused (see :func:`_feasible`). Missing entries (NaN) become extra unknowns, each with its own rank-one Jacobian column (matrix
-    completion inside the same projection); their count adds to the I+J-1 unknowns of the
-    identifiability condition.
-
-    Parameters
-    ----------
-    ranges : (I, J) metres; NaN = missing.
-    dim : rank d (3 or 2).
-    model : ``"exact"`` (keeps Gamma: distinct internal delays) or ``"linear"`` (thesis, Gamma = 0).
-    p0 : initial p (metres); default the thesis random initialisation from ``rng``.
-    max_iter : maximum LM iterations.
-    xtol : stop when ``||dx|| <= xtol (||x|| + xtol)`` or F <= xtol ||M||_F.
-    rng : seed or Generator for the initialisation.
-
-    centring : ``"mean"`` (default, no special node) or ``"reference"`` (thesis (3.4)).
-
-    Returns
-    -------
-    Rank3Result with ``method="fast"``; ``frobenius`` is sqrt of (*) with reference centring,
-    the quantity F (3.17) converges to; with missing entries ``extra["completed"]`` is the
-    completed (I, J) matrix.
+    The missing entries are dense unknowns beside the I+J-1 offsets: one
+    (I+J-1+missing)^2 Gauss-Newton matrix (Hadamard form, ``_JointStep``) and a full
+    eigendecomposition per trial, cheaper than the scalable path's iterative pieces up to
+    ``_DENSE_JOINT_MAX`` unknowns, where :func:`~selfcal.toa.init.rank3.rank3_lm` calls it;
+    the tests also use it as the reference of the scalable path on small cases.
     """
     t0 = time.perf_counter()
     dim, R0, mask, I, J, K, n_miss = checked_rank_input(ranges, model, centring, dim)
-    missing = np.nonzero(mask)
-    R = _impute(R0)
-    bound = 2.0 * float(np.max(np.abs(R0[~mask])))
-    p = _random_p0(I, J, as_rng(rng)) if p0 is None else np.array(p0, dtype=float).reshape(-1)
-    if p.shape != (K,):
-        raise InputError(f"p0 must have I+J-1 = {K} entries, got {p.shape}")
+    missing, R, bound, p = _lm_start(R0, mask, K, p0, rng)
     x = np.concatenate([p, R[missing]])
 
     def unpack(xv: Array) -> tuple[Array, Array]:
@@ -178,11 +145,7 @@ def _rank3_lm_joint(
     # value F (3.17) converges to, so that the acceptance threshold means the same for both methods
     F_ref = np.sqrt(_tail(offset_matrix(Rx, p, model=model, centring="reference"), dim)[0])
     res = _result(Rx, p, F_ref, hist, steps, it, converged, "fast", model, 0.0)
-    extra: dict[str, Any] = {"completed": Rx} if n_miss else {}
-    extra["objective"] = float(np.sqrt(cost))
-    extra["aborted"] = aborted
-    return _replace(res, seconds=time.perf_counter() - t0, extra=extra)
-
+    return replace(res, seconds=time.perf_counter() - t0, extra=_lm_extra(Rx, n_miss, cost, aborted))
 
 
 class _JointStep:

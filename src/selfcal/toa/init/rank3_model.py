@@ -77,7 +77,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from ..._checks import as_matrix, check_dim
+from ..._checks import as_matrix, as_rng, check_dim
 from ..._result import Result
 from ...errors import DegenerateGeometryError, InputError
 from ...optim.lm import Model
@@ -327,13 +327,21 @@ def _random_p0(I: int, J: int, rng: np.random.Generator) -> Array:
     return np.concatenate([rng.uniform(0.0, DELAY_MAX, I), rng.uniform(0.0, ONSET_MAX, J - 1)])
 
 
+def _lm_start(R0: Array, mask: NDArray[np.bool_], K: int, p0: Any, rng: Any) -> tuple[Any, Array, float, Array]:
+    """The LMs' common start: missing indices, the imputed matrix, the feasible bound, the checked p0."""
+    I, J = R0.shape
+    p = _random_p0(I, J, as_rng(rng)) if p0 is None else np.array(p0, dtype=float).reshape(-1)
+    if p.shape != (K,):
+        raise InputError(f"p0 must have I+J-1 = {K} entries, got {p.shape}")
+    return np.nonzero(mask), _impute(R0), 2.0 * float(np.max(np.abs(R0[~mask]))), p
+
+
+def _lm_extra(Rx: Array, n_miss: int, cost: float, aborted: bool) -> dict[str, Any]:
+    """The LMs' ``extra``: the completed matrix (with missing entries), the objective, the abort."""
+    return {**({"completed": Rx} if n_miss else {}), "objective": float(np.sqrt(cost)), "aborted": aborted}
+
+
 # ----------------------------------------------------------------------------- faithful iteration
-
-def _replace(res: Rank3Result, **kw: Any) -> Rank3Result:
-    from dataclasses import replace
-
-    return replace(res, **kw)
-
 
 
 def _feasible(x: Array, bound: float) -> bool:

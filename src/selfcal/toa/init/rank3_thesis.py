@@ -10,6 +10,7 @@ is the thesis's algorithm, reproduced as published, not a damped least-squares l
 from __future__ import annotations
 
 import time
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -22,7 +23,6 @@ from .rank3_model import (
     Array,
     Rank3Result,
     _random_p0,
-    _replace,
     _result,
     _validate,
     _w_parts,
@@ -142,5 +142,5 @@ def rank3_iteration(
             else:
                 F_prev = F_that
     res = _result(R, p, hist[-1] if hist else np.nan, hist, steps, n, converged, "faithful", "linear", lam0)
-    return _replace(res, seconds=time.perf_counter() - t0, extra={"lam_switch_iteration": switched, "aborted": aborted})
+    return replace(res, seconds=time.perf_counter() - t0, extra={"lam_switch_iteration": switched, "aborted": aborted})
 

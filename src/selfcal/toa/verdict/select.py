@@ -31,6 +31,7 @@ from ...errors import ConvergenceWarning, DegenerateGeometryError
 from ...geometry import n_parameters
 
 if TYPE_CHECKING:  # the result type sits one layer above the verdicts (docs/design.md)
+    from ..options import ToaOptions
     from ..result import ToaResult
 
 __all__ = [
@@ -246,11 +247,12 @@ def planarity(points: Array, cov: NDArray[np.float64] | None = None, *, ratio: f
 Solver = Callable[..., "ToaResult"]
 
 
-def _quiet(solve: Solver, *args: Any, **kw: Any) -> ToaResult | None:
+def _quiet(solve: Solver, M: Array, dim: int, offsets: str, opts: ToaOptions,
+           init: Any = "auto") -> ToaResult | None:
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", ConvergenceWarning)
         try:
-            return solve(*args, **kw)
+            return solve(M, dim, offsets, opts, init=init)
         except DegenerateGeometryError:
             return None
 
@@ -300,7 +302,7 @@ def _projected_init(res: ToaResult, mode: str, speed: float | None) -> tuple[Any
     return (r - c) @ vt[:2].T, (s - c) @ vt[:2].T, d, o
 
 
-def choose_offsets(M: Array, dim: int, solve: Solver, **kw: Any) -> tuple[ToaResult, dict[str, Any]]:
+def choose_offsets(M: Array, dim: int, solve: Solver, opts: ToaOptions) -> tuple[ToaResult, dict[str, Any]]:
     """Fit every offsets mode and keep the one chosen by held-out prediction; (result, statistics).
 
     The offsets-free mode is fitted by ``solve``'s search; each larger mode by one
@@ -324,12 +326,12 @@ def choose_offsets(M: Array, dim: int, solve: Solver, **kw: Any) -> tuple[ToaRes
         # every model is also started from the best fit of the models it nests (offsets of the
         # other kinds at zero): its search accepts only lower costs, so it never ends above them
         nested = [fits[k] for k in fits if k == "none" or mode == "both"]
-        init = _nested_init(min(nested, key=_rss), mode, kw.get("speed")) if nested else "auto"
+        init = _nested_init(min(nested, key=_rss), mode, opts.speed) if nested else "auto"
         # the offsets-free model is searched; each larger one is refined from its nested start
         # (the search restarted per model cost 4x the blind solve; a refinement only lowers the cost)
-        res = _quiet(solve, M, dim, mode, init=init, **({**kw, "method": "nls"} if nested else kw))
+        res = _quiet(solve, M, dim, mode, dataclasses.replace(opts, method="nls") if nested else opts, init=init)
         if res is None and not isinstance(init, str):
-            res = _quiet(solve, M, dim, mode, **kw)
+            res = _quiet(solve, M, dim, mode, opts)
         if res is not None:
             fits[mode] = res
     if not fits:
@@ -339,7 +341,7 @@ def choose_offsets(M: Array, dim: int, solve: Solver, **kw: Any) -> tuple[ToaRes
     # every candidate judged on the same entries: those kept by the candidate that removed the
     # fewest as outliers (a gross error is removed by every model that fits the rest; a model
     # that cannot fit good entries removes them too, and must not hide its misfit that way)
-    k = 1.0 if kw.get("speed") is None else float(kw["speed"])
+    k = 1.0 if opts.speed is None else float(opts.speed)
     fewest = min(fits.values(), key=lambda r: (int(np.asarray(r.outliers).sum()), _rss(r)))
     kept = np.isfinite(M) & ~np.asarray(fewest.outliers, bool)
     kr = np.logical_and.reduce([np.isfinite(r.receivers).all(axis=1) for r in fits.values()])
@@ -358,15 +360,15 @@ def choose_offsets(M: Array, dim: int, solve: Solver, **kw: Any) -> tuple[ToaRes
     if chosen != "none":
         # the chosen model (only it) gets the full search, started from its refinement: the
         # refinement alone can stop in a worse basin (room 7 x 220: anchor RMSE 0.146 vs 0.071 m)
-        full = _quiet(solve, M, dim, chosen, init=_nested_init(fits[chosen], chosen, kw.get("speed")), **kw)
+        full = _quiet(solve, M, dim, chosen, opts, init=_nested_init(fits[chosen], chosen, opts.speed))
         if full is not None:
             fits[chosen] = full
             stats["searched"] = chosen
     return fits[chosen], stats
 
 
-def choose_dim(M: Array, offsets: str, solve: Solver, *, fit3: ToaResult | None = None,
-               **kw: Any) -> tuple[ToaResult, dict[str, Any]]:
+def choose_dim(M: Array, offsets: str, solve: Solver, opts: ToaOptions, *,
+               fit3: ToaResult | None = None) -> tuple[ToaResult, dict[str, Any]]:
     """3-D unless z is not determined by the data (F test, :func:`compare_fits`, or :func:`planarity`).
 
     Both dimensions are fitted; the F test compares their RSS over the entries both fitted,
@@ -380,13 +382,13 @@ def choose_dim(M: Array, offsets: str, solve: Solver, *, fit3: ToaResult | None 
     data with a resolved thickness a 2-D fit cannot approach the 3-D residual from any
     start. Only when that refinement fails does a full 2-D search run.
     """
-    r3 = fit3 if fit3 is not None else _quiet(solve, M, 3, offsets, **kw)
+    r3 = fit3 if fit3 is not None else _quiet(solve, M, 3, offsets, opts)
     r2 = None
     if r3 is not None:
-        r2 = _quiet(solve, M, 2, offsets, init=_projected_init(r3, offsets, kw.get("speed")),
-                    **{**kw, "method": "nls"})
+        r2 = _quiet(solve, M, 2, offsets, dataclasses.replace(opts, method="nls"),
+                    init=_projected_init(r3, offsets, opts.speed))
     if r2 is None:
-        r2 = _quiet(solve, M, 2, offsets, **kw)
+        r2 = _quiet(solve, M, 2, offsets, opts)
     if r3 is None and r2 is None:
         raise DegenerateGeometryError("neither a 2-D nor a 3-D geometry could be fitted to this matrix",
                                       kind="degenerate-geometry")
@@ -429,17 +431,17 @@ def choose_dim(M: Array, offsets: str, solve: Solver, *, fit3: ToaResult | None 
     return (r3 if keep3 else r2), stats
 
 
-def choose(M: Array, dim: int | str, offsets: str, *, solve: Solver, **kw: Any) -> ToaResult:
+def choose(M: Array, dim: int | str, offsets: str, opts: ToaOptions, *, solve: Solver) -> ToaResult:
     """``solve_toa`` with ``dim`` and / or ``offsets`` set to "auto": the chosen fit with its statistics."""
     sel: dict[str, Any] = {}
     fit3 = None
     if offsets == "auto":
         d0 = 3 if dim == "auto" else int(dim)
-        res, sel["offsets"] = choose_offsets(M, d0, solve, **kw)
+        res, sel["offsets"] = choose_offsets(M, d0, solve, opts)
         offsets = res.offsets
         # the chosen model's 3-D fit, searched (its refinement alone is searched again)
         searched = res.offsets == "none" or "searched" in sel["offsets"]
         fit3 = res if d0 == 3 and searched else None
     if dim == "auto":
-        res, sel["dim"] = choose_dim(M, offsets, solve, fit3=fit3, **kw)
+        res, sel["dim"] = choose_dim(M, offsets, solve, opts, fit3=fit3)
     return dataclasses.replace(res, selection=sel)

@@ -30,7 +30,6 @@ from ...geometry import n_parameters
 from ..engine.nls import OFFSET_MODES
 from ..init.starts import _additive_fit
 from .determinacy import (  # noqa: F401 (re-exported: the trust tests are named here)
-    DENSE_MAX_UNKNOWNS,
     DETERMINED_LEVEL,
     UNDETERMINED_FAIL_FRACTION,
     DeterminacyTest,
