@@ -83,11 +83,14 @@ def _svd_additive(obs, rows, cols):
 
 
 def test_additive_leverages_equal_the_svd():
-    """400 random masks (some split in two blocks: a disconnected design), every model."""
+    """400 random masks (some split in two blocks: a disconnected design, some complete: the
+    balanced layout's closed form), every model."""
     g = np.random.default_rng(0)
     for k in range(400):
         I, J = (int(v) for v in g.integers(1, 30, 2))
         obs = g.random((I, J)) < g.uniform(0.05, 1)
+        if k % 10 == 5:
+            obs[:] = True
         if k % 10 == 0:
             obs[: I // 2, J // 2:] = False
             obs[I // 2:, : J // 2] = False
@@ -318,3 +321,48 @@ def test_stacked_starts_equal_the_initialisers():
                 size = max(1.0, float(np.abs(start[0]).max()))
                 assert np.abs(got[name][0][i] - start[0]).max() < 1e-10 * size, (k, i, name)
                 assert np.abs(got[name][1][i] - start[1]).max() < 1e-10 * size, (k, i, name)
+
+
+def test_robust_refit_skipped_only_where_it_cannot_flag(monkeypatch):
+    """The outlier rule's robust (soft-L1) refit is not run where no fit it can reach flags
+    anything (``fit._refit_cannot_flag``): 80 units (6,400 entries, above the high-breakdown
+    start's size), both offsets, complete, over seeds: noise-free (the skip applies), noise-free
+    with 1 % of the entries +2 m (gross errors in exact data: the refit must run) and 1 mm
+    (it runs). The answer with the skip equals the answer with the refit forced, bit for bit
+    (positions, covariances, outliers, verdict): the final refit starts from the same winner
+    either way."""
+    import warnings
+
+    import selfcal.toa.fit as fit
+    import selfcal.toa.verdict.leverage as lev
+    from selfcal.scenarios.units import make_units
+    from selfcal.toa import solve_toa
+
+    real = fit._refit_cannot_flag
+    said: list[bool] = []
+    monkeypatch.setattr(fit, "_refit_cannot_flag", lambda *a, **k: said.append(real(*a, **k)) or said[-1])
+    for seed in range(4):
+        kind = ("exact", "gross", "noise", "exact")[seed]
+        sc = make_units(80, room="large", noise_std=1e-3 / 343 if kind == "noise" else 0.0,
+                        equal_delays=kind != "noise", rng=seed)
+        Y = np.array(sc.ranges, float)
+        if kind == "gross":
+            Y[np.random.default_rng(seed).random(Y.shape) < 0.01] += 2.0
+        out = []
+        for skip in (True, False):
+            if not skip:
+                monkeypatch.setattr(fit, "_refit_cannot_flag", lambda *a, **k: False)
+            lev._LAST.clear()
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                out.append(solve_toa(Y, dim=3, offsets="both", rng=seed))
+        monkeypatch.setattr(fit, "_refit_cannot_flag", lambda *a, **k: said.append(real(*a, **k)) or said[-1])
+        a, b = out
+        assert said[-1] == (kind == "exact"), (seed, kind)
+        assert (a.verdict, a.verdict_message) == (b.verdict, b.verdict_message)
+        assert np.array_equal(a.outliers, b.outliers)
+        for x, y in ((a.receivers, b.receivers), (a.sources, b.sources), (a.receiver_cov, b.receiver_cov),
+                     (a.source_cov, b.source_cov)):
+            assert np.array_equal(x, y, equal_nan=True)
+        if kind == "gross":
+            assert a.outliers.sum() > 0

@@ -100,6 +100,11 @@ __all__ = [
 
 Array = NDArray[np.float64]
 
+#: smallest robust-loss scale (metres) :func:`refine_toa` estimates (when ``f_scale`` is not
+#: given it fits at the estimated scale, then once more at the scale re-estimated from that
+#: fit; both are at least this)
+ROBUST_SCALE_FLOOR = 1e-9
+
 
 # ---------------------------------------------------------------------------
 # solvers
@@ -283,12 +288,12 @@ def refine_toa(
     else:
         f0 = toa_residuals(theta0, Y, d, offsets)
         k95 = _TUNING[loss]
-        fs = f_scale if f_scale is not None else max(k95 * _robust_sigma(f0), 1e-9)
+        fs = f_scale if f_scale is not None else max(k95 * _robust_sigma(f0), ROBUST_SCALE_FLOOR)
         theta, conv, nit = solve_schur_lm(theta0, Y, lay, loss, fs, max_nfev, xtol)
         if f_scale is None:
             # the initial residuals mix geometry error with noise: re-scale on the refined ones
             shrink = float(np.sqrt(m / max(m - n_free, 1)))  # fitted residuals underestimate sigma
-            fs = max(k95 * shrink * _robust_sigma(toa_residuals(theta, Y, d, offsets)), 1e-9)
+            fs = max(k95 * shrink * _robust_sigma(toa_residuals(theta, Y, d, offsets)), ROBUST_SCALE_FLOOR)
             theta, conv2, nit2 = solve_schur_lm(theta, Y, lay, loss, fs, max_nfev, xtol)
             conv, nit = conv2, nit + nit2
 
