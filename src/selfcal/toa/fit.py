@@ -41,7 +41,7 @@ from .result import (
     residual_test,
 )
 from .search import canonical_order, search
-from .verdict.leverage import leverages, studentized
+from .verdict.leverage import kept_inverse, leverages, studentized
 from .verdict.robust import drop_unidentifiable, gross_entries, noise_scale, outlier_mask
 
 __all__ = ["finish", "given_start", "unrefined"]
@@ -240,8 +240,9 @@ def finish(M: Array, dim: int, offsets: str, *, init: Any, speed: float | None, 
     singular = False  # the covariance was refused: singular beyond the gauge at the estimate
     if not degenerate:
         try:
+            # the covariance from the outlier rule's linearisation where the final fit is at it
             final = _refine(Yf, st, dim, offsets, final_loss, fs, max_nfev,
-                            _cov_spec(covariance, pr, pc, keep_r, keep_s))
+                            _cov_spec(covariance, pr, pc, keep_r, keep_s), kept_inverse(offsets))
         except DegenerateGeometryError:
             try:
                 final = _refine(Yf, st, dim, offsets, final_loss, fs, max_nfev, False)
@@ -356,10 +357,11 @@ def _without_covariance(sol: NlsSolution) -> NlsSolution:
 
 
 def _refine(Y: Array, start: Start, dim: int, offsets: str, loss: str, fs: float | None, max_nfev: int | None,
-            covariance: Any) -> NlsSolution:
+            covariance: Any, normal_inverse: Any = None) -> NlsSolution:
     r0, s0, d0, o0 = start
     return refine_toa(Y, r0, s0, offsets=offsets, receiver_offsets0=d0, source_offsets0=o0, loss=loss,
-                      f_scale=fs if loss != "linear" else None, max_nfev=max_nfev, covariance=covariance)
+                      f_scale=fs if loss != "linear" else None, max_nfev=max_nfev, covariance=covariance,
+                      normal_inverse=normal_inverse)
 
 
 def _cov_spec(cov: Any, pr: NDArray[np.intp], pc: NDArray[np.intp], kr: NDArray[np.bool_],

@@ -141,6 +141,7 @@ def refine_toa(
     source_offset_basis: Any = None,
     noise: float | None = None,
     weights: Any = None,
+    normal_inverse: Any = None,
 ) -> NlsSolution:
     """Refine receivers, sources (and offsets) by sparse nonlinear least squares (003 eq. 2, 16-17).
 
@@ -195,6 +196,12 @@ def refine_toa(
         mean with free zero-sum deviations.
     noise: range noise std (metres) weighting the priors; estimated from the fit
         (re-weighted until it settles) when omitted.
+    normal_inverse: ``(theta, pattern) -> inverse | None``, a generalised inverse of ``J^T J`` the
+        caller already holds at the estimate (the outlier rule's linearisation,
+        :func:`selfcal.toa.verdict.leverage.kept_inverse`): with the linear loss the covariance
+        blocks come from it (:func:`selfcal.toa.engine.covariance.blocks_from_inverse`, the
+        same blocks to round-off) where it certifies that the selected inversion would accept
+        the geometry; None (default) or its refusal: the selected inversion.
     weights: (I, J) per-entry weights, ``1 / std`` up to a common factor (finite and >= 0 on
         the observed entries; 0 = the entry does not count): weighted least squares, the ML
         fit when the entries' noise differs; a robust loss then applies to the weighted
@@ -223,7 +230,7 @@ def refine_toa(
         gz = np.zeros((J, 3), bool); gz[:, 2] = True
         sol = refine_toa(c * T, r0, s0, offsets="both", fixed_receivers=fz, fixed_sources=gz)
     """
-    from .covariance import gauge_free_blocks, is_local, local_blocks, resolve_covariance
+    from .covariance import blocks_from_inverse, gauge_free_blocks, is_local, local_blocks, resolve_covariance
 
     check_choice(offsets, "offsets", OFFSET_MODES)
     check_choice(loss, "loss", LOSSES)
@@ -314,7 +321,9 @@ def refine_toa(
         if is_local(covariance):  # the approximate conditional blocks, O(I J d^2)
             Cr, Cs = local_blocks(theta, wmat, lay)
         else:
-            Cr, Cs = gauge_free_blocks(theta, wmat, lay, cov_r, cov_s)
+            inv = normal_inverse(theta, obs) if normal_inverse is not None and loss == "linear" else None
+            held = None if inv is None else blocks_from_inverse(inv, theta, lay, cov_r, cov_s)
+            Cr, Cs = held if held is not None else gauge_free_blocks(theta, wmat, lay, cov_r, cov_s)
         Cr, Cs = Cr * sigma**2, Cs * sigma**2
     else:
         Cr = np.full((I, d + has_r, d + has_r), np.nan)

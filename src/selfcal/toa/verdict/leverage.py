@@ -19,7 +19,7 @@ from numpy.typing import NDArray
 
 from .robust import OUTLIER_ALPHA, noise_scale, outlier_threshold
 
-__all__ = ["BipartiteInverse", "NormalEquations", "leverages", "lifted_inverse", "normal_equations",
+__all__ = ["BipartiteInverse", "NormalEquations", "kept_inverse", "leverages", "lifted_inverse", "normal_equations",
            "outlier_rule_has_power", "studentized"]
 
 Array = NDArray[np.float64]
@@ -381,6 +381,17 @@ class BipartiteInverse:
         Ge = self.Ainv + np.matmul(np.matmul(self.Linv.transpose(0, 2, 1), self.Ke), self.Linv)
         return (self.Sd, Ge, self.info_k, self.info_e) if self.swap else (Ge, self.Sd, self.info_e, self.info_k)
 
+    def norm_bound(self) -> float:
+        """An upper bound on ``|G|_2``: the norms of its blocks, ``|G| <= |G_ee| + |G_kk| + 2 |G_ek|``
+        with ``G_ee = L^-T (I + V S^- V^T) L^-1``, ``G_ek = -L^-T W``, ``G_kk = S^-`` (spectral
+        norms of the block-diagonal factors, Frobenius norms of the dense ones, the largest
+        absolute row sum of ``S^-``)."""
+        lin = float(np.max(np.linalg.norm(self.Linv, ord=2, axis=(1, 2)))) ** 2  # |L^-1|^2
+        ainv = float(np.max(np.linalg.norm(self.Ainv, ord=2, axis=(1, 2))))
+        w, v = float(np.linalg.norm(self.W)), float(np.linalg.norm(self.V))
+        sg = float(np.max(np.abs(self.Sg).sum(axis=1)))
+        return ainv + lin * w * v + sg + 2.0 * np.sqrt(lin) * w
+
     def apply(self, X: Array) -> Array:
         """``G X`` for X (n, g) in the parameter order of :func:`selfcal.toa.engine.nls.toa_jacobian`."""
         nE, pe = self.nE, self.pe
@@ -438,6 +449,21 @@ def normal_equations(pattern: Mask, receivers: Array, sources: Array, receiver_o
                          np.shape(receivers)[1])
     _LAST[:] = [ne]
     return ne
+
+
+def kept_inverse(offsets: str) -> Any:
+    """``(theta, pattern) -> BipartiteInverse | None``: the generalised inverse of the kept
+    linearisation (:func:`normal_equations`) when it is at ``theta`` (within :data:`REUSE_XTOL`)
+    on the entries ``pattern``, else None: what :func:`selfcal.toa.engine.nls.refine_toa`
+    takes as ``normal_inverse`` for the final fit's covariance blocks
+    (:func:`selfcal.toa.engine.covariance.blocks_from_inverse`)."""
+
+    def at(theta: Array, pattern: Mask) -> BipartiteInverse | None:
+        if _LAST and _LAST[0].same(np.asarray(pattern, bool), offsets, np.asarray(theta, float)):
+            return _LAST[0].block()
+        return None
+
+    return at
 
 
 def lifted_inverse(N: Array, gauge: Array) -> tuple[Array | None, Array | None, float]:
