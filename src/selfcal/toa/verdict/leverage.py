@@ -320,8 +320,8 @@ class BipartiteInverse:
             idx_e, idx_k = ir, js
         nE, nK, pe = Ae.shape
         pk = Bk.shape[2]
-        info_e = np.einsum("ekp,ekq->epq", Ae, Ae)  # the eliminated nodes' information blocks
-        info_k = np.einsum("ekp,ekq->kpq", Bk, Bk)
+        info_e = np.matmul(Ae.transpose(0, 2, 1), Ae)  # the eliminated nodes' information blocks
+        info_k = np.matmul(Bk.transpose(1, 2, 0), Bk.transpose(1, 0, 2))
         trace = float(np.einsum("epp->", info_e) + np.einsum("kpp->", info_k))
         if not trace > 0:
             return None
@@ -333,9 +333,11 @@ class BipartiteInverse:
         Ainv = np.matmul(Linv.transpose(0, 2, 1), Linv)
         if not np.all(np.isfinite(Ainv)) or 1.0 / np.max(np.abs(Ainv).sum(axis=2)) <= floor:
             return None
-        Cc = np.einsum("epq,ekq->ekp", Linv, Ae)  # L_e^-1 a_ek
+        Cc = np.matmul(Ae, Linv.transpose(0, 2, 1))  # L_e^-1 a_ek
         V = np.einsum("ekm,ekq->emkq", Cc, Bk).reshape(nE * pe, nK * pk)
-        S = -(V.T @ V)
+        # -V^T V, its lower triangle only (all that potrf reads; S is not used after it): the
+        # upper triangle of the Fortran-ordered product, transposed into a C-ordered view
+        S = scipy.linalg.blas.dsyrk(-1.0, V.T, trans=0, lower=0).T
         S4 = S.reshape(nK, pk, nK, pk)
         S4[np.arange(nK), :, np.arange(nK), :] += info_k
         U_q, sv, _ = np.linalg.svd(ne.Q[idx_k.ravel()], full_matrices=False)
@@ -356,7 +358,7 @@ class BipartiteInverse:
             return None
         W = V @ Sg  # L^-1 B S^-, (nE pe, nK pk)
         W4 = W.reshape(nE, pe, nK, pk)
-        Ke = np.einsum("emkq,enkq->emn", W4, V.reshape(nE, pe, nK, pk))  # V_e S^- V_e^T
+        Ke = np.matmul(W.reshape(nE, pe, nK * pk), V.reshape(nE, pe, nK * pk).transpose(0, 2, 1))  # V_e S^- V_e^T
         Sd = Sg.reshape(nK, pk, nK, pk)[np.arange(nK), :, np.arange(nK), :]
         return cls(swap=swap, Linv=Linv, Ainv=Ainv, W=W, W4=W4, V=V, Sg=Sg, Ke=Ke, Sd=Sd,
                    info_e=info_e, info_k=info_k, idx_e=idx_e, idx_k=idx_k, rows_r=rows_r, rows_s=rows_s,
