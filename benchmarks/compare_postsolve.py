@@ -8,9 +8,12 @@ family and draw it compares what a user gets:
 * ``verdict``: the exit-code verdict, the message, success and the ambiguous nodes are equal;
 * ``outliers``: the flagged entries are equal;
 * ``pos``: the largest position difference (m) between the trees, over the largest range;
-* ``cov``: the largest relative difference of the receivers' and sources' covariance blocks;
-* ``geo``: the permutation test's statistic, p-value and the cross-validation's PRESS ratio
-  (relative difference) and its decision;
+* ``cov``: the largest difference of the receivers' and sources' covariance blocks, each
+  tree's divided by its largest entry (an exact fit's noise estimate is round-off, 1e-15 m,
+  and so is the covariances' scale: their shape, ``(J^T J)^+``, is what is compared);
+* ``geo``: the permutation test's statistic (relative difference), the cross-validation's
+  PRESS over its no-geometry PRESS (absolute difference: an exact fit's PRESS is round-off),
+  and the two tests' decisions and p-value (equal or not);
 * the CPU ratio new / old of the summed solve times.
 
 Families: the paper-004 workload (``120t``: 120 units in the 30 x 30 x 12 m room, complete,
@@ -131,14 +134,18 @@ def compare(old: Any, new: Any, Y: np.ndarray) -> dict[str, Any]:
              tuple(np.flatnonzero(new.ambiguous_sources)))
     pos = max(float(np.nanmax(np.abs(old.receivers - new.receivers), initial=0.0)),
               float(np.nanmax(np.abs(old.sources - new.sources), initial=0.0))) / span
-    cov = max(_rel(old.receiver_cov, new.receiver_cov), _rel(old.source_cov, new.source_cov))
+    def unit(C: Any) -> Any:
+        top = float(np.nanmax(np.abs(C), initial=0.0))
+        return C / top if top > 0 else C
+
+    cov = max(_rel(unit(old.receiver_cov), unit(new.receiver_cov)), _rel(unit(old.source_cov), unit(new.source_cov)))
     geo, geo_same = 0.0, True
     go, gn = old.geometry, new.geometry
     if (go is None) != (gn is None):
         geo, geo_same = float("inf"), False
     elif go is not None:
         geo_same = go.passed == gn.passed
-        geo = max(_rel(go.press / go.press_null, gn.press / gn.press_null), 0.0)
+        geo = abs(go.press / go.press_null - gn.press / gn.press_null)
         po, pn = go.permutation, gn.permutation
         if (po is None) != (pn is None):
             geo, geo_same = float("inf"), False

@@ -420,3 +420,54 @@ def test_covariance_from_the_kept_inverse_equals_the_selected_inversion(seed):
             scale = np.abs(b).max(axis=(1, 2), keepdims=True)
             assert np.allclose(a, b, rtol=0, atol=1e-7 * scale.max()), (seed, k, off, dim)
     assert certified >= 20  # the kept inverse serves generic networks
+
+
+@pytest.mark.parametrize("seed", range(2))
+def test_covariance_at_a_settled_fit_equals_one_more_refinement(seed):
+    """24 random networks a seed (every offsets mode, 2-D and 3-D, 8-30 nodes a side, 0-20 %
+    missing, noise-free to 5 cm): at a converged least-squares fit whose Gauss-Newton step is
+    below the step tolerance (``leverage.settled``), ``nls.with_covariance`` (what the final fit
+    of ``solve_toa`` is when nothing changed since the search) equals one more ``refine_toa``
+    from it: positions and offsets within 1e-8 m (the step tolerance is 1e-10 of the parameter
+    vector's norm, ~1e-8 m here; measured at most 1.5e-9 m), the noise estimate and the covariance blocks within 1e-6
+    relative. Fits that converged on the cost's relative decrease with a larger Gauss-Newton
+    step (one more refinement moved them by up to 4e-6 m) are not settled."""
+    from selfcal.toa.engine.nls import refine_toa, with_covariance
+    from selfcal.toa.verdict import leverage
+
+    g = np.random.default_rng(300 + seed)
+    n_settled = 0
+    for k in range(24):
+        dim = int(g.choice([2, 3]))
+        I, J = (int(v) for v in g.integers(8, 31, 2))
+        off = ["none", "receivers", "sources", "both"][k % 4]
+        has_r, has_s = off in ("receivers", "both"), off in ("sources", "both")
+        r, s = g.uniform(0, 10, (I, dim)), g.uniform(0, 10, (J, dim))
+        d = g.uniform(0, 3, I) if has_r else None
+        o = g.uniform(0, 3, J) if has_s else None
+        Y = toa_model(r, s, d, o) + g.normal(0, float(g.choice([0.0, 0.001, 0.05])), (I, J))
+        Y[g.random(Y.shape) < g.uniform(0, 0.2)] = np.nan
+        try:
+            sol = refine_toa(Y, r + g.normal(0, 0.05, r.shape), s + g.normal(0, 0.05, s.shape), offsets=off,
+                             receiver_offsets0=d, source_offsets0=o, covariance=False)
+        except DegenerateGeometryError:
+            continue
+        fit = (sol.receivers, sol.sources, sol.receiver_offsets, sol.source_offsets)
+        leverage._LAST.clear()
+        leverages(Y, *fit, off)  # the linearisation at the fit, as the outlier rule leaves it
+        if not (sol.converged and leverage.settled(np.isfinite(Y), *fit, off, Y - toa_model(*fit))):
+            continue
+        n_settled += 1
+        a = with_covariance(sol, Y, offsets=off, normal_inverse=leverage.kept_inverse(off))
+        leverage._LAST.clear()
+        b = refine_toa(Y, sol.receivers, sol.sources, offsets=off, receiver_offsets0=sol.receiver_offsets,
+                       source_offsets0=sol.source_offsets)
+        assert a.iterations == 0 and a.converged
+        for x, y in ((a.receivers, b.receivers), (a.sources, b.sources), (a.receiver_offsets, b.receiver_offsets),
+                     (a.source_offsets, b.source_offsets)):
+            if x is not None:
+                assert np.abs(x - y).max() < 1e-8, (seed, k, off)
+        assert a.sigma == pytest.approx(b.sigma, rel=1e-6, abs=1e-12)
+        for x, y in ((a.receiver_cov, b.receiver_cov), (a.source_cov, b.source_cov)):
+            assert np.allclose(x, y, rtol=0, atol=1e-6 * np.abs(y).max() + 1e-24), (seed, k, off)
+    assert n_settled >= 8

@@ -32,7 +32,7 @@ from numpy.typing import NDArray
 
 from .._checks import check_toa_counts
 from ..errors import DegenerateGeometryError, InputError, Status
-from .engine.nls import NlsSolution, refine_toa, toa_model
+from .engine.nls import NlsSolution, refine_toa, toa_model, with_covariance
 from .fit_result import _start, judge_final
 from .init.rank3_model import rank_identifiable
 from .result import (
@@ -42,6 +42,7 @@ from .result import (
 )
 from .search import canonical_order, search
 from .verdict.leverage import kept_inverse, leverages, studentized
+from .verdict.leverage import settled as settled_fit
 from .verdict.robust import drop_unidentifiable, gross_entries, noise_scale, outlier_mask
 
 __all__ = ["finish", "given_start", "unrefined"]
@@ -146,6 +147,7 @@ def finish(M: Array, dim: int, offsets: str, *, init: Any, speed: float | None, 
                      stop=stop_rule(keep_r, keep_s), budget=1 if one or again else budget, max_nfev=max_nfev,
                      use_moves=sweep and not one and not again)
         best, prev_keep = out.solution, (keep_r.copy(), keep_s.copy())
+        winner, winner_entries = best, np.isfinite(Ys)  # the search's answer and the entries it fitted
         if rnd == 0:  # the race's other minima, on these nodes (the uniqueness test's candidates)
             minima = (out.minima, prev_keep)
         iters += out.iterations
@@ -238,11 +240,18 @@ def finish(M: Array, dim: int, offsets: str, *, init: Any, speed: float | None, 
     st = _restrict(_embed_start(best, prev_keep, keep_r, keep_s), keep_r, keep_s)
     final = best
     singular = False  # the covariance was refused: singular beyond the gauge at the estimate
+    # the search's converged least-squares answer on exactly these entries, whose Gauss-Newton
+    # step is below the step tolerance, is its own refit (nls.with_covariance, leverage.settled)
+    settled = (best is winner and final_loss == "linear" and best.solver == "schur-lm" and bool(best.converged)
+               and all(np.array_equal(a, b) for a, b in zip(prev_keep, (keep_r, keep_s), strict=True))
+               and np.array_equal(np.isfinite(Yf), winner_entries)
+               and settled_fit(np.isfinite(Yf), *_start(best), offsets, Yf - toa_model(*_start(best))))
     if not degenerate:
         try:
             # the covariance from the outlier rule's linearisation where the final fit is at it
-            final = _refine(Yf, st, dim, offsets, final_loss, fs, max_nfev,
-                            _cov_spec(covariance, pr, pc, keep_r, keep_s), kept_inverse(offsets))
+            cov_spec, kept = _cov_spec(covariance, pr, pc, keep_r, keep_s), kept_inverse(offsets)
+            final = (with_covariance(best, Yf, offsets=offsets, covariance=cov_spec, normal_inverse=kept) if settled
+                     else _refine(Yf, st, dim, offsets, final_loss, fs, max_nfev, cov_spec, kept))
         except DegenerateGeometryError:
             try:
                 final = _refine(Yf, st, dim, offsets, final_loss, fs, max_nfev, False)
@@ -250,7 +259,7 @@ def finish(M: Array, dim: int, offsets: str, *, init: Any, speed: float | None, 
             except DegenerateGeometryError:
                 degenerate = True  # the search's winner is (nearly) collinear: reported, not raised
         iters += final.iterations if final is not best else 0
-        n_runs += 1
+        n_runs += 1 if final.iterations > 0 else 0
     if degenerate:
         final = _without_covariance(best)
         keep_r, keep_s = prev_keep  # the nodes the winner was fitted on

@@ -94,6 +94,7 @@ __all__ = [
     "toa_residuals",
     "toa_jacobian",
     "gauge_basis",
+    "with_covariance",
     "OFFSET_MODES",
     "LOSSES",
 ]
@@ -230,7 +231,7 @@ def refine_toa(
         gz = np.zeros((J, 3), bool); gz[:, 2] = True
         sol = refine_toa(c * T, r0, s0, offsets="both", fixed_receivers=fz, fixed_sources=gz)
     """
-    from .covariance import blocks_from_inverse, gauge_free_blocks, is_local, local_blocks, resolve_covariance
+    from .covariance import resolve_covariance
 
     check_choice(offsets, "offsets", OFFSET_MODES)
     check_choice(loss, "loss", LOSSES)
@@ -304,6 +305,21 @@ def refine_toa(
             theta, conv2, nit2 = solve_schur_lm(theta, Y, lay, loss, fs, max_nfev, xtol)
             conv, nit = conv2, nit + nit2
 
+    return _finish(theta, Y, lay, offsets, loss, fs, covariance, cov_r, cov_s, normal_inverse, conv, nit)
+
+
+def _finish(theta: Array, Y: Array, lay: Any, offsets: str, loss: str, fs: float, covariance: Any, cov_r: Array,
+            cov_s: Array, normal_inverse: Any, conv: bool, nit: int) -> NlsSolution:
+    """The :class:`NlsSolution` of :func:`refine_toa` ending at ``theta``: residuals, noise
+    estimate, the requested covariance blocks (003 eq. 17), the canonical gauge."""
+    from .covariance import blocks_from_inverse, gauge_free_blocks, is_local, local_blocks
+
+    I, J = Y.shape
+    d = lay.d
+    has_r, has_s = _flags(offsets)
+    obs = np.isfinite(Y)
+    m = int(obs.sum())
+    n_free = lay.n - lay.pins.size
     f = toa_residuals(theta, Y, d, offsets)
     cost, drho = irls(f, loss, fs)
     dof = m - n_free
@@ -332,6 +348,44 @@ def refine_toa(
         Cr, Cs = np.full_like(Cr, np.nan), np.full_like(Cs, np.nan)
     return _solution(theta, Y, d, offsets, Cr, Cs, canonical=True, shift=True, sigma=sigma, converged=conv,
                      iterations=nit, cost=cost, solver="schur-lm")
+
+
+def with_covariance(sol: NlsSolution, ranges: Array, *, offsets: str, covariance: Any = True,
+                    normal_inverse: Any = None) -> NlsSolution:
+    """What :func:`refine_toa` (linear loss, from ``sol``) returns when its start is already its
+    answer: ``sol``'s residuals, noise estimate and requested covariance blocks at ``sol``.
+
+    For a ``sol`` that a linear-loss :func:`refine_toa` on the same ``ranges`` returned
+    converged and whose Gauss-Newton step is below the step tolerance
+    (:func:`selfcal.toa.verdict.leverage.settled`), a refinement from it stops after one step
+    no longer than that: the estimate is ``sol`` to the solver's tolerance, and this spares
+    that step (:func:`selfcal.toa.fit.finish`'s final refit when nothing changed since the
+    search).
+
+    Parameters
+    ----------
+    sol : a linear-loss fit of ``ranges`` (metres), in the canonical gauge.
+    ranges : (I, J) the ranges it was fitted on, NaN = missing.
+    offsets, covariance, normal_inverse : as in :func:`refine_toa`.
+
+    Returns
+    -------
+    NlsSolution with ``iterations=0``, ``converged`` as ``sol``'s.
+
+    Raises
+    ------
+    DegenerateGeometryError
+        As :func:`refine_toa`: a (nearly) collinear geometry, a singular covariance.
+    """
+    from .covariance import resolve_covariance
+
+    Y = as_matrix(ranges, "ranges")
+    I, J = Y.shape
+    cov_r, cov_s = resolve_covariance(covariance, I, J)
+    lay = _make_layout(sol.receivers, sol.sources, offsets)
+    theta = _pack(sol.receivers, sol.sources, sol.receiver_offsets, sol.source_offsets)
+    return _finish(theta, Y, lay, offsets, "linear", 1.0, covariance, cov_r, cov_s, normal_inverse,
+                   bool(sol.converged), 0)
 
 
 def _offsets0(value: Array | None, n: int, name: str) -> Array:

@@ -19,7 +19,7 @@ from numpy.typing import NDArray
 
 from .robust import OUTLIER_ALPHA, noise_scale, outlier_threshold
 
-__all__ = ["BipartiteInverse", "NormalEquations", "kept_inverse", "leverages", "lifted_inverse", "normal_equations",
+__all__ = ["BipartiteInverse", "NormalEquations", "kept_inverse", "leverages", "lifted_inverse", "normal_equations", "settled",
            "outlier_rule_has_power", "studentized"]
 
 Array = NDArray[np.float64]
@@ -383,6 +383,17 @@ class BipartiteInverse:
         Ge = self.Ainv + np.matmul(np.matmul(self.Linv.transpose(0, 2, 1), self.Ke), self.Linv)
         return (self.Sd, Ge, self.info_k, self.info_e) if self.swap else (Ge, self.Sd, self.info_e, self.info_k)
 
+    def newton_step(self, F: Array, Q: Array) -> Array:
+        """The Gauss-Newton step ``N^+ J^T f`` off the gauge ``Q`` (n, g) for residuals ``F`` (I, J)
+        (0 where unobserved), in the parameter order of :func:`selfcal.toa.engine.nls.toa_jacobian`."""
+        n = self.idx_e.size + self.idx_k.size
+        g = np.zeros(n)
+        F = np.where(np.isfinite(F), F, 0.0)
+        g[(self.idx_k if self.swap else self.idx_e).ravel()] = np.einsum("ijp,ij->ip", self.rows_r, F).ravel()
+        g[(self.idx_e if self.swap else self.idx_k).ravel()] = np.einsum("ijp,ij->jp", self.rows_s, F).ravel()
+        dx = self.apply(g[:, None])[:, 0]
+        return dx - Q @ (Q.T @ dx)
+
     def norm_bound(self) -> float:
         """An upper bound on ``|G|_2``: the norms of its blocks, ``|G| <= |G_ee| + |G_kk| + 2 |G_ek|``
         with ``G_ee = L^-T (I + V S^- V^T) L^-1``, ``G_ek = -L^-T W``, ``G_kk = S^-`` (spectral
@@ -466,6 +477,30 @@ def kept_inverse(offsets: str) -> Any:
         return None
 
     return at
+
+
+def settled(pattern: Mask, receivers: Array, sources: Array, receiver_offsets: Array | None,
+            source_offsets: Array | None, offsets: str, residuals: Array) -> bool:
+    """Is the kept linearisation (:func:`normal_equations`) at this fit, and its Gauss-Newton step
+    ``N^+ J^T f`` below the refinement's step tolerance (:data:`REUSE_XTOL`)?
+
+    Then a least-squares refinement from the fit (whose damped steps are no longer than the
+    Gauss-Newton step in the damping's metric) stops after one such step: the fit is its own
+    refinement to the solver's precision (:func:`selfcal.toa.engine.nls.with_covariance`).
+    False when no kept bipartite inverse is at the fit.
+    """
+    from ..engine.nls import _pack
+
+    theta = _pack(receivers, sources, receiver_offsets, source_offsets)
+    pattern = np.asarray(pattern, bool)
+    if not (_LAST and _LAST[0].same(pattern, offsets, theta)):
+        return False
+    blk = _LAST[0].block()
+    if blk is None:
+        return False
+    dx = blk.newton_step(np.asarray(residuals, float), _LAST[0].Q)
+    tol = REUSE_XTOL * (REUSE_XTOL + float(np.linalg.norm(theta)))
+    return bool(np.all(np.isfinite(dx)) and float(np.linalg.norm(dx)) <= tol)
 
 
 def lifted_inverse(N: Array, gauge: Array) -> tuple[Array | None, Array | None, float]:
