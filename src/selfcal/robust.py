@@ -96,16 +96,16 @@ def loss_rho_inverse(c: ArrayLike, loss: str) -> NDArray[np.float64]:
     >>> all(bool(np.allclose(loss_rho_inverse(loss_rho(z, k)[0], k), z)) for k in LOSSES)
     True
     """
-    c = np.maximum(np.asarray(c, dtype=float), 0.0)
+    v: NDArray[np.float64] = np.maximum(np.asarray(c, dtype=float), 0.0)
     if loss == "linear":
-        return c
+        return v
     if loss == "huber":
-        return np.where(c > 1, ((c + 1) / 2) ** 2, c)
+        return np.where(v > 1, ((v + 1) / 2) ** 2, v)
     if loss == "soft_l1":
-        return (1 + c / 2) ** 2 - 1
+        return (1 + v / 2) ** 2 - 1
     if loss == "cauchy":
         with np.errstate(over="ignore"):
-            return np.expm1(c)
+            return np.asarray(np.expm1(v), dtype=float)
     from .errors import InputError
 
     raise InputError(f"unknown loss {loss!r}; expected one of {LOSSES}")

@@ -103,7 +103,16 @@ import scipy.linalg
 from numpy.typing import NDArray
 
 from ...errors import DegenerateGeometryError, InputError
-from .model import _flags, _Layout, _make_layout, _node_indices, _pack, _pinned_positions, _unpack, gauge_basis
+from .model import (
+    _flags,
+    _Layout,
+    _make_layout,
+    _node_indices,
+    _pack,
+    _pinned_positions,
+    _unpack,
+    gauge_basis,
+)
 from .schur_lm import Grid, _inv_blocks, diagonal_blocks, directions
 
 __all__ = [

@@ -308,8 +308,8 @@ def refine_toa(
     return _finish(theta, Y, lay, offsets, loss, fs, covariance, cov_r, cov_s, normal_inverse, conv, nit)
 
 
-def _finish(theta: Array, Y: Array, lay: Any, offsets: str, loss: str, fs: float, covariance: Any, cov_r: Array,
-            cov_s: Array, normal_inverse: Any, conv: bool, nit: int) -> NlsSolution:
+def _finish(theta: Array, Y: Array, lay: Any, offsets: str, loss: str, fs: float, covariance: Any,
+            cov_r: NDArray[np.intp], cov_s: NDArray[np.intp], normal_inverse: Any, conv: bool, nit: int) -> NlsSolution:
     """The :class:`NlsSolution` of :func:`refine_toa` ending at ``theta``: residuals, noise
     estimate, the requested covariance blocks (003 eq. 17), the canonical gauge."""
     from .covariance import blocks_from_inverse, gauge_free_blocks, is_local, local_blocks
