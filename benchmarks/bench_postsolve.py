@@ -5,7 +5,8 @@ make the answer, the checks that judge it (:mod:`selfcal.toa.fit`). Each check i
 same process by wrapping the function that runs it:
 
 - ``outlier_flagging``: the outlier rule on every entry (``fit._flag``: leverages, studentized
-  residuals, the Bonferroni cut), every round;
+  residuals, the Bonferroni cut), every round, and the bound that spares its robust refit on
+  an exact fit (``fit._refit_cannot_flag``, which computes the rule's leverages first);
 - ``leverages``: the final fit's leverages for the cross-validation (``fit.leverages`` outside
   the flagging);
 - ``geometry_test``: the leave-one-out CV against the model without geometry and the
@@ -58,6 +59,7 @@ import numpy as np
 #: (module attribute in selfcal.toa.fit, selfcal.toa.fit_result or selfcal.toa.verdict.trust, stage name); missing names are skipped
 STAGES = [
     ("fit", "_flag", "outlier_flagging"),
+    ("fit", "_refit_cannot_flag", "outlier_flagging"),  # the rule's leverages on an exact fit
     ("fit", "leverages", "leverages"),
     ("fit_result", "leverages", "leverages"),
     ("fit_result", "geometry_test", "geometry_test"),
