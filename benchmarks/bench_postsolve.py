@@ -14,8 +14,8 @@ same process by wrapping the function that runs it:
 - ``determinacy``: the Fisher blocks of small networks and the determinacy test
   (``fit.fisher_blocks`` + ``fit._judge_determinacy``);
 - ``outlier_power``: can the estimated-scale rule flag anything (``fit.outlier_rule_has_power``);
-- ``uniqueness``: the uniqueness test (``fit.judge_fit``; older layouts ``fit.uniqueness_check`` /
-  ``fit.uniqueness_test``).
+- ``uniqueness``: the uniqueness test (``fit_result.judge_fit``; older layouts ``fit.judge_fit``,
+  ``fit.uniqueness_check`` / ``fit.uniqueness_test``).
 
 Every repeat starts without the linearisation a previous call kept
 (``selfcal.toa.verdict.leverage.normal_equations``: the repeats solve the same matrix, and a
@@ -70,6 +70,7 @@ STAGES = [
     ("fit", "uniqueness_check", "uniqueness"),
     ("fit", "uniqueness_test", "uniqueness"),
     ("fit", "judge_fit", "uniqueness"),
+    ("fit_result", "judge_fit", "uniqueness"),
 ]
 #: stages inside another one (counted in their parent's time, reported on their own)
 NESTED = {"permutation_test"}
