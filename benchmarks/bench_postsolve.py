@@ -5,7 +5,8 @@ make the answer, the checks that judge it (:mod:`selfcal.toa.fit`). Each check i
 same process by wrapping the function that runs it:
 
 - ``outlier_flagging``: the outlier rule on every entry (``fit._flag``: leverages, studentized
-  residuals, the Bonferroni cut), every round;
+  residuals, the Bonferroni cut), every round, and the bound that spares its robust refit on
+  an exact fit (``fit._refit_cannot_flag``, which computes the rule's leverages first);
 - ``leverages``: the final fit's leverages for the cross-validation (``fit.leverages`` outside
   the flagging);
 - ``geometry_test``: the leave-one-out CV against the model without geometry and the
@@ -13,8 +14,8 @@ same process by wrapping the function that runs it:
 - ``determinacy``: the Fisher blocks of small networks and the determinacy test
   (``fit.fisher_blocks`` + ``fit._judge_determinacy``);
 - ``outlier_power``: can the estimated-scale rule flag anything (``fit.outlier_rule_has_power``);
-- ``uniqueness``: the uniqueness test (``fit.judge_fit``; older layouts ``fit.uniqueness_check`` /
-  ``fit.uniqueness_test``).
+- ``uniqueness``: the uniqueness test (``fit_result.judge_fit``; older layouts ``fit.judge_fit``,
+  ``fit.uniqueness_check`` / ``fit.uniqueness_test``).
 
 Every repeat starts without the linearisation a previous call kept
 (``selfcal.toa.verdict.leverage.normal_equations``: the repeats solve the same matrix, and a
@@ -58,6 +59,7 @@ import numpy as np
 #: (module attribute in selfcal.toa.fit, selfcal.toa.fit_result or selfcal.toa.verdict.trust, stage name); missing names are skipped
 STAGES = [
     ("fit", "_flag", "outlier_flagging"),
+    ("fit", "_refit_cannot_flag", "outlier_flagging"),  # the rule's leverages on an exact fit
     ("fit", "leverages", "leverages"),
     ("fit_result", "leverages", "leverages"),
     ("fit_result", "geometry_test", "geometry_test"),
@@ -68,6 +70,7 @@ STAGES = [
     ("fit", "uniqueness_check", "uniqueness"),
     ("fit", "uniqueness_test", "uniqueness"),
     ("fit", "judge_fit", "uniqueness"),
+    ("fit_result", "judge_fit", "uniqueness"),
 ]
 #: stages inside another one (counted in their parent's time, reported on their own)
 NESTED = {"permutation_test"}

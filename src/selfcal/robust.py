@@ -21,7 +21,7 @@ from numpy.typing import ArrayLike, NDArray
 from scipy.special import ndtri
 from scipy.stats import median_abs_deviation
 
-__all__ = ["LOSSES", "TUNING", "loss_rho", "mad_std"]
+__all__ = ["LOSSES", "TUNING", "loss_rho", "loss_rho_inverse", "mad_std"]
 
 #: robust losses understood by every solver (scipy.optimize.least_squares names)
 LOSSES = ("linear", "huber", "soft_l1", "cauchy")
@@ -64,6 +64,48 @@ def loss_rho(z: ArrayLike, loss: str) -> tuple[NDArray[np.float64], NDArray[np.f
         return 2 * (t - 1), 1 / t
     if loss == "cauchy":
         return np.log1p(z), 1 / (1 + z)
+    from .errors import InputError
+
+    raise InputError(f"unknown loss {loss!r}; expected one of {LOSSES}")
+
+
+def loss_rho_inverse(c: ArrayLike, loss: str) -> NDArray[np.float64]:
+    """The ``z >= 0`` with ``rho(z) = c`` (:func:`loss_rho`; every ``rho`` is increasing from 0).
+
+    Every loss has ``rho(z) <= z`` and ``f^2 rho(r^2 / f^2)`` increasing in ``f``, so a fit
+    whose robust cost ``sum_k f^2 rho(r_k^2 / f^2)`` is at most ``C`` has every
+    ``|r_k| <= f sqrt(rho^-1(C / f^2))`` at any scale ``f`` at least the one given: the bound
+    :func:`selfcal.toa.fit.finish` uses to know what a robust refit can move.
+
+    Parameters
+    ----------
+    c : array_like
+        Values of ``rho`` (>= 0).
+    loss : {"linear", "huber", "soft_l1", "cauchy"}
+
+    Returns
+    -------
+    ndarray
+        ``z``, the shape of ``c`` (inf where ``expm1`` overflows for Cauchy).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from selfcal.robust import loss_rho, loss_rho_inverse
+    >>> z = np.array([0.1, 2.0, 50.0])
+    >>> all(bool(np.allclose(loss_rho_inverse(loss_rho(z, k)[0], k), z)) for k in LOSSES)
+    True
+    """
+    v: NDArray[np.float64] = np.maximum(np.asarray(c, dtype=float), 0.0)
+    if loss == "linear":
+        return v
+    if loss == "huber":
+        return np.where(v > 1, ((v + 1) / 2) ** 2, v)
+    if loss == "soft_l1":
+        return (1 + v / 2) ** 2 - 1
+    if loss == "cauchy":
+        with np.errstate(over="ignore"):
+            return np.asarray(np.expm1(v), dtype=float)
     from .errors import InputError
 
     raise InputError(f"unknown loss {loss!r}; expected one of {LOSSES}")

@@ -83,11 +83,14 @@ def _svd_additive(obs, rows, cols):
 
 
 def test_additive_leverages_equal_the_svd():
-    """400 random masks (some split in two blocks: a disconnected design), every model."""
+    """400 random masks (some split in two blocks: a disconnected design, some complete: the
+    balanced layout's closed form), every model."""
     g = np.random.default_rng(0)
     for k in range(400):
         I, J = (int(v) for v in g.integers(1, 30, 2))
         obs = g.random((I, J)) < g.uniform(0.05, 1)
+        if k % 10 == 5:
+            obs[:] = True
         if k % 10 == 0:
             obs[: I // 2, J // 2:] = False
             obs[I // 2:, : J // 2] = False
@@ -318,3 +321,153 @@ def test_stacked_starts_equal_the_initialisers():
                 size = max(1.0, float(np.abs(start[0]).max()))
                 assert np.abs(got[name][0][i] - start[0]).max() < 1e-10 * size, (k, i, name)
                 assert np.abs(got[name][1][i] - start[1]).max() < 1e-10 * size, (k, i, name)
+
+
+def test_robust_refit_skipped_only_where_it_cannot_flag(monkeypatch):
+    """The outlier rule's robust (soft-L1) refit is not run where no fit it can reach flags
+    anything (``fit._refit_cannot_flag``): 80 units (6,400 entries, above the high-breakdown
+    start's size), both offsets, complete, over seeds: noise-free (the skip applies), noise-free
+    with 1 % of the entries +2 m (gross errors in exact data: the refit must run) and 1 mm
+    (it runs). The answer with the skip equals the answer with the refit forced, bit for bit
+    (positions, covariances, outliers, verdict): the final refit starts from the same winner
+    either way."""
+    import warnings
+
+    import selfcal.toa.fit as fit
+    import selfcal.toa.verdict.leverage as lev
+    from selfcal.scenarios.units import make_units
+    from selfcal.toa import solve_toa
+
+    real = fit._refit_cannot_flag
+    said: list[bool] = []
+    monkeypatch.setattr(fit, "_refit_cannot_flag", lambda *a, **k: said.append(real(*a, **k)) or said[-1])
+    for seed in range(4):
+        kind = ("exact", "gross", "noise", "exact")[seed]
+        sc = make_units(80, room="large", noise_std=1e-3 / 343 if kind == "noise" else 0.0,
+                        equal_delays=kind != "noise", rng=seed)
+        Y = np.array(sc.ranges, float)
+        if kind == "gross":
+            Y[np.random.default_rng(seed).random(Y.shape) < 0.01] += 2.0
+        out = []
+        for skip in (True, False):
+            if not skip:
+                monkeypatch.setattr(fit, "_refit_cannot_flag", lambda *a, **k: False)
+            lev._LAST.clear()
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                out.append(solve_toa(Y, dim=3, offsets="both", rng=seed))
+        monkeypatch.setattr(fit, "_refit_cannot_flag", lambda *a, **k: said.append(real(*a, **k)) or said[-1])
+        a, b = out
+        assert said[-1] == (kind == "exact"), (seed, kind)
+        assert (a.verdict, a.verdict_message) == (b.verdict, b.verdict_message)
+        assert np.array_equal(a.outliers, b.outliers)
+        for x, y in ((a.receivers, b.receivers), (a.sources, b.sources), (a.receiver_cov, b.receiver_cov),
+                     (a.source_cov, b.source_cov)):
+            assert np.array_equal(x, y, equal_nan=True)
+        if kind == "gross":
+            assert a.outliers.sum() > 0
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_covariance_from_the_kept_inverse_equals_the_selected_inversion(seed):
+    """40 random networks a seed (every offsets mode, 2-D and 3-D, sides 5-20, 0-30 % missing;
+    one in four nearly degenerate: receivers within 1e-4 .. 1e-9 of a plane or a line): where
+    ``covariance.blocks_from_inverse`` certifies the geometry, the selected inversion
+    (``gauge_free_blocks``) accepts it too and its blocks equal the kept inverse's to 1e-7 of a
+    block's largest entry (two factorisations of the same matrix, condition up to ~1e6 here);
+    where the selected inversion refuses a geometry, the kept inverse never certifies it."""
+    from selfcal.toa.engine.covariance import blocks_from_inverse, gauge_free_blocks
+    from selfcal.toa.engine.model import _make_layout
+    from selfcal.toa.verdict import leverage
+
+    g = np.random.default_rng(200 + seed)
+    certified = 0
+    for k in range(40):
+        dim = int(g.choice([2, 3]))
+        I, J = (int(v) for v in g.integers(dim + 3, 21, 2))
+        off = ["none", "receivers", "sources", "both"][k % 4]
+        has_r, has_s = off in ("receivers", "both"), off in ("sources", "both")
+        r, s = g.uniform(0, 10, (I, dim)), g.uniform(0, 10, (J, dim))
+        if k % 4 == 1:  # nearly degenerate: the receivers squeezed onto a plane (3-D) or a line (2-D)
+            r[:, -1] = 5.0 + r[:, -1] * 10.0 ** -g.uniform(4, 9)
+            s[:, -1] = 5.0 + s[:, -1] * 10.0 ** -g.uniform(4, 9)
+        d = g.uniform(0, 3, I) if has_r else None
+        o = g.uniform(0, 3, J) if has_s else None
+        Y = toa_model(r, s, d, o)
+        Y[g.random(Y.shape) < g.uniform(0, 0.3)] = np.nan
+        obs = np.isfinite(Y)
+        if (obs.sum(axis=1) < dim + has_r + 1).any() or (obs.sum(axis=0) < dim + has_s + 1).any():
+            continue
+        try:
+            lay = _make_layout(r, s, off)
+        except DegenerateGeometryError:
+            continue
+        leverage._LAST.clear()
+        ne = leverage.normal_equations(obs, r, s, d, o, off)
+        inv = ne.block()
+        leverage._LAST.clear()
+        theta = _pack(r, s, d, o)
+        held = None if inv is None else blocks_from_inverse(inv, theta, lay)
+        try:
+            ref = gauge_free_blocks(theta, obs.astype(float), lay)
+        except DegenerateGeometryError:
+            assert held is None, (seed, k)
+            continue
+        if held is None:
+            continue
+        certified += 1
+        for a, b in zip(held, ref, strict=True):
+            scale = np.abs(b).max(axis=(1, 2), keepdims=True)
+            assert np.allclose(a, b, rtol=0, atol=1e-7 * scale.max()), (seed, k, off, dim)
+    assert certified >= 20  # the kept inverse serves generic networks
+
+
+@pytest.mark.parametrize("seed", range(2))
+def test_covariance_at_a_settled_fit_equals_one_more_refinement(seed):
+    """24 random networks a seed (every offsets mode, 2-D and 3-D, 8-30 nodes a side, 0-20 %
+    missing, noise-free to 5 cm): at a converged least-squares fit whose Gauss-Newton step is
+    below the step tolerance (``leverage.settled``), ``nls.with_covariance`` (what the final fit
+    of ``solve_toa`` is when nothing changed since the search) equals one more ``refine_toa``
+    from it: positions and offsets within 1e-8 m (the step tolerance is 1e-10 of the parameter
+    vector's norm, ~1e-8 m here; measured at most 1.5e-9 m), the noise estimate and the covariance blocks within 1e-6
+    relative. Fits that converged on the cost's relative decrease with a larger Gauss-Newton
+    step (one more refinement moved them by up to 4e-6 m) are not settled."""
+    from selfcal.toa.engine.nls import refine_toa, with_covariance
+    from selfcal.toa.verdict import leverage
+
+    g = np.random.default_rng(300 + seed)
+    n_settled = 0
+    for k in range(24):
+        dim = int(g.choice([2, 3]))
+        I, J = (int(v) for v in g.integers(8, 31, 2))
+        off = ["none", "receivers", "sources", "both"][k % 4]
+        has_r, has_s = off in ("receivers", "both"), off in ("sources", "both")
+        r, s = g.uniform(0, 10, (I, dim)), g.uniform(0, 10, (J, dim))
+        d = g.uniform(0, 3, I) if has_r else None
+        o = g.uniform(0, 3, J) if has_s else None
+        Y = toa_model(r, s, d, o) + g.normal(0, float(g.choice([0.0, 0.001, 0.05])), (I, J))
+        Y[g.random(Y.shape) < g.uniform(0, 0.2)] = np.nan
+        try:
+            sol = refine_toa(Y, r + g.normal(0, 0.05, r.shape), s + g.normal(0, 0.05, s.shape), offsets=off,
+                             receiver_offsets0=d, source_offsets0=o, covariance=False)
+        except DegenerateGeometryError:
+            continue
+        fit = (sol.receivers, sol.sources, sol.receiver_offsets, sol.source_offsets)
+        leverage._LAST.clear()
+        leverages(Y, *fit, off)  # the linearisation at the fit, as the outlier rule leaves it
+        if not (sol.converged and leverage.settled(np.isfinite(Y), *fit, off, Y - toa_model(*fit))):
+            continue
+        n_settled += 1
+        a = with_covariance(sol, Y, offsets=off, normal_inverse=leverage.kept_inverse(off))
+        leverage._LAST.clear()
+        b = refine_toa(Y, sol.receivers, sol.sources, offsets=off, receiver_offsets0=sol.receiver_offsets,
+                       source_offsets0=sol.source_offsets)
+        assert a.iterations == 0 and a.converged
+        for x, y in ((a.receivers, b.receivers), (a.sources, b.sources), (a.receiver_offsets, b.receiver_offsets),
+                     (a.source_offsets, b.source_offsets)):
+            if x is not None:
+                assert np.abs(x - y).max() < 1e-8, (seed, k, off)
+        assert a.sigma == pytest.approx(b.sigma, rel=1e-6, abs=1e-12)
+        for x, y in ((a.receiver_cov, b.receiver_cov), (a.source_cov, b.source_cov)):
+            assert np.allclose(x, y, rtol=0, atol=1e-6 * np.abs(y).max() + 1e-24), (seed, k, off)
+    assert n_settled >= 8

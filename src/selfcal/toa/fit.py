@@ -32,7 +32,7 @@ from numpy.typing import NDArray
 
 from .._checks import check_toa_counts
 from ..errors import DegenerateGeometryError, InputError, Status
-from .engine.nls import NlsSolution, refine_toa, toa_model
+from .engine.nls import NlsSolution, refine_toa, toa_model, with_covariance
 from .fit_result import _start, judge_final
 from .init.rank3_model import rank_identifiable
 from .options import ToaOptions
@@ -42,7 +42,8 @@ from .result import (
     residual_test,
 )
 from .search import canonical_order, search
-from .verdict.leverage import leverages, studentized
+from .verdict.leverage import kept_inverse, leverages, studentized
+from .verdict.leverage import settled as settled_fit
 from .verdict.robust import drop_unidentifiable, gross_entries, noise_scale, outlier_mask
 
 __all__ = ["finish", "given_start", "n_negative", "unrefined"]
@@ -153,6 +154,7 @@ def finish(M: Array, dim: int, offsets: str, opts: ToaOptions, *, init: Any) -> 
                      stop=stop_rule(keep_r, keep_s), budget=1 if one or again else budget, max_nfev=max_nfev,
                      use_moves=opts.sweep and not one and not again)
         best, prev_keep = out.solution, (keep_r.copy(), keep_s.copy())
+        winner, winner_entries = best, np.isfinite(Ys)  # the search's answer and the entries it fitted
         if rnd == 0:  # the race's other minima, on these nodes (the uniqueness test's candidates)
             minima = (out.minima, prev_keep)
         iters += out.iterations
@@ -162,10 +164,13 @@ def finish(M: Array, dim: int, offsets: str, opts: ToaOptions, *, init: Any) -> 
         if not robust:
             break
         sub_obs = obs[np.ix_(keep_r, keep_s)]
-        if rnd == 0:
-            # candidates: the rule on a robust refit over every entry that is not absurd; the
-            # linear fit without them is what the rule then judges every entry against
-            Yr = sub(obs & ~gross, keep_r, keep_s)
+        Yr = sub(obs & ~gross, keep_r, keep_s)
+        # candidates: the rule on a robust refit over every entry that is not absurd; the
+        # linear fit without them is what the rule then judges every entry against. Not run
+        # where no fit the robust refit can reach from the winner flags anything
+        # (_refit_cannot_flag: the winner fits every entry to far below the rule's resolution)
+        if rnd == 0 and not _refit_cannot_flag(Yc, best, keep_r, keep_s, offsets, np.isfinite(Yr), memo,
+                                               robust_loss, fs):
             try:
                 rob = _refine(Yr, _start(best), dim, offsets, robust_loss, fs, max_nfev, False)
             except DegenerateGeometryError:
@@ -242,10 +247,18 @@ def finish(M: Array, dim: int, offsets: str, opts: ToaOptions, *, init: Any) -> 
     st = _restrict(_embed_start(best, prev_keep, keep_r, keep_s), keep_r, keep_s)
     final = best
     singular = False  # the covariance was refused: singular beyond the gauge at the estimate
+    # the search's converged least-squares answer on exactly these entries, whose Gauss-Newton
+    # step is below the step tolerance, is its own refit (nls.with_covariance, leverage.settled)
+    settled = (best is winner and final_loss == "linear" and best.solver == "schur-lm" and bool(best.converged)
+               and all(np.array_equal(a, b) for a, b in zip(prev_keep, (keep_r, keep_s), strict=True))
+               and np.array_equal(np.isfinite(Yf), winner_entries)
+               and settled_fit(np.isfinite(Yf), *_start(best), offsets, Yf - toa_model(*_start(best))))
     if not degenerate:
         try:
-            final = _refine(Yf, st, dim, offsets, final_loss, fs, max_nfev,
-                            _cov_spec(covariance, pr, pc, keep_r, keep_s))
+            # the covariance from the outlier rule's linearisation where the final fit is at it
+            cov_spec, kept = _cov_spec(covariance, pr, pc, keep_r, keep_s), kept_inverse(offsets)
+            final = (with_covariance(best, Yf, offsets=offsets, covariance=cov_spec, normal_inverse=kept) if settled
+                     else _refine(Yf, st, dim, offsets, final_loss, fs, max_nfev, cov_spec, kept))
         except DegenerateGeometryError:
             try:
                 final = _refine(Yf, st, dim, offsets, final_loss, fs, max_nfev, False)
@@ -253,7 +266,7 @@ def finish(M: Array, dim: int, offsets: str, opts: ToaOptions, *, init: Any) -> 
             except DegenerateGeometryError:
                 degenerate = True  # the search's winner is (nearly) collinear: reported, not raised
         iters += final.iterations if final is not best else 0
-        n_runs += 1
+        n_runs += 1 if final.iterations > 0 else 0
     if degenerate:
         final = _without_covariance(best)
         keep_r, keep_s = prev_keep  # the nodes the winner was fitted on
@@ -360,10 +373,11 @@ def _without_covariance(sol: NlsSolution) -> NlsSolution:
 
 
 def _refine(Y: Array, start: Start, dim: int, offsets: str, loss: str, fs: float | None, max_nfev: int | None,
-            covariance: Any) -> NlsSolution:
+            covariance: Any, normal_inverse: Any = None) -> NlsSolution:
     r0, s0, d0, o0 = start
     return refine_toa(Y, r0, s0, offsets=offsets, receiver_offsets0=d0, source_offsets0=o0, loss=loss,
-                      f_scale=fs if loss != "linear" else None, max_nfev=max_nfev, covariance=covariance)
+                      f_scale=fs if loss != "linear" else None, max_nfev=max_nfev, covariance=covariance,
+                      normal_inverse=normal_inverse)
 
 
 def _cov_spec(cov: Any, pr: NDArray[np.intp], pc: NDArray[np.intp], kr: NDArray[np.bool_],
@@ -429,23 +443,91 @@ def _flag(Yc: Array, sol: NlsSolution, kr: NDArray[np.bool_], ks: NDArray[np.boo
     obs = np.isfinite(Ysub)
     held = obs & ~fitted
     R_all = _residuals(Yc, sol, kr, ks)
-    geo = sol if at is None else at
-    key = (id(geo), fitted.tobytes(), held.tobytes(), fitted.shape)
-    if memo is not None and memo.get("key") == key and memo.get("geo") is geo:
-        H = memo["H"]
-    else:
-        H = leverages(np.where(fitted, Ysub, np.nan), *_start(geo), offsets, held_out=held)
-        if memo is not None:
-            memo.update(key=key, geo=geo, H=H)
+    H = _leverages(Ysub, sol if at is None else at, offsets, fitted, memo)
     T = studentized(R_all, H, held)
     dof = None
     if sd is not None:
         s_noise = sd
     else:
-        floor = np.sqrt(np.finfo(float).eps) * float(np.nanmedian(np.abs(Ysub)))
-        s_noise = noise_scale(T[fitted], floor)
+        s_noise = noise_scale(T[fitted], _scale_floor(Ysub))
         dof = int(fitted.sum()) - n_parameters(int(kr.sum()), int(ks.sum()), sol.receivers.shape[1], offsets)
     return outlier_mask(T, s_noise, dof=dof) & obs
+
+
+def _scale_floor(Ysub: Array) -> float:
+    """The outlier rule's floor on the estimated noise scale: sqrt(machine eps) x the median range."""
+    return float(np.sqrt(np.finfo(float).eps) * float(np.nanmedian(np.abs(Ysub))))
+
+
+def _leverages(Ysub: Array, geo: NlsSolution, offsets: str, fitted: NDArray[np.bool_],
+               memo: dict[str, Any] | None) -> Array:
+    """Leverages of the kept block's entries at the geometry ``geo`` fitted on ``fitted`` (the
+    others observed are held out); ``memo`` keeps the last ones (same geometry object, same entries)."""
+    held = np.isfinite(Ysub) & ~fitted
+    key = (id(geo), fitted.tobytes(), held.tobytes(), fitted.shape)
+    if memo is not None and memo.get("key") == key and memo.get("geo") is geo:
+        return memo["H"]  # type: ignore[no-any-return]
+    H = leverages(np.where(fitted, Ysub, np.nan), *_start(geo), offsets, held_out=held)
+    if memo is not None:
+        memo.update(key=key, geo=geo, H=H)
+    return H
+
+
+def _refit_cannot_flag(Yc: Array, best: NlsSolution, kr: NDArray[np.bool_], ks: NDArray[np.bool_], offsets: str,
+                       fitted: NDArray[np.bool_], memo: dict[str, Any], loss: str, fs: float | None) -> bool:
+    """Would the outlier rule's candidates from the robust refit of ``best`` be none, whatever it returns?
+
+    The candidates are the entries the rule flags on the robust refit (:func:`refine_toa` with
+    ``loss`` from ``best`` on the entries ``fitted``), studentized by ``best``'s leverages over
+    an estimated scale of at least :func:`_scale_floor`. The refit only accepts steps that do
+    not raise its cost ``sum_k f^2 rho(r_k^2 / f^2)``, which is at most ``sum_k r_k^2`` and grows
+    with the scale ``f`` (:func:`selfcal.robust.loss_rho_inverse`): from ``best``'s residual sum
+    of squares ``S`` every residual of its first fit is at most ``b1 = f sqrt(rho^-1(S / f^2))``,
+    ``f`` the smallest scale it may use (``f_scale``, else
+    :data:`~selfcal.toa.engine.nls.ROBUST_SCALE_FLOOR`), and of the second fit at the
+    re-estimated scale (none when ``f_scale`` is given) at most ``f sqrt(rho^-1(m b1^2 / f^2))``.
+    When no entry with that residual would be flagged, the refit cannot propose a candidate:
+    the winner fits every entry to far below the rule's resolution (noise-free data, a fit
+    exact to round-off), which is also the minimum of every robust loss, so there is no gross
+    error it masks. True then, and the refit is not run (its result could not change the
+    answer); False in every other case, including networks where the high-breakdown start
+    competes with it (:func:`_high_breakdown`, no such bound) and a winner the refit would refuse
+    as (nearly) collinear (the degenerate path decides those, as before).
+    """
+    from ..robust import loss_rho_inverse
+    from .engine.model import _make_layout
+    from .engine.nls import ROBUST_SCALE_FLOOR
+    from .verdict.high_breakdown import HB_MAX_ENTRIES
+
+    m = int(fitted.sum())
+    if m <= HB_MAX_ENTRIES:
+        return False
+    R = _residuals(Yc, best, kr, ks)
+    r = R[fitted]
+    if not np.isfinite(r).all():
+        return False
+    f = ROBUST_SCALE_FLOOR if fs is None else float(fs)
+    with np.errstate(all="ignore"):
+        b = f * float(np.sqrt(loss_rho_inverse(float(r @ r) / f**2, loss)))
+        if fs is None:  # the refit at the scale re-estimated from the first one
+            b = f * float(np.sqrt(loss_rho_inverse(m * b * b / f**2, loss)))
+    Ysub = Yc[np.ix_(kr, ks)]
+    b += 64 * np.finfo(float).eps * float(np.nanmax(np.abs(Ysub)))  # the gauge fix's round-off
+    if not np.isfinite(b):
+        return False
+    H = _leverages(Ysub, best, offsets, fitted, memo)
+    # the largest studentized residual any such refit can have, on the entries the rule judges
+    # (held-out entries are the gross ones, candidates anyway)
+    bound = np.where(fitted, b, 0.0)
+    T = studentized(np.where(np.isfinite(Ysub), bound, np.nan), H, np.isfinite(Ysub) & ~fitted)
+    dof = m - n_parameters(int(kr.sum()), int(ks.sum()), best.receivers.shape[1], offsets)
+    if outlier_mask(T, _scale_floor(Ysub), dof=dof).any():
+        return False
+    try:  # the refit's own refusal of a (nearly) collinear winner
+        _make_layout(best.receivers, best.sources, offsets)
+    except DegenerateGeometryError:
+        return False
+    return True
 
 
 def _high_breakdown(Y: Array, rob: NlsSolution, offsets: str, n_par: int) -> NlsSolution:

@@ -103,7 +103,16 @@ import scipy.linalg
 from numpy.typing import NDArray
 
 from ...errors import DegenerateGeometryError, InputError
-from .model import _flags, _Layout, _make_layout, _pack, _pinned_positions, _unpack, gauge_basis
+from .model import (
+    _flags,
+    _Layout,
+    _make_layout,
+    _node_indices,
+    _pack,
+    _pinned_positions,
+    _unpack,
+    gauge_basis,
+)
 from .schur_lm import Grid, _inv_blocks, diagonal_blocks, directions
 
 __all__ = [
@@ -111,6 +120,7 @@ __all__ = [
     "normalize_covariance",
     "resolve_covariance",
     "gauge_free_blocks",
+    "blocks_from_inverse",
     "covariance_blocks",
     "dense_threads",
     "is_local",
@@ -527,6 +537,77 @@ def _gauge_free_blocks(theta: Array, w: Array, lay: _Layout, receivers: Index | 
     PKb = project(CK, QK.reshape(nK, mK, g), YK.reshape(nK, mK, g), want_K)
     PEb = project(CE, QE, YE, want_E)
     return (PKb, PEb) if lay.k_is_receivers else (PEb, PKb)
+
+
+#: :func:`blocks_from_inverse` is used while its lower bound on the smallest eigenvalue of the
+#: pinned reduced system stays this many times above the pinned Cholesky's refusal (its
+#: diagonal ratio 1e-7, a condition of 1e14): the selected inversion decides otherwise
+_INVERSE_MARGIN = 1e3
+
+
+def blocks_from_inverse(inverse: Any, theta: Array, lay: _Layout, receivers: Index | None = None,
+                        sources: Index | None = None) -> tuple[Array, Array] | None:
+    """:func:`gauge_free_blocks` (unit weights) from a generalised inverse of ``J^T J`` already held.
+
+    ``N^+ = P G P`` for any generalised inverse ``G`` of ``N = J^T J`` when the gauge basis
+    ``Q`` (:func:`selfcal.toa.engine.nls.gauge_basis`, ``P = I - Q Q^T``) spans N's null space;
+    its diagonal node blocks are ``G_nn - Q_n Y_n^T - Y_n Q_n^T + Q_n Z Q_n^T`` with ``Y = G Q``
+    and ``Z = Q^T Y``: the selected inversion's formula with its pinned inverse replaced by
+    ``G``, so the blocks are the same to round-off. Used only where the selected inversion
+    would not refuse the geometry, which is certified from bounds, never assumed:
+
+    - every eliminated node's information block has condition below 1e12 (the test of
+      :func:`selfcal.toa.engine.schur_lm._inv_blocks`);
+    - the pinned reduced system ``S_p``, whose Cholesky factor is refused when its diagonal
+      ratio falls to 1e-7, has ``lambda_min(S_p) >= min(1, lambda_min(N_ff)) >= min(1,
+      s^2 / |G|)``: a Schur complement's smallest eigenvalue is at least the whole matrix's,
+      ``N_ff`` (N on the unpinned coordinates) has ``lambda_min >= lambda+_min(N) s^2`` with
+      ``s`` the smallest singular value of Q's pinned rows, and ``lambda+_min(N) >= 1 / |G|``
+      (``inverse.norm_bound()``, an upper bound on ``|G|_2``); every Cholesky pivot lies in
+      ``[lambda_min(S_p), max diag S_p]``, so the factor is accepted when that bound is
+      :data:`_INVERSE_MARGIN` x 1e-14 x the largest diagonal entry.
+
+    Parameters
+    ----------
+    inverse : an object with ``diagonal_blocks() -> (G_receivers, G_sources, N_receivers,
+        N_sources)``, ``apply(X) -> G X`` and ``norm_bound() -> float``
+        (:class:`selfcal.toa.verdict.leverage.BipartiteInverse`), at the estimate ``theta``.
+    theta, lay : as in :func:`gauge_free_blocks` (unit weights).
+    receivers, sources : indices of the blocks to compute (None = all); the others are NaN.
+
+    Returns
+    -------
+    (I, m_r, m_r), (J, m_s, m_s) blocks as :func:`gauge_free_blocks` returns them, or None where
+    the bounds do not certify that it would accept the geometry (it then decides).
+    """
+    I, J = lay.I, lay.J
+    r, s, _, _ = _unpack(theta, I, J, lay.d, lay.offsets)
+    Q = gauge_basis(r, s, lay.offsets)
+    Gr, Gs, Nr, Ns = inverse.diagonal_blocks()
+    NK, NE = (Nr, Ns) if lay.k_is_receivers else (Ns, Nr)
+    with np.errstate(all="ignore"):
+        if not (np.linalg.cond(NE) < 1e12).all():
+            return None
+        sv = np.linalg.svd(Q[lay.pins], compute_uv=False)
+        bound = float(inverse.norm_bound())
+        low = min(1.0, float(sv.min()) ** 2 / bound) if sv.size and bound > 0 else 0.0
+        top = max(1.0, float(np.max(np.einsum("npp->np", NK))))
+    if not (np.isfinite(low) and low > _INVERSE_MARGIN * 1e-14 * top):
+        return None
+    Y = inverse.apply(Q)
+    Z = Q.T @ Y
+    r_idx, s_idx, _ = _node_indices(I, J, lay.d, lay.offsets)
+
+    def project(Gb: Array, idx: NDArray[np.intp], want: Index | None) -> Array:
+        out = np.full(Gb.shape, np.nan)
+        sel = np.arange(Gb.shape[0]) if want is None else np.asarray(want, np.intp)
+        if sel.size:
+            Qn, Yn = Q[idx[sel]], Y[idx[sel]]
+            QY = np.einsum("npg,nqg->npq", Qn, Yn)
+            out[sel] = Gb[sel] - QY - np.swapaxes(QY, 1, 2) + np.einsum("npg,gh,nqh->npq", Qn, Z, Qn)
+        return out
+
+    return project(Gr, r_idx, receivers), project(Gs, s_idx, sources)
 
 
 def local_blocks(theta: Array, w: Array, lay: _Layout) -> tuple[Array, Array]:

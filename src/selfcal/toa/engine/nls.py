@@ -89,11 +89,17 @@ __all__ = [
     "toa_residuals",
     "toa_jacobian",
     "gauge_basis",
+    "with_covariance",
     "OFFSET_MODES",
     "LOSSES",
 ]
 
 Array = NDArray[np.float64]
+
+#: smallest robust-loss scale (metres) :func:`refine_toa` estimates (when ``f_scale`` is not
+#: given it fits at the estimated scale, then once more at the scale re-estimated from that
+#: fit; both are at least this)
+ROBUST_SCALE_FLOOR = 1e-9
 
 
 # ---------------------------------------------------------------------------
@@ -131,6 +137,7 @@ def refine_toa(
     source_offset_basis: Any = None,
     noise: float | None = None,
     weights: Any = None,
+    normal_inverse: Any = None,
 ) -> NlsSolution:
     """Refine receivers, sources (and offsets) by sparse nonlinear least squares (003 eq. 2, 16-17).
 
@@ -185,6 +192,12 @@ def refine_toa(
         mean with free zero-sum deviations.
     noise: range noise std (metres) weighting the priors; estimated from the fit
         (re-weighted until it settles) when omitted.
+    normal_inverse: ``(theta, pattern) -> inverse | None``, a generalised inverse of ``J^T J`` the
+        caller already holds at the estimate (the outlier rule's linearisation,
+        :func:`selfcal.toa.verdict.leverage.kept_inverse`): with the linear loss the covariance
+        blocks come from it (:func:`selfcal.toa.engine.covariance.blocks_from_inverse`, the
+        same blocks to round-off) where it certifies that the selected inversion would accept
+        the geometry; None (default) or its refusal: the selected inversion.
     weights: (I, J) per-entry weights, ``1 / std`` up to a common factor (finite and >= 0 on
         the observed entries; 0 = the entry does not count): weighted least squares, the ML
         fit when the entries' noise differs; a robust loss then applies to the weighted
@@ -213,7 +226,7 @@ def refine_toa(
         gz = np.zeros((J, 3), bool); gz[:, 2] = True
         sol = refine_toa(c * T, r0, s0, offsets="both", fixed_receivers=fz, fixed_sources=gz)
     """
-    from .covariance import gauge_free_blocks, is_local, local_blocks, resolve_covariance
+    from .covariance import resolve_covariance
 
     check_choice(offsets, "offsets", OFFSET_MODES)
     check_choice(loss, "loss", LOSSES)
@@ -278,15 +291,30 @@ def refine_toa(
     else:
         f0 = toa_residuals(theta0, Y, d, offsets)
         k95 = _TUNING[loss]
-        fs = f_scale if f_scale is not None else max(k95 * _robust_sigma(f0), 1e-9)
+        fs = f_scale if f_scale is not None else max(k95 * _robust_sigma(f0), ROBUST_SCALE_FLOOR)
         theta, conv, nit = solve_schur_lm(theta0, Y, lay, loss, fs, max_nfev, xtol)
         if f_scale is None:
             # the initial residuals mix geometry error with noise: re-scale on the refined ones
             shrink = float(np.sqrt(m / max(m - n_free, 1)))  # fitted residuals underestimate sigma
-            fs = max(k95 * shrink * _robust_sigma(toa_residuals(theta, Y, d, offsets)), 1e-9)
+            fs = max(k95 * shrink * _robust_sigma(toa_residuals(theta, Y, d, offsets)), ROBUST_SCALE_FLOOR)
             theta, conv2, nit2 = solve_schur_lm(theta, Y, lay, loss, fs, max_nfev, xtol)
             conv, nit = conv2, nit + nit2
 
+    return _finish(theta, Y, lay, offsets, loss, fs, covariance, cov_r, cov_s, normal_inverse, conv, nit)
+
+
+def _finish(theta: Array, Y: Array, lay: Any, offsets: str, loss: str, fs: float, covariance: Any,
+            cov_r: NDArray[np.intp], cov_s: NDArray[np.intp], normal_inverse: Any, conv: bool, nit: int) -> NlsSolution:
+    """The :class:`NlsSolution` of :func:`refine_toa` ending at ``theta``: residuals, noise
+    estimate, the requested covariance blocks (003 eq. 17), the canonical gauge."""
+    from .covariance import blocks_from_inverse, gauge_free_blocks, is_local, local_blocks
+
+    I, J = Y.shape
+    d = lay.d
+    has_r, has_s = _flags(offsets)
+    obs = np.isfinite(Y)
+    m = int(obs.sum())
+    n_free = lay.n - lay.pins.size
     f = toa_residuals(theta, Y, d, offsets)
     cost, drho = irls(f, loss, fs)
     dof = m - n_free
@@ -304,7 +332,9 @@ def refine_toa(
         if is_local(covariance):  # the approximate conditional blocks, O(I J d^2)
             Cr, Cs = local_blocks(theta, wmat, lay)
         else:
-            Cr, Cs = gauge_free_blocks(theta, wmat, lay, cov_r, cov_s)
+            inv = normal_inverse(theta, obs) if normal_inverse is not None and loss == "linear" else None
+            held = None if inv is None else blocks_from_inverse(inv, theta, lay, cov_r, cov_s)
+            Cr, Cs = held if held is not None else gauge_free_blocks(theta, wmat, lay, cov_r, cov_s)
         Cr, Cs = Cr * sigma**2, Cs * sigma**2
     else:
         Cr = np.full((I, d + has_r, d + has_r), np.nan)
@@ -313,6 +343,44 @@ def refine_toa(
         Cr, Cs = np.full_like(Cr, np.nan), np.full_like(Cs, np.nan)
     return _solution(theta, Y, d, offsets, Cr, Cs, canonical=True, shift=True, sigma=sigma, converged=conv,
                      iterations=nit, cost=cost, solver="schur-lm")
+
+
+def with_covariance(sol: NlsSolution, ranges: Array, *, offsets: str, covariance: Any = True,
+                    normal_inverse: Any = None) -> NlsSolution:
+    """What :func:`refine_toa` (linear loss, from ``sol``) returns when its start is already its
+    answer: ``sol``'s residuals, noise estimate and requested covariance blocks at ``sol``.
+
+    For a ``sol`` that a linear-loss :func:`refine_toa` on the same ``ranges`` returned
+    converged and whose Gauss-Newton step is below the step tolerance
+    (:func:`selfcal.toa.verdict.leverage.settled`), a refinement from it stops after one step
+    no longer than that: the estimate is ``sol`` to the solver's tolerance, and this spares
+    that step (:func:`selfcal.toa.fit.finish`'s final refit when nothing changed since the
+    search).
+
+    Parameters
+    ----------
+    sol : a linear-loss fit of ``ranges`` (metres), in the canonical gauge.
+    ranges : (I, J) the ranges it was fitted on, NaN = missing.
+    offsets, covariance, normal_inverse : as in :func:`refine_toa`.
+
+    Returns
+    -------
+    NlsSolution with ``iterations=0``, ``converged`` as ``sol``'s.
+
+    Raises
+    ------
+    DegenerateGeometryError
+        As :func:`refine_toa`: a (nearly) collinear geometry, a singular covariance.
+    """
+    from .covariance import resolve_covariance
+
+    Y = as_matrix(ranges, "ranges")
+    I, J = Y.shape
+    cov_r, cov_s = resolve_covariance(covariance, I, J)
+    lay = _make_layout(sol.receivers, sol.sources, offsets)
+    theta = _pack(sol.receivers, sol.sources, sol.receiver_offsets, sol.source_offsets)
+    return _finish(theta, Y, lay, offsets, "linear", 1.0, covariance, cov_r, cov_s, normal_inverse,
+                   bool(sol.converged), 0)
 
 
 def _offsets0(value: Array | None, n: int, name: str) -> Array:

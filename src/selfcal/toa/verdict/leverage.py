@@ -19,7 +19,7 @@ from numpy.typing import NDArray
 
 from .robust import OUTLIER_ALPHA, noise_scale, outlier_threshold
 
-__all__ = ["BipartiteInverse", "NormalEquations", "leverages", "lifted_inverse", "normal_equations",
+__all__ = ["BipartiteInverse", "NormalEquations", "kept_inverse", "leverages", "lifted_inverse", "normal_equations", "settled",
            "outlier_rule_has_power", "studentized"]
 
 Array = NDArray[np.float64]
@@ -320,8 +320,8 @@ class BipartiteInverse:
             idx_e, idx_k = ir, js
         nE, nK, pe = Ae.shape
         pk = Bk.shape[2]
-        info_e = np.einsum("ekp,ekq->epq", Ae, Ae)  # the eliminated nodes' information blocks
-        info_k = np.einsum("ekp,ekq->kpq", Bk, Bk)
+        info_e = np.matmul(Ae.transpose(0, 2, 1), Ae)  # the eliminated nodes' information blocks
+        info_k = np.matmul(Bk.transpose(1, 2, 0), Bk.transpose(1, 0, 2))
         trace = float(np.einsum("epp->", info_e) + np.einsum("kpp->", info_k))
         if not trace > 0:
             return None
@@ -333,9 +333,11 @@ class BipartiteInverse:
         Ainv = np.matmul(Linv.transpose(0, 2, 1), Linv)
         if not np.all(np.isfinite(Ainv)) or 1.0 / np.max(np.abs(Ainv).sum(axis=2)) <= floor:
             return None
-        Cc = np.einsum("epq,ekq->ekp", Linv, Ae)  # L_e^-1 a_ek
+        Cc = np.matmul(Ae, Linv.transpose(0, 2, 1))  # L_e^-1 a_ek
         V = np.einsum("ekm,ekq->emkq", Cc, Bk).reshape(nE * pe, nK * pk)
-        S = -(V.T @ V)
+        # -V^T V, its lower triangle only (all that potrf reads; S is not used after it): the
+        # upper triangle of the Fortran-ordered product, transposed into a C-ordered view
+        S = scipy.linalg.blas.dsyrk(-1.0, V.T, trans=0, lower=0).T
         S4 = S.reshape(nK, pk, nK, pk)
         S4[np.arange(nK), :, np.arange(nK), :] += info_k
         U_q, sv, _ = np.linalg.svd(ne.Q[idx_k.ravel()], full_matrices=False)
@@ -356,7 +358,7 @@ class BipartiteInverse:
             return None
         W = V @ Sg  # L^-1 B S^-, (nE pe, nK pk)
         W4 = W.reshape(nE, pe, nK, pk)
-        Ke = np.einsum("emkq,enkq->emn", W4, V.reshape(nE, pe, nK, pk))  # V_e S^- V_e^T
+        Ke = np.matmul(W.reshape(nE, pe, nK * pk), V.reshape(nE, pe, nK * pk).transpose(0, 2, 1))  # V_e S^- V_e^T
         Sd = Sg.reshape(nK, pk, nK, pk)[np.arange(nK), :, np.arange(nK), :]
         return cls(swap=swap, Linv=Linv, Ainv=Ainv, W=W, W4=W4, V=V, Sg=Sg, Ke=Ke, Sd=Sd,
                    info_e=info_e, info_k=info_k, idx_e=idx_e, idx_k=idx_k, rows_r=rows_r, rows_s=rows_s,
@@ -380,6 +382,28 @@ class BipartiteInverse:
         N_receivers, N_sources)."""
         Ge = self.Ainv + np.matmul(np.matmul(self.Linv.transpose(0, 2, 1), self.Ke), self.Linv)
         return (self.Sd, Ge, self.info_k, self.info_e) if self.swap else (Ge, self.Sd, self.info_e, self.info_k)
+
+    def newton_step(self, F: Array, Q: Array) -> Array:
+        """The Gauss-Newton step ``N^+ J^T f`` off the gauge ``Q`` (n, g) for residuals ``F`` (I, J)
+        (0 where unobserved), in the parameter order of :func:`selfcal.toa.engine.nls.toa_jacobian`."""
+        n = self.idx_e.size + self.idx_k.size
+        g = np.zeros(n)
+        F = np.where(np.isfinite(F), F, 0.0)
+        g[(self.idx_k if self.swap else self.idx_e).ravel()] = np.einsum("ijp,ij->ip", self.rows_r, F).ravel()
+        g[(self.idx_e if self.swap else self.idx_k).ravel()] = np.einsum("ijp,ij->jp", self.rows_s, F).ravel()
+        dx = self.apply(g[:, None])[:, 0]
+        return dx - Q @ (Q.T @ dx)
+
+    def norm_bound(self) -> float:
+        """An upper bound on ``|G|_2``: the norms of its blocks, ``|G| <= |G_ee| + |G_kk| + 2 |G_ek|``
+        with ``G_ee = L^-T (I + V S^- V^T) L^-1``, ``G_ek = -L^-T W``, ``G_kk = S^-`` (spectral
+        norms of the block-diagonal factors, Frobenius norms of the dense ones, the largest
+        absolute row sum of ``S^-``)."""
+        lin = float(np.max(np.linalg.norm(self.Linv, ord=2, axis=(1, 2)))) ** 2  # |L^-1|^2
+        ainv = float(np.max(np.linalg.norm(self.Ainv, ord=2, axis=(1, 2))))
+        w, v = float(np.linalg.norm(self.W)), float(np.linalg.norm(self.V))
+        sg = float(np.max(np.abs(self.Sg).sum(axis=1)))
+        return ainv + lin * w * v + sg + 2.0 * np.sqrt(lin) * w
 
     def apply(self, X: Array) -> Array:
         """``G X`` for X (n, g) in the parameter order of :func:`selfcal.toa.engine.nls.toa_jacobian`."""
@@ -438,6 +462,45 @@ def normal_equations(pattern: Mask, receivers: Array, sources: Array, receiver_o
                          np.shape(receivers)[1])
     _LAST[:] = [ne]
     return ne
+
+
+def kept_inverse(offsets: str) -> Any:
+    """``(theta, pattern) -> BipartiteInverse | None``: the generalised inverse of the kept
+    linearisation (:func:`normal_equations`) when it is at ``theta`` (within :data:`REUSE_XTOL`)
+    on the entries ``pattern``, else None: what :func:`selfcal.toa.engine.nls.refine_toa`
+    takes as ``normal_inverse`` for the final fit's covariance blocks
+    (:func:`selfcal.toa.engine.covariance.blocks_from_inverse`)."""
+
+    def at(theta: Array, pattern: Mask) -> BipartiteInverse | None:
+        if _LAST and _LAST[0].same(np.asarray(pattern, bool), offsets, np.asarray(theta, float)):
+            return _LAST[0].block()
+        return None
+
+    return at
+
+
+def settled(pattern: Mask, receivers: Array, sources: Array, receiver_offsets: Array | None,
+            source_offsets: Array | None, offsets: str, residuals: Array) -> bool:
+    """Is the kept linearisation (:func:`normal_equations`) at this fit, and its Gauss-Newton step
+    ``N^+ J^T f`` below the refinement's step tolerance (:data:`REUSE_XTOL`)?
+
+    Then a least-squares refinement from the fit (whose damped steps are no longer than the
+    Gauss-Newton step in the damping's metric) stops after one such step: the fit is its own
+    refinement to the solver's precision (:func:`selfcal.toa.engine.nls.with_covariance`).
+    False when no kept bipartite inverse is at the fit.
+    """
+    from ..engine.nls import _pack
+
+    theta = _pack(receivers, sources, receiver_offsets, source_offsets)
+    pattern = np.asarray(pattern, bool)
+    if not (_LAST and _LAST[0].same(pattern, offsets, theta)):
+        return False
+    blk = _LAST[0].block()
+    if blk is None:
+        return False
+    dx = blk.newton_step(np.asarray(residuals, float), _LAST[0].Q)
+    tol = REUSE_XTOL * (REUSE_XTOL + float(np.linalg.norm(theta)))
+    return bool(np.all(np.isfinite(dx)) and float(np.linalg.norm(dx)) <= tol)
 
 
 def lifted_inverse(N: Array, gauge: Array) -> tuple[Array | None, Array | None, float]:

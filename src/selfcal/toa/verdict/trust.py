@@ -190,7 +190,9 @@ def _additive_leverages(obs: NDArray[np.bool_], rows: bool, cols: bool, max_unkn
     inverse per entry: O(m + n^3) instead of the SVD of the dense (m, n) design (0.2 s at
     14,400 x 239). Above ``max_unknowns`` columns or 5e7 design entries (the former
     memory guard of the dense design, kept so the choice between the exact and the mean
-    leverages is unchanged) the mean ``n / m``.
+    leverages is unchanged) the mean ``n / m``. A complete mask is a balanced two-way layout:
+    its entries are exchangeable under row and column permutations, so every leverage is the
+    same, the trace ``n`` (the design has full rank there) over ``m``: no matrix is formed.
     """
     import scipy.sparse
 
@@ -198,7 +200,7 @@ def _additive_leverages(obs: NDArray[np.bool_], rows: bool, cols: bool, max_unkn
     ii, jj = np.nonzero(obs)
     n = 1 + (I - 1 if rows else 0) + (J - 1 if cols else 0)
     H = np.full(obs.shape, np.nan)
-    if n > max_unknowns or ii.size * n > 5e7:  # decided before any (entries x n) array is built
+    if n > max_unknowns or ii.size * n > 5e7 or (ii.size and obs.all()):  # before any (entries x n) array
         H[obs] = min(n / max(ii.size, 1), 1.0)
         return H
     if ii.size == 0:
