@@ -176,3 +176,40 @@ def test_error_bars_cover_the_truth_with_the_bias_model_and_miss_without():
     np.testing.assert_allclose(std, emp, rtol=0.35)
     emp0, std0 = _error_bars(False, 5)
     assert np.min(emp0 / std0) > 3
+
+
+def _bias_choice(family: str, seeds):
+    """The default path's bias choice (``calibrate toa`` defaults up to the choice) on simulated
+    LPS flights of one family of benchmarks/lps_bias_choice.py, both anchor models scored."""
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
+    from lps_bias_choice import FAMILIES, score
+
+    out = []
+    for s in seeds:
+        sim = simulate_uwb_flight(s, 500, layout="lps", **FAMILIES[family])
+        out.append(score(sim["ranges"], sim["anchors"]))
+    return out
+
+
+def test_anchor_mse_is_the_shift_and_spreads_of_the_refits():
+    """Independent computation: refits equal to the fits (no spread) leave MSE_simple = the
+    squared shift and MSE_wide = 0; refits shifted alike leave the shift's noise at zero."""
+    from selfcal.toa.verdict.crossval import anchor_mse
+
+    g = np.random.default_rng(0)
+    R = g.uniform(0, 3, (6, 3))
+    W = R + g.normal(0, 0.1, R.shape)
+    W -= W.mean(0) - R.mean(0)
+    st = {"common": (R,), "receivers": (W,)}
+    est = anchor_mse("common", "receivers", st, {"common": [R] * 5, "receivers": [W] * 5})
+    from selfcal.geometry import align
+
+    shift = np.sqrt(np.mean(np.sum((R - align(W, R, reflection=False).apply(W)) ** 2, axis=1)))
+    assert est.rmse["receivers"] == pytest.approx(0, abs=1e-9)
+    assert est.rmse["common"] == pytest.approx(shift, rel=1e-9) and est.shift == pytest.approx(shift, rel=1e-9)
+    jit = [g.normal(0, 0.05, R.shape) for _ in range(8)]
+    est = anchor_mse("common", "receivers", st, {"common": [R + j for j in jit], "receivers": [W + j for j in jit]})
+    assert est.shift_noise < 0.02 < est.spread["common"]  # the same jitter in both cancels in the shift

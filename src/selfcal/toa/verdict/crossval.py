@@ -57,8 +57,8 @@ from numpy.typing import NDArray
 
 from ...errors import ConvergenceWarning, DegenerateGeometryError, InputError
 
-__all__ = ["MAX_FOLDS", "MIN_FOLDS", "MODELS", "CvChoice",
-           "choose_receiver_offsets", "cross_validate", "locate_sources", "one_se_choice"]
+__all__ = ["MAX_FOLDS", "MIN_FOLDS", "MODELS", "AnchorMse", "CvChoice", "anchor_mse",
+           "choose_receiver_offsets", "cross_validate", "locate_sources", "one_se_choice", "spatial_folds"]
 
 Array = NDArray[np.float64]
 
@@ -103,6 +103,11 @@ class CvChoice:
         Model -> per-fold mean squared prediction residual.
     failed : dict
         Model -> reason, for candidates whose fits failed (not scored).
+    refits : dict
+        Model -> the receivers (I, d) of its K fold refits, in their own gauges.
+    anchors : AnchorMse, optional
+        The receivers' estimated MSE under the two models (set by
+        :func:`choose_receiver_offsets`, which then may keep the simpler model).
     """
 
     chosen: str
@@ -381,8 +386,33 @@ def _folds(J: int, L: int) -> NDArray[np.intp]:
 def spatial_folds(positions: Array, K: int, seed: int = 0) -> NDArray[np.intp]:
     """Fold label of every source: K spatial clusters of the positions (k-means), 0..K'-1.
 
-    Sources without a finite position go to the fold of their nearest preceding located
-    column (they cannot be scored anyway). Empty clusters are dropped (K' <= K).
+    The folds of ``cross_validate(split="space")``: each held-out fold is a region of the
+    tag's space rather than a stretch of its time (an alternative evaluated for issue 29,
+    not the default: see docs/design.md). Sources without a finite position go to the fold
+    of the nearest preceding located column (they cannot be scored anyway); empty clusters
+    are dropped (K' <= K).
+
+    Parameters
+    ----------
+    positions : (J, d) array
+        Source positions (m), NaN rows allowed.
+    K : int
+        Number of clusters asked for.
+    seed : int
+        Seed of the k-means++ start (the labels are deterministic for a given seed).
+
+    Returns
+    -------
+    (J,) int array
+        Labels ``0 .. K' - 1``.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> X = np.r_[np.zeros((5, 3)), np.ones((5, 3)) * 10]
+    >>> lab = spatial_folds(X, 2)
+    >>> sorted(np.bincount(lab).tolist()), bool(len(set(lab[:5])) == 1)
+    ([5, 5], True)
     """
     from scipy.cluster.vq import kmeans2
 
@@ -424,6 +454,9 @@ def cross_validate(
         Engine of the refits (:func:`selfcal.toa.engine.nls.refine_toa`).
     folds : int, optional
         K (default from the residual correlation length, see the module docstring).
+    split : str
+        ``"time"`` (default): K contiguous blocks of columns; ``"space"``: K spatial
+        clusters of the simplest model's source positions (:func:`spatial_folds`).
     progress : callable, optional
         Called with ``(done, total)`` after each refit.
 
@@ -570,12 +603,17 @@ def located_block(res: Any, sub: Array, scale: float = 1.0) -> tuple[Any, ...]:
 
 def choose_receiver_offsets(res: Any, sub: Array, scale: float = 1.0, solver: str = "auto",
                             progress: Any = None, split: str = "time") -> tuple[Any, CvChoice | None]:
-    """Per-receiver offsets (per-anchor ranging biases) kept when they predict held-out sources better.
+    """Per-receiver offsets (per-anchor ranging biases) kept when they predict held-out sources
+    better and their receivers are expected to be more accurate.
 
     ``res`` is a fit of ``sub`` without per-receiver offsets (``offsets`` "none" or
     "common"); the per-receiver model is refitted from it (the nested start: its offsets
     all equal to ``res``'s) on the entries ``res`` used, and :func:`cross_validate`
-    compares the two on the same entries and folds.
+    compares the two on the same entries and folds. The per-receiver model is kept when
+    the one-SE rule chooses it *and* :func:`anchor_mse` (from the same folds' refits, no
+    extra fit) estimates its receivers' mean squared error below the simple model's:
+    held-out prediction alone prefers offsets that trade against the receivers' radial
+    positions where the tag stays on one side of them (LPS data4). Both are in ``choice``.
 
     Parameters
     ----------
@@ -589,13 +627,16 @@ def choose_receiver_offsets(res: Any, sub: Array, scale: float = 1.0, solver: st
         Engine of the refits (:func:`selfcal.toa.engine.nls.refine_toa`).
     progress : callable, optional
         ``(done, total)`` after each refit.
+    split : str
+        Folds of :func:`cross_validate` (``"time"``, default, or ``"space"``).
 
     Returns
     -------
     (result, choice)
         ``res`` itself, or ``res`` with the per-receiver fit written in
-        (``offsets="receivers"``) when the one-SE rule chooses it; ``choice`` is None when
-        the per-receiver model could not be fitted.
+        (``offsets="receivers"``) when it is kept; ``choice`` (its ``chosen`` the final
+        model, ``anchors`` the :class:`AnchorMse`) is None when the per-receiver model
+        could not be fitted.
     """
     from ..engine.nls import refine_toa
     from .offset_fit import _with_common
