@@ -235,7 +235,7 @@ def anchor_mse(simple: str, wide: str, starts: Mapping[str, tuple[Any, ...]],
         return float((K - 1) / K * np.sum(D * D))
 
     shift2 = float(np.sum((Rs - onto(Rw, Rs)) ** 2))
-    vd = jvar(np.array([np.asarray(x) - onto(np.asarray(y), np.asarray(x)) for x, y in zip(a[:K], b[:K])]))
+    vd = jvar(np.array([np.asarray(x) - onto(np.asarray(y), np.asarray(x)) for x, y in zip(a[:K], b[:K], strict=True)]))
     vs = jvar(np.array([onto(np.asarray(x), Rs) for x in a[:K]]))
     vw = jvar(np.array([onto(np.asarray(y), Rw) for y in b[:K]]))
     mse = {simple: max(0.0, shift2 - vd) + vs, wide: vw}
