@@ -38,6 +38,12 @@ of their paired per-fold difference. A model with more parameters is adopted onl
 it predicts held-out positions better by more than the fold-to-fold noise of that
 comparison. Every candidate is scored on the same entries.
 
+Anchor check (:func:`choose_receiver_offsets`, :func:`anchor_mse`): held-out prediction
+judges ranges; a per-receiver offset that trades against the receiver's radial position
+can predict better and place the receivers worse (LPS data4). Per-receiver offsets are
+kept only when the receivers' mean squared error estimated from the same folds' refits
+(focused criterion, Claeskens & Hjort 2003) is lower too.
+
 Folds: ``K = min(MAX_FOLDS, J // L)`` with ``L`` the residual correlation length along
 the columns (:func:`selfcal.toa.verdict.offset_fit.residual_correlation_length` on the
 simplest model's residuals), at least :data:`MIN_FOLDS`; so a held-out block is longer
