@@ -14,7 +14,8 @@ Families (:func:`selfcal.experiments.lps.simulate_uwb_flight`, LPS layout, 500 p
 4 cm noise, its default spikes): :data:`FAMILIES`.
 
 Run: ``PYTHONPATH=src python benchmarks/lps_bias_choice.py [--seeds 0-5] [--families a,b]
-[--split time|space] [--lps ../shared/data/lps/data4.mat,...]``.
+[--split time|space] [--lps ../shared/data/lps/data4.mat,...] [--leave-anchor-out]``
+(the last: :func:`leave_one_anchor_out` on the LPS files, another held-out split evaluated).
 """
 
 from __future__ import annotations
@@ -98,6 +99,65 @@ def score(ranges: np.ndarray, anchors: np.ndarray, split: str = "time") -> dict[
             "cpu": time.process_time() - t0}
 
 
+def leave_one_anchor_out(ranges: np.ndarray) -> dict[str, float]:
+    """The other held-out split evaluated for issue 29: leave one anchor (row) out.
+
+    The default path's simple fit and the per-anchor refit from it are refitted without
+    anchor ``i``; the held-out anchor is then located from its own ranges to the refit's tag
+    path (its position, plus its own offset under the per-anchor model; the common offset
+    under the simple one), and its ranges are scored by their leave-one-range-out residuals.
+    Returns the RMS prediction error per model (m).
+    """
+    import selfcal.toa.verdict.crossval as cvmod
+    from selfcal.toa.engine.nls import refine_toa
+
+    box: dict[str, Any] = {}
+    orig = cvmod.choose_receiver_offsets
+
+    def spy(res: Any, sub: Any, *a: Any, **k: Any) -> Any:
+        box["simple"], box["sub"] = res, sub
+        raise _Stop
+
+    cvmod.choose_receiver_offsets = spy  # type: ignore[assignment]
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            from selfcal.toa.recipes.recipes import apply_recipe
+
+            apply_recipe("auto", ranges, common_offset="test", method="auto", rng=0, speed=None)
+    except _Stop:
+        pass
+    finally:
+        cvmod.choose_receiver_offsets = orig  # type: ignore[assignment]
+    simple = box["simple"]
+    _, _, _, Z, R, S, d0 = cvmod.located_block(simple, box["sub"])
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        wide = refine_toa(Z, R, S, offsets="receivers", receiver_offsets0=d0, covariance=False)
+    starts = {str(simple.offsets): (R, S, d0), "receivers": (wide.receivers, wide.sources, wide.receiver_offsets)}
+    I, J = Z.shape
+    press = {}
+    for m, (Rm, Sm, dm) in starts.items():
+        E = np.full((I, J), np.nan)
+        for i in range(I):
+            rows = np.arange(I) != i
+            kw: dict[str, Any] = dict(cvmod._REFIT[m])
+            if dm is not None:
+                kw["receiver_offsets0"] = np.asarray(dm)[rows]
+            cols = np.isfinite(Z[rows]).sum(axis=0) >= 4
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                sol = refine_toa(Z[rows][:, cols], Rm[rows], Sm[cols], covariance=False, **kw)
+            c = 0.0 if sol.receiver_offsets is None else float(np.mean(sol.receiver_offsets))
+            own = m == "receivers"
+            _, _, e, h = cvmod.locate_sources(Z[i, cols][:, None], sol.sources, None if own else np.full(cols.sum(), c),
+                                              source_offset=own)
+            E[i, cols] = (e / (1 - h))[:, 0]
+        press[m] = E
+    common = np.logical_and.reduce([np.isfinite(E) for E in press.values()])
+    return {m: float(np.sqrt(np.mean(E[common] ** 2))) for m, E in press.items()}
+
+
 def _seeds(text: str) -> list[int]:
     a, _, b = text.partition("-")
     return list(range(int(a), int(b) + 1)) if b else [int(s) for s in text.split(",")]
@@ -111,6 +171,8 @@ def main() -> None:  # pragma: no cover - the experiment
     ap.add_argument("--families", default="")
     ap.add_argument("--split", default="time", choices=("time", "space"))
     ap.add_argument("--lps", default="", help="comma-separated LPS .mat files scored the same way")
+    ap.add_argument("--leave-anchor-out", action="store_true",
+                    help="also print the leave-one-anchor-out RMS prediction errors of the LPS files")
     a = ap.parse_args()
     rows: dict[str, list[dict[str, Any]]] = {}
     for path in [p for p in a.lps.split(",") if p]:
@@ -119,6 +181,9 @@ def main() -> None:  # pragma: no cover - the experiment
         fl = load_lps(path)
         r = score(fl.ranges, fl.anchors_true, a.split)
         print(fl.name, {k: (round(v, 3) if isinstance(v, float) else v) for k, v in r.items()}, flush=True)
+        if a.leave_anchor_out:
+            print(fl.name, "leave one anchor out, RMS prediction error (m):",
+                  {k: round(v, 4) for k, v in leave_one_anchor_out(fl.ranges).items()}, flush=True)
     fams = [f for f in a.families.split(",") if f] or list(FAMILIES)
     for fam in fams:
         for seed in _seeds(a.seeds):
