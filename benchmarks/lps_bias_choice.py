@@ -61,8 +61,7 @@ def score(ranges: np.ndarray, anchors: np.ndarray, split: str = "time") -> dict[
     box: dict[str, Any] = {}
     orig = cvmod.choose_receiver_offsets
 
-    def spy(res: Any, sub: Any, scale: float = 1.0, solver: str = "auto", progress: Any = None,
-            split_: str = split) -> Any:
+    def spy(res: Any, sub: Any, scale: float = 1.0, solver: str = "auto", progress: Any = None) -> Any:
         box["simple"] = res
         box["out"] = orig(res, sub, scale, solver=solver, split=split)
         box["sub"] = sub
