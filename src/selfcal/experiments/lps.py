@@ -128,6 +128,7 @@ def simulate_uwb_flight(
     noise_corr: float = 0.0,
     nlos_rate: float = 0.0,
     nlos_mean: float = 0.3,
+    position_std: float = 0.0,
 ) -> dict[str, Array]:
     """A simulated LPS-like flight: 6 UWB anchors, one tag on a smooth trajectory.
 
@@ -148,6 +149,11 @@ def simulate_uwb_flight(
       ``noise``); the residuals of the measured flights have lag-1 autocorrelation ~0.8.
     - ``nlos_rate``: per anchor and sample, the rate at which a non-line-of-sight segment
       starts (10-40 consecutive samples with one positive excess ~ Exp(``nlos_mean``)).
+    - ``position_std``: RMS (m) of a per-anchor error that depends on where the tag is (UWB
+      antenna patterns and multipath): per anchor, a quadratic pattern in the direction
+      anchor -> tag plus 20 random plane waves of ~0.6 m wavelength in the tag position, in
+      equal parts, scaled to RMS ``position_std`` over the flight (its mean over the flight,
+      not removed, is a per-anchor bias of a few cm).
 
     Returns
     -------
@@ -195,7 +201,23 @@ def simulate_uwb_flight(
             seg = slice(j, j + int(g.integers(10, 41)))
             Y[i, seg] += g.exponential(nlos_mean)
             spikes[i, seg] = True
+    if position_std:
+        Y += position_std * _position_error(np.random.default_rng([seed, 2]), anchors, tag)
     return {"ranges": Y, "anchors": anchors, "tag": tag, "bias": bias, "spikes": spikes}
+
+
+def _position_error(g: np.random.Generator, anchors: Array, tag: Array, wavelength: float = 0.6) -> Array:
+    """(I, N) errors of RMS 1 per anchor, smooth in the direction anchor -> tag and in the tag position."""
+    out = np.zeros((anchors.shape[0], tag.shape[0]))
+    for i, a in enumerate(anchors):
+        u = (tag - a) / np.linalg.norm(tag - a, axis=1, keepdims=True)
+        B = g.normal(size=(3, 3))
+        pattern = u @ g.normal(size=3) + np.einsum("ja,ab,jb->j", u, B + B.T, u) / 2
+        W = g.normal(size=(20, 3)) * (2 * np.pi / wavelength) / np.sqrt(3)
+        waves = np.cos(tag @ W.T + g.uniform(0, 2 * np.pi, 20)).sum(axis=1)
+        f = pattern / pattern.std() + waves / waves.std()
+        out[i] = f / np.sqrt(np.mean(f * f))
+    return out
 
 
 def leave_one_flight_out(scores: Mapping[str, Mapping[str, float]],

@@ -38,6 +38,12 @@ of their paired per-fold difference. A model with more parameters is adopted onl
 it predicts held-out positions better by more than the fold-to-fold noise of that
 comparison. Every candidate is scored on the same entries.
 
+Anchor check (:func:`choose_receiver_offsets`, :func:`anchor_mse`): held-out prediction
+judges ranges; a per-receiver offset that trades against the receiver's radial position
+can predict better and place the receivers worse (LPS data4). Per-receiver offsets are
+kept only when the receivers' mean squared error estimated from the same folds' refits
+(focused criterion, Claeskens & Hjort 2003) is lower too.
+
 Folds: ``K = min(MAX_FOLDS, J // L)`` with ``L`` the residual correlation length along
 the columns (:func:`selfcal.toa.verdict.offset_fit.residual_correlation_length` on the
 simplest model's residuals), at least :data:`MIN_FOLDS`; so a held-out block is longer
@@ -46,6 +52,7 @@ than the span over which its errors are correlated with the training blocks next
 
 from __future__ import annotations
 
+import dataclasses
 import warnings
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
@@ -56,8 +63,8 @@ from numpy.typing import NDArray
 
 from ...errors import ConvergenceWarning, DegenerateGeometryError, InputError
 
-__all__ = ["MAX_FOLDS", "MIN_FOLDS", "MODELS", "CvChoice",
-           "choose_receiver_offsets", "cross_validate", "locate_sources", "one_se_choice"]
+__all__ = ["MAX_FOLDS", "MIN_FOLDS", "MODELS", "AnchorMse", "CvChoice", "anchor_mse",
+           "choose_receiver_offsets", "cross_validate", "locate_sources", "one_se_choice", "spatial_folds"]
 
 Array = NDArray[np.float64]
 
@@ -102,6 +109,11 @@ class CvChoice:
         Model -> per-fold mean squared prediction residual.
     failed : dict
         Model -> reason, for candidates whose fits failed (not scored).
+    refits : dict
+        Model -> the receivers (I, d) of its K fold refits, in their own gauges.
+    anchors : AnchorMse, optional
+        The receivers' estimated MSE under the two models (set by
+        :func:`choose_receiver_offsets`, which then may keep the simpler model).
     """
 
     chosen: str
@@ -113,21 +125,142 @@ class CvChoice:
     entries: int
     fold_scores: dict[str, list[float]] = field(default_factory=dict)
     failed: dict[str, str] = field(default_factory=dict)
+    refits: dict[str, list[Array]] = field(default_factory=dict, repr=False, compare=False)
+    anchors: AnchorMse | None = None
 
     def to_dict(self) -> dict[str, Any]:
         """JSON-safe dictionary (scores as RMS prediction errors too)."""
-        return {"criterion": "held-out prediction (K-fold over sources, one-SE rule)", "chosen": self.chosen,
+        return {"criterion": "held-out prediction (K-fold over sources, one-SE rule)"
+                             + ("; anchor MSE by the folds' refits" if self.anchors is not None else ""),
+                "chosen": self.chosen,
                 "best": self.best, "folds": self.folds, "correlation_length": self.correlation_length,
                 "entries": self.entries, "cv_mse": dict(self.scores),
                 "cv_rmse": {k: float(np.sqrt(v)) for k, v in self.scores.items()},
                 "se": dict(self.se), "fold_mse": {k: list(v) for k, v in self.fold_scores.items()},
-                "failed": dict(self.failed)}
+                "failed": dict(self.failed),
+                **({"anchor_mse": self.anchors.to_dict()} if self.anchors is not None else {})}
 
     def line(self, unit: str = "m") -> str:
         """One line for the CLI: the choice and the held-out RMS prediction error of every model."""
         parts = ", ".join(f"{k} {np.sqrt(v):.4g}" for k, v in self.scores.items())
-        return (f"offsets model {self.chosen} by held-out prediction ({self.folds}-fold over tag positions, "
+        text = (f"offsets model {self.chosen} by held-out prediction ({self.folds}-fold over tag positions, "
                 f"one-SE rule): RMS prediction error {parts} {unit}")
+        if self.anchors is not None:
+            est = ", ".join(f"{k} {v:.3g}" for k, v in self.anchors.rmse.items())
+            text += f"; estimated anchor RMS error {est} {unit}"
+        return text
+
+
+@dataclass(frozen=True)
+class AnchorMse:
+    """Estimated mean squared error of the receivers under a simple and a wider offsets model.
+
+    From :func:`anchor_mse`; metres, per receiver (totals divided by the number of
+    receivers, then square-rooted).
+
+    Attributes
+    ----------
+    rmse : dict
+        Model -> estimated RMS receiver error ``sqrt(MSE / I)``.
+    shift : float
+        RMS difference between the two models' receivers (after a rigid alignment).
+    shift_noise : float
+        Its delete-a-block jackknife RMS: the shift expected if the simple model were right.
+    spread : dict
+        Model -> jackknife RMS of its receivers over the folds (its variance part).
+    """
+
+    rmse: dict[str, float]
+    shift: float
+    shift_noise: float
+    spread: dict[str, float]
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-safe dictionary."""
+        return {"estimator": "focused (Claeskens & Hjort 2003): simple = max(0, shift^2 - noise^2) + spread^2, "
+                             "wide = spread^2, from the delete-a-block refits of the cross-validation",
+                "rmse": dict(self.rmse), "shift": self.shift, "shift_noise": self.shift_noise,
+                "spread": dict(self.spread)}
+
+
+def anchor_mse(simple: str, wide: str, starts: Mapping[str, tuple[Any, ...]],
+               refits: Mapping[str, Sequence[Array]]) -> AnchorMse | None:
+    """Which of two nested offsets models gives the more accurate receivers: their estimated MSE.
+
+    Held-out prediction judges ranges, not receivers. Where a per-receiver offset trades
+    against the receiver's distance to a tag that stays on one side of it (LPS flights:
+    ``d_i`` and the radial coordinate move ranges almost alike), the wider model predicts
+    held-out ranges as well or better by moving receivers and offsets together, and its
+    receivers can be far worse (LPS data4: CV RMS 0.1595 vs 0.1690 m, anchor RMSE 0.309 vs
+    0.166 m). The focused criterion (Claeskens & Hjort 2003) compares what the user wants,
+    the receivers' mean squared error:
+
+    - ``MSE_wide = V_wide``, the wide model taken as unbiased;
+    - ``MSE_simple = max(0, |R_simple - R_wide|^2 - V_diff) + V_simple``: its squared bias
+      estimated by the squared shift between the two fits less the shift's own variance;
+
+    every ``V`` the delete-a-block jackknife variance ``(K - 1) / K sum_k |x_k - mean x|^2``
+    over the K refits the cross-validation already made (each without one block of
+    sources: serially correlated and position-dependent errors are in it, the model
+    covariance would miss them). Receivers are compared after the best rigid motion
+    (Kabsch, no reflection), so the gauge is not counted as error.
+
+    Parameters
+    ----------
+    simple, wide : str
+        The two models (keys of ``starts`` and ``refits``).
+    starts : mapping
+        Model -> ``(receivers (I, d), ...)`` fit on all sources.
+    refits : mapping
+        Model -> the K fold refits' receivers ((I, d) arrays), the same folds for both.
+
+    Returns
+    -------
+    AnchorMse or None
+        None when a model has fewer than 2 refits or non-finite receivers.
+
+    References
+    ----------
+    Claeskens, G. & Hjort, N. L. (2003). The focused information criterion. JASA 98, 900-916.
+
+    Examples
+    --------
+    Refits without spread: the wide model's estimated error is 0, the simple one's its shift.
+
+    >>> import numpy as np
+    >>> R = np.random.default_rng(0).uniform(0, 3, (6, 3))
+    >>> W = R + 0.1 * (np.arange(6) % 2)[:, None] - 0.05
+    >>> est = anchor_mse("common", "receivers", {"common": (R,), "receivers": (W,)},
+    ...                  {"common": [R] * 4, "receivers": [W] * 4})
+    >>> round(est.rmse["receivers"], 6), bool(np.isclose(est.rmse["common"], est.shift))
+    (0.0, True)
+    """
+    from ...geometry import align
+
+    a, b = refits.get(simple, []), refits.get(wide, [])
+    K = min(len(a), len(b))
+    if K < 2:
+        return None
+    Rs, Rw = (np.asarray(starts[m][0], float) for m in (simple, wide))
+    if not (np.isfinite(Rs).all() and np.isfinite(Rw).all()
+            and all(np.isfinite(x).all() for x in (*a[:K], *b[:K]))):
+        return None
+    I = Rs.shape[0]
+
+    def onto(X: Array, ref: Array) -> Array:
+        return align(X, ref, reflection=False).apply(X)
+
+    def jvar(X: Array) -> float:
+        D = X - X.mean(axis=0)
+        return float((K - 1) / K * np.sum(D * D))
+
+    shift2 = float(np.sum((Rs - onto(Rw, Rs)) ** 2))
+    vd = jvar(np.array([np.asarray(x) - onto(np.asarray(y), np.asarray(x)) for x, y in zip(a[:K], b[:K], strict=True)]))
+    vs = jvar(np.array([onto(np.asarray(x), Rs) for x in a[:K]]))
+    vw = jvar(np.array([onto(np.asarray(y), Rw) for y in b[:K]]))
+    mse = {simple: max(0.0, shift2 - vd) + vs, wide: vw}
+    return AnchorMse({m: float(np.sqrt(v / I)) for m, v in mse.items()}, float(np.sqrt(shift2 / I)),
+                     float(np.sqrt(vd / I)), {simple: float(np.sqrt(vs / I)), wide: float(np.sqrt(vw / I))})
 
 
 def _complexity(model: str, I: int, J: int) -> int:
@@ -270,12 +403,60 @@ def _folds(J: int, L: int) -> NDArray[np.intp]:
     return np.linspace(0, J, K + 1).round().astype(np.intp)
 
 
+def spatial_folds(positions: Array, K: int, seed: int = 0) -> NDArray[np.intp]:
+    """Fold label of every source: K spatial clusters of the positions (k-means), 0..K'-1.
+
+    The folds of ``cross_validate(split="space")``: each held-out fold is a region of the
+    tag's space rather than a stretch of its time (an alternative evaluated for issue 29,
+    not the default: see docs/design.md). Sources without a finite position go to the fold
+    of the nearest preceding located column (they cannot be scored anyway); empty clusters
+    are dropped (K' <= K).
+
+    Parameters
+    ----------
+    positions : (J, d) array
+        Source positions (m), NaN rows allowed.
+    K : int
+        Number of clusters asked for.
+    seed : int
+        Seed of the k-means++ start (the labels are deterministic for a given seed).
+
+    Returns
+    -------
+    (J,) int array
+        Labels ``0 .. K' - 1``.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> X = np.r_[np.zeros((5, 3)), np.ones((5, 3)) * 10]
+    >>> lab = spatial_folds(X, 2)
+    >>> sorted(np.bincount(lab).tolist()), bool(len(set(lab[:5])) == 1)
+    ([5, 5], True)
+    """
+    from scipy.cluster.vq import kmeans2
+
+    X = np.asarray(positions, float)
+    ok = np.isfinite(X).all(axis=1)
+    lab = np.zeros(X.shape[0], np.intp)
+    if ok.sum() >= K:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            _, l = kmeans2(X[ok], int(K), minit="++", seed=seed)
+        lab[ok] = np.unique(l, return_inverse=True)[1]
+    if not ok.all():
+        idx = np.maximum.accumulate(np.where(ok, np.arange(X.shape[0]), 0))
+        lab[~ok] = lab[idx[~ok]]
+    return lab
+
+
 def cross_validate(
     matrix: Array,
     starts: Mapping[str, tuple[Array, Array, Array | None, Array | None]],
     *,
     solver: str = "auto",
     folds: int | None = None,
+    split: str = "time",
     progress: Any = None,
 ) -> CvChoice:
     """Score offset models by K-fold held-out prediction over the columns and choose one.
@@ -293,6 +474,9 @@ def cross_validate(
         Engine of the refits (:func:`selfcal.toa.engine.nls.refine_toa`).
     folds : int, optional
         K (default from the residual correlation length, see the module docstring).
+    split : str
+        ``"time"`` (default): K contiguous blocks of columns; ``"space"``: K spatial
+        clusters of the simplest model's source positions (:func:`spatial_folds`).
     progress : callable, optional
         Called with ``(done, total)`` after each refit.
 
@@ -333,7 +517,13 @@ def cross_validate(
     L = residual_correlation_length(np.where(np.isfinite(Y), e0, np.nan))
     edges = np.linspace(0, J, int(folds) + 1).round().astype(np.intp) if folds else _folds(J, L)
     K = len(edges) - 1
+    if split == "space":
+        label = spatial_folds(np.asarray(S0, float), K)
+    else:
+        label = np.repeat(np.arange(K), np.diff(edges))
+    K = int(label.max()) + 1
     press: dict[str, Array] = {}
+    refits: dict[str, list[Array]] = {}
     failed: dict[str, str] = {}
     total, done = len(models) * K, 0
     fails = (DegenerateGeometryError, InputError, np.linalg.LinAlgError, ValueError)
@@ -341,8 +531,7 @@ def cross_validate(
         R, S, d, o = starts[m]
         P = np.full((I, J), np.nan)
         for k in range(K):
-            test = np.zeros(J, bool)
-            test[edges[k]:edges[k + 1]] = True
+            test = label == k
             # training sources the model can locate (d + 1 ranges, one more with a source offset)
             need = np.asarray(R).shape[1] + 1 + int(m in ("sources", "both"))
             train = ~test & np.isfinite(np.asarray(S, float)).all(axis=1) & (np.isfinite(Y).sum(axis=0) >= need)
@@ -359,6 +548,7 @@ def cross_validate(
             except fails as exc:
                 failed[m] = f"fold {k}: {exc}"
                 break
+            refits.setdefault(m, []).append(np.asarray(sol.receivers, float))
             _, _, E, H = locate_sources(Y[:, test], sol.receivers, sol.receiver_offsets,
                                         source_offset=m in ("sources", "both"))
             with np.errstate(all="ignore"):
@@ -377,11 +567,11 @@ def cross_validate(
     common = np.logical_and.reduce([np.isfinite(P) for P in press.values()])
     fold_mse: dict[str, list[float]] = {}
     for m, P in press.items():
-        fold_mse[m] = [float(np.mean(P[:, edges[k]:edges[k + 1]][common[:, edges[k]:edges[k + 1]]] ** 2))
-                       if common[:, edges[k]:edges[k + 1]].any() else float("nan") for k in range(K)]
+        fold_mse[m] = [float(np.mean(P[:, label == k][common[:, label == k]] ** 2))
+                       if common[:, label == k].any() else float("nan") for k in range(K)]
     scores = {m: float(np.mean(P[common] ** 2)) if common.any() else float("nan") for m, P in press.items()}
     chosen, best, se = one_se_choice(scores, fold_mse, I, J)
-    return CvChoice(chosen, scores, se, best, K, int(L), int(common.sum()), fold_mse, failed)
+    return CvChoice(chosen, scores, se, best, K, int(L), int(common.sum()), fold_mse, failed, refits)
 
 
 def one_se_choice(scores: Mapping[str, float], fold_scores: Mapping[str, Sequence[float]],
@@ -432,13 +622,18 @@ def located_block(res: Any, sub: Array, scale: float = 1.0) -> tuple[Any, ...]:
 
 
 def choose_receiver_offsets(res: Any, sub: Array, scale: float = 1.0, solver: str = "auto",
-                            progress: Any = None) -> tuple[Any, CvChoice | None]:
-    """Per-receiver offsets (per-anchor ranging biases) kept when they predict held-out sources better.
+                            progress: Any = None, split: str = "time") -> tuple[Any, CvChoice | None]:
+    """Per-receiver offsets (per-anchor ranging biases) kept when they predict held-out sources
+    better and their receivers are expected to be more accurate.
 
     ``res`` is a fit of ``sub`` without per-receiver offsets (``offsets`` "none" or
     "common"); the per-receiver model is refitted from it (the nested start: its offsets
     all equal to ``res``'s) on the entries ``res`` used, and :func:`cross_validate`
-    compares the two on the same entries and folds.
+    compares the two on the same entries and folds. The per-receiver model is kept when
+    the one-SE rule chooses it *and* :func:`anchor_mse` (from the same folds' refits, no
+    extra fit) estimates its receivers' mean squared error below the simple model's:
+    held-out prediction alone prefers offsets that trade against the receivers' radial
+    positions where the tag stays on one side of them (LPS data4). Both are in ``choice``.
 
     Parameters
     ----------
@@ -452,13 +647,16 @@ def choose_receiver_offsets(res: Any, sub: Array, scale: float = 1.0, solver: st
         Engine of the refits (:func:`selfcal.toa.engine.nls.refine_toa`).
     progress : callable, optional
         ``(done, total)`` after each refit.
+    split : str
+        Folds of :func:`cross_validate` (``"time"``, default, or ``"space"``).
 
     Returns
     -------
     (result, choice)
         ``res`` itself, or ``res`` with the per-receiver fit written in
-        (``offsets="receivers"``) when the one-SE rule chooses it; ``choice`` is None when
-        the per-receiver model could not be fitted.
+        (``offsets="receivers"``) when it is kept; ``choice`` (its ``chosen`` the final
+        model, ``anchors`` the :class:`AnchorMse`) is None when the per-receiver model
+        could not be fitted.
     """
     from ..engine.nls import refine_toa
     from .offset_fit import _with_common
@@ -474,7 +672,14 @@ def choose_receiver_offsets(res: Any, sub: Array, scale: float = 1.0, solver: st
         return res, None
     starts = {simple: (R, S, d0, None),
               "receivers": (full.receivers, full.sources, full.receiver_offsets, None)}
-    choice = cross_validate(Z, starts, solver=solver, progress=progress)
+    choice = cross_validate(Z, starts, solver=solver, split=split, progress=progress)
+    # kept only where the receivers are expected to be more accurate too (anchor_mse: held-out
+    # prediction can prefer offsets that trade against the receivers' radial positions)
+    est = anchor_mse(simple, "receivers", starts, choice.refits) if "receivers" in choice.scores else None
+    chosen = choice.chosen
+    if chosen == "receivers" and est is not None and est.rmse["receivers"] >= est.rmse[simple]:
+        chosen = simple
+    choice = dataclasses.replace(choice, chosen=chosen, anchors=est)
     if choice.chosen != "receivers":
         return res, choice
     assert full.receiver_offsets is not None
