@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from selfcal.toa.engine import nls
+from selfcal.toa.engine import model, nls
 from selfcal.toa.engine import schur_lm as sl
 
 CASES = [  # (I, J, offsets, dim, fraction missing)
@@ -31,7 +31,7 @@ def _problem(I: int, J: int, offsets: str, d: int, miss: float, seed: int) -> tu
     lay = nls._make_layout(r0, s0, offsets)
 
     def gauge(t: np.ndarray) -> np.ndarray:
-        return nls.gauge_basis(*nls._unpack(t, I, J, d, offsets)[:2], offsets)
+        return nls.gauge_basis(*model._unpack(t, I, J, d, offsets)[:2], offsets)
 
     return th0, Y, lay, gauge
 

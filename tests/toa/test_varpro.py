@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from selfcal.robust import loss_rho
-from selfcal.toa.engine import dense_lm, nls
+from selfcal.toa.engine import dense_lm, model, nls
 from selfcal.toa.engine.dense_lm import solve_varpro_lm
 
 MODES = ("both", "receivers", "sources")
@@ -65,7 +65,7 @@ def test_varpro_minimum_is_the_joint_lm_minimum(offsets: str, tight: None) -> No
         a = dense_lm.full_lm(th0, Y[ii, jj], ii, jj, I, J, d, offsets, "linear", 1.0, 3000, 1e-15)
         b = solve_varpro_lm(th0, Y[ii, jj], ii, jj, I, J, d, offsets, "linear", 1.0, 3000, 1e-15)
         assert a[1] and b[1]
-        ua, ub = nls._unpack(a[0], I, J, d, offsets), nls._unpack(b[0], I, J, d, offsets)
+        ua, ub = model._unpack(a[0], I, J, d, offsets), model._unpack(b[0], I, J, d, offsets)
         # the observable (modelled ranges) agrees to 1e-8; in the flat directions of the cost
         # that fixes the parameters only to |J dx| / sigma_min(J) (sigma_min the smallest
         # non-gauge singular value): that bound, on the measured model difference, is added to
