@@ -4,9 +4,10 @@ The per-sender TOA matrix ``t_ij = |r_i - s_j| / c + tau_j + delta_i`` (004 eq. 
 :func:`selfcal.toa.solve_toa` with ``offsets="both"``:
 
 - **one model fit by default**: 3-D (or 2-D / 2-D with known heights when asked). With
-  ``dim="auto"`` the 3-D fit's own geometry and covariances decide whether z is resolved
-  (:func:`selfcal.acoustics.geometry.planarity`); only a near-planar verdict (or a 3-D
-  breakdown) fits the 2-D model as well.
+  ``dim="auto"`` a test decides whether z is resolved
+  (:func:`selfcal.toa.verdict.select.dimension_test`, the project's one planarity test: F test
+  of a 2-D fit refined from the 3-D one and the thickness chi-square, level 1e-3); only a
+  near-planar verdict (or a 3-D breakdown) searches and reports the 2-D model.
 - **what the pipeline knows goes in**: the units (a microphone and a loudspeaker in one
   housing, :mod:`selfcal.acoustics.units`) start the search; known heights are a weighted
   least-squares fit (:func:`selfcal.acoustics.geometry.refine_known_heights`, 1 / std per
@@ -38,6 +39,7 @@ from .geometry import (
     planarity,
     refine_known_heights,
 )
+from ..toa.verdict.select import dimension_test
 
 __all__ = ["calibrate_matrix", "refit", "sender_matrix", "n_parameters_of"]
 
@@ -268,10 +270,12 @@ def calibrate_matrix(
 ) -> tuple[dict[str, Any], Planarity | None, list[str]]:
     """Stages 2 + 3 of 004 on an (I, J) per-sender TOA matrix (seconds), one model fit.
 
-    ``dim=3`` fits the 3-D model only. ``dim="auto"`` fits it and checks its own geometry
-    and covariances (:func:`planarity`: thinnest extent below 1 % of the widest or below 3
-    standard deviations along the normal); only a near-planar layout, or a 3-D solve that
-    breaks down while a 2-D one fits, is solved in 2-D as well and reported in 2-D.
+    ``dim="auto"`` and ``dim=3`` fit the 3-D model and test it
+    (:func:`selfcal.toa.verdict.select.dimension_test`: a 2-D fit refined from it, the F test
+    of the two and the chi-square of the 3-D layout's out-of-plane coordinates against its
+    covariances, both at level ``PLANAR_ALPHA`` = 1e-3). A near-planar layout, or a 3-D
+    solve that breaks down while a 2-D one fits, is searched in 2-D and reported in 2-D
+    (``dim="auto"``) or refused (``dim=3``).
 
     Parameters
     ----------
@@ -287,7 +291,7 @@ def calibrate_matrix(
     rng : int
         Seed of the solver's random initialisations.
     alpha : float
-        Unused (kept for the former F-test signature).
+        Unused: the planarity tests run at ``PLANAR_ALPHA`` (kept for the signature).
     noise : float, optional
         Timing-noise std, s: passed to :func:`selfcal.toa.solve_toa`, whose deep search then
         runs when a fit fails the residual test (slow; :func:`selfcal.acoustics.robust_fit.robust_calibrate` passes it only
@@ -339,20 +343,30 @@ def calibrate_matrix(
         return _planar_verdict(res2, plan, msg, dim, notes)
     sided: list[str] = []
     res3 = _resolve_mirrors(T, res3, speed, rng, notes, sided)
-    pts = np.vstack([res3.receivers, res3.sources])
+    keep3, plan, _, _ = dimension_test(T, res3, "both", _toa_solver, speed=speed, rng=rng, noise=noise)
     cov = np.concatenate([np.asarray(res3.receiver_cov), np.asarray(res3.source_cov)])
-    plan = planarity(pts, cov)
-    if not plan.near_planar:
-        notes.append(_z_note(cov, None))
+    if keep3:
+        notes.append(_z_note(cov, plan.comparison))
         sol = _as_solution(res3, "3d")
         sol["one_side"] = sided[0] if sided else None
         return sol, plan, notes
+    cmp = plan.comparison
+    why = ("" if cmp is None else f"3-D vs 2-D F = {cmp.f_statistic:.3g}, p = {cmp.p_value:.2g}; ")
     msg = (f"near-planar layout (thickness {plan.extents[-1]:.3f} m vs extent {plan.extents[0]:.2f} m, "
-           f"normal std {plan.normal_std:.3f} m): z is not determined by the data; {advice}")
+           f"{why}thickness chi-square p = {plan.thickness_p:.2g}; level {PLANAR_ALPHA:g}): "
+           f"z is not determined by the data; {advice}")
     if dim == 3:
         raise DegenerateGeometryError(msg, kind="near-planar")
     res2 = _solve(T, 2, speed, rng, noise=noise, units=units)
     return _planar_verdict(res2, plan, msg, dim, notes)
+
+
+def _toa_solver(M: Array, dim: int, offsets: str, **kw: Any) -> Any:
+    """:func:`selfcal.toa.solve_toa` in the ``solve(M, dim, offsets, **kw)`` form of
+    :func:`selfcal.toa.verdict.select.dimension_test`."""
+    from ..toa.solve import solve_toa
+
+    return solve_toa(M, dim=dim, offsets=offsets, **kw)
 
 
 def _planar_verdict(res2: Any, plan: Planarity, msg: str, dim: int | str,

@@ -1,0 +1,111 @@
+"""Benchmark "planarity rates": how often the one planarity test calls a layout 3-D (issue 30).
+
+The project decides "is z determined, or is the layout (near-)planar?" with one test,
+:func:`selfcal.toa.verdict.select.dimension_test` (``dim="auto"`` of ``solve_toa`` /
+``calibrate toa``, the acoustic pipeline): the F test of a 2-D fit (refined from the 3-D
+one) against the 3-D fit, and the chi-square of the 3-D layout's out-of-plane coordinates
+against its own covariances, both at ``PLANAR_ALPHA`` = 1e-3. This script measures, over
+simulated draws of an 8 x 10 network with both offsets (the pipeline's model: seconds,
+c = 343 m/s, 1 us timing noise = 0.34 mm of range, an 8 x 7 m floor):
+
+- ``generic``: heights uniform in 0-3 m (power: the rate called 3-D should be 1);
+- ``planar``: every height 0 (false alarm: the rate called 3-D should be <= 1e-3);
+- ``near-c``: heights N(0, c sqrt(sigma L)) with ``sigma`` the range noise and ``L`` = 5 m:
+  at a planar truth the 3-D fit bends off the plane by about ``sqrt(sigma L)`` (4 cm here),
+  the scale at which thickness becomes detectable by a fit (c = 0.3, 1, 3).
+
+Per family, the rate called 3-D by: ``new`` (the test), ``chi2`` (the thickness
+chi-square alone, no F test), ``F`` (the F test alone), ``old_pipeline`` (the per-point rule
+the pipeline used before: thickness >= 3 RMS normal stds and >= 1 % of the extent), and
+the median position error against the truth of the answer each rule reports (3-D, or the
+2-D fit compared with the truth's horizontal coordinates after alignment).
+
+Run: ``OPENBLAS_NUM_THREADS=1 PYTHONPATH=src .venv/bin/python benchmarks/planarity_rates.py [draws]``
+(default 40 draws per family; about 0.4 s per draw).
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+import time
+import warnings
+from typing import Any
+
+import numpy as np
+
+C = 343.0
+NOISE = 1e-6  # s
+FAMILIES = ("generic", "planar", "near-0.3", "near-1", "near-3")
+
+
+def draw(family: str, g: np.random.Generator, I: int = 8, J: int = 10) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Receivers, senders (m) and the TOA matrix (s) of one draw."""
+    R = np.c_[g.uniform(0, 8, I), g.uniform(0, 7, I), np.zeros(I)]
+    S = np.c_[g.uniform(0, 8, J), g.uniform(0, 7, J), np.zeros(J)]
+    if family == "generic":
+        R[:, 2], S[:, 2] = g.uniform(0, 3, I), g.uniform(0, 3, J)
+    elif family.startswith("near-"):
+        h = float(family[5:]) * np.sqrt(NOISE * C * 5.0)
+        R[:, 2], S[:, 2] = g.normal(0, h, I), g.normal(0, h, J)
+    D = np.linalg.norm(R[:, None] - S[None], axis=-1)
+    T = D / C + g.uniform(0, 0.02, I)[:, None] + g.uniform(0, 0.03, J)[None] + g.normal(0, NOISE, (I, J))
+    return R, S, T
+
+
+def _error(res: Any, R: np.ndarray, S: np.ndarray) -> float:
+    from selfcal.geometry import align
+
+    est = np.vstack([res.receivers, res.sources])
+    true = np.vstack([R, S])[:, : est.shape[1]]
+    ok = np.isfinite(est).all(axis=1)
+    return float(np.median(np.linalg.norm(align(est[ok], true[ok], reflection=True).apply(est[ok]) - true[ok], axis=1)))
+
+
+def one(family: str, seed: int) -> dict[str, Any]:
+    """The decisions of every rule on one draw."""
+    from selfcal.errors import DegenerateGeometryError
+    from selfcal.toa import solve_toa
+    from selfcal.toa.verdict.select import PLANAR_ALPHA, dimension_test
+
+    def solver(M: np.ndarray, dim: int, offsets: str, **kw: Any) -> Any:
+        return solve_toa(M, dim=dim, offsets=offsets, **kw)
+
+    g = np.random.default_rng(seed)
+    R, S, T = draw(family, g)
+    try:
+        r3 = solve_toa(T, dim=3, offsets="both", speed=C, rng=seed)
+    except DegenerateGeometryError:
+        return {"degenerate": True}
+    keep3, pl, r2, _ = dimension_test(T, r3, "both", solver, speed=C, rng=seed)
+    cmp = pl.comparison
+    old_flat = bool(pl.extents[-1] < 0.01 * pl.extents[0] or pl.extents[-1] < 3.0 * pl.normal_std)
+    e3 = _error(r3, R, S)
+    e2 = _error(r2, R, S) if r2 is not None else float("nan")
+    return {"degenerate": False, "new": bool(keep3), "chi2": bool(pl.thickness_p <= PLANAR_ALPHA),
+            "F": bool(cmp is not None and cmp.significant), "old_pipeline": not old_flat,
+            "err3": e3, "err2": e2}
+
+
+def main(draws: int = 40) -> dict[str, Any]:
+    """Rates over ``draws`` seeds per family; prints and returns them."""
+    warnings.simplefilter("ignore")
+    out: dict[str, Any] = {}
+    t0 = time.process_time()
+    for fam in FAMILIES:
+        rows = [one(fam, 1000 * FAMILIES.index(fam) + s) for s in range(draws)]
+        ok = [r for r in rows if not r["degenerate"]]
+        summary: dict[str, Any] = {"draws": draws, "degenerate_3d": draws - len(ok)}
+        for rule in ("new", "chi2", "F", "old_pipeline"):
+            summary[f"{rule}_called_3d"] = sum(r[rule] for r in ok)
+        for rule in ("new", "old_pipeline"):
+            errs = [r["err3"] if r[rule] else r["err2"] for r in ok]
+            summary[f"{rule}_median_error_m"] = float(np.nanmedian(errs)) if errs else None
+        out[fam] = summary
+        print(fam, json.dumps(summary), flush=True)
+    out["cpu_s"] = time.process_time() - t0
+    return out
+
+
+if __name__ == "__main__":
+    main(int(sys.argv[1]) if len(sys.argv) > 1 else 40)
