@@ -15,15 +15,20 @@ c = 343 m/s, 1 us timing noise = 0.34 mm of range, an 8 x 7 m floor):
   the scale at which thickness becomes detectable by a fit (c = 0.3, 1, 3).
 
 Per family, the rate called 3-D by: ``new`` (the test), ``chi2`` (the thickness
-chi-square alone, no F test), ``F`` (the F test alone), ``old_pipeline`` (the per-point rule
+chi-square alone, no F test), ``F`` (the F test alone), ``F_known_noise`` (the same
+likelihood ratio against the true noise variance, chi-square(n - 3)), ``old_pipeline`` (the per-point rule
 the pipeline used before: thickness >= 3 RMS normal stds and >= 1 % of the extent), and
 for the answer each rule reports (3-D, or the 2-D fit): the median node error against the
 truth (a 2-D answer's includes the height it does not report: each node's distance from the
 truth's best plane) and the number of draws with a node outside 3 of its own error bars
 (squared Mahalanobis distance of the reported coordinates above chi-square(d)'s 0.9973 quantile).
 
-Run: ``OPENBLAS_NUM_THREADS=1 PYTHONPATH=src .venv/bin/python benchmarks/planarity_rates.py [draws]``
-(default 40 draws per family; about 0.4 s per draw).
+``plan`` (:func:`plan_vs_calibration`): ``selfcal plan``'s named "anchor-mirror" against the
+ambiguous anchors the calibration's uniqueness test lists on simulated ranges of the plan.
+
+Run: ``OPENBLAS_NUM_THREADS=1 PYTHONPATH=src .venv/bin/python benchmarks/planarity_rates.py [draws [families] | plan]``
+(default 40 draws of every family; families comma-separated, e.g. ``200 planar``; about
+0.6 s per draw).
 """
 
 from __future__ import annotations
@@ -35,6 +40,7 @@ import warnings
 from typing import Any
 
 import numpy as np
+import scipy.stats
 
 C = 343.0
 NOISE = 1e-6  # s
@@ -103,24 +109,27 @@ def one(family: str, seed: int) -> dict[str, Any]:
         return {"degenerate": True}
     keep3, pl, r2, _ = dimension_test(T, r3, "both", solver, speed=C, rng=seed)
     cmp = pl.comparison
+    # the same likelihood ratio against the true noise variance: chi-square(k)
+    known = bool(cmp is not None and scipy.stats.chi2.sf(
+        cmp.observations * (cmp.residual_2d**2 - cmp.residual_3d**2) / NOISE**2, cmp.extra_parameters) <= PLANAR_ALPHA)
     old_flat = bool(pl.extents[-1] < 0.01 * pl.extents[0] or pl.extents[-1] < 3.0 * pl.normal_std)
     e3, out3 = _error(r3, R, S)
     e2, out2 = _error(r2, R, S) if r2 is not None else (float("nan"), False)
     return {"degenerate": False, "new": bool(keep3), "chi2": bool(pl.thickness_p <= PLANAR_ALPHA),
-            "F": bool(cmp is not None and cmp.significant), "old_pipeline": not old_flat,
+            "F": bool(cmp is not None and cmp.significant), "F_known_noise": known, "old_pipeline": not old_flat,
             "err3": e3, "err2": e2, "out3": out3, "out2": out2}
 
 
-def main(draws: int = 40) -> dict[str, Any]:
+def main(draws: int = 40, families: tuple[str, ...] = FAMILIES) -> dict[str, Any]:
     """Rates over ``draws`` seeds per family; prints and returns them."""
     warnings.simplefilter("ignore")
     out: dict[str, Any] = {}
     t0 = time.process_time()
-    for fam in FAMILIES:
+    for fam in families:
         rows = [one(fam, 1000 * FAMILIES.index(fam) + s) for s in range(draws)]
         ok = [r for r in rows if not r["degenerate"]]
         summary: dict[str, Any] = {"draws": draws, "degenerate_3d": draws - len(ok)}
-        for rule in ("new", "chi2", "F", "old_pipeline"):
+        for rule in ("new", "chi2", "F", "F_known_noise", "old_pipeline"):
             summary[f"{rule}_called_3d"] = sum(r[rule] for r in ok)
         for rule in ("new", "old_pipeline"):
             errs = [r["err3"] if r[rule] else r["err2"] for r in ok]
@@ -132,5 +141,47 @@ def main(draws: int = 40) -> dict[str, Any]:
     return out
 
 
+
+
+def plan_vs_calibration(amplitudes: tuple[float, ...] = (0.03, 0.1, 0.3), draws: int = 5) -> list[dict[str, Any]]:
+    """``selfcal plan``'s "anchor-mirror" against what a calibration of the planned flight sees.
+
+    The layout of ``tests/toa/test_plan.py`` (7 anchors, 150 tag positions whose height
+    varies by +-``amplitude`` m about 1.2 m), 5 cm range noise, per-anchor biases of
+    0.1 m std: the plan's verdict (the thickness chi-square with the CRLB, and the 1 %
+    rule it replaced) against the uniqueness test of ``solve_toa(offsets="receivers")`` on
+    simulated ranges (anchors it lists as ambiguous).
+    Run: ``... benchmarks/planarity_rates.py plan``.
+    """
+    from selfcal.toa import solve_toa
+    from selfcal.toa.plan import layout_ambiguities, plan_layout
+
+    warnings.simplefilter("ignore")
+    rows = []
+    for amp in amplitudes:
+        for seed in range(draws):
+            g = np.random.default_rng(seed)
+            A = np.array([[0.2, 0.2, 2.8], [7.8, 0.3, 2.7], [7.7, 5.8, 2.85], [0.3, 5.7, 2.75], [4.0, 0.2, 2.9],
+                          [4.1, 5.8, 1.2], [0.2, 3.0, 0.4]]) + g.uniform(-0.1, 0.1, (7, 3))
+            t = np.linspace(0, 1, 150)
+            f = g.uniform(1, 3, 3)
+            P = np.c_[4 + 3 * np.sin(2 * np.pi * f[0] * t), 3 + 2.3 * np.sin(2 * np.pi * f[1] * t + 1),
+                      1.2 + amp * np.sin(2 * np.pi * f[2] * t)]
+            named = "anchor-mirror" in [a.kind for a in plan_layout(A, P, noise=0.05, room=(8, 6, 3)).ambiguities]
+            named_old = "anchor-mirror" in [a.kind for a in layout_ambiguities(A, P)]
+            n = np.random.default_rng(100 + seed)
+            Y = (np.linalg.norm(A[:, None] - P[None], axis=-1) + n.normal(0, 0.05, (7, 150))
+                 + n.normal(0, 0.1, (7, 1)))
+            res = solve_toa(Y, dim=3, offsets="receivers", rng=seed)
+            row = {"amplitude": amp, "seed": seed, "plan_named": named, "ratio_rule_named": named_old,
+                   "calibration_ambiguous_anchors": int(np.asarray(res.ambiguous_receivers).sum())}
+            print(json.dumps(row), flush=True)
+            rows.append(row)
+    return rows
+
+
 if __name__ == "__main__":
-    main(int(sys.argv[1]) if len(sys.argv) > 1 else 40)
+    if sys.argv[1:2] == ["plan"]:
+        plan_vs_calibration()
+    else:
+        main(int(sys.argv[1]) if len(sys.argv) > 1 else 40, tuple(sys.argv[2].split(",")) if len(sys.argv) > 2 else FAMILIES)

@@ -154,14 +154,14 @@ def test_boundary_desks_give_2d_or_z_within_its_error_bars(tmp_path):
 
     The one planarity test (``dimension_test``: F test of a 2-D fit against the 3-D one and
     the chi-square of the out-of-plane coordinates, level 1e-3) decides. On this recording
-    (7 mm thick at 0.12 us timing noise, 0.04 mm of range) both reject the plane by tens of
-    orders of magnitude (F = 1.6e4, p = 1e-44: a microphone 5-15 cm from a loudspeaker
-    resolves its height from it), so z is reported; the side of the (exactly coplanar)
-    loudspeakers' plane a microphone is on stays open, and the uniqueness test lists the
-    units whose mirror fits as well. (The per-point rule it replaced, thickness under 3 RMS
-    normal stds, refused z here.) Whichever way the test goes: a refusal of ``--dim 3``
-    comes with the 2-D answer under ``--dim auto``, and a 3-D answer has no unit outside
-    3 x its error bar that it does not list as ambiguous.
+    (7 mm thick, 0.12 us timing noise) the F test does not reject the plane (F = 3.2,
+    p = 0.004) while the chi-square alone would (p = 6e-13: the 3-D fit bends off the plane
+    beyond its linearised error bars), so ``--dim 3`` is refused and ``--dim auto`` reports
+    2-D, as under the per-point rule it replaced. (With the 2-D refinement started from
+    offsets 343 times too large, F was 1.6e4 and z was reported.) The test holds whichever
+    way a layout this thin goes: a refusal of ``--dim 3`` comes with the 2-D answer under
+    ``--dim auto``, and a 3-D answer has no unit outside 3 x its error bar that it does not
+    list as ambiguous.
     """
     rec = tmp_path / "rec"
     _simulate(rec, "boundary")
