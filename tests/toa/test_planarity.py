@@ -10,6 +10,7 @@ Used by ``dim="auto"`` (``solve_toa``, ``calibrate toa``), the acoustic pipeline
 - on fitted layouts, the F test of the 2-D fit against the 3-D one: planar truths stay 2-D
   (the chi-square alone calls most of them resolved: the 3-D fit bends off a planar truth by
   about ``sqrt(noise x extent)``, beyond its linearised error bars), generic 3-D layouts 3-D.
+  At a planar truth the F test's rate exceeds its nominal level (4 %, see the slow test).
 """
 
 from __future__ import annotations
@@ -135,10 +136,11 @@ def test_generic_layouts_are_3d(seed):
 
 @pytest.mark.slow
 def test_planar_false_alarm_and_generic_power_over_many_draws():
-    """100 planar and 100 generic draws: at most 2 planar draws called 3-D (level 1e-3: 0.1
-    expected; 2 allows for the F test's approximate null at a planar truth, where the 3-D
-    model is not regular) and every generic draw 3-D (benchmarks/planarity_rates.py: 0 of
-    40 / 40 of 40)."""
+    """100 planar and 100 generic draws: at most 10 planar draws called 3-D and every
+    generic draw 3-D. The bound is not the nominal 1e-3: at a planar truth the 3-D model is
+    not regular and the F test's likelihood ratio has heavier tails than F(k, dof)
+    (benchmarks/planarity_rates.py: 8 of 200 planar draws, 4 %; 10 of 100 has probability
+    0.2 % at that rate); the per-point rule it replaced called 39 of 200 3-D."""
     planar3 = sum(_decide(3000 + s, True)[0] for s in range(100))
     generic3 = sum(_decide(4000 + s, False)[0] for s in range(100))
-    assert planar3 <= 2 and generic3 == 100
+    assert planar3 <= 10 and generic3 == 100
