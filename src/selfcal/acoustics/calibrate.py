@@ -87,24 +87,52 @@ def _solve_retrying(T: Array, speed: float, rng: int, attempts: int = 3, noise: 
     raise AssertionError("unreachable")  # pragma: no cover
 
 
-def _resolve_mirrors(T: Array, res: Any, speed: float, rng: int, notes: list[str], sided: list[str]) -> Any:
-    """Apply :func:`one_side_of_plane` when receivers or senders alone are (near-)coplanar.
+def _mirror_matches(X: Array, alt: Array, amb: NDArray[np.bool_], plane_points: Array) -> NDArray[np.bool_]:
+    """The ambiguous nodes whose alternative position is their mirror image through the plane
+    of ``plane_points`` (within half the distance the alternative moves them)."""
+    P = plane_points[np.isfinite(plane_points).all(axis=1)]
+    ok = np.asarray(amb, bool) & np.isfinite(X).all(axis=1) & np.isfinite(alt).all(axis=1)
+    if len(P) < 3 or not ok.any():
+        return np.zeros(len(X), bool)
+    c = P.mean(axis=0)
+    n = np.linalg.svd(P - c, full_matrices=False)[2][-1]
+    mirror = X - 2.0 * ((X - c) @ n)[:, None] * n[None, :]
+    with np.errstate(invalid="ignore"):
+        near = np.linalg.norm(alt - mirror, axis=1) <= 0.5 * np.linalg.norm(alt - X, axis=1)
+    return ok & near
 
-    The side put in order (``"receivers"`` or ``"sources"``) is appended to ``sided``: their
-    flips through the coplanar partners' plane are resolved by this stated rule, not by the data.
+
+def _resolve_mirrors(T: Array, res: Any, speed: float, rng: int, notes: list[str], sided: list[str]) -> Any:
+    """Apply :func:`one_side_of_plane` to the units whose side of their partners' plane the data leave open.
+
+    Which units those are is the TOA solver's own flip test
+    (:mod:`selfcal.toa.verdict.uniqueness`: a node whose partners are (nearly) coplanar is
+    reflected through their plane, refitted and compared by a likelihood-ratio test at
+    1e-3), not a separate planarity rule: when it lists a microphone whose alternative is
+    its mirror image through the loudspeakers' plane, the loudspeakers are coplanar within
+    the noise and every microphone is put on the side of their majority (004's convention:
+    microphones above their desk loudspeakers); if none, the same for loudspeakers through
+    the microphones' plane. The side put in order
+    (``"receivers"`` or ``"sources"``) is appended to ``sided``: their flips through the
+    partners' plane are resolved by this stated rule, not by the data.
     """
     r, s = np.asarray(res.receivers, float), np.asarray(res.sources, float)
     rc, sc = np.asarray(res.receiver_cov, float), np.asarray(res.source_cov, float)
-    flipped = 0
-    if planarity(s, sc).near_planar and not planarity(r, rc).near_planar:
+    u = getattr(res, "uniqueness", None)
+    if u is None:
+        return res
+    on_r = _mirror_matches(r, np.asarray(u.receiver_alternatives, float), res.ambiguous_receivers, s)
+    on_s = _mirror_matches(s, np.asarray(u.source_alternatives, float), res.ambiguous_sources, r)
+    if on_r.any():
         r, rc, flipped = one_side_of_plane(r, rc, s)
-        what = "microphones", "loudspeakers"
-    elif planarity(r, rc).near_planar and not planarity(s, sc).near_planar:
+        what, k = ("microphones", "loudspeakers"), int(on_r.sum())
+    elif on_s.any():
         s, sc, flipped = one_side_of_plane(s, sc, r)
-        what = "loudspeakers", "microphones"
+        what, k = ("loudspeakers", "microphones"), int(on_s.sum())
     else:
         return res
-    notes.append(f"the {what[1]} are coplanar, so each {what[0][:-1]}'s side of their plane is not observable; "
+    notes.append(f"the {what[1]} are coplanar within the noise ({k} {what[0]}' mirror images through their plane fit "
+                 f"as well: flip test, level 1e-3), so each {what[0][:-1]}'s side of their plane is not observable; "
                  f"all {what[0]} were put on one side ({flipped} reflected)")
     dr, ds = np.asarray(res.receiver_offsets, float), np.asarray(res.source_offsets, float)
     if flipped and all(np.isfinite(a).all() for a in (r, s, dr, ds)):
