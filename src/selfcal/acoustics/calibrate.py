@@ -31,6 +31,7 @@ from ..errors import DegenerateGeometryError, InputError
 from ..geometry import n_parameters
 from ..requirements import TIMING_REQUIREMENT
 from ..robust import TUNING, loss_rho
+from ..toa.verdict.select import dimension_test
 from .geometry import (
     PLANAR_ALPHA,
     ModelComparison,
@@ -39,7 +40,6 @@ from .geometry import (
     planarity,
     refine_known_heights,
 )
-from ..toa.verdict.select import dimension_test
 
 __all__ = ["calibrate_matrix", "refit", "sender_matrix", "n_parameters_of"]
 
