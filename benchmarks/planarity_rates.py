@@ -143,14 +143,17 @@ def main(draws: int = 40, families: tuple[str, ...] = FAMILIES) -> dict[str, Any
 
 
 
-def plan_vs_calibration(amplitudes: tuple[float, ...] = (0.03, 0.1, 0.3), draws: int = 5) -> list[dict[str, Any]]:
+def plan_vs_calibration(amplitudes: tuple[float, ...] = (0.03, 0.1, 0.3), anchor_stds: tuple[float, ...] = (0.05, 0.2),
+                        draws: int = 5) -> list[dict[str, Any]]:
     """``selfcal plan``'s "anchor-mirror" against what a calibration of the planned flight sees.
 
     The layout of ``tests/toa/test_plan.py`` (7 anchors, 150 tag positions whose height
     varies by +-``amplitude`` m about 1.2 m), 5 cm range noise, per-anchor biases of
     0.1 m std: the plan's verdict (the thickness chi-square with the CRLB, and the 1 %
     rule it replaced) against the uniqueness test of ``solve_toa(offsets="receivers")`` on
-    simulated ranges (anchors it lists as ambiguous).
+    simulated ranges (anchors it lists as ambiguous). Then the same with the path of the
+    test (heights 1.2 +- 0.6 m) and the anchors' heights 2.8 m + N(0, ``anchor_std``):
+    "tag-mirror" against the tag positions the calibration lists as ambiguous.
     Run: ``... benchmarks/planarity_rates.py plan``.
     """
     from selfcal.toa import solve_toa
@@ -158,7 +161,8 @@ def plan_vs_calibration(amplitudes: tuple[float, ...] = (0.03, 0.1, 0.3), draws:
 
     warnings.simplefilter("ignore")
     rows = []
-    for amp in amplitudes:
+    cases = [("path", a) for a in amplitudes] + [("anchors", a) for a in anchor_stds]
+    for what, amp in cases:
         for seed in range(draws):
             g = np.random.default_rng(seed)
             A = np.array([[0.2, 0.2, 2.8], [7.8, 0.3, 2.7], [7.7, 5.8, 2.85], [0.3, 5.7, 2.75], [4.0, 0.2, 2.9],
@@ -166,15 +170,20 @@ def plan_vs_calibration(amplitudes: tuple[float, ...] = (0.03, 0.1, 0.3), draws:
             t = np.linspace(0, 1, 150)
             f = g.uniform(1, 3, 3)
             P = np.c_[4 + 3 * np.sin(2 * np.pi * f[0] * t), 3 + 2.3 * np.sin(2 * np.pi * f[1] * t + 1),
-                      1.2 + amp * np.sin(2 * np.pi * f[2] * t)]
-            named = "anchor-mirror" in [a.kind for a in plan_layout(A, P, noise=0.05, room=(8, 6, 3)).ambiguities]
-            named_old = "anchor-mirror" in [a.kind for a in layout_ambiguities(A, P)]
+                      1.2 + (amp if what == "path" else 0.6) * np.sin(2 * np.pi * f[2] * t)]
+            if what == "anchors":
+                A[:, 2] = 2.8 + amp * g.standard_normal(7)
+            kind = "anchor-mirror" if what == "path" else "tag-mirror"
+            named = kind in [a.kind for a in plan_layout(A, P, noise=0.05, room=(8, 6, 3)).ambiguities]
+            named_old = kind in [a.kind for a in layout_ambiguities(A, P)]
             n = np.random.default_rng(100 + seed)
             Y = (np.linalg.norm(A[:, None] - P[None], axis=-1) + n.normal(0, 0.05, (7, 150))
                  + n.normal(0, 0.1, (7, 1)))
             res = solve_toa(Y, dim=3, offsets="receivers", rng=seed)
-            row = {"amplitude": amp, "seed": seed, "plan_named": named, "ratio_rule_named": named_old,
-                   "calibration_ambiguous_anchors": int(np.asarray(res.ambiguous_receivers).sum())}
+            row = {"varied": what, "std_or_amplitude": amp, "seed": seed, "plan_named": kind if named else None,
+                   "ratio_rule_named": kind if named_old else None,
+                   "calibration_ambiguous_anchors": int(np.asarray(res.ambiguous_receivers).sum()),
+                   "calibration_ambiguous_tags": int(np.asarray(res.ambiguous_sources).sum())}
             print(json.dumps(row), flush=True)
             rows.append(row)
     return rows
