@@ -4,9 +4,10 @@ The per-sender TOA matrix ``t_ij = |r_i - s_j| / c + tau_j + delta_i`` (004 eq. 
 :func:`selfcal.toa.solve_toa` with ``offsets="both"``:
 
 - **one model fit by default**: 3-D (or 2-D / 2-D with known heights when asked). With
-  ``dim="auto"`` the 3-D fit's own geometry and covariances decide whether z is resolved
-  (:func:`selfcal.acoustics.geometry.planarity`); only a near-planar verdict (or a 3-D
-  breakdown) fits the 2-D model as well.
+  ``dim="auto"`` a test decides whether z is resolved
+  (:func:`selfcal.toa.verdict.select.dimension_test`, the project's one planarity test: F test
+  of a 2-D fit refined from the 3-D one and the thickness chi-square, level 1e-3); only a
+  near-planar verdict (or a 3-D breakdown) searches and reports the 2-D model.
 - **what the pipeline knows goes in**: the units (a microphone and a loudspeaker in one
   housing, :mod:`selfcal.acoustics.units`) start the search; known heights are a weighted
   least-squares fit (:func:`selfcal.acoustics.geometry.refine_known_heights`, 1 / std per
@@ -30,6 +31,7 @@ from ..errors import DegenerateGeometryError, InputError
 from ..geometry import n_parameters
 from ..requirements import TIMING_REQUIREMENT
 from ..robust import TUNING, loss_rho
+from ..toa.verdict.select import dimension_test
 from .geometry import (
     PLANAR_ALPHA,
     ModelComparison,
@@ -85,24 +87,52 @@ def _solve_retrying(T: Array, speed: float, rng: int, attempts: int = 3, noise: 
     raise AssertionError("unreachable")  # pragma: no cover
 
 
-def _resolve_mirrors(T: Array, res: Any, speed: float, rng: int, notes: list[str], sided: list[str]) -> Any:
-    """Apply :func:`one_side_of_plane` when receivers or senders alone are (near-)coplanar.
+def _mirror_matches(X: Array, alt: Array, amb: NDArray[np.bool_], plane_points: Array) -> NDArray[np.bool_]:
+    """The ambiguous nodes whose alternative position is their mirror image through the plane
+    of ``plane_points`` (within half the distance the alternative moves them)."""
+    P = plane_points[np.isfinite(plane_points).all(axis=1)]
+    ok = np.asarray(amb, bool) & np.isfinite(X).all(axis=1) & np.isfinite(alt).all(axis=1)
+    if len(P) < 3 or not ok.any():
+        return np.zeros(len(X), bool)
+    c = P.mean(axis=0)
+    n = np.linalg.svd(P - c, full_matrices=False)[2][-1]
+    mirror = X - 2.0 * ((X - c) @ n)[:, None] * n[None, :]
+    with np.errstate(invalid="ignore"):
+        near = np.linalg.norm(alt - mirror, axis=1) <= 0.5 * np.linalg.norm(alt - X, axis=1)
+    return ok & near
 
-    The side put in order (``"receivers"`` or ``"sources"``) is appended to ``sided``: their
-    flips through the coplanar partners' plane are resolved by this stated rule, not by the data.
+
+def _resolve_mirrors(T: Array, res: Any, speed: float, rng: int, notes: list[str], sided: list[str]) -> Any:
+    """Apply :func:`one_side_of_plane` to the units whose side of their partners' plane the data leave open.
+
+    Which units those are is the TOA solver's own flip test
+    (:mod:`selfcal.toa.verdict.uniqueness`: a node whose partners are (nearly) coplanar is
+    reflected through their plane, refitted and compared by a likelihood-ratio test at
+    1e-3), not a separate planarity rule: when it lists a microphone whose alternative is
+    its mirror image through the loudspeakers' plane, the loudspeakers are coplanar within
+    the noise and every microphone is put on the side of their majority (004's convention:
+    microphones above their desk loudspeakers); if none, the same for loudspeakers through
+    the microphones' plane. The side put in order
+    (``"receivers"`` or ``"sources"``) is appended to ``sided``: their flips through the
+    partners' plane are resolved by this stated rule, not by the data.
     """
     r, s = np.asarray(res.receivers, float), np.asarray(res.sources, float)
     rc, sc = np.asarray(res.receiver_cov, float), np.asarray(res.source_cov, float)
-    flipped = 0
-    if planarity(s, sc).near_planar and not planarity(r, rc).near_planar:
+    u = getattr(res, "uniqueness", None)
+    if u is None:
+        return res
+    on_r = _mirror_matches(r, np.asarray(u.receiver_alternatives, float), res.ambiguous_receivers, s)
+    on_s = _mirror_matches(s, np.asarray(u.source_alternatives, float), res.ambiguous_sources, r)
+    if on_r.any():
         r, rc, flipped = one_side_of_plane(r, rc, s)
-        what = "microphones", "loudspeakers"
-    elif planarity(r, rc).near_planar and not planarity(s, sc).near_planar:
+        what, k = ("microphones", "loudspeakers"), int(on_r.sum())
+    elif on_s.any():
         s, sc, flipped = one_side_of_plane(s, sc, r)
-        what = "loudspeakers", "microphones"
+        what, k = ("loudspeakers", "microphones"), int(on_s.sum())
     else:
         return res
-    notes.append(f"the {what[1]} are coplanar, so each {what[0][:-1]}'s side of their plane is not observable; "
+    notes.append(f"the {what[1]} are coplanar within the noise ({k} {what[0]}' mirror images through their plane fit "
+                 f"as well: flip test, level 1e-3), so each {what[0][:-1]}'s side of their plane is not observable; "
                  f"all {what[0]} were put on one side ({flipped} reflected)")
     dr, ds = np.asarray(res.receiver_offsets, float), np.asarray(res.source_offsets, float)
     if flipped and all(np.isfinite(a).all() for a in (r, s, dr, ds)):
@@ -268,10 +298,12 @@ def calibrate_matrix(
 ) -> tuple[dict[str, Any], Planarity | None, list[str]]:
     """Stages 2 + 3 of 004 on an (I, J) per-sender TOA matrix (seconds), one model fit.
 
-    ``dim=3`` fits the 3-D model only. ``dim="auto"`` fits it and checks its own geometry
-    and covariances (:func:`planarity`: thinnest extent below 1 % of the widest or below 3
-    standard deviations along the normal); only a near-planar layout, or a 3-D solve that
-    breaks down while a 2-D one fits, is solved in 2-D as well and reported in 2-D.
+    ``dim="auto"`` and ``dim=3`` fit the 3-D model and test it
+    (:func:`selfcal.toa.verdict.select.dimension_test`: a 2-D fit refined from it, the F test
+    of the two and the chi-square of the 3-D layout's out-of-plane coordinates against its
+    covariances, both at level ``PLANAR_ALPHA`` = 1e-3). A near-planar layout, or a 3-D
+    solve that breaks down while a 2-D one fits, is searched in 2-D and reported in 2-D
+    (``dim="auto"``) or refused (``dim=3``).
 
     Parameters
     ----------
@@ -287,7 +319,7 @@ def calibrate_matrix(
     rng : int
         Seed of the solver's random initialisations.
     alpha : float
-        Unused (kept for the former F-test signature).
+        Unused: the planarity tests run at ``PLANAR_ALPHA`` (kept for the signature).
     noise : float, optional
         Timing-noise std, s: passed to :func:`selfcal.toa.solve_toa`, whose deep search then
         runs when a fit fails the residual test (slow; :func:`selfcal.acoustics.robust_fit.robust_calibrate` passes it only
@@ -339,20 +371,43 @@ def calibrate_matrix(
         return _planar_verdict(res2, plan, msg, dim, notes)
     sided: list[str] = []
     res3 = _resolve_mirrors(T, res3, speed, rng, notes, sided)
-    pts = np.vstack([res3.receivers, res3.sources])
+    keep3, plan, _, _ = dimension_test(T, res3, "both", _toa_solver(rng), _toa_options(speed, noise))
     cov = np.concatenate([np.asarray(res3.receiver_cov), np.asarray(res3.source_cov)])
-    plan = planarity(pts, cov)
-    if not plan.near_planar:
-        notes.append(_z_note(cov, None))
+    if keep3:
+        notes.append(_z_note(cov, plan.comparison))
         sol = _as_solution(res3, "3d")
         sol["one_side"] = sided[0] if sided else None
         return sol, plan, notes
+    cmp = plan.comparison
+    why = ("" if cmp is None else f"3-D vs 2-D F = {cmp.f_statistic:.3g}, p = {cmp.p_value:.2g}; ")
     msg = (f"near-planar layout (thickness {plan.extents[-1]:.3f} m vs extent {plan.extents[0]:.2f} m, "
-           f"normal std {plan.normal_std:.3f} m): z is not determined by the data; {advice}")
+           f"{why}thickness chi-square p = {plan.thickness_p:.2g}; level {PLANAR_ALPHA:g}): "
+           f"z is not determined by the data; {advice}")
     if dim == 3:
         raise DegenerateGeometryError(msg, kind="near-planar")
     res2 = _solve(T, 2, speed, rng, noise=noise, units=units)
     return _planar_verdict(res2, plan, msg, dim, notes)
+
+
+def _toa_solver(rng: int) -> Any:
+    """:func:`selfcal.toa.solve_toa` in the ``solve(M, dim, offsets, opts, init=...)`` form of
+    :func:`selfcal.toa.verdict.select.dimension_test` (every call seeded with ``rng``)."""
+    from ..toa.solve import solve_toa
+
+    def solve(M: Array, dim: int, offsets: str, opts: Any, init: Any = "auto") -> Any:
+        return solve_toa(M, dim=dim, offsets=offsets, speed=opts.speed, rng=rng, noise=opts.noise,
+                         method=opts.method, init=init)
+
+    return solve
+
+
+def _toa_options(speed: float, noise: float | None) -> Any:
+    """The options :func:`_toa_solver` reads (speed, noise: the user's units, as
+    :func:`selfcal.toa.solve_toa` takes them; method "auto"), the rest at solve_toa's defaults."""
+    from ..toa.options import ToaOptions
+
+    return ToaOptions(speed=speed, loss="auto", method="auto", rng=np.random.default_rng(0), f_scale=None,
+                      max_nfev=None, covariance=True, sweep=True, noise=noise, budget=None)
 
 
 def _planar_verdict(res2: Any, plan: Planarity, msg: str, dim: int | str,

@@ -5,11 +5,12 @@ self-calibration ill-posed: each point may be mirrored through the plane without
 any distance to first order, so z is undetermined. This module holds the tests and the
 fallbacks the calibration (:mod:`selfcal.acoustics.calibrate`) uses:
 
-- :func:`planarity`: is the layout thinner than its own position uncertainty (or 1 % of
-  its extent)? Judged on one 3-D fit's geometry and covariances (re-exported from
-  :mod:`selfcal.toa.verdict.select`, the TOA package's model choice).
-- :func:`compare_fits`: nested-model F test of a 3-D against a 2-D fit (likewise; the
-  pipeline no longer fits both models by default).
+- :func:`planarity`: the project's one planarity decision (re-exported from
+  :mod:`selfcal.toa.verdict.select`, the TOA package's ``dim="auto"``): the F test of a 2-D
+  fit against the 3-D one and the chi-square of the 3-D fit's out-of-plane coordinates
+  against its covariances, both at level :data:`PLANAR_ALPHA`
+  (:func:`selfcal.toa.verdict.select.dimension_test` runs it on a fit).
+- :func:`compare_fits`: that nested-model F test (likewise).
 - :func:`one_side_of_plane`: the microphone-side convention when only the loudspeakers are
   coplanar.
 - :func:`refine_known_heights`: horizontal positions and offsets with every z given (the TOA
@@ -30,7 +31,6 @@ from ..errors import InputError
 from ..toa.verdict.select import (  # one implementation: the TOA package's model choice (dim="auto")
     PLANAR_ALPHA,
     PLANAR_RATIO,
-    PLANAR_SIGMAS,
     ModelComparison,
     Planarity,
     compare_fits,
@@ -38,7 +38,7 @@ from ..toa.verdict.select import (  # one implementation: the TOA package's mode
 )
 
 __all__ = ["Planarity", "ModelComparison", "planarity", "compare_fits", "one_side_of_plane",
-           "read_heights", "refine_known_heights", "PLANAR_RATIO", "PLANAR_SIGMAS", "PLANAR_ALPHA"]
+           "read_heights", "refine_known_heights", "PLANAR_RATIO", "PLANAR_ALPHA"]
 
 Array = NDArray[np.float64]
 

@@ -16,8 +16,10 @@ tag would log) can reach, from the same machinery as the solver:
   (:func:`layout_ambiguities`): a tag path in one plane (one height) leaves each anchor
   determined only up to its mirror image through that plane; coplanar anchors leave each
   tag position determined only up to its mirror image through theirs. Planarity is the
-  solver's own rule (:func:`selfcal.toa.verdict.select.planarity`: thinnest extent below 1 % of
-  the widest).
+  solver's own test (:func:`selfcal.toa.verdict.select.planarity`): a set is planar when its
+  thickness is not resolved by its Cramér-Rao bounds at the planned geometry (chi-square of
+  the out-of-plane coordinates at level 1e-3, the statistic the calibration's test will
+  see, less its noise); an exactly planar set, whose bound is singular, is planar.
 """
 
 from __future__ import annotations
@@ -114,20 +116,29 @@ class LayoutPlan:
                 "ambiguities": [a.to_dict() for a in self.ambiguities]}
 
 
-def _plane(P: Array) -> tuple[bool, Array, Array]:
+def _plane(P: Array, cov: Array | None) -> tuple[bool, Array, Array]:
     from .verdict.select import planarity
 
-    pl = planarity(P)
+    pl = planarity(P, cov)
     return pl.near_planar, P.mean(axis=0), np.asarray(pl.normal, float)
 
 
-def layout_ambiguities(anchors: Any, path: Any) -> list[Ambiguity]:
+def layout_ambiguities(anchors: Any, path: Any, *, anchor_cov: Any = None, path_cov: Any = None) -> list[Ambiguity]:
     """Mirror ambiguities of a 3-D layout: a planar tag path, coplanar anchors.
+
+    A set is planar by the solver's own test (:func:`selfcal.toa.verdict.select.planarity`):
+    its thickness not resolved by its covariances, the chi-square of the out-of-plane
+    coordinates at level ``PLANAR_ALPHA`` = 1e-3. Given the Cramér-Rao bounds of the planned
+    layout (what :func:`plan_layout` passes), the statistic is the noncentrality the
+    calibration's own test will see; without covariances (or where the bound is singular:
+    an exactly planar path) a set thinner than 1 % of its extent is planar.
 
     Parameters
     ----------
     anchors : (I, 3) array
     path : (J, 3) array
+    anchor_cov, path_cov : (I, 3, 3), (J, 3, 3) arrays, optional
+        Position covariances (m^2), e.g. the CRLB blocks of the self-calibration.
 
     Returns
     -------
@@ -145,14 +156,14 @@ def layout_ambiguities(anchors: Any, path: Any) -> list[Ambiguity]:
     A = as_points(anchors, "anchors", dim=3)
     P = as_points(path, "path", dim=3)
     out: list[Ambiguity] = []
-    flat, c, n = _plane(P)
+    flat, c, n = _plane(P, None if path_cov is None else np.asarray(path_cov, float))
     if flat:
         out.append(Ambiguity(
             "anchor-mirror", c, n,
             "the tag path lies in one plane: every anchor's mirror image through it fits the ranges "
             "equally, so each anchor is determined only up to that reflection (the solver picks one side "
             "per anchor); fly or carry the tag at several heights, or give --known anchors on both sides"))
-    flat_a, ca, na = _plane(A)
+    flat_a, ca, na = _plane(A, None if anchor_cov is None else np.asarray(anchor_cov, float))
     if flat_a:
         out.append(Ambiguity(
             "tag-mirror", ca, na,
@@ -255,9 +266,11 @@ def plan_layout(anchors: Any, path: Any, *, noise: float = 0.05, offsets: str = 
     try:
         crlb = toa_crlb(A, P, sd, offsets=offsets, mask=mask)
         a_std, a_bounds, p_std = np.sqrt(crlb.receiver_trace), np.asarray(crlb.receiver_bounds), np.sqrt(crlb.source_trace)
+        p_bounds = np.asarray(crlb.source_bounds)
         determined = bool(np.isfinite(a_std).all())
     except DegenerateGeometryError:  # singular beyond the gauge: no finite error bar at all
         a_std, a_bounds, p_std = np.full(len(A), np.nan), np.full((len(A), 3, 3), np.nan), np.full(len(P), np.nan)
+        p_bounds = np.full((len(P), 3, 3), np.nan)
         determined = False
     lo = np.minimum(A.min(0), P.min(0))
     hi = np.maximum(A.max(0), P.max(0))
@@ -272,5 +285,5 @@ def plan_layout(anchors: Any, path: Any, *, noise: float = 0.05, offsets: str = 
     X, Y = np.meshgrid(gx, gy)
     pts = np.c_[X.ravel(), Y.ravel(), np.full(X.size, z)]
     smap = positioning_std(A, pts, sd).reshape(X.shape)
-    return LayoutPlan(a_std, a_bounds, p_std, gx, gy, z, smap, layout_ambiguities(A, P), float(sd), offsets,
-                      determined)
+    amb = layout_ambiguities(A, P, anchor_cov=a_bounds, path_cov=p_bounds)
+    return LayoutPlan(a_std, a_bounds, p_std, gx, gy, z, smap, amb, float(sd), offsets, determined)

@@ -1,0 +1,152 @@
+"""The one planarity decision (``selfcal.toa.verdict.select.planarity`` / ``dimension_test``).
+
+Used by ``dim="auto"`` (``solve_toa``, ``calibrate toa``), the acoustic pipeline and
+``selfcal plan``. Its two parts are tested against what they promise:
+
+- the thickness chi-square ``T = min over planes of sum (n^T (p_k - c))^2 / (n^T C_k n)``
+  against an independent minimisation, and its level: points jittered off a plane exactly by their
+  stated covariances are called resolved at about ``PLANAR_ALPHA`` (the plane fitted to the
+  points takes 3 of the chi-square's degrees of freedom);
+- on fitted layouts, the F test of the 2-D fit against the 3-D one: planar truths stay 2-D
+  (the chi-square alone calls most of them resolved: the 3-D fit bends off a planar truth by
+  about ``sqrt(noise x extent)``, beyond its linearised error bars), generic 3-D layouts 3-D.
+  At a planar truth the F test's rate exceeds its nominal level (4 %, see the slow test).
+"""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import pytest
+import scipy.optimize
+import scipy.stats
+
+from selfcal.acoustics.calibrate import _toa_options, _toa_solver
+from selfcal.toa import solve_toa
+from selfcal.toa.verdict.select import PLANAR_ALPHA, compare_fits, dimension_test, planarity
+
+C = 343.0
+NOISE = 1e-6  # s: 0.34 mm of range
+
+
+def _cloud(g: np.random.Generator, n: int, thickness: float, sd: np.ndarray) -> np.ndarray:
+    P = np.c_[g.uniform(0, 8, n), g.uniform(0, 7, n), g.normal(0, thickness, n)]
+    P[:, 2] += g.normal(0, 1.0, n) * sd  # off the plane by exactly the stated z std
+    return P
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_thickness_statistic_is_the_chi_square_of_the_out_of_plane_coordinates(seed):
+    g = np.random.default_rng(seed)
+    n = 30
+    sd = g.uniform(0.001, 0.01, n)
+    P = _cloud(g, n, 0.02, sd)
+    cov = np.zeros((n, 3, 3))
+    cov[:, 0, 0] = cov[:, 1, 1] = 1e-4
+    cov[:, 2, 2] = sd**2
+    pl = planarity(P, cov)
+    # independent: minimise T over the normal's two angles (the best offset given a normal
+    # is the weighted centroid) from several starts with a generic optimiser
+
+    def T_of(angles):
+        a, b = angles
+        nv = np.array([np.sin(a) * np.cos(b), np.sin(a) * np.sin(b), np.cos(a)])
+        var = np.einsum("i,kij,j->k", nv, cov, nv)
+        c = (P / var[:, None]).sum(axis=0) / (1.0 / var).sum()
+        return float(np.sum(((P - c) @ nv) ** 2 / var))
+
+    T = min(scipy.optimize.minimize(T_of, x0, method="Nelder-Mead", options={"xatol": 1e-10, "fatol": 1e-12}).fun
+            for x0 in ([0.01, 0.0], [0.2, 1.0], [0.3, -2.0]))
+    # the re-weighted plane is the weights' fixed point: with error bars this anisotropic
+    # (x, y std 1 cm, z std 1-10 mm) it sits within 1e-4 of the minimum, never below it
+    assert T * (1 - 1e-9) <= pl.thickness_chi2 <= T * (1 + 1e-4)
+    assert pl.thickness_p == pytest.approx(scipy.stats.chi2.sf(pl.thickness_chi2, n - 3), rel=1e-9)
+    assert pl.near_planar == (pl.thickness_p > PLANAR_ALPHA)
+
+
+def test_thickness_test_holds_its_level_and_finds_a_thickness_of_a_few_error_bars():
+    """Level: 4000 planar clouds, 40 points with z stds of 1-10 mm jittered by exactly
+    them: called resolved at most at 3x PLANAR_ALPHA (expected 4; 12 is beyond the
+    binomial's 0.9999 quantile). Power: a real thickness of 3 z stds (noncentrality
+    ~ 9 x 37 = 333 against a critical value of 70) is resolved in every draw."""
+    g = np.random.default_rng(7)
+    n, draws = 40, 4000
+    cov = np.zeros((n, 3, 3))
+    cov[:, 0, 0] = cov[:, 1, 1] = 1e-6
+    alarms = 0
+    for _ in range(draws):
+        sd = g.uniform(0.001, 0.01, n)
+        cov[:, 2, 2] = sd**2
+        alarms += not planarity(_cloud(g, n, 0.0, sd), cov).near_planar
+    assert alarms <= 3 * PLANAR_ALPHA * draws
+    for _ in range(200):
+        sd = g.uniform(0.001, 0.01, n)
+        cov[:, 2, 2] = sd**2
+        P = _cloud(g, n, 0.0, sd)
+        P[:, 2] += 3 * sd * g.choice([-1, 1], n)
+        assert not planarity(P, cov).near_planar
+
+
+def test_an_insignificant_f_test_keeps_a_layout_planar_whatever_its_covariances():
+    g = np.random.default_rng(1)
+    P = _cloud(g, 20, 0.5, np.zeros(20))
+    cov = np.tile(np.eye(3) * 1e-8, (20, 1, 1))
+    assert not planarity(P, cov).near_planar
+    flat_f = compare_fits(1.0e-3, 0.99e-3, 400, 20)
+    assert not flat_f.significant and planarity(P, cov, comparison=flat_f).near_planar
+    thick_f = compare_fits(1e-2, 1e-3, 400, 20)
+    assert not planarity(P, cov, comparison=thick_f).near_planar
+
+
+def _draw(seed: int, planar: bool, I: int = 8, J: int = 10) -> np.ndarray:
+    """The pipeline's model: seconds, both offsets, 1 us noise, an 8 x 7 m floor."""
+    g = np.random.default_rng(seed)
+    R = np.c_[g.uniform(0, 8, I), g.uniform(0, 7, I), np.zeros(I) if planar else g.uniform(0, 3, I)]
+    S = np.c_[g.uniform(0, 8, J), g.uniform(0, 7, J), np.zeros(J) if planar else g.uniform(0, 3, J)]
+    D = np.linalg.norm(R[:, None] - S[None], axis=-1)
+    return D / C + g.uniform(0, 0.02, I)[:, None] + g.uniform(0, 0.03, J)[None] + g.normal(0, NOISE, (I, J))
+
+
+def _decide(seed: int, planar: bool):
+    T = _draw(seed, planar)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        r3 = solve_toa(T, dim=3, offsets="both", speed=C, rng=seed)
+        # the acoustic pipeline's form of the test (solve_toa seeded per call, user units)
+        return dimension_test(T, r3, "both", _toa_solver(seed), _toa_options(C, None))
+
+
+# draws 1001, 1015, 1022, 1032 once ended 3-D: the 2-D refinement started with offsets 343x
+# too large (seconds multiplied by the speed twice), stopped at 0.1-1 ms RMS and inflated F
+@pytest.mark.parametrize("seed", [1001, 1015, 1022, 1032, 1100, 1101])
+def test_planar_layouts_stay_planar_and_their_2d_fit_reaches_the_noise(seed):
+    keep3, pl, r2, stats = _decide(seed, planar=True)
+    assert not keep3 and pl.near_planar and stats["chosen"] == 2
+    assert stats["residual_2d"] < 1.5 * NOISE  # the 2-D model's own minimum, not a wrong basin
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_generic_layouts_are_3d(seed):
+    keep3, pl, _, stats = _decide(2000 + seed, planar=False)
+    assert keep3 and not pl.near_planar and stats["p_value"] <= PLANAR_ALPHA and stats["thickness_p"] <= PLANAR_ALPHA
+
+
+@pytest.mark.slow
+def test_planar_false_alarm_and_generic_power_over_many_draws():
+    """100 planar and 100 generic draws: at most 10 planar draws called 3-D, and every
+    generic draw 3-D unless its 3-D fit is broken.
+
+    The planar bound is not the nominal 1e-3: at a planar truth the 3-D model is not
+    regular and the F test's likelihood ratio has heavier tails than F(k, dof)
+    (benchmarks/planarity_rates.py: 8 of 200 planar draws, 4 %; 10 of 100 has probability
+    0.2 % at that rate; measured here 3); the per-point rule it replaced called 39 of 200
+    3-D. Generic: 97 of 100 called 3-D; the other 3 (seeds 4005, 4047, 4054) are 3-D fits
+    in a wrong basin (RMS 16-51 us at 1 us noise, nodes 190-500 m off, yet "success"):
+    their covariances, scaled by that residual, do not resolve the thickness, and the
+    2-D answer then fails its own tests (exit 1) instead of a 3-D one passing them.
+    """
+    planar3 = sum(_decide(3000 + s, True)[0] for s in range(100))
+    generic = [_decide(4000 + s, False) for s in range(100)]
+    assert planar3 <= 10
+    assert all(keep3 or stats["residual_3d"] > 5 * NOISE for keep3, _, _, stats in generic)
