@@ -137,6 +137,7 @@ def test_odometry_scale_recovered(odo_scale: float) -> None:
         if odo_scale != 1.0:
             # the error is found, not shrunk away: its prior std is of its size, not the floor
             assert r.odometry_scale_prior_std > 0.01, r.odometry_scale_prior_std
+            assert r.odometry_scale_weight > 0.5, r.odometry_scale_weight  # the model with k is the more probable
         assert e < 0.25, e  # decimetre level, as the exact-scale logs (measured <= 0.12 m)
 
 
@@ -156,16 +157,26 @@ def test_flat_evidence_keeps_the_given_prior() -> None:
         assert a == pytest.approx(SCALE_PRIOR_FLOOR) and tau == pytest.approx(0.1)
 
 
-def test_odometry_scale_bayes_factor_threshold() -> None:
-    """k is kept (prior ODO_SCALE_STD) exactly when its Bayes factor against k = 1 exceeds 1:
-    ``z^2 > (1 + r) log(1 + 1 / r) `` with ``r = v_lik / ODO_SCALE_STD^2`` (the closed form of
-    the ratio of the two Gaussian marginals)."""
-    from selfcal.slac.scale_prior import ODO_SCALE_STD, odo_scale_prior
+def test_odometry_scale_weight_is_the_bayes_factor() -> None:
+    """The weight of ``k ~ N(1, ODO_SCALE_STD^2)`` is ``BF / (1 + BF)`` (prior odds 1), with the
+    Bayes factor computed independently as the ratio of the two Gaussian marginals of the data's
+    ``k_lik`` (scipy.stats.norm); it crosses 1/2 exactly where ``z^2 = (1 + r) log(1 + 1 / r)``,
+    ``r = v_lik / ODO_SCALE_STD^2`` (the rule that selected the model before the average)."""
+    from scipy.stats import norm
 
+    from selfcal.slac.scale_prior import ODO_SCALE_STD, odo_scale_weight
+
+    g = np.random.default_rng(7)
     for v_lik in (1e-6, 1e-5, 1e-4):
         r = v_lik / ODO_SCALE_STD**2
         z_star = np.sqrt((1 + r) * np.log(1 + 1 / r))
         v = 1 / (1 / v_lik + 1 / ODO_SCALE_STD**2)  # the posterior variance under the prior
-        for z, keep in ((0.98 * z_star, False), (1.02 * z_star, True)):
+        for z in [0.98 * z_star, 1.02 * z_star, *g.normal(0, 3, 20)]:
             k_hat = 1 + z * np.sqrt(v_lik) * v / v_lik  # posterior mean for k_lik - 1 = z sqrt(v_lik)
-            assert (odo_scale_prior(k_hat, v) == ODO_SCALE_STD) is keep, (v_lik, z)
+            d = z * np.sqrt(v_lik)
+            bf = norm.pdf(d, 0, np.sqrt(v_lik + ODO_SCALE_STD**2)) / norm.pdf(d, 0, np.sqrt(v_lik))
+            w = odo_scale_weight(k_hat, v)
+            assert w == pytest.approx(bf / (1 + bf), rel=1e-6, abs=1e-12), (v_lik, z)
+            if abs(abs(z) / z_star - 1) > 0.01:
+                assert (w > 0.5) == (abs(z) > z_star)
+    assert odo_scale_weight(1.0, ODO_SCALE_STD**2) == 0.0  # no information about k: k = 1
