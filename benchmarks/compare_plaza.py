@@ -224,7 +224,8 @@ def main() -> None:
         if m == "smoother":
             factor, sigma = r.heading_noise_factor, float(r.noise_estimate)
     if a.ablate:
-        from slac_stretch_cv import solve  # the variants (benchmarks/ is on sys.path when run as a script)
+        # the variants (benchmarks/ is on sys.path when run as a script)
+        from slac_stretch_cv import solve
 
         from selfcal.slac.ranging import RangeLog
 
