@@ -44,7 +44,7 @@ Ranges are applied at their own times: an odometry row whose interval contains r
 is split there (each piece a fraction of the row proportional to its duration), so no range
 is moved to the nearest odometry time.
 
-Why this file is long (~780 lines, above the package's ~600 guideline): the filter, the smoother, the
+Why this file is long (~770 lines, above the package's ~600 guideline): the filter, the smoother, the
 calibration refit and the noise re-estimation are one engine over one private chain
 structure (``_Chain``, ``_Pass``); split into modules they would share every private type.
 What has a seam lives elsewhere: the inputs and the result in :mod:`selfcal.slac.range_model`,
