@@ -12,7 +12,10 @@ and for the scores):
   first pose, one ``[scale, offset]`` vector per beacon with a prior ``N([1, 0], ...)`` and a
   ``CustomFactor`` per range ``s |p - b| + o - r`` under a Huber noise model; each range
   attached to the nearest pose in time;
-* selfcal's causal filter and its batch smoother (:func:`selfcal.slac.ranging.solve_range_slac`).
+* selfcal's causal filter and its batch smoother (:func:`selfcal.slac.ranging.solve_range_slac`);
+  with ``--ablate`` also the smoother under the variants of ``benchmarks/slac_stretch_cv.py``
+  (``graph``: the graph's model -- fixed scale priors, no odometry scale, ranges at the nearest
+  pose, Huber without the gate -- so that a difference of estimators shows apart from one of models).
 
 Both baselines are written here from their documented APIs (FilterPy EKF: ``predict`` with
 ``F``/``Q``, ``update(z, HJacobian, Hx, R)``; GTSAM: ``NonlinearFactorGraph``,
@@ -30,7 +33,7 @@ so CPU time is robust to the load of a shared machine) and wall seconds.
 Usage::
 
     PYTHONPATH=src OPENBLAS_NUM_THREADS=1 python benchmarks/compare_plaza.py \
-        [--data ../shared/data/plaza/Plaza1.mat] [--out plaza_compare.json]
+        [--data ../shared/data/plaza/Plaza1.mat] [--out plaza_compare.json] [--ablate]
 """
 
 from __future__ import annotations
@@ -193,6 +196,9 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--data", default="../shared/data/plaza/Plaza1.mat")
     ap.add_argument("--out", default=None, help="JSON of the table")
+    ap.add_argument("--ablate", action="store_true",
+                    help="also the smoother under the model variants of benchmarks/slac_stretch_cv.py "
+                         "(k-select, k-off, fixed, graph = the GTSAM graph's model)")
     a = ap.parse_args()
     data = load_plaza(a.data)
     cfg = RangeModelConfig()
@@ -217,6 +223,16 @@ def main() -> None:
         row(f"selfcal {m}", r.poses, since(t0), r.times)
         if m == "smoother":
             factor, sigma = r.heading_noise_factor, float(r.noise_estimate)
+    if a.ablate:
+        # the variants (benchmarks/ is on sys.path when run as a script)
+        from slac_stretch_cv import solve
+
+        from selfcal.slac.ranging import RangeLog
+
+        for v in ("k-select", "k-off", "fixed", "graph"):
+            t0 = clock()
+            r = solve(RangeLog.from_dataset(data), v)
+            row(f"selfcal smoother, {v}", r.poses, since(t0), r.times)
     print(f"noise used by the baselines (selfcal's ML on this log): heading factor {factor}, range {sigma:.3f} m")
     for name, fn in (("FilterPy EKF + per-beacon bias states", filterpy_ekf),
                      ("GTSAM LM, Pose2 + robust range CustomFactor (scale + offset)", gtsam_batch)):

@@ -43,7 +43,7 @@ def cmu_log(seed: int, *, n_beacons: int = 4, heading_offset: float = 0.0, durat
             dropouts: int = 0, dropout_seconds: float = 30.0, odo_scale: float = 1.0, stand: int = 0,
             stand_seconds: float = 30.0, dr_duplicates: float = 0.0, time_scale: float = 1.0,
             heading_degrees: bool = False, zero_odometry: bool = False,
-            range_scale: tuple[float, float] = (0.02, 0.09)) -> tuple[dict[str, Any], CmuTruth]:
+            range_scale: tuple[float, float] = (0.02, 0.09), range_tail: str = "gauss") -> tuple[dict[str, Any], CmuTruth]:
     """A CMU-style log (``TL``, ``TD``, ``GT``, ``DR``, ``DRp``, ``init_heading_offset``) and its truth.
 
     Parameters
@@ -72,6 +72,9 @@ def cmu_log(seed: int, *, n_beacons: int = 4, heading_offset: float = 0.0, durat
     time_scale : every time column is multiplied by it (1000: milliseconds).
     heading_degrees : ``GT(:, 4)`` and ``DR(:, 3)`` are written in degrees.
     zero_odometry : ``DR``'s increments are all zero (a log without working encoders).
+    range_tail : distribution of the range noise: ``"gauss"`` (std ``range_noise``), ``"t3"``
+        (Student t with 3 degrees of freedom, scale ``range_noise``: heavy tails, infinite
+        kurtosis) or ``"laplace"`` (std ``range_noise``, kurtosis 3 above the Gaussian's).
 
     The options after ``heading_offset_dtype`` draw from a second generator, so a log drawn
     without them is the same as before they existed.
@@ -147,6 +150,12 @@ def cmu_log(seed: int, *, n_beacons: int = 4, heading_offset: float = 0.0, durat
     py = np.interp(rt, times, poses[:, 1])
     d = np.hypot(px - beacons[rb, 0], py - beacons[rb, 1])
     r = scale[rb] * d + offset[rb] + g.normal(0, range_noise, rt.size)
+    if range_tail == "t3":  # drawn from the second generator: the rest of the log is unchanged
+        r += range_noise * g2.standard_t(3, rt.size) - (r - scale[rb] * d - offset[rb])
+    elif range_tail == "laplace":
+        r += g2.laplace(0, range_noise / np.sqrt(2), rt.size) - (r - scale[rb] * d - offset[rb])
+    elif range_tail != "gauss":
+        raise ValueError(f"range_tail must be 'gauss', 't3' or 'laplace', got {range_tail!r}")
     out = g.random(rt.size) < outliers
     r[out] += g.uniform(2, 10, out.sum())
     r = np.abs(r)

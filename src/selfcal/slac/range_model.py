@@ -244,13 +244,14 @@ class RangeSlacResult(Result):
     odometry_scale, odometry_scale_std : float; odometry_scale_weight : float
         Filter: the estimated distance scale of the odometry (``dd_true = k dd``) mixed over
         the candidates, its std, and the mixture weight of the candidates that estimate it
-        (the rest take it as exactly 1). Smoother with ``scale_prior="empirical"``: its
-        estimate and std under the empirical-Bayes prior N(1, ``odometry_scale_prior_std^2``)
-        (weight 0); with ``"fixed"``: 1, 0, 0 (no such state).
+        (the rest take it as exactly 1). Smoother with ``scale_prior="empirical"``: the
+        average of the models ``k ~ N(1, 0.05^2)`` and ``k = 1``, its std (the mixture's), and
+        the posterior probability of the first (:func:`selfcal.slac.scale_prior.odo_scale_weight`);
+        with ``"fixed"``: 1, 0, 0 (no such state).
     odometry_scale_prior_std : float
-        The prior std of ``k`` used (filter 0.05; smoother: 0.05 when the Bayes factor of
-        ``k ~ N(1, 0.05^2)`` against ``k = 1`` keeps it, else 1e-4 = no odometry scale error;
-        0 with the fixed prior).
+        The prior std of ``k`` of the more probable model (filter 0.05; smoother: 0.05 when
+        the weight of ``k ~ N(1, 0.05^2)`` is at least 1/2, else 1e-4 = no odometry scale
+        error; 0 with the fixed prior).
     innovation_test : dict
         Filter: :func:`selfcal.slac.consistency.innovation_tests` on the innovations of the candidate of largest
         weight (NIS level and whiteness); a failure sets ``status`` to ``FAILED_TEST`` and
