@@ -118,7 +118,7 @@ def _resolve_mirrors(T: Array, res: Any, speed: float, rng: int, notes: list[str
     """
     r, s = np.asarray(res.receivers, float), np.asarray(res.sources, float)
     rc, sc = np.asarray(res.receiver_cov, float), np.asarray(res.source_cov, float)
-    u = getattr(res, "uniqueness", None)
+    u = res.uniqueness
     if u is None:
         return res
     on_r = _mirror_matches(r, np.asarray(u.receiver_alternatives, float), res.ambiguous_receivers, s)
@@ -455,9 +455,9 @@ def _as_solution(res: Any, label: str) -> dict[str, Any]:
         "receiver_offsets": dr, "source_offsets": ds,
         "receiver_cov": np.asarray(res.receiver_cov, float), "source_cov": np.asarray(res.source_cov, float),
         "residual_rms": float(res.residual_rms), "converged": bool(res.converged),
-        "iterations": int(getattr(res, "iterations", 0)), "method": f"{label} ({res.method})",
+        "iterations": int(res.iterations), "method": f"{label} ({res.method})",
         # the TOA solver's own tests (selfcal.toa.verdict.uniqueness, outlier breakdown) for the verdict
-        "uniqueness": getattr(res, "uniqueness", None), "outlier_breakdown": getattr(res, "outlier_breakdown", None),
+        "uniqueness": res.uniqueness, "outlier_breakdown": res.outlier_breakdown,
     }
 
 

@@ -210,12 +210,12 @@ def summarise(result: Any, errors: dict[str, Any] | None, framed: Any = None) ->
              f"residual rms       {result.residual_rms * 1e6:.2f} us"]
     fit = result.fit
     if fit is not None:
-        scale = getattr(fit, "scale", None)
+        scale = fit.scale
         detail = (f"residual scale {scale:.3g} of the noise model (limit {fit.scale_limit:.3g}), "
                   if scale is not None else "")
         lines.append(f"residual test      {detail}chi2 {fit.chi2:.4g} on {fit.dof} dof "
                      f"(timing noise {fit.noise * 1e6:.3g} us): {'ok' if fit.passed else 'REJECTED'}")
-    outl = getattr(result, "outliers", ())
+    outl = result.outliers
     if outl:
         worst = max(outl, key=lambda o: abs(o.z))
         lines.append(f"outliers           {len(outl)} detection(s) excluded, "
@@ -224,7 +224,7 @@ def summarise(result: Any, errors: dict[str, Any] | None, framed: Any = None) ->
                      f"residual {worst.residual * 1e6:.3g} us")
     else:
         lines.append("outliers           none")
-    dr, ds = getattr(result, "dropped_receivers", ()), getattr(result, "dropped_senders", ())
+    dr, ds = result.dropped_receivers, result.dropped_senders
     lines.append("dropped units      " + ("none" if not (dr or ds) else
                                           "; ".join(x for x in (f"microphones {', '.join(dr)}" if dr else "",
                                                                 f"loudspeakers {', '.join(ds)}" if ds else "") if x)))

@@ -492,7 +492,7 @@ def align_known(result: Any, known: Sequence[KnownNode]) -> FramedToaResult:
         cov = getattr(result, key)
         if cov is not None:
             fields[key] = rotate_covariances(np.asarray(cov, float), Rm)
-    if getattr(result, "uniqueness", None) is not None:  # the alternatives in the same frame
+    if result.uniqueness is not None:  # the alternatives in the same frame
         fields["uniqueness"] = result.uniqueness.moved(Rm, t)
     out = replace_fields(result, **fields)
     return FramedToaResult(out, _known_info(usable, rank, d, rms, rms, dropped))

@@ -372,7 +372,7 @@ def judge_known(out: Any, info: Any, blind: Any, sol: Any, data: Any, usable: Se
         u = _admissible(u, usable, out)
         if mirror_fit is not None and not mirror_stated:
             u, mirror_note = _partial_mirror(u, out, sol, mirror_fit, usable, ok_r, ok_s, aligned, masks)
-    bu = getattr(blind, "uniqueness", None)
+    bu = blind.uniqueness
     base = bu.base_verdict if bu is not None and bu.base_verdict is not None else (int(blind.verdict),
                                                                                    str(blind.verdict_message))
     status, message = Status(base[0]), base[1]
