@@ -5,7 +5,7 @@ and including :func:`selfcal.toa.verdict.crossval.choose_receiver_offsets`, then
 anchor models against the truth after rigid alignment (reflection allowed): the simple one
 (the recipe's fit, offsets "none" or "common") and the per-anchor refit from it. Reported per
 case: the choice by held-out prediction alone (one-SE rule), the final choice (held-out
-prediction and the estimated anchor MSE, :func:`selfcal.toa.verdict.crossval.anchor_mse`),
+prediction and the estimated anchor MSE, :func:`selfcal.toa.verdict.focused.anchor_mse`),
 both anchor RMSEs, and "right": the final choice's anchor RMSE is within 1 cm of the better of
 the two (ties count as right). Per family: how often each rule is right and the mean anchor
 RMSE each leads to, with the oracle's (the better model every time).

@@ -197,7 +197,7 @@ def _bias_choice(family: str, seeds):
 def test_anchor_mse_is_the_shift_and_spreads_of_the_refits():
     """Independent computation: refits equal to the fits (no spread) leave MSE_simple = the
     squared shift and MSE_wide = 0; refits shifted alike leave the shift's noise at zero."""
-    from selfcal.toa.verdict.crossval import anchor_mse
+    from selfcal.toa.verdict.focused import anchor_mse
 
     g = np.random.default_rng(0)
     R = g.uniform(0, 3, (6, 3))

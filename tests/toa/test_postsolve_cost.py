@@ -5,7 +5,7 @@
 - the additive model's leverages from its small normal matrix against the SVD of the dense
   design (the former computation);
 - the time-order test's sequential stop: the same decision as all 999 random orders;
-- the bipartite generalised inverse (:class:`~selfcal.toa.verdict.leverage.BipartiteInverse`)
+- the bipartite generalised inverse (:class:`~selfcal.toa.verdict.bipartite.BipartiteInverse`)
   against the dense lifted inverse: the same leverages (fitted and held-out entries) and the
   same Fisher blocks;
 - the linearisation kept between the outlier rule, the trust test and the determinacy test

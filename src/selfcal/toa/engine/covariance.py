@@ -571,7 +571,7 @@ def blocks_from_inverse(inverse: Any, theta: Array, lay: _Layout, receivers: Ind
     ----------
     inverse : an object with ``diagonal_blocks() -> (G_receivers, G_sources, N_receivers,
         N_sources)``, ``apply(X) -> G X`` and ``norm_bound() -> float``
-        (:class:`selfcal.toa.verdict.leverage.BipartiteInverse`), at the estimate ``theta``.
+        (:class:`selfcal.toa.verdict.bipartite.BipartiteInverse`), at the estimate ``theta``.
     theta, lay : as in :func:`gauge_free_blocks` (unit weights).
     receivers, sources : indices of the blocks to compute (None = all); the others are NaN.
 

@@ -350,7 +350,7 @@ def fisher_blocks(ranges: Any, receivers: Any, sources: Any, receiver_offsets: A
     node = np.concatenate([np.repeat(np.arange(I), d), I + np.repeat(np.arange(J), d),
                            np.arange(I) if has_r else np.zeros(0, int),
                            I + np.arange(J) if has_s else np.zeros(0, int)]).astype(np.intp)
-    blk = ne.block()  # the bipartite generalised inverse (leverage.BipartiteInverse), else the lifted one
+    blk = ne.block()  # the bipartite generalised inverse (bipartite.BipartiteInverse), else the lifted one
     diag = None if blk is None else blk.diagonal_blocks()
     w = np.zeros(I + J)
     # each node's information block inverted (its conditional covariance), one side at a time
@@ -378,7 +378,7 @@ def fisher_blocks(ranges: Any, receivers: Any, sources: Any, receiver_offsets: A
     K = np.linalg.lstsq(GW @ Q, GW, rcond=None)[0]  # (G^T W G)^-1 G^T W
     bad = np.zeros(n, bool)
     if diag is not None and blk is not None:
-        # any generalised inverse G of N gives the same T G T^T (leverage.BipartiteInverse)
+        # any generalised inverse G of N gives the same T G T^T (bipartite.BipartiteInverse)
         KC = blk.apply(np.asarray(K.T, dtype=float)).T  # K G (g, n), G symmetric
         Cbs = (diag[0][:, :d, :d], diag[1][:, :d, :d])
     else:

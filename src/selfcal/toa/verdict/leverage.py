@@ -5,7 +5,7 @@ fitted geometry (gauge directions removed), for the studentized residuals of the
 (:func:`studentized`, :func:`selfcal.toa.verdict.robust.outlier_mask`);
 :func:`outlier_rule_has_power` says whether that rule can see a gross error at all.
 :func:`normal_equations` keeps ``J^T J`` and its generalised inverse
-(:class:`BipartiteInverse`, a Schur complement on the smaller node set, else
+(:class:`selfcal.toa.verdict.bipartite.BipartiteInverse`, a Schur complement on the smaller node set, else
 :func:`lifted_inverse`) for the final fit's leverages and the determinacy test's Fisher
 blocks, reused while the geometry stays within the solver's step tolerance.
 """
@@ -17,9 +17,10 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from .bipartite import BipartiteInverse
 from .robust import OUTLIER_ALPHA, noise_scale, outlier_threshold
 
-__all__ = ["BipartiteInverse", "NormalEquations", "kept_inverse", "leverages", "lifted_inverse", "normal_equations", "settled",
+__all__ = ["NormalEquations", "kept_inverse", "leverages", "lifted_inverse", "normal_equations", "settled",
            "outlier_rule_has_power", "studentized"]
 
 Array = NDArray[np.float64]
@@ -225,203 +226,6 @@ class NormalEquations:
         return (offsets == self.offsets and theta.shape == self.theta.shape and pattern.shape == self.pattern.shape
                 and bool(np.array_equal(pattern, self.pattern))
                 and float(np.linalg.norm(theta - self.theta)) <= REUSE_XTOL * (REUSE_XTOL + float(np.linalg.norm(self.theta))))
-
-
-#: the bipartite inverse is used while a lower bound on the smallest eigenvalue of every
-#: block it inverts (one over the largest absolute row sum of the inverse) stays this many
-#: times above 1e-12 of ``trace(N)`` (an upper bound on N's largest eigenvalue): the cut of
-#: the dense path (:func:`_normal_pinv`) with its margin; otherwise the dense path decides
-_BLOCK_MARGIN = 1e3
-
-
-class BipartiteInverse:
-    """A generalised inverse ``G`` of ``N = J^T J`` from the bipartite structure of the TOA model.
-
-    A range touches one receiver block ``[r_i, d_i]`` (row ``a_ij = [u_ij, 1]``) and one
-    source block ``[s_j, o_j]`` (row ``b_ij = [-u_ij, 1]``), so ``N = [[A, B], [B^T, D]]``
-    with ``A`` and ``D`` block diagonal (one ``p x p`` block per node). The side with more
-    unknowns is eliminated (its blocks ``A_e = L_e L_e^T`` inverted one by one) and the
-    Schur complement ``S = D - B^T A^-1 B = D - V^T V`` (``V = L^-1 B``) of the other side is
-    formed; ``S`` is singular along the kept side's share of the gauge (Q's rows there,
-    orthonormalised: ``Q_k``), so ``S^- = (S + c Q_k Q_k^T)^-1`` (``c`` S's largest diagonal
-    entry) is a generalised inverse of it, and Rohde's formula ``G = [[A^-1 + A^-1 B S^- B^T
-    A^-1, -A^-1 B S^-], [-S^- B^T A^-1, S^-]]`` one of N (Rohde 1965). Every quantity the
-    checks take from ``(J^T J)^+`` is invariant to the choice of generalised inverse: the
-    leverages ``j^T G j`` (the hat matrix ``J G J^T`` is the orthogonal projector onto the
-    range of J for any of them; Searle, *Linear Models*, 1971, sec. 1.5) and the Fisher
-    blocks after the S-transformation, which removes the gauge part in which two generalised
-    inverses differ (:func:`selfcal.toa.verdict.determinacy.fisher_blocks`).
-
-    Cost: ``O(m p^2 + n_e p^3)`` for the blocks, two products ``(n_k p)^2 (n_e p)`` and one
-    Cholesky + inverse of ``n_k p`` (480 at 120 units) instead of the Cholesky + inverse of
-    the whole ``n`` (960): 120 units, 36-54 ms against 116-137 ms for the dense lifted
-    inverse in the same process (load 3). Tested against it (``tests/toa/test_postsolve_cost.py``).
-
-    References
-    ----------
-    C. A. Rohde, "Generalized inverses of partitioned matrices", J. SIAM 13 (1965) 1033-1035.
-    """
-
-    swap: bool  # the sources' side eliminated (else the receivers')
-    Linv: Array  # (nE, pe, pe) inverse Cholesky factors of the eliminated blocks
-    Ainv: Array  # (nE, pe, pe) their inverses
-    W: Array  # (nE pe, nK pk) L^-1 B S^-
-    W4: Array  # the same, (nE, pe, nK, pk)
-    V: Array  # (nE pe, nK pk) L^-1 B
-    Sg: Array  # (nK pk, nK pk) S^-
-    Ke: Array  # (nE, pe, pe) V_e S^- V_e^T
-    Sd: Array  # (nK, pk, pk) diagonal blocks of S^-
-    info_e: Array  # (nE, pe, pe) information blocks of the eliminated side
-    info_k: Array  # (nK, pk, pk) of the kept side
-    idx_e: NDArray[np.intp]  # (nE, pe) their places in the parameter vector
-    idx_k: NDArray[np.intp]  # (nK, pk)
-    rows_r: Array  # (I, J, pr) receiver parts of the Jacobian rows (zero where unobserved)
-    rows_s: Array  # (I, J, ps) source parts
-    nE: int
-    nK: int
-    pe: int
-    pk: int
-
-    def __init__(self, **parts: Any) -> None:
-        for name in self.__annotations__:
-            setattr(self, name, parts[name])
-
-    @classmethod
-    def build(cls, ne: NormalEquations) -> BipartiteInverse | None:
-        """From a :class:`NormalEquations`; None when a block is singular or too ill-conditioned."""
-        import scipy.linalg
-
-        pat = ne.pattern
-        I, J = pat.shape
-        d = ne.dim
-        has_r, has_s = ne.offsets in ("receivers", "both"), ne.offsets in ("sources", "both")
-        r, s = ne.theta[:I * d].reshape(I, d), ne.theta[I * d:(I + J) * d].reshape(J, d)  # toa_jacobian's layout
-        U = r[:, None, :] - s[None, :, :]
-        nrm = np.linalg.norm(U, axis=2, keepdims=True)
-        U = np.divide(U, nrm, out=np.zeros_like(U), where=nrm > 0) * pat[..., None]
-        w = pat[..., None].astype(float)
-        rows_r = np.concatenate([U, w], axis=2) if has_r else U  # (I, J, pr)
-        rows_s = np.concatenate([-U, w], axis=2) if has_s else -U  # (I, J, ps)
-        k = (I + J) * d
-        idx_r = [np.arange(I)[:, None] * d + np.arange(d)]
-        idx_s = [I * d + np.arange(J)[:, None] * d + np.arange(d)]
-        if has_r:
-            idx_r.append((k + np.arange(I))[:, None])
-            k += I
-        if has_s:
-            idx_s.append((k + np.arange(J))[:, None])
-        ir, js = np.concatenate(idx_r, axis=1), np.concatenate(idx_s, axis=1)
-        swap = J * rows_s.shape[2] > I * rows_r.shape[2]  # keep the side with fewer unknowns
-        if swap:  # eliminate the receivers' side: e = sources ... as written for e = receivers
-            Ae, Bk = rows_s.transpose(1, 0, 2), rows_r.transpose(1, 0, 2)
-            idx_e, idx_k = js, ir
-        else:
-            Ae, Bk = rows_r, rows_s
-            idx_e, idx_k = ir, js
-        nE, nK, pe = Ae.shape
-        pk = Bk.shape[2]
-        info_e = np.matmul(Ae.transpose(0, 2, 1), Ae)  # the eliminated nodes' information blocks
-        info_k = np.matmul(Bk.transpose(1, 2, 0), Bk.transpose(1, 0, 2))
-        trace = float(np.einsum("epp->", info_e) + np.einsum("kpp->", info_k))
-        if not trace > 0:
-            return None
-        floor = _BLOCK_MARGIN * 1e-12 * trace
-        try:
-            Linv = np.linalg.inv(np.linalg.cholesky(info_e))  # (nE, pe, pe)
-        except np.linalg.LinAlgError:
-            return None
-        Ainv = np.matmul(Linv.transpose(0, 2, 1), Linv)
-        if not np.all(np.isfinite(Ainv)) or 1.0 / np.max(np.abs(Ainv).sum(axis=2)) <= floor:
-            return None
-        Cc = np.matmul(Ae, Linv.transpose(0, 2, 1))  # L_e^-1 a_ek
-        V = np.einsum("ekm,ekq->emkq", Cc, Bk).reshape(nE * pe, nK * pk)
-        # -V^T V, its lower triangle only (all that potrf reads; S is not used after it): the
-        # upper triangle of the Fortran-ordered product, transposed into a C-ordered view
-        S = scipy.linalg.blas.dsyrk(-1.0, V.T, trans=0, lower=0).T
-        S4 = S.reshape(nK, pk, nK, pk)
-        S4[np.arange(nK), :, np.arange(nK), :] += info_k
-        U_q, sv, _ = np.linalg.svd(ne.Q[idx_k.ravel()], full_matrices=False)
-        if sv.size < ne.Q.shape[1] or sv[-1] <= 1e-8 * sv[0]:
-            return None  # part of the gauge does not reach the kept side: not this path
-        c = float(np.max(np.diag(S)))
-        if not c > 0:
-            return None
-        L, info = scipy.linalg.lapack.dpotrf(S + c * (U_q @ U_q.T), lower=1, clean=1)
-        if info != 0:
-            return None
-        Sg, info = scipy.linalg.lapack.dpotri(L, lower=1)
-        if info != 0:
-            return None
-        Sg = Sg + Sg.T - np.diag(np.diag(Sg))
-        top = float(np.max(np.abs(Sg).sum(axis=1)))
-        if not (np.isfinite(top) and top > 0 and 1.0 / top > floor):
-            return None
-        W = V @ Sg  # L^-1 B S^-, (nE pe, nK pk)
-        W4 = W.reshape(nE, pe, nK, pk)
-        Ke = np.matmul(W.reshape(nE, pe, nK * pk), V.reshape(nE, pe, nK * pk).transpose(0, 2, 1))  # V_e S^- V_e^T
-        Sd = Sg.reshape(nK, pk, nK, pk)[np.arange(nK), :, np.arange(nK), :]
-        return cls(swap=swap, Linv=Linv, Ainv=Ainv, W=W, W4=W4, V=V, Sg=Sg, Ke=Ke, Sd=Sd,
-                   info_e=info_e, info_k=info_k, idx_e=idx_e, idx_k=idx_k, rows_r=rows_r, rows_s=rows_s,
-                   nE=nE, nK=nK, pe=pe, pk=pk)
-
-    def hat(self, ii: NDArray[np.intp], jj: NDArray[np.intp], a: Array, b: Array) -> Array:
-        """``j^T G j`` for the Jacobian rows of entries (ii, jj): receiver part ``a`` (m, pr), source part ``b`` (m, ps)."""
-        e, k, ae, bk = (jj, ii, b, a) if self.swap else (ii, jj, a, b)
-        c = np.einsum("mpq,mq->mp", self.Linv[e], ae)
-        return (np.einsum("mp,mp->m", c, c) + np.einsum("mp,mpq,mq->m", c, self.Ke[e], c)
-                - 2.0 * np.einsum("mp,mpq,mq->m", c, self.W4[e, :, k, :], bk)
-                + np.einsum("mp,mpq,mq->m", bk, self.Sd[k], bk))
-
-    def pattern_hat(self, pattern: Mask) -> Array:
-        """Leverages of the fitted entries, row-major order of ``pattern``."""
-        ii, jj = np.nonzero(pattern)
-        return self.hat(ii, jj, self.rows_r[ii, jj], self.rows_s[ii, jj])
-
-    def diagonal_blocks(self) -> tuple[Array, Array, Array, Array]:
-        """The nodes' diagonal blocks of G and of N: (G_receivers (I, pr, pr), G_sources (J, ps, ps),
-        N_receivers, N_sources)."""
-        Ge = self.Ainv + np.matmul(np.matmul(self.Linv.transpose(0, 2, 1), self.Ke), self.Linv)
-        return (self.Sd, Ge, self.info_k, self.info_e) if self.swap else (Ge, self.Sd, self.info_e, self.info_k)
-
-    def newton_step(self, F: Array, Q: Array) -> Array:
-        """The Gauss-Newton step ``N^+ J^T f`` off the gauge ``Q`` (n, g) for residuals ``F`` (I, J)
-        (0 where unobserved), in the parameter order of :func:`selfcal.toa.engine.nls.toa_jacobian`."""
-        n = self.idx_e.size + self.idx_k.size
-        g = np.zeros(n)
-        F = np.where(np.isfinite(F), F, 0.0)
-        g[(self.idx_k if self.swap else self.idx_e).ravel()] = np.einsum("ijp,ij->ip", self.rows_r, F).ravel()
-        g[(self.idx_e if self.swap else self.idx_k).ravel()] = np.einsum("ijp,ij->jp", self.rows_s, F).ravel()
-        dx = self.apply(g[:, None])[:, 0]
-        return dx - Q @ (Q.T @ dx)
-
-    def norm_bound(self) -> float:
-        """An upper bound on ``|G|_2``: the norms of its blocks, ``|G| <= |G_ee| + |G_kk| + 2 |G_ek|``
-        with ``G_ee = L^-T (I + V S^- V^T) L^-1``, ``G_ek = -L^-T W``, ``G_kk = S^-`` (spectral
-        norms of the block-diagonal factors, Frobenius norms of the dense ones, the largest
-        absolute row sum of ``S^-``)."""
-        lin = float(np.max(np.linalg.norm(self.Linv, ord=2, axis=(1, 2)))) ** 2  # |L^-1|^2
-        ainv = float(np.max(np.linalg.norm(self.Ainv, ord=2, axis=(1, 2))))
-        w, v = float(np.linalg.norm(self.W)), float(np.linalg.norm(self.V))
-        sg = float(np.max(np.abs(self.Sg).sum(axis=1)))
-        return ainv + lin * w * v + sg + 2.0 * np.sqrt(lin) * w
-
-    def apply(self, X: Array) -> Array:
-        """``G X`` for X (n, g) in the parameter order of :func:`selfcal.toa.engine.nls.toa_jacobian`."""
-        nE, pe = self.nE, self.pe
-        g = X.shape[1]
-        xe = X[self.idx_e.ravel()]  # (nE pe, g), block order
-        xk = X[self.idx_k.ravel()]
-        ye = np.einsum("epq,eqg->epg", self.Linv, xe.reshape(nE, pe, g)).reshape(nE * pe, g)  # L^-1 x_e
-        # G_ee x_e = A^-1 x_e + L^-T W V^T L^-1 x_e ; G_ek x_k = -L^-T W x_k
-        # G_ke x_e = -W^T L^-1 x_e                 ; G_kk x_k = S^- x_k
-        inner = (self.W @ (self.V.T @ ye) - self.W @ xk).reshape(nE, pe, g)
-        out_e = (np.einsum("epq,eqg->epg", self.Ainv, xe.reshape(nE, pe, g))
-                 + np.einsum("eqp,eqg->epg", self.Linv, inner)).reshape(nE * pe, g)
-        out_k = self.Sg @ xk - self.W.T @ ye
-        out = np.empty_like(X, dtype=float)
-        out[self.idx_e.ravel()] = out_e
-        out[self.idx_k.ravel()] = out_k
-        return out
 
 
 _LAST: list[NormalEquations] = []  # the last linearisation (the flagging's, reused by the final checks)
