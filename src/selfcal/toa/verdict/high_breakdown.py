@@ -41,6 +41,9 @@ HB_CUT = 2.5
 GNC_BIWEIGHT = 4.685
 #: the biweight's scale shrinks by this factor per round of :func:`majority_scale_test` ...
 GNC_SHRINK = 0.7
+#: Levenberg-Marquardt steps per round of :func:`majority_scale_test` (the weights change each round:
+#: iteratively reweighted, not converged per round)
+GNC_STEPS = 4
 #: ... for at most this many rounds, and stops after two rounds that lower the trimmed cost by less than 2 %
 GNC_ROUNDS = 12
 
@@ -360,10 +363,10 @@ def majority_scale_test(ranges: Array, receivers: Array, sources: Array, receive
         n_used = int(used.sum())
         return mad(np.where(used, res, np.nan)) * float(np.sqrt(n_used / max(n_used - n_par, 1)))
 
-    def refit(R: Array, S: Array, D: Array | None, O: Array | None, W: Array) -> Any:
+    def refit(R: Array, S: Array, D: Array | None, O: Array | None, W: Array, steps: int | None = None) -> Any:
         try:
             return refine_toa(Y, R, S, offsets=offsets, receiver_offsets0=D, source_offsets0=O,
-                              weights=np.sqrt(W), covariance=False)
+                              weights=np.sqrt(W), covariance=False, max_nfev=steps, solver="lm")
         except (DegenerateGeometryError, InputError, np.linalg.LinAlgError, ValueError):
             return None  # the weights left a node undetermined: the search ends here
 
@@ -375,7 +378,7 @@ def majority_scale_test(ranges: Array, receivers: Array, sources: Array, receive
     best, best_fit, res, scale, stall = lts_criterion(res0, n_par), (R, S, D, O), res0, mad(res0), 0
     for _ in range(rounds):  # graduated non-convexity: biweight refits at a shrinking scale
         u = np.nan_to_num(res) / (GNC_BIWEIGHT * scale)
-        sol = refit(R, S, D, O, np.where(obs & (np.abs(u) < 1.0), (1.0 - u**2) ** 2, 0.0))
+        sol = refit(R, S, D, O, np.where(obs & (np.abs(u) < 1.0), (1.0 - u**2) ** 2, 0.0), GNC_STEPS)
         if sol is None:
             break
         R, S, D, O = sol.receivers, sol.sources, sol.receiver_offsets, sol.source_offsets
