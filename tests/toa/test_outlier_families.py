@@ -35,7 +35,7 @@ from pathlib import Path
 import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from outlier_families import CLEAN, CONTAMINATED, classify  # noqa: E402
+from outlier_families import CLEAN, CONTAMINATED, HEAVY, classify  # noqa: E402
 
 #: the noise given (any fraction up to 40 %), or unknown with at most 25 % gross ranges
 HELD = ("3d-plus-given", "3d-sym-given", "2d-sym-given", "3d-offsets-sym-given", "3d-plus-unknown-25",
@@ -64,9 +64,9 @@ def test_contamination_the_estimator_holds_is_right_and_flagged_or_a_breakdown_m
     _held(family, 40)  # 6 families x 40 = 240 draws
 
 
-def _false_alarms(draws: int) -> tuple[int, int]:
+def _false_alarms(draws: int, families: dict = CLEAN) -> tuple[int, int]:
     alarms = total = 0
-    for family in CLEAN.values():
+    for family in families.values():
         for seed in range(draws):
             d = classify(family, seed)
             alarms += d["kind"] == "breakdown"
@@ -77,6 +77,19 @@ def _false_alarms(draws: int) -> tuple[int, int]:
 def test_clean_networks_report_no_breakdown():
     alarms, total = _false_alarms(2)
     assert alarms == 0, (alarms, total)
+
+
+def test_heavy_tailed_clean_networks_report_no_breakdown():
+    # t3-t5 and Laplace noise of 1 cm std, no gross errors: real ranging noise, not a breakdown
+    alarms, total = _false_alarms(1, HEAVY)
+    assert alarms == 0, (alarms, total)
+
+
+@pytest.mark.slow
+def test_heavy_tailed_clean_networks_report_a_breakdown_in_at_most_one_percent_of_draws():
+    # 6 families x 40 = 240 draws; the bound as for the Gaussian clean networks below
+    alarms, total = _false_alarms(40, HEAVY)
+    assert alarms <= 0.01 * total, (alarms, total)
 
 
 @pytest.mark.slow

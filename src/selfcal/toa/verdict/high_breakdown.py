@@ -39,13 +39,18 @@ HB_LEVEL = 0.01
 HB_CUT = 2.5
 #: Tukey's biweight constant of :func:`majority_scale_test` (95 % efficiency at the normal)
 GNC_BIWEIGHT = 4.685
-#: the biweight's scale shrinks by this factor per round of :func:`majority_scale_test` ...
+#: the biweight's scale shrinks by this factor per round of :func:`majority_scale_test`, for at most
+#: :data:`GNC_ROUNDS` rounds; it stops after two rounds that lower the trimmed cost by less than 2 %
 GNC_SHRINK = 0.7
+#: most rounds of :func:`majority_scale_test`
+GNC_ROUNDS = 12
 #: Levenberg-Marquardt steps per round of :func:`majority_scale_test` (the weights change each round:
 #: iteratively reweighted, not converged per round)
 GNC_STEPS = 4
-#: ... for at most this many rounds, and stops after two rounds that lower the trimmed cost by less than 2 %
-GNC_ROUNDS = 12
+#: :func:`majority_scale_test` needs this many entries per unknown: the majority's fit keeps about
+#: (m + n_par) / 2 of them, and below 2 its scale is biased low by the choice of which (clean 8 x 10
+#: networks in 3-D, m / n_par = 1.67, with Laplace noise: 4 false breakdowns in 40 draws)
+GNC_REDUNDANCY = 2
 
 
 def elemental_subsets(p: int, clean: float = HB_CLEAN_SET, contamination: float = HB_CONTAMINATION) -> int:
@@ -280,24 +285,30 @@ def majority_scale_test(ranges: Array, receivers: Array, sources: Array, receive
 
     From the final fit, graduated non-convexity (Black & Rangarajan 1996; Yang et al. 2020):
     Tukey-biweight-weighted least-squares refits (:func:`selfcal.toa.engine.nls.refine_toa`
-    with ``weights``) whose scale starts at the normal-consistent MAD of the final residuals
-    and shrinks by :data:`GNC_SHRINK` per round (never above the current fit's MAD), keeping the
+    with ``weights``, :data:`GNC_STEPS` Levenberg-Marquardt steps per round: iteratively
+    reweighted) whose scale starts at the normal-consistent MAD of the final residuals and
+    shrinks by :data:`GNC_SHRINK` per round (never above the current fit's MAD), keeping the
     refit of lowest trimmed cost (:func:`lts_criterion`, breakdown point ~1/2). The refits
-    follow the majority of the entries when one exists at a smaller scale: a fit stalled in a
-    wrong basin with gross errors spread over every node (the noise estimate inflated 100x)
-    is pulled to it where the alternating LMedS sweeps of :func:`high_breakdown_start` stall.
+    follow the majority of the entries where one exists at a much smaller scale: a fit that
+    gross errors spread over every node (the noise estimate inflated 100x, the residuals as
+    Gaussian-looking as noise) is pulled towards it.
 
-    The test: the final fit's MAD scale ``s_f`` against the majority fit's ``s_m`` (both
-    normal-consistent MADs over the same entries). The final fit has broken down when
-    ``s_f > k s_m``, ``k`` the outlier rule's own cut
-    (:func:`~selfcal.toa.verdict.robust.outlier_threshold`: Bonferroni over the ``m`` entries at
-    family-wise level :data:`~selfcal.toa.verdict.robust.OUTLIER_ALPHA`): judged at the
-    majority's scale, the final fit's median residual is itself an outlier, so more than half
-    of its entries would be flagged (the same "more than half flagged" breakdown the rule
-    reports with a given noise). On a consistent fit the refits only overfit the noise: the
-    ratio stayed below 3 on clean and heavy-tailed (t3-t5, Laplace) networks
-    (``benchmarks/outlier_sweep.py --families``), against ``k`` = 4.4 at 480 entries. Being a
-    search, the test can miss a majority it does not reach (it then reports nothing).
+    The majority fit's scale ``s_m`` is estimated as the final fit's ``s_f`` is: least squares on
+    its inliers, the entries within ``k`` of its scale (first its trimmed scale, :func:`lts_scale`,
+    then the refit's), at most three C-steps; each scale is the normal-consistent MAD of the
+    fitted entries times ``sqrt(m / (m - n_par))`` (``fit_result._noise_estimate``). The biweight
+    refits alone overfit the noise (their MAD was up to 14x below it on clean 8 x 10 networks);
+    least squares on every entry within ``k`` of a scale does not.
+
+    The test: the final fit has broken down when ``s_f > k s_m``, ``k`` the outlier rule's own
+    cut (:func:`~selfcal.toa.verdict.robust.outlier_threshold`: Bonferroni normal quantile over
+    the ``m`` entries at family-wise level :data:`~selfcal.toa.verdict.robust.OUTLIER_ALPHA`;
+    4.3 at 480 entries, 3.8 at 80): judged at the majority's scale, the final fit's typical
+    residual is itself an outlier, so more than half of its entries would be flagged, the
+    breakdown the rule reports when the noise is given. On a consistent fit both scales
+    estimate the same noise and the ratio is ~1 (``benchmarks/outlier_sweep.py --families``
+    and ``tests/toa/test_majority_scale.py`` for the measured spread). Being a search, the test
+    can miss a majority it does not reach; it then reports nothing.
 
     Parameters
     ----------
@@ -315,12 +326,13 @@ def majority_scale_test(ranges: Array, receivers: Array, sources: Array, receive
     Returns
     -------
     ``(s_f, s_m, k)`` (metres, metres, the cut; the fit has broken down when ``s_f > k s_m``),
-    or None when no scale could be formed.
+    or None when no scale could be formed or the entries are fewer than
+    :data:`GNC_REDUNDANCY` times the unknowns (no test).
 
     Notes
     -----
-    Cost: up to :data:`GNC_ROUNDS` weighted refits without covariance; on consistent fits the
-    trimmed cost stops falling after a few rounds.
+    Cost: up to :data:`GNC_ROUNDS` weighted refits and three least-squares refits, without
+    covariance (on clean 12 x 40 networks ~0.15-0.2 s on a loaded core, about half the solve).
 
     References
     ----------
@@ -348,7 +360,7 @@ def majority_scale_test(ranges: Array, receivers: Array, sources: Array, receive
     Y = np.asarray(ranges, float)
     obs = np.isfinite(Y)
     m = int(obs.sum())
-    if m <= n_par:
+    if m < GNC_REDUNDANCY * n_par:
         return None
 
     def resid(R: Array, S: Array, D: Array | None, O: Array | None) -> Array:
@@ -375,25 +387,30 @@ def majority_scale_test(ranges: Array, receivers: Array, sources: Array, receive
     s_f = scale_of(res0, obs)
     if not (np.isfinite(s_f) and s_f > 0):
         return None
-    best, best_fit, res, scale, stall = lts_criterion(res0, n_par), (R, S, D, O), res0, mad(res0), 0
-    for _ in range(rounds):  # graduated non-convexity: biweight refits at a shrinking scale
-        u = np.nan_to_num(res) / (GNC_BIWEIGHT * scale)
-        sol = refit(R, S, D, O, np.where(obs & (np.abs(u) < 1.0), (1.0 - u**2) ** 2, 0.0), GNC_STEPS)
-        if sol is None:
-            break
-        R, S, D, O = sol.receivers, sol.sources, sol.receiver_offsets, sol.source_offsets
+    def gnc(R: Array, S: Array, D: Array | None, O: Array | None) -> tuple[float, tuple]:
         res = resid(R, S, D, O)
-        now = lts_criterion(res, n_par)
-        if now < 0.98 * best:
-            best, best_fit, stall = now, (R, S, D, O), 0
-        else:
-            stall += 1
-            if stall >= 2:
+        best, best_fit, scale, stall = lts_criterion(res, n_par), (R, S, D, O), mad(res), 0
+        for _ in range(rounds):  # graduated non-convexity: biweight refits at a shrinking scale
+            if not scale > 0:
                 break
-        scale = min(GNC_SHRINK * scale, mad(res))
-        if not scale > 0:
-            break
+            u = np.nan_to_num(res) / (GNC_BIWEIGHT * scale)
+            sol = refit(R, S, D, O, np.where(obs & (np.abs(u) < 1.0), (1.0 - u**2) ** 2, 0.0), GNC_STEPS)
+            if sol is None:
+                break
+            R, S, D, O = sol.receivers, sol.sources, sol.receiver_offsets, sol.source_offsets
+            res = resid(R, S, D, O)
+            now = lts_criterion(res, n_par)
+            if now < 0.98 * best:
+                best, best_fit, stall = now, (R, S, D, O), 0
+            else:
+                stall += 1
+                if stall >= 2:
+                    break
+            scale = min(GNC_SHRINK * scale, mad(res))
+        return best, best_fit
+
     k = outlier_threshold(m, OUTLIER_ALPHA if alpha is None else alpha)
+    best, best_fit = gnc(R, S, D, O)
     # the majority fit's scale as the final fit's is estimated: least squares on its inliers (within
     # the cut k of its scale: first the trimmed one, lts_scale, then the refit's MAD times
     # sqrt(inliers / dof); C-steps): the biweight refits overfit the noise (their raw MAD was up to
