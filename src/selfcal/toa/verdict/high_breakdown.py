@@ -335,8 +335,9 @@ def majority_scale_test(ranges: Array, receivers: Array, sources: Array, receive
 
     Notes
     -----
-    Cost: up to :data:`GNC_ROUNDS` weighted refits and three least-squares refits, without
-    covariance (on clean 12 x 40 networks ~0.15-0.2 s on a loaded core, about half the solve).
+    Cost: up to :data:`GNC_ROUNDS` least-squares refits of :data:`GNC_STEPS` steps and three
+    C-steps, without covariance, on the sparse solver (a weighted refit only where a node keeps too
+    few entries); on clean 12 x 40 networks 0.05 of the solve (``benchmarks/bench_postsolve.py``).
 
     References
     ----------
