@@ -436,7 +436,7 @@ def majority_scale_test(ranges: Array, receivers: Array, sources: Array, receive
         inl = obs & (np.abs(np.nan_to_num(res)) <= k * s_m)
         if int(inl.sum()) <= n_par:
             return None
-        sol = refit(*fit, inl.astype(float))
+        sol = refit(fit[0], fit[1], fit[2], fit[3], inl.astype(float))
         if sol is None:
             break
         fit = (sol.receivers, sol.sources, sol.receiver_offsets, sol.source_offsets)
@@ -454,6 +454,17 @@ def majority_scale_check(ranges: Array, receivers: Array, sources: Array, receiv
     """:func:`majority_scale_test` on a final fit as the outlier-breakdown note (None: it holds).
 
     Not run above :data:`HB_MAX_ENTRIES` observed entries (the cost bound of the high-breakdown start).
+
+    Parameters
+    ----------
+    ranges, receivers, sources, receiver_offsets, source_offsets, offsets, n_par:
+        As :func:`majority_scale_test` (metres).
+
+    Returns
+    -------
+    str or None
+        The note (without the ``"outlier breakdown: "`` prefix) when the final fit's scale exceeds
+        the majority fit's by more than the outlier cut, else None.
 
     Examples
     --------
