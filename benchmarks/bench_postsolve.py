@@ -14,6 +14,10 @@ same process by wrapping the function that runs it:
 - ``determinacy``: the Fisher blocks of small networks and the determinacy test
   (``fit.fisher_blocks`` + ``fit._judge_determinacy``);
 - ``outlier_power``: can the estimated-scale rule flag anything (``fit.outlier_rule_has_power``);
+- ``majority_scale``: the outlier-breakdown test with the noise estimated
+  (``fit_result.majority_scale_check``: a fit of the majority at a far smaller scale; runs on
+  successful results with at least 2 entries per unknown and at most 6,000 entries, so not at
+  ``12x6`` or 120 units; ``12x40`` is the contamination families' size);
 - ``uniqueness``: the uniqueness test (``fit_result.judge_fit``; older layouts ``fit.judge_fit``,
   ``fit.uniqueness_check`` / ``fit.uniqueness_test``).
 
@@ -67,6 +71,7 @@ STAGES = [
     ("fit_result", "fisher_blocks", "determinacy"),
     ("fit_result", "_judge_determinacy", "determinacy"),
     ("fit_result", "outlier_rule_has_power", "outlier_power"),
+    ("fit_result", "majority_scale_check", "majority_scale"),
     ("fit", "uniqueness_check", "uniqueness"),
     ("fit", "uniqueness_test", "uniqueness"),
     ("fit", "judge_fit", "uniqueness"),

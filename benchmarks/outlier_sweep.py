@@ -8,7 +8,8 @@ mask, and the nodes of successful results further from the truth (after rigid al
 
 ``--families`` runs instead the families of ``tests/toa/outlier_families.py`` (10-40 % of
 the ranges off by +1..+5 m, one-sided or symmetric, noise given or unknown, 2-D and 3-D,
-offsets none or per receiver; and clean generic networks for the false alarms) and prints,
+offsets none or per receiver; and clean generic networks, Gaussian or heavy-tailed (t with
+3-5 dof, Laplace), for the false alarms) and prints,
 per family: the injected errors in the ``outliers`` mask, the draws that report an outlier
 breakdown, that are right (exit 0, within 3 error bars, every injected error flagged), right
 but with injected errors left in the fit, wrong with exit 0 (a node outside 3x its error
@@ -65,9 +66,9 @@ def families(draws: int = 40, only: str = "") -> dict[str, dict[str, int]]:
     from pathlib import Path
 
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests" / "toa"))
-    from outlier_families import CLEAN, CONTAMINATED, classify
+    from outlier_families import CLEAN, CONTAMINATED, HEAVY, classify
 
-    every = {**CONTAMINATED, **CLEAN}
+    every = {**CONTAMINATED, **CLEAN, **HEAVY}
     names = [n for n in every if not only or n in only.split(",")]
     cols = ("breakdown", "right", "right-unflagged", "wrong", "wrong>10cm", "failed")
     print(f"{'family':26s} {'draws':>5s} {'flagged':>11s} " + " ".join(f"{c:>15s}" for c in cols))

@@ -32,10 +32,25 @@ from selfcal.toa import solve_toa, toa_model
 NOISE = 0.01  # m: 1 cm range noise in a 10 m layout (UWB-like)
 
 
-def _network(g: np.random.Generator, I: int, J: int, dim: int, offsets: bool) -> tuple:
+def _noise(g: np.random.Generator, shape: tuple[int, int], tails: str) -> np.ndarray:
+    """Range noise of standard deviation :data:`NOISE`: Gaussian, Student t (``"t3"``, ``"t5"``) or Laplace.
+
+    The heavy-tailed kinds are scaled to the same standard deviation (t with nu dof:
+    sqrt((nu - 2) / nu) times a standard t draw; Laplace: scale NOISE / sqrt(2)): real UWB and
+    acoustic ranges have heavier tails than Gaussian, and those are noise, not gross errors.
+    """
+    if tails == "gauss":
+        return g.normal(0, NOISE, shape)
+    if tails == "laplace":
+        return g.laplace(0, NOISE / np.sqrt(2), shape)
+    nu = int(tails[1:])
+    return NOISE * np.sqrt((nu - 2) / nu) * g.standard_t(nu, shape)
+
+
+def _network(g: np.random.Generator, I: int, J: int, dim: int, offsets: bool, tails: str = "gauss") -> tuple:
     r, s = g.uniform(0, 10, (I, dim)), g.uniform(0, 10, (J, dim))
     d = g.uniform(0, 2, I) if offsets else None
-    return toa_model(r, s, d) + g.normal(0, NOISE, (I, J)), r, s
+    return toa_model(r, s, d) + _noise(g, (I, J), tails), r, s
 
 
 def _contaminate(g: np.random.Generator, Y: np.ndarray, symmetric: bool, fraction: tuple[float, float],
@@ -48,12 +63,12 @@ def _contaminate(g: np.random.Generator, Y: np.ndarray, symmetric: bool, fractio
 
 def family(tag: int, I: int, J: int, dim: int, *, symmetric: bool, given: bool, offsets: bool = False,
            clean: bool = False, fraction: tuple[float, float] = (0.1, 0.4),
-           size: tuple[float, float] = (1.0, 5.0)) -> Any:
-    """A family of draws: ``seed -> (Y, receivers, sources, bad, kw)``."""
+           size: tuple[float, float] = (1.0, 5.0), tails: str = "gauss") -> Any:
+    """A family of draws: ``seed -> (Y, receivers, sources, bad, kw)``; ``tails``: the noise (:func:`_noise`)."""
 
     def one(seed: int) -> tuple:
         g = np.random.default_rng([27, tag, seed])
-        Y, r, s = _network(g, I, J, dim, offsets)
+        Y, r, s = _network(g, I, J, dim, offsets, tails)
         bad = np.zeros(Y.shape, bool) if clean else _contaminate(g, Y, symmetric, fraction, size)
         kw: dict[str, Any] = {"dim": dim, "offsets": "receivers" if offsets else "none"}
         if given:
@@ -84,6 +99,17 @@ CLEAN = {
     "clean-2d-unknown": family(13, 10, 30, 2, symmetric=False, given=False, clean=True),
     "clean-3d-offsets-unknown": family(14, 12, 40, 3, symmetric=False, given=False, offsets=True, clean=True),
     "clean-small-3d-unknown": family(15, 8, 10, 3, symmetric=False, given=False, clean=True),
+}
+#: clean networks with heavy-tailed noise of 1 cm standard deviation (no gross errors): real
+#: ranging noise is not Gaussian, and a breakdown must not be reported on it
+HEAVY = {
+    "t3-3d-unknown": family(21, 12, 40, 3, symmetric=False, given=False, clean=True, tails="t3"),
+    "t5-3d-unknown": family(22, 12, 40, 3, symmetric=False, given=False, clean=True, tails="t5"),
+    "laplace-3d-unknown": family(23, 12, 40, 3, symmetric=False, given=False, clean=True, tails="laplace"),
+    "t3-2d-unknown": family(24, 10, 30, 2, symmetric=False, given=False, clean=True, tails="t3"),
+    "t4-3d-offsets-unknown": family(25, 12, 40, 3, symmetric=False, given=False, offsets=True, clean=True,
+                                    tails="t4"),
+    "laplace-small-3d-unknown": family(26, 8, 10, 3, symmetric=False, given=False, clean=True, tails="laplace"),
 }
 
 

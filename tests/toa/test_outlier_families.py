@@ -19,12 +19,16 @@ hold is a breakdown (more than half flagged).
 What does not hold yet, measured (``benchmarks/outlier_sweep.py --families``): with the noise
 unknown and 30-40 % of the ranges gross, a third to a half of the sources carry more gross
 ranges than they can hold, the sweeps stall in a wrong basin, the noise estimate inflates
-(1-2 m against 1 cm) and no entry stands out; 12 of 100 such draws (5-25 % per family; 17 before)
-end in exit 0 with a node outside 3 error bars. That property is stated below as an
-expected failure.
+(1-2 m against 1 cm) and no entry stands out. The majority-scale test
+(``toa.verdict.high_breakdown.majority_scale_test``: a graduated trimmed search for a fit of the
+majority of the ranges, breakdown when the final fit's scale exceeds the majority's by the
+outlier rule's cut) turns those it reaches into an "outlier breakdown"; it does not reach all:
+13 of 200 such draws (0-10 % per family; 24 before the test) end in exit 0 with a node outside
+3 error bars. That property is stated below as an expected failure.
 
-False alarms: on clean networks the breakdown must not be reported in more than 1 % of
-draws (the rule's family-wise level is 1 %; measured 0 of 200).
+False alarms: on clean networks, Gaussian or heavy-tailed (t3-t5, Laplace: real ranging noise,
+not gross errors), the breakdown must not be reported in more than 1 % of draws (the rule's
+family-wise level is 1 %; measured 0 of 200 clean and 0 of 240 heavy-tailed).
 """
 
 from __future__ import annotations
@@ -35,7 +39,7 @@ from pathlib import Path
 import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from outlier_families import CLEAN, CONTAMINATED, classify  # noqa: E402
+from outlier_families import CLEAN, CONTAMINATED, HEAVY, classify  # noqa: E402
 
 #: the noise given (any fraction up to 40 %), or unknown with at most 25 % gross ranges
 HELD = ("3d-plus-given", "3d-sym-given", "2d-sym-given", "3d-offsets-sym-given", "3d-plus-unknown-25",
@@ -64,9 +68,9 @@ def test_contamination_the_estimator_holds_is_right_and_flagged_or_a_breakdown_m
     _held(family, 40)  # 6 families x 40 = 240 draws
 
 
-def _false_alarms(draws: int) -> tuple[int, int]:
+def _false_alarms(draws: int, families: dict = CLEAN) -> tuple[int, int]:
     alarms = total = 0
-    for family in CLEAN.values():
+    for family in families.values():
         for seed in range(draws):
             d = classify(family, seed)
             alarms += d["kind"] == "breakdown"
@@ -79,6 +83,19 @@ def test_clean_networks_report_no_breakdown():
     assert alarms == 0, (alarms, total)
 
 
+def test_heavy_tailed_clean_networks_report_no_breakdown():
+    # t3-t5 and Laplace noise of 1 cm std, no gross errors: real ranging noise, not a breakdown
+    alarms, total = _false_alarms(1, HEAVY)
+    assert alarms == 0, (alarms, total)
+
+
+@pytest.mark.slow
+def test_heavy_tailed_clean_networks_report_a_breakdown_in_at_most_one_percent_of_draws():
+    # 6 families x 40 = 240 draws; the bound as for the Gaussian clean networks below
+    alarms, total = _false_alarms(40, HEAVY)
+    assert alarms <= 0.01 * total, (alarms, total)
+
+
 @pytest.mark.slow
 def test_clean_networks_report_a_breakdown_in_at_most_one_percent_of_draws():
     # 5 families x 40 = 200 draws; at a true rate of 1 % the count exceeds 2 with probability 0.32,
@@ -88,9 +105,10 @@ def test_clean_networks_report_a_breakdown_in_at_most_one_percent_of_draws():
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(reason="noise unknown and 30-40 % of the ranges gross: the high-breakdown sweeps stall in a "
-                          "wrong basin on some draws and no entry stands out (12 of 100 draws, 5-25 % per family, "
-                          "end in exit 0 with a node outside 3 error bars, benchmarks/outlier_sweep.py --families)", strict=False)
+@pytest.mark.xfail(reason="noise unknown and 30-40 % of the ranges gross: where the majority-scale search does not "
+                          "reach the majority of the ranges the stalled fit is not caught (13 of 200 draws, 0-10 % per "
+                          "family, end in exit 0 with a node outside 3 error bars; 24 before the test; "
+                          "benchmarks/outlier_sweep.py --families)", strict=False)
 @pytest.mark.parametrize("family", BEYOND)
 def test_contamination_beyond_what_the_nodes_hold_never_ends_in_a_confident_wrong_answer(family):
     for seed in range(40):

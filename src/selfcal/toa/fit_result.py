@@ -31,6 +31,7 @@ from .result import (
     residual_test,
 )
 from .verdict.determinacy import DENSE_MAX_UNKNOWNS, fisher_blocks
+from .verdict.high_breakdown import majority_scale_check
 from .verdict.leverage import leverages, outlier_rule_has_power
 from .verdict.robust import noise_scale
 from .verdict.uniqueness import judge_fit
@@ -118,6 +119,10 @@ def judge_final(M: Array, Yc: Array, final: NlsSolution, Yf: Array, *, keep: tup
         res = dataclasses.replace(res, verdict_message=(
             f"{res.verdict_message}; {len(overflagged)} nodes dropped, more ranges flagged than a position can "
             f"hold (floor((n - unknowns) / 2)): {', '.join(overflagged[:8])}{' ...' if len(overflagged) > 8 else ''}"))
+    if sd is None and not degenerate and not breakdown and res.verdict == int(Status.SUCCESS):
+        # with the noise estimated, a fit of the majority at a far smaller scale means this one broke down
+        maj = majority_scale_check(Yf, *_start(final), offsets, n_par)
+        breakdown = breakdown + ([maj] if maj else [])
     if breakdown:
         text = "outlier breakdown: " + "; ".join(breakdown)
         failed = res.verdict == int(Status.FAILED_TEST)

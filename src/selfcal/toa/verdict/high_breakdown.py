@@ -3,15 +3,20 @@
 :func:`high_breakdown_start` re-places every node by LMedS over elemental subsets of its own
 ranges (:func:`elemental_subsets`), then least squares on its inliers; :func:`lts_criterion`
 (the trimmed cost, breakdown point about 1/2) decides whether it replaces the soft-L1 start
-(:func:`selfcal.toa.fit.finish`).
+(:func:`selfcal.toa.fit.finish`). After the final fit, :func:`majority_scale_test` looks for a
+fit of the majority of the ranges by graduated non-convexity and reports an outlier
+breakdown when its residual scale is smaller than the final fit's by more than the outlier
+rule's own cut (:func:`selfcal.toa.fit_result.judge_final`).
 """
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 from numpy.typing import NDArray
 
-__all__ = ["elemental_subsets", "high_breakdown_start", "lts_criterion"]
+__all__ = ["elemental_subsets", "high_breakdown_start", "lts_criterion", "lts_scale", "majority_scale_check", "majority_scale_test"]
 
 Array = NDArray[np.float64]
 
@@ -32,6 +37,24 @@ HB_MAX_ENTRIES = 6000
 HB_LEVEL = 0.01
 #: inlier cut of the reweighting step, in robust standard deviations (Rousseeuw & Leroy 1987, p. 202)
 HB_CUT = 2.5
+#: the scale of the graduated trimmed refits of :func:`majority_scale_test` (least squares on the
+#: entries within :data:`HB_CUT` of it, the reweighting cut of reweighted LMedS) shrinks by this
+#: factor per round (Tukey-biweight-weighted refits instead reached the majority no more often, at
+#: ~15x the cost: every refit weighted)
+GNC_SHRINK = 0.7
+#: ... and the refits stop after two rounds that do not lower the trimmed cost below this fraction
+#: of its best: refits that only overfit the noise lower it ~1.15x per round (clean 12 x 40),
+#: refits reaching a majority ~1.8x per round on average (to 1/1000 in about 12)
+GNC_DECREASE = 0.8
+#: most rounds of :func:`majority_scale_test`
+GNC_ROUNDS = 12
+#: Levenberg-Marquardt steps per round of :func:`majority_scale_test` (the weights change each round:
+#: iteratively reweighted, not converged per round)
+GNC_STEPS = 4
+#: :func:`majority_scale_test` needs this many entries per unknown: the majority's fit keeps about
+#: (m + n_par) / 2 of them, and below 2 its scale is biased low by the choice of which (clean 8 x 10
+#: networks in 3-D, m / n_par = 1.67, with Laplace noise: 4 false breakdowns in 40 draws)
+GNC_REDUNDANCY = 2
 
 
 def elemental_subsets(p: int, clean: float = HB_CLEAN_SET, contamination: float = HB_CONTAMINATION) -> int:
@@ -257,3 +280,237 @@ def lts_criterion(residuals: Array, n_par: int) -> float:
         return float("inf")
     h = min(max((f.size + int(n_par) + 1) // 2, 1), f.size)
     return float(np.sort(f**2)[:h].sum())
+
+
+def majority_scale_test(ranges: Array, receivers: Array, sources: Array, receiver_offsets: Array | None,
+                        source_offsets: Array | None, offsets: str, n_par: int, alpha: float | None = None,
+                        rounds: int = GNC_ROUNDS) -> tuple[float, float, float] | None:
+    """Is there a fit of the majority of the ranges at a scale the final fit's residuals are outliers of?
+
+    From the final fit, graduated non-convexity (Black & Rangarajan 1996; Yang et al. 2020) with
+    the truncated quadratic: least-squares refits (:func:`selfcal.toa.engine.nls.refine_toa`,
+    :data:`GNC_STEPS` Levenberg-Marquardt steps per round: not converged per round) on the entries
+    within :data:`HB_CUT` of a scale that starts at the normal-consistent MAD of the final
+    residuals and shrinks by :data:`GNC_SHRINK` per round (never above the current fit's MAD),
+    keeping the refit of lowest trimmed cost (:func:`lts_criterion`, breakdown point ~1/2). The refits
+    follow the majority of the entries where one exists at a much smaller scale: a fit that
+    gross errors spread over every node (the noise estimate inflated 100x, the residuals as
+    Gaussian-looking as noise) is pulled towards it.
+
+    The majority fit's scale ``s_m`` is estimated as the final fit's ``s_f`` is: least squares on
+    its inliers, the entries within ``k`` of its scale (first its trimmed scale, :func:`lts_scale`,
+    then the refit's), at most three C-steps, continued only while the scale falls; each scale is
+    the normal-consistent MAD of the fitted entries times ``sqrt(m / (m - n_par))``
+    (``fit_result._noise_estimate``). The trimmed
+    refits alone overfit the noise (a weighted version's MAD was up to 14x below it on clean
+    8 x 10 networks); least squares on every entry within ``k`` of a scale does not.
+
+    The test: the final fit has broken down when ``s_f > k s_m``, ``k`` the outlier rule's own
+    cut (:func:`~selfcal.toa.verdict.robust.outlier_threshold`: Bonferroni normal quantile over
+    the ``m`` entries at family-wise level :data:`~selfcal.toa.verdict.robust.OUTLIER_ALPHA`;
+    4.3 at 480 entries, 3.8 at 80): judged at the majority's scale, the final fit's typical
+    residual is itself an outlier, so more than half of its entries would be flagged, the
+    breakdown the rule reports when the noise is given. On a consistent fit both scales
+    estimate the same noise and the ratio is ~1 (``benchmarks/outlier_sweep.py --families``
+    and ``tests/toa/test_majority_scale.py`` for the measured spread). Being a search, the test
+    can miss a majority it does not reach; it then reports nothing.
+
+    Parameters
+    ----------
+    ranges:
+        (I, J) the final fit's entries (NaN elsewhere: missing or removed), metres.
+    receivers, sources, receiver_offsets, source_offsets:
+        The final fit; ``offsets``: ``'none' | 'receivers' | 'sources' | 'both'``.
+    n_par:
+        Unknowns of the final fit (sets the trimmed cost's ``h``).
+    alpha:
+        Family-wise level of the cut (default the outlier rule's).
+    rounds:
+        Most refits.
+
+    Returns
+    -------
+    ``(s_f, s_m, k)`` (metres, metres, the cut; the fit has broken down when ``s_f > k s_m``),
+    or None when no scale could be formed or the entries are fewer than
+    :data:`GNC_REDUNDANCY` times the unknowns (no test).
+
+    Notes
+    -----
+    Cost: up to :data:`GNC_ROUNDS` least-squares refits of :data:`GNC_STEPS` steps and three
+    C-steps, without covariance, on the sparse solver (a weighted refit only where a node keeps too
+    few entries); on clean 12 x 40 networks 0.05 of the solve (``benchmarks/bench_postsolve.py``).
+
+    References
+    ----------
+    M. J. Black and A. Rangarajan, "On the unification of line processes, outlier rejection,
+    and robust statistics", *Int. J. Comput. Vision* 19 (1996) 57-91. H. Yang, P. Antonante,
+    V. Tzoumas and L. Carlone, "Graduated non-convexity for robust spatial perception",
+    *IEEE Robot. Autom. Lett.* 5 (2020) 1127-1134.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from selfcal.toa import toa_model
+    >>> g = np.random.default_rng(0)
+    >>> r, s = g.uniform(0, 10, (8, 2)), g.uniform(0, 10, (20, 2))
+    >>> Y = toa_model(r, s) + g.normal(0, 0.01, (8, 20))
+    >>> s_f, s_m, k = majority_scale_test(Y, r, s, None, None, "none", n_par=53)
+    >>> bool(s_f < k * s_m)  # clean: the final fit holds
+    True
+    """
+    from ...errors import DegenerateGeometryError, InputError
+    from ..engine.model import toa_model
+    from ..engine.nls import refine_toa
+    from .robust import OUTLIER_ALPHA, outlier_threshold
+
+    Y = np.asarray(ranges, float)
+    obs = np.isfinite(Y)
+    m = int(obs.sum())
+    if m < GNC_REDUNDANCY * n_par:
+        return None
+
+    def resid(R: Array, S: Array, D: Array | None, O: Array | None) -> Array:
+        with np.errstate(all="ignore"):
+            return np.where(obs, Y - toa_model(R, S, D, O), np.nan)
+
+    def mad(res: Array) -> float:
+        return 1.4826 * float(np.nanmedian(np.abs(res)))
+
+    def scale_of(res: Array, used: NDArray[np.bool_]) -> float:
+        # the final fit's noise estimate (fit_result._noise_estimate): MAD times sqrt(m / dof)
+        n_used = int(used.sum())
+        return mad(np.where(used, res, np.nan)) * float(np.sqrt(n_used / max(n_used - n_par, 1)))
+
+    def refit(R: Array, S: Array, D: Array | None, O: Array | None, W: Array, steps: int | None = None) -> Any:
+        try:
+            if np.all((W == 0.0) | (W == 1.0)):
+                try:  # least squares on a subset: the sparse Schur solver, where every node keeps enough ranges
+                    return refine_toa(np.where(W > 0, Y, np.nan), R, S, offsets=offsets, receiver_offsets0=D,
+                                      source_offsets0=O, covariance=False, max_nfev=steps)
+                except DegenerateGeometryError:
+                    pass
+            return refine_toa(Y, R, S, offsets=offsets, receiver_offsets0=D, source_offsets0=O,
+                              weights=np.sqrt(W), covariance=False, max_nfev=steps, solver="lm")
+        except (DegenerateGeometryError, InputError, np.linalg.LinAlgError, ValueError):
+            return None  # the weights left a node undetermined: the search ends here
+
+    R, S, D, O = receivers, sources, receiver_offsets, source_offsets
+    res0 = resid(R, S, D, O)
+    s_f = scale_of(res0, obs)
+    if not (np.isfinite(s_f) and s_f > 0):
+        return None
+    def gnc(R: Array, S: Array, D: Array | None, O: Array | None) -> tuple[float, tuple]:
+        res = resid(R, S, D, O)
+        best, best_fit, scale, stall = lts_criterion(res, n_par), (R, S, D, O), mad(res), 0
+        for _ in range(rounds):  # graduated non-convexity: trimmed refits at a shrinking scale
+            if not scale > 0:
+                break
+            # least squares on the entries within the cut of the current scale
+            sol = refit(R, S, D, O, (obs & (np.abs(np.nan_to_num(res)) < HB_CUT * scale)).astype(float), GNC_STEPS)
+            if sol is None:
+                break
+            R, S, D, O = sol.receivers, sol.sources, sol.receiver_offsets, sol.source_offsets
+            res = resid(R, S, D, O)
+            now = lts_criterion(res, n_par)
+            if now < GNC_DECREASE * best:
+                best, best_fit, stall = now, (R, S, D, O), 0
+            else:
+                stall += 1
+                if stall >= 2:
+                    break
+            scale = min(GNC_SHRINK * scale, mad(res))
+        return best, best_fit
+
+    k = outlier_threshold(m, OUTLIER_ALPHA if alpha is None else alpha)
+    best, best_fit = gnc(R, S, D, O)
+    # the majority fit's scale as the final fit's is estimated: least squares on its inliers (within
+    # the cut k of its scale: first the trimmed one, lts_scale, then the refit's MAD times
+    # sqrt(inliers / dof); C-steps): the trimmed refits overfit the noise (their raw MAD was up to
+    # 14x below it on clean 8 x 10 networks), least squares on all entries within k of a scale does not
+    fit = best_fit
+    res = resid(*fit)
+    s_m = lts_scale(res, n_par)
+    if not s_f > k * s_m:
+        # the trimmed scale is the lower one (it overfits): it already rules the breakdown out
+        return s_f, s_m, k
+    for _ in range(3):
+        inl = obs & (np.abs(np.nan_to_num(res)) <= k * s_m)
+        if int(inl.sum()) <= n_par:
+            return None
+        sol = refit(fit[0], fit[1], fit[2], fit[3], inl.astype(float))
+        if sol is None:
+            break
+        fit = (sol.receivers, sol.sources, sol.receiver_offsets, sol.source_offsets)
+        res = resid(*fit)
+        now = scale_of(res, inl)
+        done = now >= 0.99 * s_m  # C-steps only while the scale keeps falling (the larger one is kept)
+        s_m = now
+        if done:
+            break
+    return (s_f, s_m, k) if s_m > 0 else None
+
+
+def majority_scale_check(ranges: Array, receivers: Array, sources: Array, receiver_offsets: Array | None,
+                         source_offsets: Array | None, offsets: str, n_par: int) -> str | None:
+    """:func:`majority_scale_test` on a final fit as the outlier-breakdown note (None: it holds).
+
+    Not run above :data:`HB_MAX_ENTRIES` observed entries (the cost bound of the high-breakdown start).
+
+    Parameters
+    ----------
+    ranges, receivers, sources, receiver_offsets, source_offsets, offsets, n_par:
+        As :func:`majority_scale_test` (metres).
+
+    Returns
+    -------
+    str or None
+        The note (without the ``"outlier breakdown: "`` prefix) when the final fit's scale exceeds
+        the majority fit's by more than the outlier cut, else None.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from selfcal.toa import toa_model
+    >>> g = np.random.default_rng(0)
+    >>> r, s = g.uniform(0, 10, (8, 2)), g.uniform(0, 10, (20, 2))
+    >>> majority_scale_check(toa_model(r, s) + g.normal(0, 0.01, (8, 20)), r, s, None, None, "none", 53) is None
+    True
+    """
+    if int(np.isfinite(np.asarray(ranges, float)).sum()) > HB_MAX_ENTRIES:
+        return None
+    out = majority_scale_test(ranges, receivers, sources, receiver_offsets, source_offsets, offsets, n_par)
+    if out is None:
+        return None
+    s_f, s_m, k = out
+    if not s_f > k * s_m:
+        return None
+    return (f"a fit of the majority of the ranges has residual scale {s_m:.3g} m against this fit's {s_f:.3g} m "
+            f"({s_f / s_m:.3g}x, more than the outlier cut {k:.3g}): at its scale most of this fit's residuals are "
+            "outliers (gross errors spread over the nodes, the noise estimate inflated; give the noise, or remove "
+            "the faulty ranges)")
+
+
+def lts_scale(residuals: Array, n_par: int) -> float:
+    """Normal-consistent scale of the trimmed cost: ``sqrt(LTS / ((h - n_par) c_h))`` (metres).
+
+    ``LTS`` is :func:`lts_criterion` (the ``h`` smallest squared residuals of ``m``), ``h - n_par``
+    its degrees of freedom, ``c_h = 1 - 2 q phi(q) / (2 Phi(q) - 1)`` with
+    ``q = Phi^-1((1 + h / m) / 2)`` the variance of a standard normal truncated to its central
+    fraction ``h / m`` (Rousseeuw & Leroy 1987, p. 17; Croux & Rousseeuw 1992).
+
+    Examples
+    --------
+    >>> r = np.random.default_rng(0).normal(0, 2.0, 20000)
+    >>> bool(abs(lts_scale(r, 0) - 2.0) < 0.1)
+    True
+    """
+    from scipy.stats import norm
+
+    f = np.asarray(residuals, float)
+    m = int(np.isfinite(f).sum())
+    if m == 0:
+        return float("nan")
+    h = min(max((m + int(n_par) + 1) // 2, 1), m)
+    q = float(norm.ppf((1.0 + h / m) / 2.0))
+    c = 1.0 - 2.0 * q * float(norm.pdf(q)) / (2.0 * float(norm.cdf(q)) - 1.0) if h < m else 1.0
+    return float(np.sqrt(lts_criterion(f, n_par) / (max(h - int(n_par), 1) * c)))
