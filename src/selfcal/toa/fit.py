@@ -31,7 +31,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from .._checks import check_toa_counts
-from ..errors import DegenerateGeometryError, InputError, Status
+from ..errors import DegenerateGeometryError, InputError
 from .engine.nls import NlsSolution, refine_toa, toa_model, with_covariance
 from .fit_result import _start, judge_final
 from .init.rank3_model import rank_identifiable
@@ -46,30 +46,10 @@ from .verdict.leverage import kept_inverse, leverages, studentized
 from .verdict.leverage import settled as settled_fit
 from .verdict.robust import drop_unidentifiable, gross_entries, noise_scale, outlier_mask
 
-__all__ = ["finish", "given_start", "n_negative", "unrefined"]
+__all__ = ["finish", "n_negative"]
 
 Array = NDArray[np.float64]
 Start = tuple[Array, Array, "Array | None", "Array | None"]
-
-
-def given_start(init: Any, I: int, J: int, dim: int, offsets: str, scale: float, as_points: Any) -> Start:
-    """Validate an explicit ``init=(receivers, sources[, receiver_offsets, source_offsets])`` (metres)."""
-    if not isinstance(init, (tuple, list)) or len(init) not in (2, 4):
-        raise InputError("init must be 'auto' or a tuple (receivers, sources[, receiver_offsets, source_offsets])")
-    r = as_points(init[0], "init receivers", dim=dim)
-    s = as_points(init[1], "init sources", dim=dim)
-    if r.shape[0] != I or s.shape[0] != J:
-        raise InputError(f"init has {r.shape[0]} receivers and {s.shape[0]} sources; the matrix is {I} x {J}")
-    d0 = o0 = None
-    if len(init) == 4:
-        d0 = None if init[2] is None else np.asarray(init[2], float).ravel() * scale
-        o0 = None if init[3] is None else np.asarray(init[3], float).ravel() * scale
-    has_r, has_s = offsets in ("receivers", "both"), offsets in ("sources", "both")
-    if has_r and d0 is None:
-        d0 = np.zeros(I)
-    if has_s and o0 is None:
-        o0 = np.zeros(J)
-    return r, s, (d0 if has_r else None), (o0 if has_s else None)
 
 
 def n_negative(M: Array) -> int:
@@ -599,36 +579,3 @@ def _check_kept(used: NDArray[np.bool_], kr: NDArray[np.bool_], ks: NDArray[np.b
         check_toa_counts(sub.shape, int(sub.sum()), dim, offsets)
     except DegenerateGeometryError as exc:
         raise DegenerateGeometryError(f"{exc.args[0]}{dropped}", kind=exc.kind) from None
-
-
-def unrefined(M: Array, dim: int, offsets: str, speed: float | None, rng: np.random.Generator) -> ToaResult:
-    """``method="rank3"``: the 004 initialiser's estimate without refinement (NaN covariances)."""
-    from ..geometry import canonical_gauge
-    from .search import INITIALISERS
-
-    scale = speed if speed is not None else 1.0
-    Y = M * scale
-    starts = INITIALISERS["rank3"](Y, dim, offsets, rng)
-    if not starts:
-        raise DegenerateGeometryError("the rank-3 initialiser does not apply to this matrix "
-                                      "(too few units for the rank-d conditions, 004 sec. 3)", kind="too-few-units")
-    r, s, d, o = starts[0]
-    res = np.where(np.isfinite(Y), Y - toa_model(r, s, d, o), np.nan)
-    f = res[np.isfinite(res)]
-    rc, scn, _ = canonical_gauge(r, s)
-    assert scn is not None
-    I, J = Y.shape
-    k = 1.0 / scale
-    if offsets == "both" and d is not None and o is not None:
-        d, o = d + o[0], o - o[0]
-    return ToaResult(
-        receivers=rc, sources=scn,
-        receiver_offsets=None if d is None else np.asarray(d) * k,
-        source_offsets=None if o is None else np.asarray(o) * k,
-        receiver_cov=np.full((I, dim, dim), np.nan), source_cov=np.full((J, dim, dim), np.nan),
-        residual_rms=float(np.sqrt(np.mean(f**2))) * k, sigma=float("nan"), converged=True, iterations=0,
-        method="rank3", n_missing=int((~np.isfinite(M)).sum()), speed=speed, residuals=res * k,
-        verdict=int(Status.SUCCESS), verdict_message="the 004 initialiser alone (method='rank3'): not refined, not tested",
-        outliers=np.zeros((I, J), bool), dim=dim, offsets=offsets,
-        n_negative=n_negative(M))
-

@@ -15,6 +15,7 @@ import warnings
 from typing import Any
 
 import numpy as np
+from numpy.typing import NDArray
 
 from .._checks import (
     MAX_ABS_ENTRY,
@@ -28,12 +29,14 @@ from .._checks import (
     check_toa_observable,
     entry,
 )
-from ..errors import ConvergenceWarning, InputError
+from ..errors import ConvergenceWarning, DegenerateGeometryError, InputError, Status
 from .engine.covariance import normalize_covariance
-from .engine.nls import LOSSES, OFFSET_MODES
-from .fit import finish, given_start, n_negative, unrefined
+from .engine.nls import LOSSES, OFFSET_MODES, toa_model
+from .fit import Start, finish, n_negative
 from .options import ToaOptions
 from .result import ResidualTest, ToaResult, n_parameters, residual_test
+
+Array = NDArray[np.float64]
 
 __all__ = ["ResidualTest", "ToaResult", "n_parameters", "residual_test", "solve_toa"]
 
@@ -182,3 +185,55 @@ def _solve_fixed(M: np.ndarray, dim: int, offsets: str, opts: ToaOptions, *, ini
 
     with stage(f"solve {I}x{J} ({dim}-D, offsets {offsets}): search", unit="refinements"):
         return finish(M, dim, offsets, opts, init=init)
+
+
+def given_start(init: Any, I: int, J: int, dim: int, offsets: str, scale: float, as_points: Any) -> Start:
+    """Validate an explicit ``init=(receivers, sources[, receiver_offsets, source_offsets])`` (metres)."""
+    if not isinstance(init, (tuple, list)) or len(init) not in (2, 4):
+        raise InputError("init must be 'auto' or a tuple (receivers, sources[, receiver_offsets, source_offsets])")
+    r = as_points(init[0], "init receivers", dim=dim)
+    s = as_points(init[1], "init sources", dim=dim)
+    if r.shape[0] != I or s.shape[0] != J:
+        raise InputError(f"init has {r.shape[0]} receivers and {s.shape[0]} sources; the matrix is {I} x {J}")
+    d0 = o0 = None
+    if len(init) == 4:
+        d0 = None if init[2] is None else np.asarray(init[2], float).ravel() * scale
+        o0 = None if init[3] is None else np.asarray(init[3], float).ravel() * scale
+    has_r, has_s = offsets in ("receivers", "both"), offsets in ("sources", "both")
+    if has_r and d0 is None:
+        d0 = np.zeros(I)
+    if has_s and o0 is None:
+        o0 = np.zeros(J)
+    return r, s, (d0 if has_r else None), (o0 if has_s else None)
+
+
+def unrefined(M: Array, dim: int, offsets: str, speed: float | None, rng: np.random.Generator) -> ToaResult:
+    """``method="rank3"``: the 004 initialiser's estimate without refinement (NaN covariances)."""
+    from ..geometry import canonical_gauge
+    from .search import INITIALISERS
+
+    scale = speed if speed is not None else 1.0
+    Y = M * scale
+    starts = INITIALISERS["rank3"](Y, dim, offsets, rng)
+    if not starts:
+        raise DegenerateGeometryError("the rank-3 initialiser does not apply to this matrix "
+                                      "(too few units for the rank-d conditions, 004 sec. 3)", kind="too-few-units")
+    r, s, d, o = starts[0]
+    res = np.where(np.isfinite(Y), Y - toa_model(r, s, d, o), np.nan)
+    f = res[np.isfinite(res)]
+    rc, scn, _ = canonical_gauge(r, s)
+    assert scn is not None
+    I, J = Y.shape
+    k = 1.0 / scale
+    if offsets == "both" and d is not None and o is not None:
+        d, o = d + o[0], o - o[0]
+    return ToaResult(
+        receivers=rc, sources=scn,
+        receiver_offsets=None if d is None else np.asarray(d) * k,
+        source_offsets=None if o is None else np.asarray(o) * k,
+        receiver_cov=np.full((I, dim, dim), np.nan), source_cov=np.full((J, dim, dim), np.nan),
+        residual_rms=float(np.sqrt(np.mean(f**2))) * k, sigma=float("nan"), converged=True, iterations=0,
+        method="rank3", n_missing=int((~np.isfinite(M)).sum()), speed=speed, residuals=res * k,
+        verdict=int(Status.SUCCESS), verdict_message="the 004 initialiser alone (method='rank3'): not refined, not tested",
+        outliers=np.zeros((I, J), bool), dim=dim, offsets=offsets,
+        n_negative=n_negative(M))
