@@ -77,6 +77,33 @@ def n_negative(M: Array) -> int:
     return int(np.sum(M[np.isfinite(M)] <= 0))
 
 
+def screened(Y: Array, dim: int, offsets: str) -> tuple[Any, ...]:
+    """Steps 1-3 of :func:`finish` on ranges ``Y`` (metres): ``(pr, pc, Yc, gross, used, keep_r, keep_s)``.
+
+    ``Yc`` is ``Y`` in canonical order (rows ``pr``, columns ``pc``), ``gross`` its
+    numerically absurd entries, ``used`` the observed ones less those, ``keep_r`` /
+    ``keep_s`` the identifiable nodes; the search's matrix is ``Yc`` on ``used``, those nodes.
+    """
+    pr, pc = canonical_order(Y)
+    Yc = Y[np.ix_(pr, pc)]
+    obs = np.isfinite(Yc)
+    # gross entries (numerically absurd for any initialiser), then the identifiable nodes
+    gross = gross_entries(Yc)
+    used = obs & ~gross
+    keep_r, keep_s = drop_unidentifiable(used, dim, offsets)
+    if gross.any():
+        try:
+            _check_kept(used, keep_r, keep_s, dim, offsets)
+        except DegenerateGeometryError:
+            # the screen must not make an identifiable network unidentifiable: screen nothing
+            # (the robust loss and the outlier rule still judge every entry)
+            gross = np.zeros_like(gross)
+            used = obs.copy()
+            keep_r, keep_s = drop_unidentifiable(used, dim, offsets)
+    _check_kept(used, keep_r, keep_s, dim, offsets)
+    return pr, pc, Yc, gross, used, keep_r, keep_s
+
+
 def finish(M: Array, dim: int, offsets: str, opts: ToaOptions, *, init: Any) -> ToaResult:
     """Fit one model robustly (module docstring) and package the :class:`ToaResult`."""
     # the options by their names (ToaOptions documents each)
@@ -92,28 +119,13 @@ def finish(M: Array, dim: int, offsets: str, opts: ToaOptions, *, init: Any) -> 
     final_loss = "linear" if loss == "auto" else loss
     fs = None if f_scale is None else f_scale * scale
 
-    # 1. canonical order
-    pr, pc = canonical_order(Y)
-    Yc = Y[np.ix_(pr, pc)]
+    # 1. canonical order, 2. gross entries, 3. identifiable nodes
+    pr, pc, Yc, gross, used, keep_r, keep_s = screened(Y, dim, offsets)
     start0 = None
     if not isinstance(init, str):
         r0, s0, d0, o0 = init
         start0 = (r0[pr], s0[pc], None if d0 is None else d0[pr], None if o0 is None else o0[pc])
     obs = np.isfinite(Yc)
-    # 2. gross entries (numerically absurd for any initialiser), 3. identifiable nodes
-    gross = gross_entries(Yc)
-    used = obs & ~gross
-    keep_r, keep_s = drop_unidentifiable(used, dim, offsets)
-    if gross.any():
-        try:
-            _check_kept(used, keep_r, keep_s, dim, offsets)
-        except DegenerateGeometryError:
-            # the screen must not make an identifiable network unidentifiable: screen nothing
-            # (the robust loss and the outlier rule still judge every entry)
-            gross = np.zeros_like(gross)
-            used = obs.copy()
-            keep_r, keep_s = drop_unidentifiable(used, dim, offsets)
-    _check_kept(used, keep_r, keep_s, dim, offsets)
     n_par_of = lambda kr, ks: n_parameters(int(kr.sum()), int(ks.sum()), dim, offsets)  # noqa: E731
 
     def sub(mask: NDArray[np.bool_], kr: NDArray[np.bool_], ks: NDArray[np.bool_]) -> Array:

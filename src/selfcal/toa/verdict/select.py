@@ -310,38 +310,46 @@ def _lsq(res: ToaResult) -> float:
     return float(e @ e)
 
 
-def _own_starts(M: Array, dim: int, mode: str, opts: ToaOptions, cache: dict[str, Any]) -> list[tuple[Any, ...]]:
-    """The model's own starts, the solver's registry initialiser for offsets: the rank-d
-    iteration (both offset kinds at once, :mod:`selfcal.toa.init.offsets_init`), collapsed to
-    ``mode``. Computed once per matrix and shared by every candidate (metres, original order)."""
+def _own_starts(M: Array, dim: int, mode: str, opts: ToaOptions) -> list[tuple[Any, ...]]:
+    """The model's own start, from the solver's registry initialiser for offsets: the rank-d
+    iteration (both offset kinds at once, :mod:`selfcal.toa.init.offsets_init`) on the matrix
+    the search would see (:func:`selfcal.toa.fit.screened`), collapsed to ``mode``; of its
+    candidates the one of least sum of squares (metres, original order; none where the
+    initialiser does not apply). Inside :func:`choose_offsets` the initialiser runs once per
+    matrix (:func:`selfcal.toa.init.starts.shared_rank3`): every candidate and the final search
+    reuse it."""
     from ..engine.nls import toa_model
+    from ..fit import screened
     from ..init.starts import _rank3
 
-    if "both" not in cache:
-        k = 1.0 if opts.speed is None else float(opts.speed)
-        try:
-            cache["both"] = _rank3(np.asarray(M, float) * k, dim, "both", opts.rng)
-        except (DegenerateGeometryError, ValueError, np.linalg.LinAlgError, FloatingPointError):
-            cache["both"] = []
-    out = []
-    for r, s, d, o in cache["both"]:
-        if mode == "receivers":  # the other kind's estimate is the common shift
-            out.append((r, s, d + np.mean(o), None))
-        elif mode == "sources":
-            out.append((r, s, None, o + np.mean(d)))
-        else:
-            out.append((r, s, d, o))
-    if len(out) > 1:  # the best start by its own sum of squares (one refinement, not a race)
-        Y = np.asarray(M, float) * (1.0 if opts.speed is None else float(opts.speed))
+    Y = np.asarray(M, float) * (1.0 if opts.speed is None else float(opts.speed))
+    I, J = Y.shape
+    try:
+        pr, pc, Yc, _, used, kr, ks = screened(Y, dim, mode)
+        found = _rank3(np.where(used, Yc, np.nan)[np.ix_(kr, ks)], dim, mode, opts.rng)
+    except (DegenerateGeometryError, ValueError, np.linalg.LinAlgError, FloatingPointError):
+        return []
+    rows, cols = pr[kr], pc[ks]
 
-        def cost(st: tuple[Any, ...]) -> float:
-            with np.errstate(all="ignore"):
-                e = Y - toa_model(*st)
-            e = e[np.isfinite(e)]
-            return float(e @ e) if e.size else math.inf
+    def back(r: Array, s: Array, d: Array | None, o: Array | None) -> tuple[Any, ...]:
+        R, S = np.full((I, dim), np.nan), np.full((J, dim), np.nan)
+        R[rows], S[cols] = r, s
+        D = None if d is None else np.zeros(I)
+        O = None if o is None else np.zeros(J)
+        if D is not None:
+            D[rows] = d
+        if O is not None:
+            O[cols] = o
+        return R, S, D, O
 
-        out = [min(out, key=cost)]
-    return out
+    def cost(st: tuple[Any, ...]) -> float:
+        with np.errstate(all="ignore"):
+            e = Y - toa_model(*st)
+        e = e[np.isfinite(e)]
+        return float(e @ e) if e.size else math.inf
+
+    out = [back(*st) for st in found]
+    return [min(out, key=cost)] if out else []
 
 
 def choose_offsets(M: Array, dim: int, solve: Solver, opts: ToaOptions) -> tuple[ToaResult, dict[str, Any]]:
@@ -372,8 +380,14 @@ def choose_offsets(M: Array, dim: int, solve: Solver, opts: ToaOptions) -> tuple
     ``statistics`` is :meth:`selfcal.toa.verdict.crossval.CvChoice.to_dict` plus ``observations``,
     each mode's in-sample ``rss`` and ``own_start`` (the modes whose own start was tried).
     """
+    from ..init.starts import shared_rank3
+
+    with shared_rank3():  # the rank-d initialiser runs once for every candidate and the final search
+        return _choose_offsets(M, dim, solve, opts)
+
+
+def _choose_offsets(M: Array, dim: int, solve: Solver, opts: ToaOptions) -> tuple[ToaResult, dict[str, Any]]:
     fits: dict[str, ToaResult] = {}
-    cache: dict[str, Any] = {}
     own: list[str] = []
     # the candidates' refinements are starts and scores only: no covariances (the chosen one is searched)
     nls = dataclasses.replace(opts, method="nls", covariance=False)
@@ -387,7 +401,7 @@ def choose_offsets(M: Array, dim: int, solve: Solver, opts: ToaOptions) -> tuple
             res = _quiet(solve, M, dim, mode, opts)
         elif mode == "both" or _misfit(res):
             own.append(mode)
-            for st in _own_starts(M, dim, mode, opts, cache):
+            for st in _own_starts(M, dim, mode, opts):
                 try:  # a start the engine cannot refine (singular normal equations) is skipped
                     alt = _quiet(solve, M, dim, mode, nls, init=st)
                 except (np.linalg.LinAlgError, ValueError):
