@@ -36,6 +36,12 @@ data4 0.97 (exit 2: ``--dim auto`` chose 2-D and the known file has z) / 1.10 / 
 -> 0.45 (3-D: the known anchors span 3-D) / 1.13 / 1.27 / 1.01 (blind 8.5-9.7 s);
 data5 0.98 / 1.55 / 1.60 / 0.99 -> 1.04 / 1.61 / 1.80 / 1.01 (blind 4.2 s). ``--known``
 now includes the block jackknife and the random-effect refits (about 0.3-0.8 s).
+Measured (2026-12-03, branch ``autooff`` against main 82fd91c, loaded 2-core machine,
+``--cases room-shuffled --repeat 3``, before / after interleaved twice): ``--offsets auto``
+1.92 / 1.90 s -> 2.19 / 2.02 s CPU, ratio 5.63 / 5.21 -> 5.79 / 6.14 (blind 0.33-0.38 s).
+The candidates' own starts (``choose_offsets``: "both" always, which fixed the wrong choices
+of the slow offsets test) cost one refinement (~0.2 s); the rank-d initialiser they need is
+shared with the chosen model's search (it ran there before too), so it adds nothing.
 
 Run: ``OPENBLAS_NUM_THREADS=1 PYTHONPATH=src python benchmarks/bench_uwb_known.py
 [--cases room,room-shuffled,data4,data5] [--repeat 1] [--out FILE]``.
