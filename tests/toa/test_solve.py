@@ -367,8 +367,8 @@ def test_a_false_gross_entry_alarm_never_makes_a_network_unidentifiable(offsets,
     (25 entries, 24 unknowns) three entries of receiver 0 (it would be dropped, leaving
     20 entries for 21 unknowns); in a 7 x 8 network with both offsets, thinned to one entry
     above the limit (which needs one redundant entry with both offsets), entry (0, 0)."""
-    from selfcal.toa import fit as fit_mod
     from selfcal.toa.result import n_parameters
+    from selfcal.toa.verdict import robust as screen_mod  # the search's screen looks it up there
 
     I, J = (5, 5) if offsets == "none" else (7, 8)
     g = np.random.default_rng(3)
@@ -387,7 +387,7 @@ def test_a_false_gross_entry_alarm_never_makes_a_network_unidentifiable(offsets,
             out[0, : 3 if offsets == "none" else 1] = True
             return out & np.isfinite(M)
 
-        monkeypatch.setattr(fit_mod, "gross_entries", false_alarm)
+        monkeypatch.setattr(screen_mod, "gross_entries", false_alarm)
         res = solve_toa(Y, offsets=offsets, rng=0)
     assert res.dropped_receivers == () and res.dropped_sources == () and not res.outliers.any()
     np.testing.assert_allclose(res.receivers, plain.receivers, atol=1e-8)

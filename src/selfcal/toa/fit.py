@@ -30,7 +30,6 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from .._checks import check_toa_counts
 from ..errors import DegenerateGeometryError, InputError, Status
 from .engine.nls import NlsSolution, refine_toa, toa_model, with_covariance
 from .fit_result import _start, judge_final
@@ -41,10 +40,16 @@ from .result import (
     n_parameters,
     residual_test,
 )
-from .search import canonical_order, search
+from .search import search
 from .verdict.leverage import kept_inverse, leverages, studentized
 from .verdict.leverage import settled as settled_fit
-from .verdict.robust import drop_unidentifiable, gross_entries, noise_scale, outlier_mask
+from .verdict.robust import (
+    _check_kept,
+    drop_unidentifiable,
+    noise_scale,
+    outlier_mask,
+    screened,
+)
 
 __all__ = ["finish", "given_start", "n_negative", "unrefined"]
 
@@ -75,33 +80,6 @@ def given_start(init: Any, I: int, J: int, dim: int, offsets: str, scale: float,
 def n_negative(M: Array) -> int:
     """How many observed entries of ``M`` are zero or negative (measurements, reported)."""
     return int(np.sum(M[np.isfinite(M)] <= 0))
-
-
-def screened(Y: Array, dim: int, offsets: str) -> tuple[Any, ...]:
-    """Steps 1-3 of :func:`finish` on ranges ``Y`` (metres): ``(pr, pc, Yc, gross, used, keep_r, keep_s)``.
-
-    ``Yc`` is ``Y`` in canonical order (rows ``pr``, columns ``pc``), ``gross`` its
-    numerically absurd entries, ``used`` the observed ones less those, ``keep_r`` /
-    ``keep_s`` the identifiable nodes; the search's matrix is ``Yc`` on ``used``, those nodes.
-    """
-    pr, pc = canonical_order(Y)
-    Yc = Y[np.ix_(pr, pc)]
-    obs = np.isfinite(Yc)
-    # gross entries (numerically absurd for any initialiser), then the identifiable nodes
-    gross = gross_entries(Yc)
-    used = obs & ~gross
-    keep_r, keep_s = drop_unidentifiable(used, dim, offsets)
-    if gross.any():
-        try:
-            _check_kept(used, keep_r, keep_s, dim, offsets)
-        except DegenerateGeometryError:
-            # the screen must not make an identifiable network unidentifiable: screen nothing
-            # (the robust loss and the outlier rule still judge every entry)
-            gross = np.zeros_like(gross)
-            used = obs.copy()
-            keep_r, keep_s = drop_unidentifiable(used, dim, offsets)
-    _check_kept(used, keep_r, keep_s, dim, offsets)
-    return pr, pc, Yc, gross, used, keep_r, keep_s
 
 
 def finish(M: Array, dim: int, offsets: str, opts: ToaOptions, *, init: Any) -> ToaResult:
@@ -600,17 +578,6 @@ def _merged(outer: NlsSolution, inner: NlsSolution, kr: NDArray[np.bool_], ks: N
     return dataclasses.replace(inner, receivers=receivers, sources=sources,
                                receiver_offsets=put(outer.receiver_offsets, inner.receiver_offsets, kr),
                                source_offsets=put(outer.source_offsets, inner.source_offsets, ks))
-
-
-def _check_kept(used: NDArray[np.bool_], kr: NDArray[np.bool_], ks: NDArray[np.bool_], dim: int, offsets: str) -> None:
-    """Raise when the nodes left after dropping cannot determine the geometry."""
-    sub = used[np.ix_(kr, ks)]
-    dropped = f" after dropping {int((~kr).sum())} receivers and {int((~ks).sum())} sources with too few ranges" \
-        if (~kr).any() or (~ks).any() else ""
-    try:
-        check_toa_counts(sub.shape, int(sub.sum()), dim, offsets)
-    except DegenerateGeometryError as exc:
-        raise DegenerateGeometryError(f"{exc.args[0]}{dropped}", kind=exc.kind) from None
 
 
 def unrefined(M: Array, dim: int, offsets: str, speed: float | None, rng: np.random.Generator) -> ToaResult:

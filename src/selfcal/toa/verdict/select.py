@@ -313,14 +313,14 @@ def _lsq(res: ToaResult) -> float:
 def _own_starts(M: Array, dim: int, mode: str, opts: ToaOptions) -> list[tuple[Any, ...]]:
     """The model's own start, from the solver's registry initialiser for offsets: the rank-d
     iteration (both offset kinds at once, :mod:`selfcal.toa.init.offsets_init`) on the matrix
-    the search would see (:func:`selfcal.toa.fit.screened`), collapsed to ``mode``; of its
+    the search would see (:func:`selfcal.toa.verdict.robust.screened`), collapsed to ``mode``; of its
     candidates the one of least sum of squares (metres, original order; none where the
     initialiser does not apply). Inside :func:`choose_offsets` the initialiser runs once per
     matrix (:func:`selfcal.toa.init.starts.shared_rank3`): every candidate and the final search
     reuse it."""
     from ..engine.nls import toa_model
-    from ..fit import screened
     from ..init.starts import _rank3
+    from .robust import screened
 
     Y = np.asarray(M, float) * (1.0 if opts.speed is None else float(opts.speed))
     I, J = Y.shape
