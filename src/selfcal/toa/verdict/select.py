@@ -366,8 +366,7 @@ def choose_offsets(M: Array, dim: int, solve: Solver, opts: ToaOptions) -> tuple
     wrong basin, held-out RMS 0.3 m against 1 cm noise, where its own start finds the truth).
     The lower sum of squares over the same entries wins (:func:`_lsq`): a fit stuck in a wrong
     basin is a search failure, not evidence against its model.
-    :func:`selfcal.toa.verdict.crossval.cross_validate`
-    then refits each on K - 1 blocks of
+    :func:`selfcal.toa.verdict.crossval.cross_validate` then refits each on K - 1 blocks of
     the sources, locates the held-out sources with the fitted receivers (and offsets) and
     scores their leave-one-range-out prediction residuals; the one-standard-error rule
     keeps the simplest mode within one paired standard error of the best. Every mode is
