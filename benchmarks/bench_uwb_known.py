@@ -36,6 +36,15 @@ data4 0.97 (exit 2: ``--dim auto`` chose 2-D and the known file has z) / 1.10 / 
 -> 0.45 (3-D: the known anchors span 3-D) / 1.13 / 1.27 / 1.01 (blind 8.5-9.7 s);
 data5 0.98 / 1.55 / 1.60 / 0.99 -> 1.04 / 1.61 / 1.80 / 1.01 (blind 4.2 s). ``--known``
 now includes the block jackknife and the random-effect refits (about 0.3-0.8 s).
+Measured (2026-12-03, branch ``autooff`` against main 82fd91c, loaded 2-core machine,
+``--cases room-shuffled,room --repeat 3``, before / after interleaved twice): room-shuffled
+``--offsets auto`` 1.89 / 2.09 s -> 2.62 / 3.12 s CPU, ratio 5.57 / 5.25 -> 6.90 / 6.05 (blind
+0.34-0.52 s; the load varied); room (recipe path) 1.03 / 0.98 -> 0.95 / 1.00. Run alone,
+alternating, one ``calibrate toa --offsets auto`` each: 1.97 / 2.11 / 1.86 / 1.86 s before,
+2.17 / 2.14 / 2.08 / 2.35 s after. The candidates' own starts (``choose_offsets``: "both"
+always, which fixed the wrong choices of the slow offsets test) cost one refinement
+(~0.2 s); the rank-d initialiser they need (~0.5 s) is shared with the chosen model's
+search (which ran it before too), so it adds nothing.
 
 Run: ``OPENBLAS_NUM_THREADS=1 PYTHONPATH=src python benchmarks/bench_uwb_known.py
 [--cases room,room-shuffled,data4,data5] [--repeat 1] [--out FILE]``.

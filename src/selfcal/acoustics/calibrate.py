@@ -395,6 +395,11 @@ def _toa_solver(rng: int) -> Any:
     from ..toa.solve import solve_toa
 
     def solve(M: Array, dim: int, offsets: str, opts: Any, init: Any = "auto") -> Any:
+        if not isinstance(init, str) and opts.speed is not None:
+            # the choice's starts carry offsets in metres (its own solver's form); solve_toa
+            # takes them in the matrix's units (seconds here)
+            r0, s0, d0, o0 = init
+            init = (r0, s0, None if d0 is None else d0 / opts.speed, None if o0 is None else o0 / opts.speed)
         return solve_toa(M, dim=dim, offsets=offsets, speed=opts.speed, rng=rng, noise=opts.noise,
                          method=opts.method, init=init)
 

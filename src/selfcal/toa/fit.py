@@ -30,7 +30,6 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from .._checks import check_toa_counts
 from ..errors import DegenerateGeometryError, InputError
 from .engine.nls import NlsSolution, refine_toa, toa_model, with_covariance
 from .fit_result import _start, judge_final
@@ -41,10 +40,16 @@ from .result import (
     n_parameters,
     residual_test,
 )
-from .search import canonical_order, search
+from .search import search
 from .verdict.leverage import kept_inverse, leverages, studentized
 from .verdict.leverage import settled as settled_fit
-from .verdict.robust import drop_unidentifiable, gross_entries, noise_scale, outlier_mask
+from .verdict.robust import (
+    _check_kept,
+    drop_unidentifiable,
+    noise_scale,
+    outlier_mask,
+    screened,
+)
 
 __all__ = ["finish", "n_negative"]
 
@@ -72,28 +77,13 @@ def finish(M: Array, dim: int, offsets: str, opts: ToaOptions, *, init: Any) -> 
     final_loss = "linear" if loss == "auto" else loss
     fs = None if f_scale is None else f_scale * scale
 
-    # 1. canonical order
-    pr, pc = canonical_order(Y)
-    Yc = Y[np.ix_(pr, pc)]
+    # 1. canonical order, 2. gross entries, 3. identifiable nodes
+    pr, pc, Yc, gross, used, keep_r, keep_s = screened(Y, dim, offsets)
     start0 = None
     if not isinstance(init, str):
         r0, s0, d0, o0 = init
         start0 = (r0[pr], s0[pc], None if d0 is None else d0[pr], None if o0 is None else o0[pc])
     obs = np.isfinite(Yc)
-    # 2. gross entries (numerically absurd for any initialiser), 3. identifiable nodes
-    gross = gross_entries(Yc)
-    used = obs & ~gross
-    keep_r, keep_s = drop_unidentifiable(used, dim, offsets)
-    if gross.any():
-        try:
-            _check_kept(used, keep_r, keep_s, dim, offsets)
-        except DegenerateGeometryError:
-            # the screen must not make an identifiable network unidentifiable: screen nothing
-            # (the robust loss and the outlier rule still judge every entry)
-            gross = np.zeros_like(gross)
-            used = obs.copy()
-            keep_r, keep_s = drop_unidentifiable(used, dim, offsets)
-    _check_kept(used, keep_r, keep_s, dim, offsets)
     n_par_of = lambda kr, ks: n_parameters(int(kr.sum()), int(ks.sum()), dim, offsets)  # noqa: E731
 
     def sub(mask: NDArray[np.bool_], kr: NDArray[np.bool_], ks: NDArray[np.bool_]) -> Array:
@@ -570,12 +560,3 @@ def _merged(outer: NlsSolution, inner: NlsSolution, kr: NDArray[np.bool_], ks: N
                                source_offsets=put(outer.source_offsets, inner.source_offsets, ks))
 
 
-def _check_kept(used: NDArray[np.bool_], kr: NDArray[np.bool_], ks: NDArray[np.bool_], dim: int, offsets: str) -> None:
-    """Raise when the nodes left after dropping cannot determine the geometry."""
-    sub = used[np.ix_(kr, ks)]
-    dropped = f" after dropping {int((~kr).sum())} receivers and {int((~ks).sum())} sources with too few ranges" \
-        if (~kr).any() or (~ks).any() else ""
-    try:
-        check_toa_counts(sub.shape, int(sub.sum()), dim, offsets)
-    except DegenerateGeometryError as exc:
-        raise DegenerateGeometryError(f"{exc.args[0]}{dropped}", kind=exc.kind) from None

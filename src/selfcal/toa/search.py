@@ -72,7 +72,7 @@ from .engine.model import _pack, _unpack, least_squares_offsets
 from .engine.nls import NlsSolution, refine_toa, toa_model
 from .init.starts import _LARGE, INITIALISERS, MOVES_MAX_NODES, SCALED_STARTS  # noqa: F401
 from .moves import Move, Start, moves
-from .verdict.robust import _nanmedian_rows
+from .verdict.robust import canonical_order  # noqa: F401  (the search's order; fit, block_start use it)
 
 __all__ = ["INITIALISERS", "MOVES_MAX_NODES", "SearchOutcome", "canonical_order", "default_budget",
            "least_squares_offsets", "search"]
@@ -89,29 +89,6 @@ ACCEPT_REL = 1e-9
 #: unfinished iterations, accepted again and again (measured: 18 accepted moves, the same ten
 #: twice, on one draw)
 ACCEPT_CHI2 = 0.01
-
-
-def canonical_order(Y: Array) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
-    """Permutations (rows, columns) that sort a matrix into an order independent of numbering.
-
-    Key of a row: its median over the observed entries, then its sorted entries (NaN last),
-    lexicographically; columns alike. Rows that tie on the whole key are identical up to
-    the order of their entries; the stable sort keeps their given order.
-
-    Examples
-    --------
-    >>> import numpy as np
-    >>> Y = np.array([[3.0, 1.0], [1.0, 2.0], [2.0, 2.0]])
-    >>> [int(i) for i in canonical_order(Y)[0]]  # medians 2, 1.5, 2; rows 0 and 2 tie, then [1, 3] < [2, 2]
-    [1, 0, 2]
-    """
-    def order(M: Array) -> NDArray[np.intp]:
-        med = _nanmedian_rows(M)  # = np.nanmedian(M, axis=1), vectorised above 600 columns
-        srt = np.sort(M, axis=1)  # NaN sort last
-        keys = [np.where(np.isfinite(srt[:, k]), srt[:, k], np.inf) for k in range(srt.shape[1] - 1, -1, -1)]
-        return np.lexsort(keys + [np.where(np.isfinite(med), med, np.inf)]).astype(np.intp)
-
-    return order(Y), order(Y.T)
 
 
 #: whether the race advances its starts in lockstep (:mod:`selfcal.toa.engine.batch_lm`); False runs

@@ -11,7 +11,10 @@ The search that races them is :mod:`selfcal.toa.search`.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+import contextlib
+import contextvars
+import hashlib
+from collections.abc import Callable, Iterator
 from typing import Any
 
 import numpy as np
@@ -23,7 +26,7 @@ from ..moves import Start
 from .rank3_model import rank_identifiable
 from .scaled_starts import scaled_random_starts
 
-__all__ = ["INITIALISERS", "LARGE_INITIALISERS", "MOVES_MAX_NODES", "SCALED_STARTS"]
+__all__ = ["INITIALISERS", "LARGE_INITIALISERS", "MOVES_MAX_NODES", "SCALED_STARTS", "shared_rank3"]
 
 Array = NDArray[np.float64]
 
@@ -38,6 +41,31 @@ MOVES_MAX_NODES = 300
 #: there the first time and reused, never across matrices
 _Init = Callable[..., list[Start]]
 
+# the rank-d candidates per matrix inside a shared_rank3() block (None outside: nothing kept)
+_RANK3_MEMO: contextvars.ContextVar[dict[tuple[Any, ...], Any] | None] = contextvars.ContextVar(
+    "rank3_memo", default=None)
+
+
+@contextlib.contextmanager
+def shared_rank3() -> Iterator[None]:
+    """Within the block, the rank-d initialiser runs once per matrix (equal bytes) and its candidates are reused.
+
+    For a caller that fits several offsets models of one matrix
+    (:func:`selfcal.toa.verdict.select.choose_offsets`): the candidates (both offset kinds,
+    before they are collapsed to a model) do not depend on the model, and they cost as much
+    as the rest of a search. Outside such a block nothing is kept.
+
+    Examples
+    --------
+    >>> with shared_rank3():
+    ...     pass
+    """
+    token = _RANK3_MEMO.set({})
+    try:
+        yield
+    finally:
+        _RANK3_MEMO.reset(token)
+
 
 def _rank3(Y: Array, dim: int, offsets: str, rng: np.random.Generator,
            shared: dict[str, Any] | None = None) -> list[Start]:
@@ -50,14 +78,21 @@ def _rank3(Y: Array, dim: int, offsets: str, rng: np.random.Generator,
     if not rank_identifiable(I, J, dim):
         return []
     k = 4 if I + J <= MOVES_MAX_NODES else 1
-    try:
-        found = initialize_offsets_candidates(Y, dim, rng=rng, max_candidates=k)
-    except (DegenerateGeometryError, InputError):
-        if not np.isnan(Y).any():
-            raise
-        # missing entries: complete them by the two-way additive fit for the initialiser only
-        Z = np.where(np.isfinite(Y), Y, _additive_fit(Y, True, True))
-        found = initialize_offsets_candidates(Z, dim, rng=rng, max_candidates=k)
+    memo = _RANK3_MEMO.get()
+    key = (dim, k, Y.shape, hashlib.blake2b(np.ascontiguousarray(Y, float).tobytes()).hexdigest())
+    if memo is not None and key in memo:
+        found = memo[key]
+    else:
+        try:
+            found = initialize_offsets_candidates(Y, dim, rng=rng, max_candidates=k)
+        except (DegenerateGeometryError, InputError):
+            if not np.isnan(Y).any():
+                raise
+            # missing entries: complete them by the two-way additive fit for the initialiser only
+            Z = np.where(np.isfinite(Y), Y, _additive_fit(Y, True, True))
+            found = initialize_offsets_candidates(Z, dim, rng=rng, max_candidates=k)
+        if memo is not None:
+            memo[key] = found
     out: list[Start] = []
     for r, s, d0, o0 in found:
         r, s = np.asarray(r, float), np.asarray(s, float)

@@ -23,11 +23,16 @@ The leverages and the one linearisation the checks share are in
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 from numpy.typing import NDArray
 
-__all__ = ["OUTLIER_ALPHA", "TUKEY_FAR", "drop_unidentifiable", "gross_entries", "noise_scale",
-           "outlier_mask", "outlier_threshold", "required_ranges"]
+from ..._checks import check_toa_counts
+from ...errors import DegenerateGeometryError
+
+__all__ = ["OUTLIER_ALPHA", "TUKEY_FAR", "canonical_order", "drop_unidentifiable", "gross_entries", "noise_scale",
+           "outlier_mask", "outlier_threshold", "required_ranges", "screened"]
 
 Array = NDArray[np.float64]
 Mask = NDArray[np.bool_]
@@ -171,3 +176,64 @@ def drop_unidentifiable(observed: Mask, dim: int, offsets: str) -> tuple[Mask, M
             return keep_r, keep_s
         keep_r &= ~bad_r
         keep_s &= ~bad_s
+
+
+def canonical_order(Y: Array) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
+    """Permutations (rows, columns) that sort a matrix into an order independent of numbering.
+
+    Key of a row: its median over the observed entries, then its sorted entries (NaN last),
+    lexicographically; columns alike. Rows that tie on the whole key are identical up to
+    the order of their entries; the stable sort keeps their given order.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> Y = np.array([[3.0, 1.0], [1.0, 2.0], [2.0, 2.0]])
+    >>> [int(i) for i in canonical_order(Y)[0]]  # medians 2, 1.5, 2; rows 0 and 2 tie, then [1, 3] < [2, 2]
+    [1, 0, 2]
+    """
+    def order(M: Array) -> NDArray[np.intp]:
+        med = _nanmedian_rows(M)  # = np.nanmedian(M, axis=1), vectorised above 600 columns
+        srt = np.sort(M, axis=1)  # NaN sort last
+        keys = [np.where(np.isfinite(srt[:, k]), srt[:, k], np.inf) for k in range(srt.shape[1] - 1, -1, -1)]
+        return np.lexsort(keys + [np.where(np.isfinite(med), med, np.inf)]).astype(np.intp)
+
+    return order(Y), order(Y.T)
+
+
+def screened(Y: Array, dim: int, offsets: str) -> tuple[Any, ...]:
+    """Steps 1-3 of :func:`selfcal.toa.fit.finish` on ranges ``Y`` (metres): ``(pr, pc, Yc, gross, used, keep_r, keep_s)``.
+
+    ``Yc`` is ``Y`` in canonical order (rows ``pr``, columns ``pc``), ``gross`` its
+    numerically absurd entries, ``used`` the observed ones less those, ``keep_r`` /
+    ``keep_s`` the identifiable nodes; the search's matrix is ``Yc`` on ``used``, those nodes.
+    """
+    pr, pc = canonical_order(Y)
+    Yc = Y[np.ix_(pr, pc)]
+    obs = np.isfinite(Yc)
+    # gross entries (numerically absurd for any initialiser), then the identifiable nodes
+    gross = gross_entries(Yc)
+    used = obs & ~gross
+    keep_r, keep_s = drop_unidentifiable(used, dim, offsets)
+    if gross.any():
+        try:
+            _check_kept(used, keep_r, keep_s, dim, offsets)
+        except DegenerateGeometryError:
+            # the screen must not make an identifiable network unidentifiable: screen nothing
+            # (the robust loss and the outlier rule still judge every entry)
+            gross = np.zeros_like(gross)
+            used = obs.copy()
+            keep_r, keep_s = drop_unidentifiable(used, dim, offsets)
+    _check_kept(used, keep_r, keep_s, dim, offsets)
+    return pr, pc, Yc, gross, used, keep_r, keep_s
+
+
+def _check_kept(used: NDArray[np.bool_], kr: NDArray[np.bool_], ks: NDArray[np.bool_], dim: int, offsets: str) -> None:
+    """Raise when the nodes left after dropping cannot determine the geometry."""
+    sub = used[np.ix_(kr, ks)]
+    dropped = f" after dropping {int((~kr).sum())} receivers and {int((~ks).sum())} sources with too few ranges" \
+        if (~kr).any() or (~ks).any() else ""
+    try:
+        check_toa_counts(sub.shape, int(sub.sum()), dim, offsets)
+    except DegenerateGeometryError as exc:
+        raise DegenerateGeometryError(f"{exc.args[0]}{dropped}", kind=exc.kind) from None

@@ -321,14 +321,15 @@ def _rss(res: ToaResult) -> float:
     return float(e @ e)
 
 
-def _nested_init(res: ToaResult, mode: str) -> tuple[Any, ...]:
+def _nested_init(res: ToaResult, mode: str, speed: float | None) -> tuple[Any, ...]:
     """A fit as a start of ``mode`` (dropped nodes at the centroid, missing offsets 0).
 
-    Positions in metres, offsets in the matrix's units (seconds with a speed), as the fit
-    reports them and as ``solve_toa``'s ``init`` takes them. (They were multiplied by the
-    speed once more until this was found: with ``speed`` given, every nested and projected
-    start began with offsets 343 times too large.)
+    In metres, offsets too (the fit reports them in the matrix's units: times ``speed``):
+    the form of the ``init`` of the solver the choice runs (:func:`selfcal.toa.solve._solve_fixed`,
+    the search's internal units). A solver in :func:`selfcal.toa.solve_toa`'s form (offsets in
+    the matrix's units) converts back (:func:`selfcal.acoustics.calibrate._toa_solver`).
     """
+    k = 1.0 if speed is None else float(speed)
 
     def fill(P: Array) -> Array:
         P = np.array(P, dtype=float)
@@ -337,7 +338,7 @@ def _nested_init(res: ToaResult, mode: str) -> tuple[Any, ...]:
         return P
 
     def off(a: Array | None, n: int) -> Array:
-        return np.zeros(n) if a is None else np.nan_to_num(np.asarray(a, float))
+        return np.zeros(n) if a is None else np.nan_to_num(np.asarray(a, float) * k)
 
     r, s = fill(res.receivers), fill(res.sources)
     d = off(res.receiver_offsets, len(r)) if mode in ("receivers", "both") else None
@@ -352,22 +353,80 @@ def _misfit(res: ToaResult) -> bool:
     return any(t is not None and not bool(t.passed) for t in tests)
 
 
-def _projected_init(res: ToaResult, mode: str) -> tuple[Any, ...]:
+def _projected_init(res: ToaResult, mode: str, speed: float | None) -> tuple[Any, ...]:
     """A 3-D fit projected onto its best-fitting plane: a 2-D start (metres, in-plane axes)."""
-    r, s, d, o = _nested_init(res, mode)
+    r, s, d, o = _nested_init(res, mode, speed)
     P = np.vstack([r, s])
     c = P.mean(axis=0)
     _, _, vt = np.linalg.svd(P - c, full_matrices=False)
     return (r - c) @ vt[:2].T, (s - c) @ vt[:2].T, d, o
 
 
+def _lsq(res: ToaResult) -> float:
+    """Sum of squares over every entry the fit used (outliers included): the objective a
+    refinement (``method="nls"``) minimises, comparable between two refinements of one model."""
+    assert res.residuals is not None
+    e = res.residuals[np.isfinite(res.residuals)]
+    return float(e @ e)
+
+
+def _own_starts(M: Array, dim: int, mode: str, opts: ToaOptions) -> list[tuple[Any, ...]]:
+    """The model's own start, from the solver's registry initialiser for offsets: the rank-d
+    iteration (both offset kinds at once, :mod:`selfcal.toa.init.offsets_init`) on the matrix
+    the search would see (:func:`selfcal.toa.verdict.robust.screened`), collapsed to ``mode``; of its
+    candidates the one of least sum of squares (metres, original order; none where the
+    initialiser does not apply). Inside :func:`choose_offsets` the initialiser runs once per
+    matrix (:func:`selfcal.toa.init.starts.shared_rank3`): every candidate and the final search
+    reuse it."""
+    from ..engine.nls import toa_model
+    from ..init.starts import _rank3
+    from .robust import screened
+
+    Y = np.asarray(M, float) * (1.0 if opts.speed is None else float(opts.speed))
+    I, J = Y.shape
+    try:
+        pr, pc, Yc, _, used, kr, ks = screened(Y, dim, mode)
+        found = _rank3(np.where(used, Yc, np.nan)[np.ix_(kr, ks)], dim, mode, opts.rng)
+    except (DegenerateGeometryError, ValueError, np.linalg.LinAlgError, FloatingPointError):
+        return []
+    rows, cols = pr[kr], pc[ks]
+
+    def back(r: Array, s: Array, d: Array | None, o: Array | None) -> tuple[Any, ...]:
+        R, S = np.full((I, dim), np.nan), np.full((J, dim), np.nan)
+        R[rows], S[cols] = r, s
+        D = None if d is None else np.zeros(I)
+        O = None if o is None else np.zeros(J)
+        if D is not None:
+            D[rows] = d
+        if O is not None:
+            O[cols] = o
+        return R, S, D, O
+
+    def cost(st: tuple[Any, ...]) -> float:
+        with np.errstate(all="ignore"):
+            e = Y - toa_model(*st)
+        e = e[np.isfinite(e)]
+        return float(e @ e) if e.size else math.inf
+
+    out = [back(*st) for st in found]
+    return [min(out, key=cost)] if out else []
+
+
 def choose_offsets(M: Array, dim: int, solve: Solver, opts: ToaOptions) -> tuple[ToaResult, dict[str, Any]]:
     """Fit every offsets mode and keep the one chosen by held-out prediction; (result, statistics).
 
-    The offsets-free mode is fitted by ``solve``'s search; each larger mode by one
-    refinement (``method="nls"``) started from the best fit of the modes it nests, its new
-    offsets at zero (so it never ends above them; a search per mode cost 4x the blind
-    solve). :func:`selfcal.toa.verdict.crossval.cross_validate` then refits each on K - 1 blocks of
+    The offsets-free mode is fitted by ``solve``'s search; each larger mode by a cheap search:
+    one refinement (``method="nls"``) started from the best fit of the modes it nests, its new
+    offsets at zero (so it never ends above them; a full search per mode cost 4x the blind
+    solve), and a refinement from the model's own start (the rank-d offsets initialiser of
+    the solver's registry, computed once for all modes, its best start by sum of squares)
+    where the first is certainly not the model's fit: it fails its own residual test
+    (:func:`_misfit`; with a given noise the chi-square test), or the mode is the widest
+    ("both"), which no narrower fit certifies (a nested chain of wrong models led it to a
+    wrong basin, held-out RMS 0.3 m against 1 cm noise, where its own start finds the truth).
+    The lower sum of squares over the same entries wins (:func:`_lsq`): a fit stuck in a wrong
+    basin is a search failure, not evidence against its model.
+    :func:`selfcal.toa.verdict.crossval.cross_validate` then refits each on K - 1 blocks of
     the sources, locates the held-out sources with the fitted receivers (and offsets) and
     scores their leave-one-range-out prediction residuals; the one-standard-error rule
     keeps the simplest mode within one paired standard error of the best. Every mode is
@@ -377,20 +436,37 @@ def choose_offsets(M: Array, dim: int, solve: Solver, opts: ToaOptions) -> tuple
     on measured ranges (serially correlated, partly systematic residuals) it accepts any
     extra parameter. The chosen mode, if not the offsets-free one, is finally searched
     from its refinement (the search accepts only lower costs).
-    ``statistics`` is :meth:`selfcal.toa.verdict.crossval.CvChoice.to_dict` plus ``observations``
-    and each mode's in-sample ``rss``.
+    ``statistics`` is :meth:`selfcal.toa.verdict.crossval.CvChoice.to_dict` plus ``observations``,
+    each mode's in-sample ``rss`` and ``own_start`` (the modes whose own start was tried).
     """
+    from ..init.starts import shared_rank3
+
+    with shared_rank3():  # the rank-d initialiser runs once for every candidate and the final search
+        return _choose_offsets(M, dim, solve, opts)
+
+
+def _choose_offsets(M: Array, dim: int, solve: Solver, opts: ToaOptions) -> tuple[ToaResult, dict[str, Any]]:
     fits: dict[str, ToaResult] = {}
+    own: list[str] = []
+    # the candidates' refinements are starts and scores only: no covariances (the chosen one is searched)
+    nls = dataclasses.replace(opts, method="nls", covariance=False)
     for mode in OFFSET_CANDIDATES:
         # every model is also started from the best fit of the models it nests (offsets of the
-        # other kinds at zero): its search accepts only lower costs, so it never ends above them
+        # other kinds at zero): a refinement only lowers the cost, so it never ends above them
         nested = [fits[k] for k in fits if k == "none" or mode == "both"]
-        init = _nested_init(min(nested, key=_rss), mode) if nested else "auto"
-        # the offsets-free model is searched; each larger one is refined from its nested start
-        # (the search restarted per model cost 4x the blind solve; a refinement only lowers the cost)
-        res = _quiet(solve, M, dim, mode, dataclasses.replace(opts, method="nls") if nested else opts, init=init)
-        if res is None and not isinstance(init, str):
+        base = min(nested, key=_rss) if nested else None
+        res = _quiet(solve, M, dim, mode, nls, init=_nested_init(base, mode, opts.speed)) if base else None
+        if base is None or res is None:
             res = _quiet(solve, M, dim, mode, opts)
+        elif mode == "both" or _misfit(res):
+            own.append(mode)
+            for st in _own_starts(M, dim, mode, opts):
+                try:  # a start the engine cannot refine (singular normal equations) is skipped
+                    alt = _quiet(solve, M, dim, mode, nls, init=st)
+                except (np.linalg.LinAlgError, ValueError):
+                    alt = None
+                if alt is not None and _lsq(alt) < _lsq(res):
+                    res = alt
         if res is not None:
             fits[mode] = res
     if not fits:
@@ -414,15 +490,18 @@ def choose_offsets(M: Array, dim: int, solve: Solver, opts: ToaOptions) -> tuple
 
     choice = cross_validate(Z, {mode: start(res) for mode, res in fits.items()})
     stats = {**choice.to_dict(), "observations": int(np.isfinite(Z).sum()),
-             "rss": {mode: _rss(res) for mode, res in fits.items()}}
+             "rss": {mode: _rss(res) for mode, res in fits.items()}, "own_start": own}
     chosen = choice.chosen
     if chosen != "none":
         # the chosen model (only it) gets the full search, started from its refinement: the
         # refinement alone can stop in a worse basin (room 7 x 220: anchor RMSE 0.146 vs 0.071 m)
-        full = _quiet(solve, M, dim, chosen, opts, init=_nested_init(fits[chosen], chosen))
+        full = _quiet(solve, M, dim, chosen, opts, init=_nested_init(fits[chosen], chosen, opts.speed))
         if full is not None:
             fits[chosen] = full
             stats["searched"] = chosen
+        else:  # the candidates' refinements skip the covariances: the chosen one's, refitted in place
+            fits[chosen] = _quiet(solve, M, dim, chosen, dataclasses.replace(opts, method="nls"),
+                                  init=_nested_init(fits[chosen], chosen, opts.speed)) or fits[chosen]
     return fits[chosen], stats
 
 
@@ -473,7 +552,7 @@ def dimension_test(M: Array, fit3: ToaResult, offsets: str, solve: Solver,
         ``thickness_chi2``, ``thickness_p``, ``alpha``.
     """
     r3 = fit3
-    r2 = _quiet(solve, M, 2, offsets, dataclasses.replace(opts, method="nls"), init=_projected_init(r3, offsets))
+    r2 = _quiet(solve, M, 2, offsets, dataclasses.replace(opts, method="nls"), init=_projected_init(r3, offsets, opts.speed))
     if r2 is None or _misfit(r2) or (r2.outliers is not None and np.asarray(r2.outliers).sum() >
                                      np.asarray(r3.outliers).sum()):
         # at a planar truth the 3-D fit bends off the plane by ~sqrt(noise x extent); the
