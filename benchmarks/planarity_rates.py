@@ -94,12 +94,12 @@ def _error(res: Any, R: np.ndarray, S: np.ndarray) -> tuple[float, bool]:
 
 def one(family: str, seed: int) -> dict[str, Any]:
     """The decisions of every rule on one draw."""
+    from selfcal.acoustics.calibrate import _toa_options, _toa_solver
     from selfcal.errors import DegenerateGeometryError
     from selfcal.toa import solve_toa
-    from selfcal.toa.verdict.select import PLANAR_ALPHA, dimension_test
+    from selfcal.toa.verdict.planarity import PLANAR_ALPHA
+    from selfcal.toa.verdict.select import dimension_test
 
-    def solver(M: np.ndarray, dim: int, offsets: str, **kw: Any) -> Any:
-        return solve_toa(M, dim=dim, offsets=offsets, **kw)
 
     g = np.random.default_rng(seed)
     R, S, T = draw(family, g)
@@ -107,7 +107,7 @@ def one(family: str, seed: int) -> dict[str, Any]:
         r3 = solve_toa(T, dim=3, offsets="both", speed=C, rng=seed)
     except DegenerateGeometryError:
         return {"degenerate": True}
-    keep3, pl, r2, _ = dimension_test(T, r3, "both", solver, speed=C, rng=seed)
+    keep3, pl, r2, _ = dimension_test(T, r3, "both", _toa_solver(seed), _toa_options(C, None))
     cmp = pl.comparison
     # the same likelihood ratio against the true noise variance: chi-square(k)
     known = bool(cmp is not None and scipy.stats.chi2.sf(

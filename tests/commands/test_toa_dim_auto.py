@@ -16,7 +16,7 @@ import pytest
 from click.testing import CliRunner
 
 from selfcal.cli import main
-from selfcal.toa.verdict.select import PLANAR_ALPHA
+from selfcal.toa.verdict.planarity import PLANAR_ALPHA
 
 
 def _ranges(seed: int, planar: bool) -> np.ndarray:

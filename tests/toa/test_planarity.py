@@ -1,4 +1,4 @@
-"""The one planarity decision (``selfcal.toa.verdict.select.planarity`` / ``dimension_test``).
+"""The one planarity decision (``selfcal.toa.verdict.planarity.planarity`` / ``dimension_test``).
 
 Used by ``dim="auto"`` (``solve_toa``, ``calibrate toa``), the acoustic pipeline and
 ``selfcal plan``. Its two parts are tested against what they promise:
@@ -24,7 +24,8 @@ import scipy.stats
 
 from selfcal.acoustics.calibrate import _toa_options, _toa_solver
 from selfcal.toa import solve_toa
-from selfcal.toa.verdict.select import PLANAR_ALPHA, compare_fits, dimension_test, planarity
+from selfcal.toa.verdict.planarity import PLANAR_ALPHA, compare_fits, planarity
+from selfcal.toa.verdict.select import dimension_test
 
 C = 343.0
 NOISE = 1e-6  # s: 0.34 mm of range

@@ -28,7 +28,7 @@ from numpy.typing import NDArray
 
 from .._checks import check_magnitude, non_number_leaf
 from ..errors import InputError
-from ..toa.verdict.select import (  # one implementation: the TOA package's model choice (dim="auto")
+from ..toa.verdict.planarity import (  # one implementation: the TOA package's model choice (dim="auto")
     PLANAR_ALPHA,
     PLANAR_RATIO,
     ModelComparison,

@@ -11,7 +11,7 @@ from typing import Any
 
 import click
 
-from ..toa.verdict.select import PLANAR_ALPHA
+from ..toa.verdict.planarity import PLANAR_ALPHA
 from ._base import calibrate, handle_errors
 from ._common import csv_option, unit_options
 from ._options import NOISE_STD, SEED, SPEED

@@ -16,7 +16,7 @@ tag would log) can reach, from the same machinery as the solver:
   (:func:`layout_ambiguities`): a tag path in one plane (one height) leaves each anchor
   determined only up to its mirror image through that plane; coplanar anchors leave each
   tag position determined only up to its mirror image through theirs. Planarity is the
-  solver's own test (:func:`selfcal.toa.verdict.select.planarity`): a set is planar when its
+  solver's own test (:func:`selfcal.toa.verdict.planarity.planarity`): a set is planar when its
   thickness is not resolved by its Cramér-Rao bounds at the planned geometry (chi-square of
   the out-of-plane coordinates at level 1e-3, the statistic the calibration's test will
   see, less its noise); an exactly planar set, whose bound is singular, is planar.
@@ -117,7 +117,7 @@ class LayoutPlan:
 
 
 def _plane(P: Array, cov: Array | None) -> tuple[bool, Array, Array]:
-    from .verdict.select import planarity
+    from .verdict.planarity import planarity
 
     pl = planarity(P, cov)
     return pl.near_planar, P.mean(axis=0), np.asarray(pl.normal, float)
@@ -126,7 +126,7 @@ def _plane(P: Array, cov: Array | None) -> tuple[bool, Array, Array]:
 def layout_ambiguities(anchors: Any, path: Any, *, anchor_cov: Any = None, path_cov: Any = None) -> list[Ambiguity]:
     """Mirror ambiguities of a 3-D layout: a planar tag path, coplanar anchors.
 
-    A set is planar by the solver's own test (:func:`selfcal.toa.verdict.select.planarity`):
+    A set is planar by the solver's own test (:func:`selfcal.toa.verdict.planarity.planarity`):
     its thickness not resolved by its covariances, the chi-square of the out-of-plane
     coordinates at level ``PLANAR_ALPHA`` = 1e-3. Given the Cramér-Rao bounds of the planned
     layout (what :func:`plan_layout` passes), the statistic is the noncentrality the

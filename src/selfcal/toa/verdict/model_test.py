@@ -9,7 +9,7 @@ noise: the chi-square test of the RSS drop), at :data:`MODEL_ALPHA`:
 
 - ``F = ((RSS_forced - RSS_larger) / k) / (RSS_larger / dof_larger)`` ~ ``F(k, dof_larger)``
   under the forced model (``k`` the extra parameters: one height per node less the three
-  extra gauge freedoms of 3-D, :func:`selfcal.toa.verdict.select.compare_fits`; or the offsets);
+  extra gauge freedoms of 3-D, :func:`selfcal.toa.verdict.planarity.compare_fits`; or the offsets);
 - with ``offsets`` none / receivers / sources the larger model is ``both``; when it wins,
   the smaller models in between are fitted too and the smallest one the data do not reject
   against ``both`` is named.
@@ -36,7 +36,7 @@ __all__ = ["MODEL_ALPHA", "ModelTest", "forced_model_test"]
 
 Array = NDArray[np.float64]
 
-#: level of the forced-model test (the planar F test's, selfcal.toa.verdict.select.PLANAR_ALPHA)
+#: level of the forced-model test (the planar F test's, selfcal.toa.verdict.planarity.PLANAR_ALPHA)
 MODEL_ALPHA = 1e-3
 #: iteration cap of each warm-started refinement of a larger model
 MODEL_NFEV = 30
