@@ -106,7 +106,7 @@ class Calibration:
 
     def __getitem__(self, key: str) -> Any:
         """``sol["receivers"]``: a field by name, for callers written against the former dict."""
-        return getattr(self, key)
+        return vars(self)[key]
 
 
 def _solve(T: Array, dim: int, speed: float, rng: int, init: Any = "auto", noise: float | None = None,

@@ -134,6 +134,9 @@ class PipelineResult(Result):
         recording's numbering and the solver's frame; None for the known-heights model.
     outlier_breakdown : str or None
         The TOA solver's outlier-breakdown verdict of the final fit, when it fired.
+    known_heights : bool
+        The ``2d+heights`` model: every z given, x and y fitted (``known_heights`` of
+        :class:`selfcal.acoustics.calibrate.Calibration`); not in :meth:`to_dict` (``method`` says it).
     """
 
     receivers: Array
@@ -169,6 +172,7 @@ class PipelineResult(Result):
     timings_cpu: dict[str, float] = field(default_factory=dict)
     uniqueness: Any = None
     outlier_breakdown: str | None = None
+    known_heights: bool = False
 
     @property
     def failed(self) -> bool:
@@ -505,5 +509,5 @@ def run_pipeline(
         fit_binding=True, outliers=tuple(robust.outliers), dropped_receivers=dr, dropped_senders=dsn,
         error_bars=bars, verdict=verdict, rounds=rounds, event_senders=np.asarray(es, dtype=np.int64),
         matrix_std=S, timings_cpu=cpu, uniqueness=sol.uniqueness,
-        outlier_breakdown=sol.outlier_breakdown,
+        outlier_breakdown=sol.outlier_breakdown, known_heights=sol.known_heights,
     )
