@@ -21,9 +21,9 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from selfcal.acoustics.calibrate import Calibration
 from selfcal.acoustics.pipeline import _unique_or_plausible
 from selfcal.acoustics.plausibility import EXTENT_FACTOR, WORKING_DAY, extent_reason, repeats_reason
+from selfcal.acoustics.solution import Calibration
 from selfcal.acoustics.verdict import ErrorBars, judge
 from selfcal.cli import main
 from selfcal.toa.engine.nls import toa_model

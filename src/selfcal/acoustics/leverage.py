@@ -17,7 +17,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 if TYPE_CHECKING:
-    from .calibrate import Calibration
+    from .solution import Calibration
 
 __all__ = ["hat_diagonal", "event_leverage"]
 

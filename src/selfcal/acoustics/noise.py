@@ -21,7 +21,7 @@ from numpy.typing import NDArray
 from ..robust import mad_std
 
 if TYPE_CHECKING:
-    from .calibrate import Calibration
+    from .solution import Calibration
 
 __all__ = ["timing_noise", "detection_std", "sender_std", "fit_test", "rms_frequency", "TIMING_FLOOR", "MF_FACTOR",
            "FLOOR_SAMPLES", "timing_floor", "ResidualCheck", "residual_check"]

@@ -27,7 +27,7 @@ from .._checks import entry
 from .._result import Result
 from ..errors import DegenerateGeometryError, InputError, Status
 from ..requirements import POSITION_REQUIREMENT, TIMING_REQUIREMENT
-from .calibrate import Calibration, _predict, calibrate_matrix, sender_matrix
+from .calibrate import _predict, calibrate_matrix, sender_matrix
 from .geometry import (
     ModelComparison,
     Planarity,
@@ -42,6 +42,7 @@ from .plausibility import extent_reason
 from .robust_fit import Outlier, robust_calibrate
 from .scale import apply_scale, scale_from_distances
 from .scoring import truth_errors
+from .solution import Calibration
 from .units import unit_pairs
 from .verdict import ErrorBars, Verdict, error_bars, judge
 
@@ -136,7 +137,7 @@ class PipelineResult(Result):
         The TOA solver's outlier-breakdown verdict of the final fit, when it fired.
     known_heights : bool
         The ``2d+heights`` model: every z given, x and y fitted (``known_heights`` of
-        :class:`selfcal.acoustics.calibrate.Calibration`); not in :meth:`to_dict` (``method`` says it).
+        :class:`selfcal.acoustics.solution.Calibration`); not in :meth:`to_dict` (``method`` says it).
     """
 
     receivers: Array

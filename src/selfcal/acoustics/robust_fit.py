@@ -29,7 +29,6 @@ from numpy.typing import NDArray
 from ..errors import DegenerateGeometryError
 from ..robust import TUNING, mad_std
 from .calibrate import (
-    Calibration,
     _predict,
     _scatter_nodes,
     calibrate_matrix,
@@ -39,6 +38,7 @@ from .calibrate import (
 )
 from .geometry import Planarity
 from .leverage import event_leverage
+from .solution import Calibration
 
 __all__ = ["robust_calibrate", "Outlier", "RobustFit", "OUTLIER_ALPHA"]
 

@@ -14,7 +14,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 if TYPE_CHECKING:
-    from .calibrate import Calibration
+    from .solution import Calibration
 
 __all__ = ["scale_from_distances", "apply_scale"]
 
