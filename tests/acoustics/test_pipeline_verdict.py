@@ -14,6 +14,7 @@ from __future__ import annotations
 import json
 import shutil
 import warnings
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -22,6 +23,7 @@ from click.testing import CliRunner
 
 from selfcal.acoustics.pipeline import _unique_or_plausible
 from selfcal.acoustics.plausibility import EXTENT_FACTOR, WORKING_DAY, extent_reason, repeats_reason
+from selfcal.acoustics.solution import Calibration
 from selfcal.acoustics.verdict import ErrorBars, judge
 from selfcal.cli import main
 from selfcal.toa.engine.nls import toa_model
@@ -81,7 +83,9 @@ def _line_network(g: np.random.Generator, off: float):
     s = np.c_[g.uniform(-4, 4, 5), off * g.permutation([-1.0, 1.0, -1.0, 1.0, 1.0])]  # both sides: a 2-D span
     Y = toa_model(r, s) + g.normal(0, 1e-3, (6, 5))
     u = uniqueness_test(Y, r, s, n_params=2 * 11 - 3, noise=1e-3)
-    return {"receivers": r, "sources": s, "uniqueness": u, "one_side": None}
+    return Calibration(receivers=r, sources=s, receiver_offsets=np.zeros(6), source_offsets=np.zeros(5),
+                       receiver_cov=np.zeros((6, 2, 2)), source_cov=np.zeros((5, 2, 2)), residual_rms=1e-3,
+                       converged=True, iterations=0, method="2d (test)", dim=2, uniqueness=u)
 
 
 @pytest.mark.parametrize("seed", range(5))
@@ -93,7 +97,7 @@ def test_ambiguous_units_beyond_the_requirement_are_a_fail_that_names_them(seed)
     reasons = _unique_or_plausible(sol, rn, sn, None, notes)
     assert len(reasons) == 1 and reasons[0].startswith("not unique:") and "remedy" in reasons[0]
     assert all(f"loudspeaker {n}" in reasons[0] for n in sn)
-    sol["one_side"] = "sources"  # the pipeline's stated one-side rule settles these flips
+    sol = replace(sol, one_side="sources")  # the pipeline's stated one-side rule settles these flips
     assert _unique_or_plausible(sol, rn, sn, None, []) == ()
     near = _line_network(g, 0.02)  # mirrors 4 cm away: the 10 cm requirement holds whichever is true
     notes = []

@@ -21,8 +21,9 @@ the scale from known unit distances :mod:`selfcal.acoustics.scale`.
 from __future__ import annotations
 
 import warnings
+from dataclasses import replace
 from functools import cache
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -40,6 +41,10 @@ from .geometry import (
     planarity,
     refine_known_heights,
 )
+from .solution import Calibration
+
+if TYPE_CHECKING:
+    from .pipeline import PipelineResult
 
 __all__ = ["calibrate_matrix", "refit", "sender_matrix", "n_parameters_of"]
 
@@ -146,7 +151,7 @@ def _resolve_mirrors(T: Array, res: Any, speed: float, rng: int, notes: list[str
 
 
 def _heights_fit(T: Array, heights: tuple[Array, Array], speed: float, rng: int,
-                 weights: Array | None, units: NDArray[np.intp] | None = None) -> dict[str, Any]:
+                 weights: Array | None, units: NDArray[np.intp] | None = None) -> Calibration:
     """Known heights: :func:`refine_known_heights` from the better of two blind starts.
 
     The blind solves do not know the heights: the 2-D one (z ignored) and the 3-D one
@@ -159,7 +164,7 @@ def _heights_fit(T: Array, heights: tuple[Array, Array], speed: float, rng: int,
     """
     sd = None if weights is None else 1.0 / np.asarray(weights, float)
     f_sc = None if sd is None else TUNING["cauchy"] * float(np.nanmedian(sd[np.isfinite(sd)]))
-    best: tuple[float, dict[str, Any], Any] | None = None
+    best: tuple[float, Calibration, Any] | None = None
     tried = 0
     for d in (2, 3):
         if d == 3 and best is not None and sd is not None and _fits_its_noise(best[0], T):
@@ -175,8 +180,8 @@ def _heights_fit(T: Array, heights: tuple[Array, Array], speed: float, rng: int,
                                           np.asarray(init.source_offsets, float), speed)
         dr, ds = _normalise_offsets(dr0, ds0)
         try:
-            sol = refine_known_heights(T, heights[0], heights[1], r0, s0, dr, ds, speed=speed, f_scale=f_sc,
-                                       weights=weights)
+            sol = _from_heights(refine_known_heights(T, heights[0], heights[1], r0, s0, dr, ds, speed=speed,
+                                                     f_scale=f_sc, weights=weights), "2d+heights")
         except (DegenerateGeometryError, np.linalg.LinAlgError, ValueError):
             continue
         e = T - _predict(sol, speed)
@@ -190,11 +195,18 @@ def _heights_fit(T: Array, heights: tuple[Array, Array], speed: float, rng: int,
     if best is None:
         raise DegenerateGeometryError("the known-heights fit broke down from every blind start", kind="unobservable-node")
     _, sol, init = best
-    if f_sc is not None:
-        sol = refine_known_heights(T, heights[0], heights[1], sol["receivers"][:, :2], sol["sources"][:, :2],
-                                   sol["receiver_offsets"], sol["source_offsets"], speed=speed, weights=weights)
-    sol["method"] = f"2d+heights ({init.method} init)"
-    return sol
+    label = f"2d+heights ({init.method} init)"
+    if f_sc is None:
+        return replace(sol, method=label)
+    return _from_heights(refine_known_heights(T, heights[0], heights[1], sol.receivers[:, :2], sol.sources[:, :2],
+                                              sol.receiver_offsets, sol.source_offsets, speed=speed, weights=weights),
+                         label)
+
+
+def _from_heights(fit: dict[str, Any], method: str) -> Calibration:
+    """A :class:`Calibration` of a :func:`refine_known_heights` fit (its keys are the fields
+    ``receivers`` .. ``iterations``): 2 free coordinates per node, the heights known."""
+    return Calibration(**fit, method=method, dim=2, known_heights=True)
 
 
 def _cauchy_cost(z: Array) -> float:
@@ -295,7 +307,7 @@ def calibrate_matrix(
     noise: float | None = None,
     weights: Array | None = None,
     units: NDArray[np.intp] | None = None,
-) -> tuple[dict[str, Any], Planarity | None, list[str]]:
+) -> tuple[Calibration, Planarity | None, list[str]]:
     """Stages 2 + 3 of 004 on an (I, J) per-sender TOA matrix (seconds), one model fit.
 
     ``dim="auto"`` and ``dim=3`` fit the 3-D model and test it
@@ -335,9 +347,7 @@ def calibrate_matrix(
 
     Returns
     -------
-    solution : dict
-        Keys of :func:`refine_known_heights` plus ``method`` and ``receiver_offset_std`` /
-        ``source_offset_std`` when available.
+    solution : Calibration
     planarity : Planarity or None
     notes : list of str
 
@@ -352,7 +362,7 @@ def calibrate_matrix(
     if dim not in (2, 3, "auto"):
         raise InputError(f"dim must be 2, 3 or 'auto', got {dim!r}")
     if dim == 2:
-        return _as_solution(_solve(T, 2, speed, rng, noise=noise, units=units), "2d"), None, notes
+        return _as_solution(_solve(T, 2, speed, rng, noise=noise, units=units), "2d", 2), None, notes
     advice = "give known heights (--heights) for 3-D positions or use --dim 2"
     try:
         res3 = _solve_retrying(T, speed, rng, noise=noise, units=units)
@@ -375,9 +385,7 @@ def calibrate_matrix(
     cov = np.concatenate([np.asarray(res3.receiver_cov), np.asarray(res3.source_cov)])
     if keep3:
         notes.append(_z_note(cov, plan.comparison))
-        sol = _as_solution(res3, "3d")
-        sol["one_side"] = sided[0] if sided else None
-        return sol, plan, notes
+        return _as_solution(res3, "3d", 3, one_side=sided[0] if sided else None), plan, notes
     cmp = plan.comparison
     why = ("" if cmp is None else f"3-D vs 2-D F = {cmp.f_statistic:.3g}, p = {cmp.p_value:.2g}; ")
     msg = (f"near-planar layout (thickness {plan.extents[-1]:.3f} m vs extent {plan.extents[0]:.2f} m, "
@@ -416,13 +424,13 @@ def _toa_options(speed: float, noise: float | None) -> Any:
 
 
 def _planar_verdict(res2: Any, plan: Planarity, msg: str, dim: int | str,
-                    notes: list[str]) -> tuple[dict[str, Any], Planarity, list[str]]:
+                    notes: list[str]) -> tuple[Calibration, Planarity, list[str]]:
     """Raise for an explicit ``dim=3``; otherwise warn and report the 2-D solution."""
     if dim == 3:
         raise DegenerateGeometryError(msg, kind="near-planar")
     warnings.warn(msg + "; reporting 2-D positions", stacklevel=3)
     notes.append(msg + "; reported 2-D positions")
-    return _as_solution(res2, "2d"), plan, notes
+    return _as_solution(res2, "2d", 2), plan, notes
 
 
 def _z_note(cov: NDArray[np.float64], cmp: ModelComparison | None) -> str:
@@ -452,30 +460,33 @@ def _toa_outliers(res: Any, shape: tuple[int, int]) -> NDArray[np.bool_]:
     return np.asarray(mask, bool)
 
 
-def _as_solution(res: Any, label: str) -> dict[str, Any]:
+def _as_solution(res: Any, label: str, dim: int, *, method: str | None = None,
+                 one_side: str | None = None) -> Calibration:
+    """A :class:`Calibration` of a :func:`selfcal.toa.solve_toa` result (offsets normalised);
+    ``method`` (default ``"{label} ({res.method})"``) overrides the label."""
     dr, ds = _normalise_offsets(np.asarray(res.receiver_offsets, float), np.asarray(res.source_offsets, float))
-    return {
-        "toa_outliers": _toa_outliers(res, (len(res.receivers), len(res.sources))),
-        "receivers": np.asarray(res.receivers, float), "sources": np.asarray(res.sources, float),
-        "receiver_offsets": dr, "source_offsets": ds,
-        "receiver_cov": np.asarray(res.receiver_cov, float), "source_cov": np.asarray(res.source_cov, float),
-        "residual_rms": float(res.residual_rms), "converged": bool(res.converged),
-        "iterations": int(res.iterations), "method": f"{label} ({res.method})",
+    return Calibration(
+        toa_outliers=_toa_outliers(res, (len(res.receivers), len(res.sources))),
+        receivers=np.asarray(res.receivers, float), sources=np.asarray(res.sources, float),
+        receiver_offsets=dr, source_offsets=ds,
+        receiver_cov=np.asarray(res.receiver_cov, float), source_cov=np.asarray(res.source_cov, float),
+        residual_rms=float(res.residual_rms), converged=bool(res.converged),
+        iterations=int(res.iterations), method=f"{label} ({res.method})" if method is None else method, dim=dim,
         # the TOA solver's own tests (selfcal.toa.verdict.uniqueness, outlier breakdown) for the verdict
-        "uniqueness": res.uniqueness, "outlier_breakdown": res.outlier_breakdown,
-    }
+        uniqueness=res.uniqueness, outlier_breakdown=res.outlier_breakdown, one_side=one_side,
+    )
 
 
-def refit(T: Array, sol: dict[str, Any], speed: float, heights: tuple[Array, Array] | None = None, *,
-          f_scale: float | None = None, weights: Array | None = None) -> dict[str, Any]:
+def refit(T: Array, sol: Calibration, speed: float, heights: tuple[Array, Array] | None = None, *,
+          f_scale: float | None = None, weights: Array | None = None) -> Calibration:
     """Refine a solution on a changed TOA matrix from where it stands (same model, no search).
 
     Parameters
     ----------
     T : (I, J) array
         s, NaN = missing.
-    sol : dict
-        A solution of :func:`calibrate_matrix` (its ``method`` label names the model).
+    sol : Calibration
+        A solution of :func:`calibrate_matrix` (its ``dim`` and ``known_heights`` name the model).
     speed : float
         m/s.
     heights : optional
@@ -488,19 +499,16 @@ def refit(T: Array, sol: dict[str, Any], speed: float, heights: tuple[Array, Arr
 
     Returns
     -------
-    dict
-        The refined solution, same keys and label.
+    Calibration
+        The refined solution, same model and label.
     """
-    method = str(sol["method"])
-    r, s = np.asarray(sol["receivers"], float), np.asarray(sol["sources"], float)
-    dr, ds = np.asarray(sol["receiver_offsets"], float), np.asarray(sol["source_offsets"], float)
-    if method.startswith("2d+heights"):
+    r, s = np.asarray(sol.receivers, float), np.asarray(sol.sources, float)
+    dr, ds = np.asarray(sol.receiver_offsets, float), np.asarray(sol.source_offsets, float)
+    if sol.known_heights:
         assert heights is not None
-        out = refine_known_heights(T, heights[0], heights[1], r[:, :2], s[:, :2], dr, ds, speed=speed,
-                                   f_scale=f_scale, weights=weights)
-        out["method"] = method
-        return out
-    d = 2 if method.startswith("2d") else 3
+        return _from_heights(refine_known_heights(T, heights[0], heights[1], r[:, :2], s[:, :2], dr, ds, speed=speed,
+                                                  f_scale=f_scale, weights=weights), sol.method)
+    d = sol.dim
     kr = np.isfinite(r[:, :d]).all(axis=1) & np.isfinite(dr)
     ks = np.isfinite(s[:, :d]).all(axis=1) & np.isfinite(ds)
     if kr.sum() < d + 1 or ks.sum() < d + 1:
@@ -509,39 +517,36 @@ def refit(T: Array, sol: dict[str, Any], speed: float, heights: tuple[Array, Arr
     if not (kr.all() and ks.all()):
         # nodes the solver dropped (e.g. more flagged ranges than a position can hold) stay
         # dropped: the others are refined from where they stand
-        sub = refit(T[np.ix_(kr, ks)], {**sol, "receivers": r[kr], "sources": s[ks], "receiver_offsets": dr[kr],
-                                        "source_offsets": ds[ks]}, speed, f_scale=f_scale)
+        sub = refit(T[np.ix_(kr, ks)], replace(sol, receivers=r[kr], sources=s[ks], receiver_offsets=dr[kr],
+                                               source_offsets=ds[ks]), speed, f_scale=f_scale)
         return _scatter_nodes(sub, kr, ks, outliers=True)
     res = _solve(T, d, speed, 0, init=(r[:, :d], s[:, :d], dr, ds), f_scale=f_scale)
-    out = _as_solution(res, "")
-    out["method"] = method
-    out["one_side"] = sol.get("one_side")
-    return out
+    return _as_solution(res, "", d, method=sol.method, one_side=sol.one_side)
 
 
-def _scatter_nodes(sol: dict[str, Any], kr: NDArray[np.bool_], ks: NDArray[np.bool_], *,
-                  outliers: bool = False) -> dict[str, Any]:
+def _scatter_nodes(sol: Calibration, kr: NDArray[np.bool_], ks: NDArray[np.bool_], *,
+                   outliers: bool = False) -> Calibration:
     """A solution on the kept nodes at full size: NaN rows for the others (with ``outliers``, a
     full-size outlier mask too); the uniqueness verdict in the full numbering."""
     I, J = len(kr), len(ks)
-    out = dict(sol)
-    for key, keep, n in (("receivers", kr, I), ("sources", ks, J), ("receiver_offsets", kr, I),
-                         ("source_offsets", ks, J), ("receiver_cov", kr, I), ("source_cov", ks, J),
-                         ("receiver_offset_std", kr, I), ("source_offset_std", ks, J)):
-        if sol.get(key) is None:
-            continue
-        a = np.asarray(sol[key], float)
-        full = np.full((n,) + a.shape[1:], np.nan)
-        full[keep] = a
-        out[key] = full
+
+    def full(a: Array, keep: NDArray[np.bool_]) -> Array:
+        a = np.asarray(a, float)
+        out = np.full((len(keep),) + a.shape[1:], np.nan)
+        out[keep] = a
+        return out
+
+    mask = sol.toa_outliers
     if outliers:
         mask = np.zeros((I, J), bool)
-        mask[np.ix_(kr, ks)] = np.asarray(sol["toa_outliers"], bool)
-        out["toa_outliers"] = mask
-    u = sol.get("uniqueness")
+        mask[np.ix_(kr, ks)] = np.asarray(sol.toa_outliers, bool)
+    u = sol.uniqueness
     if u is not None and hasattr(u, "relabel") and len(u.ambiguous_receivers) == int(kr.sum()):
-        out["uniqueness"] = u.relabel(kr, ks, np.arange(I), np.arange(J))
-    return out
+        u = u.relabel(kr, ks, np.arange(I), np.arange(J))
+    return replace(sol, receivers=full(sol.receivers, kr), sources=full(sol.sources, ks),
+                   receiver_offsets=full(sol.receiver_offsets, kr), source_offsets=full(sol.source_offsets, ks),
+                   receiver_cov=full(sol.receiver_cov, kr), source_cov=full(sol.source_cov, ks), toa_outliers=mask,
+                   uniqueness=u)
 
 
 def sender_matrix(toa: Array, event_senders: NDArray[np.int64], n_senders: int) -> Array:
@@ -561,17 +566,17 @@ def sender_matrix(toa: Array, event_senders: NDArray[np.int64], n_senders: int) 
     return out
 
 
-def n_parameters_of(sol: dict[str, Any], I: int, J: int) -> int:
+def n_parameters_of(sol: Calibration, I: int, J: int) -> int:
     """Free parameters of a solution's model (gauge removed): coordinates plus I + J - 1 offsets.
 
     ``2d+heights``: 2 (I + J) horizontal coordinates less 3 (planar rigid motion); ``2d``
     likewise; 3-D: 3 (I + J) less 6.
     """
-    d = 2 if str(sol["method"]).startswith("2d") else 3
-    return n_parameters(I, J, d, "both")
+    return n_parameters(I, J, sol.dim, "both")
 
 
-def _predict(sol: dict[str, Any], speed: float) -> Array:
-    r, s = np.asarray(sol["receivers"], float), np.asarray(sol["sources"], float)
+def _predict(sol: Calibration | PipelineResult, speed: float) -> Array:
+    """The model TOA matrix ``|r_i - s_j| / c + delta_i + tau_j`` (004 eq. 3.1) of a solution, s."""
+    r, s = np.asarray(sol.receivers, float), np.asarray(sol.sources, float)
     return (np.linalg.norm(r[:, None, :] - s[None, :, :], axis=-1) / speed
-            + np.asarray(sol["receiver_offsets"], float)[:, None] + np.asarray(sol["source_offsets"], float)[None, :])
+            + np.asarray(sol.receiver_offsets, float)[:, None] + np.asarray(sol.source_offsets, float)[None, :])

@@ -11,16 +11,19 @@ noise bursts took a third of the detections).
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import NDArray
+
+if TYPE_CHECKING:
+    from .solution import Calibration
 
 __all__ = ["hat_diagonal", "event_leverage"]
 
 Array = NDArray[np.float64]
 
-def hat_diagonal(sol: dict[str, Any], observed: NDArray[np.bool_], speed: float,
+def hat_diagonal(sol: Calibration, observed: NDArray[np.bool_], speed: float,
                  weights: Array | None = None) -> Array:
     """Leverages ``h_ij`` of the least-squares fit of a solution on its per-sender TOA matrix.
 
@@ -34,8 +37,8 @@ def hat_diagonal(sol: dict[str, Any], observed: NDArray[np.bool_], speed: float,
 
     Parameters
     ----------
-    sol : dict
-        ``receivers`` (I, d), ``sources`` (J, d), ``method``.
+    sol : Calibration
+        ``receivers`` (I, d), ``sources`` (J, d), ``dim`` (the free coordinates).
     observed : (I, J) bool
     speed : float
         m/s.
@@ -49,8 +52,8 @@ def hat_diagonal(sol: dict[str, Any], observed: NDArray[np.bool_], speed: float,
     """
     import scipy.sparse as sp
 
-    r, s = np.asarray(sol["receivers"], float), np.asarray(sol["sources"], float)
-    d = 2 if str(sol["method"]).startswith("2d") else 3
+    r, s = np.asarray(sol.receivers, float), np.asarray(sol.sources, float)
+    d = sol.dim
     I, J = observed.shape
     ii, jj = np.nonzero(observed)
     out = np.full((I, J), np.nan)
@@ -78,7 +81,7 @@ def hat_diagonal(sol: dict[str, Any], observed: NDArray[np.bool_], speed: float,
     return out
 
 
-def event_leverage(sol: dict[str, Any], toa: Array, event_senders: NDArray[np.int64], n_senders: int,
+def event_leverage(sol: Calibration, toa: Array, event_senders: NDArray[np.int64], n_senders: int,
                    speed: float, weights: Array | None = None) -> Array:
     """Residual std factor ``sqrt(1 - h_ij / n_ij)`` of every event detection (I, E).
 

@@ -13,12 +13,15 @@ resampling errors of the recording chain are a fraction of a sample, not of a se
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 from ..robust import mad_std
+
+if TYPE_CHECKING:
+    from .solution import Calibration
 
 __all__ = ["timing_noise", "detection_std", "sender_std", "fit_test", "rms_frequency", "TIMING_FLOOR", "MF_FACTOR",
            "FLOOR_SAMPLES", "timing_floor", "ResidualCheck", "residual_check"]
@@ -137,21 +140,21 @@ def timing_noise(quality_db: Array, band: tuple[float, float], event_senders: ND
     return float(np.sqrt(np.mean(allv))) if allv.size else float("nan")
 
 
-def fit_test(T: Array, solution: dict[str, Any], speed: float, noise: float) -> Any:
+def fit_test(T: Array, solution: Calibration, speed: float, noise: float) -> Any:
     """Chi-square residual test (:func:`selfcal.toa.residual_test`) of a calibrated solution.
 
     Residuals ``t_ij - |r_i - s_j| / c - delta_i - tau_j`` (004 eq. 3.1) over the observed
     entries of the (I, J) matrix ``T`` (s); parameters: the coordinates of the solution's
-    dimension up to a rigid motion (2-D for ``"2d"`` and ``"2d+heights"``, whose z is given)
+    dimension up to a rigid motion (``solution.dim``: 2-D for the 2-D model and known heights)
     plus I + J - 1 offsets. Returns a :class:`selfcal.toa.ResidualTest`.
     """
     from ..toa.solve import n_parameters, residual_test
 
-    r, s = np.asarray(solution["receivers"], float), np.asarray(solution["sources"], float)
+    r, s = np.asarray(solution.receivers, float), np.asarray(solution.sources, float)
     pred = (np.linalg.norm(r[:, None, :] - s[None, :, :], axis=-1) / speed
-            + np.asarray(solution["receiver_offsets"], float)[:, None]
-            + np.asarray(solution["source_offsets"], float)[None, :])
-    dim = 2 if str(solution["method"]).startswith("2d") else r.shape[1]
+            + np.asarray(solution.receiver_offsets, float)[:, None]
+            + np.asarray(solution.source_offsets, float)[None, :])
+    dim = solution.dim
     return residual_test(np.asarray(T, float) - pred, noise, n_parameters(r.shape[0], s.shape[0], dim, "both"))
 
 

@@ -42,6 +42,7 @@ from .plausibility import extent_reason
 from .robust_fit import Outlier, robust_calibrate
 from .scale import apply_scale, scale_from_distances
 from .scoring import truth_errors
+from .solution import Calibration
 from .units import unit_pairs
 from .verdict import ErrorBars, Verdict, error_bars, judge
 
@@ -134,6 +135,9 @@ class PipelineResult(Result):
         recording's numbering and the solver's frame; None for the known-heights model.
     outlier_breakdown : str or None
         The TOA solver's outlier-breakdown verdict of the final fit, when it fired.
+    known_heights : bool
+        The ``2d+heights`` model: every z given, x and y fitted (``known_heights`` of
+        :class:`selfcal.acoustics.solution.Calibration`); not in :meth:`to_dict` (``method`` says it).
     """
 
     receivers: Array
@@ -169,6 +173,7 @@ class PipelineResult(Result):
     timings_cpu: dict[str, float] = field(default_factory=dict)
     uniqueness: Any = None
     outlier_breakdown: str | None = None
+    known_heights: bool = False
 
     @property
     def failed(self) -> bool:
@@ -241,7 +246,7 @@ class PipelineResult(Result):
         }
 
 
-def _unique_or_plausible(sol: dict[str, Any], rn: tuple[str, ...], sn: tuple[str, ...],
+def _unique_or_plausible(sol: Calibration, rn: tuple[str, ...], sn: tuple[str, ...],
                          room: tuple[float, ...] | None, notes: list[str]) -> tuple[str, ...]:
     """FAIL reasons from the TOA solver's own tests and the declared room (:mod:`.plausibility`).
 
@@ -257,10 +262,10 @@ def _unique_or_plausible(sol: dict[str, Any], rn: tuple[str, ...], sn: tuple[str
     - positions spanning far more than the declared room.
     """
     out: list[str] = []
-    u = sol.get("uniqueness")
+    u = sol.uniqueness
     if u is not None and not u.passed:
-        R, S = np.asarray(sol["receivers"], float), np.asarray(sol["sources"], float)
-        side = sol.get("one_side")
+        R, S = np.asarray(sol.receivers, float), np.asarray(sol.sources, float)
+        side = sol.one_side
         plane = None
         if side is not None:  # the one-side rule: these units all on one side of their partners' plane
             P = S if side == "receivers" else R
@@ -310,9 +315,9 @@ def _unique_or_plausible(sol: dict[str, Any], rn: tuple[str, ...], sn: tuple[str
         if u.minimal:
             out.append("not tested: no spare measurement, the fit is exact whatever the geometry (a minimal "
                        "problem is not a determined one); add units or detections")
-    if sol.get("outlier_breakdown"):
-        out.append(str(sol["outlier_breakdown"]) + ": positions NOT reliable")
-    why = extent_reason(np.asarray(sol["receivers"]), np.asarray(sol["sources"]), room)
+    if sol.outlier_breakdown:
+        out.append(str(sol.outlier_breakdown) + ": positions NOT reliable")
+    why = extent_reason(np.asarray(sol.receivers), np.asarray(sol.sources), room)
     if why is not None:
         out.append(why)
     return tuple(out)
@@ -439,7 +444,7 @@ def run_pipeline(
         ri = np.array([a for a, _, _ in idx])
         sj = np.array([b for _, b, _ in idx])
         Dk = np.array([c for _, _, c in idx])
-        good = np.isfinite(np.asarray(sol["receivers"])[ri]).all(axis=1) & np.isfinite(np.asarray(sol["sources"])[sj]).all(axis=1)
+        good = np.isfinite(np.asarray(sol.receivers)[ri]).all(axis=1) & np.isfinite(np.asarray(sol.sources)[sj]).all(axis=1)
         if good.any():
             lam, lam_std = scale_from_distances(sol, ri[good], sj[good], Dk[good])
             sol = apply_scale(sol, lam)
@@ -448,8 +453,8 @@ def run_pipeline(
                          f"(assumed {speed:.2f} m/s, distances x {lam:.5f})")
             speed = speed * lam
     fit = None
-    kr = np.isfinite(np.asarray(sol["receivers"])).all(axis=1)
-    ks = np.isfinite(np.asarray(sol["sources"])).all(axis=1)
+    kr = np.isfinite(np.asarray(sol.receivers)).all(axis=1)
+    ks = np.asarray(np.isfinite(np.asarray(sol.sources)).all(axis=1), bool)
     pred = _predict(sol, speed)
     res_e = robust.toa - pred[:, es]
     res_e[~kr] = np.nan
@@ -468,14 +473,14 @@ def run_pipeline(
         fit_reason = (f"{FAIL_MESSAGE} ({'; '.join(where)}; chi2 {fit.chi2:.4g} on {fit.dof} dof, "
                       f"timing noise {noise * 1e6:.3g} us): a wrong basin, bad detections or a larger noise than "
                       "assumed")
-        if str(sol["method"]).startswith("2d ("):
+        if sol.dim == 2 and not sol.known_heights:
             fit_reason += "; the 2-D model ignores the heights: give them with --heights"
         warnings.warn(fit_reason, stacklevel=2)
         notes.append(fit_reason)
     bars = None
     try:
-        bars = error_bars(T, S, np.asarray(sol["receivers"]), np.asarray(sol["sources"]), speed,
-                          free_z=hz is None and np.asarray(sol["receivers"]).shape[1] == 3,
+        bars = error_bars(T, S, np.asarray(sol.receivers), np.asarray(sol.sources), speed,
+                          free_z=hz is None and np.asarray(sol.receivers).shape[1] == 3,
                           chi2_per_dof=(fit.chi2 / fit.dof) if fit is not None and fit.dof > 0 else 1.0)
     except (np.linalg.LinAlgError, ValueError):
         bars = None
@@ -486,9 +491,9 @@ def run_pipeline(
         notes.append(SPEED_NOTE.format(c=speed))
     notes.append(BIAS_NOTE)
     # units the TOA fit itself dropped (NaN rows, e.g. more flagged ranges than a position can hold)
-    lost_r = [int(i) for i in np.flatnonzero(~np.isfinite(np.asarray(sol["receivers"])).all(axis=1))
+    lost_r = [int(i) for i in np.flatnonzero(~np.isfinite(np.asarray(sol.receivers)).all(axis=1))
               if i not in robust.dropped_receivers]
-    lost_s = [int(j) for j in np.flatnonzero(~np.isfinite(np.asarray(sol["sources"])).all(axis=1))
+    lost_s = [int(j) for j in np.flatnonzero(~np.isfinite(np.asarray(sol.sources)).all(axis=1))
               if j not in robust.dropped_senders]
     if lost_r or lost_s:
         notes.append("dropped by the TOA fit (not located): " + ", ".join(
@@ -496,14 +501,14 @@ def run_pipeline(
     dr = tuple(setup.receivers[i] for i in sorted(int(k) for k in [*robust.dropped_receivers, *lost_r]))
     dsn = tuple(setup.senders[j] for j in sorted(int(k) for k in [*robust.dropped_senders, *lost_s]))
     return PipelineResult(
-        receivers=sol["receivers"], sources=sol["sources"], receiver_offsets=sol["receiver_offsets"],
-        source_offsets=sol["source_offsets"], receiver_cov=sol["receiver_cov"], source_cov=sol["source_cov"],
-        residual_rms=sol["residual_rms"], converged=sol["converged"], iterations=sol["iterations"],
-        method=sol["method"], toa_matrix=robust.toa, detections_missed=int(np.isnan(robust.toa).sum()),
+        receivers=sol.receivers, sources=sol.sources, receiver_offsets=sol.receiver_offsets,
+        source_offsets=sol.source_offsets, receiver_cov=sol.receiver_cov, source_cov=sol.source_cov,
+        residual_rms=sol.residual_rms, converged=sol.converged, iterations=sol.iterations,
+        method=sol.method, toa_matrix=robust.toa, detections_missed=int(np.isnan(robust.toa).sum()),
         quality_db=det.quality_db, planarity=plan, timings=timings, receiver_names=setup.receivers,
         sender_names=setup.senders, speed_of_sound=speed, notes=tuple(notes), fit=fit, timing_noise=noise,
         fit_binding=True, outliers=tuple(robust.outliers), dropped_receivers=dr, dropped_senders=dsn,
         error_bars=bars, verdict=verdict, rounds=rounds, event_senders=np.asarray(es, dtype=np.int64),
-        matrix_std=S, timings_cpu=cpu, uniqueness=sol.get("uniqueness"),
-        outlier_breakdown=sol.get("outlier_breakdown"),
+        matrix_std=S, timings_cpu=cpu, uniqueness=sol.uniqueness,
+        outlier_breakdown=sol.outlier_breakdown, known_heights=sol.known_heights,
     )

@@ -47,15 +47,13 @@ def render_html(result: Any, errors: dict[str, Any] | None = None, *, summary: l
     from .calibrate import _predict
 
     e = html.escape
-    sol = {"receivers": result.receivers, "sources": result.sources, "receiver_offsets": result.receiver_offsets,
-           "source_offsets": result.source_offsets}
     speed = float(result.speed_of_sound)
     T = np.asarray(result.toa_matrix, float)
     es = np.arange(T.shape[1])
     bars = result.error_bars
     I, J = len(result.receiver_names), len(result.sender_names)
     # residuals per receiver and sender (events of one sender averaged)
-    pred = _predict(sol, speed)
+    pred = _predict(result, speed)
     senders = result.event_senders
     if senders is None or len(senders) != T.shape[1]:
         senders = es % J

@@ -38,6 +38,7 @@ from .calibrate import (
 )
 from .geometry import Planarity
 from .leverage import event_leverage
+from .solution import Calibration
 
 __all__ = ["robust_calibrate", "Outlier", "RobustFit", "OUTLIER_ALPHA"]
 
@@ -87,7 +88,7 @@ class RobustFit:
 
     Attributes
     ----------
-    solution : dict
+    solution : Calibration
         Full-size solution (dropped units' rows NaN).
     planarity : Planarity or None
     notes : list of str
@@ -108,7 +109,7 @@ class RobustFit:
         (:func:`selfcal.acoustics.leverage.event_leverage`), NaN where not used.
     """
 
-    solution: dict[str, Any]
+    solution: Calibration
     planarity: Planarity | None
     notes: list[str]
     outliers: list[Outlier]
@@ -275,7 +276,7 @@ def robust_calibrate(
             if good:
                 s_ev[a, b] = new_s[k]
 
-    def standardised(sol: dict[str, Any]) -> tuple[Array, Array, Array, float, Array]:
+    def standardised(sol: Calibration) -> tuple[Array, Array, Array, float, Array]:
         """Predicted TOA (I, J), event residuals, their z (noise model, leverage, robust scale)."""
         pred = _predict(sol, speed)
         res = t_ev - pred[:, es_k]
@@ -286,7 +287,7 @@ def robust_calibrate(
 
     # the entries the TOA package's robust fit rejected (solve_toa's outlier rule) are the
     # first outliers: excluded from the start, re-detected near the time that fit predicts
-    flagged = np.asarray(sol.get("toa_outliers", np.zeros(Tk.shape, bool)), bool)
+    flagged = np.zeros(Tk.shape, bool) if sol.toa_outliers is None else np.asarray(sol.toa_outliers, bool)
     if flagged.any():
         pred, res, z, scale, lev = standardised(sol)
         first_ok = [(int(a), int(b)) for a, b in zip(*np.nonzero(flagged[:, es_k] & np.isfinite(t_ev)), strict=True)]
@@ -348,7 +349,7 @@ def robust_calibrate(
                                                     weights=wts(), units=units_k)
             except DegenerateGeometryError:
                 break
-            if sol2["residual_rms"] < sol["residual_rms"]:
+            if sol2.residual_rms < sol.residual_rms:
                 sol, plan = sol2, plan2
                 n_par = n_parameters_of(sol, len(Tk), Jk)
                 notes[:] = [n for n in notes if n not in cnotes] + cn2

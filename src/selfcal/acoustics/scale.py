@@ -7,16 +7,20 @@ distances fix it (:func:`scale_from_distances`, :func:`apply_scale`).
 
 from __future__ import annotations
 
-from typing import Any
+from dataclasses import replace
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import NDArray
+
+if TYPE_CHECKING:
+    from .solution import Calibration
 
 __all__ = ["scale_from_distances", "apply_scale"]
 
 Array = NDArray[np.float64]
 
-def scale_from_distances(sol: dict[str, Any], receivers: NDArray[np.intp], senders: NDArray[np.intp],
+def scale_from_distances(sol: Calibration, receivers: NDArray[np.intp], senders: NDArray[np.intp],
                          distances: Array) -> tuple[float, float]:
     """Scale factor of a solution from known receiver-sender distances (a unit's microphone and loudspeaker).
 
@@ -28,8 +32,8 @@ def scale_from_distances(sol: dict[str, Any], receivers: NDArray[np.intp], sende
 
     Parameters
     ----------
-    sol : dict
-        Solution with ``receivers``, ``sources``, ``receiver_cov``, ``source_cov``.
+    sol : Calibration
+        Its ``receivers``, ``sources``, ``receiver_cov``, ``source_cov``.
     receivers, senders : (K,) int arrays
         The pairs.
     distances : (K,) array
@@ -42,10 +46,10 @@ def scale_from_distances(sol: dict[str, Any], receivers: NDArray[np.intp], sende
     lam_std : float
         Its standard deviation.
     """
-    r = np.asarray(sol["receivers"], float)[receivers]
-    s = np.asarray(sol["sources"], float)[senders]
-    rc = np.asarray(sol["receiver_cov"], float)[receivers]
-    sc = np.asarray(sol["source_cov"], float)[senders]
+    r = np.asarray(sol.receivers, float)[receivers]
+    s = np.asarray(sol.sources, float)[senders]
+    rc = np.asarray(sol.receiver_cov, float)[receivers]
+    sc = np.asarray(sol.source_cov, float)[senders]
     D = np.asarray(distances, float)
     diff = r - s
     d = np.linalg.norm(diff, axis=1)
@@ -59,14 +63,12 @@ def scale_from_distances(sol: dict[str, Any], receivers: NDArray[np.intp], sende
     return lam, lam_std
 
 
-def apply_scale(sol: dict[str, Any], lam: float) -> dict[str, Any]:
+def apply_scale(sol: Calibration, lam: float) -> Calibration:
     """Positions times ``lam``, covariances times ``lam^2`` (offsets unchanged)."""
-    out = dict(sol)
-    for key in ("receivers", "sources"):
-        out[key] = np.asarray(sol[key], float) * lam
-    for key in ("receiver_cov", "source_cov"):
-        out[key] = np.asarray(sol[key], float) * lam**2
-    if sol.get("uniqueness") is not None:  # its alternative positions at the same scale
-        d = np.asarray(sol["receivers"]).shape[1]
-        out["uniqueness"] = sol["uniqueness"].moved(lam * np.eye(d), np.zeros(d))
-    return out
+    u = sol.uniqueness
+    if u is not None:  # its alternative positions at the same scale
+        d = np.asarray(sol.receivers).shape[1]
+        u = u.moved(lam * np.eye(d), np.zeros(d))
+    return replace(sol, receivers=np.asarray(sol.receivers, float) * lam, sources=np.asarray(sol.sources, float) * lam,
+                   receiver_cov=np.asarray(sol.receiver_cov, float) * lam**2,
+                   source_cov=np.asarray(sol.source_cov, float) * lam**2, uniqueness=u)

@@ -45,7 +45,7 @@ def truth_errors(result: Any, truth: dict[str, Any]) -> dict[str, Any]:
     d = er.shape[1]
     true_all = np.vstack([tr, ts])
     est_all = np.vstack([er, es])
-    if d == 2 or result.method.startswith("2d+heights"):
+    if d == 2 or result.known_heights:
         al = align(est_all[:, :2], true_all[:, :2], reflection=True)
         aligned = al.apply(est_all[:, :2])
         if d == 3:
