@@ -1,0 +1,69 @@
+"""Near-planar rooms through the pipeline's defaults: 2-D, or z within its own error bars (issue 27).
+
+The boundary desks of :mod:`selfcal.scenarios.conference` (8 x 7 x 3 m, 10 units, 16 kHz):
+loudspeakers exactly coplanar, microphones within 1 cm of their plane, 0.1 us of detection
+noise. The layout is a few mm thick, below the 3-D fit's bending scale
+``sqrt(noise x extent)`` (about 1 cm): the heights enter the ranges only at second order,
+and a 3-D answer comes back bent by 1-2 cm against linearised z bars of 2-8 mm. Before the
+thickness chi-square took the heights at second order
+(:func:`selfcal.toa.verdict.select._thickness_cov`), 10 of 16 seeds (0-15) ended 3-D at
+exit 0 with units beyond 3 of their error bars. The property tested is the promise of
+exit 0 (issue 27): no unit outside 3 of its own error bars (squared Mahalanobis distance of
+the aligned 3-D position above chi-square(3)'s 0.9973 quantile) unless the result lists it
+as ambiguous; a 2-D answer is judged on the 004 requirement of its in-plane positions.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+from click.testing import CliRunner
+
+from selfcal.cli import main
+
+from .test_pipeline import _outside_error_bars
+
+# Seeds 3, 6 and 7 ended 3-D, exit 0, with units outside 3 error bars not listed ambiguous.
+DEFAULT_SEEDS = (3, 6, 7)
+# Seed 11 is the one of 0-39 that still does (heights 2-4 cm off, fitted layout 17.5 mm
+# thick, F p = 4e-7: the ML fit itself, started at the truth it comes back to the same
+# bent answer, and the flip test finds no candidate). Kept as a known failure.
+KNOWN_BENT = {11}
+
+
+def _boundary(tmp: Path, seed: int) -> tuple[int, dict, dict]:
+    rec = tmp / f"rec{seed}"
+    res = CliRunner().invoke(main, ["simulate", "conference", "--units", "10", "--room", "8x7x3", "--rt60", "0.4",
+                                    "--snr", "30", "--seed", str(seed), "--layout", "boundary", "--sample-rate",
+                                    "16000", "--max-order", "2", "--out", str(rec)])
+    assert res.exit_code == 0, res.output
+    (rec / "heights.json").unlink()  # blind: the pipeline's own decision
+    out = tmp / f"result{seed}.json"
+    res = CliRunner().invoke(main, ["pipeline", str(rec), "--out", str(out)])
+    data = json.loads(out.read_text()) if out.exists() else {}
+    return res.exit_code, data, json.loads((rec / "truth.json").read_text())
+
+
+def _check(code: int, data: dict, truth: dict) -> None:
+    if code != 0:
+        return  # flagged: not a confident answer
+    if data["dim"] == 2:
+        assert data["errors"]["horizontal_only"] and data["errors"]["position_max"] < 0.10
+        return
+    ambiguous = set(data["ambiguous_receivers"]) | set(data["ambiguous_senders"])
+    assert _outside_error_bars(data, truth) <= ambiguous
+
+
+@pytest.mark.parametrize("seed", DEFAULT_SEEDS)
+def test_boundary_desks_are_2d_or_within_error_bars(tmp_path, seed):
+    _check(*_boundary(tmp_path, seed))
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("seed", [s for s in range(40) if s not in DEFAULT_SEEDS])
+def test_boundary_desks_are_2d_or_within_error_bars_slow(tmp_path, seed):
+    if seed in KNOWN_BENT:
+        pytest.xfail("a bent ML fit thicker than the bending scale: not caught (docs/design.md)")
+    _check(*_boundary(tmp_path, seed))
