@@ -267,19 +267,22 @@ def _thickness_cov(fit3: ToaResult, speed: float | None) -> Array:
     R, S = np.asarray(fit3.receivers, float), np.asarray(fit3.sources, float)
     Cr, Cs = np.array(fit3.receiver_cov, float), np.array(fit3.source_cov, float)
     res = np.asarray(fit3.residuals, float)
-    obs = np.isfinite(res) & ~np.asarray(fit3.outliers, bool)
+    fr, fs = np.isfinite(R).all(axis=1), np.isfinite(S).all(axis=1)  # nodes the fit dropped: NaN rows
+    obs = (np.isfinite(res) & ~np.asarray(fit3.outliers, bool))[np.ix_(fr, fs)]
     if obs.any():
-        noise2 = float(np.mean(res[obs] ** 2)) * (1.0 if speed is None else float(speed)) ** 2
+        noise2 = float(np.mean(res[np.ix_(fr, fs)][obs] ** 2)) * (1.0 if speed is None else float(speed)) ** 2
         q = float(chi2.ppf(1.0 - PLANAR_ALPHA, 1))
 
         def std(C: Array) -> Array:
             return np.sqrt(np.abs(np.trace(C, axis1=1, axis2=2)))
 
         with np.errstate(invalid="ignore"):
-            sr = coplanar_partner_nodes(R, S, obs, noise2=noise2, partner_var=Cs, point_std=std(Cr), quantile=q)
-            ss = coplanar_partner_nodes(S, R, obs.T, noise2=noise2, partner_var=Cr, point_std=std(Cs), quantile=q)
-        Cr[sr] *= 4.0
-        Cs[ss] *= 4.0
+            sr = coplanar_partner_nodes(R[fr], S[fs], obs, noise2=noise2, partner_var=Cs[fs],
+                                        point_std=std(Cr[fr]), quantile=q)
+            ss = coplanar_partner_nodes(S[fs], R[fr], obs.T, noise2=noise2, partner_var=Cr[fr],
+                                        point_std=std(Cs[fs]), quantile=q)
+        Cr[np.flatnonzero(fr)[sr]] *= 4.0
+        Cs[np.flatnonzero(fs)[ss]] *= 4.0
     return np.concatenate([Cr, Cs])
 
 
