@@ -70,5 +70,5 @@ def test_boundary_desks_are_2d_or_within_error_bars(tmp_path, seed):
 @pytest.mark.parametrize("seed", [s for s in range(40) if s not in DEFAULT_SEEDS])
 def test_boundary_desks_are_2d_or_within_error_bars_slow(tmp_path, seed):
     if seed in KNOWN_BENT:
-        pytest.xfail("a bent 3-D ML fit whose own bars resolve its partners' spread: not caught (docs/design.md)")
+        pytest.xfail("a bent 3-D ML fit the second-order correction does not catch (KNOWN_BENT, docs/design.md)")
     _check(*_boundary(tmp_path, seed))
