@@ -247,6 +247,45 @@ def _choose_offsets(M: Array, dim: int, solve: Solver, opts: ToaOptions) -> tupl
     return fits[chosen], stats
 
 
+def _thickness_cov(fit3: ToaResult, speed: float | None) -> Array:
+    """The 3-D fit's covariances (receivers then sources) for the thickness chi-square:
+    four times the linearised ones for the nodes whose partners are coplanar within their
+    error bars (:func:`.flips.coplanar_partner_nodes`, level :data:`PLANAR_ALPHA`).
+
+    Such a node's height ``h`` above its partners' plane enters its ranges at second order,
+    ``rho_j + h^2 / (2 rho_j)``: its misfit is the double well ``A (h^2 - h0^2)^2``. The
+    linearised variance at the fitted ``h0`` is ``sigma^2 = 1 / (4 A h0^2)``, so the
+    parabola says the plane (``h = 0``) costs ``(h0 / sigma)^2`` while the likelihood ratio
+    is ``A h0^4 = (h0 / (2 sigma))^2``: four times less. Scaling these nodes' covariances by
+    4 makes their term of the thickness chi-square the profile-likelihood one (exact for a
+    node over exactly coplanar, fixed partners).
+    """
+    from scipy.stats import chi2
+
+    from .flips import coplanar_partner_nodes
+
+    R, S = np.asarray(fit3.receivers, float), np.asarray(fit3.sources, float)
+    Cr, Cs = np.array(fit3.receiver_cov, float), np.array(fit3.source_cov, float)
+    res = np.asarray(fit3.residuals, float)
+    fr, fs = np.isfinite(R).all(axis=1), np.isfinite(S).all(axis=1)  # nodes the fit dropped: NaN rows
+    obs = (np.isfinite(res) & ~np.asarray(fit3.outliers, bool))[np.ix_(fr, fs)]
+    if obs.any():
+        noise2 = float(np.mean(res[np.ix_(fr, fs)][obs] ** 2)) * (1.0 if speed is None else float(speed)) ** 2
+        q = float(chi2.ppf(1.0 - PLANAR_ALPHA, 1))
+
+        def std(C: Array) -> Array:
+            return np.sqrt(np.abs(np.trace(C, axis1=1, axis2=2)))
+
+        with np.errstate(invalid="ignore"):
+            sr = coplanar_partner_nodes(R[fr], S[fs], obs, noise2=noise2, partner_var=Cs[fs],
+                                        point_std=std(Cr[fr]), quantile=q)
+            ss = coplanar_partner_nodes(S[fs], R[fr], obs.T, noise2=noise2, partner_var=Cr[fr],
+                                        point_std=std(Cs[fs]), quantile=q)
+        Cr[np.flatnonzero(fr)[sr]] *= 4.0
+        Cs[np.flatnonzero(fs)[ss]] *= 4.0
+    return np.concatenate([Cr, Cs])
+
+
 def dimension_test(M: Array, fit3: ToaResult, offsets: str, solve: Solver,
                    opts: ToaOptions) -> tuple[bool, Planarity, ToaResult | None, dict[str, Any]]:
     """Is the 3-D fit ``fit3`` of ``M`` determined in z, or is the layout (near-)planar?
@@ -305,7 +344,7 @@ def dimension_test(M: Array, fit3: ToaResult, offsets: str, solve: Solver,
         cands = [f for f in (r2, searched) if f is not None]
         r2 = min(cands, key=lambda f: (int(np.asarray(f.outliers).sum()), _rss(f))) if cands else None
     pts = np.vstack([r3.receivers, r3.sources])
-    cov = np.concatenate([r3.receiver_cov, r3.source_cov])
+    cov = _thickness_cov(r3, opts.speed)
     if r2 is None:
         plan = planarity(pts, cov)
         return True, plan, None, {"criterion": "F", "chosen": 3, "reason": "only the 3-D fit exists",

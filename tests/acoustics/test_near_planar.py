@@ -1,0 +1,74 @@
+"""Near-planar rooms through the pipeline's defaults: 2-D, or z within its own error bars (issue 27).
+
+The boundary desks of :mod:`selfcal.scenarios.conference` (8 x 7 x 3 m, 10 units, 16 kHz):
+loudspeakers exactly coplanar, microphones within 1 cm of their plane, 0.1 us of detection
+noise. The layout is a few mm thick, below the 3-D fit's bending scale
+``sqrt(noise x extent)`` (about 1 cm): the heights enter the ranges only at second order,
+and a 3-D answer comes back bent by 1-2 cm against linearised z bars of 2-8 mm. Before the
+thickness chi-square took the heights at second order
+(``selfcal.toa.verdict.select._thickness_cov``), 26 of 40 seeds (0-39) ended 3-D at
+exit 0 with units beyond 3 of their error bars; now 8 (``KNOWN_BENT``), the other 32 2-D
+(horizontal error <= 0.5 mm). The property tested is the promise of exit 0 (issue 27):
+no unit outside 3 of its own error bars (squared Mahalanobis distance of the aligned 3-D
+position above chi-square(3)'s 0.9973 quantile) unless the result lists it as ambiguous; a 2-D answer is judged on the 004 requirement of its in-plane positions.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+from click.testing import CliRunner
+
+from selfcal.cli import main
+
+from .test_pipeline import _outside_error_bars
+
+# Seeds 3, 6 and 7 ended 3-D, exit 0, with units outside 3 error bars not listed ambiguous.
+DEFAULT_SEEDS = (3, 6, 7)
+# Seeds of 0-39 that still end 3-D at exit 0 with units beyond 3 error bars (not listed
+# ambiguous): fitted layouts 7.6-17.5 mm thick, F p 2e-11 to 2e-5, heights 1.3-4.1 cm off.
+# Their ML fits are bent (seed 11 started at the truth comes back to the same answer). In
+# 12 and 24 every node is corrected and the thickness chi-square still resolves the bend
+# (p 1.5e-5, 2.5e-4): the factor 4 is the profile of one node over fixed partners, and the
+# partners bend too. In 11 no node and in 35 half of them count as over coplanar partners:
+# the bent fit's own too-small bars resolve its partners' spread. Known failures; a null
+# distribution of the bend (a parametric bootstrap) would be needed.
+KNOWN_BENT = {11, 12, 16, 20, 24, 27, 31, 35}
+
+
+def _boundary(tmp: Path, seed: int) -> tuple[int, dict, dict]:
+    rec = tmp / f"rec{seed}"
+    res = CliRunner().invoke(main, ["simulate", "conference", "--units", "10", "--room", "8x7x3", "--rt60", "0.4",
+                                    "--snr", "30", "--seed", str(seed), "--layout", "boundary", "--sample-rate",
+                                    "16000", "--max-order", "2", "--out", str(rec)])
+    assert res.exit_code == 0, res.output
+    (rec / "heights.json").unlink()  # blind: the pipeline's own decision
+    out = tmp / f"result{seed}.json"
+    res = CliRunner().invoke(main, ["pipeline", str(rec), "--out", str(out)])
+    data = json.loads(out.read_text()) if out.exists() else {}
+    return res.exit_code, data, json.loads((rec / "truth.json").read_text())
+
+
+def _check(code: int, data: dict, truth: dict) -> None:
+    if code != 0:
+        return  # flagged: not a confident answer
+    if data["dim"] == 2:
+        assert data["errors"]["horizontal_only"] and data["errors"]["position_max"] < 0.10
+        return
+    ambiguous = set(data["ambiguous_receivers"]) | set(data["ambiguous_senders"])
+    assert _outside_error_bars(data, truth) <= ambiguous
+
+
+@pytest.mark.parametrize("seed", DEFAULT_SEEDS)
+def test_boundary_desks_are_2d_or_within_error_bars(tmp_path, seed):
+    _check(*_boundary(tmp_path, seed))
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("seed", [s for s in range(40) if s not in DEFAULT_SEEDS])
+def test_boundary_desks_are_2d_or_within_error_bars_slow(tmp_path, seed):
+    if seed in KNOWN_BENT:
+        pytest.xfail("a bent 3-D ML fit the second-order correction does not catch (KNOWN_BENT, docs/design.md)")
+    _check(*_boundary(tmp_path, seed))
