@@ -126,10 +126,30 @@ def _mds(method: str) -> _Init:
 def _scaled(Y: Array, dim: int, offsets: str, rng: np.random.Generator,
             shared: dict[str, Any] | None = None) -> list[Start]:
     """Random starts at the data's distance bounds (selfcal.toa.init.scaled_starts), only where no
-    other initialiser has information on the offsets: both kinds, rank-d method not identifiable."""
-    if not _offsets_unidentified(Y, dim, offsets):
+    other initialiser reliably knows the offsets: both kinds, and the rank-d method not
+    identifiable or only barely (:func:`_offsets_weakly_identified`)."""
+    if not _offsets_weakly_identified(Y, dim, offsets):
         return []
     return scaled_random_starts(Y, dim, offsets, rng, n=SCALED_STARTS)
+
+
+def _offsets_weakly_identified(Y: Array, dim: int, offsets: str) -> bool:
+    """Both offset kinds, and the rank-d equations fewer than twice its unknowns (8 x 10 in 3-D).
+
+    There the 004 initialiser's zero rank residual has spurious solutions besides the true
+    offsets (:func:`selfcal.toa.init.offsets_init._early_stop_ok`, the same bound), so its
+    candidates can all lie in wrong basins of the full model; the 003 starts know nothing of
+    offsets. Measured on the generic 8 x 10 draw (3-D, both offsets, 1 us noise, c = 343
+    m/s, an 8 x 7 x 3 m room; seeds 0-199, ``benchmarks/basin_rates.py``): with the 004 and 003 starts
+    alone the search ended in a wrong basin (residual 3-60 us, nodes metres to hundreds of
+    metres off) in 7 draws, 4 of them exit 0; refined from the truth each of them reaches a
+    cost 50-5000x lower (a search failure, not an ambiguity of the data). The scaled starts
+    join the race there.
+    """
+    from .offsets_init import _early_stop_ok
+
+    I, J = Y.shape
+    return _offsets_unidentified(Y, dim, offsets) or (offsets == "both" and not _early_stop_ok(I, J, dim))
 
 
 def _offsets_unidentified(Y: Array, dim: int, offsets: str) -> bool:
