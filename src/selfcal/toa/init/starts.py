@@ -141,10 +141,10 @@ def _offsets_weakly_identified(Y: Array, dim: int, offsets: str) -> bool:
     candidates can all lie in wrong basins of the full model; the 003 starts know nothing of
     offsets. Measured on the generic 8 x 10 draw (3-D, both offsets, 1 us noise, c = 343
     m/s, an 8 x 7 x 3 m room; seeds 0-199, ``benchmarks/basin_rates.py``): with the 004 and 003 starts
-    alone the search ended in a wrong basin (residual 3-60 us, nodes metres to hundreds of
-    metres off) in 7 draws, 4 of them exit 0; refined from the truth each of them reaches a
-    cost 50-5000x lower (a search failure, not an ambiguity of the data). The scaled starts
-    join the race there.
+    alone the search ended in a wrong basin (a cost above that of the refinement started at the
+    truth; draw 6: 5000x, residual 28 us, nodes 1 m off) in 10 draws, 5 of them exit 0 (a
+    search failure, not an ambiguity of the data); with the scaled starts in the race, in
+    none, at 1.67x the CPU of ``solve_toa`` there.
     """
     from .offsets_init import _early_stop_ok
 
