@@ -4,7 +4,8 @@
 iteration (:mod:`selfcal.toa.init.offsets_init`, with offsets and when it identifies them), the 003
 family (:mod:`selfcal.toa.init.mds`: rank factorisation, MDS + multilateration, Algorithm 2) with
 least-squares offsets of the start geometry, and the scaled random starts
-(:mod:`selfcal.toa.init.scaled_starts`) where nothing else knows the offsets.
+(:mod:`selfcal.toa.init.scaled_starts`) where nothing else reliably knows the offsets (both
+kinds, the rank-d method not or only barely identifiable: :func:`_offsets_weakly_identified`).
 :data:`LARGE_INITIALISERS` are the affordable choice above :data:`MOVES_MAX_NODES` nodes.
 The search that races them is :mod:`selfcal.toa.search`.
 """
