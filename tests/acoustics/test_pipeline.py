@@ -265,7 +265,9 @@ def test_planar_desks_give_2d_whatever_the_solver_seed(solver_seed):
     with pytest.warns(UserWarning, match="near-planar"):
         sol, plan, notes = calibrate_matrix(T, speed=C, rng=solver_seed)
     assert sol["method"].startswith("2d") and sol["receivers"].shape == (8, 2)
-    assert plan.near_planar and notes and "near-planar" in notes[0]
+    # the near-planar verdict is among the notes (a 3-D fit in the truth's basin may add, first,
+    # that the loudspeakers' mirror images through the microphones' plane fit as well)
+    assert plan.near_planar and any("near-planar" in n for n in notes)
     est = np.vstack([sol["receivers"], sol["sources"]])
     true = np.vstack([sc.receivers, sc.senders])[:, :2]
     assert np.abs(align(est, true).apply(est) - true).max() < 0.02  # 1 us = 0.34 mm of range noise

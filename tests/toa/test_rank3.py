@@ -422,11 +422,14 @@ def test_distance_lower_bounds_never_exceed_the_true_distances() -> None:
 
 
 def test_scaled_starts_apply_only_where_the_rank_method_cannot_identify_the_offsets() -> None:
-    """The 'scaled' initialiser runs for both offsets on 12 x 6 (16 < 17), never on 12 x 7 or other models."""
+    """The 'scaled' initialiser runs for both offsets where the rank-d method does not identify them
+    (12 x 6: 16 < 17 equations) or only barely (12 x 7: 24 < 2 x 18, init.offsets_init._early_stop_ok),
+    never on clearly identified sizes (12 x 10: 48 >= 2 x 21) or other models."""
     from selfcal.toa.search import INITIALISERS, SCALED_STARTS
 
     init = INITIALISERS["scaled"]
-    for J, offsets, expect in ((6, "both", SCALED_STARTS), (7, "both", 0), (6, "receivers", 0), (6, "none", 0)):
+    for J, offsets, expect in ((6, "both", SCALED_STARTS), (7, "both", SCALED_STARTS), (10, "both", 0),
+                               (6, "receivers", 0), (6, "none", 0)):
         _, _, _, _, R = _minimal_scene(0, J=J)
         got = init(R, 3, offsets, np.random.default_rng(0))
         assert len(got) == expect

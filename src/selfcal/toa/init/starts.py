@@ -4,7 +4,8 @@
 iteration (:mod:`selfcal.toa.init.offsets_init`, with offsets and when it identifies them), the 003
 family (:mod:`selfcal.toa.init.mds`: rank factorisation, MDS + multilateration, Algorithm 2) with
 least-squares offsets of the start geometry, and the scaled random starts
-(:mod:`selfcal.toa.init.scaled_starts`) where nothing else knows the offsets.
+(:mod:`selfcal.toa.init.scaled_starts`) where nothing else reliably knows the offsets (both
+kinds, the rank-d method not or only barely identifiable: :func:`_offsets_weakly_identified`).
 :data:`LARGE_INITIALISERS` are the affordable choice above :data:`MOVES_MAX_NODES` nodes.
 The search that races them is :mod:`selfcal.toa.search`.
 """
@@ -126,10 +127,30 @@ def _mds(method: str) -> _Init:
 def _scaled(Y: Array, dim: int, offsets: str, rng: np.random.Generator,
             shared: dict[str, Any] | None = None) -> list[Start]:
     """Random starts at the data's distance bounds (selfcal.toa.init.scaled_starts), only where no
-    other initialiser has information on the offsets: both kinds, rank-d method not identifiable."""
-    if not _offsets_unidentified(Y, dim, offsets):
+    other initialiser reliably knows the offsets: both kinds, and the rank-d method not
+    identifiable or only barely (:func:`_offsets_weakly_identified`)."""
+    if not _offsets_weakly_identified(Y, dim, offsets):
         return []
     return scaled_random_starts(Y, dim, offsets, rng, n=SCALED_STARTS)
+
+
+def _offsets_weakly_identified(Y: Array, dim: int, offsets: str) -> bool:
+    """Both offset kinds, and the rank-d equations fewer than twice its unknowns (8 x 10 in 3-D).
+
+    There the 004 initialiser's zero rank residual has spurious solutions besides the true
+    offsets (:func:`selfcal.toa.init.offsets_init._early_stop_ok`, the same bound), so its
+    candidates can all lie in wrong basins of the full model; the 003 starts know nothing of
+    offsets. Measured on the generic 8 x 10 draw (3-D, both offsets, 1 us noise, c = 343
+    m/s, an 8 x 7 x 3 m room; seeds 0-199, ``benchmarks/basin_rates.py``): with the 004 and 003 starts
+    alone the search ended in a wrong basin (a cost above that of the refinement started at the
+    truth; draw 6: 5000x, residual 28 us, nodes 1 m off) in 10 draws, 5 of them exit 0 (a
+    search failure, not an ambiguity of the data); with the scaled starts in the race, in
+    none, at 1.67x the CPU of ``solve_toa`` there.
+    """
+    from .offsets_init import _early_stop_ok
+
+    I, J = Y.shape
+    return _offsets_unidentified(Y, dim, offsets) or (offsets == "both" and not _early_stop_ok(I, J, dim))
 
 
 def _offsets_unidentified(Y: Array, dim: int, offsets: str) -> bool:
