@@ -24,6 +24,7 @@ draw more.
 from __future__ import annotations
 
 import dataclasses
+import re
 import warnings
 from typing import Any
 
@@ -267,10 +268,16 @@ def _check_aoa(seed: int, n: int, dim: int, noise: float, method: str, scale: fl
     if a.covariance is not None:  # (m, w): m rotates with the scene and scales, w is in the receiver frame
         P = np.eye(a.covariance.shape[0])
         P[:dim, :dim] = Q
-        np.testing.assert_allclose(c.covariance, P @ a.covariance @ P.T, rtol=1e-5, atol=1e-12)
-        np.testing.assert_allclose(pp.covariance, a.covariance, rtol=1e-5, atol=1e-12)
+        # entries agree to round-off relative to the matrix's largest entry, not to their own size:
+        # a small off-diagonal entry is a difference of large terms (seed 4, scale 1e3: -576.824 vs
+        # -576.816 in a matrix whose largest entry is 2.8e5, i.e. 3e-8 of it)
+        def close(x: np.ndarray, y: np.ndarray, floor: float) -> None:
+            np.testing.assert_allclose(x, y, rtol=1e-5, atol=max(floor, 1e-7 * float(np.abs(y).max())))
+
+        close(c.covariance, P @ a.covariance @ P.T, 1e-12)
+        close(pp.covariance, a.covariance, 1e-12)
         S = np.diag([scale] * dim + [1.0] * (a.covariance.shape[0] - dim))
-        np.testing.assert_allclose(s.covariance, S @ a.covariance @ S, rtol=1e-5, atol=1e-12 * scale**2)
+        close(s.covariance, S @ a.covariance @ S, 1e-12 * scale**2)
     assert (c.status, s.status, pp.status) == (a.status, a.status, a.status)
 
 
@@ -449,7 +456,10 @@ def test_pipeline_calibration_relabelling_and_units(seed: int) -> None:
         mine = pts[order]
         theirs = np.vstack([other["receivers"], other["sources"]])
         np.testing.assert_allclose(align(mine, theirs).apply(mine), theirs, atol=1e-5 * 8.0)
-        assert other["method"] == a["method"]
+        # the same model and path; the number of refinements a search ran is not a label of
+        # the answer (it moves with round-off: search(32) vs search(33) on seed 0)
+        assert (other.dim, other.known_heights) == (a.dim, a.known_heights)
+        assert re.sub(r"\(\d+\)", "", other["method"]) == re.sub(r"\(\d+\)", "", a["method"])
     def pair_offsets(sol: dict[str, Any]) -> np.ndarray:
         # delta_i + tau_j: a common shift between delays and onsets is a gauge
         return np.asarray(sol["receiver_offsets"])[:, None] + np.asarray(sol["source_offsets"])[None, :]
