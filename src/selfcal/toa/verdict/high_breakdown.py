@@ -359,6 +359,7 @@ def majority_scale_test(ranges: Array, receivers: Array, sources: Array, receive
     True
     """
     from ...errors import DegenerateGeometryError, InputError
+    from ...robust import mad_std
     from ..engine.model import toa_model
     from ..engine.nls import refine_toa
     from .robust import OUTLIER_ALPHA, outlier_threshold
@@ -373,8 +374,8 @@ def majority_scale_test(ranges: Array, receivers: Array, sources: Array, receive
         with np.errstate(all="ignore"):
             return np.where(obs, Y - toa_model(R, S, D, O), np.nan)
 
-    def mad(res: Array) -> float:
-        return 1.4826 * float(np.nanmedian(np.abs(res)))
+    def mad(res: Array) -> float:  # residuals of a fit: already centred
+        return float(mad_std(res, centre=False))
 
     def scale_of(res: Array, used: NDArray[np.bool_]) -> float:
         # the final fit's noise estimate (fit_result._noise_estimate): MAD times sqrt(m / dof)
