@@ -265,9 +265,11 @@ def case_room(units: int, seed: int, heights: bool, layout: str = "flat") -> Cal
         T = T + np.random.default_rng(seed).normal(0, 2e-5, T.shape)
         h = (sc.receivers[:, 2], sc.senders[:, 2]) if heights else None
         sol, _, _ = m("acoustics.calibrate").calibrate_matrix(T, speed=C, dim=3, heights=h, rng=seed, noise=2e-5)
-        pts = np.vstack([sol["receivers"], sol["sources"]])
-        model = (np.linalg.norm(sol["receivers"][:, None] - sol["sources"][None], axis=-1) / C
-                 + np.asarray(sol["receiver_offsets"])[:, None] + np.asarray(sol["source_offsets"])[None])
+        # the old tree returns a dict, the new one a Calibration
+        f = (lambda k: sol[k]) if isinstance(sol, dict) else (lambda k: getattr(sol, k))
+        pts = np.vstack([f("receivers"), f("sources")])
+        model = (np.linalg.norm(f("receivers")[:, None] - f("sources")[None], axis=-1) / C
+                 + np.asarray(f("receiver_offsets"))[:, None] + np.asarray(f("source_offsets"))[None])
         return 0.5 * float(np.sum((C * (T - model)) ** 2)), pts
     return run
 

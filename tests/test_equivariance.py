@@ -451,18 +451,18 @@ def test_pipeline_calibration_relabelling_and_units(seed: int) -> None:
         a, _, _ = calibrate_matrix(T, speed=c)
         b, _, _ = calibrate_matrix(T[np.ix_(p, p)], speed=c)
         s, _, _ = calibrate_matrix(T * 1e3, speed=c / 1e3)
-    pts = np.vstack([a["receivers"], a["sources"]])
+    pts = np.vstack([a.receivers, a.sources])
     for other, order in ((b, np.concatenate([p, 10 + p])), (s, np.arange(20))):
         mine = pts[order]
-        theirs = np.vstack([other["receivers"], other["sources"]])
+        theirs = np.vstack([other.receivers, other.sources])
         np.testing.assert_allclose(align(mine, theirs).apply(mine), theirs, atol=1e-5 * 8.0)
         # the same model and path; the number of refinements a search ran is not a label of
         # the answer (it moves with round-off: search(32) vs search(33) on seed 0)
         assert (other.dim, other.known_heights) == (a.dim, a.known_heights)
-        assert re.sub(r"\(\d+\)", "", other["method"]) == re.sub(r"\(\d+\)", "", a["method"])
-    def pair_offsets(sol: dict[str, Any]) -> np.ndarray:
+        assert re.sub(r"\(\d+\)", "", other.method) == re.sub(r"\(\d+\)", "", a.method)
+    def pair_offsets(sol: Any) -> np.ndarray:
         # delta_i + tau_j: a common shift between delays and onsets is a gauge
-        return np.asarray(sol["receiver_offsets"])[:, None] + np.asarray(sol["source_offsets"])[None, :]
+        return np.asarray(sol.receiver_offsets)[:, None] + np.asarray(sol.source_offsets)[None, :]
 
     np.testing.assert_allclose(pair_offsets(b), pair_offsets(a)[np.ix_(p, p)], atol=1e-9)
     np.testing.assert_allclose(pair_offsets(s), 1e3 * pair_offsets(a), atol=1e-5)

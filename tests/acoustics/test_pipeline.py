@@ -264,11 +264,11 @@ def test_planar_desks_give_2d_whatever_the_solver_seed(solver_seed):
     sc, T = _scene_toa("boundary", 1)
     with pytest.warns(UserWarning, match="near-planar"):
         sol, plan, notes = calibrate_matrix(T, speed=C, rng=solver_seed)
-    assert sol["method"].startswith("2d") and sol["receivers"].shape == (8, 2)
+    assert sol.method.startswith("2d") and sol.receivers.shape == (8, 2)
     # the near-planar verdict is among the notes (a 3-D fit in the truth's basin may add, first,
     # that the loudspeakers' mirror images through the microphones' plane fit as well)
     assert plan.near_planar and any("near-planar" in n for n in notes)
-    est = np.vstack([sol["receivers"], sol["sources"]])
+    est = np.vstack([sol.receivers, sol.sources])
     true = np.vstack([sc.receivers, sc.senders])[:, :2]
     assert np.abs(align(est, true).apply(est) - true).max() < 0.02  # 1 us = 0.34 mm of range noise
     # asking for 3-D anyway is refused for every start, not a confident z from one basin
@@ -292,11 +292,11 @@ def test_3d_layouts_keep_z_with_its_uncertainty(layout, solver_seed):
     sc, T = _scene_toa(layout, 1)
     units = np.column_stack([np.arange(len(T))] * 2)  # unit k: microphone k, loudspeaker k
     sol, plan, notes = calibrate_matrix(T, speed=C, rng=solver_seed, units=units)
-    assert sol["method"].startswith("3d") and not plan.near_planar
+    assert sol.method.startswith("3d") and not plan.near_planar
     assert any("z standard deviation" in n for n in notes)
-    est = np.vstack([sol["receivers"], sol["sources"]])
+    est = np.vstack([sol.receivers, sol.sources])
     true = np.vstack([sc.receivers, sc.senders])
     err = align(est, true).apply(est) - true
     assert np.abs(err).max() < 0.05
-    zstd = np.sqrt(np.concatenate([sol["receiver_cov"][:, 2, 2], sol["source_cov"][:, 2, 2]]))
+    zstd = np.sqrt(np.concatenate([sol.receiver_cov[:, 2, 2], sol.source_cov[:, 2, 2]]))
     assert np.all(zstd > 0) and np.sqrt(np.mean(err[:, 2] ** 2)) < 5 * np.sqrt(np.mean(zstd**2))

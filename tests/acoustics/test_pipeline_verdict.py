@@ -102,7 +102,7 @@ def test_ambiguous_units_beyond_the_requirement_are_a_fail_that_names_them(seed)
     near = _line_network(g, 0.02)  # mirrors 4 cm away: the 10 cm requirement holds whichever is true
     notes = []
     assert _unique_or_plausible(near, rn, sn, None, notes) == ()
-    if near["uniqueness"].ambiguous_sources.any():
+    if near.uniqueness.ambiguous_sources.any():
         assert any("within 10 cm" in n for n in notes)
 
 

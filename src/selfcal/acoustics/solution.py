@@ -72,7 +72,3 @@ class Calibration:
     uniqueness: Any = None
     outlier_breakdown: str | None = None
     one_side: str | None = None
-
-    def __getitem__(self, key: str) -> Any:
-        """``sol["receivers"]``: a field by name, for callers written against the former dict."""
-        return vars(self)[key]
