@@ -65,7 +65,8 @@ class BipartiteInverse:
     W: Array  # (nE pe, nK pk) L^-1 B S^-
     W4: Array  # the same, (nE, pe, nK, pk)
     V: Array  # (nE pe, nK pk) L^-1 B
-    Sg: Array  # (nK pk, nK pk) S^-
+    Sg: Array  # (nK pk, nK pk) S^-, Fortran-ordered, its upper triangle only (zeros below)
+    Sg_top: float  # the largest absolute row sum of S^-
     Ke: Array  # (nE, pe, pe) V_e S^- V_e^T
     Sd: Array  # (nK, pk, pk) diagonal blocks of S^-
     info_e: Array  # (nE, pe, pe) information blocks of the eliminated side
@@ -132,32 +133,37 @@ class BipartiteInverse:
             return None
         Cc = np.matmul(Ae, Linv.transpose(0, 2, 1))  # L_e^-1 a_ek
         V = np.einsum("ekm,ekq->emkq", Cc, Bk).reshape(nE * pe, nK * pk)
-        # -V^T V, its lower triangle only (all that potrf reads; S is not used after it): the
-        # upper triangle of the Fortran-ordered product, transposed into a C-ordered view
-        S = scipy.linalg.blas.dsyrk(-1.0, V.T, trans=0, lower=0).T
-        S4 = S.reshape(nK, pk, nK, pk)
+        # S = D - V^T V in the upper triangle of a Fortran-ordered array (all that potrf and potri
+        # read and write there: no transposed copies, no symmetrisation of the 480 x 480 inverse);
+        # its transpose, a C-ordered view, holds the same matrix in its lower triangle
+        Sf = scipy.linalg.blas.dsyrk(-1.0, V.T, trans=0, lower=0)
+        S4 = Sf.T.reshape(nK, pk, nK, pk)
         S4[np.arange(nK), :, np.arange(nK), :] += info_k
         U_q, sv, _ = np.linalg.svd(ne.Q[idx_k.ravel()], full_matrices=False)
         if sv.size < ne.Q.shape[1] or sv[-1] <= 1e-8 * sv[0]:
             return None  # part of the gauge does not reach the kept side: not this path
-        c = float(np.max(np.diag(S)))
+        c = float(np.max(np.diag(Sf)))
         if not c > 0:
             return None
-        L, info = scipy.linalg.lapack.dpotrf(S + c * (U_q @ U_q.T), lower=1, clean=1)
+        Sf = scipy.linalg.blas.dsyrk(c, U_q, beta=1.0, c=Sf, trans=0, lower=0, overwrite_c=1)  # + c Q_k Q_k^T
+        Rf, info = scipy.linalg.lapack.dpotrf(Sf, lower=0, clean=1, overwrite_a=1)  # R^T R, R upper
         if info != 0:
             return None
-        Sg, info = scipy.linalg.lapack.dpotri(L, lower=1)
+        Sg, info = scipy.linalg.lapack.dpotri(Rf, lower=0, overwrite_c=1)  # S^-: upper triangle, zeros below
         if info != 0:
             return None
-        Sg = Sg + Sg.T - np.diag(np.diag(Sg))
-        top = float(np.max(np.abs(Sg).sum(axis=1)))
+        # the largest absolute row sum of the symmetric S^- from its triangle: rows plus columns
+        Sa = np.abs(Sg)
+        top = float(np.max(Sa.sum(axis=1) + Sa.sum(axis=0) - np.diag(Sa)))
         if not (np.isfinite(top) and top > 0 and 1.0 / top > floor):
             return None
-        W = V @ Sg  # L^-1 B S^-, (nE pe, nK pk)
+        W = scipy.linalg.blas.dsymm(1.0, Sg, V.T, side=0, lower=0).T  # L^-1 B S^-, (nE pe, nK pk), C-ordered
         W4 = W.reshape(nE, pe, nK, pk)
         Ke = np.matmul(W.reshape(nE, pe, nK * pk), V.reshape(nE, pe, nK * pk).transpose(0, 2, 1))  # V_e S^- V_e^T
-        Sd = Sg.reshape(nK, pk, nK, pk)[np.arange(nK), :, np.arange(nK), :]
-        return cls(swap=swap, Linv=Linv, Ainv=Ainv, W=W, W4=W4, V=V, Sg=Sg, Ke=Ke, Sd=Sd,
+        kk = np.arange(nK)[:, None] * pk + np.arange(pk)
+        Sd = Sg[kk[:, :, None], kk[:, None, :]]  # (nK, pk, pk), their upper triangles
+        Sd = Sd + np.triu(Sd, 1).transpose(0, 2, 1)
+        return cls(swap=swap, Linv=Linv, Ainv=Ainv, W=W, W4=W4, V=V, Sg=Sg, Sg_top=top, Ke=Ke, Sd=Sd,
                    info_e=info_e, info_k=info_k, idx_e=idx_e, idx_k=idx_k, rows_r=rows_r, rows_s=rows_s,
                    nE=nE, nK=nK, pe=pe, pk=pk)
 
@@ -171,8 +177,17 @@ class BipartiteInverse:
 
     def pattern_hat(self, pattern: Mask) -> Array:
         """Leverages of the fitted entries, row-major order of ``pattern``."""
-        ii, jj = np.nonzero(pattern)
-        return self.hat(ii, jj, self.rows_r[ii, jj], self.rows_s[ii, jj])
+        if not pattern.all():
+            ii, jj = np.nonzero(pattern)
+            return self.hat(ii, jj, self.rows_r[ii, jj], self.rows_s[ii, jj])
+        # complete: the same four terms on the (eliminated, kept) grid, without gathers
+        ae, bk = ((self.rows_s.transpose(1, 0, 2), self.rows_r.transpose(1, 0, 2)) if self.swap
+                  else (self.rows_r, self.rows_s))  # (nE, nK, pe), (nE, nK, pk)
+        c = np.matmul(ae, self.Linv.transpose(0, 2, 1))  # L_e^-1 a_ek
+        h = (np.einsum("ekp,ekp->ek", c, c) + np.einsum("ekp,ekp->ek", np.matmul(c, self.Ke), c)
+             - 2.0 * np.einsum("ekq,ekq->ek", np.einsum("ekp,epkq->ekq", c, self.W4), bk)
+             + np.einsum("ekq,ekq->ek", np.einsum("ekp,kpq->ekq", bk, self.Sd), bk))
+        return (h.T if self.swap else h).ravel()
 
     def diagonal_blocks(self) -> tuple[Array, Array, Array, Array]:
         """The nodes' diagonal blocks of G and of N: (G_receivers (I, pr, pr), G_sources (J, ps, ps),
@@ -199,8 +214,14 @@ class BipartiteInverse:
         lin = float(np.max(np.linalg.norm(self.Linv, ord=2, axis=(1, 2)))) ** 2  # |L^-1|^2
         ainv = float(np.max(np.linalg.norm(self.Ainv, ord=2, axis=(1, 2))))
         w, v = float(np.linalg.norm(self.W)), float(np.linalg.norm(self.V))
-        sg = float(np.max(np.abs(self.Sg).sum(axis=1)))
+        sg = self.Sg_top
         return ainv + lin * w * v + sg + 2.0 * np.sqrt(lin) * w
+
+    def _sym(self, X: Array) -> Array:
+        """``S^- X`` from the triangle :attr:`Sg` holds (BLAS ``symm``)."""
+        import scipy.linalg
+
+        return np.asarray(scipy.linalg.blas.dsymm(1.0, self.Sg, X, side=0, lower=0))
 
     def apply(self, X: Array) -> Array:
         """``G X`` for X (n, g) in the parameter order of :func:`selfcal.toa.engine.nls.toa_jacobian`."""
@@ -214,7 +235,7 @@ class BipartiteInverse:
         inner = (self.W @ (self.V.T @ ye) - self.W @ xk).reshape(nE, pe, g)
         out_e = (np.einsum("epq,eqg->epg", self.Ainv, xe.reshape(nE, pe, g))
                  + np.einsum("eqp,eqg->epg", self.Linv, inner)).reshape(nE * pe, g)
-        out_k = self.Sg @ xk - self.W.T @ ye
+        out_k = self._sym(xk) - self.W.T @ ye
         out = np.empty_like(X, dtype=float)
         out[self.idx_e.ravel()] = out_e
         out[self.idx_k.ravel()] = out_k
