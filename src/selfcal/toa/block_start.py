@@ -81,7 +81,7 @@ def needs_block_start(observed: NDArray[np.bool_], dim: int) -> bool:
     >>> needs_block_start(obs, 3)
     True
     """
-    O = np.asarray(observed, bool).astype(np.int64)
+    O = np.asarray(observed, bool).astype(float)  # counts exact in floating point; BLAS, not numpy's integer loop
     if O.shape[0] < 2:
         return False
     C = O @ O.T

@@ -126,6 +126,8 @@ def _rank3_lm_joint(
 
     class Joint(Rank3Model):
         def evaluate(self, xv: Array) -> tuple[float, tuple[Array, Array, Array, Array, Array]]:
+            if np.array_equal(xv, x):  # the start: evaluated once, below
+                return first
             Rt, pt = unpack(xv)
             cost, Ud, Vd, resid = _tail(offset_matrix(Rt, pt, model=model, centring=centring), dim)
             return cost, (Rt, pt, Ud, Vd, resid)
@@ -136,7 +138,9 @@ def _rank3_lm_joint(
     Rx, p = unpack(x)
     M = offset_matrix(Rx, p, model=model, centring=centring)
     rm = Joint(bound, float(np.linalg.norm(M)), abort_above)
-    rm.hist.append(float(np.sqrt(_tail(M, dim)[0])))
+    c0, U0, V0, r0 = _tail(M, dim)
+    first = (c0, (Rx, p, U0, V0, r0))  # the driver's first evaluation (at x) and the history's first F
+    rm.hist.append(float(np.sqrt(c0)))
     out = levenberg_marquardt(rm, x, max_iter=int(max_iter), xtol=xtol, ftol=0.0, lam0=rm.first_damping)
     Rx, p = out.state[0], out.state[1]
     it, converged, cost = out.iterations, out.converged, out.cost

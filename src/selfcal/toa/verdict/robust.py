@@ -195,8 +195,10 @@ def canonical_order(Y: Array) -> tuple[NDArray[np.intp], NDArray[np.intp]]:
     def order(M: Array) -> NDArray[np.intp]:
         med = _nanmedian_rows(M)  # = np.nanmedian(M, axis=1), vectorised above 600 columns
         srt = np.sort(M, axis=1)  # NaN sort last
-        keys = [np.where(np.isfinite(srt[:, k]), srt[:, k], np.inf) for k in range(srt.shape[1] - 1, -1, -1)]
-        return np.lexsort(keys + [np.where(np.isfinite(med), med, np.inf)]).astype(np.intp)
+        # the keys as rows of one array, the last row the primary key: the median, then the
+        # sorted entries from the first (lexsort sorts by the last key first)
+        keys = np.vstack([np.where(np.isfinite(srt), srt, np.inf)[:, ::-1].T, np.where(np.isfinite(med), med, np.inf)])
+        return np.lexsort(keys).astype(np.intp)
 
     return order(Y), order(Y.T)
 
