@@ -300,7 +300,9 @@ def geometry_statistics(stack: Array, dim: int, offsets: str) -> Array:
     # negative ranges: shifted for the initialiser only
     shifts = np.minimum(0.0, np.where(obs, stack, np.inf).min(axis=(1, 2)))
     batched = _complete_starts(stack - shifts[:, None, None], dim) if obs.all() and S > 1 else None
-    for k in range(S):
+    if batched is not None:  # the same arithmetic as the loop below, each step once for the stack
+        _complete_statistics(stack, batched, has_r, has_s, out, rss0, starts, which)
+    for k in range(S if batched is None else 0):
         Y = stack[k]
         e0 = (Y - _additive_fit(Y, has_r, has_s))[obs]
         rss0[k] = float(e0 @ e0)
@@ -348,6 +350,60 @@ def geometry_statistics(stack: Array, dim: int, offsets: str) -> Array:
             if fin[row] and np.isfinite(e).all():
                 out[k] = min(out[k], float(e @ e) / rss0[k])
     return out
+
+
+def _stack_model(r: Array, s: Array) -> Array:
+    """:func:`selfcal.toa.engine.nls.toa_model` (no offsets) of a stack, (S, I, d), (S, J, d) -> (S, I, J):
+    the same operations, component by component."""
+    D = np.zeros(r.shape[:2] + (s.shape[1],))
+    for p in range(r.shape[2]):
+        t = r[:, :, None, p] - s[:, None, :, p]
+        t *= t
+        D += t
+    return np.sqrt(D, out=D)
+
+
+def _stack_additive_fit(Y: Array, rows: bool, cols: bool) -> Array:
+    """:func:`selfcal.toa.init.starts._additive_fit` of a stack of complete matrices (S, I, J), at
+    least one of ``rows``, ``cols``: one sweep of row then column means, the same operations
+    matrix by matrix."""
+    S, I, J = Y.shape
+    a = Y.sum(axis=2) / J if rows else np.zeros((S, I))
+    b = (Y - a[:, :, None]).sum(axis=1) / I if cols else np.zeros((S, J))
+    return a[:, :, None] + b[:, None, :]
+
+
+def _complete_statistics(stack: Array, batched: dict[str, tuple[Array, Array]], has_r: bool, has_s: bool,
+                         out: Array, rss0: Array, starts: list[Array], which: list[int]) -> None:
+    """The start statistics of :func:`geometry_statistics` for a stack of complete matrices with
+    their stacked starts (:func:`_complete_starts`): ``out``, ``rss0``, ``starts`` and ``which``
+    filled as the matrix-by-matrix loop fills them (the same operations; the sums of squares
+    matrix by matrix, as there)."""
+    S, I, J = stack.shape
+    E0 = (stack - _stack_additive_fit(stack, has_r, has_s) if has_r or has_s
+          else np.stack([Y - _additive_fit(Y, False, False) for Y in stack]))
+    for k in range(S):
+        e0 = E0[k].ravel()
+        rss0[k] = float(e0 @ e0)
+    fits: list[tuple[Array, Array, Array]] = []
+    with np.errstate(all="ignore"):
+        for method in PERMUTATION_INITS:
+            r, s = batched[method]
+            E = stack - _stack_model(r, s)
+            E = E - _stack_additive_fit(E, has_r, has_s) if (has_r or has_s) else E
+            fits.append((r, s, E))
+    for k in range(S):
+        if not rss0[k] > 0:
+            continue
+        start = None
+        for r, s, E in fits:
+            e = E[k].ravel()
+            if np.isfinite(e).all() and float(e @ e) / rss0[k] < out[k]:
+                out[k] = float(e @ e) / rss0[k]
+                start = np.concatenate([r[k].ravel(), s[k].ravel(), np.zeros(I * has_r + J * has_s)])
+        if start is not None:
+            starts.append(start)
+            which.append(k)
 
 
 def _complete_starts(stack: Array, dim: int) -> dict[str, tuple[Array, Array]] | None:
