@@ -78,9 +78,6 @@ class _Problem(BatchModel):
         self.idx_r, self.idx_s = r_idx, s_idx  # (I, pr), (J, ps): a row / column node's places in theta
         self.pr, self.ps = pr, ps = self.idx_r.shape[1], self.idx_s.shape[1]
         self.eye_r, self.eye_s = np.eye(pr, dtype=bool), np.eye(ps, dtype=bool)
-        K = self.J * ps
-        jb, pb_, qb = np.meshgrid(np.arange(self.J), np.arange(ps), np.arange(ps), indexing="ij")
-        self.bdiag = ((jb * ps + pb_) * K + jb * ps + qb).ravel()  # flat places of the source blocks in (K, K)
 
     def evaluate(self, Th: Array, rows: object = None) -> tuple[Array, tuple[Array, Array, Array]]:
         """(cost (a,), (residuals (a, I, J), weights (a, I, J), unit vectors (a, I, J, d))); zero
@@ -203,7 +200,7 @@ class _BatchStep:
         f, w, u = state
         I, J, pr, ps = pb.I, pb.J, pb.pr, pb.ps
         self.pb, self.K, self.w = pb, J * ps, w
-        self.eye_r, self.eye_s, self.bdiag = pb.eye_r, pb.eye_s, pb.bdiag
+        self.eye_r, self.eye_s = pb.eye_r, pb.eye_s
         A, B = pb.rows(u)
         self.A, self.B = A, B
         wa = w[..., None]
@@ -211,7 +208,9 @@ class _BatchStep:
         self.Hrr = np.matmul(wA.transpose(0, 1, 3, 2), A)  # (a, I, pr, pr): sum over sources
         self.Hss = np.matmul(wB.transpose(0, 2, 3, 1), B.transpose(0, 2, 1, 3))  # (a, J, ps, ps)
         na = Theta.shape[0]
-        self.C = (wA[..., :, None] * B[..., None, :]).transpose(0, 1, 3, 2, 4).reshape(na, I, pr, J * ps)
+        C = np.empty((na, I, pr, J, ps))  # the coupling blocks w a b^T, written in place
+        np.multiply(wA.transpose(0, 1, 3, 2)[..., None], B[:, :, None, :, :], out=C)
+        self.C = C.reshape(na, I, pr, J * ps)
         fa = f[..., None]
         self.gr = (wA * fa).sum(axis=2)  # (a, I, pr)
         self.gs = (wB * fa).sum(axis=1)  # (a, J, ps)
@@ -226,10 +225,10 @@ class _BatchStep:
         pb, K = self.pb, self.K
         I, J, pr, ps = pb.I, pb.J, pb.pr, pb.ps
         lt = lam[:, None, None]
-        Hr = self.Hrr[t].copy()
-        Hr[:, :, self.eye_r] += lt * self.drr[t]
-        Hs = self.Hss[t].copy()
-        Hs[:, :, self.eye_s] += lt * self.dss[t]
+        Hr = self.Hrr[t]  # a gathered copy
+        np.einsum("aipp->aip", Hr)[...] += lt * self.drr[t]  # the diagonals, a writable view
+        Hs = self.Hss[t]
+        np.einsum("ajpp->ajp", Hs)[...] += lt * self.dss[t]
         nt = t.size
         Hr_inv = _inv(Hr)
         Ct = self.C[t]
@@ -237,7 +236,7 @@ class _BatchStep:
         zr = np.matmul(Hr_inv, self.gr[t][..., None])  # (t, I, pr, 1)
         CtT = Ct.reshape(nt, I * pr, K).transpose(0, 2, 1)
         Sred = -np.matmul(CtT, X.reshape(nt, I * pr, K))
-        Sred.reshape(nt, K * K)[:, self.bdiag] += Hs.reshape(nt, -1)
+        np.einsum("ajpjq->ajpq", Sred.reshape(nt, J, ps, J, ps))[...] += Hs  # its diagonal blocks, a view
         rhs = np.matmul(CtT, zr.reshape(nt, I * pr, 1)) - self.gs[t].reshape(nt, K, 1)
         xs = _solve(Sred, rhs)  # (t, K, 1)
         xr = -(zr + np.matmul(X, xs[:, None]))[..., 0]
