@@ -232,7 +232,7 @@ class BipartiteInverse:
         ye = np.einsum("epq,eqg->epg", self.Linv, xe.reshape(nE, pe, g)).reshape(nE * pe, g)  # L^-1 x_e
         # G_ee x_e = A^-1 x_e + L^-T W V^T L^-1 x_e ; G_ek x_k = -L^-T W x_k
         # G_ke x_e = -W^T L^-1 x_e                 ; G_kk x_k = S^- x_k
-        inner = (self.W @ (self.V.T @ ye) - self.W @ xk).reshape(nE, pe, g)
+        inner = (self.W @ (self.V.T @ ye - xk)).reshape(nE, pe, g)
         out_e = (np.einsum("epq,eqg->epg", self.Ainv, xe.reshape(nE, pe, g))
                  + np.einsum("eqp,eqg->epg", self.Linv, inner)).reshape(nE * pe, g)
         out_k = self._sym(xk) - self.W.T @ ye

@@ -116,14 +116,19 @@ def gross_entries(Y: Array) -> Mask:
 
 
 def noise_scale(residuals: Array, floor: float = 0.0) -> float:
-    """Normal-consistent MAD of the finite residuals (``scipy.stats.median_abs_deviation``)."""
-    from scipy.stats import median_abs_deviation
-
+    """Normal-consistent MAD of the finite residuals (``scipy.stats.median_abs_deviation(f,
+    scale="normal")``: ``median|f - median f| / Phi^-1(3/4)``, the same operations without its
+    array-API dispatch)."""
     f = np.asarray(residuals, float)
     f = f[np.isfinite(f)]
     if f.size == 0:
         return float("nan")
-    return max(float(median_abs_deviation(f, scale="normal")), float(floor))
+    mad = np.median(np.abs(f - np.median(f))) / _NORMAL_MAD
+    return max(float(mad), float(floor))
+
+
+#: ``scipy.special.ndtri(0.75)``, the constant of ``median_abs_deviation(scale="normal")``
+_NORMAL_MAD = 0.6744897501960817
 
 
 def outlier_threshold(m: int, alpha: float = OUTLIER_ALPHA, dof: int | None = None) -> float:
