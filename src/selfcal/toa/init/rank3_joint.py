@@ -12,7 +12,9 @@ from dataclasses import replace
 from typing import Any
 
 import numpy as np
-from scipy.linalg import cho_factor, cho_solve, eigh
+from scipy.linalg import eigh
+from scipy.linalg.lapack import dpotrf as potrf
+from scipy.linalg.lapack import dpotrs as potrs
 
 from ...optim.lm import levenberg_marquardt
 from .mds_core import SUBSET_EIG_MIN
@@ -170,10 +172,16 @@ class _JointStep:
         self.gnorm = float(np.linalg.norm(self.g))
 
     def step(self, lam: float) -> Array | None:
-        try:
-            dx = -cho_solve(cho_factor(self.H + lam * np.diag(self.dg)), self.g)
-        except np.linalg.LinAlgError:
+        # cho_factor / cho_solve's LAPACK calls (potrf, potrs) on H + lam diag(dg), without their wrappers' copies
+        Hm = self.H.copy()
+        Hm[np.diag_indices_from(Hm)] += lam * self.dg
+        if not (np.isfinite(Hm).all() and np.isfinite(self.g).all()):
+            raise ValueError("array must not contain infs or NaNs")  # as cho_factor's / cho_solve's check
+        c, info = potrf(Hm, lower=0, overwrite_a=1, clean=0)
+        if info != 0:  # not positive definite (cho_factor: LinAlgError)
             return None
+        sol, info = potrs(c, self.g, lower=0)
+        dx = -sol
         if not _feasible(self.x + dx, self.bound):
             return None
         self.last = dx
