@@ -132,7 +132,9 @@ class BipartiteInverse:
         if not np.all(np.isfinite(Ainv)) or 1.0 / np.max(np.abs(Ainv).sum(axis=2)) <= floor:
             return None
         Cc = np.matmul(Ae, Linv.transpose(0, 2, 1))  # L_e^-1 a_ek
-        V = np.einsum("ekm,ekq->emkq", Cc, Bk).reshape(nE * pe, nK * pk)
+        V4 = np.empty((nE, pe, nK, pk))  # the rank-one blocks (L_e^-1 a_ek) b_ek^T, written in place
+        np.multiply(Cc.transpose(0, 2, 1)[:, :, :, None], Bk[:, None, :, :], out=V4)
+        V = V4.reshape(nE * pe, nK * pk)
         # S = D - V^T V in the upper triangle of a Fortran-ordered array (all that potrf and potri
         # read and write there: no transposed copies, no symmetrisation of the 480 x 480 inverse);
         # its transpose, a C-ordered view, holds the same matrix in its lower triangle
