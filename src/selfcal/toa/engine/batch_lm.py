@@ -60,8 +60,9 @@ _ROT_RCOND = 1e-10
 class _Problem(BatchModel):
     """The stacked model of one range matrix: evaluation, normal blocks, damped solve, gauge."""
 
-    def __init__(self, Y: Array, d: int, offsets: str, loss: str, f_scale: float) -> None:
+    def __init__(self, Y: Array, d: int, offsets: str, loss: str, f_scale: float, cholesky: bool = False) -> None:
         I0, J0 = Y.shape[-2:]
+        self.cholesky = cholesky  # the reduced systems by Cholesky (else LU; :func:`_solve`)
         has_r, has_s = _flags(offsets)
         r_idx, s_idx, _ = _node_indices(I0, J0, d, offsets)
         # the rows are the eliminated (larger) node set, the columns the kept one
@@ -142,7 +143,7 @@ class _Problem(BatchModel):
 
 def solve_batch_lm(
     Theta0: Array, Y: Array, d: int, offsets: str, loss: str, f_scale: float, max_nfev: int | None,
-    xtol: float, max_it: int = 100,
+    xtol: float, max_it: int = 100, cholesky: bool = False,
 ) -> tuple[Array, NDArray[np.bool_], NDArray[np.intp], NDArray[np.bool_]]:
     """Levenberg-Marquardt from every row of ``Theta0`` at once (module docstring).
 
@@ -157,6 +158,10 @@ def solve_batch_lm(
     loss, f_scale : robust loss (:func:`selfcal.robust.loss_rho`) and its scale (metres).
     max_nfev : iteration cap per start (default ``max_it``); xtol : relative step tolerance.
     max_it : iteration cap when ``max_nfev`` is None.
+    cholesky : solve the reduced (positive definite) systems by Cholesky, about half the time
+        of the default stacked LU at 20 x (64 x 64); the iterates agree to round-off, not bit for
+        bit (the permutation test's statistic uses it; the search's race keeps LU, whose
+        iterates its tests and benchmarks pin).
 
     Returns
     -------
@@ -187,7 +192,7 @@ def solve_batch_lm(
     >>> bool(ok.all()) and max(res) < 1e-6
     True
     """
-    pb = _Problem(np.asarray(Y, float), d, offsets, loss, f_scale)
+    pb = _Problem(np.asarray(Y, float), d, offsets, loss, f_scale, cholesky)
     out = levenberg_marquardt_batch(pb, np.array(Theta0, dtype=float, ndmin=2), max_iter=int(max_nfev or max_it),
                                     xtol=xtol, ftol=FTOL, trials=TRIALS)
     return out.x, out.converged, out.iterations, out.finite
@@ -238,7 +243,7 @@ class _BatchStep:
         Sred = -np.matmul(CtT, X.reshape(nt, I * pr, K))
         np.einsum("ajpjq->ajpq", Sred.reshape(nt, J, ps, J, ps))[...] += Hs  # its diagonal blocks, a view
         rhs = np.matmul(CtT, zr.reshape(nt, I * pr, 1)) - self.gs[t].reshape(nt, K, 1)
-        xs = _solve(Sred, rhs)  # (t, K, 1)
+        xs = (_solve_cholesky if pb.cholesky else _solve)(Sred, rhs)  # (t, K, 1)
         xr = -(zr + np.matmul(X, xs[:, None]))[..., 0]
         xs = xs.reshape(nt, J, ps)
         dx = np.zeros((nt, self.n))
@@ -271,6 +276,23 @@ def _inv(H: Array) -> Array:
             except np.linalg.LinAlgError:
                 pass
         return out
+
+
+def _solve_cholesky(Sred: Array, rhs: Array) -> Array:
+    """:func:`_solve` by Cholesky (LAPACK ``potrf`` + ``potrs`` on the upper triangle) matrix by
+    matrix: the reduced system of a damped positive definite normal matrix is positive
+    definite; LU (:func:`_solve`) for a matrix whose factorisation fails."""
+    from scipy.linalg.lapack import dpotrf, dpotrs
+
+    out = np.empty_like(rhs)
+    with np.errstate(all="ignore"):
+        for k in range(Sred.shape[0]):
+            c, info = dpotrf(Sred[k], lower=0, clean=0)
+            if info == 0:
+                out[k], info = dpotrs(c, rhs[k], lower=0)
+            if info != 0:
+                out[k] = _solve(Sred[k:k + 1], rhs[k:k + 1])[0]
+    return out
 
 
 def _solve(Sred: Array, rhs: Array) -> Array:

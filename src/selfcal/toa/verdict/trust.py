@@ -338,7 +338,7 @@ def geometry_statistics(stack: Array, dim: int, offsets: str) -> Array:
         with np.errstate(all="ignore"), warnings.catch_warnings():
             warnings.simplefilter("ignore")
             Th, _, _, fin = solve_batch_lm(np.stack(starts), stack[idx], dim, offsets, "linear", 1.0,
-                                           PERMUTATION_REFINE, 1e-10)
+                                           PERMUTATION_REFINE, 1e-10, cholesky=True)
         for row, k in enumerate(idx):
             th = Th[row]
             r, s = th[:I * dim].reshape(I, dim), th[I * dim:(I + J) * dim].reshape(J, dim)
