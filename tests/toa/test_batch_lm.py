@@ -38,15 +38,19 @@ def _starts(r: np.ndarray, s: np.ndarray, offsets: str, g: np.random.Generator, 
 # The tolerance is relative to the network's size (metres) after few iterations (8): the
 # two solves of the same damped system differ by ~1e-12 relative, and over a few steps of a
 # well-conditioned descent that stays far below 1e-6 (measured: <= 1e-7 over these cases).
+# The Cholesky solve of the reduced systems (cholesky=True, the permutation test's) is held to
+# the same tolerance: another factorisation of the same positive definite systems.
 @pytest.mark.parametrize("shape", [(12, 6), (6, 12)])
 @pytest.mark.parametrize("offsets", OFFSETS)
 @pytest.mark.parametrize("loss", ["linear", "huber"])
-def test_batch_is_the_dense_lm_start_by_start(shape: tuple[int, int], offsets: str, loss: str) -> None:
+@pytest.mark.parametrize("cholesky", [False, True])
+def test_batch_is_the_dense_lm_start_by_start(shape: tuple[int, int], offsets: str, loss: str,
+                                              cholesky: bool) -> None:
     for seed in range(4):
         r, s, Y = _network(seed, *shape, missing=0.1 if seed % 2 else 0.0)
         Th0 = _starts(r, s, offsets, np.random.default_rng(100 + seed), 5)
         ii, jj = np.nonzero(np.isfinite(Y))
-        Th, conv, nit, fin = solve_batch_lm(Th0, Y, 3, offsets, loss, 0.02, 8, 1e-10)
+        Th, conv, nit, fin = solve_batch_lm(Th0, Y, 3, offsets, loss, 0.02, 8, 1e-10, cholesky=cholesky)
         assert fin.all()
         for k in range(len(Th0)):
             th, c, n = full_lm(Th0[k], Y[ii, jj], ii, jj, *shape, 3, offsets, loss, 0.02, 8, 1e-10)

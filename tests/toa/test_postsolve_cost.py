@@ -298,6 +298,40 @@ def test_bipartite_inverse_equals_the_dense_lifted_one(seed, monkeypatch):
     assert used >= 40  # the bipartite path is the one taken on generic networks
 
 
+@pytest.mark.parametrize("seed", range(2))
+def test_complete_pattern_leverages_equal_the_gathered_ones(seed):
+    """Complete matrices (either side eliminated: sources or receivers the larger set, every
+    offsets mode, 2-D and 3-D, 20 draws a seed): the leverages on the (eliminated, kept) grid
+    (:meth:`BipartiteInverse.pattern_hat`'s complete path) equal the per-entry gathered
+    formula (:meth:`BipartiteInverse.hat`) to 1e-12 (the same four terms summed in another
+    order) and the dense lifted inverse's to 1e-7 (as the bipartite test above)."""
+    from selfcal.toa.verdict import leverage
+
+    g = np.random.default_rng(300 + seed)
+    swaps = []
+    for k in range(20):
+        dim = int(g.choice([2, 3]))
+        I, J = (int(v) for v in g.integers(dim + 3, 25, 2))
+        off = ["none", "receivers", "sources", "both"][k % 4]
+        has_r, has_s = off in ("receivers", "both"), off in ("sources", "both")
+        r, s = g.uniform(0, 10, (I, dim)), g.uniform(0, 10, (J, dim))
+        d = g.uniform(0, 3, I) if has_r else None
+        o = g.uniform(0, 3, J) if has_s else None
+        Y = toa_model(r, s, d, o)
+        leverage._LAST.clear()
+        h = leverages(Y, r, s, d, o, off)
+        blk = leverage._LAST[0].block()
+        leverage._LAST.clear()
+        if blk is None:
+            continue
+        swaps.append(blk.swap)
+        ii, jj = np.nonzero(np.ones(Y.shape, bool))
+        h_gather = blk.hat(ii, jj, blk.rows_r[ii, jj], blk.rows_s[ii, jj])
+        assert np.allclose(h.ravel(), h_gather, rtol=1e-12, atol=1e-12), (seed, k, off, dim)
+        assert np.allclose(h.ravel(), _eigh_leverages(Y, r, s, d, o, off), rtol=1e-7, atol=1e-9), (seed, k)
+    assert len(swaps) >= 15 and any(swaps) and not all(swaps)  # the bipartite path, both sides eliminated
+
+
 def test_stacked_starts_equal_the_initialisers():
     """30 complete stacks (2-D and 3-D, 4-39 nodes a side: both eigensolvers of the MDS, a
     network with offsets and noise 0-1 m, a permuted copy, a noisy absolute one): the stacked
