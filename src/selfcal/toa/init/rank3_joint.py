@@ -135,9 +135,12 @@ def _rank3_lm_joint(
             return cost, (Rt, pt, Ud, Vd, resid)
 
         def linearize(self, xv: Array, state: tuple[Array, Array, Array, Array, Array]) -> _JointStep:
-            return _JointStep(xv, state, model, missing, centring, self.bound)
+            return _JointStep(xv, state, model, missing, centring, self.bound, factors)
 
     Rx, p = unpack(x)
+    # the linear model without missing entries: the Jacobian's rank-one factors do not depend
+    # on p (e = t), formed once for the run (the same arrays each iteration would form)
+    factors = _rank1_factors(Rx, p, model, missing, centring) if model != "exact" and not n_miss else None
     M = offset_matrix(Rx, p, model=model, centring=centring)
     rm = Joint(bound, float(np.linalg.norm(M)), abort_above)
     c0, U0, V0, r0 = _tail(M, dim)
@@ -158,9 +161,10 @@ class _JointStep:
     """The dense joint Gauss-Newton matrix of offsets and missing times (Hadamard form)."""
 
     def __init__(self, x: Array, state: tuple[Array, Array, Array, Array, Array], model: str,
-                 missing: tuple[Any, ...], centring: str, bound: float) -> None:
+                 missing: tuple[Any, ...], centring: str, bound: float,
+                 factors: tuple[Array, Array] | None = None) -> None:
         Rx, p, Ud, Vd, resid = state
-        Uf, Vf = _rank1_factors(Rx, p, model, missing, centring)
+        Uf, Vf = _rank1_factors(Rx, p, model, missing, centring) if factors is None else factors
         Pu = Uf - Ud @ (Ud.T @ Uf)
         Pv = Vf - Vd @ (Vd.T @ Vf)
         self.H = (Pu.T @ Pu) * (Pv.T @ Pv)
