@@ -123,6 +123,7 @@ def rank3_lm(
     centring: str = "mean",
     rng: np.random.Generator | int | None = None,
     abort_above: float | None = None,
+    frobenius: bool = True,
 ) -> Rank3Result:
     """Levenberg-Marquardt with variable projection on (*): the fast solver for the 004 fixed point.
 
@@ -163,6 +164,8 @@ def rank3_lm(
         iteration lowers (*) by less than 1 % while its square root (``extra["objective"]``)
         is still more than 0.1 % above this value (the best run so far), the run heads for a worse local
         minimum and stops (``converged=False``, ``extra["aborted"]=True``). None: never.
+    frobenius : compute the result's ``frobenius`` (one more rank-d tail); False (NaN there)
+        for a caller that uses only ``p`` (:func:`fast_offsets`' first stage).
 
     Returns
     -------
@@ -176,7 +179,7 @@ def rank3_lm(
         # small: one dense joint Gauss-Newton matrix and a full eigendecomposition are cheaper
         # than the iterative pieces below (measured crossover ~300 unknowns)
         return _rank3_lm_joint(R0, dim=dim, model=model, p0=p0, max_iter=max_iter, xtol=xtol,
-                               centring=centring, rng=rng, abort_above=abort_above)
+                               centring=centring, rng=rng, abort_above=abort_above, frobenius=frobenius)
     missing, R, bound, p = _lm_start(R0, mask, K, p0, rng)
     Fr, Sr = _centre_gram(I, centring)
     Fc, Sc = _centre_gram(J, centring)
@@ -288,7 +291,7 @@ def rank3_lm(
     # value F (3.17) converges to, so that the acceptance threshold means the same for both methods
     Dx = squared(p, Rx)[0]
     Mref = _centre(_centre(Dx, 0, "reference"), 1, "reference")
-    F_ref = np.sqrt(_tail_sub(Mref, dim)[0])
+    F_ref = np.sqrt(_tail_sub(Mref, dim)[0]) if frobenius else np.nan
     res = _result(Rx, p, F_ref, hist, steps, it, converged, "fast", model, 0.0)
     return replace(res, seconds=time.perf_counter() - t0, extra=_lm_extra(Rx, n_miss, cost, aborted))
 
@@ -356,7 +359,7 @@ def fast_offsets(
         # leaves the exact stage in a wrong basin: exact model only
         return rank3_lm(ranges, dim=dim, model=model, p0=p0, max_iter=max_iter, rng=rng, abort_above=abort_above)
     first = rank3_lm(ranges, dim=dim, model="linear", p0=p0, max_iter=max_iter, rng=rng,
-                     abort_above=abort_above if model == "linear" else None)
+                     abort_above=abort_above if model == "linear" else None, frobenius=model == "linear")
     if model == "linear":
         return first
     second = rank3_lm(ranges, dim=dim, model=model, p0=first.p, max_iter=max_iter, abort_above=abort_above)

@@ -105,6 +105,7 @@ def _rank3_lm_joint(
     centring: str = "mean",
     rng: np.random.Generator | int | None = None,
     abort_above: float | None = None,
+    frobenius: bool = True,
 ) -> Rank3Result:
     """:func:`~selfcal.toa.init.rank3.rank3_lm` (same problem, parameters and result) with a dense joint step.
 
@@ -152,7 +153,8 @@ def _rank3_lm_joint(
     hist, steps, aborted = rm.hist, rm.steps, rm.aborted
     # report the thesis's quantity: the distance to rank d of the reference-centred matrix, the
     # value F (3.17) converges to, so that the acceptance threshold means the same for both methods
-    F_ref = np.sqrt(_tail(offset_matrix(Rx, p, model=model, centring="reference"), dim)[0])
+    F_ref = (np.sqrt(_tail(offset_matrix(Rx, p, model=model, centring="reference"), dim)[0]) if frobenius
+             else np.nan)
     res = _result(Rx, p, F_ref, hist, steps, it, converged, "fast", model, 0.0)
     return replace(res, seconds=time.perf_counter() - t0, extra=_lm_extra(Rx, n_miss, cost, aborted))
 
