@@ -120,11 +120,12 @@ def align(
     if np.any(total <= 0):
         raise InputError("align: no finite corresponding points")
     w = w / total
-    X0, Y0 = np.where(ok[..., None], X, 0.0), np.where(ok[..., None], Y, 0.0)
+    every = bool(ok.all())  # no row to mask (the same values without the masking copies)
+    X0, Y0 = (X, Y) if every else (np.where(ok[..., None], X, 0.0), np.where(ok[..., None], Y, 0.0))
     mx = np.einsum("bn,bnd->bd", w, X0)
     my = np.einsum("bn,bnd->bd", w, Y0)
-    Xc = np.where(ok[..., None], X - mx[:, None], 0.0)
-    Yc = np.where(ok[..., None], Y - my[:, None], 0.0)
+    Xc = X - mx[:, None] if every else np.where(ok[..., None], X - mx[:, None], 0.0)
+    Yc = Y - my[:, None] if every else np.where(ok[..., None], Y - my[:, None], 0.0)
     C = np.einsum("bn,bni,bnj->bij", w, Yc, Xc)
     U, S, Vt = np.linalg.svd(C)
     D = np.ones(S.shape)
