@@ -47,9 +47,15 @@ def _old_module(rev: str) -> Any:
     return mod
 
 
-def _objective(sol: dict[str, Any], T: np.ndarray, w: np.ndarray, f_scale: float | None) -> float:
-    r, s = sol["receivers"], sol["sources"]
-    pred = np.linalg.norm(r[:, None] - s[None], axis=-1) / C + sol["receiver_offsets"][:, None] + sol["source_offsets"][None]
+def _field(sol: Any, key: str) -> Any:
+    """A field of either form: the former dict or the typed result (:class:`selfcal.acoustics.solution.Calibration`)."""
+    return sol[key] if isinstance(sol, dict) else getattr(sol, key)
+
+
+def _objective(sol: Any, T: np.ndarray, w: np.ndarray, f_scale: float | None) -> float:
+    r, s = _field(sol, "receivers"), _field(sol, "sources")
+    pred = (np.linalg.norm(r[:, None] - s[None], axis=-1) / C + _field(sol, "receiver_offsets")[:, None]
+            + _field(sol, "source_offsets")[None])
     e = (w * (T - pred))[np.isfinite(T)]
     if f_scale is None:
         return float(e @ e)
@@ -106,17 +112,17 @@ def main() -> None:
                 out[name] = (sol, time.process_time() - t)
             a, b = out["old"][0], out["new"][0]
             ca, cb = _objective(a, T, wobj, fobj), _objective(b, T, wobj, fobj)
-            pa = np.vstack([a["receivers"], a["sources"]])[:, :2]
-            pb = np.vstack([b["receivers"], b["sources"]])[:, :2]
-            off_a = a["receiver_offsets"][:, None] + a["source_offsets"][None]
-            off_b = b["receiver_offsets"][:, None] + b["source_offsets"][None]
-            tr = lambda s: float(np.trace(s["receiver_cov"][:, :2, :2], axis1=1, axis2=2).sum())  # noqa: E731
+            pa = np.vstack([_field(a, "receivers"), _field(a, "sources")])[:, :2]
+            pb = np.vstack([_field(b, "receivers"), _field(b, "sources")])[:, :2]
+            off_a = _field(a, "receiver_offsets")[:, None] + _field(a, "source_offsets")[None]
+            off_b = _field(b, "receiver_offsets")[:, None] + _field(b, "source_offsets")[None]
+            tr = lambda s: float(np.trace(_field(s, "receiver_cov")[:, :2, :2], axis1=1, axis2=2).sum())  # noqa: E731
             rows.append({
                 "room": k, "units": n, "layout": layout, "case": case,
                 "cost_old": ca, "cost_new": cb, "rel_cost": (cb - ca) / max(abs(ca), 1e-300),
                 "pos_diff_m": _align_xy(pb, pa), "pair_offset_diff_s": float(np.nanmax(np.abs(off_a - off_b))),
                 "cov_trace_ratio": tr(b) / tr(a), "cpu_old_s": out["old"][1], "cpu_new_s": out["new"][1],
-                "converged": [bool(a["converged"]), bool(b["converged"])],
+                "converged": [bool(_field(a, "converged")), bool(_field(b, "converged"))],
             })
             r = rows[-1]
             print(f"room {k:2d} {n:2d} units {layout:9s} {case:15s} rel cost {r['rel_cost']:+.2e}  "

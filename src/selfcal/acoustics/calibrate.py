@@ -180,8 +180,8 @@ def _heights_fit(T: Array, heights: tuple[Array, Array], speed: float, rng: int,
                                           np.asarray(init.source_offsets, float), speed)
         dr, ds = _normalise_offsets(dr0, ds0)
         try:
-            sol = _from_heights(refine_known_heights(T, heights[0], heights[1], r0, s0, dr, ds, speed=speed,
-                                                     f_scale=f_sc, weights=weights), "2d+heights")
+            sol = refine_known_heights(T, heights[0], heights[1], r0, s0, dr, ds, speed=speed, f_scale=f_sc,
+                                       weights=weights)
         except (DegenerateGeometryError, np.linalg.LinAlgError, ValueError):
             continue
         e = T - _predict(sol, speed)
@@ -198,15 +198,9 @@ def _heights_fit(T: Array, heights: tuple[Array, Array], speed: float, rng: int,
     label = f"2d+heights ({init.method} init)"
     if f_sc is None:
         return replace(sol, method=label)
-    return _from_heights(refine_known_heights(T, heights[0], heights[1], sol.receivers[:, :2], sol.sources[:, :2],
-                                              sol.receiver_offsets, sol.source_offsets, speed=speed, weights=weights),
-                         label)
-
-
-def _from_heights(fit: dict[str, Any], method: str) -> Calibration:
-    """A :class:`Calibration` of a :func:`refine_known_heights` fit (its keys are the fields
-    ``receivers`` .. ``iterations``): 2 free coordinates per node, the heights known."""
-    return Calibration(**fit, method=method, dim=2, known_heights=True)
+    return replace(refine_known_heights(T, heights[0], heights[1], sol.receivers[:, :2], sol.sources[:, :2],
+                                        sol.receiver_offsets, sol.source_offsets, speed=speed, weights=weights),
+                   method=label)
 
 
 def _cauchy_cost(z: Array) -> float:
@@ -506,8 +500,8 @@ def refit(T: Array, sol: Calibration, speed: float, heights: tuple[Array, Array]
     dr, ds = np.asarray(sol.receiver_offsets, float), np.asarray(sol.source_offsets, float)
     if sol.known_heights:
         assert heights is not None
-        return _from_heights(refine_known_heights(T, heights[0], heights[1], r[:, :2], s[:, :2], dr, ds, speed=speed,
-                                                  f_scale=f_scale, weights=weights), sol.method)
+        return replace(refine_known_heights(T, heights[0], heights[1], r[:, :2], s[:, :2], dr, ds, speed=speed,
+                                            f_scale=f_scale, weights=weights), method=sol.method)
     d = sol.dim
     kr = np.isfinite(r[:, :d]).all(axis=1) & np.isfinite(dr)
     ks = np.isfinite(s[:, :d]).all(axis=1) & np.isfinite(ds)

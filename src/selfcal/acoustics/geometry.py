@@ -36,6 +36,7 @@ from ..toa.verdict.planarity import (  # one implementation: the TOA package's m
     compare_fits,
     planarity,
 )
+from .solution import Calibration
 
 __all__ = ["Planarity", "ModelComparison", "planarity", "compare_fits", "one_side_of_plane",
            "read_heights", "refine_known_heights", "PLANAR_RATIO", "PLANAR_ALPHA"]
@@ -134,7 +135,7 @@ def refine_known_heights(
     max_iterations: int = 50,
     f_scale: float | None = None,
     weights: Array | None = None,
-) -> dict[str, Any]:
+) -> Calibration:
     """Least squares for horizontal positions and offsets with every height known.
 
     Minimises ``sum_ij (c t_ij - sqrt(|x_i - y_j|^2 + (z_i - w_j)^2) - c delta_i - c tau_j)^2``
@@ -168,7 +169,8 @@ def refine_known_heights(
 
     Returns
     -------
-    dict
+    Calibration
+        The ``2d+heights`` model (``dim=2``, ``known_heights=True``, ``method="2d+heights"``):
         ``receivers`` (I, 3), ``sources`` (J, 3), ``receiver_offsets`` (I,) s,
         ``source_offsets`` (J,) s (first 0), ``receiver_cov`` (I, 3, 3), ``source_cov``
         (J, 3, 3) (zero z variance: heights are given), ``residual_rms`` (s),
@@ -216,14 +218,11 @@ def refine_known_heights(
         sol = dataclasses.replace(sol, iterations=iterations)
     assert sol.receiver_offsets is not None and sol.source_offsets is not None
     e = sol.residuals[obs & (wt > 0)]
-    return {
-        "receivers": np.asarray(sol.receivers, float),
-        "sources": np.asarray(sol.sources, float),
-        "receiver_offsets": np.asarray(sol.receiver_offsets, float) / speed,
-        "source_offsets": np.asarray(sol.source_offsets, float) / speed,
-        "receiver_cov": np.asarray(sol.receiver_cov, float),
-        "source_cov": np.asarray(sol.source_cov, float),
-        "residual_rms": float(np.sqrt(np.mean(e**2))) / speed if e.size else float("nan"),
-        "converged": bool(sol.converged),
-        "iterations": int(sol.iterations),
-    }
+    return Calibration(
+        receivers=np.asarray(sol.receivers, float), sources=np.asarray(sol.sources, float),
+        receiver_offsets=np.asarray(sol.receiver_offsets, float) / speed,
+        source_offsets=np.asarray(sol.source_offsets, float) / speed,
+        receiver_cov=np.asarray(sol.receiver_cov, float), source_cov=np.asarray(sol.source_cov, float),
+        residual_rms=float(np.sqrt(np.mean(e**2))) / speed if e.size else float("nan"),
+        converged=bool(sol.converged), iterations=int(sol.iterations), method="2d+heights", dim=2,
+        known_heights=True)

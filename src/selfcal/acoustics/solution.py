@@ -14,18 +14,20 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from .._result import Result
+
 __all__ = ["Calibration"]
 
 Array = NDArray[np.float64]
 
 
-@dataclass(frozen=True)
-class Calibration:
+@dataclass(frozen=True, repr=False)
+class Calibration(Result):
     """One model fit of the per-sender TOA matrix: the solution the pipeline carries.
 
     Built from the :class:`selfcal.toa.ToaResult` of :func:`selfcal.toa.solve_toa` (2-D /
-    3-D models) or from :func:`selfcal.acoustics.geometry.refine_known_heights` (known
-    heights); the robust loop (:mod:`selfcal.acoustics.robust_fit`) refits it with
+    3-D models) or returned by :func:`selfcal.acoustics.geometry.refine_known_heights` (known
+    heights); a :class:`selfcal._result.Result` (``status`` from ``converged``); the robust loop (:mod:`selfcal.acoustics.robust_fit`) refits it with
     :func:`selfcal.acoustics.calibrate.refit` and the pipeline changes it with ``dataclasses.replace``.
 
     Attributes
