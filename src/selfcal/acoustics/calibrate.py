@@ -487,7 +487,7 @@ def refit(T: Array, sol: Calibration, speed: float, heights: tuple[Array, Array]
         Known heights when ``sol`` is a ``2d+heights`` solution.
     f_scale : float, optional
         s: a Cauchy loss of this scale (robust start for the outlier test; covariances of
-        such a refit are not computed for 2-D / 3-D).
+        such a refit are not computed).
     weights : (I, J) array, optional
         ``1 / std`` per entry (known-heights model only, as :func:`calibrate_matrix`).
 

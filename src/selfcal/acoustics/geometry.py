@@ -160,7 +160,14 @@ def refine_known_heights(
         m/s.
     f_scale : float, optional
         s: a Cauchy loss of this scale on the weighted residuals instead of least squares
-        (``sum log(1 + (e / f_scale)^2)``), robust to a minority of wrong entries.
+        (``sum log(1 + (e / f_scale)^2)``), robust to a minority of wrong entries, by IRLS: at
+        most 8 weighted least-squares fits, each from the last, with the weights
+        ``sqrt(rho')`` of the previous residuals. It is a robust *start* (the outlier test of
+        :func:`selfcal.acoustics.robust_fit.robust_calibrate` and the least-squares finish
+        follow): its covariances are NaN, as for the robust refits of 2-D / 3-D models.
+        IRLS rather than the driver's Cauchy loss (``refine_toa(loss="cauchy")``): from
+        starts 15 cm / 0.3 ms off with a wrong entry, the direct minimisation stops in a
+        worse local minimum on 3 of 12 rooms (``benchmarks/compare_known_heights.py``).
     weights : (I, J) array, optional
         ``1 / std`` of every entry (1/s): weighted least squares, the ML fit when the entries'
         noise differs (a detection in a noise burst against a clean one). Default equal
@@ -195,9 +202,10 @@ def refine_known_heights(
     Y = speed * T
 
     def fit(w: Array | None, r: Array, s: Array, d: Array, o: Array) -> Any:
+        # a robust (Cauchy) fit is a start: no covariance (as solve_toa's robust refits)
         return refine_toa(Y, r, s, offsets="both", receiver_offsets0=d, source_offsets0=o,
                           max_nfev=max_iterations, xtol=1e-12, solver="lm", fixed_receivers=fixed_r, fixed_sources=fixed_s,
-                          weights=w)
+                          weights=w, covariance=f_scale is None)
 
     cur = (np.column_stack([np.asarray(receivers_xy, float), zr]), np.column_stack([np.asarray(senders_xy, float), zs]),
            speed * (np.asarray(receiver_offsets, float) + shift), speed * (np.asarray(source_offsets, float) - shift))
