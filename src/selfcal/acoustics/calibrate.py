@@ -297,7 +297,6 @@ def calibrate_matrix(
     dim: int | str = "auto",
     heights: tuple[Array, Array] | None = None,
     rng: int = 0,
-    alpha: float = PLANAR_ALPHA,
     noise: float | None = None,
     weights: Array | None = None,
     units: NDArray[np.intp] | None = None,
@@ -324,8 +323,6 @@ def calibrate_matrix(
         result is 3-D with z = the given heights.
     rng : int
         Seed of the solver's random initialisations.
-    alpha : float
-        Unused: the planarity tests run at ``PLANAR_ALPHA`` (kept for the signature).
     noise : float, optional
         Timing-noise std, s: passed to :func:`selfcal.toa.solve_toa`, whose deep search then
         runs when a fit fails the residual test (slow; :func:`selfcal.acoustics.robust_fit.robust_calibrate` passes it only

@@ -160,14 +160,9 @@ def refine_known_heights(
         m/s.
     f_scale : float, optional
         s: a Cauchy loss of this scale on the weighted residuals instead of least squares
-        (``sum log(1 + (e / f_scale)^2)``), robust to a minority of wrong entries, by IRLS: at
-        most 8 weighted least-squares fits, each from the last, with the weights
-        ``sqrt(rho')`` of the previous residuals. It is a robust *start* (the outlier test of
-        :func:`selfcal.acoustics.robust_fit.robust_calibrate` and the least-squares finish
-        follow): its covariances are NaN, as for the robust refits of 2-D / 3-D models.
-        IRLS rather than the driver's Cauchy loss (``refine_toa(loss="cauchy")``): from
-        starts 15 cm / 0.3 ms off with a wrong entry, the direct minimisation stops in a
-        worse local minimum on 3 of 12 rooms (``benchmarks/compare_known_heights.py``).
+        (``sum log(1 + (e / f_scale)^2)``), robust to a minority of wrong entries: IRLS, at most
+        8 weighted fits each from the last (the driver's one Cauchy minimisation stops in worse
+        local minima from poor starts, docs/design.md); a robust start, its covariances NaN.
     weights : (I, J) array, optional
         ``1 / std`` of every entry (1/s): weighted least squares, the ML fit when the entries'
         noise differs (a detection in a noise burst against a clean one). Default equal
