@@ -532,7 +532,7 @@ def _scatter_nodes(sol: Calibration, kr: NDArray[np.bool_], ks: NDArray[np.bool_
         mask = np.zeros((I, J), bool)
         mask[np.ix_(kr, ks)] = np.asarray(sol.toa_outliers, bool)
     u = sol.uniqueness
-    if u is not None and hasattr(u, "relabel") and len(u.ambiguous_receivers) == int(kr.sum()):
+    if u is not None and len(u.ambiguous_receivers) == int(kr.sum()):
         u = u.relabel(kr, ks, np.arange(I), np.arange(J))
     return replace(sol, receivers=full(sol.receivers, kr), sources=full(sol.sources, ks),
                    receiver_offsets=full(sol.receiver_offsets, kr), source_offsets=full(sol.source_offsets, ks),

@@ -9,12 +9,15 @@ test and the scale from known distances.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import NDArray
 
 from .._result import Result
+
+if TYPE_CHECKING:
+    from ..toa.verdict.uniqueness import UniquenessTest
 
 __all__ = ["Calibration"]
 
@@ -71,6 +74,6 @@ class Calibration(Result):
     dim: int
     known_heights: bool = False
     toa_outliers: NDArray[np.bool_] | None = None
-    uniqueness: Any = None
+    uniqueness: UniquenessTest | None = None
     outlier_breakdown: str | None = None
     one_side: str | None = None
