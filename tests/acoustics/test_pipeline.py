@@ -60,18 +60,18 @@ def test_known_heights_refinement_recovers_geometry_and_offsets():
         sc.receivers[:, :2] + g.normal(0, 0.2, (12, 2)), sc.senders[:, :2] + g.normal(0, 0.2, (12, 2)),
         sc.receiver_delays + 0.002, sc.sender_onsets + g.normal(0, 0.002, 12), speed=C,
     )
-    assert sol["converged"] and sol["residual_rms"] < 1e-9
+    assert sol.converged and sol.residual_rms < 1e-9
     from selfcal.geometry import align
 
-    est = np.vstack([sol["receivers"], sol["sources"]])
+    est = np.vstack([sol.receivers, sol.sources])
     true = np.vstack([sc.receivers, sc.senders])
     al = align(est[:, :2], true[:, :2])
     assert np.abs(al.apply(est[:, :2]) - true[:, :2]).max() < 1e-6
     np.testing.assert_allclose(est[:, 2], true[:, 2])  # heights are given, never re-estimated
-    assert sol["source_offsets"][0] == 0.0
-    np.testing.assert_allclose(sol["source_offsets"], sc.sender_onsets - sc.sender_onsets[0], atol=1e-9)
-    np.testing.assert_allclose(sol["receiver_offsets"], sc.receiver_delays + sc.sender_onsets[0], atol=1e-9)
-    assert np.all(sol["receiver_cov"][:, 2, :] == 0)
+    assert sol.source_offsets[0] == 0.0
+    np.testing.assert_allclose(sol.source_offsets, sc.sender_onsets - sc.sender_onsets[0], atol=1e-9)
+    np.testing.assert_allclose(sol.receiver_offsets, sc.receiver_delays + sc.sender_onsets[0], atol=1e-9)
+    assert np.all(sol.receiver_cov[:, 2, :] == 0)
 
 
 def test_known_heights_covariance_matches_monte_carlo_spread():
@@ -85,10 +85,10 @@ def test_known_heights_covariance_matches_monte_carlo_spread():
         T = _toa(sc, sigma, rng=k)
         sol = refine_known_heights(T, sc.receivers[:, 2], sc.senders[:, 2], sc.receivers[:, :2], sc.senders[:, :2],
                                    sc.receiver_delays, sc.sender_onsets, speed=C)
-        est = np.vstack([sol["receivers"], sol["sources"]])[:, :2]
+        est = np.vstack([sol.receivers, sol.sources])[:, :2]
         true = np.vstack([sc.receivers, sc.senders])[:, :2]
         errs.append(align(est, true, reflection=False).apply(est) - true)
-        covs.append(np.trace(sol["receiver_cov"][:, :2, :2], axis1=1, axis2=2).mean())
+        covs.append(np.trace(sol.receiver_cov[:, :2, :2], axis1=1, axis2=2).mean())
     mc = np.mean(np.sum(np.array(errs)[:, :10] ** 2, axis=2))
     assert 0.4 < mc / np.mean(covs) < 2.5
 

@@ -248,7 +248,7 @@ def test_pair_offset_std_predicts_the_monte_carlo_spread():
         T = T0 + np.random.default_rng(k).normal(0.0, sigma, T0.shape)
         sol = refine_known_heights(T, sc.receivers[:, 2], sc.senders[:, 2], sc.receivers[:, :2], sc.senders[:, :2],
                                    sc.receiver_delays, sc.sender_onsets, speed=C)
-        errs.append(sol["receiver_offsets"][:, None] + sol["source_offsets"][None, :] - pair_true)
+        errs.append(sol.receiver_offsets[:, None] + sol.source_offsets[None, :] - pair_true)
     bars = error_bars(T0, np.full(T0.shape, sigma), sc.receivers, sc.senders, C, free_z=False)
     ratio = np.mean(np.array(errs) ** 2) / np.mean(bars.pair_std**2)
     assert 0.6 < ratio < 1.6, ratio

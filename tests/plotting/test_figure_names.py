@@ -59,7 +59,7 @@ def _pipeline(dim: int, std: float, seed: int = 0) -> SimpleNamespace:
         receivers=r[:, :dim], sources=s[:, :dim], receiver_cov=np.tile(np.eye(dim) * std**2, (6, 1, 1)),
         source_cov=np.tile(np.eye(dim) * std**2, (6, 1, 1)), method=f"{dim}d",
         receiver_names=[f"u{i:02d}" for i in range(6)], sender_names=[f"u{i:02d}" for i in range(6)],
-        receiver_offsets=np.zeros(6), source_offsets=np.zeros(6), timings={"detect": 1.0, "calibrate": 0.5})
+        receiver_offsets=np.zeros(6), source_offsets=np.zeros(6), timings={"detect": 1.0, "calibrate": 0.5}, known_heights=False)
 
 
 @pytest.mark.parametrize("dim", [2, 3])

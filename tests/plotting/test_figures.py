@@ -153,7 +153,7 @@ def _pipeline_result(dim: int) -> SimpleNamespace:
         receivers=r, sources=s, receiver_cov=np.tile(np.eye(dim) * 1e-4, (6, 1, 1)),
         source_cov=np.tile(np.eye(dim) * 4e-4, (8, 1, 1)), method=f"{dim}d", receiver_names=[f"m{i}" for i in range(6)],
         sender_names=[f"s{j}" for j in range(8)], receiver_offsets=np.zeros(6), source_offsets=np.zeros(8),
-        timings={"detect": 1.0, "calibrate": 0.5})
+        timings={"detect": 1.0, "calibrate": 0.5}, known_heights=False)
 
 
 @pytest.mark.parametrize("dim", [2, 3])

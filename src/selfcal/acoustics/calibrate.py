@@ -180,8 +180,8 @@ def _heights_fit(T: Array, heights: tuple[Array, Array], speed: float, rng: int,
                                           np.asarray(init.source_offsets, float), speed)
         dr, ds = _normalise_offsets(dr0, ds0)
         try:
-            sol = _from_heights(refine_known_heights(T, heights[0], heights[1], r0, s0, dr, ds, speed=speed,
-                                                     f_scale=f_sc, weights=weights), "2d+heights")
+            sol = refine_known_heights(T, heights[0], heights[1], r0, s0, dr, ds, speed=speed, f_scale=f_sc,
+                                       weights=weights)
         except (DegenerateGeometryError, np.linalg.LinAlgError, ValueError):
             continue
         e = T - _predict(sol, speed)
@@ -198,15 +198,9 @@ def _heights_fit(T: Array, heights: tuple[Array, Array], speed: float, rng: int,
     label = f"2d+heights ({init.method} init)"
     if f_sc is None:
         return replace(sol, method=label)
-    return _from_heights(refine_known_heights(T, heights[0], heights[1], sol.receivers[:, :2], sol.sources[:, :2],
-                                              sol.receiver_offsets, sol.source_offsets, speed=speed, weights=weights),
-                         label)
-
-
-def _from_heights(fit: dict[str, Any], method: str) -> Calibration:
-    """A :class:`Calibration` of a :func:`refine_known_heights` fit (its keys are the fields
-    ``receivers`` .. ``iterations``): 2 free coordinates per node, the heights known."""
-    return Calibration(**fit, method=method, dim=2, known_heights=True)
+    return replace(refine_known_heights(T, heights[0], heights[1], sol.receivers[:, :2], sol.sources[:, :2],
+                                        sol.receiver_offsets, sol.source_offsets, speed=speed, weights=weights),
+                   method=label)
 
 
 def _cauchy_cost(z: Array) -> float:
@@ -303,7 +297,6 @@ def calibrate_matrix(
     dim: int | str = "auto",
     heights: tuple[Array, Array] | None = None,
     rng: int = 0,
-    alpha: float = PLANAR_ALPHA,
     noise: float | None = None,
     weights: Array | None = None,
     units: NDArray[np.intp] | None = None,
@@ -330,8 +323,6 @@ def calibrate_matrix(
         result is 3-D with z = the given heights.
     rng : int
         Seed of the solver's random initialisations.
-    alpha : float
-        Unused: the planarity tests run at ``PLANAR_ALPHA`` (kept for the signature).
     noise : float, optional
         Timing-noise std, s: passed to :func:`selfcal.toa.solve_toa`, whose deep search then
         runs when a fit fails the residual test (slow; :func:`selfcal.acoustics.robust_fit.robust_calibrate` passes it only
@@ -493,7 +484,7 @@ def refit(T: Array, sol: Calibration, speed: float, heights: tuple[Array, Array]
         Known heights when ``sol`` is a ``2d+heights`` solution.
     f_scale : float, optional
         s: a Cauchy loss of this scale (robust start for the outlier test; covariances of
-        such a refit are not computed for 2-D / 3-D).
+        such a refit are not computed).
     weights : (I, J) array, optional
         ``1 / std`` per entry (known-heights model only, as :func:`calibrate_matrix`).
 
@@ -506,8 +497,8 @@ def refit(T: Array, sol: Calibration, speed: float, heights: tuple[Array, Array]
     dr, ds = np.asarray(sol.receiver_offsets, float), np.asarray(sol.source_offsets, float)
     if sol.known_heights:
         assert heights is not None
-        return _from_heights(refine_known_heights(T, heights[0], heights[1], r[:, :2], s[:, :2], dr, ds, speed=speed,
-                                                  f_scale=f_scale, weights=weights), sol.method)
+        return replace(refine_known_heights(T, heights[0], heights[1], r[:, :2], s[:, :2], dr, ds, speed=speed,
+                                            f_scale=f_scale, weights=weights), method=sol.method)
     d = sol.dim
     kr = np.isfinite(r[:, :d]).all(axis=1) & np.isfinite(dr)
     ks = np.isfinite(s[:, :d]).all(axis=1) & np.isfinite(ds)
@@ -541,7 +532,7 @@ def _scatter_nodes(sol: Calibration, kr: NDArray[np.bool_], ks: NDArray[np.bool_
         mask = np.zeros((I, J), bool)
         mask[np.ix_(kr, ks)] = np.asarray(sol.toa_outliers, bool)
     u = sol.uniqueness
-    if u is not None and hasattr(u, "relabel") and len(u.ambiguous_receivers) == int(kr.sum()):
+    if u is not None and len(u.ambiguous_receivers) == int(kr.sum()):
         u = u.relabel(kr, ks, np.arange(I), np.arange(J))
     return replace(sol, receivers=full(sol.receivers, kr), sources=full(sol.sources, ks),
                    receiver_offsets=full(sol.receiver_offsets, kr), source_offsets=full(sol.source_offsets, ks),

@@ -36,6 +36,7 @@ from ..toa.verdict.planarity import (  # one implementation: the TOA package's m
     compare_fits,
     planarity,
 )
+from .solution import Calibration
 
 __all__ = ["Planarity", "ModelComparison", "planarity", "compare_fits", "one_side_of_plane",
            "read_heights", "refine_known_heights", "PLANAR_RATIO", "PLANAR_ALPHA"]
@@ -134,7 +135,7 @@ def refine_known_heights(
     max_iterations: int = 50,
     f_scale: float | None = None,
     weights: Array | None = None,
-) -> dict[str, Any]:
+) -> Calibration:
     """Least squares for horizontal positions and offsets with every height known.
 
     Minimises ``sum_ij (c t_ij - sqrt(|x_i - y_j|^2 + (z_i - w_j)^2) - c delta_i - c tau_j)^2``
@@ -159,7 +160,9 @@ def refine_known_heights(
         m/s.
     f_scale : float, optional
         s: a Cauchy loss of this scale on the weighted residuals instead of least squares
-        (``sum log(1 + (e / f_scale)^2)``), robust to a minority of wrong entries.
+        (``sum log(1 + (e / f_scale)^2)``), robust to a minority of wrong entries: IRLS, at most
+        8 weighted fits each from the last (the driver's one Cauchy minimisation stops in worse
+        local minima from poor starts, docs/design.md); a robust start, its covariances NaN.
     weights : (I, J) array, optional
         ``1 / std`` of every entry (1/s): weighted least squares, the ML fit when the entries'
         noise differs (a detection in a noise burst against a clean one). Default equal
@@ -168,7 +171,8 @@ def refine_known_heights(
 
     Returns
     -------
-    dict
+    Calibration
+        The ``2d+heights`` model (``dim=2``, ``known_heights=True``, ``method="2d+heights"``):
         ``receivers`` (I, 3), ``sources`` (J, 3), ``receiver_offsets`` (I,) s,
         ``source_offsets`` (J,) s (first 0), ``receiver_cov`` (I, 3, 3), ``source_cov``
         (J, 3, 3) (zero z variance: heights are given), ``residual_rms`` (s),
@@ -193,9 +197,10 @@ def refine_known_heights(
     Y = speed * T
 
     def fit(w: Array | None, r: Array, s: Array, d: Array, o: Array) -> Any:
+        # a robust (Cauchy) fit is a start: no covariance (as solve_toa's robust refits)
         return refine_toa(Y, r, s, offsets="both", receiver_offsets0=d, source_offsets0=o,
                           max_nfev=max_iterations, xtol=1e-12, solver="lm", fixed_receivers=fixed_r, fixed_sources=fixed_s,
-                          weights=w)
+                          weights=w, covariance=f_scale is None)
 
     cur = (np.column_stack([np.asarray(receivers_xy, float), zr]), np.column_stack([np.asarray(senders_xy, float), zs]),
            speed * (np.asarray(receiver_offsets, float) + shift), speed * (np.asarray(source_offsets, float) - shift))
@@ -216,14 +221,11 @@ def refine_known_heights(
         sol = dataclasses.replace(sol, iterations=iterations)
     assert sol.receiver_offsets is not None and sol.source_offsets is not None
     e = sol.residuals[obs & (wt > 0)]
-    return {
-        "receivers": np.asarray(sol.receivers, float),
-        "sources": np.asarray(sol.sources, float),
-        "receiver_offsets": np.asarray(sol.receiver_offsets, float) / speed,
-        "source_offsets": np.asarray(sol.source_offsets, float) / speed,
-        "receiver_cov": np.asarray(sol.receiver_cov, float),
-        "source_cov": np.asarray(sol.source_cov, float),
-        "residual_rms": float(np.sqrt(np.mean(e**2))) / speed if e.size else float("nan"),
-        "converged": bool(sol.converged),
-        "iterations": int(sol.iterations),
-    }
+    return Calibration(
+        receivers=np.asarray(sol.receivers, float), sources=np.asarray(sol.sources, float),
+        receiver_offsets=np.asarray(sol.receiver_offsets, float) / speed,
+        source_offsets=np.asarray(sol.source_offsets, float) / speed,
+        receiver_cov=np.asarray(sol.receiver_cov, float), source_cov=np.asarray(sol.source_cov, float),
+        residual_rms=float(np.sqrt(np.mean(e**2))) / speed if e.size else float("nan"),
+        converged=bool(sol.converged), iterations=int(sol.iterations), method="2d+heights", dim=2,
+        known_heights=True)

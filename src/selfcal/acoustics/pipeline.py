@@ -112,8 +112,6 @@ class PipelineResult(Result):
         Chi-square test of the final residuals against ``timing_noise``.
     timing_noise : float
         Noise std used by the test, s.
-    fit_binding : bool
-        Kept for compatibility: the residual test always counts (also after a 2-D fallback).
     outliers : tuple of Outlier
         Detections excluded (or re-detected) by the robust fit.
     dropped_receivers, dropped_senders : tuple of str
@@ -161,7 +159,6 @@ class PipelineResult(Result):
     notes: tuple[str, ...] = field(default=())
     fit: Any = None
     timing_noise: float = float("nan")
-    fit_binding: bool = True
     outliers: tuple[Outlier, ...] = field(default=())
     dropped_receivers: tuple[str, ...] = field(default=())
     dropped_senders: tuple[str, ...] = field(default=())
@@ -507,7 +504,7 @@ def run_pipeline(
         method=sol.method, toa_matrix=robust.toa, detections_missed=int(np.isnan(robust.toa).sum()),
         quality_db=det.quality_db, planarity=plan, timings=timings, receiver_names=setup.receivers,
         sender_names=setup.senders, speed_of_sound=speed, notes=tuple(notes), fit=fit, timing_noise=noise,
-        fit_binding=True, outliers=tuple(robust.outliers), dropped_receivers=dr, dropped_senders=dsn,
+        outliers=tuple(robust.outliers), dropped_receivers=dr, dropped_senders=dsn,
         error_bars=bars, verdict=verdict, rounds=rounds, event_senders=np.asarray(es, dtype=np.int64),
         matrix_std=S, timings_cpu=cpu, uniqueness=sol.uniqueness,
         outlier_breakdown=sol.outlier_breakdown, known_heights=sol.known_heights,

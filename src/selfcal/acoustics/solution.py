@@ -9,23 +9,28 @@ test and the scale from known distances.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import NDArray
+
+from .._result import Result
+
+if TYPE_CHECKING:
+    from ..toa.verdict.uniqueness import UniquenessTest
 
 __all__ = ["Calibration"]
 
 Array = NDArray[np.float64]
 
 
-@dataclass(frozen=True)
-class Calibration:
+@dataclass(frozen=True, repr=False)
+class Calibration(Result):
     """One model fit of the per-sender TOA matrix: the solution the pipeline carries.
 
     Built from the :class:`selfcal.toa.ToaResult` of :func:`selfcal.toa.solve_toa` (2-D /
-    3-D models) or from :func:`selfcal.acoustics.geometry.refine_known_heights` (known
-    heights); the robust loop (:mod:`selfcal.acoustics.robust_fit`) refits it with
+    3-D models) or returned by :func:`selfcal.acoustics.geometry.refine_known_heights` (known
+    heights); a :class:`selfcal._result.Result` (``status`` from ``converged``); the robust loop (:mod:`selfcal.acoustics.robust_fit`) refits it with
     :func:`selfcal.acoustics.calibrate.refit` and the pipeline changes it with ``dataclasses.replace``.
 
     Attributes
@@ -69,6 +74,6 @@ class Calibration:
     dim: int
     known_heights: bool = False
     toa_outliers: NDArray[np.bool_] | None = None
-    uniqueness: Any = None
+    uniqueness: UniquenessTest | None = None
     outlier_breakdown: str | None = None
     one_side: str | None = None

@@ -37,12 +37,14 @@ def plot_map(result: Any, path: Path | None = None, errors: dict[str, Any] | Non
     """Estimated (and, when known, true) microphones and loudspeakers with 95 % ellipses and names.
 
     With ``errors`` the estimate is drawn aligned on the truth, its covariances rotated alike.
-    One x-y panel in 2-D (or for ``2d+heights``, where z is given), three views in 3-D.
+    One x-y panel in 2-D (or with known heights, ``known_heights``, where z is given), three views
+    in 3-D.
 
     Parameters
     ----------
     result : PipelineResult
-        ``receivers`` / ``sources`` (m) and ``receiver_cov`` / ``source_cov`` (m^2).
+        ``receivers`` / ``sources`` (m), ``receiver_cov`` / ``source_cov`` (m^2) and
+        ``known_heights`` (the ``2d+heights`` model).
     path : path, optional
     errors : dict, optional
         :func:`selfcal.acoustics.scoring.truth_errors` (``aligned_*`` and ``true_*`` arrays).
@@ -60,7 +62,7 @@ def plot_map(result: Any, path: Path | None = None, errors: dict[str, Any] | Non
     er, es = result.receivers, result.sources
     rc, sc = result.receiver_cov, result.source_cov
     tr = ts = None
-    planar = er.shape[1] == 2 or result.method.startswith("2d+heights")
+    planar = er.shape[1] == 2 or result.known_heights  # z given: the x-y map is the answer
     if errors is not None:
         er, es = errors["aligned_receivers"], errors["aligned_sources"]
         tr, ts = np.asarray(errors["true_receivers"]), np.asarray(errors["true_senders"])
