@@ -6,7 +6,8 @@
   spanning more than twice its diagonal, probe repetitions that take longer than a working
   day -- are a ``FAIL`` with the reason, not advice (:mod:`selfcal.acoustics.plausibility`);
 - units with an alternative position the data do not reject (the TOA solver's uniqueness
-  test) farther than the 10 cm requirement are named in a ``FAIL`` line with the remedy.
+  test) farther than the 10 cm requirement are named in a ``FAIL`` line with the remedy;
+  nearer ones pass, with error bars that span both answers.
 """
 
 from __future__ import annotations
@@ -21,7 +22,7 @@ import numpy as np
 import pytest
 from click.testing import CliRunner
 
-from selfcal.acoustics.pipeline import _unique_or_plausible
+from selfcal.acoustics.pipeline import _cover_alternatives, _unique_or_plausible
 from selfcal.acoustics.plausibility import EXTENT_FACTOR, WORKING_DAY, extent_reason, repeats_reason
 from selfcal.acoustics.solution import Calibration
 from selfcal.acoustics.verdict import ErrorBars, judge
@@ -104,6 +105,32 @@ def test_ambiguous_units_beyond_the_requirement_are_a_fail_that_names_them(seed)
     assert _unique_or_plausible(near, rn, sn, None, notes) == ()
     if near.uniqueness.ambiguous_sources.any():
         assert any("within 10 cm" in n for n in notes)
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_error_bars_span_the_alternatives_left_open(seed):
+    """An alternative the data do not reject is as likely as the answer: the unit's covariance
+    becomes the equal mixture's ``C + m m^T / 4``, so the alternative lies inside 3 error bars
+    (Mahalanobis distance ``|m| / sqrt(sigma^2 + |m|^2 / 4) < 2``); units without one keep theirs."""
+    g = np.random.default_rng(seed)
+    sol = _line_network(g, g.uniform(0.005, 0.04))  # mirrors 1-8 cm away: a note, exit 0
+    C = np.tile(np.diag([1e-6, 4e-6]), (5, 1, 1))  # mm-level local error bars: miss the mirror alone
+    sol = replace(sol, source_cov=C, receiver_cov=np.tile(np.eye(2) * 1e-6, (6, 1, 1)))
+    bars = ErrorBars(np.full(11, 2e-3), np.full(6, 1e-4), np.full(5, 1e-4), np.full((6, 5), 1e-4), 1.0)
+    out, out_bars = _cover_alternatives(sol, bars)
+    u = sol.uniqueness
+    assert out_bars is not None
+    np.testing.assert_array_equal(out.receiver_cov, sol.receiver_cov)  # receivers: partners span the plane
+    np.testing.assert_array_equal(out_bars.position_std[:6], bars.position_std[:6])
+    amb = np.flatnonzero(u.ambiguous_sources)
+    assert amb.size > 0  # sources off the receivers' line by < 4 cm: the mirror is not rejected
+    for j in amb:
+        m = np.asarray(u.source_alternatives[j]) - sol.sources[j]
+        assert m @ np.linalg.solve(C[j], m) > 9.0  # the local bars alone miss the alternative
+        assert m @ np.linalg.solve(out.source_cov[j], m) < 9.0
+        assert out_bars.position_std[6 + j] >= np.linalg.norm(m) / 2
+    for j in np.setdiff1d(np.arange(5), amb):
+        np.testing.assert_array_equal(out.source_cov[j], C[j])
 
 
 # ----------------------------------------------------------------------------- through the CLI

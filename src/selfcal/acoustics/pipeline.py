@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import time
 import warnings
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -243,6 +243,79 @@ class PipelineResult(Result):
         }
 
 
+def _alternative_moves(sol: Calibration) -> tuple[Array, Array]:
+    """The move to every unit's farthest alternative position the data do not reject, m.
+
+    Alternatives of :mod:`selfcal.toa.verdict.uniqueness` that the pipeline's stated one-side
+    rule excludes (a unit placed on one side of its coplanar partners, moved to the other) are
+    not counted. Returns ``(I, d)`` and ``(J, d)`` arrays: zero rows where a unit has none,
+    ``inf`` rows where an alternative has no position (nothing can be promised).
+    """
+    R, S = np.asarray(sol.receivers, float), np.asarray(sol.sources, float)
+    disp_r, disp_s = np.zeros_like(R), np.zeros_like(S)
+    u = sol.uniqueness
+    if u is None or u.passed:
+        return disp_r, disp_s
+    side = sol.one_side
+    plane = None
+    if side is not None:  # the one-side rule: these units all on one side of their partners' plane
+        P = S if side == "receivers" else R
+        P = P[np.isfinite(P).all(axis=1)]
+        plane = (P.mean(axis=0), np.linalg.svd(P - P.mean(axis=0), full_matrices=False)[2][-1])
+
+    def moves(X: Array, out: Array, role: str, cands: list[tuple[int, Array]]) -> None:
+        for k, p in cands:
+            p = np.asarray(p, float)
+            if not np.isfinite(X[k]).all():
+                continue
+            if not np.isfinite(p).all():
+                out[k] = np.inf
+                continue
+            if plane is not None and role == side:
+                c, n = plane
+                if np.sign((p - c) @ n) != np.sign((X[k] - c) @ n):
+                    continue  # on the other side of the partners' plane: excluded by the stated rule
+            if np.linalg.norm(p - X[k]) > np.linalg.norm(out[k]):
+                out[k] = p - X[k]
+
+    cand_r = [(int(i), u.receiver_alternatives[i]) for i in np.flatnonzero(u.ambiguous_receivers)]
+    cand_s = [(int(j), u.source_alternatives[j]) for j in np.flatnonzero(u.ambiguous_sources)]
+    for a in u.alternatives:  # every listed alternative, not only the first one found per unit
+        cand_r += [(int(i), p) for i, p in zip(a.receivers, a.receiver_positions, strict=True)]
+        cand_s += [(int(j), p) for j, p in zip(a.sources, a.source_positions, strict=True)]
+    moves(R, disp_r, "receivers", cand_r)
+    moves(S, disp_s, "sources", cand_s)
+    return disp_r, disp_s
+
+
+def _cover_alternatives(sol: Calibration, bars: ErrorBars | None) -> tuple[Calibration, ErrorBars | None]:
+    """Error bars that cover the alternatives the data leave open (mixture covariance).
+
+    Where the uniqueness test leaves a unit two positions ``x`` and ``x + m`` that fit equally
+    well, the data give each the same weight: the covariance of that equal mixture is
+    ``C + m m^T / 4``. It replaces the unit's local covariance ``C`` (and its RMS-radius std),
+    so the reported error bar spans both answers (3 stds of ``sqrt(C + m m^T/4)`` along ``m``
+    exceed ``|m|``) instead of claiming the one found. Units with no alternative are unchanged.
+    """
+    disp_r, disp_s = _alternative_moves(sol)
+    if not (disp_r.any() or disp_s.any()):
+        return sol, bars
+    with np.errstate(invalid="ignore"):
+        add_r = np.einsum("ki,kj->kij", disp_r, disp_r) / 4.0
+        add_s = np.einsum("ki,kj->kij", disp_s, disp_s) / 4.0
+    add_r[~np.isfinite(add_r)] = np.inf
+    add_s[~np.isfinite(add_s)] = np.inf
+    rc, sc = np.asarray(sol.receiver_cov, float), np.asarray(sol.source_cov, float)
+    if rc.shape == add_r.shape:
+        sol = replace(sol, receiver_cov=rc + add_r)
+    if sc.shape == add_s.shape:
+        sol = replace(sol, source_cov=sc + add_s)
+    if bars is not None:
+        extra = np.concatenate([np.sum(disp_r**2, axis=1), np.sum(disp_s**2, axis=1)]) / 4.0
+        bars = replace(bars, position_std=np.sqrt(np.asarray(bars.position_std, float) ** 2 + extra))
+    return sol, bars
+
+
 def _unique_or_plausible(sol: Calibration, rn: tuple[str, ...], sn: tuple[str, ...],
                          room: tuple[float, ...] | None, notes: list[str]) -> tuple[str, ...]:
     """FAIL reasons from the TOA solver's own tests and the declared room (:mod:`.plausibility`).
@@ -261,37 +334,8 @@ def _unique_or_plausible(sol: Calibration, rn: tuple[str, ...], sn: tuple[str, .
     out: list[str] = []
     u = sol.uniqueness
     if u is not None and not u.passed:
-        R, S = np.asarray(sol.receivers, float), np.asarray(sol.sources, float)
-        side = sol.one_side
-        plane = None
-        if side is not None:  # the one-side rule: these units all on one side of their partners' plane
-            P = S if side == "receivers" else R
-            P = P[np.isfinite(P).all(axis=1)]
-            plane = (P.mean(axis=0), np.linalg.svd(P - P.mean(axis=0), full_matrices=False)[2][-1])
-
-        def moves(X: Array, role: str, cands: list[tuple[int, Array]]) -> Array:
-            """The farthest alternative of every unit that the one-side rule does not exclude, m."""
-            out = np.zeros(len(X))
-            for k, p in cands:
-                p = np.asarray(p, float)
-                if not np.isfinite(X[k]).all():
-                    continue
-                if not np.isfinite(p).all():  # an alternative without a position: nothing can be promised
-                    out[k] = np.inf
-                    continue
-                if plane is not None and role == side:
-                    c, n = plane
-                    if np.sign((p - c) @ n) != np.sign((X[k] - c) @ n):
-                        continue  # on the other side of the partners' plane: excluded by the stated rule
-                out[k] = max(out[k], float(np.linalg.norm(p - X[k])))
-            return out
-
-        cand_r = [(int(i), u.receiver_alternatives[i]) for i in np.flatnonzero(u.ambiguous_receivers)]
-        cand_s = [(int(j), u.source_alternatives[j]) for j in np.flatnonzero(u.ambiguous_sources)]
-        for a in u.alternatives:  # every listed alternative, not only the first one found per unit
-            cand_r += [(int(i), p) for i, p in zip(a.receivers, a.receiver_positions, strict=True)]
-            cand_s += [(int(j), p) for j, p in zip(a.sources, a.source_positions, strict=True)]
-        move_r, move_s = moves(R, "receivers", cand_r), moves(S, "sources", cand_s)
+        disp_r, disp_s = _alternative_moves(sol)
+        move_r, move_s = np.linalg.norm(disp_r, axis=1), np.linalg.norm(disp_s, axis=1)
         far_r = move_r > POSITION_REQUIREMENT
         far_s = move_s > POSITION_REQUIREMENT
         far_r &= np.asarray(u.ambiguous_receivers, bool)
@@ -481,6 +525,7 @@ def run_pipeline(
                           chi2_per_dof=(fit.chi2 / fit.dof) if fit is not None and fit.dof > 0 else 1.0)
     except (np.linalg.LinAlgError, ValueError):
         bars = None
+    sol, bars = _cover_alternatives(sol, bars)  # error bars spanning the alternatives left open
     labels = tuple(f"microphone {n}" for n in setup.receivers) + tuple(f"loudspeaker {n}" for n in setup.senders)
     verdict = judge(bars, rounds=rounds, fit_failed=fit is not None and not fit.passed, fit_reason=fit_reason,
                     names=labels, extra=extra, round_seconds=rec.signals.shape[1] / fs / max(rounds, 1))
