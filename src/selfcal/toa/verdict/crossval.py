@@ -355,7 +355,7 @@ def cross_validate(
     e0 = Y - (np.linalg.norm(np.asarray(R0)[:, None] - np.asarray(S0)[None], axis=2)
               + (0 if d0 is None else np.asarray(d0)[:, None]) + (0 if o0 is None else np.asarray(o0)[None]))
     L = residual_correlation_length(np.where(np.isfinite(Y), e0, np.nan))
-    if np.ndim(folds):
+    if folds is not None and np.ndim(folds):
         label = np.asarray(folds, np.intp)
     else:
         edges = np.linspace(0, J, int(folds) + 1).round().astype(np.intp) if folds else _folds(J, L)
