@@ -91,7 +91,7 @@ def solve_farfield(
     direction_solver : for "alternating": "global" or "local" (see :mod:`.refine`).
     allow_degenerate : return the partial reconstruction of a degenerate configuration
         (with ``degeneracy`` set) instead of raising.
-    screen : treat gross errors (:func:`~selfcal.tdoa.screen.screen_gross_errors`: a residual test at family-wise
+    screen : treat gross errors (:func:`~selfcal.tdoa.screen.gross_error_screen`: a residual test at family-wise
         false-alarm rate 1 % against the Student-t tail fitted to the residuals, so the rate
         holds for heavy-tailed noise too) as missing.
     reject_k : with a robust loss, entries with ``|residual| > reject_k`` robust std are rejected.
