@@ -155,9 +155,9 @@ def case_sparse(I: int, J: int, frac: float, d: int, seed: int) -> Callable[[Any
     return run
 
 
-def case_dense_lm(P: dict[str, Any], varpro: bool = False, free: bool = False) -> Callable[[Any], tuple[float, Any]]:
-    """The search's direct call of the dense engine: full, a partial refit (``free``: the first
-    receiver and the last source move), or with the offsets eliminated (``varpro``)."""
+def case_dense_lm(P: dict[str, Any], free: bool = False) -> Callable[[Any], tuple[float, Any]]:
+    """The search's direct call of the dense engine: full, or a partial refit (``free``: the first
+    receiver and the last source move)."""
     Y, d, off = P["Y"], P["d"], P["offsets"]
     I, J = Y.shape
     has_r, has_s = off in ("receivers", "both"), off in ("sources", "both")
@@ -171,7 +171,7 @@ def case_dense_lm(P: dict[str, Any], varpro: bool = False, free: bool = False) -
 
     def run(m: Any) -> tuple[float, Any]:
         th, _, _ = m("toa.engine.dense_lm").solve_dense_lm(th0, Y[ii, jj], ii, jj, I, J, d, off, "linear", 1.0,
-                                                           None, 1e-12, free=mask, varpro=varpro)
+                                                           None, 1e-12, free=mask)
         f = m("toa.engine.nls").toa_residuals(th, Y, d, off)
         return 0.5 * float(f @ f), th[:(I + J) * d].reshape(-1, d)
     return run
@@ -291,8 +291,6 @@ def cases() -> list[tuple[str, Callable[[Any], tuple[float, Any]]]]:
                                                                           fixed="heights")))
     out.append(("known heights 60x80 3d receivers (schur-affine)", case_refine(toa_problem(60, 80, 3, "receivers", 10),
                                                                                fixed="heights")))
-    for off in ("receivers", "both"):
-        out.append((f"dense_lm 12x6 3d {off} varpro", case_dense_lm(toa_problem(12, 6, 3, off, 26), varpro=True)))
     out.append(("dense_lm 12x6 3d both partial refit", case_dense_lm(toa_problem(12, 6, 3, "both", 27), free=True)))
     out.append(("dense_lm 10x8 2d sources", case_dense_lm(toa_problem(10, 8, 2, "sources", 28))))
     out.append(("sparse 200x300 3d 10% (cg)", case_sparse(200, 300, 0.1, 3, 29)))

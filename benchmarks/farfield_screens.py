@@ -54,7 +54,8 @@ from selfcal.datasets.pyramic import join_pyramic, pyramic_from_dict, simulate_p
 from selfcal.io import write_json
 from selfcal.metrics import aligned_rmse
 from selfcal.tdoa import solve_farfield
-from selfcal.tdoa.screen import _lowrank_factors, gross_error_screen
+from selfcal.tdoa.screen import gross_error_screen
+from selfcal.tdoa.structure import _lowrank_factors
 
 SHARED = Path("/work/shared/data/pyramic/pyramic_tdoa_speaker0.json")
 SCREENS = ("none", "gaussian", "deletion", "tail", "huber", "tail+cauchy")

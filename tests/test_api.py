@@ -1,9 +1,7 @@
-"""The public API: what ``selfcal`` and its subpackages export, and what they no longer do.
+"""The public API: what ``selfcal`` and its subpackages export.
 
 The packages export entry points (solvers, result classes, loaders, simulators, conversions
-users call); building blocks live in their modules. A building block once exported from
-``selfcal.tdoa`` / ``selfcal.aoa`` still resolves there, with a ``DeprecationWarning`` naming
-its module.
+users call); building blocks live in their modules.
 """
 
 from __future__ import annotations
@@ -38,22 +36,6 @@ def test_top_level_exports_what_users_call() -> None:
     from selfcal.tdoa.farfield import solve_farfield
 
     assert selfcal.solve_farfield is solve_farfield and selfcal.solve_aoa is solve_aoa
-
-
-@pytest.mark.parametrize(("package", "internal", "home"), [
-    ("selfcal.tdoa", "fit_quadric", "selfcal.tdoa.degeneracy"),
-    ("selfcal.tdoa", "sphere_lstsq_local", "selfcal.tdoa.alternating"),
-    ("selfcal.tdoa", "initialize_farfield", "selfcal.tdoa.initialize"),
-    ("selfcal.aoa", "kabsch", "selfcal.aoa.orientation"),
-    ("selfcal.aoa", "torus_jacobian", "selfcal.aoa.solution1"),
-    ("selfcal.aoa", "refine_ml", "selfcal.aoa.ml"),
-])
-def test_building_blocks_are_not_exported_but_still_resolve(package: str, internal: str, home: str) -> None:
-    mod = importlib.import_module(package)
-    assert internal not in mod.__all__ and internal not in dir(mod)
-    with pytest.warns(DeprecationWarning, match=home):
-        obj = getattr(mod, internal)
-    assert obj is getattr(importlib.import_module(home), internal)
 
 
 @pytest.mark.parametrize("package", ["selfcal.tdoa", "selfcal.aoa"])

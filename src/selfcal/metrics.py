@@ -10,7 +10,7 @@ from numpy.typing import NDArray
 from ._checks import entry
 from .geometry import Alignment, align, wrap_angle
 
-__all__ = ["AlignedError", "aligned_rmse", "percentiles", "angle_error", "rotation_angle_error",
+__all__ = ["AlignedError", "aligned_rmse", "angle_error", "rotation_angle_error",
            "aligned_direction_errors", "efficiency"]
 
 Array = NDArray[np.float64]
@@ -68,15 +68,6 @@ def aligned_rmse(
         source_errors=serr,
         alignment=al,
     )
-
-
-def percentiles(values: Array, qs: tuple[float, ...] = (50, 90, 95, 99)) -> dict[str, float]:
-    """Percentiles of finite ``values`` as a JSON-safe dict ``{"p50": ..., ...}``."""
-    v = np.asarray(values, float).ravel()
-    v = v[np.isfinite(v)]
-    if v.size == 0:
-        return {f"p{q:g}": float("nan") for q in qs}
-    return {f"p{q:g}": float(np.percentile(v, q)) for q in qs}
 
 
 def angle_error(a: Array, b: Array) -> Array:

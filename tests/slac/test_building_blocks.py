@@ -15,7 +15,7 @@ from selfcal.slac.antenna import (
     sampling_matrix,
 )
 from selfcal.slac.doa import estimate_doa
-from selfcal.slac.likelihood import concentrated_loglik, link_fisher, link_loglik, pack_g, unpack_g
+from selfcal.slac.likelihood import link_loglik, pack_g, unpack_g
 from selfcal.slac.motion import control_jacobian, motion_jacobian, motion_step, process_noise
 from selfcal.slac.signals import (
     SPEED_OF_LIGHT,
@@ -25,6 +25,8 @@ from selfcal.slac.signals import (
     range_wavenumber,
     snapshot,
 )
+
+from .reference import concentrated_loglik, link_fisher
 
 B = 28.2e6
 

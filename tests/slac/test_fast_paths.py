@@ -23,7 +23,7 @@ from selfcal.slac.filter import (
     predict_locations,
     tri_solve,
 )
-from selfcal.slac.likelihood import fisher_blocks, link_fisher, link_loglik, pack_g
+from selfcal.slac.likelihood import fisher_blocks, link_loglik, pack_g
 from selfcal.slac.motion import motion_jacobian, process_noise
 from selfcal.slac.run import SlacLog
 from selfcal.slac.signals import (
@@ -34,6 +34,8 @@ from selfcal.slac.signals import (
     range_wavenumber,
     snapshot,
 )
+
+from .reference import link_fisher
 
 N = 64
 

@@ -327,7 +327,7 @@ def test_result_to_dict_is_strict_json(rng):
 
 
 def test_ransac_over_the_minimal_solver_finds_the_outliers(rng):
-    from selfcal.tdoa.screen import ransac_farfield
+    from selfcal.tdoa.structure import ransac_farfield
 
     sigma = 0.005
     D, Z, _ = farfield_problem(rng, 20, 40, sigma=sigma)

@@ -8,7 +8,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from selfcal.tdoa.screen import SCREEN_ALPHA, fit_tail_model, gross_error_screen
+from selfcal.tdoa.screen import SCREEN_ALPHA, gross_error_screen
+from selfcal.tdoa.tails import fit_tail_model
 
 SLOW = pytest.mark.slow
 SEEDS = {"t3": 1, "t5": 2, "laplace": 3, "gaussian": 4}

@@ -20,7 +20,6 @@ True
 
 from __future__ import annotations
 
-from .._api import moved_names
 from .bearings import (
     Bearings,
     angles_to_bearings,
@@ -47,17 +46,6 @@ __all__ = [
     "solve_aoa",
     "tdoa_to_bearings",
 ]
-
-#: building blocks once exported here -> the module that defines them (deprecated here).
-#: ``p3p``, ``solution1`` and ``solution2`` are not listed: those names are the submodules.
-_MOVED = {
-    "kabsch": "orientation", "nearest_rotation": "orientation", "orientation_from_vectors": "orientation",
-    "p3p_ranges": "p3p", "linear_pose_2d": "planar2d",
-    "newton_location": "solution1", "torus_jacobian": "solution1", "torus_residuals": "solution1",
-    "newton_ranges": "solution2",
-    "refine_ml": "ml", "residuals_2d": "ml", "residuals_3d": "ml",
-}
-__getattr__ = moved_names(__name__, _MOVED)
 
 
 def __dir__() -> list[str]:

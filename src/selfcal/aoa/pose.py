@@ -29,10 +29,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from .._checks import as_points, check_choice, entry
 from ..errors import DegenerateGeometryError, InputError
-from .checks import (  # noqa: F401 (re-exported)
-    JACOBIAN_TOL,
-    PLAUSIBLE_SIGMA,
-    RESIDUAL_TEST_LEVEL,
+from .checks import (
     _area,
     _best_triple,
     _check_determined,
@@ -40,20 +37,18 @@ from .checks import (  # noqa: F401 (re-exported)
     _fit,
     _rms,
     _validate,
-    residual_test,
 )
 from .ml import refine_ml
 from .orientation import nearest_rotation
 from .p3p import p3p
 from .planar2d import DANGER_TOL, linear_pose_2d
-from .result import AoaCandidate, AoaFit, AoaResult  # noqa: F401 (AoaFit re-exported)
+from .result import AoaCandidate, AoaResult
 from .solution1 import solution1
 from .solution2 import solution2
 
 Array = NDArray[Any]
 
-__all__ = ["AoaResult", "AoaCandidate", "solve_aoa", "residual_test", "METHODS_3D", "METHODS_2D",
-           "PLAUSIBLE_SIGMA"]
+__all__ = ["AoaResult", "AoaCandidate", "solve_aoa", "METHODS_3D", "METHODS_2D"]
 
 METHODS_3D = ("auto", "sol1", "sol2", "p3p", "ml")
 METHODS_2D = ("auto", "linear", "ml")
@@ -122,7 +117,7 @@ def solve_aoa(
 
     Notes
     -----
-    ``success`` comes from :func:`residual_test` (chi-square on the angular residuals).
+    ``success`` comes from :func:`~selfcal.aoa.checks.residual_test` (chi-square on the angular residuals).
 
     Examples
     --------

@@ -33,7 +33,7 @@ from numpy.typing import NDArray
 
 from ..io import write_json
 from ..metrics import aligned_direction_errors, aligned_rmse
-from ..tdoa.farfield import initialize_farfield
+from ..tdoa.initialize import initialize_farfield
 from ..tdoa.minimal import quadric_design, solve_minimal
 from ..tdoa.refine import farfield_crlb, refine_alternating, refine_lm
 from .runner import run_sweep, write_rows

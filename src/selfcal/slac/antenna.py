@@ -27,7 +27,6 @@ from ..errors import InputError
 __all__ = [
     "basis_orders",
     "fourier_basis",
-    "fourier_basis_derivative",
     "sampling_matrix",
     "AntennaResponse",
     "dipole_response",
@@ -70,11 +69,6 @@ def fourier_basis(phi: float | FArray, U: int) -> CArray:
     u = basis_orders(U)
     ph = np.asarray(phi, dtype=float)
     return np.exp(1j * ph[..., None] * u) / np.sqrt(2.0 * np.pi)
-
-
-def fourier_basis_derivative(phi: float | FArray, U: int) -> CArray:
-    """``d b / d phi = j u b(phi)``, same shape as :func:`fourier_basis`."""
-    return 1j * basis_orders(U) * fourier_basis(phi, U)
 
 
 def sampling_matrix(samples: CArray, phis: FArray, U: int) -> CArray:
@@ -141,10 +135,6 @@ class AntennaResponse:
     def response(self, phi: float | FArray) -> CArray:
         """``a(phi) = G b(phi)``: (M,) for scalar phi, (K, M) for (K,) phi."""
         return fourier_basis(phi, self.U) @ self.G.T
-
-    def derivative(self, phi: float | FArray) -> CArray:
-        """``d a / d phi = G b'(phi)``, same shape as :meth:`response`."""
-        return fourier_basis_derivative(phi, self.U) @ self.G.T
 
     def to_dict(self) -> dict[str, object]:
         return {"name": self.name, "G_real": self.G.real, "G_imag": self.G.imag}

@@ -18,7 +18,6 @@ screening, RANSAC), :mod:`~selfcal.tdoa.orientation` (the transposed-layout chec
 
 from __future__ import annotations
 
-from .._api import moved_names
 from .crlb import farfield_crlb
 from .degeneracy import DegeneracyReport, analyse_degeneracy
 from .farfield import solve_farfield
@@ -38,19 +37,6 @@ __all__ = [
     "solve_farfield",
     "solve_minimal",
 ]
-
-#: building blocks once exported here -> the module that defines them (deprecated here)
-_MOVED = {
-    "DEGENERACIES": "degeneracy", "fit_quadric": "degeneracy",
-    "FarfieldInit": "result",
-    "check_orientation": "orientation",
-    "fit_A_nonlinear": "initialize", "initialize_farfield": "initialize", "reduce_matrix": "initialize",
-    "lowrank_fit": "structure", "ransac_farfield": "structure", "screen_gross_errors": "screen",
-    "farfield_jacobian": "model", "farfield_residuals": "model",
-    "refine_alternating": "alternating", "sphere_lstsq_global": "alternating",
-    "sphere_lstsq_local": "alternating",
-}
-__getattr__ = moved_names(__name__, _MOVED)
 
 
 def __dir__() -> list[str]:

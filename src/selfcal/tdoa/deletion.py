@@ -1,6 +1,6 @@
 """Gross-error test for small far-field matrices: deletion residuals of the far-field model itself.
 
-The residual test of :func:`~selfcal.tdoa.screen.screen_gross_errors` fits the unconstrained
+The residual test of :func:`~selfcal.tdoa.screen.gross_error_screen` fits the unconstrained
 structure ``P Q^T + 1 c^T`` (``3 (m + k - 3) + k`` unknowns) and needs a third of the entries
 spare. The far-field model proper, ``z_i . n_j + C_j`` with unit ``n_j``, has ``k - 3`` fewer
 unknowns (``3 (m - 1) + 3 k - 3``, paper 000 Theorem 1), and in small matrices that is most of

@@ -6,24 +6,24 @@ at the origin), the unit directions and the offsets:
 
 1. gross-error screen (optional) and, when entries are missing or a robust loss is asked
    for, a weighted / robust fit of the structure ``D = P Q^T + 1 c^T`` (rank 3 plus
-   offsets, :func:`lowrank_fit`) that fills (and, robustly, cleans) the matrix for the
+   offsets, :func:`~selfcal.tdoa.structure.lowrank_fit`) that fills (and, robustly, cleans) the matrix for the
    factorisation steps;
 2. failure-mode analysis of ``Dbar`` (:mod:`selfcal.tdoa.degeneracy`);
-3. overdetermined initialisation (section 2.3 (i)-(iii), :func:`initialize_farfield`),
+3. overdetermined initialisation (section 2.3 (i)-(iii), :func:`~selfcal.tdoa.initialize.initialize_farfield`),
    with the nonlinear fit of A when the least-squares B is not positive definite;
 4. refinement: Levenberg-Marquardt on the spheres (Algorithm 3) or alternating
    optimisation (Algorithm 2), with an optional robust loss.
 
 Robustness (beyond the paper, its future work): with ``loss != "linear"`` the structured fit
 and the refinement are iteratively re-weighted; entries whose final residual exceeds
-``reject_k`` robust standard deviations are reported in ``rejected``. :func:`ransac_farfield`
+``reject_k`` robust standard deviations are reported in ``rejected``. :func:`~selfcal.tdoa.structure.ransac_farfield`
 additionally offers RANSAC over the minimal solver.
 
 The pieces live one job per module: :mod:`.screen` (gross errors, robust structure fits,
 RANSAC), :mod:`.orientation` (the transposed check), :mod:`.degeneracy` (failure modes),
 :mod:`.initialize` (section 2.3), :mod:`.lm` / :mod:`.alternating` (Algorithms 3 / 2),
 :mod:`.lowdim` (planar and linear arrays), :mod:`.semiblind` (known directions) and
-:mod:`.result`; their public names are re-exported here as before. Steps 2-4 are
+:mod:`.result`. Steps 2-4 are
 :func:`selfcal.tdoa.solve.solve_unscreened`, which the screen's deletion test re-runs on
 sub-matrices; this module adds the screen (step 1) in front.
 """
@@ -35,28 +35,11 @@ from typing import Any
 import numpy as np
 
 from .._checks import entry
-from .initialize import fit_A_nonlinear, initialize_farfield, reduce_matrix
-from .orientation import check_orientation
-from .result import FarfieldInit, FarfieldResult
-from .screen import gross_error_screen, screen_gross_errors
-from .solve import COLLAPSE_RATIO, METHODS, dimension_rule, solve_unscreened
-from .structure import lowrank_fit, ransac_farfield
+from .result import FarfieldResult
+from .screen import gross_error_screen
+from .solve import solve_unscreened
 
-__all__ = [
-    "FarfieldResult",
-    "FarfieldInit",
-    "solve_farfield",
-    "initialize_farfield",
-    "fit_A_nonlinear",
-    "reduce_matrix",
-    "screen_gross_errors",
-    "check_orientation",
-    "lowrank_fit",
-    "ransac_farfield",
-    "METHODS",
-    "dimension_rule",
-    "COLLAPSE_RATIO",
-]
+__all__ = ["solve_farfield"]
 
 
 @entry(matrix="array", f_scale="positive?", noise_std="positive?", max_iter="count?", tol="positive?",
@@ -108,7 +91,7 @@ def solve_farfield(
     direction_solver : for "alternating": "global" or "local" (see :mod:`.refine`).
     allow_degenerate : return the partial reconstruction of a degenerate configuration
         (with ``degeneracy`` set) instead of raising.
-    screen : treat gross errors (:func:`screen_gross_errors`: a residual test at family-wise
+    screen : treat gross errors (:func:`~selfcal.tdoa.screen.gross_error_screen`: a residual test at family-wise
         false-alarm rate 1 % against the Student-t tail fitted to the residuals, so the rate
         holds for heavy-tailed noise too) as missing.
     reject_k : with a robust loss, entries with ``|residual| > reject_k`` robust std are rejected.
@@ -121,7 +104,7 @@ def solve_farfield(
     check_degeneracy : run the failure-mode analysis and act on it (raise / partial result).
         With False the full 3-D pipeline runs regardless, as in the paper's experiments; the
         analysis is still reported in ``diagnostics`` but ``degeneracy`` stays None.
-    ransac : screen outliers first with :func:`ransac_farfield` (RANSAC over the minimal
+    ransac : screen outliers first with :func:`~selfcal.tdoa.structure.ransac_farfield` (RANSAC over the minimal
         solver); entries outside its inlier set are treated as missing and reported in
         ``rejected``. Combine with a robust loss for the best results.
     rng : random generator / seed (used by ``ransac``).

@@ -33,7 +33,7 @@ initialisation; in about a quarter of such draws the ML minimum itself (reached 
 even when started at the true geometry) has nearly coplanar directions and a stretched
 array. See ``selfcal.experiments.farfield.FINDING``. :func:`selfcal.tdoa.solve_farfield`
 flags such solutions (``warnings``: ``directions-collapsed``, threshold
-``selfcal.tdoa.farfield.COLLAPSE_RATIO``).
+``selfcal.tdoa.solve.COLLAPSE_RATIO``).
 
 One job per module: :mod:`.model` (losses, residuals, Jacobian, normal equations),
 :mod:`.alternating` (Algorithm 2), :mod:`.lm` (Algorithm 3), :mod:`.covariance` and

@@ -1,5 +1,5 @@
 """Far-field result types: :class:`FarfieldResult` (of :func:`~selfcal.tdoa.solve_farfield`) and
-:class:`FarfieldInit` (of :func:`~selfcal.tdoa.initialize_farfield`)."""
+:class:`FarfieldInit` (of :func:`~selfcal.tdoa.initialize.initialize_farfield`)."""
 
 from __future__ import annotations
 
@@ -64,7 +64,7 @@ class FarfieldResult(Result):
     screen_rule : the gross-error test that ran and its false-alarm rate, in words (with the
         fitted tail: its dof and scale; :attr:`~selfcal.tdoa.screen.GrossScreen.rule`).
     dim_rule : how ``dim`` was chosen: given, or ``"auto: ..."`` with the rank test's level
-        (:func:`~selfcal.tdoa.farfield.dimension_rule`).
+        (:func:`~selfcal.tdoa.solve.dimension_rule`).
     """
 
     positions: Array

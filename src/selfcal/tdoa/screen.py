@@ -1,9 +1,9 @@
 """Gross-error screening of far-field matrices.
 
-:func:`screen_gross_errors` (the default screen of :func:`~selfcal.tdoa.solve_farfield`). The
-robust structure fits it builds on (:func:`lowrank_fit`, :func:`ransac_farfield`) live in
-:mod:`selfcal.tdoa.structure` and the residuals' tail model the screen's threshold comes from
-in :mod:`selfcal.tdoa.tails` (both re-exported here).
+:func:`gross_error_screen` (the default screen of :func:`~selfcal.tdoa.solve_farfield`). The
+robust structure fits it builds on (:func:`~selfcal.tdoa.structure.lowrank_fit`,
+:func:`~selfcal.tdoa.structure.ransac_farfield`) live in :mod:`selfcal.tdoa.structure` and the
+residuals' tail model the screen's threshold comes from in :mod:`selfcal.tdoa.tails`.
 """
 
 from __future__ import annotations
@@ -14,23 +14,16 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ..robust import mad_std
-from .structure import (  # noqa: F401 (re-exported: the structure fits' home is selfcal.tdoa.structure)
-    _lowrank_factors,
-    consensus_model,
-    far_field_parameters,
-    lowrank_fit,
-    ransac_farfield,
-)
-from .tails import TAIL_CONFIDENCE, TAIL_DOF_GRID, TailModel, fit_tail_model
+from .structure import _lowrank_factors
+from .tails import TailModel, fit_tail_model
 
-__all__ = ["SCREEN_ALPHA", "LEVERAGE_MAX", "TAIL_DOF_GRID", "TAIL_CONFIDENCE", "TailModel", "fit_tail_model", "GrossScreen", "entry_leverages", "far_field_parameters",
-           "implausible_entries", "gross_error_screen", "screen_gross_errors", "lowrank_fit", "consensus_model",
-           "ransac_farfield"]
+__all__ = ["SCREEN_ALPHA", "LEVERAGE_MAX", "GrossScreen", "entry_leverages", "implausible_entries",
+           "gross_error_screen"]
 
 Array = NDArray[np.float64]
 
 
-#: family-wise false-alarm rate of :func:`screen_gross_errors` (probability that a clean
+#: family-wise false-alarm rate of :func:`gross_error_screen` (probability that a clean
 #: matrix with Gaussian noise loses any entry)
 SCREEN_ALPHA = 0.01
 
@@ -45,7 +38,7 @@ def implausible_entries(D: Array, *, factor: float = 20.0) -> NDArray[np.bool_]:
     two-valued or nearly constant data (parallel directions, a position near the median)
     from being flagged; the global term means a gross error must exceed the spread of the
     whole data set. Only errors far beyond the array's size are caught, and with fewer than
-    10 columns the row quantile contains the error itself: :func:`screen_gross_errors` adds
+    10 columns the row quantile contains the error itself: :func:`gross_error_screen` adds
     the model-based test.
     """
     X = D - np.nanmedian(D, axis=0, keepdims=True)
@@ -59,7 +52,7 @@ def implausible_entries(D: Array, *, factor: float = 20.0) -> NDArray[np.bool_]:
         return np.asarray(np.isfinite(D) & (dev > factor * scale))
 
 
-#: largest number of unknowns for which :func:`screen_gross_errors` computes each entry's leverage
+#: largest number of unknowns for which :func:`gross_error_screen` computes each entry's leverage
 #: (a dense pseudo-inverse, O(p^3)); above, every entry gets the mean leverage p / n
 LEVERAGE_MAX = 300
 
@@ -136,21 +129,6 @@ class GrossScreen:
                 "large as the array could pass unnoticed in them); add receivers or transmitters")
 
 
-def screen_gross_errors(
-    D: Array,
-    *,
-    alpha: float = SCREEN_ALPHA,
-    rank: int = 3,
-    noise_std: float | None = None,
-    factor: float = 20.0,
-    rounds: int = 4,
-    tail: str = "fitted",
-) -> NDArray[np.bool_]:
-    """Flag gross errors with a stated false-alarm rate: (m, k) bool mask (:func:`gross_error_screen`)."""
-    return gross_error_screen(D, alpha=alpha, rank=rank, noise_std=noise_std, factor=factor, rounds=rounds,
-                              tail=tail).mask
-
-
 def gross_error_screen(
     D: Array,
     *,
@@ -167,7 +145,7 @@ def gross_error_screen(
     Two stages. (1) :func:`implausible_entries`, the model-free pre-screen (errors far beyond
     the array's size), so that they cannot spoil the fit of stage 2. (2) A residual test
     against the far-field structure: the least-squares fit ``L`` of ``D = P Q^T + 1 c^T``
-    (:func:`lowrank_fit`, rank ``rank``) to the entries not yet flagged, and an entry is
+    (:func:`~selfcal.tdoa.structure.lowrank_fit`, rank ``rank``) to the entries not yet flagged, and an entry is
     gross when
 
     ``|D_ij - L_ij| > s t sqrt(1 -/+ h)``,  ``t = T_nu^-1(1 - alpha / (2 n))``

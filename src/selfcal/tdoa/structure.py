@@ -4,8 +4,7 @@
 :func:`ransac_farfield` (RANSAC over the minimal solver, paper 000's future work), the robust
 noise level of a fit and the model's parameter count. :mod:`selfcal.tdoa.screen` (the
 gross-error screen) and :mod:`selfcal.tdoa.solve` (the unscreened solve that the screen's
-deletion test re-runs on sub-matrices) both build on them; :mod:`selfcal.tdoa.screen`
-re-exports them under their old names.
+deletion test re-runs on sub-matrices) both build on them.
 """
 
 from __future__ import annotations

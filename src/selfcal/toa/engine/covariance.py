@@ -674,8 +674,6 @@ def covariance_blocks(
     weights: Array,
     *,
     offsets: str = "none",
-    receiver_offsets: Array | None = None,
-    source_offsets: Array | None = None,
     covariance: Any = "all",
     threads: int | None = None,
 ) -> tuple[Array, Array]:
@@ -687,7 +685,6 @@ def covariance_blocks(
     weights : (I, J) weights ``1/sigma_ij^2`` (1/m^2), 0 where a range is missing.
     offsets : "none" | "receivers" | "sources" | "both" (which offsets are unknown; their
         values do not enter the Jacobian).
-    receiver_offsets, source_offsets : unused values kept for symmetry with the model; optional.
     covariance : which blocks (:func:`normalize_covariance`); the others are NaN.
     threads : BLAS threads for the dense algebra (None = :func:`dense_threads` on large
         networks, see :func:`gauge_free_blocks`).

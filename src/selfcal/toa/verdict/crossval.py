@@ -65,7 +65,7 @@ from ...errors import ConvergenceWarning, DegenerateGeometryError, InputError
 from .focused import AnchorMse, anchor_mse
 
 __all__ = ["MAX_FOLDS", "MIN_FOLDS", "MODELS", "CvChoice",
-           "choose_receiver_offsets", "cross_validate", "locate_sources", "one_se_choice", "spatial_folds"]
+           "choose_receiver_offsets", "cross_validate", "locate_sources", "one_se_choice"]
 
 Array = NDArray[np.float64]
 
@@ -292,60 +292,12 @@ def _folds(J: int, L: int) -> NDArray[np.intp]:
     return np.linspace(0, J, K + 1).round().astype(np.intp)
 
 
-def spatial_folds(positions: Array, K: int, seed: int = 0) -> NDArray[np.intp]:
-    """Fold label of every source: K spatial clusters of the positions (k-means), 0..K'-1.
-
-    The folds of ``cross_validate(split="space")``: each held-out fold is a region of the
-    tag's space rather than a stretch of its time (an alternative evaluated for issue 29,
-    not the default: see docs/design.md). Sources without a finite position go to the fold
-    of the nearest preceding located column (they cannot be scored anyway); empty clusters
-    are dropped (K' <= K).
-
-    Parameters
-    ----------
-    positions : (J, d) array
-        Source positions (m), NaN rows allowed.
-    K : int
-        Number of clusters asked for.
-    seed : int
-        Seed of the k-means++ start (the labels are deterministic for a given seed).
-
-    Returns
-    -------
-    (J,) int array
-        Labels ``0 .. K' - 1``.
-
-    Examples
-    --------
-    >>> import numpy as np
-    >>> X = np.r_[np.zeros((5, 3)), np.ones((5, 3)) * 10]
-    >>> lab = spatial_folds(X, 2)
-    >>> sorted(np.bincount(lab).tolist()), bool(len(set(lab[:5])) == 1)
-    ([5, 5], True)
-    """
-    from scipy.cluster.vq import kmeans2
-
-    X = np.asarray(positions, float)
-    ok = np.isfinite(X).all(axis=1)
-    lab = np.zeros(X.shape[0], np.intp)
-    if ok.sum() >= K:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            _, l = kmeans2(X[ok], int(K), minit="++", seed=seed)
-        lab[ok] = np.unique(l, return_inverse=True)[1]
-    if not ok.all():
-        idx = np.maximum.accumulate(np.where(ok, np.arange(X.shape[0]), 0))
-        lab[~ok] = lab[idx[~ok]]
-    return lab
-
-
 def cross_validate(
     matrix: Array,
     starts: Mapping[str, tuple[Array, Array, Array | None, Array | None]],
     *,
     solver: str = "auto",
-    folds: int | None = None,
-    split: str = "time",
+    folds: int | NDArray[np.intp] | None = None,
     progress: Any = None,
 ) -> CvChoice:
     """Score offset models by K-fold held-out prediction over the columns and choose one.
@@ -361,11 +313,10 @@ def cross_validate(
         in metres: the warm start of every fold's refit.
     solver : str
         Engine of the refits (:func:`selfcal.toa.engine.nls.refine_toa`).
-    folds : int, optional
-        K (default from the residual correlation length, see the module docstring).
-    split : str
-        ``"time"`` (default): K contiguous blocks of columns; ``"space"``: K spatial
-        clusters of the simplest model's source positions (:func:`spatial_folds`).
+    folds : int or (J,) int array, optional
+        K contiguous blocks of columns (default K from the residual correlation length, see
+        the module docstring), or the fold of every column (labels ``0 .. K-1``: another
+        split, e.g. the spatial folds evaluated in ``benchmarks/lps_bias_choice.py``).
     progress : callable, optional
         Called with ``(done, total)`` after each refit.
 
@@ -404,12 +355,11 @@ def cross_validate(
     e0 = Y - (np.linalg.norm(np.asarray(R0)[:, None] - np.asarray(S0)[None], axis=2)
               + (0 if d0 is None else np.asarray(d0)[:, None]) + (0 if o0 is None else np.asarray(o0)[None]))
     L = residual_correlation_length(np.where(np.isfinite(Y), e0, np.nan))
-    edges = np.linspace(0, J, int(folds) + 1).round().astype(np.intp) if folds else _folds(J, L)
-    K = len(edges) - 1
-    if split == "space":
-        label = spatial_folds(np.asarray(S0, float), K)
+    if folds is not None and np.ndim(folds):
+        label = np.asarray(folds, np.intp)
     else:
-        label = np.repeat(np.arange(K), np.diff(edges))
+        edges = np.linspace(0, J, int(folds) + 1).round().astype(np.intp) if folds else _folds(J, L)
+        label = np.repeat(np.arange(len(edges) - 1), np.diff(edges))
     K = int(label.max()) + 1
     press: dict[str, Array] = {}
     refits: dict[str, list[Array]] = {}
@@ -511,7 +461,7 @@ def located_block(res: Any, sub: Array, scale: float = 1.0) -> tuple[Any, ...]:
 
 
 def choose_receiver_offsets(res: Any, sub: Array, scale: float = 1.0, solver: str = "auto",
-                            progress: Any = None, split: str = "time") -> tuple[Any, CvChoice | None]:
+                            progress: Any = None) -> tuple[Any, CvChoice | None]:
     """Per-receiver offsets (per-anchor ranging biases) kept when they predict held-out sources
     better and their receivers are expected to be more accurate.
 
@@ -536,8 +486,6 @@ def choose_receiver_offsets(res: Any, sub: Array, scale: float = 1.0, solver: st
         Engine of the refits (:func:`selfcal.toa.engine.nls.refine_toa`).
     progress : callable, optional
         ``(done, total)`` after each refit.
-    split : str
-        Folds of :func:`cross_validate` (``"time"``, default, or ``"space"``).
 
     Returns
     -------
@@ -561,7 +509,7 @@ def choose_receiver_offsets(res: Any, sub: Array, scale: float = 1.0, solver: st
         return res, None
     starts = {simple: (R, S, d0, None),
               "receivers": (full.receivers, full.sources, full.receiver_offsets, None)}
-    choice = cross_validate(Z, starts, solver=solver, split=split, progress=progress)
+    choice = cross_validate(Z, starts, solver=solver, progress=progress)
     # kept only where the receivers are expected to be more accurate too (anchor_mse: held-out
     # prediction can prefer offsets that trade against the receivers' radial positions)
     est = anchor_mse(simple, "receivers", starts, choice.refits) if "receivers" in choice.scores else None
