@@ -288,52 +288,56 @@ def _thickness_cov(fit3: ToaResult, speed: float | None) -> Array:
 
 
 def _null_replicates(M: Array, fit2: ToaResult, fit3: ToaResult, common: NDArray[np.bool_], offsets: str,
-                     solve: Solver, opts: ToaOptions, n: int = BOOT_REPLICATES) -> Array:
+                     opts: ToaOptions, n: int = BOOT_REPLICATES) -> Array:
     """F statistics of ``n`` data sets simulated from the 2-D fit: the F test's null at a planar truth.
 
     Each replicate is the 2-D fit's model on the entries both fits used (``common``) plus
-    Gaussian noise of the 2-D fit's variance estimate (``RSS_2 / (m - p_2)``), refitted as
-    :func:`dimension_test` fits the data: the 2-D model by one refinement (from the 2-D fit,
-    the replicate's truth), the 3-D model by refinements from the observed 3-D fit and from
-    the replicate's 2-D fit lifted by random heights of the bending scale
-    ``sqrt(noise x extent)`` (a planar start is a saddle of the 3-D cost), the lower sum of
-    squares kept. Replicates whose fits break down are skipped. The random numbers come
-    from a child of the solver's generator (``opts.rng.spawn``): deterministic for a
-    seeded solve, and the solver's own stream is not advanced.
+    Gaussian noise of the 2-D fit's variance estimate (``RSS_2 / (m - p_2)``), refitted by
+    least squares (:func:`selfcal.toa.engine.nls.refine_toa`, the Gaussian likelihood the F
+    test assumes; no outlier rule, no covariances): the 2-D model from the 2-D fit (the
+    replicate's truth), the 3-D model from the observed 3-D fit and from the replicate's 2-D
+    fit lifted by random heights of the bending scale ``sqrt(noise x extent)`` (a planar
+    start is a saddle of the 3-D cost), the lower sum of squares kept. Replicates whose
+    refinements fail are skipped. The random numbers come from a child of the solver's
+    generator (``opts.rng.spawn``): deterministic for a seeded solve, the solver's own
+    stream not advanced.
     """
+    from ..engine.model import toa_model
+    from ..engine.nls import refine_toa
+
     k = 1.0 if opts.speed is None else float(opts.speed)
     I, J = M.shape
     n_off = _n_off(offsets, I, J)
     assert fit2.residuals is not None
     m = int(common.sum())
     p2 = 2 * (I + J) - 3 + n_off  # the 2-D model's free parameters
-    sigma = float(np.sqrt(np.sum(fit2.residuals[common] ** 2) / max(m - p2, 1)))  # matrix units
+    sigma = k * float(np.sqrt(np.sum(fit2.residuals[common] ** 2) / max(m - p2, 1)))  # metres
     st2, st3 = _nested_init(fit2, offsets, opts.speed), _nested_init(fit3, offsets, opts.speed)
-    from ..engine.model import toa_model
-
-    mu = toa_model(*st2) / k
+    mu = toa_model(*st2)
     extent = float(np.ptp(np.vstack([st2[0], st2[1]]), axis=0).max())
-    bend = math.sqrt(sigma * k * extent)
+    bend = math.sqrt(sigma * extent)
     g = opts.rng.spawn(1)[0]
-    nls = dataclasses.replace(opts, method="nls", covariance=False)
+
+    def rss(Y: Array, st: tuple[Any, ...]) -> tuple[float, tuple[Any, ...]]:
+        try:
+            with warnings.catch_warnings(), np.errstate(all="ignore"):
+                warnings.simplefilter("ignore")
+                sol = refine_toa(Y, st[0], st[1], offsets=offsets, receiver_offsets0=st[2], source_offsets0=st[3],
+                                 covariance=False)
+        except (np.linalg.LinAlgError, ValueError, FloatingPointError, DegenerateGeometryError):
+            return math.inf, st
+        e = sol.residuals[np.isfinite(sol.residuals)]
+        return float(e @ e), (sol.receivers, sol.sources, sol.receiver_offsets, sol.source_offsets)
+
     out = []
     for _ in range(n):
-        Ms = np.where(common, mu + g.normal(0.0, sigma, M.shape), np.nan)
+        Y = np.where(common, mu + g.normal(0.0, sigma, M.shape), np.nan)
         z = g.normal(0.0, bend, I + J)
-        f2 = _quiet(solve, Ms, 2, offsets, nls, init=st2)
-        if f2 is None:
-            continue
-        s2 = _nested_init(f2, offsets, opts.speed)
-        best = math.inf
-        for start in (st3, (np.c_[s2[0], z[:I]], np.c_[s2[1], z[I:]], s2[2], s2[3])):
-            try:
-                f3 = _quiet(solve, Ms, 3, offsets, nls, init=start)
-            except (np.linalg.LinAlgError, ValueError):
-                f3 = None
-            if f3 is not None:
-                best = min(best, _lsq(f3))
-        if math.isfinite(best):
-            out.append(compare_fits(math.sqrt(_lsq(f2) / m), math.sqrt(best / m), m, I + J,
+        rss2, f2 = rss(Y, st2)
+        lifted = (np.c_[f2[0], z[:I]], np.c_[f2[1], z[I:]], f2[2], f2[3])
+        rss3 = min(rss(Y, st3)[0], rss(Y, lifted)[0])
+        if math.isfinite(rss2) and math.isfinite(rss3):
+            out.append(compare_fits(math.sqrt(rss2 / m), math.sqrt(min(rss3, rss2) / m), m, I + J,
                                     n_offsets=n_off).f_statistic)
     return np.asarray(out, float)
 
@@ -428,7 +432,7 @@ def dimension_test(M: Array, fit3: ToaResult, offsets: str, solve: Solver,
     extent = float(np.ptp(pts[fin], axis=0).max()) if fin.any() else 0.0
     if in_bootstrap_band(cmp, float(plan.extents[-1]), noise, extent) and (not plan.near_planar or _misfit(r2)):
         # only where the bootstrap can overturn a "3-D" verdict (F decides it)
-        cmp = bartlett_corrected(cmp, _null_replicates(M, r2, r3, common, offsets, solve, opts))
+        cmp = bartlett_corrected(cmp, _null_replicates(M, r2, r3, common, offsets, opts))
         plan = planarity(pts, cov, comparison=cmp)
     untestable = cmp.dof_3d <= 0
     keep3 = untestable or not plan.near_planar or (cmp.significant and _misfit(r2))
