@@ -28,7 +28,13 @@ import scipy.stats
 
 from selfcal.acoustics.calibrate import _toa_options, _toa_solver
 from selfcal.toa import solve_toa
-from selfcal.toa.verdict.planarity import BOOT_REPLICATES, PLANAR_ALPHA, bartlett_corrected, compare_fits, planarity
+from selfcal.toa.verdict.planarity import (
+    BOOT_REPLICATES,
+    PLANAR_ALPHA,
+    bartlett_corrected,
+    compare_fits,
+    planarity,
+)
 from selfcal.toa.verdict.select import dimension_test
 
 C = 343.0

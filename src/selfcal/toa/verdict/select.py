@@ -25,8 +25,15 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ...errors import ConvergenceWarning, DegenerateGeometryError
-from .planarity import (BOOT_REPLICATES, PLANAR_ALPHA, Planarity, bartlett_corrected, compare_fits, in_bootstrap_band,
-                        planarity)
+from .planarity import (
+    BOOT_REPLICATES,
+    PLANAR_ALPHA,
+    Planarity,
+    bartlett_corrected,
+    compare_fits,
+    in_bootstrap_band,
+    planarity,
+)
 
 if TYPE_CHECKING:  # the result type sits one layer above the verdicts (docs/design.md)
     from ..options import ToaOptions
@@ -361,7 +368,7 @@ def dimension_test(M: Array, fit3: ToaResult, offsets: str, solve: Solver,
     while the 2-D fit fails its own residual test (the data reject the plane; the 3-D
     answer is then judged by its own determinacy test, never replaced by a failed 2-D fit).
 
-    Where the F test rejects the plane but the layout is within :data:`BOOT_BAND` bending
+    Where the F test rejects the plane but the layout is within ``BOOT_BAND`` bending
     scales ``sqrt(noise x extent)`` of flat (:func:`.planarity.in_bootstrap_band`; noise from
     the 3-D fit, extent the layout's largest), F(k, dof) is not the statistic's law: the
     heights enter the ranges at second order and the 3-D model is not regular at a planar
