@@ -325,9 +325,12 @@ def planarity(points: Array, cov: NDArray[np.float64] | None = None, *,
       alone called 100 % of them resolved, ``benchmarks/planarity_rates.py``). The F test of
       the nested models is the better test there, but not an exact one: the heights enter
       the ranges only to second order, the 3-D model is not regular at a planar truth and
-      the likelihood ratio has heavier tails than F(k, dof) (4 % of 200 planar 8 x 10
+      the likelihood ratio has heavier tails than F(k, dof) (4-5 % of 200 planar 8 x 10
       draws called 3-D at a nominal 1e-3; the chi-square alone 80 %, the per-point rule
-      this replaced 20 %).
+      this replaced 20 %). Where that matters (a "3-D" F near its critical value on a
+      layout near flat), :func:`selfcal.toa.verdict.select.dimension_test` passes a
+      ``comparison`` corrected by its bootstrap null (:func:`bartlett_corrected`; 0 of
+      those 200 draws called 3-D).
 
     Without any covariance (no noise to test against) the fallback is geometric: thinner
     than ``ratio`` of the widest extent.
