@@ -307,7 +307,7 @@ def _null_replicates(M: Array, fit2: ToaResult, fit3: ToaResult, common: NDArray
     start is a saddle of the 3-D cost), the lower sum of squares kept. Replicates whose
     refinements fail are skipped. The random numbers come from a child of the solver's
     generator (``opts.rng.spawn``): deterministic for a seeded solve, the solver's own
-    stream not advanced.
+    stream not advanced (a generator that cannot spawn seeds a new one from one draw).
     """
     from ..engine.model import toa_model
     from ..engine.nls import refine_toa
@@ -323,7 +323,10 @@ def _null_replicates(M: Array, fit2: ToaResult, fit3: ToaResult, common: NDArray
     mu = toa_model(*st2)
     extent = float(np.ptp(np.vstack([st2[0], st2[1]]), axis=0).max())
     bend = math.sqrt(sigma * extent)
-    g = opts.rng.spawn(1)[0]
+    try:
+        g = opts.rng.spawn(1)[0]
+    except (TypeError, ValueError, AttributeError):  # a generator without a seed sequence
+        g = np.random.default_rng(int(opts.rng.integers(2**63)))
 
     def rss(Y: Array, st: tuple[Any, ...]) -> tuple[float, tuple[Any, ...]]:
         try:
