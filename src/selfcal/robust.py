@@ -18,10 +18,12 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+from scipy.optimize import brentq
 from scipy.special import ndtri
 from scipy.stats import median_abs_deviation
 
-__all__ = ["LOSSES", "TUNING", "loss_rho", "loss_rho_inverse", "mad_std"]
+__all__ = ["CONVEX_LOSSES", "LOSSES", "TUNING", "loss_dpsi", "loss_rho", "loss_rho_inverse", "m_estimator_sigma2",
+           "mad_std"]
 
 #: robust losses understood by every solver (scipy.optimize.least_squares names)
 LOSSES = ("linear", "huber", "soft_l1", "cauchy")
@@ -167,3 +169,109 @@ def mad_std(
     if keepdims and axis is not None:
         out = np.expand_dims(out, axis)
     return float(out) if np.ndim(out) == 0 and not keepdims else out
+
+
+def loss_dpsi(z: ArrayLike, loss: str) -> NDArray[np.float64]:
+    """``psi'(r)`` of ``psi(r) = r rho'(r^2 / delta^2)`` as a function of ``z = r^2 / delta^2``.
+
+    Parameters
+    ----------
+    z : squared scaled residuals ``r^2 / delta^2`` (any shape).
+    loss : "linear", "huber", "soft_l1" or "cauchy" (:data:`LOSSES`).
+
+    Returns
+    -------
+    ndarray
+        ``psi'`` (same shape as z): 1 for the linear loss, the inlier indicator for Huber,
+        ``(1 + z)^-1.5`` for soft_l1, ``(1 - z) / (1 + z)^2`` for cauchy (negative beyond delta).
+
+    Examples
+    --------
+    >>> loss_dpsi([0.25, 4.0], "huber").tolist()
+    [1.0, 0.0]
+    """
+    z = np.asarray(z, dtype=float)
+    if loss == "huber":
+        return (z <= 1.0).astype(float)
+    if loss == "soft_l1":
+        return np.asarray((1.0 + z) ** -1.5)
+    if loss == "cauchy":
+        return np.asarray((1.0 - z) / (1.0 + z) ** 2)
+    return np.ones_like(z)
+
+
+#: losses whose rho(r^2) is convex in r: the high-dimensional variance factor of
+#: :func:`m_estimator_sigma2` applies (El Karoui et al. 2013 assume a convex loss)
+CONVEX_LOSSES = ("huber", "soft_l1")
+
+
+def m_estimator_sigma2(r: ArrayLike, mask: NDArray[np.bool_], loss: str, delta: float, n_par: int) -> float:
+    """Variance factor of an M-estimate's covariance ``sigma_psi^2 (J^T J)^+``.
+
+    For the convex losses (huber, soft_l1) the high-dimensional sandwich of El Karoui et al.
+    (2013): with ``kappa = n_par / n`` and ``b`` the root of
+    ``mean(b psi'(r) / (1 + b psi'(r))) = kappa`` (the trace identity ``sum h_i = n_par`` of the
+    leverages in the leave-one-out relation ``r_(i) = r_i + b psi(r_i)``),
+    ``sigma_psi^2 = (1 - kappa) b^2 mean(psi(r)^2) / kappa^2``. As ``kappa -> 0`` it is
+    Huber's (1981, sec. 7.6) ``mean(psi^2) / mean(psi')^2``; for the linear loss it is
+    exactly ``RSS / (n - n_par)``. Huber's classical factor (with his first-order correction
+    ``K^2 = (1 + kappa var(psi') / mean(psi')^2)^2`` and ``n / (n - n_par)``) leaves the
+    covariance too small when ``kappa`` is not small: 1.04-1.18 in the mean squared Mahalanobis
+    distance per dimension at 10 x 20 (kappa = 0.42) under Gaussian to t3 noise, 0.97-1.09 with
+    this one (``tests/tdoa/test_cov_calibration.py``). The fitted residuals are shrunk
+    towards 0 by the fit (``r_i = prox(r_(i))``), which inflates ``mean(psi')`` and shrinks
+    ``mean(psi^2)``; the root ``b`` undoes both. The redescending cauchy loss (not convex,
+    where that theory does not hold) and fits with no root (fewer effective inliers than
+    parameters) keep Huber's classical factor. Valid for heavy-tailed noise when the
+    weights' spread does not depend on the design.
+
+    Parameters
+    ----------
+    r : residuals (any shape); mask : which of them the fit used (bool, same shape);
+    loss : "linear", "huber", "soft_l1" or "cauchy"; delta : the loss scale (residual units);
+    n_par : identifiable parameters.
+
+    Returns
+    -------
+    float
+        ``sigma_psi^2`` in residual units squared.
+
+    References
+    ----------
+    N. El Karoui, D. Bean, P. J. Bickel, C. Lim, B. Yu, "On robust regression with
+    high-dimensional predictors", PNAS 110(36):14557-14562, 2013 (eq. 3 / Theorem 1).
+    P. J. Huber, "Robust Statistics", Wiley 1981, sec. 7.6.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> r = np.random.default_rng(0).standard_normal(20000)
+    >>> ok = np.ones(r.shape, dtype=bool)
+    >>> round(m_estimator_sigma2(r, ok, "huber", 1.345, 10), 1)
+    1.0
+    >>> bool(np.isclose(m_estimator_sigma2(r, ok, "linear", 1.0, 8000), np.sum(r**2) / 12000))
+    True
+    """
+    e: NDArray[np.float64] = np.asarray(r, dtype=float)[np.asarray(mask, bool)]
+    n = e.size
+    if loss == "linear":
+        return float(np.sum(e**2)) / max(n - n_par, 1)
+    z = (e / delta) ** 2
+    psi = e * loss_rho(z, loss)[1]
+    dp = loss_dpsi(z, loss)
+    mean_dp = float(np.mean(dp)) if n else 1.0
+    if mean_dp <= 0:
+        return float(np.sum(e**2)) / max(n - n_par, 1)
+    kappa = n_par / max(n, 1)
+    if loss in CONVEX_LOSSES and np.isfinite(psi).all() and 0 < kappa < float(np.mean(dp > 0)):
+        def excess(b: float) -> float:  # mean leverage at b minus kappa: increasing in b
+            return float(np.mean(b * dp / (1.0 + b * dp))) - kappa
+
+        hi = kappa / mean_dp  # excess(hi) <= 0 (Jensen); its limit as b -> inf is positive
+        for _ in range(200):
+            if excess(hi) >= 0:
+                b = float(brentq(excess, 0.0, hi, xtol=1e-14 * hi, rtol=1e-12))
+                return float((1.0 - kappa) * b * b * np.mean(psi**2) / kappa**2)
+            hi *= 4.0
+    K = 1.0 + kappa * float(np.var(dp)) / mean_dp**2
+    return float(K**2 * np.sum(psi**2) / max(n - n_par, 1) / mean_dp**2)

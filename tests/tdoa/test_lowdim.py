@@ -206,14 +206,25 @@ def test_linear_array_covariance_predicts_the_scatter():
     x = np.linspace(0, 0.3, m)
     u = rng.uniform(-1, 1, k)
     u[0] = 1.0  # an endfire source: the reported scale (max |u| = 1) is then the true one
-    errs, preds = [], []
+    errs, preds, refused = [], [], 0
     for seed in range(200):
         g = np.random.default_rng(seed)
         D = np.outer(x, u) + g.normal(size=k) + 1e-3 * g.standard_normal((m, k))
-        res = solve_farfield(D, dim=1)
+        try:
+            res = solve_farfield(D, dim=1)
+        except InputError:
+            # the explicit dim=1 is checked by the nested rank test (false-alarm rate RANK_ALPHA =
+            # 1e-3 per step, two steps here): a rank-1 draw is refused at that rate, and seed 118
+            # is such a draw (s_3 = 0.00924 just above its threshold). Measured on this scene over
+            # 20000 draws: 24 refused (1.2e-3: 16 at the rank-2 step, 8 at the rank-3 step), so
+            # 200 draws hold one or more with probability ~0.2; more than 3 (P < 1e-3 at the
+            # nominal 2e-3) would mean the test's level is wrong
+            refused += 1
+            continue
         est = res.positions[:, 0]
         a = (est @ x) / (est @ est)  # best scaling about the first position
         errs.append(a * est - x)
         preds.append(res.position_cov[:, 0, 0])
     ratio = np.mean(np.array(errs)[:, 1:] ** 2, axis=0) / np.mean(np.array(preds)[:, 1:], axis=0)
     assert np.all((ratio > 0.7) & (ratio < 1.4)), ratio  # 200 draws: each ratio within ~15 % (2 sd)
+    assert refused <= 3, refused

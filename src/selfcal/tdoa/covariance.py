@@ -7,7 +7,7 @@ from numpy.typing import NDArray
 from scipy.linalg import block_diag
 
 from .._checks import check_choice
-from ..robust import loss_rho
+from ..robust import m_estimator_sigma2
 from .model import _eliminate_positions, _flat, _normal_equations
 
 Array = NDArray[np.float64]
@@ -58,60 +58,6 @@ def _shared_noise_directions(X: Array, Gz: Array, gn: Array) -> Array:
     Gt = Gz - np.einsum("ijaq,jq->ija", X, gn)  # (mz, k, d)
     mz, k, d = Gt.shape
     return np.asarray(Gt.transpose(0, 2, 1).reshape(mz * d, k))
-
-
-def _dpsi(z: Array, loss: str) -> Array:
-    """``psi'(r)`` of ``psi(r) = r rho'(r^2 / delta^2)`` as a function of ``z = r^2 / delta^2``."""
-    if loss == "huber":
-        return (z <= 1.0).astype(float)
-    if loss == "soft_l1":
-        return np.asarray((1.0 + z) ** -1.5)
-    if loss == "cauchy":
-        return np.asarray((1.0 - z) / (1.0 + z) ** 2)
-    return np.ones_like(z)
-
-
-def m_estimator_sigma2(r: Array, mask: NDArray[np.bool_], loss: str, delta: float, n_par: int) -> float:
-    """Variance factor of an M-estimate's covariance ``sigma_psi^2 (J^T J)^+`` (Huber 1981, sec. 7.6).
-
-    ``sigma_psi^2 = K^2 [sum psi(r)^2 / (n - n_par)] / [mean psi'(r)]^2`` with
-    ``K = 1 + (n_par / n) var(psi') / mean(psi')^2``, ``psi(r) = r rho'(r^2/delta^2)``; for the
-    linear loss it is ``RSS / (n - n_par)``. Unlike ``sigma^2 (J^T W J)^+`` with the IRLS weights W
-    (which shrinks the squared residuals the weights cut: 1.2x too small in variance on Gaussian
-    noise with Huber at 1.345 sigma), it is the sandwich of the estimating equations, valid for
-    heavy-tailed noise when the weights' spread does not depend on the design.
-
-    Parameters
-    ----------
-    r : residuals (any shape); mask : which of them the fit used (bool, same shape);
-    loss : "linear", "huber", "soft_l1" or "cauchy"; delta : the loss scale (residual units);
-    n_par : identifiable parameters.
-
-    Returns
-    -------
-    float
-        ``sigma_psi^2`` in residual units squared.
-
-    Examples
-    --------
-    >>> import numpy as np
-    >>> r = np.random.default_rng(0).standard_normal(20000)
-    >>> ok = np.ones(r.shape, dtype=bool)
-    >>> round(m_estimator_sigma2(r, ok, "huber", 1.345, 10), 1)
-    1.0
-    """
-    r = np.asarray(r, dtype=float)[mask]
-    n = r.size
-    if loss == "linear":
-        return float(np.sum(r**2)) / max(n - n_par, 1)
-    z = (r / delta) ** 2
-    psi = r * loss_rho(z, loss)[1]
-    dp = _dpsi(z, loss)
-    mean_dp = float(np.mean(dp)) if n else 1.0
-    if mean_dp <= 0:
-        return float(np.sum(r**2)) / max(n - n_par, 1)
-    K = 1.0 + (n_par / max(n, 1)) * float(np.var(dp)) / mean_dp**2
-    return float(K**2 * np.sum(psi**2) / max(n - n_par, 1) / mean_dp**2)
 
 
 def position_covariance(
