@@ -74,7 +74,7 @@ def _inv_blocks(blocks: Array, first: int = 0) -> Array:
     with np.errstate(all="ignore"):
         try:
             inv: Array | None = np.asarray(np.linalg.inv(blocks), dtype=np.float64)
-            bound = np.linalg.norm(blocks, axis=(-2, -1)) * np.linalg.norm(inv, axis=(-2, -1))
+            bound = np.sqrt(np.einsum("kpq,kpq->k", blocks, blocks) * np.einsum("kpq,kpq->k", inv, inv))
             suspect = ~(bound < COND_MAX / 10)  # NaN / inf bounds included
         except np.linalg.LinAlgError:  # an exactly singular block: the SVD test names it
             inv, suspect = None, np.ones(blocks.shape[0], bool)
@@ -199,8 +199,10 @@ def diagonal_blocks(U: list[Array], w: Array, hasK: bool, hasE: bool, pat: Grid)
         A[:, d, d] = pat.ksum(w)
     if hasE:
         D[:, d, d] = pat.esum(w)
-    A = np.triu(A) + np.swapaxes(np.triu(A, 1), 1, 2)
-    D = np.triu(D) + np.swapaxes(np.triu(D, 1), 1, 2)
+    for B, m in ((A, mK), (D, mE)):  # the lower triangles: copies of the upper ones
+        for p in range(m):
+            for q in range(p + 1, m):
+                B[:, q, p] = B[:, p, q]
     return A, D
 
 
