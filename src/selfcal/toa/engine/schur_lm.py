@@ -73,8 +73,9 @@ def _inv_blocks(blocks: Array, first: int = 0) -> Array:
     """
     with np.errstate(all="ignore"):
         try:
-            inv: Array | None = np.asarray(np.linalg.inv(blocks), dtype=np.float64)
-            bound = np.sqrt(np.einsum("kpq,kpq->k", blocks, blocks) * np.einsum("kpq,kpq->k", inv, inv))
+            Binv = np.asarray(np.linalg.inv(blocks), dtype=np.float64)
+            bound = np.sqrt(np.einsum("kpq,kpq->k", blocks, blocks) * np.einsum("kpq,kpq->k", Binv, Binv))
+            inv: Array | None = Binv
             suspect = ~(bound < COND_MAX / 10)  # NaN / inf bounds included
         except np.linalg.LinAlgError:  # an exactly singular block: the SVD test names it
             inv, suspect = None, np.ones(blocks.shape[0], bool)
