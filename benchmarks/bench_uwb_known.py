@@ -46,8 +46,31 @@ always, which fixed the wrong choices of the slow offsets test) cost one refinem
 (~0.2 s); the rank-d initialiser they need (~0.5 s) is shared with the chosen model's
 search (which ran it before too), so it adds nothing.
 
+Cases ``NAME-shuffled`` (any case: its columns in a fixed random order) and ``flight`` (a
+simulated LPS flight, 6 x 250, biases N(-0.17, 0.1^2) m); ``--variants`` picks option sets
+(blind always runs: the baseline); ``--api`` times ``solve_toa(offsets="none" /
+"receivers" / "auto")`` (3-D, no recipe) instead of the CLI.
+
+Measured (2026-12-03, branch ``autofast`` against main da8493a in the same session, loaded
+2-core machine, ``--repeat 1``; ``PYTHONPATH`` the old or the new tree, alternating),
+``--api --cases room-shuffled,flight-shuffled,data4-shuffled,data5-shuffled --variants
+blind,receivers,auto``, auto / receivers CPU s (ratio), before -> after (two runs each,
+the second in brackets where it differs): room-shuffled auto 2.70 [2.45] s (6.90 [6.61]) ->
+1.76 s (6.30); flight-shuffled auto 8.32 [8.41] s (12.8 [14.4]) -> 5.92 s (17.2: its blind
+0.65 -> 0.34 s); data4-shuffled auto 16.5 s (20.8 [21.1]) -> 7.40 s (16.4), receivers 5.52 s
+(7.0) -> 1.89 s (4.2); data5-shuffled auto 12.0 s (21.1) -> 5.45 [4.54] s (17.6 [16.7]),
+receivers 3.59 s (6.3) -> 1.19 s (3.8). CLI (``--cases room-shuffled,flight-shuffled,
+data4-shuffled,data5-shuffled,data4,data5 --variants blind,auto,receivers,known+receivers``),
+ratios auto / receivers / known+receivers before -> after: room-shuffled 5.31 / 2.83 / 2.81
+-> 4.58 / 2.59 / 2.44; flight-shuffled 7.97 / 2.83 / 2.69 -> 7.17 / 4.16 / 3.43 (paths the
+change does not touch: load noise); data4-shuffled 17.0 / 6.21 / 5.72 -> 12.2 / 3.33 / 3.35;
+data5-shuffled 9.32 / 3.22 / 3.14 -> 5.80 / 1.76 / 1.55; data4 (time order) 1.04 / 3.48 /
+2.79 -> 1.12 / 3.37 / 2.63 (blind 2.95 / 2.77 s, anchor RMSE 0.1656 m both); data5 1.03 / 1.93
+/ 1.41 -> 1.03 / 1.87 / 1.39 (0.1552 m both). Every exit code, offsets model and anchor RMSE
+the same before and after. What changed is in docs/design.md (per-anchor biases, cost).
+
 Run: ``OPENBLAS_NUM_THREADS=1 PYTHONPATH=src python benchmarks/bench_uwb_known.py
-[--cases room,room-shuffled,data4,data5] [--repeat 1] [--out FILE]``.
+[--cases room,room-shuffled,data4,data5] [--variants blind,auto] [--api] [--repeat 1] [--out FILE]``.
 """
 
 from __future__ import annotations
@@ -89,24 +112,43 @@ def room(shuffle: bool) -> tuple[np.ndarray, np.ndarray]:
     return Y, A
 
 
+def flight() -> tuple[np.ndarray, np.ndarray]:
+    """(6, 250) ranges and the (6, 3) anchors of a simulated LPS flight (fixed seed): the Lund
+    geometry, per-anchor biases N(-0.17, 0.1^2) m, 4 cm noise, 5 % multipath bursts, 0.5 % missing."""
+    from selfcal.experiments.lps import simulate_uwb_flight
+
+    sim = simulate_uwb_flight(300, 250, layout="lps", bias_std=0.1)
+    return sim["ranges"], sim["anchors"]
+
+
 def cases(names: list[str], data: str) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """Name -> (ranges, anchors); ``NAME-shuffled``: the columns in a fixed random order (recipe none)."""
     out = {}
     for n in names:
-        if n in ("room", "room-shuffled"):
-            out[n] = room(n == "room-shuffled")
+        base, shuffle = n.removesuffix("-shuffled"), n.endswith("-shuffled")
+        if base == "room":
+            Y, A = room(shuffle)
+        elif base == "flight":
+            Y, A = flight()
+            if shuffle:
+                Y = Y[:, np.random.default_rng(1).permutation(Y.shape[1])]
         else:
-            path = os.path.join(data, f"{n}.mat")
+            path = os.path.join(data, f"{base}.mat")
             if not os.path.isfile(path):
                 print(f"{n}: {path} not found, skipped")
                 continue
             from selfcal.datasets.lps import load_lps
 
             fl = load_lps(path)
-            out[n] = (fl.ranges, fl.anchors_true)
+            Y, A = fl.ranges, fl.anchors_true
+            if shuffle:
+                Y = Y[:, np.random.default_rng(1).permutation(Y.shape[1])]
+        out[n] = (Y, A)
     return out
 
 
-def run_case(Y: np.ndarray, A: np.ndarray, repeat: int, tmp: str) -> dict[str, dict[str, float]]:
+def run_case(Y: np.ndarray, A: np.ndarray, repeat: int, tmp: str,
+             variants: list[str] | None = None) -> dict[str, dict[str, float]]:
     from click.testing import CliRunner
 
     from selfcal.cli import main
@@ -121,12 +163,13 @@ def run_case(Y: np.ndarray, A: np.ndarray, repeat: int, tmp: str) -> dict[str, d
     with open(heights, "w") as fh:
         fh.write("name,x,y,z\n")
         fh.writelines(f"r{i},,,{A[i, 2]}\n" for i in range(A.shape[0]))
-    cpu: dict[str, list[float]] = {v: [] for v in VARIANTS}
+    chosen = {v: VARIANTS[v] for v in (variants or list(VARIANTS))}
+    cpu: dict[str, list[float]] = {v: [] for v in chosen}
     rows: dict[str, dict[str, float]] = {}
     runner = CliRunner()
     runner.invoke(main, ["calibrate", "toa", mat, "--out", os.path.join(tmp, "warm.json")])  # imports, untimed
     for _ in range(repeat):
-        for v, extra in VARIANTS.items():
+        for v, extra in chosen.items():
             out = os.path.join(tmp, f"{v}.json")
             if os.path.isfile(out):  # a run that writes nothing must not be read as the last case's
                 os.remove(out)
@@ -143,7 +186,35 @@ def run_case(Y: np.ndarray, A: np.ndarray, repeat: int, tmp: str) -> dict[str, d
             rows[v] = {"exit": res.exit_code, "offsets": data.get("offsets"), "dim": dim,
                        "rmse": float(aligned_rmse(rec, A).rmse_receivers) if np.isfinite(rec).all() else float("nan")}
     base = statistics.median(cpu["blind"])
-    for v in VARIANTS:
+    for v in chosen:
+        rows[v]["cpu_s"] = statistics.median(cpu[v])
+        rows[v]["ratio"] = rows[v]["cpu_s"] / base
+    return rows
+
+
+API_VARIANTS = {"blind": "none", "receivers": "receivers", "auto": "auto"}
+
+
+def run_api(Y: np.ndarray, A: np.ndarray, repeat: int, variants: list[str]) -> dict[str, dict[str, float]]:
+    """The library call instead of the CLI: ``solve_toa(Y, offsets=...)`` (3-D, no recipe), CPU s."""
+    from selfcal.metrics import aligned_rmse
+    from selfcal.toa import solve_toa
+
+    chosen = [v for v in variants if v in API_VARIANTS]
+    cpu: dict[str, list[float]] = {v: [] for v in chosen}
+    rows: dict[str, dict[str, float]] = {}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        solve_toa(Y[:, :40], rng=0)  # imports, untimed
+        for _ in range(repeat):
+            for v in chosen:
+                t0 = time.process_time()
+                res = solve_toa(Y, offsets=API_VARIANTS[v], rng=0)
+                cpu[v].append(time.process_time() - t0)
+                rows[v] = {"exit": 0 if res.success else 1, "offsets": res.offsets, "dim": 3,
+                           "rmse": float(aligned_rmse(res.receivers, A).rmse_receivers)}
+    base = statistics.median(cpu["blind"])
+    for v in chosen:
         rows[v]["cpu_s"] = statistics.median(cpu[v])
         rows[v]["ratio"] = rows[v]["cpu_s"] / base
     return rows
@@ -154,12 +225,16 @@ def main() -> None:
     ap.add_argument("--cases", default="room,room-shuffled,data4,data5")
     ap.add_argument("--data", default=os.path.join(os.path.dirname(__file__), "..", "..", "shared", "data", "lps"))
     ap.add_argument("--repeat", type=int, default=1)
+    ap.add_argument("--variants", default=",".join(VARIANTS), help="comma-separated; blind is always run")
     ap.add_argument("--out", default=None)
+    ap.add_argument("--api", action="store_true",
+                    help="solve_toa(offsets=none / receivers / auto) instead of the CLI (variants blind, receivers, auto)")
     args = ap.parse_args()
     table = {}
     with tempfile.TemporaryDirectory() as tmp:
         for name, (Y, A) in cases(args.cases.split(","), args.data).items():
-            rows = run_case(Y, A, args.repeat, tmp)
+            variants = ["blind", *[v for v in args.variants.split(",") if v != "blind"]]
+            rows = run_api(Y, A, args.repeat, variants) if args.api else run_case(Y, A, args.repeat, tmp, variants)
             table[name] = rows
             for v, r in rows.items():
                 print(f"{name:14s} {v:16s} CPU {r['cpu_s']:6.2f} s  ratio {r['ratio']:4.2f}  exit {r['exit']}  "

@@ -468,3 +468,33 @@ def test_minimal_12x6_search_reaches_the_truth_started_minimum_or_lower() -> Non
             out = search(R, 3, "both", rng=np.random.default_rng(seed), solver="trf")
         hits += bool(np.nansum(out.solution.residuals**2) <= np.nansum(ref.residuals**2) * (1 + 1e-6))
     assert hits >= 12
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_structured_step_gives_the_cholesky_steps_fit(seed: int, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The complete-data step of rank3_lm through the matrix's structure (rank3._Structure:
+    diagonal minus low rank in the source offsets, Woodbury) is the Cholesky step to round-off:
+    from the same start, on UWB-like 6 x 400 flights with noise and per-anchor biases, the same
+    minimum (offsets within 1e-7 m, F within 1e-9 relative; the runs' own stopping tolerance is
+    1e-12, round-off can move the last accepted step), and the structured solve is the one used."""
+    g = np.random.default_rng(seed)
+    A = g.uniform([0, 0, 0], [6, 5, 3], (6, 3))
+    t = np.linspace(0, 1, 400)
+    tag = np.c_[3 + 2 * np.sin(2 * np.pi * (1 + seed % 3) * t), 2.5 + 2 * np.cos(2 * np.pi * 1.7 * t), 1.5 + 0.7 * t]
+    Y = np.linalg.norm(A[:, None] - tag[None], axis=2) + g.normal(-0.15, 0.1, 6)[:, None] + g.normal(0, 0.03, (6, 400))
+    p0 = g.normal(0, 0.2, 6 + 400 - 1)
+    used = []
+    orig = rank3._ScalableStep._structured
+
+    def counted(self, lam):
+        dx = orig(self, lam)
+        used.append(dx is not None)
+        return dx
+
+    monkeypatch.setattr(rank3._ScalableStep, "_structured", counted)
+    fast = rank3_lm(Y, dim=3, p0=p0)
+    assert used and np.mean(used) > 0.9
+    monkeypatch.setattr(rank3._ScalableStep, "_structured", lambda self, lam: None)
+    chol = rank3_lm(Y, dim=3, p0=p0)
+    np.testing.assert_allclose(fast.p, chol.p, atol=1e-7)
+    assert abs(fast.frobenius - chol.frobenius) <= 1e-9 * chol.frobenius

@@ -158,3 +158,29 @@ def test_dense_step_with_free_parameters_holds_the_others_and_reaches_a_stationa
     Jm = nls.toa_jacobian(th, Y, 3, "both").toarray()
     grad = Jm.T @ nls.toa_residuals(th, Y, 3, "both")
     assert np.abs(grad[free]).max() <= 1e-6 * np.abs(Jm[:, free]).max() * np.sqrt(np.nanmean(Y**2))
+
+
+@pytest.mark.parametrize("seed", range(8))
+def test_inv_blocks_decides_as_the_svd_condition_of_every_block(seed):
+    """_inv_blocks runs the SVD only where the Frobenius bound does not clear a block: the
+    same inverse and the same raise / no raise as ``np.linalg.cond(blocks) < COND_MAX`` over
+    blocks conditioned from 1 to 1e16 (and exactly singular ones)."""
+    from selfcal.errors import DegenerateGeometryError
+    from selfcal.toa.engine.schur_lm import COND_MAX, _inv_blocks
+
+    g = np.random.default_rng(seed)
+    for m in (3, 4):
+        Q = np.linalg.qr(g.standard_normal((200, m, m)))[0]
+        cond = 10.0 ** g.uniform(0, 16, 200)
+        ev = np.exp(np.log(cond)[:, None] * g.uniform(0, 1, (200, m)))
+        ev[:, 0], ev[:, 1] = 1.0, cond
+        B = np.einsum("nij,nj,nkj->nik", Q, ev, Q)
+        if seed % 2:
+            B[g.integers(200)] = np.outer(np.arange(1.0, m + 1), np.arange(1.0, m + 1))  # rank one
+        for blocks in (B, B[np.linalg.cond(B) < COND_MAX]):
+            ok = np.linalg.cond(blocks) < COND_MAX
+            if ok.all():
+                np.testing.assert_array_equal(_inv_blocks(blocks), np.linalg.inv(blocks))
+            else:
+                with pytest.raises(DegenerateGeometryError, match=f"node {int(np.flatnonzero(~ok)[0])} "):
+                    _inv_blocks(blocks)

@@ -57,10 +57,31 @@ DEFAULT_MAX_IT = {"dense": 100, "reduced": 100, "cg": 100}
 CG_RTOL = (1e-8, 1e-3)
 
 
+#: condition number (2-norm) above which a node's block counts as singular
+COND_MAX = 1e12
+
+
 def _inv_blocks(blocks: Array, first: int = 0) -> Array:
     """Inverse of each small symmetric block (node ``first`` onwards of its set); an unobservable
-    node raises DegenerateGeometryError."""
-    cond_ok = np.linalg.cond(blocks) < 1e12
+    node (a block of 2-norm condition number :data:`COND_MAX` or more) raises DegenerateGeometryError.
+
+    The condition test by SVD costs five times the inverse, so it runs only on the blocks the
+    Frobenius bound does not clear: ``cond_2(B) <= ||B||_F ||B^-1||_F``, from the inverse that
+    is needed anyway, a factor of at most the block size above ``cond_2``; a block whose bound
+    is under ``COND_MAX / 10`` (a margin for the inverse's own error, relative ``cond eps``)
+    passes the test without its SVD. Same decisions and the same inverse as the SVD of every block.
+    """
+    with np.errstate(all="ignore"):
+        try:
+            Binv = np.asarray(np.linalg.inv(blocks), dtype=np.float64)
+            bound = np.sqrt(np.einsum("kpq,kpq->k", blocks, blocks) * np.einsum("kpq,kpq->k", Binv, Binv))
+            inv: Array | None = Binv
+            suspect = ~(bound < COND_MAX / 10)  # NaN / inf bounds included
+        except np.linalg.LinAlgError:  # an exactly singular block: the SVD test names it
+            inv, suspect = None, np.ones(blocks.shape[0], bool)
+    cond_ok = np.ones(blocks.shape[0], bool)
+    if suspect.any():
+        cond_ok[suspect] = np.linalg.cond(blocks[suspect]) < COND_MAX
     if not cond_ok.all():
         bad = first + int(np.nonzero(~cond_ok)[0][0])
         raise DegenerateGeometryError(
@@ -69,7 +90,7 @@ def _inv_blocks(blocks: Array, first: int = 0) -> Array:
             "ranges to non-collinear partners",
             kind="unobservable-node",
         )
-    return np.asarray(np.linalg.inv(blocks), dtype=np.float64)
+    return inv if inv is not None else np.asarray(np.linalg.inv(blocks), dtype=np.float64)
 
 
 class Grid:
@@ -179,8 +200,10 @@ def diagonal_blocks(U: list[Array], w: Array, hasK: bool, hasE: bool, pat: Grid)
         A[:, d, d] = pat.ksum(w)
     if hasE:
         D[:, d, d] = pat.esum(w)
-    A = np.triu(A) + np.swapaxes(np.triu(A, 1), 1, 2)
-    D = np.triu(D) + np.swapaxes(np.triu(D, 1), 1, 2)
+    for B, m in ((A, mK), (D, mE)):  # the lower triangles: copies of the upper ones
+        for p in range(m):
+            for q in range(p + 1, m):
+                B[:, q, p] = B[:, p, q]
     return A, D
 
 
@@ -194,11 +217,13 @@ class _Reduced:
     """
 
     def __init__(self, U: list[Array], w: Array, hasK: bool, hasE: bool, damping: float, pat: Grid,
-                 precondition: bool = True) -> None:
+                 precondition: bool = True, blocks: tuple[Array, Array] | None = None) -> None:
         d = len(U)
         self.U, self.w, self.hasK, self.hasE, self.d, self.pat = U, w, hasK, hasE, d, pat
         self.mK, self.mE = d + hasK, d + hasE
-        A, D = diagonal_blocks(U, w, hasK, hasE, pat)
+        # the undamped blocks depend on the linearisation only: a caller trying several
+        # dampings at one point passes them (``blocks``) instead of summing them again
+        A, D = blocks if blocks is not None else diagonal_blocks(U, w, hasK, hasE, pat)
         if damping > 0:
             A = A + damping * np.einsum("kpp->kp", A)[:, :, None] * np.eye(self.mK)
             D = D + damping * np.einsum("epp->ep", D)[:, :, None] * np.eye(self.mE)
@@ -540,6 +565,7 @@ class _SchurStep:
     def __init__(self, U: list[Array], w: Array, f: Array, rm: RangeModel, proj: Any) -> None:
         self.U, self.w, self.rm, self.pat, self.proj = U, w, rm, rm.pat, proj
         self.k_flat, self.e_flat, self.n, self.mode = rm.k_idx.ravel(), rm.e_idx.ravel(), rm.n, rm.mode
+        self.blocks: tuple[Array, Array] | None = None  # the undamped diagonal blocks (first step)
         pat = rm.pat
         d = len(U)
         wf = w * f
@@ -559,9 +585,11 @@ class _SchurStep:
     def step(self, lam: float) -> Array | None:
         from scipy.sparse.linalg import LinearOperator, cg
 
+        if self.blocks is None:  # once per linearisation, whatever the number of damping trials
+            self.blocks = diagonal_blocks(self.U, self.w, self.rm.hasK, self.rm.hasE, self.pat)
         try:
             red = _Reduced(self.U, self.w, self.rm.hasK, self.rm.hasE, lam, self.pat,
-                           precondition=self.mode == "cg")
+                           precondition=self.mode == "cg", blocks=self.blocks)
         except DegenerateGeometryError:
             return None
         gK, gE = self.gK, self.gE

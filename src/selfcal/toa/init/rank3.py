@@ -259,7 +259,7 @@ def rank3_lm(
 
         g = jt(G)
         if not n_miss:
-            return Hu, g, None
+            return Hu, g, _Structure(I, W, FA, SA, FB, SB) if centring == "mean" else None
         # diagonal of the missing-time block: (2 e_ij)^2 A_ii B_jj
         Ad = 1.0 + np.einsum("ia,ab,ib->i", FA, SA, FA)
         Bd = 1.0 + np.einsum("ja,ab,jb->j", FB, SB, FB)
@@ -275,7 +275,10 @@ def rank3_lm(
 
         def linearize(self, xv: Array, state: tuple[Array, Array, Array, Array]) -> _ScalableStep:
             Ud, Vd, resid, self.Q = state
-            return _ScalableStep(xv, *gauss_newton(xv, Ud, Vd, resid), K, self.bound)
+            H, g, extra = gauss_newton(xv, Ud, Vd, resid)
+            if isinstance(extra, _Structure):
+                return _ScalableStep(xv, H, g, None, K, self.bound, structure=extra)
+            return _ScalableStep(xv, H, g, extra, K, self.bound)
 
     x = np.concatenate([p, R[missing]])
     cost, _, _, _, Q, M = evaluate(x, None)
@@ -296,11 +299,70 @@ def rank3_lm(
     return replace(res, seconds=time.perf_counter() - t0, extra=_lm_extra(Rx, n_miss, cost, aborted))
 
 
-class _ScalableStep:
-    """The damped step of :func:`rank3_lm`: the p-block by Cholesky, with missing times by
-    preconditioned CG (:func:`_damped_pcg`); a step leaving the feasible box is refused."""
+class _Structure:
+    """What the complete-data Gauss-Newton matrix of :func:`rank3_lm` (mean centring) is made of.
 
-    def __init__(self, x: Array, H: Array, g: Array, coupled: Any, K: int, bound: float) -> None:
+    ``H = Hu o Hv`` with ``Hu = [I, W]^T P_A [I, W]``, ``Hv = [V, E]^T P_B [V, E]`` and the
+    projectors ``P_A = I - F_A F_A^T`` (rank ``I - 1 - d``) and ``P_B = I - F_B F_B^T``. Its
+    source-offset block is therefore diagonal minus low rank:
+    ``H_tt = sum_a mu_a diag(u_a) (I - L L^T) diag(u_a) = diag(s) - Z Z^T`` with
+    ``P_A = sum_a mu_a q_a q_a^T``, ``u_a = W^T q_a``, ``L = F_B[1:]`` and ``Z = [sqrt(mu_a) u_a o L]``
+    (``(I - 1 - d)(1 + d)`` columns: 8 for 6 anchors in 3-D), which :meth:`solve` eliminates by
+    the Woodbury identity in ``O(J r^2)`` instead of the ``O(K^3)`` Cholesky factor of the
+    whole matrix (``K = I + J - 1``: 600+ for a UWB flight of 6 anchors).
+    """
+
+    def __init__(self, I: int, W: Array, FA: Array, SA: Array, FB: Array, SB: Array) -> None:
+        PA = np.eye(I) + FA @ SA @ FA.T
+        mu, q = np.linalg.eigh(0.5 * (PA + PA.T))
+        keep = mu > 0.5  # a projector: eigenvalues 0 and 1 (to round-off)
+        self.ok = bool(np.all(np.abs(mu[~keep]) < 1e-8) and np.all(np.abs(mu[keep] - 1.0) < 1e-8)
+                       and np.allclose(SB, -np.eye(SB.shape[0])))
+        self.I = I
+        if self.ok:
+            U = (W.T @ q[:, keep]) * np.sqrt(mu[keep])  # (J-1, r)
+            L = FB[1:]
+            self.s = np.sum(U * U, axis=1)
+            self.Z = (U[:, :, None] * L[:, None, :]).reshape(U.shape[0], -1)
+
+    def solve(self, H: Array, damp: Array, b: Array) -> Array | None:
+        """``(H + diag(damp)) x = b`` through the block structure; None where the damped matrix is
+        not positive definite (the test the Cholesky factor made) or a factor fails."""
+        I = self.I
+        Dd = self.s + damp[I:]
+        if not np.all(Dd > 0):
+            return None
+        Zs = self.Z / Dd[:, None]
+        try:
+            cap = scipy.linalg.cho_factor(np.eye(self.Z.shape[1]) - self.Z.T @ Zs, check_finite=False)
+
+            def cinv(v: Array) -> Array:  # (Dd - Z Z^T)^-1 v (Woodbury)
+                v = v / Dd[:, None] if v.ndim == 2 else v / Dd
+                return v + Zs @ scipy.linalg.cho_solve(cap, self.Z.T @ v, check_finite=False)
+
+            H12 = H[:I, I:]
+            Y21 = cinv(H12.T)
+            y2 = cinv(b[I:])
+            Sm = H[:I, :I] + np.diag(damp[:I]) - H12 @ Y21
+            x1 = scipy.linalg.cho_solve(scipy.linalg.cho_factor(Sm, check_finite=False), b[:I] - H12 @ y2,
+                                        check_finite=False)
+        except np.linalg.LinAlgError:
+            return None
+        return np.concatenate([x1, y2 - Y21 @ x1])
+
+
+#: relative residual ``|(H + lam D) x - b| / (|H + lam D|_F |x| + |b|)`` a structured solve
+#: (:class:`_Structure`) must reach; above it the step falls back to the Cholesky factor
+STRUCTURED_RTOL = 1e-12
+
+
+class _ScalableStep:
+    """The damped step of :func:`rank3_lm`: the p-block by Cholesky (or, complete data, through
+    its structure, :class:`_Structure`), with missing times by preconditioned CG
+    (:func:`_damped_pcg`); a step leaving the feasible box is refused."""
+
+    def __init__(self, x: Array, H: Array, g: Array, coupled: Any, K: int, bound: float,
+                 structure: _Structure | None = None) -> None:
         self.x, self.H, self.g, self.coupled, self.K, self.bound = x, H, g, coupled, K, bound
         dg = np.diag(H).copy()
         if coupled is not None:
@@ -309,9 +371,28 @@ class _ScalableStep:
         self.dg = dg
         self.last = np.zeros_like(x)
         self.gnorm = float(np.linalg.norm(g))
+        self.structure = structure if structure is not None and structure.ok else None
+        self.hnorm = float(np.linalg.norm(H)) if self.structure is not None else 0.0
+
+    def _structured(self, lam: float) -> Array | None:
+        """The damped step through :class:`_Structure`, or None (then the Cholesky factor decides)."""
+        assert self.structure is not None
+        damp = lam * self.dg[:self.K]
+        dx = self.structure.solve(self.H, damp, -self.g)
+        if dx is None or not np.isfinite(dx).all():
+            return None
+        r = self.H @ dx + damp * dx + self.g
+        scale = (self.hnorm + float(np.max(damp))) * float(np.linalg.norm(dx)) + float(np.linalg.norm(self.g))
+        return dx if float(np.linalg.norm(r)) <= STRUCTURED_RTOL * scale else None
 
     def step(self, lam: float) -> Array | None:
         K, dg = self.K, self.dg
+        dx = self._structured(lam) if self.structure is not None else None
+        if dx is not None:
+            if not _feasible(self.x + dx, self.bound):
+                return None
+            self.last = dx
+            return np.asarray(dx)
         Hm = self.H.copy()
         Hm[np.diag_indices(K)] += lam * dg[:K]
         try:

@@ -198,21 +198,29 @@ def choose_offsets(M: Array, dim: int, solve: Solver, opts: ToaOptions) -> tuple
 def _choose_offsets(M: Array, dim: int, solve: Solver, opts: ToaOptions) -> tuple[ToaResult, dict[str, Any]]:
     fits: dict[str, ToaResult] = {}
     own: list[str] = []
-    # the candidates' refinements are starts and scores only: no covariances (the chosen one is searched)
+    from ..fit_result import scores_only
+
+    # the candidates' refinements are starts and scores only: no covariances and no verdicts
+    # beyond the trust test _misfit reads (the chosen one is searched, or refitted with both)
     nls = dataclasses.replace(opts, method="nls", covariance=False)
+
+    def candidate(mode: str, init: Any) -> ToaResult | None:
+        with scores_only():
+            return _quiet(solve, M, dim, mode, nls, init=init)
+
     for mode in OFFSET_CANDIDATES:
         # every model is also started from the best fit of the models it nests (offsets of the
         # other kinds at zero): a refinement only lowers the cost, so it never ends above them
         nested = [fits[k] for k in fits if k == "none" or mode == "both"]
         base = min(nested, key=_rss) if nested else None
-        res = _quiet(solve, M, dim, mode, nls, init=_nested_init(base, mode, opts.speed)) if base else None
+        res = candidate(mode, _nested_init(base, mode, opts.speed)) if base else None
         if base is None or res is None:
             res = _quiet(solve, M, dim, mode, opts)
         elif mode == "both" or _misfit(res):
             own.append(mode)
             for st in _own_starts(M, dim, mode, opts):
                 try:  # a start the engine cannot refine (singular normal equations) is skipped
-                    alt = _quiet(solve, M, dim, mode, nls, init=st)
+                    alt = candidate(mode, st)
                 except (np.linalg.LinAlgError, ValueError):
                     alt = None
                 if alt is not None and _lsq(alt) < _lsq(res):
