@@ -55,6 +55,9 @@ GNC_STEPS = 4
 #: (m + n_par) / 2 of them, and below 2 its scale is biased low by the choice of which (clean 8 x 10
 #: networks in 3-D, m / n_par = 1.67, with Laplace noise: 4 false breakdowns in 40 draws)
 GNC_REDUNDANCY = 2
+#: most C-steps of the majority fit's scale in :func:`majority_scale_test` (least squares on the entries
+#: within the cut of the scale, the scale re-estimated; to its fixed point, within 1 %)
+GNC_CSTEPS = 5
 
 
 def elemental_subsets(p: int, clean: float = HB_CLEAN_SET, contamination: float = HB_CONTAMINATION) -> int:
@@ -298,12 +301,16 @@ def majority_scale_test(ranges: Array, receivers: Array, sources: Array, receive
     Gaussian-looking as noise) is pulled towards it.
 
     The majority fit's scale ``s_m`` is estimated as the final fit's ``s_f`` is: least squares on
-    its inliers, the entries within ``k`` of its scale (first its trimmed scale, :func:`lts_scale`,
-    then the refit's), at most three C-steps, continued only while the scale falls; each scale is
+    its inliers, the entries within ``k`` of its scale (first the lower of its trimmed scale,
+    :func:`lts_scale`, and its MAD scale, then the refit's), C-steps to the fixed point (within
+    1 %, at most :data:`GNC_CSTEPS`); each scale is
     the normal-consistent MAD of the fitted entries times ``sqrt(m / (m - n_par))``
     (``fit_result._noise_estimate``). The trimmed
     refits alone overfit the noise (a weighted version's MAD was up to 14x below it on clean
-    8 x 10 networks); least squares on every entry within ``k`` of a scale does not.
+    8 x 10 networks); least squares on every entry within ``k`` of a scale does not, and from a
+    start below the noise its scale rises to it. The MAD scale is in the start because the
+    trimmed scale's ``h = (m + n_par + 1) / 2`` covers gross entries beyond ``(m - h) / m`` of
+    them (34 % at 480 entries and 150 unknowns); the median holds up to half.
 
     The test: the final fit has broken down when ``s_f > k s_m``, ``k`` the outlier rule's own
     cut (:func:`~selfcal.toa.verdict.robust.outlier_threshold`: Bonferroni normal quantile over
@@ -336,9 +343,10 @@ def majority_scale_test(ranges: Array, receivers: Array, sources: Array, receive
 
     Notes
     -----
-    Cost: up to :data:`GNC_ROUNDS` least-squares refits of :data:`GNC_STEPS` steps and three
-    C-steps, without covariance, on the sparse solver (a weighted refit only where a node keeps too
-    few entries); on clean 12 x 40 networks 0.05 of the solve (``benchmarks/bench_postsolve.py``).
+    Cost: up to :data:`GNC_ROUNDS` least-squares refits of :data:`GNC_STEPS` steps and up to
+    :data:`GNC_CSTEPS` C-steps (only where the start scale does not already rule the breakdown
+    out), without covariance, on the sparse solver (a weighted refit only where a node keeps too
+    few entries); on clean 12 x 40 networks 0.05-0.2 of the solve (``benchmarks/bench_postsolve.py``).
 
     References
     ----------
@@ -425,16 +433,19 @@ def majority_scale_test(ranges: Array, receivers: Array, sources: Array, receive
     k = outlier_threshold(m, OUTLIER_ALPHA if alpha is None else alpha)
     best, best_fit = gnc(R, S, D, O)
     # the majority fit's scale as the final fit's is estimated: least squares on its inliers (within
-    # the cut k of its scale: first the trimmed one, lts_scale, then the refit's MAD times
-    # sqrt(inliers / dof); C-steps): the trimmed refits overfit the noise (their raw MAD was up to
-    # 14x below it on clean 8 x 10 networks), least squares on all entries within k of a scale does not
+    # the cut k of its scale: first the start below, then the refit's MAD times sqrt(inliers / dof);
+    # C-steps): the trimmed refits overfit the noise (their raw MAD was up to 14x below it on clean
+    # 8 x 10 networks), least squares on all entries within k of a scale does not
     fit = best_fit
     res = resid(*fit)
-    s_m = lts_scale(res, n_par)
+    # its start: the lower of the trimmed scale and the MAD scale. The trimmed scale's h = (m + n_par + 1) / 2
+    # holds at most (m - h) / m of gross entries (34 % at 480 entries and 150 unknowns: at 35-40 % the truth's
+    # trimmed scale was 0.3-1.1 m against 1 cm noise); the median holds up to half of them whatever n_par is
+    s_m = min(lts_scale(res, n_par), scale_of(res, obs))
     if not s_f > k * s_m:
-        # the trimmed scale is the lower one (it overfits): it already rules the breakdown out
+        # the start is the lower scale (it overfits): it already rules the breakdown out
         return s_f, s_m, k
-    for _ in range(3):
+    for _ in range(GNC_CSTEPS):
         inl = obs & (np.abs(np.nan_to_num(res)) <= k * s_m)
         if int(inl.sum()) <= n_par:
             return None
@@ -444,7 +455,11 @@ def majority_scale_test(ranges: Array, receivers: Array, sources: Array, receive
         fit = (sol.receivers, sol.sources, sol.receiver_offsets, sol.source_offsets)
         res = resid(*fit)
         now = scale_of(res, inl)
-        done = now >= 0.99 * s_m  # C-steps only while the scale keeps falling (the larger one is kept)
+        # C-steps to the fixed point s = scale(least squares on the entries within k s), either way: from a
+        # start the refits overfitted (half the noise) the cut k s drops clean entries, and the scale of what
+        # is left rises (~3x per step from far below) towards the noise; from one inflated by gross entries
+        # it falls
+        done = abs(now - s_m) <= 0.01 * s_m
         s_m = now
         if done:
             break
