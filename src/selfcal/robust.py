@@ -224,6 +224,8 @@ def m_estimator_sigma2(r: ArrayLike, mask: NDArray[np.bool_], loss: str, delta: 
     where that theory does not hold) and fits with no root (fewer effective inliers than
     parameters) keep Huber's classical factor. Valid for heavy-tailed noise when the
     weights' spread does not depend on the design.
+    Least squares after a data-dependent cut (the hard-rejection ``psi``) has its factor,
+    relative to the refit's own, in :func:`rejection_factor`.
 
     Parameters
     ----------
