@@ -25,12 +25,14 @@ Steps 6-9 judge and package the final fit (:mod:`selfcal.toa.fit_result`, below 
 
 from __future__ import annotations
 
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 from ..errors import DegenerateGeometryError, InputError
+from ..robust import rejection_factor
 from .engine.nls import NlsSolution, refine_toa, toa_model, with_covariance
 from .fit_result import _start, judge_final
 from .init.rank3_model import rank_identifiable
@@ -48,6 +50,7 @@ from .verdict.robust import (
     drop_unidentifiable,
     noise_scale,
     outlier_mask,
+    outlier_threshold,
     screened,
 )
 
@@ -105,6 +108,7 @@ def finish(M: Array, dim: int, offsets: str, opts: ToaOptions, *, init: Any) -> 
     minima: Any = ([], prev_keep)
     degenerate = False  # the best fit collapsed to a line / point (data that fit no dim-D geometry)
     ever = gross.copy()  # every entry screened or flagged in some round (outliers if its node is dropped)
+    cut_u: Array | None = None  # the rule's residuals over its cut, where the rule removed entries
     memo: dict[str, Any] = {}  # the last leverages of the outlier rule (leverage.leverages)
     breakdown: list[str] = []  # why the outlier rule cannot be trusted here (reported, FAILED_TEST)
     overflagged: list[str] = []  # nodes dropped: more flagged ranges than their position can hold
@@ -181,7 +185,9 @@ def finish(M: Array, dim: int, offsets: str, opts: ToaOptions, *, init: Any) -> 
                     except DegenerateGeometryError:
                         pass
         fitted = used[np.ix_(keep_r, keep_s)]
-        flags = _flag(Yc, best, keep_r, keep_s, offsets, sd, fitted, memo)
+        flags, u = _rule(Yc, best, keep_r, keep_s, offsets, sd, fitted, memo)
+        cut_u = np.full((I, J), np.nan)  # the rule's cut in force on the entries kept: the final refit's
+        cut_u[np.ix_(keep_r, keep_s)] = u  # covariance accounts for it (selfcal.robust.rejection_factor)
         if flags.sum() > 0.5 * sub_obs.sum():
             # beyond the MAD's breakdown point the "outliers" are the model (a wrong basin, a wrong
             # noise level, data of no geometry): remove nothing and let the trust test say so
@@ -189,6 +195,7 @@ def finish(M: Array, dim: int, offsets: str, opts: ToaOptions, *, init: Any) -> 
                              "the MAD noise scale can hold (none removed)")
             outliers = gross.copy()
             used = obs & ~gross
+            cut_u = None  # nothing removed by the rule
             break
         new_out = np.zeros((I, J), bool)
         new_out[np.ix_(keep_r, keep_s)] = flags
@@ -205,6 +212,7 @@ def finish(M: Array, dim: int, offsets: str, opts: ToaOptions, *, init: Any) -> 
                              "unidentifiable (none removed)")
             outliers = gross.copy()  # removing the flagged entries would leave too little: keep them
             used = obs & ~gross
+            cut_u = None  # nothing removed by the rule
             break
         overflagged += [f"r{int(pr[i])}" for i in np.flatnonzero(br)] + [f"s{int(pc[j])}" for j in np.flatnonzero(bs)]
         changed = not (np.array_equal(new_used, used) and kr2.sum() == keep_r.sum() and ks2.sum() == keep_s.sum())
@@ -235,6 +243,13 @@ def finish(M: Array, dim: int, offsets: str, opts: ToaOptions, *, init: Any) -> 
                 singular = covariance is not False
             except DegenerateGeometryError:
                 degenerate = True  # the search's winner is (nearly) collinear: reported, not raised
+        if cut_u is not None and final_loss == "linear" and final.receiver_cov is not None:
+            # least squares on the entries the rule kept: its covariance ignores that the cut
+            # depends on the data (the hard-rejection sandwich, selfcal.robust.rejection_factor)
+            g = rejection_factor(cut_u[np.ix_(keep_r, keep_s)], n_par_of(keep_r, keep_s))
+            final = replace(final, receiver_cov=final.receiver_cov * g, source_cov=final.source_cov * g,
+                            receiver_offset_std=_times(final.receiver_offset_std, np.sqrt(g)),
+                            source_offset_std=_times(final.source_offset_std, np.sqrt(g)))
         iters += final.iterations if final is not best else 0
         n_runs += 1 if final.iterations > 0 else 0
     if degenerate:
@@ -390,6 +405,10 @@ def _restrict(start: Start, kr: NDArray[np.bool_], ks: NDArray[np.bool_]) -> Sta
     return r[kr], s[ks], None if d is None else d[kr], None if o is None else o[ks]
 
 
+def _times(a: Array | None, g: float) -> Array | None:
+    return None if a is None else a * g
+
+
 def _residuals(Yc: Array, sol: NlsSolution, kr: NDArray[np.bool_], ks: NDArray[np.bool_]) -> Array:
     """Measured minus modelled on every observed entry of the kept nodes (outliers included)."""
     Ysub = Yc[np.ix_(kr, ks)]
@@ -400,6 +419,13 @@ def _residuals(Yc: Array, sol: NlsSolution, kr: NDArray[np.bool_], ks: NDArray[n
 def _flag(Yc: Array, sol: NlsSolution, kr: NDArray[np.bool_], ks: NDArray[np.bool_], offsets: str,
           sd: float | None, fitted: NDArray[np.bool_], memo: dict[str, Any] | None = None,
           at: NlsSolution | None = None) -> NDArray[np.bool_]:
+    """The outlier rule's mask (:func:`_rule`)."""
+    return _rule(Yc, sol, kr, ks, offsets, sd, fitted, memo, at)[0]
+
+
+def _rule(Yc: Array, sol: NlsSolution, kr: NDArray[np.bool_], ks: NDArray[np.bool_], offsets: str,
+          sd: float | None, fitted: NDArray[np.bool_], memo: dict[str, Any] | None = None,
+          at: NlsSolution | None = None) -> tuple[NDArray[np.bool_], Array]:
     """The outlier rule (:mod:`selfcal.toa.verdict.robust`) on every observed entry of the kept nodes.
 
     ``fitted`` (kept I x kept J) marks the entries the fit ``sol`` used; their residuals are
@@ -408,6 +434,8 @@ def _flag(Yc: Array, sol: NlsSolution, kr: NDArray[np.bool_], ks: NDArray[np.boo
     MAD of the fitted entries' studentized residuals, floored at sqrt(machine eps) times the
     median range (the solver's precision). The leverages are those of the geometry ``at``
     (default ``sol``); ``memo`` keeps the last ones (same geometry object, same entries).
+    Returns the mask and ``u``, each entry's studentized residual over the rule's cut (flagged
+    where ``|u| > 1``, NaN where missing; kept I x kept J).
     """
     Ysub = Yc[np.ix_(kr, ks)]
     obs = np.isfinite(Ysub)
@@ -421,7 +449,9 @@ def _flag(Yc: Array, sol: NlsSolution, kr: NDArray[np.bool_], ks: NDArray[np.boo
     else:
         s_noise = noise_scale(T[fitted], _scale_floor(Ysub))
         dof = int(fitted.sum()) - n_parameters(int(kr.sum()), int(ks.sum()), sol.receivers.shape[1], offsets)
-    return outlier_mask(T, s_noise, dof=dof) & obs
+    k = outlier_threshold(int(np.isfinite(T).sum()), dof=dof)
+    with np.errstate(invalid="ignore"):
+        return outlier_mask(T, s_noise, dof=dof) & obs, np.where(obs, T / (k * s_noise), np.nan)
 
 
 def _scale_floor(Ysub: Array) -> float:
