@@ -14,10 +14,7 @@ refit), which it sits below: everything here reads the final fit and never refit
 
 from __future__ import annotations
 
-import contextlib
-import contextvars
 import dataclasses
-from collections.abc import Iterator
 from typing import Any
 
 import numpy as np
@@ -25,6 +22,7 @@ from numpy.typing import NDArray
 
 from ..errors import Status
 from .engine.nls import NlsSolution, toa_model
+from .options import verdicts_enabled
 from .result import (
     MESSAGES,
     ToaResult,
@@ -39,32 +37,7 @@ from .verdict.leverage import leverages, outlier_rule_has_power
 from .verdict.robust import noise_scale
 from .verdict.uniqueness import judge_fit
 
-__all__ = ["judge_final", "scores_only"]
-
-# False inside a scores_only() block (None outside it is never stored: the default is True)
-_VERDICTS: contextvars.ContextVar[bool] = contextvars.ContextVar("toa_verdicts", default=True)
-
-
-@contextlib.contextmanager
-def scores_only() -> Iterator[None]:
-    """Within the block, fits are judged by steps 6-7 only: the trust test and the packaged result.
-
-    For the candidates of a model choice (:func:`selfcal.toa.verdict.select.choose_offsets`),
-    whose fits serve as starts and scores (their fit, outliers and trust test, which the
-    choice reads) and are never returned: the determinacy and uniqueness tests and the outlier
-    rule's breakdown and power notes, which only set a returned result's verdict, are not
-    run. The fits themselves are the same as outside the block.
-
-    Examples
-    --------
-    >>> with scores_only():
-    ...     pass
-    """
-    token = _VERDICTS.set(False)
-    try:
-        yield
-    finally:
-        _VERDICTS.reset(token)
+__all__ = ["judge_final"]
 
 Array = NDArray[np.float64]
 Start = tuple[Array, Array, "Array | None", "Array | None"]
@@ -128,7 +101,7 @@ def judge_final(M: Array, Yc: Array, final: NlsSolution, Yf: Array, *, keep: tup
     # 7. back to the caller's numbering, 8. is the geometry determined?
     res = _package(M, Yc, final, keep_r, keep_s, pr, pc, outliers, speed, label, iters, n_runs, fit, geo,
                    status, message, noise, noise_est, dim, offsets, n_negative)
-    if not _VERDICTS.get():  # inside scores_only(): a model choice's candidate, steps 6-7 only
+    if not verdicts_enabled():  # inside options.scores_only(): a model choice's candidate, steps 6-7 only
         return res
     blocks = None
     sig = sd if sd is not None else float(final.sigma)

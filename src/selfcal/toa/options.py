@@ -12,13 +12,16 @@ them, so they travel as arguments of their own.
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import dataclasses
+from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
-__all__ = ["ToaOptions"]
+__all__ = ["ToaOptions", "scores_only", "verdicts_enabled"]
 
 
 @dataclass(frozen=True)
@@ -50,3 +53,41 @@ class ToaOptions:
     sweep: bool
     noise: float | None
     budget: int | None
+
+
+# False inside a scores_only() block (None outside it is never stored: the default is True)
+_VERDICTS: contextvars.ContextVar[bool] = contextvars.ContextVar("toa_verdicts", default=True)
+
+
+@contextlib.contextmanager
+def scores_only() -> Iterator[None]:
+    """Within the block, fits are judged by steps 6-7 only: the trust test and the packaged result.
+
+    For the candidates of a model choice (:func:`selfcal.toa.verdict.select.choose_offsets`),
+    whose fits serve as starts and scores (their fit, outliers and trust test, which the
+    choice reads) and are never returned: the determinacy and uniqueness tests and the outlier
+    rule's breakdown and power notes, which only set a returned result's verdict, are not
+    run. The fits themselves are the same as outside the block.
+
+    Examples
+    --------
+    >>> with scores_only():
+    ...     verdicts_enabled()
+    False
+    """
+    token = _VERDICTS.set(False)
+    try:
+        yield
+    finally:
+        _VERDICTS.reset(token)
+
+
+def verdicts_enabled() -> bool:
+    """False inside a :func:`scores_only` block: the final fit's verdicts beyond the trust test are skipped.
+
+    Examples
+    --------
+    >>> verdicts_enabled()
+    True
+    """
+    return _VERDICTS.get()

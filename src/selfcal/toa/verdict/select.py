@@ -198,7 +198,7 @@ def choose_offsets(M: Array, dim: int, solve: Solver, opts: ToaOptions) -> tuple
 def _choose_offsets(M: Array, dim: int, solve: Solver, opts: ToaOptions) -> tuple[ToaResult, dict[str, Any]]:
     fits: dict[str, ToaResult] = {}
     own: list[str] = []
-    from ..fit_result import scores_only
+    from ..options import scores_only
 
     # the candidates' refinements are starts and scores only: no covariances and no verdicts
     # beyond the trust test _misfit reads (the chosen one is searched, or refitted with both)
