@@ -12,6 +12,7 @@ verdict flipped in 2 of 3 seeds).
 from __future__ import annotations
 
 import json
+import re
 import shutil
 import warnings
 from pathlib import Path
@@ -48,7 +49,10 @@ def _check(tmp_path: Path, seed: int) -> None:
     # delta_i + tau_j per pair (a common shift between delays and onsets is a gauge)
     pair = [np.asarray(r.receiver_offsets)[:, None] + np.asarray(r.source_offsets)[None] for r in (a, b)]
     np.testing.assert_allclose(pair[1], pair[0][np.ix_(pr, ps)], atol=1e-9)
-    assert b.method == a.method
+    # the model, not the search's refinement count in the label: that count follows round-off
+    # (search(98) vs search(103) on seed 1) while the answer agrees to 1e-6 m above
+    assert re.sub(r"\(\d+\)", "", b.method) == re.sub(r"\(\d+\)", "", a.method)
+    assert b.known_heights == a.known_heights and b.receivers.shape == a.receivers.shape
     assert (b.verdict is None) == (a.verdict is None)
     if a.verdict is not None:
         assert b.verdict.passed == a.verdict.passed
