@@ -61,38 +61,6 @@ def test_majority_scale_over_many_draws():
     assert sum(r > k for r, k in gross) >= 0.5 * len(gross), sorted(r for r, _ in gross)
 
 
-def _truth_scales(seeds: range, gross: float) -> list[tuple[float, float]]:
-    """(trimmed scale, the test's majority scale) at the true geometry of 12 x 40 with ``gross`` of the ranges off."""
-    out = []
-    for seed in seeds:
-        g = np.random.default_rng([27, 98, seed])
-        r, s = g.uniform(0, 10, (12, 3)), g.uniform(0, 10, (40, 3))
-        Y = toa_model(r, s) + g.normal(0, 0.01, (12, 40))
-        bad = g.random(Y.shape) < gross
-        Y[bad] += g.uniform(1, 5, bad.sum())
-        n_par = n_parameters(12, 40, 3, "none")
-        _, s_m, _ = majority_scale_test(Y, r, s, None, None, "none", n_par)  # the fit: the truth
-        out.append((lts_scale(Y - toa_model(r, s), n_par), s_m))
-    return out
-
-
-def test_majority_scale_holds_beyond_the_trimmed_scale():
-    # at 35-40 % gross entries on 12 x 40 (480 entries, 150 unknowns) the trimmed scale's
-    # h = (m + n_par + 1) / 2 = 315 covers gross entries: at the true geometry it was 0.3-1.1 m against
-    # 1 cm noise (19 of 20 draws at 38 %), so the test could not fire even from the truth's basin. Its start is
-    # now the lower of that and the MAD scale (breakdown point 1/2): 2.2-2.9 cm over those 20 draws (the
-    # median of a 38 %-contaminated sample sits ~1.5-2x above the noise's), far below the ~1 m scale of
-    # the fit that gross errors pull off (the breakdown is s_f > 4.3 s_m); 5 cm = 5 noise std
-    for trimmed, s_m in _truth_scales(range(4), 0.38):
-        assert trimmed > 0.2  # these 4 draws: 0.31-0.87 m, the trimmed scale alone breaks down
-        assert s_m < 0.05, s_m
-
-
-@pytest.mark.slow
-def test_majority_scale_holds_beyond_the_trimmed_scale_over_many_draws():
-    assert all(s_m < 0.05 for _, s_m in _truth_scales(range(20), 0.38))  # measured 1.4-2.9 cm
-
-
 def test_lts_scale_is_normal_consistent():
     g = np.random.default_rng(5)
     for n_par in (0, 100):

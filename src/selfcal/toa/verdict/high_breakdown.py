@@ -55,9 +55,6 @@ GNC_STEPS = 4
 #: (m + n_par) / 2 of them, and below 2 its scale is biased low by the choice of which (clean 8 x 10
 #: networks in 3-D, m / n_par = 1.67, with Laplace noise: 4 false breakdowns in 40 draws)
 GNC_REDUNDANCY = 2
-#: most C-steps of the majority fit's scale in :func:`majority_scale_test` (least squares on the entries
-#: within the cut of the scale, the scale re-estimated; to its fixed point, within 1 %)
-GNC_CSTEPS = 5
 
 
 def elemental_subsets(p: int, clean: float = HB_CLEAN_SET, contamination: float = HB_CONTAMINATION) -> int:
@@ -438,14 +435,11 @@ def majority_scale_test(ranges: Array, receivers: Array, sources: Array, receive
     # 8 x 10 networks), least squares on all entries within k of a scale does not
     fit = best_fit
     res = resid(*fit)
-    # its start: the lower of the trimmed scale and the MAD scale. The trimmed scale's h = (m + n_par + 1) / 2
-    # holds at most (m - h) / m of gross entries (34 % at 480 entries and 150 unknowns: at 35-40 % the truth's
-    # trimmed scale was 0.3-1.1 m against 1 cm noise); the median holds up to half of them whatever n_par is
-    s_m = min(lts_scale(res, n_par), scale_of(res, obs))
+    s_m = lts_scale(res, n_par)
     if not s_f > k * s_m:
-        # the start is the lower scale (it overfits): it already rules the breakdown out
+        # the trimmed scale is the lower one (it overfits): it already rules the breakdown out
         return s_f, s_m, k
-    for _ in range(GNC_CSTEPS):
+    for _ in range(3):
         inl = obs & (np.abs(np.nan_to_num(res)) <= k * s_m)
         if int(inl.sum()) <= n_par:
             return None
@@ -455,11 +449,7 @@ def majority_scale_test(ranges: Array, receivers: Array, sources: Array, receive
         fit = (sol.receivers, sol.sources, sol.receiver_offsets, sol.source_offsets)
         res = resid(*fit)
         now = scale_of(res, inl)
-        # C-steps to the fixed point s = scale(least squares on the entries within k s), either way: from a
-        # start the refits overfitted (half the noise) the cut k s drops clean entries, and the scale of what
-        # is left rises (~3x per step from far below) towards the noise; from one inflated by gross entries
-        # it falls
-        done = abs(now - s_m) <= 0.01 * s_m
+        done = now >= 0.99 * s_m  # C-steps only while the scale keeps falling (the larger one is kept)
         s_m = now
         if done:
             break
