@@ -298,16 +298,12 @@ def majority_scale_test(ranges: Array, receivers: Array, sources: Array, receive
     Gaussian-looking as noise) is pulled towards it.
 
     The majority fit's scale ``s_m`` is estimated as the final fit's ``s_f`` is: least squares on
-    its inliers, the entries within ``k`` of its scale (first the lower of its trimmed scale,
-    :func:`lts_scale`, and its MAD scale, then the refit's), C-steps to the fixed point (within
-    1 %, at most :data:`GNC_CSTEPS`); each scale is
+    its inliers, the entries within ``k`` of its scale (first its trimmed scale, :func:`lts_scale`,
+    then the refit's), at most three C-steps, continued only while the scale falls; each scale is
     the normal-consistent MAD of the fitted entries times ``sqrt(m / (m - n_par))``
     (``fit_result._noise_estimate``). The trimmed
     refits alone overfit the noise (a weighted version's MAD was up to 14x below it on clean
-    8 x 10 networks); least squares on every entry within ``k`` of a scale does not, and from a
-    start below the noise its scale rises to it. The MAD scale is in the start because the
-    trimmed scale's ``h = (m + n_par + 1) / 2`` covers gross entries beyond ``(m - h) / m`` of
-    them (34 % at 480 entries and 150 unknowns); the median holds up to half.
+    8 x 10 networks); least squares on every entry within ``k`` of a scale does not.
 
     The test: the final fit has broken down when ``s_f > k s_m``, ``k`` the outlier rule's own
     cut (:func:`~selfcal.toa.verdict.robust.outlier_threshold`: Bonferroni normal quantile over
@@ -340,10 +336,9 @@ def majority_scale_test(ranges: Array, receivers: Array, sources: Array, receive
 
     Notes
     -----
-    Cost: up to :data:`GNC_ROUNDS` least-squares refits of :data:`GNC_STEPS` steps and up to
-    :data:`GNC_CSTEPS` C-steps (only where the start scale does not already rule the breakdown
-    out), without covariance, on the sparse solver (a weighted refit only where a node keeps too
-    few entries); on clean 12 x 40 networks 0.05-0.2 of the solve (``benchmarks/bench_postsolve.py``).
+    Cost: up to :data:`GNC_ROUNDS` least-squares refits of :data:`GNC_STEPS` steps and three
+    C-steps, without covariance, on the sparse solver (a weighted refit only where a node keeps too
+    few entries); on clean 12 x 40 networks 0.05 of the solve (``benchmarks/bench_postsolve.py``).
 
     References
     ----------
@@ -430,9 +425,9 @@ def majority_scale_test(ranges: Array, receivers: Array, sources: Array, receive
     k = outlier_threshold(m, OUTLIER_ALPHA if alpha is None else alpha)
     best, best_fit = gnc(R, S, D, O)
     # the majority fit's scale as the final fit's is estimated: least squares on its inliers (within
-    # the cut k of its scale: first the start below, then the refit's MAD times sqrt(inliers / dof);
-    # C-steps): the trimmed refits overfit the noise (their raw MAD was up to 14x below it on clean
-    # 8 x 10 networks), least squares on all entries within k of a scale does not
+    # the cut k of its scale: first the trimmed one, lts_scale, then the refit's MAD times
+    # sqrt(inliers / dof); C-steps): the trimmed refits overfit the noise (their raw MAD was up to
+    # 14x below it on clean 8 x 10 networks), least squares on all entries within k of a scale does not
     fit = best_fit
     res = resid(*fit)
     s_m = lts_scale(res, n_par)
