@@ -108,7 +108,7 @@ def finish(M: Array, dim: int, offsets: str, opts: ToaOptions, *, init: Any) -> 
     minima: Any = ([], prev_keep)
     degenerate = False  # the best fit collapsed to a line / point (data that fit no dim-D geometry)
     ever = gross.copy()  # every entry screened or flagged in some round (outliers if its node is dropped)
-    cut_u: Array | None = None  # the rule's residuals over its cut, where the rule removed entries
+    cut_u: Array | None = None  # the rule's residuals over its cut, wherever its cut is in force
     memo: dict[str, Any] = {}  # the last leverages of the outlier rule (leverage.leverages)
     breakdown: list[str] = []  # why the outlier rule cannot be trusted here (reported, FAILED_TEST)
     overflagged: list[str] = []  # nodes dropped: more flagged ranges than their position can hold

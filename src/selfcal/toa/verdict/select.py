@@ -25,6 +25,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from ...errors import ConvergenceWarning, DegenerateGeometryError
+from ..options import scores_only
 from .planarity import (
     BOOT_REPLICATES,
     PLANAR_ALPHA,
@@ -198,8 +199,6 @@ def choose_offsets(M: Array, dim: int, solve: Solver, opts: ToaOptions) -> tuple
 def _choose_offsets(M: Array, dim: int, solve: Solver, opts: ToaOptions) -> tuple[ToaResult, dict[str, Any]]:
     fits: dict[str, ToaResult] = {}
     own: list[str] = []
-    from ..options import scores_only
-
     # the candidates' refinements are starts and scores only: no covariances and no verdicts
     # beyond the trust test _misfit reads (the chosen one is searched, or refitted with both)
     nls = dataclasses.replace(opts, method="nls", covariance=False)
