@@ -45,6 +45,10 @@ DEFAULT_SEEDS = (6, 7, 12)
 # decision: the truth lies inside the fit's likelihood region (its likelihood ratio
 # against the ML fit 85 and 35 on 54 position parameters in seeds 11 and 3, below the
 # chi-square 0.9973 quantile 87), 1.7-4.1 cm away against bars of a few mm.
+# Profile-likelihood error bars would not fix them either (benchmarks/near_planar_profile.py,
+# docs/design.md): per-unit height intervals at chi-square(1)'s 0.9973 quantile cover every
+# unit only in 31; in the others 5-16 units' true heights have a profile likelihood ratio
+# above 9 (up to 14-53): the ML fit's bias along the bend is not in the likelihood's shape.
 KNOWN_BENT = {3, 11, 20, 22, 24, 31}
 
 
