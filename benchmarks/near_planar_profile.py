@@ -38,7 +38,7 @@ matrix and fit (``run_pipeline`` with its defaults, heights removed):
   the truth, against the CRLB at the fit).
 
 Run: ``OPENBLAS_NUM_THREADS=1 PYTHONPATH=src .venv/bin/python benchmarks/near_planar_profile.py
-LAYOUT SEED [SEED ...]`` (about 15 s per seed). One JSON line per seed.
+LAYOUT SEED [SEED ...]`` (15-30 s CPU per seed). One JSON line per seed.
 """
 
 from __future__ import annotations
