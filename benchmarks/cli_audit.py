@@ -57,7 +57,64 @@ Run (the table below): ``OPENBLAS_NUM_THREADS=1 PYTHONPATH=src .venv/bin/python
 benchmarks/cli_audit.py --draws 20 [--families a,b] [--first 0] [--jsonl FILE]``; one JSON
 line per draw on ``--jsonl``, the per-family table on stdout. About 0.3-1.5 s per draw.
 
-Measured (see the bottom of this docstring, filled in by the run reported in issue 27's note).
+Columns: exit 0 / 1 / 2 counts; ``out(a)`` / ``out(b)`` exit-0 draws with a node outside 3
+error bars by (a) / (b); ``E(a)`` / ``E(b)`` how many of those exit-0 draws a perfectly
+calibrated answer would have by chance (:func:`_tail_probabilities`, summed); ``out5`` exit-0
+draws with a node beyond 5 bars (a); ``named`` exit-0 draws naming ambiguous or undetermined
+nodes; ``max r`` the largest ``|err| / bar`` of an exit-0 draw.
+
+Measured on branch ``audit`` (commit 2eaa720, the rejected-plane rule of
+:func:`selfcal.toa.verdict.select.choose_dim` in; loaded 2-core machine, 4 min CPU for the
+first command)::
+
+    OPENBLAS_NUM_THREADS=1 PYTHONPATH=src .venv/bin/python benchmarks/cli_audit.py --draws 20
+    OPENBLAS_NUM_THREADS=1 PYTHONPATH=src .venv/bin/python benchmarks/cli_audit.py --draws 40 --first 20 \
+        --families gen-3d-8x10,gen-2d-8x10,gen-3d-12x40-t3,gen-2d-10x30-laplace,gen-3d-offr-10x14,gen-3d-offauto-10x14,gen-3d-6x8,tag-height-blind
+
+    family                   draws exit0 exit1 exit2 out(a) out(b)  E(a)  E(b)  out5 named   max r
+    collinear-2d                20     0    20     0      0      0  0.00  0.00     0     0       0
+    collinear-2d-dim2           20     0    20     0      0      0  0.00  0.00     0     0       0
+    coplanar-3d                 20     0    20     0      0      0  0.00  0.00     0     0       0
+    coplanar-3d-offr            20     0    20     0      0      0  0.00  0.00     0     0       0
+    parallel-planes             20     0    20     0      0      0  0.00  0.00     0     0       0
+    parallel-planes-offauto     20     0    20     0      0      0  0.00  0.00     0     0       0
+    collinear-3d                20     0    20     0      0      0  0.00  0.00     0     0       0
+    minimal-2d                  20     0    20     0      0      0  0.00  0.00     0     0       0
+    minimal-2d-dim2             20     0    20     0      0      0  0.00  0.00     0     0       0
+    minimal-3d                  20     0    20     0      0      0  0.00  0.00     0     0       0
+    tag-height-blind            60     0    60     0      0      0  0.00  0.00     0     0       0
+    tag-height-known            20     0    20     0      0      0  0.00  0.00     0     0       0
+    known-coplanar              20     0    20     0      0      0  0.00  0.00     0     0       0
+    known-doubled               20     0    20     0      0      0  0.00  0.00     0     0       0
+    known-line                  20     0    20     0      0      0  0.00  0.00     0     0       0
+    forced-dim2                 20     0    20     0      0      0  0.00  0.00     0     0       0
+    outliers-30pct-5m           20     6    14     0      2      6  0.09  1.97     0     6    4.81
+    gen-3d-8x10                 60    60     0     0      3      8  0.39  8.07     0     0     3.1
+    gen-2d-8x10                 60    60     0     0      2      9  0.75  5.65     0     0    3.24
+    gen-3d-12x40-t3             60    60     0     0      6     42  0.55 20.72     0     0    3.89
+    gen-2d-10x30-laplace        60    59     1     0      3     23  1.43 11.69     0     0    3.52
+    gen-3d-offr-10x14           60    60     0     0      1     10  0.84 10.29     0     0    4.22
+    gen-3d-offauto-10x14        60    59     1     0      1      4  1.18  9.94     1     0    8.04
+    gen-3d-6x8                  60    60     0     0      8     16  0.59  6.25     3     0    30.6
+
+Before the rejected-plane rule (commit f00e93c, same seeds 0-19): ``tag-height-blind`` 2 exit 0
+(seeds 1, 19: a 2-D answer, anchors 1.6-1.7 m off, 6.5-8 bars; F = 28, p = 6e-41, the 3-D fit
+ambiguous), every other draw of the first command identical (exit code, dimension, ratio).
+Gross exit-0 misses left (``out5``, or metres off): ``outliers-30pct-5m`` 4 and 12 (whole
+network in a wrong basin, residual 1.8-2.3 m, 0 outliers flagged: the documented breakdown
+failure; 12 is caught with ``--dim 3`` by the uniqueness test, and ``--dim auto`` takes the
+2-D fit since the bootstrap-corrected F is not significant, p = 0.0017), ``gen-3d-6x8`` 43
+(the same route: the 3-D search stops at 0.18 m RMS, flagged ambiguous; the 2-D fit at 0.53 m
+passes), 47 (the search's fit, 2 clean entries flagged and a source dropped, 1.8 cm RMS
+against 0.52 cm from the truth: the global minimum missed, 2.1 m off) and 20 (3 clean
+entries flagged on 12 dof, 8 cm at 6.5 bars), ``gen-3d-offauto-10x14`` 23 (``--offsets
+auto`` chose "sources" over "both" by the one-SE rule although "both" predicts 240x better
+and wins all 10 folds: one fold of "sources" at MSE 1.1 m^2 makes the paired SE 0.109 >
+the 0.106 difference; 1.5 m off, 8 bars). The rest of ``out(a)`` are 3.0-4.2 bars,
+centimetres: tails (t3 6 of 60 against 0.55 expected: the bars are second moments, t3
+node errors have heavier tails; ``gen-3d-6x8``: 12 residual dof, the estimated noise makes
+3 bars a t(12) quantile). (b) counts per-axis tails: a calibrated answer with 50 nodes
+has one in about a third of the draws, so "none outside" cannot hold under (b).
 """
 
 from __future__ import annotations
