@@ -373,7 +373,8 @@ def _dim_choice_lines(res: Any) -> list[str]:
     chi = "" if tp is None or tp != tp else f", chi-square p = {tp:.2g}"
     return [f"  dim {sel['chosen']} (auto: 3-D vs 2-D F = {sel['f_statistic']:.3g}, p = {sel['p_value']:.2g}, "
             f"level {PLANAR_ALPHA:g}; 3-D thickness {sel['thickness']:.3g} m{chi}"
-            + (", not resolved: near-planar)" if sel.get("near_planar") else ")")]
+            + (", not resolved: near-planar" if sel.get("near_planar") else "")
+            + (f"; {sel['reason']})" if sel.get("reason") else ")")]
 
 
 def _offsets_choice_lines(details: dict[str, Any], res: Any, unit: str) -> list[str]:

@@ -414,7 +414,9 @@ def dimension_test(M: Array, fit3: ToaResult, offsets: str, solve: Solver,
         ``criterion``, ``chosen``, ``f_statistic``, ``p_value``, ``residual_2d``,
         ``residual_3d``, ``dof_3d``, ``near_planar``, ``thickness``, ``normal_std``,
         ``thickness_chi2``, ``thickness_p``, ``alpha``, ``p_asymptotic``, ``bartlett``,
-        ``bartlett_se``, ``replicates`` (0 and factor 1 where the bootstrap did not run).
+        ``bartlett_se``, ``replicates`` (0 and factor 1 where the bootstrap did not run),
+        ``plane_rejected`` (the asymptotic F test rejects the plane outside the bootstrap
+        band: :func:`choose_dim` then reports no 2-D answer when the 3-D fit fails its own tests).
     """
     r3 = fit3
     r2 = _quiet(solve, M, 2, offsets, dataclasses.replace(opts, method="nls"), init=_projected_init(r3, offsets, opts.speed))
@@ -447,6 +449,10 @@ def dimension_test(M: Array, fit3: ToaResult, offsets: str, solve: Solver,
     noise = k * rms3 * math.sqrt(m / cmp.dof_3d) if cmp.dof_3d > 0 else 0.0  # range noise, m
     fin = np.isfinite(pts).all(axis=1)
     extent = float(np.ptp(pts[fin], axis=0).max()) if fin.any() else 0.0
+    # the plane rejected where F(k, dof) is the statistic's law or F is beyond every Bartlett
+    # factor measured at planar truths (outside the bootstrap band): no bend of a planar truth
+    # explains it (choose_dim then reports no 2-D model when the 3-D fit fails its own tests)
+    rejected = cmp.significant and not in_bootstrap_band(cmp, float(plan.extents[-1]), noise, extent)
     if in_bootstrap_band(cmp, float(plan.extents[-1]), noise, extent) and (not plan.near_planar or _misfit(r2)):
         # only where the bootstrap can overturn a "3-D" verdict (F decides it)
         cmp = bartlett_corrected(cmp, _null_replicates(M, r2, r3, common, offsets, opts))
@@ -458,7 +464,8 @@ def dimension_test(M: Array, fit3: ToaResult, offsets: str, solve: Solver,
              "near_planar": plan.near_planar, "thickness": float(plan.extents[-1]),
              "normal_std": plan.normal_std, "thickness_chi2": plan.thickness_chi2,
              "thickness_p": plan.thickness_p, "alpha": PLANAR_ALPHA, "p_asymptotic": cmp.p_asymptotic,
-             "bartlett": cmp.bartlett, "bartlett_se": cmp.bartlett_se, "replicates": cmp.replicates}
+             "bartlett": cmp.bartlett, "bartlett_se": cmp.bartlett_se, "replicates": cmp.replicates,
+             "plane_rejected": bool(rejected)}
     return keep3, plan, r2, stats
 
 
@@ -469,6 +476,14 @@ def choose_dim(M: Array, offsets: str, solve: Solver, opts: ToaOptions, *,
     ``fit3``: the 3-D fit of this model when the caller already searched it
     (:func:`choose` after :func:`choose_offsets`); it is not searched again. Without a 3-D
     fit (the solver breaks down in 3-D) the 2-D model is searched.
+
+    Where the test drops z although the data reject the plane (``plane_rejected``: F
+    significant outside the bootstrap band, so no bend of a planar truth explains it; z is
+    dropped because the 3-D layout's thickness is not resolved) and the 3-D fit fails its own
+    tests (ambiguous or undetermined nodes), neither model gives a trustworthy answer: the
+    failing 3-D fit is returned (``chosen`` 3, ``reason``), its ambiguous nodes named, rather
+    than a 2-D fit the data reject that passes as a success (issue 27: a tag walked at one
+    height under anchors on two levels; ``benchmarks/cli_audit.py``).
     """
     r3 = fit3 if fit3 is not None else _quiet(solve, M, 3, offsets, opts)
     if r3 is None:
@@ -478,6 +493,12 @@ def choose_dim(M: Array, offsets: str, solve: Solver, opts: ToaOptions, *,
                                           kind="degenerate-geometry")
         return r2, {"criterion": "F", "chosen": 2, "reason": "only the 2-D fit exists"}
     keep3, _, r2, stats = dimension_test(M, r3, offsets, solve, opts)
+    if not keep3 and stats.get("plane_rejected") and not r3.success:
+        # the data reject the plane beyond any bend of a planar truth, and the 3-D fit fails its
+        # own tests (ambiguous, undetermined): neither answer is trustworthy. The failing 3-D fit
+        # is reported (its ambiguous nodes named), not a 2-D model the data reject (a tag walked
+        # at one height under anchors on two levels: 2-D anchors 1.6 m off at 7 error bars, exit 0)
+        return r3, {**stats, "chosen": 3, "reason": "the data reject the plane and the 3-D fit fails its own tests"}
     return (r3 if keep3 or r2 is None else r2), stats
 
 
