@@ -82,10 +82,13 @@ CLI ``--cases data4-shuffled,data5-shuffled,data4,data5 --variants
 blind,receivers,known+receivers``, one run per tree, ratios receivers / known+receivers:
 data4-shuffled 3.33 / 3.11 -> 2.17 / 1.98; data5-shuffled 1.83 / 2.36 -> 1.39 / 1.35; data4
 3.48 / 2.78 -> 2.71 / 2.13; data5 1.63 / 1.30 -> 1.37 / 1.16; exit codes, offsets models and
-anchor RMSEs the same (blind data4 / data5 0.1656 / 0.1552 m). Known anchors with per-anchor
-biases are within 3x on every matrix measured; ``offsets="receivers"`` alone is not on the
-simulated shuffled flight (5.6-6.2, ``--api``), and ``--offsets auto`` on shuffled columns is
-not (15-18x on the flights): docs/design.md (branch ``autoconv``, "Why the candidates'
+anchor RMSEs the same (blind data4 / data5 0.1656 / 0.1552 m). ``--cases
+room-shuffled,flight-shuffled`` (paths the change does not touch): known+receivers 1.75 ->
+2.45 (load: blind 0.48 vs 0.34 s), 3.17 -> 3.19. Known anchors with per-anchor biases are
+within 3x on the shared flights and the room, 3.2x on the simulated shuffled flight (its
+rank-d initialiser's dense joint step, missing entries); ``offsets="receivers"`` alone is
+5.6-6.2x there (``--api``), and ``--offsets auto`` on shuffled columns is not within 3x
+(15-18x on the flights): docs/design.md (branch ``autoconv``, "Why the candidates'
 refinements crawl") gives what bounds it, measured with ``benchmarks/embedded_points.py``.
 
 Run: ``OPENBLAS_NUM_THREADS=1 PYTHONPATH=src python benchmarks/bench_uwb_known.py
