@@ -323,7 +323,10 @@ class _Structure:
     ``P_A = sum_a mu_a q_a q_a^T``, ``u_a = W^T q_a``, ``L = F_B[1:]`` and ``Z = [sqrt(mu_a) u_a o L]``
     (``(I - 1 - d)(1 + d)`` columns: 8 for 6 anchors in 3-D), which :meth:`solve` eliminates by
     the Woodbury identity in ``O(J r^2)`` instead of the ``O(K^3)`` Cholesky factor of the
-    whole matrix (``K = I + J - 1``: 600+ for a UWB flight of 6 anchors).
+    whole matrix (``K = I + J - 1``: 600+ for a UWB flight of 6 anchors). With the receiver
+    blocks set (:meth:`blocks`) the object stands for H itself and :func:`rank3_lm` never forms
+    it: products, diagonal, Frobenius norm and (for the Cholesky fallback) the dense matrix come
+    from the blocks.
     """
 
     def __init__(self, I: int, W: Array, FA: Array, SA: Array, FB: Array, SB: Array) -> None:
@@ -346,9 +349,11 @@ class _Structure:
         self.n = H11.shape[0] + H12.shape[1]
 
     def diagonal(self) -> Array:
+        """``diag(H)`` (the Marquardt scaling)."""
         return np.concatenate([np.diag(self.H11), self.s - np.einsum("jr,jr->j", self.Z, self.Z)])
 
     def __matmul__(self, x: Array) -> Array:
+        """``H x`` from the blocks, ``O(J r)``."""
         I = self.I
         x1, x2 = x[:I], x[I:]
         return np.concatenate([self.H11 @ x1 + self.H12 @ x2,
