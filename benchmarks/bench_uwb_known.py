@@ -69,6 +69,28 @@ data5-shuffled 9.32 / 3.22 / 3.14 -> 5.80 / 1.76 / 1.55; data4 (time order) 1.04
 / 1.41 -> 1.03 / 1.87 / 1.39 (0.1552 m both). Every exit code, offsets model and anchor RMSE
 the same before and after. What changed is in docs/design.md (per-anchor biases, cost).
 
+Measured (2026-12-03, branch ``autoconv`` against main f00e93c in the same session, old tree
+by ``PYTHONPATH``, loaded 2-core machine; the rank-d initialiser's complete-data
+Gauss-Newton matrix kept as its structure, every fit bitwise the same). ``--api --cases
+room-shuffled,flight-shuffled,data4-shuffled,data5-shuffled --variants blind,receivers,auto``,
+two alternating runs per tree, ratios receivers / auto, before -> after: room-shuffled 3.33 /
+5.95, 2.74 / 5.83 -> 3.07 / 6.32, 2.69 / 5.36 (joint path, unchanged: noise);
+flight-shuffled 5.63 / 14.6, 5.67 / 14.7 -> 6.10 / 16.9, 6.20 / 17.5 (unchanged path);
+data4-shuffled 3.90 / 19.6, 4.06 / 15.0 -> 2.73 / 16.0, 2.26 / 15.9 (receivers 1.46 / 1.72
+-> 1.30 / 0.82 s CPU); data5-shuffled 3.88 / 14.6, 3.65 / 16.9 -> 3.01 / 15.3, 2.47 / 17.8.
+CLI ``--cases data4-shuffled,data5-shuffled,data4,data5 --variants
+blind,receivers,known+receivers``, one run per tree, ratios receivers / known+receivers:
+data4-shuffled 3.33 / 3.11 -> 2.17 / 1.98; data5-shuffled 1.83 / 2.36 -> 1.39 / 1.35; data4
+3.48 / 2.78 -> 2.71 / 2.13; data5 1.63 / 1.30 -> 1.37 / 1.16; exit codes, offsets models and
+anchor RMSEs the same (blind data4 / data5 0.1656 / 0.1552 m). ``--cases
+room-shuffled,flight-shuffled`` (paths the change does not touch): known+receivers 1.75 ->
+2.45 (load: blind 0.48 vs 0.34 s), 3.17 -> 3.19. Known anchors with per-anchor biases are
+within 3x on the shared flights and the room, 3.2x on the simulated shuffled flight (its
+rank-d initialiser's dense joint step, missing entries); ``offsets="receivers"`` alone is
+5.6-6.2x there (``--api``), and ``--offsets auto`` on shuffled columns is not within 3x
+(15-18x on the flights): docs/design.md (branch ``autoconv``, "Why the candidates'
+refinements crawl") gives what bounds it, measured with ``benchmarks/embedded_points.py``.
+
 Run: ``OPENBLAS_NUM_THREADS=1 PYTHONPATH=src python benchmarks/bench_uwb_known.py
 [--cases room,room-shuffled,data4,data5] [--variants blind,auto] [--api] [--repeat 1] [--out FILE]``.
 """

@@ -498,3 +498,45 @@ def test_structured_step_gives_the_cholesky_steps_fit(seed: int, monkeypatch: py
     chol = rank3_lm(Y, dim=3, p0=p0)
     np.testing.assert_allclose(fast.p, chol.p, atol=1e-7)
     assert abs(fast.frobenius - chol.frobenius) <= 1e-9 * chol.frobenius
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_structured_matrix_is_the_formed_gauss_newton_matrix(seed: int, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The complete-data Gauss-Newton matrix that rank3_lm keeps as its structure (never formed:
+    receiver blocks and ``diag(s) - Z Z^T``) is the matrix the dense joint step forms
+    independently, ``(Pu^T Pu) o (Pv^T Pv)`` from the Jacobian's rank-one factors, at the same
+    point of UWB-like 6 x 300 flights: its dense form to 1e-9 relative (the two paths' rank-d
+    subspaces come from subspace iteration vs a full eigendecomposition, agreeing to ~1e-13),
+    and its products, diagonal and Frobenius norm to round-off of its own dense form."""
+    from selfcal.toa.init import rank3_joint
+
+    g = np.random.default_rng(seed)
+    A = g.uniform([0, 0, 0], [6, 5, 3], (6, 3))
+    tag = g.uniform([0.5, 0.5, 0.3], [5.5, 4.5, 2.0], (300, 3))
+    Y = np.linalg.norm(A[:, None] - tag[None], axis=2) + g.normal(-0.15, 0.1, 6)[:, None] + g.normal(0, 0.03, (6, 300))
+    p0 = g.normal(0, 0.2, 6 + 300 - 1)
+    seen: dict[str, object] = {}
+    s_init, j_init = rank3._ScalableStep.__init__, rank3_joint._JointStep.__init__
+
+    def s_spy(self, x, H, *a, **k):
+        seen.setdefault("structure", H)
+        s_init(self, x, H, *a, **k)
+
+    def j_spy(self, *a, **k):
+        j_init(self, *a, **k)
+        seen.setdefault("formed", self.H)
+
+    monkeypatch.setattr(rank3._ScalableStep, "__init__", s_spy)
+    monkeypatch.setattr(rank3_joint._JointStep, "__init__", j_spy)
+    monkeypatch.setattr(rank3, "_DENSE_JOINT_MAX", 0)
+    rank3_lm(Y, dim=3, p0=p0, max_iter=1)
+    rank3_joint._rank3_lm_joint(Y, dim=3, p0=p0, max_iter=1)
+    st, H = seen["structure"], np.asarray(seen["formed"])
+    assert isinstance(st, rank3._Structure)
+    D = st.dense()
+    scale = float(np.abs(H).max())
+    np.testing.assert_allclose(D, H, atol=1e-9 * scale)
+    x = g.standard_normal(D.shape[0])
+    np.testing.assert_allclose(st @ x, D @ x, atol=1e-12 * scale * np.abs(x).sum())
+    np.testing.assert_allclose(st.diagonal(), np.diag(D), atol=1e-12 * scale)
+    assert abs(st.frobenius() - np.linalg.norm(D)) <= 1e-10 * np.linalg.norm(D)

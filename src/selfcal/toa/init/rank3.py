@@ -218,14 +218,25 @@ def rank3_lm(
         SB = scipy.linalg.block_diag(Sc, -np.eye(dim))
         return FA, SA, FB, SB
 
-    def gauss_newton(xv: Array, Ud: Array, Vd: Array, resid: Array) -> tuple[Array, Array, Any]:
-        """p-block of J^T J from its structure, the gradient J^T r and the J^T J product."""
+    def gauss_newton(xv: Array, Ud: Array, Vd: Array, resid: Array) -> tuple[Any, Array, Any]:
+        """p-block of J^T J from its structure, the gradient J^T r and the J^T J product.
+
+        Complete data, mean centring: the matrix is returned as its :class:`_Structure`
+        (the receiver blocks and the source-offset block's diagonal minus low rank), never
+        formed (its (K, K) products cost most of an iteration for a long flight)."""
         _, e, ez = squared(xv[:K], times(xv))
         FA, SA, FB, SB = metric(Ud, Vd)
         W = -2.0 * e[:, 1:]  # tau columns of the receiver factors, (I, J-1)
         Vm = -2.0 * e.T  # delta columns of the source factors, (J, I)
         FW = FA.T @ W
         FV = FB.T @ Vm
+        G = adjoint(resid)
+        if not n_miss and centring == "mean":
+            st = _Structure(I, W, FA, SA, FB, SB)
+            if st.ok:
+                BV1 = Vm[1:] + FB[1:] @ (SB @ FV)  # rows 1.. of BV below
+                st.blocks(st.PA * (Vm.T @ Vm + FV.T @ SB @ FV), (W + FA @ (SA @ FW)) * BV1.T)
+                return st, jt_complete(e, G), st
         Hu = np.empty((K, K))
         Hu[:I, :I] = np.eye(I) + FA @ SA @ FA.T
         Hu[:I, I:] = W + FA @ (SA @ FW)
@@ -239,11 +250,9 @@ def rank3_lm(
         Hv[I:, :I] = BV[1:, :]
         Hv[I:, I:] = Bm[1:, 1:]
         Hu *= Hv
-        G = adjoint(resid)
 
         def jt(Gm: Array) -> Array:
-            eg = e * Gm
-            parts = [-2.0 * eg.sum(axis=1), -2.0 * eg.sum(axis=0)[1:]]
+            parts = [jt_complete(e, Gm)]
             if n_miss:
                 parts.append(2.0 * ez[missing] * Gm[missing])
             return np.concatenate(parts)
@@ -259,12 +268,17 @@ def rank3_lm(
 
         g = jt(G)
         if not n_miss:
-            return Hu, g, _Structure(I, W, FA, SA, FB, SB) if centring == "mean" else None
+            return Hu, g, None  # reference centring, or a metric that is not a projector
         # diagonal of the missing-time block: (2 e_ij)^2 A_ii B_jj
         Ad = 1.0 + np.einsum("ia,ab,ib->i", FA, SA, FA)
         Bd = 1.0 + np.einsum("ja,ab,jb->j", FB, SB, FB)
         hz = 4.0 * ez[missing] ** 2 * Ad[missing[0]] * Bd[missing[1]]
         return Hu, g, (jtj, hz)
+
+    def jt_complete(e: Array, Gm: Array) -> Array:
+        """``J^T`` of the offsets (delta, tau without the first) applied to an (I, J) matrix."""
+        eg = e * Gm
+        return np.concatenate([-2.0 * eg.sum(axis=1), -2.0 * eg.sum(axis=0)[1:]])
 
     class Scalable(Rank3Model):
         Q: Array | None = None  # the subspace basis of the accepted point (warm start)
@@ -309,11 +323,14 @@ class _Structure:
     ``P_A = sum_a mu_a q_a q_a^T``, ``u_a = W^T q_a``, ``L = F_B[1:]`` and ``Z = [sqrt(mu_a) u_a o L]``
     (``(I - 1 - d)(1 + d)`` columns: 8 for 6 anchors in 3-D), which :meth:`solve` eliminates by
     the Woodbury identity in ``O(J r^2)`` instead of the ``O(K^3)`` Cholesky factor of the
-    whole matrix (``K = I + J - 1``: 600+ for a UWB flight of 6 anchors).
+    whole matrix (``K = I + J - 1``: 600+ for a UWB flight of 6 anchors). With the receiver
+    blocks set (:meth:`blocks`) the object stands for H itself and :func:`rank3_lm` never forms
+    it: products, diagonal, Frobenius norm and (for the Cholesky fallback) the dense matrix come
+    from the blocks.
     """
 
     def __init__(self, I: int, W: Array, FA: Array, SA: Array, FB: Array, SB: Array) -> None:
-        PA = np.eye(I) + FA @ SA @ FA.T
+        self.PA = PA = np.eye(I) + FA @ SA @ FA.T
         mu, q = np.linalg.eigh(0.5 * (PA + PA.T))
         keep = mu > 0.5  # a projector: eigenvalues 0 and 1 (to round-off)
         self.ok = bool(np.all(np.abs(mu[~keep]) < 1e-8) and np.all(np.abs(mu[keep] - 1.0) < 1e-8)
@@ -325,9 +342,43 @@ class _Structure:
             self.s = np.sum(U * U, axis=1)
             self.Z = (U[:, :, None] * L[:, None, :]).reshape(U.shape[0], -1)
 
-    def solve(self, H: Array, damp: Array, b: Array) -> Array | None:
+    def blocks(self, H11: Array, H12: Array) -> None:
+        """The receiver-offset blocks ``H[:I, :I]``, ``H[:I, I:]``: with them this object is the
+        whole matrix (``H[I:, I:] = diag(s) - Z Z^T``), used without forming it."""
+        self.H11, self.H12 = H11, H12
+        self.n = H11.shape[0] + H12.shape[1]
+
+    def diagonal(self) -> Array:
+        """``diag(H)`` (the Marquardt scaling)."""
+        return np.concatenate([np.diag(self.H11), self.s - np.einsum("jr,jr->j", self.Z, self.Z)])
+
+    def __matmul__(self, x: Array) -> Array:
+        """``H x`` from the blocks, ``O(J r)``."""
+        I = self.I
+        x1, x2 = x[:I], x[I:]
+        return np.concatenate([self.H11 @ x1 + self.H12 @ x2,
+                               self.H12.T @ x1 + self.s * x2 - self.Z @ (self.Z.T @ x2)])
+
+    def frobenius(self) -> float:
+        """``|H|_F`` from the blocks: ``|diag(s) - Z Z^T|_F^2 = |s|^2 - 2 s.|Z_j|^2 + |Z^T Z|_F^2``."""
+        z2 = np.einsum("jr,jr->j", self.Z, self.Z)
+        ZtZ = self.Z.T @ self.Z
+        tt = float(self.s @ self.s - 2.0 * self.s @ z2 + np.sum(ZtZ * ZtZ))
+        return float(np.sqrt(max(float(np.sum(self.H11 ** 2)) + 2.0 * float(np.sum(self.H12 ** 2)) + tt, 0.0)))
+
+    def dense(self) -> Array:
+        """The formed matrix (the Cholesky fallback's)."""
+        I = self.I
+        H = np.empty((self.n, self.n))
+        H[:I, :I], H[:I, I:], H[I:, :I] = self.H11, self.H12, self.H12.T
+        H[I:, I:] = -(self.Z @ self.Z.T)
+        H[I:, I:][np.diag_indices(self.n - I)] += self.s
+        return H
+
+    def solve(self, H: Any, damp: Array, b: Array) -> Array | None:
         """``(H + diag(damp)) x = b`` through the block structure; None where the damped matrix is
-        not positive definite (the test the Cholesky factor made) or a factor fails."""
+        not positive definite (the test the Cholesky factor made) or a factor fails. ``H`` is
+        the formed matrix or this object (its blocks set)."""
         I = self.I
         Dd = self.s + damp[I:]
         if not np.all(Dd > 0):
@@ -340,10 +391,10 @@ class _Structure:
                 v = v / Dd[:, None] if v.ndim == 2 else v / Dd
                 return v + Zs @ scipy.linalg.cho_solve(cap, self.Z.T @ v, check_finite=False)
 
-            H12 = H[:I, I:]
+            H11, H12 = (H.H11, H.H12) if isinstance(H, _Structure) else (H[:I, :I], H[:I, I:])
             Y21 = cinv(H12.T)
             y2 = cinv(b[I:])
-            Sm = H[:I, :I] + np.diag(damp[:I]) - H12 @ Y21
+            Sm = H11 + np.diag(damp[:I]) - H12 @ Y21
             x1 = scipy.linalg.cho_solve(scipy.linalg.cho_factor(Sm, check_finite=False), b[:I] - H12 @ y2,
                                         check_finite=False)
         except np.linalg.LinAlgError:
@@ -361,10 +412,11 @@ class _ScalableStep:
     its structure, :class:`_Structure`), with missing times by preconditioned CG
     (:func:`_damped_pcg`); a step leaving the feasible box is refused."""
 
-    def __init__(self, x: Array, H: Array, g: Array, coupled: Any, K: int, bound: float,
+    def __init__(self, x: Array, H: Any, g: Array, coupled: Any, K: int, bound: float,
                  structure: _Structure | None = None) -> None:
+        # H: the formed (K, K) matrix, or the _Structure itself (complete data, never formed)
         self.x, self.H, self.g, self.coupled, self.K, self.bound = x, H, g, coupled, K, bound
-        dg = np.diag(H).copy()
+        dg = H.diagonal() if isinstance(H, _Structure) else np.diag(H).copy()
         if coupled is not None:
             dg = np.concatenate([dg, coupled[1]])
         dg[dg <= 0] = 1.0
@@ -372,7 +424,10 @@ class _ScalableStep:
         self.last = np.zeros_like(x)
         self.gnorm = float(np.linalg.norm(g))
         self.structure = structure if structure is not None and structure.ok else None
-        self.hnorm = float(np.linalg.norm(H)) if self.structure is not None else 0.0
+        if self.structure is None:
+            self.hnorm = 0.0
+        else:
+            self.hnorm = H.frobenius() if isinstance(H, _Structure) else float(np.linalg.norm(H))
 
     def _structured(self, lam: float) -> Array | None:
         """The damped step through :class:`_Structure`, or None (then the Cholesky factor decides)."""
@@ -393,7 +448,7 @@ class _ScalableStep:
                 return None
             self.last = dx
             return np.asarray(dx)
-        Hm = self.H.copy()
+        Hm = self.H.dense() if isinstance(self.H, _Structure) else self.H.copy()
         Hm[np.diag_indices(K)] += lam * dg[:K]
         try:
             cf = cho_factor(Hm, check_finite=False)
