@@ -132,14 +132,14 @@ def _decide(seed: int, planar: bool):
 # too large (seconds multiplied by the speed twice), stopped at 0.1-1 ms RMS and inflated F
 @pytest.mark.parametrize("seed", [1001, 1015, 1022, 1032, 1100, 1101])
 def test_planar_layouts_stay_planar_and_their_2d_fit_reaches_the_noise(seed):
-    keep3, pl, r2, stats = _decide(seed, planar=True)
+    keep3, pl, r2, stats, _ = _decide(seed, planar=True)
     assert not keep3 and pl.near_planar and stats["chosen"] == 2
     assert stats["residual_2d"] < 1.5 * NOISE  # the 2-D model's own minimum, not a wrong basin
 
 
 @pytest.mark.parametrize("seed", range(4))
 def test_generic_layouts_are_3d(seed):
-    keep3, pl, _, stats = _decide(2000 + seed, planar=False)
+    keep3, pl, _, stats, _ = _decide(2000 + seed, planar=False)
     assert keep3 and not pl.near_planar and stats["p_value"] <= PLANAR_ALPHA and stats["thickness_p"] <= PLANAR_ALPHA
 
 
@@ -170,11 +170,11 @@ def test_the_bootstrap_runs_where_the_f_test_is_borderline_and_not_on_generic_la
     by the asymptotic F test (p 2e-4, 8e-4 at level 1e-3); the bootstrap's factor (about 2
     at 8 x 10) makes them 2-D. Generic 3-D draws are out of the band: no replicate runs."""
     for seed in (1037, 1041):
-        keep3, pl, _, stats = _decide(seed, planar=True)
+        keep3, pl, _, stats, _ = _decide(seed, planar=True)
         assert stats["p_asymptotic"] < PLANAR_ALPHA and stats["replicates"] >= BOOT_REPLICATES - 2
         assert stats["bartlett"] > 1.0 and not keep3 and pl.near_planar
     for seed in range(2):
-        keep3, _, _, stats = _decide(2000 + seed, planar=False)
+        keep3, _, _, stats, _ = _decide(2000 + seed, planar=False)
         assert keep3 and stats["replicates"] == 0 and stats["bartlett"] == 1.0
 
 
@@ -204,7 +204,7 @@ def test_planar_false_alarm_and_generic_power_over_many_draws():
     planar3 = sum(_decide(3000 + s, True)[0] for s in range(100))
     generic = [_decide(4000 + s, False) for s in range(100)]
     assert planar3 <= 10
-    assert all(keep3 or stats["residual_3d"] > 5 * NOISE for keep3, _, _, stats in generic)
+    assert all(keep3 or stats["residual_3d"] > 5 * NOISE for keep3, _, _, stats, _ in generic)
 
 
 @pytest.mark.parametrize("planar", [True, False])
