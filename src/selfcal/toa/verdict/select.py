@@ -512,7 +512,7 @@ def _widened(fit3: ToaResult, mse: Array) -> tuple[ToaResult, dict[str, Any]]:
     (conservative: at least either). No refit is added: the F test's replicates are reused.
     """
     I = len(fit3.receivers)
-    ok = np.isfinite(mse).all(axis=(1, 2))
+    ok: NDArray[np.bool_] = np.asarray(np.isfinite(mse).all(axis=(1, 2)), bool)
     add = np.where(ok[:, None, None], mse, 0.0)
     rc, sc = np.asarray(fit3.receiver_cov, float), np.asarray(fit3.source_cov, float)
     before = np.concatenate([rc, sc])
