@@ -283,7 +283,7 @@ def test_near_planar_3d_answers_whose_bars_the_bootstrap_widened_cover_the_truth
 
 @pytest.mark.slow
 def test_near_planar_widened_bars_cover_over_many_draws():
-    """120 draws (5000-5119, about 90 s): measured 16 bootstrap runs, 10 of
+    """120 draws (5000-5119, 2.5 min on a loaded machine): measured 16 bootstrap runs, 10 of
     them stayed 3-D and were widened (bars x3.8-8.7 median per draw), 5 of those had nodes
     beyond 3 linearised bars, none beyond 3 widened ones. The bound asserted is the
     property (every widened draw covers), with at least 5 widened draws so it is not vacuous."""
