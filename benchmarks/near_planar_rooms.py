@@ -5,7 +5,8 @@ Per seed: ``selfcal simulate conference`` (8 x 7 x 3 m, 10 units, RT60 0.4 s, SN
 defaults (``--dim auto``). Counted per layout: exit 0 with a unit beyond 3 of its own error
 bars (squared Mahalanobis distance of the aligned 3-D position above chi-square(3)'s
 0.9973 quantile), and of those the ones not listed ambiguous; exit 0 in 2-D; exit 0 in 3-D
-with every unit inside its bars; flagged (exit != 0).
+with every unit inside its bars; flagged (exit != 0). ``widened``: the bar widening factors
+(median, max over units) where the planarity test's bootstrap widened the 3-D answer's bars.
 
 Run: ``OPENBLAS_NUM_THREADS=1 PYTHONPATH=src .venv/bin/python benchmarks/near_planar_rooms.py
 LAYOUT FIRST LAST [WORKDIR]`` (seeds FIRST..LAST-1; about 2.5 s per seed). One JSON line per
@@ -15,6 +16,7 @@ seed, then the summary.
 from __future__ import annotations
 
 import json
+import re
 import sys
 import tempfile
 from pathlib import Path
@@ -54,6 +56,10 @@ def one(layout: str, seed: int, work: Path) -> dict:
         data = json.loads(out.read_text())
         truth = json.loads((rec / "truth.json").read_text())
         row.update(dim=data["dim"], position_max=data["errors"]["position_max"])
+        # bars widened by the planarity bootstrap's mean-square error (dimension_test): its note
+        wide = [m for n in data.get("notes", []) if (m := re.search(r"bars x(\S+) median, x(\S+) max", n))]
+        if wide:
+            row.update(widened=[float(wide[0].group(1)), float(wide[0].group(2))])
         if data["dim"] == 3:
             o = outside(data, truth)
             row.update(outside=sorted(o),

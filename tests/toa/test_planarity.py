@@ -132,14 +132,14 @@ def _decide(seed: int, planar: bool):
 # too large (seconds multiplied by the speed twice), stopped at 0.1-1 ms RMS and inflated F
 @pytest.mark.parametrize("seed", [1001, 1015, 1022, 1032, 1100, 1101])
 def test_planar_layouts_stay_planar_and_their_2d_fit_reaches_the_noise(seed):
-    keep3, pl, r2, stats = _decide(seed, planar=True)
+    keep3, pl, r2, stats, _ = _decide(seed, planar=True)
     assert not keep3 and pl.near_planar and stats["chosen"] == 2
     assert stats["residual_2d"] < 1.5 * NOISE  # the 2-D model's own minimum, not a wrong basin
 
 
 @pytest.mark.parametrize("seed", range(4))
 def test_generic_layouts_are_3d(seed):
-    keep3, pl, _, stats = _decide(2000 + seed, planar=False)
+    keep3, pl, _, stats, _ = _decide(2000 + seed, planar=False)
     assert keep3 and not pl.near_planar and stats["p_value"] <= PLANAR_ALPHA and stats["thickness_p"] <= PLANAR_ALPHA
 
 
@@ -170,11 +170,11 @@ def test_the_bootstrap_runs_where_the_f_test_is_borderline_and_not_on_generic_la
     by the asymptotic F test (p 2e-4, 8e-4 at level 1e-3); the bootstrap's factor (about 2
     at 8 x 10) makes them 2-D. Generic 3-D draws are out of the band: no replicate runs."""
     for seed in (1037, 1041):
-        keep3, pl, _, stats = _decide(seed, planar=True)
+        keep3, pl, _, stats, _ = _decide(seed, planar=True)
         assert stats["p_asymptotic"] < PLANAR_ALPHA and stats["replicates"] >= BOOT_REPLICATES - 2
         assert stats["bartlett"] > 1.0 and not keep3 and pl.near_planar
     for seed in range(2):
-        keep3, _, _, stats = _decide(2000 + seed, planar=False)
+        keep3, _, _, stats, _ = _decide(2000 + seed, planar=False)
         assert keep3 and stats["replicates"] == 0 and stats["bartlett"] == 1.0
 
 
@@ -204,7 +204,7 @@ def test_planar_false_alarm_and_generic_power_over_many_draws():
     planar3 = sum(_decide(3000 + s, True)[0] for s in range(100))
     generic = [_decide(4000 + s, False) for s in range(100)]
     assert planar3 <= 10
-    assert all(keep3 or stats["residual_3d"] > 5 * NOISE for keep3, _, _, stats in generic)
+    assert all(keep3 or stats["residual_3d"] > 5 * NOISE for keep3, _, _, stats, _ in generic)
 
 
 @pytest.mark.parametrize("planar", [True, False])
@@ -226,3 +226,65 @@ def test_the_model_choice_is_the_same_in_seconds_with_a_speed_as_in_metres(plana
         # same fit up to the solver's tolerance (1e-6 of a 10 m layout)
         np.testing.assert_allclose(a.receivers, b.receivers, atol=1e-5)
         np.testing.assert_allclose(a.sources, b.sources, atol=1e-5)
+
+
+def _near_draw(seed: int, c: float = 2.0, I: int = 8, J: int = 10) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``benchmarks/planarity_rates.py``'s near-c family: heights N(0, c sqrt(sigma L)), L = 5 m,
+    the bending scale at which a thickness becomes detectable by a fit (c = 2: 8 cm)."""
+    g = np.random.default_rng(seed)
+    R = np.c_[g.uniform(0, 8, I), g.uniform(0, 7, I), np.zeros(I)]
+    S = np.c_[g.uniform(0, 8, J), g.uniform(0, 7, J), np.zeros(J)]
+    h = c * np.sqrt(NOISE * C * 5.0)
+    R[:, 2], S[:, 2] = g.normal(0, h, I), g.normal(0, h, J)
+    D = np.linalg.norm(R[:, None] - S[None], axis=-1)
+    T = D / C + g.uniform(0, 0.02, I)[:, None] + g.uniform(0, 0.03, J)[None] + g.normal(0, NOISE, (I, J))
+    return R, S, T
+
+
+def _beyond_3_bars(res, R: np.ndarray, S: np.ndarray) -> int:
+    """Nodes whose aligned 3-D error exceeds 3 of its error bars (chi-square(3)'s 0.9973 quantile)."""
+    from selfcal.geometry import align
+
+    est, true = np.vstack([res.receivers, res.sources]), np.vstack([R, S])
+    cov = np.concatenate([res.receiver_cov, res.source_cov])
+    tr = align(est, true, reflection=True)
+    e, Rm = tr.apply(est) - true, np.asarray(tr.rotation)
+    return sum(float(x @ np.linalg.solve(Rm @ c @ Rm.T, x)) > scipy.stats.chi2.ppf(0.9973, 3)
+               for x, c in zip(e, cov, strict=True))
+
+
+def _check_widened_bars(seeds) -> int:
+    """Over near-planar draws (heights N(0, 8 cm) on an 8 x 7 m floor): where the planarity
+    bootstrap ran and the answer stayed 3-D, every node lies within 3 of its (widened) bars;
+    where it did not run, the reported 3-D fit is the input fit (bars unchanged). Returns the
+    number of draws whose bars were widened."""
+    widened = 0
+    for seed in seeds:
+        R, S, T = _near_draw(seed)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            r3 = solve_toa(T, dim=3, offsets="both", speed=C, rng=seed)
+            keep3, _, _, stats, reported = dimension_test(T, r3, "both", _toa_solver(seed), _toa_options(C, None))
+        if stats["replicates"] == 0 or not keep3:
+            assert reported is r3 and not stats["bars_widened"]
+            continue
+        widened += 1
+        assert stats["bars_widened"] and "bootstrap" in stats["bars_note"]
+        assert stats["bar_widening_median"] >= 1.0
+        assert _beyond_3_bars(reported, R, S) == 0, seed
+    return widened
+
+
+def test_near_planar_3d_answers_whose_bars_the_bootstrap_widened_cover_the_truth():
+    """Reduced version of the slow test below (draws 5019-5023; 5019 and 5022 are widened:
+    5022 had 3-D nodes beyond 3 linearised bars, covered with the widened ones)."""
+    assert _check_widened_bars(range(5019, 5024)) >= 2
+
+
+@pytest.mark.slow
+def test_near_planar_widened_bars_cover_over_many_draws():
+    """120 draws (5000-5119, 2.5 min on a loaded machine): measured 16 bootstrap runs, 10 of
+    them stayed 3-D and were widened (bars x3.8-8.7 median per draw), 5 of those had nodes
+    beyond 3 linearised bars, none beyond 3 widened ones. The bound asserted is the
+    property (every widened draw covers), with at least 5 widened draws so it is not vacuous."""
+    assert _check_widened_bars(range(5000, 5120)) >= 5

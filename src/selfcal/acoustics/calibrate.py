@@ -372,11 +372,20 @@ def calibrate_matrix(
         return _planar_verdict(res2, plan, msg, dim, notes)
     sided: list[str] = []
     res3 = _resolve_mirrors(T, res3, speed, rng, notes, sided)
-    keep3, plan, _, _ = dimension_test(T, res3, "both", _toa_solver(rng), _toa_options(speed, noise))
-    cov = np.concatenate([np.asarray(res3.receiver_cov), np.asarray(res3.source_cov)])
+    keep3, plan, _, stats, wide3 = dimension_test(T, res3, "both", _toa_solver(rng), _toa_options(speed, noise))
     if keep3:
+        sol = _as_solution(wide3, "3d", 3, one_side=sided[0] if sided else None)
+        if stats.get("bars_widened"):
+            # the bootstrap's mean-square error (dimension_test) stays on through the refits
+            n_r = len(res3.receivers)
+            extra = np.concatenate([np.asarray(wide3.receiver_cov) - np.asarray(res3.receiver_cov),
+                                    np.asarray(wide3.source_cov) - np.asarray(res3.source_cov)])
+            sol = replace(sol, extra_cov=(extra[:n_r], extra[n_r:]))
+        cov = np.concatenate([np.asarray(sol.receiver_cov), np.asarray(sol.source_cov)])
         notes.append(_z_note(cov, plan.comparison))
-        return _as_solution(res3, "3d", 3, one_side=sided[0] if sided else None), plan, notes
+        if stats.get("bars_widened"):
+            notes.append(stats["bars_note"])
+        return sol, plan, notes
     cmp = plan.comparison
     why = ("" if cmp is None else f"3-D vs 2-D F = {cmp.f_statistic:.3g}, p = {cmp.p_value:.2g}; ")
     msg = (f"near-planar layout (thickness {plan.extents[-1]:.3f} m vs extent {plan.extents[0]:.2f} m, "
@@ -509,10 +518,19 @@ def refit(T: Array, sol: Calibration, speed: float, heights: tuple[Array, Array]
         # nodes the solver dropped (e.g. more flagged ranges than a position can hold) stay
         # dropped: the others are refined from where they stand
         sub = refit(T[np.ix_(kr, ks)], replace(sol, receivers=r[kr], sources=s[ks], receiver_offsets=dr[kr],
-                                               source_offsets=ds[ks]), speed, f_scale=f_scale)
-        return _scatter_nodes(sub, kr, ks, outliers=True)
+                                               source_offsets=ds[ks], extra_cov=None), speed, f_scale=f_scale)
+        return _with_extra(_scatter_nodes(sub, kr, ks, outliers=True), sol.extra_cov)
     res = _solve(T, d, speed, 0, init=(r[:, :d], s[:, :d], dr, ds), f_scale=f_scale)
-    return _as_solution(res, "", d, method=sol.method, one_side=sol.one_side)
+    return _with_extra(_as_solution(res, "", d, method=sol.method, one_side=sol.one_side), sol.extra_cov)
+
+
+def _with_extra(sol: Calibration, extra: tuple[Array, Array] | None) -> Calibration:
+    """``sol`` with ``extra`` (the covariance a refit does not recompute: the bootstrap's
+    mean-square error of :func:`calibrate_matrix`'s 3-D answer) added back and kept."""
+    if extra is None or np.shape(extra[0]) != np.shape(sol.receiver_cov) or np.shape(extra[1]) != np.shape(sol.source_cov):
+        return sol
+    return replace(sol, receiver_cov=np.asarray(sol.receiver_cov, float) + extra[0],
+                   source_cov=np.asarray(sol.source_cov, float) + extra[1], extra_cov=extra)
 
 
 def _scatter_nodes(sol: Calibration, kr: NDArray[np.bool_], ks: NDArray[np.bool_], *,

@@ -59,6 +59,10 @@ class Calibration(Result):
         Why the solver's outlier answer cannot be trusted, when it cannot.
     one_side : {"receivers", "sources"} or None
         The side put on one side of its partners' plane by the stated rule (:func:`calibrate_matrix`).
+    extra_cov : ((I, d, d), (J, d, d)) arrays or None
+        Covariance added to the linearised one and kept through refits: the 3-D estimator's
+        bootstrap mean-square error where the planarity test's bootstrap ran and the answer
+        stayed 3-D (:func:`selfcal.toa.verdict.select.dimension_test`); None elsewhere.
     """
 
     receivers: Array
@@ -77,3 +81,4 @@ class Calibration(Result):
     uniqueness: UniquenessTest | None = None
     outlier_breakdown: str | None = None
     one_side: str | None = None
+    extra_cov: tuple[Array, Array] | None = None

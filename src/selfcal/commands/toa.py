@@ -363,7 +363,8 @@ def _installer_outputs(res: Any, names: Any, anchors_out: Path | None, anchor_pl
 
 
 def _dim_choice_lines(res: Any) -> list[str]:
-    """The ``--dim auto`` choice (:func:`selfcal.toa.verdict.select.choose_dim`), one line."""
+    """The ``--dim auto`` choice (:func:`selfcal.toa.verdict.select.choose_dim`), one line; a
+    second where its bootstrap widened the 3-D answer's error bars (``bars_note``)."""
     sel = (res.selection or {}).get("dim") if isinstance(res.selection, dict) else None
     if not sel or "chosen" not in sel:
         return []
@@ -371,10 +372,13 @@ def _dim_choice_lines(res: Any) -> list[str]:
         return [f"  dim {sel['chosen']} (auto: {sel.get('reason', 'the only fit')})"]
     tp = sel.get("thickness_p")
     chi = "" if tp is None or tp != tp else f", chi-square p = {tp:.2g}"
-    return [f"  dim {sel['chosen']} (auto: 3-D vs 2-D F = {sel['f_statistic']:.3g}, p = {sel['p_value']:.2g}, "
-            f"level {PLANAR_ALPHA:g}; 3-D thickness {sel['thickness']:.3g} m{chi}"
-            + (", not resolved: near-planar" if sel.get("near_planar") else "")
-            + (f"; {sel['reason']})" if sel.get("reason") else ")")]
+    lines = [f"  dim {sel['chosen']} (auto: 3-D vs 2-D F = {sel['f_statistic']:.3g}, p = {sel['p_value']:.2g}, "
+             f"level {PLANAR_ALPHA:g}; 3-D thickness {sel['thickness']:.3g} m{chi}"
+             + (", not resolved: near-planar" if sel.get("near_planar") else "")
+             + (f"; {sel['reason']})" if sel.get("reason") else ")")]
+    if sel.get("bars_widened") and sel.get("bars_note"):
+        lines.append(f"  {sel['bars_note']}")
+    return lines
 
 
 def _offsets_choice_lines(details: dict[str, Any], res: Any, unit: str) -> list[str]:

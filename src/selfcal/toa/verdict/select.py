@@ -302,8 +302,9 @@ def _thickness_cov(fit3: ToaResult, speed: float | None) -> Array:
 
 
 def _null_replicates(M: Array, fit2: ToaResult, fit3: ToaResult, common: NDArray[np.bool_], offsets: str,
-                     opts: ToaOptions, n: int = BOOT_REPLICATES) -> Array:
-    """F statistics of ``n`` data sets simulated from the 2-D fit: the F test's null at a planar truth.
+                     opts: ToaOptions, n: int = BOOT_REPLICATES) -> tuple[Array, Array]:
+    """F statistics of ``n`` data sets simulated from the 2-D fit: the F test's null at a planar
+    truth; with the 3-D estimator's mean-square error there, per node.
 
     Each replicate is the 2-D fit's model on the entries both fits used (``common``) plus
     Gaussian noise of the 2-D fit's variance estimate (``RSS_2 / (m - p_2)``), refitted by
@@ -315,7 +316,15 @@ def _null_replicates(M: Array, fit2: ToaResult, fit3: ToaResult, common: NDArray
     refinements fail are skipped. The random numbers come from a child of the solver's
     generator (``opts.rng.spawn``): deterministic for a seeded solve, the solver's own
     stream not advanced (a generator that cannot spawn seeds a new one from one draw).
+
+    The same refits give the 3-D estimator's error at that planar truth: each replicate's
+    3-D fit (the one of lower RSS) aligned onto the 2-D fit embedded in 3-D (rigid motion,
+    reflection allowed: the frame the gauge-free covariances and the truth checks use,
+    :func:`selfcal.geometry.align`), itself aligned onto ``fit3``; ``mse`` is the mean of
+    ``e e^T`` over the replicates, (I + J, 3, 3) in ``fit3``'s frame (receivers then
+    sources; NaN for nodes either fit dropped, all NaN with fewer than 2 replicates).
     """
+    from ...geometry import align
     from ..engine.model import toa_model
     from ..engine.nls import refine_toa
 
@@ -346,21 +355,34 @@ def _null_replicates(M: Array, fit2: ToaResult, fit3: ToaResult, common: NDArray
         e = sol.residuals[np.isfinite(sol.residuals)]
         return float(e @ e), (sol.receivers, sol.sources, sol.receiver_offsets, sol.source_offsets)
 
+    # the replicates' planar truth in fit3's frame (the frame of its covariances)
+    ok = (np.isfinite(np.vstack([fit3.receivers, fit3.sources])).all(axis=1)
+          & np.isfinite(np.vstack([fit2.receivers, fit2.sources])).all(axis=1))
+    P3 = np.vstack([st3[0], st3[1]])
+    T0 = np.c_[np.vstack([st2[0], st2[1]]), np.zeros(I + J)]
+    T0 = align(T0[ok], P3[ok], reflection=True).apply(T0)
+    sq = np.zeros((I + J, 3, 3))
     out = []
     for _ in range(n):
         Y = np.where(common, mu + g.normal(0.0, sigma, M.shape), np.nan)
         z = g.normal(0.0, bend, I + J)
         rss2, f2 = rss(Y, st2)
         lifted = (np.c_[f2[0], z[:I]], np.c_[f2[1], z[I:]], f2[2], f2[3])
-        rss3 = min(rss(Y, st3)[0], rss(Y, lifted)[0])
+        rss3, f3 = min(rss(Y, st3), rss(Y, lifted), key=lambda t: t[0])
         if math.isfinite(rss2) and math.isfinite(rss3):
             out.append(compare_fits(math.sqrt(rss2 / m), math.sqrt(min(rss3, rss2) / m), m, I + J,
                                     n_offsets=n_off).f_statistic)
-    return np.asarray(out, float)
+            X = np.vstack([f3[0], f3[1]])[ok]
+            e = align(X, T0[ok], reflection=True).apply(X) - T0[ok]
+            sq[ok] += np.einsum("ki,kj->kij", e, e)
+    mse = np.full((I + J, 3, 3), np.nan)
+    if len(out) >= 2:
+        mse[ok] = sq[ok] / len(out)
+    return np.asarray(out, float), mse
 
 
 def dimension_test(M: Array, fit3: ToaResult, offsets: str, solve: Solver,
-                   opts: ToaOptions) -> tuple[bool, Planarity, ToaResult | None, dict[str, Any]]:
+                   opts: ToaOptions) -> tuple[bool, Planarity, ToaResult | None, dict[str, Any], ToaResult]:
     """Is the 3-D fit ``fit3`` of ``M`` determined in z, or is the layout (near-)planar?
 
     The 2-D model is fitted by one refinement from ``fit3`` projected onto its best plane
@@ -386,7 +408,9 @@ def dimension_test(M: Array, fit3: ToaResult, offsets: str, solve: Solver,
     :data:`BOOT_REPLICATES` data sets are simulated from the 2-D fit and refitted
     (:func:`_null_replicates`) and the F test is corrected by their Bartlett factor
     (:func:`.planarity.bartlett_corrected`). Elsewhere (generic 3-D networks: F far beyond
-    any null) nothing more runs.
+    any null) nothing more runs. Where the bootstrap ran and the answer stays 3-D, the 3-D
+    fit's covariances are widened by the 3-D estimator's mean-square error over the same
+    replicates (:func:`_widened`: the linearised bars do not describe a fit in that band).
 
     Parameters
     ----------
@@ -416,7 +440,13 @@ def dimension_test(M: Array, fit3: ToaResult, offsets: str, solve: Solver,
         ``thickness_chi2``, ``thickness_p``, ``alpha``, ``p_asymptotic``, ``bartlett``,
         ``bartlett_se``, ``replicates`` (0 and factor 1 where the bootstrap did not run),
         ``plane_rejected`` (the asymptotic F test rejects the plane outside the bootstrap
-        band: :func:`choose_dim` then reports no 2-D answer when the 3-D fit fails its own tests).
+        band: :func:`choose_dim` then reports no 2-D answer when the 3-D fit fails its own tests),
+        ``bars_widened``; where True also ``bar_widening_median`` / ``bar_widening_max``
+        (per node, the RMS-radius std after over before), ``bootstrap_rms_error`` (m) and
+        ``bars_note`` (the sentence that says why).
+    fit3 : ToaResult
+        The 3-D fit to report when ``keep3``: ``fit3``, its covariances widened where
+        ``bars_widened``.
     """
     r3 = fit3
     r2 = _quiet(solve, M, 2, offsets, dataclasses.replace(opts, method="nls"), init=_projected_init(r3, offsets, opts.speed))
@@ -434,7 +464,7 @@ def dimension_test(M: Array, fit3: ToaResult, offsets: str, solve: Solver,
     if r2 is None:
         plan = planarity(pts, cov)
         return True, plan, None, {"criterion": "F", "chosen": 3, "reason": "only the 3-D fit exists",
-                                  "alpha": PLANAR_ALPHA}
+                                  "alpha": PLANAR_ALPHA}, r3
     assert r2.residuals is not None and r3.residuals is not None and r2.outliers is not None
     assert r3.outliers is not None
     common = np.isfinite(r2.residuals) & np.isfinite(r3.residuals) & ~r2.outliers & ~r3.outliers
@@ -453,9 +483,11 @@ def dimension_test(M: Array, fit3: ToaResult, offsets: str, solve: Solver,
     # factor measured at planar truths (outside the bootstrap band): no bend of a planar truth
     # explains it (choose_dim then reports no 2-D model when the 3-D fit fails its own tests)
     rejected = cmp.significant and not in_bootstrap_band(cmp, float(plan.extents[-1]), noise, extent)
+    mse = None
     if in_bootstrap_band(cmp, float(plan.extents[-1]), noise, extent) and (not plan.near_planar or _misfit(r2)):
         # only where the bootstrap can overturn a "3-D" verdict (F decides it)
-        cmp = bartlett_corrected(cmp, _null_replicates(M, r2, r3, common, offsets, opts))
+        F, mse = _null_replicates(M, r2, r3, common, offsets, opts)
+        cmp = bartlett_corrected(cmp, F)
         plan = planarity(pts, cov, comparison=cmp)
     untestable = cmp.dof_3d <= 0
     keep3 = untestable or not plan.near_planar or (cmp.significant and _misfit(r2))
@@ -465,8 +497,43 @@ def dimension_test(M: Array, fit3: ToaResult, offsets: str, solve: Solver,
              "normal_std": plan.normal_std, "thickness_chi2": plan.thickness_chi2,
              "thickness_p": plan.thickness_p, "alpha": PLANAR_ALPHA, "p_asymptotic": cmp.p_asymptotic,
              "bartlett": cmp.bartlett, "bartlett_se": cmp.bartlett_se, "replicates": cmp.replicates,
-             "plane_rejected": bool(rejected)}
-    return keep3, plan, r2, stats
+             "plane_rejected": bool(rejected), "bars_widened": False}
+    if keep3 and mse is not None and np.isfinite(mse).any():
+        r3, widening = _widened(r3, mse)
+        stats.update(widening)
+    return keep3, plan, r2, stats, r3
+
+
+def _widened(fit3: ToaResult, mse: Array) -> tuple[ToaResult, dict[str, Any]]:
+    """``fit3`` with each node's bootstrap mean-square error at the 2-D fit added to its
+    covariance (:func:`_null_replicates`); the statistics that say so.
+
+    Where the bootstrap runs (the second-order band, :func:`.planarity.in_bootstrap_band`)
+    and the answer stays 3-D, the band is the regime where the heights enter the ranges at
+    second order: the 3-D fit bends along directions its linearised covariance (the CRLB at
+    the bent fit) does not describe, and the planar layout of the 2-D fit is one the data
+    cannot tell from it to first order. The covariance reported is then the larger error
+    law of the two hypotheses the band holds: the linearised covariance plus the 3-D
+    estimator's mean-square error (bias and scatter) at the planar truth, ``C + MSE``
+    (conservative: at least either). No refit is added: the F test's replicates are reused.
+    """
+    I = len(fit3.receivers)
+    ok: NDArray[np.bool_] = np.asarray(np.isfinite(mse).all(axis=(1, 2)), bool)
+    add = np.where(ok[:, None, None], mse, 0.0)
+    rc, sc = np.asarray(fit3.receiver_cov, float), np.asarray(fit3.source_cov, float)
+    before = np.concatenate([rc, sc])
+    after = before + add
+    with np.errstate(invalid="ignore", divide="ignore"):
+        f = np.sqrt(np.trace(after, axis1=1, axis2=2) / np.trace(before, axis1=1, axis2=2))[ok]
+    f = f[np.isfinite(f)]
+    med, mx = (float(np.median(f)), float(f.max())) if f.size else (float("nan"), float("nan"))
+    rms = float(np.sqrt(np.mean(np.trace(add[ok], axis1=1, axis2=2)))) if ok.any() else float("nan")
+    note = (f"error bars widened by the 3-D estimator's bootstrap mean-square error at the 2-D fit (the layout is in "
+            f"the second-order band, where the linearised covariance does not describe a bent 3-D fit): "
+            f"RMS position error {rms * 1e3:.3g} mm added; bars x{med:.3g} median, x{mx:.3g} max")
+    out = dataclasses.replace(fit3, receiver_cov=after[:I], source_cov=after[I:])
+    return out, {"bars_widened": True, "bar_widening_median": med, "bar_widening_max": mx,
+                 "bootstrap_rms_error": rms, "bars_note": note}
 
 
 def choose_dim(M: Array, offsets: str, solve: Solver, opts: ToaOptions, *,
@@ -492,7 +559,7 @@ def choose_dim(M: Array, offsets: str, solve: Solver, opts: ToaOptions, *,
             raise DegenerateGeometryError("neither a 2-D nor a 3-D geometry could be fitted to this matrix",
                                           kind="degenerate-geometry")
         return r2, {"criterion": "F", "chosen": 2, "reason": "only the 2-D fit exists"}
-    keep3, _, r2, stats = dimension_test(M, r3, offsets, solve, opts)
+    keep3, _, r2, stats, r3 = dimension_test(M, r3, offsets, solve, opts)
     if not keep3 and stats.get("plane_rejected") and not r3.success:
         # the data reject the plane beyond any bend of a planar truth, and the 3-D fit fails its
         # own tests (ambiguous, undetermined): neither answer is trustworthy. The failing 3-D fit
