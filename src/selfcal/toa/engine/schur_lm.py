@@ -28,6 +28,10 @@ product run as plain contiguous array arithmetic. Cost per CG product O(nK nE (m
 per Levenberg-Marquardt iteration O(nK nE d^2) for the blocks; nothing of size
 (nK d) x (nE d) is formed (Agarwal et al., "Bundle adjustment in the large", 2010, for the
 inexact-Newton Schur scheme).
+
+Why this file is above 600 lines (~630): the range model and its Schur step solver share the
+component-major products (directions, diagonal blocks, the reduced system); split, each half
+would import the other's private arrays and layout.
 """
 
 from __future__ import annotations

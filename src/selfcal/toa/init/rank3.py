@@ -4,6 +4,11 @@
 subspace iteration, CG for missing entries), :func:`fast_offsets` (linear then exact model),
 :func:`estimate_offsets` (the thesis's acceptance test and restarts). The model and its
 notation are in :mod:`.rank3_model`.
+
+Why this file is at ~600 lines: the LM on the rank-d distance and its two step structures
+(the complete-data Gauss-Newton matrix kept as blocks, :class:`_Structure`, and the scalable
+CG step) are one algorithm's pieces that share private arrays; the model and the joint
+variant already live in their own files.
 """
 
 from __future__ import annotations

@@ -11,8 +11,11 @@
   re-exported): do the data determine the fitted geometry? Each node's 95 % confidence
   region against the size of its node set; what ``solve_toa`` reports as ``determinacy``.
 
-Split from :mod:`selfcal.toa.result` (which re-exports every name) to keep both files
-below ~600 lines.
+Split from :mod:`selfcal.toa.result` (which re-exports every name). Why this file is above
+600 lines (~650): the permutation test computes its statistic for the whole stack of permuted
+copies at once (the batched starts and fits, ``_complete_*``), which must equal
+:func:`geometry_statistic` copy by copy; the single-copy and the batched forms stay side by
+side so that one cannot change without the other.
 """
 
 from __future__ import annotations
