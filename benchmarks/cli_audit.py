@@ -304,6 +304,7 @@ GENERIC: dict[str, Callable[[Any], Case]] = {
     "gen-3d-offr-10x14": generic(10, 14, 3, offsets="receivers"),
     "gen-3d-offauto-10x14": generic(10, 14, 3, offsets="auto"),
     "gen-3d-6x8": generic(6, 8, 3),
+    "gen-2d-10x30-t5": generic(10, 30, 2, "t5"),  # appended: the ids of the families above unchanged
 }
 ALL = {**FAMILIES, **GENERIC}
 
