@@ -98,3 +98,37 @@ def test_offsets_still_caught_under_laplace_noise():
     for seed in range(20):
         t = _draw(10, 30, 2, "laplace", seed, delays=lambda g, I: g.uniform(0.02, 0.2, I))
         assert not t.passed and t.better == "offsets=receivers", (seed, t)
+
+
+def test_kurtosis_estimate_undoes_the_fit():
+    """The leverage-corrected estimate (``_excess_kurtosis``) against the errors' own sample kurtosis.
+
+    A linear least-squares fit with p/n = 1/3 (as a 10 x 30 2-D network with both offsets)
+    and uneven leverages; 10 entries held out enter as prediction residuals. Over 200 draws
+    the estimate from the residuals is compared with the sample excess kurtosis of the
+    (unobservable) errors themselves, the best a residual-based estimate can do (for Laplace
+    noise it is itself biased low at n = 310: 2.75 against 3). Measured over 300 draws:
+    2.50 from the residuals against 2.75 from the errors, where the plain sample kurtosis of
+    the residuals reads 1.98; for Gaussian noise median 0 (half clipped), mean 0.19. The
+    tolerances (0.4, 0.35) are a few standard errors of these means (per-draw sd 1.7 Laplace,
+    0.4 Gaussian).
+    """
+    from selfcal.toa.verdict.model_test import _excess_kurtosis
+
+    n, p, n_out = 300, 100, 10
+    for law in ("laplace", "gauss"):
+        est, own = [], []
+        for seed in range(200):
+            g = np.random.default_rng([27, 93, seed])
+            X = g.normal(size=(n + n_out, p)) * g.uniform(0.2, 3.0, (n + n_out, 1))  # uneven leverages
+            e = g.laplace(0, 1, n + n_out) if law == "laplace" else g.normal(0, 1, n + n_out)
+            Xf = X[:n]
+            G = np.linalg.inv(Xf.T @ Xf)
+            res = e - X @ (G @ Xf.T @ e[:n])
+            lev = np.einsum("ij,jk,ik->i", X, G, X)
+            est.append(_excess_kurtosis(res, lev, np.arange(n + n_out) >= n))
+            own.append(max(np.mean(e ** 4) / np.mean(e ** 2) ** 2 - 3.0, 0.0))
+        if law == "laplace":
+            assert abs(np.mean(est) - np.mean(own)) < 0.4, (np.mean(est), np.mean(own))
+        else:
+            assert np.median(est) < 0.1 and np.mean(est) < 0.35, (np.median(est), np.mean(est))

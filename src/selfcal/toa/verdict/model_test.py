@@ -119,31 +119,34 @@ def _n_par(I: int, J: int, dim: int, offsets: str) -> int:
     return n_parameters(I, J, dim, offsets)
 
 
-def _excess_kurtosis(res: Array, lev: Array) -> tuple[float, float]:
-    """Excess kurtosis of the noise and ``sum_i M_ii^2``, from a fit's residuals and leverages.
+def _excess_kurtosis(res: Array, lev: Array, held: NDArray[np.bool_] | None = None) -> float:
+    """Excess kurtosis of the noise from a fit's residuals ``res`` and leverages ``lev`` (same shape).
 
     A residual is ``r_i = sum_j M_ij e_j`` (``M = 1 - H`` the residual projection, ``M_ii =
     1 - h_i``): the studentized ``u_i = r_i / sqrt(M_ii)`` has variance ``sigma^2`` and
-    fourth moment ``3 sigma^4 + kappa4 sum_j M_ij^4 / M_ii^2 ~ 3 sigma^4 + kappa4 M_ii^2``
-    (the off-diagonal ``M_ij = -H_ij`` are small). So ``gamma2 = (sum u^4 / s^4 - 3 n) /
-    sum M_ii^2`` with ``s^2 = mean u^2`` undoes both the fit's shrinkage of the tails and the
-    spread of the leverages (which alone makes Gaussian residuals look heavy-tailed on small
-    networks). Clipped at 0 (module docstring). Small samples: its standard error for
-    Gaussian noise is ``sqrt(24 n) / sum M_ii^2`` (0.75 at a 10 x 30 2-D network, ~ 10 at
-    3-D 8 x 10 with 15 residual dof of 80 entries: there the correction is mostly noise and
-    costs power, never level); the sample kurtosis is bounded by ``n``, so tails of infinite
-    kurtosis (Student t3) are under-stated and the estimate grows with n.
+    fourth moment ``3 sigma^4 + kappa4 w_i``, ``w_i = sum_j M_ij^4 / M_ii^2 ~ M_ii^2`` (the
+    off-diagonal ``M_ij = -H_ij`` are small). So ``gamma2 = (sum u^4 / s^4 - 3 n) / sum w``
+    with ``s^2 = mean u^2`` undoes both the fit's shrinkage of the tails and the spread of
+    the leverages (which alone makes Gaussian residuals look heavy-tailed on small
+    networks). Entries ``held`` out of the fit enter as prediction residuals: variance
+    ``sigma^2 (1 + h_i)``, ``w_i ~ 1 / (1 + h_i)^2``. Clipped at 0 (module docstring).
+    Small samples: its standard error for Gaussian noise is ``sqrt(24 n) / sum w`` (0.75 at a
+    10 x 30 2-D network, ~ 10 at 3-D 8 x 10 with 15 residual dof of 80 entries: there the
+    correction is mostly noise and costs power, never level); the sample kurtosis is
+    bounded by ``n``, so tails of infinite kurtosis (Student t3) are under-stated and the
+    estimate grows with n.
     """
-    ok = np.isfinite(res) & np.isfinite(lev) & (lev < 1.0 - 1e-9)
-    M = 1.0 - lev[ok]
-    u = res[ok] / np.sqrt(M)
+    held = np.zeros(res.shape, bool) if held is None else held
+    ok = np.isfinite(res) & np.isfinite(lev) & (held | (lev < 1.0 - 1e-9))
+    var = np.where(held, 1.0 + lev, 1.0 - lev)[ok]
+    w = np.where(held[ok], 1.0 / var, var) ** 2
+    u = res[ok] / np.sqrt(var)
     n = u.size
     s2 = float(np.mean(u ** 2)) if n else 0.0
-    sm2 = float(M @ M)
-    if n < 4 or s2 <= 0.0 or sm2 <= 0.0:
-        return 0.0, sm2
-    g2 = (float(np.sum(u ** 4)) / s2 ** 2 - 3.0 * n) / sm2
-    return max(g2, 0.0), sm2
+    sw = float(np.sum(w))
+    if n < 4 or s2 <= 0.0 or sw <= 0.0:
+        return 0.0
+    return max((float(np.sum(u ** 4)) / s2 ** 2 - 3.0 * n) / sw, 0.0)
 
 
 def _tail_scale(h_big: Array, h_small: Array, k: int, gamma2: float) -> float:
@@ -183,7 +186,7 @@ def _ftest(rss0: float, rss1: float, k: int, dof1: int, noise2: float | None, fl
 def forced_model_test(ranges: Any, receivers: Any, sources: Any, receiver_offsets: Any = None,
                       source_offsets: Any = None, *, offsets: str, noise: float | None = None,
                       test_dim: bool = True, test_offsets: bool = True, alpha: float = MODEL_ALPHA,
-                      seed: int = 0) -> ModelTest:
+                      seed: int = 0, excluded: Any = None) -> ModelTest:
     """Test a fitted model (dimension, offsets) against the larger ones (module docstring).
 
     Parameters
@@ -194,6 +197,10 @@ def forced_model_test(ranges: Any, receivers: Any, sources: Any, receiver_offset
     noise: range noise std (metres) when known.
     test_dim: test a 2-D fit against 3-D; test_offsets: test offsets other than "both" against "both".
     alpha: level; seed: the lift's random heights.
+    excluded: (I, J) ranges the fit left out as outliers (metres, NaN elsewhere): they enter
+        only the kurtosis estimate (as prediction residuals of the larger fit), since trimming
+        the tails of heavy-tailed noise lowers the kurtosis of what is left while the F
+        statistic keeps its excess (module docstring).
 
     Returns
     -------
@@ -230,6 +237,9 @@ def forced_model_test(ranges: Any, receivers: Any, sources: Any, receiver_offset
         Y, R, S = Y[np.ix_(ir, js)], R[ir], S[js]
         d0 = None if d0 is None else d0[ir]
         o0 = None if o0 is None else o0[js]
+        X = None if excluded is None else np.asarray(excluded, float)[np.ix_(ir, js)]
+    else:
+        X = None if excluded is None else np.asarray(excluded, float)
     I, dim = R.shape
     J = S.shape[0]
     obs = np.isfinite(Y)
@@ -296,7 +306,16 @@ def forced_model_test(ranges: Any, receivers: Any, sources: Any, receiver_offset
             sb = fitb[1]
             hb = lev(sb.receivers, sb.sources, sb.receiver_offsets, sb.source_offsets, "both")
             # the kurtosis of the larger model's residuals: the smaller one's misfit kept out
-            g2, sm2 = _excess_kurtosis(sb.residuals, hb)
+            res, lv = sb.residuals, hb
+            held = np.isfinite(X) & ~obs if X is not None and X.shape == Y.shape else np.zeros(Y.shape, bool)
+            if X is not None and held.any():  # their prediction residuals at the larger fit
+                ho = leverages(Y, sb.receivers, sb.sources, sb.receiver_offsets, sb.source_offsets, "both",
+                               held_out=held)
+                pr = X - model(sb.receivers, sb.sources, sb.receiver_offsets, sb.source_offsets)
+                res, lv = np.where(held, pr, res), np.where(held, ho, hb)
+            g2 = _excess_kurtosis(res, lv, held)
+            Mb = 1.0 - hb[obs & np.isfinite(hb)]
+            sm2 = float(Mb @ Mb)
             cb = _tail_scale(hb, lev(R, S, d0, o0, offsets), kb, g2) if g2 > 0 else 1.0
             cd = 1.0 + g2 * sm2 / (2.0 * dofb)
             t, p, dn = _ftest(rss0, rssb, kb, dofb, noise2, floor2, cb, cd)
