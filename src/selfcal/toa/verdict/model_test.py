@@ -130,9 +130,10 @@ def _excess_kurtosis(res: Array, lev: Array, held: NDArray[np.bool_] | None = No
     the leverages (which alone makes Gaussian residuals look heavy-tailed on small
     networks). Entries ``held`` out of the fit enter as prediction residuals: variance
     ``sigma^2 (1 + h_i)``, ``w_i ~ 1 / (1 + h_i)^2``. Clipped at 0 (module docstring).
-    Small samples: its standard error for Gaussian noise is ``sqrt(24 n) / sum w`` (0.75 at a
+    Small samples: its standard error for Gaussian noise is ``sqrt(24 n) / sum w`` (0.7 at a
     10 x 30 2-D network, ~ 10 at 3-D 8 x 10 with 15 residual dof of 80 entries: there the
-    correction is mostly noise and costs power, never level); the sample kurtosis is
+    correction is mostly noise: it can cost power, never make the test stricter than the
+    Gaussian F test); the sample kurtosis is
     bounded by ``n``, so tails of infinite kurtosis (Student t3) are under-stated and the
     estimate grows with n.
     """
