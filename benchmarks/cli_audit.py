@@ -51,7 +51,8 @@ Families (1 cm range noise in a 10 m box unless stated; I x J = receivers x sour
 - generic well-posed (false alarms): ``gen-3d-8x10``, ``gen-2d-8x10`` (2-D truth),
   ``gen-3d-12x40-t3`` (Student t3 noise of 1 cm std), ``gen-2d-10x30-laplace``,
   ``gen-3d-offr-10x14`` (``--offsets receivers``, offsets U(0, 2) m), ``gen-3d-offauto-10x14``
-  (both offsets in the truth, ``--offsets auto``), ``gen-3d-6x8`` (small).
+  (both offsets in the truth, ``--offsets auto``), ``gen-3d-6x8`` (small), ``gen-2d-10x30-t5``
+  (Student t5; appended last so the other families keep their seeds).
 
 Run (the table below): ``OPENBLAS_NUM_THREADS=1 PYTHONPATH=src .venv/bin/python
 benchmarks/cli_audit.py --draws 20 [--families a,b] [--first 0] [--jsonl FILE]``; one JSON
@@ -121,6 +122,21 @@ parameters, p 1e-6 to 2e-4): that F test assumes Gaussian noise; no breakdown or
 false alarm. Exit-0 outside (a) there: Laplace 18 of 198 against 4.9 expected, t3 11 of 199
 against 1.8, none beyond 4.1 bars. (b) counts per-axis tails: a calibrated answer with 50 nodes
 has one in about a third of the draws, so "none outside" cannot hold under (b).
+
+After the forced-model test's heavy-tail correction (branch ``kurtf``, F referred to
+``F(k / c, dof / c_d)``, :mod:`selfcal.toa.verdict.model_test`), the same seeds 0-259::
+
+    OPENBLAS_NUM_THREADS=1 PYTHONPATH=src .venv/bin/python benchmarks/cli_audit.py --draws 260 \
+        --families gen-2d-10x30-laplace,gen-3d-12x40-t3
+
+    gen-2d-10x30-laplace       260   259     1     0     22     92  6.33 51.29     0     0    4.03
+    gen-3d-12x40-t3            260   260     0     0     17    153  2.39 89.99     0     0    3.89
+
+Laplace 1 of 260 (was 3; seed 180, F = 2.86 on 39, p 1.2e-6 -> 5.8e-4), t3 0 of 260 (was 1).
+``gen-2d-10x30-t5`` (``--draws 100`` then ``--draws 160 --first 100``; before: the same
+commands with ``PYTHONPATH`` on main at 3db44d7): 3 of 260 false alarms before (seeds 218,
+227, 259: the forced-model F test, F = 2.08-2.74 on 39, p 3.4e-6 to 6.5e-4), 0 of 260
+after; exit-0 outside (a) 31 of 260 both times.
 """
 
 from __future__ import annotations
@@ -304,6 +320,7 @@ GENERIC: dict[str, Callable[[Any], Case]] = {
     "gen-3d-offr-10x14": generic(10, 14, 3, offsets="receivers"),
     "gen-3d-offauto-10x14": generic(10, 14, 3, offsets="auto"),
     "gen-3d-6x8": generic(6, 8, 3),
+    "gen-2d-10x30-t5": generic(10, 30, 2, "t5"),  # appended: the ids of the families above unchanged
 }
 ALL = {**FAMILIES, **GENERIC}
 

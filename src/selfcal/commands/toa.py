@@ -293,7 +293,8 @@ def _forced_model(res: Any, M: Any, rejected: Any, speed: float | None, noise: f
 
     return forced_model_test(Mf[np.ix_(ok_r, ok_s)] * c, R[ok_r], S[ok_s], sub(res.receiver_offsets, ok_r),
                              sub(res.source_offsets, ok_s), offsets=str(off), noise=None if noise is None else noise * c,
-                             test_dim=test_dim, test_offsets=test_off)
+                             test_dim=test_dim, test_offsets=test_off,
+                             excluded=np.asarray(M, float)[np.ix_(ok_r, ok_s)] * c)
 
 
 def _verdict_lines(res: Any, forced: Any, row_names: Any, col_names: Any) -> list[str]:
