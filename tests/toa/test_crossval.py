@@ -9,7 +9,13 @@ import pytest
 
 from selfcal.experiments.lps import simulate_uwb_flight
 from selfcal.toa.engine.nls import refine_toa
-from selfcal.toa.verdict.crossval import SIGN_ALPHA, cross_validate, locate_sources, one_se_choice, sign_test_p
+from selfcal.toa.verdict.crossval import (
+    SIGN_ALPHA,
+    cross_validate,
+    locate_sources,
+    one_se_choice,
+    sign_test_p,
+)
 
 
 def test_locate_sources_recovers_exact_positions_and_offsets():
