@@ -389,7 +389,7 @@ def _offsets_choice_lines(details: dict[str, Any], res: Any, unit: str) -> list[
         return []
     scores = ", ".join(f"{k} {v:.4g}" for k, v in sel["cv_rmse"].items())
     line = (f"  offsets model {sel['chosen']} by held-out prediction ({sel['folds']}-fold over sources (tag positions), "
-            f"one-SE rule; best {sel['best']}): RMS prediction error {scores} {unit}")
+            f"one-SE rule with a sign test; best {sel['best']}): RMS prediction error {scores} {unit}")
     est = (sel.get("anchor_mse") or {}).get("rmse")
     if est:  # the per-anchor model is kept only where its anchors are expected to be more accurate too
         line += "; estimated anchor RMS error " + ", ".join(f"{k} {v:.3g}" for k, v in est.items()) + f" {unit}"
