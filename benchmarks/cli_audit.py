@@ -137,6 +137,12 @@ Laplace 1 of 260 (was 3; seed 180, F = 2.86 on 39, p 1.2e-6 -> 5.8e-4), t3 0 of 
 commands with ``PYTHONPATH`` on main at 3db44d7): 3 of 260 false alarms before (seeds 218,
 227, 259: the forced-model F test, F = 2.08-2.74 on 39, p 3.4e-6 to 6.5e-4), 0 of 260
 after; exit-0 outside (a) 31 of 260 both times.
+
+After the lifted 3-D start of the dimension test (branch ``six8``, ``select._lifted_fit3``;
+before = 3f05236, same command both times: ``--draws 60 --families
+gen-3d-6x8,gen-3d-8x10,gen-2d-8x10``): all 180 draws identical but ``gen-3d-6x8`` 43 (2-D,
+5.2 m off at 9.2 bars -> 3-D, 5.7 cm at 2.7 bars, exit 0 both); ``gen-3d-6x8`` out(a) 8 -> 7,
+out5 3 -> 2. Seed 47 (a 3-D search miss, F far outside the bootstrap band) is unchanged.
 """
 
 from __future__ import annotations
