@@ -403,8 +403,9 @@ def _lifted_fit3(M: Array, fit2: ToaResult, fit3: ToaResult, common: NDArray[np.
 
     Each lift is refined by least squares (:func:`selfcal.toa.engine.nls.refine_toa`, as the
     replicates, ``noise`` the 2-D fit's variance estimate); only where the best one's sum of
-    squares over ``common`` is below the observed 3-D fit's is the model refitted by
-    ``solve`` from it (``method="nls"``: the result with its own tests and covariances).
+    squares over ``common`` is below the observed 3-D fit's by more than one noise variance
+    (its RSS over the residual dof: a different minimum, not the same one refitted) is the
+    model refitted by ``solve`` from it (``method="nls"``: the result with its own tests and covariances).
     Returns that fit when it removes no more entries than ``fit3`` and its sum of squares is
     lower, else None. The heights come from a stream keyed off the solver's seed sequence
     that does not advance it (the replicates' child, and so every decision the lift does not
@@ -427,15 +428,31 @@ def _lifted_fit3(M: Array, fit2: ToaResult, fit3: ToaResult, common: NDArray[np.
     g = np.random.default_rng(np.random.SeedSequence(ss.entropy, spawn_key=key) if key is not None and ss is not None
                               else 0)
     Y = np.where(common, k * M, np.nan)
-    best, init = float(np.sum((k * fit3.residuals[common]) ** 2)), None
-    for _ in range(LIFTS):
-        z = g.normal(0.0, math.sqrt(sigma * extent), I + J)
+    st3 = _nested_init(fit3, offsets, opts.speed)
+
+    def lsq(start: tuple[Any, ...]) -> Any:
         try:
             with warnings.catch_warnings(), np.errstate(all="ignore"):
                 warnings.simplefilter("ignore")
-                sol = refine_toa(Y, np.c_[st2[0], z[:I]], np.c_[st2[1], z[I:]], offsets=offsets,
-                                 receiver_offsets0=st2[2], source_offsets0=st2[3], covariance=False)
+                return refine_toa(Y, start[0], start[1], offsets=offsets, receiver_offsets0=start[2],
+                                  source_offsets0=start[3], covariance=False)
         except (np.linalg.LinAlgError, ValueError, FloatingPointError, DegenerateGeometryError):
+            return None
+
+    # the baseline on the same objective: the search's fit refined on the same entries (it was
+    # fitted on entries outside ``common`` too, so its own RSS there is not the minimum there)
+    base = lsq(st3)
+    e3 = (k * fit3.residuals[common]) if base is None else base.residuals[np.isfinite(base.residuals)]
+    best, init = float(e3 @ e3), None
+    # a different minimum, not the same one refitted: lower by more than one noise variance
+    # (a log-likelihood gain of 1/2; round-off between two refinements of one minimum must not
+    # replace the search's fit, whose statistics and decision then stay as they were)
+    p3 = 3 * (I + J) - 6 + _n_off(offsets, I, J)
+    best -= best / max(m - p3, 1)
+    for _ in range(LIFTS):
+        z = g.normal(0.0, math.sqrt(sigma * extent), I + J)
+        sol = lsq((np.c_[st2[0], z[:I]], np.c_[st2[1], z[I:]], st2[2], st2[3]))
+        if sol is None:
             continue
         e = sol.residuals[np.isfinite(sol.residuals)]
         if float(e @ e) < best:
@@ -445,7 +462,12 @@ def _lifted_fit3(M: Array, fit2: ToaResult, fit3: ToaResult, common: NDArray[np.
     new = _quiet(solve, M, 3, offsets, dataclasses.replace(opts, method="nls"), init=init)
     if new is None or new.outliers is None or np.asarray(new.outliers).sum() > np.asarray(fit3.outliers).sum():
         return None
-    return new if _rss(new) < _rss(fit3) else None
+    # the same rule on the solver's fits (kept entries): the refit is a different minimum, lower
+    # by more than one noise variance, or the search's fit stands (a near-flat bend lets two
+    # refinements of one minimum stop apart by round-off)
+    kept = int((np.isfinite(fit3.residuals) & ~np.asarray(fit3.outliers, bool)).sum())
+    rss3 = _rss(fit3)
+    return new if _rss(new) < rss3 - rss3 / max(kept - p3, 1) else None
 
 
 def dimension_test(M: Array, fit3: ToaResult, offsets: str, solve: Solver, opts: ToaOptions, *,
